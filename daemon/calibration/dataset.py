@@ -1,0 +1,273 @@
+"""Recorded data per the CSV contract: ``t_s``, ``x_um``, ``q_um`` and one column per temperature channel.
+
+Every column that is not reserved is a temperature channel in °C named by its header. Reserved
+columns the project adds (documented in the README):
+
+- ``q_pred_um``: the command the model gives for the row (``nanodrift predict``);
+- ``cycle``: 0-based calibration/validation cycle, so held-out blocks are whole cycles;
+- ``valid``: 1/0; a step that could not be measured cleanly (a sensor faulted) is kept with 0.
+
+Files are refused with a message naming the file, the row (1-based line number as an editor shows
+it) and the column.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import os
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO
+
+import numpy as np
+
+from daemon.atomic import atomic_writer
+
+REQUIRED = ("t_s", "x_um")
+RESERVED = ("t_s", "x_um", "q_um", "q_pred_um", "cycle", "valid")
+CHANNEL_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_.\-]*$")
+#: names a channel may not take because a model term would read them as something else
+FORBIDDEN_CHANNELS = frozenset({"x", "dir", "t", "1"})
+
+
+class DataError(ValueError):
+    """A data file that does not follow the CSV contract; the message says where and why."""
+
+
+@dataclass
+class Dataset:
+    """A time series of samples: positions, commands and temperature channels."""
+
+    t: np.ndarray
+    x: np.ndarray
+    q: np.ndarray | None = None
+    channels: dict[str, np.ndarray] = field(default_factory=dict)
+    extra: dict[str, np.ndarray] = field(default_factory=dict)
+    source: str = "<memory>"
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+    @property
+    def channel_names(self) -> tuple[str, ...]:
+        return tuple(self.channels)
+
+    def select(self, rows: np.ndarray | slice) -> Dataset:
+        """The rows picked by a boolean mask, an index array or a slice, as a new dataset."""
+        return Dataset(
+            t=self.t[rows],
+            x=self.x[rows],
+            q=None if self.q is None else self.q[rows],
+            channels={k: v[rows] for k, v in self.channels.items()},
+            extra={k: v[rows] for k, v in self.extra.items()},
+            source=self.source,
+        )
+
+    def valid_rows(self) -> Dataset:
+        """Only the rows not marked ``valid = 0``."""
+        if "valid" not in self.extra:
+            return self
+        return self.select(self.extra["valid"] != 0)
+
+    def cycles(self) -> np.ndarray:
+        """Cycle index per row: the ``cycle`` column, else a new cycle wherever x steps back down.
+
+        A step back of more than half the x span marks the start of a new sweep, which is how the
+        paper's forward-only trajectory repeats.
+        """
+        if "cycle" in self.extra:
+            return self.extra["cycle"].astype(np.int64)
+        if len(self) < 2:
+            return np.zeros(len(self), dtype=np.int64)
+        span = float(np.ptp(self.x)) or 1.0
+        starts = np.diff(self.x) < -0.5 * span
+        return np.concatenate(([0], np.cumsum(starts))).astype(np.int64)
+
+    def columns(self, extra_columns: Mapping[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+        """All columns in contract order, for writing."""
+        cols: dict[str, np.ndarray] = {"t_s": self.t, "x_um": self.x}
+        if self.q is not None:
+            cols["q_um"] = self.q
+        cols.update(self.extra)
+        cols.update(self.channels)
+        if extra_columns:
+            cols.update(extra_columns)
+        return cols
+
+
+def check_channel_name(name: str, where: str) -> None:
+    if not CHANNEL_NAME.match(name) or name in FORBIDDEN_CHANNELS:
+        raise DataError(
+            f"{where}: {name!r} is not usable as a temperature channel name "
+            "(expected letters, digits, '_', '.', '-', starting with a letter; not x, t, dir or 1)"
+        )
+
+
+def read_csv(path: str | os.PathLike[str]) -> Dataset:
+    """Read and validate a data file; raise :class:`DataError` naming file, row and column."""
+    path = Path(path)
+    try:
+        with open(path, encoding="utf-8", newline="") as handle:
+            header_line = handle.readline()
+            body = handle.read()
+    except FileNotFoundError:
+        raise DataError(f"{path}: no such file") from None
+    except UnicodeDecodeError as err:
+        raise DataError(f"{path}: not a UTF-8 text file ({err.reason} at byte {err.start})") from None
+    except OSError as err:
+        raise DataError(f"{path}: cannot read ({err.strerror})") from None
+    header = _parse_header(path, header_line)
+    values = _parse_body(path, header, body)
+    return _to_dataset(path, header, values)
+
+
+def _parse_header(path: Path, line: str) -> list[str]:
+    if not line.strip():
+        raise DataError(f"{path}: empty file (expected a header row with t_s, x_um and channel columns)")
+    header = [h.strip() for h in next(csv.reader([line]))]
+    for required in REQUIRED:
+        if required not in header:
+            raise DataError(f"{path}, row 1: missing column {required!r} (header is {','.join(header)})")
+    seen: set[str] = set()
+    for col, name in enumerate(header, start=1):
+        if name in seen:
+            raise DataError(f"{path}, row 1, column {col}: duplicate column {name!r}")
+        seen.add(name)
+        if name not in RESERVED:
+            check_channel_name(name, f"{path}, row 1, column {col}")
+    return header
+
+
+def _parse_body(path: Path, header: list[str], body: str) -> np.ndarray:
+    """Fast path through numpy; on any failure a slow pass finds the exact row and column."""
+    if not body.strip():
+        raise DataError(f"{path}: no data rows after the header")
+    try:
+        values = np.loadtxt(io.StringIO(body), delimiter=",", dtype=np.float64, ndmin=2)
+        if values.shape[1] != len(header) or not np.isfinite(values).all():
+            raise ValueError
+        return values
+    except ValueError:
+        pass
+    rows: list[list[float]] = []
+    for line_no, row in enumerate(csv.reader(io.StringIO(body)), start=2):
+        if not row or all(not cell.strip() for cell in row):
+            continue
+        if len(row) != len(header):
+            raise DataError(f"{path}, row {line_no}: {len(row)} cells, expected {len(header)} (one per column)")
+        parsed = []
+        for name, cell in zip(header, row, strict=True):
+            try:
+                value = float(cell)
+            except ValueError:
+                raise DataError(f"{path}, row {line_no}, column {name}: {cell.strip()!r} is not a number") from None
+            if not math.isfinite(value):
+                raise DataError(f"{path}, row {line_no}, column {name}: {cell.strip()!r} is not a finite number")
+            parsed.append(value)
+        rows.append(parsed)
+    return np.asarray(rows, dtype=np.float64).reshape(-1, len(header))
+
+
+def _to_dataset(path: Path, header: list[str], values: np.ndarray) -> Dataset:
+    cols = {name: np.ascontiguousarray(values[:, i]) for i, name in enumerate(header)}
+    t = cols["t_s"]
+    bad = np.flatnonzero(np.diff(t) <= 0)
+    if bad.size:
+        i = int(bad[0]) + 1
+        raise DataError(
+            f"{path}, row {i + 2}, column t_s: time {t[i]:g} s is not after the previous row's {t[i - 1]:g} s "
+            "(t_s must increase)"
+        )
+    for name in ("cycle", "valid"):
+        if name in cols and not np.array_equal(cols[name], np.round(cols[name])):
+            i = int(np.flatnonzero(cols[name] != np.round(cols[name]))[0])
+            raise DataError(f"{path}, row {i + 2}, column {name}: expected a whole number, got {cols[name][i]:g}")
+    return Dataset(
+        t=t,
+        x=cols["x_um"],
+        q=cols.get("q_um"),
+        channels={n: cols[n] for n in header if n not in RESERVED},
+        extra={n: cols[n] for n in header if n in RESERVED and n not in ("t_s", "x_um", "q_um")},
+        source=str(path),
+    )
+
+
+def _format_columns(columns: Mapping[str, np.ndarray]) -> str:
+    """CSV text with ``repr``-exact floats, so a round trip loses nothing."""
+    names = list(columns)
+    arrays = [np.asarray(columns[n], dtype=np.float64) for n in names]
+    n = arrays[0].shape[0] if arrays else 0
+    out = io.StringIO()
+    out.write(",".join(names) + "\n")
+    if n:
+        text_cols = [_column_text(name, a) for name, a in zip(names, arrays, strict=True)]
+        out.write("\n".join(",".join(cells) for cells in zip(*text_cols, strict=True)))
+        out.write("\n")
+    return out.getvalue()
+
+
+def _column_text(name: str, values: np.ndarray) -> list[str]:
+    if name in ("cycle", "valid"):
+        return [str(v) for v in values.astype(np.int64).tolist()]
+    return [repr(v) for v in values.tolist()]
+
+
+def write_csv(
+    ds: Dataset, path: str | os.PathLike[str], extra_columns: Mapping[str, np.ndarray] | None = None
+) -> None:
+    """Write a dataset (plus extra columns) atomically."""
+    text = _format_columns(ds.columns(extra_columns))
+    with atomic_writer(path) as handle:
+        handle.write(text)
+
+
+class CsvAppender:
+    """Append rows one at a time, each flushed and fsynced: an interrupted run keeps every row written.
+
+    Used by the calibration procedure, where a row is one completed step of hours of work. Opening
+    an existing file checks that its header matches, so a resumed run continues the same table.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], columns: Sequence[str]) -> None:
+        self.path = Path(path)
+        self.columns = list(columns)
+        for col, name in enumerate(self.columns, start=1):
+            if name not in RESERVED:
+                check_channel_name(name, f"{self.path}, column {col}")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        exists = self.path.exists() and self.path.stat().st_size > 0
+        if exists:
+            with open(self.path, encoding="utf-8") as handle:
+                found = [h.strip() for h in handle.readline().strip().split(",")]
+            if found != self.columns:
+                raise DataError(
+                    f"{self.path}: cannot append, its columns {found} differ from {self.columns}"
+                )
+        self._handle: IO[str] = open(self.path, "a", encoding="utf-8", newline="")
+        if not exists:
+            self._write_line(",".join(self.columns))
+
+    def append(self, row: Mapping[str, float]) -> None:
+        missing = [c for c in self.columns if c not in row]
+        if missing:
+            raise KeyError(f"row lacks columns {missing}")
+        cells = [str(int(row[c])) if c in ("cycle", "valid") else repr(float(row[c])) for c in self.columns]
+        self._write_line(",".join(cells))
+
+    def _write_line(self, line: str) -> None:
+        self._handle.write(line + "\n")
+        self._handle.flush()
+        os.fsync(self._handle.fileno())
+
+    def close(self) -> None:
+        self._handle.close()
+
+    def __enter__(self) -> CsvAppender:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

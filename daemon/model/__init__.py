@@ -1,0 +1,6 @@
+"""The calibration model: named terms, the model file, stepwise selection, identification.
+
+Pure computation (numpy/scipy only): no I/O beyond the model file, no asyncio, no zenoh.
+"""
+
+from daemon.model import effect_terms  # noqa: F401  (registers the discovery terms' names)

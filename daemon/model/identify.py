@@ -1,0 +1,249 @@
+"""Identification (paper section II.C): stepwise selection of eq. 3's terms from recorded data.
+
+Candidates are ``x^1..x^n1`` and every temperature channel not excluded; the bias is always in.
+The geometric order n1 cannot be chosen by training error (it always falls with order), so
+``order="auto"`` picks it by the error on held-out blocks of the run: whole calibration cycles.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+from scipy import stats
+
+from daemon.model.model import FittedTerm, Model, Training
+from daemon.model.stepwise import stepwisefit
+from daemon.model.terms import Bias, Channel, Power, Term
+
+MAX_AUTO_ORDER = 5
+
+
+class FitError(ValueError):
+    """The data cannot support the requested fit; the message says why."""
+
+
+class Recorded(Protocol):
+    t: np.ndarray
+    x: np.ndarray
+    q: np.ndarray | None
+    channels: Mapping[str, np.ndarray]
+
+    def __len__(self) -> int: ...
+
+
+@dataclass
+class FitResult:
+    model: Model
+    order: int
+    #: held-out RMS (um) of every order tried, when the order was chosen automatically
+    order_scores: dict[int, float] = field(default_factory=dict)
+    folds: int = 0
+
+
+@dataclass(frozen=True)
+class OLS:
+    coef: np.ndarray  # per column
+    se: np.ndarray
+    p: np.ndarray
+    intercept: float
+    intercept_se: float
+    intercept_p: float
+    rmse: float
+    dof: int
+    r2: float
+
+
+def ols(X: np.ndarray, y: np.ndarray) -> OLS:
+    """Least squares with an intercept, standard errors and t-test p-values (columns standardised)."""
+    n, k = X.shape
+    dof = n - k - 1
+    if dof <= 0:
+        raise FitError(f"{n} rows cannot support {k} terms plus a bias")
+    mean, scale = X.mean(axis=0), X.std(axis=0)
+    scale[scale == 0] = 1.0
+    Z = np.column_stack([np.ones(n), (X - mean) / scale])
+    coef_z, *_ = np.linalg.lstsq(Z, y, rcond=None)
+    resid = y - Z @ coef_z
+    sse = float(resid @ resid)
+    sigma2 = sse / dof
+    cov_z = sigma2 * np.linalg.pinv(Z.T @ Z)
+    # back to original units: b = bz/scale; intercept = b0z - Σ bz·mean/scale
+    J = np.zeros((k + 1, k + 1))
+    J[0, 0] = 1.0
+    J[0, 1:] = -mean / scale
+    J[1:, 1:] = np.diag(1.0 / scale)
+    coef = J @ coef_z
+    cov = J @ cov_z @ J.T
+    se = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tstat = np.where(se > 0, coef / se, np.inf)
+    p = 2.0 * stats.t.sf(np.abs(tstat), dof)
+    sst = float(((y - y.mean()) ** 2).sum())
+    return OLS(
+        coef=coef[1:], se=se[1:], p=p[1:], intercept=float(coef[0]), intercept_se=float(se[0]),
+        intercept_p=float(p[0]), rmse=math.sqrt(sigma2), dof=dof, r2=1.0 - sse / sst if sst > 0 else 1.0,
+    )
+
+
+def _commands(data: Recorded) -> np.ndarray:
+    if data.q is None:
+        raise FitError(f"{getattr(data, 'source', 'data')}: no q_um column (the command sent to the stage) to fit")
+    return np.asarray(data.q, dtype=np.float64)
+
+
+def _only_valid(data: Recorded) -> Recorded:
+    select = getattr(data, "valid_rows", None)
+    return select() if callable(select) else data
+
+
+def fit_terms(
+    data: Recorded,
+    candidates: Sequence[Term],
+    *,
+    always: Sequence[Term] = (),
+    penter: float = 0.05,
+    premove: float = 0.10,
+    source: str | None = None,
+    extra_selection: Mapping[str, Any] | None = None,
+) -> Model:
+    """Select among ``candidates`` by stepwise regression (bias always in; ``always`` forced in)."""
+    data = _only_valid(data)
+    y = _commands(data)
+    pool = [t for t in candidates if not isinstance(t, Bias)]
+    forced = [t for t in always if not isinstance(t, Bias)]
+    for t in forced:
+        if t not in pool:
+            pool.append(t)
+    if len(data) <= len(pool) + 1:
+        raise FitError(f"{len(data)} rows are too few for {len(pool)} candidate terms plus a bias")
+    X = np.column_stack([t.batch(data.t, data.x, data.channels) for t in pool])
+    keep = np.array([t in forced for t in pool])
+    result = stepwisefit(X, y, penter=penter, premove=premove, inmodel=keep.copy(), keep=keep)
+    chosen = [i for i in range(len(pool)) if result.inmodel[i]]
+    final = ols(X[:, chosen], y) if chosen else None
+    terms: list[FittedTerm] = []
+    for j, i in enumerate(chosen):
+        assert final is not None
+        terms.append(FittedTerm(pool[i], float(final.coef[j]), float(final.se[j]), float(final.p[j])))
+    if final is None:
+        mean = float(y.mean())
+        resid = y - mean
+        rmse = float(math.sqrt(resid @ resid / max(len(y) - 1, 1)))
+        terms.append(FittedTerm(Bias(), mean, rmse / math.sqrt(len(y)), math.nan))
+        fit_stats = {"rmse_um": rmse, "r2": 0.0, "dof": len(y) - 1}
+    else:
+        terms.append(FittedTerm(Bias(), final.intercept, final.intercept_se, final.intercept_p))
+        fit_stats = {"rmse_um": final.rmse, "r2": final.r2, "dof": final.dof}
+    channels = [c for c in data.channels if any(c in ft.term.channels for ft in terms)]
+    pred = sum(ft.coef * ft.term.batch(data.t, data.x, data.channels) for ft in terms)
+    resid = y - pred
+    fit_stats.update(rows=len(data), residual_rms_nm=float(np.sqrt(np.mean(resid**2)) * 1000.0))
+    selection = {
+        "method": "stepwise",
+        "penter": penter,
+        "premove": premove,
+        "candidates": [t.name for t in pool],
+        "forced": [t.name for t in forced],
+        "history": [
+            {"action": action, "term": pool[col].name, "p": float(p)} for action, col, p in result.history
+        ],
+        "not_selected": {
+            pool[i].name: {"coef_if_added": _finite(result.coef[i]), "p_if_added": _finite(result.pval[i])}
+            for i in range(len(pool))
+            if not result.inmodel[i]
+        },
+    }
+    selection.update(extra_selection or {})
+    provenance = {"created": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"), "data_file": source}
+    return Model(
+        terms=terms,
+        training=Training.of(data, channels),
+        fit=fit_stats,
+        selection=selection,
+        provenance=provenance,
+    )
+
+
+def _finite(v: float) -> float | None:
+    return float(v) if math.isfinite(v) else None
+
+
+def candidate_terms(channels: Sequence[str], order: int, exclude: Sequence[str] = ()) -> list[Term]:
+    unknown = [c for c in exclude if c not in channels]
+    if unknown:
+        raise FitError(f"--exclude names channel(s) {', '.join(unknown)} not in the data ({', '.join(channels)})")
+    return [Power(k) for k in range(order, 0, -1)] + [Channel(c) for c in channels if c not in exclude]
+
+
+def holdout_blocks(data: Recorded, max_folds: int = 6) -> np.ndarray:
+    """Fold index per row: whole cycles grouped into contiguous blocks (time blocks if one cycle)."""
+    cycles_of = getattr(data, "cycles", None)
+    cycles = cycles_of() if callable(cycles_of) else np.zeros(len(data), dtype=np.int64)
+    unique = np.unique(cycles)
+    if unique.size >= 3:
+        folds = min(max_folds, unique.size)
+        rank = np.searchsorted(unique, cycles)
+        return (rank * folds) // unique.size
+    folds = min(max_folds, 5)
+    return (np.arange(len(data)) * folds) // max(len(data), 1)
+
+
+def holdout_rms(data: Recorded, candidates: Sequence[Term], penter: float, premove: float) -> tuple[float, int]:
+    """RMS (um) of the command predicted for each held-out block by a model fitted on the others."""
+    folds = holdout_blocks(data)
+    y = _commands(data)
+    errors = []
+    for k in np.unique(folds):
+        train, test = data.select(folds != k), data.select(folds == k)  # type: ignore[attr-defined]
+        model = fit_terms(train, candidates, penter=penter, premove=premove)
+        errors.append(y[folds == k] - model.predict(test))
+    err = np.concatenate(errors)
+    return float(np.sqrt(np.mean(err**2))), int(np.unique(folds).size)
+
+
+def fit(
+    data: Recorded,
+    *,
+    order: int | str = "auto",
+    max_order: int = MAX_AUTO_ORDER,
+    exclude: Sequence[str] = (),
+    penter: float = 0.05,
+    premove: float = 0.10,
+    source: str | None = None,
+) -> FitResult:
+    """The paper's identification: stepwise over x^1..x^n1 and the channels; n1 fixed or chosen."""
+    if penter > premove:
+        raise FitError(f"penter ({penter}) must not exceed premove ({premove})")
+    data = _only_valid(data)
+    _commands(data)
+    channels = list(data.channels)
+    scores: dict[int, float] = {}
+    folds = 0
+    if order == "auto":
+        for n1 in range(1, max_order + 1):
+            scores[n1], folds = holdout_rms(data, candidate_terms(channels, n1, exclude), penter, premove)
+        best = min(scores.values())
+        # the lowest order within 1 % of the best: extra powers must earn their place
+        chosen = min(n for n, s in scores.items() if s <= best * 1.01)
+    else:
+        chosen = int(order)
+        if chosen < 1:
+            raise FitError(f"order must be >= 1 or 'auto', got {order}")
+    extra = {
+        "order": chosen,
+        "order_choice": "auto (held-out cycles)" if order == "auto" else "fixed",
+        "order_holdout_rms_um": {str(k): v for k, v in scores.items()},
+        "excluded": list(exclude),
+    }
+    model = fit_terms(
+        data, candidate_terms(channels, chosen, exclude), penter=penter, premove=premove, source=source,
+        extra_selection=extra,
+    )
+    if scores:
+        model.fit["holdout_rms_um"] = scores[chosen]
+    return FitResult(model=model, order=chosen, order_scores=scores, folds=folds)

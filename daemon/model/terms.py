@@ -1,0 +1,358 @@
+"""A model is a list of named terms: this module is that vocabulary.
+
+A term is a feature with a physical meaning (``x^3``, ``T2``, ``1``, ``lag(T4, 2100 s)``, ``dir``).
+Each computes its feature two ways that must agree:
+
+- ``batch(t, x, channels)`` over a whole recorded series (fit, predict, discovery), and
+- ``stream()``: a small state machine the daemon feeds sample by sample (``observe`` a temperature
+  sample, ``value`` at a target, ``moved`` when the stage is commanded).
+
+Feeding a series row by row (observe, value, moved) reproduces ``batch`` to rounding, which is why an
+effect found offline is applied online without new code. The term's ``name`` is its canonical text:
+the model file stores names, and :func:`parse_term` turns them back into terms.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.signal import lfilter
+
+Channels = Mapping[str, np.ndarray]
+
+
+class UnknownTermError(ValueError):
+    """A term name no registered kind understands."""
+
+
+class TermStream:
+    """Streaming state of one term. The default is stateless: override what the term needs."""
+
+    def observe(self, t: float, temps: Mapping[str, float]) -> None:
+        """A temperature sample arrived at ``t`` (``temps`` may hold only some channels)."""
+
+    @abstractmethod
+    def value(self, t: float, x: float) -> float:
+        """The feature for target ``x`` at time ``t`` given everything observed so far."""
+
+    def moved(self, t: float, x: float) -> None:
+        """The stage was commanded to ``x`` at ``t``."""
+
+
+class Term(ABC):
+    """A named feature of the model."""
+
+    #: temperature channels the feature reads
+    channels: tuple[str, ...] = ()
+    #: depends on the target or the motion (else only on temperatures and time)
+    uses_x: bool = False
+
+    @property
+    @abstractmethod
+    def name(self) -> str: ...
+
+    @abstractmethod
+    def batch(self, t: np.ndarray, x: np.ndarray, channels: Channels) -> np.ndarray:
+        """The feature for every row of a series."""
+
+    @abstractmethod
+    def stream(self) -> TermStream:
+        """A fresh streaming state."""
+
+    def __repr__(self) -> str:
+        return f"<term {self.name}>"
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Term) and other.name == self.name
+
+    def __hash__(self) -> int:
+        return hash(self.name)
+
+
+# --- the paper's terms (eq. 3) --------------------------------------------------------------
+
+
+class _PowerStream(TermStream):
+    __slots__ = ("k",)
+
+    def __init__(self, k: int) -> None:
+        self.k = k
+
+    def value(self, t: float, x: float) -> float:
+        return x**self.k
+
+
+class Power(Term):
+    """``x^k``: the geometric (inverse-kinematic) polynomial of eq. 1."""
+
+    uses_x = True
+
+    def __init__(self, k: int) -> None:
+        if k < 1:
+            raise ValueError(f"power must be >= 1, got {k}")
+        self.k = k
+
+    @property
+    def name(self) -> str:
+        return "x" if self.k == 1 else f"x^{self.k}"
+
+    def batch(self, t: np.ndarray, x: np.ndarray, channels: Channels) -> np.ndarray:
+        return x**self.k
+
+    def stream(self) -> TermStream:
+        return _PowerStream(self.k)
+
+
+class _ConstStream(TermStream):
+    def value(self, t: float, x: float) -> float:
+        return 1.0
+
+
+class Bias(Term):
+    """``1``: the bias γ of eq. 2."""
+
+    @property
+    def name(self) -> str:
+        return "1"
+
+    def batch(self, t: np.ndarray, x: np.ndarray, channels: Channels) -> np.ndarray:
+        return np.ones_like(t, dtype=np.float64)
+
+    def stream(self) -> TermStream:
+        return _ConstStream()
+
+
+class _ChannelStream(TermStream):
+    __slots__ = ("channel", "last")
+
+    def __init__(self, channel: str) -> None:
+        self.channel = channel
+        self.last = math.nan
+
+    def observe(self, t: float, temps: Mapping[str, float]) -> None:
+        value = temps.get(self.channel)
+        if value is not None:
+            self.last = value
+
+    def value(self, t: float, x: float) -> float:
+        return self.last
+
+
+class Channel(Term):
+    """A temperature channel, first order (eq. 2): the thermal elongation is linear in temperature."""
+
+    def __init__(self, channel: str) -> None:
+        self.channel = channel
+        self.channels = (channel,)
+
+    @property
+    def name(self) -> str:
+        return self.channel
+
+    def batch(self, t: np.ndarray, x: np.ndarray, channels: Channels) -> np.ndarray:
+        return np.asarray(channels[self.channel], dtype=np.float64)
+
+    def stream(self) -> TermStream:
+        return _ChannelStream(self.channel)
+
+
+# --- stateful terms ---------------------------------------------------------------------------
+
+
+def lag_filter(t: np.ndarray, u: np.ndarray, tau_s: float) -> np.ndarray:
+    """First-order lag of ``u`` sampled at times ``t``, exact per sample: y_k = y_{k-1} + α_k (u_k - y_{k-1}).
+
+    α_k = 1 - exp(-(t_k - t_{k-1}) / τ), y_0 = u_0 — the same recurrence the streaming state runs.
+    Uniform sampling runs that recurrence in C (``scipy.signal.lfilter``). Irregular sampling uses the
+    closed form y_k = w_k (y_0 + Σ_{j≤k} α_j u_j / w_j), w_k = exp(-(t_k - t_0)/τ), on ``u`` minus
+    its first value (smaller sums, smaller rounding), in chunks short enough that w stays finite.
+    """
+    t = np.asarray(t, dtype=np.float64)
+    u = np.asarray(u, dtype=np.float64)
+    n = t.shape[0]
+    if n == 0:
+        return np.empty(0, dtype=np.float64)
+    dt = np.diff(t)
+    u0 = float(u[0])
+    v = u - u0
+    if n > 1 and float(dt.max() - dt.min()) <= 1e-12 * max(1.0, abs(float(dt[0]))):
+        alpha = -math.expm1(-float(dt[0]) / tau_s)
+        y, _ = lfilter([alpha], [1.0, alpha - 1.0], v[1:], zi=[(1.0 - alpha) * 0.0])
+        return np.concatenate(([u0], y + u0))
+    alpha = np.empty(n, dtype=np.float64)
+    alpha[0] = 1.0  # y_0 = u_0
+    alpha[1:] = -np.expm1(-dt / tau_s)
+    y = np.empty(n, dtype=np.float64)
+    start, y_prev = 0, 0.0
+    max_span = 200.0 * tau_s  # keeps exp(±span/τ) far from overflow
+    while start < n:
+        stop = max(int(np.searchsorted(t, t[start] + max_span, side="right")), start + 1)
+        w = np.exp(-(t[start:stop] - t[start]) / tau_s)
+        a = alpha[start:stop]
+        # fold the state before the chunk into its first step: y_start = (1-a0) y_prev + a0 v_start
+        acc = np.cumsum(a * v[start:stop] / w)
+        chunk = w * (acc + (1.0 - a[0]) * y_prev)
+        y[start:stop] = chunk
+        y_prev = float(chunk[-1])
+        start = stop
+    return y + u0
+
+
+class _LagStream(TermStream):
+    __slots__ = ("channel", "t_last", "tau_s", "y")
+
+    def __init__(self, channel: str, tau_s: float) -> None:
+        self.channel, self.tau_s = channel, tau_s
+        self.t_last = math.nan
+        self.y = math.nan
+
+    def observe(self, t: float, temps: Mapping[str, float]) -> None:
+        u = temps.get(self.channel)
+        if u is None:
+            return
+        if math.isnan(self.y):
+            self.y = u
+        else:
+            self.y += -math.expm1(-(t - self.t_last) / self.tau_s) * (u - self.y)
+        self.t_last = t
+
+    def value(self, t: float, x: float) -> float:
+        return self.y
+
+
+class Lag(Term):
+    """``lag(T4, 2100 s)``: a channel seen through a first-order lag of time constant τ.
+
+    Physics: a part of the cell whose temperature follows the measured one with a delay (thermal
+    mass behind a thermal resistance), so its expansion tracks the lagged signal, not the raw one.
+    """
+
+    def __init__(self, channel: str, tau_s: float) -> None:
+        if not tau_s > 0:
+            raise ValueError(f"lag time constant must be > 0 s, got {tau_s}")
+        self.channel, self.tau_s = channel, float(tau_s)
+        self.channels = (channel,)
+
+    @property
+    def name(self) -> str:
+        return f"lag({self.channel}, {self.tau_s:g} s)"
+
+    def batch(self, t: np.ndarray, x: np.ndarray, channels: Channels) -> np.ndarray:
+        return lag_filter(t, channels[self.channel], self.tau_s)
+
+    def stream(self) -> TermStream:
+        return _LagStream(self.channel, self.tau_s)
+
+
+class _DirectionStream(TermStream):
+    __slots__ = ("deadband", "direction", "last_x")
+
+    def __init__(self, deadband: float) -> None:
+        self.deadband = deadband
+        self.direction = 1.0
+        self.last_x = math.nan
+
+    def _after(self, x: float) -> float:
+        if not math.isnan(self.last_x):
+            step = x - self.last_x
+            if step > self.deadband:
+                return 1.0
+            if step < -self.deadband:
+                return -1.0
+        return self.direction
+
+    def value(self, t: float, x: float) -> float:
+        return self._after(x)
+
+    def moved(self, t: float, x: float) -> None:
+        self.direction = self._after(x)
+        self.last_x = x
+
+
+class Direction(Term):
+    """``dir``: +1 after a step up, -1 after a step down (steps within the deadband keep it); +1 at start.
+
+    Physics: hysteresis of the piezo stack leaves an offset that depends on the direction of approach.
+    """
+
+    uses_x = True
+
+    def __init__(self, deadband_um: float = 0.5) -> None:
+        self.deadband_um = float(deadband_um)
+
+    @property
+    def name(self) -> str:
+        return "dir" if self.deadband_um == 0.5 else f"dir({self.deadband_um:g} um)"
+
+    def batch(self, t: np.ndarray, x: np.ndarray, channels: Channels) -> np.ndarray:
+        x = np.asarray(x, dtype=np.float64)
+        step = np.diff(x, prepend=x[:1])
+        sign = np.where(step > self.deadband_um, 1.0, np.where(step < -self.deadband_um, -1.0, 0.0))
+        sign[0] = 1.0 if sign[0] == 0 else sign[0]
+        idx = np.where(sign != 0, np.arange(x.shape[0]), 0)
+        np.maximum.accumulate(idx, out=idx)
+        return sign[idx]
+
+    def stream(self) -> TermStream:
+        return _DirectionStream(self.deadband_um)
+
+
+# --- names <-> terms --------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _TermKind:
+    pattern: re.Pattern[str]
+    factory: Callable[[re.Match[str]], Term]
+
+
+_KINDS: list[_TermKind] = []
+_CHANNEL = r"[A-Za-z_][A-Za-z0-9_.\-]*"
+_NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
+
+
+def register_term(pattern: str, factory: Callable[[re.Match[str]], Term]) -> None:
+    """Teach :func:`parse_term` a new kind of term (checked before the built-in channel rule).
+
+    ``pattern`` must match the whole name; ``{channel}`` and ``{number}`` expand to the usual regexes.
+    """
+    regex = re.compile("^" + pattern.format(channel=_CHANNEL, number=_NUMBER) + "$")
+    _KINDS.insert(len(_KINDS) - 1 if _KINDS else 0, _TermKind(regex, factory))
+
+
+def parse_term(name: str) -> Term:
+    """The term a canonical name stands for; :class:`UnknownTermError` if none does."""
+    text = name.strip()
+    for kind in _KINDS:
+        match = kind.pattern.match(text)
+        if match:
+            term = kind.factory(match)
+            return term
+    raise UnknownTermError(f"unknown term {name!r}")
+
+
+def _power(m: re.Match[str]) -> Term:
+    return Power(int(m.group("k") or 1))
+
+
+# order matters: the catch-all channel rule stays last (register_term inserts before it)
+_KINDS.append(_TermKind(re.compile(r"^1$"), lambda m: Bias()))
+_KINDS.append(_TermKind(re.compile(r"^x(?:\^(?P<k>[1-9]\d*))?$"), _power))
+_KINDS.append(_TermKind(re.compile(r"^dir$"), lambda m: Direction()))
+_KINDS.append(
+    _TermKind(
+        re.compile(rf"^dir\((?P<db>{_NUMBER}) um\)$"), lambda m: Direction(float(m.group("db")))
+    )
+)
+_KINDS.append(
+    _TermKind(
+        re.compile(rf"^lag\(\s*(?P<ch>{_CHANNEL})\s*,\s*(?P<tau>{_NUMBER})\s*s\s*\)$"),
+        lambda m: Lag(m.group("ch"), float(m.group("tau"))),
+    )
+)
+_KINDS.append(_TermKind(re.compile(rf"^(?P<ch>{_CHANNEL})$"), lambda m: Channel(m.group("ch"))))
