@@ -122,6 +122,7 @@ def read_csv(path: str | os.PathLike[str]) -> Dataset:
         raise DataError(f"{path}: cannot read ({err.strerror})") from None
     header = _parse_header(path, header_line)
     values = _parse_body(path, header, body)
+    del body
     return _to_dataset(path, header, values)
 
 
@@ -147,7 +148,7 @@ def _parse_body(path: Path, header: list[str], body: str) -> np.ndarray:
     if not body.strip():
         raise DataError(f"{path}: no data rows after the header")
     try:
-        values = np.loadtxt(io.StringIO(body), delimiter=",", dtype=np.float64, ndmin=2)
+        values = np.loadtxt(path, delimiter=",", dtype=np.float64, ndmin=2, skiprows=1, encoding="utf-8")
         if values.shape[1] != len(header) or not np.isfinite(values).all():
             raise ValueError
         return values
@@ -197,23 +198,14 @@ def _to_dataset(path: Path, header: list[str], values: np.ndarray) -> Dataset:
 
 
 def _format_columns(columns: Mapping[str, np.ndarray]) -> str:
-    """CSV text with ``repr``-exact floats, so a round trip loses nothing."""
+    """CSV text with ``repr``-exact floats (a round trip loses nothing) and whole-number flags."""
     names = list(columns)
-    arrays = [np.asarray(columns[n], dtype=np.float64) for n in names]
-    n = arrays[0].shape[0] if arrays else 0
-    out = io.StringIO()
-    out.write(",".join(names) + "\n")
-    if n:
-        text_cols = [_column_text(name, a) for name, a in zip(names, arrays, strict=True)]
-        out.write("\n".join(",".join(cells) for cells in zip(*text_cols, strict=True)))
-        out.write("\n")
-    return out.getvalue()
-
-
-def _column_text(name: str, values: np.ndarray) -> list[str]:
-    if name in ("cycle", "valid"):
-        return [str(v) for v in values.astype(np.int64).tolist()]
-    return [repr(v) for v in values.tolist()]
+    table = np.column_stack([np.asarray(columns[n], dtype=np.float64) for n in names]) if names else None
+    row_format = ",".join("%d" if n in ("cycle", "valid") else "%r" for n in names)
+    lines = [",".join(names)]
+    if table is not None and table.shape[0]:
+        lines.extend(row_format % row for row in map(tuple, table.tolist()))
+    return "\n".join(lines) + "\n"
 
 
 def write_csv(
