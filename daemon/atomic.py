@@ -21,6 +21,7 @@ def atomic_writer(path: str | os.PathLike[str], mode: str = "w", encoding: str |
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
     try:
+        os.chmod(tmp, _mode_for(target))
         with os.fdopen(fd, mode, encoding=None if "b" in mode else encoding) as handle:
             yield handle
             handle.flush()
@@ -36,6 +37,20 @@ def atomic_writer(path: str | os.PathLike[str], mode: str = "w", encoding: str |
             os.fsync(dir_fd)
         finally:
             os.close(dir_fd)
+
+
+def _mode_for(target: Path) -> int:
+    """Keep an existing file's permissions; a new file gets what ``open()`` would give (0666 & ~umask).
+
+    ``mkstemp`` creates 0600, which would make a model written by an operator unreadable by the
+    daemon's own user.
+    """
+    try:
+        return target.stat().st_mode & 0o7777
+    except FileNotFoundError:
+        umask = os.umask(0)
+        os.umask(umask)
+        return 0o666 & ~umask
 
 
 def atomic_write_text(path: str | os.PathLike[str], text: str) -> None:

@@ -34,6 +34,13 @@ def _zenoh_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mode", choices=["peer", "client", "router"], help="zenoh session mode")
 
 
+def _simulation_flags(p: argparse.ArgumentParser) -> None:
+    """For the simulated cell (no --config, or a config with simulated sensors): override [simulation]."""
+    p.add_argument("--scenario", metavar="S", help="simulated room history (default: train / test2)")
+    p.add_argument("--effects", metavar="a,b", help="hidden effects of the simulated cell")
+    p.add_argument("--seed", type=int, metavar="N", help="simulation seed")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="nanodrift", description="Thermal-drift compensation for a piezo nanopositioning stage."
@@ -44,9 +51,18 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("run", help="the daemon (simulated cell when no --config)")
     p.add_argument("--config", metavar="F", help="operator config (TOML)")
     _zenoh_flags(p)
+    p.add_argument("--no-multicast-scouting", action="store_true", help="do not look for peers by UDP multicast")
+    p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
 
     p = sub.add_parser("demo", help="calibrate, serve and validate on the simulated cell (~1 min)")
     _zenoh_flags(p)
+    p.add_argument("--tests", nargs="+", default=["test2", "test4", "test5"], metavar="T",
+                   help="validation scenarios to run through the daemon")
+    p.add_argument("--cycles", type=int, default=10, metavar="N", help="validation sweeps per test")
+    p.add_argument("--calibration-cycles", type=int, default=24, metavar="N")
+    p.add_argument("--speed", type=float, default=300.0, help="simulated seconds per wall second while serving")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--keep", metavar="DIR", help="keep the model, data, configs and daemon logs in DIR")
 
     p = sub.add_parser("target", help="send targets to a running daemon and print the commands")
     p.add_argument("x", nargs="+", type=float, metavar="X", help="target positions (um)")
@@ -73,6 +89,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", metavar="D.csv", help="where the recorded steps go (default: beside --out)")
     p.add_argument("--cycles", type=int, default=24, metavar="N")
     p.add_argument("--resume", action="store_true", help="continue an interrupted run from --data")
+    _simulation_flags(p)
 
     p = sub.add_parser("validate", help="ISO 9283 validation, Table I")
     p.add_argument("--config", metavar="F")
@@ -80,6 +97,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cycles", type=int, default=30, metavar="N")
     p.add_argument("--json", action="store_true")
     p.add_argument("--report", metavar="DIR")
+    p.add_argument("--no-compensation", action="store_true", help="command the targets as they are (test 1)")
+    _simulation_flags(p)
 
     # --- model tools (lead) ---
     p = sub.add_parser("fit", help="identify the model from recorded data")

@@ -170,6 +170,10 @@ class DriverPlugin(Protocol):
     ``config_model`` validates one ``[[sensors]]`` entry of this kind (including the common keys).
     ``create`` gets every validated entry of this kind at once so it can share connections and
     merge contiguous channels into one request.
+
+    A plugin that can also move the stage defines ``create_actuator(context) -> Actuator`` (the
+    simulated cell does); the daemon and the calibration procedure look for it with ``getattr``,
+    since most sensor plugins have none.
     """
 
     name: str

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import math
 import os
 import signal
 import socket
@@ -128,13 +127,14 @@ class SensorFile:
 
 # --- a small known model -------------------------------------------------------------------------
 
+TEMPS = {"T1": 21.8, "T2": 21.9}
 MODEL_TERMS = {"x^3": 2.0e-8, "x^2": -1.0e-5, "x": 1.002, "T1": -0.6, "T2": -0.5, "1": 0.5}
 MODEL_CHANNEL_RANGES = {"T1": (21.5, 22.1), "T2": (21.6, 22.05)}
 
 
-def write_test_model(path: Path) -> Model:
+def write_test_model(path: Path, terms: dict[str, float] | None = None) -> Model:
     model = Model(
-        terms=[FittedTerm(parse_term(name), coef) for name, coef in MODEL_TERMS.items()],
+        terms=[FittedTerm(parse_term(name), coef) for name, coef in (terms or MODEL_TERMS).items()],
         training=Training(x_range=(0.0, 480.0), channel_ranges=dict(MODEL_CHANNEL_RANGES), rows=100, t_span_s=3600.0),
         provenance={"source": "tests/daemon_harness.py"},
     )
@@ -142,8 +142,8 @@ def write_test_model(path: Path) -> Model:
     return model
 
 
-def expected_q(x: float, temps: dict[str, float]) -> float:
-    c = MODEL_TERMS
+def expected_q(x: float, temps: dict[str, float], terms: dict[str, float] | None = None) -> float:
+    c = terms or MODEL_TERMS
     return c["x^3"] * x**3 + c["x^2"] * x**2 + c["x"] * x + c["T1"] * temps["T1"] + c["T2"] * temps["T2"] + c["1"]
 
 
@@ -205,7 +205,7 @@ class Daemon:
         environ["PYTHONPATH"] = os.pathsep.join(paths)
         environ["PYTHONUNBUFFERED"] = "1"
         environ.update(env or {})
-        self._log_file = open(log_path, "wb")  # noqa: SIM115  (closed in stop())
+        self._log_file = open(log_path, "wb")
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "daemon.cli", "run", *args],
             stdout=subprocess.DEVNULL, stderr=self._log_file, env=environ, cwd=str(REPO),
@@ -354,5 +354,38 @@ class Client:
         self.session.close()
 
 
-def is_close(a: float, b: float, tol: float = 1e-9) -> bool:
-    return math.isclose(a, b, rel_tol=0, abs_tol=tol)
+
+
+
+class Served:
+    """A daemon on the ``file`` plugin with the test model, and a client connected to it."""
+
+    def __init__(self, root: Path, cell: str, channels: Sequence[str] = ("T1", "T2"), actuator: str = "",
+                 env: dict[str, str] | None = None) -> None:
+        self.root = root
+        self.cell = cell
+        self.port = free_port()
+        self.plugin_dir = install_file_plugin(root / "plugins")
+        self.model_path = root / "model.json"
+        self.model = write_test_model(self.model_path)
+        self.sensors = SensorFile(root / "sensors.json", TEMPS)
+        self.config_path = root / "nanodrift.toml"
+        self.write_config(channels=channels, actuator=actuator)
+        self.daemon = Daemon(["--config", str(self.config_path)], root / "daemon.log", [self.plugin_dir], env=env)
+        self.daemon.wait_log("serving", timeout=30)  # listening: a client-mode session can connect
+        self.client = Client(self.port, cell)
+
+    def write_config(self, channels: Sequence[str] = ("T1", "T2"), actuator: str = "", extra: str = "") -> None:
+        self.config_path.write_text(
+            file_sensor_config(self.root, cell=self.cell, port=self.port, model_path=self.model_path,
+                               sensor_file=self.sensors.path, channels=channels, actuator=actuator, extra=extra)
+        )
+
+    def start(self, channels: Sequence[str] = ("T1", "T2")) -> Served:
+        self.client.wait_alive()
+        self.client.wait_ready(channels)
+        return self
+
+    def close(self) -> int:
+        self.client.close()
+        return self.daemon.stop()

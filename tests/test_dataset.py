@@ -1,5 +1,6 @@
 """The CSV contract: what is accepted, and every malformed file refused with file, row and column."""
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -114,3 +115,25 @@ def test_appender_keeps_completed_rows_and_resumes(tmp_path):
     np.testing.assert_array_equal(ds.x, [0.0, 30.0])
     with pytest.raises(DataError, match="cannot append"):
         CsvAppender(path, ["t_s", "x_um", "T2"])
+
+
+def test_appender_drops_a_row_cut_by_a_crash(tmp_path):
+    path = tmp_path / "run.csv"
+    path.write_text("t_s,x_um,T1\n0.0,0.0,20.0\n29.0,30.0,2")  # the crash cut the second row
+    with CsvAppender(path, ["t_s", "x_um", "T1"]) as out:
+        assert out.dropped_partial_row
+        out.append({"t_s": 29.0, "x_um": 30.0, "T1": 20.5})
+    np.testing.assert_array_equal(read_csv(path).channels["T1"], [20.0, 20.5])
+
+
+def test_written_files_get_normal_permissions_not_mkstemps_0600(tmp_path):
+    old = os.umask(0o022)
+    try:
+        path = tmp_path / "new.csv"
+        write_csv(Dataset(t=np.arange(2.0), x=np.zeros(2)), path)
+        assert path.stat().st_mode & 0o777 == 0o644
+        path.chmod(0o640)  # an operator's choice survives a rewrite
+        write_csv(Dataset(t=np.arange(3.0), x=np.zeros(3)), path)
+        assert path.stat().st_mode & 0o777 == 0o640
+    finally:
+        os.umask(old)

@@ -39,6 +39,7 @@ def test_matches_pymodbus_converter(data_type: str) -> None:
     for value in SAMPLES[data_type]:
         regs = ModbusClientMixin.convert_to_registers(value, PYMODBUS_TYPES[data_type])
         assert decode(regs, data_type) == pytest.approx(value, rel=1e-7)
+        assert decode(regs, data_type) == ModbusClientMixin.convert_from_registers(regs, PYMODBUS_TYPES[data_type])
         if register_count(data_type) == 2:
             little = ModbusClientMixin.convert_to_registers(value, PYMODBUS_TYPES[data_type], word_order="little")
             assert decode(little, data_type, "word") == pytest.approx(value, rel=1e-7)

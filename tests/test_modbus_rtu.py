@@ -7,7 +7,7 @@ import asyncio
 import pytest
 from modbus_helpers import ModbusTestDevice, ModbusTestServer, PtyNullModem, device_registers
 
-from drivers.base import DriverContext, HubConfig, State
+from drivers.base import DeviceError, DriverContext, HubConfig, State
 from drivers.modbus.config import ModbusSensorConfig
 from drivers.modbus.plugin import PLUGIN
 
@@ -48,6 +48,13 @@ def test_rtu_bus_with_two_devices_reads_every_type_and_faults() -> None:
             assert readings["missing"].reason == (
                 "Modbus exception 2 (illegal data address) from device 7 at input register 200")
             assert one.reads == [(4, 0, 3)] and two.reads == [(3, 4, 4)]
+
+            await server.stop()  # the bus goes silent: no answer is a DeviceError, the port stays open
+            with pytest.raises(DeviceError, match=r"no response from device 1 input register 0 \(count 3\)"):
+                await groups[0].read()
+            assert groups[0].hub.connected
+            await server.start()
+            assert (await groups[0].read())["T3"].value == pytest.approx(21.7)  # recovers by itself
             for g in groups:
                 await g.close()
             await server.stop()

@@ -186,8 +186,13 @@ def test_silent_device_raises_device_error_within_the_timeout() -> None:
             [group] = await opened(thermocouples(), server.port, timeout_s=0.2)
             start = time.monotonic()
             with pytest.raises(DeviceError, match=r"no response from device 1 input register 0 \(count 8\)"):
-                await group.read()
+                await asyncio.wait_for(group.read(), group.timeout_s)  # as the daemon polls: ours comes first
             assert time.monotonic() - start < 1.5
+            assert not group.hub.connected  # a silent TCP peer is a dead socket: reconnect next time
+            await group.open()
+            with pytest.raises(TimeoutError):  # a caller giving up mid-request drops the socket as well
+                await asyncio.wait_for(group.read(), 0.05)
+            assert not group.hub.connected
             await group.close()
 
     run(body())

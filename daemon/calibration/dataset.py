@@ -227,6 +227,7 @@ class CsvAppender:
     def __init__(self, path: str | os.PathLike[str], columns: Sequence[str]) -> None:
         self.path = Path(path)
         self.columns = list(columns)
+        self.dropped_partial_row = False
         for col, name in enumerate(self.columns, start=1):
             if name not in RESERVED:
                 check_channel_name(name, f"{self.path}, column {col}")
@@ -239,6 +240,7 @@ class CsvAppender:
                 raise DataError(
                     f"{self.path}: cannot append, its columns {found} differ from {self.columns}"
                 )
+            self.dropped_partial_row = _drop_partial_last_line(self.path)
         self._handle: IO[str] = open(self.path, "a", encoding="utf-8", newline="")
         if not exists:
             self._write_line(",".join(self.columns))
@@ -263,3 +265,13 @@ class CsvAppender:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _drop_partial_last_line(path: Path) -> bool:
+    """Cut an unterminated last line (a write interrupted by a crash): that step never completed."""
+    with open(path, "rb+") as handle:
+        data = handle.read()
+        if data.endswith(b"\n"):
+            return False
+        handle.truncate(data.rfind(b"\n") + 1)
+        return True

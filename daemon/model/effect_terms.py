@@ -1,4 +1,184 @@
 """Terms for the effects discovery adds beyond the paper's model, registered with ``register_term``.
 
-Imported by ``daemon.model`` so a model file naming these terms loads anywhere.
+Imported by ``daemon.model`` so a model file naming these terms loads anywhere. Each term computes
+its feature over a whole series (``batch``, vectorised) and sample by sample (``stream``) with the
+same result; ``lag(T4, 2100 s)`` and ``dir`` already live in :mod:`daemon.model.terms`.
+
+- ``x*T1``: position-thermal coupling, the stage's gain changes with its temperature.
+- ``rate(T4, 300 s)``: rate of change of a channel, smoothed by a first-order lag of time constant
+  τ: ``(T4 - lag(T4, τ)) / τ`` in °C/s, which is exactly the derivative of the lagged signal, so the
+  batch (``lag_filter``) and streaming (the same recurrence) values agree.
+- ``creep(15 s)``: the stage settling after its steps: ``Σ_i dq_i exp(-(t - t_i)/τ)`` over the
+  commanded steps dq_i (row-to-row changes of x larger than the deadband, as ``dir`` detects them),
+  each at the time it was commanded. With rows recorded a fixed delay after their step (the
+  paper's step averages) the delay only scales the feature, which the coefficient absorbs.
 """
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Mapping
+
+import numpy as np
+
+from daemon.model.terms import Channels, Term, TermStream, lag_filter, register_term
+
+CREEP_DEADBAND_UM = 0.5
+
+
+class _CouplingStream(TermStream):
+    __slots__ = ("channel", "last")
+
+    def __init__(self, channel: str) -> None:
+        self.channel = channel
+        self.last = math.nan
+
+    def observe(self, t: float, temps: Mapping[str, float]) -> None:
+        value = temps.get(self.channel)
+        if value is not None:
+            self.last = value
+
+    def value(self, t: float, x: float) -> float:
+        return x * self.last
+
+
+class PositionCoupling(Term):
+    """``x*T1``: position times a channel. Physics: the stage's gain depends on its temperature."""
+
+    uses_x = True
+
+    def __init__(self, channel: str) -> None:
+        self.channel = channel
+        self.channels = (channel,)
+
+    @property
+    def name(self) -> str:
+        return f"x*{self.channel}"
+
+    def batch(self, t: np.ndarray, x: np.ndarray, channels: Channels) -> np.ndarray:
+        return np.asarray(x, dtype=np.float64) * np.asarray(channels[self.channel], dtype=np.float64)
+
+    def stream(self) -> TermStream:
+        return _CouplingStream(self.channel)
+
+
+class _RateStream(TermStream):
+    __slots__ = ("channel", "t_last", "tau_s", "u", "y")
+
+    def __init__(self, channel: str, tau_s: float) -> None:
+        self.channel, self.tau_s = channel, tau_s
+        self.t_last = math.nan
+        self.u = math.nan
+        self.y = math.nan
+
+    def observe(self, t: float, temps: Mapping[str, float]) -> None:
+        u = temps.get(self.channel)
+        if u is None:
+            return
+        if math.isnan(self.y):
+            self.y = u
+        else:
+            self.y += -math.expm1(-(t - self.t_last) / self.tau_s) * (u - self.y)
+        self.u, self.t_last = u, t
+
+    def value(self, t: float, x: float) -> float:
+        return (self.u - self.y) / self.tau_s
+
+
+class Rate(Term):
+    """``rate(T4, 300 s)``: smoothed rate of change of a channel, °C/s (derivative of its τ-lag).
+
+    Physics: while the room warms or cools, a temperature gradient through the cell bends it in
+    proportion to how fast the temperature changes, not to its level.
+    """
+
+    def __init__(self, channel: str, tau_s: float) -> None:
+        if not tau_s > 0:
+            raise ValueError(f"rate smoothing time constant must be > 0 s, got {tau_s}")
+        self.channel, self.tau_s = channel, float(tau_s)
+        self.channels = (channel,)
+
+    @property
+    def name(self) -> str:
+        return f"rate({self.channel}, {self.tau_s:g} s)"
+
+    def batch(self, t: np.ndarray, x: np.ndarray, channels: Channels) -> np.ndarray:
+        u = np.asarray(channels[self.channel], dtype=np.float64)
+        return (u - lag_filter(t, u, self.tau_s)) / self.tau_s
+
+    def stream(self) -> TermStream:
+        return _RateStream(self.channel, self.tau_s)
+
+
+class _CreepStream(TermStream):
+    __slots__ = ("deadband", "last_x", "state", "t_last", "tau_s")
+
+    def __init__(self, tau_s: float, deadband: float) -> None:
+        self.tau_s, self.deadband = tau_s, deadband
+        self.state = 0.0
+        self.t_last = math.nan
+        self.last_x = math.nan
+
+    def value(self, t: float, x: float) -> float:
+        if math.isnan(self.last_x):
+            return 0.0
+        step = x - self.last_x
+        dq = step if abs(step) > self.deadband else 0.0
+        return self.state * math.exp(-(t - self.t_last) / self.tau_s) + dq
+
+    def moved(self, t: float, x: float) -> None:
+        self.state = self.value(t, x)
+        self.t_last, self.last_x = t, x
+
+
+class Creep(Term):
+    """``creep(15 s)``: the steps' sizes, each decaying with time constant τ since it was commanded.
+
+    Physics: a piezo stack keeps creeping after a step, by a fraction of the step that dies out.
+    Batch form: with s_k = a_k s_{k-1} + dq_k (a_k = exp(-Δt_k/τ)), ``x_eff - s`` follows the lag
+    recurrence driven by the previous row's ``x_eff`` (the running sum of the counted steps), so
+    ``s = x_eff - lag_filter(t, x_eff delayed one row, τ)``: vectorised, and equal to the stream.
+    """
+
+    uses_x = True
+
+    def __init__(self, tau_s: float, deadband_um: float = CREEP_DEADBAND_UM) -> None:
+        if not tau_s > 0:
+            raise ValueError(f"creep time constant must be > 0 s, got {tau_s}")
+        self.tau_s, self.deadband_um = float(tau_s), float(deadband_um)
+
+    @property
+    def name(self) -> str:
+        if self.deadband_um == CREEP_DEADBAND_UM:
+            return f"creep({self.tau_s:g} s)"
+        return f"creep({self.tau_s:g} s, {self.deadband_um:g} um)"
+
+    def batch(self, t: np.ndarray, x: np.ndarray, channels: Channels) -> np.ndarray:
+        x = np.asarray(x, dtype=np.float64)
+        if x.shape[0] == 0:
+            return np.empty(0)
+        step = np.diff(x, prepend=x[:1])
+        counted = np.where(np.abs(step) > self.deadband_um, step, 0.0)
+        x_eff = np.cumsum(counted)
+        delayed = np.concatenate((x_eff[:1], x_eff[:-1]))
+        return x_eff - lag_filter(t, delayed, self.tau_s)
+
+    def stream(self) -> TermStream:
+        return _CreepStream(self.tau_s, self.deadband_um)
+
+
+def _number(m: re.Match[str], group: str) -> float:
+    return float(m.group(group))
+
+
+register_term(r"x\s*\*\s*(?P<ch>{channel})", lambda m: PositionCoupling(m.group("ch")))
+register_term(
+    r"rate\(\s*(?P<ch>{channel})\s*,\s*(?P<tau>{number})\s*s\s*\)",
+    lambda m: Rate(m.group("ch"), _number(m, "tau")),
+)
+register_term(r"creep\(\s*(?P<tau>{number})\s*s\s*\)", lambda m: Creep(_number(m, "tau")))
+register_term(
+    r"creep\(\s*(?P<tau>{number})\s*s\s*,\s*(?P<db>{number})\s*um\s*\)",
+    lambda m: Creep(_number(m, "tau"), _number(m, "db")),
+)

@@ -1,0 +1,70 @@
+"""Registers -> number, with Home Assistant's modbus semantics (pure; no I/O).
+
+A value occupies 1 (16-bit types) or 2 (32-bit types) registers, each register big-endian on the
+wire. ``swap`` undoes a device's byte/word order before the big-endian struct decode, exactly as
+Home Assistant does it:
+
+- ``byte``: swap the two bytes inside every register ([12][34] -> [21][43]);
+- ``word``: reverse the register order ([12][34] -> [34][12]);
+- ``word_byte``: both.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Literal
+
+DataTypeName = Literal["int16", "uint16", "int32", "uint32", "float32"]
+SwapName = Literal["none", "byte", "word", "word_byte"]
+
+
+@dataclass(frozen=True, slots=True)
+class DataTypeSpec:
+    registers: int
+    struct_format: str  # big-endian struct code
+    is_float: bool
+    minimum: int | float
+    maximum: int | float
+
+
+DATA_TYPES: dict[str, DataTypeSpec] = {
+    "int16": DataTypeSpec(1, ">h", False, -(2**15), 2**15 - 1),
+    "uint16": DataTypeSpec(1, ">H", False, 0, 2**16 - 1),
+    "int32": DataTypeSpec(2, ">i", False, -(2**31), 2**31 - 1),
+    "uint32": DataTypeSpec(2, ">I", False, 0, 2**32 - 1),
+    "float32": DataTypeSpec(2, ">f", True, -3.4028234663852886e38, 3.4028234663852886e38),
+}
+
+
+def register_count(data_type: str) -> int:
+    """How many 16-bit registers one value of ``data_type`` occupies."""
+    return DATA_TYPES[data_type].registers
+
+
+def _swapped(registers: Sequence[int], swap: str) -> list[int]:
+    regs = [int(r) & 0xFFFF for r in registers]
+    if swap in ("byte", "word_byte"):
+        regs = [((r & 0xFF) << 8) | (r >> 8) for r in regs]
+    if swap in ("word", "word_byte"):
+        regs.reverse()
+    return regs
+
+
+def decode(registers: Sequence[int], data_type: str, swap: str = "none") -> int | float:
+    """The raw value (before scale/offset) that ``registers`` hold."""
+    spec = DATA_TYPES[data_type]
+    if len(registers) != spec.registers:
+        raise ValueError(f"{data_type} needs {spec.registers} register(s), got {len(registers)}")
+    raw = b"".join(r.to_bytes(2, "big") for r in _swapped(registers, swap))
+    return struct.unpack(spec.struct_format, raw)[0]
+
+
+def encode(value: int | float, data_type: str, swap: str = "none") -> list[int]:
+    """The registers a device sends for ``value``: the inverse of :func:`decode` (tests, emulators)."""
+    spec = DATA_TYPES[data_type]
+    raw = struct.pack(spec.struct_format, value)
+    regs = [int.from_bytes(raw[i : i + 2], "big") for i in range(0, len(raw), 2)]
+    # every swap is its own inverse, so the same transformation maps back
+    return _swapped(regs, swap)

@@ -1,0 +1,253 @@
+"""One shared Modbus connection (a TCP socket, or one RS-485 bus) and the requests made on it.
+
+Every request on a hub goes through one :class:`asyncio.Lock`: a bus carries one transaction at a
+time, and a module behind one TCP socket answers in order anyway. The hub connects on first use,
+reconnects by itself with exponential backoff after the link drops (a burst of reads while the
+module is away fails fast instead of hammering it), and classifies what went wrong:
+
+- the device answered with an exception code -> :class:`ModbusExceptionError` (the channels fault);
+- no answer, lost connection, cannot connect -> :class:`drivers.base.DeviceError` (the daemon
+  closes and reopens the group; the channels are refused until the module answers again).
+
+pymodbus' own automatic reconnect is switched off (``reconnect_delay=0``): the hub owns the policy.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Sequence
+
+from pymodbus import FramerType, ModbusException
+from pymodbus.client import AsyncModbusSerialClient, AsyncModbusTcpClient
+
+from drivers.base import DeviceError, HubConfig
+
+#: Modbus application protocol spec v1.1b3, section 7
+EXCEPTION_NAMES: dict[int, str] = {
+    1: "illegal function",
+    2: "illegal data address",
+    3: "illegal data value",
+    4: "server device failure",
+    5: "acknowledge",
+    6: "server device busy",
+    8: "memory parity error",
+    10: "gateway path unavailable",
+    11: "gateway target device failed to respond",
+}
+
+REGISTER_KIND_NAMES = {"input": "input register", "holding": "holding register"}
+
+
+class ModbusExceptionError(Exception):
+    """The device answered, with a Modbus exception code instead of data."""
+
+    def __init__(self, code: int, device_id: int, input_type: str, address: int, count: int) -> None:
+        self.code = code
+        self.device_id = device_id
+        self.input_type = input_type
+        self.address = address
+        self.count = count
+        name = EXCEPTION_NAMES.get(code, "unknown exception code")
+        where = f"{REGISTER_KIND_NAMES[input_type]} {address}"
+        if count > 1:
+            where += f" (count {count})"
+        super().__init__(f"Modbus exception {code} ({name}) from device {device_id} at {where}")
+
+
+class Backoff:
+    """Exponential delay between connection attempts; reset by a success."""
+
+    def __init__(self, initial_s: float = 0.2, maximum_s: float = 10.0) -> None:
+        self.initial_s = initial_s
+        self.maximum_s = maximum_s
+        self.delay_s = initial_s
+        self.not_before = 0.0  # time.monotonic()
+
+    def remaining(self) -> float:
+        return max(0.0, self.not_before - time.monotonic())
+
+    def failed(self) -> None:
+        self.not_before = time.monotonic() + self.delay_s
+        self.delay_s = min(self.delay_s * 2, self.maximum_s)
+
+    def succeeded(self) -> None:
+        self.delay_s = self.initial_s
+        self.not_before = 0.0
+
+
+class ModbusHub:
+    """A connection shared by every channel configured with ``hub = <name>``."""
+
+    def __init__(self, config: HubConfig, *, backoff: Backoff | None = None) -> None:
+        if config.type == "serial" and not isinstance(config.port, str):
+            raise ValueError(
+                f"hub {config.name!r}: type = 'serial' needs port = the serial device "
+                f"(e.g. '/dev/ttyUSB0'), got {config.port!r}"
+            )
+        if config.type == "tcp" and not str(config.port).isdigit():
+            raise ValueError(f"hub {config.name!r}: type = 'tcp' needs a numeric port, got {config.port!r}")
+        self.config = config
+        self.backoff = backoff or Backoff()
+        self.requests = 0  # requests sent, for benchmarks and tests
+        self._client: AsyncModbusTcpClient | AsyncModbusSerialClient | None = None
+        self._lost = asyncio.Event()
+        self._lock = asyncio.Lock()
+        self._users = 0
+        self._last_error = ""
+
+    @property
+    def name(self) -> str:
+        return self.config.name
+
+    @property
+    def endpoint(self) -> str:
+        if self.config.type == "tcp":
+            return f"{self.config.host}:{self.config.port}"
+        return str(self.config.port)
+
+    @property
+    def connected(self) -> bool:
+        return self._client is not None and self._client.connected
+
+    @property
+    def request_budget_s(self) -> float:
+        """The longest one request may take: every retry waits up to ``timeout_s``."""
+        return self.config.timeout_s * (self.config.retries + 1)
+
+    @property
+    def poll_timeout_s(self) -> float:
+        """A poll's time limit for callers: long enough for the hub to give its own verdict first."""
+        return self.request_budget_s + 0.5
+
+    # -- users: groups open/close the hub; the last one out closes the connection ------------------
+
+    def acquire(self) -> None:
+        self._users += 1
+
+    async def ensure_connected(self) -> None:
+        """Connect unless connected; :class:`DeviceError` while the module is unreachable."""
+        async with self._lock:
+            await self._connect_locked()
+
+    def release(self) -> None:
+        self._users = max(0, self._users - 1)
+        if self._users == 0:
+            self._drop()
+
+    # -- connection -------------------------------------------------------------------------------
+
+    def _new_client(self, lost: asyncio.Event) -> AsyncModbusTcpClient | AsyncModbusSerialClient:
+        """A fresh client whose disconnect sets ``lost`` (so a late callback of an old one cannot)."""
+        c = self.config
+
+        def on_connection_change(connected: bool) -> None:
+            if not connected:
+                lost.set()
+
+        if c.type == "tcp":
+            return AsyncModbusTcpClient(
+                c.host, port=int(c.port), timeout=c.timeout_s, retries=c.retries, reconnect_delay=0,
+                name=f"hub {c.name}", trace_connect=on_connection_change,
+            )
+        return AsyncModbusSerialClient(
+            str(c.port), framer=FramerType.RTU, baudrate=c.baudrate, bytesize=c.bytesize, parity=c.parity,
+            stopbits=c.stopbits, timeout=c.timeout_s, retries=c.retries, reconnect_delay=0,
+            name=f"hub {c.name}", trace_connect=on_connection_change,
+        )
+
+    def _drop(self) -> None:
+        if self._client is not None:
+            self._client.close()
+            self._client = None
+
+    async def _connect_locked(self) -> None:
+        if self.connected:
+            return
+        self._drop()
+        wait = self.backoff.remaining()
+        if wait > 0:
+            raise DeviceError(
+                f"modbus hub {self.name!r} ({self.endpoint}) is down ({self._last_error}); "
+                f"next connection attempt in {wait:.1f} s"
+            )
+        self._lost = asyncio.Event()
+        client = self._new_client(self._lost)
+        if not await client.connect():
+            client.close()
+            self.backoff.failed()
+            self._last_error = f"cannot connect to {self.endpoint}"
+            raise DeviceError(f"modbus hub {self.name!r}: cannot connect to {self.endpoint}")
+        self._client = client
+        self.backoff.succeeded()
+
+    # -- requests ---------------------------------------------------------------------------------
+
+    async def read_registers(self, input_type: str, device_id: int, address: int, count: int) -> list[int]:
+        """``count`` registers from ``address`` of ``device_id``; one request, serialised on the hub."""
+        async with self._lock:
+            await self._connect_locked()
+            assert self._client is not None
+            registers = await self._request_locked(self._client, input_type, device_id, address, count)
+        return registers
+
+    async def _request_locked(
+        self, client: AsyncModbusTcpClient | AsyncModbusSerialClient, input_type: str, device_id: int,
+        address: int, count: int,
+    ) -> list[int]:
+        where = f"device {device_id} {REGISTER_KIND_NAMES[input_type]} {address} (count {count})"
+        read = client.read_input_registers if input_type == "input" else client.read_holding_registers
+        try:
+            call = asyncio.ensure_future(read(address, count=count, device_id=device_id))
+        except ModbusException as error:  # pymodbus refuses at once when the link just went away
+            self._lost_link(str(error))
+            raise DeviceError(f"modbus hub {self.name!r}: {self.endpoint}: {error} ({where})") from error
+        lost = asyncio.ensure_future(self._lost.wait())
+        self.requests += 1
+        try:
+            done, _ = await asyncio.wait(
+                {call, lost}, timeout=self.request_budget_s + 0.5, return_when=asyncio.FIRST_COMPLETED
+            )
+        except asyncio.CancelledError:
+            self._after_silence()  # the caller gave up mid-transaction: where the link stands is unknown
+            raise
+        finally:
+            lost.cancel()
+            call.cancel()
+        if call in done and call.exception() is None:
+            response = call.result()
+        elif call in done:
+            self._after_silence()
+            error = call.exception()
+            detail = "no response" if isinstance(error, ModbusException) else repr(error)
+            raise DeviceError(
+                f"modbus hub {self.name!r} ({self.endpoint}): {detail} from {where} "
+                f"within {self.request_budget_s:g} s"
+            ) from error
+        elif lost in done:
+            self._lost_link("connection lost")
+            raise DeviceError(f"modbus hub {self.name!r}: connection to {self.endpoint} lost while reading {where}")
+        else:
+            self._after_silence()
+            raise DeviceError(f"modbus hub {self.name!r} ({self.endpoint}): no response from {where}")
+        if response.isError():
+            raise ModbusExceptionError(int(response.exception_code), device_id, input_type, address, count)
+        registers: Sequence[int] = response.registers
+        if len(registers) < count:
+            raise DeviceError(
+                f"modbus hub {self.name!r}: {where}: short answer ({len(registers)} of {count} registers)"
+            )
+        return list(registers[:count])
+
+    def _lost_link(self, why: str) -> None:
+        # the first reconnection attempt is immediate (a module that rebooted is back at once);
+        # the backoff grows only while attempts fail
+        self._last_error = why
+        self._drop()
+
+    def _after_silence(self) -> None:
+        # A silent TCP peer is a dead socket: drop it so the next read reconnects. On an RS-485 bus
+        # one silent device says nothing about the others: keep the port open.
+        if self.config.type == "tcp":
+            self._last_error = "no response"
+            self._drop()

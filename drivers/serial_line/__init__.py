@@ -1,0 +1,1 @@
+"""Line-oriented serial instruments (a laser interferometer answering ``POS?``, or streaming)."""

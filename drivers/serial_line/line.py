@@ -1,0 +1,190 @@
+"""A serial instrument polled as a sensor group of one channel.
+
+- Query mode (``query`` set): each poll sends the query and takes the first line that arrives
+  after it, within ``timeout_s``.
+- Streaming mode (``query`` empty): the device sends lines by itself; the newest is kept, stamped
+  with its arrival time. A poll returns it if it arrived within the last ``timeout_s``, else waits
+  up to ``timeout_s`` for the next one.
+
+What goes wrong, and how it is reported:
+
+- silence -> a ``fault`` reading, "no line from /dev/ttyUSB0 in 1.0 s" (the port itself is fine);
+- a line that does not match ``pattern`` -> ``fault`` naming what came (truncated repr) and the
+  pattern expected;
+- the port vanished (unplugged, EIO) or cannot be opened -> :class:`DeviceError`; the daemon closes
+  and reopens the group. A ``read`` on a vanished port also tries to reopen it by itself, with
+  exponential backoff (0.2 s doubling to 10 s), so the channel recovers under any caller.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import re
+import time
+from functools import partial
+
+from drivers.base import Clock, DeviceError, Reading, SensorGroup
+from drivers.serial_line.config import SerialLineSensorConfig
+from drivers.serial_line.reader import SerialLineReader
+
+SHOWN_CHARS = 60  # of a garbage line in a fault reason
+GRACE_S = 0.25  # callers' limit beyond timeout_s, so the driver's own verdict ("no line ...") comes first
+BACKOFF_INITIAL_S = 0.2
+BACKOFF_MAX_S = 10.0
+
+
+class SerialLineGroup(SensorGroup):
+    """One line-oriented instrument on one serial port."""
+
+    def __init__(self, config: SerialLineSensorConfig, clock: Clock) -> None:
+        self.config = config
+        self.clock = clock
+        self.names = (config.name,)
+        self.roles = {config.name: config.role}
+        self.interval_s = config.interval_s
+        self.timeout_s = config.timeout_s + GRACE_S
+        self._pattern = re.compile(config.pattern)
+        self._terminator = config.eol[-1].encode()
+        self._reader: SerialLineReader | None = None
+        self._error: BaseException | None = None
+        self._latest: tuple[str, float] | None = None  # (line, arrival time on self.clock)
+        self._seq = 0  # lines received so far
+        self._generation = 0  # one per opened port: late callbacks of a closed port are ignored
+        self._arrived = asyncio.Event()
+        self._backoff_s = BACKOFF_INITIAL_S
+        self._not_before = 0.0  # time.monotonic() before which read() does not reopen
+
+    def __repr__(self) -> str:
+        return f"SerialLineGroup({self.config.name!r}, port={self.config.port!r})"
+
+    @property
+    def port(self) -> str:
+        return self.config.port
+
+    # -- the port ---------------------------------------------------------------------------------
+
+    async def open(self) -> None:
+        if self._reader is not None and self._error is None:
+            return
+        await self.close()
+        c = self.config
+        settings = {"baudrate": c.baudrate, "bytesize": c.bytesize, "parity": c.parity, "stopbits": c.stopbits,
+                    "write_timeout": c.timeout_s}
+        loop = asyncio.get_running_loop()
+        self._generation += 1
+        try:
+            self._reader = await asyncio.wait_for(
+                asyncio.to_thread(SerialLineReader.open, c.port, settings, loop=loop, terminator=self._terminator,
+                                  on_line=partial(self._on_line, self._generation),
+                                  on_error=partial(self._on_error, self._generation)),
+                timeout=c.timeout_s,
+            )
+        except TimeoutError:
+            self._failed_open()
+            raise DeviceError(f"cannot open {c.port}: no answer from the OS within {c.timeout_s:g} s") from None
+        except Exception as error:  # SerialException, OSError, ValueError for a malformed URL
+            self._failed_open()
+            raise DeviceError(f"cannot open {c.port}: {error}") from error
+        self._backoff_s = BACKOFF_INITIAL_S
+        self._not_before = 0.0
+
+    def _failed_open(self) -> None:
+        self._not_before = time.monotonic() + self._backoff_s
+        self._backoff_s = min(2 * self._backoff_s, BACKOFF_MAX_S)
+
+    async def close(self) -> None:
+        reader, self._reader = self._reader, None
+        self._generation += 1
+        self._error = None
+        self._latest = None
+        if reader is not None:
+            await asyncio.to_thread(reader.close)
+
+    def _on_line(self, generation: int, raw: bytes) -> None:
+        if generation != self._generation:
+            return
+        self._latest = (raw.decode("latin-1").strip(), self.clock.now())
+        self._seq += 1
+        self._arrived.set()
+
+    def _on_error(self, generation: int, error: BaseException) -> None:
+        if generation != self._generation:
+            return
+        self._error = error
+        self._arrived.set()
+
+    async def _raise_if_vanished(self) -> None:
+        """The port failed under the reader: close it (the next read reopens it) and say why."""
+        error = self._error
+        if error is not None:
+            await self.close()
+            raise DeviceError(f"{self.port}: {error}")
+
+    # -- polling ----------------------------------------------------------------------------------
+
+    async def read(self) -> dict[str, Reading]:
+        await self._raise_if_vanished()
+        if self._reader is None:
+            wait = self._not_before - time.monotonic()
+            if wait > 0:
+                raise DeviceError(f"{self.port} is not open; next attempt in {wait:.1f} s")
+            await self.open()
+        deadline = asyncio.get_running_loop().time() + self.config.timeout_s
+        line = await (self._query(deadline) if self.config.query else self._newest(deadline))
+        if line is None:
+            await self._raise_if_vanished()
+            return {self.config.name: Reading.fault(
+                self.clock.now(), f"no line from {self.port} in {self.config.timeout_s:g} s",
+                self.config.value_unit)}
+        return {self.config.name: self.parse(*line)}
+
+    async def _query(self, deadline: float) -> tuple[str, float] | None:
+        assert self._reader is not None
+        after = self._seq
+        try:
+            await asyncio.wait_for(asyncio.to_thread(self._reader.write, self.config.query.encode("latin-1")),
+                                   timeout=max(0.0, deadline - asyncio.get_running_loop().time()))
+        except TimeoutError:
+            await self.close()
+            raise DeviceError(f"{self.port}: query not sent within {self.config.timeout_s:g} s") from None
+        except Exception as error:  # SerialTimeoutException, SerialException, OSError
+            await self.close()  # the next read reopens the port
+            raise DeviceError(f"{self.port}: cannot send query: {error}") from error
+        return await self._line_after(after, deadline)
+
+    async def _newest(self, deadline: float) -> tuple[str, float] | None:
+        if self._latest is not None and self.clock.now() - self._latest[1] <= self.config.timeout_s:
+            return self._latest
+        return await self._line_after(self._seq, deadline)
+
+    async def _line_after(self, seq: int, deadline: float) -> tuple[str, float] | None:
+        """The newest line once more than ``seq`` lines have arrived; None at ``deadline`` (loop time)."""
+        loop = asyncio.get_running_loop()
+        while self._seq <= seq and self._error is None:
+            left = deadline - loop.time()
+            if left <= 0:
+                return None
+            self._arrived.clear()
+            try:
+                await asyncio.wait_for(self._arrived.wait(), timeout=left)
+            except TimeoutError:
+                continue
+        return self._latest if self._error is None else None
+
+    def parse(self, text: str, t: float) -> Reading:
+        """A reading from one received line (garbage -> a fault naming what came and what was expected)."""
+        unit = self.config.value_unit
+        match = self._pattern.fullmatch(text)
+        if match is None:
+            shown = text if len(text) <= SHOWN_CHARS else text[:SHOWN_CHARS] + "..."
+            return Reading.fault(
+                t, f"unexpected line from {self.port}: {shown!r} (expected pattern {self.config.pattern!r})", unit)
+        try:
+            raw = float(match.group("value"))
+        except ValueError:
+            return Reading.fault(t, f"unexpected value from {self.port}: {match.group('value')!r} in {text!r} "
+                                    f"is not a number", unit)
+        if not math.isfinite(raw):
+            return Reading.fault(t, f"unexpected value from {self.port}: {text!r} is not finite", unit)
+        return Reading(value=raw * self.config.scale + self.config.offset, t=t, unit=unit)

@@ -1,0 +1,63 @@
+"""A clock whose sleeps take no wall time: hours of simulated procedure run in seconds.
+
+A discrete-event scheduler on top of asyncio: ``sleep`` registers a wake-up time and waits; a single
+advancer task moves simulated time to the earliest pending wake-up only when no other task is
+runnable (the event loop's ready queue is empty), then wakes every sleeper due at that instant.
+So several tasks sleeping concurrently interleave exactly as they would in real time.
+
+Only for code whose waits all go through this clock (the simulated drivers, the procedures): a task
+waiting on real I/O is not "runnable", and simulated time would run ahead of it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import heapq
+import itertools
+from typing import Any
+
+
+class VirtualClock:
+    def __init__(self, start: float = 0.0) -> None:
+        self._now = float(start)
+        self._heap: list[tuple[float, int, asyncio.Future[None]]] = []
+        self._seq = itertools.count()
+        self._advancer: asyncio.Task[None] | None = None
+
+    def now(self) -> float:
+        return self._now
+
+    async def sleep(self, seconds: float) -> None:
+        loop = asyncio.get_running_loop()
+        future: asyncio.Future[None] = loop.create_future()
+        heapq.heappush(self._heap, (self._now + max(0.0, float(seconds)), next(self._seq), future))
+        if self._advancer is None or self._advancer.done():
+            self._advancer = loop.create_task(self._advance(loop), name="VirtualClock.advance")
+        await future
+
+    @staticmethod
+    def _others_runnable(loop: asyncio.AbstractEventLoop) -> bool:
+        ready: Any = getattr(loop, "_ready", None)
+        return bool(ready) if ready is not None else False
+
+    async def _advance(self, loop: asyncio.AbstractEventLoop) -> None:
+        idle_rounds = 0
+        while self._heap:
+            await asyncio.sleep(0)
+            if self._others_runnable(loop):
+                idle_rounds = 0
+                continue
+            if idle_rounds < 1:  # one more round: callbacks scheduled by the last wake-ups settle
+                idle_rounds += 1
+                continue
+            idle_rounds = 0
+            while self._heap and self._heap[0][2].done():  # cancelled sleepers
+                heapq.heappop(self._heap)
+            if not self._heap:
+                break
+            due = self._heap[0][0]
+            self._now = max(self._now, due)
+            while self._heap and self._heap[0][0] <= due:
+                _, _, future = heapq.heappop(self._heap)
+                if not future.done():
+                    future.set_result(None)

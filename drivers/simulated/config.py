@@ -1,0 +1,77 @@
+"""The ``[simulation]`` table of the operator config and the simulated sensors' own keys.
+
+```toml
+[simulation]
+scenario = "train"            # steady | train | bidirectional | test1..test5 | daily
+speed = 60.0                  # simulated seconds per wall second (daemon); procedures use a VirtualClock
+seed = 0
+effects = ["thermal_lag", "hysteresis"]          # or a table with parameters:
+# effects = { thermal_lag = { tau_s = 1800.0 }, creep = {} }
+params = { interferometer_noise_um = 0.01 }      # overrides of the cell's baseline magnitudes
+```
+"""
+
+from __future__ import annotations
+
+from dataclasses import fields
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from drivers.base import SensorConfig
+from drivers.simulated.effects import resolve_effects
+from drivers.simulated.physics import CellParams, CellPhysics
+from drivers.simulated.scenarios import get_scenario
+
+_PARAM_NAMES = {f.name for f in fields(CellParams)} - {"offsets_c", "geometry_e_um"}
+
+
+class SimulationConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    scenario: str = Field(default="train", description="room-temperature history (see drivers/simulated/README.md)")
+    speed: float = Field(default=1.0, gt=0, description="simulated seconds per wall second")
+    seed: int = Field(default=0, description="every run with the same seed is identical")
+    effects: list[str] | dict[str, dict[str, float]] = Field(
+        default_factory=list, description="hidden effects: names, or name -> {param = value}"
+    )
+    params: dict[str, float] = Field(default_factory=dict, description="overrides of CellParams magnitudes")
+
+    @field_validator("scenario")
+    @classmethod
+    def _known_scenario(cls, value: str) -> str:
+        get_scenario(value)
+        return value
+
+    @field_validator("effects")
+    @classmethod
+    def _known_effects(cls, value: Any) -> Any:
+        resolve_effects(value)
+        return value
+
+    @field_validator("params")
+    @classmethod
+    def _known_params(cls, value: dict[str, float]) -> dict[str, float]:
+        unknown = sorted(set(value) - _PARAM_NAMES)
+        if unknown:
+            known = ", ".join(sorted(_PARAM_NAMES))
+            raise ValueError(f"unknown cell parameter(s) {', '.join(unknown)}; known: {known}")
+        return value
+
+    def physics(self) -> CellPhysics:
+        return CellPhysics.create(self.scenario, self.effects, self.seed, **self.params)
+
+
+class SimulatedSensorConfig(SensorConfig):
+    """A ``[[sensors]]`` entry with ``kind = "simulated"``.
+
+    ``channel`` picks what the sensor reads in the simulated cell: T1..T4 (thermocouples), ``air``
+    (true air temperature) or ``interferometer``; by default the sensor's own name.
+    """
+
+    kind: Literal["simulated"] = "simulated"
+    channel: str | None = None
+
+    @property
+    def source(self) -> str:
+        return self.channel or self.name

@@ -1,0 +1,149 @@
+"""The catalogue of hidden effects the simulated cell can switch on, and the ``--effects`` parser.
+
+Each effect is physics the paper's model (eq. 3: polynomial in x + linear in T1..T4 + bias) cannot
+explain, so a calibration run with it on leaves a visible, structured residual for discovery to
+name. All are off by default. Parameters are plain floats with defaults; any can be overridden:
+``thermal_lag:tau_s=1800,k_um_per_c=-0.5,hysteresis``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+
+class UnknownNameError(ValueError):
+    """An unknown scenario, effect or parameter; the message lists the valid names."""
+
+
+@dataclass(frozen=True)
+class EffectSpec:
+    name: str
+    physics: str
+    term: str
+    defaults: Mapping[str, float]
+
+
+EFFECTS: dict[str, EffectSpec] = {
+    spec.name: spec
+    for spec in (
+        EffectSpec(
+            "thermal_lag",
+            "a structure no thermocouple sees (the XYZ manual stage) lags the air with time constant "
+            "tau_s: drift += k_um_per_c * (lag(T_air, tau_s) - T_ref)",
+            "lag(T4, tau_s)",
+            {"tau_s": 2100.0, "k_um_per_c": -0.8},
+        ),
+        EffectSpec(
+            "hysteresis",
+            "the attained position depends on the direction of approach: x += -h_um/2 * dir "
+            "(dir = +1 after a step up, -1 after a step down larger than deadband_um)",
+            "dir",
+            {"h_um": 0.15, "deadband_um": 0.5},
+        ),
+        EffectSpec(
+            "position_thermal_coupling",
+            "the stage gain depends on its temperature: g(q) * (1 + kappa_per_c * (T_stage - T_ref))",
+            "x*T1",
+            {"kappa_per_c": 8e-4},
+        ),
+        EffectSpec(
+            "creep",
+            "after every command step dq at t_i the stage lags its setpoint and settles: "
+            "x -= c * sum_i dq_i * exp(-(t - t_i) / tau_s)",
+            "creep(tau_s): dq_last * exp(-(t - t_step) / tau_s)",
+            {"c": 0.01, "tau_s": 15.0},
+        ),
+        EffectSpec(
+            "temperature_rate",
+            "a gradient through the cell while the air warms or cools: drift += k_um_per_c_per_s * "
+            "dT/dt, with dT/dt the rate of lag(T_air, tau_s) (exact: (T_air - lag) / tau_s)",
+            "rate of T4 (smoothed over tau_s)",
+            {"k_um_per_c_per_s": -3000.0, "tau_s": 300.0},
+        ),
+        EffectSpec(
+            "unmonitored_drift",
+            "a source no sensor sees (interferometer dead path, an unmonitored heat source): "
+            "drift += rate_um_per_h * t_h + a random walk of walk_um_per_sqrt_h",
+            "none applicable online (discovery names it)",
+            {"rate_um_per_h": 0.08, "walk_um_per_sqrt_h": 0.05},
+        ),
+    )
+}
+
+
+def _unknown(kind: str, name: str, valid: Sequence[str]) -> UnknownNameError:
+    return UnknownNameError(f"unknown {kind} {name!r}; valid {kind}s: {', '.join(valid)}")
+
+
+def resolve_effects(spec: str | Sequence[str] | Mapping[str, Any] | None) -> dict[str, dict[str, float]]:
+    """Effect name -> full parameter dict (defaults overridden), from any of the accepted forms.
+
+    ``spec``: ``"a,b:p=1"`` (the CLI form), a list of names (or of CLI-form strings), or a mapping
+    name -> {param: value} (the TOML table form). Raises :class:`UnknownNameError` naming the
+    valid effects or parameters.
+    """
+    if spec is None:
+        return {}
+    if isinstance(spec, str):
+        return _parse_cli(spec)
+    if isinstance(spec, Mapping):
+        out: dict[str, dict[str, float]] = {}
+        for name, params in spec.items():
+            out[name] = _with_defaults(name, dict(params or {}))
+        return out
+    merged: dict[str, dict[str, float]] = {}
+    for item in spec:
+        merged.update(_parse_cli(str(item)))
+    return merged
+
+
+def _parse_cli(text: str) -> dict[str, dict[str, float]]:
+    """``thermal_lag:tau_s=1800,k_um_per_c=-0.5,hysteresis``: a bare ``p=v`` continues the previous effect."""
+    out: dict[str, dict[str, float]] = {}
+    current: str | None = None
+    for raw in text.split(","):
+        token = raw.strip()
+        if not token:
+            continue
+        if ":" in token:
+            current, param_text = (s.strip() for s in token.split(":", 1))
+            params = [param_text] if param_text else []
+        elif "=" in token:
+            if current is None:
+                raise UnknownNameError(f"effect parameter {token!r} comes before any effect name")
+            params = [token]
+        else:
+            current, params = token, []
+        _check_effect(current)
+        overrides = out.setdefault(current, {})
+        for p in params:
+            key, sep, value = p.partition("=")
+            if not sep:
+                raise UnknownNameError(f"effect {current}: expected param=value, got {p!r}")
+            try:
+                overrides[key.strip()] = float(value)
+            except ValueError:
+                raise UnknownNameError(
+                    f"effect {current}: parameter {key.strip()} = {value!r} is not a number"
+                ) from None
+    return {name: _with_defaults(name, params) for name, params in out.items()}
+
+
+def _check_effect(name: str) -> None:
+    if name not in EFFECTS:
+        raise _unknown("effect", name, list(EFFECTS))
+
+
+def _with_defaults(name: str, overrides: Mapping[str, Any]) -> dict[str, float]:
+    _check_effect(name)
+    defaults = EFFECTS[name].defaults
+    params = dict(defaults)
+    for key, value in overrides.items():
+        if key not in defaults:
+            raise UnknownNameError(
+                f"effect {name} has no parameter {key!r}; its parameters: {', '.join(defaults)}"
+            )
+        params[key] = float(value)
+    return params

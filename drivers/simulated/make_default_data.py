@@ -1,0 +1,53 @@
+"""Regenerate the shipped sample calibration and default model: ``python -m drivers.simulated.make_default_data``.
+
+``daemon/data/sample_calibration.csv``: a simulated 24-cycle ``train`` run (seed 0, no hidden
+effects), one row per step average; ``daemon/data/default_model.json``: the model ``fit`` identifies
+from it. Both are deterministic: running this again reproduces them (a test checks it).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from daemon.calibration.dataset import Dataset, write_csv
+from daemon.calibration.procedure import calibration_plan
+from daemon.model.identify import fit
+from daemon.model.model import Model, save_model
+from drivers.simulated.physics import THERMOCOUPLES, CellPhysics
+from drivers.simulated.runs import simulate_steps
+
+DATA_DIR = Path(__file__).resolve().parents[2] / "daemon" / "data"
+SCENARIO, SEED, CYCLES = "train", 0, 24
+
+
+def sample_dataset() -> Dataset:
+    physics = CellPhysics.create(SCENARIO, None, SEED)
+    plan = calibration_plan(CYCLES)
+    out = simulate_steps(physics, [s.target_um for s in plan], [s.cycle for s in plan])
+    return Dataset(t=out["t_s"], x=out["x_um"], q=out["q_um"], channels={c: out[c] for c in THERMOCOUPLES},
+                   extra={"cycle": out["cycle"]}, source="sample_calibration.csv")
+
+
+def default_model(csv_path: Path) -> Model:
+    from daemon.calibration.dataset import read_csv
+
+    return fit(read_csv(csv_path), source="sample_calibration.csv").model
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--dir", type=Path, default=DATA_DIR, help="where to write (default: daemon/data)")
+    args = parser.parse_args(argv)
+    csv_path = args.dir / "sample_calibration.csv"
+    write_csv(sample_dataset(), csv_path)
+    model = default_model(csv_path)
+    save_model(model, args.dir / "default_model.json")
+    for shipped in (csv_path, args.dir / "default_model.json"):
+        shipped.chmod(0o644)  # package data: readable by whoever runs the daemon
+    print(f"wrote {csv_path} and {args.dir / 'default_model.json'} ({model.fit.get('residual_rms_nm', 0):.1f} nm RMS)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,367 @@
+"""The simulated cell's physics as a pure, vectorised core: times and commands in, positions and
+temperatures out.
+
+Thermal part: the air temperature is piecewise linear between knots (every ``knot_dt_s``: the
+scenario's shape plus a small random fluctuation). Every structure/sensor temperature is a
+first-order lag of the air, and a first-order lag of a piecewise-linear input has an exact closed
+form, so node temperatures are exact at any time, at any spacing, with no integration step. The
+state at the knots is computed once per chunk with ``scipy.signal.lfilter`` (the exact recursion),
+and the grid is extended lazily, so a daemon can run for days.
+
+Mechanical part: the stage follows each command (closed-loop setpoint) with a few nm of landing
+error; the optional effects add direction memory (hysteresis) and settling (creep). The state after
+each command is an exact update, evaluated at any later time.
+
+Magnitudes after the paper: drift about -1.1 µm/°C overall (Fig. 1: 0.4 µm for -0.35 °C), split
+between the stage (T1), the bracket (T2) and the air the beam crosses (T3/T4); the bracket's
+bending adds a small quadratic part (the "nonlinear combination of thermal expansions", II.B.2)
+that is invisible inside a 0.5 °C training range and is what makes extrapolation (test 5) degrade.
+The interferometer has ~20 nm white noise plus a slow ~25 nm wander (its wavelength/dead-path
+uncertainty, III.A: < 40 nm); thermocouples 5 mK noise and 0.01 °C quantisation.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from scipy.signal import lfilter
+
+from drivers.simulated.effects import resolve_effects
+from drivers.simulated.scenarios import Scenario, get_scenario
+
+#: temperature channels of the cell and the thermal node each reads (paper III.A, Fig. 5)
+THERMOCOUPLES: dict[str, str] = {"T1": "stage", "T2": "bracket", "T3": "t3", "T4": "t4"}
+POSITION_CHANNEL = "interferometer"
+#: extra channels a config may map a sensor to: the true air temperature (no sensor offset)
+TRUTH_CHANNELS: dict[str, str] = {"air": "air"}
+
+
+@dataclass(frozen=True)
+class CellParams:
+    """Every magnitude of the baseline cell (no hidden effect). Units: µm, s, °C."""
+
+    t_ref_c: float = 22.0  # temperature at which the interferometer was zeroed
+    # thermal time constants of the nodes (first-order lags of the air)
+    tau_stage_s: float = 900.0
+    tau_bracket_s: float = 2400.0
+    tau_t3_s: float = 60.0
+    tau_t4_s: float = 150.0
+    tau_beam_s: float = 120.0  # air along the interferometer beam
+    # drift sensitivities: sum -1.1 um/degC
+    k_stage_um_per_c: float = -0.40
+    k_bracket_um_per_c: float = -0.50
+    k_beam_um_per_c: float = -0.20
+    k2_bracket_um_per_c2: float = -0.40  # bracket bending: nonlinear part
+    # geometry x = g(q) = q + e(q / full), e cubic (few hundred nm over the range)
+    geometry_full_um: float = 480.0
+    geometry_e_um: tuple[float, float, float] = (-0.25, 1.20, -0.75)
+    # thermocouples
+    offsets_c: tuple[tuple[str, float], ...] = (("T1", 0.04), ("T2", -0.03), ("T3", 0.06), ("T4", -0.02))
+    tc_noise_c: float = 0.005
+    tc_quantum_c: float = 0.01
+    # interferometer
+    interferometer_noise_um: float = 0.020
+    interferometer_resolution_um: float = 0.0003
+    interferometer_wander_um: float = 0.025
+    interferometer_wander_tau_s: float = 1200.0
+    # room
+    air_fluctuation_c: float = 0.01
+    air_fluctuation_tau_s: float = 600.0
+    # stage
+    landing_sigma_um: float = 0.003
+    knot_dt_s: float = 30.0
+
+    def offset(self, channel: str) -> float:
+        return dict(self.offsets_c).get(channel, 0.0)
+
+    def geometry(self, q: Any) -> Any:
+        u = q / self.geometry_full_um
+        e1, e2, e3 = self.geometry_e_um
+        return q + u * (e1 + u * (e2 + u * e3))
+
+
+def _ou_step(prev: float, n: int, dt: float, tau: float, sigma: float, rng: np.random.Generator) -> np.ndarray:
+    """``n`` further samples of an Ornstein-Uhlenbeck process (stationary std ``sigma``), exact."""
+    a = math.exp(-dt / tau)
+    shocks = rng.normal(0.0, sigma * math.sqrt(1.0 - a * a), n)
+    out, _ = lfilter([1.0], [1.0, -a], shocks, zi=[a * prev])
+    return out
+
+
+class Exogenous:
+    """Everything that depends on time only, on a lazily extended knot grid.
+
+    Per knot: air temperature, interferometer wander, unmonitored random walk, and the exact state
+    of every thermal node. Chunks are generated in order from per-chunk seeds, so any query order
+    gives the same numbers.
+    """
+
+    CHUNK = 720
+
+    def __init__(self, scenario: Scenario, params: CellParams, node_taus: Mapping[str, float], seed: int,
+                 walk_um_per_sqrt_h: float = 0.0) -> None:
+        self.scenario = scenario
+        self.params = params
+        self.node_names = tuple(node_taus)
+        self.taus = np.array([node_taus[n] for n in self.node_names], dtype=np.float64)
+        self.seed = seed
+        self.walk_sigma = walk_um_per_sqrt_h * math.sqrt(params.knot_dt_s / 3600.0)
+        self.t0 = scenario.start_h * 3600.0
+        self.dt = params.knot_dt_s
+        self.t = np.empty(0)
+        self.air = np.empty(0)
+        self.wander = np.empty(0)
+        self.walk = np.empty(0)
+        self.nodes = np.empty((0, len(self.node_names)))
+        self._fluct_last = 0.0
+        self._chunks = 0
+        a = np.exp(-self.dt / self.taus)
+        r = (self.taus / self.dt) * (1.0 - a)
+        self._a, self._b_now, self._b_prev = a, 1.0 - r, r - a
+
+    def ensure(self, t_max: float) -> None:
+        while self.t.size < 2 or self.t[-1] < t_max + self.dt:
+            self._extend()
+
+    def _extend(self) -> None:
+        p, k, n = self.params, self._chunks, self.CHUNK
+        rng = np.random.default_rng([self.seed, 1, k])
+        t = self.t0 + self.dt * (np.arange(n) + k * n)
+        fluct = _ou_step(self._fluct_last, n, self.dt, p.air_fluctuation_tau_s, p.air_fluctuation_c, rng)
+        if k == 0:  # start the fluctuation from its stationary distribution, at the first knot
+            fluct = fluct - fluct[0] + rng.normal(0.0, p.air_fluctuation_c)
+        self._fluct_last = float(fluct[-1])
+        air = self.scenario.air(t) + fluct
+        prev_wander = float(self.wander[-1]) if self.wander.size else rng.normal(0.0, p.interferometer_wander_um)
+        wander = _ou_step(prev_wander, n, self.dt, p.interferometer_wander_tau_s, p.interferometer_wander_um, rng)
+        steps = rng.normal(0.0, self.walk_sigma, n) if self.walk_sigma > 0 else np.zeros(n)
+        if k == 0:
+            steps[0] = 0.0
+        walk = (float(self.walk[-1]) if self.walk.size else 0.0) + np.cumsum(steps)
+        nodes = np.empty((n, len(self.node_names)))
+        for j in range(len(self.node_names)):
+            if self.nodes.shape[0]:
+                zi = [self._b_prev[j] * self.air[-1] + self._a[j] * self.nodes[-1, j]]
+            else:  # equilibrium with the first knot's air
+                zi = [air[0] * (1.0 - self._b_now[j])]
+            nodes[:, j], _ = lfilter([self._b_now[j], self._b_prev[j]], [1.0, -self._a[j]], air, zi=zi)
+        self.t = np.concatenate((self.t, t))
+        self.air = np.concatenate((self.air, air))
+        self.wander = np.concatenate((self.wander, wander))
+        self.walk = np.concatenate((self.walk, walk))
+        self.nodes = np.concatenate((self.nodes, nodes))
+        self._chunks += 1
+
+    def at(self, t: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray, np.ndarray]:
+        """(air, nodes by name, wander, walk) at times ``t``: exact for the nodes, linear otherwise."""
+        t = np.asarray(t, dtype=np.float64)
+        self.ensure(float(t.max()) if t.size else 0.0)
+        tc = np.maximum(t, self.t[0])
+        i = np.minimum(((tc - self.t[0]) // self.dt).astype(np.int64), self.t.size - 2)
+        h = tc - self.t[i]
+        u0, u1 = self.air[i], self.air[i + 1]
+        slope = (u1 - u0) / self.dt
+        air = u0 + slope * h
+        s_tau = slope[:, None] * self.taus[None, :]
+        decay = np.exp(-h[:, None] / self.taus[None, :])
+        nodes = air[:, None] - s_tau + (self.nodes[i] - u0[:, None] + s_tau) * decay
+        frac = h / self.dt
+        wander = self.wander[i] + (self.wander[i + 1] - self.wander[i]) * frac
+        walk = self.walk[i] + (self.walk[i + 1] - self.walk[i]) * frac
+        return air, {n: nodes[:, j] for j, n in enumerate(self.node_names)}, wander, walk
+
+    def at1(self, t: float) -> tuple[float, dict[str, float], float, float]:
+        """:meth:`at` for one time, in plain floats (the stepped drivers call this per sample)."""
+        self.ensure(t)
+        tc = max(t, float(self.t[0]))
+        i = min(int((tc - self.t[0]) // self.dt), self.t.size - 2)
+        h = tc - float(self.t[i])
+        u0, u1 = float(self.air[i]), float(self.air[i + 1])
+        slope = (u1 - u0) / self.dt
+        air = u0 + slope * h
+        row = self.nodes[i].tolist()
+        nodes = {}
+        for j, name in enumerate(self.node_names):
+            tau = float(self.taus[j])
+            s_tau = slope * tau
+            nodes[name] = air - s_tau + (row[j] - u0 + s_tau) * math.exp(-h / tau)
+        frac = h / self.dt
+        w0, w1 = float(self.wander[i]), float(self.wander[i + 1])
+        k0, k1 = float(self.walk[i]), float(self.walk[i + 1])
+        return air, nodes, w0 + (w1 - w0) * frac, k0 + (k1 - k0) * frac
+
+
+@dataclass
+class StageState:
+    """The stage after its last command: what later positions depend on."""
+
+    t: float = -math.inf
+    q: float = 0.0
+    direction: float = 1.0
+    creep_sum: float = 0.0  # sum_i dq_i exp(-(t - t_i)/tau), as of time t
+    landing_um: float = 0.0
+
+
+@dataclass
+class CellPhysics:
+    """The cell: a scenario, a set of hidden effects with parameters, a seed. Pure and vectorised."""
+
+    scenario: Scenario
+    effects: dict[str, dict[str, float]] = field(default_factory=dict)
+    seed: int = 0
+    params: CellParams = field(default_factory=CellParams)
+
+    def __post_init__(self) -> None:
+        p = self.params
+        taus = {"stage": p.tau_stage_s, "bracket": p.tau_bracket_s, "t3": p.tau_t3_s, "t4": p.tau_t4_s,
+                "beam": p.tau_beam_s}
+        if "thermal_lag" in self.effects:
+            taus["hidden_lag"] = self.effects["thermal_lag"]["tau_s"]
+        if "temperature_rate" in self.effects:
+            taus["rate_lag"] = self.effects["temperature_rate"]["tau_s"]
+        walk = self.effects.get("unmonitored_drift", {}).get("walk_um_per_sqrt_h", 0.0)
+        self.exogenous = Exogenous(self.scenario, p, taus, self.seed, walk_um_per_sqrt_h=walk)
+        hyst = self.effects.get("hysteresis", {})
+        self.deadband_um = hyst.get("deadband_um", 0.5)
+        creep = self.effects.get("creep")
+        self.creep_c = creep["c"] if creep else 0.0
+        self.creep_tau_s = creep["tau_s"] if creep else 1.0
+
+    @classmethod
+    def create(cls, scenario: str = "steady", effects: object = None, seed: int = 0,
+               params: CellParams | None = None, **param_overrides: float) -> CellPhysics:
+        """By names: ``CellPhysics.create("train", "thermal_lag:tau_s=1800", seed=3)``."""
+        base = params or CellParams()
+        if param_overrides:
+            base = replace(base, **param_overrides)
+        return cls(get_scenario(scenario), resolve_effects(effects), seed, base)  # type: ignore[arg-type]
+
+    # ----- thermal -------------------------------------------------------------------------------
+    def thermal(self, t: np.ndarray) -> dict[str, np.ndarray]:
+        """True temperatures (no sensor noise) of the air and every node at times ``t``."""
+        air, nodes, _, _ = self.exogenous.at(np.atleast_1d(t))
+        return {"air": air, **nodes}
+
+    def thermal1(self, t: float) -> dict[str, float]:
+        air, nodes, _, _ = self.exogenous.at1(t)
+        return {"air": air, **nodes}
+
+    def sensor_truth(self, channel: str, thermal: Mapping[str, np.ndarray]) -> np.ndarray:
+        """What a perfect thermocouple ``channel`` reads (node temperature + its mounting offset)."""
+        node = THERMOCOUPLES.get(channel) or TRUTH_CHANNELS[channel]
+        return thermal[node] + self.params.offset(channel)
+
+    def _drift(self, t: Any, air: Any, nodes: Mapping[str, Any], walk: Any) -> Any:
+        """Drift from the exogenous state; plain arithmetic, so floats and arrays both work."""
+        p = self.params
+        d_bracket = nodes["bracket"] - p.t_ref_c
+        drift = (p.k_stage_um_per_c * (nodes["stage"] - p.t_ref_c) + p.k_bracket_um_per_c * d_bracket
+                 + p.k2_bracket_um_per_c2 * d_bracket * d_bracket
+                 + p.k_beam_um_per_c * (nodes["beam"] - p.t_ref_c))
+        if "thermal_lag" in self.effects:
+            drift = drift + self.effects["thermal_lag"]["k_um_per_c"] * (nodes["hidden_lag"] - p.t_ref_c)
+        if "temperature_rate" in self.effects:
+            e = self.effects["temperature_rate"]
+            drift = drift + e["k_um_per_c_per_s"] * (air - nodes["rate_lag"]) / e["tau_s"]
+        if "unmonitored_drift" in self.effects:
+            drift = drift + self.effects["unmonitored_drift"]["rate_um_per_h"] * t / 3600.0 + walk
+        return drift
+
+    def drift(self, t: np.ndarray) -> np.ndarray:
+        """Thermal and other time-only drift of the attained position, µm."""
+        t = np.atleast_1d(np.asarray(t, dtype=np.float64))
+        air, nodes, _, walk = self.exogenous.at(t)
+        return self._drift(t, air, nodes, walk)
+
+    def _static_x(self, q: Any, nodes: Mapping[str, Any], direction: Any) -> Any:
+        p = self.params
+        x = p.geometry(q)
+        if "position_thermal_coupling" in self.effects:
+            x = x * (1.0 + self.effects["position_thermal_coupling"]["kappa_per_c"] * (nodes["stage"] - p.t_ref_c))
+        if "hysteresis" in self.effects:
+            x = x - 0.5 * self.effects["hysteresis"]["h_um"] * direction
+        return x
+
+    # ----- mechanics -----------------------------------------------------------------------------
+    def after_command(self, state: StageState, t: float, q: float, landing_um: float) -> StageState:
+        """Exact state update for a new setpoint ``q`` at time ``t``."""
+        dq = q - state.q
+        direction = state.direction
+        if abs(dq) > self.deadband_um:
+            direction = 1.0 if dq > 0 else -1.0
+        creep_sum = dq
+        if self.creep_c and math.isfinite(state.t):
+            creep_sum += state.creep_sum * math.exp(-(t - state.t) / self.creep_tau_s)
+        return StageState(t=t, q=q, direction=direction, creep_sum=creep_sum, landing_um=landing_um)
+
+    def attained(self, t: np.ndarray, q: np.ndarray, direction: np.ndarray, creep_sum: np.ndarray,
+                 t_cmd: np.ndarray, landing: np.ndarray) -> np.ndarray:
+        """True stage position (µm in the interferometer's frame) given the command state per time."""
+        t = np.atleast_1d(np.asarray(t, dtype=np.float64))
+        air, nodes, _, walk = self.exogenous.at(t)
+        x = self._static_x(np.asarray(q, dtype=np.float64), nodes, direction)
+        x = x + landing + self._drift(t, air, nodes, walk)
+        if self.creep_c:
+            age = np.where(np.isfinite(t_cmd), t - t_cmd, np.inf)
+            x = x - self.creep_c * creep_sum * np.exp(-age / self.creep_tau_s)
+        return x
+
+    def attained_now(self, t: float, state: StageState) -> float:
+        """:meth:`attained` for one time and the current stage state, in plain floats."""
+        air, nodes, _, walk = self.exogenous.at1(t)
+        x = self._static_x(state.q, nodes, state.direction) + state.landing_um + self._drift(t, air, nodes, walk)
+        if self.creep_c and math.isfinite(state.t):
+            x -= self.creep_c * state.creep_sum * math.exp(-(t - state.t) / self.creep_tau_s)
+        return float(x)
+
+    # ----- sensors -------------------------------------------------------------------------------
+    def measure_position(self, t: np.ndarray, true_x: np.ndarray, noise: np.ndarray) -> np.ndarray:
+        """Interferometer readings: truth + slow wander + white noise (``noise`` ~ N(0, 1)), quantised."""
+        _, _, wander, _ = self.exogenous.at(np.atleast_1d(t))
+        p = self.params
+        raw = true_x + wander + p.interferometer_noise_um * noise
+        return np.round(raw / p.interferometer_resolution_um) * p.interferometer_resolution_um
+
+    def measure_position1(self, t: float, true_x: float, noise: float) -> float:
+        wander = self.exogenous.at1(t)[2]
+        p = self.params
+        raw = true_x + wander + p.interferometer_noise_um * noise
+        return round(raw / p.interferometer_resolution_um) * p.interferometer_resolution_um
+
+    def measure_temperature1(self, truth: float, noise: float) -> float:
+        p = self.params
+        return round((truth + p.tc_noise_c * noise) / p.tc_quantum_c) * p.tc_quantum_c
+
+    def measure_temperature(self, channel: str, truth: np.ndarray, noise: np.ndarray) -> np.ndarray:
+        """Thermocouple readings: truth + white noise (``noise`` ~ N(0, 1)), quantised to 0.01 °C."""
+        p = self.params
+        return np.round((truth + p.tc_noise_c * noise) / p.tc_quantum_c) * p.tc_quantum_c
+
+    def command_track(self, cmd_t: np.ndarray, cmd_q: np.ndarray, rng: np.random.Generator) -> dict[str, np.ndarray]:
+        """The stage state after each of a whole series of commands (sorted by time)."""
+        n = len(cmd_t)
+        landing = rng.normal(0.0, self.params.landing_sigma_um, n)
+        out = {k: np.empty(n) for k in ("t", "q", "direction", "creep_sum", "landing")}
+        state = StageState()
+        for k in range(n):
+            state = self.after_command(state, float(cmd_t[k]), float(cmd_q[k]), float(landing[k]))
+            out["t"][k], out["q"][k], out["direction"][k] = state.t, state.q, state.direction
+            out["creep_sum"][k], out["landing"][k] = state.creep_sum, state.landing_um
+        return out
+
+    def attained_along(self, t: np.ndarray, track: Mapping[str, np.ndarray]) -> np.ndarray:
+        """True positions at times ``t`` under a command track from :meth:`command_track`."""
+        t = np.asarray(t, dtype=np.float64)
+        i = np.searchsorted(track["t"], t, side="right") - 1
+        before = i < 0
+        j = np.maximum(i, 0)
+
+        def pick(name: str, default: float) -> np.ndarray:
+            return np.where(before, default, track[name][j])
+
+        return self.attained(t, pick("q", 0.0), pick("direction", 1.0), pick("creep_sum", 0.0),
+                             pick("t", -np.inf), pick("landing", 0.0))

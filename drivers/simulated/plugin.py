@@ -1,0 +1,108 @@
+"""The ``simulated`` driver kind: sensor groups and an actuator on one shared :class:`SimulatedCell`.
+
+Temperature sensors with the same poll interval form one group (like one Modbus module answering
+four thermocouples); the interferometer is a group of its own.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import ClassVar
+
+from drivers.base import Actuator, DriverContext, Reading, SensorConfig, SensorGroup
+from drivers.simulated.cell import CHANNELS, SimulatedCell
+from drivers.simulated.config import SimulatedSensorConfig
+from drivers.simulated.physics import POSITION_CHANNEL
+
+SHARED_KEY = "simulated.cell"
+
+
+def shared_cell(context: DriverContext) -> SimulatedCell:
+    """The one cell of this daemon/procedure, created on first use from ``context.simulation``."""
+    cell = context.shared.get(SHARED_KEY)
+    if cell is None:
+        cell = SimulatedCell.from_settings(context.simulation or {}, context.clock)
+        context.shared[SHARED_KEY] = cell
+    return cell
+
+
+class SimulatedGroup(SensorGroup):
+    def __init__(self, cell: SimulatedCell, configs: Sequence[SimulatedSensorConfig]) -> None:
+        self.cell = cell
+        self.names = tuple(c.name for c in configs)
+        self.roles = {c.name: c.role for c in configs}
+        self._sources = {c.name: c.source for c in configs}
+        self.interval_s = min(c.interval_s for c in configs)
+        self.timeout_s = max(c.timeout_s for c in configs)
+        self.is_open = False
+
+    async def open(self) -> None:
+        self.is_open = True
+
+    async def read(self) -> dict[str, Reading]:
+        by_source = self.cell.read(dict.fromkeys(self._sources.values()))  # stable order: same noise per seed
+        return {name: by_source[source] for name, source in self._sources.items()}
+
+    async def close(self) -> None:
+        self.is_open = False
+
+
+class SimulatedActuator(Actuator):
+    """Moves the simulated stage: the closed loop takes ``q_um`` (the voltage is informational)."""
+
+    def __init__(self, cell: SimulatedCell) -> None:
+        self.cell = cell
+        self.last_voltage_v: float | None = None
+
+    async def open(self) -> None:
+        return None
+
+    async def command(self, q_um: float, voltage_v: float) -> None:
+        self.last_voltage_v = voltage_v
+        self.cell.command(q_um)
+
+    async def close(self) -> None:
+        return None
+
+
+class SimulatedPlugin:
+    name = "simulated"
+    config_model: ClassVar[type[SensorConfig]] = SimulatedSensorConfig
+
+    def create(self, configs: Sequence[SensorConfig], context: DriverContext) -> list[SensorGroup]:
+        cell = shared_cell(context)
+        sims = [c if isinstance(c, SimulatedSensorConfig) else SimulatedSensorConfig.model_validate(c.model_dump())
+                for c in configs]
+        for c in sims:
+            if c.source not in CHANNELS:
+                raise ValueError(
+                    f"sensor {c.name}: no simulated channel {c.source!r}; set channel to one of {', '.join(CHANNELS)}"
+                )
+            if (c.source == POSITION_CHANNEL) != (c.role == "position"):
+                expected = "position" if c.source == POSITION_CHANNEL else "temperature"
+                raise ValueError(f"sensor {c.name}: simulated channel {c.source} has role {expected}, not {c.role}")
+        groups: list[SensorGroup] = []
+        temps: dict[tuple[float, float], list[SimulatedSensorConfig]] = {}
+        for c in sims:
+            if c.role == "position":
+                groups.append(SimulatedGroup(cell, [c]))
+            else:
+                temps.setdefault((c.interval_s, c.timeout_s), []).append(c)
+        groups.extend(SimulatedGroup(cell, same) for same in temps.values())
+        return groups
+
+    def create_actuator(self, context: DriverContext) -> Actuator:
+        return SimulatedActuator(shared_cell(context))
+
+
+PLUGIN = SimulatedPlugin()
+
+
+def default_sensor_configs(interferometer_interval_s: float = 0.1, thermocouple_interval_s: float = 0.5
+                           ) -> list[SimulatedSensorConfig]:
+    """The paper's cell: T1..T4 and the interferometer (what a config with no sensors runs)."""
+    temps = [SimulatedSensorConfig(name=n, role="temperature", interval_s=thermocouple_interval_s, max_age_s=5.0)
+             for n in ("T1", "T2", "T3", "T4")]
+    position = SimulatedSensorConfig(name=POSITION_CHANNEL, role="position",
+                                     interval_s=interferometer_interval_s, max_age_s=1.0)
+    return [*temps, position]

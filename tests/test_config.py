@@ -1,0 +1,165 @@
+"""The operator config: the TOML contract, errors that name file and field, check-config."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from daemon.config import DEFAULT_MODEL_PATH, ConfigError, default_config, load_config, missing_model_channels
+from drivers.simulated.config import SimulatedSensorConfig
+
+REPO = Path(__file__).resolve().parent.parent
+
+LAB_LIKE = """
+cell = "lab1"
+[zenoh]
+mode = "client"
+connect = ["tcp/10.0.0.2:7447"]
+[model]
+path = "models/model.json"
+[actuator]
+volts_per_um = 0.025
+v_max = 10.0
+[simulation]
+scenario = "steady"
+speed = 30.0
+[[sensors]]
+name = "T1"
+kind = "simulated"
+[[sensors]]
+name = "T2"
+kind = "simulated"
+max_age_s = 3.0
+[[sensors]]
+name = "interferometer"
+role = "position"
+kind = "simulated"
+interval_s = 0.1
+"""
+
+
+def write(tmp_path: Path, text: str, name: str = "nanodrift.toml") -> Path:
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def problems_of(path: Path) -> list[str]:
+    with pytest.raises(ConfigError) as caught:
+        load_config(path)
+    assert all(line.startswith(f"{path}: ") for line in str(caught.value).splitlines())
+    return caught.value.problems
+
+
+def test_full_config_is_read_with_relative_paths_resolved(tmp_path: Path) -> None:
+    path = write(tmp_path, LAB_LIKE)
+    config = load_config(path)
+    assert config.cell == "lab1" and config.key_prefix == "nanodrift/lab1"
+    assert config.zenoh.mode == "client" and config.zenoh.connect == ["tcp/10.0.0.2:7447"]
+    assert config.model.path == (tmp_path / "models" / "model.json").resolve()
+    assert config.actuator.volts_per_um == 0.025 and config.actuator.v_min == -2.0  # default kept
+    assert config.actuator.voltage(100.0) == pytest.approx(2.5)
+    assert config.simulation.scenario == "steady" and config.simulation.speed == 30.0
+    assert [s.name for s in config.sensors] == ["T1", "T2", "interferometer"]
+    assert all(isinstance(s, SimulatedSensorConfig) for s in config.sensors)  # the plugin's own model
+    assert config.sensor("T2").max_age_s == 3.0
+    assert config.source == str(path)
+
+
+def test_no_file_and_no_sensors_both_mean_the_simulated_cell(tmp_path: Path) -> None:
+    builtin = default_config()
+    assert builtin.model.path == DEFAULT_MODEL_PATH and DEFAULT_MODEL_PATH.exists()
+    assert [s.name for s in builtin.sensors] == ["T1", "T2", "T3", "T4", "interferometer"]
+    assert {s.kind for s in builtin.sensors} == {"simulated"}
+    minimal = load_config(write(tmp_path, 'cell = "c2"\n[actuator]\nvolts_per_um = 0.01\n'))
+    assert [s.name for s in minimal.sensors] == [s.name for s in builtin.sensors]
+    assert minimal.actuator.volts_per_um == 0.01
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        ('cel = "x"', "cel: unknown key"),
+        ("[actuator]\nvolts_per_umm = 1", "actuator.volts_per_umm: unknown key"),
+        ('[actuator]\nv_min = "low"', "actuator.v_min:"),
+        ("[actuator]\nv_min = 5.0\nv_max = 1.0", "v_min (5.0) must be below v_max (1.0)"),
+        ("[actuator]\nx_min_um = nan", "actuator.x_min_um: Value error, must be a finite number"),
+        ('[zenoh]\nmode = "server"', "zenoh.mode:"),
+        ('cell = "a/b"', "cell:"),
+        ("[simulation]\nspeeed = 2", "simulation.speeed: unknown key"),
+        ('[simulation]\nscenario = "tset5"', "simulation.scenario:"),
+        ('[[sensors]]\nname = "T1"\nkind = "simulated"\nscale = 2', "sensors[0].scale: unknown key"),
+        ('[[sensors]]\nname = "T1"', "sensors[0].kind: required"),
+        ('[[sensors]]\nname = "T1"\nkind = "thermobox"', "sensors[0].kind: unknown sensor kind 'thermobox'"),
+        ('[[sensors]]\nname = "T1"\nkind = "simulated"\ninterval_s = -1', "sensors[0].interval_s:"),
+        ('[[sensors]]\nname = "T 1"\nkind = "simulated"', "sensors[0].name:"),
+        ("sensors = 3", "sensors: expected an array of tables"),
+    ],
+)
+def test_bad_configs_name_the_field(tmp_path: Path, text: str, expected: str) -> None:
+    problems = problems_of(write(tmp_path, text))
+    assert any(expected in p for p in problems), problems
+
+
+def test_every_problem_is_reported_at_once_with_its_index(tmp_path: Path) -> None:
+    text = (
+        '[actuator]\nvolts_per_um = "x"\n'
+        '[[sensors]]\nname = "T1"\nkind = "simulated"\n'
+        '[[sensors]]\nname = "T1"\nkind = "simulated"\n'
+        '[[sensors]]\nname = "T3"\nkind = "simulated"\nmax_age = 1\n'
+    )
+    problems = problems_of(write(tmp_path, text))
+    assert any(p.startswith("actuator.volts_per_um:") for p in problems)
+    assert any(p.startswith("sensors[1].name:") and "used twice" in p for p in problems)
+    assert any(p.startswith("sensors[2].max_age: unknown key") for p in problems)
+
+
+def test_hub_references_must_exist(tmp_path: Path) -> None:
+    text = (
+        '[[hubs]]\nname = "adam"\nhost = "127.0.0.1"\n'
+        '[[hubs]]\nname = "adam"\n'
+        '[[sensors]]\nname = "T1"\nkind = "modbus"\nhub = "adma"\naddress = 0\n'
+    )
+    problems = problems_of(write(tmp_path, text))
+    assert any("hubs: name 'adam' is used twice" in p for p in problems)
+    assert any(p.startswith("sensors[0].hub: no [[hubs]] named 'adma'") for p in problems), problems
+
+
+def test_unreadable_files_are_refused_with_the_file_name(tmp_path: Path) -> None:
+    assert problems_of(tmp_path / "absent.toml") == ["file not found"]
+    assert "not valid TOML" in problems_of(write(tmp_path, "cell = [unclosed"))[0]
+    binary = tmp_path / "binary.toml"
+    binary.write_bytes(b"\xff\xfe\x00")
+    assert "cannot read" in problems_of(binary)[0]
+
+
+def test_missing_model_channels() -> None:
+    config = default_config()
+    assert missing_model_channels(config, ("T1", "T4")) == []
+    assert missing_model_channels(config, ("T1", "T9")) == ["T9"]
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "daemon.cli", *args], capture_output=True, text=True, cwd=REPO,
+                          timeout=60)
+
+
+def test_check_config_accepts_the_shipped_example_and_warns_about_missing_channels(tmp_path: Path) -> None:
+    shipped = run_cli("check-config", str(REPO / "config" / "sim.toml"))
+    assert shipped.returncode == 0, shipped.stderr
+    assert "ok" in shipped.stdout
+    only_t1 = write(tmp_path, '[[sensors]]\nname = "T1"\nkind = "simulated"\n')
+    result = run_cli("check-config", str(only_t1))
+    assert result.returncode == 0, result.stderr
+    assert "warning" in result.stderr and "T2" in result.stderr and "T4" in result.stderr
+
+
+def test_check_config_fails_naming_file_and_field(tmp_path: Path) -> None:
+    bad = write(tmp_path, '[[sensors]]\nname = "T1"\nkind = "simulated"\n[[sensors]]\nname = "T2"\nkind = "simulated"\n'
+                          "interval_s = \"fast\"\n")
+    result = run_cli("check-config", str(bad))
+    assert result.returncode != 0
+    assert f"{bad}: sensors[1].interval_s:" in result.stderr

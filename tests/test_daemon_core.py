@@ -1,0 +1,281 @@
+"""The daemon's decisions without Zenoh: sensor states, target parsing, compensation, limits,
+rate-limited logging, sd_notify datagrams, the Zenoh session config."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import socket
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+from daemon_harness import MODEL_TERMS, expected_q, write_test_model
+
+from daemon.bus import Keys, session_config
+from daemon.config import ActuatorConfig, ZenohSettings
+from daemon.logs import RateLimiter
+from daemon.sdnotify import Notifier, watchdog_interval_s
+from daemon.service_core import MAX_PAYLOAD_BYTES, Compensator, Refusal, SensorTable, Target, dumps, parse_target
+from drivers.base import Reading, SensorConfig, State
+
+
+def sensors(*names: str, max_age_s: float = 5.0) -> list[SensorConfig]:
+    return [SensorConfig(name=n, kind="x", max_age_s=max_age_s) for n in names]
+
+
+def test_sensor_states_ok_stale_fault_and_recovery() -> None:
+    table = SensorTable(sensors("T1", "T2", max_age_s=5.0))
+    assert table.state("T1", 0.0) == (State.STALE, "no reading yet")
+    table.update("T1", Reading(21.5, t=100.0))
+    assert table.state("T1", 104.9) == (State.OK, "")
+    state, reason = table.state("T1", 105.5)
+    assert state == State.STALE and "5.5 s old" in reason
+    table.update("T1", Reading.fault(106.0, "burnout"))
+    assert table.state("T1", 106.0) == (State.FAULT, "burnout")
+    assert table.entries["T1"].value == 21.5  # the last good value is kept for status, never used
+    table.update("T1", Reading(21.6, t=107.0))
+    assert table.state("T1", 107.0) == (State.OK, "")
+    table.mark_fault(["T1"], "device error: port gone")
+    assert table.state("T1", 107.0) == (State.FAULT, "device error: port gone")
+    table.update("T2", Reading(float("nan"), t=1.0))
+    assert table.state("T2", 1.0)[0] == State.FAULT
+    assert table.state("T9", 0.0)[0] == State.FAULT
+    snapshot = table.snapshot(108.0)
+    assert snapshot["T1"]["state"] == "fault" and snapshot["T1"]["age_s"] == pytest.approx(1.0)
+
+
+def test_an_oversized_marker_is_refused_with_its_real_size() -> None:
+    from daemon.service_core import Oversized
+
+    with pytest.raises(Refusal) as caught:
+        parse_target(Oversized.of(10_000_000))
+    assert "payload of 10000000 bytes exceeds" in caught.value.message
+
+
+def test_session_config_from_a_zenoh_json5_file(tmp_path: Path) -> None:
+    path = tmp_path / "zenoh.json5"
+    path.write_text('{ mode: "client", connect: { endpoints: ["tcp/127.0.0.1:7999"] }, // comments are fine\n }')
+    conf = session_config(ZenohSettings(config_file=path))
+    assert json.loads(conf.get_json("mode")) == "client"
+    assert json.loads(conf.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7999"]
+    conf = session_config(ZenohSettings(config_file=path, mode="peer"), listen=["tcp/127.0.0.1:7998"])
+    assert json.loads(conf.get_json("mode")) == "peer"  # an explicit key in the TOML wins over the file
+    assert json.loads(conf.get_json("listen/endpoints")) == ["tcp/127.0.0.1:7998"]
+
+
+@pytest.mark.parametrize(
+    ("payload", "expected"),
+    [
+        (b'{"x_um": 12.5, "id": "a"}', Target("a", 12.5)),
+        (b'{"x_um": 3}', Target(None, 3.0)),
+        (b'{"x_um": 3, "id": null, "note": "extra keys are allowed"}', Target(None, 3.0)),
+        (b'{"x_um": 0, "id": -4}', Target(-4, 0.0)),
+    ],
+)
+def test_good_targets_parse(payload: bytes, expected: Target) -> None:
+    assert parse_target(payload) == expected
+
+
+@pytest.mark.parametrize(
+    ("payload", "target_id", "words"),
+    [
+        (b"", None, "not valid JSON"),
+        (b"\x00\xff", None, "not UTF-8"),
+        (b"12", None, "JSON object"),
+        (b'{"x_um": NaN, "id": 1}', 1, "finite"),
+        (b'{"x_um": 1e400, "id": 2}', 2, "finite"),
+        (b'{"x_um": ' + b"9" * 400 + b', "id": 3}', 3, "finite"),  # a huge integer overflows float
+        (b'{"x_um": false, "id": 4}', 4, "number"),
+        (b'{"x_um": [1], "id": 5}', 5, "number"),
+        (b'{"id": "q"}', "q", "missing"),
+        (b'{"x_um": 1, "id": {"a": 1}}', None, "'id'"),
+        (b'{"x_um": 1, "id": 9223372036854775808}', None, "out of range"),
+        (b'{"x_um": 1, "id": "' + b"z" * 300 + b'"}', None, "longer"),
+        (b" " * (MAX_PAYLOAD_BYTES + 1), None, "exceeds"),
+    ],
+)
+def test_bad_targets_are_refusals_not_exceptions(payload: bytes, target_id: object, words: str) -> None:
+    with pytest.raises(Refusal) as caught:
+        parse_target(payload)
+    assert caught.value.kind == "bad_payload"
+    assert caught.value.id == target_id
+    assert words in caught.value.message
+    assert json.loads(dumps(caught.value.payload()))["id"] == target_id
+
+
+def outcome(parse: Callable[[], Target]) -> object:
+    try:
+        return parse()
+    except (ValueError, Refusal) as error:
+        return ("refused", getattr(error, "id", None))
+
+
+def test_the_regex_fast_path_agrees_with_json_on_every_variant() -> None:
+    """parse_target's fast path must give exactly what json.loads + full validation give."""
+    from daemon.service_core import _validate_target
+
+    xs = ["0", "-0", "12", "12.5", "1e2", "1E-3", "-4.25e+1", "01", "1.", ".5", "1e999", "NaN", '"3"', "true"]
+    ids = [None, "7", "-7", "0", "12345678901234567890", '"abc"', '"a b"', '"a\\"b"', '"\\u00e9"', "null", "1.5",
+           '""', "true"]
+    spaces = ["", " ", "\n\t", "\f"]
+    checked = 0
+    for x in xs:
+        for target_id in ids:
+            for ws in spaces:
+                for order in (0, 1):
+                    fields = [f'"x_um"{ws}:{ws}{x}'] + ([] if target_id is None else [f'"id":{ws}{target_id}'])
+                    text = "{" + ws + f",{ws}".join(fields if order == 0 else fields[::-1]) + ws + "}"
+                    expected = outcome(lambda text=text: _validate_target(json.loads(text)))
+                    assert outcome(lambda text=text: parse_target(text.encode())) == expected, text
+                    checked += 1
+    assert checked > 1000
+
+
+@pytest.fixture
+def compensator(tmp_path: Path) -> Compensator:
+    model = write_test_model(tmp_path / "m.json")
+    table = SensorTable(sensors("T1", "T2", "T3", max_age_s=5.0))
+    for name, value in {"T1": 21.8, "T2": 21.9, "T3": 30.0}.items():
+        table.update(name, Reading(value, t=10.0))
+    comp = Compensator(model, ActuatorConfig(), table)
+    comp.observe(10.0, {"T1": 21.8, "T2": 21.9})
+    return comp
+
+
+def test_compensation_matches_the_model_and_the_actuator_gain(compensator: Compensator) -> None:
+    command = compensator.compensate(Target("k", 200.0), now=11.0, unix_now=1234.5)
+    assert command["q_um"] == pytest.approx(expected_q(200.0, {"T1": 21.8, "T2": 21.9}), abs=1e-12)
+    assert command["voltage_v"] == pytest.approx(0.02 * command["q_um"], abs=1e-15)
+    assert command["temperatures_c"] == {"T1": 21.8, "T2": 21.9}  # the model's channels only
+    assert command["t"] == 1234.5 and command["id"] == "k"
+    assert command["model"] == compensator.model.id
+    assert command["extrapolating"] == []
+    assert set(MODEL_TERMS) == set(compensator.model.term_names())
+
+
+@pytest.mark.parametrize("target_id", [None, 0, -(2**62), "plain", 'quo"te\\ and \u00e9\u4e2d \x01'])
+def test_the_fast_encoder_writes_the_same_json_as_json_dumps(compensator: Compensator, target_id: object) -> None:
+    command = compensator.compensate(Target(target_id, 490.0), now=11.0, unix_now=1.7e9 + 0.123456789)
+    command["extrapolating"] = ["x", 'we"ird']
+    encoded = compensator.encode(command)
+    assert json.loads(encoded) == command
+    assert encoded == json.dumps(command, separators=(",", ":")).encode()
+
+
+def test_refusals_stale_workspace_voltage_and_no_model(compensator: Compensator, tmp_path: Path) -> None:
+    with pytest.raises(Refusal) as stale:
+        compensator.compensate(Target(1, 100.0), now=15.5, unix_now=0.0)
+    assert stale.value.kind == "stale" and "T1" in stale.value.message and stale.value.id == 1
+    with pytest.raises(Refusal) as outside:
+        compensator.compensate(Target(2, 500.01), now=11.0, unix_now=0.0)
+    assert outside.value.kind == "out_of_workspace"
+    tight = Compensator(compensator.model, ActuatorConfig(v_max=4.0), compensator.table)
+    tight.evaluator = compensator.evaluator
+    with pytest.raises(Refusal) as volts:
+        tight.compensate(Target(3, 250.0), now=11.0, unix_now=0.0)
+    assert volts.value.kind == "voltage_limit" and "outside [-2, 4] V" in volts.value.message
+    assert tight.compensate(Target(4, 150.0), now=11.0, unix_now=0.0)["voltage_v"] <= 4.0
+    none = Compensator(None, ActuatorConfig(), compensator.table, model_problem="m.json: no such model file")
+    with pytest.raises(Refusal) as no_model:
+        none.compensate(Target(5, 1.0), now=11.0, unix_now=0.0)
+    assert no_model.value.kind == "no_model" and "no such model file" in no_model.value.message
+
+
+def test_missing_channel_and_extrapolation(compensator: Compensator) -> None:
+    only_t1 = SensorTable(sensors("T1"))
+    only_t1.update("T1", Reading(21.8, t=10.0))
+    missing = Compensator(compensator.model, ActuatorConfig(), only_t1)
+    with pytest.raises(Refusal) as caught:
+        missing.compensate(Target(1, 1.0), now=10.0, unix_now=0.0)
+    assert caught.value.kind == "missing_channel" and "T2" in caught.value.message
+    compensator.table.update("T2", Reading(23.0, t=10.5))
+    compensator.observe(10.5, {"T2": 23.0})
+    command = compensator.compensate(Target(2, 490.0), now=11.0, unix_now=0.0)
+    assert command["extrapolating"] == ["x", "T2"]
+    assert compensator.extrapolating_now(11.0) == ["T2"]
+
+
+def test_rate_limiter_lets_a_burst_through_then_counts() -> None:
+    now = [0.0]
+    limiter = RateLimiter(rate=2.0, burst=3, clock=lambda: now[0])
+    assert [limiter.allow() for _ in range(5)] == [True, True, True, False, False]
+    assert limiter.take_suppressed() == 2 and limiter.take_suppressed() == 0
+    now[0] = 1.0  # two tokens back
+    assert [limiter.allow() for _ in range(3)] == [True, True, False]
+
+
+@pytest.mark.parametrize("abstract", [False, True])
+def test_sd_notify_datagrams_reach_path_and_abstract_sockets(tmp_path: Path, abstract: bool) -> None:
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    if abstract:
+        name = f"nanodrift-test-{os.getpid()}-{id(server)}"
+        server.bind("\0" + name)
+        address = "@" + name
+    else:
+        address = str(tmp_path / "notify.sock")
+        server.bind(address)
+    server.settimeout(2.0)
+    notifier = Notifier(address)
+    try:
+        assert notifier.enabled
+        assert notifier.ready("serving cell0")
+        assert server.recv(4096) == b"READY=1\nSTATUS=serving cell0"
+        assert notifier.watchdog()
+        assert server.recv(4096) == b"WATCHDOG=1"
+        assert notifier.stopping()
+        assert server.recv(4096) == b"STOPPING=1\nSTATUS=stopping"
+    finally:
+        notifier.close()
+        server.close()
+    assert not Notifier("").enabled and not Notifier("").ready()
+
+
+def test_watchdog_interval_is_half_of_systemds(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("WATCHDOG_USEC", "30000000")
+    monkeypatch.setenv("WATCHDOG_PID", str(os.getpid()))
+    assert watchdog_interval_s() == 15.0
+    monkeypatch.setenv("WATCHDOG_PID", "1")  # meant for another process
+    assert watchdog_interval_s() is None
+    monkeypatch.delenv("WATCHDOG_USEC")
+    assert watchdog_interval_s() is None
+
+
+def test_session_config_command_line_overrides_the_file() -> None:
+    settings = ZenohSettings(mode="peer", listen=["tcp/127.0.0.1:7447"], multicast_scouting=False)
+    conf = session_config(settings, mode="client", connect=["tcp/127.0.0.1:7450"])
+    assert json.loads(conf.get_json("mode")) == "client"
+    assert json.loads(conf.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7450"]
+    assert json.loads(conf.get_json("listen/endpoints")) == ["tcp/127.0.0.1:7447"]
+    assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
+    conf = session_config(settings, listen=["tcp/127.0.0.1:7460"])
+    assert json.loads(conf.get_json("listen/endpoints")) == ["tcp/127.0.0.1:7460"]
+    assert Keys("c1").telemetry("temperature", "T3") == "nanodrift/c1/sensors/temperature/T3"
+    assert Keys("c1").telemetry("position", "interferometer") == "nanodrift/c1/sensors/position"
+
+
+def test_dumps_turns_non_finite_floats_into_null() -> None:
+    assert json.loads(dumps({"value": math.nan, "t": 1.0})) == {"value": None, "t": 1.0}
+
+
+def test_logs_are_json_lines_for_journald_and_readable_on_a_terminal(capsys: pytest.CaptureFixture[str]) -> None:
+    import structlog
+
+    from daemon.logs import RateLimitedLog, configure_logging, get_logger
+
+    try:
+        configure_logging("info", json_lines=True)
+        get_logger().warning("sensor_state", channel="T2", state="stale")
+        line = json.loads(capsys.readouterr().err.strip())
+        assert line["event"] == "sensor_state" and line["channel"] == "T2" and line["level"] == "warning"
+        configure_logging("info", json_lines=False)
+        log = RateLimitedLog(get_logger(), "target_refused", RateLimiter(rate=0.0, burst=2))
+        for _ in range(5):
+            log(kind="bad_payload")
+        log.flush()
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 3 and not lines[0].startswith("{")
+        assert "target_refused_suppressed" in lines[2] and "suppressed=3" in lines[2]
+    finally:
+        structlog.reset_defaults()
