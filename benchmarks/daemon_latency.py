@@ -29,6 +29,7 @@ import zenoh
 
 REPO = Path(__file__).resolve().parent.parent
 ECHO_IN, ECHO_OUT = "bench/echo/target", "bench/echo/command"
+ROUND = 100  # paced targets per alternating round
 
 
 def free_port() -> int:
@@ -194,7 +195,7 @@ def main() -> int:
         probers = {"echo": e, "daemon": d}
         for prober in probers.values():
             prober.run(300, 0.001, 0)  # warm-up
-        rounds = max(1, args.paced // 300)
+        rounds = max(1, args.paced // ROUND)
         per_round = args.paced // rounds
         for r in range(rounds):
             for name in (("echo", "daemon") if r % 2 == 0 else ("daemon", "echo")):
@@ -231,7 +232,7 @@ def main() -> int:
     de, dd = results["echo"], results["daemon"]
     r50, r99 = dd["p50_us"] / de["p50_us"], dd["p99_us"] / de["p99_us"]
     print(f"round trip target -> answer over tcp/127.0.0.1, {args.paced} targets at 1 kHz (alternating rounds "
-          f"of {args.paced // max(1, args.paced // 300)}), burst of {args.burst}")
+          f"of {args.paced // max(1, args.paced // ROUND)}), burst of {args.burst}")
     print(f"{'':10}{'p50 us':>10}{'p99 us':>10}{'paced lost':>12}{'burst lost':>12}{'burst/s':>10}")
     for name in ("echo", "daemon"):
         r = results[name]

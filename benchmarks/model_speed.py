@@ -17,11 +17,11 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from synthetic import paper_run  # noqa: E402
+from synthetic import paper_run
 
-from daemon.calibration.dataset import Dataset, read_csv, write_csv  # noqa: E402
-from daemon.model.identify import candidate_terms, fit, fit_terms  # noqa: E402
-from daemon.model.model import save_model  # noqa: E402
+from daemon.calibration.dataset import Dataset, read_csv, write_csv
+from daemon.model.identify import candidate_terms, fit, fit_terms
+from daemon.model.model import save_model
 
 
 def per_call_us(fn, x_values, repeats: int = 31) -> list[float]:
@@ -74,7 +74,8 @@ def bench_fit() -> None:
           f"budget 50 ms -> {'OK' if m < 50 else 'OVER'}")
     start = time.perf_counter()
     result = fit(data)
-    print(f"  fit --order auto (5 orders x {result.folds} held-out folds): {(time.perf_counter() - start) * 1e3:.1f} ms")
+    auto_ms = (time.perf_counter() - start) * 1e3
+    print(f"  fit --order auto (5 orders x {result.folds} held-out folds): {auto_ms:.1f} ms")
 
 
 def bench_predict(rows: int = 1_000_000) -> None:
@@ -100,7 +101,8 @@ def bench_predict(rows: int = 1_000_000) -> None:
     assert q.shape == baseline.shape
     print(f"predict {rows:,} rows (model in memory)")
     print(f"  {elapsed * 1e3:.0f} ms, peak {peak / 1e6:.0f} MB above the {input_mb:.0f} MB of input; "
-          f"baseline (stack features + sum) {base_elapsed * 1e3:.0f} ms; budget 2 s -> {'OK' if elapsed < 2 else 'OVER'}")
+          f"baseline (stack features + sum) {base_elapsed * 1e3:.0f} ms; "
+          f"budget 2 s -> {'OK' if elapsed < 2 else 'OVER'}")
     with tempfile.TemporaryDirectory() as tmp:
         src, out, mpath = Path(tmp) / "d.csv", Path(tmp) / "p.csv", Path(tmp) / "m.json"
         write_csv(data, src)

@@ -15,6 +15,7 @@ closed, exit 0). systemd is told READY/STATUS/WATCHDOG/STOPPING through ``$NOTIF
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import signal
 import threading
@@ -36,7 +37,7 @@ from drivers.base import Reading, SensorGroup, State
 
 SUPERVISE_INTERVAL_S = 0.25
 STATUS_INTERVAL_S = 5.0
-ACTUATION_COALESCE_S = 0.01  # during a stream of commands the stage takes the latest at most this often
+ACTUATION_COALESCE_S = 0.05  # during a stream of commands the stage takes the latest at most this often
 SUPPRESSED_SUMMARY_S = 2.0  # how often "N refused targets not logged" is written during a flood
 
 
@@ -236,25 +237,32 @@ class Service:
             except Exception as error:  # a bug must still produce an answer, and a traceback in the log
                 refusal = Refusal("internal", f"internal error: {type(error).__name__}: {error}")
                 loop.call_soon_threadsafe(self._log_failure, error)
-            if refusal is None:
-                data = self.compensator.encode(command)
-                bus.publish_command(data)
+            try:
+                if refusal is None:
+                    data = self.compensator.encode(command)
+                    bus.publish_command(data)
+                    if query is not None:
+                        bus.reply(query, bus.keys.compensate, data)
+                    self.counters.commands += 1
+                    if self._actuator_task is not None:
+                        self._actuation = (command["q_um"], command["voltage_v"])
+                        wake_actuator = not self._actuation_wake_pending
+                        self._actuation_wake_pending = True
+                else:
+                    self.counters.errors[refusal.kind] += 1
+                    data = dumps(refusal.payload())
+                    bus.publish_error(data)
+                    if query is not None:
+                        bus.reply_err(query, data)
+                    log_refusal = self.refused_log.limiter.allow()
+                    if log_refusal:
+                        suppressed = self.refused_log.limiter.take_suppressed()
+            except zenoh.ZError as error:  # the bus itself failed (session closing): say so, free the query
+                loop.call_soon_threadsafe(self._log_bus_failure, error)
                 if query is not None:
-                    bus.reply(query, bus.keys.compensate, data)
-                self.counters.commands += 1
-                if self._actuator_task is not None:
-                    self._actuation = (command["q_um"], command["voltage_v"])
-                    wake_actuator = not self._actuation_wake_pending
-                    self._actuation_wake_pending = True
-            else:
-                self.counters.errors[refusal.kind] += 1
-                data = dumps(refusal.payload())
-                bus.publish_error(data)
-                if query is not None:
-                    bus.reply_err(query, data)
-                log_refusal = self.refused_log.limiter.allow()
-                if log_refusal:
-                    suppressed = self.refused_log.limiter.take_suppressed()
+                    with contextlib.suppress(zenoh.ZError):
+                        query.drop()
+                return
         # after the answer is out, and at most once per burst: wake the loop (a wake per target would
         # compete for the CPU with Zenoh's own threads and cost more latency than all the rest)
         if wake_actuator:
@@ -267,6 +275,9 @@ class Service:
         if suppressed_before:
             fields["suppressed_before"] = suppressed_before
         self.log.warning("target_refused", **fields)
+
+    def _log_bus_failure(self, error: Exception) -> None:
+        self.log.error("answer_not_sent", error=str(error))
 
     def _log_failure(self, error: Exception) -> None:
         self.log.error("target_failed", error=repr(error), exc_info=error)

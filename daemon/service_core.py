@@ -73,11 +73,14 @@ class SensorTable:
         self.entries: dict[str, ChannelEntry] = {
             s.name: ChannelEntry(s.name, s.role, UNITS.get(s.role, ""), s.max_age_s) for s in sensors
         }
+        #: bumped by every change, so readers can cache what they derive from the entries
+        self.version = 0
 
     def update(self, name: str, reading: Reading) -> ChannelEntry | None:
         entry = self.entries.get(name)
         if entry is None:
             return None
+        self.version += 1
         entry.t = reading.t
         if reading.state == State.OK and math.isfinite(reading.value):
             entry.value = float(reading.value)
@@ -92,6 +95,7 @@ class SensorTable:
 
     def mark_fault(self, names: Iterable[str], reason: str) -> None:
         """The device behind these channels failed; they are faulted until a reading arrives."""
+        self.version += 1
         for name in names:
             entry = self.entries.get(name)
             if entry is not None:
@@ -268,13 +272,35 @@ class Compensator:
             (c, *training.channel_ranges[c]) for c in self.channels if training and c in training.channel_ranges
         )
         self._temps_fmt = "{" + ",".join(json.dumps(c).replace("%", "%%") + ":%r" for c in self.channels) + "}"
-        self._temps_values: tuple[float, ...] | None = None  # temperatures change at the poll rate, not per
-        self._temps_json = ""  # target: their JSON is cached
         model_json = json.dumps(model.id if model is not None else None).replace("%", "%%")
         self._command_fmt = (
             '{"id":%s,"x_um":%r,"q_um":%r,"voltage_v":%r,"temperatures_c":%s,"model":' + model_json
             + ',"t":%r,"extrapolating":[%s]}'
         )
+        # what the model's channels say, derived once per table change instead of once per target
+        self._version = -1
+        self._fresh_until = -math.inf  # cell-clock time until which every model channel is ok
+        self._temps: dict[str, float] = {}
+        self._temps_json = "{}"
+        self._temps_outside: list[str] = []  # channels outside their training range
+
+    def _snapshot(self) -> None:
+        self._version = self.table.version
+        fresh_until = math.inf
+        temps: dict[str, float] = {}
+        for _, entry in self._entries:
+            if entry.device_state is not State.OK or entry.t is None or entry.value is None:
+                fresh_until = -math.inf
+                break
+            fresh_until = min(fresh_until, entry.t + entry.max_age_s)
+            temps[entry.name] = entry.value
+        if fresh_until == -math.inf or self.missing:
+            self._fresh_until, self._temps, self._temps_json, self._temps_outside = -math.inf, {}, "{}", []
+            return
+        self._fresh_until = fresh_until
+        self._temps = temps
+        self._temps_json = self._temps_fmt % tuple(temps.values())
+        self._temps_outside = [name for name, lo, hi in self._ranges if not lo <= temps[name] <= hi]
 
     def observe(self, t: float, temps: Mapping[str, float]) -> None:
         if self.evaluator is not None and temps:
@@ -298,13 +324,16 @@ class Compensator:
                 f"channel {', '.join(self.missing)} needed by model {self.model.id} has no configured sensor",
                 target.id,
             )
-        temps: dict[str, float] = {}
-        for name, entry in self._entries:
-            if entry.device_state is not State.OK or now - entry.t > entry.max_age_s:  # type: ignore[operator]
+        if self._version != self.table.version:
+            self._snapshot()
+        if not now <= self._fresh_until:
+            for name, _ in self._entries:  # say which channel and why
                 state, reason = self.table.state(name, now)
-                raise Refusal(state.value, f"channel {name} is {state.value}: {reason}", target.id)
-            temps[name] = entry.value  # type: ignore[assignment]
-        q = self.evaluator.command(x, now)
+                if state is not State.OK:
+                    raise Refusal(state.value, f"channel {name} is {state.value}: {reason}", target.id)
+            raise Refusal("stale", "temperatures not ready", target.id)
+        temps = self._temps
+        q = self.evaluator.value(x, now)
         voltage = actuator.offset_v + actuator.volts_per_um * q
         if not (actuator.v_min <= voltage <= actuator.v_max):  # NaN fails this too
             raise Refusal(
@@ -312,11 +341,9 @@ class Compensator:
                 f"command q {q:.4f} um needs {voltage:.4f} V, outside [{actuator.v_min:g}, {actuator.v_max:g}] V",
                 target.id,
             )
+        self.evaluator.moved(x, now)  # only a command that goes out moves the stage
         lo, hi = self._x_range
-        extrapolating = [] if lo <= x <= hi else ["x"]
-        for name, lo, hi in self._ranges:
-            if not lo <= temps[name] <= hi:
-                extrapolating.append(name)
+        extrapolating = [*self._temps_outside] if lo <= x <= hi else ["x", *self._temps_outside]
         self.last_extrapolating = extrapolating
         return {
             "id": target.id,
@@ -339,13 +366,11 @@ class Compensator:
             id_json = int.__repr__(target_id)
         else:
             id_json = _encode_string(target_id)
-        values = tuple(command["temperatures_c"].values())
-        if values != self._temps_values:
-            self._temps_json = self._temps_fmt % values
-            self._temps_values = values
+        temps = command["temperatures_c"]
+        temps_json = self._temps_json if temps is self._temps else self._temps_fmt % tuple(temps.values())
         extrapolating = command["extrapolating"]
         return (self._command_fmt % (
-            id_json, command["x_um"], command["q_um"], command["voltage_v"], self._temps_json, command["t"],
+            id_json, command["x_um"], command["q_um"], command["voltage_v"], temps_json, command["t"],
             ",".join([_encode_string(n) for n in extrapolating]) if extrapolating else "",
         )).encode()
 

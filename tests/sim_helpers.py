@@ -8,20 +8,14 @@ from functools import cache
 import numpy as np
 
 from daemon.calibration.dataset import Dataset
-from daemon.calibration.procedure import calibration_plan
 from daemon.model.identify import fit
 from daemon.model.model import Model
-from drivers.simulated.physics import THERMOCOUPLES, CellPhysics
-from drivers.simulated.runs import simulate_steps
+from drivers.simulated.datasets import simulate_dataset
 
 
 def run_dataset(scenario: str = "train", effects: object = None, seed: int = 0, cycles: int = 24,
-                plan_fn=calibration_plan, **params: float) -> Dataset:
-    physics = CellPhysics.create(scenario, effects, seed, **params)
-    plan = plan_fn(cycles)
-    out = simulate_steps(physics, [s.target_um for s in plan], [s.cycle for s in plan])
-    return Dataset(t=out["t_s"], x=out["x_um"], q=out["q_um"], channels={c: out[c] for c in THERMOCOUPLES},
-                   extra={"cycle": out["cycle"]})
+                bidirectional: bool = False, **params: float) -> Dataset:
+    return simulate_dataset(scenario, effects, cycles=cycles, seed=seed, bidirectional=bidirectional, **params)
 
 
 @cache

@@ -14,7 +14,9 @@ TRUE_TERMS = {"x^3": 3.0e-9, "x^2": -4.0e-6, "x": 1.0012, "T1": -0.6, "T2": -0.5
 STEPS_UM = np.arange(0.0, 481.0, 30.0)
 
 
-def paper_run(cycles: int = 24, seed: int = 0, noise_um: float = 0.02, terms: dict[str, float] | None = None) -> Dataset:
+def paper_run(
+    cycles: int = 24, seed: int = 0, noise_um: float = 0.02, terms: dict[str, float] | None = None
+) -> Dataset:
     rng = np.random.default_rng(seed)
     terms = TRUE_TERMS if terms is None else terms
     n = cycles * STEPS_UM.size

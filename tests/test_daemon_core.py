@@ -279,3 +279,20 @@ def test_logs_are_json_lines_for_journald_and_readable_on_a_terminal(capsys: pyt
         assert "target_refused_suppressed" in lines[2] and "suppressed=3" in lines[2]
     finally:
         structlog.reset_defaults()
+
+
+def test_a_refused_target_does_not_move_the_models_motion_state(tmp_path: Path) -> None:
+    """A target refused for its voltage never reaches the stage, so `dir` must not see it as a move."""
+    terms = {**MODEL_TERMS, "dir": 0.05}
+    model = write_test_model(tmp_path / "dir.json", terms)
+    table = SensorTable(sensors("T1", "T2"))
+    for name, value in {"T1": 21.8, "T2": 21.9}.items():
+        table.update(name, Reading(value, t=10.0))
+    comp = Compensator(model, ActuatorConfig(v_max=4.0), table)  # 4 V ~ 200 um
+    comp.observe(10.0, {"T1": 21.8, "T2": 21.9})
+    comp.compensate(Target(1, 100.0), now=11.0, unix_now=0.0)
+    with pytest.raises(Refusal):
+        comp.compensate(Target(2, 400.0), now=11.0, unix_now=0.0)  # never sent to the stage
+    after = comp.compensate(Target(3, 180.0), now=11.0, unix_now=0.0)["q_um"]
+    # 100 -> 180 is a step up from where the stage really is (down only from the refused 400)
+    assert after == pytest.approx(expected_q(180.0, {"T1": 21.8, "T2": 21.9}, terms) + 0.05, abs=1e-12)

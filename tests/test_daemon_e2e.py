@@ -85,6 +85,8 @@ def test_bad_payload_by_query_gets_exactly_one_error_with_its_id(served, payload
 
 def test_bad_payloads_by_put_each_get_one_error_and_the_log_is_rate_limited(served: Served) -> None:
     client = served.client
+    client.put(json.dumps({"x_um": 5, "id": "before-flood"}))  # earlier tests' publications are all in
+    client.wait(lambda: client.answers_for("before-flood"), 10, "the good target before the flood")
     before = len(client.errors)
     lines_before = len(served.daemon.log_events("target_refused"))
     started = time.monotonic()

@@ -1,10 +1,12 @@
-"""Discovery on the simulated cell: each hidden effect is named first with its parameter, the extended
-model predicts a fresh run (another seed, never seen by discovery) better, and nothing is named when
-nothing is hidden.
+"""Discovery on the simulated cell: each hidden effect, switched on with the simulator's DEFAULT
+parameters, is named first with its parameter, the extended model predicts a fresh run (another seed,
+never seen by discovery) better, and nothing is named when nothing is hidden.
 
-Magnitudes: the sim's defaults are used where a 24-cycle run shows them clearly; otherwise the test
-says which parameter it raises and why (a hidden lag close to the bracket's own time constant is
-explained by T2 and is not missing at all).
+Runs are the default calibration run (24 ``train`` cycles, up-and-down sweeps for ``hysteresis``),
+except ``thermal_lag`` and ``unmonitored_drift``: in 24 cycles the room falls and rises once, and
+what the thermocouples cannot explain of a 2 h lag is, to a correlation of 0.97, a straight line in
+time, so the two look alike and the lag's time constant is not identifiable. 48 cycles (6.6 h, the
+room settles) tell them apart; the 24-cycle run still names the lag (the CLI test below).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from daemon.cli import main
 from daemon.model.identify import candidate_terms, fit, fit_terms
 from daemon.model.model import Model, load_model, save_model
 from daemon.model.terms import Channel
+from drivers.simulated.effects import EFFECTS
 
 
 def rms(data: Dataset, model: Model) -> float:
@@ -29,10 +32,12 @@ def rms(data: Dataset, model: Model) -> float:
     return float(np.sqrt(np.mean((data.q - model.predict(data)) ** 2)))
 
 
+def default(effect: str, param: str) -> float:
+    return EFFECTS[effect].defaults[param]
+
+
 @dataclass(frozen=True)
 class Case:
-    effects: str
-    named: str
     cycles: int = 24
     bidirectional: bool = False
     seed: int = 1
@@ -40,49 +45,54 @@ class Case:
 
 
 CASES = {
-    # a lag distinct from every sensor's (stage 15 min, bracket 40 min), strong enough to beat the
-    # interferometer's 25 nm wander; 48 cycles so the run sees the air settle after warming
-    "thermal_lag": Case("thermal_lag:tau_s=7200,k_um_per_c=-4", "thermal_lag", cycles=48, margin=0.7),
-    "temperature_rate": Case("temperature_rate:k_um_per_c_per_s=-6000", "temperature_rate", margin=0.9),
-    "hysteresis": Case("hysteresis:h_um=0.15", "hysteresis", bidirectional=True, margin=0.6),
-    "position_thermal_coupling": Case("position_thermal_coupling:kappa_per_c=2e-3", "position_thermal_coupling",
-                                      margin=0.75),
-    "creep": Case("creep:c=0.01,tau_s=15", "creep", margin=0.4),
-    "unmonitored_drift": Case("unmonitored_drift:rate_um_per_h=0.2", "unmonitored_drift", cycles=36),
+    "thermal_lag": Case(cycles=48, margin=0.7),
+    "temperature_rate": Case(margin=0.9),
+    "hysteresis": Case(bidirectional=True, margin=0.6),
+    "position_thermal_coupling": Case(margin=0.95),
+    "creep": Case(margin=0.4),
+    "unmonitored_drift": Case(cycles=48),
 }
 
 
-def _run(case: Case, seed: int) -> Dataset:
-    return cell_run(case.effects, seed=seed, cycles=case.cycles, bidirectional=case.bidirectional)
+def test_every_effect_of_the_catalogue_has_an_acceptance_case() -> None:
+    assert set(CASES) == set(EFFECTS)
+
+
+def _run(effect: str, seed: int) -> Dataset:
+    case = CASES[effect]
+    return cell_run(effect, seed=seed, cycles=case.cycles, bidirectional=case.bidirectional)
 
 
 @pytest.mark.parametrize("key", list(CASES))
 def test_each_hidden_effect_is_named_first_and_the_fresh_run_improves(key: str) -> None:
     case = CASES[key]
-    data = _run(case, case.seed)
+    data = _run(key, case.seed)
     given = paper_model(data)
     result = discover(data, given)
     assert result.steps, f"nothing named for {key}: {result.summary}"
     first = result.steps[0]
-    assert first.effect == case.named, result.summary
+    assert first.effect == key, result.summary
     assert first.p_value < 0.01 and first.holdout_gain >= 0.10
+    assert [s.effect for s in result.steps] == [key], result.summary  # and nothing spurious after it
     params = first.params
     if key == "thermal_lag":
-        assert params["tau_behind_fastest_s"] == pytest.approx(7200, rel=0.30)
+        assert params["tau_behind_fastest_s"] == pytest.approx(default(key, "tau_s"), rel=0.30)
+        assert "alike" not in params  # 48 cycles: the lag no longer looks like a line in time
     elif key == "temperature_rate":
         # q compensates a drift of k * dT/dt (k < 0): positive coefficient, attenuated by the
-        # thermocouple's noisy derivative, smoothing comparable to the cell's (300 s behind the air)
-        assert 0.2 * 6000 < next(iter(params["coef"].values())) < 1.3 * 6000
-        assert 30 < params["tau_s"] < 600
+        # thermocouple's noisy derivative, smoothing comparable to the cell's (tau_s behind the air)
+        k = -default(key, "k_um_per_c_per_s")
+        assert 0.2 * k < next(iter(params["coef"].values())) < 1.3 * k
+        assert 30 < params["tau_s"] < 2 * default(key, "tau_s")
     elif key == "hysteresis":
-        assert params["coef"]["dir"] == pytest.approx(0.15 / 2, rel=0.30)
+        assert params["coef"]["dir"] == pytest.approx(default(key, "h_um") / 2, rel=0.30)
     elif key == "position_thermal_coupling":
         assert params["channel"] == "T1"  # the stage's own thermocouple
-        assert -params["coef"]["x*T1"] == pytest.approx(2e-3, rel=0.30)
+        assert -params["coef"]["x*T1"] == pytest.approx(default(key, "kappa_per_c"), rel=0.30)
     elif key == "creep":
-        assert params["tau_s"] == pytest.approx(15.0, rel=0.30)
+        assert params["tau_s"] == pytest.approx(default(key, "tau_s"), rel=0.30)
     elif key == "unmonitored_drift":
-        assert params["rate_um_per_h"] == pytest.approx(0.2, rel=0.30)
+        assert params["rate_um_per_h"] == pytest.approx(default(key, "rate_um_per_h"), rel=0.30)
         assert result.final["not_applied_online"] == ["unmonitored_drift"]
         assert "t" not in result.model.term_names()
 
@@ -92,16 +102,33 @@ def test_each_hidden_effect_is_named_first_and_the_fresh_run_improves(key: str) 
         fresh = cell_run("", seed=case.seed + 100, cycles=case.cycles)
         assert rms(fresh, result.model) < 0.5 * rms(fresh, given)
     else:
-        fresh = _run(case, case.seed + 100)
+        fresh = _run(key, case.seed + 100)
         assert rms(fresh, result.model) < case.margin * rms(fresh, given)
 
 
-@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("seed", [0, 2])
 def test_a_lag_time_constant_is_recovered_on_more_seeds(seed: int) -> None:
-    case = CASES["thermal_lag"]
-    result = discover(_run(case, seed), paper_model(_run(case, seed)))
+    data = _run("thermal_lag", seed)
+    result = discover(data, paper_model(data))
     assert result.steps[0].effect == "thermal_lag"
-    assert result.steps[0].params["tau_behind_fastest_s"] == pytest.approx(7200, rel=0.30)
+    assert result.steps[0].params["tau_behind_fastest_s"] == pytest.approx(default("thermal_lag", "tau_s"), rel=0.30)
+
+
+@pytest.mark.parametrize("effect", ["creep", "hysteresis"])
+def test_channels_an_effect_masked_are_readmitted_with_it_not_named_after_it(effect: str) -> None:
+    """Seed 0: the large unexplained effect made the paper's stepwise leave T2 out of the given model.
+
+    With the effect named, the model's own selection re-admits it in the same step; a second round
+    then has nothing left to name (it used to "find" the missing bracket as a long lag).
+    """
+    data = _run(effect, 0)
+    given = paper_model(data)
+    assert "T2" not in given.term_names()
+    result = discover(data, given)
+    assert [s.effect for s in result.steps] == [effect], result.summary
+    assert "T2" in result.steps[0].params["readmitted"]
+    assert "T2" in result.model.term_names() and "re-admits" in result.summary
+    assert result.final["holdout_rms_um"] < result.steps[0].holdout_rms_after_um
 
 
 def test_a_missing_geometric_order_is_named() -> None:
@@ -194,3 +221,19 @@ def test_cli_names_what_is_wrong(tmp_path, capsys) -> None:
     assert code == 2
     assert needed in capsys.readouterr().err
     assert not (tmp_path / "m2.json").exists()
+
+
+def test_cli_names_a_default_thermal_lag_from_simulate_fit_discover(tmp_path, capsys) -> None:
+    """The user's story: the three commands, the simulator's defaults, the default 24-cycle run."""
+    data, model, extended = tmp_path / "d.csv", tmp_path / "m.json", tmp_path / "m2.json"
+    assert main(["simulate", "--scenario", "train", "--effects", "thermal_lag", "--seed", "1",
+                 "--out", str(data)]) == 0
+    assert main(["fit", str(data), "--out", str(model)]) == 0
+    capsys.readouterr()
+    assert main(["discover", str(data), "--model", str(model), "--out", str(extended), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert [s["effect"] for s in doc["steps"]][:1] == ["thermal_lag"], doc["final"]["summary"]
+    # 24 cycles: the room fell and rose once, so the lag also looks like a drift in time; discovery says so
+    assert doc["steps"][0]["params"]["alike"] == "unmonitored_drift"
+    assert "looks like unmonitored_drift" in doc["final"]["summary"]
+    assert any(name.startswith("lag(") for name in load_model(extended).term_names())

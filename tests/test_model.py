@@ -36,7 +36,9 @@ def model_of(terms: dict[str, float], channels=("T1", "T4")) -> Model:
     )
 
 
-@pytest.mark.parametrize("name", ["x", "x^2", "x^3", "1", "T1", "stage.top", "lag(T4, 2100 s)", "lag(T4, 0.5 s)", "dir"])
+@pytest.mark.parametrize(
+    "name", ["x", "x^2", "x^3", "1", "T1", "stage.top", "lag(T4, 2100 s)", "lag(T4, 0.5 s)", "dir"]
+)
 def test_term_names_round_trip(name):
     assert parse_term(name).name == name
 

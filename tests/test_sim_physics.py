@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 from sim_helpers import rms, run_dataset
 
-from daemon.calibration.procedure import bidirectional_plan
 from drivers.simulated.config import SimulationConfig
 from drivers.simulated.effects import EFFECTS, UnknownNameError, resolve_effects
 from drivers.simulated.physics import CellPhysics, StageState
@@ -79,8 +78,7 @@ def test_same_seed_same_run_other_seed_differs():
 
 @pytest.mark.parametrize("effect", sorted(EFFECTS))
 def test_each_effect_changes_only_the_position_and_only_when_on(effect):
-    plan = bidirectional_plan if effect == "hysteresis" else None
-    kwargs = {"plan_fn": plan} if plan else {}
+    kwargs = {"bidirectional": effect == "hysteresis"}
     base = run_dataset(seed=5, cycles=24, **kwargs)
     on = run_dataset(effects=effect, seed=5, cycles=24, **kwargs)
     for ch in base.channels:  # effects are hidden: no thermocouple sees them
@@ -104,13 +102,14 @@ def test_effects_have_their_documented_shape():
     assert rms(d[base.q > 400]) > 5 * rms(d[base.q < 50])
     # unmonitored drift grows with time
     d = run_dataset(effects="unmonitored_drift:walk_um_per_sqrt_h=0", seed=6).x - x
-    assert d[-1] == pytest.approx(0.08 * base.t[-1] / 3600, rel=0.05)
+    rate = EFFECTS["unmonitored_drift"].defaults["rate_um_per_h"]
+    assert d[-1] == pytest.approx(rate * base.t[-1] / 3600, rel=0.05)
     # creep shows most after the big return step to 0, far less after 30 um steps
     d = run_dataset(effects="creep", seed=6).x - x
     assert np.mean(d[base.q == 0][1:]) > 0.3 and np.mean(d[base.q == 0][1:]) > 10 * abs(np.median(d[base.q > 0]))
     # hysteresis: approach from below lands h lower than from above
-    both = run_dataset(seed=6, plan_fn=bidirectional_plan)
-    d = run_dataset(effects="hysteresis:h_um=0.2", seed=6, plan_fn=bidirectional_plan).x - both.x
+    both = run_dataset(seed=6, bidirectional=True)
+    d = run_dataset(effects="hysteresis:h_um=0.2", seed=6, bidirectional=True).x - both.x
     assert np.allclose(np.abs(d), 0.1, atol=1e-3) and (d > 0).any() and (d < 0).any()
     # thermal lag: proportional to the hidden node's excursion
     d = run_dataset(effects="thermal_lag:k_um_per_c=-1", seed=6).x - x

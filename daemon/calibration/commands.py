@@ -65,32 +65,22 @@ def open_backend(config_path: str | None, args: argparse.Namespace, default_scen
 
 
 def simulate_command(args: argparse.Namespace) -> int:
-    from daemon.calibration.dataset import Dataset, write_csv
-    from daemon.calibration.validation import validation_plan
-    from drivers.simulated.effects import UnknownNameError
-    from drivers.simulated.physics import THERMOCOUPLES, CellPhysics
-    from drivers.simulated.runs import simulate_steps
+    from daemon.calibration.dataset import write_csv
+    from drivers.simulated.datasets import simulate_dataset
+    from drivers.simulated.effects import UnknownNameError, resolve_effects
 
-    try:
-        physics = CellPhysics.create(args.scenario, args.effects or None, args.seed)
-    except UnknownNameError as err:
-        raise UserError(str(err)) from None
-    trajectory = physics.scenario.trajectory
     if args.cycles is not None and args.cycles < 1:
         raise UserError(f"--cycles must be at least 1, got {args.cycles}")
-    if trajectory == "validation":
-        plan = validation_plan(args.cycles or 30)
-    elif trajectory == "bidirectional":
-        plan = bidirectional_plan(args.cycles or 24)
-    else:
-        plan = calibration_plan(args.cycles or 24)
-    out = simulate_steps(physics, [s.target_um for s in plan], [s.cycle for s in plan])
-    ds = Dataset(t=out["t_s"], x=out["x_um"], q=out["q_um"], channels={c: out[c] for c in THERMOCOUPLES},
-                 extra={"cycle": out["cycle"]}, source="simulated")
+    try:
+        effects = resolve_effects(args.effects or None)
+        ds = simulate_dataset(args.scenario, effects, cycles=args.cycles, seed=args.seed)
+    except UnknownNameError as err:
+        raise UserError(str(err)) from None
     write_csv(ds, args.out)
-    span = (out["t_s"][-1] - out["t_s"][0]) / 3600.0
-    print(f"wrote {args.out}: {len(ds)} steps ({len(plan) // max(1, len(set(s.cycle for s in plan)))} per cycle, "
-          f"{span:.2f} h), scenario {args.scenario}, effects {','.join(physics.effects) or 'none'}, seed {args.seed}",
+    cycles = ds.extra["cycle"]
+    span = (ds.t[-1] - ds.t[0]) / 3600.0
+    print(f"wrote {args.out}: {len(ds)} steps ({len(ds) // max(1, len(set(cycles.tolist())))} per cycle, "
+          f"{span:.2f} h), scenario {args.scenario}, effects {','.join(effects) or 'none'}, seed {args.seed}",
           file=sys.stderr)
     return 0
 

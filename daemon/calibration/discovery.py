@@ -37,6 +37,14 @@ Special rules, each for a reason the tests exercise:
   keeps with conviction (iid F-test p < ``exclusion_p_iid``), yet leaving it out must predict
   at least ``exclusion_blocks`` of the held-out blocks better and cut their RMS by ``exclusion_gain``.
 - ``missing_channel``: a monitored channel the given model left out (an effect can mask it).
+- Re-admission: a large hidden effect can make the paper's stepwise leave out a channel or power
+  the cell needs. After each step the given model's own selection (its candidates and ``penter``)
+  is rerun with the working terms kept; what it re-admits joins that step (``params.readmitted``)
+  when it also lowers the held-out RMS. Without this the next round "found" the masked channel
+  again, dressed as a long lag or a missing channel (a spurious second step).
+- A thermal_lag whose column, beyond the working terms, correlates with a line in time by at least
+  ``twin_correlation`` is flagged ``alike: unmonitored_drift``: in a run where the room falls and
+  rises once (24 cycles) the two look the same and τ is not pinned; a longer run tells them apart.
 
 All regressions go through per-block Gram matrices of standardised columns against the working
 model's residual (so no large numbers cancel): one pass over the rows per candidate column, which
@@ -58,7 +66,8 @@ from daemon.calibration.dataset import Dataset
 from daemon.model.effect_terms import CREEP_DEADBAND_UM, Creep, PositionCoupling, Rate
 from daemon.model.identify import holdout_blocks, ols
 from daemon.model.model import FittedTerm, Model, Training
-from daemon.model.terms import Bias, Channel, Direction, Lag, Power, Term, lag_filter
+from daemon.model.stepwise import stepwisefit
+from daemon.model.terms import Bias, Channel, Direction, Lag, Power, Term, UnknownTermError, lag_filter, parse_term
 
 EFFECTS = (
     "geometric_order",
@@ -106,6 +115,9 @@ class Settings:
     refine_evals: int = 10
     bins: int = 8
     rate_probe_tau_s: float = 600.0
+    #: a named thermal_lag is flagged as alike an unmonitored drift when, beyond the working model's
+    #: terms, the lag's column and a line in time correlate at least this much
+    twin_correlation: float = 0.9
 
 
 # --- residual structure ---------------------------------------------------------------------
@@ -717,6 +729,68 @@ PROPOSERS: dict[str, Callable[[_Context], list[Candidate]]] = {
 }
 
 
+def drift_alike(ctx: _Context, chosen: Candidate) -> dict[str, Any]:
+    """Whether a named thermal_lag looks, in this run, like an unmonitored drift (a line in time).
+
+    When the room only falls and rises once during the run (the paper's 24-cycle calibration), what
+    the thermocouples cannot explain of a lag of hours is nearly a straight line in time: the two
+    effects are then told apart by noise, and the lag's τ is not pinned. The correlation of the two
+    columns, each beyond the working model's terms, says so; the operator is told to record longer.
+    """
+    t_h = (ctx.t - ctx.t[0]) / 3600.0
+    extra = [ctx.columns([ctx.feature(t)]) for t in chosen.add[:-1]]
+    base = np.column_stack([ctx.ws.A[:, : ctx.ws.k], *extra])
+
+    def beyond(v: np.ndarray) -> np.ndarray:
+        coef, *_ = np.linalg.lstsq(base, v, rcond=None)
+        return v - base @ coef
+
+    a, b = beyond(ctx.feature(chosen.add[-1])), beyond(t_h)
+    denom = math.sqrt(float(a @ a) * float(b @ b))
+    corr = abs(float(a @ b)) / denom if denom > 0 else 0.0
+    if corr < ctx.settings.twin_correlation:
+        return {}
+    return {"alike": "unmonitored_drift", "alike_correlation": _round_sig(corr, 3)}
+
+
+def selection_pool(model: Model, data: Dataset) -> list[Term]:
+    """The terms the given model's own selection chose from (its stepwise candidates) that the data can feed."""
+    pool = []
+    for name in model.selection.get("candidates") or []:
+        try:
+            term = parse_term(str(name))
+        except UnknownTermError:
+            continue
+        if not isinstance(term, Bias) and all(c in data.channels for c in term.channels):
+            pool.append(term)
+    return pool
+
+
+def readmit(data: Dataset, working: Sequence[Term], nuisance: Mapping[str, np.ndarray], pool: Sequence[Term],
+            excluded: set[str], penter: float, premove: float) -> list[Term]:
+    """Terms of the given model's pool that its own stepwise admits once the named effect's terms are in.
+
+    A large hidden effect inflates the residual the paper's selection sees, so it can leave out a
+    channel the cell needs (creep or hysteresis masking T2). Once the effect is named, the same
+    selection (same ``penter``, the working terms kept) re-admits what it masked, as part of that
+    step: otherwise the next round "finds" the masked channel again, dressed as a lag or a missing
+    channel. Additions only; excluded channels stay out. The caller keeps them only if they also
+    lower the held-out RMS (the stepwise's p-values take rows as independent).
+    """
+    have = set(working)
+    optional = [t for t in pool if t not in have and not excluded.intersection({t.name, *t.channels})]
+    if not optional:
+        return []
+    t, x = np.asarray(data.t, dtype=np.float64), np.asarray(data.x, dtype=np.float64)
+    cols = [term.batch(t, x, data.channels) for term in [*working, *optional]]
+    forced = len(working) + len(nuisance)
+    X = np.column_stack(cols[: len(working)] + list(nuisance.values()) + cols[len(working):])
+    keep = np.arange(X.shape[1]) < forced
+    result = stepwisefit(X, np.asarray(data.q, dtype=np.float64), penter=penter, premove=max(premove, penter),
+                         inmodel=keep.copy(), keep=keep)
+    return [term for j, term in enumerate(optional) if result.inmodel[forced + j]]
+
+
 # --- the workflow ---------------------------------------------------------------------------
 
 
@@ -850,6 +924,9 @@ def discover(data: Dataset, model: Model, settings: Settings = Settings()) -> Di
     steps: list[Candidate] = []
     rounds: list[Round] = []
     excluded: set[str] = set()
+    pool = selection_pool(model, data)
+    penter = float(model.selection.get("penter", 0.05))
+    premove = float(model.selection.get("premove", 0.10))
     ctx = _Context(data, working, nuisance, folds, settings, excluded, delays)
     baseline = {
         "model": model.id, "terms": [ft.term.name for ft in model.terms], "rows": n,
@@ -868,11 +945,19 @@ def discover(data: Dataset, model: Model, settings: Settings = Settings()) -> Di
         if chosen.effect == "unmonitored_drift":
             coef = _nuisance_coef(ctx, chosen.nuisance)
             chosen.params = {"rate_um_per_h": _round_sig(-coef["t"], 3)}
+        if chosen.effect == "thermal_lag":
+            chosen.params.update(drift_alike(ctx, chosen))
         steps.append(chosen)
         working = [t for t in working if t not in chosen.remove] + chosen.add
         excluded.update(t.name for t in chosen.remove)
         nuisance.update(chosen.nuisance)
         ctx = _Context(data, working, nuisance, folds, settings, excluded, delays)
+        back = readmit(data, working, nuisance, pool, excluded, penter, premove)
+        if back:  # the stepwise is in-sample: keep what it re-admits only if held-out blocks agree
+            wider = _Context(data, working + back, nuisance, folds, settings, excluded, delays)
+            if wider.held0 < ctx.held0:
+                chosen.params["readmitted"] = [t.name for t in back]
+                working, ctx = working + back, wider
     extended, residual1 = _final_model(data, model, working, nuisance, steps, settings)
     coefs = {ft.term.name: ft.coef for ft in extended.terms}
     for step in steps:
@@ -920,6 +1005,14 @@ def summarise(disagreements: Sequence[Disagreement], steps: Sequence[Candidate],
             f"Step {i}: {_describe(s)} cuts the held-out RMS from {s.holdout_rms_before_um * 1000:.1f} to "
             f"{s.holdout_rms_after_um * 1000:.1f} nm ({100 * s.holdout_gain:.0f} % of the gap; p = {s.p_value:.1g})."
         )
+        if s.params.get("alike"):
+            lines.append(f"  In this run it looks like {s.params['alike']} (their columns correlate "
+                         f"{s.params['alike_correlation']:.2f} beyond the model's terms: the room fell and rose "
+                         "once), so the two are told apart by noise and a time constant is not pinned; a longer "
+                         "run, in which the room settles, tells them apart.")
+        if s.params.get("readmitted"):
+            lines.append(f"  With it in, the model's own selection re-admits {', '.join(s.params['readmitted'])}, "
+                         "which the hidden effect had masked.")
     if steps:
         lines.append(
             f"Overall the held-out RMS went from {baseline['holdout_rms_um'] * 1000:.1f} to "

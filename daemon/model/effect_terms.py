@@ -22,22 +22,13 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from daemon.model.terms import Channels, Term, TermStream, lag_filter, register_term
+from daemon.model.terms import Channels, Term, TermStream, _ChannelStream, lag_filter, register_term
 
 CREEP_DEADBAND_UM = 0.5
 
 
-class _CouplingStream(TermStream):
-    __slots__ = ("channel", "last")
-
-    def __init__(self, channel: str) -> None:
-        self.channel = channel
-        self.last = math.nan
-
-    def observe(self, t: float, temps: Mapping[str, float]) -> None:
-        value = temps.get(self.channel)
-        if value is not None:
-            self.last = value
+class _CouplingStream(_ChannelStream):
+    """The channel's latest value, times the target."""
 
     def value(self, t: float, x: float) -> float:
         return x * self.last

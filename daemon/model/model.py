@@ -204,16 +204,25 @@ class Evaluator:
         self.seen.update(temps)
         self._static_sum = self._sum_static()
 
-    def command(self, x: float, t: float) -> float:
-        """q for target ``x`` at ``t``; the move is recorded for motion-dependent terms."""
+    def value(self, x: float, t: float) -> float:
+        """q for target ``x`` at ``t``, changing nothing: the caller may still refuse the target."""
         q = 0.0
         for c in self._poly:
             q = q * x + c
         q += self._static_sum
         for coef, stream in self._dynamic:
             q += coef * stream.value(t, x)
+        return q
+
+    def moved(self, x: float, t: float) -> None:
+        """The stage was commanded to ``x`` at ``t``: motion-dependent terms (dir, creep) advance."""
         for _, stream in self._dynamic:
             stream.moved(t, x)
+
+    def command(self, x: float, t: float) -> float:
+        """q for target ``x`` at ``t``, and the move recorded (``value`` then ``moved``)."""
+        q = self.value(x, t)
+        self.moved(x, t)
         return q
 
     def row(self, t: float, x: float, temps: Mapping[str, float]) -> float:

@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import math
 from typing import Literal
 
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, FiniteFloat, field_validator, model_validator
 
 from drivers.base import SensorConfig
 from drivers.modbus.codec import DATA_TYPES, DataTypeName, SwapName, register_count
@@ -23,8 +22,8 @@ class ModbusSensorConfig(SensorConfig):
     )
     data_type: DataTypeName = "int16"
     swap: SwapName = "none"
-    scale: float = 1.0
-    offset: float = 0.0
+    scale: FiniteFloat = 1.0
+    offset: FiniteFloat = 0.0
     nan_value: int | float | None = Field(
         default=None, description="raw value (before scale/offset) meaning burnout/open circuit -> fault"
     )
@@ -39,13 +38,6 @@ class ModbusSensorConfig(SensorConfig):
                 return int(value, 0)
             except ValueError:
                 raise ValueError(f"expected an integer such as -32768 or 0x7FFF, got {value!r}") from None
-        return value
-
-    @field_validator("scale", "offset")
-    @classmethod
-    def _finite(cls, value: float) -> float:
-        if not math.isfinite(value):
-            raise ValueError("must be a finite number")
         return value
 
     @model_validator(mode="after")

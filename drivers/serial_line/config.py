@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import math
 import re
 from typing import Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, FiniteFloat, field_validator
 
 from drivers.base import SensorConfig
 
@@ -27,8 +26,8 @@ class SerialLineSensorConfig(SensorConfig):
                                                "streams lines by itself")
     pattern: str = Field(default=DEFAULT_PATTERN, description="regex the whole line must match (re.fullmatch), "
                                                               "with a named group 'value'")
-    scale: float = Field(default=1.0, description="raw -> unit (e.g. nm -> um: 0.001)")
-    offset: float = 0.0
+    scale: FiniteFloat = Field(default=1.0, description="raw -> unit (e.g. nm -> um: 0.001)")
+    offset: FiniteFloat = 0.0
     eol: Literal["\r\n", "\n", "\r"] = Field(
         default="\n", description="line terminator; '\\n' and '\\r\\n' behave the same (a trailing '\\r' is "
                                   "dropped); '\\r' for devices that end lines with CR only")
@@ -44,13 +43,6 @@ class SerialLineSensorConfig(SensorConfig):
         if "value" not in compiled.groupindex:
             raise ValueError("needs a named group 'value', e.g. 'P (?P<value>[-+0-9.]+) nm'")
         return pattern
-
-    @field_validator("scale", "offset")
-    @classmethod
-    def _finite(cls, value: float) -> float:
-        if not math.isfinite(value):
-            raise ValueError("must be a finite number")
-        return value
 
     @property
     def value_unit(self) -> str:

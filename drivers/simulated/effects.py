@@ -4,6 +4,15 @@ Each effect is physics the paper's model (eq. 3: polynomial in x + linear in T1.
 explain, so a calibration run with it on leaves a visible, structured residual for discovery to
 name. All are off by default. Parameters are plain floats with defaults; any can be overridden:
 ``thermal_lag:tau_s=1800,k_um_per_c=-0.5,hysteresis``.
+
+The defaults are chosen so that discovery (default settings) names each effect first, with its
+parameter, on a default calibration run: 24 ``train`` cycles (``bidirectional`` for ``hysteresis``).
+Two need more, and why matters: over the 3.3 h of 24 ``train`` cycles the room only falls and rises
+once, so what the four thermocouples cannot explain of a lag of 1-3 h is, to a correlation of 0.97,
+a straight line in time. ``thermal_lag`` is then still named (flagged as alike a drift) but its time
+constant is not identifiable, and ``unmonitored_drift`` is taken for a lag; 48 cycles (6.6 h: the
+room settles, the hidden part's tail shows) separate them. ``tests/test_discovery.py`` checks it all
+with these defaults.
 """
 
 from __future__ import annotations
@@ -30,10 +39,11 @@ EFFECTS: dict[str, EffectSpec] = {
     for spec in (
         EffectSpec(
             "thermal_lag",
-            "a structure no thermocouple sees (the XYZ manual stage) lags the air with time constant "
-            "tau_s: drift += k_um_per_c * (lag(T_air, tau_s) - T_ref)",
+            "a structure no thermocouple sees (the XYZ manual stage, ~170 mm of aluminium) lags the air "
+            "with time constant tau_s: drift += k_um_per_c * (lag(T_air, tau_s) - T_ref); tau_s 2 h is "
+            "well behind the stage's 15 min and the bracket's 40 min (a lag near those is explained by T1/T2)",
             "lag(T4, tau_s)",
-            {"tau_s": 2100.0, "k_um_per_c": -0.8},
+            {"tau_s": 7200.0, "k_um_per_c": -4.0},
         ),
         EffectSpec(
             "hysteresis",
@@ -60,14 +70,14 @@ EFFECTS: dict[str, EffectSpec] = {
             "a gradient through the cell while the air warms or cools: drift += k_um_per_c_per_s * "
             "dT/dt, with dT/dt the rate of lag(T_air, tau_s) (exact: (T_air - lag) / tau_s)",
             "rate of T4 (smoothed over tau_s)",
-            {"k_um_per_c_per_s": -3000.0, "tau_s": 300.0},
+            {"k_um_per_c_per_s": -4500.0, "tau_s": 300.0},
         ),
         EffectSpec(
             "unmonitored_drift",
             "a source no sensor sees (interferometer dead path, an unmonitored heat source): "
-            "drift += rate_um_per_h * t_h + a random walk of walk_um_per_sqrt_h",
+            "drift += rate_um_per_h * t_h + a random walk of walk_um_per_sqrt_h (0.5 um over 24 cycles)",
             "none applicable online (discovery names it)",
-            {"rate_um_per_h": 0.08, "walk_um_per_sqrt_h": 0.05},
+            {"rate_um_per_h": 0.15, "walk_um_per_sqrt_h": 0.05},
         ),
     )
 }

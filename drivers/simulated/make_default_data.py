@@ -11,22 +11,16 @@ import argparse
 from pathlib import Path
 
 from daemon.calibration.dataset import Dataset, write_csv
-from daemon.calibration.procedure import calibration_plan
 from daemon.model.identify import fit
 from daemon.model.model import Model, save_model
-from drivers.simulated.physics import THERMOCOUPLES, CellPhysics
-from drivers.simulated.runs import simulate_steps
+from drivers.simulated.datasets import simulate_dataset
 
 DATA_DIR = Path(__file__).resolve().parents[2] / "daemon" / "data"
 SCENARIO, SEED, CYCLES = "train", 0, 24
 
 
 def sample_dataset() -> Dataset:
-    physics = CellPhysics.create(SCENARIO, None, SEED)
-    plan = calibration_plan(CYCLES)
-    out = simulate_steps(physics, [s.target_um for s in plan], [s.cycle for s in plan])
-    return Dataset(t=out["t_s"], x=out["x_um"], q=out["q_um"], channels={c: out[c] for c in THERMOCOUPLES},
-                   extra={"cycle": out["cycle"]}, source="sample_calibration.csv")
+    return simulate_dataset(SCENARIO, cycles=CYCLES, seed=SEED, source="sample_calibration.csv")
 
 
 def default_model(csv_path: Path) -> Model:
