@@ -137,3 +137,14 @@ def test_written_files_get_normal_permissions_not_mkstemps_0600(tmp_path):
         assert path.stat().st_mode & 0o777 == 0o640
     finally:
         os.umask(old)
+
+
+def test_chunked_writing_loses_no_row_at_chunk_boundaries(tmp_path):
+    from daemon.calibration.dataset import _csv_chunks
+
+    ds = Dataset(t=np.arange(50.0), x=np.arange(50.0) * 1.5, channels={"T1": 20 + np.arange(50.0) / 7})
+    path = tmp_path / "chunked.csv"
+    path.write_text("".join(_csv_chunks(ds.columns(), rows_per_chunk=7)))
+    back = read_csv(path)
+    np.testing.assert_array_equal(back.t, ds.t)
+    np.testing.assert_array_equal(back.channels["T1"], ds.channels["T1"])

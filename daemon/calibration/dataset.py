@@ -18,7 +18,7 @@ import io
 import math
 import os
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO
@@ -197,24 +197,35 @@ def _to_dataset(path: Path, header: list[str], values: np.ndarray) -> Dataset:
     )
 
 
-def _format_columns(columns: Mapping[str, np.ndarray]) -> str:
-    """CSV text with ``repr``-exact floats (a round trip loses nothing) and whole-number flags."""
+def _csv_chunks(columns: Mapping[str, np.ndarray], rows_per_chunk: int = 50_000) -> Iterator[str]:
+    """CSV text in chunks, so a million rows never sit in memory as one string.
+
+    Floats are written ``repr``-exact (a round trip loses nothing); ``cycle`` and ``valid`` as
+    whole numbers.
+    """
     names = list(columns)
-    table = np.column_stack([np.asarray(columns[n], dtype=np.float64) for n in names]) if names else None
+    yield ",".join(names) + "\n"
+    if not names:
+        return
+    arrays = [np.asarray(columns[n], dtype=np.float64) for n in names]
     row_format = ",".join("%d" if n in ("cycle", "valid") else "%r" for n in names)
-    lines = [",".join(names)]
-    if table is not None and table.shape[0]:
-        lines.extend(row_format % row for row in map(tuple, table.tolist()))
-    return "\n".join(lines) + "\n"
+    n_rows = arrays[0].shape[0]
+    for start in range(0, n_rows, rows_per_chunk):
+        block = np.column_stack([a[start : start + rows_per_chunk] for a in arrays])
+        yield "\n".join(row_format % row for row in map(tuple, block.tolist())) + "\n"
 
 
 def write_csv(
     ds: Dataset, path: str | os.PathLike[str], extra_columns: Mapping[str, np.ndarray] | None = None
 ) -> None:
     """Write a dataset (plus extra columns) atomically."""
-    text = _format_columns(ds.columns(extra_columns))
+    columns = ds.columns(extra_columns)
+    lengths = {name: np.shape(values)[0] for name, values in columns.items()}
+    if len(set(lengths.values())) > 1:
+        raise ValueError(f"columns differ in length: {lengths}")
     with atomic_writer(path) as handle:
-        handle.write(text)
+        for chunk in _csv_chunks(columns):
+            handle.write(chunk)
 
 
 class CsvAppender:
