@@ -22,7 +22,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from daemon.model.terms import Channels, Term, TermStream, _ChannelStream, lag_filter, register_term
+from daemon.model.terms import Channels, Term, TermStream, _ChannelStream, _LagStream, lag_filter, register_term
 
 CREEP_DEADBAND_UM = 0.5
 
@@ -54,24 +54,18 @@ class PositionCoupling(Term):
         return _CouplingStream(self.channel)
 
 
-class _RateStream(TermStream):
-    __slots__ = ("channel", "t_last", "tau_s", "u", "y")
+class _RateStream(_LagStream):
+    """The lag's state plus the last input: rate = (u - lag(u)) / tau."""
+
+    __slots__ = ("u",)
 
     def __init__(self, channel: str, tau_s: float) -> None:
-        self.channel, self.tau_s = channel, tau_s
-        self.t_last = math.nan
+        super().__init__(channel, tau_s)
         self.u = math.nan
-        self.y = math.nan
 
     def observe(self, t: float, temps: Mapping[str, float]) -> None:
-        u = temps.get(self.channel)
-        if u is None:
-            return
-        if math.isnan(self.y):
-            self.y = u
-        else:
-            self.y += -math.expm1(-(t - self.t_last) / self.tau_s) * (u - self.y)
-        self.u, self.t_last = u, t
+        super().observe(t, temps)
+        self.u = temps.get(self.channel, self.u)
 
     def value(self, t: float, x: float) -> float:
         return (self.u - self.y) / self.tau_s

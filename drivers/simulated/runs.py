@@ -14,21 +14,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from daemon.calibration.procedure import StepTiming
 from drivers.simulated.physics import THERMOCOUPLES, CellPhysics
 
 
 @dataclass(frozen=True)
-class StepSchedule:
-    ramp_s: float = 4.0
-    hold_s: float = 25.0
-    window_s: float = 5.0
-    ramp_interval_s: float = 0.25
+class StepSchedule(StepTiming):
+    """The procedure's step timing (Fig. 7), plus how often the simulated sensors are sampled."""
+
     position_interval_s: float = 0.1
     temperature_interval_s: float = 0.5
-
-    @property
-    def step_s(self) -> float:
-        return self.ramp_s + self.hold_s
 
 
 def _ramp(q_from: float, q_to: float, t0: float, schedule: StepSchedule) -> tuple[np.ndarray, np.ndarray]:
