@@ -236,8 +236,12 @@ def load_config(path: str | Path | None) -> Config:
 
 
 def default_config() -> Config:
-    """No file: the simulated cell served with the shipped default model."""
-    return parse_config({}, source=BUILTIN_SOURCE)
+    """No file: the simulated cell in a room inside the shipped model's training range, served with that model.
+
+    Extrapolation is then a finding, not the first thing a new user sees; ``[simulation] scenario``
+    (``test5``, ``daily``) shows it on purpose.
+    """
+    return parse_config({"simulation": {"scenario": "room"}}, source=BUILTIN_SOURCE)
 
 
 def missing_model_channels(config: Config, channels: Sequence[str]) -> list[str]:

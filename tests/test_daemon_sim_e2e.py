@@ -26,6 +26,9 @@ def test_run_without_config_serves_the_simulated_cell_with_the_shipped_model(tmp
             assert command["model"] == load_model(DEFAULT_MODEL_PATH).id
             assert abs(command["q_um"] - 240.0) < 2.0  # a few hundred nm of geometry + thermal correction
             assert command["voltage_v"] == 0.02 * command["q_um"]
+            # the default room stays inside the shipped model's training ranges: nothing flagged
+            answers = [client.query({"x_um": x, "id": i})[1] for i, x in enumerate((0.0, 160.0, 480.0))]
+            assert [a["extrapolating"] for a in [command, *answers]] == [[], [], [], []]
             assert daemon.log_events("starting")[0]["config"] == "<built-in default config>"
         finally:
             client.close()

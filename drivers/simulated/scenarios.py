@@ -95,6 +95,12 @@ SCENARIOS: dict[str, Scenario] = {
             trajectory="validation",
         ),
         Scenario(
+            "room",
+            "a lab day inside the shipped model's training range: ±0.12 °C around 21.78 °C over 8 h "
+            "(what `nanodrift run` serves when there is no config)",
+            tuple((h, 21.78 + 0.12 * float(np.sin(2 * np.pi * h / 8.0))) for h in np.arange(-2.0, 240.0, 0.5)),
+        ),
+        Scenario(
             "daily",
             "a day/night room cycle (±0.4 °C over 24 h) for long daemon runs",
             tuple((h, 22.0 + 0.4 * float(np.sin(2 * np.pi * h / 24.0))) for h in np.arange(-2.0, 240.0, 1.0)),
