@@ -441,16 +441,18 @@ def config_backend(config: Any, *, start_s: float = 0.0) -> Backend:
         cell.epoch = 0.0  # scenario time = clock time, so a resumed run continues the same room history
         context.shared[SHARED_KEY] = cell
     drivers = build_drivers(config, context)
-    if drivers.actuator is None:
-        raise ValueError("the config has no driver that can move the stage (no actuator); "
-                         "a calibration needs one")
+    actuator = drivers.actuator
+    if actuator is None:  # real hardware: the lab's output node applies published commands
+        from daemon.bus_actuator import ZenohActuator
+
+        actuator = ZenohActuator(config)
     positions = [s for s in config.sensors if s.role == "position"]
     if not positions:
         raise ValueError("the config has no position sensor (role = \"position\"); a calibration needs one")
     act = config.actuator
     return Backend(
         groups=drivers.groups,
-        actuator=drivers.actuator,
+        actuator=actuator,
         clock=context.clock,
         max_age_s={s.name: s.max_age_s for s in config.sensors},
         position_channel=positions[0].name,
@@ -459,6 +461,8 @@ def config_backend(config: Any, *, start_s: float = 0.0) -> Backend:
         offset_v=act.offset_v,
         v_min=act.v_min,
         v_max=act.v_max,
-        description="simulated cell (virtual clock)" if simulated else "hardware",
+        description="simulated cell (virtual clock)" if simulated else (
+            "hardware" if drivers.actuator is not None else f"hardware; stage commands published on {actuator.key}"
+        ),
         simulated_cell=cell,
     )
