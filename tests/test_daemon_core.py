@@ -18,7 +18,7 @@ from daemon.config import ActuatorConfig, ZenohSettings
 from daemon.logs import RateLimiter
 from daemon.sdnotify import Notifier, watchdog_interval_s
 from daemon.service_core import MAX_PAYLOAD_BYTES, Compensator, Refusal, SensorTable, Target, dumps, parse_target
-from drivers.base import Reading, SensorConfig, State
+from drivers.base import Reading, SensorConfig, SensorGroup, State, WallClock
 
 
 def sensors(*names: str, max_age_s: float = 5.0) -> list[SensorConfig]:
@@ -296,3 +296,39 @@ def test_a_refused_target_does_not_move_the_models_motion_state(tmp_path: Path) 
     after = comp.compensate(Target(3, 180.0), now=11.0, unix_now=0.0)["q_um"]
     # 100 -> 180 is a step up from where the stage really is (down only from the refused 400)
     assert after == pytest.approx(expected_q(180.0, {"T1": 21.8, "T2": 21.9}, terms) + 0.05, abs=1e-12)
+
+
+def test_watchdog_health_fails_when_a_poller_dies_or_stops_making_progress() -> None:
+    """systemd restarts a daemon that stops pinging: the pings must stop exactly in these cases."""
+    import asyncio
+    import time
+
+    from daemon.config import default_config
+    from daemon.service import Service
+    from daemon.service_drivers import GroupPoller
+
+    class Idle(SensorGroup):
+        names, roles, interval_s, timeout_s = ("T1",), {"T1": "temperature"}, 0.5, 1.0
+
+        async def open(self) -> None: ...
+
+        async def read(self) -> dict[str, Reading]:
+            return {"T1": Reading(20.0, t=0.0)}
+
+        async def close(self) -> None: ...
+
+    async def check() -> tuple[bool, bool, bool]:
+        service = Service(default_config())
+        poller = GroupPoller(Idle(), WallClock(), lambda g, r: None, lambda g, reason, delay: None)
+        poller.task = asyncio.get_running_loop().create_task(asyncio.sleep(60))
+        service.pollers = [poller]
+        healthy = service._healthy()
+        poller.last_progress = time.monotonic() - GroupPoller.MAX_BACKOFF_S * 2  # stuck for a minute
+        stuck = service._healthy()
+        poller.last_progress = time.monotonic()
+        poller.task.cancel()
+        await asyncio.sleep(0)
+        dead = service._healthy()
+        return healthy, stuck, dead
+
+    assert asyncio.run(check()) == (True, False, False)
