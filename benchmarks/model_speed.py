@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from synthetic import paper_run
+from helpers.synthetic import paper_run
 
 from daemon.calibration.dataset import Dataset, read_csv, write_csv
 from daemon.model.identify import candidate_terms, fit, fit_terms
@@ -56,6 +56,17 @@ def bench_streaming() -> None:
           f"ratio {m / b:.1f}x; budget 5 us -> {'OK' if m < 5 else 'OVER'}")
     obs = per_call_us(lambda x: ev.observe(1.0, {"T1": x}), xs[:500])
     print(f"  observe one temperature sample: median {statistics.median(obs):.2f} us")
+    ev.observe(0.0, {c: 20.0 for c in model.channels})
+    sig = per_call_us(lambda x: ev.sigma(x, 1.0), xs)
+    print(f"  sigma (q_sigma_um) per target: median {statistics.median(sig):.2f} us "
+          f"(p90 {np.percentile(sig, 90):.2f}); budget 5 us -> {'OK' if statistics.median(sig) < 5 else 'OVER'}")
+
+    def fresh_sample_then_target(x: float) -> None:  # the first target after a sample pays the refresh
+        ev.observe(1.0, {"T1": 20.0})
+        ev.sigma(x, 1.0)
+
+    both = per_call_us(fresh_sample_then_target, xs[:500])
+    print(f"  observe + the first sigma after it: median {statistics.median(both):.2f} us")
 
 
 def bench_fit() -> None:

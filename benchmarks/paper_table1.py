@@ -4,7 +4,9 @@
    24 cycles) on the simulated cell (``train`` room) on a virtual clock; the recorded CSV is fitted
    with ``daemon.model.identify.fit``. Its wall time is printed.
 2. Validation: tests 1-5 (scenarios ``test1``..``test5``, 30 cycles each) through the same async
-   procedure; test 1 without the model, tests 2-5 with it ("without" computed, marked *).
+   procedure; test 1 without the model, tests 2-5 with it ("without" computed, marked *). Seeds follow
+   ``daemon.commands._cell.scenario_seed`` (test N: seed * 100 + N), the rule ``nanodrift validate``
+   and ``nanodrift demo`` use, so the same --seed gives the same Table I through all three.
 3. Table I side by side with the paper's, and the floors: >= 7x in tests 2-4, >= 2.4x in test 5.
 4. The spread over more seeds (``--seeds``), through the vectorised simulator (same physics and
    schedule, no asyncio), so one lucky seed cannot carry the result.
@@ -19,32 +21,39 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from daemon.assembly import simulated_drivers
 from daemon.calibration.dataset import Dataset
-from daemon.calibration.procedure import calibration_plan, fit_recorded, record_calibration, simulated_backend
-from daemon.calibration.report import PAPER_TABLE1, table1
-from daemon.calibration.validation import VALIDATION_POINTS_UM, run_validation, validation_plan
+from daemon.calibration.plans import VALIDATION_POINTS_UM, calibration_plan, validation_plan
+from daemon.commands._cell import scenario_seed
+from daemon.model.equation import equation
 from daemon.model.identify import fit
+from daemon.procedure.recording import fit_recorded, record_calibration
+from daemon.procedure.validation import run_validation
+from daemon.reports.validation import PAPER_TABLE1, table1
 from drivers.simulated.physics import THERMOCOUPLES, CellPhysics
 from drivers.simulated.runs import simulate_steps
 
 TESTS = ("test1", "test2", "test3", "test4", "test5")
 
 
-def procedure_table(seed: int, cycles: int, validation_cycles: int) -> tuple[list, float, float]:
+def procedure_table(seed: int, cycles: int, validation_cycles: int,
+                    tests: tuple[str, ...] = TESTS) -> tuple[list, float, float, Any]:
+    """Table I through the async procedure: (results, calibration wall s, validation wall s, model)."""
     with tempfile.TemporaryDirectory() as tmp:
         data, model_path = Path(tmp) / "cal.csv", Path(tmp) / "model.json"
-        backend = simulated_backend("train", seed=seed)
+        backend = simulated_drivers("train", seed=scenario_seed(seed, "train"))
         t0 = time.perf_counter()
         asyncio.run(record_calibration(backend, data, cycles=cycles, progress_stream=_Null()))
         cal_wall = time.perf_counter() - t0
         model = fit_recorded(data, model_path).model
     results = []
     t0 = time.perf_counter()
-    for i, name in enumerate(TESTS):
-        backend = simulated_backend(name, seed=seed * 100 + i + 1)
+    for name in tests:
+        backend = simulated_drivers(name, seed=scenario_seed(seed, name))
         use = None if name == "test1" else model
         results.append(asyncio.run(run_validation(backend, use, name=name, cycles=validation_cycles,
                                                   progress_stream=_Null())))
@@ -53,7 +62,7 @@ def procedure_table(seed: int, cycles: int, validation_cycles: int) -> tuple[lis
 
 def vectorised_ratios(seed: int) -> dict[str, float]:
     """(without / with) per test, through the vectorised simulator."""
-    physics = CellPhysics.create("train", None, seed)
+    physics = CellPhysics.create("train", None, scenario_seed(seed, "train"))
     plan = calibration_plan(24)
     out = simulate_steps(physics, [s.target_um for s in plan], [s.cycle for s in plan])
     ds = Dataset(t=out["t_s"], x=out["x_um"], q=out["q_um"], channels={c: out[c] for c in THERMOCOUPLES},
@@ -62,14 +71,14 @@ def vectorised_ratios(seed: int) -> dict[str, float]:
     vplan = validation_plan(30)
     targets = np.array([s.target_um for s in vplan])
     ratios = {}
-    for i, name in enumerate(TESTS[1:], start=2):
+    for name in TESTS[1:]:
         evaluator = model.evaluator()
 
         def command(x: float, t: float, temps: dict[str, float], ev=evaluator) -> float:
             ev.observe(t, temps)
             return ev.command(x, t)
 
-        o = simulate_steps(CellPhysics.create(name, None, seed * 100 + i), targets, [s.cycle for s in vplan],
+        o = simulate_steps(CellPhysics.create(name, None, scenario_seed(seed, name)), targets, [s.cycle for s in vplan],
                            command_for=command)
         without = o["x_um"] - (o["q_um"] - targets)
         acc = np.mean([abs(o["x_um"][targets == p].mean() - p) for p in VALIDATION_POINTS_UM])
@@ -99,7 +108,7 @@ def main() -> int:
 
     results, cal_wall, val_wall, model = procedure_table(args.seed, args.cycles, args.validation_cycles)
     print(table1(results, PAPER_TABLE1))
-    print(f"\nmodel: {' + '.join(f'{ft.coef:+.4g}*{ft.term.name}' for ft in model.terms)}")
+    print(f"\nmodel {model.id}: {equation(model)}")
     print(f"fit residual {model.fit.get('residual_rms_nm', float('nan')):.1f} nm RMS "
           f"(interferometer: 20 nm white noise + 25 nm slow wander)")
     sim_h = args.cycles * 17 * 29 / 3600

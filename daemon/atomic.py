@@ -1,12 +1,14 @@
 """Write files so a reader sees the old content or the new one, never half of either.
 
 Temp file in the same directory, fsync, then ``os.replace``: a crash or a full disk leaves the
-previous file in place (the rule: nothing is written non-atomically).
+previous file in place (the rule: nothing is written non-atomically). Also the checksum that ties a
+model to the data file it was made from. Stdlib only: part of the pure core, usable everywhere.
 """
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import os
 import tempfile
 from collections.abc import Iterator
@@ -61,3 +63,12 @@ def atomic_write_text(path: str | os.PathLike[str], text: str) -> None:
 def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
     with atomic_writer(path, "wb") as handle:
         handle.write(data)
+
+
+def file_sha256(path: str | os.PathLike[str]) -> str:
+    """Hex SHA-256 of a file's bytes, read in 1 MiB blocks (a recorded run can be large)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()

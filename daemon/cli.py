@@ -1,134 +1,283 @@
 """``nanodrift``: one command line for the service, the procedures and the model tools.
 
 The parser lists every command of the public contract; each handler lives in the module that owns
-the job and is imported only when its command runs, so ``nanodrift fit`` never loads zenoh.
+the job and is imported only when its command runs, so ``nanodrift fit`` never loads zenoh. The
+simulated cell's scenario and effect catalogues are imported here (numpy only, no zenoh) so that
+``simulate --help`` lists them from the one place they are defined.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.metadata
 import sys
+import textwrap
 from collections.abc import Sequence
+from typing import Any
 
 from daemon.errors import UserError
+from drivers.simulated.effects import EFFECTS
+from drivers.simulated.scenarios import SCENARIOS
 
+#: command -> the module under daemon/commands whose ``main(args)`` runs it
 HANDLERS = {
-    "run": "daemon.service_commands:run_command",
-    "demo": "daemon.service_commands:demo_command",
-    "target": "daemon.service_commands:target_command",
-    "check-config": "daemon.service_commands:check_config_command",
-    "simulate": "daemon.calibration.commands:simulate_command",
-    "calibrate": "daemon.calibration.commands:calibrate_command",
-    "validate": "daemon.calibration.commands:validate_command",
-    "fit": "daemon.model_commands:fit_command",
-    "predict": "daemon.model_commands:predict_command",
-    "discover": "daemon.calibration.discovery_command:discover_command",
+    "run": "daemon.commands.run",
+    "demo": "daemon.commands.demo",
+    "target": "daemon.commands.target",
+    "check-config": "daemon.commands.check_config",
+    "simulate": "daemon.commands.simulate",
+    "calibrate": "daemon.commands.calibrate",
+    "validate": "daemon.commands.validate",
+    "fit": "daemon.commands.fit",
+    "predict": "daemon.commands.predict",
+    "discover": "daemon.commands.discover",
+    "restamp": "daemon.commands.restamp",
+    "status": "daemon.commands.status",
 }
+
+
+def version() -> str:
+    """The installed distribution's version (what ``--version`` prints and model files record)."""
+    try:
+        return importlib.metadata.version("nanodrift")
+    except importlib.metadata.PackageNotFoundError:  # run from a source tree that was never installed
+        return "0+unknown"
+
+
+class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Every option's default after its help, except the ones that say nothing (None, off, empty)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        default = action.default
+        if "(default" in text or default is None or default is argparse.SUPPRESS or isinstance(default, bool):
+            return text
+        if default in ([], ""):
+            return text
+        if not action.option_strings and action.nargs not in (argparse.OPTIONAL, argparse.ZERO_OR_MORE):
+            return text
+        shown = " ".join(map(str, default)) if isinstance(default, list | tuple) else str(default)
+        return f"{text} (default: {shown.replace('%', '%%')})"
+
+
+def _epilog(title: str, items: dict[str, str]) -> str:
+    width = max(len(name) for name in items) + 2
+    lines = [f"{title}:"]
+    for name, text in items.items():
+        wrapped = textwrap.wrap(text, 96 - width) or [""]
+        lines.append(f"  {name:<{width}}{wrapped[0]}")
+        lines.extend(f"  {'':<{width}}{more}" for more in wrapped[1:])
+    return "\n".join(lines)
+
+
+def _scenario_epilog() -> str:
+    return _epilog("scenarios", {name: s.description for name, s in SCENARIOS.items()})
+
+
+def _effects_epilog() -> str:
+    items = {
+        name: f"{spec.physics} (parameters: "
+        + ", ".join(f"{key}={value:g}" for key, value in spec.defaults.items()) + ")"
+        for name, spec in EFFECTS.items()
+    }
+    return _epilog("effects (--effects name[:param=value...],name...)", items)
 
 
 def _zenoh_flags(p: argparse.ArgumentParser) -> None:
     """The zenoh-python examples' conventions; they override the config file."""
-    p.add_argument("-l", "--listen", action="append", default=[], metavar="EP", help="endpoint to listen on")
-    p.add_argument("-e", "--connect", action="append", default=[], metavar="EP", help="endpoint to connect to")
-    p.add_argument("--mode", choices=["peer", "client", "router"], help="zenoh session mode")
+    p.add_argument("-l", "--listen", action="append", default=[], metavar="EP",
+                   help="endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable; overrides [zenoh] listen)")
+    p.add_argument("-e", "--connect", action="append", default=[], metavar="EP",
+                   help="endpoint to connect to (repeatable; overrides [zenoh] connect)")
+    p.add_argument("--mode", choices=["peer", "client", "router"],
+                   help="zenoh session mode (overrides [zenoh] mode, whose default is peer)")
 
 
-def _simulation_flags(p: argparse.ArgumentParser) -> None:
+def _demo_zenoh_flags(p: argparse.ArgumentParser) -> None:
+    """The demo starts its own daemon and client on loopback; these pick the endpoints."""
+    p.add_argument("-l", "--listen", action="append", default=[], metavar="EP",
+                   help="endpoint the demo's daemon listens on (default: a free port on 127.0.0.1)")
+    p.add_argument("-e", "--connect", action="append", default=[], metavar="EP",
+                   help="endpoint the demo's client connects to (default: the --listen endpoint)")
+    p.add_argument("--mode", choices=["peer", "client", "router"],
+                   help="accepted as for run; the demo's daemon is always a peer and its client a client")
+
+
+def _simulation_flags(p: argparse.ArgumentParser, default_scenario: str) -> None:
     """For the simulated cell (no --config, or a config with simulated sensors): override [simulation]."""
-    p.add_argument("--scenario", metavar="S", help="simulated room history (default: train / test2)")
-    p.add_argument("--effects", metavar="a,b", help="hidden effects of the simulated cell")
-    p.add_argument("--seed", type=int, metavar="N", help="simulation seed")
+    p.add_argument("--scenario", metavar="S",
+                   help=f"simulated room history, one of {', '.join(SCENARIOS)} (default: {default_scenario} "
+                        "with no --config, else the config's [simulation] scenario)")
+    p.add_argument("--effects", metavar="a,b",
+                   help=f"hidden effects of the simulated cell, from {', '.join(EFFECTS)} "
+                        "(default: none, or the config's)")
+    p.add_argument("--seed", type=int, metavar="N",
+                   help="simulation seed (default: 0, or the config's); the paper's test N runs with seed*100+N, "
+                        "as in demo")
+
+
+def _add(sub: Any, name: str, help_text: str, epilog: str | None = None) -> argparse.ArgumentParser:
+    return sub.add_parser(name, help=help_text, description=help_text[:1].upper() + help_text[1:] + ".",
+                          epilog=epilog, formatter_class=_HelpFormatter)
+
+
+def _output_check_flag(p: argparse.ArgumentParser) -> None:
+    """Procedures on hardware with [actuator] kind = "zenoh" refuse to start with nobody applying the steps."""
+    p.add_argument("--no-output-check", action="store_true",
+                   help="start even when no output node is subscribed to nanodrift/<cell>/command")
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="nanodrift", description="Thermal-drift compensation for a piezo nanopositioning stage."
+        prog="nanodrift", description="Thermal-drift compensation for a piezo nanopositioning stage.",
+        formatter_class=_HelpFormatter,
     )
+    parser.add_argument("--version", action="version", version=f"nanodrift {version()}",
+                        help="print the version and exit")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    # --- service (daemon helper) ---
-    p = sub.add_parser("run", help="the daemon (simulated cell when no --config)")
-    p.add_argument("--config", metavar="F", help="operator config (TOML)")
+    # --- the service ---
+    p = _add(sub, "run", "the daemon (simulated cell when no --config)")
+    p.add_argument("--config", metavar="F", help="operator config (TOML); none: the built-in simulated cell")
     _zenoh_flags(p)
     p.add_argument("--no-multicast-scouting", action="store_true", help="do not look for peers by UDP multicast")
-    p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
+    p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"],
+                   help="the least severe log lines printed")
 
-    p = sub.add_parser("demo", help="calibrate, serve and validate on the simulated cell (~1 min)")
-    _zenoh_flags(p)
-    p.add_argument("--tests", nargs="+", default=["test2", "test4", "test5"], metavar="T",
-                   help="validation scenarios to run through the daemon")
-    p.add_argument("--cycles", type=int, default=10, metavar="N", help="validation sweeps per test")
-    p.add_argument("--calibration-cycles", type=int, default=24, metavar="N")
-    p.add_argument("--speed", type=float, default=300.0, help="simulated seconds per wall second while serving")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--keep", metavar="DIR", help="keep the model, data, configs and daemon logs in DIR")
+    p = _add(sub, "demo", "calibrate, validate (Table I, the paper's five tests) and serve on the simulated cell "
+             "(~1 min)", epilog=_scenario_epilog())
+    _demo_zenoh_flags(p)
+    p.add_argument("--tests", nargs="+", default=["test1", "test2", "test3", "test4", "test5"], metavar="T",
+                   help="the paper's tests to run: test1 (without compensation), test2-test4 (inside the "
+                        "training range), test5 (outside it)")
+    p.add_argument("--cycles", type=int, default=30, metavar="N",
+                   help="ISO 9283 validation sweeps per test (the paper: 30)")
+    p.add_argument("--calibration-cycles", type=int, default=24, metavar="N",
+                   help="calibration sweeps of the 'train' room before the tests (the paper: 24)")
+    p.add_argument("--speed", type=float, default=50.0,
+                   help="simulated seconds per wall second of the served cell (the serving step)")
+    p.add_argument("--seed", type=int, default=0, metavar="N",
+                   help="simulation seed: the same seed gives the same Table I as validate --seed N")
+    p.add_argument("--keep", metavar="DIR", help="keep the model, data, Table I (JSON), config and daemon log in DIR")
 
-    p = sub.add_parser("target", help="send targets to a running daemon and print the commands")
-    p.add_argument("x", nargs="+", type=float, metavar="X", help="target positions (um)")
-    p.add_argument("-e", "--connect", action="append", default=[], metavar="EP", help="endpoint to connect to")
-    p.add_argument("--mode", choices=["peer", "client"], default=None, help="zenoh session mode")
+    p = _add(sub, "target", "send targets to a running daemon and print the commands")
+    p.add_argument("x", nargs="+", type=float, metavar="X", help="target positions (µm)")
+    p.add_argument("-e", "--connect", action="append", default=[], metavar="EP",
+                   help="endpoint of the daemon, e.g. tcp/127.0.0.1:7447 (repeatable; default: scouting)")
+    p.add_argument("--mode", choices=["peer", "client"], default=None,
+                   help="zenoh session mode (default: client with -e, else peer)")
     p.add_argument("--cell", default="cell0", help="cell name (key prefix nanodrift/<cell>)")
     p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for each answer")
     p.add_argument("--json", action="store_true", help="print JSON lines")
+    p.add_argument("--zenoh-config", metavar="F",
+                   help="a zenoh json5 config (credentials, TLS), e.g. config/zenoh-client.example.json5")
 
-    p = sub.add_parser("check-config", help="validate an operator config")
-    p.add_argument("file", metavar="F")
+    p = _add(sub, "status", "every cell on the network (or one): sensors, model, health, actuator, counters",
+             epilog=textwrap.fill(
+                 "columns: CELL, STATE (ok | degraded: a sensor not ok | extrapolating | no-model | stalled: "
+                 "a sensor poller stopped), SENSORS ok/total, MODEL id and MODEL AGE (since it was made), "
+                    "HEALTH (state and residual RMS, when the daemon measures it), ACTUATOR (kind and state), "
+                    "TARGETS/MIN and REFUSED/MIN (averaged since the daemon started; with --watch, over the "
+                    "last interval). Exit 1 when no cell answers.", 96))
+    p.add_argument("-e", "--connect", action="append", default=[], metavar="EP",
+                   help="endpoint of a daemon or router, e.g. tcp/127.0.0.1:7447 (repeatable; default: scouting)")
+    p.add_argument("--mode", choices=["peer", "client"], default=None,
+                   help="zenoh session mode (default: client with -e, else peer)")
+    p.add_argument("--cell", default=None, metavar="C",
+                   help="only this cell (key nanodrift/C/status; default: every cell, nanodrift/*/status)")
+    p.add_argument("--json", action="store_true", help="print the status documents as a JSON list")
+    p.add_argument("--watch", type=float, default=None, metavar="S",
+                   help="refresh every S seconds until Ctrl-C: in place on a terminal, a block per refresh "
+                        "otherwise")
+    p.add_argument("--count", type=int, default=0, metavar="N",
+                   help="with --watch: stop after N refreshes (default: until Ctrl-C)")
+    p.add_argument("--timeout", type=float, default=2.0, metavar="S",
+                   help="seconds to collect the cells' replies")
+    p.add_argument("--zenoh-config", metavar="F",
+                   help="a zenoh json5 config (credentials, TLS), e.g. config/zenoh-client.example.json5")
 
-    # --- procedures (sim helper) ---
-    p = sub.add_parser("simulate", help="data from the simulated cell")
-    p.add_argument("--scenario", required=True, metavar="S")
-    p.add_argument("--effects", default="", metavar="a,b", help="hidden effects, e.g. thermal_lag:tau_s=1800,creep")
-    p.add_argument("--cycles", type=int, metavar="N")
-    p.add_argument("--seed", type=int, default=0, metavar="N")
-    p.add_argument("--out", required=True, metavar="F.csv")
+    p = _add(sub, "check-config", "validate an operator config")
+    p.add_argument("file", metavar="F", help="the operator config (TOML) to check")
+    p.add_argument("--strict", action="store_true",
+                   help="warnings (a channel the model needs is missing, unused sensors) are errors too")
 
-    p = sub.add_parser("calibrate", help="the paper's calibration procedure (Fig. 6, 7)")
-    p.add_argument("--config", metavar="F")
-    p.add_argument("--out", required=True, metavar="M.json")
+    # --- procedures on the cell ---
+    p = _add(sub, "simulate", "data from the simulated cell", epilog=_scenario_epilog() + "\n\n" + _effects_epilog())
+    p.add_argument("--scenario", required=True, metavar="S",
+                   help=f"room history and trajectory, one of {', '.join(SCENARIOS)} (see below)")
+    p.add_argument("--effects", default="", metavar="a,b",
+                   help="hidden effects to switch on, with optional parameters, e.g. "
+                        "thermal_lag:tau_s=1800,creep (see below; default: none)")
+    p.add_argument("--cycles", type=int, metavar="N",
+                   help="sweeps to record (default: the scenario's: 24 calibration or 30 validation sweeps)")
+    p.add_argument("--seed", type=int, default=0, metavar="N", help="noise and room seed: same seed, same data")
+    p.add_argument("--out", required=True, metavar="F.csv", help="the CSV to write (data contract columns)")
+
+    p = _add(sub, "calibrate", "the paper's calibration procedure (Fig. 6, 7)", epilog=_scenario_epilog())
+    p.add_argument("--config", metavar="F", help="operator config (TOML); none: the built-in simulated cell")
+    p.add_argument("--out", required=True, metavar="M.json", help="the model file to write")
     p.add_argument("--data", metavar="D.csv", help="where the recorded steps go (default: beside --out)")
-    p.add_argument("--cycles", type=int, default=24, metavar="N")
+    p.add_argument("--cycles", type=int, metavar="N",
+                   help="calibration sweeps (default: the config's [procedure] cycles, 24 as in the paper)")
     p.add_argument("--resume", action="store_true", help="continue an interrupted run from --data")
-    _simulation_flags(p)
+    _simulation_flags(p, "train")
+    _output_check_flag(p)
 
-    p = sub.add_parser("validate", help="ISO 9283 validation, Table I")
-    p.add_argument("--config", metavar="F")
-    p.add_argument("--model", required=True, metavar="M.json")
-    p.add_argument("--cycles", type=int, default=30, metavar="N")
-    p.add_argument("--json", action="store_true")
-    p.add_argument("--report", metavar="DIR")
+    p = _add(sub, "validate", "ISO 9283 validation, Table I", epilog=_scenario_epilog())
+    p.add_argument("--config", metavar="F", help="operator config (TOML); none: the built-in simulated cell")
+    p.add_argument("--model", required=True, metavar="M.json", help="the model to validate")
+    p.add_argument("--cycles", type=int, default=30, metavar="N", help="validation sweeps (ISO 9283: 30)")
+    p.add_argument("--json", action="store_true", help="print the results as JSON instead of Table I")
+    p.add_argument("--report", metavar="DIR",
+                   help="also write Table I, JSON, raw steps and figures (PNG + SVG) into DIR")
     p.add_argument("--no-compensation", action="store_true", help="command the targets as they are (test 1)")
-    _simulation_flags(p)
+    p.add_argument("--adapt", action="store_true",
+                   help="correct the commands with the daemon's bias tracker ([adapt] mode = \"bias\"), fed by "
+                        "each step's residual")
+    p.add_argument("--adapt-tau-s", type=float, default=600.0, metavar="S",
+                   help="the tracker's time constant (default 600 s, as [adapt] tau_s)")
+    p.add_argument("--adapt-max-um", type=float, default=1.0, metavar="UM",
+                   help="clamp on the correction (default 1 um, as [adapt] max_um)")
+    _simulation_flags(p, "test2")
+    _output_check_flag(p)
 
-    # --- model tools (lead) ---
-    p = sub.add_parser("fit", help="identify the model from recorded data")
-    p.add_argument("data", metavar="D.csv")
-    p.add_argument("--out", required=True, metavar="M.json")
+    # --- model tools (offline) ---
+    p = _add(sub, "fit", "identify the model from recorded data")
+    p.add_argument("data", metavar="D.csv", help="recorded data (CSV: t_s, x_um, q_um, one column per channel)")
+    p.add_argument("--out", required=True, metavar="M.json", help="the model file to write")
     p.add_argument("--order", default="auto", help="geometric order n1, or auto (held-out cycles)")
-    p.add_argument("--exclude", action="append", default=[], metavar="CH", help="leave a channel out")
-    p.add_argument("--penter", type=float, default=0.05, metavar="P")
-    p.add_argument("--premove", type=float, default=0.10, metavar="P")
-    p.add_argument("--json", action="store_true")
+    p.add_argument("--exclude", action="append", default=[], metavar="CH",
+                   help="leave a channel out (repeatable)")
+    p.add_argument("--penter", type=float, default=0.05, metavar="P",
+                   help="stepwise: a term enters when its p-value is below P")
+    p.add_argument("--premove", type=float, default=0.10, metavar="P",
+                   help="stepwise: a term leaves when its p-value is above P (>= --penter)")
+    p.add_argument("--json", action="store_true",
+                   help="print the summary as JSON (residuals in nm, keys ending _nm)")
 
-    p = sub.add_parser("predict", help="the command the model gives for each row")
-    p.add_argument("--model", required=True, metavar="M.json")
-    p.add_argument("data", metavar="D.csv")
-    p.add_argument("--out", required=True, metavar="P.csv")
+    p = _add(sub, "predict", "the command the model gives for each row")
+    p.add_argument("--model", required=True, metavar="M.json", help="the model to apply")
+    p.add_argument("data", metavar="D.csv", help="data with t_s, x_um and the model's channels")
+    p.add_argument("--out", required=True, metavar="P.csv", help="D plus columns q_pred_um and q_sigma_um (µm)")
 
-    # --- discovery (discovery helper) ---
-    p = sub.add_parser("discover", help="find what the model misses, add it, show the gap shrink")
-    p.add_argument("data", metavar="D.csv")
-    p.add_argument("--model", required=True, metavar="M.json")
-    p.add_argument("--out", required=True, metavar="M2.json")
-    p.add_argument("--report", metavar="DIR")
-    p.add_argument("--json", action="store_true")
+    p = _add(sub, "restamp", "give a hand-edited model file the id of its new content")
+    p.add_argument("model", metavar="M.json", help="the edited model file")
+    p.add_argument("--out", metavar="M2.json", help="write here instead of over M.json")
+
+    # --- discovery (offline) ---
+    p = _add(sub, "discover", "find what the model misses, add it, show the gap shrink")
+    p.add_argument("data", metavar="D.csv", help="recorded data (CSV) the model is tested against")
+    p.add_argument("--model", required=True, metavar="M.json", help="the model to extend")
+    p.add_argument("--out", required=True, metavar="M2.json", help="the extended model file to write")
+    p.add_argument("--report", metavar="DIR", help="also write report.md and figures into DIR")
+    p.add_argument("--json", action="store_true", help="print the result as JSON")
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    module_name, func_name = HANDLERS[args.command].split(":")
-    handler = getattr(importlib.import_module(module_name), func_name)
+    handler = importlib.import_module(HANDLERS[args.command]).main
     try:
         return int(handler(args) or 0)
     except UserError as err:

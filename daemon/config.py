@@ -2,43 +2,78 @@
 
 Validation runs in two passes so every message names its field path: first the daemon's own
 sections, then each ``[[sensors]]`` entry with the pydantic model of the driver plugin its ``kind``
-names (a lab's own driver validates its own keys). Unknown keys are errors everywhere: a typo must
-never pass silently. Errors are collected and reported together, each as
-``<file>: <path>: <what was expected>``.
+names (a lab's own driver validates its own keys). ``[actuator]`` is split the same way: the core
+keys (gain, limits, motion) here, the device keys by the ``actuator_model`` of the plugin its
+``kind`` names. Unknown keys are errors everywhere: a typo must
+never pass silently, and numbers are strict: ``scale = "0.1"`` (a string) is an error, not 0.1.
+Errors are collected and reported together, each as ``<file>:<line>: <path>: <what was expected>``,
+e.g. ``lab.toml:42: sensors[5] (T6).scale: Input should be a valid number``. ``tomllib`` keeps no
+positions, so the line is found in the text: the n-th ``[[sensors]]`` header, then the key inside it.
+
+Longer than most modules on purpose: every section of the operator contract and the checks across
+sections (an actuator's hub, procedure points inside the workspace) read in one place.
 """
 
 from __future__ import annotations
 
 import math
+import re
 import tomllib
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator, model_validator
+from pydantic import (
+    AllowInfNan,
+    BaseModel,
+    ConfigDict,
+    Field,
+    PrivateAttr,
+    Strict,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
+from daemon.calibration.plans import CALIBRATION_POINTS_UM, PAPER_TIMING, StepTiming
 from daemon.errors import UserError
-from drivers.base import HubConfig, SensorConfig
-from drivers.registry import UnknownDriverError, load_plugin
-from drivers.simulated.config import SimulationConfig
+from drivers.base import ActuatorOptions, DriverPlugin, SensorConfig
+from drivers.registry import UnknownDriverError, available, load_plugin
 
 DATA_DIR = Path(__file__).resolve().parent / "data"
+#: the simulated cell's model, shipped with the package (a config that runs the simulator uses it by default)
 DEFAULT_MODEL_PATH = DATA_DIR / "default_model.json"
+#: where a real cell's model lives by default: the unit's state directory (see the README's install steps)
+STATE_MODEL_PATH = Path("/var/lib/nanodrift/model.json")
 BUILTIN_SOURCE = "<built-in default config>"
 
 
 class ConfigError(UserError):
-    """An invalid config; ``problems`` holds one ``path: message`` line per problem."""
+    """An invalid config; ``problems`` holds one ``path: message`` line per problem, ``lines`` the
+    line of the file each one is at (None when unknown); the message shows ``file:line: problem``."""
 
-    def __init__(self, source: str, problems: Sequence[str]) -> None:
+    def __init__(self, source: str, problems: Sequence[str], lines: Sequence[int | None] | None = None) -> None:
         self.source = source
         self.problems = list(problems)
-        lines = "\n".join(f"{source}: {p}" for p in self.problems)
-        super().__init__(lines)
+        self.lines = list(lines) if lines is not None else [None] * len(self.problems)
+        text = "\n".join(f"{source}:{line}: {p}" if line else f"{source}: {p}"
+                         for p, line in zip(self.problems, self.lines, strict=True))
+        super().__init__(text)
+
+
+class VoltageLimitError(ValueError):
+    """A command whose voltage would leave ``[v_min, v_max]``: never sent."""
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    """No unknown keys, no inf/nan, and no strings for numbers (pydantic's strict mode: an int is a
+    fine float, ``"0.1"`` is not)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, strict=True)
+
+
+#: a path written as a TOML string (strict mode would take only a Path object)
+PathText = Annotated[Path, Strict(False)]
 
 
 class ZenohSettings(_Strict):
@@ -48,28 +83,63 @@ class ZenohSettings(_Strict):
     listen: list[str] = Field(default_factory=list, description="endpoints, e.g. tcp/0.0.0.0:7447")
     connect: list[str] = Field(default_factory=list)
     multicast_scouting: bool = Field(default=True, description="find peers by UDP multicast")
-    config_file: Path | None = Field(default=None, description="a zenoh json5 config used as the base")
+    config_file: PathText | None = Field(default=None, description="a zenoh json5 config used as the base")
 
 
 class ModelSettings(_Strict):
-    path: Path = Field(default=DEFAULT_MODEL_PATH, description="the model file (nanodrift-model/1)")
+    path: PathText = Field(default=DEFAULT_MODEL_PATH, description=(
+        "the model file (nanodrift-model/1); default: the package's model for the simulated cell, "
+        "/var/lib/nanodrift/model.json for hardware"))
+
+
+class MetricsSettings(_Strict):
+    """``[metrics]``: Prometheus metrics over HTTP (``daemon.service.metrics``); off unless ``listen`` is set."""
+
+    listen: str = Field(default="", description='"" = off; else "HOST:PORT", e.g. "127.0.0.1:9464" (/metrics)')
+
+    @field_validator("listen")
+    @classmethod
+    def _host_port(cls, value: str) -> str:
+        if value == "":
+            return value
+        match = re.fullmatch(r"(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.\-]+):(?P<port>\d{1,5})", value)
+        if match is None or not 0 < int(match["port"]) < 65536:
+            raise ValueError('expected "HOST:PORT" with a port from 1 to 65535, e.g. "127.0.0.1:9464"')
+        return value
+
+
+#: ``[actuator] kind`` handled by the core: the daemon publishes ``command`` and an output node applies it
+ZENOH_KIND = "zenoh"
 
 
 class ActuatorConfig(_Strict):
-    """Command q (um) -> PZT voltage, and the limits nothing published may exceed."""
+    """Command q (um) -> PZT voltage, the limits nothing published may exceed, and who applies it.
 
+    ``kind`` names the output path: ``zenoh`` (the core's: an external node applies the published
+    ``command``) or a driver plugin with an ``actuator_model``, whose validated keys are
+    :attr:`options`.
+    """
+
+    kind: str = Field(default=ZENOH_KIND, description="zenoh | modbus | serial_line | simulated | a plugin kind")
     volts_per_um: float = 0.02
     offset_v: float = 0.0
     v_min: float = -2.0
     v_max: float = 12.0
     x_min_um: float = 0.0
     x_max_um: float = 500.0
+    max_slew_um_per_s: float = Field(default=0.0, ge=0, description="0 = off; else larger jumps are ramped")
+    safe_voltage_v: Annotated[float, AllowInfNan(True)] = Field(
+        default=math.nan, description="written on shutdown when finite; nan = leave the stage where it is")
+    #: the plugin's validated device keys (None for kind = "zenoh"); not a TOML key of its own
+    _options: ActuatorOptions | None = PrivateAttr(default=None)
 
-    @field_validator("*")
+    @field_validator("safe_voltage_v")
     @classmethod
-    def _finite(cls, value: float) -> float:
+    def _nan_or_finite(cls, value: float) -> float:
+        if math.isnan(value):
+            return math.nan  # the one NaN object: two configs that both say nan compare equal
         if not math.isfinite(value):
-            raise ValueError("must be a finite number")
+            raise ValueError("must be a finite voltage, or nan (leave the stage where it is)")
         return value
 
     @model_validator(mode="after")
@@ -80,32 +150,140 @@ class ActuatorConfig(_Strict):
             raise ValueError(f"v_min ({self.v_min}) must be below v_max ({self.v_max})")
         if self.x_min_um >= self.x_max_um:
             raise ValueError(f"x_min_um ({self.x_min_um}) must be below x_max_um ({self.x_max_um})")
+        if math.isfinite(self.safe_voltage_v) and not self.within_limits(self.safe_voltage_v):
+            raise ValueError(f"safe_voltage_v ({self.safe_voltage_v:g}) must be inside [v_min, v_max] = "
+                             f"[{self.v_min:g}, {self.v_max:g}]")
         return self
 
+    @property
+    def options(self) -> ActuatorOptions | None:
+        return self._options
+
+    def with_options(self, options: ActuatorOptions | None) -> ActuatorConfig:
+        copy = self.model_copy()
+        copy._options = options
+        return copy
+
+    @property
+    def safe_q_um(self) -> float | None:
+        """The command that puts ``safe_voltage_v`` on the stage (None when it is nan)."""
+        if math.isnan(self.safe_voltage_v):
+            return None
+        return (self.safe_voltage_v - self.offset_v) / self.volts_per_um
+
     def voltage(self, q_um: float) -> float:
+        """The one voltage rule: what the amplifier gets for command ``q_um``."""
         return self.offset_v + self.volts_per_um * q_um
+
+    def within_limits(self, voltage_v: float) -> bool:
+        """Nothing outside ``[v_min, v_max]`` is ever published or written (NaN is outside)."""
+        return self.v_min <= voltage_v <= self.v_max
+
+    def checked_voltage(self, q_um: float) -> float:
+        """:meth:`voltage`, or a :class:`VoltageLimitError` naming the command and the limits."""
+        voltage = self.voltage(q_um)
+        if not self.within_limits(voltage):
+            raise VoltageLimitError(
+                f"command q {q_um:.4f} um needs {voltage:.4f} V, outside [{self.v_min:g}, {self.v_max:g}] V")
+        return voltage
+
+
+class ProcedureSettings(_Strict):
+    """``[procedure]``: the trajectory and step timing of ``calibrate`` and ``validate`` (the paper's by default).
+
+    A stiff stage that settles fast can be calibrated in much less than four hours by shortening
+    ``hold_s``; ``average_s`` is the end of the hold that is averaged. ``follow_*``: during the first
+    ``follow_steps`` moves the position sensor must move by the commanded step within
+    ``follow_tolerance`` (a fraction of the step), else the procedure stops (an amplifier that is off
+    or miswired must not cost a four-hour run).
+    """
+
+    points: list[float] | None = Field(default=None, description="calibration targets (um); default 0, 30, ..., 480")
+    step_um: float | None = Field(default=None, gt=0, description="or: targets 0, step_um, ... up to max_um")
+    max_um: float | None = Field(default=None, gt=0)
+    cycles: int = Field(default=24, ge=1, description="calibration sweeps (calibrate --cycles overrides it)")
+    rise_s: float = Field(default=PAPER_TIMING.ramp_s, ge=0, description="the command ramps to the next target")
+    hold_s: float = Field(default=PAPER_TIMING.hold_s, gt=0, description="then holds it this long")
+    average_s: float = Field(default=PAPER_TIMING.window_s, gt=0, description="the last average_s of the hold")
+    follow_tolerance: float = Field(default=0.5, gt=0, description="fraction of the commanded step")
+    follow_steps: int = Field(default=3, ge=0, description="moves checked at the start; 0 = off")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> ProcedureSettings:
+        if self.points is not None and (self.step_um is not None or self.max_um is not None):
+            raise ValueError("give points, or step_um and max_um, not both")
+        if self.points is not None:
+            if len(self.points) < 2:
+                raise ValueError("points: at least two targets (the model needs the stage to move)")
+            if len(set(self.points)) != len(self.points):
+                raise ValueError("points: a target is listed twice")
+        if self.average_s > self.hold_s:
+            raise ValueError(f"average_s ({self.average_s:g}) must not exceed hold_s ({self.hold_s:g})")
+        return self
+
+    @property
+    def calibration_points(self) -> tuple[float, ...]:
+        if self.points is not None:
+            return tuple(self.points)
+        if self.step_um is None and self.max_um is None:
+            return CALIBRATION_POINTS_UM
+        step = self.step_um if self.step_um is not None else 30.0
+        top = self.max_um if self.max_um is not None else max(CALIBRATION_POINTS_UM)
+        count = math.floor(top / step + 1e-9) + 1
+        return tuple(round(k * step, 9) for k in range(count))
+
+    @property
+    def timing(self) -> StepTiming:
+        return StepTiming(ramp_s=self.rise_s, hold_s=self.hold_s, window_s=self.average_s)
 
 
 class Config(_Strict):
-    """The whole operator config. ``sensors`` hold each plugin's own validated config object."""
+    """The whole operator config.
+
+    ``sensors`` hold each plugin's own validated config object, ``hubs`` the ``[[hubs]]`` entries
+    validated by the plugin whose sensors use them, ``section(name)`` a top-level table a plugin
+    owns (``[simulation]``). None of these are typed here: the core knows no plugin by name.
+    """
 
     cell: str = Field(default="cell0", pattern=r"^[A-Za-z0-9_\-]+$", description="key prefix nanodrift/<cell>")
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
     model: ModelSettings = Field(default_factory=ModelSettings)
     actuator: ActuatorConfig = Field(default_factory=ActuatorConfig)
-    simulation: SimulationConfig = Field(default_factory=SimulationConfig)
-    hubs: list[HubConfig] = Field(default_factory=list)
-    sensors: list[SensorConfig] = Field(default_factory=list)
+    procedure: ProcedureSettings = Field(default_factory=ProcedureSettings)
+    metrics: MetricsSettings = Field(default_factory=MetricsSettings)
+    hubs: list[Any] = Field(default_factory=list)
+    sensors: list[Any] = Field(default_factory=list)
     #: where it came from (a file path, or the built-in default); not a TOML key
     _source: str = PrivateAttr(default=BUILTIN_SOURCE)
+    #: plugin-owned top-level tables, validated by their plugin; not typed here
+    _sections: dict[str, BaseModel] = PrivateAttr(default_factory=dict)
+    #: the cell is simulated by a plugin (``virtual_cell``): a reload never switches this
+    _virtual_cell: bool = PrivateAttr(default=False)
 
     @property
     def source(self) -> str:
         return self._source
 
     @property
+    def sections(self) -> dict[str, BaseModel]:
+        return dict(self._sections)
+
+    @property
+    def virtual_cell(self) -> bool:
+        return self._virtual_cell
+
+    @property
     def key_prefix(self) -> str:
         return f"nanodrift/{self.cell}"
+
+    def section(self, name: str) -> BaseModel | None:
+        return self._sections.get(name)
+
+    def with_section(self, name: str, value: BaseModel) -> Config:
+        """A copy with one plugin section replaced (command-line overrides of ``[simulation]``)."""
+        copy = self.model_copy()
+        copy._sections = {**self._sections, name: value}
+        return copy
 
     def kinds(self) -> list[str]:
         """Driver kinds in use, in first-appearance order."""
@@ -115,9 +293,16 @@ class Config(_Strict):
         return next((s for s in self.sensors if s.name == name), None)
 
 
-def _loc(prefix: str, loc: Sequence[Any]) -> str:
+#: pydantic puts the union member that failed in ``loc`` (``effects.list[str]``, ``port.int``): it names no key
+_UNION_MEMBER = re.compile(r"^(?:[a-z][a-z-]*\[.*\]|int|float|str|bool|none)$")
+
+
+def _loc(prefix: str, loc: Sequence[Any], unknown_key: bool = False) -> str:
     path = prefix
-    for part in loc:
+    for position, part in enumerate(loc):
+        last_is_the_key = unknown_key and position == len(loc) - 1  # a key the user wrote, whatever it is
+        if isinstance(part, str) and _UNION_MEMBER.match(part) and not last_is_the_key:
+            continue
         if isinstance(part, int):
             path += f"[{part}]"
         else:
@@ -131,90 +316,299 @@ def _problems(prefix: str, error: ValidationError) -> list[str]:
         message = item["msg"]
         if item["type"] == "extra_forbidden":
             message = "unknown key (typo?)"
-        out.append(f"{_loc(prefix, item['loc'])}: {message}")
+        out.append(f"{_loc(prefix, item['loc'], item['type'] == 'extra_forbidden')}: {message}")
     return out
 
 
-def default_simulated_sensors() -> list[dict[str, Any]]:
-    """The simulated cell's channels (four thermocouples, the interferometer), as TOML would give them."""
-    from drivers.simulated.plugin import default_sensor_configs
+class _Parse:
+    """One validation of a document: collects every problem instead of stopping at the first."""
 
-    return [c.model_dump(exclude_defaults=False) for c in default_sensor_configs()]
+    def __init__(self) -> None:
+        self.problems: list[str] = []
+        self._plugins: dict[str, DriverPlugin] = {}
+
+    def plugin(self, kind: str, where: str) -> DriverPlugin | None:
+        if kind in self._plugins:
+            return self._plugins[kind]
+        try:
+            plugin = load_plugin(kind)
+        except UnknownDriverError as error:
+            self.problems.append(f"{where}: {error}")
+            return None
+        except Exception as error:  # a broken third-party plugin must not hide the other problems
+            self.problems.append(f"{where}: driver {kind!r} failed to load: {error}")
+            return None
+        self._plugins[kind] = plugin
+        return plugin
+
+    def section_owner(self, name: str, kinds: Sequence[str]) -> DriverPlugin | None:
+        """The plugin owning top-level table ``name``: the kinds in use first, then every installed one."""
+        for kind in kinds:
+            plugin = self.plugin(kind, "sensors")
+            if plugin is not None and plugin.section == name:
+                return plugin
+        for kind in available():
+            if kind not in kinds:
+                plugin = self.plugin(kind, name)
+                if plugin is not None and plugin.section == name:
+                    return plugin
+        return None
+
+    def validate(self, model: type[BaseModel], raw: Any, where: str) -> BaseModel | None:
+        if not isinstance(raw, Mapping):
+            self.problems.append(f"{where}: expected a table")
+            return None
+        try:
+            return model.model_validate(dict(raw))
+        except ValidationError as error:
+            self.problems.extend(_problems(where, error))
+            return None
+
+
+def _sensor_kinds(raw_sensors: Any) -> list[str]:
+    if not isinstance(raw_sensors, list):
+        return []
+    kinds = [r.get("kind") for r in raw_sensors if isinstance(r, Mapping)]
+    return list(dict.fromkeys(k for k in kinds if isinstance(k, str)))
 
 
 def parse_config(data: Mapping[str, Any], source: str = BUILTIN_SOURCE, base_dir: Path | None = None) -> Config:
-    """Validate a parsed TOML document; raise :class:`ConfigError` listing every problem."""
+    """Validate a parsed TOML document; raise :class:`ConfigError` listing every problem.
+
+    Sensors, hubs and plugin-owned tables are validated by their plugin. A document with no
+    ``[[sensors]]`` is a cell without sensors (monitoring only), unless a virtual-cell plugin's
+    table is present (``[simulation]``): then that plugin supplies the sensors.
+    """
     if not isinstance(data, Mapping):
         raise ConfigError(source, ["(top level): expected a table"])
     data = dict(data)
     raw_sensors = data.pop("sensors", None)
-    problems: list[str] = []
+    raw_hubs = data.pop("hubs", [])
+    raw_actuator = data.pop("actuator", {})
+    parse = _Parse()
+    kinds = _sensor_kinds(raw_sensors)
 
+    sections: dict[str, BaseModel] = {}
+    owners: dict[str, DriverPlugin] = {}
+    for name in [k for k in data if k not in Config.model_fields]:
+        owner = parse.section_owner(name, kinds)
+        if owner is None or owner.section_model is None:
+            continue  # left in: Config reports it as an unknown key
+        value = parse.validate(owner.section_model, data.pop(name), name)
+        if value is not None:
+            sections[name], owners[name] = value, owner
+
+    config: Config | None
     try:
         config = Config.model_validate(data)
     except ValidationError as error:
-        problems.extend(_problems("", error))
+        parse.problems.extend(_problems("", error))
         config = None
 
-    if raw_sensors is None:
-        raw_sensors = default_simulated_sensors()
-    indexed: list[tuple[int, SensorConfig]] = []
-    if not isinstance(raw_sensors, list):
-        problems.append("sensors: expected an array of tables ([[sensors]])")
-        raw_sensors = []
-    for index, raw in enumerate(raw_sensors):
-        prefix = f"sensors[{index}]"
-        if not isinstance(raw, Mapping):
-            problems.append(f"{prefix}: expected a table")
-            continue
-        kind = raw.get("kind")
-        if not isinstance(kind, str):
-            problems.append(f"{prefix}.kind: required: the driver kind (simulated, modbus, serial_line, ...)")
-            continue
-        try:
-            plugin = load_plugin(kind)
-        except UnknownDriverError as error:
-            problems.append(f"{prefix}.kind: {error}")
-            continue
-        except Exception as error:  # a broken third-party plugin must not hide the other problems
-            problems.append(f"{prefix}.kind: driver {kind!r} failed to load: {error}")
-            continue
-        try:
-            indexed.append((index, plugin.config_model.model_validate(dict(raw))))
-        except ValidationError as error:
-            problems.extend(_problems(prefix, error))
+    sensors = _parse_sensors(parse, raw_sensors, sections, owners)
+    used = [parse.plugin(s.kind, "sensors") for _, s in sensors]
+    virtual_cell = any(p is not None and p.virtual_cell for p in [*used, *owners.values()])
+    actuator = _parse_actuator(parse, raw_actuator, virtual_cell)
+    hub_user = getattr(actuator.options, "hub", None) if actuator is not None else None
+    hubs = _parse_hubs(parse, raw_hubs, sensors,
+                       actuator=(hub_user, actuator.kind) if actuator is not None and hub_user is not None else None)
+    if config is not None and actuator is not None:
+        _check_points(parse, config.procedure, actuator)
 
-    seen: set[str] = set()
-    for index, sensor in indexed:
-        if sensor.name in seen:
-            problems.append(f"sensors[{index}].name: {sensor.name!r} is used twice (names must be unique)")
-        seen.add(sensor.name)
-    positions = [s.name for _, s in indexed if s.role == "position"]
-    if len(positions) > 1:
-        problems.append(f"sensors: more than one position sensor ({', '.join(positions)}); the cell has one axis")
-    if config is not None:
-        hub_names = [h.name for h in config.hubs]
-        for name in sorted({n for n in hub_names if hub_names.count(n) > 1}):
-            problems.append(f"hubs: name {name!r} is used twice")
-        for index, sensor in indexed:
-            hub = getattr(sensor, "hub", None)
-            if hub is not None and hub not in hub_names:
-                known = ", ".join(hub_names) or "none defined"
-                problems.append(f"sensors[{index}].hub: no [[hubs]] named {hub!r} (hubs: {known})")
-
-    if problems:
-        raise ConfigError(source, problems)
-    assert config is not None
+    if parse.problems:
+        raise ConfigError(source, parse.problems)
+    assert config is not None and actuator is not None
     base = base_dir or Path.cwd()
-    updates: dict[str, Any] = {"sensors": [sensor for _, sensor in indexed]}
-    if not config.model.path.is_absolute():
+    updates: dict[str, Any] = {"sensors": [sensor for _, sensor in sensors], "hubs": hubs, "actuator": actuator}
+    if "path" not in config.model.model_fields_set and not virtual_cell:
+        # the package's model belongs to the simulated cell: real hardware gets its own, calibrated one
+        updates["model"] = config.model.model_copy(update={"path": STATE_MODEL_PATH})
+    elif not config.model.path.is_absolute():
         updates["model"] = config.model.model_copy(update={"path": (base / config.model.path).resolve()})
     zfile = config.zenoh.config_file
     if zfile is not None and not zfile.is_absolute():
         updates["zenoh"] = config.zenoh.model_copy(update={"config_file": (base / zfile).resolve()})
     result = config.model_copy(update=updates)
     result._source = source
+    result._sections = sections
+    result._virtual_cell = virtual_cell
     return result
+
+
+def _actuator_kinds() -> list[str]:
+    """Every ``[actuator] kind`` this installation offers (for messages)."""
+    kinds = [ZENOH_KIND]
+    for kind in sorted(available()):
+        try:
+            if load_plugin(kind).actuator_model is not None:
+                kinds.append(kind)
+        except Exception:  # a broken third-party plugin is reported where it is used, not here
+            continue
+    return kinds
+
+
+def _parse_actuator(parse: _Parse, raw: Any, virtual_cell: bool) -> ActuatorConfig | None:
+    """``[actuator]``: the core keys by :class:`ActuatorConfig`, the rest by the kind's plugin.
+
+    The default kind is the virtual cell's own plugin for a simulated cell (its stage must move),
+    else ``zenoh``. A simulated stage is never driven by a hardware output, nor the reverse.
+    """
+    if not isinstance(raw, Mapping):
+        parse.problems.append("actuator: expected a table")
+        return None
+    core = {k: v for k, v in raw.items() if k in ActuatorConfig.model_fields}
+    rest = {k: v for k, v in raw.items() if k not in ActuatorConfig.model_fields}
+    if "kind" not in core:
+        core["kind"] = _virtual_kind() if virtual_cell else ZENOH_KIND
+    kind = core["kind"]
+    actuator = parse.validate(ActuatorConfig, core, "actuator")
+    if not isinstance(kind, str):
+        return None  # reported by the line above
+    options: ActuatorOptions | None = None
+    if kind == ZENOH_KIND:
+        parse.problems.extend(f"actuator.{key}: unknown key (typo?); kind = {ZENOH_KIND!r} takes no device keys"
+                              for key in rest)
+        if virtual_cell:
+            parse.problems.append(f"actuator.kind: {ZENOH_KIND!r} would leave the simulated stage unmoved; a simulated "
+                                  "cell is driven by its own plugin (remove kind)")
+    elif kind not in available():
+        parse.problems.append(f"actuator.kind: unknown actuator kind {kind!r}; kinds: {', '.join(_actuator_kinds())}")
+    else:
+        plugin = parse.plugin(kind, "actuator.kind")
+        if plugin is None:
+            return None
+        if plugin.actuator_model is None:
+            parse.problems.append(f"actuator.kind: driver {kind!r} cannot move the stage; kinds that can: "
+                                  f"{', '.join(_actuator_kinds())}")
+            return None
+        if plugin.virtual_cell != virtual_cell:
+            cell = "simulated" if virtual_cell else "real hardware"
+            parse.problems.append(f"actuator.kind: {kind!r} cannot drive this cell: its sensors are {cell}")
+        validated = parse.validate(plugin.actuator_model, {**rest, "kind": kind}, "actuator")
+        options = validated if isinstance(validated, ActuatorOptions) else None
+        if options is not None and actuator is not None:
+            problem = options.voltage_range_problem(actuator.v_min, actuator.v_max)
+            if problem:
+                parse.problems.append(f"actuator: {problem}")
+    return actuator.with_options(options) if actuator is not None else None
+
+
+def _virtual_kind() -> str:
+    """The installed virtual-cell plugin that can move its stage (the simulated one)."""
+    for kind in sorted(available()):
+        try:
+            plugin = load_plugin(kind)
+        except Exception:
+            continue
+        if plugin.virtual_cell and plugin.actuator_model is not None:
+            return kind
+    return ZENOH_KIND
+
+
+def _check_points(parse: _Parse, procedure: ProcedureSettings, actuator: ActuatorConfig) -> None:
+    outside = [x for x in procedure.calibration_points if not actuator.x_min_um <= x <= actuator.x_max_um]
+    if outside:
+        parse.problems.append(
+            f"procedure.points: {', '.join(f'{x:g}' for x in outside)} um outside the workspace "
+            f"[x_min_um, x_max_um] = [{actuator.x_min_um:g}, {actuator.x_max_um:g}]")
+
+
+def _sensor_where(index: int, sensor: Any) -> str:
+    """``sensors[5] (T6)``: the index in the file's order (0-based) and the sensor's name when it has one."""
+    name = sensor.get("name") if isinstance(sensor, Mapping) else getattr(sensor, "name", None)
+    return f"sensors[{index}] ({name})" if isinstance(name, str) and name else f"sensors[{index}]"
+
+
+def _parse_sensors(parse: _Parse, raw_sensors: Any, sections: Mapping[str, BaseModel],
+                   owners: Mapping[str, DriverPlugin]) -> list[tuple[int, SensorConfig]]:
+    indexed: list[tuple[int, SensorConfig]] = []
+    if raw_sensors is None:  # a virtual cell's table without sensors: the plugin's own
+        for name, section in sections.items():
+            if owners[name].virtual_cell:
+                indexed.extend(enumerate(owners[name].default_sensors(section)))
+        return indexed
+    if not isinstance(raw_sensors, list):
+        parse.problems.append("sensors: expected an array of tables ([[sensors]])")
+        return indexed
+    for index, raw in enumerate(raw_sensors):
+        prefix = _sensor_where(index, raw)
+        if not isinstance(raw, Mapping):
+            parse.problems.append(f"{prefix}: expected a table")
+            continue
+        kind = raw.get("kind")
+        if not isinstance(kind, str):
+            parse.problems.append(f"{prefix}.kind: required: the driver kind (simulated, modbus, serial_line, ...)")
+            continue
+        plugin = parse.plugin(kind, f"{prefix}.kind")
+        if plugin is None:
+            continue
+        sensor = parse.validate(plugin.config_model, raw, prefix)
+        if sensor is not None:
+            indexed.append((index, sensor))  # type: ignore[arg-type]
+
+    seen: set[str] = set()
+    for index, sensor in indexed:
+        if sensor.name in seen:
+            parse.problems.append(
+                f"{_sensor_where(index, sensor)}.name: {sensor.name!r} is used twice (names must be unique)")
+        seen.add(sensor.name)
+    positions = [s.name for _, s in indexed if s.role == "position"]
+    if len(positions) > 1:
+        parse.problems.append(
+            f"sensors: more than one position sensor ({', '.join(positions)}); the cell has one axis")
+    return indexed
+
+
+def _parse_hubs(parse: _Parse, raw_hubs: Any, sensors: Sequence[tuple[int, SensorConfig]], *,
+                actuator: tuple[str, str] | None = None) -> list[Any]:
+    """Each ``[[hubs]]`` entry validated by the plugin of the sensors (and the actuator) that name it.
+
+    ``actuator``: (hub, kind) when ``[actuator]`` names a hub: it is a user of that hub like a sensor.
+    """
+    if not isinstance(raw_hubs, list):
+        parse.problems.append("hubs: expected an array of tables ([[hubs]])")
+        return []
+    names = [h.get("name") if isinstance(h, Mapping) else None for h in raw_hubs]
+    for name in sorted({n for n in names if isinstance(n, str) and names.count(n) > 1}):
+        parse.problems.append(f"hubs: name {name!r} is used twice")
+    users: dict[str, list[str]] = {}
+    for index, sensor in sensors:
+        hub = getattr(sensor, "hub", None)
+        if hub is None:
+            continue
+        if hub not in names:
+            known = ", ".join(n for n in names if isinstance(n, str)) or "none defined"
+            parse.problems.append(f"{_sensor_where(index, sensor)}.hub: no [[hubs]] named {hub!r} (hubs: {known})")
+        users.setdefault(hub, [])
+        if sensor.kind not in users[hub]:
+            users[hub].append(sensor.kind)
+    if actuator is not None:
+        hub, kind = actuator
+        if hub not in names:
+            known = ", ".join(n for n in names if isinstance(n, str)) or "none defined"
+            parse.problems.append(f"actuator.hub: no [[hubs]] named {hub!r} (hubs: {known})")
+        if kind not in users.setdefault(hub, []):
+            users[hub].append(kind)
+    hubs: list[Any] = []
+    for index, (raw, name) in enumerate(zip(raw_hubs, names, strict=True)):
+        where = f"hubs[{index}]"
+        if not isinstance(name, str):
+            parse.problems.append(f"{where}.name: required: the name sensors give as hub = ...")
+            continue
+        where = f"hubs[{index}] ({name})"
+        if name not in users:
+            parse.problems.append(f"{where}: no sensor uses this hub (set hub = {name!r} on one, or remove"
+                                  " the hub)")
+            continue
+        for kind in users[name]:
+            plugin = parse.plugin(kind, where)
+            if plugin is None or plugin.hub_model is None:
+                parse.problems.append(f"{where}: driver {kind!r} takes no hubs")
+                continue
+            hub = parse.validate(plugin.hub_model, raw, where)
+            if hub is not None and kind == users[name][0]:
+                hubs.append(hub)
+    return hubs
 
 
 def load_config(path: str | Path | None) -> Config:
@@ -232,7 +626,54 @@ def load_config(path: str | Path | None) -> Config:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
         raise ConfigError(str(file), [f"not valid TOML: {error}"]) from None
-    return parse_config(data, source=str(file), base_dir=file.resolve().parent)
+    try:
+        return parse_config(data, source=str(file), base_dir=file.resolve().parent)
+    except ConfigError as error:
+        raise ConfigError(error.source, error.problems, [locate(text, p) for p in error.problems]) from None
+
+
+_PROBLEM_PATH = re.compile(r"^(?P<table>[A-Za-z_][\w-]*)(?:\[(?P<index>\d+)\])?(?: \([^)]*\))?(?:\.(?P<key>[\w-]+))?")
+_ARRAY_HEADER = re.compile(r"^\s*\[\[\s*(?P<name>[\w.-]+)\s*\]\]")
+_TABLE_HEADER = re.compile(r"^\s*\[\s*(?P<name>[\w.-]+)\s*\]")
+
+
+def locate(text: str, problem: str) -> int | None:
+    """The 1-based line of ``text`` a problem (``sensors[5] (T6).scale: ...``) is at, or None.
+
+    The key's own line when it is written in its table, else the line where the table starts (the
+    n-th ``[[sensors]]`` header for ``sensors[n]``); a top-level key's line before any table.
+    """
+    match = _PROBLEM_PATH.match(problem)
+    if match is None:
+        return None
+    table, index, key = match["table"], match["index"], match["key"]
+    lines = text.splitlines()
+    headers: list[tuple[int, str, bool]] = []  # (0-based line, name, is an array of tables)
+    for number, line in enumerate(lines):
+        header = _ARRAY_HEADER.match(line) or _TABLE_HEADER.match(line)
+        if header:
+            headers.append((number, header["name"], header.re is _ARRAY_HEADER))
+    if index is not None:
+        starts = [n for n, name, array in headers if name == table and array]
+        start = starts[int(index)] if int(index) < len(starts) else None
+    else:
+        start = next((n for n, name, array in headers if name == table and not array), None)
+    if start is None:  # a top-level key (``cell = ...``, ``sensors = 3``), written before any table
+        end = headers[0][0] if headers else len(lines)
+        return _key_line(lines, table, 0, end)
+    if key is None:
+        return start + 1
+    end = next((n for n, _, _ in headers if n > start), len(lines))
+    return _key_line(lines, key, start + 1, end) or start + 1
+
+
+def _key_line(lines: Sequence[str], key: str, start: int, end: int) -> int | None:
+    pattern = re.compile(rf"^\s*{re.escape(key)}\s*=")
+    return next((n + 1 for n in range(start, end) if pattern.match(lines[n])), None)
+
+
+#: the built-in config of ``nanodrift run`` with no ``--config``: the simulated cell's table (data, not an import)
+BUILTIN_CONFIG: dict[str, Any] = {"simulation": {"scenario": "room"}}
 
 
 def default_config() -> Config:
@@ -241,7 +682,7 @@ def default_config() -> Config:
     Extrapolation is then a finding, not the first thing a new user sees; ``[simulation] scenario``
     (``test5``, ``daily``) shows it on purpose.
     """
-    return parse_config({"simulation": {"scenario": "room"}}, source=BUILTIN_SOURCE)
+    return parse_config(BUILTIN_CONFIG, source=BUILTIN_SOURCE)
 
 
 def missing_model_channels(config: Config, channels: Sequence[str]) -> list[str]:

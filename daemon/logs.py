@@ -1,5 +1,17 @@
 """Logging: JSON lines for journald (stderr not a terminal), readable lines on a terminal.
 
+Every line on stderr is one log record, whoever wrote it: the daemon's structlog events and the
+standard ``logging`` of the libraries it runs on (pymodbus, asyncio, zenoh's Python side, warnings,
+uncaught exceptions in threads) all go through one handler and structlog's ``ProcessorFormatter``,
+so they come out as JSON objects with the same keys (``event``, ``level``, ``timestamp``; plus
+``logger`` for a library's record). A traceback is one field (``exception``), never extra lines.
+
+Device chatter is rate-limited: a library record repeating the same logger, level and message
+(numbers ignored, so transaction ids do not make each line new) within :data:`CHATTER_WINDOW_S`
+is written once; when the window is over, one more line carries ``suppressed`` (how many were
+dropped). pymodbus' hex dumps of the last frames (``>>>>> send: 0x..``, appended to its error
+messages) are cut, and its logger stays at WARNING unless ``--log-level debug``.
+
 Refused targets are logged through a token bucket: a client flooding bad payloads costs a summary
 line ("N suppressed") per interval instead of one line each, so it cannot fill the disk.
 """
@@ -7,37 +19,217 @@ line ("N suppressed") per interval instead of one line each, so it cannot fill t
 from __future__ import annotations
 
 import logging
+import re
 import sys
+import threading
 import time
 from collections.abc import Callable
-from typing import Any
+from dataclasses import dataclass
+from types import TracebackType
+from typing import Any, TextIO
 
 import structlog
 
+#: a library message repeated within this many seconds is written once, then summarised
+CHATTER_WINDOW_S = 10.0
+#: distinct library messages tracked at once (beyond this, new ones pass unthrottled)
+MAX_TRACKED_MESSAGES = 1024
+PYMODBUS_FRAME_DUMP = "\n>>>>> "
+_NUMBERS = re.compile(r"0x[0-9a-fA-F]+|\d+")
 
-def configure_logging(level: str = "info", json_lines: bool | None = None) -> None:
-    """Set up structlog for the daemon; ``json_lines`` None means: JSON unless stderr is a tty."""
+
+def configure_logging(
+    level: str = "info",
+    json_lines: bool | None = None,
+    *,
+    stream: TextIO | None = None,
+    window_s: float = CHATTER_WINDOW_S,
+    clock: Callable[[], float] = time.monotonic,
+) -> None:
+    """Set up structlog and ``logging`` for the daemon.
+
+    ``json_lines`` None means: JSON unless stderr is a tty. ``stream`` None writes to whatever
+    ``sys.stderr`` is at the time of each line. Calling it again replaces the previous setup.
+    """
     if json_lines is None:
         json_lines = not sys.stderr.isatty()
+    level_no = logging.getLevelNamesMapping()[level.upper()]
     renderer: Any = structlog.processors.JSONRenderer() if json_lines else structlog.dev.ConsoleRenderer(
         colors=False
     )
+    stamped = [structlog.processors.add_log_level, structlog.processors.TimeStamper(fmt="iso", utc=True)]
     structlog.configure(
         processors=[
             structlog.contextvars.merge_contextvars,
-            structlog.processors.add_log_level,
-            structlog.processors.TimeStamper(fmt="iso", utc=True),
-            structlog.processors.format_exc_info,
-            renderer,
+            *stamped,
+            structlog.stdlib.ProcessorFormatter.wrap_for_formatter,
         ],
-        wrapper_class=structlog.make_filtering_bound_logger(logging.getLevelNamesMapping()[level.upper()]),
-        logger_factory=structlog.PrintLoggerFactory(file=sys.stderr),
+        wrapper_class=structlog.make_filtering_bound_logger(level_no),
+        logger_factory=structlog.stdlib.LoggerFactory(),
         cache_logger_on_first_use=False,
     )
+    handler = OneLineHandler(stream, ChatterLimiter(window_s, clock))
+    handler.setFormatter(
+        structlog.stdlib.ProcessorFormatter(
+            foreign_pre_chain=[*stamped, _library_fields],
+            processors=[
+                structlog.stdlib.ProcessorFormatter.remove_processors_meta,
+                structlog.processors.format_exc_info,
+                renderer,
+            ],
+        )
+    )
+    root = logging.getLogger()
+    for old in [h for h in root.handlers if isinstance(h, OneLineHandler)]:
+        root.removeHandler(old)
+        old.close()
+    root.addHandler(handler)
+    root.setLevel(level_no)
+    # its hex dumps and per-request chatter are for debugging the wire, not for the journal
+    logging.getLogger("pymodbus").setLevel(logging.DEBUG if level_no <= logging.DEBUG else logging.WARNING)
+    logging.captureWarnings(True)
+    threading.excepthook = _log_thread_exception
+    sys.excepthook = _log_uncaught
 
 
 def get_logger(name: str = "nanodrift") -> Any:
     return structlog.get_logger(name)
+
+
+def _library_fields(logger: Any, method: str, event_dict: dict[str, Any]) -> dict[str, Any]:
+    """A library's record: which logger, and the count of a rate-limit summary."""
+    record = event_dict["_record"]
+    event_dict["logger"] = record.name
+    suppressed = getattr(record, "suppressed", None)
+    if suppressed:
+        event_dict["suppressed"] = suppressed
+        event_dict["window_s"] = getattr(record, "window_s", None)
+    return event_dict
+
+
+def _log_thread_exception(args: threading.ExceptHookArgs) -> None:
+    if args.exc_type is SystemExit:
+        return
+    get_logger().error("thread_exception", thread=args.thread.name if args.thread is not None else None,
+                       exc_info=(args.exc_type, args.exc_value, args.exc_traceback))
+
+
+def _log_uncaught(exc_type: type[BaseException], exc: BaseException, tb: TracebackType | None) -> None:
+    get_logger().critical("uncaught_exception", exc_info=(exc_type, exc, tb))
+
+
+@dataclass
+class _Window:
+    ends: float
+    first: logging.LogRecord
+    suppressed: int = 0
+
+
+class ChatterLimiter:
+    """Same logger, level and message (numbers ignored) within ``window_s``: the first passes, the rest
+    are counted; :meth:`due` gives one summary record per window that ended with something dropped."""
+
+    def __init__(self, window_s: float = CHATTER_WINDOW_S, clock: Callable[[], float] = time.monotonic) -> None:
+        self.window_s = window_s
+        self._clock = clock
+        self._windows: dict[tuple[str, int, str], _Window] = {}
+
+    @staticmethod
+    def _key(record: logging.LogRecord) -> tuple[str, int, str]:
+        first_line = record.getMessage().split("\n", 1)[0]
+        return record.name, record.levelno, _NUMBERS.sub("#", first_line)[:300]
+
+    def admit(self, record: logging.LogRecord) -> bool:
+        if self.window_s <= 0:
+            return True
+        key = self._key(record)
+        window = self._windows.get(key)
+        now = self._clock()
+        if window is not None and now < window.ends:
+            window.suppressed += 1
+            return False
+        if window is None and len(self._windows) >= MAX_TRACKED_MESSAGES:
+            return True
+        self._windows[key] = _Window(now + self.window_s, record)
+        return True
+
+    def due(self, everything: bool = False) -> list[logging.LogRecord]:
+        """Summaries of the windows that are over (all of them with ``everything``), forgetting those."""
+        now = self._clock()
+        out = []
+        for key, window in list(self._windows.items()):
+            if everything or now >= window.ends:
+                del self._windows[key]
+                if window.suppressed:
+                    out.append(self._summary(window))
+        return out
+
+    def _summary(self, window: _Window) -> logging.LogRecord:
+        first = window.first
+        record = logging.makeLogRecord({
+            "name": first.name, "levelno": first.levelno, "levelname": first.levelname,
+            "msg": first.getMessage().split("\n", 1)[0], "args": (),
+            "pathname": first.pathname, "lineno": first.lineno,
+        })
+        record.suppressed = window.suppressed
+        record.window_s = self.window_s
+        return record
+
+
+class OneLineHandler(logging.Handler):
+    """Writes every record as one line (JSON has no raw newlines); rate-limits libraries' chatter.
+
+    structlog's own records (their ``msg`` is the event dict) are never throttled: the daemon's events
+    are written as they happen.
+    """
+
+    def __init__(self, stream: TextIO | None = None, limiter: ChatterLimiter | None = None) -> None:
+        super().__init__()
+        self._stream = stream
+        self.limiter = limiter or ChatterLimiter()
+
+    @property
+    def stream(self) -> TextIO:
+        return self._stream if self._stream is not None else sys.stderr
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            for summary in self.limiter.due():
+                self._write(summary)
+            if not isinstance(record.msg, dict):
+                _cut_frame_dump(record)
+                if not self.limiter.admit(record):
+                    return
+            self._write(record)
+        except RecursionError:
+            raise
+        except Exception:
+            self.handleError(record)
+
+    def _write(self, record: logging.LogRecord) -> None:
+        stream = self.stream
+        stream.write(self.format(record) + "\n")
+        stream.flush()
+
+    def close(self) -> None:
+        """Say what was still being suppressed, then close."""
+        self.acquire()
+        try:
+            for summary in self.limiter.due(everything=True):
+                try:
+                    self._write(summary)
+                except (OSError, ValueError):  # stderr already closed at interpreter exit
+                    break
+        finally:
+            self.release()
+        super().close()
+
+
+def _cut_frame_dump(record: logging.LogRecord) -> None:
+    """pymodbus appends the last frames as ``\\n>>>>> send: 0x..`` lines to its errors: drop them."""
+    if record.name.startswith("pymodbus") and not record.args and isinstance(record.msg, str):
+        if PYMODBUS_FRAME_DUMP in record.msg:
+            record.msg = record.msg.split(PYMODBUS_FRAME_DUMP, 1)[0]
 
 
 class RateLimiter:

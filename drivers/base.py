@@ -89,9 +89,12 @@ class SensorConfig(BaseModel):
     """Keys common to every ``[[sensors]]`` entry. A plugin subclasses it with its own keys.
 
     ``extra="forbid"``: a typo in an operator's config must be an error, never silently ignored.
+    ``allow_inf_nan=False``: ``max_age_s = inf`` would make a reading of any age fresh.
+    ``strict=True``: ``scale = "0.1"`` (a string) is refused, not read as a number; an int is a fine
+    float. A plugin's own keys inherit it (a path written as a string needs ``Strict(False)``).
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, strict=True)
 
     name: str = Field(pattern=r"^[A-Za-z_][A-Za-z0-9_.\-]*$", description="channel name the model uses")
     role: Literal["temperature", "position"] = "temperature"
@@ -101,31 +104,19 @@ class SensorConfig(BaseModel):
     timeout_s: float = Field(default=1.0, gt=0, description="one poll may take this long")
 
 
-class HubConfig(BaseModel):
-    """A connection shared by several channels (Home Assistant modbus 'hub' naming)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    name: str
-    type: Literal["tcp", "serial"] = "tcp"
-    host: str = "127.0.0.1"
-    port: int | str = 502  # TCP port, or serial device for type = "serial"
-    timeout_s: float = Field(default=1.0, gt=0)
-    baudrate: int = 9600
-    bytesize: Literal[7, 8] = 8
-    parity: Literal["N", "E", "O"] = "N"
-    stopbits: Literal[1, 2] = 1
-    retries: int = Field(default=0, ge=0)
-
-
 @dataclass
 class DriverContext:
-    """What a plugin may need besides its own configs: shared hubs, the clock, simulation settings."""
+    """What a plugin may need besides its own sensor configs.
+
+    ``hubs`` and ``sections`` were validated by the plugin that owns them (its ``hub_model`` and
+    ``section_model``); ``resources`` holds objects a plugin shares between its groups and its
+    actuator (one connection per hub, one simulated cell), keyed by names the plugin chooses.
+    """
 
     clock: Clock = field(default_factory=WallClock)
-    hubs: Mapping[str, HubConfig] = field(default_factory=dict)
-    simulation: Mapping[str, Any] = field(default_factory=dict)
-    shared: dict[str, Any] = field(default_factory=dict)  # plugin-private objects (e.g. one sim cell)
+    hubs: Mapping[str, BaseModel] = field(default_factory=dict)
+    sections: Mapping[str, BaseModel] = field(default_factory=dict)
+    resources: dict[str, Any] = field(default_factory=dict)
 
 
 class SensorGroup(ABC):
@@ -152,31 +143,127 @@ class SensorGroup(ABC):
 
 
 class Actuator(ABC):
-    """Takes the compensated command. Real stages get the voltage from the published command."""
+    """Puts the compensated command on the stage (its amplifier, its controller, or a simulated cell).
+
+    The contract every kind keeps (the daemon and the procedures rely on it):
+
+    - ``open`` connects; :class:`DeviceError` when the device cannot be reached. Calling it again
+      after a failure retries.
+    - ``command`` puts ``voltage_v`` (or ``q_um``, for a closed-loop controller) on the stage and
+      returns once the device has it. It raises :class:`DeviceError` when the write fails or the
+      device reads back something else than was written; the message names the device and what
+      was expected versus what was read. It raises ``ValueError`` (and writes nothing) for a value
+      the device cannot represent. The caller has already checked ``voltage_v`` against the
+      operator's ``[v_min, v_max]``; an actuator never widens that.
+      ``x_um`` is the target the command serves, when the caller knows it (``None``: a raw
+      command, whose target is ``q_um``).
+    - ``close`` releases the device; safe to call twice and after a failed ``open``.
+
+    ``description`` names the device in messages and in ``status``.
+    """
+
+    description: str = "actuator"
 
     @abstractmethod
     async def open(self) -> None: ...
 
     @abstractmethod
-    async def command(self, q_um: float, voltage_v: float) -> None: ...
+    async def command(self, q_um: float, voltage_v: float, *, x_um: float | None = None) -> None: ...
 
     @abstractmethod
     async def close(self) -> None: ...
 
 
-class DriverPlugin(Protocol):
-    """What an entry point in ``nanodrift.drivers`` names: a driver kind.
+class ActuatorOptions(BaseModel):
+    """The ``[actuator]`` keys a plugin owns (everything but the core's gain, limits and motion keys).
 
-    ``config_model`` validates one ``[[sensors]]`` entry of this kind (including the common keys).
-    ``create`` gets every validated entry of this kind at once so it can share connections and
-    merge contiguous channels into one request.
-
-    A plugin that can also move the stage defines ``create_actuator(context) -> Actuator`` (the
-    simulated cell does); the daemon and the calibration procedure look for it with ``getattr``,
-    since most sensor plugins have none.
+    A plugin subclasses it with its own keys and names it as ``actuator_model``. ``extra="forbid"``:
+    a misspelt key is an error naming ``actuator.<key>``; ``strict=True`` as for sensors (no
+    ``"0.001"`` for 0.001).
     """
 
-    name: str
-    config_model: ClassVar[type[SensorConfig]] | type[SensorConfig]
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, strict=True)
 
+    kind: str
+
+    def voltage_range_problem(self, v_min: float, v_max: float) -> str | None:
+        """Why the device cannot take every voltage in ``[v_min, v_max]`` (None: it can).
+
+        Checked when the config is read, so a command the limits allow is never refused later.
+        """
+        return None
+
+
+class DriverSetupError(ValueError):
+    """A plugin refused its configuration or could not build its objects (the message names the kind)."""
+
+
+class DriverPlugin(ABC):
+    """What an entry point in ``nanodrift.drivers`` names: a driver kind, and what it can do.
+
+    ``config_model`` validates one ``[[sensors]]`` entry of this kind (including the common keys);
+    ``create`` gets every validated entry of this kind at once so it can share connections and
+    merge contiguous channels into one request. The rest is declared, not discovered:
+
+    - ``section``/``section_model``: a top-level table this plugin owns and validates
+      (``[simulation]`` for the simulated cell);
+    - ``hub_model``: validates the ``[[hubs]]`` its sensors name with ``hub = ...``;
+    - ``actuator_model``: validates ``[actuator]`` when its ``kind`` names this plugin (None: this
+      plugin cannot move the stage); ``create_actuator`` then builds the actuator, sharing the
+      connections (``context.resources``) the plugin's sensor groups use;
+    - ``virtual_cell``: the plugin *is* the cell (readings and stage simulated): it supplies the
+      clock (``make_clock``) and, when its section is present without sensors, the sensors
+      (``default_sensors``). A reload never switches between a virtual and a real cell.
+    """
+
+    name: ClassVar[str]
+    config_model: ClassVar[type[SensorConfig]]
+    section: ClassVar[str | None] = None
+    section_model: ClassVar[type[BaseModel] | None] = None
+    hub_model: ClassVar[type[BaseModel] | None] = None
+    actuator_model: ClassVar[type[ActuatorOptions] | None] = None
+    virtual_cell: ClassVar[bool] = False
+
+    @abstractmethod
     def create(self, configs: Sequence[SensorConfig], context: DriverContext) -> list[SensorGroup]: ...
+
+    def create_actuator(self, config: ActuatorOptions, context: DriverContext) -> Actuator:
+        """The actuator ``[actuator]`` describes (``config`` validated by ``actuator_model``).
+
+        Called after ``create`` built the sensor groups, so connections they opened are in
+        ``context.resources`` to share (one lock per connection).
+        """
+        raise DriverSetupError(f"driver {self.name!r} cannot move the stage")
+
+    def default_sensors(self, section: BaseModel) -> list[SensorConfig]:
+        """Sensors implied by this plugin's section when the config lists none (virtual cells)."""
+        return []
+
+    def make_clock(self, section: BaseModel | None, *, virtual_start_s: float | None = None) -> Clock:
+        """The clock of a virtual cell: scaled wall time for the daemon, or (``virtual_start_s``
+        given) a virtual clock whose sleeps take no wall time, for procedures."""
+        return WallClock()
+
+
+@dataclass
+class DriverSet:
+    """A cell's drivers once assembled: what the daemon polls and what a procedure drives."""
+
+    context: DriverContext
+    groups: list[SensorGroup]
+    actuator: Actuator | None
+    roles: dict[str, str]
+    max_age_s: dict[str, float]
+    description: str = ""
+
+    @property
+    def clock(self) -> Clock:
+        return self.context.clock
+
+    @property
+    def position_channel(self) -> str | None:
+        return next((name for name, role in self.roles.items() if role == "position"), None)
+
+    @property
+    def temperature_channels(self) -> tuple[str, ...]:
+        return tuple(name for name, role in self.roles.items() if role == "temperature")

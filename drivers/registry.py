@@ -18,6 +18,11 @@ class UnknownDriverError(LookupError):
     pass
 
 
+def plugins() -> list[DriverPlugin]:
+    """Every installed plugin (loads them all: only for finding who owns a config section)."""
+    return [load_plugin(kind) for kind in sorted(available())]
+
+
 @cache
 def available() -> dict[str, str]:
     """Driver kind -> the entry point's target, for messages and ``--help``."""
@@ -29,6 +34,10 @@ def load_plugin(kind: str) -> DriverPlugin:
     """The plugin for ``kind``; an error listing the installed kinds when there is none."""
     for ep in entry_points(group=GROUP):
         if ep.name == kind:
-            return ep.load()
+            plugin = ep.load()
+            if not isinstance(plugin, DriverPlugin):
+                raise UnknownDriverError(
+                    f"driver {kind!r} ({ep.value}) is not a drivers.base.DriverPlugin instance")
+            return plugin
     names = ", ".join(sorted(available())) or "none (is nanodrift installed?)"
     raise UnknownDriverError(f"unknown sensor kind {kind!r}; installed driver kinds: {names}")

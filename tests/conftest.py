@@ -3,5 +3,5 @@
 import sys
 from pathlib import Path
 
-# tests import their helper modules (synthetic.py, daemon_harness.py, ...) by name
+# tests import their helpers as the package ``helpers`` (tests/helpers/)
 sys.path.insert(0, str(Path(__file__).parent))

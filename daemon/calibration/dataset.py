@@ -4,6 +4,7 @@ Every column that is not reserved is a temperature channel in °C named by its h
 columns the project adds (documented in the README):
 
 - ``q_pred_um``: the command the model gives for the row (``nanodrift predict``);
+- ``q_sigma_um``: its standard uncertainty (``nanodrift predict``);
 - ``cycle``: 0-based calibration/validation cycle, so held-out blocks are whole cycles;
 - ``valid``: 1/0; a step that could not be measured cleanly (a sensor faulted) is kept with 0.
 
@@ -28,7 +29,7 @@ import numpy as np
 from daemon.atomic import atomic_writer
 
 REQUIRED = ("t_s", "x_um")
-RESERVED = ("t_s", "x_um", "q_um", "q_pred_um", "cycle", "valid")
+RESERVED = ("t_s", "x_um", "q_um", "q_pred_um", "q_sigma_um", "cycle", "valid")
 CHANNEL_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_.\-]*$")
 #: names a channel may not take because a model term would read them as something else
 FORBIDDEN_CHANNELS = frozenset({"x", "dir", "t", "1"})
@@ -111,7 +112,8 @@ def read_csv(path: str | os.PathLike[str]) -> Dataset:
     """Read and validate a data file; raise :class:`DataError` naming file, row and column."""
     path = Path(path)
     try:
-        with open(path, encoding="utf-8", newline="") as handle:
+        # utf-8-sig: a spreadsheet's byte-order mark is not part of the first column's name
+        with open(path, encoding="utf-8-sig", newline="") as handle:
             header_line = handle.readline()
             body = handle.read()
     except FileNotFoundError:
@@ -129,7 +131,10 @@ def read_csv(path: str | os.PathLike[str]) -> Dataset:
 def _parse_header(path: Path, line: str) -> list[str]:
     if not line.strip():
         raise DataError(f"{path}: empty file (expected a header row with t_s, x_um and channel columns)")
-    header = [h.strip() for h in next(csv.reader([line]))]
+    try:
+        header = [h.strip() for h in next(csv.reader([line]))]
+    except csv.Error as err:
+        raise DataError(f"{path}, row 1: not a CSV header row ({err})") from None
     for required in REQUIRED:
         if required not in header:
             raise DataError(f"{path}, row 1: missing column {required!r} (header is {','.join(header)})")
@@ -155,22 +160,34 @@ def _parse_body(path: Path, header: list[str], body: str) -> np.ndarray:
     except ValueError:
         pass
     rows: list[list[float]] = []
-    for line_no, row in enumerate(csv.reader(io.StringIO(body)), start=2):
-        if not row or all(not cell.strip() for cell in row):
-            continue
-        if len(row) != len(header):
-            raise DataError(f"{path}, row {line_no}: {len(row)} cells, expected {len(header)} (one per column)")
-        parsed = []
-        for name, cell in zip(header, row, strict=True):
-            try:
-                value = float(cell)
-            except ValueError:
-                raise DataError(f"{path}, row {line_no}, column {name}: {cell.strip()!r} is not a number") from None
-            if not math.isfinite(value):
-                raise DataError(f"{path}, row {line_no}, column {name}: {cell.strip()!r} is not a finite number")
-            parsed.append(value)
-        rows.append(parsed)
+    reader = csv.reader(io.StringIO(body))
+    try:
+        for row in reader:
+            rows.append(_parse_row(path, header, row, reader.line_num + 1))
+    except csv.Error as err:  # e.g. a quoted field longer than the csv module's limit
+        raise DataError(f"{path}, row {reader.line_num + 1}: not a CSV row ({err})") from None
+    rows = [r for r in rows if r]
+    if not rows:  # only blank cells, e.g. a line of ""
+        raise DataError(f"{path}: no data rows after the header")
     return np.asarray(rows, dtype=np.float64).reshape(-1, len(header))
+
+
+def _parse_row(path: Path, header: list[str], row: list[str], line_no: int) -> list[float]:
+    """One row's numbers ([] for a blank line); DataError naming the row and column otherwise."""
+    if not row or all(not cell.strip() for cell in row):
+        return []
+    if len(row) != len(header):
+        raise DataError(f"{path}, row {line_no}: {len(row)} cells, expected {len(header)} (one per column)")
+    parsed = []
+    for name, cell in zip(header, row, strict=True):
+        try:
+            value = float(cell)
+        except ValueError:
+            raise DataError(f"{path}, row {line_no}, column {name}: {cell.strip()!r} is not a number") from None
+        if not math.isfinite(value):
+            raise DataError(f"{path}, row {line_no}, column {name}: {cell.strip()!r} is not a finite number")
+        parsed.append(value)
+    return parsed
 
 
 def _to_dataset(path: Path, header: list[str], values: np.ndarray) -> Dataset:
@@ -245,7 +262,7 @@ class CsvAppender:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         exists = self.path.exists() and self.path.stat().st_size > 0
         if exists:
-            with open(self.path, encoding="utf-8") as handle:
+            with open(self.path, encoding="utf-8-sig") as handle:
                 found = [h.strip() for h in handle.readline().strip().split(",")]
             if found != self.columns:
                 raise DataError(

@@ -79,8 +79,8 @@ class Rate(Term):
     """
 
     def __init__(self, channel: str, tau_s: float) -> None:
-        if not tau_s > 0:
-            raise ValueError(f"rate smoothing time constant must be > 0 s, got {tau_s}")
+        if not (math.isfinite(tau_s) and tau_s > 0):
+            raise ValueError(f"rate smoothing time constant must be a finite number > 0 s, got {tau_s}")
         self.channel, self.tau_s = channel, float(tau_s)
         self.channels = (channel,)
 
@@ -129,8 +129,10 @@ class Creep(Term):
     uses_x = True
 
     def __init__(self, tau_s: float, deadband_um: float = CREEP_DEADBAND_UM) -> None:
-        if not tau_s > 0:
-            raise ValueError(f"creep time constant must be > 0 s, got {tau_s}")
+        if not (math.isfinite(tau_s) and tau_s > 0):
+            raise ValueError(f"creep time constant must be a finite number > 0 s, got {tau_s}")
+        if not (math.isfinite(deadband_um) and deadband_um >= 0):
+            raise ValueError(f"creep deadband must be a finite number >= 0 um, got {deadband_um}")
         self.tau_s, self.deadband_um = float(tau_s), float(deadband_um)
 
     @property

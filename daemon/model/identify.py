@@ -8,32 +8,37 @@ The geometric order n1 cannot be chosen by training error (it always falls with 
 from __future__ import annotations
 
 import datetime as dt
+import importlib.metadata
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 from scipy import stats
 
 from daemon.model.model import FittedTerm, Model, Training
+from daemon.model.series import Series
 from daemon.model.stepwise import stepwisefit
 from daemon.model.terms import Bias, Channel, Power, Term
+from daemon.model.uncertainty import Covariance, ar1_inflation, estimate, uncertainty_blocks
 
 MAX_AUTO_ORDER = 5
 
 
+def software() -> str:
+    """What a model file records as the software that fitted it: ``"nanodrift <version>"``.
+
+    Provenance only: never part of the model's id (the same terms and coefficients are the same model).
+    """
+    try:
+        return f"nanodrift {importlib.metadata.version('nanodrift')}"
+    except importlib.metadata.PackageNotFoundError:  # a source tree that was never installed
+        return "nanodrift 0+unknown"
+
+
 class FitError(ValueError):
     """The data cannot support the requested fit; the message says why."""
-
-
-class Recorded(Protocol):
-    t: np.ndarray
-    x: np.ndarray
-    q: np.ndarray | None
-    channels: Mapping[str, np.ndarray]
-
-    def __len__(self) -> int: ...
 
 
 @dataclass
@@ -56,6 +61,9 @@ class OLS:
     rmse: float
     dof: int
     r2: float
+    #: covariance of the coefficients in original units, ordered as the columns then the intercept
+    #: (a model's term order: bias last)
+    cov: np.ndarray
 
 
 def ols(X: np.ndarray, y: np.ndarray) -> OLS:
@@ -84,25 +92,27 @@ def ols(X: np.ndarray, y: np.ndarray) -> OLS:
         tstat = np.where(se > 0, coef / se, np.inf)
     p = 2.0 * stats.t.sf(np.abs(tstat), dof)
     sst = float(((y - y.mean()) ** 2).sum())
+    order = [*range(1, k + 1), 0]
     return OLS(
         coef=coef[1:], se=se[1:], p=p[1:], intercept=float(coef[0]), intercept_se=float(se[0]),
         intercept_p=float(p[0]), rmse=math.sqrt(sigma2), dof=dof, r2=1.0 - sse / sst if sst > 0 else 1.0,
+        cov=0.5 * (cov + cov.T)[np.ix_(order, order)],
     )
 
 
-def _commands(data: Recorded) -> np.ndarray:
+def _commands(data: Series) -> np.ndarray:
     if data.q is None:
         raise FitError(f"{getattr(data, 'source', 'data')}: no q_um column (the command sent to the stage) to fit")
     return np.asarray(data.q, dtype=np.float64)
 
 
-def _only_valid(data: Recorded) -> Recorded:
+def _only_valid(data: Series) -> Series:
     select = getattr(data, "valid_rows", None)
     return select() if callable(select) else data
 
 
 def fit_terms(
-    data: Recorded,
+    data: Series,
     candidates: Sequence[Term],
     *,
     always: Sequence[Term] = (),
@@ -110,8 +120,12 @@ def fit_terms(
     premove: float = 0.10,
     source: str | None = None,
     extra_selection: Mapping[str, Any] | None = None,
+    uncertainty: bool = True,
 ) -> Model:
-    """Select among ``candidates`` by stepwise regression (bias always in; ``always`` forced in)."""
+    """Select among ``candidates`` by stepwise regression (bias always in; ``always`` forced in).
+
+    ``uncertainty=False`` skips the covariance block (held-out refits): for models only scored, never saved.
+    """
     data = _only_valid(data)
     y = _commands(data)
     pool = [t for t in candidates if not isinstance(t, Bias)]
@@ -136,9 +150,13 @@ def fit_terms(
         rmse = float(math.sqrt(resid @ resid / max(len(y) - 1, 1)))
         terms.append(FittedTerm(Bias(), mean, rmse / math.sqrt(len(y)), math.nan))
         fit_stats = {"rmse_um": rmse, "r2": 0.0, "dof": len(y) - 1}
+        variance = rmse * rmse / len(y) * ar1_inflation(resid)
+        covariance = Covariance(np.array([[variance]]), rmse) if uncertainty else None
     else:
         terms.append(FittedTerm(Bias(), final.intercept, final.intercept_se, final.intercept_p))
         fit_stats = {"rmse_um": final.rmse, "r2": final.r2, "dof": final.dof}
+        covariance = (model_covariance(X[:, chosen], y, final, data, [pool[i] for i in chosen])
+                      if uncertainty else None)
     channels = [c for c in data.channels if any(c in ft.term.channels for ft in terms)]
     pred = sum(ft.coef * ft.term.batch(data.t, data.x, data.channels) for ft in terms)
     resid = y - pred
@@ -159,14 +177,44 @@ def fit_terms(
         },
     }
     selection.update(extra_selection or {})
-    provenance = {"created": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"), "data_file": source}
+    provenance = {"created": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"), "data_file": source,
+                  "software": software()}
     return Model(
         terms=terms,
         training=Training.of(data, channels),
         fit=fit_stats,
         selection=selection,
         provenance=provenance,
+        covariance=covariance,
     )
+
+
+def model_covariance(X: np.ndarray, y: np.ndarray, final: OLS, data: Series, terms: Sequence[Term],
+                     nuisance: np.ndarray | None = None) -> Covariance:
+    """The model file's covariance block for ``final``, the least-squares fit of y on X.
+
+    See :mod:`daemon.model.uncertainty` for what it holds and why.
+
+    ``nuisance`` (n, m): the last m columns of X are fitted but not kept (discovery's drift in run
+    time); the bias then absorbs their value at the start of the run, and C follows.
+    """
+    channels = [c for c in data.channels if any(c in t.channels for t in terms)]
+    t = np.asarray(data.t, dtype=np.float64)
+    blocks = uncertainty_blocks(float(t[-1] - t[0]) if t.size else 0.0)
+    cov, s, curvature = estimate(X, y, final.cov, final.rmse, holdout_blocks(data, max_folds=blocks),
+                                 {c: data.channels[c] for c in channels})
+    k = len(terms)
+    m = 0 if nuisance is None else nuisance.shape[1]
+    J = np.zeros((k + 1, k + m + 1))  # the model's coefficients from the fit's: bias = intercept + Σ coef·start
+    J[:k, :k] = np.eye(k)
+    if nuisance is not None:
+        J[k, k:k + m] = nuisance[0]
+    J[k, k + m] = 1.0
+    return Covariance(J @ cov @ J.T, s, curvature)
+
+
+def _rows(n: int) -> str:
+    return "1 row" if n == 1 else f"{n} rows"
 
 
 def _finite(v: float) -> float | None:
@@ -180,7 +228,7 @@ def candidate_terms(channels: Sequence[str], order: int, exclude: Sequence[str] 
     return [Power(k) for k in range(order, 0, -1)] + [Channel(c) for c in channels if c not in exclude]
 
 
-def holdout_blocks(data: Recorded, max_folds: int = 6) -> np.ndarray:
+def holdout_blocks(data: Series, max_folds: int = 6) -> np.ndarray:
     """Fold index per row: whole cycles grouped into contiguous blocks (time blocks if one cycle)."""
     cycles_of = getattr(data, "cycles", None)
     cycles = cycles_of() if callable(cycles_of) else np.zeros(len(data), dtype=np.int64)
@@ -193,21 +241,21 @@ def holdout_blocks(data: Recorded, max_folds: int = 6) -> np.ndarray:
     return (np.arange(len(data)) * folds) // max(len(data), 1)
 
 
-def holdout_rms(data: Recorded, candidates: Sequence[Term], penter: float, premove: float) -> tuple[float, int]:
+def holdout_rms(data: Series, candidates: Sequence[Term], penter: float, premove: float) -> tuple[float, int]:
     """RMS (um) of the command predicted for each held-out block by a model fitted on the others."""
     folds = holdout_blocks(data)
     y = _commands(data)
     errors = []
     for k in np.unique(folds):
         train, test = data.select(folds != k), data.select(folds == k)  # type: ignore[attr-defined]
-        model = fit_terms(train, candidates, penter=penter, premove=premove)
+        model = fit_terms(train, candidates, penter=penter, premove=premove, uncertainty=False)
         errors.append(y[folds == k] - model.predict(test))
     err = np.concatenate(errors)
     return float(np.sqrt(np.mean(err**2))), int(np.unique(folds).size)
 
 
 def fit(
-    data: Recorded,
+    data: Series,
     *,
     order: int | str = "auto",
     max_order: int = MAX_AUTO_ORDER,
@@ -219,21 +267,42 @@ def fit(
     """The paper's identification: stepwise over x^1..x^n1 and the channels; n1 fixed or chosen."""
     if penter > premove:
         raise FitError(f"penter ({penter}) must not exceed premove ({premove})")
+    where = source or getattr(data, "source", "data")
+    given = len(data)
     data = _only_valid(data)
     _commands(data)
     channels = list(data.channels)
     scores: dict[int, float] = {}
     folds = 0
+
+    def too_few(order_n1: int, purpose: str, advice: str) -> FitError:
+        n, terms = len(data), len(candidate_terms(channels, order_n1, exclude))
+        left_out = f" ({given - n} more marked valid = 0 left out)" if given > n else ""
+        return FitError(
+            f"{where}: {_rows(n)}{left_out} {'is' if n == 1 else 'are'} too few {purpose} {terms} candidate "
+            f"terms (x..x^{order_n1} and one per channel) plus a bias: {advice}"
+        )
+
+    first = 1 if order == "auto" else int(order)
+    if first < 1:
+        raise FitError(f"order must be >= 1 or 'auto', got {order}")
+    needed = len(candidate_terms(channels, first, exclude)) + 2
+    if len(data) < needed:
+        raise too_few(first, "to fit", f"record at least {needed} rows")
     if order == "auto":
         for n1 in range(1, max_order + 1):
-            scores[n1], folds = holdout_rms(data, candidate_terms(channels, n1, exclude), penter, premove)
+            try:
+                scores[n1], folds = holdout_rms(data, candidate_terms(channels, n1, exclude), penter, premove)
+            except FitError:  # the blocks left after holding one out are too short for this order
+                if n1 == 1:
+                    raise too_few(1, "to choose the geometric order on held-out blocks (each fitted from the "
+                                     "others) with", "record more rows, or give --order N") from None
+                break  # higher orders need even more rows
         best = min(scores.values())
         # the lowest order within 1 % of the best: extra powers must earn their place
         chosen = min(n for n, s in scores.items() if s <= best * 1.01)
     else:
-        chosen = int(order)
-        if chosen < 1:
-            raise FitError(f"order must be >= 1 or 'auto', got {order}")
+        chosen = first
     extra = {
         "order": chosen,
         "order_choice": "auto (held-out cycles)" if order == "auto" else "fixed",

@@ -3,24 +3,40 @@
 ``q = Σ coef_i · feature_i`` (eq. 3 when the terms are x^3, x^2, x, T1..T4 and 1). The same object
 predicts a whole recorded series (:meth:`Model.predict`) and serves the daemon sample by sample
 (:class:`Evaluator`), with identical results.
+
+A model's ``id`` is its content: a hash of what decides the commands it serves (see
+:meth:`Model.content_id`), checked on load. A file edited by hand without a new id is refused, so a
+reload can never keep serving an old model under a new file's name; ``nanodrift restamp`` gives a
+deliberately edited file its new id. Loading also refuses what could only serve nonsense: non-finite
+numbers, powers beyond ``x^12`` and a prediction that overflows inside the training box.
+
+Longer than most modules (~540 lines) on purpose: the model, its id and the file format's checks
+live together so that what is hashed, what is written and what is checked cannot drift apart (the
+covariance block's own checks and its streaming evaluation are in :mod:`daemon.model.uncertainty`).
 """
 
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 import math
 import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
+from daemon.atomic import atomic_write_text
+from daemon.model.series import Series
 from daemon.model.terms import Power, Term, TermStream, UnknownTermError, parse_term
+from daemon.model.uncertainty import Covariance, SigmaStream
 
 FORMAT = "nanodrift-model/1"
+#: deepest nesting of [ and { a model file may have (the format itself needs 4)
+MAX_NESTING = 32
 
 
 class ModelFileError(ValueError):
@@ -29,12 +45,6 @@ class ModelFileError(ValueError):
 
 class MissingChannelError(ValueError):
     """Data or a sensor set lacks a channel the model needs."""
-
-
-class SeriesLike(Protocol):
-    t: np.ndarray
-    x: np.ndarray
-    channels: Mapping[str, np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -55,7 +65,7 @@ class Training:
     t_span_s: float
 
     @classmethod
-    def of(cls, data: SeriesLike, channels: Sequence[str]) -> Training:
+    def of(cls, data: Series, channels: Sequence[str]) -> Training:
         t = np.asarray(data.t)
         return cls(
             x_range=(float(np.min(data.x)), float(np.max(data.x))),
@@ -73,13 +83,43 @@ class Model:
     selection: dict[str, Any] = field(default_factory=dict)
     provenance: dict[str, Any] = field(default_factory=dict)
     id: str = ""
+    #: the coefficients' covariance and the residual RMS (None in files written before they were kept)
+    covariance: Covariance | None = None
 
     def __post_init__(self) -> None:
+        if self.covariance is not None and self.covariance.size != len(self.terms):
+            raise ValueError(f"covariance is {self.covariance.size}x{self.covariance.size} for {len(self.terms)} terms")
         if not self.id:
             self.id = self.content_id()
 
     def content_id(self) -> str:
-        """A short id that changes whenever a term or coefficient does."""
+        """The id this content must carry: a hash of everything that decides what the model serves.
+
+        Covered: the format, every term's canonical name, coefficient and standard error (the
+        prediction and its uncertainty), the training ranges of x and of every channel (they
+        decide which commands are flagged as extrapolating) and, when the file has one, the
+        covariance block (it decides every command's ``q_sigma_um``; a file without one keeps the
+        id it had before covariances were stored). Not covered: fit statistics, the selection
+        history and provenance, which describe how the model was made; editing those changes
+        nothing that is served.
+        """
+        content: dict[str, Any] = {
+            "format": FORMAT,
+            "terms": [[ft.term.name, float(ft.coef), _num(ft.se)] for ft in self.terms],
+            "x_um": [float(v) for v in self.training.x_range],
+            "channels": {c: [float(lo), float(hi)] for c, (lo, hi) in sorted(self.training.channel_ranges.items())},
+        }
+        if self.covariance is not None:
+            content["covariance"] = self.covariance.content()
+        text = json.dumps(content, separators=(",", ":"), sort_keys=True, allow_nan=False)
+        return "m-" + hashlib.sha256(text.encode()).hexdigest()[:12]
+
+    def legacy_content_id(self) -> str:
+        """The id nanodrift wrote before ids covered standard errors and training ranges.
+
+        Files stamped that way still load (their id is still checked, against terms and
+        coefficients); ``nanodrift restamp`` moves them to :meth:`content_id`.
+        """
         text = json.dumps([[ft.term.name, ft.coef] for ft in self.terms])
         return "m-" + hashlib.sha256(text.encode()).hexdigest()[:12]
 
@@ -106,17 +146,45 @@ class Model:
                 f"(model channels: {', '.join(self.channels)}; available: {', '.join(available) or 'none'})"
             )
 
-    def features(self, data: SeriesLike) -> np.ndarray:
+    def features(self, data: Series) -> np.ndarray:
         self.check_channels(list(data.channels), getattr(data, "source", "data"))
         return np.column_stack([ft.term.batch(data.t, data.x, data.channels) for ft in self.terms])
 
-    def predict(self, data: SeriesLike) -> np.ndarray:
-        """The command q for every row; stateful terms run over the rows in order."""
+    def predict(self, data: Series) -> np.ndarray:
+        """The command q for every row; stateful terms run over the rows in order.
+
+        Far outside the training box a row's q may overflow to inf or nan: callers that write or
+        serve q check it (``nanodrift predict`` refuses such a row by number).
+        """
         self.check_channels(list(data.channels), getattr(data, "source", "data"))
         q = np.zeros(np.asarray(data.t).shape[0], dtype=np.float64)
-        for ft in self.terms:
-            q += ft.coef * ft.term.batch(data.t, data.x, data.channels)
+        with np.errstate(over="ignore", invalid="ignore"):
+            for ft in self.terms:
+                q += ft.coef * ft.term.batch(data.t, data.x, data.channels)
         return q
+
+    @property
+    def residual_rms_um(self) -> float:
+        """The fit's residual standard deviation: the covariance block's, else ``fit.rmse_um`` (nan if neither)."""
+        if self.covariance is not None:
+            return self.covariance.residual_rms_um
+        value = self.fit.get("rmse_um")
+        return float(value) if _is_number(value) and math.isfinite(value) and value >= 0 else math.nan
+
+    def q_sigma(self, data: Series) -> np.ndarray:
+        """Standard uncertainty (µm) of the command :meth:`predict` gives for every row.
+
+        ``sqrt(f·C·f + s² + (κ·g)²)`` row-wise (:mod:`daemon.model.uncertainty`): C the
+        coefficients' covariance (how well the calibration run pinned them; it grows away from the
+        training data, so outside the training ranges), s the residual RMS a fresh run sees, κ·g the
+        curvature the training range cannot rule out (0 inside it). A model file without a
+        covariance block (written before nanodrift kept one) gives the fit's residual RMS alone,
+        the same for every row (``fit.rmse_um``; nan if the file lacks that too): it cannot say how
+        uncertain an extrapolation is.
+        """
+        if self.covariance is None:
+            return np.full(np.asarray(data.t).shape[0], self.residual_rms_um)
+        return np.sqrt(self.covariance.variance(self.features(data), data.channels))
 
     def out_of_range(self, x: float | None = None, temps: Mapping[str, float] | None = None) -> list[str]:
         """Names (``x`` or channels) whose value lies outside what the model was trained on."""
@@ -149,11 +217,12 @@ class Model:
             "fit": self.fit,
             "selection": self.selection,
             "provenance": self.provenance,
+            **({} if self.covariance is None else {"covariance": self.covariance.to_dict(self.term_names())}),
         }
 
     @classmethod
-    def from_dict(cls, doc: Any, where: str = "model") -> Model:
-        return _model_from_dict(doc, where)
+    def from_dict(cls, doc: Any, where: str = "model", *, check_id: bool = True) -> Model:
+        return _model_from_dict(doc, where, check_id=check_id)
 
 
 def _num(value: float) -> float | None:
@@ -164,10 +233,12 @@ class Evaluator:
     """The model fed sample by sample, as the daemon runs it.
 
     Temperature-only terms are summed once per temperature sample (``observe``), so a target costs
-    a cubic in Horner form plus the few terms that depend on the target or the motion.
+    a cubic in Horner form plus the few terms that depend on the target or the motion; its
+    uncertainty (:meth:`sigma`) likewise (see :class:`daemon.model.uncertainty.SigmaStream`).
     """
 
-    __slots__ = ("_dynamic", "_poly", "_static", "_static_sum", "_streams", "model", "seen")
+    __slots__ = ("_dynamic", "_poly", "_sigma", "_sigma_const", "_static", "_static_sum", "_streams", "model",
+                 "seen")
 
     def __init__(self, model: Model) -> None:
         self.model = model
@@ -186,6 +257,9 @@ class Evaluator:
         self._poly = tuple(reversed(poly))  # highest power first, for Horner
         self.seen: set[str] = set()
         self._static_sum = self._sum_static()
+        cov = model.covariance
+        self._sigma = None if cov is None else SigmaStream([ft.term for ft in model.terms], self._streams, cov)
+        self._sigma_const = model.residual_rms_um
 
     @property
     def ready(self) -> bool:
@@ -203,6 +277,8 @@ class Evaluator:
             stream.observe(t, temps)
         self.seen.update(temps)
         self._static_sum = self._sum_static()
+        if self._sigma is not None:
+            self._sigma.observe(temps)
 
     def value(self, x: float, t: float) -> float:
         """q for target ``x`` at ``t``, changing nothing: the caller may still refuse the target."""
@@ -213,6 +289,16 @@ class Evaluator:
         for coef, stream in self._dynamic:
             q += coef * stream.value(t, x)
         return q
+
+    def sigma(self, x: float, t: float) -> float:
+        """Standard uncertainty (µm) of ``value(x, t)``: as :meth:`Model.q_sigma` for the same features.
+
+        Call it before ``moved``/``command`` for the same target (motion-dependent terms then see
+        the same state as ``value``). Without a covariance in the model file: the residual RMS.
+        """
+        if self._sigma is None:
+            return self._sigma_const
+        return self._sigma.sigma(t, x)
 
     def moved(self, x: float, t: float) -> None:
         """The stage was commanded to ``x`` at ``t``: motion-dependent terms (dir, creep) advance."""
@@ -234,14 +320,19 @@ class Evaluator:
 
 
 def save_model(model: Model, path: str | os.PathLike[str]) -> None:
-    """Write the model file atomically (temp file + rename)."""
-    from daemon.atomic import atomic_write_text  # local: keep model/ importable on its own
+    """Write the model file atomically (temp file + rename), stamped with its content's id.
 
+    The id is set from the content here, so a file written by nanodrift always loads.
+    """
+    model.id = model.content_id()
     atomic_write_text(path, json.dumps(model.to_dict(), indent=2, allow_nan=False) + "\n")
 
 
-def load_model(path: str | os.PathLike[str]) -> Model:
-    """Read and check a model file; :class:`ModelFileError` says what is wrong and where."""
+def load_model(path: str | os.PathLike[str], *, check_id: bool = True) -> Model:
+    """Read and check a model file; :class:`ModelFileError` says what is wrong and where.
+
+    ``check_id=False`` skips only the id check (``nanodrift restamp``): everything else is checked.
+    """
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
@@ -253,15 +344,51 @@ def load_model(path: str | os.PathLike[str]) -> Model:
         doc = json.loads(text)
     except json.JSONDecodeError as err:
         raise ModelFileError(f"{path}: not valid JSON (line {err.lineno}, column {err.colno}: {err.msg})") from None
-    return _model_from_dict(doc, str(path))
+    except RecursionError:
+        raise ModelFileError(
+            f"{path}: not a model file: [ and {{ nested too deeply (a model file nests at most {MAX_NESTING} levels)"
+        ) from None
+    except ValueError as err:  # e.g. an integer of more than 4300 digits
+        raise ModelFileError(f"{path}: not valid JSON ({err})") from None
+    return _model_from_dict(doc, str(path), check_id=check_id)
 
 
-def _model_from_dict(doc: Any, where: str) -> Model:
+def _nesting(doc: Any) -> int:
+    """How deeply lists and objects nest in ``doc`` (iterative: no recursion limit to hit)."""
+    deepest = 0
+    stack: list[tuple[Any, int]] = [(doc, 1)]
+    while stack:
+        item, depth = stack.pop()
+        if isinstance(item, dict | list):
+            deepest = max(deepest, depth)
+            if depth > MAX_NESTING:
+                return depth
+            stack.extend((child, depth + 1) for child in (item.values() if isinstance(item, dict) else item))
+    return deepest
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def _optional_number(value: Any, what: str, fail: Any, low: float, high: float = math.inf) -> float:
+    """null -> nan (unknown); else a finite number within [low, high]."""
+    if value is None:
+        return math.nan
+    if not _is_number(value) or not math.isfinite(value) or not low <= value <= high:
+        bounds = f">= {low:g}" if high == math.inf else f"within [{low:g}, {high:g}]"
+        raise fail(f"{what} must be a finite number {bounds} or null, got {value!r}")
+    return float(value)
+
+
+def _model_from_dict(doc: Any, where: str, *, check_id: bool = True) -> Model:
     def fail(msg: str) -> ModelFileError:
         return ModelFileError(f"{where}: {msg}")
 
     if not isinstance(doc, dict):
         raise fail("expected a JSON object")
+    if _nesting(doc) > MAX_NESTING:
+        raise fail(f"nested too deeply (a model file nests at most {MAX_NESTING} levels of [ and {{)")
     if doc.get("format") != FORMAT:
         raise fail(f"format is {doc.get('format')!r}, expected {FORMAT!r}")
     raw_terms = doc.get("terms")
@@ -276,31 +403,110 @@ def _model_from_dict(doc: Any, where: str) -> Model:
         except (UnknownTermError, ValueError) as err:
             raise fail(f"terms[{i}]: {err}") from None
         coef = item.get("coef")
-        if isinstance(coef, bool) or not isinstance(coef, int | float) or not math.isfinite(coef):
+        if not _is_number(coef) or not math.isfinite(coef):
             raise fail(f"terms[{i}] ({item['term']}): 'coef' must be a finite number, got {coef!r}")
-        se, p = item.get("se"), item.get("p")
-        terms.append(
-            FittedTerm(term, float(coef), math.nan if se is None else float(se), math.nan if p is None else float(p))
-        )
+        se = _optional_number(item.get("se"), f"terms[{i}] ({item['term']}): 'se'", fail, 0.0)
+        p = _optional_number(item.get("p"), f"terms[{i}] ({item['term']}): 'p'", fail, 0.0, 1.0)
+        terms.append(FittedTerm(term, float(coef), se, p))
     names = [ft.term.name for ft in terms]
     if len(set(names)) != len(names):
         raise fail(f"duplicate terms in {names}")
     training = _training_from_dict(doc.get("training"), fail)
-    model = Model(
-        terms=terms,
-        training=training,
-        fit=dict(doc.get("fit") or {}),
-        selection=dict(doc.get("selection") or {}),
-        provenance=dict(doc.get("provenance") or {}),
-        id=str(doc.get("id") or ""),
-    )
+    sections = {}
+    for key in ("fit", "selection", "provenance"):
+        value = doc.get(key)
+        if value is not None and not isinstance(value, dict):
+            raise fail(f"'{key}' must be an object, got {type(value).__name__}")
+        sections[key] = dict(value or {})
+    claimed = doc.get("id")
+    if claimed is not None and not isinstance(claimed, str):
+        raise fail(f"'id' must be a string, got {claimed!r}")
+    covariance = None
+    if doc.get("covariance") is not None:
+        channels = list(dict.fromkeys(c for ft in terms for c in ft.term.channels))
+        covariance = Covariance.from_dict(doc["covariance"], names, channels, fail)
+    model = Model(terms=terms, training=training, id=claimed or "", covariance=covariance, **sections)
     declared = doc.get("channels")
-    if declared is not None and list(declared) != list(model.channels):
+    if declared is not None and (not isinstance(declared, list) or declared != list(model.channels)):
         raise fail(f"'channels' {declared} does not match the channels its terms read {list(model.channels)}")
     unranged = [c for c in model.channels if c not in training.channel_ranges]
     if unranged:
         raise fail(f"training ranges missing for channel(s) {', '.join(unranged)}")
+    problem = _box_problem(model)
+    if problem:
+        raise fail(problem)
+    if check_id:
+        _check_id(model, claimed, where)
     return model
+
+
+def _check_id(model: Model, claimed: Any, where: str) -> None:
+    actual = model.content_id()
+    if not claimed:
+        raise ModelFileError(
+            f"{where}: has no 'id'; a model's id is the hash of its content ({actual} for this one): "
+            f"stamp it with `nanodrift restamp {where}`"
+        )
+    if claimed not in (actual, model.legacy_content_id()):
+        raise ModelFileError(
+            f"{where}: its id {claimed!r} does not match its content (its terms, coefficients, standard "
+            f"errors and training ranges give {actual!r}): the file was changed after it was made. If the "
+            f"change is deliberate, re-stamp it: `nanodrift restamp {where}`; otherwise restore the file "
+            "or fit the model again (`nanodrift fit`)"
+        )
+
+
+def _box_problem(model: Model) -> str:
+    """Why the model's prediction is not finite somewhere in its training box ('' if it is).
+
+    Every term reads x and at most a few channels, and its magnitude is largest at a corner of that
+    sub-box (powers, products, channels and their lags are monotone in each variable), so each
+    term is evaluated at the corners of (x range) x (its channels' ranges), and the sum of the
+    largest magnitudes must be finite too.
+    """
+    tr = model.training
+    total = 0.0
+    largest = [_largest_feature(ft.term, tr) for ft in model.terms]
+    with np.errstate(all="ignore"):
+        for ft, feature in zip(model.terms, largest, strict=True):
+            worst = abs(ft.coef) * feature
+            if not math.isfinite(worst):
+                box = ", ".join([f"x_um {tr.x_range[0]:g}..{tr.x_range[1]:g}"]
+                                + [f"{c} {tr.channel_ranges[c][0]:g}..{tr.channel_ranges[c][1]:g}"
+                                   for c in ft.term.channels])
+                return (f"term {ft.term.name} (coef {ft.coef:g}) is not finite inside the training box "
+                        f"({box}): this model cannot give a usable command")
+            total += worst
+    if not math.isfinite(total):
+        return "the sum of the terms overflows inside the training box: this model cannot give a usable command"
+    if model.covariance is not None:
+        # f·C·f <= (Σ_i |f_i| sqrt(C_ii))² for a covariance (Cauchy-Schwarz): finite bound, finite sigma
+        with np.errstate(all="ignore"):
+            root = np.sum(np.asarray(largest) * np.sqrt(np.diag(model.covariance.matrix)))
+            s = np.float64(model.covariance.residual_rms_um)
+            bound = float(root * root + s * s)
+            cv = model.covariance.curvature
+            if cv is not None:
+                lows = [tr.channel_ranges[c][0] for c in cv.channels]
+                highs = [tr.channel_ranges[c][1] for c in cv.channels]
+                ends = np.array([np.mean(lows), np.mean(highs)])
+                allowance = cv.sd_um_per_c2 * np.max(cv.gap(ends))
+                bound += float(allowance * allowance)
+        if not math.isfinite(bound):
+            return ("covariance: the uncertainty of the command overflows inside the training box: "
+                    "this model cannot give a usable q_sigma_um")
+    return ""
+
+
+def _largest_feature(term: Term, tr: Training) -> float:
+    """The largest magnitude of a term's feature over the corners of (x range) x (its channels' ranges)."""
+    axes = [tr.x_range, *(tr.channel_ranges[c] for c in term.channels)]
+    corners = np.array(list(itertools.product(*axes)), dtype=np.float64)
+    channels = {c: corners[:, 1 + i] for i, c in enumerate(term.channels)}
+    t = np.arange(corners.shape[0], dtype=np.float64)
+    with np.errstate(all="ignore"):
+        values = np.asarray(term.batch(t, corners[:, 0], channels), dtype=np.float64)
+        return float(np.max(np.abs(values)))
 
 
 def _training_from_dict(raw: Any, fail: Any) -> Training:
@@ -311,7 +517,7 @@ def _training_from_dict(raw: Any, fail: Any) -> Training:
         ok = (
             isinstance(value, list)
             and len(value) == 2
-            and all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in value)
+            and all(_is_number(v) and math.isfinite(v) for v in value)
             and value[0] <= value[1]
         )
         if not ok:
@@ -321,9 +527,13 @@ def _training_from_dict(raw: Any, fail: Any) -> Training:
     channels = raw.get("channels") or {}
     if not isinstance(channels, dict):
         raise fail("training.channels must be an object {channel: [low, high]}")
+    rows = raw.get("rows") or 0
+    if not isinstance(rows, int) or isinstance(rows, bool) or rows < 0:
+        raise fail(f"training.rows must be a whole number >= 0, got {rows!r}")
+    t_span_s = _optional_number(raw.get("t_span_s"), "training.t_span_s", fail, 0.0)
     return Training(
         x_range=pair(raw.get("x_um"), "x_um"),
         channel_ranges={str(c): pair(r, c) for c, r in channels.items()},
-        rows=int(raw.get("rows") or 0),
-        t_span_s=float(raw.get("t_span_s") or 0.0),
+        rows=rows,
+        t_span_s=0.0 if math.isnan(t_span_s) else t_span_s,
     )

@@ -11,6 +11,9 @@ same coefficients and residual norms when run on R's columns, so each step costs
 matrix of at most 11 x 10, with no pass over the n rows. Columns of R are scaled to unit norm,
 which is the same as standardising the data (QR commutes with column scaling), and results are
 mapped back to original units at the end.
+
+One module of ~400 lines on purpose: it is one algorithm (MATLAB's), read and checked against
+MATLAB's documentation as a whole; split, its steps would be harder to compare line by line.
 """
 
 from __future__ import annotations

@@ -25,6 +25,10 @@ from scipy.signal import lfilter
 
 Channels = Mapping[str, np.ndarray]
 
+#: highest power of x a model may use: the paper needs 3, and x^13 of a 500 um stroke is ~1e35,
+#: where a coefficient that cancels it cannot be written down exactly
+MAX_POWER = 12
+
 
 class UnknownTermError(ValueError):
     """A term name no registered kind understands."""
@@ -93,8 +97,8 @@ class Power(Term):
     uses_x = True
 
     def __init__(self, k: int) -> None:
-        if k < 1:
-            raise ValueError(f"power must be >= 1, got {k}")
+        if not 1 <= k <= MAX_POWER:
+            raise ValueError(f"power of x must be between 1 and {MAX_POWER} (x .. x^{MAX_POWER}), got {k}")
         self.k = k
 
     @property
@@ -233,8 +237,8 @@ class Lag(Term):
     """
 
     def __init__(self, channel: str, tau_s: float) -> None:
-        if not tau_s > 0:
-            raise ValueError(f"lag time constant must be > 0 s, got {tau_s}")
+        if not (math.isfinite(tau_s) and tau_s > 0):
+            raise ValueError(f"lag time constant must be a finite number > 0 s, got {tau_s}")
         self.channel, self.tau_s = channel, float(tau_s)
         self.channels = (channel,)
 
@@ -283,6 +287,8 @@ class Direction(Term):
     uses_x = True
 
     def __init__(self, deadband_um: float = 0.5) -> None:
+        if not (math.isfinite(deadband_um) and deadband_um >= 0):
+            raise ValueError(f"direction deadband must be a finite number >= 0 um, got {deadband_um}")
         self.deadband_um = float(deadband_um)
 
     @property

@@ -11,6 +11,7 @@ Home Assistant does it:
 
 from __future__ import annotations
 
+import math
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -68,3 +69,18 @@ def encode(value: int | float, data_type: str, swap: str = "none") -> list[int]:
     regs = [int.from_bytes(raw[i : i + 2], "big") for i in range(0, len(raw), 2)]
     # every swap is its own inverse, so the same transformation maps back
     return _swapped(regs, swap)
+
+
+def raw_for(value: float, scale: float, offset: float, data_type: str) -> int | float:
+    """The raw register value that scales back to ``value`` (``raw * scale + offset``), the inverse of a
+    sensor's scaling: rounded to the nearest count for integer types. ``ValueError`` when it does
+    not fit ``data_type`` (nothing must then be written)."""
+    spec = DATA_TYPES[data_type]
+    exact = (value - offset) / scale
+    if not math.isfinite(exact):
+        raise ValueError(f"{value!r} has no raw value")
+    raw: int | float = exact if spec.is_float else round(exact)
+    if not spec.minimum <= raw <= spec.maximum:
+        raise ValueError(f"{value:g} needs raw {exact:g}, outside {data_type}'s range "
+                         f"{spec.minimum:g}..{spec.maximum:g}")
+    return raw

@@ -2,12 +2,29 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import Field, FiniteFloat, field_validator, model_validator
+from pydantic import AllowInfNan, BaseModel, ConfigDict, Field, FiniteFloat, field_validator, model_validator
 
-from drivers.base import SensorConfig
-from drivers.modbus.codec import DATA_TYPES, DataTypeName, SwapName, register_count
+from drivers.base import ActuatorOptions, SensorConfig
+from drivers.modbus.codec import DATA_TYPES, DataTypeName, SwapName, raw_for, register_count
+
+
+class ModbusHubConfig(BaseModel):
+    """A ``[[hubs]]`` entry: a connection shared by several channels (Home Assistant modbus naming)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, strict=True)  # no "502" for 502
+
+    name: str
+    type: Literal["tcp", "serial"] = "tcp"
+    host: str = "127.0.0.1"
+    port: int | str = 502  # TCP port, or serial device for type = "serial"
+    timeout_s: float = Field(default=1.0, gt=0)
+    baudrate: int = 9600
+    bytesize: Literal[7, 8] = 8
+    parity: Literal["N", "E", "O"] = "N"
+    stopbits: Literal[1, 2] = 1
+    retries: int = Field(default=0, ge=0)
 
 
 class ModbusSensorConfig(SensorConfig):
@@ -24,8 +41,9 @@ class ModbusSensorConfig(SensorConfig):
     swap: SwapName = "none"
     scale: FiniteFloat = 1.0
     offset: FiniteFloat = 0.0
-    nan_value: int | float | None = Field(
-        default=None, description="raw value (before scale/offset) meaning burnout/open circuit -> fault"
+    nan_value: int | Annotated[float, AllowInfNan(True)] | None = Field(
+        default=None,
+        description="raw value (before scale/offset) meaning burnout/open circuit -> fault",
     )
     unit: str | None = Field(default=None, description="unit of the scaled value; default degC / um by role")
 
@@ -73,3 +91,46 @@ class ModbusSensorConfig(SensorConfig):
         if self.unit is not None:
             return self.unit
         return "um" if self.role == "position" else "degC"
+
+
+class ModbusActuatorConfig(ActuatorOptions):
+    """``[actuator] kind = "modbus"``: one analog output channel in a holding register (or pair).
+
+    ``register = round((voltage_v - offset) / scale)``: ``scale`` is the module's volts per count
+    (no default: it is in the module's manual). ``verify`` reads the register back after each write.
+    """
+
+    kind: Literal["modbus"] = "modbus"
+    hub: str = Field(description="name of a [[hubs]] entry; shared with the sensors on it")
+    device_id: int = Field(default=1, ge=0, le=255, description="Modbus unit / slave id")
+    address: int = Field(ge=0, le=65535, description="0-based protocol address of the output's holding register")
+    data_type: DataTypeName = "int16"
+    swap: SwapName = "none"
+    scale: FiniteFloat = Field(description="volts per count")
+    offset: FiniteFloat = Field(default=0.0, description="volts at count 0")
+    verify: bool = Field(default=True, description="read the register back after each write; a mismatch faults")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> ModbusActuatorConfig:
+        spec = DATA_TYPES[self.data_type]
+        if self.scale == 0:
+            raise ValueError("scale (volts per count) must not be 0")
+        if self.swap in ("word", "word_byte") and spec.registers < 2:
+            raise ValueError(
+                f"swap = {self.swap!r} reorders registers and needs a 32-bit data_type, not {self.data_type}")
+        if self.address + spec.registers - 1 > 65535:
+            raise ValueError(f"address {self.address} + {spec.registers} register(s) runs past 65535")
+        return self
+
+    @property
+    def register_count(self) -> int:
+        return register_count(self.data_type)
+
+    def voltage_range_problem(self, v_min: float, v_max: float) -> str | None:
+        for name, volts in (("v_min", v_min), ("v_max", v_max)):
+            try:
+                raw_for(volts, self.scale, self.offset, self.data_type)
+            except ValueError as error:
+                return (f"{name} = {volts:g} V cannot be written as {self.data_type} with scale {self.scale:g} and "
+                        f"offset {self.offset:g} ({error}); narrow [v_min, v_max] to what the output can do")
+        return None

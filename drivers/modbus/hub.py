@@ -7,7 +7,10 @@ module is away fails fast instead of hammering it), and classifies what went wro
 
 - the device answered with an exception code -> :class:`ModbusExceptionError` (the channels fault);
 - no answer, lost connection, cannot connect -> :class:`drivers.base.DeviceError` (the daemon
-  closes and reopens the group; the channels are refused until the module answers again).
+  closes and reopens the group; the channels are refused until the module answers again);
+- an answer whose register count or byte count is not exactly what was asked -> ``DeviceError``
+  naming the device, the address and both counts. pymodbus would take the byte count at its word
+  and drop or invent registers, so the hub decodes FC 3/4 answers itself (:class:`CheckedRegisters`).
 
 pymodbus' own automatic reconnect is switched off (``reconnect_delay=0``): the hub owns the policy.
 """
@@ -17,11 +20,14 @@ from __future__ import annotations
 import asyncio
 import time
 from collections.abc import Sequence
+from typing import Any
 
 from pymodbus import FramerType, ModbusException
 from pymodbus.client import AsyncModbusSerialClient, AsyncModbusTcpClient
+from pymodbus.pdu.register_message import ReadHoldingRegistersResponse, ReadInputRegistersResponse
 
-from drivers.base import DeviceError, HubConfig
+from drivers.base import DeviceError
+from drivers.modbus.config import ModbusHubConfig
 
 #: Modbus application protocol spec v1.1b3, section 7
 EXCEPTION_NAMES: dict[int, str] = {
@@ -55,6 +61,30 @@ class ModbusExceptionError(Exception):
         super().__init__(f"Modbus exception {code} ({name}) from device {device_id} at {where}")
 
 
+class CheckedRegisters(ReadHoldingRegistersResponse):
+    """An FC 3 answer decoded without trusting it: what its byte count says and what it carries.
+
+    pymodbus' own decode reads as many registers as the byte count claims and ignores the rest of
+    the frame; this one keeps every complete register the frame carries, and both counts, for the
+    hub to compare with the request.
+    """
+
+    byte_count = 0
+    data_bytes = 0
+
+    def decode(self, data: bytes) -> None:
+        self.byte_count = data[0] if data else -1
+        payload = data[1:]
+        self.data_bytes = len(payload)
+        self.registers = [int.from_bytes(payload[i : i + 2], "big") for i in range(0, len(payload) - 1, 2)]
+
+
+class CheckedInputRegisters(CheckedRegisters, ReadInputRegistersResponse):
+    """The same for FC 4."""
+
+    function_code = 4
+
+
 class Backoff:
     """Exponential delay between connection attempts; reset by a success."""
 
@@ -79,7 +109,7 @@ class Backoff:
 class ModbusHub:
     """A connection shared by every channel configured with ``hub = <name>``."""
 
-    def __init__(self, config: HubConfig, *, backoff: Backoff | None = None) -> None:
+    def __init__(self, config: ModbusHubConfig, *, backoff: Backoff | None = None) -> None:
         if config.type == "serial" and not isinstance(config.port, str):
             raise ValueError(
                 f"hub {config.name!r}: type = 'serial' needs port = the serial device "
@@ -145,16 +175,21 @@ class ModbusHub:
             if not connected:
                 lost.set()
 
+        client: AsyncModbusTcpClient | AsyncModbusSerialClient
         if c.type == "tcp":
-            return AsyncModbusTcpClient(
+            client = AsyncModbusTcpClient(
                 c.host, port=int(c.port), timeout=c.timeout_s, retries=c.retries, reconnect_delay=0,
                 name=f"hub {c.name}", trace_connect=on_connection_change,
             )
-        return AsyncModbusSerialClient(
-            str(c.port), framer=FramerType.RTU, baudrate=c.baudrate, bytesize=c.bytesize, parity=c.parity,
-            stopbits=c.stopbits, timeout=c.timeout_s, retries=c.retries, reconnect_delay=0,
-            name=f"hub {c.name}", trace_connect=on_connection_change,
-        )
+        else:
+            client = AsyncModbusSerialClient(
+                str(c.port), framer=FramerType.RTU, baudrate=c.baudrate, bytesize=c.bytesize, parity=c.parity,
+                stopbits=c.stopbits, timeout=c.timeout_s, retries=c.retries, reconnect_delay=0,
+                name=f"hub {c.name}", trace_connect=on_connection_change,
+            )
+        for response in (CheckedRegisters, CheckedInputRegisters):  # this client's decoder only
+            client.register(response)
+        return client
 
     def _drop(self) -> None:
         if self._client is not None:
@@ -233,11 +268,15 @@ class ModbusHub:
         if response.isError():
             raise ModbusExceptionError(int(response.exception_code), device_id, input_type, address, count)
         registers: Sequence[int] = response.registers
-        if len(registers) < count:
+        byte_count = getattr(response, "byte_count", 2 * len(registers))
+        data_bytes = getattr(response, "data_bytes", 2 * len(registers))
+        if len(registers) != count or byte_count != 2 * count or data_bytes != 2 * count:
             raise DeviceError(
-                f"modbus hub {self.name!r}: {where}: short answer ({len(registers)} of {count} registers)"
+                f"modbus hub {self.name!r} ({self.endpoint}): malformed answer from {where}: "
+                f"{count} registers ({2 * count} bytes) requested, the answer's byte count says {byte_count} "
+                f"and it carries {data_bytes} data bytes ({len(registers)} registers)"
             )
-        return list(registers[:count])
+        return list(registers)
 
     def _lost_link(self, why: str) -> None:
         # the first reconnection attempt is immediate (a module that rebooted is back at once);
@@ -251,3 +290,58 @@ class ModbusHub:
         if self.config.type == "tcp":
             self._last_error = "no response"
             self._drop()
+
+    # -- writes (an analog output channel) --------------------------------------------------------
+
+    async def write_registers(self, device_id: int, address: int, registers: Sequence[int]) -> None:
+        """Write ``registers`` from ``address``: one register with function 6, several with function 16.
+
+        Serialised on the hub's lock like every read. The device's exception answer is a
+        :class:`ModbusExceptionError`; no answer or a lost link a :class:`DeviceError`.
+        """
+        values = [int(r) & 0xFFFF for r in registers]
+        fc = 6 if len(values) == 1 else 16
+        where = f"device {device_id} holding register {address}" + (f" (count {len(values)})" if fc == 16 else "")
+        async with self._lock:
+            await self._connect_locked()
+            client = self._client
+            assert client is not None
+            try:
+                if fc == 6:
+                    call = asyncio.ensure_future(client.write_register(address, values[0], device_id=device_id))
+                else:
+                    call = asyncio.ensure_future(client.write_registers(address, values, device_id=device_id))
+            except ModbusException as error:  # pymodbus refuses at once when the link just went away
+                self._lost_link(str(error))
+                raise DeviceError(f"modbus hub {self.name!r}: {self.endpoint}: {error} (writing {where})") from error
+            response = await self._answer_locked(call, f"writing {where}")
+        if response.isError():
+            raise ModbusExceptionError(int(response.exception_code), device_id, "holding", address, len(values))
+
+    async def _answer_locked(self, call: asyncio.Future[Any], what: str) -> Any:
+        """The response to ``call``, or :class:`DeviceError` on silence or a lost link (the hub's lock held)."""
+        lost = asyncio.ensure_future(self._lost.wait())
+        self.requests += 1
+        try:
+            done, _ = await asyncio.wait(
+                {call, lost}, timeout=self.request_budget_s + 0.5, return_when=asyncio.FIRST_COMPLETED
+            )
+        except asyncio.CancelledError:
+            self._after_silence()
+            raise
+        finally:
+            lost.cancel()
+            call.cancel()
+        if call in done and call.exception() is None:
+            return call.result()
+        if call in done:
+            self._after_silence()
+            error = call.exception()
+            detail = "no response" if isinstance(error, ModbusException) else repr(error)
+            raise DeviceError(f"modbus hub {self.name!r} ({self.endpoint}): {detail} {what} "
+                              f"within {self.request_budget_s:g} s") from error
+        if lost in done:
+            self._lost_link("connection lost")
+            raise DeviceError(f"modbus hub {self.name!r}: connection to {self.endpoint} lost {what}")
+        self._after_silence()
+        raise DeviceError(f"modbus hub {self.name!r} ({self.endpoint}): no response {what}")

@@ -3,18 +3,24 @@
 from __future__ import annotations
 
 import re
+import string
 from typing import Literal
 
-from pydantic import Field, FiniteFloat, field_validator
+from pydantic import Field, FiniteFloat, field_validator, model_validator
 
-from drivers.base import SensorConfig
+from drivers.base import ActuatorOptions, SensorConfig
 
-#: a number anywhere on its own line: "12345.6", "-0.25", "+1.5e3"
-DEFAULT_PATTERN = r"\s*(?P<value>[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*"
+#: a line that is just a number: "12345.6", "-0.25", "+1.5e3" (anchored: patterns are searched)
+DEFAULT_PATTERN = r"^\s*(?P<value>[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*$"
 
 
 class SerialLineSensorConfig(SensorConfig):
-    """One value per line of text from a serial port (queried, or streamed by the device)."""
+    """One value per line of text from a serial port (queried, or streamed by the device).
+
+    ``pattern`` is *searched* in each line (``re.search``), the way grep finds a pattern: with
+    ``'P (?P<value>[-+0-9.]+) nm'`` the device's ``P +123456.7 nm OK`` reads 123456.7. Anchor it
+    with ``^...$`` to demand that the whole line matches (then ``... OK`` is a fault).
+    """
 
     kind: Literal["serial_line"] = "serial_line"
     port: str = Field(description="anything pyserial's serial_for_url accepts: /dev/ttyUSB0, socket://host:port")
@@ -24,8 +30,8 @@ class SerialLineSensorConfig(SensorConfig):
     stopbits: Literal[1, 1.5, 2] = 1
     query: str = Field(default="", description="sent each interval_s, exactly as written; empty: the device "
                                                "streams lines by itself")
-    pattern: str = Field(default=DEFAULT_PATTERN, description="regex the whole line must match (re.fullmatch), "
-                                                              "with a named group 'value'")
+    pattern: str = Field(default=DEFAULT_PATTERN, description="regex searched in each line (re.search), with a "
+                                                              "named group 'value'; ^...$ demands the whole line")
     scale: FiniteFloat = Field(default=1.0, description="raw -> unit (e.g. nm -> um: 0.001)")
     offset: FiniteFloat = 0.0
     eol: Literal["\r\n", "\n", "\r"] = Field(
@@ -53,3 +59,96 @@ class SerialLineSensorConfig(SensorConfig):
     @property
     def streaming(self) -> bool:
         return self.query == ""
+
+
+#: what a command template may name
+COMMAND_FIELDS = ("voltage_v", "q_um", "x_um")
+ReadbackField = Literal["voltage_v", "q_um", "x_um"]
+
+
+def template_fields(template: str) -> list[str]:
+    """The field names a ``str.format`` template uses, in order (``ValueError`` for a malformed one)."""
+    return [name for _, name, _, _ in string.Formatter().parse(template) if name is not None]
+
+
+class SerialLineActuatorConfig(ActuatorOptions):
+    """``[actuator] kind = "serial_line"``: an ASCII controller, e.g. PI GCS (``SVA`` open-loop voltage,
+    ``MOV`` closed-loop position).
+
+    Each command writes ``command`` formatted with ``voltage_v``, ``q_um`` and ``x_um`` (the target;
+    ``q_um`` when the caller has none). ``readback`` (optional) is sent next; the value its answer
+    carries (``readback_pattern``, searched in the line, named group ``value``) must be within
+    ``readback_tolerance`` of the field the command wrote (``readback_field``; by default the one
+    field the template names). ``error_query`` (optional, GCS: ``"ERR?\\n"``) is sent last; an
+    answer not matching ``error_ok`` is the controller reporting an error. Silence, a garbled
+    answer or a mismatch is an actuator fault.
+    """
+
+    kind: Literal["serial_line"] = "serial_line"
+    port: str = Field(description="anything pyserial's serial_for_url accepts: /dev/ttyUSB1, socket://host:port")
+    baudrate: int = Field(default=115200, gt=0)
+    bytesize: Literal[5, 6, 7, 8] = 8
+    parity: Literal["N", "E", "O", "M", "S"] = "N"
+    stopbits: Literal[1, 1.5, 2] = 1
+    command: str = Field(default="SVA 1 {voltage_v:.4f}\n", description="written for each command (str.format)")
+    readback: str = Field(default="", description="query sent after each command; empty: none")
+    readback_pattern: str = Field(default=r"=(?P<value>[-+0-9.eE]+)", description="searched in the answer")
+    readback_tolerance: FiniteFloat = Field(default=0.001, ge=0, description="in the readback field's unit")
+    readback_field: ReadbackField | None = Field(default=None, description="default: the template's one field")
+    error_query: str = Field(default="", description="sent last, e.g. GCS 'ERR?\\n'; empty: none")
+    error_ok: str = Field(default="0", description="regex the whole answer to error_query matches when all is well")
+    eol: Literal["\r\n", "\n", "\r"] = Field(default="\n", description="how the controller ends its answers")
+    timeout_s: float = Field(default=1.0, gt=0, description="an answer must come within this")
+
+    @field_validator("command")
+    @classmethod
+    def _template(cls, template: str) -> str:
+        try:
+            names = template_fields(template)
+        except ValueError as error:
+            raise ValueError(f"not a valid format template: {error}") from None
+        unknown = sorted({n for n in names if n not in COMMAND_FIELDS})
+        if unknown:
+            raise ValueError(f"unknown field(s) {', '.join('{' + n + '}' for n in unknown)}; "
+                             f"fields: {', '.join(COMMAND_FIELDS)}")
+        if not names:
+            raise ValueError("names none of the fields voltage_v, q_um, x_um: every command would write the same")
+        try:
+            template.format(**dict.fromkeys(COMMAND_FIELDS, 1.0))
+        except (ValueError, IndexError) as error:
+            raise ValueError(f"cannot format a number with it: {error}") from None
+        return template
+
+    @field_validator("readback_pattern")
+    @classmethod
+    def _readback_has_value_group(cls, pattern: str) -> str:
+        try:
+            compiled = re.compile(pattern)
+        except re.error as error:
+            raise ValueError(f"not a valid regular expression: {error}") from None
+        if "value" not in compiled.groupindex:
+            raise ValueError("needs a named group 'value', e.g. '=(?P<value>[-+0-9.eE]+)'")
+        return pattern
+
+    @field_validator("error_ok")
+    @classmethod
+    def _regex(cls, pattern: str) -> str:
+        try:
+            re.compile(pattern)
+        except re.error as error:
+            raise ValueError(f"not a valid regular expression: {error}") from None
+        return pattern
+
+    @model_validator(mode="after")
+    def _readback_field(self) -> SerialLineActuatorConfig:
+        if self.readback and self.readback_field is None:
+            names = set(template_fields(self.command))
+            if len(names) != 1:
+                raise ValueError(f"readback_field: the command names {', '.join(sorted(names))}; say which one the "
+                                 "readback answers (voltage_v, q_um or x_um)")
+        return self
+
+    @property
+    def expected_field(self) -> str:
+        """The field whose value the readback must match."""
+        return self.readback_field or template_fields(self.command)[0]

@@ -9,8 +9,8 @@
 What goes wrong, and how it is reported:
 
 - silence -> a ``fault`` reading, "no line from /dev/ttyUSB0 in 1.0 s" (the port itself is fine);
-- a line that does not match ``pattern`` -> ``fault`` naming what came (truncated repr) and the
-  pattern expected;
+- a line in which ``pattern`` is not found (``re.search``) -> ``fault`` naming what came
+  (truncated repr) and the pattern expected;
 - the port vanished (unplugged, EIO) or cannot be opened -> :class:`DeviceError`; the daemon closes
   and reopens the group. A ``read`` on a vanished port also tries to reopen it by itself, with
   exponential backoff (0.2 s doubling to 10 s), so the channel recovers under any caller.
@@ -54,6 +54,7 @@ class SerialLineGroup(SensorGroup):
         self._arrived = asyncio.Event()
         self._backoff_s = BACKOFF_INITIAL_S
         self._not_before = 0.0  # time.monotonic() before which read() does not reopen
+        self._lock = asyncio.Lock()  # one request/answer at a time on the port (a query, an actuator's command)
 
     def __repr__(self) -> str:
         return f"SerialLineGroup({self.config.name!r}, port={self.config.port!r})"
@@ -140,18 +141,26 @@ class SerialLineGroup(SensorGroup):
         return {self.config.name: self.parse(*line)}
 
     async def _query(self, deadline: float) -> tuple[str, float] | None:
+        async with self._lock:
+            return await self._transaction(self.config.query.encode("latin-1"), deadline, "query")
+
+    async def _transaction(self, data: bytes, deadline: float, what: str,
+                           answer: bool = True) -> tuple[str, float] | None:
+        """Send ``data``, then (``answer``) wait for the next line until ``deadline``; the lock is held."""
+        if self._reader is None:  # closed while this request waited for the lock
+            await self.open()
         assert self._reader is not None
         after = self._seq
         try:
-            await asyncio.wait_for(asyncio.to_thread(self._reader.write, self.config.query.encode("latin-1")),
+            await asyncio.wait_for(asyncio.to_thread(self._reader.write, data),
                                    timeout=max(0.0, deadline - asyncio.get_running_loop().time()))
         except TimeoutError:
             await self.close()
-            raise DeviceError(f"{self.port}: query not sent within {self.config.timeout_s:g} s") from None
+            raise DeviceError(f"{self.port}: {what} not sent within {self.config.timeout_s:g} s") from None
         except Exception as error:  # SerialTimeoutException, SerialException, OSError
             await self.close()  # the next read reopens the port
-            raise DeviceError(f"{self.port}: cannot send query: {error}") from error
-        return await self._line_after(after, deadline)
+            raise DeviceError(f"{self.port}: cannot send {what}: {error}") from error
+        return await self._line_after(after, deadline) if answer else None
 
     async def _newest(self, deadline: float) -> tuple[str, float] | None:
         if self._latest is not None and self.clock.now() - self._latest[1] <= self.config.timeout_s:
@@ -175,7 +184,7 @@ class SerialLineGroup(SensorGroup):
     def parse(self, text: str, t: float) -> Reading:
         """A reading from one received line (garbage -> a fault naming what came and what was expected)."""
         unit = self.config.value_unit
-        match = self._pattern.fullmatch(text)
+        match = self._pattern.search(text)  # grep-like; ^...$ in the pattern demands the whole line
         if match is None:
             shown = text if len(text) <= SHOWN_CHARS else text[:SHOWN_CHARS] + "..."
             return Reading.fault(
@@ -188,3 +197,25 @@ class SerialLineGroup(SensorGroup):
         if not math.isfinite(raw):
             return Reading.fault(t, f"unexpected value from {self.port}: {text!r} is not finite", unit)
         return Reading(value=raw * self.config.scale + self.config.offset, t=t, unit=unit)
+
+    # -- an actuator on this port -----------------------------------------------------------------
+
+    async def exchange(self, data: bytes, *, answer: bool, timeout_s: float) -> str | None:
+        """Write ``data`` and, with ``answer``, return the line that follows (None: silence for ``timeout_s``).
+
+        For an actuator on this port (a controller that is also this sensor, or the actuator's own
+        port): serialised with the sensor's queries by the port's one lock, so every request gets
+        its own answer. :class:`DeviceError` when the port fails or cannot be (re)opened.
+        """
+        async with self._lock:
+            await self._raise_if_vanished()
+            if self._reader is None:
+                wait = self._not_before - time.monotonic()
+                if wait > 0:
+                    raise DeviceError(f"{self.port} is not open; next attempt in {wait:.1f} s")
+                await self.open()
+            deadline = asyncio.get_running_loop().time() + timeout_s
+            line = await self._transaction(data, deadline, repr(data.decode("latin-1")), answer)
+            if answer and line is None:
+                await self._raise_if_vanished()
+            return line[0] if line is not None else None

@@ -1,7 +1,7 @@
 """The simulated cell stepped through time: what the simulated sensors read and the actuator moves.
 
 One instance per daemon/procedure, shared by every simulated sensor group and the actuator (through
-``DriverContext.shared``), so a command moves the stage the interferometer then sees. Time is the
+``DriverContext.resources``), so a command moves the stage the interferometer then sees. Time is the
 clock's, relative to the cell's creation (scenario time 0). Faults can be injected per channel
 for tests and demos: ``fault`` (burnout reading), ``stale`` (the device repeats an old sample),
 ``device_error`` (the link fails: :class:`~drivers.base.DeviceError`).
@@ -10,9 +10,9 @@ for tests and demos: ``fault`` (burnout reading), ``stale`` (the device repeats 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 
@@ -43,14 +43,6 @@ class SimulatedCell:
         self._noise_rng = np.random.default_rng([physics.seed, 3])
         self._last_ok: dict[str, Reading] = {}
         self._offsets = dict(physics.params.offsets_c)
-
-    @classmethod
-    def from_settings(cls, settings: Mapping[str, Any], clock: Clock | None = None) -> SimulatedCell:
-        """From a ``[simulation]`` table (see :class:`drivers.simulated.config.SimulationConfig`)."""
-        from drivers.simulated.config import SimulationConfig
-
-        cfg = settings if isinstance(settings, SimulationConfig) else SimulationConfig.model_validate(dict(settings))
-        return cls(cfg.physics(), clock)
 
     def sim_time(self) -> float:
         return self.clock.now() - self.epoch

@@ -18,16 +18,19 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from drivers.base import SensorConfig
+from drivers.base import ActuatorOptions, SensorConfig
 from drivers.simulated.effects import resolve_effects
 from drivers.simulated.physics import CellParams, CellPhysics
 from drivers.simulated.scenarios import get_scenario
+
+#: the top-level table this plugin owns
+SECTION = "simulation"
 
 _PARAM_NAMES = {f.name for f in fields(CellParams)} - {"offsets_c", "geometry_e_um"}
 
 
 class SimulationConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, strict=True)  # no "2" for 2
 
     scenario: str = Field(default="train", description="room-temperature history (see drivers/simulated/README.md)")
     speed: float = Field(default=1.0, gt=0, description="simulated seconds per wall second")
@@ -75,3 +78,9 @@ class SimulatedSensorConfig(SensorConfig):
     @property
     def source(self) -> str:
         return self.channel or self.name
+
+
+class SimulatedActuatorConfig(ActuatorOptions):
+    """``[actuator] kind = "simulated"``: the simulated stage's closed loop takes each command (no other keys)."""
+
+    kind: Literal["simulated"] = "simulated"

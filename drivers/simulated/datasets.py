@@ -12,8 +12,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 from daemon.calibration.dataset import Dataset
-from daemon.calibration.procedure import PlannedStep, bidirectional_plan, calibration_plan
-from daemon.calibration.validation import validation_plan
+from daemon.calibration.plans import PlannedStep, bidirectional_plan, calibration_plan, validation_plan
 from drivers.simulated.physics import THERMOCOUPLES, CellPhysics
 from drivers.simulated.runs import simulate_steps
 

@@ -9,10 +9,10 @@ The defaults are chosen so that discovery (default settings) names each effect f
 parameter, on a default calibration run: 24 ``train`` cycles (``bidirectional`` for ``hysteresis``).
 Two need more, and why matters: over the 3.3 h of 24 ``train`` cycles the room only falls and rises
 once, so what the four thermocouples cannot explain of a lag of 1-3 h is, to a correlation of 0.97,
-a straight line in time. ``thermal_lag`` is then still named (flagged as alike a drift) but its time
-constant is not identifiable, and ``unmonitored_drift`` is taken for a lag; 48 cycles (6.6 h: the
-room settles, the hidden part's tail shows) separate them. ``tests/test_discovery.py`` checks it all
-with these defaults.
+a straight line in time. The lag's time constant is then not pinned and the two cannot be told
+apart, so discovery mostly names neither (what it named there used to make a fresh run worse);
+48 cycles (6.6 h: the room settles, the hidden part's tail shows) separate them.
+``tests/calibration/test_discovery.py`` checks it all with these defaults.
 """
 
 from __future__ import annotations

@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from daemon.calibration.dataset import Dataset, write_csv
+from daemon.calibration.dataset import Dataset, read_csv, write_csv
 from daemon.model.identify import fit
 from daemon.model.model import Model, save_model
 from drivers.simulated.datasets import simulate_dataset
@@ -24,8 +24,6 @@ def sample_dataset() -> Dataset:
 
 
 def default_model(csv_path: Path) -> Model:
-    from daemon.calibration.dataset import read_csv
-
     return fit(read_csv(csv_path), source="sample_calibration.csv").model
 
 

@@ -1,5 +1,8 @@
 """The ``simulated`` driver kind: sensor groups and an actuator on one shared :class:`SimulatedCell`.
 
+An ordinary plugin (python-can's ``virtual`` bus, pyvisa-sim): it owns the ``[simulation]`` table,
+supplies the cell's clock (scaled wall time in the daemon, a virtual clock in procedures) and, when
+the table is present without ``[[sensors]]``, the paper's four thermocouples and interferometer.
 Temperature sensors with the same poll interval form one group (like one Modbus module answering
 four thermocouples); the interferometer is a group of its own.
 """
@@ -9,20 +12,43 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import ClassVar
 
-from drivers.base import Actuator, DriverContext, Reading, SensorConfig, SensorGroup
+from pydantic import BaseModel
+
+from drivers.base import (
+    Actuator,
+    ActuatorOptions,
+    Clock,
+    DriverContext,
+    DriverPlugin,
+    DriverSetupError,
+    Reading,
+    ScaledClock,
+    SensorConfig,
+    SensorGroup,
+    WallClock,
+)
 from drivers.simulated.cell import CHANNELS, SimulatedCell
-from drivers.simulated.config import SimulatedSensorConfig
+from drivers.simulated.clock import VirtualClock
+from drivers.simulated.config import SECTION, SimulatedActuatorConfig, SimulatedSensorConfig, SimulationConfig
 from drivers.simulated.physics import POSITION_CHANNEL
 
-SHARED_KEY = "simulated.cell"
+RESOURCE_KEY = "simulated.cell"
 
 
 def shared_cell(context: DriverContext) -> SimulatedCell:
-    """The one cell of this daemon/procedure, created on first use from ``context.simulation``."""
-    cell = context.shared.get(SHARED_KEY)
+    """The one cell of this daemon/procedure, created on first use from the ``[simulation]`` table.
+
+    On a :class:`VirtualClock` (procedures) scenario time is clock time, so a resumed calibration
+    continues the same room history; on wall time the scenario starts when the cell is created.
+    """
+    cell = context.resources.get(RESOURCE_KEY)
     if cell is None:
-        cell = SimulatedCell.from_settings(context.simulation or {}, context.clock)
-        context.shared[SHARED_KEY] = cell
+        settings = context.sections.get(SECTION)
+        config = settings if isinstance(settings, SimulationConfig) else SimulationConfig()
+        cell = SimulatedCell(config.physics(), context.clock)
+        if isinstance(context.clock, VirtualClock):
+            cell.epoch = 0.0
+        context.resources[RESOURCE_KEY] = cell
     return cell
 
 
@@ -50,6 +76,8 @@ class SimulatedGroup(SensorGroup):
 class SimulatedActuator(Actuator):
     """Moves the simulated stage: the closed loop takes ``q_um`` (the voltage is informational)."""
 
+    description = "simulated stage"
+
     def __init__(self, cell: SimulatedCell) -> None:
         self.cell = cell
         self.last_voltage_v: float | None = None
@@ -57,7 +85,7 @@ class SimulatedActuator(Actuator):
     async def open(self) -> None:
         return None
 
-    async def command(self, q_um: float, voltage_v: float) -> None:
+    async def command(self, q_um: float, voltage_v: float, *, x_um: float | None = None) -> None:
         self.last_voltage_v = voltage_v
         self.cell.command(q_um)
 
@@ -65,9 +93,13 @@ class SimulatedActuator(Actuator):
         return None
 
 
-class SimulatedPlugin:
+class SimulatedPlugin(DriverPlugin):
     name = "simulated"
     config_model: ClassVar[type[SensorConfig]] = SimulatedSensorConfig
+    section = SECTION
+    section_model = SimulationConfig
+    actuator_model = SimulatedActuatorConfig
+    virtual_cell = True
 
     def create(self, configs: Sequence[SensorConfig], context: DriverContext) -> list[SensorGroup]:
         cell = shared_cell(context)
@@ -75,12 +107,13 @@ class SimulatedPlugin:
                 for c in configs]
         for c in sims:
             if c.source not in CHANNELS:
-                raise ValueError(
+                raise DriverSetupError(
                     f"sensor {c.name}: no simulated channel {c.source!r}; set channel to one of {', '.join(CHANNELS)}"
                 )
             if (c.source == POSITION_CHANNEL) != (c.role == "position"):
                 expected = "position" if c.source == POSITION_CHANNEL else "temperature"
-                raise ValueError(f"sensor {c.name}: simulated channel {c.source} has role {expected}, not {c.role}")
+                raise DriverSetupError(
+                    f"sensor {c.name}: simulated channel {c.source} has role {expected}, not {c.role}")
         groups: list[SensorGroup] = []
         temps: dict[tuple[float, float], list[SimulatedSensorConfig]] = {}
         for c in sims:
@@ -91,8 +124,17 @@ class SimulatedPlugin:
         groups.extend(SimulatedGroup(cell, same) for same in temps.values())
         return groups
 
-    def create_actuator(self, context: DriverContext) -> Actuator:
+    def create_actuator(self, config: ActuatorOptions, context: DriverContext) -> Actuator:
         return SimulatedActuator(shared_cell(context))
+
+    def default_sensors(self, section: BaseModel) -> list[SensorConfig]:
+        return list(default_sensor_configs())
+
+    def make_clock(self, section: BaseModel | None, *, virtual_start_s: float | None = None) -> Clock:
+        if virtual_start_s is not None:
+            return VirtualClock(virtual_start_s)
+        speed = section.speed if isinstance(section, SimulationConfig) else 1.0
+        return ScaledClock(speed) if speed != 1.0 else WallClock()
 
 
 PLUGIN = SimulatedPlugin()

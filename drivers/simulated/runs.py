@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from daemon.calibration.procedure import StepTiming
+from daemon.calibration.plans import StepTiming
 from drivers.simulated.physics import THERMOCOUPLES, CellPhysics
 
 

@@ -1,0 +1,127 @@
+"""The one place where a validated config becomes running driver objects.
+
+Plugins are found by kind through the ``nanodrift.drivers`` entry points; nothing here names one.
+The daemon gets :func:`build_drivers` handed in by ``nanodrift run`` (the service never imports
+this module), the procedures get :func:`procedure_drivers`. The actuator comes from the plugin that
+``[actuator] kind`` names; ``kind = "zenoh"`` is the core's: the daemon's published ``command`` is
+the actuation (no actuator object), a procedure publishes its steps with :class:`ZenohActuator`.
+A virtual cell (the simulated plugin) supplies its own clock: scaled wall time for the daemon, a
+virtual clock for procedures, so a four-hour calibration takes seconds.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+from pydantic import BaseModel
+
+from daemon.bus.actuator import ZenohActuator
+from daemon.config import ZENOH_KIND, Config, parse_config
+from drivers.base import (
+    Actuator,
+    Clock,
+    DriverContext,
+    DriverPlugin,
+    DriverSet,
+    DriverSetupError,
+    SensorGroup,
+    WallClock,
+)
+from drivers.registry import available, load_plugin
+
+
+def _plugins(config: Config) -> dict[str, DriverPlugin]:
+    """Every plugin the config involves: its sensors' kinds, its actuator's and the owners of its sections."""
+    plugins = {kind: load_plugin(kind) for kind in config.kinds()}
+    if config.actuator.kind != ZENOH_KIND:
+        plugins.setdefault(config.actuator.kind, load_plugin(config.actuator.kind))
+    for name in config.sections:
+        for plugin in plugins.values():
+            if plugin.section == name:
+                break
+        else:
+            for kind in available():
+                plugin = load_plugin(kind)
+                if plugin.section == name:
+                    plugins[kind] = plugin
+    return plugins
+
+
+def make_context(config: Config, *, virtual_start_s: float | None = None) -> DriverContext:
+    """The clock, hubs and plugin sections the plugins share."""
+    clock: Clock = WallClock()
+    for plugin in _plugins(config).values():
+        if plugin.virtual_cell:
+            section: BaseModel | None = config.section(plugin.section) if plugin.section else None
+            clock = plugin.make_clock(section, virtual_start_s=virtual_start_s)
+            break
+    return DriverContext(clock=clock, hubs={h.name: h for h in config.hubs}, sections=config.sections)
+
+
+def build_drivers(config: Config, context: DriverContext | None = None, *,
+                  virtual_start_s: float | None = None) -> DriverSet:
+    """Sensor groups and the actuator of ``config`` (from the plugin ``[actuator] kind`` names).
+
+    ``context``: reuse a running one (a reload that keeps the simulated cell keeps its state).
+    With ``kind = "zenoh"`` the actuator is None: the daemon's own ``command`` publication is what
+    the lab's output node applies. Raises :class:`DriverSetupError` naming the kind when a plugin
+    refuses its sensors or its actuator.
+    """
+    context = context or make_context(config, virtual_start_s=virtual_start_s)
+    groups: list[SensorGroup] = []
+    plugins = _plugins(config)
+    for kind, plugin in plugins.items():
+        configs = [s for s in config.sensors if s.kind == kind]
+        try:
+            if configs:
+                groups.extend(plugin.create(configs, context))
+        except Exception as error:
+            raise DriverSetupError(f"driver {kind!r}: {error}") from error
+    actuator: Actuator | None = None
+    kind, options = config.actuator.kind, config.actuator.options
+    if kind != ZENOH_KIND:  # after the sensors: the actuator shares their connections
+        try:
+            if options is None:
+                raise DriverSetupError("[actuator] was not validated by its plugin (use parse_config)")
+            actuator = plugins[kind].create_actuator(options, context)
+        except Exception as error:
+            raise DriverSetupError(f"actuator kind {kind!r}: {error}") from error
+    description = "simulated cell" if config.virtual_cell else "hardware"
+    return DriverSet(
+        context=context,
+        groups=groups,
+        actuator=actuator,
+        roles={s.name: s.role for s in config.sensors},
+        max_age_s={s.name: s.max_age_s for s in config.sensors},
+        description=description,
+    )
+
+
+def procedure_drivers(config: Config, *, start_s: float = 0.0) -> DriverSet:
+    """What a calibration or validation drives: the config's drivers, a virtual clock for a simulated
+    cell (scenario time ``start_s``), and with ``kind = "zenoh"`` the Zenoh actuator (each step
+    published on ``nanodrift/<cell>/command`` for the lab's output node)."""
+    drivers = build_drivers(config, virtual_start_s=start_s if config.virtual_cell else None)
+    if drivers.position_channel is None:
+        raise DriverSetupError("the config has no position sensor (role = \"position\"); a procedure needs one")
+    if config.virtual_cell:
+        drivers.description = "simulated cell (virtual clock)"
+    elif drivers.actuator is None:
+        actuator = ZenohActuator(config)
+        drivers.actuator = actuator
+        drivers.description = f"hardware; stage commands published on {actuator.key}"
+    else:
+        drivers.description = f"hardware; stage driven by the {drivers.actuator.description}"
+    return drivers
+
+
+def simulated_drivers(scenario: str = "train", effects: object = None, seed: int = 0, *, start_s: float = 0.0,
+                      params: Mapping[str, float] | None = None) -> DriverSet:
+    """The paper's cell, simulated, for a procedure: a virtual clock starting at scenario time ``start_s``."""
+    settings: dict[str, Any] = {"scenario": scenario, "seed": seed}
+    if effects:
+        settings["effects"] = effects if not isinstance(effects, str) else [effects]
+    if params:
+        settings["params"] = dict(params)
+    return procedure_drivers(parse_config({"simulation": settings}, source="<simulated cell>"), start_s=start_s)

@@ -1,0 +1,276 @@
+"""The Zenoh wire format in one place: keys, a target in, every payload out (ARCHITECTURE.md, Zenoh).
+
+Bytes in, bytes out, no session: the contract can be tested (and is pinned byte for byte in
+``tests/bus/test_payload_bytes.py``) without a network.
+
+- :class:`Keys`: the key expressions under ``nanodrift/<cell>/``.
+- :func:`parse_target`: a client's payload -> :class:`Target`, or a :class:`Refusal` saying what was
+  wrong. The usual target is matched by a regular expression without building a dict.
+- :class:`Command`: one answer on ``command``; :func:`encode_command` is the one encoder that turns
+  it into bytes. :func:`encode_error` and :func:`encode_telemetry` write the other payloads.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, fields
+from operator import attrgetter
+from types import MappingProxyType
+from typing import Any
+
+#: targets larger than this are refused unread (a target is ~40 bytes)
+MAX_PAYLOAD_BYTES = 4096
+#: longest string id echoed back
+MAX_ID_CHARS = 200
+_ID_LIMIT = 2**63
+
+
+class Keys:
+    """The contract's key expressions for one cell."""
+
+    def __init__(self, cell: str) -> None:
+        self.prefix = f"nanodrift/{cell}"
+        self.target = f"{self.prefix}/target"
+        self.command = f"{self.prefix}/command"
+        self.error = f"{self.prefix}/error"
+        self.compensate = f"{self.prefix}/compensate"
+        self.status = f"{self.prefix}/status"
+        self.alive = f"{self.prefix}/alive"
+
+    def telemetry(self, role: str, channel: str) -> str:
+        if role == "position":
+            return f"{self.prefix}/sensors/position"
+        return f"{self.prefix}/sensors/temperature/{channel}"
+
+
+# --- a target in --------------------------------------------------------------------------------
+
+
+class Refusal(Exception):
+    """A target that gets an ``error`` instead of a ``command``; ``kind`` feeds the counters."""
+
+    __slots__ = ("id", "kind", "message")
+
+    def __init__(self, kind: str, message: str, target_id: Any = None) -> None:
+        super().__init__(message)
+        self.kind = kind
+        self.message = message
+        self.id = target_id
+
+
+@dataclass(slots=True)
+class Target:
+    id: str | int | None
+    x_um: float
+
+
+class Oversized(bytes):
+    """Stands for a payload too large to copy out of Zenoh at all; ``size`` is its length."""
+
+    size: int
+
+    @classmethod
+    def of(cls, size: int) -> Oversized:
+        marker = cls()
+        marker.size = size
+        return marker
+
+
+_WS = rb"[ \t\n\r]*"  # JSON's whitespace (not \s: \f and \v are not JSON)
+_NUMBER = rb"(-?(?:0|[1-9][0-9]*)(?:\.[0-9]+)?(?:[eE][+-]?[0-9]+)?)"
+_ID = rb'(?:(-?(?:0|[1-9][0-9]{0,17}))|"([A-Za-z0-9_.:/+@#-]{0,200})"|null)'  # no escapes: literal == value
+_X_FIELD = rb'"x_um"' + _WS + rb":" + _WS + _NUMBER
+_ID_FIELD = rb'"id"' + _WS + rb":" + _WS + _ID
+#: the usual target, ``{"x_um": 12.5, "id": 7}`` in either order, matched without building a dict;
+#: anything else (escapes, extra keys, odd ids, errors) goes through json.loads and full checks
+_FAST_X_ID = re.compile(rb"\{" + _WS + _X_FIELD + _WS + rb"(?:," + _WS + _ID_FIELD + _WS + rb")?\}" + _WS)
+_FAST_ID_X = re.compile(
+    rb"\{" + _WS + _ID_FIELD.replace(b"(?:(", b"(?:(?P<i>", 1).replace(b'"(', b'"(?P<s>', 1) + _WS + rb"," + _WS
+    + _X_FIELD.replace(b"(-?(?:0", b"(?P<x>-?(?:0", 1) + _WS + rb"\}" + _WS
+)
+
+
+def parse_target(payload: bytes, max_bytes: int = MAX_PAYLOAD_BYTES) -> Target:
+    """Decode ``{"x_um": number, "id": string|int}``; a :class:`Refusal` for anything else."""
+    if len(payload) > max_bytes or type(payload) is Oversized:
+        size = payload.size if isinstance(payload, Oversized) else len(payload)
+        raise Refusal("bad_payload", f"payload of {size} bytes exceeds the {max_bytes}-byte limit")
+    match = _FAST_X_ID.fullmatch(payload.lstrip(b" \t\n\r"))
+    if match is not None:
+        x_text, int_id, str_id = match.groups()
+    else:
+        match = _FAST_ID_X.fullmatch(payload.lstrip(b" \t\n\r"))
+        if match is not None:
+            x_text, int_id, str_id = match["x"], match["i"], match["s"]
+    if match is not None:
+        x = float(x_text)
+        if x - x == 0.0:  # finite (1e999 parses to inf: the full path words the refusal)
+            target_id = int(int_id) if int_id is not None else (str_id.decode() if str_id is not None else None)
+            return Target(target_id, x)
+    try:
+        doc = json.loads(payload.decode("utf-8"))  # NaN/Infinity parse, so the id survives; x is checked below
+    except (UnicodeDecodeError, ValueError, RecursionError) as error:
+        reason = "not UTF-8 text" if isinstance(error, UnicodeDecodeError) else f"not valid JSON ({error})"
+        raise Refusal("bad_payload", f"payload is {reason}; expected {{\"x_um\": number, \"id\": ...}}") from None
+    return validate_target(doc)
+
+
+def _id_of(doc: dict[str, Any]) -> tuple[Any, str | None]:
+    """The target's id and, if it is unusable, why."""
+    if "id" not in doc or doc["id"] is None:
+        return None, None
+    value = doc["id"]
+    if isinstance(value, bool) or not isinstance(value, str | int):
+        return None, f"'id' must be a string or an integer, got {type(value).__name__}"
+    if isinstance(value, str) and len(value) > MAX_ID_CHARS:
+        return None, f"'id' longer than {MAX_ID_CHARS} characters"
+    if isinstance(value, int) and abs(value) >= _ID_LIMIT:
+        return None, "'id' integer out of range (|id| < 2^63)"
+    return value, None
+
+
+def validate_target(doc: Any) -> Target:
+    """The full checks on a decoded document (what the fast path in :func:`parse_target` must agree with)."""
+    if not isinstance(doc, dict):
+        raise Refusal("bad_payload", f"payload must be a JSON object, got {type(doc).__name__}")
+    target_id, id_problem = _id_of(doc)
+    if id_problem:
+        raise Refusal("bad_payload", id_problem)
+    if "x_um" not in doc:
+        raise Refusal("bad_payload", "missing field 'x_um' (target position in um)", target_id)
+    x = doc["x_um"]
+    if isinstance(x, bool) or not isinstance(x, int | float):
+        raise Refusal("bad_payload", f"'x_um' must be a number, got {type(x).__name__}", target_id)
+    try:
+        x = float(x)
+    except OverflowError:
+        x = math.inf
+    if not math.isfinite(x):
+        raise Refusal("bad_payload", "'x_um' must be a finite number", target_id)
+    return Target(target_id, x)
+
+
+# --- payloads out -------------------------------------------------------------------------------
+
+
+@dataclass(slots=True)
+class Command:
+    """One answer on ``command`` (and a ``compensate`` reply). The fields are the payload's keys, in
+    wire order; the optional ones at the end are left out of the payload when None (a procedure step
+    has a ``procedure`` and no ``extrapolating``). Treat it as immutable once encoded."""
+
+    id: str | int | None
+    x_um: float
+    q_um: float
+    voltage_v: float
+    temperatures_c: Mapping[str, float]
+    model: str | None
+    t: float  # unix seconds
+    extrapolating: Sequence[str] | None = None  # names outside the model's training range ("x", channels)
+    procedure: str | None = None  # the calibration or validation that sent this step
+
+
+_KEYS = tuple(f.name for f in fields(Command))
+_OPTIONAL = frozenset(f.name for f in fields(Command) if f.default is None)
+_values = attrgetter(*_KEYS)
+_encode_string = json.JSONEncoder().encode  # a str (or None) -> its JSON literal (C fast path)
+#: (temperatures, model, the daemon's command as a %-template with both filled in)
+_template_cache: tuple[object, object, str] = (object(), object(), "")
+
+
+def command_doc(command: Command) -> dict[str, Any]:
+    """``command`` as the JSON object of the contract (what :func:`encode_command` writes)."""
+    doc: dict[str, Any] = {}
+    for key, value in zip(_KEYS, _values(command), strict=True):
+        if value is None and key in _OPTIONAL:
+            continue
+        if key == "temperatures_c":
+            value = dict(value)
+        elif key == "extrapolating":
+            value = list(value)
+        doc[key] = value
+    return doc
+
+
+def _daemon_template(temps: Mapping[str, float], model: str | None) -> str:
+    """The daemon's command (every required key, then ``extrapolating``) with its temperatures and
+    model written in, the rest left as %-fields: id, x_um, q_um, voltage_v, t, extrapolating."""
+    parts = []
+    for key in _KEYS:
+        if key == "temperatures_c":
+            value = dumps(dict(temps)).decode().replace("%", "%%")
+        elif key == "model":
+            value = _encode_string(model).replace("%", "%%")
+        elif key == "extrapolating":
+            value = "[%s]"
+        elif key in _OPTIONAL:
+            continue
+        else:
+            value = "%s"
+        parts.append(f"{_encode_string(key)}:{value}")
+    return "{" + ",".join(parts) + "}"
+
+
+def encode_command(command: Command) -> bytes:
+    """``command`` as compact JSON, equal to :func:`dumps` of :func:`command_doc`.
+
+    The daemon's commands (finite floats, an int/str/None id, temperatures in a read-only mapping)
+    take one string format: ``json.dumps`` of a dict costs twice as much on the hot path. The
+    format, with the temperatures and the model id written in, is kept while the same two objects
+    come back (the compensator makes a new mapping once per sensor update, not per target).
+    Anything else (a procedure step, numpy numbers, a NaN) goes through ``json``.
+    """
+    global _template_cache
+    target_id, x, q, v, temps, model, t, extrapolating, procedure = _values(command)
+    if (type(x) is float and type(q) is float and type(v) is float and type(t) is float
+            and procedure is None and extrapolating is not None and (x + q + v + t) - (x + q + v + t) == 0.0):
+        if target_id is None:
+            id_json = "null"
+        elif type(target_id) is int:
+            id_json = int.__repr__(target_id)
+        elif type(target_id) is str:
+            id_json = _encode_string(target_id)
+        else:
+            return dumps(command_doc(command))
+        cached_temps, cached_model, template = _template_cache
+        if temps is not cached_temps or model is not cached_model:
+            template = _daemon_template(temps, model)
+            if type(temps) is MappingProxyType:  # read-only: safe to remember by identity
+                _template_cache = (temps, model, template)
+        names = ",".join([_encode_string(n) for n in extrapolating]) if extrapolating else ""
+        return (template % (id_json, x, q, v, t, names)).encode()
+    return dumps(command_doc(command))
+
+
+def encode_error(refusal: Refusal) -> bytes:
+    """The ``error`` payload (and a ``compensate`` reply error) for a refused target."""
+    return dumps({"id": refusal.id, "error": refusal.message, "kind": refusal.kind})
+
+
+def encode_telemetry(value: float | None, unit: str, t: float | None, state: str, reason: str = "") -> bytes:
+    """A ``sensors/...`` sample; ``reason`` only when there is one (a fault, a stale channel)."""
+    doc: dict[str, Any] = {"value": value, "unit": unit, "t": t, "state": state}
+    if reason:
+        doc["reason"] = reason
+    return dumps(doc)
+
+
+def dumps(doc: Mapping[str, Any]) -> bytes:
+    """JSON for the bus; non-finite floats (a faulted reading) become null."""
+    try:
+        return json.dumps(doc, allow_nan=False, separators=(",", ":")).encode()
+    except ValueError:
+        return json.dumps(_finite(doc), separators=(",", ":")).encode()
+
+
+def _finite(value: Any) -> Any:
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, Mapping):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    return value

@@ -1,0 +1,12 @@
+"""Discovery: where a model and measured data disagree, which physical effect is missing, and its terms.
+
+Pure computation (numpy/scipy, no I/O). The method, step by step and with its special rules, is in
+``METHOD.md`` beside this file. The modules, in the order the workflow uses them: ``settings`` (the
+bar), ``diagnostics`` (residual structure), ``workspace`` (the regression), ``candidates`` (judging
+one), ``catalogue`` (the effects), ``workflow`` (the loop), ``summary`` (the finding in words).
+"""
+
+from daemon.calibration.discovery.candidates import Candidate
+from daemon.calibration.discovery.workflow import DiscoveryError, DiscoveryResult, discover
+
+__all__ = ["Candidate", "DiscoveryError", "DiscoveryResult", "discover"]

@@ -1,0 +1,73 @@
+"""The finding in words, for the operator: what the residuals track and what each named step did."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+from daemon.calibration.discovery.candidates import Candidate
+from daemon.calibration.discovery.diagnostics import Disagreement
+
+
+def _describe(c: Candidate) -> str:
+    p = c.params
+    if c.effect == "thermal_lag":
+        return (f"a first-order thermal lag of {p['tau_s'] / 60:.0f} min on {p['channel']} (term {c.add[-1].name}; "
+                f"about {p['tau_behind_fastest_s'] / 60:.0f} min behind the fastest channel)")
+    if c.effect == "temperature_rate":
+        return f"the rate of change of {p['channel']}, smoothed over {p['tau_s']:.0f} s (term {c.add[-1].name})"
+    if c.effect == "creep":
+        return f"creep after each step with a time constant of {p['tau_s']:g} s (term {c.add[0].name})"
+    if c.effect == "hysteresis":
+        return "hysteresis: an offset that depends on the direction of approach (term dir)"
+    if c.effect == "position_thermal_coupling":
+        return f"a position-thermal coupling, the stage's gain changing with {p['channel']} (term {c.add[0].name})"
+    if c.effect == "geometric_order":
+        return f"a higher geometric order (term {c.add[0].name})"
+    if c.effect == "unmonitored_drift":
+        return (f"a drift of {p.get('rate_um_per_h', 0):+.3f} µm/h that no sensor explains (not applied online: "
+                "add a sensor near its source, e.g. the interferometer's dead path)")
+    if c.effect == "missing_channel":
+        return f"channel {p['channel']}, which the model had left out (term {p['channel']})"
+    if c.effect == "sensor_exclusion":
+        return f"leaving out channel {p['channel']}, which fits the training blocks but hurts held-out ones"
+    return c.effect
+
+
+
+def summarise(disagreements: Sequence[Disagreement], steps: Sequence[Candidate], baseline: Mapping[str, Any],
+              final: Mapping[str, Any], untestable: Sequence[Mapping[str, str]] = ()) -> str:
+    """The finding in words, for the operator; then what this run could not test, and how to test it."""
+    lines = []
+    top = [d for d in disagreements if d.significant][:3]
+    if top:
+        where = "; ".join(f"{d.description} (bins differ by {d.spread_um * 1000:.0f} nm, p = {d.p_value:.1g})"
+                          for d in top)
+        lines.append(f"Residuals track: {where}.")
+    else:
+        lines.append("Residuals show no significant structure against time, position, temperatures, "
+                     "their rates, direction or steps.")
+    if not steps:
+        lines.append(f"No missing effect clears the bar; the model stands "
+                     f"(held-out RMS {baseline['holdout_rms_um'] * 1000:.1f} nm).")
+    for i, s in enumerate(steps, 1):
+        lines.append(
+            f"Step {i}: {_describe(s)} cuts the held-out RMS from {s.holdout_rms_before_um * 1000:.1f} to "
+            f"{s.holdout_rms_after_um * 1000:.1f} nm ({100 * s.holdout_gain:.0f} % of the gap; p = {s.p_value:.1g})."
+        )
+        if s.params.get("alike"):
+            lines.append(f"  In this run it looks like {s.params['alike']} (their columns correlate "
+                         f"{s.params['alike_correlation']:.2f} beyond the model's terms: the room fell and rose "
+                         "once), so the two are told apart by noise and a time constant is not pinned; a longer "
+                         "run, in which the room settles, tells them apart.")
+        if s.params.get("readmitted"):
+            lines.append(f"  With it in, the model's own selection re-admits {', '.join(s.params['readmitted'])}, "
+                         "which the hidden effect had masked.")
+    if steps:
+        lines.append(
+            f"Overall the held-out RMS went from {baseline['holdout_rms_um'] * 1000:.1f} to "
+            f"{final['holdout_rms_um'] * 1000:.1f} nm ({100 * final['holdout_gap_removed']:.0f} % removed)."
+        )
+    for blind in untestable:
+        lines.append(f"This run cannot show {blind['effect']}: {blind['reason']}; {blind['hint']}.")
+    return "\n".join(lines)

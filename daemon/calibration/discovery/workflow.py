@@ -1,0 +1,254 @@
+"""The discover() loop: try the catalogue, name the best effect, refit, re-admit, repeat; then the model."""
+
+from __future__ import annotations
+
+import datetime as dt
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from daemon.calibration.dataset import Dataset
+from daemon.calibration.discovery.candidates import Candidate, Context, round_sig
+from daemon.calibration.discovery.catalogue import PROPOSERS, channel_delays, drift_alike, told_apart, untestable
+from daemon.calibration.discovery.diagnostics import (
+    Disagreement,
+    durbin_watson,
+    lag1_autocorr,
+    residual_structure,
+    structure_variables,
+)
+from daemon.calibration.discovery.settings import DEFAULT_SETTINGS, NOT_APPLIED_ONLINE, Settings
+from daemon.calibration.discovery.summary import summarise
+from daemon.model.identify import holdout_blocks, model_covariance, ols, software
+from daemon.model.model import FittedTerm, Model, Training
+from daemon.model.stepwise import stepwisefit
+from daemon.model.terms import Bias, Term, UnknownTermError, parse_term
+
+
+class DiscoveryError(ValueError):
+    """The data cannot support discovery (too few rows, no q column); the message says why."""
+
+
+def selection_pool(model: Model, data: Dataset) -> list[Term]:
+    """The terms the given model's own selection chose from (its stepwise candidates) that the data can feed."""
+    pool = []
+    for name in model.selection.get("candidates") or []:
+        try:
+            term = parse_term(str(name))
+        except UnknownTermError:
+            continue
+        if not isinstance(term, Bias) and all(c in data.channels for c in term.channels):
+            pool.append(term)
+    return pool
+
+
+def readmit(data: Dataset, working: Sequence[Term], nuisance: Mapping[str, np.ndarray], pool: Sequence[Term],
+            excluded: set[str], penter: float, premove: float) -> list[Term]:
+    """Terms of the given model's pool that its own stepwise admits once the named effect's terms are in.
+
+    A large hidden effect inflates the residual the paper's selection sees, so it can leave out a
+    channel the cell needs (creep or hysteresis masking T2). Once the effect is named, the same
+    selection (same ``penter``, the working terms kept) re-admits what it masked, as part of that
+    step: otherwise the next round "finds" the masked channel again, dressed as a lag or a missing
+    channel. Additions only; excluded channels stay out. The caller keeps them only if they also
+    lower the held-out RMS (the stepwise's p-values take rows as independent).
+    """
+    have = set(working)
+    optional = [t for t in pool if t not in have and not excluded.intersection({t.name, *t.channels})]
+    if not optional:
+        return []
+    t, x = np.asarray(data.t, dtype=np.float64), np.asarray(data.x, dtype=np.float64)
+    cols = [term.batch(t, x, data.channels) for term in [*working, *optional]]
+    forced = len(working) + len(nuisance)
+    X = np.column_stack(cols[: len(working)] + list(nuisance.values()) + cols[len(working):])
+    keep = np.arange(X.shape[1]) < forced
+    result = stepwisefit(X, np.asarray(data.q, dtype=np.float64), penter=penter, premove=max(premove, penter),
+                         inmodel=keep.copy(), keep=keep)
+    return [term for j, term in enumerate(optional) if result.inmodel[forced + j]]
+
+
+
+@dataclass
+class Round:
+    """One pass over the catalogue: every candidate tried, and the one named (if any)."""
+
+    candidates: list[Candidate]
+    chosen: Candidate | None
+
+
+@dataclass
+class DiscoveryResult:
+    baseline: dict[str, Any]
+    disagreements: list[Disagreement]
+    steps: list[Candidate]
+    rounds: list[Round]
+    final: dict[str, Any]
+    model: Model
+    residual_before: np.ndarray  # the given model's residual, um
+    residual_after: np.ndarray  # the extended model's residual (nuisance included), um
+    variables: dict[str, tuple[str, np.ndarray]]
+    summary: str
+    #: effects this run's trajectory cannot show, with the run that would (also in ``final["untestable"]``)
+    untestable: list[dict[str, str]] = field(default_factory=list)
+    settings: Settings = DEFAULT_SETTINGS
+
+    @property
+    def found(self) -> bool:
+        """Whether an effect was named; if not, ``model`` is the given model and nothing new should be written."""
+        return bool(self.steps)
+
+    def to_dict(self, model_out: str | None = None) -> dict[str, Any]:
+        return {
+            "baseline": self.baseline,
+            "disagreements": [d.to_dict() for d in self.disagreements],
+            "steps": [s.to_dict() for s in self.steps],
+            "final": self.final,
+            "model_out": model_out,
+        }
+
+
+def _rms(r: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(r)))) if r.size else math.nan
+
+
+def _folds(data: Dataset) -> np.ndarray:
+    folds = holdout_blocks(data)
+    if np.any(np.diff(folds) < 0) or np.unique(folds).size < 2:  # cycles out of time order: time blocks
+        n = len(data)
+        folds = (np.arange(n) * 5) // max(n, 1)
+    return folds
+
+
+def _final_model(data: Dataset, given: Model, terms: list[Term], nuisance: dict[str, np.ndarray],
+                 steps: list[Candidate], settings: Settings) -> tuple[Model, np.ndarray]:
+    """Refit every working term (and nuisance) on all rows, then drop the nuisance.
+
+    The nuisance (an unmonitored drift in run time) is taken at the start of the run, where the
+    interferometer was zeroed (paper III.A): the model keeps clean thermal coefficients and the
+    bias of the zeroed cell, and predicts nothing for a drift no sensor sees.
+    """
+    assert data.q is not None
+    y = np.asarray(data.q, dtype=np.float64)
+    feats = [t.batch(data.t, data.x, data.channels) for t in terms]
+    cols = feats + list(nuisance.values())
+    fit = ols(np.column_stack(cols), y)
+    k = len(terms)
+    bias = fit.intercept + sum(float(fit.coef[k + j] * v[0]) for j, v in enumerate(nuisance.values()))
+    fitted = [FittedTerm(t, float(fit.coef[i]), float(fit.se[i]), float(fit.p[i])) for i, t in enumerate(terms)]
+    fitted.append(FittedTerm(Bias(), bias, fit.intercept_se, fit.intercept_p))
+    covariance = model_covariance(np.column_stack(cols), y, fit, data, terms,
+                                  np.column_stack(list(nuisance.values())) if nuisance else None)
+    residual_full = y - fit.intercept - np.column_stack(cols) @ fit.coef
+    channels = [c for c in data.channels if any(c in t.channels for t in terms)]
+    selection = dict(given.selection)
+    selection["discovery"] = {
+        "base_model": given.id,
+        "steps": [s.to_dict() for s in steps],
+        "p_max": settings.p_max,
+        "min_holdout_gain": settings.min_holdout_gain,
+        "not_applied_online": {
+            name: "fitted as a nuisance during discovery, left out of the model (0 at the start of the run)"
+            for name in nuisance
+        },
+    }
+    model = Model(
+        terms=fitted,
+        training=Training.of(data, channels),
+        fit={"rmse_um": fit.rmse, "r2": fit.r2, "dof": fit.dof, "rows": len(data),
+             "residual_rms_nm": _rms(residual_full) * 1000.0},
+        selection=selection,
+        provenance={**given.provenance, "software": software(),
+                    "created": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+                    "discovered_from": data.source, "base_model": given.id},
+        covariance=covariance,
+    )
+    return model, residual_full
+
+
+def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS) -> DiscoveryResult:
+    """The whole workflow on one recorded run: disagreements, named effects, the extended model."""
+    data = data.valid_rows()
+    if data.q is None:
+        raise DiscoveryError(f"{data.source}: no q_um column (the command sent to the stage) to compare with")
+    n = len(data)
+    model.check_channels(list(data.channels), data.source)
+    working = [ft.term for ft in model.terms if not isinstance(ft.term, Bias)]
+    if n < 3 * (len(working) + 4):
+        raise DiscoveryError(f"{data.source}: {n} rows are too few to test effects on a {len(working)}-term model")
+    q = np.asarray(data.q, dtype=np.float64)
+    residual0 = q - model.predict(data)
+    variables = structure_variables(data, settings)
+    disagreements = residual_structure(residual0, variables, settings)
+    folds = _folds(data)
+    delays = channel_delays(data)
+    nuisance: dict[str, np.ndarray] = {}
+    steps: list[Candidate] = []
+    rounds: list[Round] = []
+    excluded: set[str] = set()
+    pool = selection_pool(model, data)
+    penter = float(model.selection.get("penter", 0.05))
+    premove = float(model.selection.get("premove", 0.10))
+    ctx = Context(data, working, nuisance, folds, settings, excluded, delays)
+    baseline = {
+        "model": model.id, "terms": [ft.term.name for ft in model.terms], "rows": n,
+        "rms_um": _rms(residual0), "refit_rms_um": math.sqrt(ctx.sse0 / n),
+        "holdout_rms_um": math.sqrt(ctx.held0 / n), "durbin_watson": durbin_watson(residual0),
+        "lag1_autocorr": lag1_autocorr(residual0), "holdout_blocks": int(np.unique(folds).size),
+    }
+    for _ in range(settings.max_steps):
+        cands = told_apart([c for propose in PROPOSERS.values() for c in propose(ctx)], settings)
+        cands = [c for c in cands if not (c.effect == "sensor_exclusion" and c.params["channel"] in excluded)]
+        winners = sorted((c for c in cands if c.clears), key=lambda c: c.rank_key(settings))
+        chosen = winners[0] if winners else None
+        rounds.append(Round(cands, chosen))
+        if chosen is None:
+            break
+        if chosen.effect == "unmonitored_drift":
+            coef = _nuisance_coef(ctx, chosen.nuisance)
+            chosen.params = {"rate_um_per_h": round_sig(-coef["t"], 3)}
+        if chosen.effect == "thermal_lag":
+            chosen.params.update(drift_alike(ctx, chosen))
+        steps.append(chosen)
+        working = [t for t in working if t not in chosen.remove] + chosen.add
+        excluded.update(t.name for t in chosen.remove)
+        nuisance.update(chosen.nuisance)
+        ctx = Context(data, working, nuisance, folds, settings, excluded, delays)
+        back = readmit(data, working, nuisance, pool, excluded, penter, premove)
+        if back:  # the stepwise is in-sample: keep what it re-admits only if held-out blocks agree
+            wider = Context(data, working + back, nuisance, folds, settings, excluded, delays)
+            if wider.held0 < ctx.held0:
+                chosen.params["readmitted"] = [t.name for t in back]
+                working, ctx = working + back, wider
+    extended, residual1 = _final_model(data, model, working, nuisance, steps, settings)
+    coefs = {ft.term.name: ft.coef for ft in extended.terms}
+    for step in steps:
+        if step.add:
+            step.params["coef"] = {t.name: coefs[t.name] for t in step.add if t.name in coefs}
+    extended.selection["discovery"]["steps"] = [s.to_dict() for s in steps]
+    final = {
+        "model": extended.id, "terms": extended.term_names(), "rms_um": _rms(residual1),
+        "holdout_rms_um": math.sqrt(ctx.held0 / n),
+        "not_applied_online": [s.effect for s in steps if s.effect in NOT_APPLIED_ONLINE],
+    }
+    gap0 = baseline["holdout_rms_um"]
+    final["holdout_gap_removed"] = (gap0 - final["holdout_rms_um"]) / gap0 if gap0 > 0 else 0.0
+    if not steps:  # nothing named: the given model stands (a refit under a new id would be the same model)
+        extended = model
+        final["model"] = model.id
+    blind = untestable(data, settings)
+    final["untestable"] = blind
+    summary = summarise(disagreements, steps, baseline, final, blind)
+    final["summary"] = summary
+    return DiscoveryResult(baseline, disagreements, steps, rounds, final, extended, residual0, residual1,
+                           variables, summary, blind, settings)
+
+
+def _nuisance_coef(ctx: Context, nuisance: Mapping[str, np.ndarray]) -> dict[str, float]:
+    """Coefficients (original units) of nuisance columns added to the working model."""
+    cols = [t.batch(ctx.t, ctx.x, ctx.data.channels) for t in ctx.terms] + list(ctx.nuisance.values())
+    extra = list(nuisance.values())
+    fit = ols(np.column_stack(cols + extra), np.asarray(ctx.data.q, dtype=np.float64))
+    return {name: float(fit.coef[len(cols) + j]) for j, name in enumerate(nuisance)}

@@ -1,0 +1,89 @@
+"""``nanodrift calibrate``: the paper's procedure (Fig. 6, 7) on the configured cell, then the fit.
+
+With no ``--config`` the cell is simulated on a virtual clock (a 4-hour calibration in seconds).
+On hardware the configured actuator moves the stage, ``[procedure]`` sets the trajectory and timing,
+and the run is refused while a daemon serves the cell; it stops within its first steps when the
+position sensor does not see the stage move.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import sys
+from pathlib import Path
+
+from daemon.calibration.dataset import DataError
+from daemon.calibration.plans import bidirectional_plan, calibration_plan
+from daemon.commands._cell import guards, open_cell
+from daemon.commands.fit import training_lines
+from daemon.errors import UserError
+from daemon.model.equation import equation
+from daemon.model.identify import FitError
+from daemon.procedure.follow import StageNotFollowingError
+from daemon.procedure.preflight import PreflightError
+from daemon.procedure.recording import (
+    calibration_columns,
+    completed_steps,
+    fit_recorded,
+    record_calibration,
+    resume_hint,
+)
+
+
+def _data_path(args: argparse.Namespace) -> Path:
+    if args.data:
+        return Path(args.data)
+    out = Path(args.out)
+    return out.with_name(out.stem + "_data.csv")
+
+
+def main(args: argparse.Namespace) -> int:
+    if args.cycles is not None and args.cycles < 1:
+        raise UserError(f"--cycles must be at least 1, got {args.cycles}")
+    data = _data_path(args)
+    if args.resume and not data.exists():
+        raise UserError(f"--resume: {data} does not exist (nothing to continue)")
+    config, drivers = open_cell(args.config, args, "train")
+    columns = calibration_columns(drivers)
+    cycles = args.cycles if args.cycles is not None else config.procedure.cycles
+    points = config.procedure.calibration_points
+    plan = (bidirectional_plan if _is_bidirectional(args) else calibration_plan)(cycles, points)
+    try:
+        done, last_t = completed_steps(data, columns) if args.resume else (0, 0.0)
+    except DataError as err:
+        raise UserError(str(err)) from None
+    if args.resume and config.virtual_cell and done:  # the simulated room continues where the file ends
+        config, drivers = open_cell(args.config, args, "train", start_s=last_t + 1.0)
+    follow, ready = guards(config, drivers, args)
+    print(f"calibration on {drivers.description}: {len(plan)} steps ({cycles} cycles), data -> {data}"
+          + (f", resuming after {done} recorded steps" if done else ""), file=sys.stderr)
+    try:
+        asyncio.run(record_calibration(drivers, data, limits=config.actuator, plan=plan, resume=args.resume,
+                                       timing=config.procedure.timing, follow=follow, ready=ready))
+    except PreflightError:
+        raise  # nothing was commanded
+    except StageNotFollowingError as err:
+        recorded = completed_steps(data, columns)[0] if data.exists() else 0
+        raise UserError(f"{err}. The {recorded} steps recorded in {data} are of a stage that did not move: "
+                        "delete the file (or give another --data) before calibrating again") from None
+    except (KeyboardInterrupt, Exception) as err:
+        recorded = completed_steps(data, columns)[0] if data.exists() else 0
+        print(resume_hint(args.out, data, recorded, len(plan)), file=sys.stderr)
+        if isinstance(err, FileExistsError | DataError):
+            raise UserError(str(err)) from None
+        raise
+    try:
+        result = fit_recorded(data, args.out)
+    except (FitError, DataError) as err:
+        raise UserError(f"the recorded steps in {data} are kept, but the fit failed: {err}") from None
+    model = result.model
+    print(f"model -> {args.out} ({model.id}): {equation(model)}", file=sys.stderr)
+    residual = model.fit.get("residual_rms_nm", float("nan"))
+    print(f"fit residual {residual:.1f} nm RMS over {model.fit.get('rows')} steps", file=sys.stderr)
+    print("\n".join(training_lines(model)), file=sys.stderr)
+    return 0
+
+
+def _is_bidirectional(args: argparse.Namespace) -> bool:
+    return getattr(args, "scenario", None) == "bidirectional"

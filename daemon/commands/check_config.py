@@ -1,0 +1,107 @@
+"""``nanodrift check-config F [--strict]``: validate an operator config before reloading it.
+
+Exit 2 (with ``<file>: <field>: <problem>`` lines) for everything the daemon would refuse on a
+reload: an invalid config, a model file that is missing or cannot be loaded, a ``[zenoh]
+config_file`` zenoh cannot read. Exit 0 with warnings on stderr for what the daemon accepts but an
+operator should know (a channel the model needs that no sensor provides, sensors the model does not
+use); ``--strict`` makes those errors too, for a commissioned cell where they are mistakes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+
+import zenoh
+
+from daemon.bus.session import session_config
+from daemon.config import ZENOH_KIND, Config, ConfigError, load_config, missing_model_channels
+from daemon.model.model import Model, ModelFileError, load_model
+
+
+def model_problem(config: Config) -> tuple[Model | None, str | None]:
+    """The model the daemon would load, or a ``model.path: ...`` problem line saying why it would refuse it."""
+    try:
+        return load_model(config.model.path), None
+    except ModelFileError as error:
+        reason = str(error)
+    except RecursionError:  # a hostile, deeply nested JSON document
+        reason = f"{config.model.path}: JSON nested too deeply to be a model file"
+    return None, (f"model.path: {reason} (a reload with this file is refused; at start the daemon runs "
+                  "without a model and refuses every target with no_model)")
+
+
+def zenoh_problem(config: Config) -> str | None:
+    """A ``zenoh.config_file: ...`` problem line when zenoh cannot read the file (the daemon could not start)."""
+    if config.zenoh.config_file is None:
+        return None
+    try:
+        session_config(config.zenoh)
+    except (zenoh.ZError, OSError, ValueError) as error:
+        return f"zenoh.config_file: {config.zenoh.config_file}: zenoh cannot use it: {error}"
+    return None
+
+
+#: endpoints only this computer can reach: tcp/127.0.0.1:7447, tcp/localhost:7447, tcp/[::1]:7447, unixsock-stream/...
+_LOCAL_ENDPOINT = re.compile(r"^(?:[a-z]+/(?:127\.\d+\.\d+\.\d+|localhost|\[::1\]):\d+|unixsock-stream/.*)$")
+
+
+def network_warnings(config: Config) -> list[str]:
+    """An open listener without zenoh's authentication and access control (README, "Securing the network")."""
+    if config.zenoh.config_file is not None:
+        return []
+    exposed = [e for e in config.zenoh.listen if not _LOCAL_ENDPOINT.match(e.split("#", 1)[0])]
+    if not exposed:
+        return []
+    return [f"zenoh.listen: {', '.join(exposed)} can be reached from other computers, and without a "
+            "zenoh.config_file (credentials, access control) any of them may send targets or put its own "
+            "command: see README.md, 'Securing the network' (config/zenoh-secure.json5)"]
+
+
+def config_warnings(config: Config, model: Model | None) -> list[str]:
+    """``field: message`` lines for what the daemon accepts but an operator should know."""
+    warnings = network_warnings(config)
+    if model is None:
+        return warnings
+    missing = missing_model_channels(config, model.channels)
+    if missing:
+        warnings.append(
+            f"sensors: model {model.id} needs channel(s) {', '.join(missing)} that no temperature sensor provides: "
+            "targets will be refused until they are configured"
+        )
+    for index, sensor in enumerate(config.sensors):
+        if sensor.role == "temperature" and sensor.name not in model.channels:
+            warnings.append(f"sensors[{index}].name: sensor {sensor.name!r} is not used by model {model.id} "
+                            "(monitored and published only)")
+    return warnings
+
+
+def describe_actuator(config: Config) -> str:
+    """Who puts the voltage on the amplifier, in the operator's words."""
+    a = config.actuator
+    limits = f"[{a.v_min:g}, {a.v_max:g}] V"
+    if a.kind == ZENOH_KIND:
+        return f"kind zenoh: an output node applies {config.key_prefix}/command, {limits}"
+    keys = a.options.model_dump(exclude={"kind"}) if a.options is not None else {}
+    where = ", ".join(f"{k} = {v!r}" for k, v in keys.items() if k in ("hub", "device_id", "address", "port"))
+    return f"kind {a.kind}" + (f" ({where})" if where else "") + f", {limits}"
+
+
+def main(args: argparse.Namespace) -> int:
+    config = load_config(args.file)
+    model, problem = model_problem(config)
+    problems = [p for p in (problem, zenoh_problem(config)) if p]
+    warnings = config_warnings(config, model)
+    if getattr(args, "strict", False):
+        problems += [f"{w} (an error with --strict)" for w in warnings]
+        warnings = []
+    if problems:
+        raise ConfigError(config.source, problems)
+    names = ", ".join(f"{s.name} ({s.kind}, {s.role})" for s in config.sensors)
+    print(f"{args.file}: ok: cell {config.cell!r}, {len(config.sensors)} sensor(s): {names}")
+    print(f"  model: {config.model.path} ({model.id if model else '-'})")
+    print(f"  actuator: {describe_actuator(config)}")
+    for warning in warnings:
+        print(f"{args.file}: warning: {warning}", file=sys.stderr)
+    return 0

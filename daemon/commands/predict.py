@@ -1,0 +1,65 @@
+"""``nanodrift predict --model M.json D.csv --out P.csv``: the command the model gives for each row.
+
+Two columns are added: ``q_pred_um`` (the command) and ``q_sigma_um`` (its standard uncertainty,
+:meth:`daemon.model.model.Model.q_sigma`; the fit's residual RMS on every row for a model file
+written before nanodrift stored the covariance).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+import numpy as np
+
+from daemon.calibration.dataset import DataError, read_csv, write_csv
+from daemon.errors import UserError
+from daemon.model.model import MissingChannelError, Model, ModelFileError, load_model
+from daemon.model.series import Series
+
+
+def extrapolating_rows(model: Model, data: Series) -> tuple[int, dict[str, int]]:
+    """Rows outside the training ranges, and per quantity (``x`` or a channel) how many rows leave it."""
+    x = np.asarray(data.x, dtype=np.float64)
+    outside = {"x": (x < model.training.x_range[0]) | (x > model.training.x_range[1])}
+    for channel, (low, high) in model.training.channel_ranges.items():
+        if channel in data.channels:
+            values = np.asarray(data.channels[channel], dtype=np.float64)
+            outside[channel] = (values < low) | (values > high)
+    counts = {name: int(mask.sum()) for name, mask in outside.items() if mask.any()}
+    rows = int(np.logical_or.reduce(list(outside.values())).sum())
+    return rows, counts
+
+
+def main(args: argparse.Namespace) -> int:
+    try:
+        model = load_model(args.model)
+        data = read_csv(args.data)
+        q_pred = model.predict(data)
+        q_sigma = model.q_sigma(data)
+    except (DataError, ModelFileError, MissingChannelError) as err:
+        raise UserError(str(err)) from None
+    columns = {"q_pred_um": q_pred, "q_sigma_um": q_sigma}
+    sigma_known = model.covariance is not None or bool(np.isfinite(q_sigma).all())
+    if not sigma_known:  # a hand-made file with neither a covariance block nor fit.rmse_um
+        del columns["q_sigma_um"]
+    bad = np.flatnonzero(~np.isfinite(q_pred) | (~np.isfinite(q_sigma) if sigma_known else False))
+    if bad.size:  # never write inf/nan: the project's own reader would refuse the file
+        i = int(bad[0])
+        values = ", ".join([f"x_um = {data.x[i]:g}"] + [f"{c} = {data.channels[c][i]:g}" for c in model.channels])
+        what = "command" if not math.isfinite(q_pred[i]) else "uncertainty (q_sigma_um)"
+        raise UserError(
+            f"{args.data}, row {i + 2}: the model gives no finite {what} for {values} "
+            f"({bad.size} such row(s); trained on x_um {model.training.x_range[0]:g}..{model.training.x_range[1]:g}); "
+            f"nothing written to {args.out}"
+        )
+    for name in ("q_pred_um", "q_sigma_um"):
+        data.extra.pop(name, None)
+    write_csv(data, args.out, columns)
+    rows, counts = extrapolating_rows(model, data)
+    outside = (f"{rows} extrapolating (outside the training range: "
+               + ", ".join(f"{name} in {n}" for name, n in counts.items()) + ")") if rows else "none extrapolating"
+    sigma = (f"q_sigma_um (median {np.median(q_sigma) * 1e3:.0f} nm)" if sigma_known
+             else "no q_sigma_um (the model file has neither a covariance block nor fit.rmse_um)")
+    print(f"predicted q_pred_um and {sigma} for {len(q_pred)} rows with model {model.id} -> {args.out}; {outside}")
+    return 0

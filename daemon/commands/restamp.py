@@ -1,0 +1,37 @@
+"""``nanodrift restamp M.json [--out M2.json]``: give a deliberately edited model file its new id.
+
+A model's id is the hash of its content (:meth:`daemon.model.model.Model.content_id`) and
+``load_model`` refuses a file whose id does not match, so an edit can never be "reloaded" while the
+daemon keeps serving the old coefficients under the same id. After a deliberate hand edit this
+command checks everything else in the file exactly as a load does, then writes it (atomically) with
+the id of what it now holds, recording the previous id in ``provenance.restamped_from``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+
+from daemon.errors import UserError
+from daemon.model.model import ModelFileError, load_model, save_model
+
+
+def main(args: argparse.Namespace) -> int:
+    try:
+        model = load_model(args.model, check_id=False)
+    except ModelFileError as err:
+        raise UserError(str(err)) from None
+    old, new = model.id, model.content_id()
+    out = args.out or args.model
+    if old == new and out == args.model:
+        print(f"{args.model}: id {new} already matches its content; nothing written")
+        return 0
+    if old != new:
+        model.provenance["restamped_from"] = old or None
+        model.provenance["restamped"] = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
+    try:
+        save_model(model, out)
+    except OSError as err:
+        raise UserError(f"{out}: cannot write the model file ({err.strerror or err})") from None
+    print(f"{args.model}: id {old or '(none)'} -> {model.id}" + (f", written to {out}" if out != args.model else ""))
+    return 0

@@ -1,0 +1,243 @@
+"""``nanodrift status``: every cell on the network (or one), from their ``status`` queryables.
+
+One wildcard query on ``nanodrift/*/status`` (or ``nanodrift/<cell>/status``) collects every daemon's
+reply until the timeout; the documents are printed as a compact table, or as a JSON list. With
+``--watch S`` the query repeats every S seconds: on a terminal the table is redrawn in place, else a
+block is printed per refresh (a log file or a pipe gets every sample).
+
+Rates (targets and refusals per minute) come from two samples of a cell's counters when there are
+two (``--watch``), else from the counters and ``uptime_s`` (the average since the daemon started).
+Health and actuator state are shown when the status document carries them (older daemons do not).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from typing import Any, TextIO
+
+import zenoh
+
+from daemon.commands.target import client_config, open_client_session
+
+#: ANSI: cursor home, clear the screen (what ``watch`` does)
+CLEAR = "\x1b[H\x1b[2J"
+COLUMNS = ("CELL", "STATE", "SENSORS", "MODEL", "MODEL AGE", "HEALTH", "ACTUATOR", "TARGETS/MIN", "REFUSED/MIN")
+NO_CELL_HINT = ("no cell answered on {key} within {timeout:g} s (is a daemon running? "
+                "give its endpoint with -e tcp/HOST:PORT, or --zenoh-config F)")
+
+
+def status_key(cell: str | None) -> str:
+    return f"nanodrift/{cell or '*'}/status"
+
+
+def query_status(session: zenoh.Session, key: str, timeout_s: float) -> list[dict[str, Any]]:
+    """Every reply to one query on ``key``, sorted by cell; errors and non-JSON replies are skipped."""
+    docs: dict[str, dict[str, Any]] = {}
+    for reply in session.get(key, target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
+                             timeout=timeout_s):
+        sample = reply.ok
+        if sample is None:
+            continue
+        try:
+            doc = json.loads(sample.payload.to_bytes())
+        except ValueError:
+            continue
+        if isinstance(doc, dict):
+            cell = str(doc.get("cell") or str(sample.key_expr).split("/")[1])
+            docs[cell] = doc
+    return [docs[cell] for cell in sorted(docs)]
+
+
+def collect(session: zenoh.Session, key: str, timeout_s: float, *, retry_s: float = 0.2) -> list[dict[str, Any]]:
+    """Query until some cell answers or ``timeout_s`` is over (a scouting peer needs a moment to find them)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        remaining = deadline - time.monotonic()
+        docs = query_status(session, key, max(remaining, 0.05))
+        if docs or deadline - time.monotonic() <= retry_s:
+            return docs
+        time.sleep(retry_s)
+
+
+@dataclass
+class Rates:
+    """Targets and refusals per minute of one cell; ``since`` says over what."""
+
+    targets_per_min: float | None
+    refused_per_min: float | None
+    since: str  # "start" (counters / uptime) or "last" (two samples)
+
+
+def _counts(doc: dict[str, Any]) -> tuple[float, float] | None:
+    counters = doc.get("counters")
+    if not isinstance(counters, dict):
+        return None
+    targets = counters.get("targets")
+    refused = counters.get("errors_total")
+    if refused is None and isinstance(counters.get("errors"), dict):
+        refused = sum(counters["errors"].values())
+    if not isinstance(targets, int | float) or not isinstance(refused, int | float):
+        return None
+    return float(targets), float(refused)
+
+
+def rates(doc: dict[str, Any], previous: dict[str, Any] | None = None) -> Rates:
+    """From two samples of one cell (the same daemon run: uptime grew), else from counters and uptime."""
+    now = _counts(doc)
+    if now is None:
+        return Rates(None, None, "start")
+    if previous is not None and (before := _counts(previous)) is not None:
+        dt = _number(doc.get("uptime_s")) - _number(previous.get("uptime_s"))
+        if dt > 0 and now[0] >= before[0] and now[1] >= before[1]:
+            return Rates(60.0 * (now[0] - before[0]) / dt, 60.0 * (now[1] - before[1]) / dt, "last")
+    uptime = _number(doc.get("uptime_s"))
+    if uptime <= 0:
+        return Rates(None, None, "start")
+    return Rates(60.0 * now[0] / uptime, 60.0 * now[1] / uptime, "start")
+
+
+def _number(value: Any) -> float:
+    return float(value) if isinstance(value, int | float) else 0.0
+
+
+def _age(iso: Any, now: datetime) -> str:
+    if not isinstance(iso, str):
+        return "-"
+    try:
+        created = datetime.fromisoformat(iso)
+    except ValueError:
+        return "-"
+    if created.tzinfo is None:
+        created = created.replace(tzinfo=UTC)
+    seconds = max((now - created).total_seconds(), 0.0)
+    if seconds < 3600:
+        return f"{seconds / 60:.0f} min"
+    if seconds < 2 * 86400:
+        return f"{seconds / 3600:.1f} h"
+    return f"{seconds / 86400:.0f} d"
+
+
+def cell_state(doc: dict[str, Any]) -> str:
+    """ok; degraded (a sensor not ok, no usable model, extrapolating); stalled (pollers not progressing)."""
+    if doc.get("healthy") is False:
+        return "stalled"
+    sensors = doc.get("sensors") or {}
+    if doc.get("model") is None or doc.get("model_problem"):
+        return "no-model"
+    if any(isinstance(s, dict) and s.get("state") != "ok" for s in sensors.values()):
+        return "degraded"
+    if doc.get("extrapolating"):
+        return "extrapolating"
+    return "ok"
+
+
+def _health(doc: dict[str, Any]) -> str:
+    health = doc.get("health")
+    if not isinstance(health, dict):
+        return "-"
+    text = str(health.get("state") or "-")
+    rms = health.get("residual_rms_nm")
+    return f"{text} {rms:.0f} nm" if isinstance(rms, int | float) else text
+
+
+def _actuator(doc: dict[str, Any]) -> str:
+    actuator = doc.get("actuator")
+    if not isinstance(actuator, dict):
+        return "-"
+    kind = str(actuator.get("kind") or "-")
+    state = actuator.get("state")
+    return f"{kind} {state}" if state else kind
+
+
+def _rate(value: float | None) -> str:
+    return "-" if value is None else f"{value:.1f}"
+
+
+def row(doc: dict[str, Any], previous: dict[str, Any] | None, now: datetime) -> list[str]:
+    sensors = doc.get("sensors") or {}
+    ok = sum(isinstance(s, dict) and s.get("state") == "ok" for s in sensors.values())
+    model = doc.get("model") if isinstance(doc.get("model"), dict) else None
+    r = rates(doc, previous)
+    return [
+        str(doc.get("cell", "?")),
+        cell_state(doc),
+        f"{ok}/{len(sensors)}",
+        str(model.get("id")) if model else "none",
+        _age(model.get("created"), now) if model else "-",
+        _health(doc),
+        _actuator(doc),
+        _rate(r.targets_per_min),
+        _rate(r.refused_per_min),
+    ]
+
+
+def table(docs: Sequence[dict[str, Any]], previous: dict[str, dict[str, Any]] | None = None,
+          now: datetime | None = None) -> str:
+    """The compact table; ``previous`` (cell -> last document) turns the rates into the last interval's."""
+    now = now or datetime.now(UTC)
+    rows = [list(COLUMNS)] + [row(d, (previous or {}).get(str(d.get("cell"))), now) for d in docs]
+    widths = [max(len(r[i]) for r in rows) for i in range(len(COLUMNS))]
+    lines = ["  ".join(cell.ljust(widths[i]) for i, cell in enumerate(r)).rstrip() for r in rows]
+    since = "over the last interval" if previous else "averaged since each daemon started"
+    return "\n".join([*lines, f"({len(docs)} cell{'s' if len(docs) != 1 else ''}; rates {since})"])
+
+
+def render(docs: Sequence[dict[str, Any]], args: argparse.Namespace, previous: dict[str, dict[str, Any]]) -> str:
+    if args.json:
+        return json.dumps(list(docs))
+    if not docs:
+        return NO_CELL_HINT.format(key=status_key(args.cell), timeout=args.timeout)
+    return table(docs, previous)
+
+
+def watch(session: zenoh.Session, args: argparse.Namespace, out: TextIO,
+          sleep: Callable[[float], None] = time.sleep) -> int:
+    """Refresh every ``args.watch`` seconds, ``args.count`` times (0: until Ctrl-C); exit 0."""
+    terminal = out.isatty() and not args.json
+    previous: dict[str, dict[str, Any]] = {}
+    done = 0
+    try:
+        while True:
+            started = time.monotonic()
+            docs = collect(session, status_key(args.cell), args.timeout)
+            text = render(docs, args, previous)
+            stamp = datetime.now().astimezone().strftime("%Y-%m-%d %H:%M:%S")
+            if terminal:
+                out.write(f"{CLEAR}nanodrift status  {stamp}  every {args.watch:g} s (Ctrl-C stops)\n{text}\n")
+            elif args.json:
+                out.write(text + "\n")
+            else:
+                out.write(f"--- {stamp}\n{text}\n\n")
+            out.flush()
+            previous = {str(d.get("cell")): d for d in docs}
+            done += 1
+            if args.count and done >= args.count:
+                return 0
+            sleep(max(args.watch - (time.monotonic() - started), 0.0))
+    except KeyboardInterrupt:
+        return 0
+
+
+def main(args: argparse.Namespace) -> int:
+    """One query (or ``--watch``); non-zero exit when no cell answers a single query."""
+    session = open_client_session(args, client_config(args))
+    try:
+        if args.watch:
+            return watch(session, args, sys.stdout)
+        docs = collect(session, status_key(args.cell), args.timeout)
+    finally:
+        session.close()
+    if not docs:
+        if args.json:
+            print("[]")
+        print(f"nanodrift status: {NO_CELL_HINT.format(key=status_key(args.cell), timeout=args.timeout)}",
+              file=sys.stderr)
+        return 1
+    print(render(docs, args, {}))
+    return 0

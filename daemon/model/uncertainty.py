@@ -1,0 +1,362 @@
+"""How uncertain a command is: the model file's ``covariance`` block, batch and streaming.
+
+The standard uncertainty of the command predicted for a row with features f (the model's terms in
+order, bias included) is
+
+    q_sigma = sqrt(f·C·f + s² + (κ·g)²)
+
+- ``f·C·f``: C is the covariance of the fitted coefficients, what the calibration run could not pin
+  down. It grows with the distance from the training data, so outside the training ranges. The
+  least-squares covariance takes rows as independent; the residual of a calibration run is not (the
+  interferometer wanders over tens of minutes), so C is that covariance times the AR(1) variance
+  inflation (1 + ρ)/(1 - ρ) of the residual (ρ its lag-1 autocorrelation): the run holds fewer
+  independent rows than it has rows.
+- ``s``: what no coefficient explains (interferometer noise and wander, landing error, unmodelled
+  effects), as a fresh run sees it: the RMS of held-out blocks of whole cycles, each predicted by
+  the model fitted on the others (never less than the in-sample residual standard deviation). The
+  in-sample residual alone is too small: part of the slow wander is absorbed by the temperature
+  terms and the bias, and neither it nor its autocorrelation can show that part. The blocks are
+  about an hour long (:func:`uncertainty_blocks`: 3 for the paper's 3.3 h calibration), long
+  against the interferometer's wander (~20 min), so a held-out block's offset is independent of
+  the blocks the model is fitted on; the ~30 min blocks used to choose the order are not, and
+  understate a fresh run's error (``benchmarks/adaptation.py``, 8 seeds of the simulated cell:
+  ±2σ held 81 % of the validation steps with them, 92 % with hour-long blocks).
+- ``κ·g``: the curvature a linear thermal model cannot see inside a narrow training range (the
+  bracket's bending, which makes the paper's test 5 degrade). κ is the standard error (AR-inflated)
+  of a quadratic term in the mean temperature T̄ of the model's channels, fitted beside the model's
+  terms: how much curvature the training data cannot rule out. g = (T̄ - lo)(T̄ - hi) outside the
+  training range [lo, hi] of T̄ (the gap between a parabola and its chord), 0 inside.
+
+:func:`estimate` computes all of it from the final fit; :class:`SigmaStream` evaluates it per target
+in the daemon. Kept apart from :mod:`daemon.model.model` so the block's checks, its estimation and
+the streaming shortcut are read in one place.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from operator import mul
+from typing import Any
+
+import numpy as np
+
+from daemon.model.terms import Power, Term, TermStream
+
+#: the largest relative asymmetry |C_ij - C_ji| / sqrt(C_ii C_jj) a file may carry (rounding of a symmetric matrix)
+SYMMETRY_TOLERANCE = 1e-9
+#: the most negative eigenvalue allowed of the correlation matrix (rounding of a positive semi-definite one)
+PSD_TOLERANCE = 1e-8
+#: ρ is capped here: a residual that is a pure trend would otherwise inflate C without bound
+MAX_RHO = 0.99
+#: held-out blocks for s last about this long (whole cycles), between 3 and 6 blocks
+UNCERTAINTY_BLOCK_S = 3600.0
+
+Fail = Callable[[str], Exception]
+
+
+@dataclass(frozen=True)
+class Curvature:
+    """The curvature allowance: κ (µm/°C²) on the mean of ``channels``, 0 inside ``range_c``."""
+
+    channels: tuple[str, ...]
+    range_c: tuple[float, float]
+    sd_um_per_c2: float
+
+    def gap(self, mean_c: np.ndarray | float) -> np.ndarray | float:
+        """g = (T̄ - lo)(T̄ - hi) outside [lo, hi], else 0 (°C²)."""
+        lo, hi = self.range_c
+        return np.maximum((mean_c - lo) * (mean_c - hi), 0.0)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"channels": list(self.channels), "range_c": [float(v) for v in self.range_c],
+                "sd_um_per_c2": float(self.sd_um_per_c2)}
+
+    @classmethod
+    def from_dict(cls, raw: Any, model_channels: Sequence[str], fail: Fail) -> Curvature:
+        where = "covariance.curvature"
+        if not isinstance(raw, dict):
+            raise fail(f"{where} must be an object with channels, range_c and sd_um_per_c2, got {_kind(raw)}")
+        unknown = sorted(set(raw) - {"channels", "range_c", "sd_um_per_c2"})
+        if unknown:
+            raise fail(f"{where}: unknown key(s) {', '.join(repr(k) for k in unknown)}")
+        channels = raw.get("channels")
+        if (not isinstance(channels, list) or not channels or not all(isinstance(c, str) for c in channels)
+                or len(set(channels)) != len(channels) or not set(channels) <= set(model_channels)):
+            raise fail(f"{where}.channels must be distinct channels the model reads ({list(model_channels)}), "
+                       f"got {channels!r}")
+        bounds = raw.get("range_c")
+        if not (isinstance(bounds, list) and len(bounds) == 2 and all(_finite_number(v) for v in bounds)
+                and bounds[0] <= bounds[1]):
+            raise fail(f"{where}.range_c must be [low, high] in °C, got {bounds!r}")
+        sd = raw.get("sd_um_per_c2")
+        if not _finite_number(sd) or sd < 0:
+            raise fail(f"{where}.sd_um_per_c2 must be a finite number >= 0, got {sd!r}")
+        return cls(tuple(channels), (float(bounds[0]), float(bounds[1])), float(sd))
+
+
+@dataclass(frozen=True, eq=False)
+class Covariance:
+    """The ``covariance`` block: C in the model's term order, s, and the optional curvature allowance."""
+
+    matrix: np.ndarray  # (k, k), symmetric positive semi-definite, µm² per feature unit²
+    residual_rms_um: float  # s
+    curvature: Curvature | None = None
+
+    def __post_init__(self) -> None:
+        m = np.array(self.matrix, dtype=np.float64)
+        if m.ndim != 2 or m.shape[0] != m.shape[1]:
+            raise ValueError(f"a covariance matrix must be square, got shape {m.shape}")
+        m = 0.5 * (m + m.T)  # exactly symmetric: what is hashed and written is what is checked
+        m.setflags(write=False)
+        object.__setattr__(self, "matrix", m)
+        object.__setattr__(self, "residual_rms_um", float(self.residual_rms_um))
+
+    @property
+    def size(self) -> int:
+        return int(self.matrix.shape[0])
+
+    def variance(self, features: np.ndarray, channels: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
+        """``q_sigma²`` for every row of ``features`` (n, k); ``channels`` feed the curvature part."""
+        f = np.atleast_2d(np.asarray(features, dtype=np.float64))
+        s = np.float64(self.residual_rms_um)
+        with np.errstate(over="ignore", invalid="ignore"):
+            v = np.maximum(np.einsum("ij,jk,ik->i", f, self.matrix, f), 0.0) + s * s
+            if self.curvature is not None:
+                if channels is None:
+                    raise ValueError("the curvature part of q_sigma needs the temperature channels")
+                mean = np.mean([np.asarray(channels[c], dtype=np.float64) for c in self.curvature.channels], axis=0)
+                allowance = self.curvature.sd_um_per_c2 * self.curvature.gap(mean)
+                v = v + allowance * allowance
+        return v
+
+    def content(self) -> dict[str, Any]:
+        """What the model's id hashes and the file's block holds (besides the term names)."""
+        out: dict[str, Any] = {"matrix": [[float(v) for v in row] for row in self.matrix],
+                               "residual_rms_um": float(self.residual_rms_um)}
+        if self.curvature is not None:
+            out["curvature"] = self.curvature.to_dict()
+        return out
+
+    def to_dict(self, names: Sequence[str]) -> dict[str, Any]:
+        return {"terms": list(names), **self.content()}
+
+    @classmethod
+    def from_dict(cls, raw: Any, names: Sequence[str], channels: Sequence[str], fail: Fail) -> Covariance:
+        """The file's ``covariance`` block, checked; ``fail(message)`` builds the error naming the file."""
+        if not isinstance(raw, dict):
+            raise fail(f"'covariance' must be an object with terms, matrix and residual_rms_um, got {_kind(raw)}")
+        unknown = sorted(set(raw) - {"terms", "matrix", "residual_rms_um", "curvature"})
+        if unknown:
+            raise fail(f"covariance: unknown key(s) {', '.join(repr(k) for k in unknown)}")
+        terms = raw.get("terms")
+        if terms != list(names):
+            raise fail(f"covariance.terms must list the model's terms in order {list(names)}, got {terms!r}")
+        m = _matrix(raw.get("matrix"), names, fail)
+        rms = raw.get("residual_rms_um")
+        if not _finite_number(rms) or rms < 0:
+            raise fail(f"covariance.residual_rms_um must be a finite number >= 0, got {rms!r}")
+        curvature = None if raw.get("curvature") is None else Curvature.from_dict(raw["curvature"], channels, fail)
+        return cls(m, float(rms), curvature)
+
+
+def _matrix(rows: Any, names: Sequence[str], fail: Fail) -> np.ndarray:
+    k = len(names)
+    if not isinstance(rows, list) or len(rows) != k:
+        got = f"{len(rows)} rows" if isinstance(rows, list) else _kind(rows)
+        raise fail(f"covariance.matrix must be {k} rows of {k} numbers (one per term), got {got}")
+    for i, row in enumerate(rows):
+        if not isinstance(row, list) or len(row) != k:
+            got = f"{len(row)} numbers" if isinstance(row, list) else _kind(row)
+            raise fail(f"covariance.matrix[{i}] must be {k} numbers, got {got}")
+        for j, v in enumerate(row):
+            if not _finite_number(v):
+                raise fail(f"covariance.matrix[{i}][{j}] must be a finite number, got {v!r}")
+    m = np.array(rows, dtype=np.float64)
+    diag = np.diag(m)
+    for i in range(k):
+        if diag[i] < 0:
+            raise fail(f"covariance.matrix[{i}][{i}] ({names[i]}) is a variance and must be >= 0, got {diag[i]!r}")
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        scale = np.sqrt(diag)
+        scale = np.where(scale > 0, scale, 1.0)
+        correlation = m / np.outer(scale, scale)
+    if not np.all(np.isfinite(correlation)):
+        raise fail("covariance.matrix overflows when scaled by its variances: not a covariance")
+    asym = np.abs(correlation - correlation.T)
+    i, j = np.unravel_index(int(np.argmax(asym)), asym.shape)
+    if asym[i, j] > SYMMETRY_TOLERANCE:
+        raise fail(f"covariance.matrix is not symmetric: [{i}][{j}] = {m[i, j]!r} but [{j}][{i}] = {m[j, i]!r}")
+    if float(np.linalg.eigvalsh(0.5 * (correlation + correlation.T))[0]) < -PSD_TOLERANCE:
+        raise fail("covariance.matrix is not positive semi-definite: some combination of the terms would "
+                   "have a negative variance")
+    return m
+
+
+def _finite_number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _kind(value: Any) -> str:
+    return "null" if value is None else type(value).__name__
+
+
+# --- estimation from the final fit ------------------------------------------------------------
+
+
+def ar1_inflation(residual: np.ndarray) -> float:
+    """(1 + ρ)/(1 - ρ) for a positively autocorrelated residual (ρ its lag-1 autocorrelation), else 1."""
+    r = np.asarray(residual, dtype=np.float64)
+    if r.size < 3:
+        return 1.0
+    r = r - r.mean()
+    denom = float(r @ r)
+    rho = float(r[:-1] @ r[1:]) / denom if denom > 0 else 0.0
+    rho = min(max(rho, 0.0), MAX_RHO)
+    return (1.0 + rho) / (1.0 - rho)
+
+
+def uncertainty_blocks(t_span_s: float) -> int:
+    """How many held-out blocks estimate s: about an hour each, at least 3, at most 6."""
+    if not math.isfinite(t_span_s):
+        return 3
+    return min(6, max(3, int(t_span_s // UNCERTAINTY_BLOCK_S)))
+
+
+def heldout_rms(X: np.ndarray, y: np.ndarray, folds: np.ndarray) -> float:
+    """RMS of each block of rows predicted by a least-squares fit (with intercept) of the other blocks."""
+    A = np.column_stack([np.ones(y.shape[0]), X])
+    errors = []
+    for k in np.unique(folds):
+        test = folds == k
+        if int((~test).sum()) <= A.shape[1]:
+            return math.nan
+        coef, *_ = np.linalg.lstsq(A[~test], y[~test], rcond=None)
+        errors.append(y[test] - A[test] @ coef)
+    if len(errors) < 2:
+        return math.nan
+    e = np.concatenate(errors)
+    return float(np.sqrt(np.mean(e * e)))
+
+
+def estimate(X: np.ndarray, y: np.ndarray, cov: np.ndarray, rmse: float, folds: np.ndarray,
+             temperatures: Mapping[str, np.ndarray]) -> tuple[np.ndarray, float, Curvature | None]:
+    """The block's parts for a least-squares fit of ``y`` on ``X`` (plus intercept) whose covariance is ``cov``.
+
+    ``cov`` in the fit's order (columns, then the intercept), taking rows as independent; ``folds``
+    the held-out blocks (whole cycles); ``temperatures`` the channels the model reads (none: no
+    curvature part). Returns (C, s, curvature) with C in ``cov``'s order, AR(1)-inflated.
+    """
+    A = np.column_stack([np.ones(y.shape[0]), X])
+    coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+    inflation = ar1_inflation(y - A @ coef)
+    held = heldout_rms(X, y, folds)
+    s = max(rmse, held) if math.isfinite(held) else rmse
+    curvature = None
+    if temperatures:
+        mean = np.mean([np.asarray(v, dtype=np.float64) for v in temperatures.values()], axis=0)
+        lo, hi = float(mean.min()), float(mean.max())
+        quad = (mean - 0.5 * (lo + hi)) ** 2
+        if hi > lo and y.shape[0] > X.shape[1] + 2:
+            B = np.column_stack([A, quad])
+            beta, *_ = np.linalg.lstsq(B, y, rcond=None)
+            r = y - B @ beta
+            sigma2 = float(r @ r) / (y.shape[0] - B.shape[1])
+            scale = np.linalg.norm(B, axis=0)
+            scale[scale == 0] = 1.0
+            inv = np.linalg.pinv((B / scale).T @ (B / scale))
+            var_quad = sigma2 * float(inv[-1, -1]) / float(scale[-1]) ** 2 * ar1_inflation(r)
+            curvature = Curvature(tuple(temperatures), (lo, hi), math.sqrt(max(var_quad, 0.0)))
+    return cov * inflation, s, curvature
+
+
+# --- streaming ---------------------------------------------------------------------------------
+
+
+class SigmaStream:
+    """``q_sigma`` per target in a few additions, for :class:`daemon.model.model.Evaluator`.
+
+    The terms split three ways: *static* ones depend only on temperatures and time (channels, lags,
+    rates, the bias), *powers* of x, and *other* target- or motion-dependent ones (``dir``,
+    ``creep``, ``x*T1``). After a temperature sample the static features s are fixed, so ``s·C·s``,
+    ``C·s`` and the curvature part are computed once (lazily, at the first target after the
+    sample), and what depends on x through powers is folded into one polynomial in x: a target
+    costs a Horner evaluation plus a few products per *other* term.
+    """
+
+    __slots__ = ("_c_oo", "_c_so", "_c_ss", "_cross", "_curvature", "_dirty", "_latest", "_others", "_poly",
+                 "_powers_k", "_pp_poly", "_sp", "_static", "_var0", "_var_o")
+
+    def __init__(self, terms: Sequence[Term], streams: Sequence[TermStream], covariance: Covariance) -> None:
+        c = covariance.matrix
+        static = [i for i, t in enumerate(terms) if not t.uses_x]
+        powers = [i for i, t in enumerate(terms) if isinstance(t, Power)]
+        others = [i for i, t in enumerate(terms) if t.uses_x and not isinstance(t, Power)]
+        self._static = [streams[i] for i in static]
+        self._others = [streams[i] for i in others]
+        self._powers_k = [terms[i].k for i in powers]  # type: ignore[attr-defined]
+        degree = max(self._powers_k, default=0)
+        pp = [0.0] * (2 * degree + 1)  # power x power: constant in time
+        for a, i in enumerate(powers):
+            for b, j in enumerate(powers):
+                pp[self._powers_k[a] + self._powers_k[b]] += float(c[i, j])
+        self._pp_poly = pp
+        self._c_ss = [[float(c[i, j]) for j in static] for i in static]
+        self._sp = [[float(c[i, j]) for i in static] for j in powers]  # per power: its column over static
+        self._c_so = [[float(c[i, j]) for i in static] for j in others]  # per other: its column over static
+        self._c_oo = [[float(c[i, j]) for j in others] for i in others]
+        self._cross = []  # other x power: per other term, a polynomial in x (highest power first)
+        for o in others:
+            poly = [0.0] * (degree + 1)
+            for a, j in enumerate(powers):
+                poly[self._powers_k[a]] += float(c[o, j])
+            self._cross.append(tuple(reversed(poly)))
+        self._var0 = covariance.residual_rms_um * covariance.residual_rms_um
+        self._curvature = covariance.curvature
+        self._latest: dict[str, float] = {}
+        self._poly: tuple[float, ...] = ()
+        self._var_o: list[float] = []
+        self._dirty = True
+
+    def observe(self, temps: Mapping[str, float]) -> None:
+        """A temperature sample arrived: the static part is recomputed at the next target."""
+        if self._curvature is not None:
+            self._latest.update(temps)
+        self._dirty = True
+
+    def _refresh(self) -> None:
+        s = [stream.value(0.0, 0.0) for stream in self._static]
+        ss = sum(map(mul, s, [sum(map(mul, row, s)) for row in self._c_ss]))
+        poly = list(self._pp_poly)
+        poly[0] += ss + self._var0
+        cv = self._curvature
+        if cv is not None:
+            latest = self._latest
+            mean = sum(latest.get(ch, math.nan) for ch in cv.channels) / len(cv.channels)
+            lo, hi = cv.range_c
+            gap = (mean - lo) * (mean - hi)
+            if gap > 0.0 or gap != gap:  # outside the range (or unknown: nan)
+                allowance = cv.sd_um_per_c2 * gap
+                poly[0] += allowance * allowance
+        for k, column in zip(self._powers_k, self._sp, strict=True):
+            poly[k] += 2.0 * sum(map(mul, column, s))
+        self._poly = tuple(reversed(poly))
+        self._var_o = [sum(map(mul, column, s)) for column in self._c_so]
+        self._dirty = False
+
+    def sigma(self, t: float, x: float) -> float:
+        if self._dirty:
+            self._refresh()
+        var = 0.0
+        for coef in self._poly:
+            var = var * x + coef
+        if self._others:
+            v = [stream.value(t, x) for stream in self._others]
+            for o, vo in enumerate(v):
+                cross = 0.0
+                for coef in self._cross[o]:
+                    cross = cross * x + coef
+                row = self._c_oo[o]
+                var += vo * (2.0 * (self._var_o[o] + cross) + sum(row[p] * vp for p, vp in enumerate(v)))
+        return math.sqrt(max(var, 0.0))  # nan stays nan (a channel never observed)

@@ -1,0 +1,128 @@
+"""Polling every sensor group on its own schedule during a step's hold, and averaging its window."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from drivers.base import DeviceError, DriverSet, Reading, SensorGroup, State
+
+
+@dataclass
+class _Sample:
+    t: float  # when polled (backend clock)
+    reading: Reading
+
+
+@dataclass
+class Sampler:
+    """Polls every group on its own schedule during holds and keeps the samples of the current step."""
+
+    drivers: DriverSet
+    samples: dict[str, list[_Sample]] = field(default_factory=dict)
+    latest: dict[str, Reading] = field(default_factory=dict)
+    on_temperatures: Callable[[float, dict[str, float]], None] | None = None
+    _broken: set[int] = field(default_factory=set)
+
+    async def open(self) -> None:
+        for group in self.drivers.groups:
+            await group.open()
+        if self.drivers.actuator is not None:
+            await self.drivers.actuator.open()
+
+    async def close(self) -> None:
+        for group in self.drivers.groups:
+            try:
+                await group.close()
+            except Exception:  # closing must not hide the error that brought us here
+                pass
+        try:
+            if self.drivers.actuator is not None:
+                await self.drivers.actuator.close()
+        except Exception:
+            pass
+
+    async def poll(self, group: SensorGroup) -> None:
+        now = self.drivers.clock.now()
+        key = id(group)
+        try:
+            if key in self._broken:
+                await group.close()
+                await group.open()
+                self._broken.discard(key)
+            async with asyncio.timeout(group.timeout_s):
+                readings = await group.read()
+        except (DeviceError, TimeoutError, OSError) as err:
+            self._broken.add(key)
+            reason = f"device error: {err}" if str(err) else f"device error: {type(err).__name__}"
+            readings = {name: Reading.fault(now, reason) for name in group.names}
+        temps: dict[str, float] = {}
+        for name, reading in readings.items():
+            self.samples.setdefault(name, []).append(_Sample(now, reading))
+            if reading.state is State.OK and math.isfinite(reading.value):
+                self.latest[name] = reading
+                if name in self.drivers.temperature_channels:
+                    temps[name] = reading.value
+        if temps and self.on_temperatures is not None:
+            self.on_temperatures(now, temps)
+
+    async def poll_all(self) -> None:
+        for group in self.drivers.groups:
+            await self.poll(group)
+
+    async def sample_for(self, duration_s: float, groups: Sequence[SensorGroup] | None = None) -> None:
+        """Poll ``groups`` (default: all) each at its interval for ``duration_s`` of backend time."""
+        clock = self.drivers.clock
+        start = clock.now()
+        end = start + duration_s
+        groups = list(self.drivers.groups if groups is None else groups)
+        if not groups:
+            await clock.sleep(duration_s)
+            return
+        due = {id(g): start for g in groups}
+        while True:
+            t_next = min(due.values())
+            if t_next > end + 1e-9:
+                break
+            wait = t_next - clock.now()
+            if wait > 0:
+                await clock.sleep(wait)
+            for group in groups:
+                if due[id(group)] <= t_next + 1e-9:
+                    await self.poll(group)
+                    due[id(group)] += group.interval_s
+        if end - clock.now() > 0:
+            await clock.sleep(end - clock.now())
+
+    def window(self, channels: Sequence[str], start: float, end: float) -> tuple[dict[str, float], str]:
+        """Averages over [start, end] per channel, or a problem if any sample there is not clean."""
+        means: dict[str, float] = {}
+        for name in channels:
+            inside = [s for s in self.samples.get(name, []) if start - 1e-9 <= s.t <= end + 1e-9]
+            if not inside:
+                return means, f"{name}: no sample in the averaging window"
+            max_age = self.drivers.max_age_s.get(name, math.inf)
+            for s in inside:
+                if s.reading.state is not State.OK or not math.isfinite(s.reading.value):
+                    return means, f"{name}: {s.reading.reason or s.reading.state.value} at t={s.t:.1f}"
+                if s.t - s.reading.t > max_age:
+                    return means, f"{name}: stale (reading {s.t - s.reading.t:.1f} s old > max_age_s {max_age:g})"
+            means[name] = float(np.mean([s.reading.value for s in inside]))
+        return means, ""
+
+    def fallback(self, channels: Sequence[str], start: float, end: float) -> dict[str, float]:
+        """For an invalid step: means of the clean samples, else the last clean value, else 0."""
+        out: dict[str, float] = {}
+        for name in channels:
+            good = [s.reading.value for s in self.samples.get(name, [])
+                    if start - 1e-9 <= s.t <= end + 1e-9 and s.reading.state is State.OK
+                    and math.isfinite(s.reading.value)]
+            last = self.latest.get(name)
+            out[name] = float(np.mean(good)) if good else (last.value if last else 0.0)
+        return out
+
+

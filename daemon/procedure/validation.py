@@ -1,0 +1,96 @@
+"""ISO 9283 validation on a cell: drive the validation plan through the model (or without it).
+
+With ``adapt`` (``validate --adapt``) the model's command gets the daemon's bias correction: the same
+:class:`daemon.calibration.health.BiasTracker`, fed with each valid step's settled residual (the
+step's averaged position minus its target, the measurement the daemon's monitor takes while a
+target is held), its correction added to every following command.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Awaitable, Callable
+from typing import IO, Any
+
+from daemon.calibration.health import BiasTracker
+from daemon.calibration.iso9283 import TestResult, summarize
+from daemon.calibration.plans import PlannedStep, StepResult, StepTiming, validation_plan
+from daemon.config import ActuatorConfig
+from daemon.procedure.follow import FollowCheck
+from daemon.procedure.progress import Progress
+from daemon.procedure.steps import run_steps
+from drivers.base import DriverSet
+
+
+def feed_tracker(tracker: BiasTracker, result: StepResult) -> float:
+    """One step into the tracker, as the daemon feeds a settled residual: valid steps only. The correction."""
+    if result.valid:
+        tracker.update(result.t_s, result.x_um - result.step.target_um)
+    return tracker.correction_um
+
+
+async def run_validation(
+    drivers: DriverSet,
+    model: Any | None,
+    *,
+    limits: ActuatorConfig | None = None,
+    name: str = "validation",
+    cycles: int = 30,
+    timing: StepTiming | None = None,
+    progress_stream: IO[str] | None = None,
+    follow: FollowCheck | None = None,
+    ready: Callable[[], Awaitable[None]] | None = None,
+    adapt: BiasTracker | None = None,
+) -> TestResult:
+    """One test: drive the validation plan with the model (or without when ``model`` is None).
+
+    ``adapt``: a bias tracker (``[adapt] mode = "bias"``) whose correction is added to the model's
+    commands, fed by each valid step. The result records, per step, the correction its command
+    carried and the model's ``q_sigma_um`` for it.
+    """
+    timing = timing or StepTiming()
+    plan = validation_plan(cycles)
+    evaluator = model.evaluator() if model is not None else None
+    if adapt is not None and model is None:
+        raise ValueError("adaptation corrects the model's commands: it needs a model")
+    latest: dict[str, float] = {}
+    extrapolating = 0
+    corrections: list[float] = []
+    sigmas: list[float] = []
+    if model is not None:
+        missing = [c for c in model.channels if c not in drivers.temperature_channels]
+        if missing:
+            raise ValueError(f"the model needs channel(s) {', '.join(missing)} that this cell does not measure")
+
+    def observe(t: float, temps: dict[str, float]) -> None:
+        latest.update(temps)
+        if evaluator is not None:
+            evaluator.observe(t, temps)
+
+    def command_for(step: PlannedStep, t: float) -> float:
+        nonlocal extrapolating
+        if evaluator is None:
+            return step.target_um
+        if not evaluator.ready:
+            raise RuntimeError("no clean temperature sample yet for every channel the model needs")
+        if model.out_of_range(step.target_um, latest):
+            extrapolating += 1
+        correction = adapt.correction_um if adapt is not None else 0.0
+        corrections.append(correction)
+        sigmas.append(evaluator.sigma(step.target_um, t))
+        return float(evaluator.command(step.target_um, t)) + correction
+
+    def on_step(result: StepResult) -> None:
+        if adapt is not None:
+            feed_tracker(adapt, result)
+
+    progress = Progress(plan, name, progress_stream)
+    steps = await run_steps(drivers, plan, limits=limits, timing=timing, command_for=command_for,
+                            on_step=on_step, on_temperatures=observe, progress=progress, follow=follow,
+                            ready=ready)
+    result = summarize(name, steps, model is not None, extrapolating)
+    if model is not None:
+        result.corrections_um = corrections
+        result.q_sigma_um = sigmas
+        result.adapted = adapt is not None
+    return result
+

@@ -1,0 +1,254 @@
+"""Table I as text or JSON, and a report directory: figures after the paper's Fig. 9 and 11, raw data.
+
+``--report DIR`` writes:
+- ``table1.txt`` and ``validation.json``: what ``validate`` prints;
+- ``fig9_drift_at_zero.png`` / ``.svg``: per test, the drift at the zero position over time (the
+  uncompensated position, measured or computed), the compensation the model applied (x' - q') and
+  the temperatures;
+- ``fig11_accuracy.png`` / ``.svg``: accuracy with and without compensation per test (bars) and per
+  point, on a linear axis unless the values span more than a decade;
+PNGs are 150 dpi; the SVGs keep text as text.
+- ``validation_raw.csv``: one row per step: test, cycle, target, command, measured position, the
+  computed uncompensated position, validity and the temperatures.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from daemon.atomic import atomic_write_text, atomic_writer
+from daemon.calibration.iso9283 import TestResult, x_without
+
+PAPER_TABLE1: dict[str, tuple[float, float | None]] = {
+    "test1": (546.0, None),
+    "test2": (378.0, 35.0),
+    "test3": (478.0, 62.0),
+    "test4": (492.0, 57.0),
+    "test5": (2225.0, 646.0),
+}
+
+
+EMPTY = "—"  # a cell with no value (test 1 has no "with compensation")
+
+
+def _nm(v: float) -> str:
+    return EMPTY if not math.isfinite(v) else f"{v:.0f} nm"
+
+
+def ratio_text(ratio: float | None) -> str:
+    """An improvement factor as people write it: ``4.0×``; ``—`` when there is none."""
+    return EMPTY if ratio is None or not math.isfinite(ratio) else f"{ratio:.1f}×"
+
+
+def table1(results: Sequence[TestResult], paper: Mapping[str, tuple[float, float | None]] | None = None) -> str:
+    """Table I: accuracy (mean over the test points) without and with compensation."""
+    head = f"{'Test':<10}{'Without comp.':>15}{'With comp.':>12}{'Improvement':>13}"
+    if paper:
+        head += f"   | paper: {'without':>8}{'with':>8}{'ratio':>7}"
+    lines = ["TABLE I  accuracy with and without compensation (mean of |mean attained - target| over the points)",
+             head, "-" * len(head)]
+    for r in results:
+        star = "*" if r.compensated else " "
+        ratio = r.improvement
+        line = f"{r.name:<10}{_nm(r.accuracy_without_nm) + star:>15}{_nm(r.accuracy_nm):>12}{ratio_text(ratio):>13}"
+        if paper and r.name in paper:
+            p0, p1 = paper[r.name]
+            line += f"   |        {p0:>6.0f}{(f'{p1:.0f}' if p1 else EMPTY):>8}{ratio_text(p0 / p1 if p1 else None):>7}"
+        if r.invalid_steps:
+            line += f"  ({r.invalid_steps} invalid steps)"
+        if r.extrapolating_steps:
+            line += f"  [{r.extrapolating_steps} steps extrapolating]"
+        lines.append(line)
+    lines.append("* from calculation, not measurement: x_without = x_measured - (q' - x') over the same period.")
+    return "\n".join(lines)
+
+
+def results_json(results: Sequence[TestResult], **extra: Any) -> dict[str, Any]:
+    return {"tests": [r.to_dict() for r in results], **extra}
+
+
+def raw_csv(results: Sequence[TestResult]) -> str:
+    channels: list[str] = []
+    for r in results:
+        for s in r.steps:
+            channels.extend(c for c in s.temperatures if c not in channels)
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(["test", "t_s", "cycle", "target_um", "q_um", "x_measured_um", "x_without_um", "valid",
+                     *channels])
+    for r in results:
+        for s in r.steps:
+            writer.writerow([r.name, repr(s.t_s), s.step.cycle, repr(s.step.target_um), repr(s.q_um), repr(s.x_um),
+                             repr(x_without(s)), int(s.valid),
+                             *(repr(s.temperatures.get(c, math.nan)) for c in channels)])
+    return out.getvalue()
+
+
+#: matplotlib settings for figures pasted into a lab notebook: readable at 100 %, text kept as text in SVG
+STYLE = {
+    "font.size": 10,
+    "axes.titlesize": 11,
+    "axes.labelsize": 10,
+    "legend.fontsize": 9,
+    "xtick.labelsize": 9,
+    "ytick.labelsize": 9,
+    "svg.fonttype": "none",
+}
+PNG_DPI = 150
+WITHOUT_COLOR, WITH_COLOR = "#4c72b0", "#dd8452"
+
+
+def write_report(results: Sequence[TestResult], directory: str | Path, text: str, doc: Mapping[str, Any]) -> list[Path]:
+    """Write the report files (each atomically); returns their paths."""
+    import matplotlib  # figures only when a report is asked for
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = Path(directory)
+    out.mkdir(parents=True, exist_ok=True)
+    written = [out / "table1.txt", out / "validation.json", out / "validation_raw.csv"]
+    atomic_write_text(written[0], text + "\n")
+    atomic_write_text(written[1], json.dumps(doc, indent=2) + "\n")
+    atomic_write_text(written[2], raw_csv(results))
+    with plt.rc_context(STYLE):
+        for stem, draw in (("fig9_drift_at_zero", figure_drift), ("fig11_accuracy", figure_accuracy)):
+            fig = draw(results)
+            written.extend(save_figure(fig, out / stem))
+            plt.close(fig)
+    return written
+
+
+def figure_drift(results: Sequence[TestResult]) -> Any:
+    """After the paper's Fig. 9 and 10: per test, the drift at x' = 0 over time, and the temperatures."""
+    import matplotlib.pyplot as plt  # figures only when a report is asked for
+
+    with plt.rc_context(STYLE):
+        return _draw_drift(plt, results)
+
+
+def _draw_drift(plt: Any, results: Sequence[TestResult]) -> Any:
+    fig, axes = plt.subplots(2 * len(results), 1, figsize=(9, 4.2 * len(results) + 0.4), squeeze=False,
+                             gridspec_kw={"height_ratios": [3, 1.4] * len(results)})
+    for i, r in enumerate(results):
+        ax, tax = axes[2 * i, 0], axes[2 * i + 1, 0]
+        zero = [s for s in r.steps if s.step.target_um == 0.0 and s.valid]
+        hours = [s.t_s / 3600.0 for s in zero]
+        ax.axhline(0.0, color="0.6", lw=0.8)
+        if r.compensated:
+            ax.plot(hours, [1e3 * x_without(s) for s in zero], "o-", ms=4, color=WITHOUT_COLOR,
+                    label="drift without compensation (computed: x − (q′ − x′))")
+            ax.plot(hours, [1e3 * (s.step.target_um - s.q_um) for s in zero], "s--", ms=4, color="0.35",
+                    label="compensation applied (x′ − q′)")
+            ax.plot(hours, [1e3 * s.x_um for s in zero], "D-", ms=4, color=WITH_COLOR,
+                    label="position with compensation (measured)")
+        else:
+            ax.plot(hours, [1e3 * s.x_um for s in zero], "o-", ms=4, color=WITHOUT_COLOR,
+                    label="drift (measured position, no compensation)")
+        ax.set_title(f"{r.name} ({'with' if r.compensated else 'without'} compensation): position at x′ = 0 µm")
+        ax.set_ylabel("drift at x′ = 0 µm (nm)")
+        ax.grid(alpha=0.3)
+        if zero:
+            ax.legend(loc="best", framealpha=0.85)
+        valid = [s for s in r.steps if s.valid]
+        channels = list(dict.fromkeys(c for s in valid for c in s.temperatures))
+        for channel in channels:
+            points = [(s.t_s / 3600.0, s.temperatures[channel]) for s in valid if channel in s.temperatures]
+            tax.plot([t for t, _ in points], [v for _, v in points], lw=1.2, label=channel)
+        tax.set_title(f"{r.name}: temperatures")
+        tax.set_ylabel("temperature (°C)")
+        tax.yaxis.get_major_formatter().set_useOffset(False)
+        tax.grid(alpha=0.3)
+        if channels:
+            tax.legend(loc="center left", bbox_to_anchor=(1.0, 0.5), ncol=1, frameon=False)
+        tax.sharex(ax)
+        tax.set_xlabel("time (h)")
+    fig.tight_layout()
+    return fig
+
+
+def figure_accuracy(results: Sequence[TestResult]) -> Any:
+    """After the paper's Fig. 11: Table I as bars, and the accuracy at each test point."""
+    import matplotlib.pyplot as plt  # figures only when a report is asked for
+
+    with plt.rc_context(STYLE):
+        return _draw_accuracy(plt, results)
+
+
+def _draw_accuracy(plt: Any, results: Sequence[TestResult]) -> Any:
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 4.8))
+    compensated = [i for i, r in enumerate(results) if r.compensated]
+    width = 0.38 if compensated else 0.6
+    shift = width / 2 if compensated else 0.0
+    without = ax1.bar([i - shift if r.compensated else i for i, r in enumerate(results)],
+                      [r.accuracy_without_nm for r in results], width, color=WITHOUT_COLOR,
+                      label="without compensation")
+    ax1.bar_label(without, fmt="%.0f", padding=2, fontsize=9)
+    if compensated:
+        with_ = ax1.bar([i + shift for i in compensated], [results[i].accuracy_nm for i in compensated], width,
+                        color=WITH_COLOR, label="with compensation")
+        ax1.bar_label(with_, fmt="%.0f", padding=2, fontsize=9)
+    ax1.set_xticks(range(len(results)), [r.name + ("*" if r.compensated else "") for r in results])
+    ax1.set_ylabel("accuracy (nm)")
+    ax1.set_title("Table I: mean accuracy per test")
+    ax1.set_xlim(-0.75, len(results) - 0.25)
+    ax1.margins(y=0.12)
+    ax1.legend(loc="upper center", bbox_to_anchor=(0.5, -0.08), ncol=2, frameon=False)
+    if compensated:
+        ax1.annotate("* without compensation: computed from the same run, x − (q′ − x′)", (0, 0),
+                     xycoords="figure fraction", xytext=(8, 6), textcoords="offset points", fontsize=8,
+                     color="0.3")
+
+    values: list[float] = []
+    for k, r in enumerate(results):
+        color = f"C{k}"
+        xs = [p.target_um for p in r.points]
+        ax2.plot(xs, [p.accuracy_without_nm for p in r.points], "o--", ms=4, color=color, alpha=0.7,
+                 mfc="none", label=f"{r.name} without" + (" (computed)" if r.compensated else ""))
+        values.extend(p.accuracy_without_nm for p in r.points)
+        if r.compensated:
+            ax2.plot(xs, [p.accuracy_nm for p in r.points], "o-", ms=4, color=color, label=f"{r.name} with")
+            values.extend(p.accuracy_nm for p in r.points)
+    ax2.set_xlabel("test point x′ (µm)")
+    ax2.set_ylabel("accuracy (nm)")
+    ax2.set_title("accuracy at each test point (ISO 9283)")
+    points = sorted({p.target_um for r in results for p in r.points})
+    if points:
+        ax2.set_xticks(points)
+    value_axis(ax2, values)
+    ax2.grid(alpha=0.3)
+    ax2.legend(loc="best", ncol=2 if len(results) > 2 else 1, framealpha=0.85)
+    fig.tight_layout(rect=(0, 0.04 if compensated else 0, 1, 1))
+    return fig
+
+
+def value_axis(ax: Any, values: Sequence[float]) -> None:
+    """Linear from 0 when the values span less than a decade; else log, labelled in plain numbers."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter  # only when a report is asked for
+
+    positive = [v for v in values if math.isfinite(v) and v > 0]
+    if not positive or max(positive) < 10 * min(positive):
+        ax.set_yscale("linear")
+        ax.set_ylim(bottom=0)
+        return
+    ax.set_yscale("log")
+    ax.yaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+    ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+    ax.yaxis.set_minor_formatter(NullFormatter())
+
+
+def save_figure(fig: Any, stem: Path) -> list[Path]:
+    """``stem.png`` at 150 dpi for a notebook page and ``stem.svg`` to scale or edit, both atomically."""
+    paths = []
+    for suffix, options in ((".png", {"dpi": PNG_DPI}), (".svg", {"metadata": {"Date": None}})):
+        path = stem.with_suffix(suffix)
+        with atomic_writer(path, "wb") as handle:
+            fig.savefig(handle, format=suffix[1:], **options)
+        paths.append(path)
+    return paths

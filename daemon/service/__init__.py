@@ -1,0 +1,12 @@
+"""The compensation daemon: poll the sensors, answer every target, publish commands and telemetry.
+
+One unit per job: ``runner`` (lifecycle: signals, session, drivers, serve, cleanup), ``targets``
+(the hot path), ``actuation`` (latest command wins), ``sensors`` (readings in, telemetry out),
+``table`` (channel states), ``compensator`` (target -> command), ``polling`` (one task per sensor
+group), ``status``, ``supervision`` (state changes, watchdog), ``reload`` (SIGHUP), ``state``
+(what the target path and the loop share, behind one lock).
+"""
+
+from daemon.service.runner import Service, run_service
+
+__all__ = ["Service", "run_service"]

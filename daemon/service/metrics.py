@@ -1,0 +1,215 @@
+"""Prometheus metrics for the lab's monitoring (``[metrics] listen``): read from the cell at scrape time.
+
+Nothing is updated on the loop: a custom collector builds the ``status`` document (under the state
+lock, as the ``status`` queryable does) when Prometheus scrapes, and turns it into metric families.
+Health and actuator state are read from that document when it carries them, so this module does not
+depend on how they are measured. The one thing measured on the target path is the answer latency:
+:class:`AnswerLatency` counts it into fixed buckets (a bisect and two additions under an
+uncontended lock), and the collector exposes the counts as a histogram.
+
+Each :class:`MetricsServer` has its own ``CollectorRegistry`` (no global state: tests run several
+daemons in one process) and its own HTTP server thread (``prometheus_client.start_http_server``).
+Names follow Prometheus' conventions: ``nanodrift_`` prefix, base units (seconds, metres), counters
+ending ``_total``; every series carries the ``cell`` label.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+import threading
+from collections.abc import Callable, Iterator
+from typing import Any
+
+from prometheus_client import CollectorRegistry, start_http_server
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily
+from prometheus_client.registry import Collector
+
+from daemon.errors import UserError
+
+#: answer latency buckets (seconds): the daemon answers in tens to hundreds of µs on a loaded machine
+LATENCY_BUCKETS_S = (25e-6, 50e-6, 100e-6, 200e-6, 500e-6, 1e-3, 2e-3, 5e-3, 10e-3, 50e-3, 0.25, 1.0)
+
+
+class AnswerLatency:
+    """Answer latencies counted into :data:`LATENCY_BUCKETS_S` (non-cumulative; the last slot is +Inf)."""
+
+    __slots__ = ("_counts", "_lock", "_sum_s")
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._counts = [0] * (len(LATENCY_BUCKETS_S) + 1)
+        self._sum_s = 0.0
+
+    def observe(self, seconds: float) -> None:
+        index = bisect.bisect_left(LATENCY_BUCKETS_S, seconds)  # the first bucket with le >= seconds
+        with self._lock:
+            self._counts[index] += 1
+            self._sum_s += seconds
+
+    def snapshot(self) -> tuple[list[int], float]:
+        """Cumulative counts per bucket (ending with +Inf, the total) and the sum."""
+        with self._lock:
+            counts, total = list(self._counts), self._sum_s
+        cumulative, running = [], 0
+        for count in counts:
+            running += count
+            cumulative.append(running)
+        return cumulative, total
+
+
+def _number(value: Any) -> float | None:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    return float(value) if math.isfinite(value) else None
+
+
+class CellCollector(Collector):
+    """Metric families from one status document per scrape (``status_doc`` takes the state lock)."""
+
+    def __init__(self, status_doc: Callable[[], dict[str, Any]], latency: AnswerLatency) -> None:
+        self.status_doc = status_doc
+        self.latency = latency
+
+    def collect(self) -> Iterator[Any]:
+        doc = self.status_doc()
+        cell = str(doc.get("cell", ""))
+        yield from self._counters(doc, cell)
+        yield self._latency(cell)
+        yield from self._sensors(doc, cell)
+        yield from self._cell(doc, cell)
+        yield from self._health(doc, cell)
+        yield from self._actuator(doc, cell)
+
+    def _counters(self, doc: dict[str, Any], cell: str) -> Iterator[Any]:
+        counters = doc.get("counters") or {}
+        for name, key, text in (
+            ("nanodrift_targets_total", "targets", "targets received (each gets one command or one error)"),
+            ("nanodrift_commands_total", "commands", "commands computed and published"),
+            ("nanodrift_reloads_total", "reloads", "configuration reloads applied"),
+            ("nanodrift_reload_failures_total", "reload_failures", "configuration reloads refused"),
+        ):
+            family = CounterMetricFamily(name, text, labels=["cell"])
+            family.add_metric([cell], float(counters.get(key) or 0))
+            yield family
+        errors = CounterMetricFamily("nanodrift_errors_total", "targets refused, by error kind",
+                                     labels=["cell", "kind"])
+        for kind, count in sorted((counters.get("errors") or {}).items()):
+            errors.add_metric([cell, str(kind)], float(count))
+        yield errors
+
+    def _latency(self, cell: str) -> HistogramMetricFamily:
+        cumulative, total = self.latency.snapshot()
+        bounds = [repr(b) for b in LATENCY_BUCKETS_S] + ["+Inf"]
+        family = HistogramMetricFamily("nanodrift_answer_latency_seconds",
+                                       "from a target's arrival to its answer published", labels=["cell"])
+        family.add_metric([cell], list(zip(bounds, [float(c) for c in cumulative], strict=True)), total)
+        return family
+
+    def _sensors(self, doc: dict[str, Any], cell: str) -> Iterator[Any]:
+        value = GaugeMetricFamily("nanodrift_sensor_value", "each channel's last reading, in its unit (label)",
+                                  labels=["cell", "channel", "role", "unit"])
+        age = GaugeMetricFamily("nanodrift_sensor_age_seconds", "age of each channel's last reading",
+                                labels=["cell", "channel"])
+        ok = GaugeMetricFamily("nanodrift_sensor_ok", "1 while the channel is ok, 0 when stale or faulted",
+                               labels=["cell", "channel"])
+        for name, sensor in sorted((doc.get("sensors") or {}).items()):
+            if not isinstance(sensor, dict):
+                continue
+            reading = _number(sensor.get("value"))
+            if reading is not None:
+                value.add_metric([cell, name, str(sensor.get("role", "")), str(sensor.get("unit", ""))], reading)
+            seconds = _number(sensor.get("age_s"))
+            if seconds is not None:
+                age.add_metric([cell, name], seconds)
+            ok.add_metric([cell, name], 1.0 if sensor.get("state") == "ok" else 0.0)
+        yield from (value, age, ok)
+
+    def _cell(self, doc: dict[str, Any], cell: str) -> Iterator[Any]:
+        healthy = GaugeMetricFamily("nanodrift_healthy", "1 while every sensor poller makes progress",
+                                    labels=["cell"])
+        healthy.add_metric([cell], 1.0 if doc.get("healthy") else 0.0)
+        uptime = GaugeMetricFamily("nanodrift_uptime_seconds", "since the daemon started", labels=["cell"])
+        uptime.add_metric([cell], _number(doc.get("uptime_s")) or 0.0)
+        model = GaugeMetricFamily("nanodrift_model_info", "1, labelled with the model id being served (none: none)",
+                                  labels=["cell", "model"])
+        info = doc.get("model")
+        model.add_metric([cell, str(info.get("id")) if isinstance(info, dict) else "none"], 1.0)
+        extrapolating = GaugeMetricFamily("nanodrift_extrapolating",
+                                          "1 while a channel (or x) is outside the model's training range",
+                                          labels=["cell"])
+        extrapolating.add_metric([cell], 1.0 if doc.get("extrapolating") else 0.0)
+        yield from (healthy, uptime, model, extrapolating)
+
+    def _health(self, doc: dict[str, Any], cell: str) -> Iterator[Any]:
+        health = doc.get("health")
+        if not isinstance(health, dict):
+            return
+        for name, key, scale, text in (
+            ("nanodrift_health_residual_rms_meters", "residual_rms_nm", 1e-9, "RMS of the settled residuals"),
+            ("nanodrift_health_residual_mean_meters", "residual_mean_nm", 1e-9, "mean of the settled residuals"),
+            ("nanodrift_health_correction_meters", "correction_um", 1e-6, "the adaptive correction applied"),
+        ):
+            number = _number(health.get(key))
+            if number is not None:
+                family = GaugeMetricFamily(name, text, labels=["cell"])
+                family.add_metric([cell], number * scale)
+                yield family
+        if health.get("state") is not None:
+            state = GaugeMetricFamily("nanodrift_health_state", "1 for the health state the daemon is in",
+                                      labels=["cell", "state"])
+            state.add_metric([cell, str(health["state"])], 1.0)
+            yield state
+
+    def _actuator(self, doc: dict[str, Any], cell: str) -> Iterator[Any]:
+        actuator = doc.get("actuator")
+        if not isinstance(actuator, dict) or actuator.get("state") is None:
+            return
+        kind, state = str(actuator.get("kind", "")), str(actuator["state"])
+        family = GaugeMetricFamily("nanodrift_actuator_state", "1 for the state the actuator is in",
+                                   labels=["cell", "kind", "state"])
+        family.add_metric([cell, kind, state], 1.0)
+        ok = GaugeMetricFamily("nanodrift_actuator_ok", "1 unless the actuator is in fault", labels=["cell", "kind"])
+        ok.add_metric([cell, kind], 0.0 if state == "fault" else 1.0)
+        yield from (family, ok)
+
+
+def split_listen(listen: str) -> tuple[str, int]:
+    """``"127.0.0.1:9464"`` -> (host, port); ``[::1]:9464`` for IPv6."""
+    host, _, port = listen.rpartition(":")
+    return host.strip("[]"), int(port)
+
+
+class MetricsServer:
+    """The HTTP endpoint: ``/metrics`` on ``listen``, its own registry and thread."""
+
+    def __init__(self, listen: str, status_doc: Callable[[], dict[str, Any]], latency: AnswerLatency) -> None:
+        self.listen = listen
+        self.registry = CollectorRegistry(auto_describe=False)
+        self.registry.register(CellCollector(status_doc, latency))
+        self._server: Any = None
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        host, port = split_listen(self.listen)
+        try:
+            self._server, self._thread = start_http_server(port, addr=host, registry=self.registry)
+        except OSError as error:
+            reason = "already in use" if error.errno == 98 else error.strerror or str(error)
+            raise UserError(f"[metrics] listen = {self.listen!r}: cannot serve metrics there ({reason})") from None
+
+    @property
+    def url(self) -> str:
+        host, port = split_listen(self.listen)
+        if self._server is not None:
+            port = self._server.server_address[1]
+        return f"http://{host if ':' not in host else f'[{host}]'}:{port}/metrics"
+
+    def stop(self) -> None:
+        if self._server is not None:
+            self._server.shutdown()
+            self._server.server_close()
+            self._server = None
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+            self._thread = None

@@ -1,0 +1,131 @@
+"""SIGHUP: re-read the config file and the model; apply a valid edit, refuse a bad one.
+
+A refused edit (bad TOML, unknown key, corrupt model, a plugin refusing its sensors) is logged with
+every problem and the running configuration keeps serving. Cell and ``[zenoh]`` changes wait for
+the next restart. The drivers are restarted only when the sensors, hubs, plugin sections or the
+actuator changed; the swap of table, compensator and config is atomic for the target path.
+
+Two edits are refused whatever else they say: one that switches between the simulated cell and
+hardware, and one that removes every sensor of a running cell (an emptied file): both need a
+restart, so a slip of the editor never changes what the stage is.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, Protocol
+
+from daemon.config import ConfigError, load_config, missing_model_channels
+from daemon.model.model import ModelFileError, load_model
+from daemon.sdnotify import Notifier
+from daemon.service.compensator import Compensator
+from daemon.service.state import CellState
+from daemon.service.table import SensorTable
+from drivers.base import DriverContext, DriverSet, DriverSetupError
+
+
+class DriverHost(Protocol):
+    """Who runs the drivers (the runner): the current set, and how to build, stop and start one."""
+
+    drivers: DriverSet | None
+
+    def build_drivers(self, config: Any, context: DriverContext | None) -> DriverSet: ...
+
+    async def stop_drivers(self) -> None: ...
+
+    async def start_drivers(self, drivers: DriverSet) -> None: ...
+
+
+class Reloader:
+    def __init__(
+        self,
+        state: CellState,
+        config_path: Path | None,
+        host: DriverHost,
+        notifier: Notifier,
+        log: Any,
+        *,
+        status_line: Callable[[], str],
+        table_replaced: Callable[[], None],
+    ) -> None:
+        self.state = state
+        self.config_path = config_path
+        self.host = host
+        self.notifier = notifier
+        self.log = log
+        self.status_line = status_line
+        self.table_replaced = table_replaced
+        self._lock = asyncio.Lock()
+
+    async def reload(self) -> bool:
+        """One reload at a time; systemd is told RELOADING, then READY whatever the outcome."""
+        async with self._lock:
+            self.notifier.reloading(time.monotonic_ns() // 1000)
+            try:
+                return await self._reload()
+            finally:
+                self.notifier.ready(self.status_line())
+
+    def _refuse(self, source: str, problems: list[str]) -> bool:
+        self.state.counters.reload_failures += 1
+        self.log.error("reload_refused", config=source, problems=problems)
+        return False
+
+    async def _reload(self) -> bool:
+        state = self.state
+        source = str(self.config_path) if self.config_path else "<built-in default config>"
+        try:
+            new = load_config(self.config_path)
+        except ConfigError as error:
+            return self._refuse(source, error.problems)
+        try:
+            model = load_model(new.model.path)
+        except ModelFileError as error:
+            return self._refuse(source, [f"model.path: {error}"])
+        old = state.config
+        if new.cell != old.cell or new.zenoh != old.zenoh:
+            self.log.warning("reload_needs_restart", detail="cell and [zenoh] changes apply at the next restart")
+            new = new.model_copy(update={"cell": old.cell, "zenoh": old.zenoh})
+            new._source = old.source if self.config_path is None else str(self.config_path)
+        if new.virtual_cell != old.virtual_cell:
+            now, was = ("the simulated cell", "hardware") if new.virtual_cell else ("hardware", "the simulated cell")
+            return self._refuse(source, [f"the edited config describes {now}, the daemon runs {was}: a reload "
+                                         "never switches between them (systemctl restart nanodrift)"])
+        if old.sensors and not new.sensors:
+            return self._refuse(source, ["sensors: the edited config lists no sensors (an emptied file?); a reload "
+                                         "never removes every sensor of a running cell (restart to run one "
+                                         "without sensors)"])
+        drivers_changed = (new.sensors, new.hubs, new.sections, new.actuator) != (
+            old.sensors, old.hubs, old.sections, old.actuator)
+        if drivers_changed:
+            running = self.host.drivers
+            context = running.context if running is not None and new.sections == old.sections else None
+            try:
+                drivers = self.host.build_drivers(new, context)
+            except DriverSetupError as error:
+                return self._refuse(source, [f"sensors: {error}"])
+            await self.host.stop_drivers()
+        with state.lock:  # the swap is atomic for the target path on Zenoh's threads
+            table = state.table
+            if drivers_changed:
+                table = SensorTable(new.sensors)
+                table.carry_over(state.table)
+            compensator = Compensator(model, new.actuator, table)
+            old_comp = state.compensator
+            if old_comp.model is not None and old_comp.model.id == model.id and old_comp.evaluator is not None:
+                compensator.evaluator = old_comp.evaluator  # same model: keep lag filters and direction
+            else:
+                compensator.warm()
+            state.compensator = compensator
+            state.config = new
+        if drivers_changed:
+            self.table_replaced()
+            await self.host.start_drivers(drivers)
+        state.counters.reloads += 1
+        missing = missing_model_channels(new, model.channels)
+        self.log.info("reload_applied", config=source, model=model.id, sensors=list(table.entries),
+                      drivers_restarted=drivers_changed, missing_channels=missing or None)
+        return True

@@ -1,0 +1,223 @@
+"""The daemon's lifecycle: signals, the Zenoh session, the drivers, serving, and a clean stop.
+
+Like aiohttp's ``web_runner``: setup and cleanup live here, apart from what serves (the handlers
+in ``targets``, ``status``, ``sensors``, ``supervision``, ``reload``, ``actuation``). One asyncio
+loop owns the sensors, the actuator, reloads and supervision; targets are answered on Zenoh's
+threads (``daemon.service.targets``).
+
+Signals: SIGHUP re-reads the config and the model (a bad edit is refused and the running
+configuration keeps serving), SIGTERM/SIGINT stop cleanly (liveliness token withdrawn, a finite
+``safe_voltage_v`` written to the output device, session closed, exit 0). systemd is told
+READY/STATUS/WATCHDOG/STOPPING through ``$NOTIFY_SOCKET``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import signal
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from daemon.bus.session import Bus, describe_zenoh_error, listen_endpoints, session_config
+from daemon.config import Config, missing_model_channels
+from daemon.errors import UserError
+from daemon.logs import get_logger
+from daemon.sdnotify import Notifier
+from daemon.service.actuation import Actuation
+from daemon.service.compensator import Compensator, load_model_or_problem
+from daemon.service.metrics import AnswerLatency, MetricsServer
+from daemon.service.polling import GroupPoller, pollers_healthy
+from daemon.service.reload import Reloader
+from daemon.service.sensors import SensorIngest
+from daemon.service.state import CellState
+from daemon.service.status import StatusHandler, status_doc, status_line
+from daemon.service.supervision import SensorWatch, Supervisor
+from daemon.service.table import SensorTable
+from daemon.service.targets import TargetHandler
+from drivers.base import DriverContext, DriverSet, DriverSetupError, WallClock
+
+#: config (and a running context to keep) -> drivers: ``daemon.assembly.build_drivers``, handed in by
+#: ``nanodrift run`` so that the service names no plugin
+BuildDrivers = Callable[[Config, DriverContext | None], DriverSet]
+
+
+class Service:
+    """The daemon for one cell. ``run()`` returns the exit code."""
+
+    def __init__(
+        self,
+        config: Config,
+        *,
+        config_path: str | Path | None = None,
+        zenoh_overrides: Mapping[str, Any] | None = None,
+        notifier: Notifier | None = None,
+        build_drivers: BuildDrivers,
+    ) -> None:
+        self._build_drivers = build_drivers
+        self.config_path = Path(config_path) if config_path is not None else None
+        self.zenoh_overrides = dict(zenoh_overrides or {})
+        self.notifier = notifier or Notifier()
+        self.log = get_logger("nanodrift.daemon")
+        model, problem = load_model_or_problem(config.model.path)
+        compensator = Compensator(model, config.actuator, SensorTable(config.sensors), problem)
+        self.state = CellState(config, compensator, WallClock())  # the drivers' clock once they start
+        self.actuation = Actuation(self.log)
+        self.drivers: DriverSet | None = None
+        self.pollers: list[GroupPoller] = []
+        self.bus: Bus | None = None
+        self.ingest = SensorIngest(self.state, self._publish_telemetry, self.log)
+        self.watch = SensorWatch(self.state, self._publish_telemetry, self.log)
+        self.reloader = Reloader(self.state, self.config_path, self, self.notifier, self.log,
+                                 status_line=self.status_line, table_replaced=self.watch.forget)
+        self.latency = AnswerLatency()
+        self.metrics: MetricsServer | None = None
+        self._stop = asyncio.Event()
+        self._tasks: set[asyncio.Task[Any]] = set()
+
+    async def run(self) -> int:
+        loop = asyncio.get_running_loop()
+        for sig, handler in ((signal.SIGTERM, self.request_stop), (signal.SIGINT, self.request_stop),
+                             (signal.SIGHUP, self.request_reload)):
+            loop.add_signal_handler(sig, handler)
+        self._log_start()
+        self.start_metrics()
+        conf = session_config(self.state.config.zenoh, **self.zenoh_overrides)
+        try:
+            session = zenoh.open(conf)
+        except zenoh.ZError as error:
+            self.stop_metrics()
+            sentence = describe_zenoh_error(error)
+            self.log.error("zenoh_open_failed", error=sentence)
+            raise UserError(sentence) from None
+        listen = listen_endpoints(conf)
+        self.log.info("listening", endpoints=listen, zid=str(session.info.zid()),
+                      **({"note": "port 0: zenoh picked a free port; -l tcp/HOST:PORT fixes it"}
+                         if any(ep.endswith(":0") for ep in listen) else {}))
+        bus = self.bus = Bus(session, self.state.config.cell)
+        try:
+            await self.start_drivers(self.build_drivers(self.state.config, None))
+        except DriverSetupError as error:
+            self.log.error("driver_setup_failed", error=str(error))
+            bus.close()
+            self.stop_metrics()
+            return 1
+        targets = TargetHandler(self.state, bus, loop, self.actuation, self.log, latency=self.latency)
+        with self.state.lock:
+            self.state.serving = True
+        self.serve(loop, targets, StatusHandler(self.state, bus, self.healthy, self.log, self.actuation))
+        line = self.status_line
+        supervisor = Supervisor(self.watch, self.notifier, self.log, healthy=self.healthy, status_line=line,
+                                refusals_suppressed=targets.take_suppressed,
+                                actuator_failures=self.actuation.failures)
+        supervising = asyncio.create_task(supervisor.run(), name="supervise")
+        self.log.info("serving", cell=self.state.config.cell, keys=f"{bus.keys.prefix}/**", listen=listen,
+                      model=self.state.model_id(), sensors=list(self.state.table.entries))
+        self.notifier.ready(line())
+        await self._stop.wait()
+
+        self.notifier.stopping()
+        with self.state.lock:
+            self.state.serving = False  # targets arriving from now on are not answered by a half-closed daemon
+            counters = self.state.counters.as_dict()
+        self.log.info("stopping", counters=counters)
+        supervising.cancel()
+        for task in list(self._tasks):
+            task.cancel()
+        bus.withdraw()  # clients see the daemon gone first
+        await self.stop_drivers(final=True)  # safe_voltage_v (when finite) before the actuator closes
+        bus.close()
+        self.stop_metrics()
+        self.log.info("stopped")
+        return 0
+
+    def serve(self, loop: asyncio.AbstractEventLoop, targets: TargetHandler, status: StatusHandler) -> None:
+        """Declare the handlers on the bus (a subclass may wrap them: benchmarks/daemon_latency.py)."""
+        assert self.bus is not None
+        self.bus.serve(loop, targets.on_target, status.on_status)
+
+    def start_metrics(self) -> None:
+        """``[metrics] listen``: Prometheus' ``/metrics``, read at scrape time (a change needs a restart)."""
+        listen = self.state.config.metrics.listen
+        if not listen:
+            return
+        server = MetricsServer(listen, lambda: status_doc(self.state, self.healthy()), self.latency)
+        try:
+            server.start()
+        except UserError as error:
+            self.log.error("metrics_failed", error=str(error))
+            raise
+        self.metrics = server
+        self.log.info("metrics_listening", url=server.url)
+
+    def stop_metrics(self) -> None:
+        if self.metrics is not None:
+            self.metrics.stop()
+            self.metrics = None
+
+    def request_stop(self) -> None:
+        self._stop.set()
+
+    def request_reload(self) -> None:
+        task = asyncio.get_running_loop().create_task(self.reloader.reload(), name="reload")
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    def healthy(self) -> bool:
+        """The loop runs (we are in it) and every poller is alive and making progress."""
+        return pollers_healthy(self.pollers)
+
+    def status_line(self) -> str:
+        return status_line(self.state)
+
+    def _publish_telemetry(self, role: str, channel: str, payload: bytes) -> None:
+        if self.bus is not None:  # none before the session is open
+            self.bus.publish_telemetry(role, channel, payload)
+
+    # --- the drivers (also called by the Reloader) ------------------------------------------------
+
+    def build_drivers(self, config: Config, context: DriverContext | None) -> DriverSet:
+        return self._build_drivers(config, context)
+
+    async def start_drivers(self, drivers: DriverSet) -> None:
+        self.drivers = drivers
+        with self.state.lock:
+            self.state.clock = drivers.context.clock
+        if drivers.actuator is not None:
+            await self.actuation.start(drivers.actuator, self.state.config.actuator)
+        ingest = self.ingest
+        self.pollers = [
+            GroupPoller(g, drivers.context.clock, ingest.on_readings, ingest.on_group_failure,
+                        ingest.on_group_recovered)
+            for g in drivers.groups
+        ]
+        for poller in self.pollers:
+            poller.start()
+
+    async def stop_drivers(self, *, final: bool = False) -> None:
+        """Stop polling and the actuator; ``final`` (the daemon stops, not a reload): the actuator
+        first writes ``safe_voltage_v`` when it is finite."""
+        await asyncio.gather(*(p.stop() for p in self.pollers), return_exceptions=True)
+        self.pollers = []
+        await self.actuation.stop(final=final)
+
+    def _log_start(self) -> None:
+        config, comp = self.state.config, self.state.compensator
+        model = comp.model
+        missing = missing_model_channels(config, model.channels) if model else []
+        self.log.info("starting", config=config.source, cell=config.cell,
+                      model_path=str(config.model.path), model=model.id if model else None,
+                      model_problem=comp.model_problem or None, missing_channels=missing or None)
+
+
+def run_service(config: Config, build_drivers: BuildDrivers, config_path: str | Path | None = None,
+                zenoh_overrides: Mapping[str, Any] | None = None) -> int:
+    """Run the daemon until SIGTERM/SIGINT; the exit code."""
+
+    async def main() -> int:
+        return await Service(config, config_path=config_path, zenoh_overrides=zenoh_overrides,
+                             build_drivers=build_drivers).run()
+
+    return asyncio.run(main())

@@ -1,0 +1,99 @@
+"""The ``status`` queryable and the one-line status systemd shows: built from the cell state on the loop.
+
+Answered on the asyncio loop on purpose: a reply proves the loop runs; ``healthy`` adds that every
+sensor poller is alive and making progress.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import zenoh
+
+from daemon.bus.protocol import dumps
+from daemon.bus.session import Bus
+from daemon.config import ZENOH_KIND, Config
+from daemon.service.actuation import Actuation
+from daemon.service.state import CellState
+from drivers.base import State
+
+
+def status_doc(state: CellState, healthy: bool, actuation: Actuation | None = None) -> dict[str, Any]:
+    """The ``status`` payload's document (ARCHITECTURE.md, Zenoh ``status``)."""
+    driven = actuation.doc() if actuation is not None else None
+    with state.lock:
+        now = state.clock.now()
+        comp = state.compensator
+        config = state.config
+        return {
+            "cell": config.cell,
+            "t": time.time(),
+            "uptime_s": round(time.time() - state.started, 3),
+            "config": config.source,
+            "model": comp.model_info(),
+            "model_path": str(config.model.path),
+            "model_problem": comp.model_problem or None,
+            "sensors": comp.table.snapshot(now),
+            "extrapolating": sorted(set(comp.extrapolating_now(now)) | set(comp.last_extrapolating)),
+            "actuator": actuator_doc(config, driven),
+            "counters": state.counters.as_dict(),
+            "healthy": healthy,
+        }
+
+
+def status_line(state: CellState) -> str:
+    """``cell c: 3/4 sensors ok, model m-..., 12 commands, 0 refused`` (systemd's STATUS=)."""
+    with state.lock:
+        now = state.clock.now()
+        table = state.table
+        states = [table.state(n, now)[0] for n in table.entries]
+        commands, refused = state.counters.commands, sum(state.counters.errors.values())
+        model_id = state.model_id()
+    ok = sum(s == State.OK for s in states)
+    return (f"cell {state.config.cell}: {ok}/{len(states)} sensors ok, model {model_id or 'none'}, "
+            f"{commands} commands, {refused} refused")
+
+
+class StatusHandler:
+    """``on_status`` for the bus (called on the loop)."""
+
+    def __init__(self, state: CellState, bus: Bus, healthy: Callable[[], bool], log: Any,
+                 actuation: Actuation | None = None) -> None:
+        self.state = state
+        self.actuation = actuation
+        self.bus = bus
+        self.healthy = healthy
+        self.log = log
+
+    def on_status(self, query: zenoh.Query) -> None:
+        try:
+            self.bus.reply(query, self.bus.keys.status, dumps(status_doc(self.state, self.healthy(), self.actuation)))
+        except zenoh.ZError as error:
+            self.log.warning("status_reply_failed", error=str(error))
+
+
+#: the ``[actuator]`` keys ``status`` always showed, in their order (clients read them)
+_ACTUATOR_KEYS = ("volts_per_um", "offset_v", "v_min", "v_max", "x_min_um", "x_max_um")
+
+
+def actuator_doc(config: Config, driven: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The actuator in ``status``: the conversion and limits, then who drives the stage and how.
+
+    ``driven`` is :meth:`Actuation.doc` (state, reason, device, last written voltage and time,
+    writes, failures). With ``kind = "zenoh"`` there is no device: the daemon publishes ``command``
+    and an output node applies it, so the state is always ``ok`` and ``output`` says ``published``.
+    """
+    actuator = config.actuator
+    doc: dict[str, Any] = {key: getattr(actuator, key) for key in _ACTUATOR_KEYS}
+    doc["kind"] = actuator.kind
+    doc["max_slew_um_per_s"] = actuator.max_slew_um_per_s
+    doc["safe_voltage_v"] = actuator.safe_voltage_v if math.isfinite(actuator.safe_voltage_v) else None
+    if actuator.kind == ZENOH_KIND:
+        doc.update(state="ok", reason=None, output="published", device=None)
+    elif driven is not None:
+        doc.update(driven)
+        doc["output"] = "device"
+    return doc

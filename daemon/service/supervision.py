@@ -1,0 +1,108 @@
+"""Supervision on the asyncio loop: sensor state changes, systemd's watchdog and status line, log summaries.
+
+- :class:`SensorWatch` logs each change of state (ok / stale / fault), one line for the channels
+  that changed together with the same reason (a hub failure is one line, not one per channel), and publishes a
+  ``stale`` telemetry sample when a channel goes quiet (a silent device sends nothing else).
+- :class:`Supervisor` runs every ``SUPERVISE_INTERVAL_S``: the watchdog ping (only while healthy,
+  so systemd restarts a daemon whose pollers died or stalled), the status line, and the summaries
+  of refused targets and actuator failures that the rate-limited logs suppressed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Callable
+from typing import Any
+
+from daemon.bus.protocol import encode_telemetry
+from daemon.logs import RateLimitedLog
+from daemon.sdnotify import Notifier, watchdog_interval_s
+from daemon.service.sensors import PublishTelemetry
+from daemon.service.state import CellState
+from drivers.base import State
+
+SUPERVISE_INTERVAL_S = 0.25
+STATUS_INTERVAL_S = 5.0
+SUPPRESSED_SUMMARY_S = 2.0  # how often "N refused targets not logged" is written during a flood
+
+
+class SensorWatch:
+    """Remembers each channel's last state and reports the changes."""
+
+    def __init__(self, state: CellState, publish_telemetry: PublishTelemetry, log: Any) -> None:
+        self.state = state
+        self.publish_telemetry = publish_telemetry
+        self.log = log
+        self._states: dict[str, str] = {}
+
+    def forget(self) -> None:
+        """The table was replaced (a reload): every channel's state is news again."""
+        self._states = {}
+
+    def check(self) -> None:
+        state = self.state
+        with state.lock:
+            now = state.clock.now()
+            table = state.table
+            states = [(name, entry, *table.state(name, now)) for name, entry in table.entries.items()]
+        # channels that changed together (one device failing takes all of its channels) make one line
+        changed: dict[tuple[str, str | None, str | None], list[str]] = {}
+        for name, entry, channel_state, reason in states:
+            previous = self._states.get(name)
+            if previous == channel_state.value:
+                continue
+            self._states[name] = channel_state.value
+            if previous is None and channel_state == State.STALE and entry.t is None:
+                continue  # starting up: nothing read yet is not news
+            changed.setdefault((channel_state.value, previous, reason), []).append(name)
+            if channel_state == State.STALE:
+                self.publish_telemetry(entry.role, name, encode_telemetry(entry.value, entry.unit, entry.t,
+                                                                          "stale", reason))
+        for (new_state, previous, reason), names in changed.items():
+            log = self.log.info if new_state == State.OK.value else self.log.warning
+            log("sensor_state", channels=names, state=new_state, was=previous, reason=reason,
+                **({"channel": names[0]} if len(names) == 1 else {}))
+
+
+class Supervisor:
+    """The periodic task; ``healthy`` says whether the pollers make progress."""
+
+    def __init__(
+        self,
+        watch: SensorWatch,
+        notifier: Notifier,
+        log: Any,
+        *,
+        healthy: Callable[[], bool],
+        status_line: Callable[[], str],
+        refusals_suppressed: Callable[[], int],
+        actuator_failures: RateLimitedLog,
+    ) -> None:
+        self.watch = watch
+        self.notifier = notifier
+        self.log = log
+        self.healthy = healthy
+        self.status_line = status_line
+        self.refusals_suppressed = refusals_suppressed
+        self.actuator_failures = actuator_failures
+
+    async def run(self) -> None:
+        watchdog = watchdog_interval_s()
+        last_ping = last_status = last_summary = 0.0
+        while True:
+            now_mono = time.monotonic()
+            self.watch.check()
+            if watchdog is not None and now_mono - last_ping >= watchdog and self.healthy():
+                self.notifier.watchdog()
+                last_ping = now_mono
+            if now_mono - last_summary >= SUPPRESSED_SUMMARY_S:
+                suppressed = self.refusals_suppressed()
+                if suppressed:
+                    self.log.warning("target_refused_suppressed", suppressed=suppressed)
+                self.actuator_failures.flush()
+                last_summary = now_mono
+            if now_mono - last_status >= STATUS_INTERVAL_S:
+                self.notifier.status(self.status_line())
+                last_status = now_mono
+            await asyncio.sleep(SUPERVISE_INTERVAL_S if watchdog is None else min(SUPERVISE_INTERVAL_S, watchdog))

@@ -1,0 +1,163 @@
+"""The hot path: answer each target exactly once, a command or an error with its id.
+
+Runs on Zenoh's callback threads (handing each target to the asyncio loop first costs a thread
+wake-up, more than the latency budget; benchmarks/daemon_latency.py ``--targets-on-loop``).
+
+Two locks, taken in this order:
+
+- ``answer_lock`` (this module's; the loop never takes it) is held from the computation to the
+  publish, so answers leave in the order they were computed: the stage's output node applies the
+  last ``command`` it sees, which must be the last one computed.
+- ``state.lock`` (shared with the loop) is held only while the answer is computed, never while it
+  is published: a publish that waits on a congested subscriber cannot stop sensor polling, reloads
+  or status.
+
+While the output device is in fault (``Actuation.fault_reason``) every target is refused with kind
+``actuator_fault`` before the model sees it.
+
+A ``compensate`` reply goes to its querier after both locks are released. What is not on the
+answer's path (the actuator, the log) is handed to the loop with ``call_soon_threadsafe``, at most
+once per burst. At ``--log-level debug`` (checked once, when the handler is made) every answer is
+handed to the loop too and logged there (``target_answered``: id, x, q, V, latency in µs); at info
+that costs nothing. The answer latency (arrival to publish) is counted into the metrics' histogram
+buckets under the answer lock (:class:`daemon.service.metrics.AnswerLatency`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import threading
+import time
+from typing import Any
+
+import zenoh
+
+from daemon.bus.protocol import Command, Refusal, encode_command, encode_error, parse_target
+from daemon.bus.session import Bus
+from daemon.logs import RateLimitedLog
+from daemon.service.actuation import Actuation
+from daemon.service.metrics import AnswerLatency
+from daemon.service.state import CellState
+
+
+def debug_enabled(log: Any) -> bool:
+    """Whether ``log`` writes debug lines (structlog's filtering logger, else the stdlib's root level)."""
+    try:
+        return bool(log.is_enabled_for(logging.DEBUG))
+    except AttributeError:
+        return logging.getLogger().isEnabledFor(logging.DEBUG)
+
+
+class TargetHandler:
+    """``on_target`` for the bus: thread-safe, never blocks the loop."""
+
+    def __init__(self, state: CellState, bus: Bus, loop: asyncio.AbstractEventLoop, actuation: Actuation,
+                 log: Any, latency: AnswerLatency | None = None) -> None:
+        self.state = state
+        self.latency = latency or AnswerLatency()
+        #: checked once: at info level the hot path never builds a debug line
+        self.debug = debug_enabled(log)
+        self.bus = bus
+        self.loop = loop
+        self.actuation = actuation
+        self.log = log
+        self.answer_lock = threading.Lock()
+        #: refused targets are logged through a token bucket (a flood costs a summary line); under state.lock
+        self.refused_log = RateLimitedLog(log, "target_refused")
+
+    def on_target(self, payload: bytes, query: zenoh.Query | None) -> None:
+        """Answer one target: compute under ``state.lock``, publish under ``answer_lock``, then reply."""
+        started = time.perf_counter()
+        state, bus = self.state, self.bus
+        command: Command | None = None
+        refusal: Refusal | None = None
+        failure: Exception | None = None
+        log_refusal = wake_actuator = False
+        suppressed = 0
+        with self.answer_lock:
+            with state.lock:
+                if not state.serving:
+                    if query is not None:
+                        query.drop()
+                    return
+                state.counters.targets += 1
+                try:
+                    target = parse_target(payload)
+                    fault = self.actuation.fault_reason
+                    if fault is not None:  # before the model: a refused target must not move `dir` or lags
+                        raise Refusal("actuator_fault",
+                                      f"actuator fault: {fault}; the stage holds its last position", target.id)
+                    command = state.compensator.compensate(target, state.clock.now(), time.time())
+                    state.counters.commands += 1
+                except Refusal as refused:
+                    refusal = refused
+                except Exception as error:  # a bug must still produce an answer, and a traceback in the log
+                    failure = error
+                    refusal = Refusal("internal", f"internal error: {type(error).__name__}: {error}")
+                if refusal is not None:
+                    state.counters.errors[refusal.kind] += 1
+                    log_refusal = self.refused_log.limiter.allow()
+                    if log_refusal:
+                        suppressed = self.refused_log.limiter.take_suppressed()
+            try:
+                if command is not None:
+                    data = encode_command(command)
+                    bus.publish_command(data)
+                    wake_actuator = self.actuation.offer(command.q_um, command.voltage_v, command.x_um)
+                else:
+                    assert refusal is not None
+                    data = encode_error(refusal)
+                    bus.publish_error(data)
+                elapsed_s = time.perf_counter() - started
+                self.latency.observe(elapsed_s)
+            except zenoh.ZError as error:  # the bus itself failed (session closing): say so, free the query
+                self.loop.call_soon_threadsafe(self._log_bus_failure, error)
+                if query is not None:
+                    with contextlib.suppress(zenoh.ZError):
+                        query.drop()
+                return
+        if query is not None:
+            try:
+                if command is not None:
+                    bus.reply(query, bus.keys.compensate, data)
+                else:
+                    bus.reply_err(query, data)
+            except zenoh.ZError as error:
+                self.loop.call_soon_threadsafe(self._log_bus_failure, error)
+        # after the answer is out, and at most once per burst: wake the loop
+        if wake_actuator:
+            self.loop.call_soon_threadsafe(self.actuation.wake)
+        if failure is not None:
+            self.loop.call_soon_threadsafe(self._log_failure, failure)
+        if log_refusal and refusal is not None:
+            self.loop.call_soon_threadsafe(self._log_refusal, refusal, suppressed)
+        if self.debug:
+            self.loop.call_soon_threadsafe(self._log_answer, command, refusal, elapsed_s)
+
+    def take_suppressed(self) -> int:
+        """Refused targets not logged since the last call (for the periodic summary)."""
+        with self.state.lock:
+            return self.refused_log.limiter.take_suppressed()
+
+    def _log_refusal(self, refusal: Refusal, suppressed_before: int) -> None:
+        fields: dict[str, Any] = {"id": refusal.id, "kind": refusal.kind, "reason": refusal.message}
+        if suppressed_before:
+            fields["suppressed_before"] = suppressed_before
+        self.log.warning("target_refused", **fields)
+
+    def _log_answer(self, command: Command | None, refusal: Refusal | None, elapsed_s: float) -> None:
+        latency_us = round(elapsed_s * 1e6, 1)
+        if command is not None:
+            self.log.debug("target_answered", id=command.id, x_um=command.x_um, q_um=round(command.q_um, 6),
+                           voltage_v=round(command.voltage_v, 6), latency_us=latency_us)
+        elif refusal is not None:
+            self.log.debug("target_answered", id=refusal.id, error=refusal.kind, reason=refusal.message,
+                           latency_us=latency_us)
+
+    def _log_bus_failure(self, error: Exception) -> None:
+        self.log.error("answer_not_sent", error=str(error))
+
+    def _log_failure(self, error: Exception) -> None:
+        self.log.error("target_failed", error=repr(error), exc_info=error)

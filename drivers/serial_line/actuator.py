@@ -1,0 +1,80 @@
+"""An ASCII controller on a serial line as the stage's actuator (PI GCS: ``SVA 1 4.9990``).
+
+Each command writes the configured template; an optional readback query and an optional error
+query follow, and their answers are checked: silence, an answer that does not carry a value, a value
+outside the tolerance, or the controller reporting an error is a :class:`DeviceError` naming the
+port, what was written and what came back. The port is the sensor group's when a sensor reads the
+same controller (one lock per port: each request gets its own answer), else the actuator's own.
+"""
+
+from __future__ import annotations
+
+import re
+
+from drivers.base import Actuator, DeviceError
+from drivers.serial_line.config import SerialLineActuatorConfig
+from drivers.serial_line.line import SerialLineGroup
+
+SHOWN_CHARS = 60  # of an unexpected answer in a message
+
+
+def _shown(text: str) -> str:
+    return repr(text if len(text) <= SHOWN_CHARS else text[:SHOWN_CHARS] + "...")
+
+
+class SerialLineActuator(Actuator):
+    def __init__(self, config: SerialLineActuatorConfig, port: SerialLineGroup, *, owns_port: bool) -> None:
+        self.config = config
+        self.port = port
+        self.owns_port = owns_port
+        self.description = f"controller on {config.port}"
+        self.writes = 0  # commands accepted, for tests and benchmarks
+        self._readback = re.compile(config.readback_pattern)
+        self._error_ok = re.compile(config.error_ok)
+
+    def __repr__(self) -> str:
+        shared = "" if self.owns_port else ", port shared with a sensor"
+        return f"SerialLineActuator({self.config.port!r}{shared})"
+
+    async def open(self) -> None:
+        await self.port.open()
+
+    async def close(self) -> None:
+        if self.owns_port:  # a shared port stays with its sensor
+            await self.port.close()
+
+    def text(self, q_um: float, voltage_v: float, x_um: float | None = None) -> str:
+        """What one command writes."""
+        return self.config.command.format(voltage_v=voltage_v, q_um=q_um, x_um=q_um if x_um is None else x_um)
+
+    async def _ask(self, query: str, after: str) -> str:
+        answer = await self.port.exchange(query.encode("latin-1"), answer=True, timeout_s=self.config.timeout_s)
+        if answer is None:
+            raise DeviceError(f"{self.description}: no answer to {query!r} within {self.config.timeout_s:g} s "
+                              f"after {after!r}")
+        return answer
+
+    async def command(self, q_um: float, voltage_v: float, *, x_um: float | None = None) -> None:
+        c = self.config
+        text = self.text(q_um, voltage_v, x_um)
+        fields = {"voltage_v": voltage_v, "q_um": q_um, "x_um": q_um if x_um is None else x_um}
+        await self.port.exchange(text.encode("latin-1"), answer=False, timeout_s=c.timeout_s)
+        if c.readback:
+            answer = await self._ask(c.readback, text)
+            match = self._readback.search(answer)
+            try:
+                value = float(match.group("value")) if match else None
+            except ValueError:
+                value = None
+            if value is None:
+                raise DeviceError(f"{self.description}: unexpected answer {_shown(answer)} to {c.readback!r} after "
+                                  f"{text!r} (expected pattern {c.readback_pattern!r})")
+            expected = fields[c.expected_field]
+            if not abs(value - expected) <= c.readback_tolerance:
+                raise DeviceError(f"{self.description}: wrote {text!r} ({c.expected_field} {expected:.6g}), read back "
+                                  f"{value:.6g} (answer {_shown(answer)}; tolerance {c.readback_tolerance:g})")
+        if c.error_query:
+            answer = await self._ask(c.error_query, text)
+            if not self._error_ok.fullmatch(answer.strip()):
+                raise DeviceError(f"{self.description}: the controller reports error {_shown(answer)} after {text!r}")
+        self.writes += 1

@@ -1,0 +1,173 @@
+"""The wire format without a network: keys, target parsing (the regex fast path against json), the
+one command encoder (its fast path against json), the other payloads."""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable
+from dataclasses import replace
+from types import MappingProxyType
+
+import numpy as np
+import pytest
+
+from daemon.bus.protocol import (
+    MAX_PAYLOAD_BYTES,
+    Command,
+    Keys,
+    Oversized,
+    Refusal,
+    Target,
+    command_doc,
+    dumps,
+    encode_command,
+    encode_error,
+    encode_telemetry,
+    parse_target,
+    validate_target,
+)
+
+
+def test_keys_follow_the_contract() -> None:
+    keys = Keys("c1")
+    assert (keys.target, keys.command, keys.error) == ("nanodrift/c1/target", "nanodrift/c1/command",
+                                                       "nanodrift/c1/error")
+    assert (keys.compensate, keys.status, keys.alive) == ("nanodrift/c1/compensate", "nanodrift/c1/status",
+                                                          "nanodrift/c1/alive")
+    assert keys.telemetry("temperature", "T3") == "nanodrift/c1/sensors/temperature/T3"
+    assert keys.telemetry("position", "interferometer") == "nanodrift/c1/sensors/position"
+
+
+def test_an_oversized_marker_is_refused_with_its_real_size() -> None:
+    with pytest.raises(Refusal) as caught:
+        parse_target(Oversized.of(10_000_000))
+    assert "payload of 10000000 bytes exceeds" in caught.value.message
+
+
+
+@pytest.mark.parametrize(
+    ("payload", "expected"),
+    [
+        (b'{"x_um": 12.5, "id": "a"}', Target("a", 12.5)),
+        (b'{"x_um": 3}', Target(None, 3.0)),
+        (b'{"x_um": 3, "id": null, "note": "extra keys are allowed"}', Target(None, 3.0)),
+        (b'{"x_um": 0, "id": -4}', Target(-4, 0.0)),
+    ],
+)
+def test_good_targets_parse(payload: bytes, expected: Target) -> None:
+    assert parse_target(payload) == expected
+
+
+@pytest.mark.parametrize(
+    ("payload", "target_id", "words"),
+    [
+        (b"", None, "not valid JSON"),
+        (b"\x00\xff", None, "not UTF-8"),
+        (b"12", None, "JSON object"),
+        (b'{"x_um": NaN, "id": 1}', 1, "finite"),
+        (b'{"x_um": 1e400, "id": 2}', 2, "finite"),
+        (b'{"x_um": ' + b"9" * 400 + b', "id": 3}', 3, "finite"),  # a huge integer overflows float
+        (b'{"x_um": false, "id": 4}', 4, "number"),
+        (b'{"x_um": [1], "id": 5}', 5, "number"),
+        (b'{"id": "q"}', "q", "missing"),
+        (b'{"x_um": 1, "id": {"a": 1}}', None, "'id'"),
+        (b'{"x_um": 1, "id": 9223372036854775808}', None, "out of range"),
+        (b'{"x_um": 1, "id": "' + b"z" * 300 + b'"}', None, "longer"),
+        (b" " * (MAX_PAYLOAD_BYTES + 1), None, "exceeds"),
+    ],
+)
+def test_bad_targets_are_refusals_not_exceptions(payload: bytes, target_id: object, words: str) -> None:
+    with pytest.raises(Refusal) as caught:
+        parse_target(payload)
+    assert caught.value.kind == "bad_payload"
+    assert caught.value.id == target_id
+    assert words in caught.value.message
+    assert json.loads(encode_error(caught.value))["id"] == target_id
+
+
+def outcome(parse: Callable[[], Target]) -> object:
+    try:
+        return parse()
+    except (ValueError, Refusal) as error:
+        return ("refused", getattr(error, "id", None))
+
+
+def test_the_regex_fast_path_agrees_with_json_on_every_variant() -> None:
+    """parse_target's fast path must give exactly what json.loads + full validation give."""
+    xs = ["0", "-0", "12", "12.5", "1e2", "1E-3", "-4.25e+1", "01", "1.", ".5", "1e999", "NaN", '"3"', "true"]
+    ids = [None, "7", "-7", "0", "12345678901234567890", '"abc"', '"a b"', '"a\\"b"', '"\\u00e9"', "null", "1.5",
+           '""', "true"]
+    spaces = ["", " ", "\n\t", "\f"]
+    checked = 0
+    for x in xs:
+        for target_id in ids:
+            for ws in spaces:
+                for order in (0, 1):
+                    fields = [f'"x_um"{ws}:{ws}{x}'] + ([] if target_id is None else [f'"id":{ws}{target_id}'])
+                    text = "{" + ws + f",{ws}".join(fields if order == 0 else fields[::-1]) + ws + "}"
+                    expected = outcome(lambda text=text: validate_target(json.loads(text)))
+                    assert outcome(lambda text=text: parse_target(text.encode())) == expected, text
+                    checked += 1
+    assert checked > 1000
+
+
+
+def command(target_id: object = "k", **changes: object) -> Command:
+    temps = MappingProxyType({"T1": 21.8, "T2": 21.9})
+    base = Command(target_id, 240.0, 236.5, 4.73, temps, "m-1", 1.7e9 + 0.123456789, [])
+    return replace(base, **changes)
+
+
+@pytest.mark.parametrize("target_id", [None, 0, -(2**62), "plain", 'quo"te\\ and \u00e9\u4e2d \x01'])
+def test_the_fast_command_encoder_writes_the_same_json_as_json_dumps(target_id: object) -> None:
+    value = command(target_id, extrapolating=["x", 'we"ird'])
+    encoded = encode_command(value)
+    expected = {"id": target_id, "x_um": 240.0, "q_um": 236.5, "voltage_v": 4.73,
+                "temperatures_c": {"T1": 21.8, "T2": 21.9}, "model": "m-1", "t": 1.7e9 + 0.123456789,
+                "extrapolating": ["x", 'we"ird']}
+    assert json.loads(encoded) == expected
+    assert encoded == json.dumps(expected, separators=(",", ":")).encode()
+
+
+@pytest.mark.parametrize(
+    "changes",
+    [
+        {},
+        {"model": None, "extrapolating": ["T2"]},
+        {"model": "m%s", "temperatures_c": MappingProxyType({"T%d": 1.0}), "extrapolating": ["T%d"]},
+        {"temperatures_c": {"T1": 21.8}},  # a plain dict: encoded each time, never remembered
+        {"temperatures_c": MappingProxyType({"T1": math.nan})},  # a NaN reading becomes null
+        {"x_um": math.inf},  # non-finite numbers: the json path (null), never an invalid literal
+        {"q_um": np.float64(236.5), "voltage_v": 4},  # numpy and int numbers: the json path
+        {"extrapolating": None, "procedure": "calibration", "model": None, "temperatures_c": {}},
+    ],
+    ids=["daemon", "no-model", "percent", "dict-temps", "nan-temp", "inf", "numpy", "procedure"],
+)
+def test_every_command_encodes_as_json_of_its_document(changes: dict[str, object]) -> None:
+    value = command(**changes)
+    doc = command_doc(value)
+    assert encode_command(value) == dumps(doc)
+    assert list(doc) == [k for k in ("id", "x_um", "q_um", "voltage_v", "temperatures_c", "model", "t",
+                                     "extrapolating", "procedure") if k in doc]
+    assert ("extrapolating" in doc) == (value.extrapolating is not None)
+    assert ("procedure" in doc) == (value.procedure is not None)
+
+
+def test_the_remembered_temperatures_follow_a_new_mapping() -> None:
+    first = encode_command(command(temperatures_c=MappingProxyType({"T1": 21.8})))
+    again = encode_command(command(temperatures_c=MappingProxyType({"T1": 22.5})))
+    assert json.loads(first)["temperatures_c"] == {"T1": 21.8}
+    assert json.loads(again)["temperatures_c"] == {"T1": 22.5}
+
+
+def test_error_and_telemetry_payloads() -> None:
+    assert json.loads(encode_error(Refusal("stale", "channel T1 is stale", 7))) == {
+        "id": 7, "error": "channel T1 is stale", "kind": "stale"}
+    assert json.loads(encode_telemetry(21.5, "degC", 1.0, "ok")) == {"value": 21.5, "unit": "degC", "t": 1.0,
+                                                                     "state": "ok"}
+    assert json.loads(encode_telemetry(math.nan, "degC", 2.0, "fault", "burnout"))["value"] is None
+
+
+def test_dumps_turns_non_finite_floats_into_null() -> None:
+    assert json.loads(dumps({"value": math.nan, "t": 1.0})) == {"value": None, "t": 1.0}

@@ -1,0 +1,111 @@
+"""``nanodrift check-config``: exit 2 for what the daemon would refuse on reload, warnings at exit 0,
+``--strict`` turning the warnings into errors; every message names the file and the field (issue 10)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from helpers.daemon_harness import REPO, write_test_model
+
+from daemon.cli import main
+
+
+def check(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
+    code = main(["check-config", *args])
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def config(tmp_path: Path, model: str, sensors: tuple[str, ...] = ("T1", "T2"), extra: str = "") -> Path:
+    path = tmp_path / "nanodrift.toml"
+    body = "".join(f'[[sensors]]\nname = "{name}"\nkind = "simulated"\n' for name in sensors)
+    path.write_text(f'[model]\npath = "{model}"\n{extra}{body}')
+    return path
+
+
+def test_a_good_config_and_model_exit_zero_even_with_strict(tmp_path: Path, capsys) -> None:
+    model = write_test_model(tmp_path / "model.json")
+    path = config(tmp_path, "model.json")  # relative to the config file
+    for flags in ((), ("--strict",)):
+        code, out, err = check(capsys, str(path), *flags)
+        assert (code, err) == (0, ""), err
+        assert f"{path}: ok" in out and model.id in out
+
+
+@pytest.mark.parametrize(
+    ("content", "why"),
+    [
+        (None, "no such model file"),
+        ('{"format": "nanodrift-model/1", "terms": [', "not valid JSON"),  # an editor's half-saved file
+        ('{"format": "nanodrift-model/1", "terms": [{"term": "x^2.5", "coef": 1}]}', "terms[0]"),
+        ("[" * 100_000 + "]" * 100_000, ""),  # hostile nesting: a message, never a traceback
+    ],
+    ids=["missing", "truncated", "bad-term", "nested"],
+)
+def test_a_model_the_daemon_would_refuse_on_reload_exits_2_naming_file_and_field(
+        tmp_path: Path, capsys, content: str | None, why: str) -> None:
+    model = tmp_path / "model.json"
+    if content is not None:
+        model.write_text(content)
+    path = config(tmp_path, str(model))
+    code, out, err = check(capsys, str(path))
+    assert code == 2 and out == ""
+    assert f"{path}: model.path: {model}" in err and why in err
+    assert "Traceback" not in err and "RecursionError" not in err
+
+
+def test_warnings_exit_zero_and_strict_makes_them_errors(tmp_path: Path, capsys) -> None:
+    write_test_model(tmp_path / "model.json")  # needs T1 and T2
+    path = config(tmp_path, "model.json", sensors=("T1", "T3"))
+    code, out, err = check(capsys, str(path))
+    assert code == 0 and f"{path}: ok" in out
+    assert f"{path}: warning: sensors: model" in err and "T2" in err  # missing channel
+    assert f"{path}: warning: sensors[1].name: sensor 'T3' is not used" in err  # unused sensor
+
+    code, out, err = check(capsys, str(path), "--strict")
+    assert code == 2 and out == ""
+    lines = err.splitlines()
+    assert any(f"{path}: sensors: model" in line and "T2" in line and "--strict" in line for line in lines), err
+    assert any(f"{path}: sensors[1].name: sensor 'T3'" in line for line in lines), err
+    assert ": warning:" not in err
+
+
+def test_a_zenoh_config_file_zenoh_cannot_read_exits_2(tmp_path: Path, capsys) -> None:
+    write_test_model(tmp_path / "model.json")
+    missing = config(tmp_path, "model.json", extra='[zenoh]\nconfig_file = "absent.json5"\n')
+    code, _, err = check(capsys, str(missing))
+    assert code == 2 and f"{missing}: zenoh.config_file: {tmp_path / 'absent.json5'}" in err
+
+    (tmp_path / "broken.json5").write_text("{ mode: 'peer', transport: { auth: ")
+    broken = config(tmp_path, "model.json", extra='[zenoh]\nconfig_file = "broken.json5"\n')
+    code, _, err = check(capsys, str(broken))
+    assert code == 2 and "zenoh.config_file" in err
+
+
+def test_the_shipped_secure_zenoh_config_is_accepted(tmp_path: Path, capsys) -> None:
+    write_test_model(tmp_path / "model.json")
+    secure = REPO / "config" / "zenoh-secure.json5"
+    path = config(tmp_path, "model.json", extra=f'[zenoh]\nconfig_file = "{secure}"\n')
+    code, _, err = check(capsys, str(path), "--strict")
+    assert code == 0, err
+
+
+@pytest.mark.parametrize(
+    ("listen", "exposed"),
+    [("tcp/0.0.0.0:7447", True), ("tcp/192.168.1.10:7447", True), ("tls/[fe80::1]:7447", True),
+     ("tcp/127.0.0.1:7447", False), ("tcp/localhost:7447", False), ("tcp/[::1]:7447", False)],
+)
+def test_a_listener_other_computers_reach_without_the_secure_zenoh_config_is_a_warning(
+        tmp_path: Path, capsys, listen: str, exposed: bool) -> None:
+    write_test_model(tmp_path / "model.json")
+    path = config(tmp_path, "model.json", extra=f'[zenoh]\nlisten = ["{listen}"]\n')
+    code, _, err = check(capsys, str(path))
+    assert code == 0
+    assert (f"{path}: warning: zenoh.listen: {listen} can be reached from other computers" in err) is exposed, err
+    code, _, err = check(capsys, str(path), "--strict")
+    assert code == (2 if exposed else 0), err
+    secured = config(tmp_path, "model.json", extra=f'[zenoh]\nlisten = ["{listen}"]\nconfig_file = '
+                                                 f'"{REPO / "config" / "zenoh-secure.json5"}"\n')
+    code, _, err = check(capsys, str(secured), "--strict")
+    assert code == 0 and "zenoh.listen" not in err, err

@@ -1,0 +1,137 @@
+"""``nanodrift demo``, shortened: the paper's tests named, Table I as ``validate`` computes it, then serving.
+
+One shortened demo run (2 validation sweeps, 6 calibration sweeps, tests 1 and 5) is shared by the
+tests of this module; each asserts one promise of issue 13, item 3.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+from helpers.daemon_harness import REPO
+
+from daemon.cli import main
+from daemon.commands._cell import scenario_seed
+from daemon.model.model import load_model
+
+SHORT = ["--cycles", "2", "--calibration-cycles", "6", "--tests", "test1", "test5", "--seed", "3"]
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory: pytest.TempPathFactory) -> tuple[subprocess.CompletedProcess[str], Path]:
+    keep = tmp_path_factory.mktemp("demo")
+    result = subprocess.run([sys.executable, "-m", "daemon.cli", "demo", *SHORT, "--keep", str(keep)],
+                            capture_output=True, text=True, cwd=REPO, timeout=180)
+    assert result.returncode == 0, result.stdout + result.stderr
+    return result, keep
+
+
+def _benchmark() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("paper_table1", REPO / "benchmarks" / "paper_table1.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_steps_are_numbered_in_order_and_each_test_says_what_it_is(demo) -> None:
+    out = demo[0].stdout
+    assert re.findall(r"^(\d+)\. ", out, re.MULTILINE) == ["1", "2", "3", "4", "5"], out
+    assert "test1: without compensation" in out
+    assert "test5: with the model, OUTSIDE the training range" in out
+    assert "test2" not in re.findall(r"^   (test\d):", out, re.MULTILINE)  # only the tests asked for
+
+
+def test_table_one_is_beside_the_papers_with_the_differences_explained(demo) -> None:
+    out = demo[0].stdout
+    assert re.search(r"^test1\s+\d+ nm\s+—\s+—\s+\|\s+546\b", out, re.MULTILINE), out
+    assert re.search(r"^test5\s+\d+ nm\*\s+\d+ nm\s+[\d.]+×\s+\|\s+2225\s+646\s+3\.4×", out, re.MULTILINE), out
+    differences = next(line for line in out.splitlines() if line.startswith("Differences from the paper"))
+    assert "--seed 3" in differences
+    assert "only 2 of the paper's 30 sweeps" in differences
+    assert "6 sweeps, not the paper's 24" in differences
+    degrade = next(line for line in out.splitlines() if line.startswith("Test 5 degrades"))
+    assert "extrapolates" in degrade and "beyond the training range" in degrade and "646 nm" in degrade
+
+
+def test_demo_validate_and_the_benchmark_give_the_same_table_one_for_one_seed(demo, tmp_path, capsys) -> None:
+    _, keep = demo
+    shown = {t["test"]: t for t in json.loads((keep / "table1.json").read_text())["tests"]}
+    assert main(["validate", "--model", str(keep / "model.json"), "--scenario", "test5", "--seed", "3",
+                 "--cycles", "2", "--json"]) == 0
+    validated = json.loads(capsys.readouterr().out)
+    for key in ("without_comp_nm", "with_comp_nm", "improvement_ratio", "extrapolating_steps"):
+        assert validated[key] == shown["test5"][key], key
+    assert validated["points"] == shown["test5"]["points"]
+
+    results, _, _, model = _benchmark().procedure_table(3, 6, 2, tests=("test1", "test5"))
+    assert model.id == load_model(keep / "model.json").id
+    bench = {r.name: r.to_dict() for r in results}
+    for test in ("test1", "test5"):
+        assert bench[test]["without_comp_nm"] == shown[test]["without_comp_nm"], test
+        assert bench[test]["with_comp_nm"] == shown[test]["with_comp_nm"], test
+
+
+def test_the_seeding_rule() -> None:
+    assert [scenario_seed(3, t) for t in ("train", "test1", "test5", "bidirectional")] == [3, 301, 305, 3]
+
+
+def test_serving_sends_targets_through_the_daemon_and_keeps_its_log(demo) -> None:
+    result, keep = demo
+    out = result.stdout
+    assert f"$ nanodrift run --config {keep / 'serve.toml'}" in out
+    endpoint = re.search(r"\$ nanodrift target 0 240 480 -e (tcp/127\.0\.0\.1:\d+) --cell demo", out)
+    assert endpoint, out
+    answers = re.findall(r"^   x'\s+(\d+) µm -> q'\s+(-?[\d.]+) µm, (-?[\d.]+) V .*reads\s+(-?[\d.]+) µm", out,
+                         re.MULTILINE)
+    assert [a[0] for a in answers] == ["0", "240", "480"], out
+    for x, _, _, measured in answers:
+        assert abs(float(measured) - float(x)) < 1.0  # the stage went where the client asked
+    log = (keep / "serve.log").read_text()
+    assert '"event": "serving"' in log and '"event": "stopped"' in log
+    assert '"event": "target_refused"' not in log
+    assert f"files in {keep}" in out
+
+
+def test_a_bad_test_is_refused_before_anything_runs(tmp_path, capsys) -> None:
+    keep = tmp_path / "keep"
+    assert main(["demo", "--tests", "test2", "test9", "--keep", str(keep)]) == 2
+    err = capsys.readouterr().err
+    assert "'test9'" in err and "valid tests: test1, test2, test3, test4, test5" in err
+    assert not keep.exists()  # nothing ran: no calibration, no model, no daemon
+
+
+def test_a_daemon_that_fails_is_explained_with_its_log_lines_not_a_deleted_path(tmp_path) -> None:
+    result = subprocess.run(
+        [sys.executable, "-m", "daemon.cli", "demo", "--cycles", "1", "--calibration-cycles", "3",
+         "--tests", "test2", "-l", "tcp/127.0.0.1:99999"],
+        capture_output=True, text=True, cwd=REPO, timeout=180,
+    )
+    assert result.returncode == 2, result.stdout + result.stderr
+    err = result.stderr
+    assert "daemon's last log lines" in err, err
+    assert re.search(r"^   \| .*error", err, re.MULTILINE | re.IGNORECASE), err  # the daemon's own words, inline
+    assert "log:" not in err  # no path to the log: the temporary folder it was in is gone
+
+
+def test_demo_shows_what_adaptation_and_the_uncertainty_add(tmp_path: Path) -> None:
+    """Issue 12: the demo's last step runs the daemon's bias tracker on the same tests and seed."""
+    result = subprocess.run(
+        [sys.executable, "-m", "daemon.cli", "demo", "--tests", "test2", "test5", "--cycles", "6",
+         "--calibration-cycles", "8"],
+        capture_output=True, text=True, cwd=REPO, timeout=120,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    out = result.stdout
+    assert "What nanodrift adds" in out
+    adapt = re.search(r"adaptation on test5 .*?: (\d+) nm static -> (\d+) nm adaptive", out)
+    assert adapt, out
+    assert float(adapt.group(2)) < float(adapt.group(1))  # the tracker beats the static model out of range
+    assert re.search(r"within ±2σ in test2 \d+ %, test5 \d+ %", out), out

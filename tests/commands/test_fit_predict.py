@@ -1,0 +1,145 @@
+"""``nanodrift fit`` and ``nanodrift predict`` as a user runs them."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+from helpers.synthetic import paper_run
+
+from daemon.calibration.dataset import read_csv, write_csv
+from daemon.cli import main
+from daemon.model.model import load_model
+
+
+def test_fit_then_predict_round_trip(tmp_path, capsys):
+    data_path, model_path, pred_path = tmp_path / "cal.csv", tmp_path / "m.json", tmp_path / "p.csv"
+    write_csv(paper_run(seed=3), data_path)
+    assert main(["fit", str(data_path), "--out", str(model_path)]) == 0
+    out = capsys.readouterr().out
+    assert "geometric order n1 = 3" in out and "residual RMS" in out and "T1:" in out
+    model = load_model(model_path)
+    assert len(model.provenance["data_sha256"]) == 64
+
+    fresh = tmp_path / "fresh.csv"
+    write_csv(paper_run(seed=4, cycles=4), fresh)
+    assert main(["predict", "--model", str(model_path), str(fresh), "--out", str(pred_path)]) == 0
+    pred = read_csv(pred_path)
+    assert "q_pred_um" in pred.extra
+    assert np.sqrt(np.mean((pred.q - pred.extra["q_pred_um"]) ** 2)) < 0.025
+    np.testing.assert_array_equal(pred.channels["T1"], read_csv(fresh).channels["T1"])
+
+
+def test_fit_json_exclude_and_fixed_order(tmp_path, capsys):
+    data_path = tmp_path / "cal.csv"
+    write_csv(paper_run(seed=3), data_path)
+    code = main(["fit", str(data_path), "--out", str(tmp_path / "m.json"), "--order", "2", "--exclude", "T4", "--json"])
+    assert code == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["order"] == 2 and doc["excluded"] == ["T4"]
+    assert "T4" not in [t["term"] for t in doc["terms"]]
+    assert doc["fit"]["rows"] == 408
+
+
+def test_errors_name_the_problem_and_write_nothing(tmp_path):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t_s,x_um,q_um,T1\n0,0,0,20\n1,30,30,oops\n")
+    run = subprocess.run(
+        [sys.executable, "-m", "daemon.cli", "fit", str(bad), "--out", str(tmp_path / "m.json")],
+        capture_output=True, text=True,
+    )
+    assert run.returncode == 2
+    assert "row 3, column T1" in run.stderr and "Traceback" not in run.stderr
+    assert not (tmp_path / "m.json").exists()
+
+    run = subprocess.run(
+        [sys.executable, "-m", "daemon.cli", "predict", "--model", str(tmp_path / "none.json"), str(bad),
+         "--out", str(tmp_path / "p.csv")],
+        capture_output=True, text=True,
+    )
+    assert run.returncode == 2 and "no such model file" in run.stderr
+    assert not (tmp_path / "p.csv").exists()
+
+
+def test_order_option_is_validated(tmp_path, capsys):
+    data_path = tmp_path / "cal.csv"
+    write_csv(paper_run(seed=3, cycles=3), data_path)
+    assert main(["fit", str(data_path), "--out", str(tmp_path / "m.json"), "--order", "cubic"]) == 2
+    assert "--order must be 'auto'" in capsys.readouterr().err
+
+
+def test_fit_prints_the_equation_and_json_carries_the_same_in_nm(tmp_path, capsys):
+    data_path = tmp_path / "cal.csv"
+    write_csv(paper_run(seed=3, cycles=8), data_path)
+    assert main(["fit", str(data_path), "--out", str(tmp_path / "m.json"), "--order", "3"]) == 0
+    human = capsys.readouterr().out
+    equation_line = next(line for line in human.splitlines() if line.startswith("q = "))
+    assert "·x³" in equation_line and "+ -" not in equation_line and "*" not in equation_line
+    assert "not selected: T3" in human
+
+    assert main(["fit", str(data_path), "--out", str(tmp_path / "m2.json"), "--order", "3", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["equation"] == equation_line
+    assert [entry["term"] for entry in doc["not_selected"]] == ["T3"]
+    assert doc["not_selected"][0]["p_if_added"] > 0.05
+    model = load_model(tmp_path / "m2.json")
+    assert doc["residual_rms_nm"] == model.fit["residual_rms_nm"] and doc["rows"] == 8 * 17
+    assert doc["rmse_nm"] == model.fit["rmse_um"] * 1000.0  # every RMS in nm, in a key that says so
+    rms_keys = [k for k in doc if "rms_" in k or "rmse_" in k]
+    assert rms_keys and all(k.endswith("_nm") for k in rms_keys if k != "order_holdout_rms_um")
+    assert doc["order_holdout_rms_um"] == {}  # kept for scripts; fixed order: nothing was tried
+    assert doc["order_choice"] == "fixed" and doc["fit"] == model.fit  # the old keys are still there
+
+
+def test_fit_json_order_scores_in_nm(tmp_path, capsys):
+    data_path = tmp_path / "cal.csv"
+    write_csv(paper_run(seed=3, cycles=6), data_path)
+    assert main(["fit", str(data_path), "--out", str(tmp_path / "m.json"), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert set(doc["order_holdout_rms_nm"]) == {"1", "2", "3", "4", "5"}
+    for n, um in doc["order_holdout_rms_um"].items():
+        assert doc["order_holdout_rms_nm"][n] == um * 1000.0
+    assert doc["holdout_rms_nm"] == doc["order_holdout_rms_nm"][str(doc["order"])]
+
+
+def test_predict_says_what_it_did(tmp_path, capsys):
+    data_path, model_path, pred_path = tmp_path / "cal.csv", tmp_path / "m.json", tmp_path / "p.csv"
+    write_csv(paper_run(seed=3, cycles=6), data_path)
+    assert main(["fit", str(data_path), "--out", str(model_path), "--order", "3"]) == 0
+    capsys.readouterr()
+    model = load_model(model_path)
+
+    assert main(["predict", "--model", str(model_path), str(data_path), "--out", str(pred_path)]) == 0
+    (line,) = capsys.readouterr().out.splitlines()
+    assert f"{6 * 17} rows" in line and model.id in line and str(pred_path) in line and "none extrapolating" in line
+
+    warm = paper_run(seed=3, cycles=6)  # the training data itself, but ...
+    warm.channels["T1"][:5] += 5.0  # five rows far above the training range of T1
+    warm_path = tmp_path / "warm.csv"
+    write_csv(warm, warm_path)
+    assert main(["predict", "--model", str(model_path), str(warm_path), "--out", str(pred_path)]) == 0
+    (line,) = capsys.readouterr().out.splitlines()
+    assert "5 extrapolating" in line and "T1 in 5" in line
+
+
+
+def test_predict_adds_the_uncertainty_of_each_command(tmp_path, capsys):
+    data_path, model_path, pred_path = tmp_path / "cal.csv", tmp_path / "m.json", tmp_path / "p.csv"
+    write_csv(paper_run(seed=3), data_path)
+    assert main(["fit", str(data_path), "--out", str(model_path)]) == 0
+    model = load_model(model_path)
+    hot = paper_run(seed=4, cycles=4)
+    hot.channels = {c: v + 1.0 for c, v in hot.channels.items()}  # 1 degC above the training range
+    sigma = {}
+    for name, data in (("fresh.csv", paper_run(seed=4, cycles=4)), ("hot.csv", hot)):
+        write_csv(data, tmp_path / name)
+        assert main(["predict", "--model", str(model_path), str(tmp_path / name), "--out", str(pred_path)]) == 0
+        assert "q_sigma_um (median" in capsys.readouterr().out
+        pred = read_csv(pred_path)
+        assert "q_sigma_um" not in pred.channels
+        np.testing.assert_allclose(pred.extra["q_sigma_um"], model.q_sigma(read_csv(tmp_path / name)), rtol=1e-9)
+        sigma[name] = pred.extra["q_sigma_um"]
+        if name == "fresh.csv":  # white noise of 20 nm: about that, and it covers the errors
+            assert 0.015 < np.median(sigma[name]) < 0.04
+            assert np.mean(np.abs(pred.q - pred.extra["q_pred_um"]) <= 2 * sigma[name]) > 0.9
+    assert np.median(sigma["hot.csv"]) > 1.5 * np.max(sigma["fresh.csv"])

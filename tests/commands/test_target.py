@@ -1,0 +1,53 @@
+"""``nanodrift target``: a client of the compensate queryable; prints commands, non-zero if refused."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from helpers.daemon_harness import REPO, TEMPS, Served, expected_q
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory: pytest.TempPathFactory):
+    s = Served(tmp_path_factory.mktemp("cli"), "clicell").start()
+    yield s
+    s.close()
+
+
+def target(served: Served, *args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "daemon.cli", "target", *args, "-e", f"tcp/127.0.0.1:{served.port}",
+         "--cell", served.cell],
+        capture_output=True, text=True, cwd=REPO, timeout=60,
+    )
+
+
+def test_target_prints_commands_as_json_lines(served: Served) -> None:
+    result = target(served, "0", "120.5", "480", "--json")
+    assert result.returncode == 0, result.stderr
+    lines = [json.loads(line) for line in result.stdout.splitlines()]
+    assert [line["x_um"] for line in lines] == [0.0, 120.5, 480.0]
+    assert [line["id"] for line in lines] == [0, 1, 2]
+    for line in lines:
+        assert line["q_um"] == pytest.approx(expected_q(line["x_um"], TEMPS), abs=1e-9)
+
+
+def test_target_readable_output_and_refusals_exit_non_zero(served: Served) -> None:
+    result = target(served, "100", "750")
+    assert result.returncode == 1
+    assert "x 100.0000 um -> q" in result.stdout and served.model.id in result.stdout
+    assert "750" in result.stderr and "outside the workspace" in result.stderr
+
+
+def test_target_without_a_daemon_says_so(tmp_path: Path) -> None:
+    result = subprocess.run(
+        [sys.executable, "-m", "daemon.cli", "target", "1", "--cell", "nobody", "--timeout", "0.5", "-e",
+         f"tcp/127.0.0.1:{1}"],
+        capture_output=True, text=True, cwd=REPO, timeout=60,
+    )
+    assert result.returncode != 0
+    assert "cannot open a zenoh session" in result.stderr or "no answer" in result.stderr

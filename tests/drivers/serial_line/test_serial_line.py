@@ -1,0 +1,204 @@
+"""The serial_line driver against an instrument emulated on a pty: values, garbage, silence,
+a vanished device and its recovery, the exact query bytes, and a loop that never blocks."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Awaitable, Iterator
+from pathlib import Path
+
+import pytest
+from helpers.serial_helpers import FakeInterferometer
+from pydantic import ValidationError
+
+from drivers.base import DeviceError, DriverContext, State
+from drivers.serial_line.config import SerialLineSensorConfig
+from drivers.serial_line.line import SerialLineGroup
+from drivers.serial_line.plugin import PLUGIN
+
+PATTERN = r"P (?P<value>[-+0-9.]+) nm"
+
+
+def run(coro: Awaitable[None], timeout: float = 30.0) -> None:
+    asyncio.run(asyncio.wait_for(coro, timeout))
+
+
+@pytest.fixture
+def device(tmp_path: Path) -> Iterator[FakeInterferometer]:
+    fake = FakeInterferometer(tmp_path / "ttyIFM")
+    yield fake
+    fake.close()
+
+
+def group_for(port: str, **kw: object) -> SerialLineGroup:
+    settings: dict[str, object] = {"name": "interferometer", "role": "position", "kind": "serial_line",
+                                   "port": port, "baudrate": 115200, "query": "POS?\r", "pattern": PATTERN,
+                                   "scale": 0.001, "timeout_s": 0.3}
+    settings.update(kw)
+    [group] = PLUGIN.create([SerialLineSensorConfig.model_validate(settings)], DriverContext())
+    assert isinstance(group, SerialLineGroup)
+    return group
+
+
+def test_query_mode_reads_scaled_value_and_sends_exact_bytes(device: FakeInterferometer) -> None:
+    async def body() -> None:
+        group = group_for(device.port)
+        await group.open()
+        before = time.time()
+        first = (await group.read())["interferometer"]
+        device.position_nm = -2500.0
+        second = (await group.read())["interferometer"]
+        await group.close()
+        assert first.state is State.OK and first.value == pytest.approx(123.4567) and first.unit == "um"
+        assert before <= first.t <= time.time()
+        assert second.value == pytest.approx(-2.5)
+        assert bytes(device.received) == b"POS?\rPOS?\r"  # the query exactly as configured, once per poll
+
+    run(body())
+
+
+def test_streaming_mode_keeps_the_newest_line(tmp_path: Path) -> None:
+    fake = FakeInterferometer(tmp_path / "ttySTREAM", stream=True, period_s=0.01, eol=b"\n")
+
+    async def body() -> None:
+        group = group_for(fake.port, query="")
+        await group.open()
+        first = (await group.read())["interferometer"]
+        assert first.state is State.OK and first.value == pytest.approx(123.4567)
+        fake.position_nm = 1000.0
+        deadline = time.monotonic() + 5
+        reading = first
+        while reading.value != pytest.approx(1.0):
+            assert time.monotonic() < deadline, "the newest streamed value never showed up"
+            await asyncio.sleep(0.02)
+            reading = (await group.read())["interferometer"]
+        assert reading.t > first.t  # stamped on arrival
+        await group.close()
+        assert fake.received == b""  # nothing is ever sent to a streaming device
+
+    try:
+        run(body())
+    finally:
+        fake.close()
+
+
+def test_garbage_faults_naming_what_came_and_what_was_expected(device: FakeInterferometer) -> None:
+    async def body() -> None:
+        group = group_for(device.port)
+        await group.open()
+        device.reply = b"ERR 17: laser not locked\r\n"
+        reading = (await group.read())["interferometer"]
+        assert reading.state is State.FAULT
+        assert reading.reason == (f"unexpected line from {device.port}: 'ERR 17: laser not locked' "
+                                  f"(expected pattern {PATTERN!r})")
+        device.reply = b"P " + b"9" * 100 + b"x nm\r\n"
+        long_reason = (await group.read())["interferometer"].reason
+        assert f": {'P ' + '9' * 58 + '...'!r} (expected" in long_reason  # truncated to 60 characters
+        device.reply = None
+        assert (await group.read())["interferometer"].state is State.OK
+        await group.close()
+
+    run(body())
+
+
+@pytest.mark.parametrize("query", ["POS?\r", ""])
+def test_silence_faults_with_the_port_and_timeout(tmp_path: Path, query: str) -> None:
+    fake = FakeInterferometer(tmp_path / "ttyQUIET", stream=not query)
+    fake.silent = True
+
+    async def body() -> None:
+        group = group_for(fake.port, query=query)
+        await group.open()
+        ticks = 0
+
+        async def ticker() -> None:
+            nonlocal ticks
+            while True:
+                await asyncio.sleep(0.01)
+                ticks += 1
+
+        task = asyncio.create_task(ticker())
+        start = time.monotonic()
+        # under the caller's limit, as the daemon polls: the driver's own verdict comes first
+        reading = (await asyncio.wait_for(group.read(), group.timeout_s))["interferometer"]
+        elapsed = time.monotonic() - start
+        task.cancel()
+        assert reading.state is State.FAULT
+        assert reading.reason == f"no line from {fake.port} in 0.3 s"
+        assert 0.25 <= elapsed < 1.0
+        assert ticks >= 10  # the event loop kept running while the driver waited for the device
+        fake.silent = False
+        assert (await group.read())["interferometer"].state is State.OK
+        await group.close()
+
+    try:
+        run(body())
+    finally:
+        fake.close()
+
+
+def test_vanished_device_raises_then_recovers_after_reopen(device: FakeInterferometer) -> None:
+    async def body() -> None:
+        group = group_for(device.port)
+        await group.open()
+        assert (await group.read())["interferometer"].state is State.OK
+        device.unplug()
+        with pytest.raises(DeviceError, match=device.port):
+            for _ in range(3):  # the EIO reaches the driver within a poll or two
+                await group.read()
+        with pytest.raises(DeviceError, match=f"cannot open {device.port}"):
+            await group.read()  # the driver reopens by itself; the device is still away
+        with pytest.raises(DeviceError, match=f"{device.port} is not open; next attempt in"):
+            await group.read()  # ... and backs off instead of hammering the port
+        await group.close()
+        with pytest.raises(DeviceError, match=f"cannot open {device.port}"):
+            await group.open()  # the daemon's explicit reopen always tries
+        device.replug()
+        device.position_nm = 42000.0
+        deadline = time.monotonic() + 5
+        while True:  # read() reopens by itself, with backoff
+            try:
+                reading = (await group.read())["interferometer"]
+                break
+            except DeviceError:
+                assert time.monotonic() < deadline, "no recovery after the device came back"
+                await asyncio.sleep(0.05)
+        assert reading.value == pytest.approx(42.0)
+        await group.close()
+
+    run(body())
+
+
+def test_cr_only_device_with_eol_cr(tmp_path: Path) -> None:
+    fake = FakeInterferometer(tmp_path / "ttyCR", eol=b"\r")
+
+    async def body() -> None:
+        group = group_for(fake.port, eol="\r")
+        await group.open()
+        values = [(await group.read())["interferometer"].value for _ in range(2)]
+        await group.close()
+        assert values == [pytest.approx(123.4567)] * 2
+
+    try:
+        run(body())
+    finally:
+        fake.close()
+
+
+def test_config_refuses_a_pattern_without_value_group_and_unknown_keys() -> None:
+    with pytest.raises(ValidationError, match="needs a named group 'value'"):
+        SerialLineSensorConfig(name="i", kind="serial_line", port="/dev/null", pattern=r"P (\d+) nm")
+    with pytest.raises(ValidationError, match="not a valid regular expression"):
+        SerialLineSensorConfig(name="i", kind="serial_line", port="/dev/null", pattern=r"P (?P<value>\d+ nm")
+    with pytest.raises(ValidationError, match="baud_rate"):
+        SerialLineSensorConfig.model_validate({"name": "i", "kind": "serial_line", "port": "x", "baud_rate": 9600})
+    default = SerialLineSensorConfig(name="i", kind="serial_line", port="loop://", role="position")
+    assert default.streaming and default.value_unit == "um"
+    assert default.eol == "\n"
+
+
+def test_two_sensors_on_one_port_are_refused() -> None:
+    configs = [SerialLineSensorConfig(name=n, kind="serial_line", port="/dev/ttyUSB0") for n in ("a", "b")]
+    with pytest.raises(ValueError, match="port '/dev/ttyUSB0' is already used by sensor 'a'"):
+        PLUGIN.create(configs, DriverContext())

@@ -1,0 +1,72 @@
+"""``validate --adapt``: the daemon's bias tracker in the validation procedure, online = offline."""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import json
+
+import pytest
+from helpers.sim_helpers import Capture, trained_model
+
+from daemon.assembly import simulated_drivers
+from daemon.calibration import iso9283
+from daemon.calibration.health import BiasTracker
+from daemon.cli import main
+from daemon.model.model import Model, save_model
+from daemon.procedure.validation import run_validation
+from drivers.simulated.plugin import shared_cell
+
+
+def shifted(model: Model, bias_um: float) -> Model:
+    """The model with its bias moved: every command off by ``bias_um`` (a cell that changed)."""
+    terms = [dataclasses.replace(ft, coef=ft.coef + bias_um) if ft.term.name == "1" else ft for ft in model.terms]
+    return Model(terms=terms, training=model.training, fit=model.fit, covariance=model.covariance)
+
+
+def validate(model: Model, cycles: int, adapt: BiasTracker | None, fault: bool = False) -> iso9283.TestResult:
+    drivers = simulated_drivers("test2", seed=21)
+    if fault:  # the interferometer fails through step 5's window and its retries: an invalid step
+        shared_cell(drivers.context).inject_fault("interferometer", 5 * 29 + 20, 5 * 29 + 60, "fault")
+    return asyncio.run(run_validation(drivers, model, name="test2", cycles=cycles, progress_stream=Capture(),
+                                      adapt=adapt))
+
+
+def test_online_and_offline_trackers_agree_sample_for_sample() -> None:
+    model = shifted(trained_model(0), 0.3)
+    online = validate(model, 4, BiasTracker(300.0, 1.0), fault=True)
+    assert not all(s.valid for s in online.steps), "the fault should leave an invalid step"
+    offline = BiasTracker(300.0, 1.0)
+    expected = []
+    for step in online.steps:  # a plain tracker fed the same residuals, valid steps only
+        expected.append(offline.correction_um)
+        if step.valid:
+            offline.update(step.t_s, step.x_um - step.step.target_um)
+    assert online.corrections_um == expected  # identical floats, step by step
+    assert expected[-1] < -0.1  # it moved towards cancelling the +0.3 um
+
+    # and each correction went out with its command: the same run without adaptation commands q - c
+    static = validate(model, 4, None, fault=True)
+    for a, s, c in zip(online.steps, static.steps, online.corrections_um, strict=True):
+        assert a.q_um - c == pytest.approx(s.q_um, abs=1e-9)
+
+
+def test_adaptation_removes_a_changed_cells_offset() -> None:
+    model = shifted(trained_model(0), 0.3)
+    static = validate(model, 8, None)
+    adaptive = validate(model, 8, BiasTracker(600.0, 1.0))
+    assert static.accuracy_nm > 250.0
+    assert adaptive.accuracy_nm < 0.6 * static.accuracy_nm
+    assert adaptive.adapted and not static.adapted
+
+
+def test_validate_adapt_on_the_command_line(tmp_path, capsys) -> None:
+    path = tmp_path / "m.json"
+    save_model(trained_model(0), path)
+    assert main(["validate", "--model", str(path), "--cycles", "2", "--adapt", "--adapt-tau-s", "300",
+                 "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["adapt"] == {"mode": "bias", "tau_s": 300.0, "max_um": 1.0} and doc["adapted"] is True
+    assert doc["final_correction_um"] is not None and 0.0 <= doc["within_2_sigma"] <= 1.0
+    assert main(["validate", "--model", str(path), "--cycles", "2", "--adapt", "--no-compensation"]) == 2
+    assert "--adapt corrects the model's commands" in capsys.readouterr().err

@@ -1,0 +1,136 @@
+"""What protects a procedure's motion, on the simulated cell's virtual clock: the follow check, slew-limited
+ramps, the safe voltage at the end, and the ``[procedure]`` table driving ``nanodrift calibrate``."""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from helpers.sim_helpers import Capture
+
+from daemon.assembly import simulated_drivers
+from daemon.calibration.dataset import read_csv
+from daemon.calibration.plans import PlannedStep, StepTiming
+from daemon.cli import main
+from daemon.config import ActuatorConfig
+from daemon.procedure.follow import FollowCheck, StageNotFollowingError
+from daemon.procedure.recording import record_calibration
+from daemon.procedure.steps import run_steps
+from drivers.base import Actuator, Clock, DriverSet
+
+
+class Wired(Actuator):
+    """Between the procedure and the simulated stage: records (time, q, V); ``gain`` is what the stage gets."""
+
+    def __init__(self, inner: Actuator, clock: Clock, gain: float = 1.0) -> None:
+        self.inner, self.clock, self.gain = inner, clock, gain
+        self.sent: list[tuple[float, float, float]] = []
+
+    async def open(self) -> None:
+        await self.inner.open()
+
+    async def command(self, q_um: float, voltage_v: float, *, x_um: float | None = None) -> None:
+        self.sent.append((self.clock.now(), q_um, voltage_v))
+        await self.inner.command(q_um * self.gain, voltage_v * self.gain)
+
+    async def close(self) -> None:
+        await self.inner.close()
+
+
+def wired(gain: float = 1.0, seed: int = 1) -> tuple[DriverSet, Wired]:
+    drivers = simulated_drivers("train", seed=seed)
+    assert drivers.actuator is not None
+    actuator = Wired(drivers.actuator, drivers.clock, gain)
+    drivers.actuator = actuator
+    return drivers, actuator
+
+
+def test_a_stage_that_does_not_move_stops_the_run_after_its_first_move(tmp_path: Path) -> None:
+    drivers, _ = wired(gain=0.0)
+    data = tmp_path / "cal.csv"
+    with pytest.raises(StageNotFollowingError) as caught:
+        asyncio.run(record_calibration(drivers, data, cycles=2, progress_stream=Capture(),
+                                       follow=FollowCheck("interferometer")))
+    message = str(caught.value)
+    assert message.startswith("the stage did not follow: commanded +30 µm, the interferometer moved ")
+    assert message.endswith(" µm; check the amplifier and [actuator]")
+    moved = float(message.split("moved ")[1].split(" µm")[0])
+    assert abs(moved) < 0.2  # what the room's drift and the noise do to a stage standing still
+    assert len(read_csv(data)) == 2  # steps 0 and 1 are recorded (the evidence); nothing after
+
+
+@pytest.mark.parametrize(("gain", "tolerance", "follows"), [(0.3, 0.5, False), (0.9, 0.5, True), (-1.0, 0.5, False),
+                                                             (0.9, 0.05, False), (1.0, 0.05, True)])
+def test_the_tolerance_is_a_fraction_of_the_commanded_move(gain: float, tolerance: float, follows: bool,
+                                                           tmp_path: Path) -> None:
+    drivers, _ = wired(gain=gain)
+    follow = FollowCheck("interferometer", tolerance=tolerance, steps=3)
+    plan = [PlannedStep(i, 0, x) for i, x in enumerate((0.0, 30.0, 60.0, 90.0, 120.0))]
+    run = run_steps(drivers, plan, follow=follow, timing=StepTiming(hold_s=6.0, window_s=2.0))
+    if follows:
+        results = asyncio.run(run)
+        assert len(results) == 5 and follow.checked == 3 and follow.done
+    else:
+        with pytest.raises(StageNotFollowingError, match=r"commanded \+30 µm"):
+            asyncio.run(run)
+
+
+def test_a_jump_is_ramped_no_faster_than_max_slew_and_ends_at_the_target() -> None:
+    drivers, actuator = wired()
+    limits = ActuatorConfig(max_slew_um_per_s=100.0)
+    plan = [PlannedStep(0, 0, 0.0), PlannedStep(1, 0, 480.0), PlannedStep(2, 0, 0.0)]
+    results = asyncio.run(run_steps(drivers, plan, limits=limits))  # the paper's 4 s ramp would be 120 um/s
+    sent = actuator.sent
+    rates = [abs(q1 - q0) / (t1 - t0) for (t0, q0, _), (t1, q1, _) in itertools.pairwise(sent) if t1 > t0]
+    assert max(rates) <= 100.0 * (1 + 1e-9)
+    assert max(q for _, q, _ in sent) == 480.0
+    times_at_top = [t for t, q, _ in sent if q == 480.0]
+    first_move = next(t for t, q, _ in sent if q > 0)
+    assert times_at_top[0] - first_move == pytest.approx(4.8 - 4.8 / 19, abs=1e-6)  # 480 um at 100 um/s, 19 steps
+    assert sent[-1][1] == 0.0 and results[1].q_um == 480.0
+    assert all(limits.v_min <= v <= limits.v_max for _, _, v in sent)
+    assert results[1].x_um == pytest.approx(480.0, abs=1.0)  # the stage got there
+
+
+def test_the_paper_ramp_is_kept_when_it_is_slower_than_the_limit() -> None:
+    drivers, actuator = wired()
+    plan = [PlannedStep(0, 0, 0.0), PlannedStep(1, 0, 30.0)]
+    asyncio.run(run_steps(drivers, plan, limits=ActuatorConfig(max_slew_um_per_s=100.0)))
+    moving = [(t, q) for t, q, _ in actuator.sent if 0 < q]
+    assert len(actuator.sent) == 32 and moving[-1][0] - moving[0][0] == pytest.approx(4.0 - 0.25)  # 16 x 0.25 s
+
+
+def test_a_finite_safe_voltage_is_where_the_stage_is_left_even_after_a_failure(tmp_path: Path) -> None:
+    limits = ActuatorConfig(safe_voltage_v=1.0, max_slew_um_per_s=50.0)
+    drivers, actuator = wired()
+    plan = [PlannedStep(0, 0, 0.0), PlannedStep(1, 0, 480.0)]
+    asyncio.run(run_steps(drivers, plan, limits=limits))
+    assert actuator.sent[-1][1:] == pytest.approx((50.0, 1.0))  # 1.0 V / 0.02 V/um
+    descent = [(t, q) for t, q, _ in actuator.sent if t > actuator.sent[-1][0] - 8.6]
+    assert descent[0][1] < 480.0 and abs(descent[-1][0] - descent[0][0]) > 8.0  # ramped: 430 um at 50 um/s
+    assert math.isnan(ActuatorConfig().safe_voltage_v) and ActuatorConfig().safe_q_um is None
+
+    stuck, stuck_actuator = wired(gain=0.0)
+    with pytest.raises(StageNotFollowingError):
+        asyncio.run(run_steps(stuck, [PlannedStep(i, 0, x) for i, x in enumerate((0.0, 30.0, 60.0))],
+                              limits=limits, follow=FollowCheck("interferometer")))
+    assert stuck_actuator.sent[-1][1] == pytest.approx(50.0)
+
+
+def test_calibrate_takes_its_trajectory_and_timing_from_the_procedure_table(tmp_path: Path) -> None:
+    config = tmp_path / "sim.toml"
+    config.write_text('[simulation]\nscenario = "train"\nseed = 2\n'
+                      "[procedure]\nstep_um = 60\nmax_um = 480\ncycles = 2\nrise_s = 2\nhold_s = 10\naverage_s = 2\n")
+    data = tmp_path / "cal.csv"
+    assert main(["calibrate", "--config", str(config), "--out", str(tmp_path / "m.json"), "--data", str(data)]) == 0
+    ds = read_csv(data)
+    assert np.allclose(ds.q, np.tile(np.arange(0.0, 481.0, 60.0), 2))
+    assert np.allclose(np.diff(ds.t), 12.0)  # rise_s + hold_s
+    short = tmp_path / "short.csv"
+    assert main(["calibrate", "--config", str(config), "--out", str(tmp_path / "m2.json"), "--data", str(short),
+                 "--cycles", "3"]) == 0
+    assert len(read_csv(short)) == 27  # --cycles overrides [procedure] cycles

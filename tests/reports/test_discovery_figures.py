@@ -1,0 +1,144 @@
+"""Discovery figures and report.md for a lab notebook (issue 13, item 5): binary variables as points, scatter
+points in the legend, titles in words, µm and °C, 150 dpi PNG plus SVG, parameters and rules in words."""
+
+from __future__ import annotations
+
+import re
+import struct
+from pathlib import Path
+
+import matplotlib.pyplot as plt
+import pytest
+from helpers.discovery_helpers import cell_run, paper_model
+
+from daemon.calibration.discovery import Candidate, discover
+from daemon.calibration.discovery.settings import DEFAULT_SETTINGS
+from daemon.model.terms import Lag
+from daemon.reports.discovery import figure_residuals, format_params, markdown, verdict, write_report
+
+
+@pytest.fixture(scope="module")
+def hysteresis():
+    """Hysteresis hidden in a bidirectional run: named, with ``dir`` the variable that shows it."""
+    data = cell_run("hysteresis", seed=1, bidirectional=True)
+    result = discover(data, paper_model(data))
+    assert [s.effect for s in result.steps][:1] == ["hysteresis"], result.summary
+    return result
+
+
+@pytest.fixture(scope="module")
+def nothing():
+    """A forward-only calibration with nothing hidden: nothing found, hysteresis untestable."""
+    data = cell_run("", seed=0)
+    result = discover(data, paper_model(data))
+    assert not result.steps, result.summary
+    return result
+
+
+@pytest.fixture(autouse=True)
+def close_figures():
+    yield
+    plt.close("all")
+
+
+def texts(fig) -> list[str]:
+    out = []
+    for ax in fig.axes:
+        out += [ax.get_title(), ax.get_xlabel(), ax.get_ylabel()]
+        out += [t.get_text() for t in ax.get_xticklabels()]
+        legend = ax.get_legend()
+        if legend is not None:
+            out += [t.get_text() for t in legend.get_texts()]
+    return [t for t in out if t]
+
+
+def png_dpi(path: Path) -> float:
+    data = path.read_bytes()
+    at = data.index(b"pHYs") + 4
+    per_metre, _, unit = struct.unpack(">IIB", data[at:at + 9])
+    assert unit == 1
+    return per_metre * 0.0254
+
+
+def test_a_binary_variable_is_drawn_as_points_per_value_not_a_line(hysteresis) -> None:
+    ax = figure_residuals(hysteresis, "dir").axes[0]
+    assert [t.get_text() for t in ax.get_xticklabels()] == ["down", "up"]
+    for line in ax.get_lines():
+        xs, ys = line.get_xdata(), line.get_ydata()
+        joins_values = line.get_linestyle() not in ("None", "none", "", " ") and len(set(xs)) > 1
+        assert not joins_values or set(ys) == {0.0}, "a line joins 'down' and 'up'"  # only the zero line
+
+
+def test_scatter_points_are_in_the_legend_and_visible_there(hysteresis) -> None:
+    for variable in ("dir", "t"):
+        legend = figure_residuals(hysteresis, variable).axes[0].get_legend()
+        entries = [t.get_text() for t in legend.get_texts()]
+        assert "given model: each row" in entries and "extended model: each row" in entries, entries
+        for text, handle in zip(entries, legend.legend_handles, strict=True):
+            if "each row" in text:
+                assert handle.get_alpha() == 1.0  # the plot's faint points, drawn solid in the legend
+
+
+@pytest.mark.parametrize(("variable", "title", "unit"), [
+    ("last_step", "Residuals against the size of the last step", "(µm)"),
+    ("rate(T2)", "Residuals against the rate of change of T2", "(°C/h"),
+    ("T1", "Residuals against temperature T1", "(°C)"),
+    ("x", "Residuals against position", "(µm)"),
+    ("t", "Residuals against time", "(h)"),
+])
+def test_titles_are_words_and_units_are_micrometres_and_degrees(hysteresis, variable, title, unit) -> None:
+    fig = figure_residuals(hysteresis, variable)
+    ax = fig.axes[0]
+    assert ax.get_title() == title
+    assert unit in ax.get_xlabel()
+    joined = " ".join(texts(fig))
+    assert "last_step" not in joined and "rate(" not in joined
+    assert not re.search(r"\bum\b|degC", joined)
+
+
+def test_a_forward_only_last_step_is_three_levels_not_a_blurred_scatter(nothing) -> None:
+    ax = figure_residuals(nothing, "last_step").axes[0]
+    assert [t.get_text() for t in ax.get_xticklabels()] == ["−480", "0", "30"]
+
+
+def test_the_report_writes_150_dpi_png_and_svg_of_every_figure(hysteresis, tmp_path) -> None:
+    files = write_report(hysteresis, tmp_path, "m2.json")
+    pngs = [f for f in files if f.suffix == ".png"]
+    assert {p.stem for p in pngs} >= {"gap", "residuals_vs_dir"}
+    for png in pngs:
+        assert png_dpi(png) == pytest.approx(150, abs=0.5)
+        svg = png.with_suffix(".svg")
+        assert svg in files and "<svg" in svg.read_text()
+    report = (tmp_path / "report.md").read_text()
+    for png in pngs:
+        assert f"]({png.name})" in report
+
+
+def test_report_md_gives_parameters_in_words_and_explains_every_rule(hysteresis) -> None:
+    report = markdown(hysteresis, ["gap.png"], "m2.json")
+    assert "{'" not in report and "':" not in report  # no raw Python dicts
+    rules = report.split("## Rules applied", 1)[1]
+    cited = {int(n) for n in re.findall(r"\(rule (\d+)\)", report)} | {1, 2}
+    for n in cited:
+        assert re.search(rf"^{n}\. \*\*", rules, re.MULTILINE), f"rule {n} is cited but never explained"
+    assert "a move counts when larger than 0.5 µm" in report  # hysteresis's parameter, in words
+
+
+def test_a_deferred_candidate_says_why_in_words() -> None:
+    c = Candidate("thermal_lag", [Lag("T4", 2100.0)], [], {"channel": "T4", "tau_s": 2100.0,
+                  "tau_behind_fastest_s": 2250.0, "deferred_to": "T3"}, 1, 4)
+    text = format_params(c)
+    assert text.startswith("channel T4, time constant τ = 35 min")
+    assert "deferred to the same effect on T3, the fastest channel (rule 5)" in text
+    assert "deferred_to" not in text and "{" not in text
+    assert verdict(c, False, DEFAULT_SETTINGS) == "deferred to T3 (rule 5)"
+
+
+def test_nothing_found_is_reported_with_what_the_run_cannot_show(nothing, tmp_path) -> None:
+    write_report(nothing, tmp_path, None)
+    report = (tmp_path / "report.md").read_text()
+    assert "nothing found; no model written" in report
+    cannot = report.split("## What this run cannot show", 1)[1]
+    assert "**hysteresis**" in cannot and "nanodrift simulate --scenario bidirectional" in cannot
+    legend = figure_residuals(nothing, "t").axes[0].get_legend()
+    assert "the given terms refitted on this run: each row" in [t.get_text() for t in legend.get_texts()]

@@ -1,0 +1,219 @@
+"""The daemon's decisions without Zenoh: sensor states, compensation, limits, rate-limited logging,
+sd_notify datagrams, the watchdog's health check."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import socket
+import time
+from pathlib import Path
+
+import pytest
+from helpers.daemon_harness import MODEL_TERMS, expected_q, write_test_model
+
+from daemon.bus.protocol import Refusal, Target
+from daemon.config import ActuatorConfig
+from daemon.logs import RateLimiter
+from daemon.sdnotify import Notifier, watchdog_interval_s
+from daemon.service.compensator import Compensator
+from daemon.service.polling import GroupPoller, pollers_healthy
+from daemon.service.table import SensorTable
+from drivers.base import Reading, SensorConfig, SensorGroup, State, WallClock
+
+
+def sensors(*names: str, max_age_s: float = 5.0) -> list[SensorConfig]:
+    return [SensorConfig(name=n, kind="x", max_age_s=max_age_s) for n in names]
+
+
+def test_sensor_states_ok_stale_fault_and_recovery() -> None:
+    table = SensorTable(sensors("T1", "T2", max_age_s=5.0))
+    assert table.state("T1", 0.0) == (State.STALE, "no reading yet")
+    table.update("T1", Reading(21.5, t=100.0))
+    assert table.state("T1", 104.9) == (State.OK, "")
+    state, reason = table.state("T1", 105.5)
+    assert state == State.STALE and "5.5 s old" in reason
+    table.update("T1", Reading.fault(106.0, "burnout"))
+    assert table.state("T1", 106.0) == (State.FAULT, "burnout")
+    assert table.entries["T1"].value == 21.5  # the last good value is kept for status, never used
+    table.update("T1", Reading(21.6, t=107.0))
+    assert table.state("T1", 107.0) == (State.OK, "")
+    table.mark_fault(["T1"], "device error: port gone")
+    assert table.state("T1", 107.0) == (State.FAULT, "device error: port gone")
+    table.update("T2", Reading(float("nan"), t=1.0))
+    assert table.state("T2", 1.0)[0] == State.FAULT
+    assert table.state("T9", 0.0)[0] == State.FAULT
+    snapshot = table.snapshot(108.0)
+    assert snapshot["T1"]["state"] == "fault" and snapshot["T1"]["age_s"] == pytest.approx(1.0)
+
+
+
+
+@pytest.fixture
+def compensator(tmp_path: Path) -> Compensator:
+    model = write_test_model(tmp_path / "m.json")
+    table = SensorTable(sensors("T1", "T2", "T3", max_age_s=5.0))
+    for name, value in {"T1": 21.8, "T2": 21.9, "T3": 30.0}.items():
+        table.update(name, Reading(value, t=10.0))
+    comp = Compensator(model, ActuatorConfig(), table)
+    comp.observe(10.0, {"T1": 21.8, "T2": 21.9})
+    return comp
+
+
+def test_compensation_matches_the_model_and_the_actuator_gain(compensator: Compensator) -> None:
+    command = compensator.compensate(Target("k", 200.0), now=11.0, unix_now=1234.5)
+    assert command.q_um == pytest.approx(expected_q(200.0, {"T1": 21.8, "T2": 21.9}), abs=1e-12)
+    assert command.voltage_v == pytest.approx(0.02 * command.q_um, abs=1e-15)
+    assert command.temperatures_c == {"T1": 21.8, "T2": 21.9}  # the model's channels only
+    assert command.t == 1234.5 and command.id == "k"
+    assert command.model == compensator.model.id
+    assert command.extrapolating == []
+    assert set(MODEL_TERMS) == set(compensator.model.term_names())
+
+
+def test_refusals_stale_workspace_voltage_and_no_model(compensator: Compensator, tmp_path: Path) -> None:
+    with pytest.raises(Refusal) as stale:
+        compensator.compensate(Target(1, 100.0), now=15.5, unix_now=0.0)
+    assert stale.value.kind == "stale" and "T1" in stale.value.message and stale.value.id == 1
+    with pytest.raises(Refusal) as outside:
+        compensator.compensate(Target(2, 500.01), now=11.0, unix_now=0.0)
+    assert outside.value.kind == "out_of_workspace"
+    tight = Compensator(compensator.model, ActuatorConfig(v_max=4.0), compensator.table)
+    tight.evaluator = compensator.evaluator
+    with pytest.raises(Refusal) as volts:
+        tight.compensate(Target(3, 250.0), now=11.0, unix_now=0.0)
+    assert volts.value.kind == "voltage_limit" and "outside [-2, 4] V" in volts.value.message
+    assert tight.compensate(Target(4, 150.0), now=11.0, unix_now=0.0).voltage_v <= 4.0
+    none = Compensator(None, ActuatorConfig(), compensator.table, model_problem="m.json: no such model file")
+    with pytest.raises(Refusal) as no_model:
+        none.compensate(Target(5, 1.0), now=11.0, unix_now=0.0)
+    assert no_model.value.kind == "no_model" and "no such model file" in no_model.value.message
+
+
+def test_missing_channel_and_extrapolation(compensator: Compensator) -> None:
+    only_t1 = SensorTable(sensors("T1"))
+    only_t1.update("T1", Reading(21.8, t=10.0))
+    missing = Compensator(compensator.model, ActuatorConfig(), only_t1)
+    with pytest.raises(Refusal) as caught:
+        missing.compensate(Target(1, 1.0), now=10.0, unix_now=0.0)
+    assert caught.value.kind == "missing_channel" and "T2" in caught.value.message
+    compensator.table.update("T2", Reading(23.0, t=10.5))
+    compensator.observe(10.5, {"T2": 23.0})
+    command = compensator.compensate(Target(2, 490.0), now=11.0, unix_now=0.0)
+    assert command.extrapolating == ["x", "T2"]
+    assert compensator.extrapolating_now(11.0) == ["T2"]
+
+
+def test_rate_limiter_lets_a_burst_through_then_counts() -> None:
+    now = [0.0]
+    limiter = RateLimiter(rate=2.0, burst=3, clock=lambda: now[0])
+    assert [limiter.allow() for _ in range(5)] == [True, True, True, False, False]
+    assert limiter.take_suppressed() == 2 and limiter.take_suppressed() == 0
+    now[0] = 1.0  # two tokens back
+    assert [limiter.allow() for _ in range(3)] == [True, True, False]
+
+
+@pytest.mark.parametrize("abstract", [False, True])
+def test_sd_notify_datagrams_reach_path_and_abstract_sockets(tmp_path: Path, abstract: bool) -> None:
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    if abstract:
+        name = f"nanodrift-test-{os.getpid()}-{id(server)}"
+        server.bind("\0" + name)
+        address = "@" + name
+    else:
+        address = str(tmp_path / "notify.sock")
+        server.bind(address)
+    server.settimeout(2.0)
+    notifier = Notifier(address)
+    try:
+        assert notifier.enabled
+        assert notifier.ready("serving cell0")
+        assert server.recv(4096) == b"READY=1\nSTATUS=serving cell0"
+        assert notifier.watchdog()
+        assert server.recv(4096) == b"WATCHDOG=1"
+        assert notifier.stopping()
+        assert server.recv(4096) == b"STOPPING=1\nSTATUS=stopping"
+    finally:
+        notifier.close()
+        server.close()
+    assert not Notifier("").enabled and not Notifier("").ready()
+
+
+def test_watchdog_interval_is_half_of_systemds(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("WATCHDOG_USEC", "30000000")
+    monkeypatch.setenv("WATCHDOG_PID", str(os.getpid()))
+    assert watchdog_interval_s() == 15.0
+    monkeypatch.setenv("WATCHDOG_PID", "1")  # meant for another process
+    assert watchdog_interval_s() is None
+    monkeypatch.delenv("WATCHDOG_USEC")
+    assert watchdog_interval_s() is None
+
+
+
+def test_logs_are_json_lines_for_journald_and_readable_on_a_terminal(capsys: pytest.CaptureFixture[str]) -> None:
+    import structlog
+
+    from daemon.logs import RateLimitedLog, configure_logging, get_logger
+
+    try:
+        configure_logging("info", json_lines=True)
+        get_logger().warning("sensor_state", channel="T2", state="stale")
+        line = json.loads(capsys.readouterr().err.strip())
+        assert line["event"] == "sensor_state" and line["channel"] == "T2" and line["level"] == "warning"
+        configure_logging("info", json_lines=False)
+        log = RateLimitedLog(get_logger(), "target_refused", RateLimiter(rate=0.0, burst=2))
+        for _ in range(5):
+            log(kind="bad_payload")
+        log.flush()
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 3 and not lines[0].startswith("{")
+        assert "target_refused_suppressed" in lines[2] and "suppressed=3" in lines[2]
+    finally:
+        structlog.reset_defaults()
+
+
+def test_a_refused_target_does_not_move_the_models_motion_state(tmp_path: Path) -> None:
+    """A target refused for its voltage never reaches the stage, so `dir` must not see it as a move."""
+    terms = {**MODEL_TERMS, "dir": 0.05}
+    model = write_test_model(tmp_path / "dir.json", terms)
+    table = SensorTable(sensors("T1", "T2"))
+    for name, value in {"T1": 21.8, "T2": 21.9}.items():
+        table.update(name, Reading(value, t=10.0))
+    comp = Compensator(model, ActuatorConfig(v_max=4.0), table)  # 4 V ~ 200 um
+    comp.observe(10.0, {"T1": 21.8, "T2": 21.9})
+    comp.compensate(Target(1, 100.0), now=11.0, unix_now=0.0)
+    with pytest.raises(Refusal):
+        comp.compensate(Target(2, 400.0), now=11.0, unix_now=0.0)  # never sent to the stage
+    after = comp.compensate(Target(3, 180.0), now=11.0, unix_now=0.0).q_um
+    # 100 -> 180 is a step up from where the stage really is (down only from the refused 400)
+    assert after == pytest.approx(expected_q(180.0, {"T1": 21.8, "T2": 21.9}, terms) + 0.05, abs=1e-12)
+
+
+def test_watchdog_health_fails_when_a_poller_dies_or_stops_making_progress() -> None:
+    """systemd restarts a daemon that stops pinging: the pings must stop exactly in these cases."""
+
+    class Idle(SensorGroup):
+        names, roles, interval_s, timeout_s = ("T1",), {"T1": "temperature"}, 0.5, 1.0
+
+        async def open(self) -> None: ...
+
+        async def read(self) -> dict[str, Reading]:
+            return {"T1": Reading(20.0, t=0.0)}
+
+        async def close(self) -> None: ...
+
+    async def check() -> tuple[bool, bool, bool]:
+        poller = GroupPoller(Idle(), WallClock(), lambda g, r: None, lambda g, reason, delay: None)
+        poller.task = asyncio.get_running_loop().create_task(asyncio.sleep(60))
+        healthy = pollers_healthy([poller])
+        poller.last_progress = time.monotonic() - GroupPoller.MAX_BACKOFF_S * 2  # stuck for a minute
+        stuck = pollers_healthy([poller])
+        poller.last_progress = time.monotonic()
+        poller.task.cancel()
+        await asyncio.sleep(0)
+        dead = pollers_healthy([poller])
+        return healthy, stuck, dead
+
+    assert asyncio.run(check()) == (True, False, False)
+

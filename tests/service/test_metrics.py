@@ -1,0 +1,185 @@
+"""``[metrics] listen``: Prometheus metrics scraped over HTTP on 127.0.0.1 from a running daemon.
+
+The daemon runs the harness' ``file`` plugin and test model; targets (served and refused) and a
+sensor fault must show in the scraped counters, histogram and gauges. The collector's handling of
+the health and actuator fields is tested on documents that carry them, and two servers in one
+process keep their own registries.
+"""
+
+from __future__ import annotations
+
+import socket
+import urllib.request
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from helpers.daemon_harness import (
+    TEMPS,
+    Client,
+    Daemon,
+    SensorFile,
+    file_sensor_config,
+    free_port,
+    install_file_plugin,
+    wait_until,
+    write_test_model,
+)
+from prometheus_client.parser import text_string_to_metric_families
+
+from daemon.config import ConfigError, parse_config
+from daemon.service.metrics import LATENCY_BUCKETS_S, AnswerLatency, MetricsServer
+
+Samples = dict[tuple[str, tuple[tuple[str, str], ...]], float]
+
+
+def scrape(url: str) -> Samples:
+    with urllib.request.urlopen(url, timeout=10) as response:
+        assert response.status == 200
+        text = response.read().decode()
+    return {(s.name, tuple(sorted(s.labels.items()))): s.value
+            for family in text_string_to_metric_families(text) for s in family.samples}
+
+
+def value(samples: Samples, name: str, **labels: str) -> float | None:
+    return samples.get((name, tuple(sorted(labels.items()))))
+
+
+class MeteredCell:
+    def __init__(self, root: Path, cell: str = "metered") -> None:
+        self.cell = cell
+        self.port, self.metrics_port = free_port(), free_port()
+        self.sensors = SensorFile(root / "sensors.json", TEMPS)
+        model = root / "model.json"
+        write_test_model(model)
+        config = root / "nanodrift.toml"
+        config.write_text(file_sensor_config(root, cell=cell, port=self.port, model_path=model,
+                                             sensor_file=self.sensors.path,
+                                             extra=f'[metrics]\nlisten = "127.0.0.1:{self.metrics_port}"'))
+        self.config = config
+        self.plugins = install_file_plugin(root / "plugins")
+        self.daemon = Daemon(["--config", str(config)], root / "daemon.log", [self.plugins])
+        self.daemon.wait_log("serving", timeout=30)
+        self.url = self.daemon.wait_log("metrics_listening")["url"]
+        self.client = Client(self.port, cell)
+        self.client.wait_ready(["T1", "T2"])
+
+    def close(self) -> int:
+        self.client.close()
+        return self.daemon.stop()
+
+
+@pytest.fixture(scope="module")
+def metered(tmp_path_factory: pytest.TempPathFactory) -> Iterator[MeteredCell]:
+    cell = MeteredCell(tmp_path_factory.mktemp("metrics"))
+    try:
+        yield cell
+    finally:
+        assert cell.close() == 0
+
+
+def test_targets_commands_errors_and_latency_are_counted(metered: MeteredCell) -> None:
+    assert metered.url == f"http://127.0.0.1:{metered.metrics_port}/metrics"
+    before = scrape(metered.url)
+    c = metered.cell
+    targets0 = value(before, "nanodrift_targets_total", cell=c) or 0.0
+    for index in range(4):
+        assert metered.client.query({"x_um": 100.0 + index, "id": index})[0]
+    for index in range(3):
+        assert not metered.client.query({"x_um": 9999.0, "id": f"far{index}"})[0]
+    after = scrape(metered.url)
+    assert value(after, "nanodrift_targets_total", cell=c) == targets0 + 7
+    assert value(after, "nanodrift_commands_total", cell=c) >= 4
+    assert value(after, "nanodrift_errors_total", cell=c, kind="out_of_workspace") >= 3
+    count = value(after, "nanodrift_answer_latency_seconds_count", cell=c)
+    assert count == value(after, "nanodrift_targets_total", cell=c)
+    assert 0 < value(after, "nanodrift_answer_latency_seconds_sum", cell=c) < count * 1.0
+    assert value(after, "nanodrift_answer_latency_seconds_bucket", cell=c, le="+Inf") == count
+    assert value(after, "nanodrift_healthy", cell=c) == 1.0
+    assert value(after, "nanodrift_model_info", cell=c, model=metered.client.status()["model"]["id"]) == 1.0
+
+
+def test_sensor_value_age_and_state_per_channel(metered: MeteredCell) -> None:
+    c = metered.cell
+    samples = scrape(metered.url)
+    assert value(samples, "nanodrift_sensor_value", cell=c, channel="T1", role="temperature",
+                 unit="degC") == pytest.approx(TEMPS["T1"])
+    assert 0.0 <= value(samples, "nanodrift_sensor_age_seconds", cell=c, channel="T2") < 2.0
+    assert value(samples, "nanodrift_sensor_ok", cell=c, channel="T1") == 1.0
+    metered.sensors.write(fault={"T1": "burnout"})
+    try:
+        wait_until(lambda: value(scrape(metered.url), "nanodrift_sensor_ok", cell=c, channel="T1") == 0.0, 15,
+                   "nanodrift_sensor_ok{channel=T1} 0 after a burnout", interval=0.1)
+        assert value(scrape(metered.url), "nanodrift_sensor_ok", cell=c, channel="T2") == 1.0
+    finally:
+        metered.sensors.write(fault={})
+    wait_until(lambda: value(scrape(metered.url), "nanodrift_sensor_ok", cell=c, channel="T1") == 1.0, 15,
+               "T1 ok again", interval=0.1)
+
+
+def test_a_taken_metrics_port_stops_the_daemon_with_one_sentence(metered: MeteredCell, tmp_path: Path) -> None:
+    text = metered.config.read_text().replace(f"127.0.0.1:{metered.port}", f"127.0.0.1:{free_port()}")
+    config = tmp_path / "same-metrics-port.toml"
+    config.write_text(text)
+    second = Daemon(["--config", str(config)], tmp_path / "second.log", [metered.plugins])
+    try:
+        second.proc.wait(timeout=60)
+    finally:
+        second.stop()
+    assert second.proc.returncode != 0
+    last = (tmp_path / "second.log").read_text().strip().splitlines()[-1]
+    assert last == (f"nanodrift run: error: [metrics] listen = '127.0.0.1:{metered.metrics_port}': "
+                    "cannot serve metrics there (already in use)")
+    metered.client.wait_alive()  # the first daemon is untouched
+
+
+def fake_doc(cell: str, **extra: Any) -> dict[str, Any]:
+    return {"cell": cell, "uptime_s": 12.0, "healthy": True, "model": {"id": "m-1"}, "extrapolating": [],
+            "sensors": {"T1": {"role": "temperature", "value": 21.5, "unit": "degC", "age_s": 0.2, "state": "ok"}},
+            "counters": {"targets": 5, "commands": 4, "errors": {"stale": 1}, "reloads": 0, "reload_failures": 0},
+            **extra}
+
+
+def test_two_servers_in_one_process_keep_their_own_registries() -> None:
+    first_latency = AnswerLatency()
+    first_latency.observe(30e-6)
+    first_latency.observe(3.0)
+    first = MetricsServer("127.0.0.1:0", lambda: fake_doc("one"), first_latency)
+    second = MetricsServer("127.0.0.1:0", lambda: fake_doc(
+        "two", health={"state": "degraded", "residual_rms_nm": 150.0, "residual_mean_nm": -20.0,
+                       "correction_um": 0.05},
+        actuator={"kind": "modbus", "state": "fault"}), AnswerLatency())
+    first.start()
+    second.start()
+    first_url = first.url
+    try:
+        one, two = scrape(first_url), scrape(second.url)
+    finally:
+        first.stop()
+        second.stop()
+    assert value(one, "nanodrift_answer_latency_seconds_count", cell="one") == 2
+    assert value(one, "nanodrift_answer_latency_seconds_bucket", cell="one", le=repr(LATENCY_BUCKETS_S[1])) == 1
+    assert value(one, "nanodrift_answer_latency_seconds_bucket", cell="one", le=repr(LATENCY_BUCKETS_S[-1])) == 1
+    assert value(two, "nanodrift_answer_latency_seconds_count", cell="two") == 0
+    assert not any(labels and dict(labels).get("cell") == "one" for _, labels in two)
+    assert value(one, "nanodrift_errors_total", cell="one", kind="stale") == 1
+    assert not any(name.startswith(("nanodrift_health_", "nanodrift_actuator_")) for name, _ in one)
+    assert value(two, "nanodrift_health_residual_rms_meters", cell="two") == pytest.approx(150e-9)
+    assert value(two, "nanodrift_health_residual_mean_meters", cell="two") == pytest.approx(-20e-9)
+    assert value(two, "nanodrift_health_correction_meters", cell="two") == pytest.approx(0.05e-6)
+    assert value(two, "nanodrift_health_state", cell="two", state="degraded") == 1
+    assert value(two, "nanodrift_actuator_ok", cell="two", kind="modbus") == 0
+    assert value(two, "nanodrift_actuator_state", cell="two", kind="modbus", state="fault") == 1
+    with socket.socket() as probe:  # stopped: nobody listens there any more
+        assert probe.connect_ex(("127.0.0.1", int(first_url.rsplit(":", 1)[1].split("/")[0]))) != 0
+
+
+@pytest.mark.parametrize("listen", ["9464", "127.0.0.1", "127.0.0.1:0", "127.0.0.1:70000", "http://x:1"])
+def test_metrics_listen_is_validated(listen: str) -> None:
+    with pytest.raises(ConfigError, match=r"metrics\.listen: .*HOST:PORT"):
+        parse_config({"metrics": {"listen": listen}})
+
+
+def test_metrics_are_off_by_default() -> None:
+    assert parse_config({}).metrics.listen == ""
