@@ -17,8 +17,8 @@ import statistics
 import time
 from multiprocessing.synchronize import Event
 
-from drivers.base import DriverContext, HubConfig, SensorGroup
-from drivers.modbus.config import ModbusSensorConfig
+from drivers.base import DriverContext, SensorGroup
+from drivers.modbus.config import ModbusHubConfig, ModbusSensorConfig
 from drivers.modbus.group import ModbusBlockGroup, plan_blocks
 from drivers.modbus.hub import ModbusHub
 
@@ -61,7 +61,7 @@ async def cycle(groups: list[SensorGroup]) -> float:
 
 
 async def bench(port: int, cycles: int) -> None:
-    hub_config = HubConfig(name="adam", type="tcp", host="127.0.0.1", port=port, timeout_s=1.0)
+    hub_config = ModbusHubConfig(name="adam", type="tcp", host="127.0.0.1", port=port, timeout_s=1.0)
     context = DriverContext(hubs={"adam": hub_config})
     configs = [ModbusSensorConfig(name=f"T{i + 1}", hub="adam", address=i, input_type="input", scale=0.1,
                                   nan_value=-32768) for i in range(CHANNELS)]

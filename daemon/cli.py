@@ -238,13 +238,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--adapt-tau-s", type=float, default=600.0, metavar="S",
                    help="the tracker's time constant (default 600 s, as [adapt] tau_s)")
     p.add_argument("--adapt-max-um", type=float, default=1.0, metavar="UM",
-                   help="clamp on the correction (default 1 um, as [adapt] max_um)")
+                   help="clamp on the correction (default 1 µm, as [adapt] max_um)")
     _simulation_flags(p, "test2")
     _output_check_flag(p)
 
     # --- model tools (offline) ---
     p = _add(sub, "fit", "identify the model from recorded data")
-    p.add_argument("data", metavar="D.csv", help="recorded data (CSV: t_s, x_um, q_um, one column per channel)")
+    p.add_argument("data", metavar="D.csv", nargs="+",
+                   help="recorded data (CSV: t_s, x_um, q_um, one column per channel); several files (a "
+                        "calibration plus recorded operation) are fitted together, each a run of its own")
     p.add_argument("--out", required=True, metavar="M.json", help="the model file to write")
     p.add_argument("--order", default="auto", help="geometric order n1, or auto (held-out cycles)")
     p.add_argument("--exclude", action="append", default=[], metavar="CH",
@@ -267,7 +269,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     # --- discovery (offline) ---
     p = _add(sub, "discover", "find what the model misses, add it, show the gap shrink")
-    p.add_argument("data", metavar="D.csv", help="recorded data (CSV) the model is tested against")
+    p.add_argument("data", metavar="D.csv", nargs="+",
+                   help="recorded data (CSV) the model is tested against; several files are runs of their own")
     p.add_argument("--model", required=True, metavar="M.json", help="the model to extend")
     p.add_argument("--out", required=True, metavar="M2.json", help="the extended model file to write")
     p.add_argument("--report", metavar="DIR", help="also write report.md and figures into DIR")

@@ -108,6 +108,35 @@ class MetricsSettings(_Strict):
         return value
 
 
+class HealthSettings(_Strict):
+    """``[health]``: the model's health from the position sensor (``daemon.service.health``); needs a
+    ``role = "position"`` sensor, else the state stays ``unknown``. ``record_dir``/``record_keep_days``:
+    recorded operation (daily CSVs of every settled target; a relative path is relative to the config
+    file's folder)."""
+
+    settle_s: float = Field(default=3.0, ge=0, description="the residual is read this long after a held command")
+    window_s: float = Field(default=2.0, gt=0, description="... averaged over this window: mean position - target")
+    history: int = Field(default=50, ge=1, le=100_000, description="rolling statistics over the last N residuals")
+    alarm_rms_nm: float = Field(default=100.0, gt=0, description="RMS above this: state degraded")
+    record_dir: str = Field(default="", description='"" = off; else daily CSVs of every settled target')
+    record_keep_days: int = Field(default=90, ge=0, description="delete day files older than this; 0 = keep all")
+
+    @field_validator("record_dir")
+    @classmethod
+    def _a_path(cls, value: str) -> str:
+        if "\x00" in value:
+            raise ValueError("must be a folder path (no NUL character)")
+        return value
+
+
+class AdaptSettings(_Strict):
+    """``[adapt]``: correct every command by the tracked settled residual (``mode = "bias"``), off by default."""
+
+    mode: Literal["off", "bias"] = Field(default="off", description="off | bias")
+    tau_s: float = Field(default=600.0, gt=0, description="the bias tracker's time constant")
+    max_um: float = Field(default=1.0, gt=0, description="clamp on the correction (um)")
+
+
 #: ``[actuator] kind`` handled by the core: the daemon publishes ``command`` and an output node applies it
 ZENOH_KIND = "zenoh"
 
@@ -169,11 +198,15 @@ class ActuatorConfig(_Strict):
         """The command that puts ``safe_voltage_v`` on the stage (None when it is nan)."""
         if math.isnan(self.safe_voltage_v):
             return None
-        return (self.safe_voltage_v - self.offset_v) / self.volts_per_um
+        return self.q_um_for(self.safe_voltage_v)
 
     def voltage(self, q_um: float) -> float:
         """The one voltage rule: what the amplifier gets for command ``q_um``."""
         return self.offset_v + self.volts_per_um * q_um
+
+    def q_um_for(self, voltage_v: float) -> float:
+        """The command whose voltage is ``voltage_v``: the inverse of :meth:`voltage`."""
+        return (voltage_v - self.offset_v) / self.volts_per_um
 
     def within_limits(self, voltage_v: float) -> bool:
         """Nothing outside ``[v_min, v_max]`` is ever published or written (NaN is outside)."""
@@ -251,6 +284,8 @@ class Config(_Strict):
     actuator: ActuatorConfig = Field(default_factory=ActuatorConfig)
     procedure: ProcedureSettings = Field(default_factory=ProcedureSettings)
     metrics: MetricsSettings = Field(default_factory=MetricsSettings)
+    health: HealthSettings = Field(default_factory=HealthSettings)
+    adapt: AdaptSettings = Field(default_factory=AdaptSettings)
     hubs: list[Any] = Field(default_factory=list)
     sensors: list[Any] = Field(default_factory=list)
     #: where it came from (a file path, or the built-in default); not a TOML key
@@ -409,7 +444,7 @@ def parse_config(data: Mapping[str, Any], source: str = BUILTIN_SOURCE, base_dir
     used = [parse.plugin(s.kind, "sensors") for _, s in sensors]
     virtual_cell = any(p is not None and p.virtual_cell for p in [*used, *owners.values()])
     actuator = _parse_actuator(parse, raw_actuator, virtual_cell)
-    hub_user = getattr(actuator.options, "hub", None) if actuator is not None else None
+    hub_user = actuator.options.hub_name() if actuator is not None and actuator.options is not None else None
     hubs = _parse_hubs(parse, raw_hubs, sensors,
                        actuator=(hub_user, actuator.kind) if actuator is not None and hub_user is not None else None)
     if config is not None and actuator is not None:
@@ -425,6 +460,9 @@ def parse_config(data: Mapping[str, Any], source: str = BUILTIN_SOURCE, base_dir
         updates["model"] = config.model.model_copy(update={"path": STATE_MODEL_PATH})
     elif not config.model.path.is_absolute():
         updates["model"] = config.model.model_copy(update={"path": (base / config.model.path).resolve()})
+    record_dir = config.health.record_dir
+    if record_dir and not Path(record_dir).is_absolute():
+        updates["health"] = config.health.model_copy(update={"record_dir": str((base / record_dir).resolve())})
     zfile = config.zenoh.config_file
     if zfile is not None and not zfile.is_absolute():
         updates["zenoh"] = config.zenoh.model_copy(update={"config_file": (base / zfile).resolve()})
@@ -573,7 +611,7 @@ def _parse_hubs(parse: _Parse, raw_hubs: Any, sensors: Sequence[tuple[int, Senso
         parse.problems.append(f"hubs: name {name!r} is used twice")
     users: dict[str, list[str]] = {}
     for index, sensor in sensors:
-        hub = getattr(sensor, "hub", None)
+        hub = sensor.hub_name()
         if hub is None:
             continue
         if hub not in names:
@@ -622,14 +660,26 @@ def load_config(path: str | Path | None) -> Config:
         raise ConfigError(str(file), ["file not found"]) from None
     except (OSError, UnicodeDecodeError) as error:
         raise ConfigError(str(file), [f"cannot read: {error}"]) from None
-    try:
+    try:  # a hostile file ('x = ' + '[' * 100000) must be a message, never a traceback or a dead reload
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
+        raise ConfigError(str(file), [f"not valid TOML: {error}"]) from None
+    except RecursionError:
+        raise ConfigError(str(file), [TOO_DEEP]) from None
+    except MemoryError:
+        raise ConfigError(str(file), ["not valid TOML: too large to parse"]) from None
+    except ValueError as error:  # tomllib's other refusals (an out-of-range date, ...)
         raise ConfigError(str(file), [f"not valid TOML: {error}"]) from None
     try:
         return parse_config(data, source=str(file), base_dir=file.resolve().parent)
     except ConfigError as error:
         raise ConfigError(error.source, error.problems, [locate(text, p) for p in error.problems]) from None
+    except RecursionError:
+        raise ConfigError(str(file), [TOO_DEEP]) from None
+
+
+#: the problem line of a config whose arrays or inline tables nest deeper than the parser can follow
+TOO_DEEP = "not valid TOML: nested too deeply (a nanodrift config nests a few levels of [ and {, not hundreds)"
 
 
 _PROBLEM_PATH = re.compile(r"^(?P<table>[A-Za-z_][\w-]*)(?:\[(?P<index>\d+)\])?(?: \([^)]*\))?(?:\.(?P<key>[\w-]+))?")

@@ -10,7 +10,10 @@ Device chatter is rate-limited: a library record repeating the same logger, leve
 (numbers ignored, so transaction ids do not make each line new) within :data:`CHATTER_WINDOW_S`
 is written once; when the window is over, one more line carries ``suppressed`` (how many were
 dropped). pymodbus' hex dumps of the last frames (``>>>>> send: 0x..``, appended to its error
-messages) are cut, and its logger stays at WARNING unless ``--log-level debug``.
+messages) are cut, and its logger stays at WARNING unless ``--log-level debug``. pymodbus' own
+report of a failed connection attempt (``Failed to connect ...``, then ``Repeating....``) is a
+debug line: the daemon says it once per failure episode (``sensor_group_failed``, with when it
+retries), and pymodbus would say it again at every attempt.
 
 Refused targets are logged through a token bucket: a client flooding bad payloads costs a summary
 line ("N suppressed") per interval instead of one line each, so it cannot fill the disk.
@@ -35,6 +38,8 @@ CHATTER_WINDOW_S = 10.0
 #: distinct library messages tracked at once (beyond this, new ones pass unthrottled)
 MAX_TRACKED_MESSAGES = 1024
 PYMODBUS_FRAME_DUMP = "\n>>>>> "
+#: pymodbus messages (their start) that repeat what the daemon's own failure line says: debug lines
+PYMODBUS_CONNECT_NOISE = ("Failed to connect", "Repeating....")
 _NUMBERS = re.compile(r"0x[0-9a-fA-F]+|\d+")
 
 
@@ -69,6 +74,7 @@ def configure_logging(
         cache_logger_on_first_use=False,
     )
     handler = OneLineHandler(stream, ChatterLimiter(window_s, clock))
+    handler.addFilter(DemoteConnectNoise(level_no))
     handler.setFormatter(
         structlog.stdlib.ProcessorFormatter(
             foreign_pre_chain=[*stamped, _library_fields],
@@ -223,6 +229,22 @@ class OneLineHandler(logging.Handler):
         finally:
             self.release()
         super().close()
+
+
+class DemoteConnectNoise(logging.Filter):
+    """pymodbus' per-attempt connection lines become debug lines: dropped unless the daemon logs debug."""
+
+    def __init__(self, level_no: int) -> None:
+        super().__init__()
+        self.level_no = level_no
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if (record.name.startswith("pymodbus") and record.levelno > logging.DEBUG and isinstance(record.msg, str)
+                and record.getMessage().startswith(PYMODBUS_CONNECT_NOISE)):
+            if self.level_no > logging.DEBUG:
+                return False
+            record.levelno, record.levelname = logging.DEBUG, "DEBUG"
+        return True
 
 
 def _cut_frame_dump(record: logging.LogRecord) -> None:

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any, ClassVar, Literal, Protocol
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
 
 class State(StrEnum):
@@ -85,6 +85,13 @@ class ScaledClock:
         await asyncio.sleep(max(0.0, seconds) / self.speed)
 
 
+#: bounds of a sensor's timing keys: physical values, so ``interval_s = 1e-300`` (the poller spins)
+#: and ``max_age_s = 1e308`` (a reading of any age is fresh, as with inf) are refused naming the key
+MIN_INTERVAL_S = 0.001
+MAX_INTERVAL_S = 3600.0
+MAX_AGE_S = 86400.0
+
+
 class SensorConfig(BaseModel):
     """Keys common to every ``[[sensors]]`` entry. A plugin subclasses it with its own keys.
 
@@ -99,9 +106,26 @@ class SensorConfig(BaseModel):
     name: str = Field(pattern=r"^[A-Za-z_][A-Za-z0-9_.\-]*$", description="channel name the model uses")
     role: Literal["temperature", "position"] = "temperature"
     kind: str
-    interval_s: float = Field(default=0.5, gt=0, description="poll period")
-    max_age_s: float = Field(default=5.0, gt=0, description="older readings are stale")
+    interval_s: float = Field(default=0.5, ge=MIN_INTERVAL_S, le=MAX_INTERVAL_S,
+                              description="poll period: 1 ms (faster only spins the loop) to 1 h")
+    max_age_s: float = Field(default=5.0, gt=0, le=MAX_AGE_S,
+                             description="older readings are stale; at least interval_s, at most a day")
     timeout_s: float = Field(default=1.0, gt=0, description="one poll may take this long")
+
+    @field_validator("max_age_s")
+    @classmethod
+    def _at_least_one_interval(cls, value: float, info: ValidationInfo) -> float:
+        interval_s = info.data.get("interval_s")  # absent when interval_s itself was refused
+        if interval_s is not None and value < interval_s:
+            raise ValueError(f"max_age_s = {value:g} s is below interval_s = {interval_s:g} s: every reading would "
+                             "go stale before the next poll brings a new one; make max_age_s at least interval_s "
+                             "(a few intervals is usual)")
+        return value
+
+    def hub_name(self) -> str | None:
+        """The ``[[hubs]]`` entry this channel uses (None: none). A plugin with a ``hub_model`` declares
+        its ``hub`` key and returns it here, so the config checks the hub exists and is used."""
+        return None
 
 
 @dataclass
@@ -158,11 +182,17 @@ class Actuator(ABC):
       ``x_um`` is the target the command serves, when the caller knows it (``None``: a raw
       command, whose target is ``q_um``).
     - ``close`` releases the device; safe to call twice and after a failed ``open``.
+    - ``read_back`` (optional; after ``open``): what the output holds now, ``("voltage_v", V)`` or
+      ``("q_um", q)``, so that the first move after a start is ramped from where the stage is;
+      None when the device cannot say (the default). :class:`DeviceError` as for ``command``.
 
-    ``description`` names the device in messages and in ``status``.
+    ``description`` names the device in messages and in ``status``. ``limits_v`` is the operator's
+    ``[v_min, v_max]``, set by whoever drives the actuator before ``open``: a device that quantizes
+    (a DAC's counts) rounds a voltage near a limit towards the inside.
     """
 
     description: str = "actuator"
+    limits_v: tuple[float, float] | None = None
 
     @abstractmethod
     async def open(self) -> None: ...
@@ -172,6 +202,9 @@ class Actuator(ABC):
 
     @abstractmethod
     async def close(self) -> None: ...
+
+    async def read_back(self) -> tuple[Literal["voltage_v", "q_um"], float] | None:
+        return None
 
 
 class ActuatorOptions(BaseModel):
@@ -193,6 +226,10 @@ class ActuatorOptions(BaseModel):
         """
         return None
 
+    def hub_name(self) -> str | None:
+        """The ``[[hubs]]`` entry the actuator shares with sensors (None: none); see :meth:`SensorConfig.hub_name`."""
+        return None
+
 
 class DriverSetupError(ValueError):
     """A plugin refused its configuration or could not build its objects (the message names the kind)."""
@@ -207,7 +244,8 @@ class DriverPlugin(ABC):
 
     - ``section``/``section_model``: a top-level table this plugin owns and validates
       (``[simulation]`` for the simulated cell);
-    - ``hub_model``: validates the ``[[hubs]]`` its sensors name with ``hub = ...``;
+    - ``hub_model``: validates the ``[[hubs]]`` its sensors (and its actuator) name with ``hub = ...``,
+      which they report through ``hub_name()``;
     - ``actuator_model``: validates ``[actuator]`` when its ``kind`` names this plugin (None: this
       plugin cannot move the stage); ``create_actuator`` then builds the actuator, sharing the
       connections (``context.resources``) the plugin's sensor groups use;

@@ -1,37 +1,57 @@
 """The allowed import directions, enforced by parsing every module (top-level and function-level imports).
 
-- the pure core (model, calibration: dataset, plans, ISO 9283, discovery; errors, atomic) imports
-  the standard library, numpy, scipy and itself only;
+- the pure core (model, calibration and its subpackages: dataset, plans, ISO 9283, health,
+  discovery; errors, atomic) imports the standard library, numpy, scipy and itself only, and of the
+  standard library nothing that does I/O concurrency (asyncio, socket, subprocess, threading,
+  selectors, multiprocessing, concurrent);
 - ``drivers.base`` / ``drivers.registry`` never import ``daemon``;
 - a plugin imports ``drivers.base``, the registry, the pure core and its own libraries, never the
   service, the procedures, the bus, the config or the CLI;
+- the simulator's physics, scenarios, effects, runs, datasets and clock import the pure core, each
+  other, numpy, scipy and the standard library only (no ``drivers.base``, no pydantic): the cell's
+  physics works without the plugin around it;
 - the service layer (service, bus, procedure, config, logs, sdnotify, reports) never names a concrete
   plugin, nor the CLI or the assembly;
 - only ``daemon.assembly`` and the CLI (``daemon.cli``, ``daemon.commands``) name concrete plugins;
-- no cycle between units (a unit: a top-level module of ``daemon``/``drivers``, or a subpackage).
+- the CLI's ``HANDLERS`` table (command -> module, imported by name) names ``daemon.commands``
+  modules only, and counts as imports; no other module imports by a string;
+- no cycle between units (a unit: a top-level module of ``daemon``/``drivers``, or a package's own
+  modules; a subpackage is a unit of its own, so a subpackage and its parent may not import each
+  other both ways), and no cycle between modules.
+
+Every rule has a self-test below that feeds it a violation: an empty list of violations means something.
 """
 
 from __future__ import annotations
 
 import ast
 import sys
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("daemon", "drivers")
-CORE_UNITS = {"daemon.model", "daemon.calibration", "daemon.errors", "daemon.atomic"}
+CORE_ROOTS = ("daemon.model", "daemon.calibration", "daemon.errors", "daemon.atomic")
 CORE_THIRD_PARTY = {"numpy", "scipy"}
+#: standard library the pure core may not use: it computes, it does not wait on devices or threads
+CORE_FORBIDDEN_STDLIB = {"asyncio", "socket", "subprocess", "threading", "selectors", "multiprocessing",
+                         "concurrent"}
 DRIVER_CORE_UNITS = {"drivers.base", "drivers.registry"}
-PLUGIN_UNITS = {"drivers.simulated", "drivers.modbus", "drivers.serial_line"}
-ASSEMBLY_UNITS = {"daemon.assembly", "daemon.cli", "daemon.commands"}
+PLUGIN_ROOTS = ("drivers.simulated", "drivers.modbus", "drivers.serial_line")
+#: the simulated cell's computation: pure core + numpy/scipy/stdlib + each other
+SIMULATOR_PURE = {f"drivers.simulated.{name}" for name in ("physics", "scenarios", "effects", "runs", "datasets",
+                                                           "clock")}
+ASSEMBLY_ROOTS = ("daemon.assembly", "daemon.cli", "daemon.commands")
+COMMANDS_PACKAGE = "daemon.commands"
 #: optional heavy dependencies a function may import lazily, with the reason
 LAZY_ALLOWED = {
     "matplotlib": "figures are drawn only when a report is asked for",
     "daemon.reports": "they import matplotlib (half a second) only when a report is asked for",
 }
+
+Import = tuple[str, int, bool]  # (imported module, line, inside a function)
 
 
 def modules() -> Iterator[tuple[str, Path]]:
@@ -43,21 +63,33 @@ def modules() -> Iterator[tuple[str, Path]]:
             yield ".".join(parts), path
 
 
+MODULES = list(modules())
+MODULE_NAMES = {name for name, _ in MODULES}
+PACKAGE_NAMES = {name for name, path in MODULES if path.name == "__init__.py"}
+
+
+def within(name: str, roots: Iterable[str]) -> bool:
+    return any(name == root or name.startswith(root + ".") for root in roots)
+
+
 def unit_of(module: str) -> str:
-    """``daemon.config`` -> itself; ``daemon.model.terms`` -> ``daemon.model``;
-    ``drivers.modbus.hub`` -> ``drivers.modbus``."""
+    """``daemon.config`` -> itself; ``daemon.model.terms`` -> ``daemon.model``; a (sub)package is its
+    own unit: ``daemon.calibration.discovery.workflow`` -> ``daemon.calibration.discovery``, not
+    ``daemon.calibration``; a third-party module -> its distribution's top name."""
     parts = module.split(".")
     if parts[0] not in PACKAGES:
         return parts[0]
-    return ".".join(parts[:2]) if len(parts) >= 2 else parts[0]
+    if module in PACKAGE_NAMES or len(parts) <= 2:
+        return module
+    return ".".join(parts[:-1])
 
 
-def imports(module: str, path: Path) -> Iterator[tuple[str, int, bool]]:
-    """(imported module, line, inside a function) for every import statement of ``path``."""
-    tree = ast.parse(path.read_text(), filename=str(path))
-    is_package = path.name == "__init__.py"
+def imports_in(module: str, source: str, *, is_package: bool = False, filename: str = "<source>") -> Iterator[Import]:
+    """Every import statement of ``source`` (the text of ``module``), plus the modules its ``HANDLERS``
+    table names (imported by string at run time)."""
+    tree = ast.parse(source, filename=filename)
 
-    def visit(node: ast.AST, in_function: bool) -> Iterator[tuple[str, int, bool]]:
+    def visit(node: ast.AST, in_function: bool) -> Iterator[Import]:
         for child in ast.iter_child_nodes(node):
             nested = in_function or isinstance(child, ast.FunctionDef | ast.AsyncFunctionDef)
             if isinstance(child, ast.Import):
@@ -73,63 +105,96 @@ def imports(module: str, path: Path) -> Iterator[tuple[str, int, bool]]:
                 yield target, child.lineno, in_function
                 for alias in child.names:  # "from daemon import config" imports daemon.config
                     candidate = f"{target}.{alias.name}"
-                    if any(name == candidate for name, _ in MODULES):
+                    if candidate in MODULE_NAMES:
                         yield candidate, child.lineno, in_function
             yield from visit(child, nested)
 
     yield from visit(tree, False)
+    for target, line in handler_table(tree):
+        yield target, line, False
 
 
-MODULES = list(modules())
+def handler_table(tree: ast.Module) -> list[tuple[str, int]]:
+    """The values of a module-level ``HANDLERS = {command: "module.name", ...}`` (the CLI's dispatch)."""
+    found = []
+    for node in tree.body:
+        if isinstance(node, ast.Assign | ast.AnnAssign):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            named = any(isinstance(t, ast.Name) and t.id == "HANDLERS" for t in targets)
+            if named and isinstance(node.value, ast.Dict):
+                for value in node.value.values:
+                    if not (isinstance(value, ast.Constant) and isinstance(value.value, str)):
+                        raise AssertionError(f"line {value.lineno}: HANDLERS values must be module names as strings")
+                    found.append((value.value, value.lineno))
+    return found
+
+
+def imports(module: str, path: Path) -> Iterator[Import]:
+    yield from imports_in(module, path.read_text(), is_package=path.name == "__init__.py", filename=str(path))
 
 
 def forbidden(importer: str, imported: str) -> str | None:
-    """Why ``importer`` (a unit) may not import ``imported`` (a module), or None when it may."""
+    """Why module ``importer`` may not import module ``imported``, or None when it may."""
+    unit = unit_of(importer)
     target = unit_of(imported)
     top = imported.split(".")[0]
-    if importer in CORE_UNITS:
+    stdlib = top in sys.stdlib_module_names or top == "__future__"
+    if within(unit, CORE_ROOTS):
         if top in PACKAGES:
-            return None if target in CORE_UNITS else "the pure core imports only itself"
-        if top in sys.stdlib_module_names or top == "__future__" or top in CORE_THIRD_PARTY:
+            return None if within(target, CORE_ROOTS) else "the pure core imports only itself"
+        if top in CORE_FORBIDDEN_STDLIB:
+            return f"the pure core computes; it never uses {top} (I/O and concurrency belong to the service)"
+        if stdlib or top in CORE_THIRD_PARTY:
             return None
         return f"the pure core imports only the standard library, numpy and scipy, not {top}"
-    if importer in DRIVER_CORE_UNITS:
+    if importer in SIMULATOR_PURE:
+        if top in PACKAGES:
+            if imported in SIMULATOR_PURE or within(target, CORE_ROOTS):
+                return None
+            return "the simulator's physics imports only the pure core and its own pure modules, not the plugin layer"
+        if stdlib or top in CORE_THIRD_PARTY:
+            return None
+        return f"the simulator's physics imports only the standard library, numpy and scipy, not {top}"
+    if unit in DRIVER_CORE_UNITS:
         return "drivers.base and the registry never import daemon" if top == "daemon" else None
-    if importer in PLUGIN_UNITS:
-        if top == "daemon" and target not in CORE_UNITS:
+    if within(unit, PLUGIN_ROOTS):
+        if top == "daemon" and not within(target, CORE_ROOTS):
             return "a plugin imports drivers.base and the pure core only, never the service, bus, config or CLI"
-        if target in PLUGIN_UNITS and target != importer:
+        own = next(root for root in PLUGIN_ROOTS if within(unit, [root]))
+        if within(target, PLUGIN_ROOTS) and not within(target, [own]):
             return "a plugin never imports another plugin"
         return None
-    if importer in ASSEMBLY_UNITS:
+    if within(unit, ASSEMBLY_ROOTS):
         return None
     # the service layer: everything else in daemon
-    if target in PLUGIN_UNITS:
+    if within(target, PLUGIN_ROOTS):
         return "only daemon.assembly and the CLI name concrete plugins"
-    if target in ASSEMBLY_UNITS:
+    if within(target, ASSEMBLY_ROOTS):
         return "the service layer never imports the assembly or the CLI"
     return None
 
 
-def test_every_import_goes_in_an_allowed_direction() -> None:
-    violations = []
-    for module, path in MODULES:
-        importer = unit_of(module)
-        for imported, line, _ in imports(module, path):
-            why = forbidden(importer, imported)
-            if why:
-                violations.append(f"{path.relative_to(REPO)}:{line}: {module} imports {imported}: {why}")
-    assert not violations, "\n".join(violations)
-
-
-def test_no_cycle_between_units() -> None:
+def unit_graph(edges: Iterable[tuple[str, str]]) -> dict[str, set[str]]:
+    """Unit -> the other units it imports (ours only)."""
     graph: dict[str, set[str]] = {}
-    for module, path in MODULES:
-        source = unit_of(module)
-        for imported, _, _ in imports(module, path):
-            target = unit_of(imported)
-            if imported.split(".")[0] in PACKAGES and target != source:
-                graph.setdefault(source, set()).add(target)
+    for importer, imported in edges:
+        source, target = unit_of(importer), unit_of(imported)
+        if imported.split(".")[0] in PACKAGES and target != source:
+            graph.setdefault(source, set()).add(target)
+    return graph
+
+
+def module_graph(edges: Iterable[tuple[str, str]], known: set[str] | None = None) -> dict[str, set[str]]:
+    """Module -> the other modules (ours only) it imports."""
+    known = MODULE_NAMES if known is None else known
+    graph: dict[str, set[str]] = {}
+    for importer, imported in edges:
+        if imported in known and imported != importer:
+            graph.setdefault(importer, set()).add(imported)
+    return graph
+
+
+def find_cycles(graph: dict[str, set[str]]) -> list[str]:
     cycles = []
     state: dict[str, int] = {}  # 1: on the stack, 2: done
 
@@ -145,7 +210,53 @@ def test_no_cycle_between_units() -> None:
     for node in sorted(graph):
         if node not in state:
             walk(node, [node])
+    return cycles
+
+
+def string_imports(source: str) -> list[str]:
+    """Calls that import a module named at run time (``importlib.import_module``, ``__import__``), except
+    the CLI's dispatch through its ``HANDLERS`` table (whose values the checks above read)."""
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        if not isinstance(node, ast.Call):
+            continue
+        func = node.func
+        name = func.attr if isinstance(func, ast.Attribute) else func.id if isinstance(func, ast.Name) else ""
+        if name not in ("import_module", "__import__"):
+            continue
+        arg = node.args[0] if node.args else None
+        through_table = (isinstance(arg, ast.Subscript) and isinstance(arg.value, ast.Name)
+                         and arg.value.id == "HANDLERS")
+        if not through_table:
+            found.append(f"line {node.lineno}: {ast.unparse(node)}")
+    return found
+
+
+def all_edges() -> list[tuple[str, str]]:
+    return [(module, imported) for module, path in MODULES for imported, _, _ in imports(module, path)]
+
+
+# --- the rules applied to the code ------------------------------------------------------------------
+
+
+def test_every_import_goes_in_an_allowed_direction() -> None:
+    violations = []
+    for module, path in MODULES:
+        for imported, line, _ in imports(module, path):
+            why = forbidden(module, imported)
+            if why:
+                violations.append(f"{path.relative_to(REPO)}:{line}: {module} imports {imported}: {why}")
+    assert not violations, "\n".join(violations)
+
+
+def test_no_cycle_between_units() -> None:
+    cycles = find_cycles(unit_graph(all_edges()))
     assert not cycles, "import cycles between units:\n" + "\n".join(cycles)
+
+
+def test_no_cycle_between_modules() -> None:
+    cycles = find_cycles(module_graph(all_edges()))
+    assert not cycles, "import cycles between modules:\n" + "\n".join(cycles)
 
 
 def test_function_level_imports_are_only_optional_dependencies() -> None:
@@ -157,17 +268,69 @@ def test_function_level_imports_are_only_optional_dependencies() -> None:
     assert not lazy, "imports inside functions (hoist them; a cycle must be broken, not hidden):\n" + "\n".join(lazy)
 
 
+def handler_problems(source: str) -> list[str]:
+    problems = []
+    for target, line in handler_table(ast.parse(source)):
+        if unit_of(target) != COMMANDS_PACKAGE or target not in MODULE_NAMES:
+            problems.append(f"line {line}: {target!r} is not a module of {COMMANDS_PACKAGE}")
+    return problems
+
+
+def test_the_cli_dispatches_to_command_modules_only_and_they_count_as_imports() -> None:
+    cli = REPO / "daemon" / "cli.py"
+    table = handler_table(ast.parse(cli.read_text()))
+    assert len(table) >= 10, "the CLI's HANDLERS table was not found (renamed?): its imports would be unchecked"
+    assert not handler_problems(cli.read_text())
+    edges = {imported for imported, _, _ in imports("daemon.cli", cli)}
+    assert {target for target, _ in table} <= edges
+
+
+def test_no_module_imports_by_a_string_except_through_the_cli_table() -> None:
+    found = [f"{path.relative_to(REPO)}: {call}" for _, path in MODULES for call in string_imports(path.read_text())]
+    assert not found, "imports by a string are invisible to these checks:\n" + "\n".join(found)
+
+
+# --- the rules themselves: each catches its violation ----------------------------------------------
+
+
 @pytest.mark.parametrize(
     ("importer", "imported", "allowed"),
     [
         ("daemon.model", "numpy", True),
+        ("daemon.model.terms", "math", True),
         ("daemon.model", "zenoh", False),
         ("daemon.calibration", "drivers.simulated.cell", False),
         ("daemon.calibration", "matplotlib.pyplot", False),
+        # (b) the core does no I/O concurrency, and takes none of the service's libraries
+        ("daemon.model.identify", "asyncio", False),
+        ("daemon.calibration.plans", "socket", False),
+        ("daemon.calibration.discovery.workflow", "subprocess", False),
+        ("daemon.calibration.health", "threading", False),
+        ("daemon.model.model", "selectors", False),
+        ("daemon.model", "concurrent.futures", False),
+        ("daemon.calibration.dataset", "pydantic", False),
+        ("daemon.calibration", "structlog", False),
+        ("daemon.model", "serial", False),
+        ("daemon.calibration.discovery", "pymodbus.client", False),
+        ("daemon.calibration.discovery.workflow", "daemon.service.runner", False),
+        ("daemon.calibration.discovery.workflow", "daemon.model.terms", True),
         ("drivers.base", "daemon.config", False),
         ("drivers.simulated", "daemon.calibration.plans", True),
         ("drivers.simulated", "daemon.service.runner", False),
         ("drivers.modbus", "drivers.simulated.cell", False),
+        ("drivers.modbus.hub", "drivers.modbus.config", True),
+        # (d) the simulator's computation stays free of the plugin layer
+        ("drivers.simulated.physics", "drivers.base", False),
+        ("drivers.simulated.runs", "pydantic", False),
+        ("drivers.simulated.datasets", "drivers.simulated.cell", False),
+        ("drivers.simulated.clock", "zenoh", False),
+        ("drivers.simulated.effects", "daemon.config", False),
+        ("drivers.simulated.physics", "scipy.signal", True),
+        ("drivers.simulated.physics", "drivers.simulated.effects", True),
+        ("drivers.simulated.runs", "daemon.calibration.plans", True),
+        ("drivers.simulated.clock", "asyncio", True),
+        ("drivers.simulated.plugin", "drivers.base", True),
+        ("drivers.simulated.config", "pydantic", True),
         ("daemon.service", "drivers.base", True),
         ("daemon.service", "drivers.simulated.plugin", False),
         ("daemon.procedure", "daemon.assembly", False),
@@ -178,3 +341,56 @@ def test_function_level_imports_are_only_optional_dependencies() -> None:
 def test_the_rules_themselves(importer: str, imported: str, allowed: bool) -> None:
     """The checker would catch each kind of violation (so an empty list above means something)."""
     assert (forbidden(importer, imported) is None) == allowed
+
+
+@pytest.mark.parametrize(
+    ("module", "unit"),
+    [
+        ("daemon.config", "daemon.config"),
+        ("daemon.model.terms", "daemon.model"),
+        ("daemon.calibration.plans", "daemon.calibration"),
+        ("daemon.calibration.discovery", "daemon.calibration.discovery"),
+        ("daemon.calibration.discovery.workflow", "daemon.calibration.discovery"),
+        ("drivers.modbus.hub", "drivers.modbus"),
+        ("numpy.linalg", "numpy"),
+    ],
+)
+def test_a_subpackage_is_a_unit_of_its_own(module: str, unit: str) -> None:
+    assert unit_of(module) == unit
+
+
+def test_the_cycle_checks_catch_a_subpackage_and_its_parent_and_two_modules() -> None:
+    parent_and_child = [
+        ("daemon.calibration.plans", "daemon.calibration.discovery.workflow"),
+        ("daemon.calibration.discovery.workflow", "daemon.calibration.dataset"),
+    ]
+    assert find_cycles(unit_graph(parent_and_child)) == [
+        "daemon.calibration -> daemon.calibration.discovery -> daemon.calibration"]
+    assert find_cycles(unit_graph(parent_and_child[:1])) == []
+    inside_a_unit = [("daemon.model.terms", "daemon.model.model"), ("daemon.model.model", "daemon.model.terms")]
+    assert find_cycles(unit_graph(inside_a_unit)) == []  # one unit: only the module graph sees it
+    assert find_cycles(module_graph(inside_a_unit)) == [
+        "daemon.model.model -> daemon.model.terms -> daemon.model.model"]
+    assert find_cycles(module_graph(inside_a_unit[:1])) == []
+
+
+def test_the_handler_table_is_read_and_checked() -> None:
+    source = ('HANDLERS = {\n    "run": "daemon.commands.run",\n    "sneak": "drivers.simulated.cell",\n'
+              '    "core": "daemon.service.runner",\n}\n')
+    found = [(imported, line) for imported, line, _ in imports_in("daemon.cli", source)]
+    assert found == [("daemon.commands.run", 2), ("drivers.simulated.cell", 3), ("daemon.service.runner", 4)]
+    assert handler_problems(source) == [
+        "line 3: 'drivers.simulated.cell' is not a module of daemon.commands",
+        "line 4: 'daemon.service.runner' is not a module of daemon.commands",
+    ]
+    with pytest.raises(AssertionError, match="module names as strings"):
+        handler_table(ast.parse("HANDLERS = {'run': NAME}\n"))
+
+
+def test_a_string_import_outside_the_table_is_caught() -> None:
+    source = ("import importlib\n"
+              "a = importlib.import_module(HANDLERS[name]).main\n"
+              "b = importlib.import_module('drivers.simulated.cell')\n"
+              "c = __import__(name)\n")
+    assert string_imports(source) == [
+        "line 3: importlib.import_module('drivers.simulated.cell')", "line 4: __import__(name)"]

@@ -3,8 +3,10 @@ every problem names a field path (issue 10: no traceback ever, a message naming 
 
 Documents are drawn from the contract's own sections and keys, each key with good values, values of
 the wrong type, non-finite and out-of-range numbers, typos and structural mistakes (a table where
-an array of tables belongs, ...). They go through ``parse_config`` directly, and as TOML text
-through ``load_config`` (which adds the TOML parser and the file's folder for relative paths).
+an array of tables belongs, ...) and deeply nested arrays and tables. They go through
+``parse_config`` directly, and as TOML text through ``load_config`` (which adds the TOML parser and
+the file's folder for relative paths). TOML text nested far deeper than any parser follows
+(``x = [[[...`` 100000 levels) is a ConfigError naming the file, never a RecursionError.
 """
 
 from __future__ import annotations
@@ -19,7 +21,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from daemon.config import Config, ConfigError, load_config, parse_config
+from daemon.config import TOO_DEEP, Config, ConfigError, load_config, parse_config
+from drivers.base import MAX_AGE_S, MAX_INTERVAL_S, MIN_INTERVAL_S
+from drivers.simulated.config import MAX_SPEED
 
 SOURCE = "props.toml"
 SETTINGS = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -30,14 +34,34 @@ finite = st.floats(allow_nan=False, allow_infinity=False, min_value=-1e6, max_va
 non_finite = st.sampled_from([math.inf, -math.inf, math.nan])
 odd_text = st.text(alphabet=st.characters(codec="utf-8", exclude_categories=["Cs"]), max_size=12)
 scalar = st.one_of(st.booleans(), st.integers(-(2**63), 2**63 - 1), finite, non_finite, odd_text)
-anything = st.recursive(scalar, lambda inner: st.one_of(st.lists(inner, max_size=3),
-                                                         st.dictionaries(odd_text, inner, max_size=3)),
-                        max_leaves=6)
+
+
+def nested(depth: int, leaf: Any, shapes: list[bool]) -> Any:
+    """``leaf`` inside ``depth`` arrays or one-key tables (``shapes[i % len]``: a table), built without recursion."""
+    value = leaf
+    for level in range(depth):
+        value = {"a": value} if shapes[level % len(shapes)] else [value]
+    return value
+
+
+def deep(max_depth: int) -> st.SearchStrategy[Any]:
+    """Arrays and tables nested up to ``max_depth`` levels, around any scalar."""
+    return st.builds(nested, st.integers(2, max_depth), scalar, st.lists(st.booleans(), min_size=1, max_size=3))
+
+
+#: deep enough to be hostile, shallow enough for this file's recursive TOML writer and tomllib
+#: (the text test below goes to 150000 levels)
+anything = st.one_of(st.recursive(scalar, lambda inner: st.one_of(st.lists(inner, max_size=3),
+                                                                  st.dictionaries(odd_text, inner, max_size=3)),
+                                  max_leaves=6),
+                     deep(120))
 
 
 def number(good: st.SearchStrategy[Any]) -> st.SearchStrategy[Any]:
-    """A numeric key: good values most of the time, else a non-finite, negative, zero or wrong-typed one."""
-    return st.one_of(good, good, non_finite, st.sampled_from([0, -1, 0.0, -0.5, 1e308, -1e308]), scalar)
+    """A numeric key: good values most of the time, else a non-finite, negative, zero, huge, tiny or
+    wrong-typed one."""
+    return st.one_of(good, good, non_finite, st.sampled_from([0, -1, 0.0, -0.5, 1e308, -1e308, 1e-300, 1e9]),
+                     scalar)
 
 
 def choice(good: list[Any]) -> st.SearchStrategy[Any]:
@@ -83,7 +107,7 @@ ACTUATOR = table({
 }, ["volts_per_umm", "vmax", "kind_"])
 SIMULATION = table({
     "scenario": choice(["train", "steady", "room", "test2", "daily", "nope"]),
-    "speed": number(st.floats(0.1, 1000.0)), "seed": number(st.integers(0, 100)),
+    "speed": number(st.floats(0.1, 20000.0)), "seed": number(st.integers(0, 100)),
     "effects": st.one_of(st.lists(choice(["thermal_lag", "hysteresis", "creep", "bogus"]), max_size=3),
                          st.dictionaries(key(["thermal_lag", "creep"]),
                                          st.dictionaries(key(["tau_s", "gain"]), number(positive), max_size=2),
@@ -146,7 +170,8 @@ def leaves(node: Any, path: tuple[Any, ...] = ()) -> list[tuple[Any, ...]]:
 def near_valid_document(draw: st.DrawFn) -> dict[str, Any]:
     """A valid cell (simulated, or Modbus + serial), then at most one field broken: most are accepted."""
     n = draw(st.integers(1, 4))
-    timing = [{"interval_s": draw(positive), "max_age_s": draw(positive)} for _ in range(n)]
+    intervals = [draw(positive) for _ in range(n)]  # max_age_s at least interval_s: a valid cell
+    timing = [{"interval_s": i, "max_age_s": i * draw(st.floats(1.0, 20.0))} for i in intervals]
     doc: dict[str, Any] = {"cell": "c0", "actuator": {"volts_per_um": 0.02, "v_min": -2.0, "v_max": 12.0}}
     if draw(st.booleans()):
         doc["simulation"] = {"scenario": "steady", "speed": draw(st.floats(0.1, 100.0))}
@@ -184,6 +209,8 @@ def check_outcome(data: Any, parse: Any, text: bool = False) -> None:
         for problem in error.problems:
             if text and re.match(r"^not valid TOML: .*\(at line \d+, column \d+\)$", problem, re.DOTALL):
                 continue  # the document is not TOML: the file's line and column are the place
+            if text and problem == TOO_DEEP:
+                continue  # nested deeper than the parser follows: the file is the place
             match = FIELD_ROOT.match(problem)
             assert match, f"problem does not start with a field path: {problem!r}"
             root = match["root"]
@@ -197,6 +224,13 @@ def check_outcome(data: Any, parse: Any, text: bool = False) -> None:
         for key in ("interval_s", "max_age_s", "timeout_s"):
             value = getattr(sensor, key)
             assert math.isfinite(value) and value > 0, (sensor, key)
+        assert MIN_INTERVAL_S <= sensor.interval_s <= MAX_INTERVAL_S, sensor
+        assert sensor.interval_s <= sensor.max_age_s <= MAX_AGE_S, sensor
+        scale = getattr(sensor, "scale", 1.0)
+        assert math.isfinite(scale) and scale != 0, sensor
+    simulation = config.section("simulation")
+    if simulation is not None:
+        assert 0 < simulation.speed <= MAX_SPEED, simulation  # type: ignore[attr-defined]
     actuator = config.actuator
     finite_keys = {k: v for k, v in actuator.model_dump().items() if isinstance(v, float) and k != "safe_voltage_v"}
     assert all(math.isfinite(v) for v in finite_keys.values()), actuator  # safe_voltage_v: nan = leave the stage
@@ -261,3 +295,46 @@ def test_load_config_on_toml_text_gives_a_config_or_a_config_error_naming_fields
     path.write_text(damage + text, encoding="utf-8")
     parsed = tomllib.loads(text) if not damage else {}
     check_outcome(parsed, lambda: load_config(path), text=True)
+
+
+# --- nested deeper than any parser follows ------------------------------------------------------------
+
+OPENERS = {"array": ("[", "]"), "table": ("{a = ", "}"), "mixed": ("[{a = ", "}]")}
+
+
+@SETTINGS
+@given(st.sampled_from(["x", "cell", "sensors", "hubs", "simulation.effects", "simulation.params", "actuator.v_min"]),
+       st.sampled_from(sorted(OPENERS)), st.one_of(st.integers(1, 400), st.integers(400, 150_000)),
+       st.sampled_from(["1", "nan", '"T1"', "[]", "{}"]), st.booleans())
+def test_load_config_on_deeply_nested_toml_gives_a_config_error_naming_file_or_field(
+        folder: Path, where: str, shape: str, depth: int, leaf: str, before_valid_text: bool) -> None:
+    opener, closer = OPENERS[shape]
+    table, _, key = where.rpartition(".")
+    line = f"{key} = {opener * depth}{leaf}{closer * depth}\n"
+    text = (f"[{table}]\n" if table else "") + line
+    if before_valid_text:  # a hostile value in an otherwise good file
+        text = text + '[actuator]\nvolts_per_um = 0.02\n' if table != "actuator" else text
+    path = folder / "deep.toml"
+    path.write_text(text, encoding="utf-8")
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    error = info.value
+    assert error.source == str(path) and str(error).startswith(f"{path}:")
+    root = table or key
+    for problem in error.problems:
+        assert problem == TOO_DEEP or problem.startswith((f"{root}:", f"{root}.", f"{root}[")), problem
+    if depth >= 5000:  # far beyond what tomllib follows on any stack
+        assert error.problems == [TOO_DEEP], error.problems
+
+
+@SETTINGS
+@given(st.sampled_from(["cell", "sensors", "hubs", "zenoh", "model", "simulation", "actuator", "health"]),
+       st.integers(2, 20_000), scalar, st.lists(st.booleans(), min_size=1, max_size=3), st.booleans())
+def test_parse_config_on_deeply_nested_values_names_the_field(section: str, depth: int, leaf: Any,
+                                                              shapes: list[bool], under_a_key: bool) -> None:
+    value = nested(depth, leaf, shapes)
+    data = {section: {"params" if section == "simulation" else "x": value} if under_a_key else value}
+    with pytest.raises(ConfigError) as info:
+        parse_config(data, source=SOURCE, base_dir=Path("/etc/nanodrift"))
+    for problem in info.value.problems:
+        assert problem.startswith((f"{section}:", f"{section}.", f"{section}[")), problem

@@ -8,12 +8,12 @@ garbage, and parses every line the daemon wrote on stderr.
 
 from __future__ import annotations
 
+import asyncio
 import io
 import json
 import logging
 import re
 import signal
-import sys
 import threading
 from collections.abc import Iterator
 from datetime import datetime
@@ -22,8 +22,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-import structlog
 from helpers.daemon_harness import Daemon, free_port, write_test_model
+from helpers.log_capture import captured_logging
 from helpers.modbus_peer import (
     CraftedModbusPeer,
     Request,
@@ -37,6 +37,9 @@ from helpers.modbus_peer import (
 )
 
 from daemon.logs import CHATTER_WINDOW_S, configure_logging, get_logger
+from drivers.base import DeviceError
+from drivers.modbus.config import ModbusHubConfig
+from drivers.modbus.hub import ModbusHub
 
 
 class FakeClock:
@@ -50,22 +53,9 @@ class FakeClock:
 @pytest.fixture
 def captured() -> Iterator[tuple[io.StringIO, FakeClock]]:
     """configure_logging into a buffer; everything it changed is put back afterwards."""
-    stream, clock = io.StringIO(), FakeClock()
-    root = logging.getLogger()
-    saved = (list(root.handlers), root.level, logging.getLogger("pymodbus").level, threading.excepthook,
-             sys.excepthook)
-    configure_logging("info", json_lines=True, stream=stream, clock=clock)
-    try:
+    clock = FakeClock()
+    with captured_logging("info", clock=clock) as stream:
         yield stream, clock
-    finally:
-        for handler in root.handlers:
-            if handler not in saved[0]:
-                root.removeHandler(handler)
-        root.setLevel(saved[1])
-        logging.getLogger("pymodbus").setLevel(saved[2])
-        threading.excepthook, sys.excepthook = saved[3], saved[4]
-        logging.captureWarnings(False)
-        structlog.reset_defaults()
 
 
 def lines(stream: io.StringIO) -> list[dict[str, Any]]:
@@ -146,6 +136,27 @@ def test_pymodbus_info_chatter_is_hidden_unless_debug(captured) -> None:
     [line] = lines(stream)
     assert line["level"] == "debug" and line["event"].startswith("send: 0x0")
     assert len([h for h in logging.getLogger().handlers if type(h).__name__ == "OneLineHandler"]) == 1
+
+
+def test_pymodbus_connection_failures_are_debug_lines(captured) -> None:
+    """A hub retrying a dead module: the daemon's sensor_group_failed says it once per episode; pymodbus'
+    own "Failed to connect" / "Repeating...." per attempt would repeat it (they stay out at info)."""
+    stream, clock = captured
+
+    async def attempts(hub: ModbusHub, n: int) -> None:
+        for _ in range(n):
+            with pytest.raises(DeviceError, match="cannot connect"):
+                await hub.ensure_connected()
+
+    hub = ModbusHub(ModbusHubConfig(name="adam", port=free_port(), timeout_s=0.5))  # nobody listens there
+    asyncio.run(attempts(hub, 3))
+    assert hub.connect_attempts == 3
+    assert stream.getvalue() == ""
+    configure_logging("debug", json_lines=True, stream=stream, clock=clock)
+    asyncio.run(attempts(ModbusHub(ModbusHubConfig(name="ipc", port=free_port(), timeout_s=0.5)), 2))
+    library = [d for d in lines(stream) if d.get("logger", "").startswith("pymodbus")]
+    assert library and all(d["level"] == "debug" for d in library), library
+    assert any(d["event"].startswith("Failed to connect") for d in library), library
 
 
 # --- the daemon against a misbehaving Modbus peer -------------------------------------------------

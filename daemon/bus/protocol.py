@@ -39,6 +39,7 @@ class Keys:
         self.compensate = f"{self.prefix}/compensate"
         self.status = f"{self.prefix}/status"
         self.alive = f"{self.prefix}/alive"
+        self.health = f"{self.prefix}/health"
 
     def telemetry(self, role: str, channel: str) -> str:
         if role == "position":
@@ -160,7 +161,8 @@ def validate_target(doc: Any) -> Target:
 class Command:
     """One answer on ``command`` (and a ``compensate`` reply). The fields are the payload's keys, in
     wire order; the optional ones at the end are left out of the payload when None (a procedure step
-    has a ``procedure`` and no ``extrapolating``). Treat it as immutable once encoded."""
+    has a ``procedure`` and no ``extrapolating``; the daemon's command ends with ``q_sigma_um`` and, with
+    ``[adapt] mode = "bias"``, ``correction_um``). Treat it as immutable once encoded."""
 
     id: str | int | None
     x_um: float
@@ -171,14 +173,16 @@ class Command:
     t: float  # unix seconds
     extrapolating: Sequence[str] | None = None  # names outside the model's training range ("x", channels)
     procedure: str | None = None  # the calibration or validation that sent this step
+    q_sigma_um: float | None = None  # standard uncertainty of the model's q at this target and temperatures
+    correction_um: float | None = None  # the bias tracker's correction, already inside q_um (adaptation on)
 
 
 _KEYS = tuple(f.name for f in fields(Command))
 _OPTIONAL = frozenset(f.name for f in fields(Command) if f.default is None)
 _values = attrgetter(*_KEYS)
 _encode_string = json.JSONEncoder().encode  # a str (or None) -> its JSON literal (C fast path)
-#: (temperatures, model, the daemon's command as a %-template with both filled in)
-_template_cache: tuple[object, object, str] = (object(), object(), "")
+#: (temperatures, model, with a correction, the daemon's command as a %-template with the first two filled in)
+_template_cache: tuple[object, object, bool, str] = (object(), object(), False, "")
 
 
 def command_doc(command: Command) -> dict[str, Any]:
@@ -195,9 +199,10 @@ def command_doc(command: Command) -> dict[str, Any]:
     return doc
 
 
-def _daemon_template(temps: Mapping[str, float], model: str | None) -> str:
-    """The daemon's command (every required key, then ``extrapolating``) with its temperatures and
-    model written in, the rest left as %-fields: id, x_um, q_um, voltage_v, t, extrapolating."""
+def _daemon_template(temps: Mapping[str, float], model: str | None, correction: bool) -> str:
+    """The daemon's command (every required key, then ``extrapolating``, ``q_sigma_um`` and, when
+    ``correction``, ``correction_um``) with its temperatures and model written in, the rest left as
+    %-fields: id, x_um, q_um, voltage_v, t, extrapolating, q_sigma_um[, correction_um]."""
     parts = []
     for key in _KEYS:
         if key == "temperatures_c":
@@ -206,6 +211,8 @@ def _daemon_template(temps: Mapping[str, float], model: str | None) -> str:
             value = _encode_string(model).replace("%", "%%")
         elif key == "extrapolating":
             value = "[%s]"
+        elif key == "q_sigma_um" or (key == "correction_um" and correction):
+            value = "%s"
         elif key in _OPTIONAL:
             continue
         else:
@@ -224,9 +231,11 @@ def encode_command(command: Command) -> bytes:
     Anything else (a procedure step, numpy numbers, a NaN) goes through ``json``.
     """
     global _template_cache
-    target_id, x, q, v, temps, model, t, extrapolating, procedure = _values(command)
-    if (type(x) is float and type(q) is float and type(v) is float and type(t) is float
-            and procedure is None and extrapolating is not None and (x + q + v + t) - (x + q + v + t) == 0.0):
+    target_id, x, q, v, temps, model, t, extrapolating, procedure, sigma, correction = _values(command)
+    c = 0.0 if correction is None else correction
+    if (type(x) is float and type(q) is float and type(v) is float and type(t) is float and type(sigma) is float
+            and type(c) is float and procedure is None and extrapolating is not None
+            and (x + q + v + t + sigma + c) - (x + q + v + t + sigma + c) == 0.0):
         if target_id is None:
             id_json = "null"
         elif type(target_id) is int:
@@ -235,13 +244,16 @@ def encode_command(command: Command) -> bytes:
             id_json = _encode_string(target_id)
         else:
             return dumps(command_doc(command))
-        cached_temps, cached_model, template = _template_cache
-        if temps is not cached_temps or model is not cached_model:
-            template = _daemon_template(temps, model)
+        corrected = correction is not None
+        cached_temps, cached_model, cached_corrected, template = _template_cache
+        if temps is not cached_temps or model is not cached_model or corrected is not cached_corrected:
+            template = _daemon_template(temps, model, corrected)
             if type(temps) is MappingProxyType:  # read-only: safe to remember by identity
-                _template_cache = (temps, model, template)
+                _template_cache = (temps, model, corrected, template)
         names = ",".join([_encode_string(n) for n in extrapolating]) if extrapolating else ""
-        return (template % (id_json, x, q, v, t, names)).encode()
+        if corrected:
+            return (template % (id_json, x, q, v, t, names, sigma, c)).encode()
+        return (template % (id_json, x, q, v, t, names, sigma)).encode()
     return dumps(command_doc(command))
 
 

@@ -6,10 +6,15 @@ columns the project adds (documented in the README):
 - ``q_pred_um``: the command the model gives for the row (``nanodrift predict``);
 - ``q_sigma_um``: its standard uncertainty (``nanodrift predict``);
 - ``cycle``: 0-based calibration/validation cycle, so held-out blocks are whole cycles;
-- ``valid``: 1/0; a step that could not be measured cleanly (a sensor faulted) is kept with 0.
+- ``valid``: 1/0; a step that could not be measured cleanly (a sensor faulted) is kept with 0;
+- ``target_um``: the target a client asked for (recorded operation: ``x_um`` is where the stage was
+  measured, ``q_um`` the command sent);
+- ``residual_um``: measured position minus target (recorded operation).
 
 Files are refused with a message naming the file, the row (1-based line number as an editor shows
-it) and the column.
+it) and the column. Several files fitted together (:func:`concat`) stay separate runs: each
+row knows its file (``Dataset.segment``), so stateful terms restart and held-out blocks stay inside
+one file.
 """
 
 from __future__ import annotations
@@ -27,9 +32,10 @@ from typing import IO
 import numpy as np
 
 from daemon.atomic import atomic_writer
+from daemon.model.segments import segment_slices
 
 REQUIRED = ("t_s", "x_um")
-RESERVED = ("t_s", "x_um", "q_um", "q_pred_um", "q_sigma_um", "cycle", "valid")
+RESERVED = ("t_s", "x_um", "q_um", "q_pred_um", "q_sigma_um", "cycle", "valid", "target_um", "residual_um")
 CHANNEL_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_.\-]*$")
 #: names a channel may not take because a model term would read them as something else
 FORBIDDEN_CHANNELS = frozenset({"x", "dir", "t", "1"})
@@ -49,6 +55,8 @@ class Dataset:
     channels: dict[str, np.ndarray] = field(default_factory=dict)
     extra: dict[str, np.ndarray] = field(default_factory=dict)
     source: str = "<memory>"
+    #: the 0-based index of the file each row came from when several were read together; None: one run
+    segment: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.t.shape[0])
@@ -66,6 +74,7 @@ class Dataset:
             channels={k: v[rows] for k, v in self.channels.items()},
             extra={k: v[rows] for k, v in self.extra.items()},
             source=self.source,
+            segment=None if self.segment is None else self.segment[rows],
         )
 
     def valid_rows(self) -> Dataset:
@@ -78,8 +87,17 @@ class Dataset:
         """Cycle index per row: the ``cycle`` column, else a new cycle wherever x steps back down.
 
         A step back of more than half the x span marks the start of a new sweep, which is how the
-        paper's forward-only trajectory repeats.
+        paper's forward-only trajectory repeats. Rows of several files: each file's own cycles,
+        numbered on after the previous file's, so no cycle spans two files.
         """
+        if self.segment is not None:
+            out = np.zeros(len(self), dtype=np.int64)
+            first = 0
+            for part in segment_slices(self.segment):
+                own = Dataset(self.t[part], self.x[part], extra={k: v[part] for k, v in self.extra.items()}).cycles()
+                out[part] = np.unique(own, return_inverse=True)[1] + first
+                first = int(out[part].max()) + 1
+            return out
         if "cycle" in self.extra:
             return self.extra["cycle"].astype(np.int64)
         if len(self) < 2:
@@ -211,6 +229,59 @@ def _to_dataset(path: Path, header: list[str], values: np.ndarray) -> Dataset:
         channels={n: cols[n] for n in header if n not in RESERVED},
         extra={n: cols[n] for n in header if n in RESERVED and n not in ("t_s", "x_um", "q_um")},
         source=str(path),
+    )
+
+
+def common_channels(datasets: Sequence[Dataset]) -> list[str]:
+    """The channels every dataset has, in the first one's order."""
+    return [c for c in datasets[0].channels if all(c in d.channels for d in datasets[1:])]
+
+
+def concat(datasets: Sequence[Dataset], channels: Sequence[str] | None = None) -> Dataset:
+    """Several runs as one dataset whose rows remember their run (``segment``); one run is returned as is.
+
+    ``channels`` (default: the first run's) must be in every run: a :class:`DataError` names the
+    run that lacks one. ``q`` is kept when every run has it. Reserved columns every run has are
+    kept; ``valid`` is 1 where a run lacks it, and ``cycle`` is each run's own cycles where a run
+    lacks it (so the runs keep their cycles apart: see :meth:`Dataset.cycles`).
+    """
+    if not datasets:
+        raise DataError("no data files given")
+    wanted = list(datasets[0].channels if channels is None else channels)
+    for ds in datasets:
+        missing = [c for c in wanted if c not in ds.channels]
+        if missing:
+            raise DataError(
+                f"{ds.source}: lacks channel(s) {', '.join(missing)} that {datasets[0].source} has "
+                f"(its channels: {', '.join(ds.channels) or 'none'})"
+            )
+    if len(datasets) == 1:
+        ds = datasets[0]
+        if list(ds.channels) == wanted:
+            return ds
+        return Dataset(ds.t, ds.x, ds.q, {c: ds.channels[c] for c in wanted}, ds.extra, ds.source, ds.segment)
+    commands = [d.q for d in datasets]
+    extra: dict[str, np.ndarray] = {}
+    names = [n for n in datasets[0].extra if all(n in d.extra for d in datasets[1:])]
+    names += [n for n in ("valid", "cycle") if n not in names and any(n in d.extra for d in datasets)]
+    for name in names:
+        parts = []
+        for ds in datasets:
+            if name in ds.extra:
+                parts.append(ds.extra[name])
+            elif name == "valid":
+                parts.append(np.ones(len(ds)))
+            else:
+                parts.append(ds.cycles().astype(np.float64))
+        extra[name] = np.concatenate(parts)
+    return Dataset(
+        t=np.concatenate([d.t for d in datasets]),
+        x=np.concatenate([d.x for d in datasets]),
+        q=None if any(q is None for q in commands) else np.concatenate(commands),
+        channels={c: np.concatenate([d.channels[c] for d in datasets]) for c in wanted},
+        extra=extra,
+        source=", ".join(d.source for d in datasets),
+        segment=np.concatenate([np.full(len(d), i, dtype=np.int64) for i, d in enumerate(datasets)]),
     )
 
 

@@ -3,7 +3,7 @@
 One step: the command ramps from the previous target in ``ramp_s`` (4 s), holds ``hold_s`` (25 s),
 and the step's measurement is the average of the last ``window_s`` (5 s). The procedure that drives
 hardware (``daemon.procedure``), the vectorised simulated run (``drivers.simulated.runs``) and the
-demo all take their timing from :class:`StepTiming`.
+demo all take their timing from :class:`StepTiming`, and a move's sub-commands from :func:`ramp_commands`.
 """
 
 from __future__ import annotations
@@ -11,6 +11,8 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+
+import numpy as np
 
 CALIBRATION_POINTS_UM: tuple[float, ...] = tuple(float(x) for x in range(0, 481, 30))
 VALIDATION_POINTS_UM: tuple[float, ...] = tuple(float(x) for x in range(0, 481, 80))
@@ -31,6 +33,20 @@ class StepTiming:
 
 #: the paper's step: 4 s ramp, 25 s hold, the last 5 s averaged
 PAPER_TIMING = StepTiming()
+
+
+def ramp_commands(q_from_um: float, q_to_um: float, duration_s: float,
+                  interval_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """One move as sub-commands: (seconds after the move starts, command in um) of each.
+
+    ``n = round(duration_s / interval_s)`` (at least 1) equal steps, one every ``duration_s / n``,
+    the last one at the target. The procedure sends them on the cell's clock
+    (``daemon.procedure.steps``); the simulated run (``drivers.simulated.runs``) computes the same
+    track in one pass, so a simulated calibration is commanded exactly as a driven one.
+    """
+    n = max(1, round(duration_s / interval_s))
+    fraction = np.arange(1, n + 1) / n
+    return fraction * duration_s, q_from_um + (q_to_um - q_from_um) * fraction
 
 
 @dataclass(frozen=True)

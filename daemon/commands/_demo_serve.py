@@ -157,6 +157,7 @@ def serve(args: argparse.Namespace, workdir: Path, model_path: Path, kept: bool
 
     Returns the answers (each with the position the interferometer then read) and the endpoint."""
     served: list[dict[str, Any]] = []
+    workdir = workdir.resolve()  # the daemon runs with cwd=workdir: a relative --config would miss it
     listen = args.listen[0] if args.listen else f"tcp/127.0.0.1:{_free_port()}"
     connect = args.connect[0] if args.connect else listen
     config = workdir / "serve.toml"
@@ -183,7 +184,8 @@ def serve(args: argparse.Namespace, workdir: Path, model_path: Path, kept: bool
             if not ok:
                 raise UserError(f"target {x:g} µm refused: {answer.get('error')}")
             measured = client.hold_and_measure(t_command, wall_timeout)
-            served.append({**answer, "measured_um": measured})
+            # the daemon's own health unit, as `nanodrift status` reads it, after this held target
+            served.append({**answer, "measured_um": measured, "health": (client.status() or {}).get("health")})
             print(answer_line(answer, measured), flush=True)
         return served, connect
     except UserError as error:

@@ -1,10 +1,11 @@
 """``nanodrift check-config F [--strict]``: validate an operator config before reloading it.
 
-Exit 2 (with ``<file>: <field>: <problem>`` lines) for everything the daemon would refuse on a
-reload: an invalid config, a model file that is missing or cannot be loaded, a ``[zenoh]
+Exit 2 (with ``<file>:<line>: <field>: <problem>`` lines) for everything the daemon would refuse on
+a reload: an invalid config, a model file that is missing or cannot be loaded, a ``[zenoh]
 config_file`` zenoh cannot read. Exit 0 with warnings on stderr for what the daemon accepts but an
 operator should know (a channel the model needs that no sensor provides, sensors the model does not
-use); ``--strict`` makes those errors too, for a commissioned cell where they are mistakes.
+use), in the errors' form (``<file>:<line>: warning: sensors[2] (T3).name: ...``); ``--strict`` makes
+those errors too, for a commissioned cell where they are mistakes.
 """
 
 from __future__ import annotations
@@ -12,11 +13,13 @@ from __future__ import annotations
 import argparse
 import re
 import sys
+from collections.abc import Sequence
+from pathlib import Path
 
 import zenoh
 
 from daemon.bus.session import session_config
-from daemon.config import ZENOH_KIND, Config, ConfigError, load_config, missing_model_channels
+from daemon.config import ZENOH_KIND, Config, ConfigError, load_config, locate, missing_model_channels
 from daemon.model.model import Model, ModelFileError, load_model
 
 
@@ -72,8 +75,8 @@ def config_warnings(config: Config, model: Model | None) -> list[str]:
         )
     for index, sensor in enumerate(config.sensors):
         if sensor.role == "temperature" and sensor.name not in model.channels:
-            warnings.append(f"sensors[{index}].name: sensor {sensor.name!r} is not used by model {model.id} "
-                            "(monitored and published only)")
+            warnings.append(f"sensors[{index}] ({sensor.name}).name: sensor {sensor.name!r} is not used by model "
+                            f"{model.id} (monitored and published only)")
     return warnings
 
 
@@ -88,20 +91,50 @@ def describe_actuator(config: Config) -> str:
     return f"kind {a.kind}" + (f" ({where})" if where else "") + f", {limits}"
 
 
+def no_sensors(config: Config, model: Model | None) -> tuple[str | None, str | None]:
+    """(problem, warning) for a config that lists no sensors, as the daemon's reload rule judges it.
+
+    A reload never removes every sensor of a running cell (daemon/service/reload.py). A sensor-less
+    file whose model needs temperature channels (an emptied file gets the shipped model) could serve
+    nothing, so it can only be that slip: an error. One whose model needs no channel is a cell a
+    daemon may run (it starts with it, a sensor-less daemon reloads it): a warning.
+    """
+    if config.sensors or model is None:
+        return None, None
+    refused = "a running daemon with sensors refuses it on reload (a reload never removes every sensor)"
+    if model.channels:
+        return (f"sensors: the config lists no sensors (an emptied file?) and model {model.id} needs "
+                f"{', '.join(model.channels)}: {refused}, and a daemon started with it refuses every target; "
+                "to run a cell without sensors on purpose, start it by hand: nanodrift run --config FILE"), None
+    return None, f"sensors: the config lists no sensors: {refused}; a restart applies it"
+
+
+def file_lines(path: str, problems: Sequence[str]) -> list[int | None]:
+    """The line of the file each problem or warning is at (as :func:`daemon.config.load_config` finds
+    it for the errors it raises), None where no line holds it."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError):
+        return [None] * len(problems)
+    return [locate(text, p) for p in problems]
+
+
 def main(args: argparse.Namespace) -> int:
     config = load_config(args.file)
     model, problem = model_problem(config)
-    problems = [p for p in (problem, zenoh_problem(config)) if p]
-    warnings = config_warnings(config, model)
+    emptied, sensorless = no_sensors(config, model)
+    problems = [p for p in (problem, zenoh_problem(config), emptied) if p]
+    warnings = config_warnings(config, model) + ([sensorless] if sensorless else [])
     if getattr(args, "strict", False):
         problems += [f"{w} (an error with --strict)" for w in warnings]
         warnings = []
     if problems:
-        raise ConfigError(config.source, problems)
+        raise ConfigError(config.source, problems, file_lines(args.file, problems))
     names = ", ".join(f"{s.name} ({s.kind}, {s.role})" for s in config.sensors)
     print(f"{args.file}: ok: cell {config.cell!r}, {len(config.sensors)} sensor(s): {names}")
     print(f"  model: {config.model.path} ({model.id if model else '-'})")
     print(f"  actuator: {describe_actuator(config)}")
-    for warning in warnings:
-        print(f"{args.file}: warning: {warning}", file=sys.stderr)
+    for warning, line in zip(warnings, file_lines(args.file, warnings), strict=True):
+        print(f"{args.file}:{line}: warning: {warning}" if line else f"{args.file}: warning: {warning}",
+              file=sys.stderr)
     return 0

@@ -36,7 +36,8 @@ from typing import Any
 from daemon.assembly import simulated_drivers
 from daemon.atomic import atomic_write_text
 from daemon.calibration.dataset import DataError
-from daemon.calibration.health import BiasTracker
+from daemon.calibration.discovery import discover
+from daemon.calibration.health import MIN_RESIDUALS, BiasTracker
 from daemon.calibration.iso9283 import TestResult
 from daemon.calibration.plans import PAPER_TIMING
 from daemon.commands._cell import scenario_seed
@@ -48,6 +49,8 @@ from daemon.model.model import Model
 from daemon.procedure.recording import fit_recorded, record_calibration
 from daemon.procedure.validation import run_validation
 from daemon.reports.validation import PAPER_TABLE1, results_json, table1
+from drivers.simulated.datasets import simulate_dataset
+from drivers.simulated.effects import resolve_effects
 
 PAPER_CYCLES = 30  # ISO 9283 sweeps per test in the paper
 PAPER_CALIBRATION_CYCLES = 24
@@ -64,8 +67,11 @@ IN_RANGE = ("test2", "test3", "test4")
 
 
 def check_args(args: argparse.Namespace) -> list[str]:
-    """The tests to run, in the paper's order; refuses bad values before anything runs."""
-    unknown = [t for t in args.tests if t not in TESTS]
+    """The tests to run, in the paper's order; refuses bad values before anything runs.
+
+    ``--tests test1 test5``, ``--tests test1,test5`` and mixtures name the same tests."""
+    asked = [t.strip() for value in args.tests for t in value.split(",") if t.strip()]
+    unknown = [t for t in asked if t not in TESTS]
     if unknown:
         raise UserError(f"--tests: unknown test {', '.join(repr(t) for t in unknown)}; "
                         f"valid tests: {', '.join(TESTS)}")
@@ -74,7 +80,9 @@ def check_args(args: argparse.Namespace) -> list[str]:
             raise UserError(f"{flag} must be at least 1, got {value}")
     if not args.speed > 0:
         raise UserError(f"--speed must be > 0, got {args.speed}")
-    return [t for t in TESTS if t in args.tests]
+    if not asked:
+        raise UserError(f"--tests: no test named; valid tests: {', '.join(TESTS)}")
+    return [t for t in TESTS if t in asked]
 
 
 class Steps:
@@ -159,6 +167,12 @@ def _exceedance(model: Model, result: TestResult) -> tuple[str, float, float, fl
     return worst
 
 
+def nm_span(values: Sequence[float]) -> str:
+    """``38–91 nm``, or ``38 nm`` when the rounded ends agree (one test, or equal figures)."""
+    low, high = f"{min(values):.0f}", f"{max(values):.0f}"
+    return f"{low} nm" if low == high else f"{low}–{high} nm"
+
+
 def explain(results: Sequence[TestResult], model: Model, args: argparse.Namespace) -> list[str]:
     """One line per difference from the paper, and why test 5 degrades."""
     lines = []
@@ -185,11 +199,11 @@ def explain(results: Sequence[TestResult], model: Model, args: argparse.Namespac
         out = _exceedance(model, test5)
         where = (f"{out[0]} reached {out[1]:.2f} °C, {out[2]:.2f} °C beyond the training range "
                  f"{out[3]:.2f}–{out[4]:.2f} °C" if out else "outside the training range")
-        ours = (f"{test5.accuracy_nm:.0f} nm against {min(in_range):.0f}–{max(in_range):.0f} nm in range"
+        ours = (f"{test5.accuracy_nm:.0f} nm against {nm_span(in_range)} in range"
                 if in_range else f"{test5.accuracy_nm:.0f} nm")
         lines.append(f"Test 5 degrades because the static model extrapolates ({where}): {ours}; the paper's "
                      f"test 5 shows the same ({PAPER_TABLE1['test5'][1]:.0f} nm against "
-                     f"{min(paper_in):.0f}–{max(paper_in):.0f} nm in range).")
+                     f"{nm_span(paper_in)} in range).")
         paper_ratio = PAPER_TABLE1["test5"][0] / (PAPER_TABLE1["test5"][1] or math.nan)
         if test5.improvement > paper_ratio:
             lines.append(f"Its ratio ({test5.improvement:.1f}×) beats the paper's {paper_ratio:.1f}×: beyond the "
@@ -199,13 +213,39 @@ def explain(results: Sequence[TestResult], model: Model, args: argparse.Namespac
 
 
 # ----- 5. what nanodrift adds ------------------------------------------------------------------------
+#: the discovery line's run: the train room swept up and down, with an effect the forward sweeps cannot show
+DISCOVERY_SCENARIO, DISCOVERY_EFFECT, DISCOVERY_CYCLES = "bidirectional", "hysteresis", 6
+
+
+def discovery_line(model: Model, seed: int) -> str:
+    """``nanodrift discover`` with the calibrated model on a short run of a cell with an effect hidden."""
+    t0 = time.monotonic()
+    seed = scenario_seed(seed, DISCOVERY_SCENARIO)  # as `nanodrift simulate --seed` takes it
+    data = simulate_dataset(DISCOVERY_SCENARIO, resolve_effects([DISCOVERY_EFFECT]), cycles=DISCOVERY_CYCLES,
+                            seed=seed)
+    result = discover(data, model)
+    run = (f"discovery: `nanodrift discover` runs the model above over {DISCOVERY_CYCLES} up-and-down sweeps of a "
+           f"cell with {DISCOVERY_EFFECT} hidden (`nanodrift simulate --scenario {DISCOVERY_SCENARIO} --effects "
+           f"{DISCOVERY_EFFECT} --cycles {DISCOVERY_CYCLES} --seed {seed}`): ")
+    took = f" ({time.monotonic() - t0:.1f} s)"
+    if not result.steps:
+        return run + "nothing found" + took
+    named = ", then ".join(f"{s.effect} (term {', '.join(t.name for t in s.add) or 'none'}, p = {s.p_value:.0e})"
+                           for s in result.steps)
+    return (run + f"it names {named}; the held-out RMS falls from {result.baseline['holdout_rms_um'] * 1000:.0f} "
+            f"to {result.final['holdout_rms_um'] * 1000:.0f} nm" + took)
+
+
 def what_nanodrift_adds(run: DemoRun) -> list[str]:
     """What the service adds beyond the paper's static model, shown on the same tests and seed.
 
+    - discovery (:func:`discovery_line`): the calibrated model, run by ``discover`` on a short
+      up-and-down run of a cell with hysteresis hidden (the paper's forward sweeps cannot show it);
     - adaptation (``[adapt] mode = "bias"``, ``validate --adapt``): the bias tracker the daemon runs,
       fed by the interferometer's settled residuals, on the out-of-range test and one in range;
     - the per-command uncertainty ``q_sigma_um``: how often the true error lay within ±2σ;
-    - the health monitor: the same settled residuals, as the daemon publishes them on ``health``.
+    - the health monitor: the serving daemon's own ``health`` (settled residuals of the serve step's
+      targets), read from its ``status`` after the last held target.
     """
     assert run.model is not None
     tracker_defaults = (600.0, 1.0)  # [adapt] tau_s, max_um
@@ -220,14 +260,30 @@ def what_nanodrift_adds(run: DemoRun) -> list[str]:
                      f"{static.accuracy_nm:.0f} nm static -> {adapted.accuracy_nm:.0f} nm adaptive "
                      f"({adapted.improvement:.1f}× against {static.improvement:.1f}×); the correction ended at "
                      f"{adapted.corrections_um[-1] * 1000:+.0f} nm")
+    lines.append(discovery_line(run.model, run.args.seed))
     covered = [r for r in run.results if r.compensated and r.q_sigma_um]
     if covered:
         shares = ", ".join(f"{r.name} {r.coverage() * 100:.0f} %" for r in covered)
         lines.append(f"uncertainty: every command carries q_sigma_um; the true error lay within ±2σ in {shares} "
                      "of the steps (it grows outside the training range)")
-    lines.append("health: the daemon compares each held target with the interferometer (settled residual) and "
-                 "publishes ok/degraded with advice on nanodrift/<cell>/health (`nanodrift status` shows it)")
+    health = next((a["health"] for a in reversed(run.served) if isinstance(a.get("health"), dict)), None)
+    if health is not None:
+        lines.append(health_line(health))
     return lines
+
+
+def health_line(health: dict[str, Any]) -> str:
+    """The serving daemon's ``health`` (from its ``status``), measured on the targets of the serve step."""
+    n = health.get("n") or 0
+    line = f"health, from the serving daemon's status: {health.get('state')} after {n} settled residual(s)"
+    if n < MIN_RESIDUALS:
+        line += f" (it judges from {MIN_RESIDUALS} on)"
+    mean, rms = health.get("residual_mean_nm"), health.get("residual_rms_nm")
+    if mean is not None and rms is not None:
+        line += f"; residual (interferometer - target) mean {mean:+.0f} nm, RMS {rms:.0f} nm"
+    if health.get("advice"):
+        line += f"; advice: {health['advice']}"
+    return line
 
 
 # ----- the story -----------------------------------------------------------------------------------
@@ -236,7 +292,7 @@ def main(args: argparse.Namespace) -> int:
     started = time.monotonic()
     keep = getattr(args, "keep", None)
     with tempfile.TemporaryDirectory(prefix="nanodrift-demo-") as tmp:
-        workdir = Path(keep) if keep else Path(tmp)
+        workdir = (Path(keep) if keep else Path(tmp)).resolve()  # the daemon runs with cwd=workdir
         workdir.mkdir(parents=True, exist_ok=True)
         run = DemoRun(args, workdir, kept=bool(keep))
         steps = Steps()

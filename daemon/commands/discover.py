@@ -1,4 +1,10 @@
-"""``nanodrift discover D.csv --model M.json --out M2.json [--report DIR] [--json]``: read, discover, write.
+"""``nanodrift discover D.csv [D2.csv ...] --model M.json --out M2.json [--report DIR] [--json]``.
+
+Read, discover, write.
+
+Several files are runs of their own: stateful terms restart and held-out blocks stay within each
+file (:mod:`daemon.model.segments`); every file must hold the model's channels, and channels that
+only some files have are left out. The extended model's provenance lists every file's SHA-256.
 
 When nothing clears the bar no model is written (an "extended" model with the given terms would only
 be a new id for the same model): "nothing found; no model written", exit 0, ``"steps": []`` and
@@ -10,10 +16,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
-from daemon.atomic import file_sha256
-from daemon.calibration.dataset import DataError, read_csv
+from daemon.calibration.dataset import DataError, common_channels, concat
 from daemon.calibration.discovery import DiscoveryError, DiscoveryResult, discover
+from daemon.commands.fit import data_files, paths_of, read_runs
 from daemon.errors import UserError
 from daemon.model.model import MissingChannelError, ModelFileError, load_model, save_model
 
@@ -21,17 +28,26 @@ NOTHING_FOUND = "nothing found; no model written"
 
 
 def main(args: argparse.Namespace) -> int:
+    paths = paths_of(args)
     try:
-        data = read_csv(args.data)
+        runs = read_runs(paths, "to compare with")
         model = load_model(args.model)
-        result = discover(data, model)
+        for ds in runs:
+            model.check_channels(list(ds.channels), ds.source)
+        channels = common_channels(runs)
+        left_out = sorted({c for ds in runs for c in ds.channels} - set(channels))
+        if left_out:
+            print(f"nanodrift: note: channel(s) {', '.join(left_out)} not in every file, left out", file=sys.stderr)
+        result = discover(concat(runs, channels), model)
     except (DataError, ModelFileError, MissingChannelError, DiscoveryError) as err:
         raise UserError(str(err)) from None
     model_out: str | None = None
     if result.found:
         extended = result.model
-        extended.provenance["data_file"] = str(args.data)
-        extended.provenance["data_sha256"] = file_sha256(args.data)
+        files = data_files(paths, runs)
+        extended.provenance["data_file"] = paths[0]  # the first file; every file in data_files
+        extended.provenance["data_sha256"] = files[0]["sha256"]
+        extended.provenance["data_files"] = files
         extended.id = extended.content_id()
         result.final["model"] = extended.id
         save_model(extended, args.out)

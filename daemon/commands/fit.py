@@ -1,13 +1,19 @@
-"""``nanodrift fit D.csv --out M.json``: stepwise identification from recorded data."""
+"""``nanodrift fit D.csv [D2.csv ...] --out M.json``: stepwise identification from recorded data.
+
+Several files (a calibration plus days of recorded operation) are fitted together, each a run of its
+own (its own time, its own held-out blocks); the model's provenance lists every file with its SHA-256.
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
+from collections.abc import Sequence
 from typing import Any
 
 from daemon.atomic import file_sha256
-from daemon.calibration.dataset import DataError, read_csv
+from daemon.calibration.dataset import DataError, Dataset, common_channels, concat, read_csv
 from daemon.errors import UserError
 from daemon.model.equation import equation
 from daemon.model.identify import FitError, fit
@@ -27,17 +33,62 @@ def _order(text: str) -> int | str:
     return value
 
 
+def paths_of(args: argparse.Namespace) -> list[str]:
+    """The data files given (one or several), as strings."""
+    return [str(p) for p in (args.data if isinstance(args.data, list | tuple) else [args.data])]
+
+
+def read_runs(paths: Sequence[str], purpose: str = "to fit") -> list[Dataset]:
+    """Read every file; a bad one, or one without ``q_um``, is refused by name."""
+    runs = [read_csv(p) for p in paths]
+    for ds in runs:
+        if ds.q is None:
+            raise DataError(f"{ds.source}: no q_um column (the command sent to the stage) {purpose}")
+    return runs
+
+
+def check_fit_channels(runs: Sequence[Dataset], exclude: Sequence[str]) -> None:
+    """Every file has the first file's channels (or they are excluded); others' extra channels are noted."""
+    first = runs[0]
+    for ds in runs[1:]:
+        missing = [c for c in first.channels if c not in ds.channels and c not in exclude]
+        if missing:
+            raise DataError(
+                f"{ds.source}: lacks channel(s) {', '.join(missing)} that {first.source} has (its channels: "
+                f"{', '.join(ds.channels) or 'none'}); give --exclude {' --exclude '.join(missing)} to fit without them"
+            )
+        extra = [c for c in ds.channels if c not in first.channels]
+        if extra:
+            print(f"nanodrift: note: {ds.source}: channel(s) {', '.join(extra)} not in {first.source}, left out",
+                  file=sys.stderr)
+
+
+def data_files(paths: Sequence[str], runs: Sequence[Dataset]) -> list[dict[str, Any]]:
+    """Provenance: every file the model was made from, with its SHA-256 and rows."""
+    return [{"path": p, "sha256": file_sha256(p), "rows": len(ds)} for p, ds in zip(paths, runs, strict=True)]
+
+
 def main(args: argparse.Namespace) -> int:
+    paths = paths_of(args)
     try:
-        data = read_csv(args.data)
+        runs = read_runs(paths)
+        check_fit_channels(runs, args.exclude)
+        channels = common_channels(runs)
+        data = concat(runs, channels)
+        # a channel excluded because some file lacks it is already out; one no file has is a typo (refused)
+        exclude = [c for c in args.exclude if c in channels or not any(c in ds.channels for ds in runs)]
         result = fit(
-            data, order=_order(args.order), exclude=args.exclude, penter=args.penter, premove=args.premove,
-            source=str(args.data),
+            data, order=_order(args.order), exclude=exclude, penter=args.penter, premove=args.premove,
+            source=", ".join(paths),
         )
     except (DataError, FitError, ValueError) as err:
         raise UserError(str(err)) from None
     model = result.model
-    model.provenance["data_sha256"] = file_sha256(args.data)
+    model.selection["excluded"] = list(args.exclude)
+    files = data_files(paths, runs)
+    model.provenance["data_file"] = paths[0]  # the first file (the calibration); every file in data_files
+    model.provenance["data_sha256"] = files[0]["sha256"]
+    model.provenance["data_files"] = files
     model.id = model.content_id()
     save_model(model, args.out)
     if args.json:
@@ -51,12 +102,18 @@ def _nm(value_um: object) -> float | None:
     return None if value_um is None else float(value_um) * 1000.0  # type: ignore[arg-type]
 
 
+def _in_nm(stats: dict[str, Any]) -> dict[str, Any]:
+    """The fit statistics with every ``*_um`` figure (an RMS) as ``*_nm``, in their order."""
+    return {(k[:-3] + "_nm" if k.endswith("_um") else k): (_nm(v) if k.endswith("_um") else v)
+            for k, v in stats.items()}
+
+
 def fit_summary(model: Model, path: str) -> dict[str, Any]:
     """Everything :func:`describe_model` prints, as JSON.
 
-    Residuals and RMS errors are in nm, always in keys ending ``_nm``; coefficients are in µm of
-    command per unit of their term (x in µm, channels in °C). ``order_holdout_rms_um`` and ``fit``
-    (``rmse_um`` beside ``residual_rms_nm``) are kept as they were for scripts that read them.
+    One unit per quantity: residuals and RMS errors are in nm, always in keys ending ``_nm`` (also
+    inside ``fit``, the model file's fit statistics, whose ``_um`` figures are given here in nm);
+    coefficients are in µm of command per unit of their term (x in µm, channels in °C).
     """
     sel, stats = model.selection, model.fit
     scores = sel.get("order_holdout_rms_um") or {}
@@ -68,7 +125,6 @@ def fit_summary(model: Model, path: str) -> dict[str, Any]:
         "order": sel.get("order"),
         "order_choice": sel.get("order_choice", "auto (held-out cycles)" if scores else "fixed"),
         "order_holdout_rms_nm": {k: _nm(v) for k, v in scores.items()},
-        "order_holdout_rms_um": scores,
         "terms": [{"term": ft.term.name, "coef": ft.coef, "se": ft.se, "p": ft.p} for ft in model.terms],
         "not_selected": [
             {"term": name, "coef_if_added": v.get("coef_if_added"), "p_if_added": v.get("p_if_added")}
@@ -83,8 +139,9 @@ def fit_summary(model: Model, path: str) -> dict[str, Any]:
         "holdout_rms_nm": _nm(stats.get("holdout_rms_um")),
         "r2": stats.get("r2"),
         "dof": stats.get("dof"),
-        "fit": stats,
+        "fit": _in_nm(stats),
         "training": model.to_dict()["training"],
+        "data_files": model.provenance.get("data_files", []),
     }
 
 
@@ -111,6 +168,10 @@ def describe_model(model: Model, path: str | None = None) -> str:
         ))
     if "residual_rms_nm" in fit_stats:
         lines.append(f"residual RMS {fit_stats['residual_rms_nm']:.1f} nm over {fit_stats.get('rows')} rows")
+    files = model.provenance.get("data_files") or []
+    if len(files) > 1:
+        lines.append(f"from {len(files)} runs, each with its own time and held-out blocks: "
+                     + ", ".join(f"{f['path']} ({f['rows']} rows)" for f in files))
     lines.extend(training_lines(model))
     return "\n".join(lines)
 

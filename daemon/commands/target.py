@@ -18,7 +18,7 @@ from daemon.errors import UserError
 def _format_command(doc: dict[str, Any]) -> str:
     temps = " ".join(f"{k}={v:.3f}" for k, v in (doc.get("temperatures_c") or {}).items())
     extra = f" EXTRAPOLATING {','.join(doc['extrapolating'])}" if doc.get("extrapolating") else ""
-    return (f"x {doc['x_um']:.4f} um -> q {doc['q_um']:.4f} um, {doc['voltage_v']:.5f} V "
+    return (f"x {doc['x_um']:.4f} µm -> q {doc['q_um']:.4f} µm, {doc['voltage_v']:.5f} V "
             f"[model {doc['model']}; {temps}]{extra}")
 
 
@@ -89,7 +89,7 @@ def main(args: argparse.Namespace) -> int:
             elif ok:
                 print(_format_command(answer))
             else:
-                print(f"x {x:g} um refused: {answer.get('error')}", file=sys.stderr)
+                print(f"x {x:g} µm refused: {answer.get('error')}", file=sys.stderr)
     finally:
         session.close()
     return 1 if failures else 0

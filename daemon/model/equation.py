@@ -1,15 +1,28 @@
-"""The model as one readable equation, for people: ``q = 6.671e-09·x³ − 5.177e-06·x² + 1.001·x − … − 27.95``.
+"""The model as one readable equation, for people: ``q = 6.728e-09·x³ − 5.182e-06·x² + 1.000523·x − … − 27.92``.
 
 One formatter, so ``calibrate``, ``demo`` and ``fit`` print a model the same way. Signs are joined
 into the sum (never ``+ -5.2``), powers of x are superscripts, the bias is the bare constant.
+
+Each coefficient gets at least ``digits`` significant digits, and as many more as it takes for the
+rounding to change its term by less than :data:`ROUNDING_TOLERANCE_UM` (1 nm) anywhere in the training
+box: a gain of 1.00049 printed "1" would hide 0.24 µm at 480 µm, and -1.4784 µm/°C printed -1.478 hides
+9 nm at 22 °C. So the printed equation computes the model's command to within a nanometre a term.
 """
 
 from __future__ import annotations
 
+import itertools
+import math
 from collections.abc import Sequence
 
-from daemon.model.model import FittedTerm, Model
-from daemon.model.terms import Bias, Power
+import numpy as np
+
+from daemon.model.model import FittedTerm, Model, Training
+from daemon.model.terms import Bias, Power, Term
+
+#: the most a printed coefficient's rounding may change its term inside the training box (µm)
+ROUNDING_TOLERANCE_UM = 1e-3
+MAX_DIGITS = 15
 
 _SUPERSCRIPT = str.maketrans("0123456789-", "⁰¹²³⁴⁵⁶⁷⁸⁹⁻")
 MINUS = "−"  # U+2212: a minus sign, not a hyphen
@@ -28,13 +41,43 @@ def _number(value: float, digits: int) -> str:
     return f"{value:.{digits}g}"
 
 
+def feature_bound(term: Term, training: Training) -> float | None:
+    """The largest |feature| of ``term`` on the corners of the training box (x and every channel at
+    their ends, held in turn: a lag or a product of them stays within the same bounds), or None when
+    the training ranges do not name what the term reads."""
+    channels = list(training.channel_ranges)
+    corners = list(itertools.product(training.x_range, *(training.channel_ranges[c] for c in channels)))
+    x = np.repeat([c[0] for c in corners], 2)  # each corner held for two samples, 30 s apart
+    t = np.arange(x.size, dtype=np.float64) * 30.0
+    values = {c: np.repeat([corner[i + 1] for corner in corners], 2) for i, c in enumerate(channels)}
+    try:
+        feature = np.asarray(term.batch(t, x, values), dtype=np.float64)
+    except (KeyError, ValueError):
+        return None
+    bound = float(np.max(np.abs(feature))) if feature.size else 0.0
+    return bound if math.isfinite(bound) else None
+
+
+def coefficient_digits(coef: float, bound: float | None, digits: int) -> int:
+    """At least ``digits``; more until rounding moves ``coef * feature`` by < the tolerance over the box."""
+    if bound is None or bound == 0.0 or not math.isfinite(coef):
+        return digits
+    for n in range(digits, MAX_DIGITS + 1):
+        if abs(float(_number(coef, n)) - coef) * bound < ROUNDING_TOLERANCE_UM:
+            return n
+    return MAX_DIGITS
+
+
 def equation(model: Model | Sequence[FittedTerm], *, digits: int = 4, lhs: str = "q") -> str:
-    """``lhs = Σ coef·term`` with ``digits`` significant digits per coefficient."""
+    """``lhs = Σ coef·term``: each coefficient to at least ``digits`` significant digits, and with a
+    model's training ranges as many more as keep its rounding under 1 nm (:func:`coefficient_digits`)."""
     terms = model.terms if isinstance(model, Model) else list(model)
+    training = model.training if isinstance(model, Model) else None
     parts: list[str] = []
     for ft in terms:
         label = term_label(ft.term)
-        magnitude = _number(abs(ft.coef), digits)
+        bound = feature_bound(ft.term, training) if training is not None else None
+        magnitude = _number(abs(ft.coef), coefficient_digits(ft.coef, bound, digits))
         body = f"{magnitude}·{label}" if label else magnitude
         negative = ft.coef < 0
         if not parts:

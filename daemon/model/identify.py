@@ -3,6 +3,8 @@
 Candidates are ``x^1..x^n1`` and every temperature channel not excluded; the bias is always in.
 The geometric order n1 cannot be chosen by training error (it always falls with order), so
 ``order="auto"`` picks it by the error on held-out blocks of the run: whole calibration cycles.
+Several runs fitted together (calibration plus recorded operation) keep their own time: features
+restart at each run's first row and no held-out block spans two runs (:mod:`daemon.model.segments`).
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import numpy as np
 from scipy import stats
 
 from daemon.model.model import FittedTerm, Model, Training
+from daemon.model.segments import features, runs, spans_s
 from daemon.model.series import Series
 from daemon.model.stepwise import stepwisefit
 from daemon.model.terms import Bias, Channel, Power, Term
@@ -102,13 +105,12 @@ def ols(X: np.ndarray, y: np.ndarray) -> OLS:
 
 def _commands(data: Series) -> np.ndarray:
     if data.q is None:
-        raise FitError(f"{getattr(data, 'source', 'data')}: no q_um column (the command sent to the stage) to fit")
+        raise FitError(f"{data.source}: no q_um column (the command sent to the stage) to fit")
     return np.asarray(data.q, dtype=np.float64)
 
 
 def _only_valid(data: Series) -> Series:
-    select = getattr(data, "valid_rows", None)
-    return select() if callable(select) else data
+    return data.valid_rows()
 
 
 def fit_terms(
@@ -135,7 +137,7 @@ def fit_terms(
             pool.append(t)
     if len(data) <= len(pool) + 1:
         raise FitError(f"{len(data)} rows are too few for {len(pool)} candidate terms plus a bias")
-    X = np.column_stack([t.batch(data.t, data.x, data.channels) for t in pool])
+    X = np.column_stack([features(t, data) for t in pool])
     keep = np.array([t in forced for t in pool])
     result = stepwisefit(X, y, penter=penter, premove=premove, inmodel=keep.copy(), keep=keep)
     chosen = [i for i in range(len(pool)) if result.inmodel[i]]
@@ -158,7 +160,7 @@ def fit_terms(
         covariance = (model_covariance(X[:, chosen], y, final, data, [pool[i] for i in chosen])
                       if uncertainty else None)
     channels = [c for c in data.channels if any(c in ft.term.channels for ft in terms)]
-    pred = sum(ft.coef * ft.term.batch(data.t, data.x, data.channels) for ft in terms)
+    pred = sum(ft.coef * features(ft.term, data) for ft in terms)
     resid = y - pred
     fit_stats.update(rows=len(data), residual_rms_nm=float(np.sqrt(np.mean(resid**2)) * 1000.0))
     selection = {
@@ -199,8 +201,7 @@ def model_covariance(X: np.ndarray, y: np.ndarray, final: OLS, data: Series, ter
     time); the bias then absorbs their value at the start of the run, and C follows.
     """
     channels = [c for c in data.channels if any(c in t.channels for t in terms)]
-    t = np.asarray(data.t, dtype=np.float64)
-    blocks = uncertainty_blocks(float(t[-1] - t[0]) if t.size else 0.0)
+    blocks = uncertainty_blocks(float(sum(spans_s(data))))
     cov, s, curvature = estimate(X, y, final.cov, final.rmse, holdout_blocks(data, max_folds=blocks),
                                  {c: data.channels[c] for c in channels})
     k = len(terms)
@@ -229,9 +230,26 @@ def candidate_terms(channels: Sequence[str], order: int, exclude: Sequence[str] 
 
 
 def holdout_blocks(data: Series, max_folds: int = 6) -> np.ndarray:
-    """Fold index per row: whole cycles grouped into contiguous blocks (time blocks if one cycle)."""
-    cycles_of = getattr(data, "cycles", None)
-    cycles = cycles_of() if callable(cycles_of) else np.zeros(len(data), dtype=np.int64)
+    """Fold index per row: whole cycles grouped into contiguous blocks (time blocks if one cycle).
+
+    Several runs: each run gets its own blocks (at least one, about ``max_folds`` in all, shared by
+    rows), so no block spans two runs and a short run of recorded operation is held out whole.
+    """
+    parts = runs(data)
+    if len(parts) > 1:
+        folds = np.zeros(len(data), dtype=np.int64)
+        n, first = max(len(data), 1), 0
+        for part in parts:
+            share = max(1, round(max_folds * (part.stop - part.start) / n))
+            own = _run_blocks(data.select(part), share)  # type: ignore[attr-defined]
+            folds[part] = own + first
+            first += int(own.max()) + 1
+        return folds
+    return _run_blocks(data, max_folds)
+
+
+def _run_blocks(data: Series, max_folds: int) -> np.ndarray:
+    cycles = data.cycles()
     unique = np.unique(cycles)
     if unique.size >= 3:
         folds = min(max_folds, unique.size)
@@ -267,7 +285,7 @@ def fit(
     """The paper's identification: stepwise over x^1..x^n1 and the channels; n1 fixed or chosen."""
     if penter > premove:
         raise FitError(f"penter ({penter}) must not exceed premove ({premove})")
-    where = source or getattr(data, "source", "data")
+    where = source or data.source
     given = len(data)
     data = _only_valid(data)
     _commands(data)
@@ -278,9 +296,12 @@ def fit(
     def too_few(order_n1: int, purpose: str, advice: str) -> FitError:
         n, terms = len(data), len(candidate_terms(channels, order_n1, exclude))
         left_out = f" ({given - n} more marked valid = 0 left out)" if given > n else ""
+        powers = "x" if order_n1 == 1 else "x, x^2" if order_n1 == 2 else f"x..x^{order_n1}"
+        used = [c for c in channels if c not in exclude]
+        kinds = f"{powers} and channel{'s' if len(used) > 1 else ''} {', '.join(used)}" if used else powers
         return FitError(
             f"{where}: {_rows(n)}{left_out} {'is' if n == 1 else 'are'} too few {purpose} {terms} candidate "
-            f"terms (x..x^{order_n1} and one per channel) plus a bias: {advice}"
+            f"term{'s' if terms != 1 else ''} ({kinds}) plus a bias: {advice}"
         )
 
     first = 1 if order == "auto" else int(order)

@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from daemon.atomic import atomic_write_text
+from daemon.model.segments import features, spans_s
 from daemon.model.series import Series
 from daemon.model.terms import Power, Term, TermStream, UnknownTermError, parse_term
 from daemon.model.uncertainty import Covariance, SigmaStream
@@ -71,7 +72,7 @@ class Training:
             x_range=(float(np.min(data.x)), float(np.max(data.x))),
             channel_ranges={c: (float(np.min(data.channels[c])), float(np.max(data.channels[c]))) for c in channels},
             rows=int(t.shape[0]),
-            t_span_s=float(t[-1] - t[0]) if t.shape[0] else 0.0,
+            t_span_s=float(sum(spans_s(data))),  # several runs: the time they cover, not the gaps between
         )
 
 
@@ -147,20 +148,21 @@ class Model:
             )
 
     def features(self, data: Series) -> np.ndarray:
-        self.check_channels(list(data.channels), getattr(data, "source", "data"))
-        return np.column_stack([ft.term.batch(data.t, data.x, data.channels) for ft in self.terms])
+        self.check_channels(list(data.channels), data.source)
+        return np.column_stack([features(ft.term, data) for ft in self.terms])
 
     def predict(self, data: Series) -> np.ndarray:
-        """The command q for every row; stateful terms run over the rows in order.
+        """The command q for every row; stateful terms run over the rows in order (restarting at each run's
+        first row when ``data`` holds several runs: :mod:`daemon.model.segments`).
 
         Far outside the training box a row's q may overflow to inf or nan: callers that write or
         serve q check it (``nanodrift predict`` refuses such a row by number).
         """
-        self.check_channels(list(data.channels), getattr(data, "source", "data"))
+        self.check_channels(list(data.channels), data.source)
         q = np.zeros(np.asarray(data.t).shape[0], dtype=np.float64)
         with np.errstate(over="ignore", invalid="ignore"):
             for ft in self.terms:
-                q += ft.coef * ft.term.batch(data.t, data.x, data.channels)
+                q += ft.coef * features(ft.term, data)
         return q
 
     @property

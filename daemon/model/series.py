@@ -1,7 +1,8 @@
 """The one shape of recorded data the pure core reads: fit, predict and discovery take a ``Series``.
 
 :class:`daemon.calibration.dataset.Dataset` (a CSV of the data contract) is one; so is anything with
-these arrays. Defined here, beside the model, so the model never depends on file I/O.
+these arrays and methods. Defined here, beside the model, so the model never depends on file I/O.
+Everything the core reads is declared here, so the core never asks ``getattr(data, ...)``.
 """
 
 from __future__ import annotations
@@ -17,5 +18,19 @@ class Series(Protocol):
     x: np.ndarray  # um: measured position (calibration) or target (request)
     q: np.ndarray | None  # um: the command sent, when recorded
     channels: Mapping[str, np.ndarray]  # degC per temperature channel
+    source: str  # where the rows came from (a file name), for messages
+    segment: np.ndarray | None  # per row, the run (file) it came from when several were read together
 
     def __len__(self) -> int: ...
+
+    def select(self, rows: np.ndarray | slice) -> Series:
+        """The rows picked by a boolean mask, an index array or a slice."""
+        ...
+
+    def valid_rows(self) -> Series:
+        """Only the rows measured cleanly (all of them when nothing is marked invalid)."""
+        ...
+
+    def cycles(self) -> np.ndarray:
+        """Calibration cycle index per row (held-out blocks are whole cycles)."""
+        ...

@@ -6,7 +6,10 @@ ignores it). The same code drives the simulated cell on a virtual clock and real
 
 The operator's ``[actuator]`` motion keys hold here too: no ramp is faster than
 ``max_slew_um_per_s`` (a ramp is stretched instead), every sub-command's voltage is checked against
-``[v_min, v_max]``, and a finite ``safe_voltage_v`` is where the stage is left at the end.
+``[v_min, v_max]``, and a finite ``safe_voltage_v`` is where the stage is left at the end. The first
+ramp starts where the stage is, by the daemon's rule (:func:`daemon.service.actuation.locate_stage`:
+the output read back, else a finite ``safe_voltage_v``); when that is unknown the first move is
+written at once, and the progress stream says so.
 """
 
 from __future__ import annotations
@@ -14,34 +17,50 @@ from __future__ import annotations
 import asyncio
 from collections.abc import Awaitable, Callable, Sequence
 
-from daemon.calibration.plans import PAPER_TIMING, PlannedStep, StepResult, StepTiming
+from daemon.calibration.plans import PAPER_TIMING, PlannedStep, StepResult, StepTiming, ramp_commands
 from daemon.config import ActuatorConfig
 from daemon.procedure.follow import FollowCheck
 from daemon.procedure.progress import Progress
 from daemon.procedure.sampler import Sampler
+from daemon.service.actuation import locate_stage
 from drivers.base import Actuator, Clock, DriverSet
 
 CommandFor = Callable[[PlannedStep, float], float]
 
 
-def ramp_s(q_from: float, q_to: float, timing: StepTiming, limits: ActuatorConfig) -> float:
+def ramp_s(q_from: float | None, q_to: float, timing: StepTiming, limits: ActuatorConfig) -> float:
     """How long the move takes: ``timing.ramp_s``, stretched so it never exceeds ``max_slew_um_per_s``."""
     slew = limits.max_slew_um_per_s
-    return max(timing.ramp_s, abs(q_to - q_from) / slew) if slew > 0 else timing.ramp_s
+    return max(timing.ramp_s, abs(q_to - q_from) / slew) if slew > 0 and q_from is not None else timing.ramp_s
 
 
-async def ramp(actuator: Actuator, clock: Clock, q_from: float, q_to: float, timing: StepTiming,
+def planned_seconds(plan: Sequence[PlannedStep], q_from: float | None, timing: StepTiming,
+                    limits: ActuatorConfig) -> list[float]:
+    """Each step's planned duration on the cell's clock: its rise (stretched by the slew limit) and hold."""
+    out = []
+    for step in plan:
+        out.append(ramp_s(q_from, step.target_um, timing, limits) + timing.hold_s)
+        q_from = step.target_um
+    return out
+
+
+async def ramp(actuator: Actuator, clock: Clock, q_from: float | None, q_to: float, timing: StepTiming,
                limits: ActuatorConfig) -> None:
-    """Sub-commands every ``ramp_interval_s`` from ``q_from`` to ``q_to``; each voltage checked before it is sent."""
+    """Sub-commands every ``ramp_interval_s`` from ``q_from`` to ``q_to``; each voltage checked before it is sent.
+
+    ``q_from`` None (where the stage is is unknown): ``q_to`` is written at once, then the rise time passes."""
+    if q_from is None:
+        await actuator.command(q_to, limits.checked_voltage(q_to))
+        await clock.sleep(timing.ramp_s)
+        return
     duration = ramp_s(q_from, q_to, timing, limits)
-    n = max(1, round(duration / timing.ramp_interval_s))
-    for k in range(1, n + 1):
-        await clock.sleep(duration / n)
-        q = q_from + (q_to - q_from) * k / n
+    _, commands = ramp_commands(q_from, q_to, duration, timing.ramp_interval_s)
+    for q in commands.tolist():
+        await clock.sleep(duration / len(commands))
         await actuator.command(q, limits.checked_voltage(q))
 
 
-async def measure_step(sampler: Sampler, step: PlannedStep, q_from: float, q_to: float,
+async def measure_step(sampler: Sampler, step: PlannedStep, q_from: float | None, q_to: float,
                        timing: StepTiming, limits: ActuatorConfig) -> StepResult:
     """Ramp, hold, average the last window; re-measure a dirty window up to ``max_retries`` times.
 
@@ -93,18 +112,25 @@ async def run_steps(
     ``limits``: the operator's ``[actuator]`` section (default: its defaults). ``ready``: a check that
     must pass once the drivers are open, before the first command (an output node is listening).
     ``follow``: each step is shown to it after it is recorded; it stops the run when the stage did
-    not move as commanded."""
+    not move as commanded. The first ramp starts where the stage is (a resumed run too)."""
     limits = limits or ActuatorConfig()
     sampler = Sampler(drivers, on_temperatures=on_temperatures)
     results: list[StepResult] = []
-    q_prev = 0.0
+    q_prev: float | None = None
+    commanded = False  # a run refused before its first move (no output node) leaves the stage alone
+    if drivers.actuator is not None:
+        drivers.actuator.limits_v = (limits.v_min, limits.v_max)
     await sampler.open()
     try:
         if ready is not None:
             await ready()
+        q_prev = await stage_q_um(drivers, limits, progress)
+        if progress is not None:
+            progress.begin(planned_seconds(plan, q_prev, timing, limits))
         await sampler.poll_all()  # know the temperatures before the first command
         for step in plan:
             q = command_for(step, drivers.clock.now()) if command_for else step.target_um
+            commanded = True
             result = await measure_step(sampler, step, q_prev, q, timing, limits)
             q_prev = q
             results.append(result)
@@ -117,10 +143,12 @@ async def run_steps(
             if follow is not None:
                 follow.observe(result)
     except BaseException:
-        await leave_safe(drivers, q_prev, timing, limits, quiet=True)
+        if commanded:
+            await leave_safe(drivers, q_prev, timing, limits, quiet=True)
         raise
     else:
-        await leave_safe(drivers, q_prev, timing, limits)
+        if commanded:
+            await leave_safe(drivers, q_prev, timing, limits)
     finally:
         await sampler.close()
         if progress is not None:
@@ -128,7 +156,21 @@ async def run_steps(
     return results
 
 
-async def leave_safe(drivers: DriverSet, q_from: float, timing: StepTiming, limits: ActuatorConfig, *,
+async def stage_q_um(drivers: DriverSet, limits: ActuatorConfig, progress: Progress | None) -> float | None:
+    """Where the stage is before the first move (None: unknown, which ``progress`` is told)."""
+    actuator = drivers.actuator
+    if actuator is None:
+        return None
+    start = await locate_stage(actuator, limits, None)
+    if start.voltage_v is None:
+        if progress is not None:
+            progress.note(f"where the stage is before the first move is unknown ({actuator.description} cannot be "
+                          "read back, safe_voltage_v = nan): the first move is written at once, not ramped")
+        return None
+    return limits.q_um_for(start.voltage_v)
+
+
+async def leave_safe(drivers: DriverSet, q_from: float | None, timing: StepTiming, limits: ActuatorConfig, *,
                      quiet: bool = False) -> None:
     """Ramp to ``safe_voltage_v`` when it is finite (else leave the stage where it is).
 

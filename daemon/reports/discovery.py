@@ -2,16 +2,18 @@
 
 Figures (each ``.png`` and ``.svg``):
 - ``residuals_vs_<variable>``: the residuals of the given and the extended model against each variable
-  that located the gap, titled in words with units in µm and °C: a continuous variable as a scatter
-  of every row plus binned means; a variable with two or three values (``dir``: down/up) as points per
-  value, jittered, with their means and 95 % intervals (a line between "down" and "up" would mean nothing);
+  that located the gap, titled in words with units in µm and °C: time, temperatures and rates as a
+  scatter of every row plus binned means; a genuinely discrete variable (``dir``: down/up; step sizes
+  or positions that take a few values) as points per value, jittered, each beside its mean and 95 %
+  interval (a line between "down" and "up" would mean nothing). The given model is drawn last (never
+  hidden); a refit that changes nothing is not drawn twice; the legend sits below the axes;
 - ``gap``: the RMS on held-out blocks and on all rows, step by step.
 
 ``report.md`` says what was found, what the run cannot show and how to record one that can, the
 candidates of every round with their parameters in words, why each was or was not named, and every
 rule the method applies (with the values of this run's bar).
 
-One module of ~430 lines on purpose: the figures and the text describe the same findings and change
+One module of ~480 lines on purpose: the figures and the text describe the same findings and change
 together; apart, each would have to re-derive what the other shows.
 """
 
@@ -61,7 +63,11 @@ EFFECT_WORDS = {
 }
 
 BEFORE_COLOR, AFTER_COLOR = WITH_COLOR, WITHOUT_COLOR  # given model: orange, extended: blue
-MAX_LEVELS = 8  # a variable with this many distinct values or fewer is drawn per value, not as a scatter
+MAX_LEVELS = 8  # a variable with this many distinct values (or tight clusters) or fewer is drawn per value
+#: the variables that can be genuinely discrete (a direction, step sizes, positions a run visits); time,
+#: temperatures and their rates are continuous however few rows a run has
+MAYBE_DISCRETE = ("dir", "last_step", "time_since_step", "x")
+SAME_NM = 0.1  # residuals that agree within this are one series (a refit that changes nothing)
 MINUS = "−"
 
 
@@ -104,14 +110,32 @@ def _binned(values: np.ndarray, r: np.ndarray, bins: int = 12) -> tuple[np.ndarr
     return (np.array([values[idx == i].mean() for i in present]), np.array([r[idx == i].mean() for i in present]))
 
 
+def _refit_changes_nothing(result: DiscoveryResult) -> bool:
+    """Nothing found, and the given terms refitted on this run move no residual by more than :data:`SAME_NM`."""
+    before, after = result.residual_before, result.residual_after
+    return not result.found and before.shape == after.shape and (
+        before.size == 0 or float(np.max(np.abs(before - after))) * 1000.0 <= SAME_NM)
+
+
 def _series(result: DiscoveryResult) -> list[tuple[np.ndarray, str, str]]:
-    after = "extended model" if result.found else "the given terms refitted on this run"
-    return [(result.residual_before, "given model", BEFORE_COLOR), (result.residual_after, after, AFTER_COLOR)]
+    """(residual µm, label, colour) per model drawn: the given model last, so it is never hidden.
+
+    When nothing is found the second series is the given terms refitted on this run; when that changes
+    nothing (:func:`_refit_changes_nothing`) it is not drawn (the legend's title says why)."""
+    if _refit_changes_nothing(result):
+        return [(result.residual_before, "given model", BEFORE_COLOR)]
+    label = "extended model" if result.found else "the given terms refitted on this run"
+    return [(result.residual_after, label, AFTER_COLOR), (result.residual_before, "given model", BEFORE_COLOR)]
 
 
-def _opaque_legend(ax: Any, **kwargs: Any) -> None:
-    """A legend whose scatter entries are drawn solid and large enough to see, whatever the plot's alpha."""
-    legend = ax.legend(**kwargs)
+def _opaque_legend(ax: Any, result: DiscoveryResult) -> None:
+    """The legend below the axes (never on the data), its scatter entries solid and large enough to see."""
+    title = (f"nothing found; refitting the given terms on this run changes no residual by more than {SAME_NM:g} nm"
+             if _refit_changes_nothing(result) else None)
+    handles, labels = ax.get_legend_handles_labels()
+    legend = ax.legend(handles, labels, loc="upper center", bbox_to_anchor=(0.5, -0.15), framealpha=0.85,
+                       ncol=2 if max(len(t) for t in labels) <= 48 else 1, title=title,
+                       title_fontsize=plt.rcParams["legend.fontsize"])
     for handle in legend.legend_handles:
         if handle is not None:
             handle.set_alpha(1.0)
@@ -124,74 +148,96 @@ def figure_residuals(result: DiscoveryResult, variable: str) -> Any:
     with plt.rc_context(STYLE):
         words, label, transform = describe_variable(variable, result.settings)
         values = transform(np.asarray(result.variables[variable][1], dtype=np.float64))
-        fig, ax = plt.subplots(figsize=(7.5, 4.5))
-        levels = _levels(values)
+        fig, ax = plt.subplots(figsize=(7.5, 5.4))
+        levels = _levels(values) if variable in MAYBE_DISCRETE else None
         if levels is not None:
             _draw_categorical(ax, result, variable, *levels)
         else:
             _draw_continuous(ax, result, values)
-        ax.axhline(0.0, color="0.4", lw=0.7)
+        ax.axhline(0.0, color="0.4", lw=0.7, zorder=1)
         ax.set_xlabel(label)
         ax.set_ylabel(f"residual q {MINUS} q_pred (nm)")
         ax.set_title(f"Residuals against {words}")
         ax.grid(alpha=0.3)
+        _opaque_legend(ax, result)
         fig.tight_layout()
         return fig
 
 
 def _levels(values: np.ndarray, most: int = MAX_LEVELS) -> tuple[np.ndarray, np.ndarray] | None:
-    """(each value replaced by its level's mean, the levels) when the values form at most ``most`` clusters.
+    """(each value replaced by its level's mean, the levels) when the values are at most ``most`` levels.
 
-    Measured steps are 29.6 or -479.9 µm: values closer than a hundredth of the range are one level,
-    so a forward-only run's "last step" is three levels (0, +30, -480), not a continuum whose quantile
-    bins would average the return to 0 with the sweep.
+    A level is an exact value, or a tight cluster: measured steps are 29.6 or -479.9 µm, so values
+    closer than a hundredth of the range are one level when every such cluster is narrower than a
+    twentieth of the range (a forward-only run's "last step" is three levels: 0, +30, -480). Values
+    spread evenly over their range (time, a temperature) form one wide cluster: not levels, None.
     """
     if values.size == 0:
         return None
+    distinct = np.unique(values)
+    if distinct.size <= most:
+        return values, distinct
     span = float(np.ptp(values))
     ordered = np.sort(values)
     splits = ordered[1:][np.diff(ordered) > span / 100.0]
     if splits.size + 1 > most:
         return None
     label = np.searchsorted(splits, values, side="right")
-    means = np.array([float(values[label == k].mean()) for k in range(splits.size + 1)])
+    clusters = [values[label == k] for k in range(splits.size + 1)]
+    if max(float(np.ptp(c)) for c in clusters) > span / 20.0:
+        return None
+    means = np.array([float(c.mean()) for c in clusters])
     return means[label], means
 
 
 def _draw_continuous(ax: Any, result: DiscoveryResult, values: np.ndarray) -> None:
+    """Every row as a faint point at its value, and the binned means as a line (drawn over the points)."""
     stride = max(1, values.size // 20000)  # a scatter of 1e6 points says nothing more than 2e4
-    for r, label, colour in _series(result):
+    series = _series(result)
+    for k, (r, label, colour) in enumerate(series):
         nm = r * 1000.0
         ax.scatter(values[::stride], nm[::stride], s=5, alpha=0.25, color=colour, linewidths=0,
-                   label=f"{label}: each row")
+                   label=f"{label}: each row", zorder=2)
         centres, means = _binned(values, nm)
-        ax.plot(centres, means, "o-", color=colour, lw=1.8, ms=5, label=f"{label}: binned mean")
-    _opaque_legend(ax, loc="best", framealpha=0.85)
+        given_on_top = len(series) > 1 and k == len(series) - 1
+        ax.plot(centres, means, "o--" if given_on_top else "o-", color=colour, lw=1.8, ms=5,
+                mfc="white" if given_on_top else colour, label=f"{label}: binned mean", zorder=3 + k)
 
 
 def _draw_categorical(ax: Any, result: DiscoveryResult, variable: str, values: np.ndarray,
                       categories: np.ndarray) -> None:
-    """Points per value, jittered, beside each other per model; means with 95 % intervals on top."""
+    """Per value and model, the rows as a jittered strip and beside it their mean with its 95 % interval.
+
+    The mean sits beside its strip, not on it, so a value with one row still shows that row; a value
+    with few rows draws them larger and darker."""
     rng = np.random.default_rng(0)  # the jitter only spreads the points; the same report draws the same
     stride = max(1, values.size // 20000)
-    for k, (r, label, colour) in enumerate(_series(result)):
+    series = _series(result)
+    width = 0.8 / len(series)  # each model's slot within a value's ±0.4
+    for k, (r, label, colour) in enumerate(series):
         nm = r * 1000.0
-        offset = -0.18 if k == 0 else 0.18
-        xs, ys, means, errors = [], [], [], []
+        slot = -0.4 + width * (k + 0.5)
+        strip, mean_at = slot - 0.18 * width, slot + 0.25 * width
+        xs, ys, sizes, means, errors = [], [], [], [], []
         for j, value in enumerate(categories):
             here = nm[values == value]
             shown = here[::stride]
-            xs.append(j + offset + rng.uniform(-0.08, 0.08, shown.size))
+            xs.append(j + strip + rng.uniform(-0.15 * width, 0.15 * width, shown.size))
             ys.append(shown)
+            sizes.append(np.full(shown.size, 5.0 if here.size >= 30 else 18.0))
             means.append(float(here.mean()))
             errors.append(1.96 * float(here.std(ddof=1)) / math.sqrt(here.size) if here.size > 1 else 0.0)
-        ax.scatter(np.concatenate(xs), np.concatenate(ys), s=5, alpha=0.25, color=colour, linewidths=0,
-                   label=f"{label}: each row")
-        ax.errorbar(np.arange(categories.size) + offset, means, yerr=errors, fmt="D", ms=7, color=colour,
-                    mec="black", capsize=4, lw=1.5, label=f"{label}: mean ± 95 %")
+        counts = np.concatenate(sizes)
+        ax.scatter(np.concatenate(xs), np.concatenate(ys), s=counts,
+                   alpha=0.3, color=colour, linewidths=0, label=f"{label}: each row", zorder=2)
+        few = counts > 5.0  # the points of values with few rows, drawn again darker
+        if few.any():
+            ax.scatter(np.concatenate(xs)[few], np.concatenate(ys)[few], s=18.0, alpha=0.9, color=colour,
+                       linewidths=0, zorder=2)
+        ax.errorbar(np.arange(categories.size) + mean_at, means, yerr=errors, fmt="D", ms=7, color=colour,
+                    mec="black", capsize=4, lw=1.5, label=f"{label}: mean ± 95 %", zorder=3)
     ax.set_xticks(range(categories.size), [_category_label(variable, v) for v in categories])
     ax.set_xlim(-0.6, categories.size - 0.4)
-    _opaque_legend(ax, loc="best", framealpha=0.85)
 
 
 def _step_label(step: Candidate) -> str:
@@ -215,7 +261,7 @@ def figure_gap(result: DiscoveryResult) -> Any:
         ax.set_ylabel("RMS of the residual (nm)")
         ax.set_title("The gap, step by step" if result.found else "The gap: nothing named, the model stands")
         ax.margins(y=0.15)
-        ax.legend(loc="upper right", framealpha=0.85)
+        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.22), ncol=2, framealpha=0.85)  # off the bars
         fig.tight_layout()
         return fig
 

@@ -1,22 +1,31 @@
 """The stage gets the latest command: coalesced, ramped when the jump is large, never on the answer's path.
 
 Answers hand their command over with :meth:`Actuation.offer` from Zenoh's threads; the writes run
-on the asyncio loop. While commands keep coming, the loop looks again every
-``ACTUATION_COALESCE_S`` instead of being woken for each one (a wake per target would compete for
-the CPU with Zenoh's own threads and cost more latency than all the rest).
+on the asyncio loop. A target asks for a wake of the loop only when the loop is idle: while a write
+is under way, newer commands just replace the pending one, and the loop takes the newest as soon as
+the write returns (no pause: a target arriving in a stream waits for at most the write in progress).
 
 - **Latest wins, in order**: the device gets every served command in order unless a newer one
   supersedes it before the write.
+- **Where the stage is** (:func:`locate_stage`, the one rule the procedures use too): the output read
+  back at open when the device can say (``Actuator.read_back``: Modbus with ``verify``, a serial
+  controller with a readback query), else the last voltage written to *this* device (an edit that
+  switches to another device forgets it), else a finite ``safe_voltage_v`` (where a clean stop left
+  the stage), else unknown.
 - **Slew** (``[actuator] max_slew_um_per_s > 0``): a larger jump is written as sub-commands every
   ``RAMP_PERIOD_S``, each no further from the last write than the limit allows for the time since
   that write *returned* (so even the device's own timestamps never see a faster move), ending at
-  the target. A newer command during a ramp re-plans from where the stage is. The first command
-  after the daemon starts is written as is: where the stage was before is unknown.
-- **Faults**: a failed write (``DeviceError``, any error, a timeout) or readback mismatch puts the
-  actuator in ``fault`` with the reason; it is closed and reopened with backoff and the latest
-  command written again. Meanwhile ``fault_reason`` is set and targets are refused
+  the target; the first move after a start is ramped from where the stage is. A newer command during
+  a ramp re-plans from where the stage is. When that is unknown the first move is written as is,
+  and ``actuator_unramped`` says so (once).
+- **Faults**: a failed open, read back or write (``DeviceError``, any error, a timeout) or readback
+  mismatch puts the actuator in ``fault`` with the reason; it is closed and reopened with backoff and
+  the latest command written again. Meanwhile ``fault_reason`` is set and targets are refused
   (``actuator_fault``, ``daemon.service.targets``). One ``actuator_failed`` line per episode,
-  ``actuator_recovered`` when a write succeeds again.
+  ``actuator_recovered`` when a write succeeds again; when nothing was ever commanded (the open at
+  start failed) there is nothing to write, and a reopen that succeeds (with its read back, where the
+  device has one) ends the fault: refusing targets until a write succeeds would refuse for ever,
+  since only a served target gives the stage a command.
 - **Shutdown**: :meth:`Actuation.stop` with ``final=True`` writes a finite ``safe_voltage_v``
   (checked against the limits, ramped like any command) before closing.
 """
@@ -35,7 +44,6 @@ from daemon.config import ActuatorConfig
 from daemon.logs import RateLimitedLog
 from drivers.base import Actuator, DeviceError
 
-ACTUATION_COALESCE_S = 0.05  # during a stream of commands the stage takes the latest at most this often
 RAMP_PERIOD_S = 0.02  # a ramp's sub-commands are this far apart (at least)
 WRITE_TIMEOUT_S = 3.0  # a write that takes longer is a fault
 SAFE_TIMEOUT_S = 30.0  # shutdown gives up on reaching safe_voltage_v after this long
@@ -66,6 +74,31 @@ def plan_ramp(start_q_um: float, target_q_um: float, max_slew_um_per_s: float,
 
 
 @dataclass(frozen=True, slots=True)
+class StageStart:
+    """Where the stage is before the first move (``voltage_v`` None: unknown) and how that is known."""
+
+    voltage_v: float | None
+    known_from: str  # "read back" | "last written" | "safe_voltage_v" | "unknown"
+
+
+async def locate_stage(actuator: Actuator, config: ActuatorConfig, last_voltage_v: float | None) -> StageStart:
+    """The one rule for where the stage is after ``actuator.open()``: the output read back when the
+    device can say; else ``last_voltage_v`` (the last voltage written to this device, when known);
+    else a finite ``safe_voltage_v``; else unknown. A failed read back raises, like a failed write."""
+    read = await actuator.read_back()
+    if read is not None:
+        field, value = read
+        voltage = value if field == "voltage_v" else config.voltage(value)
+        if math.isfinite(voltage):
+            return StageStart(voltage, "read back")
+    if last_voltage_v is not None and math.isfinite(last_voltage_v):
+        return StageStart(last_voltage_v, "last written")
+    if math.isfinite(config.safe_voltage_v):
+        return StageStart(config.safe_voltage_v, "safe_voltage_v")
+    return StageStart(None, "unknown")
+
+
+@dataclass(frozen=True, slots=True)
 class Goal:
     """A command the stage should hold."""
 
@@ -93,11 +126,14 @@ class Actuation:
         self.fault_reason: str | None = None
         self._fault_since = 0.0
         self._episode_failures = 0
-        # what status shows (kept across a restart: the stage keeps its voltage)
+        # what status shows (kept across a restart on the same device: the stage keeps its voltage)
         self.last_voltage_v: float | None = None
         self.last_write_t: float | None = None
         self.writes = 0
         self.write_failures = 0
+        self._device: str | None = None  # the description of the device last_voltage_v was written to
+        self._at_v: float | None = None  # where the stage is (the ramps start there); None: unknown
+        self._unramped_told = False  # actuator_unramped is said once per start
         self._last_end = 0.0  # time.monotonic() when the last write returned
 
     # --- the target path (any thread) -----------------------------------------------------------
@@ -132,11 +168,19 @@ class Actuation:
     # --- lifecycle (the loop) -------------------------------------------------------------------
 
     async def start(self, actuator: Actuator, config: ActuatorConfig) -> None:
-        """Open ``actuator`` and start writing to it; a failure to open is a fault (reopened with backoff)."""
+        """Open ``actuator``, find where the stage is, and start writing to it; a failure to open (or to
+        read the output back) is a fault (reopened with backoff)."""
         self._actuator, self._config = actuator, config
         self.fault_reason, self._goal = None, None
+        if actuator.description != self._device:  # another device: what the old one was given says nothing
+            self._device = actuator.description
+            self.last_voltage_v = self.last_write_t = None
+        self._at_v, self._unramped_told = None, False
+        actuator.limits_v = (config.v_min, config.v_max)
         try:
-            await self._guarded(actuator.open(), "open")
+            start = await self._open(actuator, config, self.last_voltage_v)
+            self.log.info("actuator_open", device=actuator.description, voltage_v=start.voltage_v,
+                          known_from=start.known_from)
         except Exception as error:
             self._enter_fault(actuator, f"open failed: {_reason(error)}")
         with self._lock:
@@ -176,7 +220,7 @@ class Actuation:
         try:
             async with asyncio.timeout(SAFE_TIMEOUT_S):
                 if reopen:  # closed after its fault
-                    await self._guarded(actuator.open(), "open")
+                    await self._open(actuator, config, self._at_v)
                 await self._move_to(actuator, config, Goal(safe_q, safe_v), follow_pending=False)
         except Exception as error:
             self.log.error("actuator_safe_failed", voltage_v=safe_v, error=_reason(error))
@@ -201,7 +245,7 @@ class Actuation:
                 await asyncio.sleep(backoff * random.uniform(0.8, 1.2))
                 backoff = min(backoff * 2.0, MAX_BACKOFF_S)
                 try:
-                    await self._guarded(actuator.open(), "open")
+                    await self._open(actuator, config, self._at_v)
                 except asyncio.CancelledError:
                     raise
                 except Exception as error:
@@ -210,7 +254,7 @@ class Actuation:
                     continue
                 pending = self._take_pending()
                 goal = pending or self._goal
-                if goal is None:  # nothing to write yet: the device answers again
+                if goal is None:  # nothing was ever commanded: the device opens (and reads back) again
                     self._recovered(actuator)
                     continue
             else:
@@ -236,7 +280,7 @@ class Actuation:
             if self.fault_reason is not None:
                 self._recovered(actuator)
             backoff = INITIAL_BACKOFF_S
-            await asyncio.sleep(ACTUATION_COALESCE_S)
+            await asyncio.sleep(0)  # a device that answered without suspending must not starve the loop
 
     async def _move_to(self, actuator: Actuator, config: ActuatorConfig, goal: Goal, *,
                        follow_pending: bool) -> None:
@@ -248,11 +292,16 @@ class Actuation:
                 newer = self._take_pending()
                 if newer is not None:
                     goal = self._goal = newer
-            at_v = self.last_voltage_v
+            at_v = self._at_v
             if slew <= 0 or at_v is None:
+                if slew > 0 and not self._unramped_told:
+                    self._unramped_told = True
+                    self.log.warning("actuator_unramped", device=actuator.description, voltage_v=goal.voltage_v,
+                                     reason="where the stage is is unknown (the device cannot be read back, nothing "
+                                     "was written to it yet, safe_voltage_v = nan): the first move is not ramped")
                 await self._write(actuator, goal.q_um, goal.voltage_v, goal.x_um)
                 return
-            at_q = (at_v - config.offset_v) / config.volts_per_um
+            at_q = config.q_um_for(at_v)
             elapsed = min(time.monotonic() - self._last_end, RAMP_PERIOD_S)
             next_q = ramp_step(at_q, goal.q_um, slew * elapsed)
             if next_q == goal.q_um:
@@ -261,13 +310,21 @@ class Actuation:
             voltage = config.voltage(next_q)
             if not config.within_limits(voltage):  # rounding at a limit, or limits narrowed by a reload
                 voltage = min(max(voltage, config.v_min), config.v_max)
-                next_q = (voltage - config.offset_v) / config.volts_per_um
+                next_q = config.q_um_for(voltage)
             await self._write(actuator, next_q, voltage, goal.x_um)
             await asyncio.sleep(RAMP_PERIOD_S)
+
+    async def _open(self, actuator: Actuator, config: ActuatorConfig, last_voltage_v: float | None) -> StageStart:
+        """Open the device and learn where the stage is (:func:`locate_stage`); raises like a write."""
+        await self._guarded(actuator.open(), "open")
+        start = await self._guarded(locate_stage(actuator, config, last_voltage_v), "read back")
+        self._at_v = start.voltage_v
+        return start
 
     async def _write(self, actuator: Actuator, q_um: float, voltage_v: float, x_um: float | None) -> None:
         await self._guarded(actuator.command(q_um, voltage_v, x_um=x_um), "write")
         self._last_end = time.monotonic()
+        self._at_v = voltage_v
         self.last_voltage_v, self.last_write_t = voltage_v, time.time()
         self.writes += 1
 

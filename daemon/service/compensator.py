@@ -1,5 +1,12 @@
 """Target -> :class:`Command`, or a :class:`Refusal`: the loaded model, the sensor table, the actuator limits.
 
+Each command carries ``q_sigma_um`` (:meth:`Evaluator.sigma`, taken before the move) and, with
+``[adapt] mode = "bias"``, ``correction_um``: the health unit's correction (``daemon.service.health``
+sets :attr:`Compensator.correction_um` under the state lock), already added to ``q_um`` before the
+voltage is computed and checked. With a position sensor every command that goes out is appended, with
+its cell-clock time, to :attr:`Compensator.served` for the health unit (one append: the answer never
+waits for the monitor).
+
 Refused: a stale or faulted channel (named, with its reason), a target outside the workspace, a
 voltage outside the actuator's limits, no model. (An output device in fault is refused before this,
 by ``daemon.service.targets``: it is the actuation's state, not the model's.) What the command looks like on the wire is
@@ -9,6 +16,7 @@ by ``daemon.service.targets``: it is the actuation's state, not the model's.) Wh
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Mapping
 from pathlib import Path
 from types import MappingProxyType
@@ -45,6 +53,10 @@ class Compensator:
         self.channels: tuple[str, ...] = model.channels if model is not None else ()
         self.missing = tuple(c for c in self.channels if c not in table.entries)
         self.last_extrapolating: list[str] = []
+        #: the bias correction added to every command (None: adaptation off); set by the health unit
+        self.correction_um: float | None = None
+        #: (cell time, command) of every command served, for the health unit (None: no position sensor)
+        self.served: deque[tuple[float, Command]] | None = None
         # the hot path: channel entries and training ranges, prepared once
         self._model_id = model.id if model is not None else None
         self._entries = tuple((c, table.entries[c]) for c in self.channels if c in table.entries)
@@ -93,7 +105,7 @@ class Compensator:
         if not actuator.x_min_um <= x <= actuator.x_max_um:
             raise Refusal(
                 "out_of_workspace",
-                f"x_um {x:g} outside the workspace [{actuator.x_min_um:g}, {actuator.x_max_um:g}] um",
+                f"x_um {x:g} outside the workspace [{actuator.x_min_um:g}, {actuator.x_max_um:g}] µm",
                 target.id,
             )
         if self.evaluator is None or self.model is None:
@@ -112,19 +124,28 @@ class Compensator:
                 if state is not State.OK:
                     raise Refusal(state.value, f"channel {name} is {state.value}: {reason}", target.id)
             raise Refusal("stale", "temperatures not ready", target.id)
-        q = self.evaluator.value(x, now)
+        evaluator = self.evaluator
+        correction = self.correction_um
+        q = evaluator.value(x, now)
+        if correction is not None:
+            q += correction  # q = model + correction: the voltage and its limits are the corrected command's
         voltage = actuator.voltage(q)
         if not actuator.within_limits(voltage):  # NaN fails this too
             raise Refusal(
                 "voltage_limit",
-                f"command q {q:.4f} um needs {voltage:.4f} V, outside [{actuator.v_min:g}, {actuator.v_max:g}] V",
+                f"command q {q:.4f} µm needs {voltage:.4f} V, outside [{actuator.v_min:g}, {actuator.v_max:g}] V",
                 target.id,
             )
-        self.evaluator.moved(x, now)  # only a command that goes out moves the stage
+        sigma = evaluator.sigma(x, now)  # before the move: motion terms see what value() saw
+        evaluator.moved(x, now)  # only a command that goes out moves the stage
         lo, hi = self._x_range
         extrapolating = [*self._temps_outside] if lo <= x <= hi else ["x", *self._temps_outside]
         self.last_extrapolating = extrapolating
-        return Command(target.id, x, q, voltage, self._temps, self._model_id, unix_now, extrapolating)
+        command = Command(target.id, x, q, voltage, self._temps, self._model_id, unix_now, extrapolating, None, sigma,
+                          correction)
+        if self.served is not None:
+            self.served.append((now, command))
+        return command
 
     def model_info(self) -> dict[str, Any] | None:
         if self.model is None:

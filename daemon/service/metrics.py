@@ -29,6 +29,11 @@ from daemon.errors import UserError
 
 #: answer latency buckets (seconds): the daemon answers in tens to hundreds of µs on a loaded machine
 LATENCY_BUCKETS_S = (25e-6, 50e-6, 100e-6, 200e-6, 500e-6, 1e-3, 2e-3, 5e-3, 10e-3, 50e-3, 0.25, 1.0)
+#: every value of ``nanodrift_sensor_state`` / ``nanodrift_actuator_state``'s ``state`` label (a state set)
+SENSOR_STATES = ("ok", "stale", "fault")
+ACTUATOR_STATES = ("ok", "fault", "closed")
+#: every value of ``nanodrift_health_state``'s ``state`` label (the health document's states)
+HEALTH_STATES = ("unknown", "ok", "degraded")
 
 
 class AnswerLatency:
@@ -107,23 +112,30 @@ class CellCollector(Collector):
         return family
 
     def _sensors(self, doc: dict[str, Any], cell: str) -> Iterator[Any]:
-        value = GaugeMetricFamily("nanodrift_sensor_value", "each channel's last reading, in its unit (label)",
-                                  labels=["cell", "channel", "role", "unit"])
+        """Readings in base units by role (the model reads temperatures in °C, positions in µm), the
+        age, and the state as a state set (one series per state, 1 for the current one)."""
+        temperature = GaugeMetricFamily("nanodrift_temperature_celsius", "each temperature channel's last reading",
+                                        labels=["cell", "channel"])
+        position = GaugeMetricFamily("nanodrift_position_meters", "each position channel's last reading",
+                                     labels=["cell", "channel"])
         age = GaugeMetricFamily("nanodrift_sensor_age_seconds", "age of each channel's last reading",
                                 labels=["cell", "channel"])
-        ok = GaugeMetricFamily("nanodrift_sensor_ok", "1 while the channel is ok, 0 when stale or faulted",
-                               labels=["cell", "channel"])
+        states = GaugeMetricFamily("nanodrift_sensor_state", "1 for the state each channel is in (ok, stale, fault)",
+                                   labels=["cell", "channel", "state"])
         for name, sensor in sorted((doc.get("sensors") or {}).items()):
             if not isinstance(sensor, dict):
                 continue
             reading = _number(sensor.get("value"))
-            if reading is not None:
-                value.add_metric([cell, name, str(sensor.get("role", "")), str(sensor.get("unit", ""))], reading)
+            if reading is not None and sensor.get("role") == "temperature":
+                temperature.add_metric([cell, name], reading)
+            elif reading is not None and sensor.get("role") == "position":
+                position.add_metric([cell, name], reading * 1e-6)
             seconds = _number(sensor.get("age_s"))
             if seconds is not None:
                 age.add_metric([cell, name], seconds)
-            ok.add_metric([cell, name], 1.0 if sensor.get("state") == "ok" else 0.0)
-        yield from (value, age, ok)
+            for state in SENSOR_STATES:
+                states.add_metric([cell, name, state], 1.0 if sensor.get("state") == state else 0.0)
+        yield from (temperature, position, age, states)
 
     def _cell(self, doc: dict[str, Any], cell: str) -> Iterator[Any]:
         healthy = GaugeMetricFamily("nanodrift_healthy", "1 while every sensor poller makes progress",
@@ -155,22 +167,32 @@ class CellCollector(Collector):
                 family = GaugeMetricFamily(name, text, labels=["cell"])
                 family.add_metric([cell], number * scale)
                 yield family
+        count = _number(health.get("n"))
+        if count is not None:
+            residuals = GaugeMetricFamily("nanodrift_health_residuals", "settled residuals in the rolling statistics",
+                                          labels=["cell"])
+            residuals.add_metric([cell], count)
+            yield residuals
         if health.get("state") is not None:
-            state = GaugeMetricFamily("nanodrift_health_state", "1 for the health state the daemon is in",
+            current = str(health["state"])
+            state = GaugeMetricFamily("nanodrift_health_state",
+                                      "1 for the health state the daemon is in (unknown, ok, degraded)",
                                       labels=["cell", "state"])
-            state.add_metric([cell, str(health["state"])], 1.0)
+            for name in dict.fromkeys((*HEALTH_STATES, current)):
+                state.add_metric([cell, name], 1.0 if name == current else 0.0)
             yield state
 
     def _actuator(self, doc: dict[str, Any], cell: str) -> Iterator[Any]:
         actuator = doc.get("actuator")
         if not isinstance(actuator, dict) or actuator.get("state") is None:
             return
-        kind, state = str(actuator.get("kind", "")), str(actuator["state"])
-        family = GaugeMetricFamily("nanodrift_actuator_state", "1 for the state the actuator is in",
+        kind, current = str(actuator.get("kind", "")), str(actuator["state"])
+        family = GaugeMetricFamily("nanodrift_actuator_state", "1 for the state the actuator is in (ok, fault, closed)",
                                    labels=["cell", "kind", "state"])
-        family.add_metric([cell, kind, state], 1.0)
+        for state in dict.fromkeys((*ACTUATOR_STATES, current)):
+            family.add_metric([cell, kind, state], 1.0 if state == current else 0.0)
         ok = GaugeMetricFamily("nanodrift_actuator_ok", "1 unless the actuator is in fault", labels=["cell", "kind"])
-        ok.add_metric([cell, kind], 0.0 if state == "fault" else 1.0)
+        ok.add_metric([cell, kind], 0.0 if current == "fault" else 1.0)
         yield from (family, ok)
 
 

@@ -2,6 +2,9 @@
 
 A poll that raises :class:`DeviceError` or takes longer than ``timeout_s`` closes the group and
 reopens it with exponential backoff and jitter, while its channels read as faulted (with the reason).
+This back-off is the only one between the daemon and a device: drivers make one connection attempt
+when asked and never wait on their own, so the timing of reconnection is decided here, where the
+failure episode is known (its first failure, how many attempts, when it ended).
 :func:`pollers_healthy` is what the watchdog and ``status`` call health: every poller alive and
 making progress.
 """
@@ -14,30 +17,44 @@ import time
 from collections.abc import Awaitable, Callable, Iterable
 from typing import Any
 
-from drivers.base import Clock, DeviceError, Reading, SensorGroup
+from drivers.base import Clock, DeviceError, Reading, SensorGroup, WallClock
+
+#: (group, reason, retry_in_s, failures so far in this episode: 1 for the first)
+OnFailure = Callable[[SensorGroup, str, float, int], None]
+#: (group, failed attempts in the episode that ended, seconds from its first failure to the recovery)
+OnRecovered = Callable[[SensorGroup, int, float], None]
 
 
 class GroupPoller:
-    """Polls one group forever: open, read every ``interval_s``, reopen with backoff on failure."""
+    """Polls one group forever: open, read every ``interval_s``, reopen with backoff on failure.
+
+    ``clock`` paces the polls (the group's clock); ``retry_clock`` times the waits between reopen
+    attempts: real time unless a test gives a virtual clock, since a device comes back in real time.
+    """
 
     INITIAL_BACKOFF_S = 0.2
     MAX_BACKOFF_S = 30.0
+    JITTER = 0.2  # each wait is the backoff times a uniform factor in [1 - JITTER, 1 + JITTER]
 
     def __init__(
         self,
         group: SensorGroup,
         clock: Clock,
         on_readings: Callable[[SensorGroup, dict[str, Reading]], None],
-        on_failure: Callable[[SensorGroup, str, float], None],
-        on_recovered: Callable[[SensorGroup], None] | None = None,
+        on_failure: OnFailure,
+        on_recovered: OnRecovered | None = None,
+        *,
+        retry_clock: Clock | None = None,
     ) -> None:
         self.group = group
         self.clock = clock
+        self.retry_clock: Clock = retry_clock or WallClock()
         self.on_readings = on_readings
         self.on_failure = on_failure
         self.on_recovered = on_recovered
         self.last_progress = time.monotonic()  # a poll attempt finished (for the watchdog)
-        self.failures = 0
+        self.failures = 0  # in the current episode (0: the group is healthy)
+        self.failing_since = 0.0  # retry_clock time of the episode's first failure
         self.task: asyncio.Task[None] | None = None
         self._stopping = False
 
@@ -77,22 +94,24 @@ class GroupPoller:
                     readings = await self._guard(self.group.read(), "read")
                     self.last_progress = time.monotonic()
                     if self.failures:
-                        self.failures = 0
+                        failures, self.failures = self.failures, 0
                         backoff = self.INITIAL_BACKOFF_S
                         if self.on_recovered is not None:
-                            self.on_recovered(self.group)
+                            self.on_recovered(self.group, failures, self.retry_clock.now() - self.failing_since)
                     self.on_readings(self.group, readings)
                     await self.clock.sleep(self.group.interval_s)
             except asyncio.CancelledError:
                 raise
             except Exception as error:  # DeviceError, timeouts, and plugin bugs alike: reopen
+                if not self.failures:
+                    self.failing_since = self.retry_clock.now()
                 self.failures += 1
                 reason = str(error) if isinstance(error, DeviceError) else f"{type(error).__name__}: {error}"
-                delay = backoff * random.uniform(0.8, 1.2)
-                self.on_failure(self.group, reason, delay)
+                delay = backoff * random.uniform(1.0 - self.JITTER, 1.0 + self.JITTER)
+                self.on_failure(self.group, reason, delay, self.failures)
                 await self._close()
                 self.last_progress = time.monotonic()
-                await asyncio.sleep(delay)
+                await self.retry_clock.sleep(delay)
                 backoff = min(backoff * 2.0, self.MAX_BACKOFF_S)
 
 

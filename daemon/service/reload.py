@@ -8,23 +8,41 @@ actuator changed; the swap of table, compensator and config is atomic for the ta
 Two edits are refused whatever else they say: one that switches between the simulated cell and
 hardware, and one that removes every sensor of a running cell (an emptied file): both need a
 restart, so a slip of the editor never changes what the stage is.
+
+``[health]`` and ``[adapt]`` apply with the swap: the health unit serves through the new compensator,
+and a new model or changed settings start its monitor and bias tracker afresh.
 """
 
 from __future__ import annotations
 
 import asyncio
+import json
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
 
 from daemon.config import ConfigError, load_config, missing_model_channels
-from daemon.model.model import ModelFileError, load_model
+from daemon.model.model import Model, ModelFileError, load_model
 from daemon.sdnotify import Notifier
 from daemon.service.compensator import Compensator
+from daemon.service.health import HealthUnit
 from daemon.service.state import CellState
 from daemon.service.table import SensorTable
 from drivers.base import DriverContext, DriverSet, DriverSetupError
+
+
+def same_content(old: Model | None, new: Model) -> bool:
+    """Whether ``new`` serves exactly what ``old`` does, so its evaluator (lag filters, direction) can be kept.
+
+    The whole file's content, not the stored id: a file stamped with the old id scheme
+    (:meth:`Model.legacy_content_id`) may change standard errors, covariance or training ranges under
+    the same id, and a file without a covariance serves ``fit.rmse_um`` as every command's sigma. A
+    reload applies any change of content; an unchanged file keeps the running filters.
+    """
+    if old is None:
+        return False
+    return json.dumps(old.to_dict(), sort_keys=True) == json.dumps(new.to_dict(), sort_keys=True)
 
 
 class DriverHost(Protocol):
@@ -50,6 +68,7 @@ class Reloader:
         *,
         status_line: Callable[[], str],
         table_replaced: Callable[[], None],
+        health: HealthUnit | None = None,
     ) -> None:
         self.state = state
         self.config_path = config_path
@@ -58,25 +77,41 @@ class Reloader:
         self.log = log
         self.status_line = status_line
         self.table_replaced = table_replaced
+        self.health = health
         self._lock = asyncio.Lock()
+        self._stopped: DriverSet | None = None  # the drivers a reload in progress stopped
 
     async def reload(self) -> bool:
         """One reload at a time; systemd is told RELOADING, then READY whatever the outcome."""
         async with self._lock:
             self.notifier.reloading(time.monotonic_ns() // 1000)
+            self._stopped = None
             try:
                 return await self._reload()
+            except Exception as error:  # never lost in a dead task: refused, logged with the reason, counted
+                await self._restart_stopped()
+                return self._refuse(self._source(), [f"internal error: {type(error).__name__}: {error}"],
+                                    exc_info=True)
             finally:
                 self.notifier.ready(self.status_line())
 
-    def _refuse(self, source: str, problems: list[str]) -> bool:
+    def _source(self) -> str:
+        return str(self.config_path) if self.config_path else "<built-in default config>"
+
+    def _refuse(self, source: str, problems: list[str], **details: Any) -> bool:
         self.state.counters.reload_failures += 1
-        self.log.error("reload_refused", config=source, problems=problems)
+        self.log.error("reload_refused", config=source, problems=problems, **details)
         return False
+
+    async def _restart_stopped(self) -> None:
+        """A reload that failed after stopping the running drivers and before the swap starts them again."""
+        stopped, self._stopped = self._stopped, None
+        if stopped is not None:
+            await self.host.start_drivers(stopped)
 
     async def _reload(self) -> bool:
         state = self.state
-        source = str(self.config_path) if self.config_path else "<built-in default config>"
+        source = self._source()
         try:
             new = load_config(self.config_path)
         except ConfigError as error:
@@ -108,6 +143,7 @@ class Reloader:
             except DriverSetupError as error:
                 return self._refuse(source, [f"sensors: {error}"])
             await self.host.stop_drivers()
+            self._stopped = running  # started again if anything fails before the swap
         with state.lock:  # the swap is atomic for the target path on Zenoh's threads
             table = state.table
             if drivers_changed:
@@ -115,12 +151,17 @@ class Reloader:
                 table.carry_over(state.table)
             compensator = Compensator(model, new.actuator, table)
             old_comp = state.compensator
-            if old_comp.model is not None and old_comp.model.id == model.id and old_comp.evaluator is not None:
+            if old_comp.evaluator is not None and same_content(old_comp.model, model):
                 compensator.evaluator = old_comp.evaluator  # same model: keep lag filters and direction
             else:
                 compensator.warm()
             state.compensator = compensator
             state.config = new
+            self._stopped = None
+            if self.health is not None:
+                self.health.reconfigure(new, compensator)
+        if self.health is not None:
+            self.health.flush()  # a reset state is logged and published at once
         if drivers_changed:
             self.table_replaced()
             await self.host.start_drivers(drivers)

@@ -28,8 +28,10 @@ from daemon.logs import get_logger
 from daemon.sdnotify import Notifier
 from daemon.service.actuation import Actuation
 from daemon.service.compensator import Compensator, load_model_or_problem
+from daemon.service.health import HealthUnit
 from daemon.service.metrics import AnswerLatency, MetricsServer
 from daemon.service.polling import GroupPoller, pollers_healthy
+from daemon.service.recorder import Recorder
 from daemon.service.reload import Reloader
 from daemon.service.sensors import SensorIngest
 from daemon.service.state import CellState
@@ -64,14 +66,19 @@ class Service:
         model, problem = load_model_or_problem(config.model.path)
         compensator = Compensator(model, config.actuator, SensorTable(config.sensors), problem)
         self.state = CellState(config, compensator, WallClock())  # the drivers' clock once they start
+        self.health = HealthUnit(config, model, self.log)
+        self.health.attach(compensator)
+        # [health] record_dir: settled targets to daily CSVs on a thread of its own (read anew after a reload)
+        self.recorder = Recorder(lambda: self.state.config.health, self.log)
+        self.health.settled_listeners.append(self.recorder.on_settled)
         self.actuation = Actuation(self.log)
         self.drivers: DriverSet | None = None
         self.pollers: list[GroupPoller] = []
         self.bus: Bus | None = None
-        self.ingest = SensorIngest(self.state, self._publish_telemetry, self.log)
+        self.ingest = SensorIngest(self.state, self._publish_telemetry, self.log, self.health)
         self.watch = SensorWatch(self.state, self._publish_telemetry, self.log)
         self.reloader = Reloader(self.state, self.config_path, self, self.notifier, self.log,
-                                 status_line=self.status_line, table_replaced=self.watch.forget)
+                                 status_line=self.status_line, table_replaced=self.watch.forget, health=self.health)
         self.latency = AnswerLatency()
         self.metrics: MetricsServer | None = None
         self._stop = asyncio.Event()
@@ -107,7 +114,8 @@ class Service:
         targets = TargetHandler(self.state, bus, loop, self.actuation, self.log, latency=self.latency)
         with self.state.lock:
             self.state.serving = True
-        self.serve(loop, targets, StatusHandler(self.state, bus, self.healthy, self.log, self.actuation))
+        self.serve(loop, targets, StatusHandler(self.state, bus, self.healthy, self.log, self.actuation, self.health))
+        self._tasks.add(self.health.start(bus))  # nanodrift/<cell>/health, cancelled at stop with the others
         line = self.status_line
         supervisor = Supervisor(self.watch, self.notifier, self.log, healthy=self.healthy, status_line=line,
                                 refusals_suppressed=targets.take_suppressed,
@@ -128,6 +136,7 @@ class Service:
             task.cancel()
         bus.withdraw()  # clients see the daemon gone first
         await self.stop_drivers(final=True)  # safe_voltage_v (when finite) before the actuator closes
+        await asyncio.to_thread(self.recorder.close)  # the rows already queued reach the disk
         bus.close()
         self.stop_metrics()
         self.log.info("stopped")
@@ -143,7 +152,8 @@ class Service:
         listen = self.state.config.metrics.listen
         if not listen:
             return
-        server = MetricsServer(listen, lambda: status_doc(self.state, self.healthy()), self.latency)
+        server = MetricsServer(listen, lambda: status_doc(self.state, self.healthy(), self.actuation, self.health),
+                               self.latency)
         try:
             server.start()
         except UserError as error:
@@ -161,16 +171,27 @@ class Service:
         self._stop.set()
 
     def request_reload(self) -> None:
+        """SIGHUP. The Reloader refuses (logs, counts) every failure it meets; what still escapes it is
+        retrieved here and refused the same way, never left as "Task exception was never retrieved"."""
+
+        def done(task: asyncio.Task[bool]) -> None:
+            self._tasks.discard(task)
+            error = None if task.cancelled() else task.exception()
+            if error is not None:
+                self.state.counters.reload_failures += 1
+                self.log.error("reload_refused", config=str(self.config_path or "<built-in default config>"),
+                               problems=[f"internal error: {type(error).__name__}: {error}"], exc_info=error)
+
         task = asyncio.get_running_loop().create_task(self.reloader.reload(), name="reload")
         self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
+        task.add_done_callback(done)
 
     def healthy(self) -> bool:
         """The loop runs (we are in it) and every poller is alive and making progress."""
         return pollers_healthy(self.pollers)
 
     def status_line(self) -> str:
-        return status_line(self.state)
+        return status_line(self.state, self.health)
 
     def _publish_telemetry(self, role: str, channel: str, payload: bytes) -> None:
         if self.bus is not None:  # none before the session is open

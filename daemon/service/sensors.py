@@ -2,16 +2,21 @@
 
 Runs on the asyncio loop (the pollers' callbacks). The table is updated under the state lock; the
 telemetry is published after the lock is released, so a slow publish never holds up a target.
+The ``role = "position"`` sensor's readings, each with whether it is ok and fresh, and the good
+temperatures go to the health unit (``daemon.service.health``) under the same lock; its log lines and
+``health`` sample after it.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
 from typing import Any
 
 import zenoh
 
 from daemon.bus.protocol import encode_telemetry
+from daemon.service.health import HealthUnit
 from daemon.service.state import CellState
 from drivers.base import Reading, SensorGroup, State
 
@@ -22,16 +27,19 @@ PublishTelemetry = Callable[[str, str, bytes], None]
 class SensorIngest:
     """The pollers' callbacks: readings, a group that failed, a group that recovered."""
 
-    def __init__(self, state: CellState, publish_telemetry: PublishTelemetry, log: Any) -> None:
+    def __init__(self, state: CellState, publish_telemetry: PublishTelemetry, log: Any,
+                 health: HealthUnit | None = None) -> None:
         self.state = state
         self.publish_telemetry = publish_telemetry
         self.log = log
+        self.health = health
 
     def on_readings(self, group: SensorGroup, readings: Mapping[str, Reading]) -> None:
         state = self.state
         temps: dict[str, float] = {}
         t_obs = None
         telemetry = []
+        health = self.health
         with state.lock:
             table = state.table
             for name, reading in readings.items():
@@ -41,22 +49,41 @@ class SensorIngest:
                 if entry.role == "temperature" and entry.device_state == State.OK:
                     temps[name] = reading.value
                     t_obs = reading.t if t_obs is None else max(t_obs, reading.t)
+                elif entry.role == "position" and health is not None:
+                    now = state.clock.now()
+                    ok = entry.device_state == State.OK and now - reading.t <= entry.max_age_s
+                    health.on_position(now, reading.t, reading.value, ok)
                 telemetry.append((entry.role, name, reading.value, entry.unit, reading.t, entry.device_state.value,
                                   entry.reason))
             if temps and t_obs is not None:
                 state.compensator.observe(t_obs, temps)
+                if health is not None:
+                    health.on_temperatures(t_obs, temps)
+        if health is not None:
+            health.flush()
         try:
             for role, name, *doc in telemetry:
                 self.publish_telemetry(role, name, encode_telemetry(*doc))
         except zenoh.ZError as error:  # a bus problem is not the device's fault
             self.log.warning("telemetry_failed", error=str(error))
 
-    def on_group_failure(self, group: SensorGroup, reason: str, retry_in_s: float) -> None:
+    def on_group_failure(self, group: SensorGroup, reason: str, retry_in_s: float, failures: int) -> None:
+        """One ``sensor_group_failed`` line per episode (its first failure); the retries are debug lines."""
+        health = self.health
         with self.state.lock:
             self.state.table.mark_fault(group.names, f"device error: {reason}")
-        self.log.warning("sensor_group_failed", channels=list(group.names), reason=reason,
-                         retry_in_s=round(retry_in_s, 2))
+            if health is not None and health.position_channel in group.names:
+                now = self.state.clock.now()
+                health.on_position(now, now, math.nan, False)  # a device that fails voids the window
+        if failures == 1:
+            self.log.warning("sensor_group_failed", channels=list(group.names), reason=reason,
+                             retry_in_s=round(retry_in_s, 2))
+        else:
+            self.log.debug("sensor_group_retry_failed", channels=list(group.names), reason=reason,
+                           failures=failures, retry_in_s=round(retry_in_s, 2))
 
-    def on_group_recovered(self, group: SensorGroup) -> None:
-        self.log.info("sensor_group_recovered", channels=list(group.names))
+    def on_group_recovered(self, group: SensorGroup, failures: int, down_s: float) -> None:
+        """The episode's summary: how many attempts failed and for how long."""
+        self.log.info("sensor_group_recovered", channels=list(group.names), failures=failures,
+                      down_s=round(down_s, 2))
 

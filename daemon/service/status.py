@@ -1,7 +1,8 @@
 """The ``status`` queryable and the one-line status systemd shows: built from the cell state on the loop.
 
 Answered on the asyncio loop on purpose: a reply proves the loop runs; ``healthy`` adds that every
-sensor poller is alive and making progress.
+sensor poller is alive and making progress. ``health`` (the health unit's document: is the model
+still right) comes last, when the daemon has a health unit.
 """
 
 from __future__ import annotations
@@ -17,18 +18,20 @@ from daemon.bus.protocol import dumps
 from daemon.bus.session import Bus
 from daemon.config import ZENOH_KIND, Config
 from daemon.service.actuation import Actuation
+from daemon.service.health import HealthUnit
 from daemon.service.state import CellState
 from drivers.base import State
 
 
-def status_doc(state: CellState, healthy: bool, actuation: Actuation | None = None) -> dict[str, Any]:
+def status_doc(state: CellState, healthy: bool, actuation: Actuation | None = None,
+               health: HealthUnit | None = None) -> dict[str, Any]:
     """The ``status`` payload's document (ARCHITECTURE.md, Zenoh ``status``)."""
     driven = actuation.doc() if actuation is not None else None
     with state.lock:
         now = state.clock.now()
         comp = state.compensator
         config = state.config
-        return {
+        doc = {
             "cell": config.cell,
             "t": time.time(),
             "uptime_s": round(time.time() - state.started, 3),
@@ -42,35 +45,41 @@ def status_doc(state: CellState, healthy: bool, actuation: Actuation | None = No
             "counters": state.counters.as_dict(),
             "healthy": healthy,
         }
+        if health is not None:
+            doc["health"] = health.document()
+        return doc
 
 
-def status_line(state: CellState) -> str:
-    """``cell c: 3/4 sensors ok, model m-..., 12 commands, 0 refused`` (systemd's STATUS=)."""
+def status_line(state: CellState, health: HealthUnit | None = None) -> str:
+    """``cell c: 3/4 sensors ok, model m-..., 12 commands, 0 refused, health ok`` (systemd's STATUS=)."""
     with state.lock:
         now = state.clock.now()
         table = state.table
         states = [table.state(n, now)[0] for n in table.entries]
         commands, refused = state.counters.commands, sum(state.counters.errors.values())
         model_id = state.model_id()
+        health_state = health.state if health is not None else None
     ok = sum(s == State.OK for s in states)
     return (f"cell {state.config.cell}: {ok}/{len(states)} sensors ok, model {model_id or 'none'}, "
-            f"{commands} commands, {refused} refused")
+            f"{commands} commands, {refused} refused" + (f", health {health_state}" if health_state else ""))
 
 
 class StatusHandler:
     """``on_status`` for the bus (called on the loop)."""
 
     def __init__(self, state: CellState, bus: Bus, healthy: Callable[[], bool], log: Any,
-                 actuation: Actuation | None = None) -> None:
+                 actuation: Actuation | None = None, health: HealthUnit | None = None) -> None:
         self.state = state
         self.actuation = actuation
+        self.health = health
         self.bus = bus
         self.healthy = healthy
         self.log = log
 
     def on_status(self, query: zenoh.Query) -> None:
         try:
-            self.bus.reply(query, self.bus.keys.status, dumps(status_doc(self.state, self.healthy(), self.actuation)))
+            doc = status_doc(self.state, self.healthy(), self.actuation, self.health)
+            self.bus.reply(query, self.bus.keys.status, dumps(doc))
         except zenoh.ZError as error:
             self.log.warning("status_reply_failed", error=str(error))
 

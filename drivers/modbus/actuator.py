@@ -2,13 +2,17 @@
 wired to the PZT amplifier's analog input).
 
 One holding register (function 6), or a pair for 32-bit types (function 16), in the sensors' data
-types and byte/word orders; ``register = round((voltage_v - offset) / scale)``. The output shares
-its hub (one connection, one lock) with any sensors on the same module or bus. With ``verify`` every
-write is read back (function 3): a device that clamps, ignores or mangles the value is an actuator
-fault, named with what was written and what came back.
+types and byte/word orders; ``register = round((voltage_v - offset) / scale)``, except that a voltage
+within half a count of ``[v_min, v_max]`` (``limits_v``) takes the count on the inside, so the output
+never exceeds a limit. The output shares its hub (one connection, one lock) with any sensors on the
+same module or bus. With ``verify`` every write is read back (function 3): a device that clamps,
+ignores or mangles the value is an actuator fault, named with what was written and what came back;
+``verify`` also means the register can be read, so :meth:`read_back` tells where the output is.
 """
 
 from __future__ import annotations
+
+from typing import Literal
 
 from drivers.base import Actuator, DeviceError
 from drivers.modbus.codec import decode, encode, raw_for
@@ -45,10 +49,21 @@ class ModbusActuator(Actuator):
         raw = decode(registers, c.data_type, c.swap)
         return raw, raw * c.scale + c.offset
 
+    async def read_back(self) -> tuple[Literal["voltage_v", "q_um"], float] | None:
+        """The voltage the output register holds (None without ``verify``: the register may not be readable)."""
+        c = self.config
+        if not c.verify:
+            return None
+        try:
+            registers = await self.hub.read_registers("holding", c.device_id, c.address, c.register_count)
+        except (ModbusExceptionError, DeviceError) as error:
+            raise DeviceError(f"{self.description}: reading the output failed: {error}") from error
+        return "voltage_v", self.volts(registers)[1]
+
     async def command(self, q_um: float, voltage_v: float, *, x_um: float | None = None) -> None:
         c = self.config
         try:
-            raw = raw_for(voltage_v, c.scale, c.offset, c.data_type)
+            raw = raw_for(voltage_v, c.scale, c.offset, c.data_type, within=self.limits_v)
         except ValueError as error:
             raise ValueError(f"{self.description}: cannot write {voltage_v:.4f} V: {error}") from None
         registers = encode(raw, c.data_type, c.swap)

@@ -17,6 +17,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
+import numpy as np
+
 DataTypeName = Literal["int16", "uint16", "int32", "uint32", "float32"]
 SwapName = Literal["none", "byte", "word", "word_byte"]
 
@@ -71,16 +73,56 @@ def encode(value: int | float, data_type: str, swap: str = "none") -> list[int]:
     return _swapped(regs, swap)
 
 
-def raw_for(value: float, scale: float, offset: float, data_type: str) -> int | float:
+def raw_for(value: float, scale: float, offset: float, data_type: str,
+            within: tuple[float, float] | None = None) -> int | float:
     """The raw register value that scales back to ``value`` (``raw * scale + offset``), the inverse of a
-    sensor's scaling: rounded to the nearest count for integer types. ``ValueError`` when it does
-    not fit ``data_type`` (nothing must then be written)."""
+    sensor's scaling: the nearest count for integer types, the nearest float32 for float32.
+
+    ``within`` (the operator's ``[v_min, v_max]``): when the nearest raw value would scale back to a
+    voltage outside it (``value`` within half a count of a limit), the neighbour on the inside is
+    taken instead, so the output never exceeds a limit by a fraction of a count. ``ValueError`` when
+    the value does not fit ``data_type``, or no raw value lies within the limits (nothing must then
+    be written)."""
     spec = DATA_TYPES[data_type]
     exact = (value - offset) / scale
     if not math.isfinite(exact):
         raise ValueError(f"{value!r} has no raw value")
-    raw: int | float = exact if spec.is_float else round(exact)
+    raw: int | float = _float32(exact) if spec.is_float else round(exact)
+    if within is not None:
+        low, high = within
+        slack = 0.0 if spec.is_float else _SLACK * abs(scale)
+        if _scaled(raw, scale, offset) > high + slack:
+            raw = _inward(raw, scale, spec.is_float, lower=True)
+        elif _scaled(raw, scale, offset) < low - slack:
+            raw = _inward(raw, scale, spec.is_float, lower=False)
+        if not low - slack <= _scaled(raw, scale, offset) <= high + slack:
+            raise ValueError(f"{value:g} has no raw value within [{low:g}, {high:g}] (one count is {abs(scale):g} V)")
     if not spec.minimum <= raw <= spec.maximum:
         raise ValueError(f"{value:g} needs raw {exact:g}, outside {data_type}'s range "
                          f"{spec.minimum:g}..{spec.maximum:g}")
     return raw
+
+
+#: an integer raw value scaling back to within this fraction of a count beyond a limit is at the limit
+#: (``4095 * (10 / 4095)`` is 10.000000000000002 in floating point, and 10 V is the module's top)
+_SLACK = 1e-6
+
+
+def _scaled(raw: int | float, scale: float, offset: float) -> float:
+    return raw * scale + offset
+
+
+def _float32(x: float) -> float:
+    """The float32 nearest ``x`` (what the register pair will hold); overflow keeps ``x`` for the range check."""
+    if abs(x) > DATA_TYPES["float32"].maximum:
+        return x
+    return float(np.float32(x))
+
+
+def _inward(raw: int | float, scale: float, is_float: bool, *, lower: bool) -> int | float:
+    """The neighbouring raw value whose voltage is lower (``lower``) or higher than ``raw``'s."""
+    towards_lower_raw = lower == (scale > 0)
+    if is_float:
+        step = np.float32(-np.inf if towards_lower_raw else np.inf)
+        return float(np.nextafter(np.float32(raw), step))
+    return int(raw) - 1 if towards_lower_raw else int(raw) + 1

@@ -47,6 +47,16 @@ class ModbusSensorConfig(SensorConfig):
     )
     unit: str | None = Field(default=None, description="unit of the scaled value; default degC / um by role")
 
+    def hub_name(self) -> str:
+        return self.hub
+
+    @field_validator("scale")
+    @classmethod
+    def _scale_not_zero(cls, value: float) -> float:
+        if value == 0:
+            raise ValueError("must not be 0: every reading would be the offset, whatever the register holds")
+        return value
+
     @field_validator("nan_value", mode="before")
     @classmethod
     def _parse_hex(cls, value: object) -> object:
@@ -109,6 +119,9 @@ class ModbusActuatorConfig(ActuatorOptions):
     scale: FiniteFloat = Field(description="volts per count")
     offset: FiniteFloat = Field(default=0.0, description="volts at count 0")
     verify: bool = Field(default=True, description="read the register back after each write; a mismatch faults")
+
+    def hub_name(self) -> str:
+        return self.hub
 
     @model_validator(mode="after")
     def _consistent(self) -> ModbusActuatorConfig:

@@ -90,7 +90,7 @@ class ModbusBlockGroup(SensorGroup):
 
     A device exception code faults every channel of the request (the reason names the code); a
     burnout raw value (``nan_value``) faults its channel only; no answer or a lost link raises
-    :class:`DeviceError` (the daemon reopens the group, the hub reconnects with backoff).
+    :class:`DeviceError` (the daemon's poller reopens the group after its back-off; the hub reconnects then).
     """
 
     def __init__(self, block: Block, hub: ModbusHub, clock: Clock) -> None:

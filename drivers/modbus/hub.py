@@ -1,9 +1,11 @@
 """One shared Modbus connection (a TCP socket, or one RS-485 bus) and the requests made on it.
 
 Every request on a hub goes through one :class:`asyncio.Lock`: a bus carries one transaction at a
-time, and a module behind one TCP socket answers in order anyway. The hub connects on first use,
-reconnects by itself with exponential backoff after the link drops (a burst of reads while the
-module is away fails fast instead of hammering it), and classifies what went wrong:
+time, and a module behind one TCP socket answers in order anyway. The hub connects when asked (an
+``open``, or a request while the link is down): one attempt per call, and callers that queued behind
+an attempt that failed share its answer instead of each trying again. *When* to ask again is not the
+hub's decision: the daemon's poller owns the timing (exponential backoff with jitter, one log line per
+episode), so there is one back-off, not one per layer. It classifies what went wrong:
 
 - the device answered with an exception code -> :class:`ModbusExceptionError` (the channels fault);
 - no answer, lost connection, cannot connect -> :class:`drivers.base.DeviceError` (the daemon
@@ -12,13 +14,13 @@ module is away fails fast instead of hammering it), and classifies what went wro
   naming the device, the address and both counts. pymodbus would take the byte count at its word
   and drop or invent registers, so the hub decodes FC 3/4 answers itself (:class:`CheckedRegisters`).
 
-pymodbus' own automatic reconnect is switched off (``reconnect_delay=0``): the hub owns the policy.
+pymodbus' own automatic reconnect is switched off (``reconnect_delay=0``): a connection attempt is
+made only when the hub is asked for one.
 """
 
 from __future__ import annotations
 
 import asyncio
-import time
 from collections.abc import Sequence
 from typing import Any
 
@@ -85,31 +87,10 @@ class CheckedInputRegisters(CheckedRegisters, ReadInputRegistersResponse):
     function_code = 4
 
 
-class Backoff:
-    """Exponential delay between connection attempts; reset by a success."""
-
-    def __init__(self, initial_s: float = 0.2, maximum_s: float = 10.0) -> None:
-        self.initial_s = initial_s
-        self.maximum_s = maximum_s
-        self.delay_s = initial_s
-        self.not_before = 0.0  # time.monotonic()
-
-    def remaining(self) -> float:
-        return max(0.0, self.not_before - time.monotonic())
-
-    def failed(self) -> None:
-        self.not_before = time.monotonic() + self.delay_s
-        self.delay_s = min(self.delay_s * 2, self.maximum_s)
-
-    def succeeded(self) -> None:
-        self.delay_s = self.initial_s
-        self.not_before = 0.0
-
-
 class ModbusHub:
     """A connection shared by every channel configured with ``hub = <name>``."""
 
-    def __init__(self, config: ModbusHubConfig, *, backoff: Backoff | None = None) -> None:
+    def __init__(self, config: ModbusHubConfig) -> None:
         if config.type == "serial" and not isinstance(config.port, str):
             raise ValueError(
                 f"hub {config.name!r}: type = 'serial' needs port = the serial device "
@@ -118,13 +99,13 @@ class ModbusHub:
         if config.type == "tcp" and not str(config.port).isdigit():
             raise ValueError(f"hub {config.name!r}: type = 'tcp' needs a numeric port, got {config.port!r}")
         self.config = config
-        self.backoff = backoff or Backoff()
         self.requests = 0  # requests sent, for benchmarks and tests
+        self.connect_attempts = 0  # connections tried, for tests (one per caller that found the link down)
         self._client: AsyncModbusTcpClient | AsyncModbusSerialClient | None = None
         self._lost = asyncio.Event()
         self._lock = asyncio.Lock()
         self._users = 0
-        self._last_error = ""
+        self._connect_failure: str | None = None  # why the last attempt failed (None: it succeeded)
 
     @property
     def name(self) -> str:
@@ -156,9 +137,10 @@ class ModbusHub:
         self._users += 1
 
     async def ensure_connected(self) -> None:
-        """Connect unless connected; :class:`DeviceError` while the module is unreachable."""
+        """Connect unless connected (one attempt); :class:`DeviceError` when the module is unreachable."""
+        seen = self.connect_attempts
         async with self._lock:
-            await self._connect_locked()
+            await self._connect_locked(seen)
 
     def release(self) -> None:
         self._users = max(0, self._users - 1)
@@ -196,32 +178,31 @@ class ModbusHub:
             self._client.close()
             self._client = None
 
-    async def _connect_locked(self) -> None:
+    async def _connect_locked(self, seen: int) -> None:
+        """Connect unless connected. ``seen``: :attr:`connect_attempts` when the caller queued for the
+        lock; an attempt made and failed meanwhile is this caller's answer too (no second try)."""
         if self.connected:
             return
         self._drop()
-        wait = self.backoff.remaining()
-        if wait > 0:
-            raise DeviceError(
-                f"modbus hub {self.name!r} ({self.endpoint}) is down ({self._last_error}); "
-                f"next connection attempt in {wait:.1f} s"
-            )
+        if self.connect_attempts != seen and self._connect_failure is not None:
+            raise DeviceError(self._connect_failure)
+        self.connect_attempts += 1
         self._lost = asyncio.Event()
         client = self._new_client(self._lost)
         if not await client.connect():
             client.close()
-            self.backoff.failed()
-            self._last_error = f"cannot connect to {self.endpoint}"
-            raise DeviceError(f"modbus hub {self.name!r}: cannot connect to {self.endpoint}")
+            self._connect_failure = f"modbus hub {self.name!r}: cannot connect to {self.endpoint}"
+            raise DeviceError(self._connect_failure)
         self._client = client
-        self.backoff.succeeded()
+        self._connect_failure = None
 
     # -- requests ---------------------------------------------------------------------------------
 
     async def read_registers(self, input_type: str, device_id: int, address: int, count: int) -> list[int]:
         """``count`` registers from ``address`` of ``device_id``; one request, serialised on the hub."""
+        seen = self.connect_attempts
         async with self._lock:
-            await self._connect_locked()
+            await self._connect_locked(seen)
             assert self._client is not None
             registers = await self._request_locked(self._client, input_type, device_id, address, count)
         return registers
@@ -235,7 +216,7 @@ class ModbusHub:
         try:
             call = asyncio.ensure_future(read(address, count=count, device_id=device_id))
         except ModbusException as error:  # pymodbus refuses at once when the link just went away
-            self._lost_link(str(error))
+            self._lost_link()
             raise DeviceError(f"modbus hub {self.name!r}: {self.endpoint}: {error} ({where})") from error
         lost = asyncio.ensure_future(self._lost.wait())
         self.requests += 1
@@ -260,7 +241,7 @@ class ModbusHub:
                 f"within {self.request_budget_s:g} s"
             ) from error
         elif lost in done:
-            self._lost_link("connection lost")
+            self._lost_link()
             raise DeviceError(f"modbus hub {self.name!r}: connection to {self.endpoint} lost while reading {where}")
         else:
             self._after_silence()
@@ -278,17 +259,15 @@ class ModbusHub:
             )
         return list(registers)
 
-    def _lost_link(self, why: str) -> None:
-        # the first reconnection attempt is immediate (a module that rebooted is back at once);
-        # the backoff grows only while attempts fail
-        self._last_error = why
+    def _lost_link(self) -> None:
+        # the next call reconnects (a module that rebooted is back at once); when that call comes is
+        # the caller's back-off
         self._drop()
 
     def _after_silence(self) -> None:
         # A silent TCP peer is a dead socket: drop it so the next read reconnects. On an RS-485 bus
         # one silent device says nothing about the others: keep the port open.
         if self.config.type == "tcp":
-            self._last_error = "no response"
             self._drop()
 
     # -- writes (an analog output channel) --------------------------------------------------------
@@ -302,8 +281,9 @@ class ModbusHub:
         values = [int(r) & 0xFFFF for r in registers]
         fc = 6 if len(values) == 1 else 16
         where = f"device {device_id} holding register {address}" + (f" (count {len(values)})" if fc == 16 else "")
+        seen = self.connect_attempts
         async with self._lock:
-            await self._connect_locked()
+            await self._connect_locked(seen)
             client = self._client
             assert client is not None
             try:
@@ -312,7 +292,7 @@ class ModbusHub:
                 else:
                     call = asyncio.ensure_future(client.write_registers(address, values, device_id=device_id))
             except ModbusException as error:  # pymodbus refuses at once when the link just went away
-                self._lost_link(str(error))
+                self._lost_link()
                 raise DeviceError(f"modbus hub {self.name!r}: {self.endpoint}: {error} (writing {where})") from error
             response = await self._answer_locked(call, f"writing {where}")
         if response.isError():
@@ -341,7 +321,7 @@ class ModbusHub:
             raise DeviceError(f"modbus hub {self.name!r} ({self.endpoint}): {detail} {what} "
                               f"within {self.request_budget_s:g} s") from error
         if lost in done:
-            self._lost_link("connection lost")
+            self._lost_link()
             raise DeviceError(f"modbus hub {self.name!r}: connection to {self.endpoint} lost {what}")
         self._after_silence()
         raise DeviceError(f"modbus hub {self.name!r} ({self.endpoint}): no response {what}")

@@ -5,11 +5,13 @@ query follow, and their answers are checked: silence, an answer that does not ca
 outside the tolerance, or the controller reporting an error is a :class:`DeviceError` naming the
 port, what was written and what came back. The port is the sensor group's when a sensor reads the
 same controller (one lock per port: each request gets its own answer), else the actuator's own.
+The readback query also tells where the output is before the first command (:meth:`read_back`).
 """
 
 from __future__ import annotations
 
 import re
+from typing import Literal
 
 from drivers.base import Actuator, DeviceError
 from drivers.serial_line.config import SerialLineActuatorConfig
@@ -54,21 +56,37 @@ class SerialLineActuator(Actuator):
                               f"after {after!r}")
         return answer
 
+    async def _read(self, after: str) -> tuple[float, str]:
+        """The value the readback query's answer carries, and the answer (:class:`DeviceError` for silence
+        or garble)."""
+        c = self.config
+        answer = await self._ask(c.readback, after)
+        match = self._readback.search(answer)
+        try:
+            value = float(match.group("value")) if match else None
+        except ValueError:
+            value = None
+        if value is None:
+            raise DeviceError(f"{self.description}: unexpected answer {_shown(answer)} to {c.readback!r} after "
+                              f"{after!r} (expected pattern {c.readback_pattern!r})")
+        return value, answer
+
+    async def read_back(self) -> tuple[Literal["voltage_v", "q_um"], float] | None:
+        """What the controller holds (the readback query's value) when it answers the voltage or the
+        command; None without a readback, or when it answers the target ``x_um`` (not where the stage is)."""
+        field = self.config.expected_field
+        if not self.config.readback or field == "x_um":
+            return None
+        value, _ = await self._read("opening the port")
+        return ("voltage_v" if field == "voltage_v" else "q_um"), value
+
     async def command(self, q_um: float, voltage_v: float, *, x_um: float | None = None) -> None:
         c = self.config
         text = self.text(q_um, voltage_v, x_um)
         fields = {"voltage_v": voltage_v, "q_um": q_um, "x_um": q_um if x_um is None else x_um}
         await self.port.exchange(text.encode("latin-1"), answer=False, timeout_s=c.timeout_s)
         if c.readback:
-            answer = await self._ask(c.readback, text)
-            match = self._readback.search(answer)
-            try:
-                value = float(match.group("value")) if match else None
-            except ValueError:
-                value = None
-            if value is None:
-                raise DeviceError(f"{self.description}: unexpected answer {_shown(answer)} to {c.readback!r} after "
-                                  f"{text!r} (expected pattern {c.readback_pattern!r})")
+            value, answer = await self._read(text)
             expected = fields[c.expected_field]
             if not abs(value - expected) <= c.readback_tolerance:
                 raise DeviceError(f"{self.description}: wrote {text!r} ({c.expected_field} {expected:.6g}), read back "

@@ -39,6 +39,13 @@ class SerialLineSensorConfig(SensorConfig):
                                   "dropped); '\\r' for devices that end lines with CR only")
     unit: str | None = Field(default=None, description="unit of the scaled value; default um / degC by role")
 
+    @field_validator("scale")
+    @classmethod
+    def _scale_not_zero(cls, value: float) -> float:
+        if value == 0:
+            raise ValueError("must not be 0: every reading would be the offset, whatever the device sends")
+        return value
+
     @field_validator("pattern")
     @classmethod
     def _pattern_has_value_group(cls, pattern: str) -> str:

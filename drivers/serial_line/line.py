@@ -12,8 +12,9 @@ What goes wrong, and how it is reported:
 - a line in which ``pattern`` is not found (``re.search``) -> ``fault`` naming what came
   (truncated repr) and the pattern expected;
 - the port vanished (unplugged, EIO) or cannot be opened -> :class:`DeviceError`; the daemon closes
-  and reopens the group. A ``read`` on a vanished port also tries to reopen it by itself, with
-  exponential backoff (0.2 s doubling to 10 s), so the channel recovers under any caller.
+  and reopens the group. A ``read`` (or an actuator's ``exchange``) on a closed port opens it first:
+  one attempt per call, so the channel recovers under any caller. When to call again is the
+  caller's back-off (the daemon's poller, the actuation loop), never the driver's.
 """
 
 from __future__ import annotations
@@ -21,7 +22,6 @@ from __future__ import annotations
 import asyncio
 import math
 import re
-import time
 from functools import partial
 
 from drivers.base import Clock, DeviceError, Reading, SensorGroup
@@ -30,8 +30,6 @@ from drivers.serial_line.reader import SerialLineReader
 
 SHOWN_CHARS = 60  # of a garbage line in a fault reason
 GRACE_S = 0.25  # callers' limit beyond timeout_s, so the driver's own verdict ("no line ...") comes first
-BACKOFF_INITIAL_S = 0.2
-BACKOFF_MAX_S = 10.0
 
 
 class SerialLineGroup(SensorGroup):
@@ -52,8 +50,7 @@ class SerialLineGroup(SensorGroup):
         self._seq = 0  # lines received so far
         self._generation = 0  # one per opened port: late callbacks of a closed port are ignored
         self._arrived = asyncio.Event()
-        self._backoff_s = BACKOFF_INITIAL_S
-        self._not_before = 0.0  # time.monotonic() before which read() does not reopen
+        self.open_attempts = 0  # ports opened or tried, for tests
         self._lock = asyncio.Lock()  # one request/answer at a time on the port (a query, an actuator's command)
 
     def __repr__(self) -> str:
@@ -74,6 +71,7 @@ class SerialLineGroup(SensorGroup):
                     "write_timeout": c.timeout_s}
         loop = asyncio.get_running_loop()
         self._generation += 1
+        self.open_attempts += 1
         try:
             self._reader = await asyncio.wait_for(
                 asyncio.to_thread(SerialLineReader.open, c.port, settings, loop=loop, terminator=self._terminator,
@@ -82,17 +80,9 @@ class SerialLineGroup(SensorGroup):
                 timeout=c.timeout_s,
             )
         except TimeoutError:
-            self._failed_open()
             raise DeviceError(f"cannot open {c.port}: no answer from the OS within {c.timeout_s:g} s") from None
         except Exception as error:  # SerialException, OSError, ValueError for a malformed URL
-            self._failed_open()
             raise DeviceError(f"cannot open {c.port}: {error}") from error
-        self._backoff_s = BACKOFF_INITIAL_S
-        self._not_before = 0.0
-
-    def _failed_open(self) -> None:
-        self._not_before = time.monotonic() + self._backoff_s
-        self._backoff_s = min(2 * self._backoff_s, BACKOFF_MAX_S)
 
     async def close(self) -> None:
         reader, self._reader = self._reader, None
@@ -127,9 +117,6 @@ class SerialLineGroup(SensorGroup):
     async def read(self) -> dict[str, Reading]:
         await self._raise_if_vanished()
         if self._reader is None:
-            wait = self._not_before - time.monotonic()
-            if wait > 0:
-                raise DeviceError(f"{self.port} is not open; next attempt in {wait:.1f} s")
             await self.open()
         deadline = asyncio.get_running_loop().time() + self.config.timeout_s
         line = await (self._query(deadline) if self.config.query else self._newest(deadline))
@@ -210,9 +197,6 @@ class SerialLineGroup(SensorGroup):
         async with self._lock:
             await self._raise_if_vanished()
             if self._reader is None:
-                wait = self._not_before - time.monotonic()
-                if wait > 0:
-                    raise DeviceError(f"{self.port} is not open; next attempt in {wait:.1f} s")
                 await self.open()
             deadline = asyncio.get_running_loop().time() + timeout_s
             line = await self._transaction(data, deadline, repr(data.decode("latin-1")), answer)

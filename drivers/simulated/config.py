@@ -25,6 +25,8 @@ from drivers.simulated.scenarios import get_scenario
 
 #: the top-level table this plugin owns
 SECTION = "simulation"
+#: the fastest ``speed``: each poll makes the cell compute ``speed`` x the wall time since the last one
+MAX_SPEED = 10_000.0
 
 _PARAM_NAMES = {f.name for f in fields(CellParams)} - {"offsets_c", "geometry_e_um"}
 
@@ -33,7 +35,12 @@ class SimulationConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, strict=True)  # no "2" for 2
 
     scenario: str = Field(default="train", description="room-temperature history (see drivers/simulated/README.md)")
-    speed: float = Field(default=1.0, gt=0, description="simulated seconds per wall second")
+    speed: float = Field(
+        default=1.0, gt=0, le=MAX_SPEED,
+        description=f"simulated seconds per wall second, at most {MAX_SPEED:g}: the tests and the hardware-in-the-"
+                    "loop emulator run at 1000 (the demo at 50), so this leaves a margin of ten; far beyond it the "
+                    "simulated cell computes more room history per poll than the daemon can follow (1e9 froze the "
+                    "daemon, deaf to SIGTERM)")
     seed: int = Field(default=0, description="every run with the same seed is identical")
     effects: list[str] | dict[str, dict[str, float]] = Field(
         default_factory=list, description="hidden effects: names, or name -> {param = value}"

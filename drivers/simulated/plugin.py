@@ -10,7 +10,7 @@ four thermocouples); the interferometer is a group of its own.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 from pydantic import BaseModel
 
@@ -91,6 +91,10 @@ class SimulatedActuator(Actuator):
 
     async def close(self) -> None:
         return None
+
+    async def read_back(self) -> tuple[Literal["voltage_v", "q_um"], float] | None:
+        """The setpoint the stage's closed loop holds (0 µm on a fresh cell): the first ramp starts there."""
+        return ("q_um", self.cell.state.q)
 
 
 class SimulatedPlugin(DriverPlugin):

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from daemon.calibration.plans import StepTiming
+from daemon.calibration.plans import StepTiming, ramp_commands
 from drivers.simulated.physics import THERMOCOUPLES, CellPhysics
 
 
@@ -24,12 +24,6 @@ class StepSchedule(StepTiming):
 
     position_interval_s: float = 0.1
     temperature_interval_s: float = 0.5
-
-
-def _ramp(q_from: float, q_to: float, t0: float, schedule: StepSchedule) -> tuple[np.ndarray, np.ndarray]:
-    n = max(1, round(schedule.ramp_s / schedule.ramp_interval_s))
-    frac = np.arange(1, n + 1) / n
-    return t0 + frac * schedule.ramp_s, q_from + (q_to - q_from) * frac
 
 
 def _window_offsets(interval: float, schedule: StepSchedule) -> np.ndarray:
@@ -70,8 +64,8 @@ def simulate_steps(
     cmd_t, cmd_q = [], []
     q_prev = 0.0
     for k in range(n):
-        ts, qs = _ramp(q_prev, float(commands[k]), float(step_start[k]), schedule)
-        cmd_t.append(ts)
+        offsets, qs = ramp_commands(q_prev, float(commands[k]), schedule.ramp_s, schedule.ramp_interval_s)
+        cmd_t.append(float(step_start[k]) + offsets)
         cmd_q.append(qs)
         q_prev = float(commands[k])
     landing_rng = np.random.default_rng([physics.seed, 2])

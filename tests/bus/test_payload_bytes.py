@@ -47,15 +47,18 @@ def error_bytes(refusal: Refusal) -> bytes:
 def test_command_payload_bytes(compensator: Compensator) -> None:
     assert command_bytes(compensator, Target("k", 200.0)) == (
         b'{"id":"k","x_um":200.0,"q_um":176.62999999999997,"voltage_v":3.5325999999999995,'
-        b'"temperatures_c":{"T1":21.8,"T2":21.9},"model":"m-735e979167ac","t":1700000000.25,"extrapolating":[]}'
+        b'"temperatures_c":{"T1":21.8,"T2":21.9},"model":"m-735e979167ac","t":1700000000.25,"extrapolating":[],'
+        b'"q_sigma_um":null}'
     )
     assert command_bytes(compensator, Target(None, 0.0)) == (
         b'{"id":null,"x_um":0.0,"q_um":-23.53,"voltage_v":-0.4706,'
-        b'"temperatures_c":{"T1":21.8,"T2":21.9},"model":"m-735e979167ac","t":1700000000.25,"extrapolating":[]}'
+        b'"temperatures_c":{"T1":21.8,"T2":21.9},"model":"m-735e979167ac","t":1700000000.25,"extrapolating":[],'
+        b'"q_sigma_um":null}'
     )
     assert command_bytes(compensator, Target('quo"te\\ \u00e9', 12.5)) == (
         b'{"id":"quo\\"te\\\\ \\u00e9","x_um":12.5,"q_um":-11.006523437500002,"voltage_v":-0.22013046875000006,'
-        b'"temperatures_c":{"T1":21.8,"T2":21.9},"model":"m-735e979167ac","t":1700000000.25,"extrapolating":[]}'
+        b'"temperatures_c":{"T1":21.8,"T2":21.9},"model":"m-735e979167ac","t":1700000000.25,"extrapolating":[],'
+        b'"q_sigma_um":null}'
     )
 
 
@@ -65,7 +68,26 @@ def test_command_payload_bytes_when_extrapolating(compensator: Compensator) -> N
     assert command_bytes(compensator, Target(-7, 490.0)) == (
         b'{"id":-7,"x_um":490.0,"q_um":466.85198,"voltage_v":9.3370396,'
         b'"temperatures_c":{"T1":21.8,"T2":23.0},"model":"m-735e979167ac","t":1700000000.25,'
-        b'"extrapolating":["x","T2"]}'
+        b'"extrapolating":["x","T2"],"q_sigma_um":null}'
+    )
+
+
+def test_command_payload_bytes_with_uncertainty_and_correction(compensator: Compensator) -> None:
+    """Issue 12: ``q_sigma_um`` after ``extrapolating``, then ``correction_um`` (adaptation on), inside q."""
+    assert compensator.model is not None
+    compensator.model.fit = {"rmse_um": 0.025}  # a model without covariance: sigma is its residual RMS
+    compensator.evaluator = compensator.model.evaluator()
+    compensator.observe(10.0, {"T1": 21.8, "T2": 21.9})
+    assert command_bytes(compensator, Target("k", 200.0)) == (
+        b'{"id":"k","x_um":200.0,"q_um":176.62999999999997,"voltage_v":3.5325999999999995,'
+        b'"temperatures_c":{"T1":21.8,"T2":21.9},"model":"m-735e979167ac","t":1700000000.25,"extrapolating":[],'
+        b'"q_sigma_um":0.025}'
+    )
+    compensator.correction_um = -0.25
+    assert command_bytes(compensator, Target("k", 200.0)) == (
+        b'{"id":"k","x_um":200.0,"q_um":176.37999999999997,"voltage_v":3.5275999999999996,'
+        b'"temperatures_c":{"T1":21.8,"T2":21.9},"model":"m-735e979167ac","t":1700000000.25,"extrapolating":[],'
+        b'"q_sigma_um":0.025,"correction_um":-0.25}'
     )
 
 

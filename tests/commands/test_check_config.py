@@ -51,7 +51,7 @@ def test_a_model_the_daemon_would_refuse_on_reload_exits_2_naming_file_and_field
     path = config(tmp_path, str(model))
     code, out, err = check(capsys, str(path))
     assert code == 2 and out == ""
-    assert f"{path}: model.path: {model}" in err and why in err
+    assert f"{path}:2: model.path: {model}" in err and why in err  # [model] path = ... is line 2
     assert "Traceback" not in err and "RecursionError" not in err
 
 
@@ -60,14 +60,16 @@ def test_warnings_exit_zero_and_strict_makes_them_errors(tmp_path: Path, capsys)
     path = config(tmp_path, "model.json", sensors=("T1", "T3"))
     code, out, err = check(capsys, str(path))
     assert code == 0 and f"{path}: ok" in out
-    assert f"{path}: warning: sensors: model" in err and "T2" in err  # missing channel
-    assert f"{path}: warning: sensors[1].name: sensor 'T3' is not used" in err  # unused sensor
+    assert f"{path}: warning: sensors: model" in err and "T2" in err  # missing channel: no one line holds it
+    # unused sensor: in the errors' form, the file's line of its name, the 0-based index and the name
+    assert f"{path}:7: warning: sensors[1] (T3).name: sensor 'T3' is not used" in err, err
+    assert path.read_text().splitlines()[6] == 'name = "T3"'
 
     code, out, err = check(capsys, str(path), "--strict")
     assert code == 2 and out == ""
     lines = err.splitlines()
     assert any(f"{path}: sensors: model" in line and "T2" in line and "--strict" in line for line in lines), err
-    assert any(f"{path}: sensors[1].name: sensor 'T3'" in line for line in lines), err
+    assert any(f"{path}:7: sensors[1] (T3).name: sensor 'T3'" in line for line in lines), err
     assert ": warning:" not in err
 
 
@@ -75,7 +77,7 @@ def test_a_zenoh_config_file_zenoh_cannot_read_exits_2(tmp_path: Path, capsys) -
     write_test_model(tmp_path / "model.json")
     missing = config(tmp_path, "model.json", extra='[zenoh]\nconfig_file = "absent.json5"\n')
     code, _, err = check(capsys, str(missing))
-    assert code == 2 and f"{missing}: zenoh.config_file: {tmp_path / 'absent.json5'}" in err
+    assert code == 2 and f"{missing}:4: zenoh.config_file: {tmp_path / 'absent.json5'}" in err  # its key's line
 
     (tmp_path / "broken.json5").write_text("{ mode: 'peer', transport: { auth: ")
     broken = config(tmp_path, "model.json", extra='[zenoh]\nconfig_file = "broken.json5"\n')
@@ -102,7 +104,8 @@ def test_a_listener_other_computers_reach_without_the_secure_zenoh_config_is_a_w
     path = config(tmp_path, "model.json", extra=f'[zenoh]\nlisten = ["{listen}"]\n')
     code, _, err = check(capsys, str(path))
     assert code == 0
-    assert (f"{path}: warning: zenoh.listen: {listen} can be reached from other computers" in err) is exposed, err
+    # line 4: [model], path, [zenoh], then the listen key
+    assert (f"{path}:4: warning: zenoh.listen: {listen} can be reached from other computers" in err) is exposed, err
     code, _, err = check(capsys, str(path), "--strict")
     assert code == (2 if exposed else 0), err
     secured = config(tmp_path, "model.json", extra=f'[zenoh]\nlisten = ["{listen}"]\nconfig_file = '

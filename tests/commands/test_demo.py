@@ -1,11 +1,13 @@
 """``nanodrift demo``, shortened: the paper's tests named, Table I as ``validate`` computes it, then serving.
 
-One shortened demo run (2 validation sweeps, 6 calibration sweeps, tests 1 and 5) is shared by the
+One shortened demo run (2 validation sweeps, 6 calibration sweeps, tests 1 and 5 given as
+``--tests test1,test5``, kept in a folder given relative to its working directory) is shared by the
 tests of this module; each asserts one promise of issue 13, item 3.
 """
 
 from __future__ import annotations
 
+import argparse
 import importlib.util
 import json
 import re
@@ -19,18 +21,20 @@ from helpers.daemon_harness import REPO
 
 from daemon.cli import main
 from daemon.commands._cell import scenario_seed
+from daemon.commands.demo import check_args, nm_span
 from daemon.model.model import load_model
 
-SHORT = ["--cycles", "2", "--calibration-cycles", "6", "--tests", "test1", "test5", "--seed", "3"]
+SHORT = ["--cycles", "2", "--calibration-cycles", "6", "--tests", "test1,test5", "--seed", "3"]
 
 
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory: pytest.TempPathFactory) -> tuple[subprocess.CompletedProcess[str], Path]:
-    keep = tmp_path_factory.mktemp("demo")
-    result = subprocess.run([sys.executable, "-m", "daemon.cli", "demo", *SHORT, "--keep", str(keep)],
-                            capture_output=True, text=True, cwd=REPO, timeout=180)
+    """``--keep kept`` relative to the demo's working directory (the daemon it starts runs elsewhere)."""
+    cwd = tmp_path_factory.mktemp("demo")
+    result = subprocess.run([sys.executable, "-m", "daemon.cli", "demo", *SHORT, "--keep", "kept"],
+                            capture_output=True, text=True, cwd=cwd, timeout=180)
     assert result.returncode == 0, result.stdout + result.stderr
-    return result, keep
+    return result, (cwd / "kept").resolve()
 
 
 def _benchmark() -> ModuleType:
@@ -100,12 +104,35 @@ def test_serving_sends_targets_through_the_daemon_and_keeps_its_log(demo) -> Non
     assert f"files in {keep}" in out
 
 
-def test_a_bad_test_is_refused_before_anything_runs(tmp_path, capsys) -> None:
+@pytest.mark.parametrize("tests", [["test2", "test9"], ["test2,test9"], ["test2,", "test9"]])
+def test_a_bad_test_is_refused_before_anything_runs(tmp_path, capsys, tests: list[str]) -> None:
     keep = tmp_path / "keep"
-    assert main(["demo", "--tests", "test2", "test9", "--keep", str(keep)]) == 2
+    assert main(["demo", "--tests", *tests, "--keep", str(keep)]) == 2
     err = capsys.readouterr().err
     assert "'test9'" in err and "valid tests: test1, test2, test3, test4, test5" in err
     assert not keep.exists()  # nothing ran: no calibration, no model, no daemon
+
+
+@pytest.mark.parametrize("tests", [["test5", "test2"], ["test5,test2"], ["test2,", "test5"], ["test5, test2"]])
+def test_tests_are_space_or_comma_separated_and_run_in_the_papers_order(tests: list[str]) -> None:
+    args = argparse.Namespace(tests=tests, cycles=1, calibration_cycles=1, speed=1.0)
+    assert check_args(args) == ["test2", "test5"]
+
+
+def test_a_span_of_one_figure_is_printed_once() -> None:
+    assert nm_span([38.2]) == "38 nm"
+    assert nm_span([37.6, 38.4]) == "38 nm"
+    assert nm_span([35.0, 62.0, 57.0]) == "35–62 nm"
+
+
+def test_the_discovery_line_is_measured_on_a_run_with_hysteresis_hidden(demo) -> None:
+    line = next((line for line in demo[0].stdout.splitlines() if line.strip().startswith("discovery:")), None)
+    assert line is not None, demo[0].stdout
+    assert "--effects hysteresis" in line and "--seed 3" in line
+    found = re.search(r"it names hysteresis \(term dir, p = [\d.e+-]+\).*held-out RMS falls from (\d+) to (\d+) nm",
+                      line)
+    assert found, line
+    assert int(found.group(2)) < int(found.group(1)) / 2  # the named effect removes most of the gap
 
 
 def test_a_daemon_that_fails_is_explained_with_its_log_lines_not_a_deleted_path(tmp_path) -> None:
@@ -135,3 +162,11 @@ def test_demo_shows_what_adaptation_and_the_uncertainty_add(tmp_path: Path) -> N
     assert adapt, out
     assert float(adapt.group(2)) < float(adapt.group(1))  # the tracker beats the static model out of range
     assert re.search(r"within ±2σ in test2 \d+ %, test5 \d+ %", out), out
+    # the health line is the serving daemon's own measurement (its status), not a sentence about it
+    health = re.search(r"health, from the serving daemon's status: (\w+) after (\d+) settled residual\(s\).*"
+                       r"mean ([+-]\d+) nm, RMS (\d+) nm", out)
+    assert health, out
+    assert health.group(1) == "unknown" and health.group(2) == "3"  # three held targets: too few to judge
+    assert abs(int(health.group(3))) < 100 and int(health.group(4)) < 100  # the calibrated model fits the cell
+    degrade = next(line for line in out.splitlines() if line.startswith("Test 5 degrades"))
+    assert re.search(r": \d+ nm against \d+ nm in range;", degrade), degrade  # one in-range test: "38 nm", not "38–38"

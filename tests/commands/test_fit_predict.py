@@ -1,10 +1,12 @@
 """``nanodrift fit`` and ``nanodrift predict`` as a user runs them."""
 
 import json
+import re
 import subprocess
 import sys
 
 import numpy as np
+import pytest
 from helpers.synthetic import paper_run
 
 from daemon.calibration.dataset import read_csv, write_csv
@@ -85,10 +87,18 @@ def test_fit_prints_the_equation_and_json_carries_the_same_in_nm(tmp_path, capsy
     model = load_model(tmp_path / "m2.json")
     assert doc["residual_rms_nm"] == model.fit["residual_rms_nm"] and doc["rows"] == 8 * 17
     assert doc["rmse_nm"] == model.fit["rmse_um"] * 1000.0  # every RMS in nm, in a key that says so
-    rms_keys = [k for k in doc if "rms_" in k or "rmse_" in k]
-    assert rms_keys and all(k.endswith("_nm") for k in rms_keys if k != "order_holdout_rms_um")
-    assert doc["order_holdout_rms_um"] == {}  # kept for scripts; fixed order: nothing was tried
-    assert doc["order_choice"] == "fixed" and doc["fit"] == model.fit  # the old keys are still there
+    assert doc["order_holdout_rms_nm"] == {} and doc["order_choice"] == "fixed"  # fixed order: nothing tried
+
+    def keys(node: object) -> list[str]:  # every key at any depth
+        if isinstance(node, dict):
+            return [k for k, v in node.items() for k in [k, *keys(v)]]
+        return [k for v in node for k in keys(v)] if isinstance(node, list) else []
+
+    rms_keys = [k for k in keys(doc) if re.search(r"(^|_)rmse?_", k)]
+    assert {"residual_rms_nm", "rmse_nm", "order_holdout_rms_nm"} <= set(rms_keys)
+    assert all(k.endswith("_nm") for k in rms_keys), rms_keys  # one unit per quantity: no µm duplicate
+    assert doc["fit"] == {"rmse_nm": doc["rmse_nm"], "r2": model.fit["r2"], "dof": model.fit["dof"],
+                          "rows": 8 * 17, "residual_rms_nm": doc["residual_rms_nm"]}
 
 
 def test_fit_json_order_scores_in_nm(tmp_path, capsys):
@@ -97,9 +107,13 @@ def test_fit_json_order_scores_in_nm(tmp_path, capsys):
     assert main(["fit", str(data_path), "--out", str(tmp_path / "m.json"), "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert set(doc["order_holdout_rms_nm"]) == {"1", "2", "3", "4", "5"}
-    for n, um in doc["order_holdout_rms_um"].items():
+    assert "order_holdout_rms_um" not in doc
+    for n, um in load_model(tmp_path / "m.json").selection["order_holdout_rms_um"].items():
         assert doc["order_holdout_rms_nm"][n] == um * 1000.0
     assert doc["holdout_rms_nm"] == doc["order_holdout_rms_nm"][str(doc["order"])]
+    held_um = load_model(tmp_path / "m.json").fit["holdout_rms_um"]
+    assert doc["fit"]["holdout_rms_nm"] == doc["holdout_rms_nm"] == pytest.approx(held_um * 1000.0)
+    assert not [k for k in doc["fit"] if k.endswith("_um")]
 
 
 def test_predict_says_what_it_did(tmp_path, capsys):

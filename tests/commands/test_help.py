@@ -2,6 +2,7 @@
 
 import argparse
 import importlib.metadata
+import re
 import subprocess
 import sys
 
@@ -79,3 +80,11 @@ def test_the_offline_tools_never_import_zenoh():
     run = subprocess.run([sys.executable, "-X", "importtime", "-m", "daemon.cli", "fit", "--help"],
                          capture_output=True, text=True, check=True)
     assert "import time:" in run.stderr and "zenoh" not in run.stderr
+
+
+@pytest.mark.parametrize("command", ["validate", "target", "fit", "predict", "demo", "calibrate", "status"])
+def test_units_for_people_are_micrometres_never_um(capsys, command):
+    text = " ".join(help_of(capsys, command).split())
+    assert not re.findall(r"(?<![\w-])um\b", text), f"{command} --help writes 'um' for µm"
+    if command == "validate":
+        assert "(default 1 µm, as [adapt] max_um)" in text

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -39,8 +40,9 @@ def test_target_prints_commands_as_json_lines(served: Served) -> None:
 def test_target_readable_output_and_refusals_exit_non_zero(served: Served) -> None:
     result = target(served, "100", "750")
     assert result.returncode == 1
-    assert "x 100.0000 um -> q" in result.stdout and served.model.id in result.stdout
-    assert "750" in result.stderr and "outside the workspace" in result.stderr
+    assert "x 100.0000 µm -> q" in result.stdout and " µm, " in result.stdout and served.model.id in result.stdout
+    assert "x 750 µm refused: x_um 750 outside the workspace [0, 500] µm" in result.stderr, result.stderr
+    assert not re.search(r"\bum\b", result.stdout + result.stderr)  # µm for people; x_um stays a JSON key
 
 
 def test_target_without_a_daemon_says_so(tmp_path: Path) -> None:

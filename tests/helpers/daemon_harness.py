@@ -18,7 +18,6 @@ import asyncio
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -33,6 +32,7 @@ from daemon.atomic import atomic_write_text
 from daemon.model.model import FittedTerm, Model, Training, save_model
 from daemon.model.terms import parse_term
 from drivers.base import Clock, DeviceError, DriverContext, DriverPlugin, Reading, SensorConfig, SensorGroup, WallClock
+from helpers.modbus_helpers import free_port  # one definition for every helper (re-exported here)
 
 REPO = Path(__file__).resolve().parents[2]
 TESTS = Path(__file__).resolve().parents[1]
@@ -136,7 +136,7 @@ def write_test_model(path: Path, terms: dict[str, float] | None = None) -> Model
     model = Model(
         terms=[FittedTerm(parse_term(name), coef) for name, coef in (terms or MODEL_TERMS).items()],
         training=Training(x_range=(0.0, 480.0), channel_ranges=dict(MODEL_CHANNEL_RANGES), rows=100, t_span_s=3600.0),
-        provenance={"source": "tests/daemon_harness.py"},
+        provenance={"source": "tests/helpers/daemon_harness.py"},
     )
     save_model(model, path)
     return model
@@ -148,12 +148,6 @@ def expected_q(x: float, temps: dict[str, float], terms: dict[str, float] | None
 
 
 # --- processes and sessions ----------------------------------------------------------------------
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def wait_until(predicate: Callable[[], Any], timeout: float, what: str, interval: float = 0.01) -> Any:

@@ -2,7 +2,7 @@
 
 Also runnable as a separate process (the daemon-level test kills and restarts it)::
 
-    python tests/modbus_helpers.py --port 15020 --values 21.5,22.0,...   # input registers 0.., x0.1
+    python tests/helpers/modbus_helpers.py --port 15020 --values 21.5,22.0,...   # input registers 0.., x0.1
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ FC_READ_INPUT = 4
 
 
 def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nobody listens on right now (the one definition; others import it)."""
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]

@@ -1,4 +1,9 @@
-"""``validate --adapt``: the daemon's bias tracker in the validation procedure, online = offline."""
+"""``validate --adapt``: the daemon's bias tracker in the validation procedure, online = offline.
+
+Offline is ``validate --adapt`` (:func:`daemon.procedure.validation.run_validation`); online is the
+daemon's health unit (``daemon.service.health``) fed through its compensator, command by command and
+reading by reading: both must give the same corrections, float for float.
+"""
 
 from __future__ import annotations
 
@@ -10,11 +15,18 @@ import pytest
 from helpers.sim_helpers import Capture, trained_model
 
 from daemon.assembly import simulated_drivers
+from daemon.bus.protocol import Target
 from daemon.calibration import iso9283
 from daemon.calibration.health import BiasTracker
 from daemon.cli import main
+from daemon.config import parse_config
+from daemon.logs import get_logger
 from daemon.model.model import Model, save_model
 from daemon.procedure.validation import run_validation
+from daemon.service.compensator import Compensator
+from daemon.service.health import HealthUnit
+from daemon.service.table import SensorTable
+from drivers.base import Reading, SensorConfig
 from drivers.simulated.plugin import shared_cell
 
 
@@ -49,6 +61,44 @@ def test_online_and_offline_trackers_agree_sample_for_sample() -> None:
     static = validate(model, 4, None, fault=True)
     for a, s, c in zip(online.steps, static.steps, online.corrections_um, strict=True):
         assert a.q_um - c == pytest.approx(s.q_um, abs=1e-9)
+
+
+def test_the_daemons_health_unit_gives_validate_adapts_corrections_sample_for_sample() -> None:
+    """The residuals of a ``validate --adapt`` run (one invalid step included), served by the daemon's
+    own pieces: each command's ``correction_um`` equals the correction ``validate`` gave that step."""
+    model = shifted(trained_model(0), 0.3)
+    offline_tracker = BiasTracker(300.0, 1.0)
+    offline = validate(model, 4, offline_tracker, fault=True)
+    assert not all(s.valid for s in offline.steps)
+
+    config = parse_config({"health": {"settle_s": 3.0, "window_s": 2.0},
+                           "adapt": {"mode": "bias", "tau_s": 300.0, "max_um": 1.0}, "sensors": []},
+                          source="adapt.toml")
+    channels = sorted(offline.steps[0].temperatures)
+    sensors = [SensorConfig(name=c, kind="x", max_age_s=60.0) for c in channels]
+    sensors.append(SensorConfig(name="interferometer", kind="x", role="position", max_age_s=60.0))
+    config = config.model_copy(update={"sensors": sensors})
+    table = SensorTable(config.sensors)
+    compensator = Compensator(model, config.actuator, table)
+    health = HealthUnit(config, model, get_logger("test"))
+    health.attach(compensator)
+
+    online = []
+    for i, step in enumerate(offline.steps):
+        # the daemon's window (settle 3 s, then 2 s) ends where the step's average ended: integer
+        # offsets from t_s, so the window's end is t_s to the last bit
+        t_command = step.t_s - 5.0
+        for channel, value in step.temperatures.items():
+            table.update(channel, Reading(value, t=t_command))
+        compensator.observe(t_command, step.temperatures)
+        command = compensator.compensate(Target(i, step.step.target_um), t_command, 1.7e9)
+        online.append(command.correction_um)
+        health.on_position(step.t_s - 1.0, step.t_s - 1.0, step.x_um, step.valid)  # inside the window
+        health.on_position(step.t_s + 0.5, step.t_s + 0.5, step.x_um, True)  # the next reading closes it
+    assert online == offline.corrections_um  # identical floats, command by command
+    assert health.correction_um == offline_tracker.correction_um
+    assert health.monitor.n == sum(s.valid for s in offline.steps)
+    assert online[-1] < -0.1  # it moved towards cancelling the +0.3 um
 
 
 def test_adaptation_removes_a_changed_cells_offset() -> None:

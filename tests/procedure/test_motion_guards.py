@@ -7,6 +7,7 @@ import asyncio
 import itertools
 import math
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import pytest
@@ -14,7 +15,7 @@ from helpers.sim_helpers import Capture
 
 from daemon.assembly import simulated_drivers
 from daemon.calibration.dataset import read_csv
-from daemon.calibration.plans import PlannedStep, StepTiming
+from daemon.calibration.plans import PlannedStep, StepTiming, calibration_plan
 from daemon.cli import main
 from daemon.config import ActuatorConfig
 from daemon.procedure.follow import FollowCheck, StageNotFollowingError
@@ -24,14 +25,19 @@ from drivers.base import Actuator, Clock, DriverSet
 
 
 class Wired(Actuator):
-    """Between the procedure and the simulated stage: records (time, q, V); ``gain`` is what the stage gets."""
+    """Between the procedure and the simulated stage: records (time, q, V); ``gain`` is what the stage gets;
+    ``holds`` is what reading the output back answers (None: it cannot be read)."""
 
     def __init__(self, inner: Actuator, clock: Clock, gain: float = 1.0) -> None:
         self.inner, self.clock, self.gain = inner, clock, gain
         self.sent: list[tuple[float, float, float]] = []
+        self.holds: tuple[Literal["voltage_v", "q_um"], float] | None = None
 
     async def open(self) -> None:
         await self.inner.open()
+
+    async def read_back(self) -> tuple[Literal["voltage_v", "q_um"], float] | None:
+        return self.holds
 
     async def command(self, q_um: float, voltage_v: float, *, x_um: float | None = None) -> None:
         self.sent.append((self.clock.now(), q_um, voltage_v))
@@ -96,12 +102,38 @@ def test_a_jump_is_ramped_no_faster_than_max_slew_and_ends_at_the_target() -> No
     assert results[1].x_um == pytest.approx(480.0, abs=1.0)  # the stage got there
 
 
+def test_the_first_ramp_starts_where_the_output_reads_back_also_when_a_run_resumes(tmp_path: Path) -> None:
+    limits = ActuatorConfig(max_slew_um_per_s=100.0)
+    data = tmp_path / "cal.csv"
+    plan = calibration_plan(2)  # two sweeps 0 .. 480 um
+    first, _ = wired()
+    asyncio.run(record_calibration(first, data, limits=limits, plan=plan[:17], progress_stream=Capture()))
+    last_t = float(read_csv(data).t[-1])
+    # the run was stopped after its first sweep; the output still holds 480 um (9.6 V) when it resumes
+    drivers = simulated_drivers("train", seed=1, start_s=last_t + 1.0)
+    assert drivers.actuator is not None
+    actuator = Wired(drivers.actuator, drivers.clock)
+    drivers.actuator = actuator
+    actuator.holds = ("voltage_v", 9.6)
+    stream = Capture()
+    assert asyncio.run(record_calibration(drivers, data, limits=limits, plan=plan, resume=True,
+                                          progress_stream=stream)) == 17
+    descent = [q for _, q, _ in actuator.sent][:19]  # 480 -> 0 um at 100 um/s: 4.8 s, 19 steps
+    assert descent[0] == pytest.approx(480.0 - 480.0 / 19) and descent[-1] == 0.0  # not a jump from 480 to 0
+    rates = [abs(q1 - q0) / (t1 - t0) for (t0, q0, _), (t1, q1, _) in itertools.pairwise(actuator.sent) if t1 > t0]
+    assert max(rates) <= 100.0 * (1 + 1e-9)
+    assert "where the stage is before the first move is unknown" not in stream.getvalue()
+    # the plan's time left: 17 steps of a 4 s rise and a 25 s hold, the first rise stretched to 4.8 s
+    assert stream.getvalue().splitlines()[0] == "calibration: 17/34 steps, 0:08:14 left (planned), 0 invalid"
+
+
 def test_the_paper_ramp_is_kept_when_it_is_slower_than_the_limit() -> None:
     drivers, actuator = wired()
     plan = [PlannedStep(0, 0, 0.0), PlannedStep(1, 0, 30.0)]
     asyncio.run(run_steps(drivers, plan, limits=ActuatorConfig(max_slew_um_per_s=100.0)))
     moving = [(t, q) for t, q, _ in actuator.sent if 0 < q]
-    assert len(actuator.sent) == 32 and moving[-1][0] - moving[0][0] == pytest.approx(4.0 - 0.25)  # 16 x 0.25 s
+    # the first move (to 0 um, from where the simulated stage is: unknown, it cannot be read back) is one write
+    assert len(actuator.sent) == 1 + 16 and moving[-1][0] - moving[0][0] == pytest.approx(4.0 - 0.25)  # 16 x 0.25 s
 
 
 def test_a_finite_safe_voltage_is_where_the_stage_is_left_even_after_a_failure(tmp_path: Path) -> None:

@@ -49,9 +49,21 @@ def test_a_serving_daemon_refuses_the_procedure_before_anything_moves(tmp_path: 
             assert ("a daemon is commanding cell 'hil' (its liveliness token nanodrift/hil/alive is present): stop it "
                     "first (systemctl stop nanodrift)") in err
             assert emulated.device.reads == [] and emulated.device.writes == []  # nothing was opened
-            assert main(["validate", "--config", str(config), "--model", str(tmp_path / "absent.json")]) == 2
             token.undeclare()
             assert calibrate(config, tmp_path) == 0  # the daemon stopped: the run goes ahead
+            model = tmp_path / "m.json"
+            assert model.exists()
+            capsys.readouterr()
+
+            token = daemon.liveliness().declare_token("nanodrift/hil/alive")  # a daemon serves the cell again
+            reads, writes, lines = len(emulated.device.reads), len(emulated.device.writes), len(emulated.voltages)
+            assert main(["validate", "--config", str(config), "--model", str(model)]) == 2  # a real model: it loads
+            err = capsys.readouterr().err
+            assert ("a daemon is commanding cell 'hil' (its liveliness token nanodrift/hil/alive is present): stop it "
+                    "first (systemctl stop nanodrift)") in err
+            assert (len(emulated.device.reads), len(emulated.device.writes), len(emulated.voltages)) == (
+                reads, writes, lines), "the refused validation touched the cell"
+            token.undeclare()
     finally:
         daemon.close()
 
@@ -90,7 +102,8 @@ def test_kind_serial_line_calibrates_and_validates_through_a_gcs_controller(
         assert calibrate(config, tmp_path) == 0
         assert "stage driven by the controller on " in capsys.readouterr().err
         lines = emulated.controller.lines
-        assert lines[:3] == ["SVA 1 0.0000", "SVA? 1", "ERR?"] and "SVA 1 9.6000" in lines
+        # where the stage is is asked first (the first ramp starts there), then each command is checked
+        assert lines[:4] == ["SVA? 1", "SVA 1 0.0000", "SVA? 1", "ERR?"] and "SVA 1 9.6000" in lines
         assert len(read_csv(tmp_path / "cal.csv")) == 34
         assert main(["validate", "--config", str(config), "--model", str(tmp_path / "m.json"), "--cycles", "1",
                      "--json"]) == 0

@@ -40,8 +40,12 @@ def test_progress_is_a_line_per_cycle_when_not_a_tty(tmp_path):
     backend = simulated_drivers("train", seed=1)
     asyncio.run(record_calibration(backend, tmp_path / "d.csv", cycles=3, progress_stream=stream))
     lines = stream.getvalue().splitlines()
-    assert len(lines) == 3 and lines[-1].startswith("calibration: 51/51 steps, 0:00:00 left")
-    assert "17/51" in lines[0] and "0:16:26 left" not in lines[0]  # wall-clock time, not the cell's 34 x 29 s
+    # the simulated stage says where it is (read back): no "unknown start" note before the plan
+    assert not any("before the first move is unknown" in line for line in lines)
+    # at the start, the plan's 51 x (4 s + 25 s) of cell time; then a line per cycle at the measured pace
+    assert lines[0] == "calibration: 0/51 steps, 0:24:39 left (planned), 0 invalid"
+    assert len(lines) == 4 and lines[-1].startswith("calibration: 51/51 steps, 0:00:00 left")
+    assert "17/51" in lines[1] and "0:16:26 left" not in lines[1]  # wall-clock time, not the cell's 34 x 29 s
 
 
 def _run(backend, path, cycles=1, **kw) -> list[StepResult]:

@@ -8,6 +8,7 @@ import struct
 from pathlib import Path
 
 import matplotlib.pyplot as plt
+import numpy as np
 import pytest
 from helpers.discovery_helpers import cell_run, paper_model
 
@@ -140,5 +141,78 @@ def test_nothing_found_is_reported_with_what_the_run_cannot_show(nothing, tmp_pa
     assert "nothing found; no model written" in report
     cannot = report.split("## What this run cannot show", 1)[1]
     assert "**hysteresis**" in cannot and "nanodrift simulate --scenario bidirectional" in cannot
+
+
+
+def test_time_and_temperatures_are_drawn_as_continuous_axes_on_a_real_report(nothing) -> None:
+    """A forward-only calibration (408 rows over 3.3 h): every row at its own time, binned means across the run."""
+    hours = nothing.variables["t"][1] / 3600.0
+    for variable, span in (("t", (hours.min(), hours.max())), ("T1", None), ("rate(T1)", None)):
+        ax = figure_residuals(nothing, variable).axes[0]
+        xs = np.concatenate([c.get_offsets()[:, 0] for c in ax.collections if len(c.get_offsets())])
+        values = nothing.variables[variable][1] / (3600.0 if variable == "t" else 1.0)
+        assert np.unique(values).size > 100
+        assert set(np.round(xs, 9)) == set(np.round(values, 9)), variable  # each row at its value, no category
+        assert not [t.get_text() for t in ax.get_xticklabels() if t.get_text() and not _numeric(t.get_text())]
+        means = [line for line in ax.get_lines() if len(line.get_xdata()) >= 10]
+        assert means, f"{variable}: no binned-mean line"
+        if span is not None:
+            assert xs.min() == pytest.approx(span[0], abs=1e-9) and xs.max() == pytest.approx(span[1], abs=1e-9)
+            centres = means[0].get_xdata()
+            assert centres[0] < 0.2 * span[1] and centres[-1] > 0.8 * span[1]  # the means cover the run
+
+
+def _numeric(text: str) -> bool:
+    try:
+        float(text.replace("−", "-"))
+    except ValueError:
+        return False
+    return True
+
+
+def test_a_value_with_one_row_shows_that_row_beside_its_mean(nothing) -> None:
+    """Forward-only "last step": 0 µm is one row (the first); its point must not hide under the mean marker."""
+    ax = figure_residuals(nothing, "last_step").axes[0]
+    zero = [t.get_text() for t in ax.get_xticklabels()].index("0")
+    points = np.concatenate([c.get_offsets() for c in ax.collections if len(c.get_offsets())])
+    here = points[np.abs(points[:, 0] - zero) < 0.5]
+    mean_x = [x for line in ax.get_lines() if line.get_marker() == "D" for x in line.get_xdata()
+              if abs(x - zero) < 0.5]
+    assert len(here) >= 1 and len(mean_x) == 1
+    assert np.min(np.abs(here[:, 0] - mean_x[0])) > 0.1  # beside the diamond, not under it
+
+
+@pytest.mark.parametrize("variable", ["t", "last_step", "dir"])
+def test_the_legend_sits_below_the_data(nothing, hysteresis, variable) -> None:
+    for result in (nothing, hysteresis):
+        fig = figure_residuals(result, variable)
+        fig.canvas.draw()
+        ax = fig.axes[0]
+        legend, frame = ax.get_legend().get_window_extent(), ax.get_window_extent()
+        assert legend.y1 <= frame.y0, "the legend overlaps the plotted data"
+
+
+def test_nothing_found_shows_the_given_model_never_hidden_under_its_refit(nothing) -> None:
+    """The same terms refitted on the same run change nothing: one series, said so, not two stacked."""
     legend = figure_residuals(nothing, "t").axes[0].get_legend()
-    assert "the given terms refitted on this run: each row" in [t.get_text() for t in legend.get_texts()]
+    entries = [t.get_text() for t in legend.get_texts()]
+    assert entries == ["given model: each row", "given model: binned mean"], entries
+    assert "changes no residual by more than 0.1 nm" in legend.get_title().get_text()
+
+
+def test_a_given_model_from_another_run_is_drawn_over_its_refit() -> None:
+    """Nothing found with a model fitted elsewhere: both series, the given model's drawn last and on top."""
+    data = cell_run("", seed=0, cycles=12)
+    result = discover(data, paper_model(cell_run("", seed=7, cycles=12)))
+    assert not result.found, result.summary
+    assert np.max(np.abs(result.residual_before - result.residual_after)) * 1000 > 0.1
+    for variable in ("t", "last_step"):
+        entries = [t.get_text() for t in figure_residuals(result, variable).axes[0].get_legend().get_texts()]
+        assert {"given model: each row", "the given terms refitted on this run: each row"} <= set(entries)
+    lines = {line.get_label(): line for line in figure_residuals(result, "t").axes[0].get_lines()}
+    given, refit = lines["given model: binned mean"], lines["the given terms refitted on this run: binned mean"]
+    assert given.get_zorder() > refit.get_zorder()  # drawn over the refit's line
+    assert given.get_linestyle() != refit.get_linestyle() and given.get_markerfacecolor() == "white"
+    ax = figure_residuals(result, "last_step").axes[0]
+    means = [line.get_xdata() for line in ax.get_lines() if line.get_marker() == "D"]
+    assert len(means) == 2 and np.all(np.abs(means[0] - means[1]) > 0.2)  # side by side, never stacked

@@ -204,7 +204,7 @@ def test_watchdog_health_fails_when_a_poller_dies_or_stops_making_progress() -> 
         async def close(self) -> None: ...
 
     async def check() -> tuple[bool, bool, bool]:
-        poller = GroupPoller(Idle(), WallClock(), lambda g, r: None, lambda g, reason, delay: None)
+        poller = GroupPoller(Idle(), WallClock(), lambda g, r: None, lambda g, reason, delay, failures: None)
         poller.task = asyncio.get_running_loop().create_task(asyncio.sleep(60))
         healthy = pollers_healthy([poller])
         poller.last_progress = time.monotonic() - GroupPoller.MAX_BACKOFF_S * 2  # stuck for a minute

@@ -145,16 +145,25 @@ def test_faulted_channel_is_refused_with_the_device_reason(served: Served) -> No
 
 def test_failing_device_is_reopened_with_backoff_and_recovers(served: Served) -> None:
     client = served.client
+    failed_before = len(served.daemon.log_events("sensor_group_failed"))
+    recovered_before = len(served.daemon.log_events("sensor_group_recovered"))
     try:
         served.sensors.write(error="link down")
         error = wait_until(lambda: (a := client.query({"x_um": 50, "id": "d"}))[0] is False and a[1], 10,
                            "a refusal while the device fails", interval=0.05)
         assert "link down" in error["error"]
-        served.daemon.wait_log("sensor_group_failed", count=2)  # retried: closed and reopened
+        first = served.daemon.wait_log("sensor_group_failed", count=failed_before + 1)
+        assert "link down" in first["reason"] and first["retry_in_s"] > 0
+        served.sensors.write(error="link still down")  # only a reopen attempt can report the new reason
+        wait_until(lambda: "link still down" in str(client.query({"x_um": 50, "id": "d1"})[1].get("error")), 10,
+                   "a refusal with the reason of a later attempt", interval=0.05)
     finally:
         served.sensors.write(error=None)
     wait_until(lambda: client.query({"x_um": 50, "id": "d2"})[0], 15, "recovered after reopen", interval=0.05)
-    served.daemon.wait_log("sensor_group_recovered")
+    recovered = served.daemon.wait_log("sensor_group_recovered", count=recovered_before + 1)
+    assert recovered["failures"] >= 2 and recovered["down_s"] > 0  # retried: closed and reopened
+    # one line for the whole episode, not one per attempt
+    assert len(served.daemon.log_events("sensor_group_failed")) == failed_before + 1
 
 
 def test_extrapolation_is_flagged_in_command_and_status(served: Served) -> None:

@@ -20,7 +20,7 @@ TEMPS = {"T1": 21.8, "T2": 21.9}  # inside the test model's training ranges
 
 
 class ModbusModuleProcess:
-    """tests/modbus_helpers.py serving input registers 0.. as int16 x0.1 degC on 127.0.0.1:port."""
+    """tests/helpers/modbus_helpers.py serving input registers 0.. as int16 x0.1 degC on 127.0.0.1:port."""
 
     def __init__(self, port: int, values: list[float]) -> None:
         self.port = port

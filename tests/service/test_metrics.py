@@ -1,14 +1,19 @@
 """``[metrics] listen``: Prometheus metrics scraped over HTTP on 127.0.0.1 from a running daemon.
 
-The daemon runs the harness' ``file`` plugin and test model; targets (served and refused) and a
-sensor fault must show in the scraped counters, histogram and gauges. The collector's handling of
-the health and actuator fields is tested on documents that carry them, and two servers in one
-process keep their own registries.
+The daemon runs the harness' ``file`` plugin (two thermocouples and an interferometer) and test
+model; targets (served and refused), a stale and a faulted sensor must show in the scraped counters,
+histogram and gauges, in base units. A daemon driving a Modbus output module (the helpers' pymodbus
+server, as a process) shows its actuator's state, ok then fault. The collector's handling of the
+health fields is tested on documents that carry them, and two servers in one process keep their own
+registries.
 """
 
 from __future__ import annotations
 
+import signal
 import socket
+import subprocess
+import sys
 import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
@@ -17,6 +22,7 @@ from typing import Any
 import pytest
 from helpers.daemon_harness import (
     TEMPS,
+    TESTS,
     Client,
     Daemon,
     SensorFile,
@@ -46,17 +52,27 @@ def value(samples: Samples, name: str, **labels: str) -> float | None:
     return samples.get((name, tuple(sorted(labels.items()))))
 
 
+POSITION_UM = 240.5
+
+
+def position_sensor(path: Path) -> str:
+    """An interferometer channel on the ``file`` plugin (it reads µm for role = "position")."""
+    return (f'\n[[sensors]]\nname = "interferometer"\nrole = "position"\nkind = "file"\npath = "{path}"\n'
+            "interval_s = 0.05\nmax_age_s = 2.0\ntimeout_s = 0.5\n")
+
+
 class MeteredCell:
     def __init__(self, root: Path, cell: str = "metered") -> None:
         self.cell = cell
         self.port, self.metrics_port = free_port(), free_port()
-        self.sensors = SensorFile(root / "sensors.json", TEMPS)
+        self.sensors = SensorFile(root / "sensors.json", {**TEMPS, "interferometer": POSITION_UM})
         model = root / "model.json"
         write_test_model(model)
         config = root / "nanodrift.toml"
         config.write_text(file_sensor_config(root, cell=cell, port=self.port, model_path=model,
                                              sensor_file=self.sensors.path,
-                                             extra=f'[metrics]\nlisten = "127.0.0.1:{self.metrics_port}"'))
+                                             extra=f'[metrics]\nlisten = "127.0.0.1:{self.metrics_port}"\n'
+                                                   + position_sensor(self.sensors.path)))
         self.config = config
         self.plugins = install_file_plugin(root / "plugins")
         self.daemon = Daemon(["--config", str(config)], root / "daemon.log", [self.plugins])
@@ -100,22 +116,39 @@ def test_targets_commands_errors_and_latency_are_counted(metered: MeteredCell) -
     assert value(after, "nanodrift_model_info", cell=c, model=metered.client.status()["model"]["id"]) == 1.0
 
 
-def test_sensor_value_age_and_state_per_channel(metered: MeteredCell) -> None:
+def sensor_states(samples: Samples, cell: str, channel: str) -> dict[str, float | None]:
+    return {state: value(samples, "nanodrift_sensor_state", cell=cell, channel=channel, state=state)
+            for state in ("ok", "stale", "fault")}
+
+
+def test_sensor_readings_in_base_units_age_and_state_per_channel(metered: MeteredCell) -> None:
     c = metered.cell
     samples = scrape(metered.url)
-    assert value(samples, "nanodrift_sensor_value", cell=c, channel="T1", role="temperature",
-                 unit="degC") == pytest.approx(TEMPS["T1"])
+    assert value(samples, "nanodrift_temperature_celsius", cell=c, channel="T1") == pytest.approx(TEMPS["T1"])
+    assert value(samples, "nanodrift_temperature_celsius", cell=c, channel="T2") == pytest.approx(TEMPS["T2"])
+    assert value(samples, "nanodrift_position_meters", cell=c, channel="interferometer") == pytest.approx(
+        POSITION_UM * 1e-6)
+    assert value(samples, "nanodrift_temperature_celsius", cell=c, channel="interferometer") is None
+    assert not any(name.startswith("nanodrift_sensor_value") for name, _ in samples)
     assert 0.0 <= value(samples, "nanodrift_sensor_age_seconds", cell=c, channel="T2") < 2.0
-    assert value(samples, "nanodrift_sensor_ok", cell=c, channel="T1") == 1.0
-    metered.sensors.write(fault={"T1": "burnout"})
+    assert sensor_states(samples, c, "T1") == {"ok": 1.0, "stale": 0.0, "fault": 0.0}
+
+
+def test_stale_and_fault_are_different_series(metered: MeteredCell) -> None:
+    c = metered.cell
+    metered.sensors.write(fault={"T1": "burnout"}, age={"T2": 30.0})  # T2's readings are 30 s old
     try:
-        wait_until(lambda: value(scrape(metered.url), "nanodrift_sensor_ok", cell=c, channel="T1") == 0.0, 15,
-                   "nanodrift_sensor_ok{channel=T1} 0 after a burnout", interval=0.1)
-        assert value(scrape(metered.url), "nanodrift_sensor_ok", cell=c, channel="T2") == 1.0
+        wait_until(lambda: sensor_states(scrape(metered.url), c, "T1") == {"ok": 0.0, "stale": 0.0, "fault": 1.0},
+                   15, "nanodrift_sensor_state{channel=T1,state=fault} 1 after a burnout", interval=0.1)
+        wait_until(lambda: sensor_states(scrape(metered.url), c, "T2") == {"ok": 0.0, "stale": 1.0, "fault": 0.0},
+                   15, "nanodrift_sensor_state{channel=T2,state=stale} 1 for old readings", interval=0.1)
+        samples = scrape(metered.url)
+        assert value(samples, "nanodrift_sensor_age_seconds", cell=c, channel="T2") >= 30.0
+        assert sensor_states(samples, c, "interferometer")["ok"] == 1.0
     finally:
-        metered.sensors.write(fault={})
-    wait_until(lambda: value(scrape(metered.url), "nanodrift_sensor_ok", cell=c, channel="T1") == 1.0, 15,
-               "T1 ok again", interval=0.1)
+        metered.sensors.write(fault={}, age={})
+    wait_until(lambda: sensor_states(scrape(metered.url), c, "T1")["ok"] == 1.0
+               and sensor_states(scrape(metered.url), c, "T2")["ok"] == 1.0, 15, "T1 and T2 ok again", interval=0.1)
 
 
 def test_a_taken_metrics_port_stops_the_daemon_with_one_sentence(metered: MeteredCell, tmp_path: Path) -> None:
@@ -139,6 +172,65 @@ def fake_doc(cell: str, **extra: Any) -> dict[str, Any]:
             "sensors": {"T1": {"role": "temperature", "value": 21.5, "unit": "degC", "age_s": 0.2, "state": "ok"}},
             "counters": {"targets": 5, "commands": 4, "errors": {"stale": 1}, "reloads": 0, "reload_failures": 0},
             **extra}
+
+
+class OutputModuleProcess:
+    """tests/helpers/modbus_helpers.py as a process: a Modbus TCP module whose holding registers take writes."""
+
+    def __init__(self, port: int) -> None:
+        self.proc = subprocess.Popen(
+            [sys.executable, str(TESTS / "helpers" / "modbus_helpers.py"), "--port", str(port)],
+            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+        assert self.proc.stdout is not None
+        line = self.proc.stdout.readline()  # blocks until the server listens (or the process dies)
+        assert "ready" in line, f"modbus module did not start: {line!r}"
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGKILL)
+        self.proc.wait(10)
+        if self.proc.stdout is not None:
+            self.proc.stdout.close()
+
+
+def test_a_live_daemon_shows_its_device_actuators_state(tmp_path: Path) -> None:
+    """``[actuator] kind = "modbus"``: the state comes from the actuation (not the config), ok then fault."""
+    cell, port, metrics_port, modbus_port = "driven", free_port(), free_port(), free_port()
+    module = OutputModuleProcess(modbus_port)
+    sensors = SensorFile(tmp_path / "sensors.json", TEMPS)
+    model = tmp_path / "model.json"
+    write_test_model(model)
+    config = tmp_path / "nanodrift.toml"
+    config.write_text(file_sensor_config(
+        tmp_path, cell=cell, port=port, model_path=model, sensor_file=sensors.path,
+        actuator='kind = "modbus"\nhub = "out"\ndevice_id = 1\naddress = 10\nscale = 0.001\nvolts_per_um = 0.02\n',
+        extra=(f'[[hubs]]\nname = "out"\ntype = "tcp"\nhost = "127.0.0.1"\nport = {modbus_port}\ntimeout_s = 0.3\n'
+               f'[metrics]\nlisten = "127.0.0.1:{metrics_port}"\n')))
+    daemon = Daemon(["--config", str(config)], tmp_path / "daemon.log", [install_file_plugin(tmp_path / "plugins")])
+    client = None
+    try:
+        daemon.wait_log("serving", timeout=30)
+        url = daemon.wait_log("metrics_listening")["url"]
+        client = Client(port, cell)
+        client.wait_ready(["T1", "T2"])
+        assert client.query({"x_um": 100.0, "id": 1})[0]
+        wait_until(lambda: client.status()["actuator"]["writes"] >= 1, 15, "the first write to the module")
+        samples = scrape(url)
+        assert value(samples, "nanodrift_actuator_state", cell=cell, kind="modbus", state="ok") == 1.0
+        assert value(samples, "nanodrift_actuator_state", cell=cell, kind="modbus", state="fault") == 0.0
+        assert value(samples, "nanodrift_actuator_ok", cell=cell, kind="modbus") == 1.0
+        module.kill()
+        assert client.query({"x_um": 200.0, "id": 2})[0]  # answered at once; its write then fails
+        wait_until(lambda: value(scrape(url), "nanodrift_actuator_state", cell=cell, kind="modbus",
+                                 state="fault") == 1.0, 15, "nanodrift_actuator_state{state=fault} 1", interval=0.1)
+        samples = scrape(url)
+        assert value(samples, "nanodrift_actuator_state", cell=cell, kind="modbus", state="ok") == 0.0
+        assert value(samples, "nanodrift_actuator_ok", cell=cell, kind="modbus") == 0.0
+    finally:
+        if client is not None:
+            client.close()
+        module.kill()
+        assert daemon.stop() == 0
 
 
 def test_two_servers_in_one_process_keep_their_own_registries() -> None:
@@ -171,6 +263,7 @@ def test_two_servers_in_one_process_keep_their_own_registries() -> None:
     assert value(two, "nanodrift_health_state", cell="two", state="degraded") == 1
     assert value(two, "nanodrift_actuator_ok", cell="two", kind="modbus") == 0
     assert value(two, "nanodrift_actuator_state", cell="two", kind="modbus", state="fault") == 1
+    assert value(two, "nanodrift_actuator_state", cell="two", kind="modbus", state="ok") == 0
     with socket.socket() as probe:  # stopped: nobody listens there any more
         assert probe.connect_ex(("127.0.0.1", int(first_url.rsplit(":", 1)[1].split("/")[0]))) != 0
 

@@ -105,6 +105,7 @@ def test_status_payload_bytes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -
         b'"max_slew_um_per_s":0.0,"safe_voltage_v":null,"state":"ok","reason":null,"output":"published",'
         b'"device":null},'
         b'"counters":{"targets":0,"commands":0,"errors":{},"errors_total":0,"reloads":0,"reload_failures":0},'
-        b'"healthy":true}'
+        b'"healthy":true,"health":{"state":"unknown","residual_rms_nm":null,"residual_mean_nm":null,"n":0,'
+        b'"correction_um":null,"extrapolating":[],"advice":null}}'
     ).replace(b"@MODEL@", model_path)
-    assert dumps(status_doc(service.state, service.healthy())) == expected
+    assert dumps(status_doc(service.state, service.healthy(), health=service.health)) == expected

@@ -5,18 +5,31 @@ package's default model; the real sensors stay. (3) Non-finite numbers in an edi
 naming the field. (5) A deeply nested model JSON is refused on SIGHUP (logged, counted) and a daemon
 started with it runs without a model. The hardware cell is the harness's ``file`` plugin: a
 non-simulated driver found by entry point, as a lab's own would be.
+
+Also: a deeply nested *config* on SIGHUP, a reload from the simulated cell to Modbus, and a
+reload that fails in an unexpected way are refused, logged as ``reload_refused`` and counted, and
+the daemon keeps serving with what it had; check-config says the same as the reload does; and a
+model stamped with the old id scheme whose served content changed under the same id is applied.
 """
 
 from __future__ import annotations
 
+import asyncio
+import json
 import re
 import signal
+import subprocess
+import sys
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from helpers.daemon_harness import (
+    MODEL_TERMS,
+    REPO,
     TEMPS,
     Client,
     Daemon,
@@ -27,10 +40,16 @@ from helpers.daemon_harness import (
     free_port,
     install_file_plugin,
     wait_until,
+    write_test_model,
 )
+from helpers.log_capture import captured_logging, json_lines
 
-from daemon.config import DEFAULT_MODEL_PATH
-from daemon.model.model import load_model
+import daemon.service.reload as reload_module
+from daemon.assembly import build_drivers
+from daemon.config import DEFAULT_MODEL_PATH, TOO_DEEP, load_config
+from daemon.model.model import Model, load_model, save_model
+from daemon.model.uncertainty import Covariance
+from daemon.service.runner import Service
 
 NESTED = "[" * 100_000 + "]" * 100_000
 SIMULATED_CHANNELS = {"T3", "T4", "interferometer"}
@@ -90,7 +109,16 @@ def test_an_emptied_config_never_swaps_the_hardware_for_the_simulator_or_the_def
         assert s.model.id != default_model
         s.config_path.write_text("")  # `: > nanodrift.toml`
         line = hup_and_wait(s.daemon, "reload_refused", "reload_applied")
-        assert line.get("model") != default_model, f"the emptied config swapped in the package's default model: {line}"
+        # an empty file's model is the hardware default path: refused when it is missing (this machine),
+        # else for removing every sensor; either way refused, never applied
+        if Path("/var/lib/nanodrift/model.json").exists():
+            expected = "sensors: the edited config lists no sensors (an emptied file?)"
+        else:
+            expected = "model.path: /var/lib/nanodrift/model.json: no such model file"
+        assert line["event"] == "reload_refused" and line["config"] == str(s.config_path), line
+        assert len(line["problems"]) == 1 and line["problems"][0].startswith(expected), line["problems"]
+        assert s.client.status()["counters"]["reload_failures"] == 1
+        assert s.client.status()["counters"]["reloads"] == 0
 
         s.sensors.set(T1=21.95)  # the file driver is still polled: the new value shows up
 
@@ -194,3 +222,194 @@ def test_run_with_a_deeply_nested_model_starts_without_a_model(tmp_path: Path) -
             client.close()
     finally:
         assert daemon.stop() == 0
+
+
+# --- a simulated cell's daemon ----------------------------------------------------------------------
+
+
+def sim_config(port: int, cell: str) -> str:
+    return (f'cell = "{cell}"\n[zenoh]\nlisten = ["tcp/127.0.0.1:{port}"]\nmulticast_scouting = false\n'
+            f'[model]\npath = "{DEFAULT_MODEL_PATH}"\n[simulation]\nscenario = "room"\nspeed = 5.0\n')
+
+
+@contextmanager
+def sim_daemon(root: Path, cell: str) -> Iterator[tuple[Daemon, Client, Path]]:
+    """A daemon on the simulated cell (no [[sensors]]: T1..T4 and the interferometer), ready, and a client."""
+    port = free_port()
+    config = root / "sim.toml"
+    config.write_text(sim_config(port, cell))
+    daemon = Daemon(["--config", str(config)], root / "daemon.log")
+    try:
+        daemon.wait_log("serving", timeout=30)
+        client = Client(port, cell)
+        try:
+            client.wait_ready(["T1", "T2", "T3", "T4", "interferometer"])
+            yield daemon, client, config
+        finally:
+            client.close()
+    finally:
+        assert daemon.stop() == 0
+
+
+def still_simulated(client: Client, target_id: str) -> None:
+    """Still the simulated cell with the shipped model, answering a target."""
+    status = client.status()
+    assert set(status["sensors"]) == {"T1", "T2", "T3", "T4", "interferometer"}, status["sensors"]
+    assert status["model"]["id"] == load_model(DEFAULT_MODEL_PATH).id
+    ok, command = client.query({"x_um": 240.0, "id": target_id})
+    assert ok and command["id"] == target_id, command
+
+
+def test_a_deeply_nested_config_on_sighup_is_refused_logged_and_counted(tmp_path: Path) -> None:
+    with sim_daemon(tmp_path, "deepcfg") as (daemon, client, config):
+        config.write_text("x = " + NESTED)
+        line = hup_and_wait(daemon, "reload_refused", "reload_applied")
+        assert line["event"] == "reload_refused", line
+        assert line["config"] == str(config) and line["problems"] == [TOO_DEEP], line
+        assert client.status()["counters"]["reload_failures"] == 1
+        still_simulated(client, "after-deep-config")
+        check = subprocess.run([sys.executable, "-m", "daemon.cli", "check-config", str(config)], cwd=REPO,
+                               capture_output=True, text=True, timeout=60)
+        assert check.returncode == 2 and f"error: {config}: {TOO_DEEP}" in check.stderr, check.stderr
+    stderr = daemon.log_path.read_text(errors="replace")
+    assert "Traceback" not in stderr and "Task exception was never retrieved" not in stderr
+    assert not daemon.log_events("uncaught_exception")
+
+
+def test_a_reload_from_the_simulated_cell_to_modbus_is_refused_restart_needed(tmp_path: Path) -> None:
+    with sim_daemon(tmp_path, "simtohw") as (daemon, client, config):
+        text = config.read_text()
+        hardware = text[:text.index("[simulation]")] + (
+            f'[[hubs]]\nname = "adam"\nhost = "127.0.0.1"\nport = {free_port()}\n'
+            + "".join(f'[[sensors]]\nname = "T{i + 1}"\nkind = "modbus"\nhub = "adam"\naddress = {i}\nscale = 0.1\n'
+                      for i in range(4)))
+        config.write_text(hardware)
+        line = hup_and_wait(daemon, "reload_refused", "reload_applied")
+        assert line["event"] == "reload_refused", line
+        assert line["problems"] == [
+            "the edited config describes hardware, the daemon runs the simulated cell: a reload never switches "
+            "between them (systemctl restart nanodrift)"], line["problems"]
+        counters = client.status()["counters"]
+        assert (counters["reload_failures"], counters["reloads"]) == (1, 0), counters
+        still_simulated(client, "after-modbus")
+
+
+def test_check_config_and_the_reload_agree_on_a_sensorless_file(restore: Served) -> None:
+    """The file an emptied install leaves (its model still there): both refuse it, for the same reason."""
+    s = restore
+    failures = s.client.status()["counters"]["reload_failures"]
+    s.config_path.write_text(f'cell = "integrity"\n[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{s.port}"]\n'
+                             f'multicast_scouting = false\n[model]\npath = "{s.model_path}"\n')
+    line = hup_and_wait(s.daemon, "reload_refused", "reload_applied")
+    assert line["event"] == "reload_refused", line
+    assert line["problems"][0].startswith("sensors: the edited config lists no sensors"), line["problems"]
+    assert s.client.status()["counters"]["reload_failures"] == failures + 1
+    check = subprocess.run([sys.executable, "-m", "daemon.cli", "check-config", str(s.config_path)], cwd=REPO,
+                           capture_output=True, text=True, timeout=60)
+    assert check.returncode == 2, check
+    assert f"{s.config_path}: sensors: the config lists no sensors (an emptied file?)" in check.stderr, check.stderr
+    assert "refuses it on reload" in check.stderr
+    served_from_file(s.client, s, "after-sensorless")
+
+
+# --- a model stamped with the old id scheme ----------------------------------------------------------
+
+
+def legacy_model(path: Path, residual_rms_um: float, x_range: tuple[float, float]) -> Model:
+    """The harness's model with a covariance block (what makes q_sigma_um), stamped with the old id scheme."""
+    base = write_test_model(path)
+    model = Model(terms=base.terms, training=base.training.__class__(x_range, dict(base.training.channel_ranges),
+                                                                     base.training.rows, base.training.t_span_s),
+                  covariance=Covariance(np.zeros((len(MODEL_TERMS), len(MODEL_TERMS))), residual_rms_um))
+    save_model(model, path)
+    doc = json.loads(path.read_text())
+    doc["id"] = model.legacy_content_id()  # the same for any covariance and training range
+    path.write_text(json.dumps(doc))
+    return load_model(path)
+
+
+def test_a_legacy_stamped_model_whose_content_changed_under_the_same_id_is_applied(restore: Served) -> None:
+    """Reload kept the old evaluator when the stored ids matched; the old id scheme covers only terms and
+    coefficients, so a changed covariance (the served q_sigma_um) was never applied."""
+    s = restore
+    before = legacy_model(s.model_path, 0.01, (0.0, 480.0))
+    line = hup_and_wait(s.daemon, "reload_applied", "reload_refused")
+    assert line["event"] == "reload_applied" and line["model"] == before.id, line
+    ok, command = s.client.query({"x_um": 470.0, "id": "legacy-1"})
+    assert ok and command["model"] == before.id, command
+    assert command["q_sigma_um"] == pytest.approx(0.01) and command["extrapolating"] == [], command
+
+    after = legacy_model(s.model_path, 0.25, (0.0, 450.0))  # a wider sigma, a narrower x range
+    assert after.id == before.id and after.content_id() != before.content_id()
+    line = hup_and_wait(s.daemon, "reload_applied", "reload_refused")
+    assert line["event"] == "reload_applied" and line["model"] == after.id, line
+    ok, command = s.client.query({"x_um": 470.0, "id": "legacy-2"})
+    assert ok and command["model"] == after.id, command
+    assert command["q_sigma_um"] == pytest.approx(0.25), command  # the new covariance, not the kept evaluator's
+    assert command["extrapolating"] == ["x"], command  # the new training range
+
+
+# --- a reload that fails in an unexpected way -----------------------------------------------------------
+
+
+def test_an_unexpected_error_in_a_reload_is_refused_logged_counted_and_the_old_drivers_keep_running(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """In-process: a driver plugin's bug (not a DriverSetupError) while the new drivers are built, then
+    a failure after the running drivers were stopped. No real part fails there today; ``build`` stands
+    in for a lab plugin's bug and the patched Compensator for a failure during the swap."""
+    path = tmp_path / "sim.toml"
+    sensors = '[[sensors]]\nname = "T1"\nkind = "simulated"\ninterval_s = {interval}\nmax_age_s = 5.0\n'
+    path.write_text('cell = "bug"\n[simulation]\nscenario = "room"\n' + sensors.format(interval=0.05))
+    built: list[int] = []
+
+    def build(config: Any, context: Any) -> Any:
+        built.append(len(built))
+        if len(built) == 2:
+            raise ValueError("a driver plugin's bug")
+        return build_drivers(config, context)
+
+    async def readings_arrive(service: Service) -> None:
+        seen = service.state.table.version
+        for _ in range(500):  # a new reading within 5 s: the drivers are polling
+            await asyncio.sleep(0.01)
+            if service.state.table.version > seen and service.state.table.entries["T1"].value is not None:
+                return
+        raise AssertionError("no new T1 reading within 5 s")
+
+    async def body(log: Any) -> None:
+        loop = asyncio.get_running_loop()
+        unhandled: list[dict[str, Any]] = []
+        loop.set_exception_handler(lambda _loop, context: unhandled.append(context))
+        service = Service(load_config(path), config_path=path, build_drivers=build)
+        await service.start_drivers(service.build_drivers(service.state.config, None))
+        try:
+            await readings_arrive(service)
+            path.write_text('cell = "bug"\n[simulation]\nscenario = "room"\n' + sensors.format(interval=0.1))
+
+            service.request_reload()  # the SIGHUP handler: build raises ValueError
+            for _ in range(500):
+                if service.state.counters.reload_failures:
+                    break
+                await asyncio.sleep(0.01)
+            assert service.state.counters.reload_failures == 1
+
+            class Broken(reload_module.Compensator):
+                def __init__(self, *args: Any, **kwargs: Any) -> None:
+                    raise RuntimeError("swap failed")
+
+            monkeypatch.setattr(reload_module, "Compensator", Broken)  # after the running drivers stopped
+            assert await service.reloader.reload() is False
+            assert service.state.counters.reload_failures == 2 and service.state.counters.reloads == 0
+            assert service.state.config.sensors[0].interval_s == 0.05  # the old setup, still
+            await readings_arrive(service)  # the stopped drivers were started again
+        finally:
+            await service.stop_drivers(final=True)
+        assert unhandled == []
+
+    with captured_logging() as stream:
+        asyncio.run(asyncio.wait_for(body(None), 60))
+        refused = [d for d in json_lines(stream) if d["event"] == "reload_refused"]
+    assert [d["problems"] for d in refused] == [["internal error: ValueError: a driver plugin's bug"],
+                                                ["internal error: RuntimeError: swap failed"]], refused
+    assert all(d["config"] == str(path) and "Traceback" in d["exception"] for d in refused), refused
+    assert built == [0, 1, 2]

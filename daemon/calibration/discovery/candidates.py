@@ -14,6 +14,7 @@ from daemon.calibration.dataset import Dataset
 from daemon.calibration.discovery.diagnostics import ar1_deflation, json_float
 from daemon.calibration.discovery.settings import NOT_APPLIED_ONLINE, Settings
 from daemon.calibration.discovery.workspace import Workspace, standardise
+from daemon.model.segments import features
 from daemon.model.terms import Term
 
 
@@ -113,7 +114,7 @@ class Context:
         self.t = np.asarray(data.t, dtype=np.float64)
         self.x = np.asarray(data.x, dtype=np.float64)
         assert data.q is not None
-        cols = [term.batch(self.t, self.x, data.channels) for term in terms] + list(nuisance.values())
+        cols = [features(term, data) for term in terms] + list(nuisance.values())
         matrix = np.column_stack(cols) if cols else np.empty((len(data), 0))
         self.ws = Workspace(matrix, np.asarray(data.q, dtype=np.float64), folds)
         self.sse0, self.held_blocks0, self.k0 = self.ws.evaluate(None)
@@ -121,7 +122,7 @@ class Context:
         self.held0 = float(self.held_blocks0.sum())
 
     def feature(self, term: Term) -> np.ndarray:
-        return term.batch(self.t, self.x, self.data.channels)
+        return features(term, self.data)
 
     def columns(self, feats: Sequence[np.ndarray]) -> np.ndarray:
         return standardise(np.column_stack(feats))

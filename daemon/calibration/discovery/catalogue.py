@@ -12,7 +12,8 @@ from daemon.calibration.dataset import Dataset
 from daemon.calibration.discovery.candidates import Candidate, Context, pinned, round_sig, search_tau
 from daemon.calibration.discovery.settings import Settings
 from daemon.model.effect_terms import CREEP_DEADBAND_UM, Creep, PositionCoupling, Rate
-from daemon.model.terms import Channel, Direction, Lag, Power, Term, lag_filter
+from daemon.model.segments import features, run_time_s, spans_s
+from daemon.model.terms import Channel, Direction, Lag, Power, Term
 
 #: the names an effect can be given (the vocabulary of ARCHITECTURE.md's "Discovery: effect names")
 EFFECTS = (
@@ -67,13 +68,12 @@ def channel_delays(data: Dataset, max_rows: int = 20000) -> dict[str, float]:
     channels = list(data.channels)
     if len(channels) < 2:
         return dict.fromkeys(channels, 0.0)
-    window = _liveliest_window(data, max_rows)
-    t = np.asarray(data.t[window], dtype=np.float64)
-    temps = {c: np.asarray(v[window], dtype=np.float64) for c, v in data.channels.items()}
+    window = data.select(_liveliest_window(data, max_rows))
+    temps = {c: np.asarray(v, dtype=np.float64) for c, v in window.channels.items()}
     grid = np.geomspace(1.0, 4 * 3600.0, 36)
     delay: dict[tuple[str, str], float] = {}
     for ref in channels:
-        lagged = [lag_filter(t, temps[ref], tau) for tau in grid]
+        lagged = [features(Lag(ref, float(tau)), window) for tau in grid]
         for c in channels:
             if c == ref:
                 continue
@@ -107,10 +107,10 @@ def _thermal_response(ctx: Context) -> list[Candidate]:
         base = [] if c in have else [ctx.feature(Channel(c))]
 
         def sse(tau: float, c: str = c, base: list[np.ndarray] = base) -> float:
-            feats = [*base, Lag(c, tau).batch(ctx.t, ctx.x, ctx.data.channels)]
+            feats = [*base, features(Lag(c, tau), ctx.data)]
             return ctx.ws.sse_with(ctx.columns(feats))
 
-        tau_max = min(s.lag_tau_s[1], max(float(ctx.t[-1] - ctx.t[0]), 2 * s.lag_tau_s[0]))
+        tau_max = min(s.lag_tau_s[1], max(max(spans_s(ctx.data)), 2 * s.lag_tau_s[0]))
         tau, profile = search_tau(sse, s.lag_tau_s[0], tau_max, s)
         extra = [] if c in have else [Channel(c)]
         behind_reference = round_sig(tau + ctx.delays.get(c, 0.0))
@@ -198,9 +198,9 @@ def untestable(data: Dataset, settings: Settings) -> list[dict[str, str]]:
     paper's Fig. 7) approaches every point moving up, so ``dir`` only marks the return to 0 and a
     direction-dependent offset (hysteresis) is invisible; a run with no steps cannot show creep.
     """
-    t, x = np.asarray(data.t, dtype=np.float64), np.asarray(data.x, dtype=np.float64)
+    x = np.asarray(data.x, dtype=np.float64)
     out = []
-    direction = Direction().batch(t, x, data.channels)
+    direction = features(Direction(), data)
     share = _minority_direction_share(direction)
     if share < settings.min_direction_share:
         way = "up" if float(np.mean(direction > 0)) >= 0.5 else "down"
@@ -239,7 +239,7 @@ def _creep(ctx: Context) -> list[Candidate]:
         return []
 
     def sse(tau: float) -> float:
-        return ctx.ws.sse_with(ctx.columns([Creep(tau).batch(ctx.t, ctx.x, ctx.data.channels)]))
+        return ctx.ws.sse_with(ctx.columns([features(Creep(tau), ctx.data)]))
 
     tau, profile = search_tau(sse, *ctx.settings.creep_tau_s, ctx.settings)
     term = Creep(tau)
@@ -252,7 +252,7 @@ def _creep(ctx: Context) -> list[Candidate]:
 def _drift(ctx: Context) -> list[Candidate]:
     if "t" in ctx.nuisance:
         return []
-    t_h = (ctx.t - ctx.t[0]) / 3600.0
+    t_h = run_time_s(ctx.data) / 3600.0
     cand = Candidate("unmonitored_drift", [], [], {}, 0, 1, nuisance={"t": t_h}, trend_like=True)
     return [ctx.judge(cand, ctx.columns([t_h]))]
 
@@ -308,7 +308,7 @@ def drift_alike(ctx: Context, chosen: Candidate) -> dict[str, Any]:
     effects are then told apart by noise, and the lag's τ is not pinned. The correlation of the two
     columns, each beyond the working model's terms, says so; the operator is told to record longer.
     """
-    t_h = (ctx.t - ctx.t[0]) / 3600.0
+    t_h = run_time_s(ctx.data) / 3600.0
     extra = [ctx.columns([ctx.feature(t)]) for t in chosen.add[:-1]]
     base = np.column_stack([ctx.ws.A[:, : ctx.ws.k], *extra])
 

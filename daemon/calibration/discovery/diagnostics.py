@@ -14,6 +14,7 @@ from scipy import stats
 from daemon.calibration.dataset import Dataset
 from daemon.calibration.discovery.settings import DEFAULT_SETTINGS, Settings
 from daemon.model.effect_terms import CREEP_DEADBAND_UM, Rate
+from daemon.model.segments import features, first_rows, run_time_s
 from daemon.model.terms import Direction
 
 
@@ -66,7 +67,7 @@ def structure_variables(data: Dataset, settings: Settings = DEFAULT_SETTINGS) ->
     """The variables residuals are checked against: name -> (description, value per row)."""
     t, x = np.asarray(data.t, dtype=np.float64), np.asarray(data.x, dtype=np.float64)
     out: dict[str, tuple[str, np.ndarray]] = {
-        "t": ("time since the start of the run (s)", t - t[0]),
+        "t": ("time since the start of the run (s)", run_time_s(data)),
         "x": ("position x (µm)", x),
     }
     for c, v in data.channels.items():
@@ -75,12 +76,14 @@ def structure_variables(data: Dataset, settings: Settings = DEFAULT_SETTINGS) ->
     for c in data.channels:
         out[f"rate({c})"] = (
             f"rate of change of {c} (°C/h, smoothed over {tau:g} s)",
-            Rate(c, tau).batch(t, x, data.channels) * 3600.0,
+            features(Rate(c, tau), data) * 3600.0,
         )
-    out["dir"] = ("direction of the last move (+1 up, -1 down)", Direction().batch(t, x, data.channels))
+    out["dir"] = ("direction of the last move (+1 up, -1 down)", features(Direction(), data))
+    first = first_rows(data)  # several runs: a run's first row follows no step
     step = np.diff(x, prepend=x[:1])
+    step[first == np.arange(x.size)] = 0.0
     moved = np.abs(step) > CREEP_DEADBAND_UM
-    idx = np.where(moved, np.arange(x.size), 0)
+    idx = np.maximum(np.where(moved, np.arange(x.size), 0), first)
     np.maximum.accumulate(idx, out=idx)
     out["last_step"] = ("size of the last step (µm)", np.where(moved[idx], step[idx], 0.0))
     out["time_since_step"] = ("time since the last step (s)", t - t[idx])

@@ -24,6 +24,7 @@ from daemon.calibration.discovery.settings import DEFAULT_SETTINGS, NOT_APPLIED_
 from daemon.calibration.discovery.summary import summarise
 from daemon.model.identify import holdout_blocks, model_covariance, ols, software
 from daemon.model.model import FittedTerm, Model, Training
+from daemon.model.segments import features
 from daemon.model.stepwise import stepwisefit
 from daemon.model.terms import Bias, Term, UnknownTermError, parse_term
 
@@ -60,8 +61,7 @@ def readmit(data: Dataset, working: Sequence[Term], nuisance: Mapping[str, np.nd
     optional = [t for t in pool if t not in have and not excluded.intersection({t.name, *t.channels})]
     if not optional:
         return []
-    t, x = np.asarray(data.t, dtype=np.float64), np.asarray(data.x, dtype=np.float64)
-    cols = [term.batch(t, x, data.channels) for term in [*working, *optional]]
+    cols = [features(term, data) for term in [*working, *optional]]
     forced = len(working) + len(nuisance)
     X = np.column_stack(cols[: len(working)] + list(nuisance.values()) + cols[len(working):])
     keep = np.arange(X.shape[1]) < forced
@@ -132,7 +132,7 @@ def _final_model(data: Dataset, given: Model, terms: list[Term], nuisance: dict[
     """
     assert data.q is not None
     y = np.asarray(data.q, dtype=np.float64)
-    feats = [t.batch(data.t, data.x, data.channels) for t in terms]
+    feats = [features(t, data) for t in terms]
     cols = feats + list(nuisance.values())
     fit = ols(np.column_stack(cols), y)
     k = len(terms)
@@ -248,7 +248,7 @@ def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS)
 
 def _nuisance_coef(ctx: Context, nuisance: Mapping[str, np.ndarray]) -> dict[str, float]:
     """Coefficients (original units) of nuisance columns added to the working model."""
-    cols = [t.batch(ctx.t, ctx.x, ctx.data.channels) for t in ctx.terms] + list(ctx.nuisance.values())
+    cols = [features(t, ctx.data) for t in ctx.terms] + list(ctx.nuisance.values())
     extra = list(nuisance.values())
     fit = ols(np.column_stack(cols + extra), np.asarray(ctx.data.q, dtype=np.float64))
     return {name: float(fit.coef[len(cols) + j]) for j, name in enumerate(nuisance)}

@@ -1,5 +1,6 @@
 """The Modbus analog output actuator against pymodbus' real TCP server on 127.0.0.1 (register content,
-exceptions, verify, recovery) and a raw socket module that pins the request bytes (FC 6, FC 16, FC 3)."""
+exceptions, verify, recovery, counts at the limits, reading the output back) and a raw socket module that
+pins the request bytes (FC 6, FC 16, FC 3)."""
 
 from __future__ import annotations
 
@@ -9,10 +10,13 @@ from collections.abc import Awaitable, Callable
 
 import pytest
 from helpers.modbus_helpers import ModbusTestDevice, ModbusTestServer, device_registers, tcp_context
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
 from pymodbus.constants import ExcCodes
 
 from drivers.base import DeviceError, DriverContext
 from drivers.modbus.actuator import ModbusActuator
+from drivers.modbus.codec import raw_for
 from drivers.modbus.config import ModbusActuatorConfig, ModbusSensorConfig
 from drivers.modbus.plugin import PLUGIN
 
@@ -196,7 +200,7 @@ def test_the_output_recovers_after_the_device_comes_back() -> None:
                                               r"2.2000 V"):
             await actuator.command(110.0, 2.2)
         start = time.monotonic()
-        for _ in range(3):  # while the module is away, commands fail fast (the hub's backoff), never hang
+        for _ in range(3):  # while the module is away, commands fail fast (connection refused), never hang
             with pytest.raises(DeviceError):
                 await actuator.command(110.0, 2.2)
         assert time.monotonic() - start < 1.0
@@ -247,5 +251,87 @@ def test_the_output_shares_the_sensors_hub_and_its_lock() -> None:
             assert actuator.hub.connected  # the actuator still uses it
             await actuator.close()
             assert not actuator.hub.connected
+
+    run(body())
+
+
+# --- a voltage at a limit never becomes a count beyond it; where the output is, read at open ------
+
+
+TWELVE_BIT = 10 / 4095  # a 0-10 V output module with a 12-bit DAC: volts per count
+
+
+def test_a_voltage_within_half_a_count_of_a_limit_takes_the_count_inside() -> None:
+    # 9.999 V is 4094.59 counts: the nearest, 4095, is 10.000 V, above v_max = 9.999
+    assert raw_for(9.999, TWELVE_BIT, 0.0, "uint16") == 4095  # no limits given: the nearest count
+    assert raw_for(9.999, TWELVE_BIT, 0.0, "uint16", within=(0.0, 9.999)) == 4094
+    assert raw_for(10.0, TWELVE_BIT, 0.0, "uint16", within=(0.0, 10.0)) == 4095  # the top itself is kept
+    # the other end: v_min = 0.001 V is 0.41 counts, the nearest (0) is 0 V, below it
+    assert raw_for(0.001, TWELVE_BIT, 0.0, "uint16", within=(0.001, 9.999)) == 1
+    # a negative scale (an inverting output): inside still means inside in volts
+    assert raw_for(-9.999, -TWELVE_BIT, 0.0, "int16", within=(-9.999, 0.0)) == 4094
+    # float32: the nearest float32 of 0.1 is 0.100000001; the one below it is taken
+    written = raw_for(0.1, 1.0, 0.0, "float32", within=(0.0, 0.1))
+    assert written < 0.1 and written == pytest.approx(0.1, rel=1e-7)
+    with pytest.raises(ValueError, match=r"no raw value within \[1.0001, 1.0002\]"):
+        raw_for(1.00015, TWELVE_BIT, 0.0, "uint16", within=(1.0001, 1.0002))  # narrower than a count
+
+
+@settings(max_examples=300, deadline=None)
+@given(counts=st.sampled_from([255, 1023, 4095, 32767]), full_scale=st.floats(0.5, 20.0),
+       offset=st.floats(-10.0, 10.0), low=st.floats(0.0, 1.0), high=st.floats(0.0, 1.0), at=st.floats(0.0, 1.0))
+def test_what_is_written_is_inside_the_limits_and_within_a_count_of_the_voltage(
+        counts: int, full_scale: float, offset: float, low: float, high: float, at: float) -> None:
+    scale = full_scale / counts
+    v_min, v_max = offset + min(low, high) * full_scale, offset + max(low, high) * full_scale
+    assume(v_max - v_min > 1.01 * scale)  # at least one count inside
+    voltage = v_min + at * (v_max - v_min)
+    raw = raw_for(voltage, scale, offset, "int32", within=(v_min, v_max))
+    written = raw * scale + offset
+    assert v_min - 1e-6 * scale <= written <= v_max + 1e-6 * scale
+    assert abs(written - voltage) <= scale * (1 + 1e-9)
+    nearest = round((voltage - offset) / scale)
+    if v_min <= nearest * scale + offset <= v_max:
+        assert raw == nearest  # the nearest count is inside: it is the one written
+
+
+def test_the_output_module_never_gets_a_count_above_v_max() -> None:
+    async def body() -> None:
+        device = ModbusTestDevice(1)
+        async with ModbusTestServer([device]) as server:
+            actuator = output(tcp_context(server.port), data_type="uint16", scale=TWELVE_BIT)
+            actuator.limits_v = (0.0, 9.999)  # the daemon and the procedures set the operator's limits
+            await actuator.open()
+            await actuator.command(499.95, 9.999)
+            [raw] = await server.get_registers(1, 10, 1)
+            assert raw == 4094 and raw * TWELVE_BIT <= 9.999
+            await actuator.command(250.0, 5.0)
+            assert await server.get_registers(1, 10, 1) == [round(5.0 / TWELVE_BIT)]  # inside: the nearest count
+            await actuator.close()
+
+    run(body())
+
+
+def test_read_back_says_what_the_output_register_holds_when_verify_is_on() -> None:
+    async def body() -> None:
+        device = ModbusTestDevice(1)
+        async with ModbusTestServer([device]) as server:
+            await server.set_registers(1, 10, [3210], "holding")  # left there by an earlier run
+            device.writes.clear()  # the test's own setting of the register
+            actuator = output(tcp_context(server.port), offset=-1.0)
+            await actuator.open()
+            field, volts = await actuator.read_back()
+            assert field == "voltage_v" and volts == pytest.approx(3210 * 0.001 - 1.0)
+            assert device.reads == [(3, 10, 1)] and device.writes == []  # read, nothing written
+            blind = output(tcp_context(server.port), verify=False)  # the register may not be readable
+            await blind.open()
+            assert await blind.read_back() is None
+            assert device.reads == [(3, 10, 1)]
+            device.fail_with = ExcCodes.DEVICE_FAILURE
+            with pytest.raises(DeviceError, match=r"holding register 10\): reading the output failed: Modbus "
+                                                  r"exception 4"):
+                await actuator.read_back()
+            await blind.close()
+            await actuator.close()
 
     run(body())

@@ -49,7 +49,7 @@ def test_check_config_accepts_it_once_calibrated(tmp_path: Path) -> None:
     # as shipped, before `nanodrift calibrate` wrote /var/lib/nanodrift/model.json: a reload would be refused
     if not Path("/var/lib/nanodrift/model.json").exists():
         result = check(LAB)
-        assert result.returncode == 2 and f"{LAB}: model.path: /var/lib/nanodrift/model.json" in result.stderr
+        assert result.returncode == 2 and f"{LAB}:28: model.path: /var/lib/nanodrift/model.json" in result.stderr
     write_test_model(tmp_path / "model.json")
     calibrated = tmp_path / "nanodrift.toml"
     calibrated.write_text(LAB.read_text().replace('"/var/lib/nanodrift/model.json"', f'"{tmp_path / "model.json"}"'))

@@ -215,3 +215,28 @@ def test_a_port_shared_with_a_sensor_must_agree_on_its_settings(tmp_path: Path) 
     with pytest.raises(DriverSetupError, match="streams lines"):
         actuator_for(port, context=streaming)
     assert actuator_for(port, context=streaming, readback="").port.config.name == "stage"  # write-only is fine
+
+
+def test_read_back_asks_the_controller_where_the_output_is(controller: FakeGcsController) -> None:
+    async def read(**kw: object) -> object:
+        actuator = actuator_for(controller.port, **kw)
+        await actuator.open()
+        try:
+            return await actuator.read_back()
+        finally:
+            await actuator.close()
+
+    async def body() -> None:
+        controller.voltage = 3.25  # left there by an earlier run
+        assert await read() == ("voltage_v", 3.25)
+        assert controller.lines == ["SVA? 1"]  # asked, nothing written
+        assert await read(command="MOV 1 {q_um:.4f}\n", readback="POS? 1\n") == ("q_um", pytest.approx(325.0))
+        assert await read(readback="") is None  # nothing to ask: the controller cannot say
+        # a readback of the target is not where the command put the stage
+        assert await read(command="MOV 1 {x_um:.4f}\n", readback="POS? 1\n") is None
+        assert controller.lines == ["SVA? 1", "POS? 1"]
+        controller.silent = True
+        with pytest.raises(DeviceError, match=r"no answer to 'SVA\? 1\\n' within 0.3 s after 'opening the port'"):
+            await read()
+
+    run(body())

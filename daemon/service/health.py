@@ -1,0 +1,199 @@
+"""The daemon's health unit: is the served model still right, and (``[adapt] mode = "bias"``) its correction.
+
+The pure pieces are ``daemon.calibration.health``'s (the same classes ``validate --adapt`` runs):
+served commands and position readings go through :class:`SettleTracker` into :class:`HealthMonitor`
+(rolling statistics, state, advice with :class:`RangeWatch`'s "since when outside the training
+range") and, with adaptation on, :class:`BiasTracker`, whose correction the compensator adds to every
+later command.
+
+Threads. The target path (Zenoh's threads, under ``state.lock``) only appends ``(cell time, command)``
+to :attr:`HealthUnit.served`, a bounded deque the compensator holds: the answer never waits for the
+monitor. Everything else runs on the asyncio loop: the sensor ingest feeds position and temperature
+readings under ``state.lock`` (a few float operations; the queued commands are taken in time order
+before each reading), and :meth:`HealthUnit.flush`, outside the lock, logs and publishes a change
+of state. ``status`` (and the metrics scrape) read :meth:`HealthUnit.document` under ``state.lock``.
+
+Only fresh ``ok`` readings of the ``role = "position"`` sensor count: a faulted reading, one older
+than the sensor's ``max_age_s``, or a silence longer than ``max_age_s`` inside an averaging window
+voids that window, so a stale interferometer never feeds the monitor or the tracker. A repeated
+sample (same time stamp) is not news and is skipped.
+
+``nanodrift/<cell>/health`` is published at once when the state changes and every
+:data:`PUBLISH_INTERVAL_S` of wall time besides: it is read by people and dashboards, who live in
+wall time; on the cell clock a simulated cell at ``speed = 100`` would publish it 20 times a second.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+from collections import deque
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import zenoh
+
+from daemon.bus.protocol import Command, dumps
+from daemon.bus.session import Bus
+from daemon.calibration.health import BiasTracker, HealthMonitor, RangeWatch, Settled, SettleTracker
+from daemon.config import Config
+from daemon.model.model import Model
+from daemon.service.compensator import Compensator
+
+#: the health document is published this often (wall clock, s) besides at every change of state
+PUBLISH_INTERVAL_S = 5.0
+#: commands waiting for the next position reading; a hold needs only the newest, so a flood loses nothing
+SERVED_QUEUE = 1024
+
+
+class HealthUnit:
+    """Served commands and position readings in; the ``health`` document, log events and the correction out."""
+
+    def __init__(self, config: Config, model: Model | None, log: Any) -> None:
+        self.log = log
+        self.served: deque[tuple[float, Command]] = deque(maxlen=SERVED_QUEUE)
+        #: called on the loop, outside the state lock, with every settled target and the unix time it
+        #: settled at (the recorder's ``on_settled``); a listener must not block
+        self.settled_listeners: list[Callable[[Settled, float], None]] = []
+        self._compensator: Compensator | None = None
+        self._publisher: Any = None
+        self._fresh: list[tuple[Settled, float]] = []
+        self._configure(config, model)
+        self._announced = self.monitor.state
+
+    # --- configuration (under state.lock) ------------------------------------------------------
+
+    def _configure(self, config: Config, model: Model | None) -> None:
+        health, adapt = config.health, config.adapt
+        position = next((s for s in config.sensors if s.role == "position"), None)
+        self._settings = (health, adapt, position)
+        self.model_id = model.id if model is not None else None
+        self.position_channel: str | None = position.name if position is not None else None
+        self.position_max_age_s: float = position.max_age_s if position is not None else math.inf
+        self.settle = SettleTracker(health.settle_s, health.window_s)
+        self.monitor = HealthMonitor(health.history, health.alarm_rms_nm, has_position_sensor=position is not None)
+        ranges: dict[str, tuple[float, float]] = {}
+        if model is not None:
+            ranges = {"x": model.training.x_range, **model.training.channel_ranges}
+        self.ranges = RangeWatch(ranges)
+        self.tracker = BiasTracker(adapt.tau_s, adapt.max_um) if adapt.mode == "bias" else None
+        self.served.clear()
+        self._last_position_t: float | None = None
+
+    def attach(self, compensator: Compensator) -> None:
+        """Serve through ``compensator`` (at start and after every reload): it queues its commands
+        here (only with a position sensor) and adds the tracker's correction (only with adaptation on)."""
+        self._compensator = compensator
+        compensator.served = self.served if self.position_channel is not None else None
+        compensator.correction_um = self.tracker.correction_um if self.tracker is not None else None
+
+    def reconfigure(self, config: Config, compensator: Compensator) -> None:
+        """A reload (under state.lock): a new model, new ``[health]``/``[adapt]`` settings or another
+        position sensor start the monitor and the tracker afresh (residuals of the old model say
+        nothing about the new one); otherwise they carry on through the new compensator."""
+        model = compensator.model
+        position = next((s for s in config.sensors if s.role == "position"), None)
+        model_id = model.id if model is not None else None
+        if model_id != self.model_id or (config.health, config.adapt, position) != self._settings:
+            self._configure(config, model)
+        self.attach(compensator)
+
+    # --- readings (on the loop, under state.lock) ----------------------------------------------
+
+    def on_temperatures(self, t: float, temps: Mapping[str, float]) -> None:
+        """Good temperature readings: since when each channel is outside the training range (advice)."""
+        self.ranges.observe(t, temps)
+
+    def on_position(self, now: float, t: float, value_um: float, ok: bool) -> None:
+        """One reading of the position sensor taken at ``t``; ``ok``: ok and fresh at ``now``."""
+        if self.position_channel is None:
+            return
+        last = self._last_position_t
+        if not ok:
+            self._feed(now, math.nan, False)
+            return
+        if last is not None and t <= last:
+            return  # the same sample again: no news
+        if last is not None and t - last > self.position_max_age_s:
+            self._feed(last + self.position_max_age_s, math.nan, False)  # silent meanwhile: it went stale
+        self._last_position_t = t
+        self._feed(t, value_um, True)
+
+    def _feed(self, t: float, value_um: float, ok: bool) -> None:
+        served = self.served
+        while served and served[0][0] <= t:
+            t_command, command = served.popleft()
+            # a window that ended before this command is complete: close it first (a reading past its
+            # end closes it; the value of a reading past the end is never used)
+            self._settled(self.settle.position(t_command, math.nan, False))
+            self.settle.commanded(t_command, command.x_um, command.q_um, command.temperatures_c, command.id)
+            self.ranges.observe(t_command, {"x": command.x_um})
+        self._settled(self.settle.position(t, value_um, ok))
+
+    def _settled(self, settled: Settled | None) -> None:
+        if settled is None:
+            return
+        self.monitor.add(settled)
+        if self.tracker is not None:
+            correction = self.tracker.update(settled.t, settled.residual_um)
+            if self._compensator is not None:
+                self._compensator.correction_um = correction
+        self._fresh.append((settled, time.time()))
+
+    # --- what it says ----------------------------------------------------------------------------
+
+    @property
+    def state(self) -> str:
+        return self.monitor.state
+
+    @property
+    def correction_um(self) -> float | None:
+        return self.tracker.correction_um if self.tracker is not None else None
+
+    def document(self) -> dict[str, object]:
+        """The ``health`` payload (ARCHITECTURE.md): state, residual statistics, correction, advice."""
+        outside = self.ranges.outside()
+        return self.monitor.document(correction_um=self.correction_um, extrapolating=[o.channel for o in outside],
+                                     outside=outside)
+
+    def flush(self) -> None:
+        """On the loop, outside the state lock: hand on settled targets, log and publish a change of state."""
+        if self._fresh:
+            fresh, self._fresh = self._fresh, []
+            for listener in self.settled_listeners:
+                for settled, unix_s in fresh:
+                    listener(settled, unix_s)
+        state = self.monitor.state
+        if state == self._announced:
+            return
+        previous, self._announced = self._announced, state
+        doc = self.document()
+        fields = {key: doc[key] for key in ("residual_rms_nm", "residual_mean_nm", "n", "correction_um", "advice")}
+        if state == "degraded":
+            self.log.warning("health_degraded", was=previous, **fields)
+        elif previous == "degraded":
+            self.log.info("health_recovered", state=state, **fields)
+        self.publish(doc)
+
+    # --- publishing (on the loop) ----------------------------------------------------------------
+
+    def start(self, bus: Bus) -> asyncio.Task[None]:
+        """Declare ``health``, publish the first document and then every :data:`PUBLISH_INTERVAL_S`."""
+        self._publisher = bus.session.declare_publisher(bus.keys.health)
+        self.publish(self.document())
+        return asyncio.create_task(self._periodic(), name="health")
+
+    async def _periodic(self) -> None:
+        while True:
+            await asyncio.sleep(PUBLISH_INTERVAL_S)
+            self.flush()
+            self.publish(self.document())
+
+    def publish(self, doc: Mapping[str, object]) -> None:
+        if self._publisher is None:
+            return
+        try:
+            self._publisher.put(dumps(doc))
+        except zenoh.ZError as error:  # the session is closing: the next one will say it again
+            self.log.warning("health_publish_failed", error=str(error))

@@ -1,0 +1,187 @@
+"""The poller's back-off is the only one between the daemon and a device, and a failure episode is one log line.
+
+A Modbus group on a real TCP port nobody listens on (connection refused at once), then a pymodbus
+server started on that port. The poller's waits between reopen attempts go through a virtual clock
+that records them and takes no wall time, so the back-off's growth is read exactly.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+
+from helpers.log_capture import captured_logging, json_lines
+from helpers.modbus_helpers import ModbusTestDevice, ModbusTestServer, free_port, tcp_context
+
+from daemon.config import ActuatorConfig, Config
+from daemon.logs import get_logger
+from daemon.service.compensator import Compensator
+from daemon.service.polling import GroupPoller
+from daemon.service.sensors import SensorIngest
+from daemon.service.state import CellState
+from daemon.service.table import SensorTable
+from drivers.base import SensorGroup, WallClock
+from drivers.modbus.config import ModbusSensorConfig
+from drivers.modbus.group import ModbusBlockGroup
+from drivers.modbus.plugin import PLUGIN
+
+DEAD_WAITS = 8  # reopen attempts that fail before the module comes back
+
+
+class RetryClock:
+    """A virtual clock for the poller's waits between attempts: each wait is recorded with the hub's
+    connection attempts so far, advances virtual time and returns at once; from ``hold_at`` waits on,
+    it holds the poller until :meth:`release` (the test changes the world meanwhile)."""
+
+    def __init__(self, group: ModbusBlockGroup, hold_at: int) -> None:
+        self.group = group
+        self.hold_at = hold_at
+        self.t = 1000.0
+        self.waits: list[tuple[float, int]] = []  # (seconds asked, hub connection attempts when asked)
+        self.holding = asyncio.Event()
+        self._released = asyncio.Event()
+
+    def now(self) -> float:
+        return self.t
+
+    async def sleep(self, seconds: float) -> None:
+        self.waits.append((seconds, self.group.hub.connect_attempts))
+        self.t += seconds
+        if len(self.waits) % self.hold_at == 0:
+            self.holding.set()
+            await self._released.wait()
+            self._released.clear()
+        await asyncio.sleep(0)
+
+    def release(self) -> None:
+        self.holding.clear()
+        self._released.set()
+
+
+def modbus_group(port: int) -> ModbusBlockGroup:
+    configs = [ModbusSensorConfig(name=f"T{i + 1}", hub="adam", address=i, input_type="input", scale=0.1,
+                                  interval_s=0.05, timeout_s=0.5) for i in range(2)]
+    [group] = PLUGIN.create(configs, tcp_context(port, timeout_s=0.3))
+    assert isinstance(group, ModbusBlockGroup)
+    return group
+
+
+def expected_backoff_s(k: int) -> float:
+    return min(GroupPoller.INITIAL_BACKOFF_S * 2.0**k, GroupPoller.MAX_BACKOFF_S)
+
+
+def test_a_dead_device_is_retried_at_growing_intervals_by_exactly_one_back_off() -> None:
+    port = free_port()  # nobody listens: every attempt is refused at once
+    group = modbus_group(port)
+    failures: list[tuple[str, float, int]] = []
+    recovered: list[tuple[int, float]] = []
+    back = asyncio.Event()
+
+    def on_recovered(g: SensorGroup, n: int, down_s: float) -> None:
+        recovered.append((n, down_s))
+        back.set()
+
+    async def body() -> None:
+        clock = RetryClock(group, hold_at=DEAD_WAITS)
+        poller = GroupPoller(group, WallClock(), lambda g, r: None,
+                             lambda g, reason, delay, n: failures.append((reason, delay, n)), on_recovered,
+                             retry_clock=clock)
+        poller.start()
+        server = ModbusTestServer([ModbusTestDevice(1)], port=port)
+        try:
+            await asyncio.wait_for(clock.holding.wait(), 20)
+            waits = list(clock.waits)
+            await server.start()
+            await server.set_registers(1, 0, [215, 216])
+            clock.release()
+            await asyncio.wait_for(back.wait(), 20)
+        finally:
+            await poller.stop()
+            await server.stop()
+        assert len(waits) == DEAD_WAITS
+        # the waits double from 0.2 s, each within the jitter band: one exponential back-off ...
+        for k, (seconds, _) in enumerate(waits):
+            assert (1 - GroupPoller.JITTER) * expected_backoff_s(k) <= seconds <= (
+                (1 + GroupPoller.JITTER) * expected_backoff_s(k)), (k, seconds)
+        assert waits[-1][0] > 20 * waits[0][0]
+        # ... and exactly one connection attempt per wait: no driver-side wait refusing a poll without
+        # trying (the attempts would stall), no driver-side retry loop (they would jump)
+        assert [attempts for _, attempts in waits] == list(range(1, DEAD_WAITS + 1))
+        assert [n for _, _, n in failures] == list(range(1, DEAD_WAITS + 1))
+        assert {reason for reason, _, _ in failures} == {f"modbus hub 'adam': cannot connect to 127.0.0.1:{port}"}
+        assert [delay for _, delay, _ in failures] == [seconds for seconds, _ in waits]  # what is logged is waited
+        # back: the next attempt connects, and the episode's summary covers it all
+        assert group.hub.connect_attempts == DEAD_WAITS + 1
+        [(n, down_s)] = recovered
+        assert n == DEAD_WAITS
+        assert math.isclose(down_s, sum(seconds for seconds, _ in waits))
+
+    asyncio.run(asyncio.wait_for(body(), 60))
+
+
+def test_a_failure_episode_is_one_log_line_and_a_summary_at_recovery() -> None:
+    port = free_port()
+    group = modbus_group(port)
+    device = ModbusTestDevice(1)
+    server = ModbusTestServer([device], port=port)
+    names = list(group.names)
+
+    async def body() -> None:
+        table = SensorTable(list(group.block.channels))
+        state = CellState(Config(), Compensator(None, ActuatorConfig(), table), WallClock())
+        ingest = SensorIngest(state, lambda role, channel, payload: None, get_logger())
+        clock = RetryClock(group, hold_at=DEAD_WAITS)
+        back = asyncio.Event()
+
+        def on_recovered(g: SensorGroup, n: int, down_s: float) -> None:
+            ingest.on_group_recovered(g, n, down_s)
+            back.set()
+
+        poller = GroupPoller(group, WallClock(), ingest.on_readings, ingest.on_group_failure, on_recovered,
+                             retry_clock=clock)
+        poller.start()
+        try:
+            for _episode in range(2):  # dead from the start, then the module goes away once more
+                await asyncio.wait_for(clock.holding.wait(), 20)
+                await server.start()
+                await server.set_registers(1, 0, [215, 216])
+                back.clear()
+                clock.release()
+                await asyncio.wait_for(back.wait(), 20)
+                await server.stop()  # the next read finds the link gone: a new episode
+        finally:
+            await poller.stop()
+            await server.stop()
+
+    with captured_logging("info") as stream:
+        asyncio.run(asyncio.wait_for(body(), 60))
+        docs = json_lines(stream)
+    failed = [d for d in docs if d["event"] == "sensor_group_failed"]
+    summaries = [d for d in docs if d["event"] == "sensor_group_recovered"]
+    assert len(failed) == 2 and len(summaries) == 2, [d["event"] for d in docs]  # 16 failed attempts in all
+    assert all(d["channels"] == names and d["level"] == "warning" for d in failed)
+    assert failed[0]["reason"] == f"modbus hub 'adam': cannot connect to 127.0.0.1:{port}"
+    assert not any(word in failed[0]["reason"] for word in ("next", " in ", "0.0 s"))  # timing is retry_in_s's
+    first_s, jitter = GroupPoller.INITIAL_BACKOFF_S, GroupPoller.JITTER
+    low, high = (1 - jitter) * first_s, (1 + jitter) * first_s
+    assert low - 0.005 <= failed[0]["retry_in_s"] <= high + 0.005  # the log rounds to 0.01 s
+    assert [d["failures"] for d in summaries] == [DEAD_WAITS, DEAD_WAITS]
+    assert all(d["channels"] == names and d["down_s"] > 0 for d in summaries)
+    assert not [d for d in docs if d["event"] == "sensor_group_retry_failed"]  # debug lines, not at info
+    assert not [d for d in docs if str(d.get("logger", "")).startswith("pymodbus")]  # no per-attempt chatter
+    order = [d["event"] for d in docs if d["event"] in ("sensor_group_failed", "sensor_group_recovered")]
+    assert order == ["sensor_group_failed", "sensor_group_recovered"] * 2
+
+
+def test_only_the_first_failure_of_an_episode_is_a_warning() -> None:
+    """The ingest's rule on its own: the poller's count decides the level; every failure faults the channels."""
+    group = modbus_group(free_port())
+    state = CellState(Config(), Compensator(None, ActuatorConfig(), SensorTable(list(group.block.channels))),
+                      WallClock())
+    with captured_logging("info") as stream:
+        ingest = SensorIngest(state, lambda role, channel, payload: None, get_logger())
+        for n in range(1, 6):
+            ingest.on_group_failure(group, f"link down ({n})", 0.2 * n, n)
+        docs = json_lines(stream)
+    assert [(d["event"], d["reason"]) for d in docs] == [("sensor_group_failed", "link down (1)")]
+    assert state.table.state("T1", 0.0)[1] == "device error: link down (5)"

@@ -1,0 +1,284 @@
+"""Recorded operation (``[health] record_dir``): daily CSVs of every settled target, in the data contract,
+surviving crashes (issue 12: "Recording survives kill -9 (no partial row, resumes the day file)")."""
+
+from __future__ import annotations
+
+import datetime as dt
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from helpers.daemon_harness import wait_until
+from helpers.log_capture import captured_logging, json_lines
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import daemon.calibration.dataset as dataset_module
+from daemon.calibration.dataset import read_csv
+from daemon.calibration.health import Settled
+from daemon.config import HealthSettings
+from daemon.logs import get_logger
+from daemon.service.recorder import DayRecorder, Recorder, file_name
+
+DAY = dt.date(2026, 11, 23)
+NOON = dt.datetime(2026, 11, 23, 12, tzinfo=dt.UTC).timestamp()
+HEADER = "t_s,x_um,q_um,target_um,residual_um,T1,T2"
+
+
+def settled(i: int, temps: dict[str, float] | None = None) -> Settled:
+    target = 30.0 * (i % 17)
+    return Settled(t=100.0 + i, x_um=target, q_um=target + 0.5, position_um=target + 0.002 * (i % 5 - 2), samples=10,
+                   temperatures=temps if temps is not None else {"T1": 21.0 + 0.01 * i, "T2": 22.0 - 0.01 * i},
+                   target_id=i)
+
+
+def rows_of(path: Path) -> list[str]:
+    return path.read_text().splitlines()[1:]
+
+
+def test_rows_follow_the_data_contract(tmp_path: Path) -> None:
+    rec = DayRecorder(tmp_path / "records")
+    for i in range(5):
+        assert rec.record(settled(i), NOON + 10.0 * i)
+    path = tmp_path / "records" / "records-2026-11-23.csv"
+    assert rec.path == path
+    assert path.read_text().splitlines()[0] == HEADER
+    data = read_csv(path)  # the project's reader: fit and discover read these files as they are
+    assert data.channel_names == ("T1", "T2")  # target_um and residual_um are reserved, not channels
+    assert set(data.extra) == {"target_um", "residual_um"}
+    np.testing.assert_allclose(data.t, NOON + 10.0 * np.arange(5))
+    np.testing.assert_allclose(data.x, [settled(i).position_um for i in range(5)])  # measured, not the target
+    np.testing.assert_allclose(data.q, [settled(i).q_um for i in range(5)])
+    np.testing.assert_allclose(data.extra["target_um"], [settled(i).x_um for i in range(5)])
+    np.testing.assert_allclose(data.extra["residual_um"], data.x - data.extra["target_um"])
+    np.testing.assert_allclose(data.channels["T1"], [21.0 + 0.01 * i for i in range(5)])
+
+
+def test_each_row_is_fsynced_before_record_returns(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    synced: list[int] = []
+    real_fsync = os.fsync
+
+    def spy(fd: int) -> None:
+        real_fsync(fd)
+        synced.append(os.path.getsize(f"/proc/self/fd/{fd}"))
+
+    monkeypatch.setattr(dataset_module.os, "fsync", spy)
+    rec = DayRecorder(tmp_path)
+    rec.record(settled(0), NOON)  # creates the file: its header was fsynced in the temp file
+    synced.clear()
+    for i in range(1, 4):
+        assert rec.record(settled(i), NOON + i)
+        size = (tmp_path / file_name(DAY)).stat().st_size
+        assert synced[-1] == size  # the fsync covered the whole row just written
+    assert len(synced) == 3
+
+
+def test_a_new_day_starts_a_new_file_with_its_header_and_no_temp_file_left(tmp_path: Path) -> None:
+    rec = DayRecorder(tmp_path)
+    midnight = dt.datetime(2026, 11, 24, tzinfo=dt.UTC).timestamp()
+    assert rec.record(settled(0), midnight - 1.0)
+    assert rec.record(settled(1), midnight + 1.0)  # the row's own (unix) time decides the day
+    assert rec.record(settled(2), midnight + 2.0)
+    first, second = tmp_path / "records-2026-11-23.csv", tmp_path / "records-2026-11-24.csv"
+    assert len(read_csv(first)) == 1 and len(read_csv(second)) == 2
+    assert second.read_text().splitlines()[0] == HEADER
+    assert sorted(p.name for p in tmp_path.iterdir()) == [first.name, second.name]  # no .tmp left behind
+
+
+def test_retention_deletes_day_files_older_than_keep_days_at_rotation(tmp_path: Path) -> None:
+    def day_file(days_before: int, part: int = 1) -> Path:
+        path = tmp_path / file_name(DAY - dt.timedelta(days=days_before), part)
+        path.write_text(HEADER + "\n")
+        return path
+
+    old, old_part, kept, edge = day_file(120), day_file(91, 2), day_file(30), day_file(90)
+    other = tmp_path / "notes-2020-01-01.csv"
+    other.write_text("not ours\n")
+    assert DayRecorder(tmp_path, keep_days=90).record(settled(0), NOON)
+    assert not old.exists() and not old_part.exists()
+    assert kept.exists() and edge.exists() and other.exists()
+
+    keep_all = tmp_path / "all"
+    keep_all.mkdir()
+    ancient = keep_all / file_name(DAY - dt.timedelta(days=3000))
+    ancient.write_text(HEADER + "\n")
+    assert DayRecorder(keep_all, keep_days=0).record(settled(0), NOON)
+    assert ancient.exists()
+
+
+def test_a_new_channel_set_continues_the_day_in_a_suffixed_file(tmp_path: Path) -> None:
+    rec = DayRecorder(tmp_path)
+    assert rec.record(settled(0), NOON)
+    assert rec.record(settled(1, {"T2": 22.0, "T1": 21.0}), NOON + 1)  # same channels, other order: same file
+    assert rec.record(settled(2, {"T1": 21.0, "T2": 22.0, "T3": 23.0}), NOON + 2)  # a reload with another model
+    first, second = tmp_path / file_name(DAY), tmp_path / file_name(DAY, 2)
+    assert second.name == "records-2026-11-23.2.csv"
+    assert read_csv(first).channel_names == ("T1", "T2") and len(read_csv(first)) == 2
+    assert read_csv(second).channel_names == ("T1", "T2", "T3") and len(read_csv(second)) == 1
+
+    again = DayRecorder(tmp_path)  # a restart with the first model's channels: the last file does not fit them
+    assert again.record(settled(3), NOON + 3)
+    assert again.path == tmp_path / file_name(DAY, 3)
+
+
+def test_a_clock_stepping_back_starts_a_new_file_so_time_increases_in_each(tmp_path: Path) -> None:
+    rec = DayRecorder(tmp_path)
+    assert rec.record(settled(0), NOON + 60)
+    assert rec.record(settled(1), NOON + 30)  # NTP stepped the clock back
+    assert len(read_csv(tmp_path / file_name(DAY))) == 1
+    assert len(read_csv(tmp_path / file_name(DAY, 2))) == 1
+
+
+def test_a_restart_resumes_the_day_file_and_drops_a_row_cut_short(tmp_path: Path) -> None:
+    rec = DayRecorder(tmp_path)
+    for i in range(3):
+        assert rec.record(settled(i), NOON + i)
+    rec.close()
+    path = tmp_path / file_name(DAY)
+    with open(path, "a") as handle:
+        handle.write("1795435203.0,240.00")  # a crash in the middle of a row
+    again = DayRecorder(tmp_path)
+    assert again.record(settled(3), NOON + 3)
+    assert again.path == path
+    data = read_csv(path)
+    np.testing.assert_allclose(data.t, NOON + np.arange(4))
+    assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]
+
+
+def test_write_errors_are_logged_once_never_raised_and_recording_resumes(tmp_path: Path) -> None:
+    blocked = tmp_path / "records"
+    blocked.write_text("a file where the folder should be")  # every write fails, as on a full or read-only disk
+    with captured_logging() as stream:
+        rec = DayRecorder(blocked, log=get_logger("nanodrift.daemon"))
+        assert [rec.record(settled(i), NOON + i) for i in range(4)] == [False] * 4
+        blocked.unlink()
+        assert rec.record(settled(4), NOON + 4)
+        events = json_lines(stream)
+    failed = [e for e in events if e["event"] == "record_failed"]
+    assert len(failed) == 1 and failed[0]["level"] == "error" and str(blocked) in failed[0]["error"]
+    resumed = [e for e in events if e["event"] == "record_resumed"]
+    assert len(resumed) == 1 and resumed[0]["rows_lost"] == 4
+    assert len(read_csv(blocked / file_name(DAY))) == 1
+
+
+def test_the_listener_never_raises_into_the_caller_and_writes_off_its_thread(tmp_path: Path) -> None:
+    blocked = tmp_path / "blocked"
+    blocked.write_text("")
+    failing = Recorder(lambda: HealthSettings(record_dir=str(blocked)))
+    for i in range(3):
+        failing.on_settled(settled(i), NOON + i)  # no exception reaches the health unit
+    failing.close()
+    assert failing.writer is not None and failing.writer.rows_lost == 3
+
+    rec = Recorder(lambda: HealthSettings(record_dir=str(tmp_path / "ok")))
+    for i in range(20):
+        rec.on_settled(settled(i), NOON + i)
+    path = tmp_path / "ok" / file_name(DAY)
+    wait_until(lambda: path.exists() and len(rows_of(path)) == 20, 10, "20 rows written by the recorder's thread")
+    rec.close()
+    assert not rec.running
+    assert len(read_csv(path)) == 20
+
+
+def test_a_reload_sets_moves_and_clears_record_dir_in_order_with_the_rows(tmp_path: Path) -> None:
+    config = {"health": HealthSettings()}  # record_dir "" = off
+    rec = Recorder(lambda: config["health"])
+    rec.on_settled(settled(0), NOON)
+    config["health"] = HealthSettings(record_dir=str(tmp_path / "a"))
+    for i in range(1, 4):
+        rec.on_settled(settled(i), NOON + i)
+    config["health"] = HealthSettings(record_dir=str(tmp_path / "b"), record_keep_days=0)
+    rec.on_settled(settled(4), NOON + 4)
+    config["health"] = HealthSettings()
+    rec.on_settled(settled(5), NOON + 5)
+    rec.close()
+    assert not rec.running
+    np.testing.assert_array_equal(read_csv(tmp_path / "a" / file_name(DAY)).t, NOON + np.arange(1, 4))
+    np.testing.assert_array_equal(read_csv(tmp_path / "b" / file_name(DAY)).t, [NOON + 4])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "b"]
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.floats(min_value=-1e6, max_value=1e6, allow_nan=False), min_size=1, max_size=8))
+def test_any_finite_values_round_trip_through_the_reader(tmp_path_factory: pytest.TempPathFactory,
+                                                         values: list[float]) -> None:
+    folder = tmp_path_factory.mktemp("rec")
+    rec = DayRecorder(folder)
+    for i, v in enumerate(values):
+        s = Settled(t=i, x_um=v, q_um=-v, position_um=v / 3.0, samples=1, temperatures={"T1": v, "air": 20.0})
+        assert rec.record(s, NOON + i)
+    rec.close()
+    data = read_csv(folder / file_name(DAY))
+    np.testing.assert_array_equal(data.channels["T1"], values)
+    np.testing.assert_array_equal(data.extra["target_um"], values)
+
+
+def test_non_finite_values_are_refused_and_the_file_stays_readable(tmp_path: Path) -> None:
+    rec = DayRecorder(tmp_path)
+    assert rec.record(settled(0), NOON)
+    assert not rec.record(settled(1, {"T1": float("nan"), "T2": 22.0}), NOON + 1)
+    assert rec.record(settled(2), NOON + 2)
+    assert len(read_csv(tmp_path / file_name(DAY))) == 2
+
+
+WRITER = """
+import sys
+from daemon.calibration.health import Settled
+from daemon.config import HealthSettings
+from daemon.service.recorder import DayRecorder
+
+rec = DayRecorder(sys.argv[1])
+t0 = float(sys.argv[2])
+i = 0
+while True:
+    rec.record(Settled(t=i, x_um=240.0, q_um=240.5, position_um=240.001, samples=10,
+                       temperatures={"T1": 21.0 + 1e-4 * i, "T2": 22.0}), t0 + 0.25 * i)
+    i += 1
+"""
+
+
+def test_kill_9_mid_recording_leaves_a_readable_file_that_the_next_start_resumes(tmp_path: Path) -> None:
+    folder = tmp_path / "records"
+    path = folder / file_name(DAY)
+    writer = subprocess.Popen([sys.executable, "-c", WRITER, str(folder), repr(NOON)])
+    try:
+        wait_until(lambda: path.exists() and path.stat().st_size > 40_000, 60, "the writer to record rows")
+    finally:
+        os.kill(writer.pid, signal.SIGKILL)
+        writer.wait(10)
+    assert writer.returncode == -signal.SIGKILL
+    data = read_csv(path)  # the project's reader: a cut-off row would be refused here, naming its row
+    n = len(data)
+    assert n > 300
+    np.testing.assert_allclose(data.t, NOON + 0.25 * np.arange(n))  # no row lost before the last complete one
+
+    rec = DayRecorder(folder)  # the next start, the same day
+    assert rec.record(settled(0), NOON + 0.25 * n + 10.0)
+    assert rec.path == path
+    assert sorted(p.name for p in folder.iterdir()) == [path.name]
+    after = read_csv(path)
+    assert len(after) == n + 1 and after.t[-1] == NOON + 0.25 * n + 10.0
+
+
+def test_kill_9_cutting_a_row_leaves_it_out_on_resume(tmp_path: Path) -> None:
+    """The same crash at the worst moment: the file ends inside a row (forced, as SIGKILL rarely lands there)."""
+    folder = tmp_path / "records"
+    path = folder / file_name(DAY)
+    writer = subprocess.Popen([sys.executable, "-c", WRITER, str(folder), repr(NOON)])
+    try:
+        wait_until(lambda: path.exists() and path.stat().st_size > 4_000, 60, "the writer to record rows")
+    finally:
+        os.kill(writer.pid, signal.SIGKILL)
+        writer.wait(10)
+    complete = len(read_csv(path))
+    size = path.stat().st_size
+    os.truncate(path, size - 7)  # the last row loses its end
+    rec = DayRecorder(folder)
+    assert rec.record(settled(0), NOON + 1e4)
+    data = read_csv(path)
+    assert len(data) == complete  # the cut row is gone, the new one is in
+    assert data.t[-1] == NOON + 1e4

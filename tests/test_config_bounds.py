@@ -1,0 +1,150 @@
+"""Every number is finite *and physical* (issue 10): huge values that pass a ``> 0`` check are refused too.
+
+``[simulation] speed = 1e9`` passed check-config and froze the daemon (deaf to SIGTERM);
+``interval_s = 1e-300`` spins the poller and ``max_age_s = 1e308`` makes any reading fresh, like
+inf; a sensor ``scale = 0`` reads the offset whatever the device says. Each bound is refused
+naming the field, and the values just inside it are accepted. Also: a hostile, deeply nested TOML
+file is a message naming the file (never a traceback), check-config judges a sensor-less file as
+the daemon's reload does, and the shipped ``config/sim.toml`` passes ``--strict``.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from helpers.daemon_harness import REPO, write_test_model
+
+from daemon.config import ConfigError, load_config
+from daemon.model.model import FittedTerm, Model, Training, save_model
+from daemon.model.terms import parse_term
+from drivers.base import MAX_AGE_S, MAX_INTERVAL_S, MIN_INTERVAL_S
+from drivers.simulated.config import MAX_SPEED
+
+SIM_SENSOR = '[[sensors]]\nname = "T1"\nkind = "simulated"\n'
+MODBUS = ('[[hubs]]\nname = "adam"\nhost = "127.0.0.1"\n'
+          '[[sensors]]\nname = "T1"\nkind = "modbus"\nhub = "adam"\naddress = 0\n')
+SERIAL = ('[[sensors]]\nname = "interferometer"\nrole = "position"\nkind = "serial_line"\n'
+          'port = "socket://127.0.0.1:4001"\n')
+
+
+def problems_of(tmp_path: Path, text: str) -> list[str]:
+    path = tmp_path / "nanodrift.toml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    assert info.value.source == str(path)
+    return info.value.problems
+
+
+def accepted(tmp_path: Path, text: str) -> None:
+    path = tmp_path / "nanodrift.toml"
+    path.write_text(text)
+    load_config(path)
+
+
+@pytest.mark.parametrize(
+    ("text", "field", "words"),
+    [
+        ("[simulation]\nspeed = 1e9\n", "simulation.speed", f"less than or equal to {MAX_SPEED:g}"),
+        ("[simulation]\nspeed = 1e308\n", "simulation.speed", f"less than or equal to {MAX_SPEED:g}"),
+        (f"[simulation]\nspeed = {MAX_SPEED + 0.5}\n", "simulation.speed", "less than or equal"),
+        ("[simulation]\nspeed = 0.0\n", "simulation.speed", "greater than 0"),
+        (SIM_SENSOR + "interval_s = 1e-300\n", "sensors[0] (T1).interval_s", "greater than or equal to 0.001"),
+        (SIM_SENSOR + "interval_s = 0.0009\n", "sensors[0] (T1).interval_s", "greater than or equal to 0.001"),
+        (SIM_SENSOR + "interval_s = 3601.0\nmax_age_s = 7200.0\n", "sensors[0] (T1).interval_s",
+         "less than or equal to 3600"),
+        (SIM_SENSOR + "max_age_s = 1e308\n", "sensors[0] (T1).max_age_s", "less than or equal to 86400"),
+        (SIM_SENSOR + "max_age_s = 86401.0\n", "sensors[0] (T1).max_age_s", "less than or equal to 86400"),
+        (SIM_SENSOR + "interval_s = 2.0\nmax_age_s = 1.0\n", "sensors[0] (T1).max_age_s",
+         "max_age_s = 1 s is below interval_s = 2 s: every reading would go stale before the next poll"),
+        (MODBUS + "scale = 0.0\n", "sensors[0] (T1).scale", "must not be 0"),
+        (MODBUS + "scale = -0.0\n", "sensors[0] (T1).scale", "must not be 0"),
+        (SERIAL + "scale = 0\n", "sensors[0] (interferometer).scale", "must not be 0"),
+        (SERIAL + "scale = 1e400\n", "sensors[0] (interferometer).scale", "finite"),
+    ],
+    ids=["speed=1e9", "speed=1e308", "speed>max", "speed=0", "interval=1e-300", "interval<1ms", "interval>1h",
+         "max_age=1e308", "max_age>1day", "max_age<interval", "modbus-scale=0", "modbus-scale=-0",
+         "serial-scale=0", "serial-scale=inf"],
+)
+def test_an_out_of_bounds_number_is_refused_naming_the_field(tmp_path: Path, text: str, field: str,
+                                                             words: str) -> None:
+    problems = problems_of(tmp_path, text)
+    assert any(p.startswith(f"{field}: ") and words in p for p in problems), problems
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        f"[simulation]\nspeed = {MAX_SPEED}\n",
+        "[simulation]\nspeed = 0.001\n",
+        SIM_SENSOR + f"interval_s = {MIN_INTERVAL_S}\nmax_age_s = {MIN_INTERVAL_S}\n",  # equal: accepted
+        SIM_SENSOR + f"interval_s = {MAX_INTERVAL_S}\nmax_age_s = {MAX_AGE_S}\n",
+        MODBUS + "scale = -0.1\n",
+        SERIAL + "scale = 1e-9\n",
+    ],
+    ids=["speed=max", "speed=slow", "interval=min", "interval=max", "modbus-scale<0", "serial-scale-tiny"],
+)
+def test_values_at_the_bounds_are_accepted(tmp_path: Path, text: str) -> None:
+    accepted(tmp_path, text)
+
+
+def run_cli(*args: str, cwd: Path = REPO) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "daemon.cli", *args], capture_output=True, text=True, cwd=cwd,
+                          timeout=60)
+
+
+@pytest.mark.parametrize("nesting", ["[" * 100_000 + "]" * 100_000, "{a = " * 5000 + "1" + "}" * 5000])
+def test_check_config_on_a_deeply_nested_toml_exits_2_naming_the_file(tmp_path: Path, nesting: str) -> None:
+    deep = tmp_path / "deep.toml"
+    deep.write_text(f"x = {nesting}\n")
+    result = run_cli("check-config", str(deep))
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.strip() == f"nanodrift check-config: error: {deep}: not valid TOML: nested too deeply " \
+                                    "(a nanodrift config nests a few levels of [ and {, not hundreds)", result.stderr
+    assert "Traceback" not in result.stderr and result.stdout == ""
+
+
+def sensorless_config(tmp_path: Path, model: Path) -> Path:
+    path = tmp_path / "nanodrift.toml"
+    path.write_text(f'cell = "c0"\n[model]\npath = "{model}"\n')
+    return path
+
+
+def test_check_config_refuses_a_sensorless_file_whose_model_needs_channels_as_a_reload_would(tmp_path: Path) -> None:
+    """An emptied file on a real install (its model exists): the running daemon refuses it on reload."""
+    model = write_test_model(tmp_path / "model.json")  # needs T1 and T2
+    path = sensorless_config(tmp_path, tmp_path / "model.json")
+    result = run_cli("check-config", str(path))
+    assert result.returncode == 2 and result.stdout == "", result
+    assert (f"{path}: sensors: the config lists no sensors (an emptied file?) and model {model.id} needs T1, T2: "
+            "a running daemon with sensors refuses it on reload") in result.stderr, result.stderr
+
+
+def test_check_config_warns_about_a_sensorless_file_a_daemon_may_run(tmp_path: Path) -> None:
+    """A model of x alone needs no sensor: the daemon starts with the file and serves; a reload from a
+    cell with sensors still refuses it, so check-config says so (an error with --strict)."""
+    model = Model(terms=[FittedTerm(parse_term("x"), 1.001), FittedTerm(parse_term("1"), 0.2)],
+                  training=Training((0.0, 480.0), {}, 50, 600.0))
+    save_model(model, tmp_path / "model.json")
+    path = sensorless_config(tmp_path, tmp_path / "model.json")
+    result = run_cli("check-config", str(path))
+    assert result.returncode == 0, result.stderr
+    assert f"{path}: ok: cell 'c0', 0 sensor(s)" in result.stdout
+    assert (f"{path}: warning: sensors: the config lists no sensors: a running daemon with sensors refuses it on "
+            "reload") in result.stderr, result.stderr
+    strict = run_cli("check-config", "--strict", str(path))
+    assert strict.returncode == 2 and "sensors: the config lists no sensors" in strict.stderr, strict.stderr
+
+
+def test_the_shipped_sim_toml_passes_strict() -> None:
+    result = run_cli("check-config", "--strict", str(REPO / "config" / "sim.toml"))
+    assert result.returncode == 0, result.stderr
+    assert result.stderr == ""
+    model = json.loads((REPO / "daemon" / "data" / "default_model.json").read_text())
+    configured = load_config(REPO / "config" / "sim.toml")
+    temperatures = [s.name for s in configured.sensors if s.role == "temperature"]
+    assert temperatures == model["channels"], (temperatures, model["channels"])  # every one used, none missing
