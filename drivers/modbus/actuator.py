@@ -17,7 +17,7 @@ from typing import Literal
 from drivers.base import Actuator, DeviceError
 from drivers.modbus.codec import decode, encode, raw_for
 from drivers.modbus.config import ModbusActuatorConfig
-from drivers.modbus.hub import ModbusExceptionError, ModbusHub
+from drivers.modbus.hub import HubLease, ModbusExceptionError, ModbusHub
 
 
 class ModbusActuator(Actuator):
@@ -27,21 +27,16 @@ class ModbusActuator(Actuator):
         self.description = (f"modbus output (hub {hub.name!r} at {hub.endpoint}, device {config.device_id}, "
                             f"holding register {config.address})")
         self.writes = 0  # successful writes, for tests and benchmarks
-        self._acquired = False
+        self._lease = HubLease(hub)
 
     def __repr__(self) -> str:
         return f"ModbusActuator({self.description})"
 
     async def open(self) -> None:
-        if not self._acquired:
-            self._acquired = True  # before connecting: close() after a failed open releases the hub
-            self.hub.acquire()
-        await self.hub.ensure_connected()
+        await self._lease.open()
 
     async def close(self) -> None:
-        if self._acquired:
-            self._acquired = False
-            self.hub.release()
+        self._lease.close()
 
     def volts(self, registers: list[int]) -> tuple[int | float, float]:
         """What ``registers`` hold: the raw value and the voltage it means."""

@@ -20,7 +20,7 @@ import structlog
 from drivers.base import Clock, DeviceError, Reading, SensorGroup
 from drivers.modbus.codec import decode
 from drivers.modbus.config import ModbusSensorConfig
-from drivers.modbus.hub import ModbusExceptionError, ModbusHub
+from drivers.modbus.hub import HubLease, ModbusExceptionError, ModbusHub
 
 MAX_GAP_REGISTERS = 4
 MAX_REGISTERS_PER_READ = 125
@@ -98,7 +98,7 @@ class ModbusBlockGroup(SensorGroup):
         self.hub = hub
         self.clock = clock
         self._requests: list[Block] = [block]
-        self._acquired = False
+        self._lease = HubLease(hub)
         self.names = tuple(c.name for c in block.channels)
         self.roles = {c.name: c.role for c in block.channels}
         # the fastest member sets the pace; a slow poll may wait behind others on the hub
@@ -117,15 +117,10 @@ class ModbusBlockGroup(SensorGroup):
         return len(self._requests)
 
     async def open(self) -> None:
-        if not self._acquired:
-            self._acquired = True  # before connecting: close() after a failed open releases the hub
-            self.hub.acquire()
-        await self.hub.ensure_connected()
+        await self._lease.open()
 
     async def close(self) -> None:
-        if self._acquired:
-            self._acquired = False
-            self.hub.release()
+        self._lease.close()
 
     async def read(self) -> dict[str, Reading]:
         readings: dict[str, Reading] = {}

@@ -21,7 +21,7 @@ made only when the hub is asked for one.
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Sequence
+from collections.abc import Awaitable, Callable, Sequence
 from typing import Any
 
 from pymodbus import FramerType, ModbusException
@@ -213,39 +213,7 @@ class ModbusHub:
     ) -> list[int]:
         where = f"device {device_id} {REGISTER_KIND_NAMES[input_type]} {address} (count {count})"
         read = client.read_input_registers if input_type == "input" else client.read_holding_registers
-        try:
-            call = asyncio.ensure_future(read(address, count=count, device_id=device_id))
-        except ModbusException as error:  # pymodbus refuses at once when the link just went away
-            self._lost_link()
-            raise DeviceError(f"modbus hub {self.name!r}: {self.endpoint}: {error} ({where})") from error
-        lost = asyncio.ensure_future(self._lost.wait())
-        self.requests += 1
-        try:
-            done, _ = await asyncio.wait(
-                {call, lost}, timeout=self.request_budget_s + 0.5, return_when=asyncio.FIRST_COMPLETED
-            )
-        except asyncio.CancelledError:
-            self._after_silence()  # the caller gave up mid-transaction: where the link stands is unknown
-            raise
-        finally:
-            lost.cancel()
-            call.cancel()
-        if call in done and call.exception() is None:
-            response = call.result()
-        elif call in done:
-            self._after_silence()
-            error = call.exception()
-            detail = "no response" if isinstance(error, ModbusException) else repr(error)
-            raise DeviceError(
-                f"modbus hub {self.name!r} ({self.endpoint}): {detail} from {where} "
-                f"within {self.request_budget_s:g} s"
-            ) from error
-        elif lost in done:
-            self._lost_link()
-            raise DeviceError(f"modbus hub {self.name!r}: connection to {self.endpoint} lost while reading {where}")
-        else:
-            self._after_silence()
-            raise DeviceError(f"modbus hub {self.name!r} ({self.endpoint}): no response from {where}")
+        response = await self._answer_locked(lambda: read(address, count=count, device_id=device_id), "reading", where)
         if response.isError():
             raise ModbusExceptionError(int(response.exception_code), device_id, input_type, address, count)
         registers: Sequence[int] = response.registers
@@ -286,20 +254,23 @@ class ModbusHub:
             await self._connect_locked(seen)
             client = self._client
             assert client is not None
-            try:
-                if fc == 6:
-                    call = asyncio.ensure_future(client.write_register(address, values[0], device_id=device_id))
-                else:
-                    call = asyncio.ensure_future(client.write_registers(address, values, device_id=device_id))
-            except ModbusException as error:  # pymodbus refuses at once when the link just went away
-                self._lost_link()
-                raise DeviceError(f"modbus hub {self.name!r}: {self.endpoint}: {error} (writing {where})") from error
-            response = await self._answer_locked(call, f"writing {where}")
+            if fc == 6:
+                response = await self._answer_locked(
+                    lambda: client.write_register(address, values[0], device_id=device_id), "writing", where)
+            else:
+                response = await self._answer_locked(
+                    lambda: client.write_registers(address, values, device_id=device_id), "writing", where)
         if response.isError():
             raise ModbusExceptionError(int(response.exception_code), device_id, "holding", address, len(values))
 
-    async def _answer_locked(self, call: asyncio.Future[Any], what: str) -> Any:
-        """The response to ``call``, or :class:`DeviceError` on silence or a lost link (the hub's lock held)."""
+    async def _answer_locked(self, request: Callable[[], Awaitable[Any]], verb: str, where: str) -> Any:
+        """The response to ``request()`` (``verb`` "reading"/"writing" ``where``), or :class:`DeviceError`
+        on a refusal, silence or a lost link (the hub's lock held)."""
+        try:
+            call = asyncio.ensure_future(request())
+        except ModbusException as error:  # pymodbus refuses at once when the link just went away
+            self._lost_link()
+            raise DeviceError(f"modbus hub {self.name!r}: {self.endpoint}: {error} ({verb} {where})") from error
         lost = asyncio.ensure_future(self._lost.wait())
         self.requests += 1
         try:
@@ -307,7 +278,7 @@ class ModbusHub:
                 {call, lost}, timeout=self.request_budget_s + 0.5, return_when=asyncio.FIRST_COMPLETED
             )
         except asyncio.CancelledError:
-            self._after_silence()
+            self._after_silence()  # the caller gave up mid-transaction: where the link stands is unknown
             raise
         finally:
             lost.cancel()
@@ -318,10 +289,30 @@ class ModbusHub:
             self._after_silence()
             error = call.exception()
             detail = "no response" if isinstance(error, ModbusException) else repr(error)
-            raise DeviceError(f"modbus hub {self.name!r} ({self.endpoint}): {detail} {what} "
+            raise DeviceError(f"modbus hub {self.name!r} ({self.endpoint}): {detail} from {where} "
                               f"within {self.request_budget_s:g} s") from error
         if lost in done:
             self._lost_link()
-            raise DeviceError(f"modbus hub {self.name!r}: connection to {self.endpoint} lost {what}")
+            raise DeviceError(f"modbus hub {self.name!r}: connection to {self.endpoint} lost while {verb} {where}")
         self._after_silence()
-        raise DeviceError(f"modbus hub {self.name!r} ({self.endpoint}): no response {what}")
+        raise DeviceError(f"modbus hub {self.name!r} ({self.endpoint}): no response from {where}")
+
+
+class HubLease:
+    """One user's share of a hub (a sensor group or the output): ``open`` joins and connects, ``close``
+    leaves once; the last user out closes the connection. Safe to close after a failed open."""
+
+    def __init__(self, hub: ModbusHub) -> None:
+        self.hub = hub
+        self._acquired = False
+
+    async def open(self) -> None:
+        if not self._acquired:
+            self._acquired = True  # before connecting: close() after a failed open releases the hub
+            self.hub.acquire()
+        await self.hub.ensure_connected()
+
+    def close(self) -> None:
+        if self._acquired:
+            self._acquired = False
+            self.hub.release()
