@@ -67,7 +67,7 @@ class HealthUnit:
     def _configure(self, config: Config, model: Model | None) -> None:
         health, adapt = config.health, config.adapt
         position = next((s for s in config.sensors if s.role == "position"), None)
-        self._settings = (health, adapt, position)
+        self._settings = _settings(config)
         self.model_id = model.id if model is not None else None
         self.position_channel: str | None = position.name if position is not None else None
         self.position_max_age_s: float = position.max_age_s if position is not None else math.inf
@@ -89,13 +89,13 @@ class HealthUnit:
         compensator.correction_um = self.tracker.correction_um if self.tracker is not None else None
 
     def reconfigure(self, config: Config, compensator: Compensator) -> None:
-        """A reload (under state.lock): a new model, new ``[health]``/``[adapt]`` settings or another
-        position sensor start the monitor and the tracker afresh (residuals of the old model say
-        nothing about the new one); otherwise they carry on through the new compensator."""
+        """A reload (under state.lock): a new model, new ``[health]`` monitor or ``[adapt]`` settings or
+        another position sensor start the monitor and the tracker afresh (residuals of the old model say
+        nothing about the new one); otherwise (recording settings included) they carry on through the
+        new compensator."""
         model = compensator.model
-        position = next((s for s in config.sensors if s.role == "position"), None)
         model_id = model.id if model is not None else None
-        if model_id != self.model_id or (config.health, config.adapt, position) != self._settings:
+        if model_id != self.model_id or _settings(config) != self._settings:
             self._configure(config, model)
         self.attach(compensator)
 
@@ -122,11 +122,12 @@ class HealthUnit:
 
     def _feed(self, t: float, value_um: float, ok: bool) -> None:
         served = self.served
-        while served and served[0][0] <= t:
-            t_command, command = served.popleft()
-            # a window that ended before this command is complete: close it first (a reading past its
-            # end closes it; the value of a reading past the end is never used)
-            self._settled(self.settle.position(t_command, math.nan, False))
+        if served and served[0][0] <= t:
+            # a window that ended before the next command is complete: close it first (a reading past
+            # its end closes it; the value of a reading past the end is never used)
+            self._settled(self.settle.position(served[0][0], math.nan, False))
+            while served and served[0][0] <= t:  # with no reading between them, only the last can be held
+                t_command, command = served.popleft()
             self.settle.commanded(t_command, command.x_um, command.q_um, command.temperatures_c, command.id)
             self.ranges.observe(t_command, {"x": command.x_um})
         self._settled(self.settle.position(t, value_um, ok))
@@ -197,3 +198,10 @@ class HealthUnit:
             self._publisher.put(dumps(doc))
         except zenoh.ZError as error:  # the session is closing: the next one will say it again
             self.log.warning("health_publish_failed", error=str(error))
+
+
+def _settings(config: Config) -> tuple[object, ...]:
+    """What the monitor and the tracker are made of (not the recording keys of ``[health]``)."""
+    health = config.health
+    position = next((s for s in config.sensors if s.role == "position"), None)
+    return (health.settle_s, health.window_s, health.history, health.alarm_rms_nm, config.adapt, position)

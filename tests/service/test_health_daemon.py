@@ -14,6 +14,7 @@ import json
 import math
 import signal
 import threading
+import urllib.request
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +30,7 @@ from helpers.daemon_harness import (
     wait_until,
     write_test_model,
 )
+from prometheus_client.parser import text_string_to_metric_families
 
 from daemon.bus.protocol import Command, Target
 from daemon.config import DEFAULT_MODEL_PATH, Config, parse_config
@@ -60,6 +62,13 @@ def model_q(model: Model, command: dict[str, Any]) -> float:
     evaluator = model.evaluator()
     evaluator.observe(0.0, command["temperatures_c"])
     return evaluator.value(command["x_um"], 0.0)
+
+
+def scrape(url: str) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
+    with urllib.request.urlopen(url, timeout=10) as response:
+        text = response.read().decode()
+    return {(s.name, tuple(sorted(s.labels.items()))): s.value
+            for family in text_string_to_metric_families(text) for s in family.samples}
 
 
 def sim_config(cell: str, port: int, model_path: Path, *, position: bool = True, scenario: str = "room",
@@ -127,8 +136,8 @@ class Cell:
 
 def test_a_model_with_its_bias_moved_goes_degraded_and_every_command_states_its_uncertainty(tmp_path: Path) -> None:
     model = shifted_model(tmp_path / "shifted.json", +0.3)
-    cell = Cell(tmp_path, "hbias", sim_config("hbias", 0, tmp_path / "shifted.json").replace(
-        "127.0.0.1:0", "127.0.0.1:@PORT@"))
+    config = sim_config("hbias", 0, tmp_path / "shifted.json").replace("127.0.0.1:0", "127.0.0.1:@PORT@")
+    cell = Cell(tmp_path, "hbias", config + f'[metrics]\nlisten = "127.0.0.1:{free_port()}"\n')
     try:
         assert cell.client is not None
         cell.client.wait_ready(["T1", "T2", "T3", "T4", "interferometer"])
@@ -153,6 +162,15 @@ def test_a_model_with_its_bias_moved_goes_degraded_and_every_command_states_its_
         degraded = cell.daemon.log_events("health_degraded")
         assert len(degraded) == 1 and degraded[0]["level"] == "warning", degraded
         assert degraded[0]["residual_mean_nm"] == pytest.approx(300.0, abs=80.0)
+        # Prometheus reads the same document, in base units
+        samples = scrape(cell.daemon.wait_log("metrics_listening")["url"])
+        health = cell.health()
+        assert samples[("nanodrift_health_state", (("cell", "hbias"), ("state", "degraded")))] == 1.0
+        assert samples[("nanodrift_health_state", (("cell", "hbias"), ("state", "ok")))] == 0.0
+        assert samples[("nanodrift_health_residual_mean_meters", (("cell", "hbias"),))] == pytest.approx(
+            health["residual_mean_nm"] * 1e-9, rel=0.2)
+        assert samples[("nanodrift_health_residuals", (("cell", "hbias"),))] == health["n"]
+        assert ("nanodrift_health_correction_meters", (("cell", "hbias"),)) not in samples  # adaptation off
 
         # every command states its uncertainty; a target outside the training range x gets a larger one
         assert all(c["q_sigma_um"] > 0.0 for c in commands)
@@ -221,6 +239,11 @@ def test_without_a_position_sensor_health_is_unknown_and_extrapolation_raises_th
         health = status["health"]
         assert health["state"] == "unknown" and health["n"] == 0 and health["residual_rms_nm"] is None
         assert "no position sensor" in health["advice"]
+        # no change of state to announce: the health document is still published every few seconds
+        sample = wait_until(lambda: next(iter(cell.samples()), None), 12, "a periodic health sample")
+        assert sample["state"] == "unknown" and set(sample) == {"state", "residual_rms_nm", "residual_mean_nm", "n",
+                                                               "correction_um", "extrapolating", "advice"}
+        assert sample["extrapolating"]  # test 5's room, named in the document too
         # the uncertainty grows outside the training range: the model's own sigma in its range is ~0.09 um
         model = load_model(DEFAULT_MODEL_PATH)
         evaluator = model.evaluator()
@@ -368,6 +391,13 @@ def test_the_unit_counts_only_fresh_new_ok_readings(tmp_path: Path) -> None:
     health.flush()
     assert [s.x_um for s, _ in handed] == [100.0, 400.0]
 
+    for k, x in enumerate((10.0, 20.0, 30.0)):  # a burst between two readings: the last target is the one held
+        unit.command(40.0 + 0.01 * k, x)
+    for k in range(1, 13):
+        health.on_position(40.02 + 0.5 * k, 40.02 + 0.5 * k, 30.1, True)
+    health.flush()
+    assert [s.x_um for s, _ in handed][2:] == [30.0] and health.monitor.n == 3 and not health.served
+
 
 def test_a_new_model_or_new_settings_on_reload_start_afresh_and_the_same_model_carries_on(tmp_path: Path) -> None:
     config = unit_config(adapt={"mode": "bias", "tau_s": 60.0})
@@ -382,6 +412,9 @@ def test_a_new_model_or_new_settings_on_reload_start_afresh_and_the_same_model_c
     same = Compensator(unit.model, config.actuator, unit.table)  # a reload that only touched the actuator
     health.reconfigure(config, same)
     assert health.monitor.n == 6 and same.correction_um == health.correction_um and same.served is health.served
+    recording = config.model_copy(update={"health": config.health.model_copy(update={"record_dir": "/tmp/r"})})
+    health.reconfigure(recording, same)  # recording is not what the monitor is made of
+    assert health.monitor.n == 6
 
     other = write_test_model(tmp_path / "other.json", {"x^3": 0.0, "x^2": 0.0, "x": 1.0, "T1": 0.0, "T2": 0.0,
                                                        "1": 0.0})
