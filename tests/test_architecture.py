@@ -49,6 +49,7 @@ COMMANDS_PACKAGE = "daemon.commands"
 LAZY_ALLOWED = {
     "matplotlib": "figures are drawn only when a report is asked for",
     "daemon.reports": "they import matplotlib (half a second) only when a report is asked for",
+    "scipy.signal": "a second at every command's start (it pulls in scipy.stats); only series filtering needs it",
 }
 
 Import = tuple[str, int, bool]  # (imported module, line, inside a function)

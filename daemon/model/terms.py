@@ -21,7 +21,6 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal import lfilter
 
 Channels = Mapping[str, np.ndarray]
 
@@ -185,6 +184,8 @@ def lag_filter(t: np.ndarray, u: np.ndarray, tau_s: float) -> np.ndarray:
     u0 = float(u[0])
     v = u - u0
     if n > 1 and float(dt.max() - dt.min()) <= 1e-12 * max(1.0, abs(float(dt[0]))):
+        from scipy.signal import lfilter  # a second to import: only for series, never at a command's start
+
         alpha = -math.expm1(-float(dt[0]) / tau_s)
         y, _ = lfilter([alpha], [1.0, alpha - 1.0], v[1:], zi=[(1.0 - alpha) * 0.0])
         return np.concatenate(([u0], y + u0))

@@ -28,7 +28,6 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
-from scipy.signal import lfilter
 
 from drivers.simulated.effects import resolve_effects
 from drivers.simulated.scenarios import Scenario, get_scenario
@@ -86,6 +85,8 @@ class CellParams:
 
 def _ou_step(prev: float, n: int, dt: float, tau: float, sigma: float, rng: np.random.Generator) -> np.ndarray:
     """``n`` further samples of an Ornstein-Uhlenbeck process (stationary std ``sigma``), exact."""
+    from scipy.signal import lfilter  # a second to import: only once the cell computes, not to check a config
+
     a = math.exp(-dt / tau)
     shocks = rng.normal(0.0, sigma * math.sqrt(1.0 - a * a), n)
     out, _ = lfilter([1.0], [1.0, -a], shocks, zi=[a * prev])
@@ -142,6 +143,8 @@ class Exogenous:
         if k == 0:
             steps[0] = 0.0
         walk = (float(self.walk[-1]) if self.walk.size else 0.0) + np.cumsum(steps)
+        from scipy.signal import lfilter  # as in _ou_step
+
         nodes = np.empty((n, len(self.node_names)))
         for j in range(len(self.node_names)):
             if self.nodes.shape[0]:
