@@ -56,6 +56,8 @@ class GroupPoller:
         self.failures = 0  # in the current episode (0: the group is healthy)
         self.failing_since = 0.0  # retry_clock time of the episode's first failure
         self.task: asyncio.Task[None] | None = None
+        #: set when the first poll attempt has finished, read or failed: the daemon is ready to answer then
+        self.first_attempt = asyncio.Event()
         self._stopping = False
 
     def start(self) -> asyncio.Task[None]:
@@ -99,6 +101,7 @@ class GroupPoller:
                         if self.on_recovered is not None:
                             self.on_recovered(self.group, failures, self.retry_clock.now() - self.failing_since)
                     self.on_readings(self.group, readings)
+                    self.first_attempt.set()
                     await self.clock.sleep(self.group.interval_s)
             except asyncio.CancelledError:
                 raise
@@ -109,10 +112,23 @@ class GroupPoller:
                 reason = str(error) if isinstance(error, DeviceError) else f"{type(error).__name__}: {error}"
                 delay = backoff * random.uniform(1.0 - self.JITTER, 1.0 + self.JITTER)
                 self.on_failure(self.group, reason, delay, self.failures)
+                self.first_attempt.set()
                 await self._close()
                 self.last_progress = time.monotonic()
                 await self.retry_clock.sleep(delay)
                 backoff = min(backoff * 2.0, self.MAX_BACKOFF_S)
+
+
+async def first_attempts(pollers: Iterable[GroupPoller], limit_s: float = 10.0) -> None:
+    """Until every poller has finished its first attempt (a device's open and read, or their timeouts),
+    at most ``limit_s``: a daemon that says it serves has read what it can, so a client's first target
+    is not refused for a reading that was simply not taken yet."""
+    waits = [asyncio.ensure_future(p.first_attempt.wait()) for p in pollers]
+    if not waits:
+        return
+    _, pending = await asyncio.wait(waits, timeout=limit_s)
+    for wait in pending:
+        wait.cancel()
 
 
 def pollers_healthy(pollers: Iterable[GroupPoller]) -> bool:

@@ -30,7 +30,7 @@ from daemon.service.actuation import Actuation
 from daemon.service.compensator import Compensator, load_model_or_problem
 from daemon.service.health import HealthUnit
 from daemon.service.metrics import AnswerLatency, MetricsServer
-from daemon.service.polling import GroupPoller, pollers_healthy
+from daemon.service.polling import GroupPoller, first_attempts, pollers_healthy
 from daemon.service.recorder import Recorder
 from daemon.service.reload import Reloader
 from daemon.service.sensors import SensorIngest
@@ -111,6 +111,9 @@ class Service:
             bus.close()
             self.stop_metrics()
             return 1
+        # ready once every device has been read (or has failed) once: at most an open and a read each
+        await first_attempts(self.pollers, min(10.0, 0.5 + 2 * max((p.group.timeout_s for p in self.pollers),
+                                                                     default=0.0)))
         targets = TargetHandler(self.state, bus, loop, self.actuation, self.log, latency=self.latency)
         with self.state.lock:
             self.state.serving = True

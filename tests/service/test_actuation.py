@@ -407,6 +407,8 @@ def test_the_register_holds_each_command_a_dead_module_refuses_targets_and_recov
         assert ok, command
         assert command["q_um"] == pytest.approx(expected_q(x, TEMPS))
         wait_until(lambda v=command["voltage_v"]: module.register() == raw_for(v), 10, f"register = {x} um")
+    # the register changes before the daemon has the module's answer (and its verify read): wait for that too
+    wait_until(lambda: cell.actuator_status()["last_voltage_v"] == command["voltage_v"], 10, "the write recorded")
     actuator = cell.actuator_status()
     assert list(actuator)[:9] == ["volts_per_um", "offset_v", "v_min", "v_max", "x_min_um", "x_max_um", "kind",
                                   "max_slew_um_per_s", "safe_voltage_v"]

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import asyncio
 import math
+import time
+from types import MappingProxyType
 
 from helpers.log_capture import captured_logging, json_lines
 from helpers.modbus_helpers import ModbusTestDevice, ModbusTestServer, free_port, tcp_context
@@ -16,11 +18,11 @@ from helpers.modbus_helpers import ModbusTestDevice, ModbusTestServer, free_port
 from daemon.config import ActuatorConfig, Config
 from daemon.logs import get_logger
 from daemon.service.compensator import Compensator
-from daemon.service.polling import GroupPoller
+from daemon.service.polling import GroupPoller, first_attempts
 from daemon.service.sensors import SensorIngest
 from daemon.service.state import CellState
 from daemon.service.table import SensorTable
-from drivers.base import SensorGroup, WallClock
+from drivers.base import DeviceError, Reading, SensorGroup, State, WallClock
 from drivers.modbus.config import ModbusSensorConfig
 from drivers.modbus.group import ModbusBlockGroup
 from drivers.modbus.plugin import PLUGIN
@@ -185,3 +187,60 @@ def test_only_the_first_failure_of_an_episode_is_a_warning() -> None:
         docs = json_lines(stream)
     assert [(d["event"], d["reason"]) for d in docs] == [("sensor_group_failed", "link down (1)")]
     assert state.table.state("T1", 0.0)[1] == "device error: link down (5)"
+
+
+class SlowFirstRead(SensorGroup):
+    """A device whose first read takes ``first_read_s`` (a module waking up), or whose open fails."""
+
+    names = ("T1",)
+    roles = MappingProxyType({"T1": "temperature"})
+    interval_s = 0.05
+    timeout_s = 2.0
+
+    def __init__(self, first_read_s: float, *, dead: bool = False) -> None:
+        self.first_read_s = first_read_s
+        self.dead = dead
+        self.reads = 0
+
+    async def open(self) -> None:
+        if self.dead:
+            raise DeviceError("no such module")
+
+    async def read(self) -> dict[str, Reading]:
+        if self.reads == 0:
+            await asyncio.sleep(self.first_read_s)
+        self.reads += 1
+        return {"T1": Reading(value=21.5, t=time.monotonic(), state=State.OK)}
+
+    async def close(self) -> None:
+        return None
+
+
+def test_the_daemon_waits_for_each_devices_first_attempt_read_or_failed_before_it_serves() -> None:
+    """What ``Service.run`` awaits before it logs ``serving`` and tells systemd READY: every group has
+    been read once (its readings delivered) or has failed once, within a limit for a hung device."""
+    delivered: list[int] = []
+    failed: list[str] = []
+
+    async def main() -> tuple[float, float]:
+        slow, dead = SlowFirstRead(0.4), SlowFirstRead(0.0, dead=True)
+        pollers = [GroupPoller(g, WallClock(), lambda g, r: delivered.append(g.reads),
+                               lambda g, reason, delay, n: failed.append(reason)) for g in (slow, dead)]
+        for poller in pollers:
+            poller.start()
+        started = time.monotonic()
+        await first_attempts(pollers, limit_s=5.0)
+        waited = time.monotonic() - started
+        # the slow device's first readings are in (the dead one may have been retried meanwhile)
+        assert delivered == [1] and failed and set(failed) == {"no such module"}
+        hung = GroupPoller(SlowFirstRead(60.0), WallClock(), lambda g, r: None, lambda *a: None)
+        hung.start()
+        started = time.monotonic()
+        await first_attempts([hung], limit_s=0.3)  # a device that hangs does not hold the daemon for ever
+        bounded = time.monotonic() - started
+        for poller in [*pollers, hung]:
+            await poller.stop()
+        return waited, bounded
+
+    waited, bounded = asyncio.run(main())
+    assert waited >= 0.4 and bounded < 5.0
