@@ -4,7 +4,10 @@
   test harness' ``file`` temperature sensors and a small known model; a client-mode Zenoh session on
   127.0.0.1 puts each target on ``nanodrift/<cell>/target``. "target -> held" runs from just before
   that ``put`` to the device's own stamp of the write (every process reads CLOCK_MONOTONIC through
-  ``time.perf_counter``). Targets go one at a time: the next is put as soon as the last is held.
+  ``time.perf_counter``). Targets go one at a time, each put ``--gap-ms`` after the last (25 ms: more than
+  the daemon's write period, ``WRITE_PERIOD_S`` = 20 ms, so each is an isolated target). A second, shorter
+  run puts each target as soon as the last is held (a sustained stream): there the daemon coalesces to one
+  write per period, and that row shows the pacing, not the latency.
 - ``modbus``: a pymodbus TCP server in its own process stamps each write of the output register; the
   daemon's ``[actuator] kind = "modbus"`` writes it (FC 6, ``verify = true``). The bare round trip is
   one ``write_register`` of pymodbus' ``AsyncModbusTcpClient`` to the same server (the next register,
@@ -175,7 +178,7 @@ def x_for(k: int) -> float:
 # -- the runs -------------------------------------------------------------------------------------
 
 
-async def bench_modbus(targets: int, root: Path) -> dict[str, list[float]]:
+async def bench_modbus(targets: int, root: Path, gap_s: float) -> dict[str, list[float]]:
     port = free_port()
     device = Device(modbus_device, port)
     served = None
@@ -197,6 +200,7 @@ async def bench_modbus(targets: int, root: Path) -> dict[str, list[float]]:
             if k >= WARMUP:
                 times["held"].append(held)
                 times["bare"].append(rtt)
+            await asyncio.sleep(max(0.0, gap_s - (time.perf_counter() - t0)))
         bare.close()
         served.close()
         served = None
@@ -218,7 +222,7 @@ async def bench_modbus(targets: int, root: Path) -> dict[str, list[float]]:
         device.close()
 
 
-async def bench_serial(targets: int, root: Path) -> dict[str, list[float]]:
+async def bench_serial(targets: int, root: Path, gap_s: float) -> dict[str, list[float]]:
     daemons_link, bare_link = str(root / "ttyPI-daemon"), str(root / "ttyPI-bare")
     daemons, bares = Device(gcs_controller, daemons_link), Device(gcs_controller, bare_link)
     served = None
@@ -242,6 +246,7 @@ async def bench_serial(targets: int, root: Path) -> dict[str, list[float]]:
             if k >= WARMUP:
                 times["held"].append(held)
                 times["bare"].append(rtt)
+            await asyncio.sleep(max(0.0, gap_s - (time.perf_counter() - t0)))
         bare.close()
         served.close()
         served = None
@@ -274,25 +279,36 @@ def report(title: str, times: dict[str, list[float]], bare: str, driver: str) ->
         print(f"{label:62s}{1e6 * statistics.median(t):11.0f}{1e6 * percentile(t, 0.99):10.0f}")
     median = statistics.median(times["held"]) / statistics.median(times["bare"])
     p99 = percentile(times["held"], 0.99) / percentile(times["bare"], 0.99)
-    print(f"ratio target -> held / bare round trip: median {median:.2f}x, p99 {p99:.2f}x\n")
+    print(f"ratio target -> held / bare round trip: median {median:.2f}x, p99 {p99:.2f}x")
+
+
+def stream_line(times: dict[str, list[float]]) -> None:
+    held = times["held"]
+    print(f"{'stream: next put as soon as the last is held':62s}{1e6 * statistics.median(held):11.0f}"
+          f"{1e6 * percentile(held, 0.99):10.0f}   (the write period, {len(held)} targets)\n")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--targets", type=int, default=1000)
+    parser.add_argument("--gap-ms", type=float, default=25.0, help="time between two puts (default 25 ms)")
+    parser.add_argument("--stream-targets", type=int, default=100, help="targets of the back-to-back run")
     args = parser.parse_args()
+    gap_s = args.gap_ms / 1000.0
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
-        (root / "modbus").mkdir()
-        (root / "serial").mkdir()
-        modbus = asyncio.run(bench_modbus(args.targets, root / "modbus"))
-        report(f"modbus: {args.targets} targets one at a time; pymodbus TCP server on 127.0.0.1 (own process), int16 "
-               "FC 6, verify = true", modbus, "AsyncModbusTcpClient.write_register",
+        for name in ("modbus", "serial", "modbus-stream", "serial-stream"):
+            (root / name).mkdir()
+        modbus = asyncio.run(bench_modbus(args.targets, root / "modbus", gap_s))
+        report(f"modbus: {args.targets} targets, one every {args.gap_ms:g} ms; pymodbus TCP server on 127.0.0.1 "
+               "(own process), int16 FC 6, verify = true", modbus, "AsyncModbusTcpClient.write_register",
                f"ModbusActuator.command() x {DRIVER_ALONE}")
-        serial_times = asyncio.run(bench_serial(args.targets, root / "serial"))
-        report(f"serial_line: {args.targets} targets one at a time; GCS controllers on ptys (own processes), SVA + "
-               "SVA? + ERR?", serial_times, "pyserial SVA + SVA? + read the answer",
+        stream_line(asyncio.run(bench_modbus(args.stream_targets, root / "modbus-stream", 0.0)))
+        serial_times = asyncio.run(bench_serial(args.targets, root / "serial", gap_s))
+        report(f"serial_line: {args.targets} targets, one every {args.gap_ms:g} ms; GCS controllers on ptys "
+               "(own processes), SVA + SVA? + ERR?", serial_times, "pyserial SVA + SVA? + read the answer",
                f"SerialLineActuator.command() x {DRIVER_ALONE}")
+        stream_line(asyncio.run(bench_serial(args.stream_targets, root / "serial-stream", 0.0)))
 
 
 if __name__ == "__main__":
