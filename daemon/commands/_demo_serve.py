@@ -30,7 +30,7 @@ HOLD_S = PAPER_TIMING.hold_s  # paper III.B: each step is held 25 s, the last 5 
 WINDOW_S = PAPER_TIMING.window_s
 #: the room and the targets of the serving step (a room inside the training range)
 SERVE_SCENARIO = "test2"
-SERVE_TARGETS_UM = (0.0, 240.0, 480.0)
+SERVE_TARGETS_UM = (0.0, 240.0, 480.0, 360.0, 120.0)  # five held targets: enough for the health unit to judge
 SERVE_CELL = "demo"
 LOG_TAIL_LINES = 20
 

@@ -91,11 +91,11 @@ def test_serving_sends_targets_through_the_daemon_and_keeps_its_log(demo) -> Non
     result, keep = demo
     out = result.stdout
     assert f"$ nanodrift run --config {keep / 'serve.toml'}" in out
-    endpoint = re.search(r"\$ nanodrift target 0 240 480 -e (tcp/127\.0\.0\.1:\d+) --cell demo", out)
+    endpoint = re.search(r"\$ nanodrift target 0 240 480 360 120 -e (tcp/127\.0\.0\.1:\d+) --cell demo", out)
     assert endpoint, out
     answers = re.findall(r"^   x'\s+(\d+) µm -> q'\s+(-?[\d.]+) µm, (-?[\d.]+) V .*reads\s+(-?[\d.]+) µm", out,
                          re.MULTILINE)
-    assert [a[0] for a in answers] == ["0", "240", "480"], out
+    assert [a[0] for a in answers] == ["0", "240", "480", "360", "120"], out
     for x, _, _, measured in answers:
         assert abs(float(measured) - float(x)) < 1.0  # the stage went where the client asked
     log = (keep / "serve.log").read_text()
@@ -166,7 +166,8 @@ def test_demo_shows_what_adaptation_and_the_uncertainty_add(tmp_path: Path) -> N
     health = re.search(r"health, from the serving daemon's status: (\w+) after (\d+) settled residual\(s\).*"
                        r"mean ([+-]\d+) nm, RMS (\d+) nm", out)
     assert health, out
-    assert health.group(1) == "unknown" and health.group(2) == "3"  # three held targets: too few to judge
+    assert health.group(2) == "5"  # five held targets: enough to judge
     assert abs(int(health.group(3))) < 100 and int(health.group(4)) < 100  # the calibrated model fits the cell
+    assert health.group(1) == "ok"  # so the daemon says so (RMS under alarm_rms_nm)
     degrade = next(line for line in out.splitlines() if line.startswith("Test 5 degrades"))
     assert re.search(r": \d+ nm against \d+ nm in range;", degrade), degrade  # one in-range test: "38 nm", not "38–38"
