@@ -14,6 +14,18 @@ from drivers.base import ActuatorOptions, SensorConfig
 DEFAULT_PATTERN = r"^\s*(?P<value>[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*$"
 
 
+
+def value_pattern(pattern: str, example: str) -> str:
+    """``pattern`` if it compiles and has the named group ``value`` the driver reads; else why not."""
+    try:
+        compiled = re.compile(pattern)
+    except re.error as error:
+        raise ValueError(f"not a valid regular expression: {error}") from None
+    if "value" not in compiled.groupindex:
+        raise ValueError(f"needs a named group 'value', e.g. {example}")
+    return pattern
+
+
 class SerialLineSensorConfig(SensorConfig):
     """One value per line of text from a serial port (queried, or streamed by the device).
 
@@ -49,13 +61,7 @@ class SerialLineSensorConfig(SensorConfig):
     @field_validator("pattern")
     @classmethod
     def _pattern_has_value_group(cls, pattern: str) -> str:
-        try:
-            compiled = re.compile(pattern)
-        except re.error as error:
-            raise ValueError(f"not a valid regular expression: {error}") from None
-        if "value" not in compiled.groupindex:
-            raise ValueError("needs a named group 'value', e.g. 'P (?P<value>[-+0-9.]+) nm'")
-        return pattern
+        return value_pattern(pattern, "'P (?P<value>[-+0-9.]+) nm'")
 
     @property
     def value_unit(self) -> str:
@@ -129,13 +135,7 @@ class SerialLineActuatorConfig(ActuatorOptions):
     @field_validator("readback_pattern")
     @classmethod
     def _readback_has_value_group(cls, pattern: str) -> str:
-        try:
-            compiled = re.compile(pattern)
-        except re.error as error:
-            raise ValueError(f"not a valid regular expression: {error}") from None
-        if "value" not in compiled.groupindex:
-            raise ValueError("needs a named group 'value', e.g. '=(?P<value>[-+0-9.eE]+)'")
-        return pattern
+        return value_pattern(pattern, "'=(?P<value>[-+0-9.eE]+)'")
 
     @field_validator("error_ok")
     @classmethod

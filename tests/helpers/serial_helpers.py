@@ -16,22 +16,12 @@ from collections.abc import Callable
 from pathlib import Path
 
 
-class FakeInterferometer:
-    """Answers ``query`` with ``P <position_nm> nm`` lines, or streams them every ``period_s``."""
+class PtyDevice:
+    """A device on a pty behind a stable ``link``, served by ``_serve`` on its own thread: ``unplug``
+    and ``replug`` as with a USB adapter pulled out and put back."""
 
-    def __init__(self, link: Path, *, query: bytes = b"POS?\r", stream: bool = False, period_s: float = 0.02,
-                 eol: bytes = b"\r\n") -> None:
+    def __init__(self, link: Path) -> None:
         self.link = Path(link)
-        self.query = query
-        self.stream = stream
-        self.period_s = period_s
-        self.eol = eol
-        self.position_nm = 123456.7
-        self.reply: bytes | None = None  # send this instead of a proper line (garbage)
-        self.silent = False
-        self.received = bytearray()
-        self.lines_sent = 0
-        self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self.replug()
@@ -39,11 +29,6 @@ class FakeInterferometer:
     @property
     def port(self) -> str:
         return str(self.link)
-
-    def line(self) -> bytes:
-        if self.reply is not None:
-            return self.reply
-        return f"P {self.position_nm:.1f} nm".encode() + self.eol
 
     def replug(self) -> None:
         self._master, self._slave = os.openpty()
@@ -64,6 +49,35 @@ class FakeInterferometer:
         os.close(self._master)
         os.close(self._slave)
         self.link.unlink(missing_ok=True)
+
+    def close(self) -> None:
+        self.unplug()
+
+    def _serve(self, master: int, stop: threading.Event) -> None:
+        raise NotImplementedError
+
+
+class FakeInterferometer(PtyDevice):
+    """Answers ``query`` with ``P <position_nm> nm`` lines, or streams them every ``period_s``."""
+
+    def __init__(self, link: Path, *, query: bytes = b"POS?\r", stream: bool = False, period_s: float = 0.02,
+                 eol: bytes = b"\r\n") -> None:
+        self.query = query
+        self.stream = stream
+        self.period_s = period_s
+        self.eol = eol
+        self.position_nm = 123456.7
+        self.reply: bytes | None = None  # send this instead of a proper line (garbage)
+        self.silent = False
+        self.received = bytearray()
+        self.lines_sent = 0
+        self._lock = threading.Lock()
+        super().__init__(link)
+
+    def line(self) -> bytes:
+        if self.reply is not None:
+            return self.reply
+        return f"P {self.position_nm:.1f} nm".encode() + self.eol
 
     def _send(self, master: int) -> None:
         if not self.silent:
@@ -90,11 +104,8 @@ class FakeInterferometer:
                 next_line += self.period_s
                 self._send(master)
 
-    def close(self) -> None:
-        self.unplug()
 
-
-class FakeGcsController:
+class FakeGcsController(PtyDevice):
     """A PI controller speaking GCS on a pty behind ``link``: ``SVA 1 <V>`` sets the axis' voltage (no
     answer), ``SVA? 1`` -> ``1=<V>``, ``POS? 1`` -> ``1=<position>`` (``position_per_volt`` x V),
     ``ERR?`` -> the error code (then 0). An unknown command or axis sets error 2 / 15, as GCS does.
@@ -104,7 +115,6 @@ class FakeGcsController:
     """
 
     def __init__(self, link: Path, position_per_volt: float = 100.0) -> None:
-        self.link = Path(link)
         self.position_per_volt = position_per_volt
         self.voltage = 0.0
         self.error = 0
@@ -115,35 +125,7 @@ class FakeGcsController:
         self.lines: list[str] = []  # every complete line received
         self.line_times: list[float] = []  # time.perf_counter() when each line was complete
         self.on_voltage: Callable[[float], None] | None = None  # called (on the pty thread) when SVA lands
-        self._thread: threading.Thread | None = None
-        self.replug()
-
-    @property
-    def port(self) -> str:
-        return str(self.link)
-
-    def replug(self) -> None:
-        self._master, self._slave = os.openpty()
-        tty.setraw(self._slave)
-        tmp = self.link.with_name(self.link.name + ".new")
-        os.symlink(os.ttyname(self._slave), tmp)
-        os.replace(tmp, self.link)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._serve, args=(self._master, self._stop), daemon=True)
-        self._thread.start()
-
-    def unplug(self) -> None:
-        if self._thread is None:
-            return
-        self._stop.set()
-        self._thread.join(timeout=2)
-        self._thread = None
-        os.close(self._master)
-        os.close(self._slave)
-        self.link.unlink(missing_ok=True)
-
-    def close(self) -> None:
-        self.unplug()
+        super().__init__(link)
 
     def _reply(self, line: str) -> str | None:
         words = line.split()
