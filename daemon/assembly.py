@@ -25,8 +25,8 @@ from drivers.base import (
     DriverPlugin,
     DriverSet,
     DriverSetupError,
+    MonotonicClock,
     SensorGroup,
-    WallClock,
 )
 from drivers.registry import available, load_plugin
 
@@ -50,7 +50,7 @@ def _plugins(config: Config) -> dict[str, DriverPlugin]:
 
 def make_context(config: Config, *, virtual_start_s: float | None = None) -> DriverContext:
     """The clock, hubs and plugin sections the plugins share."""
-    clock: Clock = WallClock()
+    clock: Clock = MonotonicClock()
     for plugin in _plugins(config).values():
         if plugin.virtual_cell:
             section: BaseModel | None = config.section(plugin.section) if plugin.section else None

@@ -141,6 +141,14 @@ class AdaptSettings(_Strict):
 ZENOH_KIND = "zenoh"
 
 
+#: systemd/nanodrift.service's ``TimeoutStopSec``: systemd kills the daemon this long after SIGTERM
+#: (tests/service/test_systemd.py holds the two equal)
+STOP_TIMEOUT_S = 30.0
+#: what the safe ramp to ``safe_voltage_v`` at shutdown may take of it; the rest is for stopping the
+#: pollers, the recorder and Zenoh. A config whose full-stroke ramp takes longer is a check-config warning.
+SAFE_RAMP_BUDGET_S = 20.0
+
+
 class ActuatorConfig(_Strict):
     """Command q (um) -> PZT voltage, the limits nothing published may exceed, and who applies it.
 

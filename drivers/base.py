@@ -36,7 +36,7 @@ class Reading:
     """One timestamped value of one channel, with the device's verdict on it."""
 
     value: float  # NaN when state is FAULT
-    t: float  # seconds on the group's clock (unix seconds on real hardware)
+    t: float  # seconds on the group's clock (a monotonic clock labelled in unix seconds on real hardware)
     state: State = State.OK
     reason: str = ""
     unit: str = ""
@@ -51,18 +51,28 @@ class DeviceError(Exception):
 
 
 class Clock(Protocol):
-    """Where time comes from: the wall clock, or a simulated one that runs faster than real time."""
+    """Where time comes from: monotonic real time, or a simulated one that runs faster than real time."""
 
     def now(self) -> float: ...
 
     async def sleep(self, seconds: float) -> None: ...
 
 
-class WallClock:
-    """Real time: unix seconds and asyncio's sleep."""
+class MonotonicClock:
+    """The daemon's time base: monotonic seconds, labelled in unix seconds at the moment it was made.
+
+    Reading ages, stateful model terms (lag, rate, creep, dir), health windows, ramps and back-offs all
+    run on this clock, so a step of the system clock (NTP, an operator's ``date -s``) in either
+    direction changes none of them. It reads close to unix time (readings published with it look like
+    unix seconds), but only the wall clock (``time.time()``) labels: payload ``t``, record dates.
+    """
+
+    #: one origin per process: every instance (a reload builds a new driver context) reads the same time
+    _origin_unix_s = time.time()
+    _origin_mono_s = time.monotonic()
 
     def now(self) -> float:
-        return time.time()
+        return self._origin_unix_s + (time.monotonic() - self._origin_mono_s)
 
     async def sleep(self, seconds: float) -> None:
         await asyncio.sleep(max(0.0, seconds))
@@ -72,6 +82,7 @@ class ScaledClock:
     """Real sleeps, but simulated time runs ``speed`` times faster than the wall clock."""
 
     def __init__(self, speed: float = 1.0, start: float | None = None) -> None:
+        # monotonic like MonotonicClock: a wall-clock step moves neither
         if speed <= 0:
             raise ValueError(f"speed must be > 0, got {speed}")
         self.speed = speed
@@ -137,7 +148,7 @@ class DriverContext:
     actuator (one connection per hub, one simulated cell), keyed by names the plugin chooses.
     """
 
-    clock: Clock = field(default_factory=WallClock)
+    clock: Clock = field(default_factory=MonotonicClock)
     hubs: Mapping[str, BaseModel] = field(default_factory=dict)
     sections: Mapping[str, BaseModel] = field(default_factory=dict)
     resources: dict[str, Any] = field(default_factory=dict)
@@ -280,7 +291,7 @@ class DriverPlugin(ABC):
     def make_clock(self, section: BaseModel | None, *, virtual_start_s: float | None = None) -> Clock:
         """The clock of a virtual cell: scaled wall time for the daemon, or (``virtual_start_s``
         given) a virtual clock whose sleeps take no wall time, for procedures."""
-        return WallClock()
+        return MonotonicClock()
 
 
 @dataclass

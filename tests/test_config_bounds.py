@@ -97,7 +97,10 @@ def run_cli(*args: str, cwd: Path = REPO) -> subprocess.CompletedProcess[str]:
                           timeout=60)
 
 
-@pytest.mark.parametrize("nesting", ["[" * 100_000 + "]" * 100_000, "{a = " * 5000 + "1" + "}" * 5000])
+# ids: the parameter itself in the test id would reach the CLI subprocess through PYTEST_CURRENT_TEST, an
+# environment string over the kernel's 128 KiB limit ("Argument list too long")
+@pytest.mark.parametrize("nesting", ["[" * 100_000 + "]" * 100_000, "{a = " * 5000 + "1" + "}" * 5000],
+                         ids=["arrays", "tables"])
 def test_check_config_on_a_deeply_nested_toml_exits_2_naming_the_file(tmp_path: Path, nesting: str) -> None:
     deep = tmp_path / "deep.toml"
     deep.write_text(f"x = {nesting}\n")

@@ -17,7 +17,7 @@ import time
 from collections.abc import Awaitable, Callable, Iterable
 from typing import Any
 
-from drivers.base import Clock, DeviceError, Reading, SensorGroup, WallClock
+from drivers.base import Clock, DeviceError, MonotonicClock, Reading, SensorGroup
 
 #: (group, reason, retry_in_s, failures so far in this episode: 1 for the first)
 OnFailure = Callable[[SensorGroup, str, float, int], None]
@@ -48,7 +48,7 @@ class GroupPoller:
     ) -> None:
         self.group = group
         self.clock = clock
-        self.retry_clock: Clock = retry_clock or WallClock()
+        self.retry_clock: Clock = retry_clock or MonotonicClock()
         self.on_readings = on_readings
         self.on_failure = on_failure
         self.on_recovered = on_recovered

@@ -39,7 +39,7 @@ from daemon.service.status import StatusHandler, status_doc, status_line
 from daemon.service.supervision import SensorWatch, Supervisor
 from daemon.service.table import SensorTable
 from daemon.service.targets import TargetHandler
-from drivers.base import DriverContext, DriverSet, DriverSetupError, WallClock
+from drivers.base import DriverContext, DriverSet, DriverSetupError, MonotonicClock
 
 #: config (and a running context to keep) -> drivers: ``daemon.assembly.build_drivers``, handed in by
 #: ``nanodrift run`` so that the service names no plugin
@@ -65,7 +65,7 @@ class Service:
         self.log = get_logger("nanodrift.daemon")
         model, problem = load_model_or_problem(config.model.path)
         compensator = Compensator(model, config.actuator, SensorTable(config.sensors), problem)
-        self.state = CellState(config, compensator, WallClock())  # the drivers' clock once they start
+        self.state = CellState(config, compensator, MonotonicClock())  # the drivers' clock once they start
         self.health = HealthUnit(config, model, self.log)
         self.health.attach(compensator)
         # [health] record_dir: settled targets to daily CSVs on a thread of its own (read anew after a reload)

@@ -16,7 +16,7 @@ from typing import Literal
 
 import numpy as np
 
-from drivers.base import Clock, DeviceError, Reading, State, WallClock
+from drivers.base import Clock, DeviceError, MonotonicClock, Reading, State
 from drivers.simulated.physics import POSITION_CHANNEL, THERMOCOUPLES, TRUTH_CHANNELS, CellPhysics, StageState
 
 FaultMode = Literal["fault", "stale", "device_error"]
@@ -34,7 +34,7 @@ class FaultWindow:
 class SimulatedCell:
     def __init__(self, physics: CellPhysics, clock: Clock | None = None) -> None:
         self.physics = physics
-        self.clock = clock or WallClock()
+        self.clock = clock or MonotonicClock()
         self.epoch = self.clock.now()
         self.state = StageState()
         self.faults: list[FaultWindow] = []

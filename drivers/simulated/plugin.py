@@ -21,11 +21,11 @@ from drivers.base import (
     DriverContext,
     DriverPlugin,
     DriverSetupError,
+    MonotonicClock,
     Reading,
     ScaledClock,
     SensorConfig,
     SensorGroup,
-    WallClock,
 )
 from drivers.simulated.cell import CHANNELS, SimulatedCell
 from drivers.simulated.clock import VirtualClock
@@ -138,7 +138,7 @@ class SimulatedPlugin(DriverPlugin):
         if virtual_start_s is not None:
             return VirtualClock(virtual_start_s)
         speed = section.speed if isinstance(section, SimulationConfig) else 1.0
-        return ScaledClock(speed) if speed != 1.0 else WallClock()
+        return ScaledClock(speed) if speed != 1.0 else MonotonicClock()
 
 
 PLUGIN = SimulatedPlugin()

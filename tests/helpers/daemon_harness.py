@@ -31,7 +31,16 @@ import zenoh
 from daemon.atomic import atomic_write_text
 from daemon.model.model import FittedTerm, Model, Training, save_model
 from daemon.model.terms import parse_term
-from drivers.base import Clock, DeviceError, DriverContext, DriverPlugin, Reading, SensorConfig, SensorGroup, WallClock
+from drivers.base import (
+    Clock,
+    DeviceError,
+    DriverContext,
+    DriverPlugin,
+    MonotonicClock,
+    Reading,
+    SensorConfig,
+    SensorGroup,
+)
 from helpers.modbus_helpers import free_port  # one definition for every helper (re-exported here)
 
 REPO = Path(__file__).resolve().parents[2]
@@ -94,7 +103,7 @@ class FilePlugin(DriverPlugin):
         for c in configs:
             assert isinstance(c, FileSensorConfig)
             by_path.setdefault(c.path, []).append(c)
-        return [FileGroup(group, context.clock or WallClock()) for group in by_path.values()]
+        return [FileGroup(group, context.clock or MonotonicClock()) for group in by_path.values()]
 
 
 PLUGIN = FilePlugin()

@@ -20,7 +20,7 @@ from daemon.sdnotify import Notifier, watchdog_interval_s
 from daemon.service.compensator import Compensator
 from daemon.service.polling import GroupPoller, pollers_healthy
 from daemon.service.table import SensorTable
-from drivers.base import Reading, SensorConfig, SensorGroup, State, WallClock
+from drivers.base import MonotonicClock, Reading, SensorConfig, SensorGroup, State
 
 
 def sensors(*names: str, max_age_s: float = 5.0) -> list[SensorConfig]:
@@ -204,7 +204,7 @@ def test_watchdog_health_fails_when_a_poller_dies_or_stops_making_progress() -> 
         async def close(self) -> None: ...
 
     async def check() -> tuple[bool, bool, bool]:
-        poller = GroupPoller(Idle(), WallClock(), lambda g, r: None, lambda g, reason, delay, failures: None)
+        poller = GroupPoller(Idle(), MonotonicClock(), lambda g, r: None, lambda g, reason, delay, failures: None)
         poller.task = asyncio.get_running_loop().create_task(asyncio.sleep(60))
         healthy = pollers_healthy([poller])
         poller.last_progress = time.monotonic() - GroupPoller.MAX_BACKOFF_S * 2  # stuck for a minute

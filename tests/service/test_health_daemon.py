@@ -40,7 +40,7 @@ from daemon.service.health import HealthUnit
 from daemon.service.state import CellState
 from daemon.service.status import status_line
 from daemon.service.table import SensorTable
-from drivers.base import Reading, SensorConfig, WallClock
+from drivers.base import MonotonicClock, Reading, SensorConfig
 
 SPEED = 5.0
 FAST_HEALTH = "settle_s = 0.5\nwindow_s = 0.5\n"  # simulated seconds: 0.2 s of wall time per held target
@@ -441,7 +441,7 @@ def test_without_a_position_sensor_nothing_is_queued_and_the_state_is_unknown(tm
 
 def test_the_status_line_carries_the_health_state(tmp_path: Path) -> None:
     unit = Unit(tmp_path, unit_config())
-    state = CellState(unit.config, unit.compensator, WallClock())
+    state = CellState(unit.config, unit.compensator, MonotonicClock())
     assert status_line(state, unit.health).endswith(", health unknown")
     for k in range(5):
         unit.hold(20.0 * k, 100.0, 100.0 + 0.01 * (-1) ** k)

@@ -22,7 +22,7 @@ from daemon.service.polling import GroupPoller, first_attempts
 from daemon.service.sensors import SensorIngest
 from daemon.service.state import CellState
 from daemon.service.table import SensorTable
-from drivers.base import DeviceError, Reading, SensorGroup, State, WallClock
+from drivers.base import DeviceError, MonotonicClock, Reading, SensorGroup, State
 from drivers.modbus.config import ModbusSensorConfig
 from drivers.modbus.group import ModbusBlockGroup
 from drivers.modbus.plugin import PLUGIN
@@ -85,7 +85,7 @@ def test_a_dead_device_is_retried_at_growing_intervals_by_exactly_one_back_off()
 
     async def body() -> None:
         clock = RetryClock(group, hold_at=DEAD_WAITS)
-        poller = GroupPoller(group, WallClock(), lambda g, r: None,
+        poller = GroupPoller(group, MonotonicClock(), lambda g, r: None,
                              lambda g, reason, delay, n: failures.append((reason, delay, n)), on_recovered,
                              retry_clock=clock)
         poller.start()
@@ -130,7 +130,7 @@ def test_a_failure_episode_is_one_log_line_and_a_summary_at_recovery() -> None:
 
     async def body() -> None:
         table = SensorTable(list(group.block.channels))
-        state = CellState(Config(), Compensator(None, ActuatorConfig(), table), WallClock())
+        state = CellState(Config(), Compensator(None, ActuatorConfig(), table), MonotonicClock())
         ingest = SensorIngest(state, lambda role, channel, payload: None, get_logger())
         clock = RetryClock(group, hold_at=DEAD_WAITS)
         back = asyncio.Event()
@@ -139,7 +139,7 @@ def test_a_failure_episode_is_one_log_line_and_a_summary_at_recovery() -> None:
             ingest.on_group_recovered(g, n, down_s)
             back.set()
 
-        poller = GroupPoller(group, WallClock(), ingest.on_readings, ingest.on_group_failure, on_recovered,
+        poller = GroupPoller(group, MonotonicClock(), ingest.on_readings, ingest.on_group_failure, on_recovered,
                              retry_clock=clock)
         poller.start()
         try:
@@ -179,7 +179,7 @@ def test_only_the_first_failure_of_an_episode_is_a_warning() -> None:
     """The ingest's rule on its own: the poller's count decides the level; every failure faults the channels."""
     group = modbus_group(free_port())
     state = CellState(Config(), Compensator(None, ActuatorConfig(), SensorTable(list(group.block.channels))),
-                      WallClock())
+                      MonotonicClock())
     with captured_logging("info") as stream:
         ingest = SensorIngest(state, lambda role, channel, payload: None, get_logger())
         for n in range(1, 6):
@@ -224,7 +224,7 @@ def test_the_daemon_waits_for_each_devices_first_attempt_read_or_failed_before_i
 
     async def main() -> tuple[float, float]:
         slow, dead = SlowFirstRead(0.4), SlowFirstRead(0.0, dead=True)
-        pollers = [GroupPoller(g, WallClock(), lambda g, r: delivered.append(g.reads),
+        pollers = [GroupPoller(g, MonotonicClock(), lambda g, r: delivered.append(g.reads),
                                lambda g, reason, delay, n: failed.append(reason)) for g in (slow, dead)]
         for poller in pollers:
             poller.start()
@@ -233,7 +233,7 @@ def test_the_daemon_waits_for_each_devices_first_attempt_read_or_failed_before_i
         waited = time.monotonic() - started
         # the slow device's first readings are in (the dead one may have been retried meanwhile)
         assert delivered == [1] and failed and set(failed) == {"no such module"}
-        hung = GroupPoller(SlowFirstRead(60.0), WallClock(), lambda g, r: None, lambda *a: None)
+        hung = GroupPoller(SlowFirstRead(60.0), MonotonicClock(), lambda g, r: None, lambda *a: None)
         hung.start()
         started = time.monotonic()
         await first_attempts([hung], limit_s=0.3)  # a device that hangs does not hold the daemon for ever
