@@ -35,6 +35,7 @@ from pydantic import (
     model_validator,
 )
 
+from daemon import motion
 from daemon.calibration.plans import CALIBRATION_POINTS_UM, PAPER_TIMING, StepTiming
 from daemon.errors import UserError
 from drivers.base import ActuatorOptions, DriverPlugin, SensorConfig
@@ -209,16 +210,16 @@ class ActuatorConfig(_Strict):
         return self.q_um_for(self.safe_voltage_v)
 
     def voltage(self, q_um: float) -> float:
-        """The one voltage rule: what the amplifier gets for command ``q_um``."""
-        return self.offset_v + self.volts_per_um * q_um
+        """What the amplifier gets for command ``q_um`` (:func:`daemon.motion.voltage_for`)."""
+        return motion.voltage_for(self, q_um)
 
     def q_um_for(self, voltage_v: float) -> float:
         """The command whose voltage is ``voltage_v``: the inverse of :meth:`voltage`."""
-        return (voltage_v - self.offset_v) / self.volts_per_um
+        return motion.q_um_for(self, voltage_v)
 
     def within_limits(self, voltage_v: float) -> bool:
         """Nothing outside ``[v_min, v_max]`` is ever published or written (NaN is outside)."""
-        return self.v_min <= voltage_v <= self.v_max
+        return motion.within_limits(self, voltage_v)
 
     def checked_voltage(self, q_um: float) -> float:
         """:meth:`voltage`, or a :class:`VoltageLimitError` naming the command and the limits."""

@@ -197,6 +197,11 @@ class Actuator(ABC):
       ``("q_um", q)``, so that the first move after a start is ramped from where the stage is;
       None when the device cannot say (the default). :class:`DeviceError` as for ``command``.
 
+    - ``sent_voltage`` (optional, pure): the voltage the device would actually receive for
+      ``voltage_v`` once quantized or formatted (a DAC's count, a template's digits). The caller checks
+      *that* against the limits before ``command``, and counts it as where the stage is after. The
+      default: ``voltage_v`` itself (a device that takes the float as it is).
+
     ``description`` names the device in messages and in ``status``. ``limits_v`` is the operator's
     ``[v_min, v_max]``, set by whoever drives the actuator before ``open``: a device that quantizes
     (a DAC's counts) rounds a voltage near a limit towards the inside.
@@ -216,6 +221,9 @@ class Actuator(ABC):
 
     async def read_back(self) -> tuple[Literal["voltage_v", "q_um"], float] | None:
         return None
+
+    def sent_voltage(self, voltage_v: float) -> float:
+        return voltage_v
 
 
 class ActuatorOptions(BaseModel):

@@ -33,7 +33,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("daemon", "drivers")
-CORE_ROOTS = ("daemon.model", "daemon.calibration", "daemon.errors", "daemon.atomic")
+CORE_ROOTS = ("daemon.model", "daemon.calibration", "daemon.motion", "daemon.errors", "daemon.atomic")
 CORE_THIRD_PARTY = {"numpy", "scipy"}
 #: standard library the pure core may not use: it computes, it does not wait on devices or threads
 CORE_FORBIDDEN_STDLIB = {"asyncio", "socket", "subprocess", "threading", "selectors", "multiprocessing",

@@ -55,6 +55,7 @@ class _Hold:
     total_um: float = 0.0
     samples: int = 0
     void: bool = False
+    reached: bool = True  # the stage holds the command (False: a ramp towards it is still under way)
 
 
 class SettleTracker:
@@ -68,15 +69,23 @@ class SettleTracker:
         self._hold: _Hold | None = None
 
     def commanded(self, t: float, x_um: float, q_um: float, temperatures: Mapping[str, float] | None = None,
-                  target_id: object = None) -> None:
-        """A command went out at cell time ``t``: any hold in progress is superseded."""
-        self._hold = _Hold(t, x_um, q_um, dict(temperatures or {}), target_id)
+                  target_id: object = None, *, reached: bool = True) -> None:
+        """A command went out at cell time ``t``: any hold in progress is superseded. ``reached`` False:
+        the output is still ramping towards it; the settle time starts at :meth:`reached`, not now."""
+        self._hold = _Hold(t, x_um, q_um, dict(temperatures or {}), target_id, reached=reached)
+
+    def reached(self, t: float, q_um: float) -> None:
+        """The output reached command ``q_um`` at cell time ``t``: the hold of that command settles from then."""
+        hold = self._hold
+        if hold is not None and not hold.reached and hold.q_um == q_um:
+            hold.t_command = max(hold.t_command, t)
+            hold.reached = True
 
     def position(self, t: float, value_um: float, ok: bool) -> Settled | None:
         """A position reading taken at ``t``; the settled residual when this reading closes a window."""
         hold = self._hold
-        if hold is None:
-            return None
+        if hold is None or not hold.reached:
+            return None  # mid-ramp: the stage is not where it was told yet
         start = hold.t_command + self.settle_s
         end = start + self.window_s
         if t < start:

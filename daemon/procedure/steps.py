@@ -22,7 +22,7 @@ from daemon.config import ActuatorConfig
 from daemon.procedure.follow import FollowCheck
 from daemon.procedure.progress import Progress
 from daemon.procedure.sampler import Sampler
-from daemon.service.actuation import locate_stage
+from daemon.service.actuation import checked_sent_voltage, locate_stage
 from drivers.base import Actuator, Clock, DriverSet
 
 CommandFor = Callable[[PlannedStep, float], float]
@@ -50,14 +50,14 @@ async def ramp(actuator: Actuator, clock: Clock, q_from: float | None, q_to: flo
 
     ``q_from`` None (where the stage is is unknown): ``q_to`` is written at once, then the rise time passes."""
     if q_from is None:
-        await actuator.command(q_to, limits.checked_voltage(q_to))
+        await actuator.command(q_to, checked_sent_voltage(actuator, limits, limits.checked_voltage(q_to)))
         await clock.sleep(timing.ramp_s)
         return
     duration = ramp_s(q_from, q_to, timing, limits)
     _, commands = ramp_commands(q_from, q_to, duration, timing.ramp_interval_s)
     for q in commands.tolist():
         await clock.sleep(duration / len(commands))
-        await actuator.command(q, limits.checked_voltage(q))
+        await actuator.command(q, checked_sent_voltage(actuator, limits, limits.checked_voltage(q)))
 
 
 async def measure_step(sampler: Sampler, step: PlannedStep, q_from: float | None, q_to: float,
@@ -161,7 +161,7 @@ async def stage_q_um(drivers: DriverSet, limits: ActuatorConfig, progress: Progr
     actuator = drivers.actuator
     if actuator is None:
         return None
-    start = await locate_stage(actuator, limits, None)
+    start = await locate_stage(actuator, limits)
     if start.voltage_v is None:
         if progress is not None:
             progress.note(f"where the stage is before the first move is unknown ({actuator.description} cannot be "

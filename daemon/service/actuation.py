@@ -3,149 +3,132 @@
 Answers hand their command over with :meth:`Actuation.offer` from Zenoh's threads; the writes run
 on the asyncio loop. A target asks for a wake of the loop only when the loop is idle: while a write
 is under way, newer commands just replace the pending one, and the loop takes the newest as soon as
-the write returns (no pause: a target arriving in a stream waits for at most the write in progress).
+the write returns. Motion itself (where a move starts, the slew, the limits of what is sent) is
+:mod:`daemon.motion`'s, the one owner the procedures use too; this module owns the device's lifecycle.
 
-- **Latest wins, in order**: the device gets every served command in order unless a newer one
-  supersedes it before the write.
-- **Where the stage is** (:func:`locate_stage`, the one rule the procedures use too): the output read
-  back at open when the device can say (``Actuator.read_back``: Modbus with ``verify``, a serial
-  controller with a readback query), else the last voltage written to *this* device (an edit that
-  switches to another device forgets it), else a finite ``safe_voltage_v`` (where a clean stop left
-  the stage), else unknown.
-- **Slew** (``[actuator] max_slew_um_per_s > 0``): a larger jump is written as sub-commands every
-  ``RAMP_PERIOD_S``, each no further from the last write than the limit allows for the time since
-  that write *returned* (so even the device's own timestamps never see a faster move), ending at
-  the target; the first move after a start is ramped from where the stage is. A newer command during
-  a ramp re-plans from where the stage is. When that is unknown the first move is written as is,
-  and ``actuator_unramped`` says so (once).
+- **The goal** is the latest served command. It survives a reload that touches ``[actuator]``, a
+  device reopened after a fault, and a target answered while the drivers were being swapped: once
+  the (new) output is open, the goal is written to it (ramped from where the stage is). A goal the
+  new limits forbid is dropped (``actuator_goal_dropped``) and the stage holds where it is.
+- **Where the stage is** (:func:`daemon.motion.trusted_start`): a read-back is believed only inside
+  ``[v_min, v_max]`` and, once something was sent to this device, when it agrees with what was sent;
+  else it is unknown (``actuator_readback_untrusted``), never a start point. Unknown: the next
+  command is written as it is (``actuator_unramped`` says so, once).
+- **Slew** (``max_slew_um_per_s > 0``): sub-commands every ``RAMP_PERIOD_S``, each covering the time
+  since the previous one began, so a ramp takes distance / rate whatever the device's latency.
+- **What is sent** is checked: the voltage the device will receive (``Actuator.sent_voltage``: a DAC's
+  count, a controller's digits) must be inside the limits in force, or nothing is written.
 - **Faults**: a failed open, read back or write (``DeviceError``, any error, a timeout) or readback
   mismatch puts the actuator in ``fault`` with the reason; it is closed and reopened with backoff and
-  the latest command written again. Meanwhile ``fault_reason`` is set and targets are refused
-  (``actuator_fault``, ``daemon.service.targets``). One ``actuator_failed`` line per episode,
-  ``actuator_recovered`` when a write succeeds again; when nothing was ever commanded (the open at
-  start failed) there is nothing to write, and a reopen that succeeds (with its read back, where the
-  device has one) ends the fault: refusing targets until a write succeeds would refuse for ever,
-  since only a served target gives the stage a command.
-- **Shutdown**: :meth:`Actuation.stop` with ``final=True`` writes a finite ``safe_voltage_v``
-  (checked against the limits, ramped like any command) before closing.
+  the goal written again. Meanwhile targets are refused (``actuator_fault``). One ``actuator_failed``
+  line per episode, ``actuator_recovered`` when the device works again (a write, a reopen with nothing
+  to write, or a reload onto a device that opens).
+- **Shutdown**: :meth:`Actuation.stop` with ``final=True`` ramps to a finite ``safe_voltage_v`` within
+  ``SAFE_RAMP_BUDGET_S`` (the unit's stop timeout less a margin), retrying a transient failure, and
+  runs in a ``finally``: an exception on the way out never skips it.
 """
 
 from __future__ import annotations
 
 import asyncio
-import math
 import random
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from daemon.config import ActuatorConfig
+from daemon.config import SAFE_RAMP_BUDGET_S, ActuatorConfig
 from daemon.logs import RateLimitedLog
+from daemon.motion import RAMP_PERIOD_S, Slew, StartPoint, trusted_start
 from drivers.base import Actuator, DeviceError
 
-RAMP_PERIOD_S = 0.02  # a ramp's sub-commands are this far apart (at least)
-WRITE_PERIOD_S = RAMP_PERIOD_S  # and so are any two writes: an output needs no more than 50 updates a second
+WRITE_PERIOD_S = RAMP_PERIOD_S  # any two writes are this far apart: a stream is coalesced to 50 writes a second
 WRITE_TIMEOUT_S = 3.0  # a write that takes longer is a fault
-SAFE_TIMEOUT_S = 30.0  # shutdown gives up on reaching safe_voltage_v after this long
 INITIAL_BACKOFF_S = 0.2
 MAX_BACKOFF_S = 5.0
+#: tolerance on a sent voltage against the limits: float rounding of a count times a scale, not a volt more
+SENT_SLACK_V = 1e-9
 
 
-def ramp_step(at_q_um: float, target_q_um: float, max_step_um: float) -> float:
-    """The next sub-command from ``at_q_um`` towards ``target_q_um``: the target itself when it is
-    within ``max_step_um``, else ``max_step_um`` closer."""
-    delta = target_q_um - at_q_um
-    if abs(delta) <= max_step_um:
-        return target_q_um
-    return at_q_um + math.copysign(max_step_um, delta)
-
-
-def plan_ramp(start_q_um: float, target_q_um: float, max_slew_um_per_s: float,
-              period_s: float = RAMP_PERIOD_S) -> list[float]:
-    """Every sub-command from ``start_q_um`` to ``target_q_um`` (inclusive of the target, not of the
-    start) at one per ``period_s``; one element when the limit is off or the jump is small."""
-    if max_slew_um_per_s <= 0:
-        return [target_q_um]
-    step = max_slew_um_per_s * period_s
-    out = [ramp_step(start_q_um, target_q_um, step)]
-    while out[-1] != target_q_um:
-        out.append(ramp_step(out[-1], target_q_um, step))
-    return out
-
-
-@dataclass(frozen=True, slots=True)
-class StageStart:
-    """Where the stage is before the first move (``voltage_v`` None: unknown) and how that is known."""
-
-    voltage_v: float | None
-    known_from: str  # "read back" | "last written" | "safe_voltage_v" | "unknown"
-
-
-async def locate_stage(actuator: Actuator, config: ActuatorConfig, last_voltage_v: float | None) -> StageStart:
-    """The one rule for where the stage is after ``actuator.open()``: the output read back when the
-    device can say; else ``last_voltage_v`` (the last voltage written to this device, when known);
-    else a finite ``safe_voltage_v``; else unknown. A failed read back raises, like a failed write."""
+async def locate_stage(actuator: Actuator, config: ActuatorConfig, sent_v: tuple[float, ...] = ()) -> StartPoint:
+    """Where the stage is after ``actuator.open()`` (:func:`daemon.motion.trusted_start` on its read-back);
+    a failed read back raises, like a failed write. The procedures use it too."""
     read = await actuator.read_back()
+    read_v = None
     if read is not None:
         field, value = read
-        voltage = value if field == "voltage_v" else config.voltage(value)
-        if math.isfinite(voltage):
-            return StageStart(voltage, "read back")
-    if last_voltage_v is not None and math.isfinite(last_voltage_v):
-        return StageStart(last_voltage_v, "last written")
-    if math.isfinite(config.safe_voltage_v):
-        return StageStart(config.safe_voltage_v, "safe_voltage_v")
-    return StageStart(None, "unknown")
+        read_v = value if field == "voltage_v" else config.voltage(value)
+    return trusted_start(config, read_v, sent_v, config.safe_voltage_v)
+
+
+def checked_sent_voltage(actuator: Actuator, config: ActuatorConfig, voltage_v: float) -> float:
+    """The voltage the device will receive for ``voltage_v``; ValueError (write nothing) when that is
+    outside the limits in force."""
+    sent = actuator.sent_voltage(voltage_v)
+    if not config.v_min - SENT_SLACK_V <= sent <= config.v_max + SENT_SLACK_V:
+        raise ValueError(f"{actuator.description}: {voltage_v:.6f} V would be sent as {sent:.6f} V, outside "
+                         f"[{config.v_min:g}, {config.v_max:g}] V: nothing written")
+    return sent
 
 
 @dataclass(frozen=True, slots=True)
 class Goal:
-    """A command the stage should hold."""
+    """A served command the stage should hold."""
 
     q_um: float
     voltage_v: float
     x_um: float | None = None
 
 
-class Actuation:
-    """The pending command (latest wins), the task that gives it to the drivers' actuator, its state."""
+#: told (on the loop) when the stage reached a goal: the goal and the monotonic time it was sent
+OnReached = Callable[[Goal, float], None]
 
-    def __init__(self, log: Any) -> None:
+
+class Actuation:
+    """The goal (latest wins), the task that gives it to the drivers' actuator, and its state."""
+
+    def __init__(self, log: Any, *, safe_budget_s: float = SAFE_RAMP_BUDGET_S) -> None:
         self.log = log
         self.failures = RateLimitedLog(log, "actuator_failed", level="error")
+        self.safe_budget_s = safe_budget_s
         self._lock = threading.Lock()  # guards the three below; never held across an await or a publish
         self._active = False
-        self._pending: Goal | None = None  # not yet given to the stage
+        self._pending: Goal | None = None  # served, not yet taken by the loop (kept while drivers are swapped)
         self._wake_pending = False
         self._event = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
         self._actuator: Actuator | None = None
         self._config: ActuatorConfig | None = None
-        self._goal: Goal | None = None  # the latest command taken; rewritten after a fault
+        self._goal: Goal | None = None  # the latest command taken: survives reloads and reopens
+        self._goal_on_device = True  # the goal was written in full to the device that is open now
+        self.reached_listeners: list[OnReached] = []
         #: set while in fault (read without a lock on Zenoh's threads: one attribute, atomic)
         self.fault_reason: str | None = None
         self._fault_since = 0.0
         self._episode_failures = 0
+        self._stashed_episode: tuple[float, int] | None = None  # a fault a reload stopped, until a device opens
         # what status shows (kept across a restart on the same device: the stage keeps its voltage)
         self.last_voltage_v: float | None = None
-        self.last_write_t: float | None = None
+        self.last_write_t: float | None = None  # unix time: a label for people
         self.writes = 0
         self.write_failures = 0
-        self._device: str | None = None  # the description of the device last_voltage_v was written to
+        self._device: str | None = None  # the description of the device the voltages below were sent to
+        self._tried_v: float | None = None  # the last voltage sent to it, confirmed or not
         self._at_v: float | None = None  # where the stage is (the ramps start there); None: unknown
+        self._slew = Slew()
         self._unramped_told = False  # actuator_unramped is said once per start
-        self._last_end = 0.0  # time.monotonic() when the last write returned
 
     # --- the target path (any thread) -----------------------------------------------------------
 
     def offer(self, q_um: float, voltage_v: float, x_um: float | None = None) -> bool:
         """Make this the command the stage gets next (any thread). True: the caller must wake the loop
-        (``loop.call_soon_threadsafe(actuation.wake)``); it is asked at most once per burst."""
+        (``loop.call_soon_threadsafe(actuation.wake)``); it is asked at most once per burst. While the
+        drivers are being swapped (a reload) the command waits for the new output."""
         with self._lock:
+            self._pending = Goal(q_um, voltage_v, x_um)
             if not self._active:
                 return False
-            self._pending = Goal(q_um, voltage_v, x_um)
             wake = not self._wake_pending
             self._wake_pending = True
             return wake
@@ -169,64 +152,99 @@ class Actuation:
     # --- lifecycle (the loop) -------------------------------------------------------------------
 
     async def start(self, actuator: Actuator, config: ActuatorConfig) -> None:
-        """Open ``actuator``, find where the stage is, and start writing to it; a failure to open (or to
-        read the output back) is a fault (reopened with backoff)."""
+        """Open ``actuator``, find where the stage is, and start writing the goal and what follows; a
+        failure to open (or to read the output back) is a fault (reopened with backoff)."""
         self._actuator, self._config = actuator, config
-        self.fault_reason, self._goal = None, None
-        if actuator.description != self._device:  # another device: what the old one was given says nothing
+        self.fault_reason = None
+        if actuator.description != self._device:  # another device: what the old one was sent says nothing
             self._device = actuator.description
-            self.last_voltage_v = self.last_write_t = None
+            self.last_voltage_v = self.last_write_t = self._tried_v = None
         self._at_v, self._unramped_told = None, False
+        self._slew.rest()
+        self._goal_on_device = self._goal is None
         actuator.limits_v = (config.v_min, config.v_max)
         try:
-            start = await self._open(actuator, config, self.last_voltage_v)
+            start = await self._open(actuator, config)
             self.log.info("actuator_open", device=actuator.description, voltage_v=start.voltage_v,
                           known_from=start.known_from)
+            if self._stashed_episode is not None:
+                since, failures = self._stashed_episode
+                self.log.info("actuator_recovered", device=actuator.description, via="reload",
+                              after_s=round(time.monotonic() - since, 3), failures=failures)
         except Exception as error:
-            self._enter_fault(actuator, f"open failed: {_reason(error)}")
+            if self._stashed_episode is not None:
+                self._fault_since, self._episode_failures = self._stashed_episode
+                self._still_failing(actuator, f"open failed: {_reason(error)}")
+            else:
+                self._enter_fault(actuator, f"open failed: {_reason(error)}")
+        self._stashed_episode = None
         with self._lock:
-            self._active, self._wake_pending, self._pending = True, False, None
+            self._active, self._wake_pending = True, False
         self._task = asyncio.create_task(self._drive(actuator), name="actuator")
 
     async def stop(self, *, final: bool = False) -> None:
         """Stop writing and close the actuator (a failure to close is logged). ``final`` (the daemon
-        stops): first put a finite ``safe_voltage_v`` on the stage."""
+        stops): first ramp to a finite ``safe_voltage_v``, whatever happened before."""
         with self._lock:
             self._active = False
-        if self._task is not None:
-            self._task.cancel()
-            try:
-                await self._task
-            except asyncio.CancelledError:
-                pass
-            self._task = None
         actuator, self._actuator = self._actuator, None
-        if actuator is None:
-            return
         fault, self.fault_reason = self.fault_reason, None  # a stopped actuator refuses nothing (reload to zenoh)
-        if final and self._config is not None:
-            await self._write_safe(actuator, self._config, reopen=fault is not None)
         try:
-            await actuator.close()
-        except Exception as error:
-            self.log.warning("actuator_close_failed", error=str(error))
+            if self._task is not None:
+                self._task.cancel()
+                try:
+                    await self._task
+                except asyncio.CancelledError:
+                    pass
+                except Exception as error:  # the drive loop catches its own; this is a bug, not a reason to skip
+                    self.log.error("actuator_task_failed", error=_reason(error))
+                self._task = None
+        finally:
+            if actuator is not None:
+                if fault is not None and not final:
+                    self._stashed_episode = (self._fault_since, self._episode_failures)
+                try:
+                    if final and self._config is not None:
+                        await self._write_safe(actuator, self._config, reopen=fault is not None)
+                finally:
+                    try:
+                        await actuator.close()
+                    except Exception as error:
+                        self.log.warning("actuator_close_failed", error=str(error))
 
     async def _write_safe(self, actuator: Actuator, config: ActuatorConfig, *, reopen: bool) -> None:
+        """Ramp to ``safe_voltage_v`` within the budget, reopening and retrying after a transient failure."""
         safe_v, safe_q = config.safe_voltage_v, config.safe_q_um
         if safe_q is None:
             return  # nan: leave the stage where it is
         if not config.within_limits(safe_v):  # the config refuses this; never write it anyway
             self.log.error("actuator_safe_refused", voltage_v=safe_v, v_min=config.v_min, v_max=config.v_max)
             return
-        try:
-            async with asyncio.timeout(SAFE_TIMEOUT_S):
-                if reopen:  # closed after its fault
-                    await self._open(actuator, config, self._at_v)
-                await self._move_to(actuator, config, Goal(safe_q, safe_v), follow_pending=False)
-        except Exception as error:
-            self.log.error("actuator_safe_failed", voltage_v=safe_v, error=_reason(error))
-            return
-        self.log.info("actuator_safe", voltage_v=safe_v, device=actuator.description)
+        goal = Goal(safe_q, safe_v)
+        deadline = time.monotonic() + self.safe_budget_s
+        attempts, error_text = 0, ""
+        while True:
+            attempts += 1
+            try:
+                async with asyncio.timeout(max(0.0, deadline - time.monotonic())):
+                    if reopen:
+                        await self._close_quietly(actuator)
+                        await self._open(actuator, config)
+                    await self._move_to(actuator, config, goal, follow_pending=False)
+                self.log.info("actuator_safe", voltage_v=safe_v, device=actuator.description, attempts=attempts)
+                return
+            except TimeoutError:
+                error_text = f"not reached within {self.safe_budget_s:g} s" + (f" ({error_text})" if error_text else "")
+                break
+            except Exception as error:
+                error_text = _reason(error)
+                reopen = True
+                remaining = deadline - time.monotonic()
+                if remaining <= INITIAL_BACKOFF_S:
+                    break
+                await asyncio.sleep(min(INITIAL_BACKOFF_S * attempts, remaining / 2))
+        self.log.error("actuator_safe_failed", voltage_v=safe_v, error=error_text, attempts=attempts,
+                       last_voltage_v=self.last_voltage_v)
 
     # --- writing --------------------------------------------------------------------------------
 
@@ -237,6 +255,13 @@ class Actuation:
                 self._wake_pending = False
             return pending
 
+    def _next_goal(self) -> Goal | None:
+        """A newer served command, else the goal when this device does not hold it yet."""
+        pending = self._take_pending()
+        if pending is not None:
+            return pending
+        return self._goal if not self._goal_on_device else None
+
     async def _drive(self, actuator: Actuator) -> None:
         assert self._config is not None
         config = self._config
@@ -246,25 +271,23 @@ class Actuation:
                 await asyncio.sleep(backoff * random.uniform(0.8, 1.2))
                 backoff = min(backoff * 2.0, MAX_BACKOFF_S)
                 try:
-                    await self._open(actuator, config, self._at_v)
+                    await self._open(actuator, config)
                 except asyncio.CancelledError:
                     raise
                 except Exception as error:
                     self._still_failing(actuator, f"reopen failed: {_reason(error)}")
                     await self._close_quietly(actuator)
                     continue
-                pending = self._take_pending()
-                goal = pending or self._goal
-                if goal is None:  # nothing was ever commanded: the device opens (and reads back) again
+                goal = self._next_goal()
+                if goal is None:  # nothing to write: the device opens (and reads back) again
                     self._recovered(actuator)
                     continue
             else:
-                pending = self._take_pending()
-                if pending is None:
+                goal = self._next_goal()
+                if goal is None:
                     await self._event.wait()
                     self._event.clear()
                     continue
-                goal = pending
             self._goal = goal
             try:
                 await self._move_to(actuator, config, goal, follow_pending=True)
@@ -290,46 +313,58 @@ class Actuation:
                        follow_pending: bool) -> None:
         """Write ``goal`` (ramped under the slew limit); with ``follow_pending`` a newer command taken
         during the ramp becomes the goal (re-planned from where the stage is)."""
-        slew = config.max_slew_um_per_s
         while True:
             if follow_pending:
                 newer = self._take_pending()
                 if newer is not None:
                     goal = self._goal = newer
-            at_v = self._at_v
-            if slew <= 0 or at_v is None:
-                if slew > 0 and not self._unramped_told:
-                    self._unramped_told = True
-                    self.log.warning("actuator_unramped", device=actuator.description, voltage_v=goal.voltage_v,
-                                     reason="where the stage is is unknown (the device cannot be read back, nothing "
-                                     "was written to it yet, safe_voltage_v = nan): the first move is not ramped")
-                await self._write(actuator, goal.q_um, goal.voltage_v, goal.x_um)
+            if not config.within_limits(goal.voltage_v):  # a reload narrowed the limits under it
+                self.log.warning("actuator_goal_dropped", device=actuator.description, voltage_v=goal.voltage_v,
+                                 v_min=config.v_min, v_max=config.v_max, held_v=self._at_v,
+                                 reason="the served command is outside the limits now in force: the stage holds")
+                self._goal, self._goal_on_device = None, True
                 return
-            at_q = config.q_um_for(at_v)
-            elapsed = min(time.monotonic() - self._last_end, RAMP_PERIOD_S)
-            next_q = ramp_step(at_q, goal.q_um, slew * elapsed)
-            if next_q == goal.q_um:
-                await self._write(actuator, goal.q_um, goal.voltage_v, goal.x_um)
-                return
-            voltage = config.voltage(next_q)
-            if not config.within_limits(voltage):  # rounding at a limit, or limits narrowed by a reload
+            if self._at_v is None and config.max_slew_um_per_s > 0 and not self._unramped_told:
+                self._unramped_told = True
+                self.log.warning("actuator_unramped", device=actuator.description, voltage_v=goal.voltage_v,
+                                 reason="where the stage is is unknown (no trusted read-back, nothing sent to it "
+                                 "yet, safe_voltage_v = nan): this move is not ramped")
+            began_s = time.monotonic()
+            voltage = self._slew.next_voltage(config, self._at_v, goal.voltage_v, began_s)
+            reached = voltage == goal.voltage_v
+            if not reached:  # mid-ramp from a stage outside limits a reload narrowed: never send outside
                 voltage = min(max(voltage, config.v_min), config.v_max)
-                next_q = config.q_um_for(voltage)
-            await self._write(actuator, next_q, voltage, goal.x_um)
+            q_um = goal.q_um if reached else config.q_um_for(voltage)
+            await self._write(actuator, config, q_um, voltage, goal.x_um)
+            self._slew.wrote(began_s, reached)
+            if reached:
+                self._goal_on_device = True
+                for listener in self.reached_listeners:
+                    listener(goal, time.monotonic())
+                return
             await asyncio.sleep(RAMP_PERIOD_S)
 
-    async def _open(self, actuator: Actuator, config: ActuatorConfig, last_voltage_v: float | None) -> StageStart:
+    async def _open(self, actuator: Actuator, config: ActuatorConfig) -> StartPoint:
         """Open the device and learn where the stage is (:func:`locate_stage`); raises like a write."""
+        self._slew.rest()
         await self._guarded(actuator.open(), "open")
-        start = await self._guarded(locate_stage(actuator, config, last_voltage_v), "read back")
+        sent = tuple(v for v in (self.last_voltage_v, self._tried_v) if v is not None)
+        start = await self._guarded(locate_stage(actuator, config, sent), "read back")
+        if start.distrust is not None:
+            self.log.warning("actuator_readback_untrusted", device=actuator.description, reason=start.distrust,
+                             note="where the stage is is unknown: nothing is ramped from it; the next command "
+                             "is written as it is")
         self._at_v = start.voltage_v
         return start
 
-    async def _write(self, actuator: Actuator, q_um: float, voltage_v: float, x_um: float | None) -> None:
+    async def _write(self, actuator: Actuator, config: ActuatorConfig, q_um: float, voltage_v: float,
+                     x_um: float | None) -> None:
+        sent_v = checked_sent_voltage(actuator, config, voltage_v)
+        self._tried_v = sent_v
+        self._at_v = None  # until the device confirms it, the stage is between the two
         await self._guarded(actuator.command(q_um, voltage_v, x_um=x_um), "write")
-        self._last_end = time.monotonic()
-        self._at_v = voltage_v
-        self.last_voltage_v, self.last_write_t = voltage_v, time.time()
+        self._at_v = sent_v
+        self.last_voltage_v, self.last_write_t = sent_v, time.time()
         self.writes += 1
 
     async def _close_quietly(self, actuator: Actuator) -> None:

@@ -59,6 +59,10 @@ class HealthUnit:
         self._compensator: Compensator | None = None
         self._publisher: Any = None
         self._fresh: list[tuple[Settled, float]] = []
+        #: the daemon drives the output itself: a hold settles from when the output reached its command
+        #: (a slewed ramp takes seconds), told through :meth:`on_reached`; else from the command
+        self.awaits_reach = False
+        self._reached: deque[tuple[float, float]] = deque(maxlen=SERVED_QUEUE)
         self._configure(config, model)
         self._announced = self.monitor.state
 
@@ -79,6 +83,7 @@ class HealthUnit:
         self.ranges = RangeWatch(ranges)
         self.tracker = BiasTracker(adapt.tau_s, adapt.max_um) if adapt.mode == "bias" else None
         self.served.clear()
+        self._reached.clear()
         self._last_position_t: float | None = None
 
     def attach(self, compensator: Compensator) -> None:
@@ -120,6 +125,10 @@ class HealthUnit:
         self._last_position_t = t
         self._feed(t, value_um, True)
 
+    def on_reached(self, t: float, q_um: float) -> None:
+        """The output reached command ``q_um`` at cell time ``t`` (on the loop, under state.lock)."""
+        self._reached.append((t, q_um))
+
     def _feed(self, t: float, value_um: float, ok: bool) -> None:
         served = self.served
         if served and served[0][0] <= t:
@@ -128,8 +137,12 @@ class HealthUnit:
             self._settled(self.settle.position(served[0][0], math.nan, False))
             while served and served[0][0] <= t:  # with no reading between them, only the last can be held
                 t_command, command = served.popleft()
-            self.settle.commanded(t_command, command.x_um, command.q_um, command.temperatures_c, command.id)
+            self.settle.commanded(t_command, command.x_um, command.q_um, command.temperatures_c, command.id,
+                                  reached=not self.awaits_reach)
             self.ranges.observe(t_command, {"x": command.x_um})
+        reached = self._reached
+        while reached and reached[0][0] <= t:
+            self.settle.reached(*reached.popleft())
         self._settled(self.settle.position(t, value_um, ok))
 
     def _settled(self, settled: Settled | None) -> None:

@@ -72,6 +72,7 @@ class Service:
         self.recorder = Recorder(lambda: self.state.config.health, self.log)
         self.health.settled_listeners.append(self.recorder.on_settled)
         self.actuation = Actuation(self.log)
+        self.actuation.reached_listeners.append(self._output_reached)
         self.drivers: DriverSet | None = None
         self.pollers: list[GroupPoller] = []
         self.bus: Bus | None = None
@@ -127,23 +128,34 @@ class Service:
         self.log.info("serving", cell=self.state.config.cell, keys=f"{bus.keys.prefix}/**", listen=listen,
                       model=self.state.model_id(), sensors=list(self.state.table.entries))
         self.notifier.ready(line())
-        await self._stop.wait()
+        try:
+            await self._stop.wait()
+        finally:  # whatever ends the wait (a signal, a cancellation), the stage is left safe
+            await self._stop_serving(bus, supervising)
+        return 0
 
+    async def _stop_serving(self, bus: Bus, supervising: asyncio.Task[None]) -> None:
+        """Stop in the order that keeps every promise: targets get ``shutting_down`` until the bus closes,
+        the safe ramp runs even if an earlier step fails, and each step runs once."""
         self.notifier.stopping()
         with self.state.lock:
-            self.state.serving = False  # targets arriving from now on are not answered by a half-closed daemon
+            self.state.serving = False
+            self.state.stopping = True  # targets arriving from now on are refused with ``shutting_down``
             counters = self.state.counters.as_dict()
         self.log.info("stopping", counters=counters)
-        supervising.cancel()
-        for task in list(self._tasks):
-            task.cancel()
-        bus.withdraw()  # clients see the daemon gone first
-        await self.stop_drivers(final=True)  # safe_voltage_v (when finite) before the actuator closes
-        await asyncio.to_thread(self.recorder.close)  # the rows already queued reach the disk
-        bus.close()
-        self.stop_metrics()
-        self.log.info("stopped")
-        return 0
+        try:
+            supervising.cancel()
+            for task in list(self._tasks):
+                task.cancel()
+        finally:
+            try:
+                await self.stop_drivers(final=True)  # safe_voltage_v (when finite) before the actuator closes
+            finally:
+                bus.withdraw()  # clients see the daemon gone
+                await asyncio.to_thread(self.recorder.close)  # the rows already queued reach the disk
+                bus.close()
+                self.stop_metrics()
+                self.log.info("stopped")
 
     def serve(self, loop: asyncio.AbstractEventLoop, targets: TargetHandler, status: StatusHandler) -> None:
         """Declare the handlers on the bus (a subclass may wrap them: benchmarks/daemon_latency.py)."""
@@ -209,6 +221,7 @@ class Service:
         self.drivers = drivers
         with self.state.lock:
             self.state.clock = drivers.context.clock
+            self.health.awaits_reach = drivers.actuator is not None
         if drivers.actuator is not None:
             await self.actuation.start(drivers.actuator, self.state.config.actuator)
         ingest = self.ingest
@@ -222,10 +235,17 @@ class Service:
 
     async def stop_drivers(self, *, final: bool = False) -> None:
         """Stop polling and the actuator; ``final`` (the daemon stops, not a reload): the actuator
-        first writes ``safe_voltage_v`` when it is finite."""
-        await asyncio.gather(*(p.stop() for p in self.pollers), return_exceptions=True)
-        self.pollers = []
-        await self.actuation.stop(final=final)
+        first ramps to ``safe_voltage_v`` when it is finite (even if stopping a poller failed)."""
+        try:
+            await asyncio.gather(*(p.stop() for p in self.pollers), return_exceptions=True)
+            self.pollers = []
+        finally:
+            await self.actuation.stop(final=final)
+
+    def _output_reached(self, goal: Any, _monotonic_s: float) -> None:
+        """The output holds a served command: the health unit's settle time starts now (cell clock)."""
+        with self.state.lock:
+            self.health.on_reached(self.state.clock.now(), goal.q_um)
 
     def _log_start(self) -> None:
         config, comp = self.state.config, self.state.compensator

@@ -52,9 +52,11 @@ class CellState:
         self.compensator = compensator
         self.clock = clock  # replaced by the drivers' context clock when they start
         self.counters = Counters()
-        self.started = time.time()
+        self.started_monotonic_s = time.monotonic()  # uptime: a wall-clock step does not change it
         #: targets are answered only while serving (not by a daemon that is starting or half closed)
         self.serving = False
+        #: set when the daemon stops: targets are refused with ``shutting_down`` until the bus closes
+        self.stopping = False
 
     @property
     def table(self) -> SensorTable:

@@ -34,7 +34,7 @@ def status_doc(state: CellState, healthy: bool, actuation: Actuation | None = No
         doc = {
             "cell": config.cell,
             "t": time.time(),
-            "uptime_s": round(time.time() - state.started, 3),
+            "uptime_s": round(time.monotonic() - state.started_monotonic_s, 3),
             "config": config.source,
             "model": comp.model_info(),
             "model_path": str(config.model.path),

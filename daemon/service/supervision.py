@@ -65,6 +65,34 @@ class SensorWatch:
                 **({"channel": names[0]} if len(names) == 1 else {}))
 
 
+#: a change of the wall clock against the monotonic clock larger than this is a step (NTP slews by far less)
+CLOCK_STEP_S = 1.0
+
+
+class ClockStepWatch:
+    """Notices a step of the wall clock (NTP, ``date -s``) and logs it once (``clock_step``).
+
+    The daemon decides on its monotonic clock, so a step changes nothing it computes; this only tells
+    the operator why the labels (payload ``t``, record dates) jumped.
+    """
+
+    def __init__(self, log: Any) -> None:
+        self.log = log
+        self._offset_s = time.time() - time.monotonic()
+
+    def check(self) -> float | None:
+        """The step since the last check, in seconds (None: no step)."""
+        offset_s = time.time() - time.monotonic()
+        step_s = offset_s - self._offset_s
+        if abs(step_s) <= CLOCK_STEP_S:
+            return None
+        self._offset_s = offset_s
+        self.log.warning("clock_step", step_s=round(step_s, 3), wall_t=round(time.time(), 3),
+                         note="the wall clock only labels (payload t, record dates): no command, reading age, "
+                         "ramp or retention depends on it")
+        return step_s
+
+
 class Supervisor:
     """The periodic task; ``healthy`` says whether the pollers make progress."""
 
@@ -86,12 +114,14 @@ class Supervisor:
         self.status_line = status_line
         self.refusals_suppressed = refusals_suppressed
         self.actuator_failures = actuator_failures
+        self.clock_watch = ClockStepWatch(log)
 
     async def run(self) -> None:
         watchdog = watchdog_interval_s()
         last_ping = last_status = last_summary = 0.0
         while True:
             now_mono = time.monotonic()
+            self.clock_watch.check()
             self.watch.check()
             if watchdog is not None and now_mono - last_ping >= watchdog and self.healthy():
                 self.notifier.watchdog()

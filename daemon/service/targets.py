@@ -78,13 +78,15 @@ class TargetHandler:
         suppressed = 0
         with self.answer_lock:
             with state.lock:
-                if not state.serving:
-                    if query is not None:
+                if not state.serving and not state.stopping:
+                    if query is not None:  # starting: nothing answers yet (the liveliness token is not up)
                         query.drop()
                     return
                 state.counters.targets += 1
                 try:
                     target = parse_target(payload)
+                    if state.stopping:
+                        raise Refusal("shutting_down", "the daemon is stopping: target not served", target.id)
                     fault = self.actuation.fault_reason
                     if fault is not None:  # before the model: a refused target must not move `dir` or lags
                         raise Refusal("actuator_fault",

@@ -55,6 +55,12 @@ class ModbusActuator(Actuator):
             raise DeviceError(f"{self.description}: reading the output failed: {error}") from error
         return "voltage_v", self.volts(registers)[1]
 
+    def sent_voltage(self, voltage_v: float) -> float:
+        """The voltage of the count that ``voltage_v`` is written as (ValueError: none can represent it)."""
+        c = self.config
+        raw = raw_for(voltage_v, c.scale, c.offset, c.data_type, within=self.limits_v)
+        return raw * c.scale + c.offset
+
     async def command(self, q_um: float, voltage_v: float, *, x_um: float | None = None) -> None:
         c = self.config
         try:

@@ -43,43 +43,16 @@ from helpers.daemon_harness import (
 )
 from helpers.modbus_helpers import ModbusTestDevice, ModbusTestServer
 from helpers.serial_helpers import FakeGcsController
-from hypothesis import given, settings
-from hypothesis import strategies as st
 from pydantic import Field
 
 from daemon.config import ActuatorConfig
-from daemon.service.actuation import RAMP_PERIOD_S, Actuation, plan_ramp
+from daemon.motion import RAMP_PERIOD_S
+from daemon.service.actuation import Actuation
 from drivers.base import Actuator, ActuatorOptions, DeviceError, DriverContext
 
 SCALE = 0.001  # volts per count
 ADDRESS = 10
 VOLTS_PER_UM = 0.02
-
-
-# --- the ramp planner ----------------------------------------------------------------------------
-
-positions = st.floats(min_value=-600.0, max_value=600.0, allow_nan=False)
-rates = st.floats(min_value=1.0, max_value=5000.0, allow_nan=False)
-
-
-@settings(max_examples=300, deadline=None)
-@given(start=positions, target=positions, rate=rates)
-def test_a_ramp_never_exceeds_the_rate_is_monotone_and_ends_at_the_target(start: float, target: float,
-                                                                          rate: float) -> None:
-    plan = plan_ramp(start, target, rate, RAMP_PERIOD_S)
-    assert plan[-1] == target
-    step = rate * RAMP_PERIOD_S
-    points = [start, *plan]
-    for a, b in itertools.pairwise(points):
-        assert abs(b - a) <= step * (1 + 1e-9)
-        assert (b - a) * (target - start) >= 0  # never moves away from the target
-    steps = abs(target - start) / step  # rounding may add one tiny last step
-    assert max(1, math.ceil(steps - 1e-9)) <= len(plan) <= max(1, math.ceil(steps + 1e-9) + 1)
-
-
-@given(start=positions, target=positions)
-def test_no_ramp_when_the_limit_is_off(start: float, target: float) -> None:
-    assert plan_ramp(start, target, 0.0) == [target]
 
 
 # --- Actuation in process: order and coalescing --------------------------------------------------
@@ -181,8 +154,9 @@ def ramp_of(device: RecordingActuator) -> list[float]:
 
 def assert_never_faster(device: RecordingActuator, rate: float) -> None:
     """Each write is no further from the previous one than the rate allows for the time between them."""
+    slack_s = 0.002  # the daemon times a step just before it calls the device, the device a moment later
     for (t0, (q0, _, _)), (t1, (q1, _, _)) in itertools.pairwise(zip(device.started, device.written, strict=True)):
-        assert abs(q1 - q0) <= rate * (t1 - t0) + 1e-9, f"{q1 - q0:.3f} um in {t1 - t0:.4f} s"
+        assert abs(q1 - q0) <= rate * (t1 - t0 + slack_s) + 1e-9, f"{q1 - q0:.3f} um in {t1 - t0:.4f} s"
 
 
 @pytest.mark.parametrize(("holds", "safe_v", "start_q", "known_from"), [
@@ -213,12 +187,12 @@ def test_the_first_move_after_start_ramps_from_where_the_stage_is(
     if start_q is None:  # nothing known: the one move is written as is, and the log says so once
         assert ramp_of(device) == [480.0]
         [told] = log.named("actuator_unramped")
-        assert told["voltage_v"] == config.voltage(480.0) and "the first move is not ramped" in told["reason"]
+        assert told["voltage_v"] == config.voltage(480.0) and "this move is not ramped" in told["reason"]
         return
     qs = ramp_of(device)
     assert qs[0] == pytest.approx(start_q + SLEW * RAMP_PERIOD_S)  # one ramp step from where the stage was
-    assert all(0 < b - a <= SLEW * RAMP_PERIOD_S + 1e-9 for a, b in itertools.pairwise(qs))
-    assert len(qs) == math.ceil((480.0 - start_q) / (SLEW * RAMP_PERIOD_S))
+    assert all(0 < b - a for a, b in itertools.pairwise(qs))  # towards the target, never back
+    assert len(qs) <= math.ceil((480.0 - start_q) / (SLEW * RAMP_PERIOD_S))  # steps cover the time they took
     assert_never_faster(device, SLEW)
     assert not log.named("actuator_unramped")
 
@@ -253,7 +227,8 @@ def test_an_edit_to_another_device_forgets_the_old_devices_voltage_and_the_same_
     assert len(log.named("actuator_unramped")) == 1
     qs = ramp_of(again)  # ramped from the 10 um last written to B
     assert qs[-1] == 130.0 and 10.0 < qs[0] <= 10.0 + SLEW * RAMP_PERIOD_S + 1e-9
-    assert all(0 < b - a <= SLEW * RAMP_PERIOD_S + 1e-9 for a, b in itertools.pairwise(qs))
+    assert all(0 < b - a for a, b in itertools.pairwise(qs))
+    assert_never_faster(again, SLEW)
     assert [e["known_from"] for e in log.named("actuator_open")] == ["read back", "unknown", "last written"]
 
 
@@ -409,12 +384,14 @@ def test_the_register_holds_each_command_a_dead_module_refuses_targets_and_recov
         assert command["q_um"] == pytest.approx(expected_q(x, TEMPS))
         wait_until(lambda v=command["voltage_v"]: module.register() == raw_for(v), 10, f"register = {x} um")
     # the register changes before the daemon has the module's answer (and its verify read): wait for that too
-    wait_until(lambda: cell.actuator_status()["last_voltage_v"] == command["voltage_v"], 10, "the write recorded")
+    # status shows what the register received: the command's voltage as a whole count
+    sent_v = raw_for(command["voltage_v"]) * SCALE
+    wait_until(lambda: cell.actuator_status()["last_voltage_v"] == pytest.approx(sent_v), 10, "the write recorded")
     actuator = cell.actuator_status()
     assert list(actuator)[:9] == ["volts_per_um", "offset_v", "v_min", "v_max", "x_min_um", "x_max_um", "kind",
                                   "max_slew_um_per_s", "safe_voltage_v"]
     assert actuator["state"] == "ok" and actuator["reason"] is None and actuator["output"] == "device"
-    assert actuator["last_voltage_v"] == command["voltage_v"] and actuator["writes"] >= 2
+    assert actuator["last_voltage_v"] == pytest.approx(sent_v) and actuator["writes"] >= 2
     assert actuator["failures"] == 0 and "holding register 10" in actuator["device"]
     held = module.register()
 
