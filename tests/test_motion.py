@@ -1,0 +1,127 @@
+"""daemon.motion: the one owner of motion (start point, slew on elapsed time, limits), as pure functions."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from daemon.motion import (
+    MAX_STEP_INTERVAL_S,
+    RAMP_PERIOD_S,
+    Slew,
+    q_um_for,
+    ramp_seconds,
+    trusted_start,
+    voltage_for,
+    within_limits,
+)
+
+
+@dataclass
+class Limits:
+    volts_per_um: float = 0.02
+    offset_v: float = 0.0
+    v_min: float = -2.0
+    v_max: float = 12.0
+    max_slew_um_per_s: float = 100.0
+
+
+voltages = st.floats(min_value=-2.0, max_value=12.0, allow_nan=False)
+rates = st.floats(min_value=0.5, max_value=5000.0, allow_nan=False)
+latencies = st.lists(st.floats(min_value=0.0, max_value=0.05), min_size=1, max_size=20)
+
+
+@settings(max_examples=300, deadline=None)
+@given(start_v=voltages, goal_v=voltages, rate=rates, latencies_s=latencies)
+def test_a_ramp_moves_at_the_rate_on_elapsed_time_whatever_the_device_latency(
+        start_v: float, goal_v: float, rate: float, latencies_s: list[float]) -> None:
+    """Each step covers the time since the previous one began (the first: one ramp period), never more
+    than the cap; the ramp is monotone, ends at the goal, and lasts distance / rate (less a period)."""
+    limits = Limits(max_slew_um_per_s=rate)
+    slew = Slew()
+    now_s, at_v, began = 0.0, start_v, []
+    for i in range(200_000):
+        voltage = slew.next_voltage(limits, at_v, goal_v, now_s)
+        covered_s = RAMP_PERIOD_S if not began else min(now_s - began[-1], MAX_STEP_INTERVAL_S)
+        assert abs(voltage - at_v) <= rate * limits.volts_per_um * covered_s * (1 + 1e-9) + 1e-12
+        assert (voltage - at_v) * (goal_v - start_v) >= 0, "moved away from the goal"
+        began.append(now_s)
+        slew.wrote(now_s, voltage == goal_v)
+        at_v = voltage
+        if voltage == goal_v:
+            break
+        now_s += latencies_s[i % len(latencies_s)] + RAMP_PERIOD_S  # the write, then the pause
+    assert at_v == goal_v
+    expected_s = ramp_seconds(limits, start_v, goal_v)
+    # never slower than the rate, whatever the latency (the last step waits at most one write longer
+    # than the distance needs) ...
+    assert now_s <= expected_s + max(latencies_s) + 1e-6
+    assert now_s >= expected_s - RAMP_PERIOD_S - 1e-6  # ... and never faster
+
+
+def test_a_device_answering_in_10_ms_does_not_slow_the_ramp() -> None:
+    """Issue 16.6: ramps ran at ~38 % of the rate when the module answered in 10 ms (step count drove them)."""
+    limits = Limits(max_slew_um_per_s=100.0)
+    slew, now_s, at_v, goal_v = Slew(), 0.0, 0.0, 9.6  # 480 um at 100 um/s: 4.8 s
+    while at_v != goal_v:
+        at_v = slew.next_voltage(limits, at_v, goal_v, now_s)
+        slew.wrote(now_s, at_v == goal_v)
+        now_s += 0.010 + RAMP_PERIOD_S
+    assert 4.75 <= now_s <= 4.85
+
+
+def test_a_stalled_loop_resumes_at_the_rate_not_with_a_jump() -> None:
+    limits = Limits(max_slew_um_per_s=100.0)
+    slew = Slew()
+    first = slew.next_voltage(limits, 0.0, 9.6, 0.0)
+    slew.wrote(0.0, False)
+    after_stall = slew.next_voltage(limits, first, 9.6, 30.0)  # the loop was away for 30 s
+    assert math.isclose(after_stall - first, 100.0 * 0.02 * MAX_STEP_INTERVAL_S, rel_tol=1e-12)
+
+
+def test_off_or_unknown_start_is_the_goal_at_once() -> None:
+    assert Slew().next_voltage(Limits(max_slew_um_per_s=0.0), 0.0, 9.6, 0.0) == 9.6
+    assert Slew().next_voltage(Limits(), None, 9.6, 0.0) == 9.6
+
+
+# --- where a move starts ------------------------------------------------------------------------
+
+
+def test_a_read_back_outside_the_limits_is_unknown_never_a_start_point() -> None:
+    """Issue 16.3: a GCS controller answering 50 V at start made the first write v_max."""
+    start = trusted_start(Limits(), 50.0, (), math.nan)
+    assert start.voltage_v is None and start.known_from == "unknown" and "outside [-2, 12] V" in start.distrust
+
+
+def test_a_read_back_that_contradicts_what_was_sent_is_unknown() -> None:
+    """Issue 16.3: an output holding 0 V but reading back 10 V was ramped from 10 V at each reopen."""
+    start = trusted_start(Limits(), 10.0, (-0.45,), math.nan)
+    assert start.voltage_v is None and "but -0.4500 V was sent last" in start.distrust
+    agrees = trusted_start(Limits(), -0.45, (-0.45,), math.nan)
+    assert agrees.voltage_v == -0.45 and agrees.known_from == "read back" and agrees.distrust is None
+
+
+def test_a_read_back_may_agree_with_the_last_confirmed_or_the_last_tried_voltage() -> None:
+    """A write that failed on the way may or may not have reached the output: either is believed."""
+    assert trusted_start(Limits(), 3.0, (3.0, 5.0), math.nan).voltage_v == 3.0
+    assert trusted_start(Limits(), 5.0, (3.0, 5.0), math.nan).voltage_v == 5.0
+
+
+@given(read=st.one_of(st.none(), st.floats(allow_nan=True, allow_infinity=True)),
+       sent=st.lists(voltages, max_size=2).map(tuple),
+       safe=st.one_of(st.just(math.nan), voltages))
+def test_a_start_point_is_always_inside_the_limits_or_unknown(read: float | None, sent: tuple[float, ...],
+                                                              safe: float) -> None:
+    start = trusted_start(Limits(), read, sent, safe)
+    assert start.voltage_v is None or within_limits(Limits(), start.voltage_v)
+    if read is not None and start.voltage_v is not None:
+        assert start.known_from == "read back" and (not sent or min(abs(read - v) for v in sent) <= 0.001)
+
+
+@given(q=st.floats(min_value=-1e4, max_value=1e4, allow_nan=False))
+def test_the_voltage_rule_and_its_inverse(q: float) -> None:
+    limits = Limits(volts_per_um=0.021, offset_v=-0.3)
+    assert math.isclose(q_um_for(limits, voltage_for(limits, q)), q, rel_tol=1e-12, abs_tol=1e-9)
