@@ -18,7 +18,7 @@ from daemon.bus.protocol import dumps
 from daemon.config import Config, parse_config
 from daemon.service import Service
 from daemon.service.status import status_doc
-from drivers.base import Reading, SensorConfig, SensorGroup
+from drivers.base import MonotonicClock, Reading, SensorConfig, SensorGroup
 
 
 class RecordingBus:
@@ -55,7 +55,12 @@ def pinned_config(tmp_path: Path) -> Config:
 
 def run_pinned_service(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> tuple[Service, RecordingBus, Any]:
     clock = [1700000000.5]
+    # the wall clock labels, the monotonic clock decides: pin both to one value (MonotonicClock reads
+    # its unix origin plus monotonic time elapsed since its monotonic origin)
     monkeypatch.setattr(time, "time", lambda: clock[0])
+    monkeypatch.setattr(time, "monotonic", lambda: clock[0])
+    monkeypatch.setattr(MonotonicClock, "_origin_unix_s", 0.0)
+    monkeypatch.setattr(MonotonicClock, "_origin_mono_s", 0.0)
     service = Service(pinned_config(tmp_path), build_drivers=build_drivers)
     bus = RecordingBus()
     service.bus = bus  # type: ignore[assignment]
