@@ -1,4 +1,4 @@
-"""The operator's TOML config, validated by pydantic (the contract in ARCHITECTURE.md).
+"""The operator's TOML config, validated by pydantic (the contract in the README).
 
 Validation runs in two passes so every message names its field path: first the daemon's own
 sections, then each ``[[sensors]]`` entry with the pydantic model of the driver plugin its ``kind``

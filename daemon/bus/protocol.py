@@ -1,4 +1,4 @@
-"""The Zenoh wire format in one place: keys, a target in, every payload out (ARCHITECTURE.md, Zenoh).
+"""The Zenoh wire format in one place: keys, a target in, every payload out (README, Zenoh keys).
 
 Bytes in, bytes out, no session: the contract can be tested (and is pinned byte for byte in
 ``tests/bus/test_payload_bytes.py``) without a network.

@@ -166,7 +166,7 @@ class HealthUnit:
         return self.tracker.correction_um if self.tracker is not None else None
 
     def document(self) -> dict[str, object]:
-        """The ``health`` payload (ARCHITECTURE.md): state, residual statistics, correction, advice."""
+        """The ``health`` payload (README: health): state, residual statistics, correction, advice."""
         outside = self.ranges.outside()
         return self.monitor.document(correction_um=self.correction_um, extrapolating=[o.channel for o in outside],
                                      outside=outside)

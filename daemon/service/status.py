@@ -25,7 +25,7 @@ from drivers.base import State
 
 def status_doc(state: CellState, healthy: bool, actuation: Actuation | None = None,
                health: HealthUnit | None = None) -> dict[str, Any]:
-    """The ``status`` payload's document (ARCHITECTURE.md, Zenoh ``status``)."""
+    """The ``status`` payload's document (README, Zenoh keys ``status``)."""
     driven = actuation.doc() if actuation is not None else None
     with state.lock:
         now = state.clock.now()

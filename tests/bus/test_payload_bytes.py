@@ -1,4 +1,4 @@
-"""The Zenoh payloads of the wire format, pinned byte for byte (ARCHITECTURE.md: a public contract).
+"""The Zenoh payloads of the wire format, pinned byte for byte (a public contract, README).
 
 Each expected value below was produced by the code before the wire format moved to
 ``daemon.bus.protocol`` (commit c198473); a refactoring that changes a single byte of a command, an

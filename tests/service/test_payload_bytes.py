@@ -1,4 +1,4 @@
-"""The service's status and telemetry payloads, pinned byte for byte (ARCHITECTURE.md: a public contract).
+"""The service's status and telemetry payloads, pinned byte for byte (a public contract, README).
 
 Each expected value below was produced by the code before the service was split into a package
 (commit c198473); a refactoring that changes a single byte of a status or a telemetry payload fails here.

@@ -15,7 +15,7 @@ from daemon.model.effect_terms import CREEP_DEADBAND_UM, Creep, PositionCoupling
 from daemon.model.segments import features, run_time_s, spans_s
 from daemon.model.terms import Channel, Direction, Lag, Power, Term
 
-#: the names an effect can be given (the vocabulary of ARCHITECTURE.md's "Discovery: effect names")
+#: the names an effect can be given (the vocabulary of the README's discovery section)
 EFFECTS = (
     "geometric_order",
     "thermal_lag",

@@ -18,7 +18,7 @@ from drivers.serial_line.config import DEFAULT_PATTERN, SerialLineSensorConfig
 from drivers.serial_line.line import SerialLineGroup
 from drivers.serial_line.plugin import PLUGIN
 
-DOCUMENTED = r"P (?P<value>[-+0-9.]+) nm"  # ARCHITECTURE.md and config/lab.toml
+DOCUMENTED = r"P (?P<value>[-+0-9.]+) nm"  # README and config/lab.toml
 
 
 def run(coro: Awaitable[None], timeout: float = 30.0) -> None:
