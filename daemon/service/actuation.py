@@ -40,14 +40,15 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from daemon.config import ActuatorConfig
+from daemon.config import SAFE_RAMP_BUDGET_S, ActuatorConfig
 from daemon.logs import RateLimitedLog
 from drivers.base import Actuator, DeviceError
 
 RAMP_PERIOD_S = 0.02  # a ramp's sub-commands are this far apart (at least)
 WRITE_PERIOD_S = RAMP_PERIOD_S  # and so are any two writes: an output needs no more than 50 updates a second
 WRITE_TIMEOUT_S = 3.0  # a write that takes longer is a fault
-SAFE_TIMEOUT_S = 30.0  # shutdown gives up on reaching safe_voltage_v after this long
+#: shutdown gives up on reaching safe_voltage_v after this long: its share of the unit's stop timeout
+SAFE_TIMEOUT_S = SAFE_RAMP_BUDGET_S
 INITIAL_BACKOFF_S = 0.2
 MAX_BACKOFF_S = 5.0
 
