@@ -157,9 +157,10 @@ SAFE_RAMP_BUDGET_S = 20.0
 
 
 #: the slowest ``max_slew_um_per_s`` other than 0 (off). A ramp writes every ``RAMP_PERIOD_S`` (20 ms):
-#: at 0.01 um/s a write moves 0.2 nm, already under one count of a 16-bit output (10 nm at 0.02 V/um over
-#: 14 V), and a full 500 um stroke takes 14 h. Slower, the output writes the same value for seconds, and
-#: at 1e-300 a step vanishes in floating point: the stage never moved while the status said ok.
+#: at 0.01 um/s a write moves 0.2 nm, so one count of a 16-bit output (10 nm at 0.02 V/um over 14 V)
+#: already takes a second of identical writes, and a full 500 um stroke 14 h. Slower is no longer a ramp
+#: but a stage that looks stuck; at 1e-300 a step vanished in floating point (48 identical writes a
+#: second, the stage never moved, the status ok).
 MIN_SLEW_UM_PER_S = 0.01
 
 
