@@ -14,7 +14,7 @@ import importlib.metadata
 import sys
 import textwrap
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NoReturn
 
 from daemon.errors import UserError
 from drivers.simulated.effects import EFFECTS
@@ -128,17 +128,40 @@ def _output_check_flag(p: argparse.ArgumentParser) -> None:
                    help="start even when no output node is subscribed to nanodrift/<cell>/command")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+class _Parser(argparse.ArgumentParser):
+    """argparse, except that with ``json_errors`` a usage error is one JSON log line, not usage text."""
+
+    json_errors = False
+
+    def error(self, message: str) -> NoReturn:
+        if not self.json_errors:
+            super().error(message)
+        from daemon.logs import json_line
+
+        print(json_line("usage_error", "error", error=message, usage=self.format_usage().strip()), file=sys.stderr)
+        self.exit(2)
+
+
+def json_errors_wanted(argv: Sequence[str]) -> bool:
+    """``nanodrift run`` with stderr not a terminal (systemd's journal, a pipe): every stderr line is
+    JSON, its usage and start-up errors too, so ``journalctl -o cat | jq`` never meets plain text.
+    The other commands are for terminals and scripts, and keep their plain ``error:`` lines."""
+    return list(argv[:1]) == ["run"] and not sys.stderr.isatty()
+
+
+def build_parser(*, json_errors_for_run: bool = False) -> argparse.ArgumentParser:
+    parser = _Parser(
         prog="nanodrift", description="Thermal-drift compensation for a piezo nanopositioning stage.",
         formatter_class=_HelpFormatter,
     )
+    parser.json_errors = json_errors_for_run  # "unrecognized arguments" of run are reported up here
     parser.add_argument("--version", action="version", version=f"nanodrift {version()}",
                         help="print the version and exit")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser)
 
     # --- the service ---
     p = _add(sub, "run", "the daemon (simulated cell when no --config)")
+    p.json_errors = json_errors_for_run
     p.add_argument("--config", metavar="F", help="operator config (TOML); none: the built-in simulated cell")
     _zenoh_flags(p)
     p.add_argument("--no-multicast-scouting", action="store_true", help="do not look for peers by UDP multicast")
@@ -279,16 +302,28 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    arguments = list(sys.argv[1:] if argv is None else argv)
+    json_errors = json_errors_wanted(arguments)
+    args = build_parser(json_errors_for_run=json_errors).parse_args(arguments)
     handler = importlib.import_module(HANDLERS[args.command]).main
     try:
         return int(handler(args) or 0)
     except UserError as err:
-        print(f"nanodrift {args.command}: error: {err}", file=sys.stderr)
+        _say(args.command, json_errors, "error", f"error: {err}", event="run_failed", error=str(err))
         return 2
     except KeyboardInterrupt:
-        print(f"nanodrift {args.command}: interrupted", file=sys.stderr)
+        _say(args.command, json_errors, "warning", "interrupted", event="run_interrupted")
         return 130
+
+
+def _say(command: str, json_errors: bool, level: str, text: str, *, event: str, **fields: str) -> None:
+    """The last line of a command that failed: plain for a terminal, a JSON log line for ``run``'s journal."""
+    if json_errors:
+        from daemon.logs import json_line
+
+        print(json_line(event, level, **fields), file=sys.stderr)
+    else:
+        print(f"nanodrift {command}: {text}", file=sys.stderr)
 
 
 if __name__ == "__main__":

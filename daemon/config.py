@@ -109,6 +109,12 @@ class MetricsSettings(_Strict):
         return value
 
 
+#: ``[health] record_keep_days`` at most: a century. The retention date (today minus the days) must be a
+#: date Python can hold (1,000,000 days failed every row with "date value out of range"), and no lab keeps
+#: its recorded operation longer than the instrument lives.
+MAX_RECORD_KEEP_DAYS = 36_500
+
+
 class HealthSettings(_Strict):
     """``[health]``: the model's health from the position sensor (``daemon.service.health``); needs a
     ``role = "position"`` sensor, else the state stays ``unknown``. ``record_dir``/``record_keep_days``:
@@ -120,7 +126,8 @@ class HealthSettings(_Strict):
     history: int = Field(default=50, ge=1, le=100_000, description="rolling statistics over the last N residuals")
     alarm_rms_nm: float = Field(default=100.0, gt=0, description="RMS above this: state degraded")
     record_dir: str = Field(default="", description='"" = off; else daily CSVs of every settled target')
-    record_keep_days: int = Field(default=90, ge=0, description="delete day files older than this; 0 = keep all")
+    record_keep_days: int = Field(default=90, ge=0, le=MAX_RECORD_KEEP_DAYS,
+                                  description="delete day files older than this; 0 = keep all")
 
     @field_validator("record_dir")
     @classmethod
@@ -150,6 +157,14 @@ STOP_TIMEOUT_S = 30.0
 SAFE_RAMP_BUDGET_S = 20.0
 
 
+#: the slowest ``max_slew_um_per_s`` other than 0 (off). A ramp writes every ``RAMP_PERIOD_S`` (20 ms):
+#: at 0.01 um/s a write moves 0.2 nm, so one count of a 16-bit output (10 nm at 0.02 V/um over 14 V)
+#: already takes a second of identical writes, and a full 500 um stroke 14 h. Slower is no longer a ramp
+#: but a stage that looks stuck; at 1e-300 a step vanished in floating point (48 identical writes a
+#: second, the stage never moved, the status ok).
+MIN_SLEW_UM_PER_S = 0.01
+
+
 class ActuatorConfig(_Strict):
     """Command q (um) -> PZT voltage, the limits nothing published may exceed, and who applies it.
 
@@ -165,11 +180,20 @@ class ActuatorConfig(_Strict):
     v_max: float = 12.0
     x_min_um: float = 0.0
     x_max_um: float = 500.0
-    max_slew_um_per_s: float = Field(default=0.0, ge=0, description="0 = off; else larger jumps are ramped")
+    max_slew_um_per_s: float = Field(default=0.0, ge=0, description=(
+        f"0 = off; else larger jumps are ramped (at least {MIN_SLEW_UM_PER_S:g} um/s)"))
     safe_voltage_v: Annotated[float, AllowInfNan(True)] = Field(
         default=math.nan, description="written on shutdown when finite; nan = leave the stage where it is")
     #: the plugin's validated device keys (None for kind = "zenoh"); not a TOML key of its own
     _options: ActuatorOptions | None = PrivateAttr(default=None)
+
+    @field_validator("max_slew_um_per_s")
+    @classmethod
+    def _off_or_physical(cls, value: float) -> float:
+        if 0 < value < MIN_SLEW_UM_PER_S:
+            raise ValueError(f"must be 0 (off) or at least {MIN_SLEW_UM_PER_S:g} um/s, got {value:g}: a slower ramp "
+                             "writes the same output value for seconds (or never moves, at 1e-300)")
+        return value
 
     @field_validator("safe_voltage_v")
     @classmethod
@@ -208,6 +232,19 @@ class ActuatorConfig(_Strict):
         if math.isnan(self.safe_voltage_v):
             return None
         return self.q_um_for(self.safe_voltage_v)
+
+    def safe_ramp(self) -> tuple[float, float, float] | None:
+        """The longest ramp to ``safe_voltage_v`` at shutdown: ``(seconds, um, from_v)`` from the limit
+        farthest from it at ``max_slew_um_per_s``; None when nothing is ramped (nan, or the slew limit off).
+
+        The stage is somewhere in ``[v_min, v_max]``, so this is the worst case the stop must allow for
+        (check-config compares it with :data:`SAFE_RAMP_BUDGET_S`).
+        """
+        if math.isnan(self.safe_voltage_v) or self.max_slew_um_per_s <= 0:
+            return None
+        from_v = max((self.v_min, self.v_max), key=lambda v: abs(v - self.safe_voltage_v))
+        distance_um = abs(from_v - self.safe_voltage_v) / abs(self.volts_per_um)
+        return distance_um / self.max_slew_um_per_s, distance_um, from_v
 
     def voltage(self, q_um: float) -> float:
         """What the amplifier gets for command ``q_um`` (:func:`daemon.motion.voltage_for`)."""
@@ -534,7 +571,7 @@ def _parse_actuator(parse: _Parse, raw: Any, virtual_cell: bool) -> ActuatorConf
         validated = parse.validate(plugin.actuator_model, {**rest, "kind": kind}, "actuator")
         options = validated if isinstance(validated, ActuatorOptions) else None
         if options is not None and actuator is not None:
-            problem = options.voltage_range_problem(actuator.v_min, actuator.v_max)
+            problem = options.voltage_range_problem(actuator.v_min, actuator.v_max, actuator.volts_per_um)
             if problem:
                 parse.problems.append(f"actuator: {problem}")
     return actuator.with_options(options) if actuator is not None else None

@@ -21,6 +21,8 @@ line ("N suppressed") per interval instead of one line each, so it cannot fill t
 
 from __future__ import annotations
 
+import datetime as dt
+import json
 import logging
 import re
 import sys
@@ -96,6 +98,14 @@ def configure_logging(
     logging.captureWarnings(True)
     threading.excepthook = _log_thread_exception
     sys.excepthook = _log_uncaught
+
+
+def json_line(event: str, level: str, **fields: Any) -> str:
+    """One log line in the daemon's JSON form (``event``, the fields, ``level``, ``timestamp``), for what
+    is said before or after the logger runs: ``nanodrift run``'s start-up failure and usage errors,
+    so that every line of its stderr parses as JSON when it is not a terminal (the journal, ``jq``)."""
+    stamp = dt.datetime.now(dt.UTC).isoformat().replace("+00:00", "Z")
+    return json.dumps({"event": event, **fields, "level": level, "timestamp": stamp}, default=str)
 
 
 def get_logger(name: str = "nanodrift") -> Any:

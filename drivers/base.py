@@ -226,6 +226,36 @@ class Actuator(ABC):
         return voltage_v
 
 
+#: an output step (one count of a DAC) coarser than this share of ``[v_min, v_max]`` is refused: fewer
+#: than a hundred distinct voltages is a wrong scale (volts per count taken for counts per volt, mV for V)
+MAX_OUTPUT_STEP_FRACTION = 0.01
+#: ... or coarser than the voltage of this much travel: the daemon corrects drift of tens of nanometres,
+#: and an output that moves in steps of micrometres writes a 4.73 V command as 0 V with the status ok
+MAX_OUTPUT_STEP_UM = 1.0
+
+
+def output_step_problem(step_v: float, v_min: float, v_max: float, volts_per_um: float) -> str | None:
+    """Why an output whose finest step in ``[v_min, v_max]`` is ``step_v`` volts is too coarse (None: fine).
+
+    A refusal, not a warning: such an output silently serves other voltages than the commands (the
+    status stays ok), which is the failure a config check exists to prevent; no DAC worth wiring to a
+    piezo amplifier comes near it (12 bits over 10 V is 2.4 mV, 0.12 um at 0.02 V/um).
+    """
+    by_range_v = MAX_OUTPUT_STEP_FRACTION * (v_max - v_min)
+    by_travel_v = MAX_OUTPUT_STEP_UM * abs(volts_per_um)
+    exceeded: list[str] = []
+    if step_v > by_range_v:
+        exceeded.append(f"{by_range_v:.4g} V ({MAX_OUTPUT_STEP_FRACTION:.0%} of [v_min, v_max] = "
+                        f"[{v_min:g}, {v_max:g}] V)")
+    if step_v > by_travel_v:
+        exceeded.append(f"{by_travel_v:.4g} V ({MAX_OUTPUT_STEP_UM:g} um of travel at volts_per_um = "
+                        f"{volts_per_um:g})")
+    if not exceeded:
+        return None
+    return (f"one output step is {step_v:.4g} V, coarser than {' and '.join(exceeded)}: a command would be written "
+            f"up to {step_v:.4g} V off")
+
+
 class ActuatorOptions(BaseModel):
     """The ``[actuator]`` keys a plugin owns (everything but the core's gain, limits and motion keys).
 
@@ -238,10 +268,12 @@ class ActuatorOptions(BaseModel):
 
     kind: str
 
-    def voltage_range_problem(self, v_min: float, v_max: float) -> str | None:
-        """Why the device cannot take every voltage in ``[v_min, v_max]`` (None: it can).
+    def voltage_range_problem(self, v_min: float, v_max: float, volts_per_um: float) -> str | None:
+        """Why the device cannot take every voltage in ``[v_min, v_max]`` finely enough (None: it can).
 
-        Checked when the config is read, so a command the limits allow is never refused later.
+        Checked when the config is read, so a command the limits allow is never refused later, nor
+        written as another voltage: an output whose one step is coarser than the stage can use (see
+        :func:`output_step_problem`; ``volts_per_um`` is the ``[actuator]`` gain) is refused too.
         """
         return None
 

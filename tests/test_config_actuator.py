@@ -116,6 +116,18 @@ def test_the_default_kind_moves_a_simulated_stage_and_publishes_on_hardware() ->
         (HARDWARE + MODBUS.replace("scale = 0.001", "scale = 0.0"), "scale (volts per count) must not be 0"),
         (HARDWARE + MODBUS.replace('"int16"', '"uint16"'),
          "actuator: v_min = -2 V cannot be written as uint16 with scale 0.001"),
+        (HARDWARE + MODBUS.replace("scale = 0.001", "scale = 10.0"),  # 4.73 V was written as round(0.473) = 0
+         "actuator: scale = 10 V per count with data_type int16 and offset 0: one output step is 10 V, coarser "
+         "than 0.14 V (1% of [v_min, v_max] = [-2, 12] V) and 0.02 V (1 um of travel at volts_per_um = 0.02)"),
+        (HARDWARE + MODBUS.replace("scale = 0.001", "scale = 0.05"),
+         "actuator: scale = 0.05 V per count with data_type int16 and offset 0: one output step is 0.05 V, coarser "
+         "than 0.02 V (1 um of travel at volts_per_um = 0.02)"),
+        (HARDWARE + MODBUS.replace("scale = 0.001", "scale = 0.001\nvolts_per_um = 0.0005"),
+         "one output step is 0.001 V, coarser than 0.0005 V (1 um of travel at volts_per_um = 0.0005)"),
+        (HARDWARE + MODBUS.replace('"int16"', '"float32"').replace("offset = 0.0", "offset = 1e9"),
+         "actuator: scale = 0.001 V per count with data_type float32 and offset 1e+09: one output step is 65.54 V"),
+        (HARDWARE + MODBUS.replace("max_slew_um_per_s = 0.0", "max_slew_um_per_s = 1e-300"),
+         "actuator.max_slew_um_per_s: Value error, must be 0 (off) or at least 0.01 um/s"),
         (HARDWARE + MODBUS.replace("nan", "inf"), "actuator.safe_voltage_v: Value error, must be a finite voltage"),
         (HARDWARE + MODBUS.replace("nan", "20.0"), "safe_voltage_v (20) must be inside [v_min, v_max] = [-2, 12]"),
         (HARDWARE + MODBUS + "v_max = nan\n", "actuator.v_max: Input should be a finite number"),
@@ -167,7 +179,10 @@ def test_two_configs_that_say_nan_are_equal(tmp_path: Path) -> None:
 
 # --- random [actuator] tables --------------------------------------------------------------------
 
-CORE = {"volts_per_um": st.floats(0.001, 0.1), "offset_v": st.floats(-1, 1), "max_slew_um_per_s": st.floats(0, 1e3),
+# volts_per_um from 0.01: one count of the modbus scales below (up to 10 mV) must be at most 1 um of travel;
+# a slew limit is 0 (off) or at least 0.01 um/s (the rest is refused, see tests/test_config_bounds.py)
+CORE = {"volts_per_um": st.floats(0.01, 0.1), "offset_v": st.floats(-1, 1),
+        "max_slew_um_per_s": st.one_of(st.just(0.0), st.floats(0.01, 1e3)),
         "safe_voltage_v": st.sampled_from([math.nan, 0.0, 1.5])}
 MODBUS_KEYS = {"device_id": st.integers(0, 255), "address": st.integers(0, 65534),
                "data_type": st.sampled_from(["int16", "int32", "float32"]), "scale": st.floats(5e-4, 1e-2),

@@ -2,7 +2,8 @@
 
 ``[simulation] speed = 1e9`` passed check-config and froze the daemon (deaf to SIGTERM);
 ``interval_s = 1e-300`` spins the poller and ``max_age_s = 1e308`` makes any reading fresh, like
-inf; a sensor ``scale = 0`` reads the offset whatever the device says. Each bound is refused
+inf; a sensor ``scale = 0`` reads the offset whatever the device says. Issue 16: ``record_keep_days =
+1000000`` failed every recorded row, ``max_slew_um_per_s = 1e-300`` never moved the stage. Each bound is refused
 naming the field, and the values just inside it are accepted. Also: a hostile, deeply nested TOML
 file is a message naming the file (never a traceback), check-config judges a sensor-less file as
 the daemon's reload does, and the shipped ``config/sim.toml`` passes ``--strict``.
@@ -10,6 +11,7 @@ the daemon's reload does, and the shipped ``config/sim.toml`` passes ``--strict`
 
 from __future__ import annotations
 
+import datetime as dt
 import json
 import subprocess
 import sys
@@ -18,9 +20,12 @@ from pathlib import Path
 import pytest
 from helpers.daemon_harness import REPO, write_test_model
 
-from daemon.config import ConfigError, load_config
+from daemon.calibration.health import Settled
+from daemon.config import MAX_RECORD_KEEP_DAYS, MIN_SLEW_UM_PER_S, ConfigError, load_config
 from daemon.model.model import FittedTerm, Model, Training, save_model
 from daemon.model.terms import parse_term
+from daemon.service.actuation import RAMP_PERIOD_S, plan_ramp
+from daemon.service.recorder import DayRecorder, file_name
 from drivers.base import MAX_AGE_S, MAX_INTERVAL_S, MIN_INTERVAL_S
 from drivers.simulated.config import MAX_SPEED
 
@@ -65,10 +70,19 @@ def accepted(tmp_path: Path, text: str) -> None:
         (MODBUS + "scale = -0.0\n", "sensors[0] (T1).scale", "must not be 0"),
         (SERIAL + "scale = 0\n", "sensors[0] (interferometer).scale", "must not be 0"),
         (SERIAL + "scale = 1e400\n", "sensors[0] (interferometer).scale", "finite"),
+        ("[health]\nrecord_keep_days = 1000000\n", "health.record_keep_days",
+         f"less than or equal to {MAX_RECORD_KEEP_DAYS}"),
+        (f"[health]\nrecord_keep_days = {MAX_RECORD_KEEP_DAYS + 1}\n", "health.record_keep_days",
+         f"less than or equal to {MAX_RECORD_KEEP_DAYS}"),
+        ("[actuator]\nmax_slew_um_per_s = 1e-300\n", "actuator.max_slew_um_per_s",
+         f"must be 0 (off) or at least {MIN_SLEW_UM_PER_S:g} um/s, got 1e-300"),
+        (f"[actuator]\nmax_slew_um_per_s = {MIN_SLEW_UM_PER_S * 0.99}\n", "actuator.max_slew_um_per_s",
+         f"must be 0 (off) or at least {MIN_SLEW_UM_PER_S:g} um/s"),
     ],
     ids=["speed=1e9", "speed=1e308", "speed>max", "speed=0", "interval=1e-300", "interval<1ms", "interval>1h",
          "max_age=1e308", "max_age>1day", "max_age<interval", "modbus-scale=0", "modbus-scale=-0",
-         "serial-scale=0", "serial-scale=inf"],
+         "serial-scale=0", "serial-scale=inf", "keep_days=1e6", "keep_days>century", "slew=1e-300",
+         "slew<min"],
 )
 def test_an_out_of_bounds_number_is_refused_naming_the_field(tmp_path: Path, text: str, field: str,
                                                              words: str) -> None:
@@ -85,11 +99,41 @@ def test_an_out_of_bounds_number_is_refused_naming_the_field(tmp_path: Path, tex
         SIM_SENSOR + f"interval_s = {MAX_INTERVAL_S}\nmax_age_s = {MAX_AGE_S}\n",
         MODBUS + "scale = -0.1\n",
         SERIAL + "scale = 1e-9\n",
+        f"[health]\nrecord_keep_days = {MAX_RECORD_KEEP_DAYS}\n",
+        "[health]\nrecord_keep_days = 0\n",
+        f"[actuator]\nmax_slew_um_per_s = {MIN_SLEW_UM_PER_S}\n",
+        "[actuator]\nmax_slew_um_per_s = 0.0\n",
     ],
-    ids=["speed=max", "speed=slow", "interval=min", "interval=max", "modbus-scale<0", "serial-scale-tiny"],
+    ids=["speed=max", "speed=slow", "interval=min", "interval=max", "modbus-scale<0", "serial-scale-tiny",
+         "keep_days=century", "keep_days=0", "slew=min", "slew=off"],
 )
 def test_values_at_the_bounds_are_accepted(tmp_path: Path, text: str) -> None:
     accepted(tmp_path, text)
+
+
+def test_the_longest_retention_works_at_runtime(tmp_path: Path) -> None:
+    """A row recorded with the largest ``record_keep_days`` check-config accepts is written, and the
+    expiry spares a file of the day before (1,000,000 days failed every row: "date value out of range")."""
+    records = tmp_path / "records"
+    records.mkdir()
+    yesterday = records / file_name(dt.date(2026, 11, 22), 1)
+    yesterday.write_text("t_s,x_um,q_um,target_um,residual_um\n")
+    recorder = DayRecorder(records, keep_days=MAX_RECORD_KEEP_DAYS)
+    noon = dt.datetime(2026, 11, 23, 12, tzinfo=dt.UTC).timestamp()
+    written = recorder.record(Settled(t=1.0, x_um=30.0, q_um=30.5, position_um=30.001, samples=10,
+                                      temperatures={"T1": 21.0}, target_id=1), noon)
+    recorder.close()
+    assert written and recorder.rows_written == 1 and recorder.rows_lost == 0
+    assert yesterday.exists()
+
+
+def test_the_slowest_slew_still_moves_the_stage() -> None:
+    """At the slowest accepted ``max_slew_um_per_s`` every 20 ms sub-command moves the stage (at 1e-300
+    the step vanished in floating point and the ramp wrote the same voltage for ever)."""
+    steps = plan_ramp(500.0, 499.99, MIN_SLEW_UM_PER_S)
+    assert len(steps) == round(0.01 / (MIN_SLEW_UM_PER_S * RAMP_PERIOD_S))  # 50 writes over one second
+    assert all(later < earlier for earlier, later in zip([500.0, *steps], steps, strict=False))
+    assert steps[-1] == 499.99
 
 
 def run_cli(*args: str, cwd: Path = REPO) -> subprocess.CompletedProcess[str]:

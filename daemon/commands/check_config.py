@@ -4,8 +4,9 @@ Exit 2 (with ``<file>:<line>: <field>: <problem>`` lines) for everything the dae
 a reload: an invalid config, a model file that is missing or cannot be loaded, a ``[zenoh]
 config_file`` zenoh cannot read. Exit 0 with warnings on stderr for what the daemon accepts but an
 operator should know (a channel the model needs that no sensor provides, sensors the model does not
-use), in the errors' form (``<file>:<line>: warning: sensors[2] (T3).name: ...``); ``--strict`` makes
-those errors too, for a commissioned cell where they are mistakes.
+use, a ramp to ``safe_voltage_v`` longer than a stop may take), in the errors' form
+(``<file>:<line>: warning: sensors[2] (T3).name: ...``); ``--strict`` makes those errors too, for a
+commissioned cell where they are mistakes.
 """
 
 from __future__ import annotations
@@ -19,7 +20,16 @@ from pathlib import Path
 import zenoh
 
 from daemon.bus.session import session_config
-from daemon.config import ZENOH_KIND, Config, ConfigError, load_config, locate, missing_model_channels
+from daemon.config import (
+    SAFE_RAMP_BUDGET_S,
+    STOP_TIMEOUT_S,
+    ZENOH_KIND,
+    Config,
+    ConfigError,
+    load_config,
+    locate,
+    missing_model_channels,
+)
 from daemon.model.model import Model, ModelFileError, load_model
 
 
@@ -62,9 +72,31 @@ def network_warnings(config: Config) -> list[str]:
             "command: see README.md, 'Securing the network' (config/zenoh-secure.json5)"]
 
 
+def safe_ramp_warnings(config: Config) -> list[str]:
+    """The ramp to ``safe_voltage_v`` at shutdown may outlast its share of the unit's stop timeout.
+
+    systemd kills the daemon :data:`STOP_TIMEOUT_S` after SIGTERM, and the ramp may use
+    :data:`SAFE_RAMP_BUDGET_S` of it (the daemon gives up then): a slower ramp leaves the stage short of
+    the safe voltage. A warning, not an error: a slow ramp is a deliberate choice for a fragile
+    stage, and the stage then stops where the ramp was, inside the limits.
+    """
+    ramp = config.actuator.safe_ramp()
+    if ramp is None or ramp[0] <= SAFE_RAMP_BUDGET_S:
+        return []
+    seconds, distance_um, from_v = ramp
+    a = config.actuator
+    needed = distance_um / SAFE_RAMP_BUDGET_S
+    return [f"actuator.max_slew_um_per_s: the ramp to safe_voltage_v = {a.safe_voltage_v:g} V at a stop can take "
+            f"{seconds:.4g} s (from {from_v:g} V: {distance_um:.4g} um at {a.max_slew_um_per_s:g} um/s), more than "
+            f"the {SAFE_RAMP_BUDGET_S:g} s of the {STOP_TIMEOUT_S:g} s stop timeout it may use: the daemon gives up "
+            f"and the stage stays short of the safe voltage; allow at least {needed:.4g} um/s, or narrow "
+            "[v_min, v_max]"]
+
+
 def config_warnings(config: Config, model: Model | None) -> list[str]:
     """``field: message`` lines for what the daemon accepts but an operator should know."""
     warnings = network_warnings(config)
+    warnings += safe_ramp_warnings(config)
     if model is None:
         return warnings
     missing = missing_model_channels(config, model.channels)

@@ -22,6 +22,7 @@ import itertools
 import json
 import math
 import os
+import stat
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,6 +39,9 @@ from daemon.model.uncertainty import Covariance, SigmaStream
 FORMAT = "nanodrift-model/1"
 #: deepest nesting of [ and { a model file may have (the format itself needs 4)
 MAX_NESTING = 32
+#: the largest model file read: a model file is kilobytes (terms, ranges, a covariance block), so this
+#: bound only stops a wrong path (a log, a disk image, /dev/zero) from filling the daemon's memory
+MAX_MODEL_BYTES = 64 * 2**20
 
 
 class ModelFileError(ValueError):
@@ -336,12 +340,7 @@ def load_model(path: str | os.PathLike[str], *, check_id: bool = True) -> Model:
     ``check_id=False`` skips only the id check (``nanodrift restamp``): everything else is checked.
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ModelFileError(f"{path}: no such model file") from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise ModelFileError(f"{path}: cannot read the model file ({err})") from None
+    text = _read_model_text(path)
     try:
         doc = json.loads(text)
     except json.JSONDecodeError as err:
@@ -353,6 +352,60 @@ def load_model(path: str | os.PathLike[str], *, check_id: bool = True) -> Model:
     except ValueError as err:  # e.g. an integer of more than 4300 digits
         raise ModelFileError(f"{path}: not valid JSON ({err})") from None
     return _model_from_dict(doc, str(path), check_id=check_id)
+
+
+def _file_kind(mode: int) -> str:
+    for test, name in ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
+                       (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+                       (stat.S_ISSOCK, "a socket")):
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
+def _read_model_text(path: Path) -> str:
+    """The text of a model file, refused unless it is a regular file of at most :data:`MAX_MODEL_BYTES`.
+
+    Checked before reading: a FIFO blocked the daemon's event loop (targets refused as stale while
+    it waited for a writer) and ``/dev/zero`` was read until memory ran out. Opened with O_NONBLOCK
+    and checked again on the open file, so a FIFO swapped in after the check cannot block either, and
+    at most one byte more than the bound is ever read.
+    """
+    try:
+        info = os.stat(path)
+    except FileNotFoundError:
+        raise ModelFileError(f"{path}: no such model file") from None
+    except OSError as err:
+        raise ModelFileError(f"{path}: cannot read the model file ({err})") from None
+    _check_regular(path, info)
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    except FileNotFoundError:
+        raise ModelFileError(f"{path}: no such model file") from None
+    except OSError as err:
+        raise ModelFileError(f"{path}: cannot read the model file ({err})") from None
+    with os.fdopen(fd, "rb") as file:
+        try:
+            _check_regular(path, os.fstat(file.fileno()))
+            data = file.read(MAX_MODEL_BYTES + 1)
+        except OSError as err:
+            raise ModelFileError(f"{path}: cannot read the model file ({err})") from None
+    if len(data) > MAX_MODEL_BYTES:
+        raise ModelFileError(f"{path}: larger than {MAX_MODEL_BYTES // 2**20} MiB: not a model file (a model "
+                             "file is a few kilobytes of JSON)")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise ModelFileError(f"{path}: cannot read the model file ({err})") from None
+
+
+def _check_regular(path: Path, info: os.stat_result) -> None:
+    if not stat.S_ISREG(info.st_mode):
+        raise ModelFileError(f"{path}: {_file_kind(info.st_mode)}, not a model file: expected a regular file "
+                             "(nanodrift-model/1 JSON)")
+    if info.st_size > MAX_MODEL_BYTES:
+        raise ModelFileError(f"{path}: {info.st_size} bytes, larger than {MAX_MODEL_BYTES // 2**20} MiB: not a "
+                             "model file (a model file is a few kilobytes of JSON)")
 
 
 def _nesting(doc: Any) -> int:

@@ -103,6 +103,20 @@ def raw_for(value: float, scale: float, offset: float, data_type: str,
     return raw
 
 
+def step_v(scale: float, offset: float, data_type: str, v_min: float, v_max: float) -> float:
+    """The largest step between neighbouring voltages ``data_type`` can hold in ``[v_min, v_max]``.
+
+    One count (``|scale|``) for the integer types; for float32 the spacing of float32 values at the
+    largest raw value of the range (a float's steps grow with its size: a large ``offset`` makes them
+    coarse), times ``|scale|``. Call it for a range whose raw values fit the type (see :func:`raw_for`).
+    """
+    spec = DATA_TYPES[data_type]
+    if not spec.is_float:
+        return abs(scale)
+    largest = max(abs((v_min - offset) / scale), abs((v_max - offset) / scale))
+    return float(np.spacing(np.float32(largest))) * abs(scale)
+
+
 #: an integer raw value scaling back to within this fraction of a count beyond a limit is at the limit
 #: (``4095 * (10 / 4095)`` is 10.000000000000002 in floating point, and 10 V is the module's top)
 _SLACK = 1e-6

@@ -6,8 +6,8 @@ from typing import Annotated, Literal
 
 from pydantic import AllowInfNan, BaseModel, ConfigDict, Field, FiniteFloat, field_validator, model_validator
 
-from drivers.base import ActuatorOptions, SensorConfig
-from drivers.modbus.codec import DATA_TYPES, DataTypeName, SwapName, raw_for, register_count
+from drivers.base import ActuatorOptions, SensorConfig, output_step_problem
+from drivers.modbus.codec import DATA_TYPES, DataTypeName, SwapName, raw_for, register_count, step_v
 
 
 class ModbusHubConfig(BaseModel):
@@ -139,11 +139,20 @@ class ModbusActuatorConfig(ActuatorOptions):
     def register_count(self) -> int:
         return register_count(self.data_type)
 
-    def voltage_range_problem(self, v_min: float, v_max: float) -> str | None:
+    def voltage_range_problem(self, v_min: float, v_max: float, volts_per_um: float) -> str | None:
+        """Every voltage of ``[v_min, v_max]`` must fit ``data_type`` (checked at both ends: the raw value is
+        monotonic in the voltage) and one step of the register must be fine enough
+        (:func:`drivers.base.output_step_problem`): ``scale = 10.0`` wrote a 4.73 V command as 0 V."""
         for name, volts in (("v_min", v_min), ("v_max", v_max)):
             try:
                 raw_for(volts, self.scale, self.offset, self.data_type)
+                raw_for(volts, self.scale, self.offset, self.data_type, within=(v_min, v_max))
             except ValueError as error:
                 return (f"{name} = {volts:g} V cannot be written as {self.data_type} with scale {self.scale:g} and "
                         f"offset {self.offset:g} ({error}); narrow [v_min, v_max] to what the output can do")
+        coarse = output_step_problem(step_v(self.scale, self.offset, self.data_type, v_min, v_max),
+                                     v_min, v_max, volts_per_um)
+        if coarse:
+            return (f"scale = {self.scale:g} V per count with data_type {self.data_type} and offset {self.offset:g}: "
+                    f"{coarse}; scale is the module's volts per count (e.g. 10 / 4095 for a 12-bit 0-10 V output)")
         return None

@@ -1,14 +1,23 @@
 """``nanodrift check-config``: exit 2 for what the daemon would refuse on reload, warnings at exit 0,
-``--strict`` turning the warnings into errors; every message names the file and the field (issue 10)."""
+``--strict`` turning the warnings into errors; every message names the file and the field (issue 10).
+Issue 16: a safe ramp longer than a stop may take is a warning; a model path that is a FIFO or a
+device is refused at once."""
 
 from __future__ import annotations
 
+import os
+import resource
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
 from helpers.daemon_harness import REPO, write_test_model
 
 from daemon.cli import main
+from daemon.config import SAFE_RAMP_BUDGET_S, STOP_TIMEOUT_S
+from daemon.service.actuation import SAFE_TIMEOUT_S
 
 
 def check(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
@@ -112,3 +121,67 @@ def test_a_listener_other_computers_reach_without_the_secure_zenoh_config_is_a_w
                                                  f'"{REPO / "config" / "zenoh-secure.json5"}"\n')
     code, _, err = check(capsys, str(secured), "--strict")
     assert code == 0 and "zenoh.listen" not in err, err
+
+
+# --- issue 16: what check-config accepts must work at runtime --------------------------------------
+
+def run_cli(*args: str, timeout_s: float = 60) -> subprocess.CompletedProcess[str]:
+    """``python -m daemon.cli ...`` in its own process, its memory capped at 1 GiB and its time at
+    ``timeout_s``: a regression that blocks on a FIFO or reads /dev/zero fails the test instead of
+    hanging the suite or eating the machine's memory."""
+    def cap_memory() -> None:
+        resource.setrlimit(resource.RLIMIT_AS, (2**30, 2**30))
+
+    return subprocess.run([sys.executable, "-m", "daemon.cli", *args], capture_output=True, text=True, cwd=REPO,
+                          timeout=timeout_s, preexec_fn=cap_memory)
+
+
+def ramp_config(tmp_path: Path, slew_um_per_s: float) -> Path:
+    """A simulated cell left at 0 V on stop: from v_max = 12 V that is 600 um at 0.02 V/um."""
+    write_test_model(tmp_path / "model.json")
+    return config(tmp_path, "model.json", extra=f"[actuator]\nsafe_voltage_v = 0.0\nmax_slew_um_per_s = "
+                                                f"{slew_um_per_s}\n")
+
+
+def test_a_safe_ramp_longer_than_the_stop_may_take_is_a_warning_naming_the_slew(tmp_path: Path) -> None:
+    path = ramp_config(tmp_path, 1.0)  # 600 s, the unit allows 20 s of its 30 s stop for it
+    result = run_cli("check-config", str(path))
+    assert result.returncode == 0 and f"{path}: ok" in result.stdout, result.stderr
+    # line 5: [model], path, [actuator], safe_voltage_v, then the slew key
+    assert (f"{path}:5: warning: actuator.max_slew_um_per_s: the ramp to safe_voltage_v = 0 V at a stop can take "
+            f"600 s (from 12 V: 600 um at 1 um/s), more than the {SAFE_RAMP_BUDGET_S:g} s of the "
+            f"{STOP_TIMEOUT_S:g} s stop timeout it may use") in result.stderr, result.stderr
+    assert "allow at least 30 um/s" in result.stderr, result.stderr  # 600 um in 20 s
+    strict = run_cli("check-config", "--strict", str(path))
+    assert strict.returncode == 2 and "actuator.max_slew_um_per_s: the ramp" in strict.stderr, strict.stderr
+
+
+@pytest.mark.parametrize("slew_um_per_s", [60.0, 0.0])  # 600 um in 10 s; no ramp at all
+def test_a_safe_ramp_that_fits_the_stop_is_no_warning(tmp_path: Path, capsys, slew_um_per_s: float) -> None:
+    code, _, err = check(capsys, str(ramp_config(tmp_path, slew_um_per_s)), "--strict")
+    assert (code, err) == (0, ""), err
+
+
+def test_the_ramp_budget_leaves_room_in_the_stop_timeout() -> None:
+    """The safe ramp gives up within its budget, and the budget is inside the unit's stop timeout."""
+    assert SAFE_TIMEOUT_S == SAFE_RAMP_BUDGET_S < STOP_TIMEOUT_S
+
+
+@pytest.mark.parametrize("kind", ["fifo", "dev-zero", "directory"])
+def test_a_model_path_that_is_no_regular_file_is_refused_at_once(tmp_path: Path, kind: str) -> None:
+    """A FIFO blocked the daemon's loop (8 s of stale refusals), /dev/zero was read until memory ran out."""
+    if kind == "fifo":
+        model = tmp_path / "model.fifo"
+        os.mkfifo(model)
+        what = "a FIFO (named pipe)"
+    elif kind == "dev-zero":
+        model, what = Path("/dev/zero"), "a character device"
+    else:
+        model, what = tmp_path, "a directory"
+    path = config(tmp_path, str(model))
+    started = time.monotonic()
+    result = run_cli("check-config", str(path), timeout_s=30)
+    assert result.returncode == 2 and result.stdout == "", result.stderr
+    assert (f"{path}:2: model.path: {model}: {what}, not a model file: expected a regular file "
+            "(nanodrift-model/1 JSON)") in result.stderr, result.stderr
+    assert "Traceback" not in result.stderr and time.monotonic() - started < 30

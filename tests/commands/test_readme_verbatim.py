@@ -13,6 +13,7 @@ line :data:`NOT_RUN`) is replaced by what the unit runs (its ``ExecStart``, read
 
 from __future__ import annotations
 
+import json
 import re
 import shlex
 import shutil
@@ -97,8 +98,10 @@ def test_the_readme_tryout_works_verbatim(tmp_path: Path) -> None:
                                (REPO / "README.md").read_text())
         assert documented, "the README no longer says what a taken port exits with: update this test"
         assert second.returncode == int(documented[1]) == 2, second.stderr
-        last = second.stderr.strip().splitlines()[-1]
-        assert last.startswith("nanodrift run: error: tcp/127.0.0.1:7447 is already in use"), second.stderr
+        failed = json.loads(second.stderr.strip().splitlines()[-1])  # stderr is a pipe: the daemon's JSON lines
+        assert failed["event"] == "run_failed", second.stderr
+        last = failed["error"]
+        assert last.startswith("tcp/127.0.0.1:7447 is already in use"), second.stderr
         assert "-l tcp/127.0.0.1:PORT" in last and ".rs:" not in second.stderr
     finally:
         assert runner.stop() == 0

@@ -2,7 +2,8 @@
 
 Reproductions 5 and 6 of issue 10: '['*100000 nested JSON raised RecursionError in check-config,
 predict and run; x^400, x^999999 and a coefficient of 1e308 loaded, and predict wrote inf into
-q_pred_um. Property-based: any mutation of a valid file either loads as a model whose prediction is
+q_pred_um. Issue 16: a FIFO or /dev/zero as the model path blocked the daemon or filled its memory.
+Property-based: any mutation of a valid file either loads as a model whose prediction is
 finite over its training box, or is refused by a message that starts with the file's path.
 """
 
@@ -10,8 +11,11 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import resource
 import subprocess
 import sys
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -20,9 +24,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+import daemon.model.model as model_module
 from daemon.calibration.dataset import Dataset, read_csv, write_csv
 from daemon.cli import main
-from daemon.model.model import FittedTerm, Model, ModelFileError, Training, load_model, save_model
+from daemon.model.model import MAX_MODEL_BYTES, FittedTerm, Model, ModelFileError, Training, load_model, save_model
 from daemon.model.terms import MAX_POWER, parse_term
 
 REPO = Path(__file__).resolve().parents[2]
@@ -246,3 +251,73 @@ def test_any_text_is_a_model_or_a_message_naming_the_file(tmp_path: Path, text: 
         load_model(path)
     except ModelFileError as err:
         assert str(err).startswith(f"{path}: "), err
+
+
+# --- issue 16 (problem 11): the model path must be a regular file of bounded size ------------------
+
+LOAD = """
+import sys
+from daemon.model.model import ModelFileError, load_model
+try:
+    load_model(sys.argv[1])
+except ModelFileError as err:
+    print(err)
+"""
+
+
+def load_in_a_process(path: Path) -> subprocess.CompletedProcess[str]:
+    """``load_model(path)`` in its own process, capped at 1 GiB and 30 s: a regression that blocks on a
+    FIFO or reads /dev/zero fails the test instead of hanging the suite or filling the machine's memory."""
+    def cap_memory() -> None:
+        resource.setrlimit(resource.RLIMIT_AS, (2**30, 2**30))
+
+    return subprocess.run([sys.executable, "-c", LOAD, str(path)], capture_output=True, text=True, cwd=REPO,
+                          timeout=30, preexec_fn=cap_memory)
+
+
+@pytest.mark.parametrize("kind", ["fifo", "dev-zero"])
+def test_a_fifo_or_a_device_is_refused_before_it_is_read(tmp_path: Path, kind: str) -> None:
+    if kind == "fifo":
+        path, what = tmp_path / "model.json", "a FIFO (named pipe)"
+        os.mkfifo(path)  # no writer: opening it for reading would block for ever
+    else:
+        path, what = Path("/dev/zero"), "a character device"
+    result = load_in_a_process(path)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == f"{path}: {what}, not a model file: expected a regular file " \
+                                    "(nanodrift-model/1 JSON)", result.stdout + result.stderr
+
+
+def test_a_file_larger_than_the_bound_is_refused_unread(tmp_path: Path) -> None:
+    path = tmp_path / "model.json"
+    with path.open("wb") as file:
+        file.truncate(MAX_MODEL_BYTES + 1)  # sparse: no disk used; zeros that would parse as no JSON
+    refused(path, f"{MAX_MODEL_BYTES + 1} bytes, larger than 64 MiB: not a model file")
+
+
+def test_a_fifo_swapped_in_after_the_check_does_not_block(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The stat says regular file, the open finds a FIFO (renamed in between): refused, not blocked."""
+    fifo = tmp_path / "model.json"
+    os.mkfifo(fifo)
+    regular = os.stat(write(tmp_path / "good.json", good_doc()))
+    real_stat = os.stat
+    monkeypatch.setattr(model_module.os, "stat", lambda p, *a, **k: regular if Path(p) == fifo else real_stat(p))
+    result: list[BaseException | None] = []
+    worker = threading.Thread(target=lambda: result.append(_load_error(fifo)), daemon=True)
+    worker.start()
+    worker.join(10)
+    if worker.is_alive():  # release the blocked open so the thread ends, then fail
+        with open(fifo, "wb"):
+            pass
+        pytest.fail("load_model blocked on a FIFO")
+    assert isinstance(result[0], ModelFileError), result
+    assert str(result[0]) == f"{fifo}: a FIFO (named pipe), not a model file: expected a regular file " \
+                             "(nanodrift-model/1 JSON)"
+
+
+def _load_error(path: Path) -> BaseException | None:
+    try:
+        load_model(path)
+    except BaseException as err:  # the test inspects whatever it was
+        return err
+    return None

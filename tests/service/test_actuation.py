@@ -607,7 +607,7 @@ class LabOutputConfig(ActuatorOptions):
     channel: int = Field(default=1, ge=1, le=4)
     full_scale_v: float = Field(default=10.0, gt=0)
 
-    def voltage_range_problem(self, v_min: float, v_max: float) -> str | None:
+    def voltage_range_problem(self, v_min: float, v_max: float, volts_per_um: float) -> str | None:
         if v_min < 0.0 or v_max > self.full_scale_v:
             return f"channel {self.channel} puts out 0..{self.full_scale_v:g} V, not [{v_min:g}, {v_max:g}] V"
         return None

@@ -1,12 +1,18 @@
 """What ``nanodrift run`` logs (issue 13, reproduction 2 and 6): every target and its answer at debug,
-nothing per target at info, and one ``sensor_state`` line when a device takes all its channels down."""
+nothing per target at info, and one ``sensor_state`` line when a device takes all its channels down;
+issue 16: with stderr not a terminal, its start-up and usage errors are JSON lines too."""
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 from helpers.daemon_harness import (
+    REPO,
     TEMPS,
     Client,
     Daemon,
@@ -78,3 +84,53 @@ def test_info_stays_quiet_and_a_device_failure_is_one_sensor_state_line(tmp_path
     finally:
         client.close()
         assert daemon.stop() == 0
+
+
+# --- issue 16 (problem 11): every stderr line of `nanodrift run` is JSON when stderr is not a terminal ----
+
+def run_with_stderr_piped(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "daemon.cli", *args], stdin=subprocess.DEVNULL,
+                          capture_output=True, text=True, cwd=REPO, timeout=60)
+
+
+def json_stderr(result: subprocess.CompletedProcess[str]) -> list[dict[str, Any]]:
+    """Every line of stderr as a JSON object (the README's ``journalctl -o cat | jq`` recipe)."""
+    lines = result.stderr.splitlines()
+    assert lines, "nothing on stderr"
+    parsed = []
+    for line in lines:
+        try:
+            parsed.append(json.loads(line))
+        except json.JSONDecodeError:
+            pytest.fail(f"a stderr line of nanodrift run is not JSON: {line!r}\n{result.stderr}")
+    assert all(isinstance(p, dict) and {"event", "level", "timestamp"} <= p.keys() for p in parsed), parsed
+    return parsed
+
+
+def test_a_start_up_failure_of_run_is_a_json_line(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text('cell = "c0"\n[actuator]\nmax_slew_um_per_s = 1e-300\n')
+    result = run_with_stderr_piped("run", "--config", str(bad))
+    assert result.returncode == 2 and result.stdout == "", result.stderr
+    last = json_stderr(result)[-1]
+    assert (last["event"], last["level"]) == ("run_failed", "error"), last
+    assert last["error"].startswith(f"{bad}:3: actuator.max_slew_um_per_s: "), last
+
+
+@pytest.mark.parametrize("args", [["--log-level", "loud"], ["--bogus"], ["--config"]],
+                         ids=["bad-choice", "unknown-option", "missing-value"])
+def test_a_usage_error_of_run_is_a_json_line(args: list[str]) -> None:
+    result = run_with_stderr_piped("run", *args)
+    assert result.returncode == 2 and result.stdout == "", result.stderr
+    lines = json_stderr(result)
+    assert len(lines) == 1 and lines[0]["event"] == "usage_error" and lines[0]["level"] == "error", lines
+    assert lines[0]["usage"].startswith("usage: nanodrift"), lines
+
+
+def test_other_commands_keep_their_plain_error_lines(tmp_path: Path) -> None:
+    """check-config and the procedures speak to a terminal or a script: ``nanodrift CMD: error: ...``."""
+    bad = tmp_path / "bad.toml"
+    bad.write_text('cell = 3\n')
+    result = run_with_stderr_piped("check-config", str(bad))
+    assert result.returncode == 2
+    assert result.stderr == f"nanodrift check-config: error: {bad}:1: cell: Input should be a valid string\n"

@@ -10,6 +10,7 @@ registries.
 
 from __future__ import annotations
 
+import json
 import signal
 import socket
 import subprocess
@@ -161,9 +162,10 @@ def test_a_taken_metrics_port_stops_the_daemon_with_one_sentence(metered: Metere
     finally:
         second.stop()
     assert second.proc.returncode != 0
-    last = (tmp_path / "second.log").read_text().strip().splitlines()[-1]
-    assert last == (f"nanodrift run: error: [metrics] listen = '127.0.0.1:{metered.metrics_port}': "
-                    "cannot serve metrics there (already in use)")
+    last = json.loads((tmp_path / "second.log").read_text().strip().splitlines()[-1])  # not a terminal: JSON
+    assert (last["event"], last["level"]) == ("run_failed", "error"), last
+    assert last["error"] == (f"[metrics] listen = '127.0.0.1:{metered.metrics_port}': "
+                             "cannot serve metrics there (already in use)")
     metered.client.wait_alive()  # the first daemon is untouched
 
 

@@ -16,6 +16,8 @@ from pathlib import Path
 import pytest
 from helpers.daemon_harness import Served
 
+from daemon.config import SAFE_RAMP_BUDGET_S, STOP_TIMEOUT_S
+
 REPO = Path(__file__).resolve().parents[2]
 UNIT = REPO / "systemd" / "nanodrift.service"
 
@@ -51,6 +53,17 @@ def test_unit_runs_the_daemon_as_a_notify_service_with_its_directories_and_seria
     assert unit["SupplementaryGroups"] == ["dialout"]
     assert "char-ttyUSB rw" in unit["DeviceAllow"]
     assert "AF_UNIX" in unit["RestrictAddressFamilies"][0]  # NOTIFY_SOCKET needs it
+
+
+def test_the_units_stop_timeout_is_the_one_the_config_checks_the_safe_ramp_against() -> None:
+    """check-config warns when the ramp to safe_voltage_v outlasts its share of TimeoutStopSec: the two
+    numbers must be the same, or the warning protects against a timeout the unit does not have."""
+    (value,) = unit_settings()["TimeoutStopSec"]
+    match = re.fullmatch(r"(\d+(?:\.\d+)?)(s|min)?", value)
+    assert match, f"TimeoutStopSec={value}: expected seconds, e.g. 30s"
+    seconds = float(match[1]) * (60 if match[2] == "min" else 1)
+    assert seconds == STOP_TIMEOUT_S, (value, STOP_TIMEOUT_S)
+    assert SAFE_RAMP_BUDGET_S < STOP_TIMEOUT_S
 
 
 def test_unit_reaches_only_localhost_and_says_how_to_widen_it_in_a_drop_in() -> None:
