@@ -21,10 +21,10 @@ import pytest
 from helpers.daemon_harness import REPO, write_test_model
 
 from daemon.calibration.health import Settled
-from daemon.config import MAX_RECORD_KEEP_DAYS, MIN_SLEW_UM_PER_S, ConfigError, load_config
+from daemon.config import MAX_RECORD_KEEP_DAYS, MIN_SLEW_UM_PER_S, ActuatorConfig, ConfigError, load_config
 from daemon.model.model import FittedTerm, Model, Training, save_model
 from daemon.model.terms import parse_term
-from daemon.service.actuation import RAMP_PERIOD_S, plan_ramp
+from daemon.motion import RAMP_PERIOD_S, Slew
 from daemon.service.recorder import DayRecorder, file_name
 from drivers.base import MAX_AGE_S, MAX_INTERVAL_S, MIN_INTERVAL_S
 from drivers.simulated.config import MAX_SPEED
@@ -130,10 +130,17 @@ def test_the_longest_retention_works_at_runtime(tmp_path: Path) -> None:
 def test_the_slowest_slew_still_moves_the_stage() -> None:
     """At the slowest accepted ``max_slew_um_per_s`` every 20 ms sub-command moves the stage (at 1e-300
     the step vanished in floating point and the ramp wrote the same voltage for ever)."""
-    steps = plan_ramp(500.0, 499.99, MIN_SLEW_UM_PER_S)
+    limits = ActuatorConfig(max_slew_um_per_s=MIN_SLEW_UM_PER_S)
+    slew, now_s, at_v, goal_v = Slew(), 0.0, limits.voltage(500.0), limits.voltage(499.99)
+    steps = []
+    while at_v != goal_v and len(steps) < 1000:
+        at_v = slew.next_voltage(limits, at_v, goal_v, now_s)
+        slew.wrote(now_s, at_v == goal_v)
+        steps.append(at_v)
+        now_s += RAMP_PERIOD_S
     assert len(steps) == round(0.01 / (MIN_SLEW_UM_PER_S * RAMP_PERIOD_S))  # 50 writes over one second
-    assert all(later < earlier for earlier, later in zip([500.0, *steps], steps, strict=False))
-    assert steps[-1] == 499.99
+    assert all(later < earlier for earlier, later in zip([limits.voltage(500.0), *steps], steps, strict=False))
+    assert steps[-1] == goal_v
 
 
 def run_cli(*args: str, cwd: Path = REPO) -> subprocess.CompletedProcess[str]:
