@@ -221,6 +221,11 @@ class ActuatorConfig(_Strict):
     def options(self) -> ActuatorOptions | None:
         return self._options
 
+    @property
+    def workspace_um(self) -> tuple[float, float]:
+        """``[x_min_um, x_max_um]``: where targets may go (and, widened, where a position reading is believed)."""
+        return self.x_min_um, self.x_max_um
+
     def with_options(self, options: ActuatorOptions | None) -> ActuatorConfig:
         copy = self.model_copy()
         copy._options = options
@@ -495,6 +500,8 @@ def parse_config(data: Mapping[str, Any], source: str = BUILTIN_SOURCE, base_dir
                        actuator=(hub_user, actuator.kind) if actuator is not None and hub_user is not None else None)
     if config is not None and actuator is not None:
         _check_points(parse, config.procedure, actuator)
+    if actuator is not None:
+        _check_valid_ranges(parse, sensors, actuator)
 
     if parse.problems:
         raise ConfigError(source, parse.problems)
@@ -595,6 +602,45 @@ def _check_points(parse: _Parse, procedure: ProcedureSettings, actuator: Actuato
         parse.problems.append(
             f"procedure.points: {', '.join(f'{x:g}' for x in outside)} um outside the workspace "
             f"[x_min_um, x_max_um] = [{actuator.x_min_um:g}, {actuator.x_max_um:g}]")
+
+
+#: a temperature sensor's believable range when it declares none (°C): wider than any lab and than a piezo
+#: stage's rated range (at most ~150 °C), narrower than the codes a module sends for a broken thermocouple
+#: (3276.7, -3276.8, 850); a lab measuring a hotter part sets valid_min/valid_max
+DEFAULT_TEMPERATURE_RANGE_C = (-50.0, 150.0)
+#: a position sensor's believable range when it declares none: the workspace widened by this share of
+#: the stroke on each side (the stage overshoots and drifts a little beyond where targets may go)
+POSITION_RANGE_MARGIN = 0.1
+
+
+def valid_range(sensor: SensorConfig, workspace_um: tuple[float, float] | None) -> tuple[float, float]:
+    """The values of ``sensor`` the daemon believes: its ``valid_min``/``valid_max``, each bound it leaves
+    out from its role (position: the workspace with :data:`POSITION_RANGE_MARGIN`; temperature:
+    :data:`DEFAULT_TEMPERATURE_RANGE_C`); unbounded for a position sensor when no workspace is known."""
+    if sensor.role == "position":
+        if workspace_um is None:
+            default = (-math.inf, math.inf)
+        else:
+            margin = POSITION_RANGE_MARGIN * (workspace_um[1] - workspace_um[0])
+            default = (workspace_um[0] - margin, workspace_um[1] + margin)
+    else:
+        default = DEFAULT_TEMPERATURE_RANGE_C
+    low = sensor.valid_min if sensor.valid_min is not None else default[0]
+    high = sensor.valid_max if sensor.valid_max is not None else default[1]
+    return low, high
+
+
+def _check_valid_ranges(parse: _Parse, sensors: Sequence[tuple[int, SensorConfig]],
+                        actuator: ActuatorConfig) -> None:
+    """A bound set against its role's default (``valid_min = 600`` with the workspace's 550 above it)."""
+    for index, sensor in sensors:
+        low, high = valid_range(sensor, actuator.workspace_um)
+        if low < high:
+            continue
+        key = "valid_min" if sensor.valid_min is not None else "valid_max"
+        parse.problems.append(
+            f"{_sensor_where(index, sensor)}.{key}: the valid range would be [{low:g}, {high:g}] (the other bound "
+            f"is the {sensor.role} default): no reading could be believed; set both valid_min and valid_max")
 
 
 def _sensor_where(index: int, sensor: Any) -> str:

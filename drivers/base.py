@@ -5,8 +5,10 @@ more channels (a Modbus module answering eight thermocouples in one request is o
 interferometer is a group of one). A *plugin* turns validated sensor configs into groups, and is
 found by name through the entry-point group ``nanodrift.drivers``.
 
-Drivers report what the device said (``ok`` or ``fault`` with a reason). Whether a reading is
-``stale`` is the daemon's judgement (its age against ``max_age_s``), not the driver's.
+Drivers report what the device said (``ok`` or ``fault`` with a reason). Whether the daemon believes
+it is the daemon's judgement, not the driver's: ``stale`` (its age against ``max_age_s``, or a value
+frozen for ``frozen_after_s``), ``fault`` (outside ``valid_min``..``valid_max``, non-finite, stamped
+in the future). The keys are declared here so every plugin's sensors have them.
 Connection-level trouble (port gone, timeout, socket closed) is raised as :class:`DeviceError` so
 the daemon can reopen the group with backoff; a channel-level problem on a healthy device
 (thermocouple burnout) is a ``fault`` reading.
@@ -15,6 +17,7 @@ the daemon can reopen the group with backoff; a channel-level problem on a healt
 from __future__ import annotations
 
 import asyncio
+import math
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
@@ -22,7 +25,7 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any, ClassVar, Literal, Protocol
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
 
 class State(StrEnum):
@@ -101,6 +104,10 @@ class ScaledClock:
 MIN_INTERVAL_S = 0.001
 MAX_INTERVAL_S = 3600.0
 MAX_AGE_S = 86400.0
+#: ``frozen_after_s`` when a position sensor does not set it: a live interferometer's noise (tens of nm)
+#: makes bit-identical readings for this long a dead instrument repeating its last value, not a stage at
+#: rest. Temperatures default to 0 (off): a 0.1 °C module in a stable room legitimately repeats for hours.
+POSITION_FROZEN_AFTER_S = 30.0
 
 
 class SensorConfig(BaseModel):
@@ -122,6 +129,23 @@ class SensorConfig(BaseModel):
     max_age_s: float = Field(default=5.0, gt=0, le=MAX_AGE_S,
                              description="older readings are stale; at least interval_s, at most a day")
     timeout_s: float = Field(default=1.0, gt=0, description="one poll may take this long")
+    valid_min: float | None = Field(default=None, description="lowest believable value, in the sensor's unit "
+                                    "(None: the role's default, see daemon.config.valid_range)")
+    valid_max: float | None = Field(default=None, description="highest believable value, in the sensor's unit")
+    frozen_after_s: float = Field(default=0.0, ge=0, le=MAX_AGE_S,
+                                  description="a value bit-identical for longer is stale; 0 = off (the default "
+                                  f"for temperatures; {POSITION_FROZEN_AFTER_S:g} s for a position sensor)")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _role_defaults(cls, data: Any) -> Any:
+        """``frozen_after_s`` defaults by role: on for the interferometer (30 s, or ten polls when a poll is
+        longer than 3 s), off for thermocouples."""
+        if isinstance(data, Mapping) and "frozen_after_s" not in data and data.get("role") == "position":
+            interval_s = data.get("interval_s")
+            polls_s = 10.0 * interval_s if isinstance(interval_s, int | float) and math.isfinite(interval_s) else 0.0
+            return {**data, "frozen_after_s": min(MAX_AGE_S, max(POSITION_FROZEN_AFTER_S, polls_s))}
+        return data
 
     @field_validator("max_age_s")
     @classmethod
@@ -131,6 +155,25 @@ class SensorConfig(BaseModel):
             raise ValueError(f"max_age_s = {value:g} s is below interval_s = {interval_s:g} s: every reading would "
                              "go stale before the next poll brings a new one; make max_age_s at least interval_s "
                              "(a few intervals is usual)")
+        return value
+
+    @field_validator("valid_max")
+    @classmethod
+    def _above_valid_min(cls, value: float | None, info: ValidationInfo) -> float | None:
+        valid_min = info.data.get("valid_min")
+        if value is not None and valid_min is not None and not valid_min < value:
+            raise ValueError(f"valid_max = {value:g} is not above valid_min = {valid_min:g}: no reading could "
+                             "be believed; make valid_min < valid_max (in the sensor's unit)")
+        return value
+
+    @field_validator("frozen_after_s")
+    @classmethod
+    def _off_or_longer_than_a_poll(cls, value: float, info: ValidationInfo) -> float:
+        interval_s = info.data.get("interval_s")
+        if value > 0 and interval_s is not None and value < interval_s:
+            raise ValueError(f"frozen_after_s = {value:g} s is below interval_s = {interval_s:g} s: two readings "
+                             "a poll apart would already count as frozen; use 0 (off) or at least interval_s "
+                             "(many intervals is usual)")
         return value
 
     def hub_name(self) -> str | None:

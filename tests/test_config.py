@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from daemon.config import DEFAULT_MODEL_PATH, ConfigError, default_config, load_config, missing_model_channels
+from drivers.base import POSITION_FROZEN_AFTER_S
 from drivers.simulated.config import SimulatedSensorConfig
 
 REPO = Path(__file__).resolve().parent.parent
@@ -245,3 +246,42 @@ def test_numbers_may_be_written_as_ints_and_paths_as_strings(tmp_path: Path) -> 
                                          '[zenoh]\nconfig_file = "z.json5"\n'))
     assert config.actuator.v_max == 10.0 and isinstance(config.actuator.v_max, float)
     assert config.model.path == tmp_path / "m.json" and config.zenoh.config_file == tmp_path / "z.json5"
+
+
+IFM = '[[sensors]]\nname = "ifm"\nrole = "position"\nkind = "serial_line"\nport = "loop://"\n'
+
+
+@pytest.mark.parametrize(
+    ("keys", "expected"),
+    [
+        ("valid_min = 10.0\nvalid_max = 10.0", "sensors[0] (ifm).valid_max: Value error, valid_max = 10 is not above "
+                                               "valid_min = 10"),
+        ("valid_min = 20.0\nvalid_max = -5.0", "sensors[0] (ifm).valid_max: Value error, valid_max = -5 is not above"),
+        ("valid_min = nan", "sensors[0] (ifm).valid_min: Input should be a finite number"),
+        ("valid_max = inf", "sensors[0] (ifm).valid_max: Input should be a finite number"),
+        ('valid_max = "500"', "sensors[0] (ifm).valid_max: Input should be a valid number"),
+        # the default valid_max of the workspace [0, 500] is 550: a valid_min above it believes nothing
+        ("valid_min = 600.0", "sensors[0] (ifm).valid_min: the valid range would be [600, 550]"),
+        ("frozen_after_s = -1.0", "sensors[0] (ifm).frozen_after_s: Input should be greater than or equal to 0"),
+        ("frozen_after_s = inf", "sensors[0] (ifm).frozen_after_s: Input should be a finite number"),
+        ("interval_s = 0.5\nfrozen_after_s = 0.2", "sensors[0] (ifm).frozen_after_s: Value error, frozen_after_s = "
+                                                    "0.2 s is below interval_s = 0.5 s"),
+    ],
+    ids=["min=max", "min>max", "min=nan", "max=inf", "max-string", "min-above-default-max", "frozen<0",
+         "frozen=inf", "frozen<interval"],
+)
+def test_a_sensors_valid_range_and_frozen_after_s_are_checked_naming_the_key(tmp_path: Path, keys: str,
+                                                                            expected: str) -> None:
+    problems = problems_of(write(tmp_path, IFM + keys + "\n"))
+    assert any(p.startswith(expected) for p in problems), problems
+
+
+def test_a_sensors_valid_range_and_frozen_after_s_are_read_with_their_defaults(tmp_path: Path) -> None:
+    config = load_config(write(tmp_path, IFM + "valid_min = -5\nvalid_max = 505.5\nfrozen_after_s = 0\n"
+                                          '[[sensors]]\nname = "T1"\nkind = "modbus"\nhub = "a"\naddress = 0\n'
+                                          '[[hubs]]\nname = "a"\nhost = "127.0.0.1"\n'))
+    ifm, t1 = config.sensors
+    assert (ifm.valid_min, ifm.valid_max, ifm.frozen_after_s) == (-5.0, 505.5, 0.0)  # 0: off, as the operator says
+    assert (t1.valid_min, t1.valid_max, t1.frozen_after_s) == (None, None, 0.0)  # temperatures: not frozen by default
+    default = load_config(write(tmp_path, IFM))
+    assert default.sensors[0].frozen_after_s == POSITION_FROZEN_AFTER_S

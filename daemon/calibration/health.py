@@ -146,10 +146,17 @@ class HealthMonitor:
         rms = self.residual_rms_nm
         return "degraded" if rms is not None and rms > self.alarm_rms_nm else "ok"
 
-    def advice(self, outside: Sequence[OutsideRange] = ()) -> str | None:
-        """What to do, in words (None when there is nothing to do)."""
+    def advice(self, outside: Sequence[OutsideRange] = (), sensor_problem: str | None = None) -> str | None:
+        """What to do, in words (None when there is nothing to do).
+
+        ``sensor_problem`` (``position sensor 'ifm' is stale: value frozen at ...``): the interferometer is
+        the suspect, not the cell; that comes first, since no residual is taken from it meanwhile.
+        """
         if not self.has_position_sensor:
             return "no position sensor: add the interferometer ([[sensors]] role = \"position\") to monitor the model"
+        if sensor_problem:
+            return (f"{sensor_problem}; check the interferometer, not the cell: no residual is taken from it until it "
+                    "reads believable values again")
         if self.state != "degraded":
             if outside:
                 return "; ".join(o.describe() for o in outside) + " (accuracy degrades outside the training range)"
@@ -164,7 +171,7 @@ class HealthMonitor:
                 "effect the model lacks (nanodrift discover on recorded operation)")
 
     def document(self, *, correction_um: float | None, extrapolating: Sequence[str],
-                 outside: Sequence[OutsideRange] = ()) -> dict[str, object]:
+                 outside: Sequence[OutsideRange] = (), sensor_problem: str | None = None) -> dict[str, object]:
         """The ``health`` payload of the Zenoh contract."""
         rms, mean = self.residual_rms_nm, self.residual_mean_nm
         return {
@@ -174,7 +181,7 @@ class HealthMonitor:
             "n": self.n,
             "correction_um": correction_um,
             "extrapolating": list(extrapolating),
-            "advice": self.advice(outside),
+            "advice": self.advice(outside, sensor_problem),
         }
 
 

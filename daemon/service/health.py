@@ -13,9 +13,11 @@ readings under ``state.lock`` (a few float operations; the queued commands are t
 before each reading), and :meth:`HealthUnit.flush`, outside the lock, logs and publishes a change
 of state. ``status`` (and the metrics scrape) read :meth:`HealthUnit.document` under ``state.lock``.
 
-Only fresh ``ok`` readings of the ``role = "position"`` sensor count: a faulted reading, one older
-than the sensor's ``max_age_s``, or a silence longer than ``max_age_s`` inside an averaging window
-voids that window, so a stale interferometer never feeds the monitor or the tracker. A repeated
+Only fresh ``ok`` readings of the ``role = "position"`` sensor count: a faulted reading (the sensor
+table's judgement too: out of range, non-finite, future-stamped), a frozen one, one older than the
+sensor's ``max_age_s``, or a silence longer than ``max_age_s`` inside an averaging window voids that
+window, so an interferometer the daemon does not believe never feeds the monitor or the tracker, and
+the advice names it (:attr:`HealthUnit.position_problem`) instead of blaming the cell. A repeated
 sample (same time stamp) is not news and is skipped.
 
 ``nanodrift/<cell>/health`` is published at once when the state changes and every
@@ -63,6 +65,8 @@ class HealthUnit:
         #: (a slewed ramp takes seconds), told through :meth:`on_reached`; else from the command
         self.awaits_reach = False
         self._reached: deque[tuple[float, float]] = deque(maxlen=SERVED_QUEUE)
+        #: why the position sensor's last reading was not believed ("" when it was): the advice names it
+        self.position_problem = ""
         self._configure(config, model)
         self._announced = self.monitor.state
 
@@ -110,10 +114,12 @@ class HealthUnit:
         """Good temperature readings: since when each channel is outside the training range (advice)."""
         self.ranges.observe(t, temps)
 
-    def on_position(self, now: float, t: float, value_um: float, ok: bool) -> None:
-        """One reading of the position sensor taken at ``t``; ``ok``: ok and fresh at ``now``."""
+    def on_position(self, now: float, t: float, value_um: float, ok: bool, problem: str = "") -> None:
+        """One reading of the position sensor taken at ``t``; ``ok``: ok and fresh at ``now``; else
+        ``problem`` says why not (``stale: value frozen at ...``), for the advice."""
         if self.position_channel is None:
             return
+        self.position_problem = "" if ok else (problem or "not ok")
         last = self._last_position_t
         if not ok:
             self._feed(now, math.nan, False)
@@ -168,8 +174,10 @@ class HealthUnit:
     def document(self) -> dict[str, object]:
         """The ``health`` payload (README: health): state, residual statistics, correction, advice."""
         outside = self.ranges.outside()
+        problem = self.position_problem
+        suspect = f"position sensor {self.position_channel!r} is {problem}" if problem else None
         return self.monitor.document(correction_um=self.correction_um, extrapolating=[o.channel for o in outside],
-                                     outside=outside)
+                                     outside=outside, sensor_problem=suspect)
 
     def flush(self) -> None:
         """On the loop, outside the state lock: hand on settled targets, log and publish a change of state."""

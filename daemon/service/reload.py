@@ -146,8 +146,8 @@ class Reloader:
             self._stopped = running  # started again if anything fails before the swap
         with state.lock:  # the swap is atomic for the target path on Zenoh's threads
             table = state.table
-            if drivers_changed:
-                table = SensorTable(new.sensors)
+            if drivers_changed:  # [actuator] too: a position sensor's default range follows the workspace
+                table = SensorTable(new.sensors, new.actuator.workspace_um)
                 table.carry_over(state.table)
             compensator = Compensator(model, new.actuator, table)
             old_comp = state.compensator

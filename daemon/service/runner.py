@@ -64,7 +64,8 @@ class Service:
         self.notifier = notifier or Notifier()
         self.log = get_logger("nanodrift.daemon")
         model, problem = load_model_or_problem(config.model.path)
-        compensator = Compensator(model, config.actuator, SensorTable(config.sensors), problem)
+        table = SensorTable(config.sensors, config.actuator.workspace_um)  # judges every reading
+        compensator = Compensator(model, config.actuator, table, problem)
         self.state = CellState(config, compensator, MonotonicClock())  # the drivers' clock once they start
         self.health = HealthUnit(config, model, self.log)
         self.health.attach(compensator)

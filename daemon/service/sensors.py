@@ -20,6 +20,9 @@ from daemon.service.health import HealthUnit
 from daemon.service.state import CellState
 from drivers.base import Reading, SensorGroup, State
 
+#: how the health advice names a position sensor's state
+_STATE_WORDS = {State.FAULT: "faulted", State.STALE: "stale", State.OK: "ok"}
+
 #: publishes one telemetry payload: (role, channel, payload)
 PublishTelemetry = Callable[[str, str, bytes], None]
 
@@ -42,17 +45,20 @@ class SensorIngest:
         health = self.health
         with state.lock:
             table = state.table
+            now = state.clock.now()  # the table judges every reading on the daemon's clock
             for name, reading in readings.items():
-                entry = table.update(name, reading)
+                entry = table.update(name, reading, now)
                 if entry is None:
                     continue
                 if entry.role == "temperature" and entry.device_state == State.OK:
                     temps[name] = reading.value
                     t_obs = reading.t if t_obs is None else max(t_obs, reading.t)
                 elif entry.role == "position" and health is not None:
-                    now = state.clock.now()
-                    ok = entry.device_state == State.OK and now - reading.t <= entry.max_age_s
-                    health.on_position(now, reading.t, reading.value, ok)
+                    # only what the table believes (in range, not frozen, not in the future) and fresh
+                    channel_state, reason = table.state(name, now)
+                    ok = channel_state == State.OK
+                    health.on_position(now, reading.t, reading.value, ok,
+                                       problem="" if ok else f"{_STATE_WORDS[channel_state]}: {reason}")
                 telemetry.append((entry.role, name, reading.value, entry.unit, reading.t, entry.device_state.value,
                                   entry.reason))
             if temps and t_obs is not None:
@@ -74,7 +80,8 @@ class SensorIngest:
             self.state.table.mark_fault(group.names, f"device error: {reason}")
             if health is not None and health.position_channel in group.names:
                 now = self.state.clock.now()
-                health.on_position(now, now, math.nan, False)  # a device that fails voids the window
+                # a device that fails voids the window
+                health.on_position(now, now, math.nan, False, problem=f"faulted: device error: {reason}")
         if failures == 1:
             self.log.warning("sensor_group_failed", channels=list(group.names), reason=reason,
                              retry_in_s=round(retry_in_s, 2))

@@ -52,6 +52,18 @@ def test_health_states_unknown_ok_degraded_and_advice() -> None:
     assert HealthMonitor(10, 100.0, has_position_sensor=False).state == "unknown"
 
 
+def test_a_suspect_position_sensor_is_named_in_the_advice_instead_of_the_cell() -> None:
+    monitor = HealthMonitor(history=10, alarm_rms_nm=100.0)
+    for k in range(10):
+        monitor.add(Settled(float(k), 100.0, 100.0, 100.3, 10))
+    suspect = "position sensor 'ifm' is stale: value frozen at 300 um for 31 s (frozen_after_s 30)"
+    doc = monitor.document(correction_um=None, extrapolating=[], sensor_problem=suspect)
+    assert doc["state"] == "degraded"  # the residuals it has are the residuals it has
+    assert doc["advice"] == (f"{suspect}; check the interferometer, not the cell: no residual is taken from it "
+                             "until it reads believable values again")
+    assert "the cell changed" in str(monitor.advice())  # once believed again, the cell is the suspect again
+
+
 def test_range_watch_says_how_long_a_channel_has_been_outside() -> None:
     watch = RangeWatch({"T4": (20.0, 22.0)})
     watch.observe(0.0, {"T4": 21.0})
