@@ -20,14 +20,14 @@ one file.
 from __future__ import annotations
 
 import csv
+import errno
 import io
 import math
 import os
 import re
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO
 
 import numpy as np
 
@@ -316,17 +316,27 @@ def write_csv(
             handle.write(chunk)
 
 
+#: writes bytes to a file descriptor and says how many it wrote (``os.write``; a test injects a full disk)
+WriteBytes = Callable[[int, bytes], int]
+
+
 class CsvAppender:
     """Append rows one at a time, each flushed and fsynced: an interrupted run keeps every row written.
 
-    Used by the calibration procedure, where a row is one completed step of hours of work. Opening
-    an existing file checks that its header matches, so a resumed run continues the same table.
+    Used by the calibration procedure, where a row is one completed step of hours of work, and by the
+    daemon's recorder. Opening an existing file checks that its header matches, so a resumed run
+    continues the same table. A row that cannot be written whole (a full disk: an error or a short
+    write, also at the fsync) is cut back off before the error is raised, so the file never ends
+    inside a row and the appender can go on when writing works again.
     """
 
-    def __init__(self, path: str | os.PathLike[str], columns: Sequence[str]) -> None:
+    def __init__(self, path: str | os.PathLike[str], columns: Sequence[str], *, write: WriteBytes = os.write) -> None:
         self.path = Path(path)
         self.columns = list(columns)
         self.dropped_partial_row = False
+        #: False when a failed row could not be cut back off (reopen the file: that drops it)
+        self.intact = True
+        self._write = write
         for col, name in enumerate(self.columns, start=1):
             if name not in RESERVED:
                 check_channel_name(name, f"{self.path}, column {col}")
@@ -340,7 +350,7 @@ class CsvAppender:
                     f"{self.path}: cannot append, its columns {found} differ from {self.columns}"
                 )
             self.dropped_partial_row = _drop_partial_last_line(self.path)
-        self._handle: IO[str] = open(self.path, "a", encoding="utf-8", newline="")
+        self._fd: int | None = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
         if not exists:
             self._write_line(",".join(self.columns))
 
@@ -352,12 +362,28 @@ class CsvAppender:
         self._write_line(",".join(cells))
 
     def _write_line(self, line: str) -> None:
-        self._handle.write(line + "\n")
-        self._handle.flush()
-        os.fsync(self._handle.fileno())
+        if self._fd is None:
+            raise ValueError(f"{self.path}: appender is closed")
+        data = (line + "\n").encode("utf-8")
+        start = os.fstat(self._fd).st_size  # where the row begins: cut back to it if it fails
+        try:
+            while data:
+                written = self._write(self._fd, data)
+                if written <= 0:
+                    raise OSError(errno.ENOSPC, "no space left on device (short write)", str(self.path))
+                data = data[written:]
+            os.fsync(self._fd)
+        except OSError:
+            try:
+                os.ftruncate(self._fd, start)
+            except OSError:
+                self.intact = False
+            raise
 
     def close(self) -> None:
-        self._handle.close()
+        if self._fd is not None:
+            fd, self._fd = self._fd, None
+            os.close(fd)
 
     def __enter__(self) -> CsvAppender:
         return self

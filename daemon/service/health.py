@@ -20,6 +20,11 @@ window, so an interferometer the daemon does not believe never feeds the monitor
 the advice names it (:attr:`HealthUnit.position_problem`) instead of blaming the cell. A repeated
 sample (same time stamp) is not news and is skipped.
 
+Time: the settle windows run on the cell clock (the drivers' monotonic clock, like the readings and the
+served commands), so a step of the system clock neither stalls nor skews them; the wall clock only
+labels what is handed to the recorder (``t_s``, the file's day), with every polled temperature channel
+over the window (:class:`daemon.service.recorder.PolledChannels`).
+
 ``nanodrift/<cell>/health`` is published at once when the state changes and every
 :data:`PUBLISH_INTERVAL_S` of wall time besides: it is read by people and dashboards, who live in
 wall time; on the cell clock a simulated cell at ``speed = 100`` would publish it 20 times a second.
@@ -42,11 +47,14 @@ from daemon.calibration.health import BiasTracker, HealthMonitor, RangeWatch, Se
 from daemon.config import Config
 from daemon.model.model import Model
 from daemon.service.compensator import Compensator
+from daemon.service.recorder import Polled, PolledChannels
 
 #: the health document is published this often (wall clock, s) besides at every change of state
 PUBLISH_INTERVAL_S = 5.0
 #: commands waiting for the next position reading; a hold needs only the newest, so a flood loses nothing
 SERVED_QUEUE = 1024
+#: temperature readings are kept this long beyond a window and the sensors' max ages (a late closing reading)
+POLLED_MARGIN_S = 10.0
 
 
 class HealthUnit:
@@ -55,12 +63,14 @@ class HealthUnit:
     def __init__(self, config: Config, model: Model | None, log: Any) -> None:
         self.log = log
         self.served: deque[tuple[float, Command]] = deque(maxlen=SERVED_QUEUE)
-        #: called on the loop, outside the state lock, with every settled target and the unix time it
-        #: settled at (the recorder's ``on_settled``); a listener must not block
-        self.settled_listeners: list[Callable[[Settled, float], None]] = []
+        #: called on the loop, outside the state lock, with every settled target, the unix time it settled
+        #: at (a label only) and every polled temperature channel over its window (the recorder's
+        #: ``on_settled``); a listener must not block
+        self.settled_listeners: list[Callable[[Settled, float, Polled], None]] = []
         self._compensator: Compensator | None = None
         self._publisher: Any = None
-        self._fresh: list[tuple[Settled, float]] = []
+        self._fresh: list[tuple[Settled, float, Polled]] = []
+        self.polled = PolledChannels({}, 0.0)
         #: the daemon drives the output itself: a hold settles from when the output reached its command
         #: (a slewed ramp takes seconds), told through :meth:`on_reached`; else from the command
         self.awaits_reach = False
@@ -68,6 +78,7 @@ class HealthUnit:
         #: why the position sensor's last reading was not believed ("" when it was): the advice names it
         self.position_problem = ""
         self._configure(config, model)
+        self._configure_polled(config)
         self._announced = self.monitor.state
 
     # --- configuration (under state.lock) ------------------------------------------------------
@@ -106,13 +117,28 @@ class HealthUnit:
         model_id = model.id if model is not None else None
         if model_id != self.model_id or _settings(config) != self._settings:
             self._configure(config, model)
+        self._configure_polled(config)
         self.attach(compensator)
+
+    def _configure_polled(self, config: Config) -> None:
+        """Every configured temperature channel, for the rows of settled targets; kept over a reload
+        that polls the same channels (the readings of a window in progress still count)."""
+        max_age_s = {s.name: s.max_age_s for s in config.sensors if s.role == "temperature"}
+        position_age_s = self.position_max_age_s if math.isfinite(self.position_max_age_s) else 0.0
+        keep_s = (config.health.settle_s + config.health.window_s + max(max_age_s.values(), default=0.0)
+                  + position_age_s + POLLED_MARGIN_S)
+        if max_age_s != self.polled.max_age_s or keep_s != self.polled.keep_s:
+            self.polled = PolledChannels(max_age_s, keep_s)
 
     # --- readings (on the loop, under state.lock) ----------------------------------------------
 
     def on_temperatures(self, t: float, temps: Mapping[str, float]) -> None:
         """Good temperature readings: since when each channel is outside the training range (advice)."""
         self.ranges.observe(t, temps)
+
+    def on_channel(self, name: str, t: float, value_c: float, ok: bool) -> None:
+        """One reading of a temperature channel (ok or not) taken at ``t``: the rows carry every polled channel."""
+        self.polled.observe(name, t, value_c, ok)
 
     def on_position(self, now: float, t: float, value_um: float, ok: bool, problem: str = "") -> None:
         """One reading of the position sensor taken at ``t``; ``ok``: ok and fresh at ``now``; else
@@ -159,7 +185,9 @@ class HealthUnit:
             correction = self.tracker.update(settled.t, settled.residual_um)
             if self._compensator is not None:
                 self._compensator.correction_um = correction
-        self._fresh.append((settled, time.time()))
+        # the cell clock decided the window; the wall clock only labels the row (t_s, the file's day)
+        polled = self.polled.window(settled.t - self.settle.window_s, settled.t)
+        self._fresh.append((settled, time.time(), polled))
 
     # --- what it says ----------------------------------------------------------------------------
 
@@ -184,8 +212,8 @@ class HealthUnit:
         if self._fresh:
             fresh, self._fresh = self._fresh, []
             for listener in self.settled_listeners:
-                for settled, unix_s in fresh:
-                    listener(settled, unix_s)
+                for settled, unix_s, polled in fresh:
+                    listener(settled, unix_s, polled)
         state = self.monitor.state
         if state == self._announced:
             return

@@ -3,20 +3,28 @@
 The files follow the data contract, so ``nanodrift fit cal.csv records/*.csv`` extends a
 calibration with what the cell did in service. A row is one settled target: ``t_s`` (unix s),
 ``x_um`` the position the interferometer measured (mean over the window), ``q_um`` the command sent,
-the reserved ``target_um`` and ``residual_um`` (measured - target), then the temperature channels the
-command was computed from.
+the reserved ``target_um``, ``residual_um`` (measured - target) and ``valid``, then every polled
+temperature channel (not only the model's: a later refit may want one it left out), each the mean
+of its ok readings over the same window (:class:`PolledChannels`). A channel that was not ok there
+(faulted, or no fresh reading) keeps the row with ``valid = 0`` and its last ok value (else 0), as
+an invalid calibration step is kept: never a NaN.
 
-- One file per UTC day, ``records-YYYY-MM-DD.csv``. A new file is created atomically (header in a
-  temp file, fsync, rename): a crash never leaves a file without its header. Each row is fsynced
-  (:class:`daemon.calibration.dataset.CsvAppender`), and a restart resumes the day's file, dropping
-  a row a crash cut short.
-- A file's columns never change: when the channels change (a reload with another model) or the
-  clock steps back (``t_s`` must increase), the day continues in ``records-YYYY-MM-DD.2.csv``, ``.3``...
-- Retention: when a day's first file is opened, files of days more than ``keep_days`` before it
-  are deleted (0 keeps all).
+The wall clock only labels: ``t_s`` and the day in the file name. What decides runs on the daemon's
+monotonic clock (:class:`drivers.base.MonotonicClock`): the settle timing (the health unit's) and
+retention, so a step of the system clock (NTP, ``date -s``) neither stalls rows nor deletes files.
+
+- One file per UTC day of the label, ``records-YYYY-MM-DD.csv``. A new file is created atomically
+  (header in a temp file, fsync, rename): a crash never leaves a file without its header. Each row
+  is one write, fsynced (:class:`daemon.calibration.dataset.CsvAppender`); a row that fails (a full
+  disk) is cut back off, and a restart resumes the day's file, dropping a row a crash cut short.
+- A file's columns never change: when the channels change (a reload polling other channels) or the
+  label steps back (``t_s`` must increase), the day continues in ``records-YYYY-MM-DD.2.csv``, ``.3``...
+- Retention: files of days more than ``keep_days`` before *today* are deleted (0 keeps all), today
+  being the earlier of the daemon's clock's day and the row's: a wall clock stepped forward (a label
+  months ahead) never deletes a file the daemon's clock would keep.
 - Recording is never on the answer's path: :class:`Recorder` queues rows for a writer thread. A
-  full disk or a permission error is logged once (``record_failed``), rows are lost until writing
-  works again (``record_resumed`` says how many), and the daemon keeps serving.
+  full disk or a permission error is logged once per outage (``record_failed``), rows are lost until
+  writing works again (``record_resumed`` says how many, once), and the daemon keeps serving.
 """
 
 from __future__ import annotations
@@ -27,21 +35,26 @@ import math
 import os
 import queue
 import re
+import statistics
 import threading
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections import deque
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
 from daemon.atomic import atomic_write_text
-from daemon.calibration.dataset import RESERVED, CsvAppender, DataError
+from daemon.calibration.dataset import RESERVED, CsvAppender, DataError, WriteBytes
 from daemon.calibration.health import Settled
+from drivers.base import MonotonicClock
 
 #: the columns before the channels, in this order
-RECORD_COLUMNS = ("t_s", "x_um", "q_um", "target_um", "residual_um")
+RECORD_COLUMNS = ("t_s", "x_um", "q_um", "target_um", "residual_um", "valid")
 FILE_NAME = re.compile(r"^records-(?P<day>\d{4}-\d{2}-\d{2})(?:\.(?P<part>\d+))?\.csv$")
 #: rows waiting for the writer thread; beyond this (a disk that stopped answering) rows are dropped
 QUEUE_ROWS = 10_000
+#: readings a channel keeps for the window of the next settled target (besides the time bound)
+CHANNEL_READINGS = 4096
 
 
 def file_name(day: dt.date, part: int = 1) -> str:
@@ -52,16 +65,81 @@ def utc_day(unix_s: float) -> dt.date:
     return dt.datetime.fromtimestamp(unix_s, dt.UTC).date()
 
 
-def record_row(settled: Settled, unix_s: float) -> dict[str, float]:
-    """One settled target as a row of the data contract (channels in the order the command had them)."""
+@dataclass(frozen=True)
+class Polled:
+    """Every polled temperature channel over a settled target's window: the row's channels."""
+
+    values_c: Mapping[str, float] = field(default_factory=dict)
+    valid: bool = True  # every channel had ok readings (or a fresh ok one) for the window
+
+
+class PolledChannels:
+    """The recent readings of every configured temperature channel, for the window of a settled target.
+
+    A channel's value for a window is the mean of its ok readings inside it; with none inside (a poll
+    slower than the window), its latest reading before the window if that is ok and fresh
+    (``max_age_s``) at the window's end. A reading that is not ok inside the window, or no fresh ok
+    reading, makes the row ``valid = 0`` with the channel's last ok value (else 0). Pure and cheap:
+    it runs under the state lock on the loop.
+    """
+
+    def __init__(self, max_age_s: Mapping[str, float], keep_s: float) -> None:
+        self.max_age_s = dict(max_age_s)
+        self.keep_s = keep_s
+        self._readings: dict[str, deque[tuple[float, float]]] = {
+            name: deque(maxlen=CHANNEL_READINGS) for name in self.max_age_s}
+        self._last_ok: dict[str, float] = {}
+
+    def observe(self, name: str, t: float, value: float, ok: bool) -> None:
+        """One reading of ``name`` taken at ``t`` (cell clock); ``ok``: the device said ok."""
+        readings = self._readings.get(name)
+        if readings is None:
+            return
+        good = ok and math.isfinite(value)
+        while readings and readings[0][0] < t - self.keep_s:
+            readings.popleft()
+        readings.append((t, float(value) if good else math.nan))
+        if good:
+            self._last_ok[name] = float(value)
+
+    def window(self, start: float, end: float) -> Polled:
+        values: dict[str, float] = {}
+        valid = True
+        for name, readings in self._readings.items():
+            inside: list[float] = []
+            before: tuple[float, float] | None = None
+            for t, v in reversed(readings):  # newest first (readings arrive in time order): stop before the window
+                if t < start:
+                    before = (t, v)
+                    break
+                if t <= end:
+                    inside.append(v)
+            good = [v for v in inside if not math.isnan(v)]
+            value: float | None
+            if inside:
+                ok = len(good) == len(inside)
+                value = statistics.fmean(good) if good else None
+            else:
+                ok = before is not None and not math.isnan(before[1]) and end - before[0] <= self.max_age_s[name]
+                value = before[1] if ok and before is not None else None
+            values[name] = value if value is not None else self._last_ok.get(name, 0.0)
+            valid = valid and ok
+        return Polled(values, valid)
+
+
+def record_row(settled: Settled, unix_s: float, polled: Polled | None = None) -> dict[str, float]:
+    """One settled target as a row of the data contract; ``polled`` None: the command's channels, valid."""
+    if polled is None:
+        polled = Polled(settled.temperatures, True)
     row = {
         "t_s": float(unix_s),
         "x_um": float(settled.position_um),
         "q_um": float(settled.q_um),
         "target_um": float(settled.x_um),
         "residual_um": float(settled.residual_um),
+        "valid": 1.0 if polled.valid else 0.0,
     }
-    for channel, value in settled.temperatures.items():
+    for channel, value in polled.values_c.items():
         if channel in RESERVED:
             raise DataError(f"channel {channel!r} has the name of a reserved column; it cannot be recorded")
         row[channel] = float(value)
@@ -69,14 +147,22 @@ def record_row(settled: Settled, unix_s: float) -> dict[str, float]:
 
 
 class DayRecorder:
-    """Writes rows into the day's file; synchronous, used by one thread (see :class:`Recorder`)."""
+    """Writes rows into the day's file; synchronous, used by one thread (see :class:`Recorder`).
 
-    def __init__(self, directory: str | os.PathLike[str], keep_days: int = 90, log: Any = None) -> None:
+    ``clock``: the daemon's time base, which retention decides on (default :class:`MonotonicClock`: real
+    days even when a simulated cell's clock runs faster);
+    ``write``: how bytes reach the file (``os.write``; a test injects a full disk).
+    """
+
+    def __init__(self, directory: str | os.PathLike[str], keep_days: int = 90, log: Any = None, *,
+                 clock: Callable[[], float] | None = None, write: WriteBytes = os.write) -> None:
         if keep_days < 0:
             raise ValueError(f"keep_days must be >= 0, got {keep_days}")
         self.directory = Path(directory)
         self.keep_days = keep_days
         self.log = log
+        self.clock = clock or MonotonicClock().now
+        self.write = write
         self.path: Path | None = None
         self.rows_written = 0
         self.rows_lost = 0
@@ -84,13 +170,14 @@ class DayRecorder:
         self._day: dt.date | None = None
         self._columns: list[str] = []
         self._last_t = -math.inf
+        self._expired_before: dt.date | None = None  # the "today" retention last ran for
         self._failure: str | None = None  # what was logged, until a row is written again
         self._lost_in_outage = 0
 
-    def record(self, settled: Settled, unix_s: float) -> bool:
+    def record(self, settled: Settled, unix_s: float, polled: Polled | None = None) -> bool:
         """Append one row; False (logged once per outage) when it could not be written. Never raises."""
         try:
-            row = record_row(settled, unix_s)
+            row = record_row(settled, unix_s, polled)
             bad = [name for name, value in row.items() if not math.isfinite(value)]
             if bad:
                 raise DataError(f"not a finite number in {', '.join(bad)}")
@@ -114,6 +201,11 @@ class DayRecorder:
 
     def _append(self, row: dict[str, float]) -> None:
         day = utc_day(row["t_s"])
+        today = min(utc_day(self.clock()), day)  # a label stepped ahead is no reason to delete anything
+        if today != self._expired_before:
+            self.directory.mkdir(parents=True, exist_ok=True)
+            self._expire(today)
+            self._expired_before = today
         channels = [c for c in row if c not in RECORD_COLUMNS]
         same_columns = set(channels) == set(self._columns[len(RECORD_COLUMNS):])
         if self._appender is None or day != self._day or not same_columns or row["t_s"] <= self._last_t:
@@ -126,8 +218,6 @@ class DayRecorder:
         """The day's last file if it has these columns and a row at ``t_s`` comes after its rows; else a new one."""
         self.close()
         self.directory.mkdir(parents=True, exist_ok=True)
-        if day != self._day:
-            self._expire(day)
         parts = self._parts(day)
         wanted = [*RECORD_COLUMNS, *channels]
         last = parts[-1] if parts else 0
@@ -135,21 +225,22 @@ class DayRecorder:
             path = self.directory / file_name(day, last)
             header = _header(path)
             if header is not None and sorted(header) == sorted(wanted):
-                appender = CsvAppender(path, header)  # drops a row a crash cut short
+                appender = CsvAppender(path, header, write=self.write)  # drops a row a crash cut short
                 last_t = _last_time(path)
                 if last_t < t_s:
                     self._take(appender, path, day, header, last_t, "resumed")
                     return
-                appender.close()  # the clock stepped back: t_s must increase within a file
+                appender.close()  # the label stepped back: t_s must increase within a file
         path = self.directory / file_name(day, last + 1)
         atomic_write_text(path, ",".join(wanted) + "\n")
-        self._take(CsvAppender(path, wanted), path, day, wanted, -math.inf, "created")
+        self._take(CsvAppender(path, wanted, write=self.write), path, day, wanted, -math.inf, "created")
 
     def _take(self, appender: CsvAppender, path: Path, day: dt.date, columns: list[str], last_t: float,
               how: str) -> None:
         self._appender, self.path, self._day, self._columns, self._last_t = appender, path, day, columns, last_t
-        self._event("info", "record_file", path=str(path), how=how,
-                    **({"dropped_partial_row": True} if appender.dropped_partial_row else {}))
+        if self._failure is None:  # during an outage, record_resumed names the file
+            self._event("info", "record_file", path=str(path), how=how,
+                        **({"dropped_partial_row": True} if appender.dropped_partial_row else {}))
 
     def _parts(self, day: dt.date) -> list[int]:
         parts = []
@@ -180,8 +271,8 @@ class DayRecorder:
     def _failed(self, err: Exception) -> None:
         self.rows_lost += 1
         self._lost_in_outage += 1
-        self.close()  # reopened (resuming the file, a cut row dropped) at the next row
-        self._day = None
+        if self._appender is not None and not self._appender.intact:
+            self.close()  # the failed row could not be cut back: reopening the file drops it
         if self._failure is None:
             self._failure = str(err)
             self._event("error", "record_failed", directory=str(self.directory), error=_describe(err),
@@ -253,11 +344,12 @@ class Recorder:
         self.writer: DayRecorder | None = None  # the writer thread's
         self.dropped = 0
         self._target: tuple[str, int] | None = None
-        self._queue: queue.Queue[tuple[Settled, float] | _Retarget | None] = queue.Queue(maxsize=max_rows)
+        self._queue: queue.Queue[tuple[Settled, float, Polled | None] | _Retarget | None] = queue.Queue(
+            maxsize=max_rows)
         self._thread: threading.Thread | None = None
 
-    def on_settled(self, settled: Settled, unix_s: float) -> None:
-        """A ``settled_listeners`` entry: never blocks, never raises."""
+    def on_settled(self, settled: Settled, unix_s: float, polled: Polled | None = None) -> None:
+        """A ``settled_listeners`` entry: never blocks, never raises. ``unix_s`` labels the row (wall clock)."""
         config = self.settings()
         target = (config.record_dir, config.record_keep_days)
         if target != self._target:
@@ -266,7 +358,7 @@ class Recorder:
                 self._target = None  # try again at the next row
                 return
         if target[0]:
-            self._put((settled, unix_s))
+            self._put((settled, unix_s, polled))
 
     def close(self, timeout_s: float = 5.0) -> None:
         """Write what is queued, then stop the thread (waiting at most ``timeout_s``)."""
@@ -280,7 +372,7 @@ class Recorder:
     def running(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
 
-    def _put(self, item: tuple[Settled, float] | _Retarget) -> bool:
+    def _put(self, item: tuple[Settled, float, Polled | None] | _Retarget) -> bool:
         if self._thread is None:
             self._thread = threading.Thread(target=self._run, name="nanodrift-recorder", daemon=True)
             self._thread.start()

@@ -2,8 +2,9 @@
 
 Runs on the asyncio loop (the pollers' callbacks). The table is updated under the state lock; the
 telemetry is published after the lock is released, so a slow publish never holds up a target.
-The ``role = "position"`` sensor's readings, each with whether it is ok and fresh, and the good
-temperatures go to the health unit (``daemon.service.health``) under the same lock; its log lines and
+The ``role = "position"`` sensor's readings, each with whether it is ok and fresh, the good
+temperatures, and every temperature reading (ok or not: a recorded row carries every polled channel)
+go to the health unit (``daemon.service.health``) under the same lock; its log lines and
 ``health`` sample after it.
 """
 
@@ -50,6 +51,8 @@ class SensorIngest:
                 entry = table.update(name, reading, now)
                 if entry is None:
                     continue
+                if entry.role == "temperature" and health is not None:
+                    health.on_channel(name, reading.t, reading.value, entry.device_state == State.OK)
                 if entry.role == "temperature" and entry.device_state == State.OK:
                     temps[name] = reading.value
                     t_obs = reading.t if t_obs is None else max(t_obs, reading.t)
@@ -78,10 +81,13 @@ class SensorIngest:
         health = self.health
         with self.state.lock:
             self.state.table.mark_fault(group.names, f"device error: {reason}")
-            if health is not None and health.position_channel in group.names:
+            if health is not None:
                 now = self.state.clock.now()
-                # a device that fails voids the window
-                health.on_position(now, now, math.nan, False, problem=f"faulted: device error: {reason}")
+                if health.position_channel in group.names:  # a device that fails voids the window
+                    health.on_position(now, now, math.nan, False, problem=f"faulted: device error: {reason}")
+                for name in group.names:
+                    if group.roles.get(name) == "temperature":
+                        health.on_channel(name, now, math.nan, False)  # ... and a recorded row's validity
         if failures == 1:
             self.log.warning("sensor_group_failed", channels=list(group.names), reason=reason,
                              retry_in_s=round(retry_in_s, 2))

@@ -362,7 +362,7 @@ def test_the_unit_counts_only_fresh_new_ok_readings(tmp_path: Path) -> None:
     unit = Unit(tmp_path, unit_config())
     health = unit.health
     handed: list[tuple[Any, float]] = []
-    health.settled_listeners.append(lambda settled, unix_s: handed.append((settled, unix_s)))
+    health.settled_listeners.append(lambda settled, unix_s, polled: handed.append((settled, unix_s)))
     unit.hold(0.0, 100.0, 100.2)
     assert health.monitor.n == 1 and health.document()["residual_mean_nm"] == pytest.approx(200.0)
     health.flush()  # the recorder's hook: each settled target once, outside the lock, with its unix time

@@ -4,6 +4,7 @@ surviving crashes (issue 12: "Recording survives kill -9 (no partial row, resume
 from __future__ import annotations
 
 import datetime as dt
+import errno
 import os
 import signal
 import subprocess
@@ -12,21 +13,26 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers.daemon_harness import wait_until
+from helpers.daemon_harness import TEMPS, wait_until, write_test_model
 from helpers.log_capture import captured_logging, json_lines
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import daemon.calibration.dataset as dataset_module
-from daemon.calibration.dataset import read_csv
+from daemon.bus.protocol import Target
+from daemon.calibration.dataset import CsvAppender, read_csv
 from daemon.calibration.health import Settled
-from daemon.config import HealthSettings
+from daemon.config import HealthSettings, parse_config
 from daemon.logs import get_logger
-from daemon.service.recorder import DayRecorder, Recorder, file_name
+from daemon.service.compensator import Compensator
+from daemon.service.health import HealthUnit
+from daemon.service.recorder import DayRecorder, Polled, PolledChannels, Recorder, file_name
+from daemon.service.table import SensorTable
+from drivers.base import Reading, SensorConfig
 
 DAY = dt.date(2026, 11, 23)
 NOON = dt.datetime(2026, 11, 23, 12, tzinfo=dt.UTC).timestamp()
-HEADER = "t_s,x_um,q_um,target_um,residual_um,T1,T2"
+HEADER = "t_s,x_um,q_um,target_um,residual_um,valid,T1,T2"
 
 
 def settled(i: int, temps: dict[str, float] | None = None) -> Settled:
@@ -49,7 +55,8 @@ def test_rows_follow_the_data_contract(tmp_path: Path) -> None:
     assert path.read_text().splitlines()[0] == HEADER
     data = read_csv(path)  # the project's reader: fit and discover read these files as they are
     assert data.channel_names == ("T1", "T2")  # target_um and residual_um are reserved, not channels
-    assert set(data.extra) == {"target_um", "residual_um"}
+    assert set(data.extra) == {"target_um", "residual_um", "valid"}
+    np.testing.assert_array_equal(data.extra["valid"], 1)
     np.testing.assert_allclose(data.t, NOON + 10.0 * np.arange(5))
     np.testing.assert_allclose(data.x, [settled(i).position_um for i in range(5)])  # measured, not the target
     np.testing.assert_allclose(data.q, [settled(i).q_um for i in range(5)])
@@ -98,7 +105,7 @@ def test_retention_deletes_day_files_older_than_keep_days_at_rotation(tmp_path: 
     old, old_part, kept, edge = day_file(120), day_file(91, 2), day_file(30), day_file(90)
     other = tmp_path / "notes-2020-01-01.csv"
     other.write_text("not ours\n")
-    assert DayRecorder(tmp_path, keep_days=90).record(settled(0), NOON)
+    assert DayRecorder(tmp_path, keep_days=90, clock=lambda: NOON).record(settled(0), NOON)
     assert not old.exists() and not old_part.exists()
     assert kept.exists() and edge.exists() and other.exists()
 
@@ -106,7 +113,7 @@ def test_retention_deletes_day_files_older_than_keep_days_at_rotation(tmp_path: 
     keep_all.mkdir()
     ancient = keep_all / file_name(DAY - dt.timedelta(days=3000))
     ancient.write_text(HEADER + "\n")
-    assert DayRecorder(keep_all, keep_days=0).record(settled(0), NOON)
+    assert DayRecorder(keep_all, keep_days=0, clock=lambda: NOON).record(settled(0), NOON)
     assert ancient.exists()
 
 
@@ -224,6 +231,191 @@ def test_non_finite_values_are_refused_and_the_file_stays_readable(tmp_path: Pat
     assert rec.record(settled(2), NOON + 2)
     assert len(read_csv(tmp_path / file_name(DAY))) == 2
 
+
+# --- retention on the daemon's clock (issue 16): a label stepped ahead deletes nothing more -------------------
+
+
+DAY_S = 86400.0
+
+
+def test_a_label_stepped_months_ahead_deletes_no_file_the_daemons_clock_keeps(tmp_path: Path) -> None:
+    """The wall clock stepped +120 days (the row's label), the daemon's clock did not: retention counts
+    from the daemon's day, so the last 31 days stay; a file old by the daemon's clock still goes."""
+    recent = [tmp_path / file_name(DAY - dt.timedelta(days=k)) for k in range(31)]
+    for path in recent:
+        path.write_text(HEADER + "\n")
+    edge = tmp_path / file_name(DAY - dt.timedelta(days=90))  # kept today, not tomorrow
+    old = tmp_path / file_name(DAY - dt.timedelta(days=91))
+    for path in (edge, old):
+        path.write_text(HEADER + "\n")
+    clock = {"now": NOON}
+    with captured_logging() as stream:
+        rec = DayRecorder(tmp_path, keep_days=90, log=get_logger("nanodrift.daemon"), clock=lambda: clock["now"])
+        for i in range(3):
+            assert rec.record(settled(i), NOON + 120 * DAY_S + i)
+        events = json_lines(stream)
+    assert rec.path == tmp_path / file_name(DAY + dt.timedelta(days=120))
+    assert all(p.exists() for p in recent) and edge.exists() and not old.exists()
+    assert [e["path"] for e in events if e["event"] == "record_expired"] == [str(old)]
+
+    clock["now"] += DAY_S  # a day later by the daemon's clock: its day moves, retention runs again
+    assert rec.record(settled(3), NOON + 121 * DAY_S)
+    assert not edge.exists() and all(p.exists() for p in recent)  # DAY - 90 is now 91 days old
+
+    ahead = tmp_path / "ahead"  # the other way: the daemon's clock started ahead, the label is right
+    ahead.mkdir()
+    kept = ahead / file_name(DAY - dt.timedelta(days=30))
+    kept.write_text(HEADER + "\n")
+    assert DayRecorder(ahead, keep_days=90, clock=lambda: NOON + 120 * DAY_S).record(settled(0), NOON)
+    assert kept.exists()
+
+
+# --- a full disk (issue 16): no partial row, one line per outage ---------------------------------------------
+
+
+class FullDisk:
+    """``os.write`` until :attr:`full`; then each row's first write lands half the row and the next
+    (the rest of it) fails with ENOSPC: what a disk filling up mid-row does."""
+
+    def __init__(self) -> None:
+        self.full = False
+        self._half_written = False
+        self.failures = 0
+
+    def __call__(self, fd: int, data: bytes) -> int:
+        if not self.full:
+            return os.write(fd, data)
+        if self._half_written:
+            self._half_written = False
+            self.failures += 1
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        self._half_written = True
+        return os.write(fd, data[: max(1, len(data) // 2)])
+
+
+def test_a_full_disk_leaves_no_partial_row_and_logs_the_outage_once(tmp_path: Path) -> None:
+    disk = FullDisk()
+    path = tmp_path / file_name(DAY)
+    with captured_logging() as stream:
+        rec = DayRecorder(tmp_path, log=get_logger("nanodrift.daemon"), clock=lambda: NOON, write=disk)
+        for i in range(3):
+            assert rec.record(settled(i), NOON + i)
+        disk.full = True
+        for i in range(3, 43):
+            assert not rec.record(settled(i), NOON + i)
+            data = read_csv(path)  # the loader fit uses: the file never ends inside a row, all through the outage
+            assert len(data) == 3 and path.read_bytes().endswith(b"\n")
+        assert disk.failures == 40  # every row did try, and half of each reached the file before it was cut
+        disk.full = False
+        assert rec.record(settled(43), NOON + 43)
+        assert rec.record(settled(44), NOON + 44)
+        events = json_lines(stream)
+    failed = [e for e in events if e["event"] == "record_failed"]
+    resumed = [e for e in events if e["event"] == "record_resumed"]
+    assert len(failed) == 1 and "No space left on device" in failed[0]["error"]
+    assert len(resumed) == 1 and resumed[0]["rows_lost"] == 40 and resumed[0]["path"] == str(path)
+    assert [e["how"] for e in events if e["event"] == "record_file"] == ["created"]  # not one per target
+    assert rec.rows_lost == 40 and rec.rows_written == 5
+    np.testing.assert_array_equal(read_csv(path).t, NOON + np.array([0, 1, 2, 43, 44]))
+
+
+def test_a_row_whose_fsync_fails_is_cut_back_off(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A full disk may first say so at the fsync (delayed allocation): that row is not kept either."""
+    path = tmp_path / "run.csv"
+    appender = CsvAppender(path, ["t_s", "x_um", "T1"])
+    appender.append({"t_s": 1.0, "x_um": 2.0, "T1": 21.0})
+    real_fsync = os.fsync
+
+    def full(fd: int) -> None:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(dataset_module.os, "fsync", full)
+    with pytest.raises(OSError):
+        appender.append({"t_s": 2.0, "x_um": 3.0, "T1": 21.5})
+    monkeypatch.setattr(dataset_module.os, "fsync", real_fsync)
+    assert appender.intact and path.read_text().splitlines() == ["t_s,x_um,T1", "1.0,2.0,21.0"]
+    appender.append({"t_s": 3.0, "x_um": 4.0, "T1": 22.0})
+    appender.close()
+    np.testing.assert_array_equal(read_csv(path).t, [1.0, 3.0])
+
+
+# --- every polled channel (issue 19) ---------------------------------------------------------------------------
+
+
+def test_the_window_of_every_polled_channel_and_when_a_row_is_not_valid() -> None:
+    polled = PolledChannels({"T1": 2.0, "T4": 2.0, "T9": 4.0}, keep_s=30.0)
+    for t, t1, t4 in ((9.0, 21.0, 30.0), (10.5, 21.2, 23.0), (11.5, 21.4, 23.2), (12.5, 21.6, 99.0)):
+        polled.observe("T1", t, t1, True)
+        polled.observe("T4", t, t4, True)
+    polled.observe("T9", 8.5, 19.0, True)  # polled slower than the window: its latest, fresh at the end
+    polled.observe("other", 10.5, 1.0, True)  # not configured: never in a row
+    window = polled.window(10.0, 12.0)  # the mean of each channel's ok readings inside the window
+    assert window.valid and window.values_c == pytest.approx({"T1": 21.3, "T4": 23.1, "T9": 19.0})
+
+    polled.observe("T9", 12.6, 0.0, False)
+    assert not polled.window(12.0, 13.0).valid  # faulted inside the window
+    stale = polled.window(13.0, 14.0)  # T1, T4 read last at 12.5: fresh (2 s); T9's latest is its fault
+    assert not stale.valid and stale.values_c["T9"] == 19.0  # its last ok value: never a NaN
+    assert polled.window(13.0, 14.6).values_c["T1"] == 21.6 and not polled.window(13.0, 14.6).valid
+
+    never = PolledChannels({"T1": 2.0}, keep_s=30.0)
+    never.observe("T1", 10.5, 0.0, False)
+    assert never.window(10.0, 12.0) == Polled({"T1": 0.0}, False)
+
+
+def test_a_row_holds_every_polled_channel_and_an_invalid_one_is_kept_with_valid_0(tmp_path: Path) -> None:
+    rec = DayRecorder(tmp_path, clock=lambda: NOON)
+    every = {"T1": 21.0, "T2": 22.0, "T4": 23.0}
+    assert rec.record(settled(0), NOON, Polled(every, True))  # the model's T1, T2 and a polled T4
+    assert rec.record(settled(1), NOON + 1, Polled({**every, "T4": 23.5}, False))
+    assert rec.record(settled(2), NOON + 2, Polled({"T1": 21.0, "T2": 22.0}, True))  # a reload stopped polling T4
+    first = read_csv(tmp_path / file_name(DAY))
+    assert set(first.channel_names) == {"T1", "T2", "T4"} and len(first) == 2
+    np.testing.assert_array_equal(first.extra["valid"], [1, 0])
+    np.testing.assert_array_equal(first.channels["T4"], [23.0, 23.5])
+    assert len(first.valid_rows()) == 1  # what fit uses
+    assert read_csv(tmp_path / file_name(DAY, 2)).channel_names == ("T1", "T2")
+
+
+def test_the_health_unit_hands_every_polled_channel_over_the_window_to_the_recorder(tmp_path: Path) -> None:
+    sensors = [SensorConfig(name=n, kind="x", max_age_s=5.0) for n in ("T1", "T2", "T4")]
+    sensors.append(SensorConfig(name="interferometer", kind="x", role="position", max_age_s=1.0))
+    config = parse_config({"health": {"settle_s": 3.0, "window_s": 2.0}, "sensors": []}, source="unit.toml")
+    config = config.model_copy(update={"sensors": sensors})
+    model = write_test_model(tmp_path / "m.json")  # its channels: T1, T2
+    table = SensorTable(config.sensors)
+    compensator = Compensator(model, config.actuator, table)
+    health = HealthUnit(config, model, get_logger("nanodrift.daemon"))
+    health.attach(compensator)
+    handed: list[tuple[Settled, float, Polled]] = []
+    health.settled_listeners.append(lambda s, unix_s, polled: handed.append((s, unix_s, polled)))
+
+    def hold(t: float, t4: list[tuple[float, float, bool]]) -> None:
+        for name, value in TEMPS.items():
+            table.update(name, Reading(value, t=t))
+        compensator.observe(t, TEMPS)
+        compensator.compensate(Target(None, 100.0), t, 1.7e9 + t)
+        for k in range(1, 13):
+            now = t + 0.5 * k
+            for name, value in TEMPS.items():
+                health.on_channel(name, now, value, True)
+            for t_read, value, ok in t4:
+                if now - 0.5 < t_read <= now:
+                    health.on_channel("T4", t_read, value, ok)
+            health.on_position(now, now, 100.1, True)
+        health.flush()
+
+    hold(0.0, [(3.2, 23.0, True), (4.2, 23.4, True), (6.0, 50.0, True)])  # window [3, 5]: 23.0 and 23.4
+    hold(20.0, [(23.5, 0.0, False)])  # T4 faulted inside the window
+    assert [s.t for s, _, _ in handed] == [5.0, 25.0]
+    first, second = handed[0][2], handed[1][2]
+    assert first.valid and first.values_c == pytest.approx({**TEMPS, "T4": 23.2})
+    assert not second.valid and second.values_c["T4"] == 50.0 and second.values_c["T1"] == TEMPS["T1"]
+
+    fewer = config.model_copy(update={"sensors": [c for c in sensors if c.name != "T4"]})
+    health.reconfigure(fewer, compensator)  # a reload that stops polling T4: its rows go on without it
+    hold(40.0, [(43.5, 24.0, True)])
+    assert handed[-1][2] == Polled(dict(TEMPS), True)
 
 WRITER = """
 import sys

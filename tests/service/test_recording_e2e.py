@@ -3,14 +3,29 @@ every settled target becomes a row of the day's CSV, readable by ``fit``."""
 
 from __future__ import annotations
 
+import datetime as dt
+import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
-from helpers.daemon_harness import Client, Daemon, free_port, wait_until
+from helpers.daemon_harness import (
+    TEMPS,
+    Client,
+    Daemon,
+    SensorFile,
+    file_sensor_config,
+    free_port,
+    install_file_plugin,
+    wait_until,
+    write_test_model,
+)
+from helpers.wall_clock import WallShift
 
 from daemon.calibration.dataset import Dataset, read_csv
 from daemon.config import DEFAULT_MODEL_PATH
 from daemon.model.model import load_model
+from daemon.service.recorder import file_name
 
 TARGETS_UM = (80.0, 400.0, 160.0, 320.0, 240.0)
 
@@ -56,10 +71,100 @@ def test_the_daemon_records_every_settled_target_in_the_day_file(tmp_path: Path)
     data = recorded(records)
     assert data is not None and len(data) == len(TARGETS_UM)
     model = load_model(DEFAULT_MODEL_PATH)
-    assert data.channel_names == model.channels  # the channels the commands were computed from
+    assert set(model.channels) < set(data.channel_names) == {"T1", "T2", "T3", "T4"}  # every polled channel
+    np.testing.assert_array_equal(data.extra["valid"], 1)  # every channel ok through each window
     np.testing.assert_allclose(data.extra["target_um"], TARGETS_UM)
     np.testing.assert_allclose(data.q, [c["q_um"] for c in commands])
     assert np.all(np.abs(data.x - data.extra["target_um"]) < 0.5)  # measured by the interferometer, compensated
     np.testing.assert_allclose(data.extra["residual_um"], data.x - data.extra["target_um"], atol=1e-12)
     assert np.all(np.abs(data.t - np.array([c["t"] for c in commands])) < 30.0)  # unix seconds, near each command
     assert daemon.log_events("recording")[0]["record_dir"] == str(records)
+
+
+# --- the wall clock only labels (issue 16): steps of the daemon's wall clock, every polled channel ---------
+
+
+def real_utc_day() -> dt.date:
+    return dt.datetime.now(dt.UTC).date()
+
+
+def rows_in(path: Path) -> int:
+    try:
+        return len(read_csv(path))
+    except (OSError, ValueError):  # not there yet, or only its header
+        return 0
+
+
+def test_wall_clock_steps_neither_delete_records_nor_stall_them_and_rows_keep_every_polled_channel(
+        tmp_path: Path) -> None:
+    """+120 days, then -1 h, on the daemon's wall clock only (its monotonic clock runs on): retention
+    decides on the daemon's own clock, rows keep coming (a label that went back opens ``.2.csv``), and
+    every row holds every polled temperature channel, the model's (T1, T2) and T4, which it does not use."""
+    records = tmp_path / "records"
+    records.mkdir()
+    today = real_utc_day()
+    recent = [records / file_name(today - dt.timedelta(days=k)) for k in range(31)]
+    header = "t_s,x_um,q_um,target_um,residual_um,T1,T2\n"
+    for path in recent:
+        path.write_text(header)
+    expired = records / file_name(today - dt.timedelta(days=91))  # beyond keep_days of the real today
+    expired.write_text(header)
+
+    shift = WallShift(tmp_path / "wall_shift")
+    plugins = install_file_plugin(tmp_path / "plugins")
+    model_path = tmp_path / "model.json"
+    model = write_test_model(model_path)
+    sensors = SensorFile(tmp_path / "sensors.json", {**TEMPS, "T4": 23.456, "interferometer": 0.0})
+    port = free_port()
+    extra = ('[health]\nsettle_s = 0.1\nwindow_s = 0.2\nrecord_dir = "records"\nrecord_keep_days = 90\n'
+             f'[[sensors]]\nname = "interferometer"\nrole = "position"\nkind = "file"\npath = "{sensors.path}"\n'
+             "interval_s = 0.05\nmax_age_s = 1.0\n")
+    config = tmp_path / "nanodrift.toml"
+    config.write_text(file_sensor_config(tmp_path, cell="recstep", port=port, model_path=model_path,
+                                         sensor_file=sensors.path, channels=("T1", "T2", "T4"), extra=extra))
+    daemon = Daemon(["--config", str(config)], tmp_path / "daemon.log", [plugins, WallShift.SITE_DIR],
+                    env=shift.env())
+    try:
+        daemon.wait_log("serving", timeout=30)
+        client = Client(port, "recstep")
+        try:
+            client.wait_ready(["T1", "T2", "T4", "interferometer"])
+
+            def settle(x_um: float, target_id: str, path: Path) -> dict[str, Any]:
+                """Serve ``x_um`` with the stage 0.1 um beyond it; until its row is in ``path``."""
+                before = rows_in(path), client.status()["health"]["n"]
+                sensors.set(interferometer=x_um + 0.1)
+                ok, command = client.query({"x_um": x_um, "id": target_id})
+                assert ok, command
+                wait_until(lambda: rows_in(path) > before[0], 15, f"the row of {target_id} in {path.name}")
+                assert client.status()["health"]["n"] > before[1]  # the health unit has its residual too
+                return command
+
+            # +120 days, landing at noon (UTC) of that day: the -1 h step below stays within it
+            future = dt.datetime.combine(today + dt.timedelta(days=120), dt.time(12), dt.UTC)
+            shift.step(future.timestamp() - time.time())
+            future_file = records / file_name(future.date())
+            first = [settle(x, f"fwd-{i}", future_file) for i, x in enumerate((80.0, 240.0, 400.0))]
+            assert all(abs(c["t"] - future.timestamp()) < 600 for c in first)  # the labels did step
+            assert all(p.exists() for p in recent)  # retention decides on the daemon's clock: nothing to expire
+            assert not expired.exists()  # ... and still expires what is old by it
+
+            shift.step(-3600.0)  # NTP steps the clock back an hour
+            second_file = records / file_name(future.date(), 2)
+            for i, x in enumerate((160.0, 320.0)):
+                settle(x, f"back-{i}", second_file)
+        finally:
+            client.close()
+    finally:
+        assert daemon.stop() == 0
+    assert all(p.exists() for p in recent)
+    assert daemon.log_events("record_failed") == []
+    for path, n in ((future_file, 3), (second_file, 2)):
+        data = read_csv(path)
+        assert len(data) == n
+        assert set(data.channel_names) == {"T1", "T2", "T4"}  # every polled channel, not only the model's
+        assert set(model.channels) < set(data.channel_names)
+        np.testing.assert_allclose(data.channels["T4"], 23.456)
+        np.testing.assert_allclose(data.channels["T1"], TEMPS["T1"])
+        np.testing.assert_allclose(data.extra["residual_um"], 0.1, atol=1e-9)
+        np.testing.assert_array_equal(data.extra["valid"], 1)
