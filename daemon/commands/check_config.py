@@ -11,6 +11,7 @@ those errors too, for a commissioned cell where they are mistakes.
 from __future__ import annotations
 
 import argparse
+import ipaddress
 import re
 import sys
 from collections.abc import Sequence
@@ -51,7 +52,12 @@ _LOCAL_ENDPOINT = re.compile(r"^(?:[a-z]+/(?:127\.\d+\.\d+\.\d+|localhost|\[::1\
 
 
 def network_warnings(config: Config) -> list[str]:
-    """An open listener without zenoh's authentication and access control (README, "Securing the network")."""
+    """An open listener: zenoh's without its authentication and access control (README, "Securing the
+    network"), or the metrics page, which has no authentication at all."""
+    return zenoh_exposed(config) + metrics_exposed(config)
+
+
+def zenoh_exposed(config: Config) -> list[str]:
     if config.zenoh.config_file is not None:
         return []
     exposed = [e for e in config.zenoh.listen if not _LOCAL_ENDPOINT.match(e.split("#", 1)[0])]
@@ -60,6 +66,22 @@ def network_warnings(config: Config) -> list[str]:
     return [f"zenoh.listen: {', '.join(exposed)} can be reached from other computers, and without a "
             "zenoh.config_file (credentials, access control) any of them may send targets or put its own "
             "command: see README.md, 'Securing the network' (config/zenoh-secure.json5)"]
+
+
+def metrics_exposed(config: Config) -> list[str]:
+    """``[metrics] listen`` on anything but loopback (0.0.0.0, ::, a lab address, a host name)."""
+    host = config.metrics.host
+    if not host or host == "localhost":
+        return []
+    try:
+        if ipaddress.ip_address(host).is_loopback:
+            return []
+    except ValueError:  # a host name: it may resolve to any interface
+        pass
+    return [f"metrics.listen: {config.metrics.listen}: the metrics page is open to the network (no "
+            "authentication: whoever reaches the port reads the cell's sensors, model and counters); keep it on "
+            "127.0.0.1, or on a monitoring network behind a firewall (the unit allows only localhost until "
+            "a drop-in's IPAddressAllow=)"]
 
 
 def config_warnings(config: Config, model: Model | None) -> list[str]:
