@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import asyncio
 import bisect
+import errno
 import gzip
 import importlib.metadata
 import math
@@ -289,8 +290,8 @@ class MetricsServer:
         try:
             self._server = await asyncio.start_server(self._accept, host, port, limit=self.max_header_bytes)
         except (OSError, UnicodeError) as error:  # UnicodeError: a host name the resolver cannot encode
-            errno = getattr(error, "errno", None)
-            reason = "already in use" if errno == 98 else getattr(error, "strerror", None) or str(error)
+            in_use = getattr(error, "errno", None) == errno.EADDRINUSE
+            reason = "already in use" if in_use else getattr(error, "strerror", None) or str(error)
             raise UserError(f"[metrics] listen = {self.listen!r}: cannot serve metrics there ({reason})") from None
         # one thread renders the page: concurrent scrapes queue instead of each taking a thread
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="metrics")
