@@ -16,6 +16,7 @@ sections (an actuator's hub, procedure points inside the workspace) read in one 
 
 from __future__ import annotations
 
+import ipaddress
 import math
 import re
 import tomllib
@@ -93,8 +94,16 @@ class ModelSettings(_Strict):
         "/var/lib/nanodrift/model.json for hardware"))
 
 
+#: a host name's label (RFC 1123): 1 to 63 letters, digits and inner hyphens
+_HOST_LABEL = re.compile(r"[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?")
+
+
 class MetricsSettings(_Strict):
-    """``[metrics]``: Prometheus metrics over HTTP (``daemon.service.metrics``); off unless ``listen`` is set."""
+    """``[metrics]``: Prometheus metrics over HTTP (``daemon.service.metrics``); off unless ``listen`` is set.
+
+    The host is checked here (an IP address, ``[v6]`` in brackets, or a host name of 1-63 character
+    labels and 253 characters in all), so that a mistyped one is refused by ``check-config`` rather
+    than failing in the resolver at start."""
 
     listen: str = Field(default="", description='"" = off; else "HOST:PORT", e.g. "127.0.0.1:9464" (/metrics)')
 
@@ -103,10 +112,38 @@ class MetricsSettings(_Strict):
     def _host_port(cls, value: str) -> str:
         if value == "":
             return value
-        match = re.fullmatch(r"(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.\-]+):(?P<port>\d{1,5})", value)
+        match = re.fullmatch(r"(?P<host>\[[^\]]*\]|[^:\[\]]+):(?P<port>\d{1,5})", value)
         if match is None or not 0 < int(match["port"]) < 65536:
-            raise ValueError('expected "HOST:PORT" with a port from 1 to 65535, e.g. "127.0.0.1:9464"')
+            raise ValueError('expected "HOST:PORT" with a port from 1 to 65535, e.g. "127.0.0.1:9464" '
+                             '("[::1]:9464" for IPv6)')
+        host = match["host"]
+        if not cls._valid_host(host):
+            shown = host if len(host) <= 40 else f"{host[:40]}... ({len(host)} characters)"
+            raise ValueError(f"host {shown!r} is not an IP address (IPv6 in brackets) or a host name (labels of "
+                             "1 to 63 letters, digits or inner '-', at most 253 characters)")
         return value
+
+    @classmethod
+    def _valid_host(cls, host: str) -> bool:
+        if host.startswith("["):
+            try:
+                ipaddress.IPv6Address(host[1:-1])
+            except ValueError:
+                return False
+            return True
+        labels = host.split(".")
+        if all(label.isdigit() for label in labels):  # looks like IPv4: must be one
+            try:
+                ipaddress.IPv4Address(host)
+            except ValueError:
+                return False
+            return True
+        return len(host) <= 253 and all(_HOST_LABEL.fullmatch(label) for label in labels)
+
+    @property
+    def host(self) -> str:
+        """The host of ``listen`` without IPv6 brackets ("" when off)."""
+        return self.listen.rpartition(":")[0].strip("[]")
 
 
 #: ``[health] record_keep_days`` at most: a century. The retention date (today minus the days) must be a

@@ -12,6 +12,7 @@ commissioned cell where they are mistakes.
 from __future__ import annotations
 
 import argparse
+import ipaddress
 import re
 import sys
 from collections.abc import Sequence
@@ -61,7 +62,12 @@ _LOCAL_ENDPOINT = re.compile(r"^(?:[a-z]+/(?:127\.\d+\.\d+\.\d+|localhost|\[::1\
 
 
 def network_warnings(config: Config) -> list[str]:
-    """An open listener without zenoh's authentication and access control (README, "Securing the network")."""
+    """An open listener: zenoh's without its authentication and access control (README, "Securing the
+    network"), or the metrics page, which has no authentication at all."""
+    return zenoh_exposed(config) + metrics_exposed(config)
+
+
+def zenoh_exposed(config: Config) -> list[str]:
     if config.zenoh.config_file is not None:
         return []
     exposed = [e for e in config.zenoh.listen if not _LOCAL_ENDPOINT.match(e.split("#", 1)[0])]
@@ -91,6 +97,22 @@ def safe_ramp_warnings(config: Config) -> list[str]:
             f"the {SAFE_RAMP_BUDGET_S:g} s of the {STOP_TIMEOUT_S:g} s stop timeout it may use: the daemon gives up "
             f"and the stage stays short of the safe voltage; allow at least {needed:.4g} um/s, or narrow "
             "[v_min, v_max]"]
+
+
+def metrics_exposed(config: Config) -> list[str]:
+    """``[metrics] listen`` on anything but loopback (0.0.0.0, ::, a lab address, a host name)."""
+    host = config.metrics.host
+    if not host or host == "localhost":
+        return []
+    try:
+        if ipaddress.ip_address(host).is_loopback:
+            return []
+    except ValueError:  # a host name: it may resolve to any interface
+        pass
+    return [f"metrics.listen: {config.metrics.listen}: the metrics page is open to the network (no "
+            "authentication: whoever reaches the port reads the cell's sensors, model and counters); keep it on "
+            "127.0.0.1, or on a monitoring network behind a firewall (the unit allows only localhost until "
+            "a drop-in's IPAddressAllow=)"]
 
 
 def config_warnings(config: Config, model: Model | None) -> list[str]:

@@ -92,12 +92,12 @@ class Service:
                              (signal.SIGHUP, self.request_reload)):
             loop.add_signal_handler(sig, handler)
         self._log_start()
-        self.start_metrics()
+        await self.start_metrics()
         conf = session_config(self.state.config.zenoh, **self.zenoh_overrides)
         try:
             session = zenoh.open(conf)
         except zenoh.ZError as error:
-            self.stop_metrics()
+            await self.stop_metrics()
             sentence = describe_zenoh_error(error)
             self.log.error("zenoh_open_failed", error=sentence)
             raise UserError(sentence) from None
@@ -111,7 +111,7 @@ class Service:
         except DriverSetupError as error:
             self.log.error("driver_setup_failed", error=str(error))
             bus.close()
-            self.stop_metrics()
+            await self.stop_metrics()
             return 1
         # ready once every device has been read (or has failed) once: at most an open and a read each
         await first_attempts(self.pollers, min(10.0, 0.5 + 2 * max((p.group.timeout_s for p in self.pollers),
@@ -155,7 +155,7 @@ class Service:
                 bus.withdraw()  # clients see the daemon gone
                 await asyncio.to_thread(self.recorder.close)  # the rows already queued reach the disk
                 bus.close()
-                self.stop_metrics()
+                await self.stop_metrics()
                 self.log.info("stopped")
 
     def serve(self, loop: asyncio.AbstractEventLoop, targets: TargetHandler, status: StatusHandler) -> None:
@@ -163,25 +163,26 @@ class Service:
         assert self.bus is not None
         self.bus.serve(loop, targets.on_target, status.on_status)
 
-    def start_metrics(self) -> None:
-        """``[metrics] listen``: Prometheus' ``/metrics``, read at scrape time (a change needs a restart)."""
+    async def start_metrics(self) -> None:
+        """``[metrics] listen``: Prometheus' ``/metrics`` served from this loop, read at scrape time (a
+        change needs a restart)."""
         listen = self.state.config.metrics.listen
         if not listen:
             return
         server = MetricsServer(listen, lambda: status_doc(self.state, self.healthy(), self.actuation, self.health),
                                self.latency)
         try:
-            server.start()
+            await server.start()
         except UserError as error:
             self.log.error("metrics_failed", error=str(error))
             raise
         self.metrics = server
         self.log.info("metrics_listening", url=server.url)
 
-    def stop_metrics(self) -> None:
-        if self.metrics is not None:
-            self.metrics.stop()
-            self.metrics = None
+    async def stop_metrics(self) -> None:
+        metrics, self.metrics = self.metrics, None
+        if metrics is not None:
+            await metrics.stop()
 
     def request_stop(self) -> None:
         self._stop.set()

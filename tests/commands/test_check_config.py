@@ -186,3 +186,31 @@ def test_a_model_path_that_is_no_regular_file_is_refused_at_once(tmp_path: Path,
     assert (f"{path}:2: model.path: {model}: {what}, not a model file: expected a regular file "
             "(nanodrift-model/1 JSON)") in result.stderr, result.stderr
     assert "Traceback" not in result.stderr and time.monotonic() - started < 30
+
+
+@pytest.mark.parametrize(
+    ("listen", "exposed"),
+    [("0.0.0.0:9464", True), ("[::]:9464", True), ("192.168.1.10:9464", True), ("prometheus.lab:9464", True),
+     ("127.0.0.1:9464", False), ("127.0.0.2:9464", False), ("localhost:9464", False), ("[::1]:9464", False)],
+)
+def test_a_metrics_page_other_computers_reach_is_a_warning(tmp_path: Path, capsys, listen: str, exposed: bool) -> None:
+    """Issue 16: the page has no authentication; on loopback only unless the operator means it."""
+    write_test_model(tmp_path / "model.json")
+    path = config(tmp_path, "model.json", extra=f'[metrics]\nlisten = "{listen}"\n')
+    code, out, err = check(capsys, str(path))
+    assert code == 0 and f"{path}: ok" in out
+    # line 4: [model], path, [metrics], then the listen key
+    warning = f"{path}:4: warning: metrics.listen: {listen}: the metrics page is open to the network"
+    assert (warning in err) is exposed, err
+    code, _, err = check(capsys, str(path), "--strict")
+    assert code == (2 if exposed else 0), err
+
+
+def test_a_metrics_host_that_is_no_host_name_exits_2_naming_metrics_listen(tmp_path: Path, capsys) -> None:
+    """It used to pass here and fail at start with a traceback from the resolver (a label over 63 characters)."""
+    write_test_model(tmp_path / "model.json")
+    path = config(tmp_path, "model.json", extra=f'[metrics]\nlisten = "{"a" * 64}.lab:9464"\n')
+    code, out, err = check(capsys, str(path))
+    assert code == 2 and out == ""
+    assert f"{path}:4: metrics.listen: " in err and "is not an IP address" in err, err
+    assert "Traceback" not in err

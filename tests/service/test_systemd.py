@@ -66,6 +66,17 @@ def test_the_units_stop_timeout_is_the_one_the_config_checks_the_safe_ramp_again
     assert SAFE_RAMP_BUDGET_S < STOP_TIMEOUT_S
 
 
+def test_unit_raises_the_file_descriptor_limit_and_says_why() -> None:
+    """Issue 16: idle connections took the default 1024 descriptors, and with them sensors and targets."""
+    assert unit_settings()["LimitNOFILE"] == ["65536"]
+    lines = UNIT.read_text().splitlines()
+    above = lines[:next(n for n, line in enumerate(lines) if line.startswith("LimitNOFILE="))]
+    comment = []  # the comment lines right above the setting
+    while above and above[-1].startswith("#"):
+        comment.insert(0, above.pop())
+    assert "issue 16" in " ".join(comment) and "1024" in " ".join(comment), comment
+
+
 def test_unit_reaches_only_localhost_and_says_how_to_widen_it_in_a_drop_in() -> None:
     unit = unit_settings()
     assert unit["IPAddressDeny"] == ["any"]
