@@ -49,7 +49,7 @@ HEALTH_STATES = ("unknown", "ok", "degraded")
 #: every kind of refusal the daemon produces (``Refusal(kind, ...)``; ``stale``/``fault`` are a channel's
 #: state): ``nanodrift_errors_total`` has a series from 0 for each, so ``rate()`` works from the first error
 ERROR_KINDS = ("out_of_workspace", "no_model", "missing_channel", "stale", "fault", "voltage_limit",
-               "actuator_fault", "bad_payload", "internal")
+               "actuator_fault", "bad_payload", "shutting_down", "internal")
 
 
 def build_version() -> str:
