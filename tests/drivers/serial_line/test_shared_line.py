@@ -15,6 +15,7 @@ from collections.abc import Awaitable, Callable, Iterator
 from pathlib import Path
 
 import pytest
+from helpers.log_capture import captured_logging, json_lines
 from helpers.serial_helpers import FakeGcsController
 
 from daemon.config import ConfigError, parse_config
@@ -122,6 +123,26 @@ def test_unread_input_before_a_request_never_starts_its_answer(controller: FakeG
         controller.inject(b"1=9.9999\n")  # a whole line nobody asked for, between two polls
         await until(lambda: group.late_answers == 2, timeout=5.0, what="the stray line is counted")
         assert (await group.read())["stage"].value == pytest.approx(553.0)
+        await group.close()
+
+    run(body())
+
+
+def test_late_answers_are_logged_once_per_episode(controller: FakeGcsController) -> None:
+    async def body() -> None:
+        group, _ = shared(controller.port)
+        await group.open()
+        controller.voltage = 1.0
+        with captured_logging() as stream:
+            for n in range(1, 4):  # an episode: three stray lines, and the poll between them drains
+                controller.inject(b"1=9.9999\n")
+                await until(lambda n=n: group.late_answers == n, timeout=5.0, what=f"stray line {n} counted")
+            assert (await group.read())["stage"].value == pytest.approx(100.0)  # drained first: still the episode
+            assert (await group.read())["stage"].value == pytest.approx(100.0)  # a clean request: it is over
+            controller.inject(b"1=9.9999\n")  # a new episode
+            await until(lambda: group.late_answers == 4, timeout=5.0, what="the next stray line counted")
+            events = [e for e in json_lines(stream) if e.get("event") == "serial_late_answers"]
+        assert len(events) == 2 and events[0]["port"] == controller.port and events[0]["line"] == "'1=9.9999'"
         await group.close()
 
     run(body())
