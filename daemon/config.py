@@ -537,6 +537,7 @@ def parse_config(data: Mapping[str, Any], source: str = BUILTIN_SOURCE, base_dir
                        actuator=(hub_user, actuator.kind) if actuator is not None and hub_user is not None else None)
     if config is not None and actuator is not None:
         _check_points(parse, config.procedure, actuator)
+    _check_across(parse, sensors, actuator)
     if actuator is not None:
         _check_valid_ranges(parse, sensors, actuator)
 
@@ -617,8 +618,14 @@ def _parse_actuator(parse: _Parse, raw: Any, virtual_cell: bool) -> ActuatorConf
         if options is not None and actuator is not None:
             problem = options.voltage_range_problem(actuator.v_min, actuator.v_max, actuator.volts_per_um)
             if problem:
-                parse.problems.append(f"actuator: {problem}")
+                parse.problems.append(actuator_line(options, problem))
     return actuator.with_options(options) if actuator is not None else None
+
+
+def actuator_line(options: ActuatorOptions, message: str) -> str:
+    """``actuator.command: ...`` for a plugin's message that starts with one of its keys, else ``actuator: ...``."""
+    key = message.split(":", 1)[0]
+    return f"actuator.{message}" if key in type(options).model_fields else f"actuator: {message}"
 
 
 def _virtual_kind() -> str:
@@ -631,6 +638,20 @@ def _virtual_kind() -> str:
         if plugin.virtual_cell and plugin.actuator_model is not None:
             return kind
     return ZENOH_KIND
+
+
+def _check_across(parse: _Parse, sensors: Sequence[tuple[int, SensorConfig]],
+                  actuator: ActuatorConfig | None) -> None:
+    """Each plugin's :meth:`~drivers.base.DriverPlugin.config_problems` over its sensors and its actuator."""
+    options = actuator.options if actuator is not None else None
+    kinds = dict.fromkeys([s.kind for _, s in sensors] + ([options.kind] if options is not None else []))
+    for kind in kinds:
+        plugin = parse._plugins.get(kind)  # loaded (or reported) where the entries were validated
+        if plugin is None:
+            continue
+        mine = [(i, s) for i, s in sensors if s.kind == kind]
+        parse.problems.extend(plugin.config_problems(mine, options if options is not None and options.kind == kind
+                                                     else None))
 
 
 def _check_points(parse: _Parse, procedure: ProcedureSettings, actuator: ActuatorConfig) -> None:

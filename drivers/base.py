@@ -317,8 +317,15 @@ class ActuatorOptions(BaseModel):
         Checked when the config is read, so a command the limits allow is never refused later, nor
         written as another voltage: an output whose one step is coarser than the stage can use (see
         :func:`output_step_problem`; ``volts_per_um`` is the ``[actuator]`` gain) is refused too.
+        A problem that starts with one of this model's keys (``command: ...``) is reported as
+        ``actuator.command: ...`` (the key's line), else as ``actuator: ...``.
         """
         return None
+
+    def config_warnings(self, v_min: float, v_max: float, volts_per_um: float, offset_v: float) -> list[str]:
+        """What ``check-config`` warns about (the daemon accepts it): e.g. a resolution coarser than the
+        stage needs. Lines named like :meth:`voltage_range_problem`'s (``command: ...``)."""
+        return []
 
     def hub_name(self) -> str | None:
         """The ``[[hubs]]`` entry the actuator shares with sensors (None: none); see :meth:`SensorConfig.hub_name`."""
@@ -366,6 +373,14 @@ class DriverPlugin(ABC):
         ``context.resources`` to share (one lock per connection).
         """
         raise DriverSetupError(f"driver {self.name!r} cannot move the stage")
+
+    def config_problems(self, sensors: Sequence[tuple[int, SensorConfig]],
+                        actuator: ActuatorOptions | None) -> list[str]:
+        """Problems only seen across entries, found when the config is read (so check-config reports
+        them): this kind's sensors (with their index in ``[[sensors]]``) and, when ``[actuator]`` is
+        of this kind, its options. Each line names where, in the errors' form:
+        ``sensors[2] (T3).port: ...`` or ``actuator.port: ...``."""
+        return []
 
     def default_sensors(self, section: BaseModel) -> list[SensorConfig]:
         """Sensors implied by this plugin's section when the config lists none (virtual cells)."""

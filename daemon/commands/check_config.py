@@ -4,7 +4,8 @@ Exit 2 (with ``<file>:<line>: <field>: <problem>`` lines) for everything the dae
 a reload: an invalid config, a model file that is missing or cannot be loaded, a ``[zenoh]
 config_file`` zenoh cannot read. Exit 0 with warnings on stderr for what the daemon accepts but an
 operator should know (a channel the model needs that no sensor provides, sensors the model does not
-use, a ramp to ``safe_voltage_v`` longer than a stop may take), in the errors' form
+use, a ramp to ``safe_voltage_v`` longer than a stop may take, an actuator's own warnings such as a
+command template coarser than the stage needs), in the errors' form
 (``<file>:<line>: warning: sensors[2] (T3).name: ...``); ``--strict`` makes those errors too, for a
 commissioned cell where they are mistakes.
 """
@@ -27,6 +28,7 @@ from daemon.config import (
     ZENOH_KIND,
     Config,
     ConfigError,
+    actuator_line,
     load_config,
     locate,
     missing_model_channels,
@@ -115,9 +117,18 @@ def metrics_exposed(config: Config) -> list[str]:
             "a drop-in's IPAddressAllow=)"]
 
 
+def actuator_warnings(config: Config) -> list[str]:
+    """The actuator plugin's own warnings (a command template coarser than the stage needs), named by key."""
+    a = config.actuator
+    if a.options is None:
+        return []
+    return [actuator_line(a.options, w) for w in a.options.config_warnings(a.v_min, a.v_max, a.volts_per_um,
+                                                                            a.offset_v)]
+
+
 def config_warnings(config: Config, model: Model | None) -> list[str]:
     """``field: message`` lines for what the daemon accepts but an operator should know."""
-    warnings = network_warnings(config)
+    warnings = network_warnings(config) + actuator_warnings(config)
     warnings += safe_ramp_warnings(config)
     if model is None:
         return warnings

@@ -6,16 +6,24 @@ outside the tolerance, or the controller reporting an error is a :class:`DeviceE
 port, what was written and what came back. The port is the sensor group's when a sensor reads the
 same controller (one lock per port: each request gets its own answer), else the actuator's own.
 The readback query also tells where the output is before the first command (:meth:`read_back`).
+
+What is written is what is checked: the template is rendered field by field and the numbers the
+string carries are parsed back (``template.py``). A ``voltage_v`` that the template's rounding would
+put outside ``limits_v`` is written as the nearest value inside them at the template's precision
+(``{voltage_v:.1f}`` with ``v_max = 9.17`` writes ``9.1``, never ``9.2``); ``ValueError`` when the
+template can write no value inside. The readback is compared with the number actually sent.
 """
 
 from __future__ import annotations
 
+import math
 import re
 from typing import Literal
 
 from drivers.base import Actuator, DeviceError
 from drivers.serial_line.config import SerialLineActuatorConfig
 from drivers.serial_line.line import SerialLineGroup
+from drivers.serial_line.template import CommandTemplate
 
 SHOWN_CHARS = 60  # of an unexpected answer in a message
 
@@ -31,6 +39,7 @@ class SerialLineActuator(Actuator):
         self.owns_port = owns_port
         self.description = f"controller on {config.port}"
         self.writes = 0  # commands accepted, for tests and benchmarks
+        self.template = CommandTemplate(config.command)
         self._readback = re.compile(config.readback_pattern)
         self._error_ok = re.compile(config.error_ok)
 
@@ -45,9 +54,28 @@ class SerialLineActuator(Actuator):
         if self.owns_port:  # a shared port stays with its sensor
             await self.port.close()
 
+    def render(self, q_um: float, voltage_v: float, x_um: float | None = None) -> tuple[str, dict[str, float]]:
+        """What one command writes, and the number each field carries in it (``voltage_v`` kept within
+        ``limits_v``; :class:`ValueError` when it cannot be)."""
+        values = {"voltage_v": voltage_v, "q_um": q_um, "x_um": q_um if x_um is None else x_um}
+        try:
+            return self.template.render(values, self.limits_v)
+        except ValueError as error:
+            raise ValueError(f"{self.description}: command {self.config.command!r}: {error}") from None
+
+    def sent_voltage(self, voltage_v: float) -> float:
+        """The voltage the controller reads in the line for ``voltage_v`` (a closed-loop template, which
+        writes ``q_um``, carries no voltage: then ``voltage_v`` itself)."""
+        values = {"voltage_v": voltage_v, "q_um": 0.0, "x_um": 0.0}
+        try:
+            _, sent = self.template.render(values, self.limits_v)
+        except ValueError as error:
+            raise ValueError(f"{self.description}: command {self.config.command!r}: {error}") from None
+        return sent.get("voltage_v", voltage_v)
+
     def text(self, q_um: float, voltage_v: float, x_um: float | None = None) -> str:
         """What one command writes."""
-        return self.config.command.format(voltage_v=voltage_v, q_um=q_um, x_um=q_um if x_um is None else x_um)
+        return self.render(q_um, voltage_v, x_um)[0]
 
     async def _ask(self, query: str, after: str) -> str:
         answer = await self.port.exchange(query.encode("latin-1"), answer=True, timeout_s=self.config.timeout_s)
@@ -66,7 +94,7 @@ class SerialLineActuator(Actuator):
             value = float(match.group("value")) if match else None
         except ValueError:
             value = None
-        if value is None:
+        if value is None or not math.isfinite(value):  # never a value the answer does not carry
             raise DeviceError(f"{self.description}: unexpected answer {_shown(answer)} to {c.readback!r} after "
                               f"{after!r} (expected pattern {c.readback_pattern!r})")
         return value, answer
@@ -82,12 +110,11 @@ class SerialLineActuator(Actuator):
 
     async def command(self, q_um: float, voltage_v: float, *, x_um: float | None = None) -> None:
         c = self.config
-        text = self.text(q_um, voltage_v, x_um)
-        fields = {"voltage_v": voltage_v, "q_um": q_um, "x_um": q_um if x_um is None else x_um}
+        text, sent = self.render(q_um, voltage_v, x_um)  # ValueError before anything is written
         await self.port.exchange(text.encode("latin-1"), answer=False, timeout_s=c.timeout_s)
         if c.readback:
             value, answer = await self._read(text)
-            expected = fields[c.expected_field]
+            expected = sent[c.expected_field]  # what the device was told, not what was asked
             if not abs(value - expected) <= c.readback_tolerance:
                 raise DeviceError(f"{self.description}: wrote {text!r} ({c.expected_field} {expected:.6g}), read back "
                                   f"{value:.6g} (answer {_shown(answer)}; tolerance {c.readback_tolerance:g})")

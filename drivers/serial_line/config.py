@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import re
 import string
 from typing import Literal
@@ -9,6 +10,7 @@ from typing import Literal
 from pydantic import Field, FiniteFloat, field_validator, model_validator
 
 from drivers.base import ActuatorOptions, SensorConfig
+from drivers.serial_line.template import COMMAND_FIELDS, CommandTemplate
 
 #: a line that is just a number: "12345.6", "-0.25", "+1.5e3" (anchored: patterns are searched)
 DEFAULT_PATTERN = r"^\s*(?P<value>[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*$"
@@ -74,14 +76,22 @@ class SerialLineSensorConfig(SensorConfig):
         return self.query == ""
 
 
-#: what a command template may name
-COMMAND_FIELDS = ("voltage_v", "q_um", "x_um")
+#: a command template coarser than this much stage travel is warned about (check-config): the daemon
+#: compensates drift of tens of nanometres, so a step of the written number worth more than 10 nm is
+#: visible in the position (a fixed number of millivolts would mean 10 nm or 100 nm by the gain)
+RESOLUTION_UM = 0.01
+
 ReadbackField = Literal["voltage_v", "q_um", "x_um"]
 
 
 def template_fields(template: str) -> list[str]:
     """The field names a ``str.format`` template uses, in order (``ValueError`` for a malformed one)."""
     return [name for _, name, _, _ in string.Formatter().parse(template) if name is not None]
+
+
+def _decimals_for(step: float) -> str:
+    """The ``.Nf`` precision whose step is at most ``step`` (e.g. ``.4`` for 2e-4)."""
+    return f".{max(0, math.ceil(-math.log10(step) - 1e-9)) if step > 0 else 6}"
 
 
 class SerialLineActuatorConfig(ActuatorOptions):
@@ -116,16 +126,7 @@ class SerialLineActuatorConfig(ActuatorOptions):
     @field_validator("command")
     @classmethod
     def _template(cls, template: str) -> str:
-        try:
-            names = template_fields(template)
-        except ValueError as error:
-            raise ValueError(f"not a valid format template: {error}") from None
-        unknown = sorted({n for n in names if n not in COMMAND_FIELDS})
-        if unknown:
-            raise ValueError(f"unknown field(s) {', '.join('{' + n + '}' for n in unknown)}; "
-                             f"fields: {', '.join(COMMAND_FIELDS)}")
-        if not names:
-            raise ValueError("names none of the fields voltage_v, q_um, x_um: every command would write the same")
+        CommandTemplate(template)  # ValueError naming the field it cannot take
         try:
             template.format(**dict.fromkeys(COMMAND_FIELDS, 1.0))
         except (ValueError, IndexError) as error:
@@ -159,3 +160,46 @@ class SerialLineActuatorConfig(ActuatorOptions):
     def expected_field(self) -> str:
         """The field whose value the readback must match."""
         return self.readback_field or template_fields(self.command)[0]
+
+    @property
+    def template(self) -> CommandTemplate:
+        return CommandTemplate(self.command)
+
+    def voltage_range_problem(self, v_min: float, v_max: float) -> str | None:
+        """A ``voltage_v`` field that cannot write two different voltages within the limits (``.0f``
+        with [-0.5, 0.4] writes 0 for all of them: the stage could not move), or none at all."""
+        for field in self.template.fields:
+            if field.name != "voltage_v":
+                continue
+            where = (f"command: {field.text} cannot write the voltages within [v_min, v_max] = "
+                     f"[{v_min:g}, {v_max:g}] V")
+            try:
+                low, high = field.inside(v_min, v_min, v_max), field.inside(v_max, v_min, v_max)
+            except ValueError:
+                return (f"{where}: no value it writes lies within them ({v_min:g} is written "
+                        f"{field.format(v_min).strip()!r}, {v_max:g} {field.format(v_max).strip()!r}); "
+                        f"give it more decimals, e.g. {{voltage_v:{_decimals_for(v_max - v_min)}f}}")
+            if low[1] == high[1]:
+                return (f"{where}: it writes every one of them as {low[0].strip()!r}, so the stage could not move; "
+                        f"give it more decimals, e.g. {{voltage_v:{_decimals_for(v_max - v_min)}f}}")
+        return None
+
+    def config_warnings(self, v_min: float, v_max: float, volts_per_um: float, offset_v: float) -> list[str]:
+        """A field whose step is coarser than :data:`RESOLUTION_UM` of stage travel: every command is
+        rounded to it on the way to the stage (``{voltage_v:.2f}`` at 0.02 V/um: 500 nm steps)."""
+        warnings: list[str] = []
+        q_ends = [(v - offset_v) / volts_per_um for v in (v_min, v_max)]
+        for field in self.template.fields:
+            if field.name == "voltage_v":
+                step = float(field.step(max(abs(v_min), abs(v_max))))
+                step_um = step / abs(volts_per_um)
+                unit, suggestion = f"{step:g} V", _decimals_for(RESOLUTION_UM * abs(volts_per_um))
+                per = f", {step_um * 1000:g} nm of stage travel at volts_per_um = {volts_per_um:g}"
+            else:
+                step_um = float(field.step(max(abs(q) for q in q_ends)))
+                unit, suggestion, per = f"{step_um:g} um", _decimals_for(RESOLUTION_UM), ""
+            if step_um > RESOLUTION_UM * (1 + 1e-9):
+                warnings.append(f"command: {field.text} writes {field.name} in steps of {unit}{per}, coarser than "
+                                f"{RESOLUTION_UM * 1000:g} nm: every command reaches the stage rounded to that; "
+                                f"e.g. {{{field.name}:{suggestion}f}}")
+        return warnings

@@ -6,11 +6,29 @@
   with its arrival time. A poll returns it if it arrived within the last ``timeout_s``, else waits
   up to ``timeout_s`` for the next one.
 
+A port that answers requests (a queried sensor, an actuator's controller, or both on one port) is a
+*solicited* line, and its answers are matched to the request that asked for them:
+
+- one request outstanding at a time (the port's lock), and its answer is the *first* line after it;
+- before a request is written, what waits unread (a fragment of a line, bytes in the OS buffer) is
+  dropped, and lines already received belong to nobody;
+- a line that arrives while no request waits (an answer that came after its request timed out, a
+  second line to one request) is a *late answer*: dropped, counted in ``late_answers``, logged once
+  per episode (``serial_late_answers``), and it makes the line *dirty*; so does a request that timed
+  out or was cancelled. Before the next request on a dirty line the driver waits until nothing has
+  arrived for ``min(timeout_s, QUIET_S)`` (the quiet period; the wait is at most ``timeout_s`` plus
+  that), discarding what comes: a late answer to an earlier request is not taken for the answer to
+  the next one. A line that does not go quiet is a fault for that request, with nothing sent.
+
+An answer later than the quiet period after its request timed out cannot be told from a fresh one
+(the protocol carries no request ids): it may still be taken for the next answer, once; the answer
+that follows it is then a late answer, and the line is drained again.
+
 What goes wrong, and how it is reported:
 
 - silence -> a ``fault`` reading, "no line from /dev/ttyUSB0 in 1.0 s" (the port itself is fine);
 - a line in which ``pattern`` is not found (``re.search``) -> ``fault`` naming what came
-  (truncated repr) and the pattern expected;
+  (truncated repr) and the pattern expected: an answer that does not match is never a value;
 - the port vanished (unplugged, EIO) or cannot be opened -> :class:`DeviceError`; the daemon closes
   and reopens the group. A ``read`` (or an actuator's ``exchange``) on a closed port opens it first:
   one attempt per call, so the channel recovers under any caller. When to call again is the
@@ -20,28 +38,48 @@ What goes wrong, and how it is reported:
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
 import re
 from functools import partial
+
+import structlog
 
 from drivers.base import Clock, DeviceError, Reading, SensorGroup
 from drivers.serial_line.config import SerialLineSensorConfig
 from drivers.serial_line.reader import SerialLineReader
 
+log = structlog.get_logger(__name__)
+
 SHOWN_CHARS = 60  # of a garbage line in a fault reason
 GRACE_S = 0.25  # callers' limit beyond timeout_s, so the driver's own verdict ("no line ...") comes first
+QUIET_S = 0.2  # a dirty line is clean again once nothing arrived for min(timeout_s, QUIET_S)
+
+
+def quiet_for(timeout_s: float) -> float:
+    """How long a dirty line must stay silent before a request with this timeout is sent."""
+    return min(timeout_s, QUIET_S)
+
+
+class LineBusyError(DeviceError):
+    """A dirty line did not go quiet within its budget: nothing was sent (for a sensor, a fault reading)."""
 
 
 class SerialLineGroup(SensorGroup):
     """One line-oriented instrument on one serial port."""
 
-    def __init__(self, config: SerialLineSensorConfig, clock: Clock) -> None:
+    def __init__(self, config: SerialLineSensorConfig, clock: Clock, *, solicited: bool | None = None) -> None:
+        """``solicited``: the port only speaks when asked (default: when the sensor queries); the
+        actuator's own port is one, whatever its placeholder sensor config says."""
         self.config = config
         self.clock = clock
         self.names = (config.name,)
         self.roles = {config.name: config.role}
         self.interval_s = config.interval_s
-        self.timeout_s = config.timeout_s + GRACE_S
+        self.solicited = not config.streaming if solicited is None else solicited
+        # a poll on a solicited line: a dirty line's quiet wait (<= timeout_s + quiet), then the query (timeout_s)
+        wait_s = config.timeout_s + (config.timeout_s + quiet_for(config.timeout_s) if self.solicited else 0.0)
+        self.timeout_s = wait_s + GRACE_S
         self._pattern = re.compile(config.pattern)
         self._terminator = config.eol[-1].encode()
         self._reader: SerialLineReader | None = None
@@ -52,6 +90,13 @@ class SerialLineGroup(SensorGroup):
         self._arrived = asyncio.Event()
         self.open_attempts = 0  # ports opened or tried, for tests
         self._lock = asyncio.Lock()  # one request/answer at a time on the port (a query, an actuator's command)
+        self._outstanding = False  # a request waits for its answer: the next line is it
+        self._answer: tuple[str, float] | None = None  # the line that answered the current request
+        self._dirty = False  # a late answer may still come: wait for quiet before the next request
+        self._dirty_since = 0.0  # loop time the line went dirty
+        self._last_line = -math.inf  # loop time of the last line received
+        self._episode = False  # late answers are being discarded (logged once, at the first)
+        self.late_answers = 0  # lines (or unread fragments) nobody asked for, discarded
 
     def __repr__(self) -> str:
         return f"SerialLineGroup({self.config.name!r}, port={self.config.port!r})"
@@ -95,9 +140,28 @@ class SerialLineGroup(SensorGroup):
     def _on_line(self, generation: int, raw: bytes) -> None:
         if generation != self._generation:
             return
-        self._latest = (raw.decode("latin-1").strip(), self.clock.now())
+        line = (raw.decode("latin-1").strip(), self.clock.now())
+        self._latest = line
         self._seq += 1
+        self._last_line = asyncio.get_running_loop().time()
+        if self._outstanding:  # the first line after a request is its answer
+            self._answer, self._outstanding = line, False
+        elif self.solicited:  # nobody asked: a late answer (or a second line to one request)
+            self._discarded(line[0])
         self._arrived.set()
+
+    def _discarded(self, text: str, *, dirty: bool = True) -> None:
+        """Count (and log once per episode) input nobody asked for; ``dirty``: more may follow, so the
+        next request waits for the line to go quiet."""
+        self.late_answers += 1
+        if dirty:
+            self._dirty = True
+            self._dirty_since = asyncio.get_running_loop().time()
+        if not self._episode:
+            self._episode = True
+            log.warning("serial_late_answers", port=self.port, line=_shown(text),
+                        why="a line nobody asked for (an answer after its request timed out?) is discarded; "
+                            "requests wait for the line to go quiet")
 
     def _on_error(self, generation: int, error: BaseException) -> None:
         if generation != self._generation:
@@ -118,36 +182,94 @@ class SerialLineGroup(SensorGroup):
         await self._raise_if_vanished()
         if self._reader is None:
             await self.open()
-        deadline = asyncio.get_running_loop().time() + self.config.timeout_s
-        line = await (self._query(deadline) if self.config.query else self._newest(deadline))
+        c = self.config
+        loop = asyncio.get_running_loop()
+        if c.query:
+            start = loop.time()
+            try:
+                async with self._lock:  # the whole poll, lock wait included, within self.timeout_s
+                    line = await self._request(c.query.encode("latin-1"), "query", answer=True, timeout_s=c.timeout_s,
+                                               until=start + 2 * c.timeout_s + quiet_for(c.timeout_s))
+            except LineBusyError as error:
+                return {c.name: Reading.fault(self.clock.now(), str(error), c.value_unit)}
+        else:
+            line = await self._newest(loop.time() + c.timeout_s)
         if line is None:
             await self._raise_if_vanished()
-            return {self.config.name: Reading.fault(
-                self.clock.now(), f"no line from {self.port} in {self.config.timeout_s:g} s",
-                self.config.value_unit)}
-        return {self.config.name: self.parse(*line)}
+            return {c.name: Reading.fault(self.clock.now(), f"no line from {self.port} in {c.timeout_s:g} s",
+                                          c.value_unit)}
+        return {c.name: self.parse(*line)}
 
-    async def _query(self, deadline: float) -> tuple[str, float] | None:
-        async with self._lock:
-            return await self._transaction(self.config.query.encode("latin-1"), deadline, "query")
-
-    async def _transaction(self, data: bytes, deadline: float, what: str,
-                           answer: bool = True) -> tuple[str, float] | None:
-        """Send ``data``, then (``answer``) wait for the next line until ``deadline``; the lock is held."""
+    async def _request(self, data: bytes, what: str, *, answer: bool, timeout_s: float,
+                       until: float | None = None) -> tuple[str, float] | None:
+        """Make a dirty line quiet, send ``data`` and (``answer``) wait ``timeout_s`` for the line that
+        answers it (None: silence); ``until`` (loop time) caps the whole. The lock is held."""
+        loop = asyncio.get_running_loop()
         if self._reader is None:  # closed while this request waited for the lock
             await self.open()
-        assert self._reader is not None
-        after = self._seq
+        if self._dirty and self.solicited:
+            quiet_s = quiet_for(timeout_s)
+            budget_s = timeout_s + quiet_s if until is None else min(timeout_s + quiet_s, until - loop.time())
+            await self._quiet(budget_s, quiet_s)
+            was_dirty = True
+        else:
+            was_dirty = False
+        late_before = self.late_answers
+        deadline = loop.time() + timeout_s if until is None else min(loop.time() + timeout_s, until)
+        reader = self._reader
+        assert reader is not None
+        self._answer, self._outstanding = None, answer
         try:
-            await asyncio.wait_for(asyncio.to_thread(self._reader.write, data),
-                                   timeout=max(0.0, deadline - asyncio.get_running_loop().time()))
-        except TimeoutError:
-            await self.close()
-            raise DeviceError(f"{self.port}: {what} not sent within {self.config.timeout_s:g} s") from None
-        except Exception as error:  # SerialTimeoutException, SerialException, OSError
-            await self.close()  # the next read reopens the port
-            raise DeviceError(f"{self.port}: cannot send {what}: {error}") from error
-        return await self._line_after(after, deadline) if answer else None
+            try:
+                dropped = await asyncio.wait_for(asyncio.to_thread(reader.write, data, discard=self.solicited),
+                                                 timeout=max(0.0, deadline - loop.time()))
+            except TimeoutError:
+                await self.close()
+                raise DeviceError(f"{self.port}: {what} not sent within {timeout_s:g} s") from None
+            except Exception as error:  # SerialTimeoutException, SerialException, OSError
+                await self.close()  # the next read reopens the port
+                raise DeviceError(f"{self.port}: cannot send {what}: {error}") from error
+            if dropped:
+                self._discarded(f"({dropped} unread byte(s) before {what})", dirty=False)  # gone with the flush
+            if not answer:
+                return None
+            while self._answer is None and self._error is None:
+                left = deadline - loop.time()
+                if left <= 0:
+                    break
+                self._arrived.clear()
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(self._arrived.wait(), timeout=left)
+            if self._answer is not None and not was_dirty and self.late_answers == late_before:
+                self._episode = False  # a whole request without a late answer: the episode is over
+            return self._answer
+        finally:
+            if self._outstanding:  # timed out, failed or cancelled: its answer may still come
+                self._outstanding = False
+                self._dirty, self._dirty_since = True, loop.time()
+
+    async def _quiet(self, budget_s: float, quiet_s: float) -> None:
+        """Wait until nothing has arrived for ``quiet_s`` since the line went dirty, at most ``budget_s``;
+        what arrives meanwhile is discarded by :meth:`_on_line`. :class:`LineBusyError` if it does not."""
+        loop = asyncio.get_running_loop()
+        end = loop.time() + max(0.0, budget_s)
+        discarded = self.late_answers
+        while True:
+            if self._error is not None:
+                await self._raise_if_vanished()
+            now = loop.time()
+            quiet_at = max(self._dirty_since, self._last_line) + quiet_s
+            if now >= quiet_at:
+                self._dirty = False
+                return
+            if now >= end:
+                raise LineBusyError(
+                    f"{self.port}: the line did not go quiet for {quiet_s:g} s within {budget_s:g} s after an "
+                    f"unanswered request ({self.late_answers - discarded} late line(s) discarded meanwhile); "
+                    "nothing was sent")
+            self._arrived.clear()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._arrived.wait(), timeout=min(quiet_at, end) - now)
 
     async def _newest(self, deadline: float) -> tuple[str, float] | None:
         if self._latest is not None and self.clock.now() - self._latest[1] <= self.config.timeout_s:
@@ -188,18 +310,23 @@ class SerialLineGroup(SensorGroup):
     # -- an actuator on this port -----------------------------------------------------------------
 
     async def exchange(self, data: bytes, *, answer: bool, timeout_s: float) -> str | None:
-        """Write ``data`` and, with ``answer``, return the line that follows (None: silence for ``timeout_s``).
+        """Write ``data`` and, with ``answer``, return the line that answers it (None: silence for ``timeout_s``).
 
         For an actuator on this port (a controller that is also this sensor, or the actuator's own
-        port): serialised with the sensor's queries by the port's one lock, so every request gets
-        its own answer. :class:`DeviceError` when the port fails or cannot be (re)opened.
+        port): serialised with the sensor's queries by the port's one lock, and matched like them
+        (see the module's docstring), so every request gets its own answer. :class:`DeviceError` when
+        the port fails or cannot be (re)opened, or when a dirty line does not go quiet in time
+        (:class:`LineBusyError`; nothing was written).
         """
         async with self._lock:
             await self._raise_if_vanished()
             if self._reader is None:
                 await self.open()
-            deadline = asyncio.get_running_loop().time() + timeout_s
-            line = await self._transaction(data, deadline, repr(data.decode("latin-1")), answer)
+            line = await self._request(data, repr(data.decode("latin-1")), answer=answer, timeout_s=timeout_s)
             if answer and line is None:
                 await self._raise_if_vanished()
             return line[0] if line is not None else None
+
+
+def _shown(text: str) -> str:
+    return repr(text if len(text) <= SHOWN_CHARS else text[:SHOWN_CHARS] + "...")

@@ -3,7 +3,9 @@
 Why a thread: pyserial is blocking. One reader thread per port blocks in ``read`` (0.1 s timeout,
 so it notices a stop request) and hands each complete line to the loop with
 ``call_soon_threadsafe``, time-stamped on arrival there; the loop never waits on the port. Writes
-(a query of a few bytes) go through ``asyncio.to_thread`` with pyserial's ``write_timeout``.
+(a query of a few bytes) go through ``asyncio.to_thread`` with pyserial's ``write_timeout``; a
+request's write first discards what is waiting (a fragment of a line in the reader's buffer, bytes
+in the OS buffer): nothing that arrived before a request can begin its answer.
 A read error (device unplugged, EIO) ends the thread and is handed to the loop the same way.
 """
 
@@ -38,6 +40,8 @@ class SerialLineReader:
         self._on_line = on_line
         self._on_error = on_error
         self._stop = threading.Event()
+        self._buffer = b""  # the line being received
+        self._buffer_lock = threading.Lock()  # the reader thread's appends vs. a request's discard
         self._thread = threading.Thread(target=self._run, name=f"serial-reader {port.name}", daemon=True)
         self._thread.start()
 
@@ -55,7 +59,6 @@ class SerialLineReader:
         return True
 
     def _run(self) -> None:
-        buffer = b""
         while not self._stop.is_set():
             try:
                 chunk = self.port.read(1)
@@ -67,19 +70,42 @@ class SerialLineReader:
                 return
             if not chunk:
                 continue
-            buffer += chunk
-            *lines, buffer = buffer.split(self._terminator)
-            if len(buffer) > MAX_LINE_BYTES:
-                lines.append(buffer)
-                buffer = b""
+            with self._buffer_lock:
+                self._buffer += chunk
+                *lines, self._buffer = self._buffer.split(self._terminator)
+                if len(self._buffer) > MAX_LINE_BYTES:
+                    lines.append(self._buffer)
+                    self._buffer = b""
             for line in lines:
                 if not self._hand_over(self._on_line, line):
                     return
 
-    def write(self, data: bytes) -> None:
-        """Blocking write (bounded by the port's write_timeout): call it from a worker thread."""
+    @property
+    def pending(self) -> int:
+        """Bytes of a line received but not yet ended (what a request's write would discard)."""
+        with self._buffer_lock:
+            return len(self._buffer)
+
+    def write(self, data: bytes, *, discard: bool = False) -> int:
+        """Blocking write (bounded by the port's write_timeout): call it from a worker thread.
+
+        ``discard``: first drop what is waiting unread (the reader's partial line, the OS input
+        buffer), so an answer to ``data`` cannot start with a fragment of something older. Returns
+        how many bytes were dropped. (A chunk the reader thread took from the OS in the very instant
+        of the flush may still be appended after it: the window is the few instructions between its
+        ``read`` and its lock.)
+        """
+        dropped = 0
+        if discard:
+            with self._buffer_lock:
+                dropped = len(self._buffer)
+                self._buffer = b""
+                with contextlib.suppress(Exception):  # a port that cannot say: the write below reports trouble
+                    dropped += self.port.in_waiting
+                self.port.reset_input_buffer()
         self.port.write(data)
         self.port.flush()
+        return dropped
 
     def close(self) -> None:
         """Stop the thread and close the port (blocking, at most ~READ_TIMEOUT_S)."""

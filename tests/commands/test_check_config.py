@@ -214,3 +214,52 @@ def test_a_metrics_host_that_is_no_host_name_exits_2_naming_metrics_listen(tmp_p
     assert code == 2 and out == ""
     assert f"{path}:4: metrics.listen: " in err and "is not an IP address" in err, err
     assert "Traceback" not in err
+
+
+def serial_config(tmp_path: Path, command: str, limits: str = "", query: str = 'query = "POS? 1\\n"\n') -> Path:
+    """A real-hardware cell: thermocouples on a Modbus hub, the stage's controller on one serial port."""
+    write_test_model(tmp_path / "model.json")
+    sensors = "".join(f'[[sensors]]\nname = "{name}"\nkind = "modbus"\nhub = "adam"\naddress = {i}\n'
+                      'input_type = "input"\n' for i, name in enumerate(("T1", "T2")))
+    path = tmp_path / "nanodrift.toml"
+    path.write_text('[model]\npath = "model.json"\n[[hubs]]\nname = "adam"\nhost = "127.0.0.1"\n' + sensors +
+                    '[[sensors]]\nname = "stage"\nrole = "position"\nkind = "serial_line"\nport = "/dev/ttyUSB0"\n'
+                    f'baudrate = 115200\n{query}'
+                    f'[actuator]\nkind = "serial_line"\nport = "/dev/ttyUSB0"\nreadback = "SVA? 1\\n"\n{limits}'
+                    f"command = {command!r}\n")
+    return path
+
+
+def line_of(path: Path, key: str) -> int:
+    """The line of ``key`` in [actuator] (the file's last table)."""
+    lines = path.read_text().splitlines()
+    return max(n for n, line in enumerate(lines, 1) if line.startswith(f"{key} ="))
+
+
+def test_a_serial_command_template_coarser_than_10_nm_of_travel_is_a_warning(tmp_path: Path, capsys) -> None:
+    path = serial_config(tmp_path, "SVA 1 {voltage_v:.2f}\\n")  # 10 mV at 0.02 V/um: 500 nm steps
+    code, out, err = check(capsys, str(path))
+    assert code == 0 and f"{path}: ok" in out, err
+    assert (f"{path}:{line_of(path, 'command')}: warning: actuator.command: {{voltage_v:.2f}} writes voltage_v in "
+            "steps of 0.01 V, 500 nm of stage travel at volts_per_um = 0.02, coarser than 10 nm") in err, err
+    code, _, err = check(capsys, str(path), "--strict")
+    assert code == 2 and "actuator.command: {voltage_v:.2f} writes voltage_v in steps" in err
+    fine = serial_config(tmp_path, "SVA 1 {voltage_v:.4f}\\n")  # 0.1 mV: 5 nm
+    code, _, err = check(capsys, str(fine))
+    assert code == 0 and "actuator.command" not in err, err
+
+
+def test_a_serial_command_template_that_cannot_write_the_limits_is_an_error(tmp_path: Path, capsys) -> None:
+    path = serial_config(tmp_path, "SVA 1 {voltage_v:.0f}\\n", limits="v_min = -0.5\nv_max = 0.4\n")
+    code, out, err = check(capsys, str(path))
+    assert code == 2 and out == ""
+    assert (f"{path}:{line_of(path, 'command')}: actuator.command: {{voltage_v:.0f}} cannot write the voltages "
+            "within [v_min, v_max] = [-0.5, 0.4] V: it writes every one of them as '-0'") in err, err
+
+
+def test_a_streaming_sensor_on_the_controllers_port_is_an_error(tmp_path: Path, capsys) -> None:
+    path = serial_config(tmp_path, "SVA 1 {voltage_v:.4f}\\n", query="")
+    code, _, err = check(capsys, str(path))
+    assert code == 2
+    assert (f"{path}:{line_of(path, 'port')}: actuator.port: sensors[2] (stage) streams lines on '/dev/ttyUSB0': "
+            "its lines cannot be told from the answers") in err, err

@@ -111,7 +111,10 @@ class FakeGcsController(PtyDevice):
     ``ERR?`` -> the error code (then 0). An unknown command or axis sets error 2 / 15, as GCS does.
 
     Misbehaviours for tests: ``silent`` (answers nothing), ``answer`` (answers every query with this
-    instead), ``amplifier_off`` (``SVA`` is accepted but the voltage does not change).
+    instead), ``amplifier_off`` (``SVA`` is accepted but the voltage does not change), ``late_s``
+    (command word -> seconds: that query is answered this late; answers leave in the order asked, as
+    from a controller that works through its input, at least ``spacing_s`` apart), ``inject`` (bytes
+    sent as they are, unasked).
     """
 
     def __init__(self, link: Path, position_per_volt: float = 100.0) -> None:
@@ -125,7 +128,14 @@ class FakeGcsController(PtyDevice):
         self.lines: list[str] = []  # every complete line received
         self.line_times: list[float] = []  # time.perf_counter() when each line was complete
         self.on_voltage: Callable[[float], None] | None = None  # called (on the pty thread) when SVA lands
+        self.late_s: dict[str, float] = {}
+        self.spacing_s = 0.0
+        self.sent: list[tuple[float, str]] = []  # (time.perf_counter(), answer) for each answer written
         super().__init__(link)
+
+    def inject(self, data: bytes) -> None:
+        """Write ``data`` to the port now, unasked (a fragment, a stray line)."""
+        os.write(self._master, data)
 
     def _reply(self, line: str) -> str | None:
         words = line.split()
@@ -158,22 +168,34 @@ class FakeGcsController(PtyDevice):
 
     def _serve(self, master: int, stop: threading.Event) -> None:
         buffer = b""
+        pending: list[tuple[float, bytes]] = []  # (when, answer) in the order asked
+        last_due = -float("inf")
         while not stop.is_set():
-            ready, _, _ = select.select([master], [], [], 0.005)
-            if not ready:
-                continue
-            try:
-                data = os.read(master, 4096)
-            except OSError:  # nobody holds the port open right now
-                continue
+            ready, _, _ = select.select([master], [], [], 0.002 if pending else 0.005)
+            data = b""
+            if ready:
+                try:
+                    data = os.read(master, 4096)
+                except OSError:  # nobody holds the port open right now
+                    data = b""
             self.received.extend(data)
             buffer += data
             while b"\n" in buffer:
                 raw, _, buffer = buffer.partition(b"\n")
                 line = raw.decode("latin-1").rstrip("\r")
+                now = time.perf_counter()
                 self.lines.append(line)
-                self.line_times.append(time.perf_counter())
+                self.line_times.append(now)
                 reply = self._reply(line)
                 if reply is None or self.silent:
                     continue
-                os.write(master, (self.answer if self.answer is not None else reply.encode()) + b"\n")
+                words = line.split()
+                last_due = max(now + self.late_s.get(words[0], 0.0), last_due + self.spacing_s)
+                pending.append((last_due, (self.answer if self.answer is not None else reply.encode()) + b"\n"))
+            while pending and pending[0][0] <= time.perf_counter():
+                answer = pending.pop(0)[1]
+                try:
+                    os.write(master, answer)
+                except OSError:
+                    continue
+                self.sent.append((time.perf_counter(), answer.decode("latin-1").strip()))
