@@ -205,7 +205,7 @@ class Actuation:
                     self._stashed_episode = (self._fault_since, self._episode_failures)
                 try:
                     if final and self._config is not None:
-                        await self._write_safe(actuator, self._config, reopen=fault is not None)
+                        await self._write_safe(actuator, self._config, reopen=fault is not None or self._at_v is None)
                 finally:
                     try:
                         await actuator.close()

@@ -55,6 +55,8 @@ class ModbusTestDevice:
         self.holding_ranges = tuple(holding_ranges)
         self.fail_with: ExcCodes | None = None  # answer every read with this exception code
         self.fail_writes_with: ExcCodes | None = None  # answer every write with this exception code
+        self.refuse_writes = 0  # answer the next N writes with DEVICE_FAILURE (nothing stored), then take them
+        self.write_delay_s = 0.0  # answer each write this late (a slow module or gateway)
         self.reads: list[tuple[int, int, int]] = []  # (function code, address, count) per read request
         self.writes: list[tuple[int, int, list[int]]] = []  # (function code, address, values) per write request
         #: called with (address, values) before a write lands; may change ``values`` in place (a device
@@ -75,8 +77,13 @@ class ModbusTestDevice:
             return self.fail_with
         assert isinstance(set_values, list)
         self.writes.append((function_code, address, list(set_values)))
+        if self.write_delay_s > 0:
+            await asyncio.sleep(self.write_delay_s)
         if self.fail_writes_with is not None:
             return self.fail_writes_with
+        if self.refuse_writes > 0:
+            self.refuse_writes -= 1
+            return ExcCodes.DEVICE_FAILURE
         if self.on_write is not None:
             self.on_write(address, set_values)
         return None

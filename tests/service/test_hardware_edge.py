@@ -1,0 +1,475 @@
+"""Safety at the hardware edge (issue 16), end to end: what the device receives, not what the daemon says.
+
+Real peers only: ``nanodrift run`` as a process (the harness' ``file`` plugin for temperatures and, where
+a test needs one, a position sensor), pymodbus' own TCP server on 127.0.0.1 as the output module (on an
+asyncio loop in a thread of this process, stamping every write as it lands, optionally answering each
+write late or refusing one), a PI controller speaking GCS on a pty, and a client on Zenoh over 127.0.0.1.
+A wall-clock step is made in the daemon's process only (:class:`helpers.wall_clock.WallShift`).
+
+1. a wall-clock step (−600 s, +1 day, −1 day) changes no command, faults no sensor, is logged once;
+2. a reload in the middle of a ramp keeps the goal: the register ends at the served command, and a
+   target answered just after the SIGHUP is written too;
+3. a read-back that lies (outside the limits) is never a ramp start, for a Modbus module and a GCS controller;
+5. settled residuals only after the ramp (the position sensor reads where the register puts the stage);
+6. shutdown: the safe ramp at the configured rate whatever the device latency, retried after a refused
+   write, and targets during the stop window answered once, with ``shutting_down``.
+
+Every wait polls a condition with a deadline.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import json
+import signal
+import threading
+import time
+from collections.abc import Callable, Coroutine, Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import pytest
+from helpers.daemon_harness import (
+    MODEL_TERMS,
+    TEMPS,
+    Client,
+    Daemon,
+    SensorFile,
+    expected_q,
+    file_sensor_config,
+    free_port,
+    install_file_plugin,
+    wait_until,
+)
+from helpers.modbus_helpers import ModbusTestDevice, ModbusTestServer
+from helpers.serial_helpers import FakeGcsController
+from helpers.wall_clock import WallShift
+
+from daemon.config import STOP_TIMEOUT_S
+from daemon.model.model import FittedTerm, Model, Training, save_model
+from daemon.model.terms import parse_term
+from daemon.motion import RAMP_PERIOD_S
+
+SCALE = 0.001  # volts per count of the output register
+ADDRESS = 10
+VOLTS_PER_UM = 0.02
+UM_PER_COUNT = SCALE / VOLTS_PER_UM
+
+
+# --- the output module ---------------------------------------------------------------------------
+
+
+class OutputModule:
+    """pymodbus' TCP server on its own loop thread; ``stamps`` is every write of a register as it landed."""
+
+    def __init__(self) -> None:
+        self.device = ModbusTestDevice(1, holding_ranges=((0, 32),))
+        self.server = ModbusTestServer([self.device])
+        self.stamps: list[tuple[float, int, int]] = []  # (time.monotonic(), address, raw)
+        self.on_output: Callable[[int], None] | None = None  # told each raw value landing in ADDRESS
+        self.device.on_write = self._landed
+        self.loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self.loop.run_forever, name="modbus-output", daemon=True)
+        self._thread.start()
+        self.call(self.server.start())
+
+    def _landed(self, address: int, values: list[int]) -> None:
+        now = time.monotonic()
+        self.stamps.extend((now, address + i, _signed(v)) for i, v in enumerate(values))
+        if self.on_output is not None and address == ADDRESS:
+            self.on_output(_signed(values[0]))
+
+    def call(self, coro: Coroutine[Any, Any, Any]) -> Any:
+        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(10)
+
+    def register(self) -> int:
+        return _signed(self.call(self.server.get_registers(1, ADDRESS, 1))[0])
+
+    def hold(self, raw: int) -> None:
+        """Put ``raw`` in the register (what an earlier run, or someone else, left there); not a stamp."""
+        self.call(self.server.set_registers(1, ADDRESS, [raw & 0xFFFF], input_type="holding"))
+        self.stamps.clear()
+        self.device.writes.clear()
+
+    def written(self, since: int = 0) -> list[tuple[float, int]]:
+        """(time, raw) of every write of the output register, from stamp ``since`` on."""
+        return [(t, raw) for t, address, raw in self.stamps[since:] if address == ADDRESS]
+
+    def close(self) -> None:
+        self.call(self.server.stop())
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self._thread.join(5)
+
+
+def _signed(raw: int) -> int:
+    return raw - 65536 if raw >= 32768 else raw
+
+
+def raw_for(voltage_v: float) -> int:
+    return round(voltage_v / SCALE)
+
+
+@pytest.fixture
+def module() -> Iterator[OutputModule]:
+    out = OutputModule()
+    yield out
+    out.close()
+
+
+# --- a daemon --------------------------------------------------------------------------------------
+
+
+def write_model(path: Path, terms: dict[str, float]) -> None:
+    parsed = [FittedTerm(parse_term(name), coef) for name, coef in terms.items()]
+    channels = sorted({ch for ft in parsed for ch in ft.term.channels})
+    ranges = {ch: (TEMPS.get(ch, 21.8) - 1.0, TEMPS.get(ch, 21.8) + 1.0) for ch in channels}
+    save_model(Model(terms=parsed, training=Training(x_range=(0.0, 480.0), channel_ranges=ranges, rows=100,
+                                                     t_span_s=3600.0),
+                     provenance={"source": "tests/service/test_hardware_edge.py"}), path)
+
+
+class Cell:
+    """``nanodrift run`` on the ``file`` sensor plugin with an ``[actuator]`` of the test's, and a client."""
+
+    def __init__(self, root: Path, *, terms: dict[str, float], actuator: str, hub_port: int | None = None,
+                 channels: Sequence[str] = ("T1", "T2"), position: bool = False, extra: str = "",
+                 shift: WallShift | None = None) -> None:
+        self.root = root
+        self.cell = f"edge{free_port()}"
+        self.port = free_port()
+        self.hub_port = hub_port
+        self.channels = tuple(channels)
+        self.position = position
+        self.extra = extra
+        plugins = install_file_plugin(root / "plugins")
+        self.model_path = root / "model.json"
+        write_model(self.model_path, terms)
+        self.sensors = SensorFile(root / "sensors.json", {**TEMPS, **({"P": 0.0} if position else {})})
+        self.config_path = root / "nanodrift.toml"
+        self.write_config(actuator)
+        pythonpath = [plugins, *([WallShift.SITE_DIR] if shift is not None else [])]
+        self.daemon = Daemon(["--config", str(self.config_path)], root / "daemon.log", pythonpath,
+                             env=shift.env() if shift is not None else None)
+        self.daemon.wait_log("serving", timeout=30)
+        self.client: Client | None = Client(self.port, self.cell)
+        self.client.wait_alive()
+        self.client.wait_ready(self.channels + (("P",) if position else ()))
+        self._ids = itertools.count(1)
+
+    def write_config(self, actuator: str) -> None:
+        keys = f"volts_per_um = {VOLTS_PER_UM}\n{actuator}"
+        if self.hub_port is not None:
+            keys = f'kind = "modbus"\nhub = "out"\ndevice_id = 1\naddress = {ADDRESS}\nscale = {SCALE}\n{keys}'
+        extra = self.extra
+        if self.hub_port is not None:
+            extra += (f'\n[[hubs]]\nname = "out"\ntype = "tcp"\nhost = "127.0.0.1"\nport = {self.hub_port}\n'
+                      "timeout_s = 0.3\n")
+        if self.position:
+            extra += (f'\n[[sensors]]\nname = "P"\nrole = "position"\nkind = "file"\npath = "{self.sensors.path}"\n'
+                      "interval_s = 0.05\nmax_age_s = 2.0\ntimeout_s = 0.5\n")
+        self.config_path.write_text(file_sensor_config(
+            self.root, cell=self.cell, port=self.port, model_path=self.model_path, sensor_file=self.sensors.path,
+            channels=self.channels, actuator=keys, extra=extra))
+
+    @property
+    def bus(self) -> Client:
+        assert self.client is not None
+        return self.client
+
+    def target(self, x_um: float) -> dict[str, Any]:
+        """A served target's command (the test fails on a refusal)."""
+        ok, answer = self.bus.query({"x_um": x_um, "id": next(self._ids)})
+        assert ok, answer
+        return answer
+
+    def close(self) -> int:
+        if self.client is not None:
+            self.client.close()
+            self.client = None
+        return self.daemon.stop()
+
+
+@pytest.fixture
+def cells() -> Iterator[list[Cell]]:
+    made: list[Cell] = []
+    yield made
+    for cell in made:
+        cell.close()
+
+
+def holds_for(module: OutputModule, raw: int, seconds: float) -> None:
+    """The register holds ``raw`` for ``seconds`` (polled): nothing moves it afterwards."""
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        assert module.register() == raw, f"the register left {raw}: now {module.register()}"
+        time.sleep(0.02)
+
+
+# --- 1. a wall-clock step ------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("steps_s", [(-600.0,), (-86400.0, 86400.0)], ids=["minus_600s", "minus_plus_1day"])
+def test_a_wall_clock_step_changes_no_command_faults_no_sensor_and_is_logged_once(
+        tmp_path: Path, cells: list[Cell], steps_s: tuple[float, ...]) -> None:
+    shift = WallShift(tmp_path / "wall_offset")
+    terms = {"x": 1.0, "lag(T1, 100 s)": -2.0, "1": 0.0}
+    cell = Cell(tmp_path, terms=terms, actuator="", channels=("T1",), shift=shift)
+    cells.append(cell)
+    baseline = cell.target(100.0)
+    assert baseline["q_um"] == pytest.approx(100.0 - 2.0 * TEMPS["T1"], abs=1e-9)  # constant T1: the lag is T1
+
+    def t1_sample_t() -> float | None:
+        sample = cell.bus.telemetry.get("temperature/T1")
+        return None if sample is None else sample.get("t")
+
+    for count, step_s in enumerate(steps_s, start=1):
+        before = wait_until(t1_sample_t, 5, "a T1 sample")
+        shift.step(step_s)
+        # a reading taken well after the step reached the daemon's model (readings come every 50 ms), or
+        # the daemon failed to take it in (then the checks below say how)
+        wait_until(lambda b=before: ((t := t1_sample_t()) is not None and abs(t - b) > 0.2)
+                   or cell.daemon.log_events("sensor_group_failed"), 10,
+                   f"a T1 reading after the {step_s:+g} s step", interval=0.02)
+        command = cell.target(100.0)
+        assert command["q_um"] == pytest.approx(baseline["q_um"], abs=1e-9), (step_s, command, baseline)
+        assert command["voltage_v"] == pytest.approx(baseline["voltage_v"], abs=1e-9)
+        status = cell.bus.status()
+        assert status["sensors"]["T1"]["state"] == "ok", (step_s, status["sensors"])
+        assert status["healthy"] is True
+        # told within a supervision round (0.25 s), before the next step
+        wait_until(lambda n=count: len(cell.daemon.log_events("clock_step")) >= n, 5, f"clock_step x{count}")
+    steps = [e["step_s"] for e in cell.daemon.log_events("clock_step")]
+    assert steps == [pytest.approx(s, abs=2.0) for s in steps_s]  # one line per step
+    assert [e for e in cell.daemon.log_events("sensor_state") if e.get("state") != "ok"] == []
+    assert not [d for d in cell.daemon.logs() if d.get("level") in ("error", "critical")]
+
+
+# --- 2. a reload in the middle of a ramp ---------------------------------------------------------
+
+
+def test_a_reload_mid_ramp_keeps_the_goal_and_a_target_answered_just_after_sighup_is_written(
+        tmp_path: Path, module: OutputModule, cells: list[Cell]) -> None:
+    rate = 300.0  # 0 -> 480 um in 1.6 s
+    start_raw = raw_for(VOLTS_PER_UM * expected_q(0.0, TEMPS))
+    module.hold(start_raw)  # the stage is at 0 um; verify = true: the daemon reads it back and ramps from it
+    cell = Cell(tmp_path, terms=MODEL_TERMS, actuator=f"max_slew_um_per_s = {rate}\nv_max = 12.0",
+                hub_port=module.server.port)
+    cells.append(cell)
+
+    def mid_ramp(goal_raw: int, from_raw: int) -> None:
+        """Until the register is between a fifth and half of the way from ``from_raw`` to ``goal_raw``."""
+        wait_until(lambda: 0.2 <= (module.register() - from_raw) / (goal_raw - from_raw) <= 0.5, 10,
+                   "the ramp under way", interval=0.005)
+
+    # a reload mid-ramp: the register ends at the served command, ramped on from where it was
+    jump = cell.target(480.0)
+    jump_raw = raw_for(jump["voltage_v"])
+    mid_ramp(jump_raw, start_raw)
+    cell.write_config(f"max_slew_um_per_s = {rate}\nv_max = 11.5")  # [actuator] edited; the goal still allowed
+    since = len(module.stamps)
+    cell.daemon.signal(signal.SIGHUP)
+    applied = cell.daemon.wait_log("reload_applied", timeout=15)
+    assert applied["drivers_restarted"] is True
+    wait_until(lambda: module.register() == jump_raw, 10, "the register at the served command", interval=0.02)
+    holds_for(module, jump_raw, 0.3)
+    after = [raw for _, raw in module.written(since)]
+    assert after and after[-1] == jump_raw
+    assert all(b >= a for a, b in itertools.pairwise(after)), "the ramp went back after the reload"
+
+    # a target answered just after a SIGHUP (while the drivers are swapped) is written to the new output
+    back = cell.target(100.0)
+    back_raw = raw_for(back["voltage_v"])
+    mid_ramp(back_raw, jump_raw)
+    cell.write_config(f"max_slew_um_per_s = {rate}\nv_max = 11.0")
+    cell.daemon.signal(signal.SIGHUP)
+    sent = time.monotonic()
+    late = cell.target(300.0)
+    assert time.monotonic() - sent < 0.5  # answered right after the SIGHUP
+    late_raw = raw_for(late["voltage_v"])
+    cell.daemon.wait_log("reload_applied", timeout=15, count=2)
+    wait_until(lambda: module.register() == late_raw, 10, "the register at the target answered after SIGHUP",
+               interval=0.02)
+    holds_for(module, late_raw, 0.3)
+    assert cell.bus.status()["actuator"]["state"] == "ok"
+
+
+# --- 3. a read-back that lies ------------------------------------------------------------------------
+
+# q = x - 22.5 um: the target 0 um is commanded at -0.45 V
+LYING_TERMS = {"x": 1.0, "1": -22.5}
+
+
+def test_a_modbus_output_reading_back_outside_the_limits_never_starts_a_ramp(
+        tmp_path: Path, module: OutputModule, cells: list[Cell]) -> None:
+    module.hold(raw_for(10.0))  # the register reads back 10 V; the limits are [-2, 9.5] V
+    cell = Cell(tmp_path, terms=LYING_TERMS, hub_port=module.server.port,
+                actuator="v_min = -2.0\nv_max = 9.5\nmax_slew_um_per_s = 100.0\nverify = true")
+    cells.append(cell)
+    command = cell.target(0.0)
+    assert command["voltage_v"] == pytest.approx(-0.45)
+    wait_until(lambda: module.register() == raw_for(-0.45), 10, "the register at -0.45 V")
+    wait_until(lambda: cell.bus.status()["actuator"]["writes"] >= 1, 5, "the write confirmed")
+    assert [raw for _, raw in module.written()] == [raw_for(-0.45)]  # every write the module received
+    assert "outside" in cell.daemon.wait_log("actuator_readback_untrusted")["reason"]
+
+
+def test_a_gcs_controller_reading_back_outside_the_limits_never_starts_a_ramp(
+        tmp_path: Path, cells: list[Cell]) -> None:
+    controller = FakeGcsController(tmp_path / "ttyPI")
+    controller.voltage = 50.0  # SVA? 1 answers 50 V; the limits are [-2, 12] V
+    try:
+        keys = (f'kind = "serial_line"\nport = "{controller.port}"\nreadback = "SVA? 1\\n"\nerror_query = "ERR?\\n"\n'
+                "timeout_s = 0.3\nmax_slew_um_per_s = 100.0\n")
+        cell = Cell(tmp_path, terms=LYING_TERMS, actuator=keys)
+        cells.append(cell)
+        command = cell.target(0.0)
+        wait_until(lambda: controller.voltage == round(command["voltage_v"], 4), 10, "SVA of the command")
+        moves = [line for line in controller.lines if line.startswith("SVA 1 ")]
+        assert moves, controller.lines
+        assert float(moves[0].split()[2]) == pytest.approx(-0.45, abs=1e-4), controller.lines  # not v_max
+        assert all(float(m.split()[2]) == pytest.approx(-0.45, abs=1e-4) for m in moves), moves
+        assert "outside" in cell.daemon.wait_log("actuator_readback_untrusted")["reason"]
+    finally:
+        for cell in cells:
+            cell.close()
+        cells.clear()
+        controller.close()
+
+
+# --- 5. settled residuals only after the ramp ------------------------------------------------------
+
+
+def test_settled_residuals_are_taken_only_after_the_ramp_has_reached_the_command(
+        tmp_path: Path, module: OutputModule, cells: list[Cell]) -> None:
+    rate = 20.0  # 80 um in 4 s: longer than settle_s (3 s, the default) + window_s
+    settle_s, window_s = 3.0, 0.5
+    module.hold(0)
+    cell = Cell(tmp_path, terms={"x": 1.0}, hub_port=module.server.port, position=True,
+                actuator=f"max_slew_um_per_s = {rate}", extra=f"[health]\nwindow_s = {window_s}\n")
+    cells.append(cell)
+
+    # the stage is where the register puts it, and the position sensor reads it (q = x: no drift)
+    def moved(raw: int) -> None:
+        cell.sensors.set(P=raw * UM_PER_COUNT)
+
+    module.on_output = moved
+    assert cell.bus.status()["health"]["n"] == 0
+    sent = time.monotonic()
+    command = cell.target(80.0)
+    goal_raw = raw_for(command["voltage_v"])
+    seen_mid_ramp = 0
+    while module.register() != goal_raw:  # mid-ramp: no residual
+        assert time.monotonic() - sent < 10, "the ramp did not end"
+        assert cell.bus.status()["health"]["n"] == 0, "a residual was taken mid-ramp"
+        seen_mid_ramp += 1
+    reached = next(t for t, raw in module.written() if raw == goal_raw)
+    assert reached - sent >= 80.0 / rate - 0.3 and seen_mid_ramp > 5
+
+    def first_residual() -> dict[str, Any] | None:
+        health = cell.bus.status()["health"]
+        return health if health["n"] > 0 else None
+
+    health = wait_until(first_residual, reached + settle_s + window_s + 5 - time.monotonic(), "the first residual",
+                        interval=0.05)
+    assert time.monotonic() >= reached + settle_s + window_s - 0.1
+    assert health["n"] == 1
+    assert abs(health["residual_mean_nm"]) < 100.0 and health["residual_rms_nm"] < 100.0, health  # not tens of um
+
+
+# --- 6. shutdown -------------------------------------------------------------------------------------
+
+
+def shutdown_cell(tmp_path: Path, module: OutputModule, cells: list[Cell], rate: float) -> Cell:
+    """A daemon holding 200 um (4 V) on a register that answers each write 10 ms late; safe_voltage_v = 0."""
+    module.device.write_delay_s = 0.010
+    module.hold(raw_for(4.0))
+    cell = Cell(tmp_path, terms={"x": 1.0}, hub_port=module.server.port,
+                actuator=f"max_slew_um_per_s = {rate}\nsafe_voltage_v = 0.0")
+    cells.append(cell)
+    cell.target(200.0)
+    wait_until(lambda: cell.bus.status()["actuator"]["writes"] >= 1, 5, "the command written")
+    assert module.register() == raw_for(4.0)
+    return cell
+
+
+def test_sigterm_ramps_to_the_safe_voltage_at_the_configured_rate_and_refuses_targets_meanwhile(
+        tmp_path: Path, module: OutputModule, cells: list[Cell]) -> None:
+    rate = 100.0  # 200 um -> 0 in 2 s
+    cell = shutdown_cell(tmp_path, module, cells, rate)
+    client = cell.bus
+    ids = itertools.count(1000)
+    sent: list[int] = []
+    stop_sending = threading.Event()
+
+    def send() -> None:  # a stream of targets through the stop window, until the daemon is gone
+        while not stop_sending.is_set() and cell.daemon.proc.poll() is None:
+            target_id = next(ids)
+            client.put(json.dumps({"x_um": 200.0, "id": target_id}))
+            sent.append(target_id)
+            time.sleep(0.02)
+
+    sender = threading.Thread(target=send, daemon=True)
+    sender.start()
+    try:
+        client.wait(lambda: len(client.commands) >= 3, 5, "targets served before the stop")
+        since = len(module.stamps)
+        asked = time.monotonic()
+        cell.daemon.signal(signal.SIGTERM)
+        code = cell.daemon.proc.wait(STOP_TIMEOUT_S)
+        stopped_in = time.monotonic() - asked
+    finally:
+        stop_sending.set()
+        sender.join(5)
+    assert code == 0 and stopped_in < STOP_TIMEOUT_S
+    assert module.register() == 0  # the safe count
+
+    ramp = [(t, raw * UM_PER_COUNT) for t, raw in module.written(since)]
+    assert ramp[-1][1] == 0.0 and len(ramp) > 20, ramp
+    assert all(b < a for (_, a), (_, b) in itertools.pairwise(ramp)), "the safe ramp is not monotonic"
+    # ramp[0]: the last write before the stop (200 um) or the ramp's first step; a move from rest covers one
+    # ramp period in its first step, on top of the time between the two
+    (t0, q0), (t1, q1) = ramp[:2]
+    assert q0 - q1 <= rate * (t1 - t0 + RAMP_PERIOD_S) + UM_PER_COUNT, f"{q0 - q1:.3f} um in {t1 - t0:.4f} s"
+    slack_um = UM_PER_COUNT + rate * 0.010  # a count, and 10 ms of stamping jitter
+    for (t0, q0), (t1, q1) in itertools.combinations(ramp[1:], 2):
+        assert q0 - q1 <= rate * (t1 - t0) + slack_um, f"{q0 - q1:.3f} um in {t1 - t0:.4f} s"
+    achieved = (ramp[1][1] - ramp[-1][1]) / (ramp[-1][0] - ramp[1][0])
+    assert achieved >= 0.9 * rate, f"{achieved:.1f} um/s with a device answering in 10 ms, configured {rate}"
+    assert cell.daemon.log_events("actuator_safe")[0]["voltage_v"] == 0.0
+
+    # every target sent got one answer at most; once refused for the stop, never served again
+    def answered() -> dict[int, list[tuple[str, dict[str, Any]]]]:
+        return {i: client.answers_for(i) for i in sent if client.answers_for(i)}
+
+    answers = answered()
+    last = max(answers)
+    wait_until(lambda: all(client.answers_for(i) for i in sent if i <= last), 2, "an answer for every target")
+    answers = answered()
+    assert all(len(a) == 1 for a in answers.values()), {i: a for i, a in answers.items() if len(a) != 1}
+    refused = [i for i, [(kind, doc)] in answers.items() if kind == "error"]
+    assert len(refused) >= 10, answers  # the stop window is ~2 s of 50 targets a second
+    for i in refused:
+        [(_, doc)] = answers[i]
+        assert doc["kind"] == "shutting_down" and doc["error"] == "the daemon is stopping: target not served", doc
+    assert not [i for i, [(kind, _)] in answers.items() if kind == "command" and i > min(refused)]
+
+
+def test_a_write_refused_mid_safe_ramp_is_retried_and_the_safe_voltage_reached(
+        tmp_path: Path, module: OutputModule, cells: list[Cell]) -> None:
+    rate = 100.0
+    cell = shutdown_cell(tmp_path, module, cells, rate)
+    since = len(module.stamps)
+    cell.daemon.signal(signal.SIGTERM)
+    wait_until(lambda: module.register() < raw_for(3.0), 5, "the safe ramp half way", interval=0.005)
+    refused_from = len(module.device.writes)
+    module.device.refuse_writes = 1  # the module refuses the next write (DEVICE_FAILURE)
+    assert cell.daemon.proc.wait(STOP_TIMEOUT_S) == 0
+    assert module.device.refuse_writes == 0, "no write was refused: the ramp ended first"
+    assert len(module.device.writes) > refused_from + 1
+    assert module.register() == 0
+    [safe] = cell.daemon.log_events("actuator_safe")
+    assert safe["attempts"] >= 2 and safe["voltage_v"] == 0.0
+    ramp = [raw for _, raw in module.written(since)]
+    assert ramp[-1] == 0 and all(b < a for a, b in itertools.pairwise(ramp)), ramp
+    assert not cell.daemon.log_events("actuator_safe_failed")
