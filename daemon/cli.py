@@ -17,6 +17,7 @@ from collections.abc import Sequence
 from typing import Any, NoReturn
 
 from daemon.errors import UserError
+from daemon.logs import json_line
 from drivers.simulated.effects import EFFECTS
 from drivers.simulated.scenarios import SCENARIOS
 
@@ -136,8 +137,6 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> NoReturn:
         if not self.json_errors:
             super().error(message)
-        from daemon.logs import json_line
-
         print(json_line("usage_error", "error", error=message, usage=self.format_usage().strip()), file=sys.stderr)
         self.exit(2)
 
@@ -319,8 +318,6 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _say(command: str, json_errors: bool, level: str, text: str, *, event: str, **fields: str) -> None:
     """The last line of a command that failed: plain for a terminal, a JSON log line for ``run``'s journal."""
     if json_errors:
-        from daemon.logs import json_line
-
         print(json_line(event, level, **fields), file=sys.stderr)
     else:
         print(f"nanodrift {command}: {text}", file=sys.stderr)

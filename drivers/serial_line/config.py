@@ -165,7 +165,7 @@ class SerialLineActuatorConfig(ActuatorOptions):
     def template(self) -> CommandTemplate:
         return CommandTemplate(self.command)
 
-    def voltage_range_problem(self, v_min: float, v_max: float) -> str | None:
+    def voltage_range_problem(self, v_min: float, v_max: float, volts_per_um: float) -> str | None:
         """A ``voltage_v`` field that cannot write two different voltages within the limits (``.0f``
         with [-0.5, 0.4] writes 0 for all of them: the stage could not move), or none at all."""
         for field in self.template.fields:

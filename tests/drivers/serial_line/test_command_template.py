@@ -116,7 +116,7 @@ def test_the_number_a_template_writes_is_always_within_the_limits(
         text, sent = template.render({"voltage_v": voltage, "q_um": 0.0, "x_um": 0.0}, (low, high))
     except ValueError:
         # refused only where check-config refuses the limits: no value it writes is inside
-        problem = config.voltage_range_problem(low, high)
+        problem = config.voltage_range_problem(low, high, 0.02)
         assert problem is not None and "no value it writes lies within" in problem, (spec, low, high, voltage)
         return
     number = DEVICE_NUMBER.match(text.rstrip("\n"))
@@ -135,7 +135,7 @@ def test_the_line_the_device_receives_is_within_the_limits(
         controller: FakeGcsController, precision: int, bounds: tuple[float, float], where: float) -> None:
     low, high = bounds
     command = f"SVA 1 {{voltage_v:.{precision}f}}\n"
-    assume(SerialLineActuatorConfig(port="x", command=command).voltage_range_problem(low, high) is None)
+    assume(SerialLineActuatorConfig(port="x", command=command).voltage_range_problem(low, high, 0.02) is None)
     voltage = min(high, max(low, low + where * (high - low)))
 
     async def body() -> None:
@@ -168,18 +168,18 @@ def test_templates_whose_sent_number_cannot_be_known_are_refused_naming_the_comm
 
 def test_the_impossible_and_the_coarse_template() -> None:
     coarse = SerialLineActuatorConfig(port="x", command="SVA 1 {voltage_v:.0f}\n")
-    assert coarse.voltage_range_problem(-0.5, 0.4) == (
+    assert coarse.voltage_range_problem(-0.5, 0.4, 0.02) == (
         "command: {voltage_v:.0f} cannot write the voltages within [v_min, v_max] = [-0.5, 0.4] V: it writes every "
         "one of them as '-0', so the stage could not move; give it more decimals, e.g. {voltage_v:.1f}")
     assert "no value it writes lies within them (0.2 is written '0', 0.4 '0')" in str(
-        coarse.voltage_range_problem(0.2, 0.4))
-    assert coarse.voltage_range_problem(-2.0, 12.0) is None  # coarse, but it can move the stage: a warning
+        coarse.voltage_range_problem(0.2, 0.4, 0.02))
+    assert coarse.voltage_range_problem(-2.0, 12.0, 0.02) is None  # coarse, but it can move the stage: a warning
     assert coarse.config_warnings(-2.0, 12.0, 0.02, 0.0) == [
         "command: {voltage_v:.0f} writes voltage_v in steps of 1 V, 50000 nm of stage travel at volts_per_um = "
         "0.02, coarser than 10 nm: every command reaches the stage rounded to that; e.g. {voltage_v:.4f}"]
     fine = SerialLineActuatorConfig(port="x")  # the default {voltage_v:.4f}: 0.1 mV, 5 nm at 0.02 V/um
     assert fine.config_warnings(-2.0, 12.0, 0.02, 0.0) == []
-    assert fine.voltage_range_problem(-2.0, 12.0) is None
+    assert fine.voltage_range_problem(-2.0, 12.0, 0.02) is None
     assert len(fine.config_warnings(-2.0, 12.0, 0.002, 0.0)) == 1  # 50 nm at a tenfold smaller gain
     closed_loop = SerialLineActuatorConfig(port="x", command="MOV 1 {q_um:.1f}\n")
     assert closed_loop.config_warnings(-2.0, 12.0, 0.02, 0.0)[0].startswith(
