@@ -118,7 +118,7 @@ def _simulation_flags(p: argparse.ArgumentParser, default_scenario: str) -> None
                         "as in demo")
 
 
-def _add(sub: Any, name: str, help_text: str, epilog: str | None = None) -> argparse.ArgumentParser:
+def _add(sub: Any, name: str, help_text: str, epilog: str | None = None) -> _Parser:  # sub: parser_class=_Parser
     return sub.add_parser(name, help=help_text, description=help_text[:1].upper() + help_text[1:] + ".",
                           epilog=epilog, formatter_class=_HelpFormatter)
 

@@ -22,7 +22,7 @@ import re
 import tomllib
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, TypeVar
 
 from pydantic import (
     AllowInfNan,
@@ -443,6 +443,9 @@ def _problems(prefix: str, error: ValidationError) -> list[str]:
     return out
 
 
+_Model = TypeVar("_Model", bound=BaseModel)
+
+
 class _Parse:
     """One validation of a document: collects every problem instead of stopping at the first."""
 
@@ -477,7 +480,7 @@ class _Parse:
                     return plugin
         return None
 
-    def validate(self, model: type[BaseModel], raw: Any, where: str) -> BaseModel | None:
+    def validate(self, model: type[_Model], raw: Any, where: str) -> _Model | None:
         if not isinstance(raw, Mapping):
             self.problems.append(f"{where}: expected a table")
             return None
@@ -732,7 +735,7 @@ def _parse_sensors(parse: _Parse, raw_sensors: Any, sections: Mapping[str, BaseM
             continue
         sensor = parse.validate(plugin.config_model, raw, prefix)
         if sensor is not None:
-            indexed.append((index, sensor))  # type: ignore[arg-type]
+            indexed.append((index, sensor))
 
     seen: set[str] = set()
     for index, sensor in indexed:
@@ -757,8 +760,8 @@ def _parse_hubs(parse: _Parse, raw_hubs: Any, sensors: Sequence[tuple[int, Senso
         parse.problems.append("hubs: expected an array of tables ([[hubs]])")
         return []
     names = [h.get("name") if isinstance(h, Mapping) else None for h in raw_hubs]
-    for name in sorted({n for n in names if isinstance(n, str) and names.count(n) > 1}):
-        parse.problems.append(f"hubs: name {name!r} is used twice")
+    for twice in sorted({n for n in names if isinstance(n, str) and names.count(n) > 1}):
+        parse.problems.append(f"hubs: name {twice!r} is used twice")
     users: dict[str, list[str]] = {}
     for index, sensor in sensors:
         hub = sensor.hub_name()
@@ -793,9 +796,9 @@ def _parse_hubs(parse: _Parse, raw_hubs: Any, sensors: Sequence[tuple[int, Senso
             if plugin is None or plugin.hub_model is None:
                 parse.problems.append(f"{where}: driver {kind!r} takes no hubs")
                 continue
-            hub = parse.validate(plugin.hub_model, raw, where)
-            if hub is not None and kind == users[name][0]:
-                hubs.append(hub)
+            entry = parse.validate(plugin.hub_model, raw, where)
+            if entry is not None and kind == users[name][0]:
+                hubs.append(entry)
     return hubs
 
 

@@ -34,6 +34,7 @@ from types import TracebackType
 from typing import Any, TextIO
 
 import structlog
+from structlog.typing import EventDict, Processor
 
 #: a library message repeated within this many seconds is written once, then summarised
 CHATTER_WINDOW_S = 10.0
@@ -64,7 +65,9 @@ def configure_logging(
     renderer: Any = structlog.processors.JSONRenderer() if json_lines else structlog.dev.ConsoleRenderer(
         colors=False
     )
-    stamped = [structlog.processors.add_log_level, structlog.processors.TimeStamper(fmt="iso", utc=True)]
+    stamped: list[Processor] = [
+        structlog.processors.add_log_level, structlog.processors.TimeStamper(fmt="iso", utc=True)
+    ]
     structlog.configure(
         processors=[
             structlog.contextvars.merge_contextvars,
@@ -112,7 +115,7 @@ def get_logger(name: str = "nanodrift") -> Any:
     return structlog.get_logger(name)
 
 
-def _library_fields(logger: Any, method: str, event_dict: dict[str, Any]) -> dict[str, Any]:
+def _library_fields(logger: Any, method: str, event_dict: EventDict) -> EventDict:
     """A library's record: which logger, and the count of a rate-limit summary."""
     record = event_dict["_record"]
     event_dict["logger"] = record.name

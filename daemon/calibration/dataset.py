@@ -260,7 +260,7 @@ def concat(datasets: Sequence[Dataset], channels: Sequence[str] | None = None) -
         if list(ds.channels) == wanted:
             return ds
         return Dataset(ds.t, ds.x, ds.q, {c: ds.channels[c] for c in wanted}, ds.extra, ds.source, ds.segment)
-    commands = [d.q for d in datasets]
+    commands = [d.q for d in datasets if d.q is not None]
     extra: dict[str, np.ndarray] = {}
     names = [n for n in datasets[0].extra if all(n in d.extra for d in datasets[1:])]
     names += [n for n in ("valid", "cycle") if n not in names and any(n in d.extra for d in datasets)]
@@ -277,7 +277,7 @@ def concat(datasets: Sequence[Dataset], channels: Sequence[str] | None = None) -
     return Dataset(
         t=np.concatenate([d.t for d in datasets]),
         x=np.concatenate([d.x for d in datasets]),
-        q=None if any(q is None for q in commands) else np.concatenate(commands),
+        q=None if len(commands) < len(datasets) else np.concatenate(commands),
         channels={c: np.concatenate([d.channels[c] for d in datasets]) for c in wanted},
         extra=extra,
         source=", ".join(d.source for d in datasets),

@@ -108,9 +108,8 @@ class CellClient:
     def compensate(self, x_um: float, target_id: int) -> tuple[bool, dict[str, Any]]:
         payload = json.dumps({"x_um": x_um, "id": target_id})
         for reply in self.session.get(self.keys.compensate, payload=payload, timeout=5.0):
-            if reply.ok is not None:
-                return True, json.loads(reply.ok.payload.to_bytes())
-            return False, json.loads(reply.err.payload.to_bytes())
+            result = reply.result  # a Sample, or a ReplyError
+            return isinstance(result, zenoh.Sample), json.loads(result.payload.to_bytes())
         raise UserError(f"no answer from {self.keys.compensate}")
 
     def latest_t(self, timeout: float) -> float:

@@ -10,7 +10,7 @@ import argparse
 import json
 import sys
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, SupportsFloat
 
 from daemon.atomic import file_sha256
 from daemon.calibration.dataset import DataError, Dataset, common_channels, concat, read_csv
@@ -98,8 +98,8 @@ def main(args: argparse.Namespace) -> int:
     return 0
 
 
-def _nm(value_um: object) -> float | None:
-    return None if value_um is None else float(value_um) * 1000.0  # type: ignore[arg-type]
+def _nm(value_um: SupportsFloat | None) -> float | None:
+    return None if value_um is None else float(value_um) * 1000.0
 
 
 def _in_nm(stats: dict[str, Any]) -> dict[str, Any]:

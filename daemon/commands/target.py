@@ -70,9 +70,9 @@ def main(args: argparse.Namespace) -> int:
             answer: dict[str, Any] | None = None
             ok = False
             for reply in session.get(keys.compensate, payload=request, timeout=args.timeout):
-                sample = reply.ok
-                raw = sample.payload.to_bytes() if sample is not None else reply.err.payload.to_bytes()
-                ok = sample is not None
+                result = reply.result  # a Sample, or a ReplyError
+                raw = result.payload.to_bytes()
+                ok = isinstance(result, zenoh.Sample)
                 try:
                     answer = json.loads(raw)
                 except ValueError:

@@ -90,7 +90,8 @@ class Rate(Term):
 
     def batch(self, t: np.ndarray, x: np.ndarray, channels: Channels) -> np.ndarray:
         u = np.asarray(channels[self.channel], dtype=np.float64)
-        return (u - lag_filter(t, u, self.tau_s)) / self.tau_s
+        rate: np.ndarray = (u - lag_filter(t, u, self.tau_s)) / self.tau_s
+        return rate
 
     def stream(self) -> TermStream:
         return _RateStream(self.channel, self.tau_s)
@@ -149,7 +150,8 @@ class Creep(Term):
         counted = np.where(np.abs(step) > self.deadband_um, step, 0.0)
         x_eff = np.cumsum(counted)
         delayed = np.concatenate((x_eff[:1], x_eff[:-1]))
-        return x_eff - lag_filter(t, delayed, self.tau_s)
+        creep: np.ndarray = x_eff - lag_filter(t, delayed, self.tau_s)
+        return creep
 
     def stream(self) -> TermStream:
         return _CreepStream(self.tau_s, self.deadband_um)

@@ -241,7 +241,7 @@ def holdout_blocks(data: Series, max_folds: int = 6) -> np.ndarray:
         n, first = max(len(data), 1), 0
         for part in parts:
             share = max(1, round(max_folds * (part.stop - part.start) / n))
-            own = _run_blocks(data.select(part), share)  # type: ignore[attr-defined]
+            own = _run_blocks(data.select(part), share)
             folds[part] = own + first
             first += int(own.max()) + 1
         return folds
@@ -265,7 +265,7 @@ def holdout_rms(data: Series, candidates: Sequence[Term], penter: float, premove
     y = _commands(data)
     errors = []
     for k in np.unique(folds):
-        train, test = data.select(folds != k), data.select(folds == k)  # type: ignore[attr-defined]
+        train, test = data.select(folds != k), data.select(folds == k)
         model = fit_terms(train, candidates, penter=penter, premove=premove, uncertainty=False)
         errors.append(y[folds == k] - model.predict(test))
     err = np.concatenate(errors)

@@ -26,7 +26,7 @@ import stat
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeGuard
 
 import numpy as np
 
@@ -190,7 +190,8 @@ class Model:
         """
         if self.covariance is None:
             return np.full(np.asarray(data.t).shape[0], self.residual_rms_um)
-        return np.sqrt(self.covariance.variance(self.features(data), data.channels))
+        sigma: np.ndarray = np.sqrt(self.covariance.variance(self.features(data), data.channels))
+        return sigma
 
     def out_of_range(self, x: float | None = None, temps: Mapping[str, float] | None = None) -> list[str]:
         """Names (``x`` or channels) whose value lies outside what the model was trained on."""
@@ -422,7 +423,7 @@ def _nesting(doc: Any) -> int:
     return deepest
 
 
-def _is_number(value: Any) -> bool:
+def _is_number(value: Any) -> TypeGuard[int | float]:
     return isinstance(value, int | float) and not isinstance(value, bool)
 
 

@@ -14,12 +14,31 @@ import numpy as np
 
 
 class Series(Protocol):
-    t: np.ndarray  # s, increasing
-    x: np.ndarray  # um: measured position (calibration) or target (request)
-    q: np.ndarray | None  # um: the command sent, when recorded
-    channels: Mapping[str, np.ndarray]  # degC per temperature channel
-    source: str  # where the rows came from (a file name), for messages
-    segment: np.ndarray | None  # per row, the run (file) it came from when several were read together
+    # read-only members (properties): the core never writes them, and a read-only member lets a
+    # ``Dataset`` whose ``channels`` is a ``dict`` (a ``Mapping``) be a ``Series``
+    @property
+    def t(self) -> np.ndarray:  # s, increasing
+        ...
+
+    @property
+    def x(self) -> np.ndarray:  # um: measured position (calibration) or target (request)
+        ...
+
+    @property
+    def q(self) -> np.ndarray | None:  # um: the command sent, when recorded
+        ...
+
+    @property
+    def channels(self) -> Mapping[str, np.ndarray]:  # degC per temperature channel
+        ...
+
+    @property
+    def source(self) -> str:  # where the rows came from (a file name), for messages
+        ...
+
+    @property
+    def segment(self) -> np.ndarray | None:  # per row, the run (file) it came from when several were read together
+        ...
 
     def __len__(self) -> int: ...
 

@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -263,7 +263,10 @@ def _as_mask(spec: ArrayLike | Sequence[int] | None, p: int, name: str) -> NDArr
     return mask
 
 
-def _readonly(a: NDArray) -> NDArray:
+_S = TypeVar("_S", bound=np.generic)
+
+
+def _readonly(a: NDArray[_S]) -> NDArray[_S]:
     a.setflags(write=False)
     return a
 

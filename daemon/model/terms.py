@@ -186,8 +186,8 @@ def lag_filter(t: np.ndarray, u: np.ndarray, tau_s: float) -> np.ndarray:
     if n > 1 and float(dt.max() - dt.min()) <= 1e-12 * max(1.0, abs(float(dt[0]))):
         from scipy.signal import lfilter  # a second to import: only for series, never at a command's start
 
-        alpha = -math.expm1(-float(dt[0]) / tau_s)
-        y, _ = lfilter([alpha], [1.0, alpha - 1.0], v[1:], zi=[(1.0 - alpha) * 0.0])
+        step = -math.expm1(-float(dt[0]) / tau_s)
+        y, _ = lfilter([step], [1.0, step - 1.0], v[1:], zi=[(1.0 - step) * 0.0])
         return np.concatenate(([u0], y + u0))
     alpha = np.empty(n, dtype=np.float64)
     alpha[0] = 1.0  # y_0 = u_0

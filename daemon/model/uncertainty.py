@@ -38,7 +38,7 @@ import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from operator import mul
-from typing import Any
+from typing import Any, TypeGuard
 
 import numpy as np
 
@@ -122,7 +122,7 @@ class Covariance:
         f = np.atleast_2d(np.asarray(features, dtype=np.float64))
         s = np.float64(self.residual_rms_um)
         with np.errstate(over="ignore", invalid="ignore"):
-            v = np.maximum(np.einsum("ij,jk,ik->i", f, self.matrix, f), 0.0) + s * s
+            v: np.ndarray = np.maximum(np.einsum("ij,jk,ik->i", f, self.matrix, f), 0.0) + s * s
             if self.curvature is not None:
                 if channels is None:
                     raise ValueError("the curvature part of q_sigma needs the temperature channels")
@@ -185,7 +185,8 @@ def _matrix(rows: Any, names: Sequence[str], fail: Fail) -> np.ndarray:
     if not np.all(np.isfinite(correlation)):
         raise fail("covariance.matrix overflows when scaled by its variances: not a covariance")
     asym = np.abs(correlation - correlation.T)
-    i, j = np.unravel_index(int(np.argmax(asym)), asym.shape)
+    row, col = np.unravel_index(int(np.argmax(asym)), asym.shape)
+    i, j = int(row), int(col)
     if asym[i, j] > SYMMETRY_TOLERANCE:
         raise fail(f"covariance.matrix is not symmetric: [{i}][{j}] = {m[i, j]!r} but [{j}][{i}] = {m[j, i]!r}")
     if float(np.linalg.eigvalsh(0.5 * (correlation + correlation.T))[0]) < -PSD_TOLERANCE:
@@ -194,7 +195,7 @@ def _matrix(rows: Any, names: Sequence[str], fail: Fail) -> np.ndarray:
     return m
 
 
-def _finite_number(value: Any) -> bool:
+def _finite_number(value: Any) -> TypeGuard[int | float]:
     return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
 
 
@@ -295,7 +296,7 @@ class SigmaStream:
         others = [i for i, t in enumerate(terms) if t.uses_x and not isinstance(t, Power)]
         self._static = [streams[i] for i in static]
         self._others = [streams[i] for i in others]
-        self._powers_k = [terms[i].k for i in powers]  # type: ignore[attr-defined]
+        self._powers_k = [t.k for t in terms if isinstance(t, Power)]
         degree = max(self._powers_k, default=0)
         pp = [0.0] * (2 * degree + 1)  # power x power: constant in time
         for a, i in enumerate(powers):

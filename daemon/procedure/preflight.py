@@ -99,7 +99,8 @@ async def wait_for_output(config: Config, wait_s: float | None = None) -> None:
     try:
         publisher = session.declare_publisher(key)
         deadline = time.monotonic() + wait_s
-        while not publisher.matching_status.matching:
+        # zenoh 1.10's stub types matching_status as bool; it is a zenoh.MatchingStatus
+        while not publisher.matching_status.matching:  # type: ignore[attr-defined]
             if time.monotonic() > deadline:
                 raise PreflightError(
                     f"no output node is subscribed to {key} after {wait_s:g} s: nothing would put the steps on the "

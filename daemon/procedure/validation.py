@@ -68,7 +68,7 @@ async def run_validation(
 
     def command_for(step: PlannedStep, t: float) -> float:
         nonlocal extrapolating
-        if evaluator is None:
+        if evaluator is None or model is None:  # the one is None when the other is
             return step.target_um
         if not evaluator.ready:
             raise RuntimeError("no clean temperature sample yet for every channel the model needs")

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -464,7 +465,9 @@ def write_report(result: DiscoveryResult, directory: str | Path, model_out: str 
     out.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
     figures: list[str] = []
-    drawings = [(file_stem(v), lambda v=v: figure_residuals(result, v)) for v in figure_variables(result)]
+    drawings: list[tuple[str, Callable[[], Any]]] = [
+        (file_stem(v), partial(figure_residuals, result, v)) for v in figure_variables(result)
+    ]
     drawings.append(("gap", lambda: figure_gap(result)))
     for stem, draw in drawings:
         fig = draw()

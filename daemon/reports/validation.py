@@ -20,10 +20,13 @@ import json
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from daemon.atomic import atomic_write_text, atomic_writer
 from daemon.calibration.iso9283 import TestResult, x_without
+
+if TYPE_CHECKING:
+    from matplotlib.typing import RcKeyType
 
 PAPER_TABLE1: dict[str, tuple[float, float | None]] = {
     "test1": (546.0, None),
@@ -91,7 +94,7 @@ def raw_csv(results: Sequence[TestResult]) -> str:
 
 
 #: matplotlib settings for figures pasted into a lab notebook: readable at 100 %, text kept as text in SVG
-STYLE = {
+STYLE: dict[RcKeyType, Any] = {
     "font.size": 10,
     "axes.titlesize": 11,
     "axes.labelsize": 10,

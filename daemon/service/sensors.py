@@ -71,8 +71,8 @@ class SensorIngest:
         if health is not None:
             health.flush()
         try:
-            for role, name, *doc in telemetry:
-                self.publish_telemetry(role, name, encode_telemetry(*doc))
+            for role, name, value, unit, t, device_state, reason in telemetry:
+                self.publish_telemetry(role, name, encode_telemetry(value, unit, t, device_state, reason))
         except zenoh.ZError as error:  # a bus problem is not the device's fault
             self.log.warning("telemetry_failed", error=str(error))
 

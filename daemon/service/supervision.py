@@ -47,7 +47,7 @@ class SensorWatch:
             table = state.table
             states = [(name, entry, *table.state(name, now)) for name, entry in table.entries.items()]
         # channels that changed together (one device failing takes all of its channels) make one line
-        changed: dict[tuple[str, str | None, str | None], list[str]] = {}
+        changed: dict[tuple[str, str | None, str], list[str]] = {}
         for name, entry, channel_state, reason in states:
             previous = self._states.get(name)
             if previous == channel_state.value:

@@ -287,10 +287,10 @@ class ModbusHub:
             return call.result()
         if call in done:
             self._after_silence()
-            error = call.exception()
-            detail = "no response" if isinstance(error, ModbusException) else repr(error)
+            failure = call.exception()
+            detail = "no response" if isinstance(failure, ModbusException) else repr(failure)
             raise DeviceError(f"modbus hub {self.name!r} ({self.endpoint}): {detail} from {where} "
-                              f"within {self.request_budget_s:g} s") from error
+                              f"within {self.request_budget_s:g} s") from failure
         if lost in done:
             self._lost_link()
             raise DeviceError(f"modbus hub {self.name!r}: connection to {self.endpoint} lost while {verb} {where}")

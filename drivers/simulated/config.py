@@ -69,7 +69,7 @@ class SimulationConfig(BaseModel):
         return value
 
     def physics(self) -> CellPhysics:
-        return CellPhysics.create(self.scenario, self.effects, self.seed, **self.params)
+        return CellPhysics.create(self.scenario, self.effects, self.seed, CellParams().with_overrides(self.params))
 
 
 class SimulatedSensorConfig(SensorConfig):

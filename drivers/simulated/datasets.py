@@ -13,7 +13,7 @@ from typing import Any
 
 from daemon.calibration.dataset import Dataset
 from daemon.calibration.plans import PlannedStep, bidirectional_plan, calibration_plan, validation_plan
-from drivers.simulated.physics import THERMOCOUPLES, CellPhysics
+from drivers.simulated.physics import THERMOCOUPLES, CellParams, CellPhysics
 from drivers.simulated.runs import simulate_steps
 
 #: cycles of a run when none are asked for: the paper's calibration (24 sweeps, ~3.3 h) and validation (30)
@@ -46,7 +46,7 @@ def simulate_dataset(scenario: str = "train", effects: EffectsSpec = None, *, cy
     ``bidirectional``: alternate up and down sweeps on a calibration scenario (the ``bidirectional``
     scenario always does). ``param_overrides``: the cell's magnitudes (``CellParams`` fields).
     """
-    physics = CellPhysics.create(scenario, effects or None, seed, **param_overrides)
+    physics = CellPhysics.create(scenario, effects or None, seed, CellParams().with_overrides(param_overrides))
     plan = run_plan(physics, cycles, bidirectional=bidirectional)
     out = simulate_steps(physics, [s.target_um for s in plan], [s.cycle for s in plan])
     label = ",".join(physics.effects) or "none"

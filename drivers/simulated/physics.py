@@ -23,7 +23,7 @@ uncertainty, III.A: < 40 nm); thermocouples 5 mK noise and 0.01 °C quantisation
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -76,6 +76,11 @@ class CellParams:
 
     def offset(self, channel: str) -> float:
         return dict(self.offsets_c).get(channel, 0.0)
+
+    def with_overrides(self, overrides: Mapping[str, float]) -> CellParams:
+        """A copy with the magnitudes ``overrides`` names (this class's fields) replaced."""
+        changes: dict[str, Any] = dict(overrides)
+        return replace(self, **changes)
 
     def geometry(self, q: Any) -> Any:
         u = q / self.geometry_full_um
@@ -235,13 +240,13 @@ class CellPhysics:
         self.creep_tau_s = creep["tau_s"] if creep else 1.0
 
     @classmethod
-    def create(cls, scenario: str = "steady", effects: object = None, seed: int = 0,
-               params: CellParams | None = None, **param_overrides: float) -> CellPhysics:
+    def create(cls, scenario: str = "steady", effects: str | Sequence[str] | Mapping[str, Any] | None = None,
+               seed: int = 0, params: CellParams | None = None, **param_overrides: float) -> CellPhysics:
         """By names: ``CellPhysics.create("train", "thermal_lag:tau_s=1800", seed=3)``."""
         base = params or CellParams()
         if param_overrides:
-            base = replace(base, **param_overrides)
-        return cls(get_scenario(scenario), resolve_effects(effects), seed, base)  # type: ignore[arg-type]
+            base = base.with_overrides(param_overrides)
+        return cls(get_scenario(scenario), resolve_effects(effects), seed, base)
 
     # ----- thermal -------------------------------------------------------------------------------
     def thermal(self, t: np.ndarray) -> dict[str, np.ndarray]:

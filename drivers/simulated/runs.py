@@ -48,11 +48,11 @@ def simulate_steps(
     default the command is the target. ``t_s`` is the end of each step's averaging window.
     """
     schedule = schedule or StepSchedule()
-    targets = np.asarray(targets, dtype=np.float64)
-    n = targets.size
+    target_um = np.asarray(targets, dtype=np.float64)
+    n = target_um.size
     step_start = t_start + schedule.step_s * np.arange(n)
     hold_start = step_start + schedule.ramp_s
-    commands = targets.copy()
+    commands = target_um.copy()
     noise_rng = np.random.default_rng([physics.seed, 3])
     if command_for is not None:  # needs the temperatures seen when each step is commanded
         thermal = physics.thermal(step_start)
@@ -60,7 +60,7 @@ def simulate_steps(
                 for c in channels}
         for k in range(n):
             temps = {c: float(seen[c][k]) for c in channels}
-            commands[k] = command_for(float(targets[k]), float(step_start[k]), temps)
+            commands[k] = command_for(float(target_um[k]), float(step_start[k]), temps)
     cmd_t, cmd_q = [], []
     q_prev = 0.0
     for k in range(n):

@@ -314,7 +314,8 @@ def drift_alike(ctx: Context, chosen: Candidate) -> dict[str, Any]:
 
     def beyond(v: np.ndarray) -> np.ndarray:
         coef, *_ = np.linalg.lstsq(base, v, rcond=None)
-        return v - base @ coef
+        rest: np.ndarray = v - base @ coef
+        return rest
 
     a, b = beyond(ctx.feature(chosen.add[-1])), beyond(t_h)
     denom = math.sqrt(float(a @ a) * float(b @ b))

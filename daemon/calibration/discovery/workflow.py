@@ -192,7 +192,7 @@ def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS)
     penter = float(model.selection.get("penter", 0.05))
     premove = float(model.selection.get("premove", 0.10))
     ctx = Context(data, working, nuisance, folds, settings, excluded, delays)
-    baseline = {
+    baseline: dict[str, Any] = {
         "model": model.id, "terms": [ft.term.name for ft in model.terms], "rows": n,
         "rms_um": _rms(residual0), "refit_rms_um": math.sqrt(ctx.sse0 / n),
         "holdout_rms_um": math.sqrt(ctx.held0 / n), "durbin_watson": durbin_watson(residual0),
@@ -228,7 +228,7 @@ def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS)
         if step.add:
             step.params["coef"] = {t.name: coefs[t.name] for t in step.add if t.name in coefs}
     extended.selection["discovery"]["steps"] = [s.to_dict() for s in steps]
-    final = {
+    final: dict[str, Any] = {
         "model": extended.id, "terms": extended.term_names(), "rms_um": _rms(residual1),
         "holdout_rms_um": math.sqrt(ctx.held0 / n),
         "not_applied_online": [s.effect for s in steps if s.effect in NOT_APPLIED_ONLINE],

@@ -19,7 +19,8 @@ def standardise(cols: np.ndarray) -> np.ndarray:
     mean = cols.mean(axis=0)
     scale = cols.std(axis=0)
     scale[scale == 0] = 1.0
-    return (cols - mean) / scale
+    standard: np.ndarray = (cols - mean) / scale
+    return standard
 
 
 class Workspace:
@@ -82,7 +83,8 @@ class Workspace:
         gss = G[np.ix_(S, S)]
         scale = np.sqrt(np.maximum(np.diag(gss), 1e-300))
         beta, *_ = np.linalg.lstsq(gss / np.outer(scale, scale), G[S, target] / scale, rcond=1e-12)
-        return beta / scale
+        solution: np.ndarray = beta / scale
+        return solution
 
     def sse_with(self, F: np.ndarray) -> float:
         """Training SSE (all rows) of the working model plus columns F: one pass, no per-block split."""
@@ -119,7 +121,7 @@ class Workspace:
         beta = self._solve(total, S, total.shape[0] - 1)
         full = np.zeros(self.k + (0 if F is None else F.shape[1]))
         full[S] = beta
-        out = self.residual - self.A[:, : self.k] @ full[: self.k]
+        out: np.ndarray = self.residual - self.A[:, : self.k] @ full[: self.k]
         if F is not None:
             out -= F @ full[self.k:]
         return out
