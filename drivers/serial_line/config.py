@@ -5,15 +5,24 @@ from __future__ import annotations
 import math
 import re
 import string
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import Field, FiniteFloat, field_validator, model_validator
+from pydantic import AfterValidator, Field, FiniteFloat, field_validator, model_validator
 
 from drivers.base import ActuatorOptions, SensorConfig
 from drivers.serial_line.template import COMMAND_FIELDS, CommandTemplate
 
 #: a line that is just a number: "12345.6", "-0.25", "+1.5e3" (anchored: patterns are searched)
 DEFAULT_PATTERN = r"^\s*(?P<value>[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*$"
+
+#: pyserial's stop bits: 1, 1.5 or 2 (a float in a Literal is not a valid type, so a checked float)
+StopBits = Annotated[float, AfterValidator(lambda bits: _one_of(bits, (1, 1.5, 2)))]
+
+
+def _one_of(value: float, allowed: tuple[float, ...]) -> float:
+    if value not in allowed:
+        raise ValueError(f"Input should be {', '.join(f'{a:g}' for a in allowed[:-1])} or {allowed[-1]:g}")
+    return value
 
 
 
@@ -41,7 +50,7 @@ class SerialLineSensorConfig(SensorConfig):
     baudrate: int = Field(default=9600, gt=0)
     bytesize: Literal[5, 6, 7, 8] = 8
     parity: Literal["N", "E", "O", "M", "S"] = "N"
-    stopbits: Literal[1, 1.5, 2] = 1
+    stopbits: StopBits = 1
     query: str = Field(default="", description="sent each interval_s, exactly as written; empty: the device "
                                                "streams lines by itself")
     pattern: str = Field(default=DEFAULT_PATTERN, description="regex searched in each line (re.search), with a "
@@ -112,7 +121,7 @@ class SerialLineActuatorConfig(ActuatorOptions):
     baudrate: int = Field(default=115200, gt=0)
     bytesize: Literal[5, 6, 7, 8] = 8
     parity: Literal["N", "E", "O", "M", "S"] = "N"
-    stopbits: Literal[1, 1.5, 2] = 1
+    stopbits: StopBits = 1
     command: str = Field(default="SVA 1 {voltage_v:.4f}\n", description="written for each command (str.format)")
     readback: str = Field(default="", description="query sent after each command; empty: none")
     readback_pattern: str = Field(default=r"=(?P<value>[-+0-9.eE]+)", description="searched in the answer")
