@@ -701,3 +701,31 @@ def test_a_labs_own_output_plugin_is_validated_by_its_own_model_and_driven_by_th
     voltages = [json.loads(line)["voltage_v"] for line in box.read_text().splitlines()[1:]]
     assert len(voltages) > 2 and all(0.0 <= v <= 10.0 for v in voltages)  # ramped from 2 V, inside the limits
     assert cell.actuator_status()["writes"] == len(voltages)
+
+
+class RoundsOutward(RecordingActuator):
+    """A device whose representation of a voltage lands 0.05 V above it (a template that rounds up)."""
+
+    def sent_voltage(self, voltage_v: float) -> float:
+        return voltage_v + 0.05
+
+
+def test_what_the_device_would_receive_is_checked_against_the_limits_not_what_was_asked() -> None:
+    """Issue 16.8: the value after the device's own rounding must lie inside [v_min, v_max], or nothing is sent."""
+    log = Events()
+    config = ActuatorConfig(v_max=10.0)
+    device = RoundsOutward()
+
+    async def main() -> None:
+        actuation = Actuation(log)
+        await actuation.start(device, config)
+        command(actuation, config, 100.0)  # 2.0 V, sent as 2.05 V: inside
+        await until(lambda: len(device.written) == 1, 5, "the first command written")
+        command(actuation, config, 499.0)  # 9.98 V would be sent as 10.03 V: outside
+        await until(lambda: actuation.fault_reason is not None, 5, "the refusal")
+        await actuation.stop()
+
+    asyncio.run(main())
+    assert [v for _, v, _ in device.written] == [2.0]  # nothing sent for 9.98 V
+    [failed] = log.named("actuator_failed")
+    assert "would be sent as 10.030000 V, outside [-2, 10] V: nothing written" in failed["error"]
