@@ -18,10 +18,10 @@ After every step, on the device side (what the register received, decoded to vol
 3. every target got exactly one answer with its id (``command`` or ``error``, of a kind the step allows);
 4. the daemon is alive, ``status`` answers and shows the limits the test believes are in force.
 
-CI runs 6 examples of up to 15 steps (~20 s, under a minute). A longer release run (~10 minutes)::
+CI runs 6 examples of up to 15 steps (10-30 s, under a minute). A longer release run (~4 minutes; add
+``NANODRIFT_CHAOS_STRICT=1`` to fail on the known bug below too)::
 
-    NANODRIFT_CHAOS_EXAMPLES=60 NANODRIFT_CHAOS_STEPS=40 NANODRIFT_CHAOS_STRICT=1 \
-        python -m pytest -q -n 0 tests/service/test_chaos.py
+    NANODRIFT_CHAOS_EXAMPLES=60 NANODRIFT_CHAOS_STEPS=40 python -m pytest -q -n 0 tests/service/test_chaos.py
 
 ``NANODRIFT_CHAOS_SHRINK=0`` reports the first failing sequence unshrunk (each shrink step starts a daemon).
 
