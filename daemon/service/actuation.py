@@ -288,7 +288,9 @@ class Actuation:
                     await self._event.wait()
                     self._event.clear()
                     continue
-            self._goal = goal
+            # not on the device until a write of it is confirmed: a write that fails leaves it to be
+            # written again once the device works again (the chaos suite found it lost otherwise)
+            self._goal, self._goal_on_device = goal, False
             try:
                 await self._move_to(actuator, config, goal, follow_pending=True)
             except asyncio.CancelledError:

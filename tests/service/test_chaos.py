@@ -18,18 +18,14 @@ After every step, on the device side (what the register received, decoded to vol
 3. every target got exactly one answer with its id (``command`` or ``error``, of a kind the step allows);
 4. the daemon is alive, ``status`` answers and shows the limits the test believes are in force.
 
-CI runs 6 examples of up to 15 steps (10-30 s, under a minute). A longer release run (~4 minutes; add
-``NANODRIFT_CHAOS_STRICT=1`` to fail on the known bug below too)::
+CI runs 6 examples of up to 15 steps (10-30 s, under a minute). A longer release run (~4 minutes)::
 
     NANODRIFT_CHAOS_EXAMPLES=60 NANODRIFT_CHAOS_STEPS=40 python -m pytest -q -n 0 tests/service/test_chaos.py
 
 ``NANODRIFT_CHAOS_SHRINK=0`` reports the first failing sequence unshrunk (each shrink step starts a daemon).
 
-Known bug (:data:`LOST_GOAL_BUG`, its minimal sequence is the xfail test at the end): a command whose write
-failed is not written again once the module works again. The machine recognises exactly that signature (a
-write failed after the command was sent, nothing landed since, ``actuator_recovered``), notes it and goes on
-checking that the register then stays put; ``NANODRIFT_CHAOS_STRICT=1`` makes it a failure like any other.
-When the bug is fixed the xfail test passes (strict: the suite fails) and the tolerance must go.
+Found by it and fixed: a command whose write failed was not written again once the module worked again
+(the regression test at the end replays the minimal sequence).
 """
 
 from __future__ import annotations
@@ -50,7 +46,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import pytest
 from helpers.daemon_harness import (
     MODEL_CHANNEL_RANGES,
     TEMPS,
@@ -75,16 +70,7 @@ EXAMPLES = int(os.environ.get("NANODRIFT_CHAOS_EXAMPLES", "6"))
 STEPS = int(os.environ.get("NANODRIFT_CHAOS_STEPS", "15"))
 #: NANODRIFT_CHAOS_SHRINK=0: report the first failing sequence as found (each shrink step starts a daemon)
 SHRINK = os.environ.get("NANODRIFT_CHAOS_SHRINK", "1") != "0"
-#: NANODRIFT_CHAOS_STRICT=1: the known lost-goal bug (:data:`LOST_GOAL_BUG`) fails the suite like any violation
-STRICT = os.environ.get("NANODRIFT_CHAOS_STRICT", "0") == "1"
 
-LOST_GOAL_BUG = (
-    "daemon bug (daemon/service/actuation.py): Actuation._drive never sets _goal_on_device = False when it "
-    "takes a new goal, so a served command whose write failed (the module answered DEVICE_FAILURE) is not "
-    "written again when the module works again: the reopen finds 'nothing to write', logs actuator_recovered, "
-    "and the register keeps the previous voltage while the last command answered says otherwise (until the "
-    "next command or an [actuator] reload)"
-)
 
 SCALE = 0.001  # volts per count of the output register (int16)
 ADDRESS = 10
@@ -270,7 +256,6 @@ class ChaosMachine(RuleBasedStateMachine):
         self.client: Client | None = None
         self.old_clients: list[Client] = []  # one per earlier daemon process: their answers still count
         self.step_log: list[str] = []
-        self.strict = STRICT  # the known bug fails like any violation
 
     # --- set-up and tear-down -------------------------------------------------------------------
 
@@ -297,8 +282,6 @@ class ChaosMachine(RuleBasedStateMachine):
         self.checked_arrivals = 0
         self.checked_answers: set[Any] = set()
         self.sent_at: dict[str, float] = {}
-        self.lost_goal_hits: list[str] = []  # the known bug, met (tolerated unless STRICT)
-        self.lost_held: int | None = None  # "lost": the register keeps this (or the lost command's count)
         self.commands_seen = 0
         self.last_command: dict[str, Any] | None = None
         self.expect = "safe"  # "safe" | "command" | "dropped": what the register must hold once quiet
@@ -426,7 +409,7 @@ class ChaosMachine(RuleBasedStateMachine):
         if len(commands) > self.commands_seen:
             self.commands_seen = len(commands)
             self.last_command = commands[-1]
-            self.expect, self.dropped_at, self.lost_held = "command", None, None
+            self.expect, self.dropped_at = "command", None
 
     def wait_answered(self) -> None:
         """Invariant 3: every target sent so far has exactly one answer, of a kind its step allows."""
@@ -522,8 +505,6 @@ class ChaosMachine(RuleBasedStateMachine):
         self.say(f"reload {previous.text()} -> {limits.text()} (target of {mid_motion} um just before SIGHUP), "
                  f"applied after {t1 - t0:.3f} s")
         self.wait_answered()  # the target sent just before it: answered under the old limits or the new
-        if self.expect == "lost" and limits != previous:  # an [actuator] edit restarts the drivers: the
-            self.expect, self.lost_held = "command", None  # goal is written to the reopened output again
         if self.last_command is not None and self.expect == "command" and not limits.allows(
                 self.last_command["voltage_v"]):
             self.expect, self.dropped_at = "dropped", t1
@@ -673,18 +654,10 @@ class ChaosMachine(RuleBasedStateMachine):
                 assert self.last_command is not None
                 volts = self.last_command["voltage_v"]
                 want = limits.count_for(volts)
-                if output != want and self.lost_goal(output, want):
-                    return self.check_alive_and_limits()
                 assert output == want, (
                     f"quiet: the register holds {output} counts ({output * SCALE:.4f} V), but the last command "
                     f"{self.last_command['id']} is {volts:.6f} V ({want} counts) within {limits.text()}"
                     f":\n{self.daemon_log_tail()}")
-            elif self.expect == "lost":  # the known bug, met earlier: nothing is written until a new command
-                assert self.last_command is not None
-                want = limits.count_for(self.last_command["voltage_v"])
-                assert output in (self.lost_held, want), (
-                    f"the register holds {output} counts: neither the {self.lost_held} it kept when the goal was "
-                    f"lost nor the last command's {want}:\n{self.daemon_log_tail()}")
             else:  # dropped: the daemon says so, and nothing was written after it
                 assert self.last_command is not None and self.dropped_at is not None
                 volts = self.last_command["voltage_v"]
@@ -695,31 +668,6 @@ class ChaosMachine(RuleBasedStateMachine):
                     late = [a for a in device.arrivals if a.t > self.dropped_at]
                 assert not late, f"the goal was dropped, yet the module received {late}:\n{self.daemon_log_tail()}"
         self.check_alive_and_limits()
-
-    def lost_goal(self, output: int, want: int) -> bool:
-        """Whether the register missing the last command is :data:`LOST_GOAL_BUG` (then noted and tolerated
-        unless STRICT): since the command was sent a write failed, nothing landed after the last failure, and
-        the daemon said ``actuator_recovered``."""
-        assert self.module is not None and self.last_command is not None
-        since = self.sent_at.get(self.last_command["id"], math.inf)
-        with self.module.device.lock:
-            arrivals = [a for a in self.module.device.arrivals if a.t >= since]
-        failed = [a for a in arrivals if not a.landed]
-        if not failed or any(a.landed and a.t > failed[-1].t for a in arrivals):
-            return False
-        if not self.log_events("actuator_recovered"):
-            return False
-        hit = (f"KNOWN BUG met: last command {self.last_command['id']} ({want} counts) failed to write "
-               f"({len(failed)} failed write(s), the last of {failed[-1].raw} counts); after actuator_recovered "
-               f"the register holds {output} counts")
-        self.say(hit)
-        self.lost_goal_hits.append(hit)
-        if currently_in_test_context():
-            event("known bug met: a command whose write failed was lost")
-        if self.strict:
-            raise AssertionError(f"{hit}\n{LOST_GOAL_BUG}\n{self.daemon_log_tail()}")
-        self.expect, self.lost_held = "lost", output
-        return True
 
     def check_alive_and_limits(self) -> None:
         """Invariant 4: alive, answering status, with the limits the test believes are in force."""
@@ -740,12 +688,10 @@ ChaosMachine.TestCase.settings = settings(
 TestChaos = ChaosMachine.TestCase
 
 
-@pytest.mark.xfail(strict=True, reason=LOST_GOAL_BUG)
 def test_a_command_whose_write_failed_is_written_once_the_module_works_again() -> None:
     """The minimal sequence the chaos machine found: one target served while the module fails its writes, the
     module works again; once quiet the register must hold that command (it keeps 0 V)."""
     machine = ChaosMachine()
-    machine.strict = True
     try:
         machine.start_daemon(Limits(-2.0, 2.5, 0.0, 0.01))
         machine.check()
