@@ -729,3 +729,25 @@ def test_what_the_device_would_receive_is_checked_against_the_limits_not_what_wa
     assert [v for _, v, _ in device.written] == [2.0]  # nothing sent for 9.98 V
     [failed] = log.named("actuator_failed")
     assert "would be sent as 10.030000 V, outside [-2, 10] V: nothing written" in failed["error"]
+
+
+def test_a_reload_onto_an_output_that_opens_ends_the_fault_and_says_so() -> None:
+    """Issue 16.11: a reload that cleared an actuator fault logged no ``actuator_recovered``."""
+    log = Events()
+    config = ActuatorConfig()
+
+    async def main() -> None:
+        actuation = Actuation(log)
+        dead = RecordingActuator(description="output A")
+        dead.broken = True
+        await actuation.start(dead, config)
+        assert actuation.fault_reason is not None and len(log.named("actuator_failed")) == 1
+        await actuation.stop()  # an [actuator] edit: the daemon restarts the actuation ...
+        fixed = RecordingActuator(description="output B")  # ... on an output that opens
+        await actuation.start(fixed, config)
+        assert actuation.fault_reason is None
+        await actuation.stop()
+
+    asyncio.run(main())
+    [recovered] = log.named("actuator_recovered")
+    assert recovered["via"] == "reload" and recovered["device"] == "output B" and recovered["failures"] >= 1
