@@ -1,0 +1,702 @@
+"""The chaos suites' machine (``tests/service/test_chaos*.py``): one real ``nanodrift run`` per hypothesis
+example, driven by random interleavings of targets, reloads, wall-clock steps, device and sensor faults,
+SIGTERM and restart, with device-side invariants after every step.
+
+:class:`ChaosMachine` drives an emulated Modbus output (``test_chaos.py`` describes its rules and
+invariants); a machine with another output overrides the output hooks (``open_output``, ``output_toml``,
+``check_left_safe``, ...), ``wait_quiet`` and ``check`` (``test_chaos_serial.py``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import json
+import math
+import os
+import shutil
+import signal
+import subprocess
+import tempfile
+import threading
+import time
+from collections.abc import Coroutine
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from hypothesis import HealthCheck, Phase, event, note, settings
+from hypothesis import strategies as st
+from hypothesis.control import currently_in_test_context
+from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, precondition, rule
+from pymodbus.constants import ExcCodes
+
+from helpers.daemon_harness import (
+    MODEL_CHANNEL_RANGES,
+    TEMPS,
+    Client,
+    Daemon,
+    SensorFile,
+    file_sensor_config,
+    free_port,
+    install_file_plugin,
+    wait_until,
+    write_test_model,
+)
+from helpers.modbus_helpers import FC_READ_HOLDING, ModbusTestDevice, ModbusTestServer
+from helpers.wall_clock import WallShift
+
+#: NANODRIFT_CHAOS_SHRINK=0: report the first failing sequence as found (each shrink step starts a daemon)
+SHRINK = os.environ.get("NANODRIFT_CHAOS_SHRINK", "1") != "0"
+
+
+def chaos_settings(examples: int, steps: int) -> settings:
+    """Hypothesis settings for a chaos machine: no deadline (a step waits for a daemon), shrinking unless
+    ``NANODRIFT_CHAOS_SHRINK=0``."""
+    return settings(
+        max_examples=examples,
+        stateful_step_count=steps,
+        deadline=None,
+        suppress_health_check=[HealthCheck.too_slow],
+        phases=tuple(Phase) if SHRINK else tuple(p for p in Phase if p is not Phase.shrink),
+    )
+
+
+SCALE = 0.001  # volts per count of the output register (int16)
+ADDRESS = 10
+SAFE_V = 0.0  # safe_voltage_v: where SIGTERM leaves the stage
+HUB_TIMEOUT_S = 1.0  # the module's latency stays below it (and below the daemon's 3 s write timeout)
+LIE_COUNTS = 7  # a lying module reads back this many counts more than it holds
+SLACK_V = 1e-9
+
+
+def _signed(raw: int) -> int:
+    return raw - 65536 if raw >= 32768 else raw
+
+
+# --- the output module --------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Arrival:
+    """A write request as it reached the module: when (this process' monotonic clock), where, what, and
+    whether the module took it."""
+
+    t: float
+    address: int
+    raw: int
+    landed: bool
+
+    @property
+    def volts(self) -> float:
+        return self.raw * SCALE
+
+
+class ChaosDevice(ModbusTestDevice):
+    """One Modbus device whose output register is the stage's voltage.
+
+    ``output`` is what the module really holds (the last write it took); ``failing`` answers every write
+    with DEVICE_FAILURE (nothing is stored), ``latency_s`` delays every answer, ``lying`` makes reads of the
+    output register answer ``LIE_COUNTS`` more than it holds.
+    """
+
+    def __init__(self) -> None:
+        super().__init__(1, input_ranges=((0, 16),), holding_ranges=((0, 32),))
+        self.lock = threading.Lock()
+        self.arrivals: list[Arrival] = []
+        self.output = 0  # the register starts at 0 counts: 0 V
+        self.failing = False
+        self.lying = False
+        self.latency_s = 0.0
+        self.last_activity = time.monotonic()  # the last request's arrival or answer
+
+    def _touch(self) -> None:
+        with self.lock:
+            self.last_activity = time.monotonic()
+
+    async def _action(self, function_code: int, start: int, address: int, count: int,
+                      registers: list[int], set_values: object) -> ExcCodes | None:
+        if self.quiet:
+            return None
+        self._touch()
+        if set_values is None:  # a read: the daemon's read-back (at open, and after each write: verify)
+            if self.latency_s:
+                await asyncio.sleep(self.latency_s)
+            if function_code == FC_READ_HOLDING and address <= ADDRESS < address + count:
+                with self.lock:
+                    raw = self.output + (LIE_COUNTS if self.lying else 0)
+                registers[ADDRESS - start] = raw & 0xFFFF  # what this read answers
+            self._touch()
+            return None
+        assert isinstance(set_values, list)
+        values = [_signed(int(v)) for v in set_values]
+        with self.lock:
+            landed = not self.failing
+            arrived = time.monotonic()
+            self.arrivals.extend(Arrival(arrived, address + i, v, landed) for i, v in enumerate(values))
+        if self.latency_s:
+            await asyncio.sleep(self.latency_s)
+        if not landed:
+            self._touch()
+            return ExcCodes.DEVICE_FAILURE
+        with self.lock:
+            if address <= ADDRESS < address + len(values):
+                self.output = values[ADDRESS - address]
+        self._touch()
+        return None
+
+    def quiet_for(self) -> float:
+        with self.lock:
+            return time.monotonic() - self.last_activity
+
+
+class OutputModule:
+    """pymodbus' TCP server with a :class:`ChaosDevice`, on its own loop thread."""
+
+    def __init__(self) -> None:
+        self.device = ChaosDevice()
+        self.server = ModbusTestServer([self.device])
+        self.loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self.loop.run_forever, name="chaos-modbus", daemon=True)
+        self._thread.start()
+        self.call(self.server.start())
+
+    def call(self, coro: Coroutine[Any, Any, Any]) -> Any:
+        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(10)
+
+    def close(self) -> None:
+        try:
+            self.call(self.server.stop())
+        finally:
+            self.loop.call_soon_threadsafe(self.loop.stop)
+            self._thread.join(5)
+
+
+# --- what the test believes is in force ---------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Limits:
+    v_min: float = -2.0
+    v_max: float = 12.0
+    max_slew_um_per_s: float = 0.0
+    volts_per_um: float = 0.02
+
+    def allows(self, volts: float) -> bool:
+        return self.v_min - SLACK_V <= volts <= self.v_max + SLACK_V
+
+    def count_for(self, volts: float) -> int:
+        """The count a command of ``volts`` is written as: the nearest, or the neighbour inside a limit."""
+        raw = round(volts / SCALE)
+        if raw * SCALE > self.v_max + SLACK_V:
+            raw -= 1
+        elif raw * SCALE < self.v_min - SLACK_V:
+            raw += 1
+        return raw
+
+    def text(self) -> str:
+        return (f"[{self.v_min:g}, {self.v_max:g}] V, slew {self.max_slew_um_per_s:g} um/s, "
+                f"{self.volts_per_um:g} V/um")
+
+
+@dataclass(frozen=True)
+class Epoch:
+    """Limits in force from ``t`` on; writes arriving in ``[t, window_end]`` may still carry ``previous``'s."""
+
+    t: float
+    limits: Limits
+    window_end: float
+    previous: Limits | None
+
+
+# slews that make any ramp take at most a second: 14 V at 0.01 V/um is 1400 um
+V_MINS = (-2.0, -1.0, -0.25, 0.0)
+V_MAXES = (2.5, 5.0, 8.0, 12.0)
+SLEWS = (0.0, 1500.0, 3000.0)
+GAINS = (0.01, 0.02, 0.025)
+limits_strategy = st.builds(Limits, st.sampled_from(V_MINS), st.sampled_from(V_MAXES), st.sampled_from(SLEWS),
+                            st.sampled_from(GAINS))
+
+valid_x = st.floats(min_value=0.0, max_value=500.0, allow_nan=False).map(lambda x: round(x, 3))
+outside_x = st.sampled_from([-50.0, -0.001, 500.5, 1.0e4])
+MALFORMED = {  # with an id the daemon can answer to
+    "x_not_a_number": '{{"id": "{id}", "x_um": "abc"}}',
+    "x_missing": '{{"id": "{id}"}}',
+    "x_null": '{{"id": "{id}", "x_um": null}}',
+    "x_infinite": '{{"id": "{id}", "x_um": 1e999}}',
+}
+ANONYMOUS = {"not_json": "x_um=12", "not_an_object": "[1, 2]", "empty": ""}  # answered with id null
+target_strategy = st.one_of(
+    st.tuples(st.just("valid"), valid_x),
+    st.tuples(st.just("outside"), outside_x),
+    st.tuples(st.just("malformed"), st.sampled_from(sorted(MALFORMED))),
+    st.tuples(st.just("anonymous"), st.sampled_from(sorted(ANONYMOUS))),
+)
+BAD_EDITS = ("unknown_key", "bad_toml", "v_min_above_v_max", "safe_voltage_outside")
+
+
+class ChaosMachine(RuleBasedStateMachine):
+    """One daemon per example; see the module docstring for the rules and the invariants."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.root: Path | None = None
+        self.module: OutputModule | None = None
+        self.daemon: Daemon | None = None
+        self.client: Client | None = None
+        self.old_clients: list[Client] = []  # one per earlier daemon process: their answers still count
+        self.step_log: list[str] = []
+
+    # --- set-up and tear-down -------------------------------------------------------------------
+
+    @initialize(limits=limits_strategy)
+    def start_daemon(self, limits: Limits) -> None:
+        self.root = Path(tempfile.mkdtemp(prefix="nanodrift-chaos-"))
+        self.open_output()
+        self.plugins = install_file_plugin(self.root / "plugins")
+        self.model_path = self.root / "model.json"
+        write_test_model(self.model_path)
+        self.temps = dict(TEMPS)
+        self.faulted: set[str] = set()
+        self.sensors = SensorFile(self.root / "sensors.json", self.temps)
+        self.shift = WallShift(self.root / "wall_shift")
+        self.cell = f"chaos{free_port()}"
+        self.port = free_port()
+        self.config_path = self.root / "nanodrift.toml"
+        now = time.monotonic()
+        self.epochs = [Epoch(now, limits, now, None)]
+        self.write_config(limits)
+        self.ids = itertools.count(1)
+        self.sent: dict[str, tuple[str, Any, set[str]]] = {}  # id -> (what, detail, kinds of error allowed)
+        self.anonymous_sent = 0
+        self.checked_arrivals = 0
+        self.checked_answers: set[Any] = set()
+        self.sent_at: dict[str, float] = {}
+        self.commands_seen = 0
+        self.last_command: dict[str, Any] | None = None
+        self.expect = "safe"  # "safe" | "command" | "dropped": what the register must hold once quiet
+        self.dropped_at: float | None = None
+        self.mode = "ok"  # the module: "ok" | "failing" | "lying"
+        self.restarts = 0
+        self.say(f"start: {limits.text()}")
+        self.launch()
+
+    def launch(self) -> None:
+        assert self.root is not None
+        self.daemon = Daemon(["--config", str(self.config_path)], self.root / f"daemon{self.restarts}.log",
+                             [WallShift.SITE_DIR, self.plugins], env=self.shift.env())
+        self.daemon.wait_log("serving", timeout=30)
+        self.client = self.make_client()
+        self.client.wait_alive()
+        self.wait_channels()
+
+    def wait_channels(self) -> None:
+        """Until status shows each channel as the sensor file makes it: ``fault`` or ``ok``."""
+
+        def as_written() -> bool:
+            try:
+                sensors = self.client.status(1.0)["sensors"]  # type: ignore[union-attr]
+            except AssertionError:
+                return False
+            return all(sensors.get(c, {}).get("state") == ("fault" if c in self.faulted else "ok")
+                       for c in ("T1", "T2"))
+
+        wait_until(as_written, 15, f"channels in status ({sorted(self.faulted)} in fault, the others ok)",
+                   interval=0.05)
+
+    # --- the output device: hooks a machine with another output overrides ------------------------
+
+    def open_output(self) -> None:
+        self.module = OutputModule()
+
+    def heal_output(self) -> None:
+        """The device works properly again (before the daemon stops, so it can leave the stage safe)."""
+        if self.module is not None:
+            self.module.device.failing = self.module.device.lying = False
+            self.module.device.latency_s = 0.0
+
+    def close_output(self) -> None:
+        if self.module is not None:
+            self.module.close()
+
+    def make_client(self) -> Client:
+        return Client(self.port, self.cell)
+
+    def output_toml(self, limits: Limits, v_min: float, v_max: float, safe: float, tail: str) -> tuple[str, str]:
+        """The ``[actuator]`` keys and what follows them (hubs, more sensors)."""
+        assert self.module is not None
+        actuator = (f'kind = "modbus"\nhub = "out"\ndevice_id = 1\naddress = {ADDRESS}\nscale = {SCALE}\n'
+                    f"volts_per_um = {limits.volts_per_um!r}\nv_min = {v_min!r}\nv_max = {v_max!r}\n"
+                    f"max_slew_um_per_s = {limits.max_slew_um_per_s!r}\nsafe_voltage_v = {safe!r}\n{tail}")
+        hub = (f'[[hubs]]\nname = "out"\ntype = "tcp"\nhost = "127.0.0.1"\nport = {self.module.server.port}\n'
+               f"timeout_s = {HUB_TIMEOUT_S}\n")
+        return actuator, hub
+
+    def check_left_safe(self) -> str:
+        """After a SIGTERM (exit 0): the output holds ``safe_voltage_v``; what it holds, for the step log."""
+        assert self.module is not None
+        output = self.module.device.output
+        assert output == self.limits.count_for(SAFE_V), (
+            f"after SIGTERM the register holds {output} counts ({output * SCALE:.4f} V), not safe_voltage_v "
+            f"{SAFE_V} V:\n{self.daemon_log_tail()}")
+        return f"register {output} counts"
+
+    def teardown(self) -> None:
+        try:
+            self.heal_output()
+            for client in [*self.old_clients, *([self.client] if self.client else [])]:
+                client.close()
+            if self.daemon is not None:
+                self.daemon.stop(timeout=25)
+        finally:
+            self.close_output()
+            if self.root is not None:
+                shutil.rmtree(self.root, ignore_errors=True)
+
+    # --- helpers --------------------------------------------------------------------------------
+
+    @property
+    def limits(self) -> Limits:
+        return self.epochs[-1].limits
+
+    def say(self, line: str) -> None:
+        self.step_log.append(line)
+        if currently_in_test_context():
+            note(line)
+
+    def write_config(self, limits: Limits, bad: str | None = None) -> None:
+        assert self.root is not None
+        v_min, v_max, safe, tail = limits.v_min, limits.v_max, SAFE_V, ""
+        if bad == "unknown_key":
+            tail = "v_maximum = 3.0\n"
+        elif bad == "bad_toml":
+            tail = "v_max = = 3.0\n"
+        elif bad == "v_min_above_v_max":
+            v_min, v_max = limits.v_max, limits.v_min
+        elif bad == "safe_voltage_outside":
+            safe = limits.v_max + 1.0
+        actuator, hub = self.output_toml(limits, v_min, v_max, safe, tail)
+        self.config_path.write_text(file_sensor_config(
+            self.root, cell=self.cell, port=self.port, model_path=self.model_path, sensor_file=self.sensors.path,
+            actuator=actuator, extra=hub))
+
+    def put_target(self, what: str, detail: Any) -> str | None:
+        assert self.client is not None
+        target_id = f"t{next(self.ids)}"
+        device_trouble = {"actuator_fault"} if self.mode != "ok" else set()
+        if what == "valid":
+            payload = json.dumps({"x_um": detail, "id": target_id})
+            allowed = {"voltage_limit", *device_trouble, *({"fault"} if self.faulted else set())}
+        elif what == "outside":
+            payload = json.dumps({"x_um": detail, "id": target_id})
+            allowed = {"out_of_workspace", *device_trouble}
+        elif what == "malformed":
+            payload = MALFORMED[detail].format(id=target_id)
+            allowed = {"bad_payload"}
+        else:
+            self.client.put(ANONYMOUS[detail])
+            self.anonymous_sent += 1
+            return None
+        self.sent[target_id] = (what, detail, allowed)
+        self.sent_at[target_id] = time.monotonic()
+        self.client.put(payload)
+        return target_id
+
+    def answers(self) -> dict[Any, list[tuple[str, dict[str, Any]]]]:
+        out: dict[Any, list[tuple[str, dict[str, Any]]]] = {}
+        for client in [*self.old_clients, *([self.client] if self.client else [])]:
+            with client._cond:
+                docs = [("command", c) for c in client.commands] + [("error", e) for e in client.errors]
+            for kind, doc in docs:
+                out.setdefault(doc.get("id"), []).append((kind, doc))
+        return out
+
+    def commands(self) -> list[dict[str, Any]]:
+        return [c for client in [*self.old_clients, *([self.client] if self.client else [])] for c in client.commands]
+
+    def log_events(self, event: str) -> list[dict[str, Any]]:
+        assert self.daemon is not None
+        return self.daemon.log_events(event)
+
+    def daemon_log_tail(self, events: int = 25) -> str:
+        assert self.daemon is not None
+        lines = [json.dumps(d) for d in self.daemon.logs() if d.get("event") not in ("target_refused",)]
+        return "\n".join(lines[-events:])
+
+    def track_commands(self) -> None:
+        """Take the newest command as what the register must hold (a new command ends "dropped"/"safe")."""
+        commands = self.commands()
+        if len(commands) > self.commands_seen:
+            self.commands_seen = len(commands)
+            self.last_command = commands[-1]
+            self.expect, self.dropped_at = "command", None
+
+    def wait_answered(self) -> None:
+        """Invariant 3: every target sent so far has exactly one answer, of a kind its step allows."""
+
+        def all_answered() -> bool:
+            answers = self.answers()
+            anonymous = len(answers.get(None, []))
+            return all(i in answers for i in self.sent) and anonymous >= self.anonymous_sent
+
+        wait_until(all_answered, 10, "an answer to every target sent")
+        answers = self.answers()
+        for target_id, got in answers.items():
+            if target_id is None:
+                continue
+            assert target_id in self.sent, f"an answer to a target never sent: {got}"
+            assert len(got) == 1, f"target {target_id} answered {len(got)} times: {got}"
+            if target_id in self.checked_answers:
+                continue
+            self.checked_answers.add(target_id)  # checked once, against the limits of the step that sent it
+            what, detail, allowed = self.sent[target_id]
+            kind, doc = got[0]
+            if kind == "error":
+                assert doc["kind"] in allowed, (f"target {target_id} ({what} {detail!r}) refused with "
+                                                f"{doc['kind']!r}, expected a command or one of {sorted(allowed)}: "
+                                                f"{doc}")
+            else:
+                assert what == "valid", f"target {target_id} ({what} {detail!r}) was served: {doc}"
+                assert self.limits_at_answer_allow(doc["voltage_v"]), (
+                    f"command {target_id} at {doc['voltage_v']} V is outside every limit in force: {doc}")
+        assert len(answers.get(None, [])) == self.anonymous_sent, (
+            f"{self.anonymous_sent} anonymous payloads, {len(answers.get(None, []))} answers with id null")
+        self.track_commands()
+
+    def limits_at_answer_allow(self, volts: float) -> bool:
+        # the command was answered by the limits of the current epoch, or the previous one within a reload
+        last = self.epochs[-1]
+        return last.limits.allows(volts) or (last.previous is not None and last.previous.allows(volts))
+
+    def wait_quiet(self) -> None:
+        """No request reached the module for a moment and, unless the module is failing, the daemon says its
+        actuator is ok (a fault it has recovered from): the actuation is idle."""
+        assert self.module is not None and self.client is not None and self.daemon is not None
+        device = self.module.device
+        window = 0.3 + 2 * device.latency_s
+        deadline = time.monotonic() + 20.0
+        state = None
+        while True:
+            self.daemon.check_alive()
+            if device.quiet_for() >= window:
+                if self.mode != "ok":
+                    return
+                state = self.client.status(3.0)["actuator"]["state"]
+                if state == "ok" and device.quiet_for() >= window:
+                    return
+            assert time.monotonic() < deadline, (
+                f"the actuation never went quiet (module quiet for {device.quiet_for():.2f} s, actuator "
+                f"{state}):\n{self.daemon_log_tail()}")
+            time.sleep(0.05)
+
+    def allowed_limits(self, t: float) -> list[Limits]:
+        epoch = None
+        for candidate in self.epochs:
+            if candidate.t <= t:
+                epoch = candidate
+        if epoch is None:
+            return [self.epochs[0].limits]
+        allowed = [epoch.limits]
+        if epoch.previous is not None and t <= epoch.window_end:
+            allowed.append(epoch.previous)
+        return allowed
+
+    # --- rules ----------------------------------------------------------------------------------
+
+    @rule(batch=st.lists(target_strategy, min_size=1, max_size=4))
+    def send_targets(self, batch: list[tuple[str, Any]]) -> None:
+        ids = [self.put_target(what, detail) for what, detail in batch]
+        self.say(f"send targets {list(zip(ids, batch, strict=True))}")
+
+    @rule(limits=limits_strategy, mid_motion=st.none() | valid_x)
+    def reload_valid_limits(self, limits: Limits, mid_motion: float | None) -> None:
+        assert self.daemon is not None
+        before = len(self.log_events("reload_applied")), len(self.log_events("reload_refused"))
+        self.write_config(limits)
+        if mid_motion is not None:
+            self.put_target("valid", mid_motion)
+        t0 = time.monotonic()
+        self.daemon.signal(signal.SIGHUP)
+        outcome = self.wait_reload(before)
+        t1 = time.monotonic()
+        assert outcome == "reload_applied", f"a valid edit was refused:\n{self.daemon_log_tail()}"
+        previous = self.limits
+        self.epochs.append(Epoch(t0, limits, t1, previous))
+        self.say(f"reload {previous.text()} -> {limits.text()} (target of {mid_motion} um just before SIGHUP), "
+                 f"applied after {t1 - t0:.3f} s")
+        self.wait_answered()  # the target sent just before it: answered under the old limits or the new
+        if self.last_command is not None and self.expect == "command" and not limits.allows(
+                self.last_command["voltage_v"]):
+            self.expect, self.dropped_at = "dropped", t1
+            self.say(f"  the last command ({self.last_command['voltage_v']:.4f} V) is outside the new limits: "
+                     "the daemon must drop it and hold")
+
+    @rule(bad=st.sampled_from(BAD_EDITS))
+    def reload_invalid_edit(self, bad: str) -> None:
+        assert self.daemon is not None
+        before = len(self.log_events("reload_applied")), len(self.log_events("reload_refused"))
+        self.write_config(self.limits, bad=bad)
+        self.daemon.signal(signal.SIGHUP)
+        outcome = self.wait_reload(before)
+        self.write_config(self.limits)  # the file is good again (a later restart reads it); no SIGHUP
+        assert outcome == "reload_refused", f"the edit {bad!r} was applied:\n{self.daemon_log_tail()}"
+        self.say(f"invalid reload ({bad}): refused")
+
+    def wait_reload(self, before: tuple[int, int]) -> str:
+        try:
+            outcome: str = wait_until(lambda: self.reload_outcome(before), 15, "the reload's outcome", interval=0.02)
+        except AssertionError as error:
+            raise AssertionError(f"{error}:\n{self.daemon_log_tail()}") from None
+        return outcome
+
+    def reload_outcome(self, before: tuple[int, int]) -> str | None:
+        assert self.daemon is not None
+        self.daemon.check_alive()
+        if len(self.log_events("reload_applied")) > before[0]:
+            return "reload_applied"
+        if len(self.log_events("reload_refused")) > before[1]:
+            return "reload_refused"
+        return None
+
+    @rule(seconds=st.sampled_from([600.0, -600.0, 86400.0, -86400.0]))
+    def step_wall_clock(self, seconds: float) -> None:
+        self.shift.step(seconds)
+        self.say(f"wall clock stepped by {seconds:+g} s (now {self.shift.offset_s:+g} s)")
+
+    @precondition(lambda self: self.mode == "ok")
+    @rule()
+    def module_starts_failing_writes(self) -> None:
+        assert self.module is not None
+        self.module.device.failing = True
+        self.mode = "failing"
+        self.say("module: every write fails from now on (DEVICE_FAILURE)")
+
+    @precondition(lambda self: self.mode == "ok")
+    @rule()
+    def module_starts_lying_on_read_back(self) -> None:
+        assert self.module is not None
+        self.module.device.lying = True
+        self.mode = "lying"
+        self.say(f"module: reads of the output answer {LIE_COUNTS} counts more than it holds")
+
+    @precondition(lambda self: self.mode != "ok")
+    @rule()
+    def module_works_again(self) -> None:
+        assert self.module is not None
+        self.module.device.failing = self.module.device.lying = False
+        self.say(f"module: works again (was {self.mode})")
+        self.mode = "ok"
+
+    @rule(latency_s=st.sampled_from([0.0, 0.05, 0.2, 0.4]))
+    def module_latency(self, latency_s: float) -> None:
+        assert self.module is not None
+        self.module.device.latency_s = latency_s
+        self.say(f"module: answers {latency_s:g} s late")
+
+    @rule(t1=st.floats(*MODEL_CHANNEL_RANGES["T1"]).map(lambda t: round(t, 3)),
+          t2=st.floats(*MODEL_CHANNEL_RANGES["T2"]).map(lambda t: round(t, 3)))
+    def temperatures_change(self, t1: float, t2: float) -> None:
+        assert self.client is not None
+        self.temps = {"T1": t1, "T2": t2}
+        self.sensors.write(values=dict(self.temps), fault={})
+        self.faulted.clear()
+        self.wait_channels()
+        self.say(f"temperatures T1 = {t1} degC, T2 = {t2} degC (channels ok)")
+
+    @rule(channel=st.sampled_from(["T1", "T2"]))
+    def temperature_channel_faults(self, channel: str) -> None:
+        assert self.client is not None
+        self.faulted.add(channel)
+        self.sensors.write(fault={c: "thermocouple open" for c in self.faulted})
+        self.wait_channels()
+        self.say(f"temperature channel {channel} faults")
+
+    @precondition(lambda self: self.mode == "ok")
+    @rule()
+    def sigterm_and_restart(self) -> None:
+        assert self.daemon is not None and self.client is not None
+        t0 = time.monotonic()
+        self.daemon.signal(signal.SIGTERM)
+        try:
+            code = self.daemon.proc.wait(25)
+        except subprocess.TimeoutExpired:
+            raise AssertionError(f"the daemon did not stop within 25 s:\n{self.daemon_log_tail()}") from None
+        assert code == 0, f"the daemon exited with {code}:\n{self.daemon_log_tail()}"
+        held = self.check_left_safe()
+        safe = self.log_events("actuator_safe")
+        self.say(f"SIGTERM: exit 0 after {time.monotonic() - t0:.2f} s, {held}")
+        assert safe and safe[-1]["voltage_v"] == SAFE_V, f"no actuator_safe line:\n{self.daemon_log_tail()}"
+        self.old_clients.append(self.client)
+        self.client.close()
+        self.client = None
+        self.restarts += 1
+        self.expect, self.dropped_at = "safe", None
+        self.launch()
+        self.say("restarted")
+
+    # --- the invariants -------------------------------------------------------------------------
+
+    @invariant()
+    def the_device_and_the_answers_hold(self) -> None:
+        if self.daemon is None:  # before initialize
+            return
+        try:
+            self.check()
+        except AssertionError:
+            note("steps and what happened:\n  " + "\n  ".join(self.step_log))
+            raise
+
+    def check(self) -> None:
+        assert self.module is not None and self.client is not None and self.daemon is not None
+        self.track_commands()
+        device = self.module.device
+        # 3. every target answered exactly once
+        self.wait_answered()
+        # quiet: the register stops changing and the actuation is idle
+        self.wait_quiet()
+        # 1. every write that reached the module was inside the limits in force when it arrived
+        with device.lock:
+            arrivals = device.arrivals[self.checked_arrivals:]
+            output = device.output
+        self.checked_arrivals += len(arrivals)
+        for arrival in arrivals:
+            assert arrival.address == ADDRESS, f"a write to register {arrival.address}: {arrival}"
+            allowed = self.allowed_limits(arrival.t)
+            assert any(lim.allows(arrival.volts) for lim in allowed), (
+                f"the module received {arrival.raw} counts ({arrival.volts:.4f} V), outside the limits in force "
+                f"({' or '.join(lim.text() for lim in allowed)}):\n{self.daemon_log_tail()}")
+        # 2. once quiet, the register holds the last served command (or safe_voltage_v after a SIGTERM)
+        if currently_in_test_context():
+            event(f"register checked: {self.expect if self.mode == 'ok' else 'module ' + self.mode}")
+        if self.mode == "ok":
+            limits = self.limits
+            if self.expect == "safe":
+                want = limits.count_for(SAFE_V)
+                assert output == want, (f"no command served since start: the register holds {output} counts, "
+                                        f"not {want}:\n{self.daemon_log_tail()}")
+            elif self.expect == "command":
+                assert self.last_command is not None
+                volts = self.last_command["voltage_v"]
+                want = limits.count_for(volts)
+                assert output == want, (
+                    f"quiet: the register holds {output} counts ({output * SCALE:.4f} V), but the last command "
+                    f"{self.last_command['id']} is {volts:.6f} V ({want} counts) within {limits.text()}"
+                    f":\n{self.daemon_log_tail()}")
+            else:  # dropped: the daemon says so, and nothing was written after it
+                assert self.last_command is not None and self.dropped_at is not None
+                volts = self.last_command["voltage_v"]
+                dropped = [e for e in self.log_events("actuator_goal_dropped") if math.isclose(e["voltage_v"], volts)]
+                assert dropped, (f"the last command ({volts:.6f} V) is outside {limits.text()} but no "
+                                 f"actuator_goal_dropped line names it:\n{self.daemon_log_tail()}")
+                with device.lock:
+                    late = [a for a in device.arrivals if a.t > self.dropped_at]
+                assert not late, f"the goal was dropped, yet the module received {late}:\n{self.daemon_log_tail()}"
+        self.check_alive_and_limits()
+
+    def check_alive_and_limits(self) -> None:
+        """Invariant 4: alive, answering status, with the limits the test believes are in force."""
+        assert self.client is not None and self.daemon is not None
+        self.daemon.check_alive()
+        actuator = self.client.status(5.0)["actuator"]
+        shown = Limits(actuator["v_min"], actuator["v_max"], actuator["max_slew_um_per_s"], actuator["volts_per_um"])
+        assert shown == self.limits, f"status shows {shown.text()}, the test applied {self.limits.text()}"
