@@ -190,15 +190,15 @@ class Actuation:
         actuator, self._actuator = self._actuator, None
         fault, self.fault_reason = self.fault_reason, None  # a stopped actuator refuses nothing (reload to zenoh)
         try:
-            if self._task is not None:
-                self._task.cancel()
-                try:
-                    await self._task
-                except asyncio.CancelledError:
-                    pass
-                except Exception as error:  # the drive loop catches its own; this is a bug, not a reason to skip
-                    self.log.error("actuator_task_failed", error=_reason(error))
-                self._task = None
+            task, self._task = self._task, None
+            while task is not None and not task.done():
+                # cancelled again until it ends: a driver that swallows one cancellation (3.11's wait_for can)
+                # must not hang a reload or the stop, and with it the safe ramp
+                task.cancel()
+                await asyncio.wait({task}, timeout=1.0)
+            error = task.exception() if task is not None and not task.cancelled() else None
+            if error is not None:  # the drive loop catches its own; this is a bug, not a reason to skip the safe ramp
+                self.log.error("actuator_task_failed", error=_reason(error))
         finally:
             if actuator is not None:
                 if fault is not None and not final:

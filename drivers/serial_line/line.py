@@ -118,12 +118,13 @@ class SerialLineGroup(SensorGroup):
         self._generation += 1
         self.open_attempts += 1
         try:
-            self._reader = await asyncio.wait_for(
-                asyncio.to_thread(SerialLineReader.open, c.port, settings, loop=loop, terminator=self._terminator,
-                                  on_line=partial(self._on_line, self._generation),
-                                  on_error=partial(self._on_error, self._generation)),
-                timeout=c.timeout_s,
-            )
+            # asyncio.timeout, not wait_for: on 3.11 wait_for can swallow a cancellation, and a daemon
+            # stopping or reloading then waits for ever on the task that swallowed it (found by the chaos suite)
+            async with asyncio.timeout(c.timeout_s):
+                self._reader = await asyncio.to_thread(
+                    SerialLineReader.open, c.port, settings, loop=loop, terminator=self._terminator,
+                    on_line=partial(self._on_line, self._generation),
+                    on_error=partial(self._on_error, self._generation))
         except TimeoutError:
             raise DeviceError(f"cannot open {c.port}: no answer from the OS within {c.timeout_s:g} s") from None
         except Exception as error:  # SerialException, OSError, ValueError for a malformed URL
@@ -221,8 +222,8 @@ class SerialLineGroup(SensorGroup):
         self._answer, self._outstanding = None, answer
         try:
             try:
-                dropped = await asyncio.wait_for(asyncio.to_thread(reader.write, data, discard=self.solicited),
-                                                 timeout=max(0.0, deadline - loop.time()))
+                async with asyncio.timeout(max(0.0, deadline - loop.time())):
+                    dropped = await asyncio.to_thread(reader.write, data, discard=self.solicited)
             except TimeoutError:
                 await self.close()
                 raise DeviceError(f"{self.port}: {what} not sent within {timeout_s:g} s") from None
@@ -239,7 +240,8 @@ class SerialLineGroup(SensorGroup):
                     break
                 self._arrived.clear()
                 with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(self._arrived.wait(), timeout=left)
+                    async with asyncio.timeout(left):
+                        await self._arrived.wait()
             if self._answer is not None and not was_dirty and self.late_answers == late_before:
                 self._episode = False  # a whole request without a late answer: the episode is over
             return self._answer
