@@ -5,7 +5,8 @@ so it notices a stop request) and hands each complete line to the loop with
 ``call_soon_threadsafe``, time-stamped on arrival there; the loop never waits on the port. Writes
 (a query of a few bytes) go through ``asyncio.to_thread`` with pyserial's ``write_timeout``; a
 request's write first discards what is waiting (a fragment of a line in the reader's buffer, bytes
-in the OS buffer): nothing that arrived before a request can begin its answer.
+in the OS buffer, which the thread empties as they come): nothing that arrived before a request can
+begin its answer.
 A read error (device unplugged, EIO) ends the thread and is handed to the loop the same way.
 """
 
@@ -89,20 +90,19 @@ class SerialLineReader:
     def write(self, data: bytes, *, discard: bool = False) -> int:
         """Blocking write (bounded by the port's write_timeout): call it from a worker thread.
 
-        ``discard``: first drop what is waiting unread (the reader's partial line, the OS input
-        buffer), so an answer to ``data`` cannot start with a fragment of something older. Returns
-        how many bytes were dropped. (A chunk the reader thread took from the OS in the very instant
-        of the flush may still be appended after it: the window is the few instructions between its
-        ``read`` and its lock.)
+        ``discard``: first drop the reader's partial line, so an answer to ``data`` cannot start with a
+        fragment of something older. Returns how many bytes were dropped. The OS input buffer is not
+        flushed: the reader thread empties it as bytes arrive, and flushing it from this thread while the
+        reader is in ``read`` makes pyserial fail that read ("readiness to read but returned no data"),
+        which closed the shared line (found by the serial chaos suite). A chunk the reader thread took from
+        the OS in the very instant of the discard may still be appended after it: the window is the few
+        instructions between its ``read`` and its lock.
         """
         dropped = 0
         if discard:
             with self._buffer_lock:
                 dropped = len(self._buffer)
                 self._buffer = b""
-                with contextlib.suppress(Exception):  # a port that cannot say: the write below reports trouble
-                    dropped += self.port.in_waiting
-                self.port.reset_input_buffer()
         self.port.write(data)
         self.port.flush()
         return dropped
