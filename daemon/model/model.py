@@ -10,7 +10,7 @@ reload can never keep serving an old model under a new file's name; ``nanodrift 
 deliberately edited file its new id. Loading also refuses what could only serve nonsense: non-finite
 numbers, powers beyond ``x^12`` and a prediction that overflows inside the training box.
 
-Longer than most modules (~540 lines) on purpose: the model, its id and the file format's checks
+Longer than most modules (~580 lines) on purpose: the model, its id and the file format's checks
 live together so that what is hashed, what is written and what is checked cannot drift apart (the
 covariance block's own checks and its streaming evaluation are in :mod:`daemon.model.uncertainty`).
 """
@@ -117,15 +117,6 @@ class Model:
         if self.covariance is not None:
             content["covariance"] = self.covariance.content()
         text = json.dumps(content, separators=(",", ":"), sort_keys=True, allow_nan=False)
-        return "m-" + hashlib.sha256(text.encode()).hexdigest()[:12]
-
-    def legacy_content_id(self) -> str:
-        """The id nanodrift wrote before ids covered standard errors and training ranges.
-
-        Files stamped that way still load (their id is still checked, against terms and
-        coefficients); ``nanodrift restamp`` moves them to :meth:`content_id`.
-        """
-        text = json.dumps([[ft.term.name, ft.coef] for ft in self.terms])
         return "m-" + hashlib.sha256(text.encode()).hexdigest()[:12]
 
     @property
@@ -318,10 +309,6 @@ class Evaluator:
         self.moved(x, t)
         return q
 
-    def row(self, t: float, x: float, temps: Mapping[str, float]) -> float:
-        self.observe(t, temps)
-        return self.command(x, t)
-
 
 # --- model file ---------------------------------------------------------------------------------
 
@@ -503,7 +490,7 @@ def _check_id(model: Model, claimed: Any, where: str) -> None:
             f"{where}: has no 'id'; a model's id is the hash of its content ({actual} for this one): "
             f"stamp it with `nanodrift restamp {where}`"
         )
-    if claimed not in (actual, model.legacy_content_id()):
+    if claimed != actual:
         raise ModelFileError(
             f"{where}: its id {claimed!r} does not match its content (its terms, coefficients, standard "
             f"errors and training ranges give {actual!r}): the file was changed after it was made. If the "

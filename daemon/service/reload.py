@@ -35,10 +35,9 @@ from drivers.base import DriverContext, DriverSet, DriverSetupError
 def same_content(old: Model | None, new: Model) -> bool:
     """Whether ``new`` serves exactly what ``old`` does, so its evaluator (lag filters, direction) can be kept.
 
-    The whole file's content, not the stored id: a file stamped with the old id scheme
-    (:meth:`Model.legacy_content_id`) may change standard errors, covariance or training ranges under
-    the same id, and a file without a covariance serves ``fit.rmse_um`` as every command's sigma. A
-    reload applies any change of content; an unchanged file keeps the running filters.
+    The whole file's content, not the stored id: the id leaves out fit statistics, yet a file without
+    a covariance serves ``fit.rmse_um`` as every command's sigma. A reload applies any change of
+    content; an unchanged file keeps the running filters.
     """
     if old is None:
         return False
