@@ -45,7 +45,7 @@ from typing import Any, Protocol
 
 from daemon.atomic import atomic_write_text
 from daemon.calibration.dataset import RESERVED, CsvAppender, DataError, WriteBytes
-from daemon.calibration.health import Settled
+from daemon.calibration.residuals import Settled
 from drivers.base import MonotonicClock
 
 #: the columns before the channels, in this order

@@ -26,7 +26,7 @@ from daemon.config import ConfigError, load_config, missing_model_channels
 from daemon.model.model import Model, ModelFileError, load_model
 from daemon.sdnotify import Notifier
 from daemon.service.compensator import Compensator
-from daemon.service.health import HealthUnit
+from daemon.service.health_unit import HealthUnit
 from daemon.service.state import CellState
 from daemon.service.table import SensorTable
 from drivers.base import DriverContext, DriverSet, DriverSetupError
