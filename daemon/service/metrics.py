@@ -9,8 +9,8 @@ uncontended lock), and the collector exposes the counts as a histogram.
 
 Each :class:`MetricsServer` has its own ``CollectorRegistry`` (no global state: tests run several
 daemons in one process) and serves HTTP from the daemon's event loop (``asyncio.start_server``), bounded
-so that a flood of idle connections cannot take the daemon's file descriptors (issue 16: a thread per
-connection and no timeout let ~1000 idle ones exhaust them): at most ``max_connections`` open, a
+so that a flood of idle connections cannot take the daemon's file descriptors (with a thread per
+connection and no timeout, ~1000 idle ones would exhaust them): at most ``max_connections`` open, a
 request head within ``header_timeout_s`` and ``max_header_bytes``, one request per connection. The
 page itself is rendered on one worker thread of its own (the collector waits for the state lock,
 which the target path holds), never on the loop.
@@ -239,7 +239,7 @@ INDEX_TEXT = b"nanodrift: Prometheus metrics at /metrics\n"
 class MetricsServer:
     """The HTTP endpoint: ``/metrics`` on ``listen`` from the running event loop, with its own registry.
 
-    Bounded, because the page is open to whatever reaches the port (issue 16):
+    Bounded, because the page is open to whatever reaches the port:
 
     - at most ``max_connections`` open at once. A connection beyond that takes the place of the oldest
       one that has not sent its request yet (an idle one: it is closed), so a scrape gets through a
