@@ -103,8 +103,8 @@ class Model:
         Covered: the format, every term's canonical name, coefficient and standard error (the
         prediction and its uncertainty), the training ranges of x and of every channel (they
         decide which commands are flagged as extrapolating) and, when the file has one, the
-        covariance block (it decides every command's ``q_sigma_um``; without one nothing is added,
-        so a file without the block hashes as it always has). Not covered: fit statistics, the selection
+        covariance block (it decides every command's ``q_sigma_um``; a file without one is hashed
+        without the key, so such a file keeps its id). Not covered: fit statistics, the selection
         history and provenance, which describe how the model was made; editing those changes
         nothing that is served.
         """
@@ -175,9 +175,8 @@ class Model:
         coefficients' covariance (how well the calibration run pinned them; it grows away from the
         training data, so outside the training ranges), s the residual RMS a fresh run sees, κ·g the
         curvature the training range cannot rule out (0 inside it). A model file without a
-        covariance block gives the fit's residual RMS alone,
-        the same for every row (``fit.rmse_um``; nan if the file lacks that too): it cannot say how
-        uncertain an extrapolation is.
+        covariance block gives the fit's residual RMS alone, the same for every row (``fit.rmse_um``;
+        nan if the file lacks that too): it cannot say how uncertain an extrapolation is.
         """
         if self.covariance is None:
             return np.full(np.asarray(data.t).shape[0], self.residual_rms_um)
@@ -355,9 +354,9 @@ def _read_model_text(path: Path) -> str:
     """The text of a model file, refused unless it is a regular file of at most :data:`MAX_MODEL_BYTES`.
 
     Checked before reading: a FIFO would block the daemon's event loop (targets refused as stale
-    while it waits for a writer) and ``/dev/zero`` would be read until memory ran out. Opened with O_NONBLOCK
-    and checked again on the open file, so a FIFO swapped in after the check cannot block either, and
-    at most one byte more than the bound is ever read.
+    while it waits for a writer) and ``/dev/zero`` would be read until memory ran out. Opened with
+    O_NONBLOCK and checked again on the open file, so a FIFO swapped in after the check cannot block
+    either, and at most one byte more than the bound is ever read.
     """
     try:
         info = os.stat(path)
