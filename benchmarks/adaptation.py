@@ -30,7 +30,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from anywhere, never tests/drivers
 
 from daemon.assembly import simulated_drivers
-from daemon.calibration.health import BiasTracker
+from daemon.calibration.residuals import BiasTracker
 from daemon.model.identify import fit
 from daemon.procedure.validation import run_validation
 from drivers.simulated.datasets import simulate_dataset

@@ -18,11 +18,6 @@ class UnknownDriverError(LookupError):
     pass
 
 
-def plugins() -> list[DriverPlugin]:
-    """Every installed plugin (loads them all: only for finding who owns a config section)."""
-    return [load_plugin(kind) for kind in sorted(available())]
-
-
 @cache
 def available() -> dict[str, str]:
     """Driver kind -> the entry point's target, for messages and ``--help``."""

@@ -1,6 +1,6 @@
 """The allowed import directions, enforced by parsing every module (top-level and function-level imports).
 
-- the pure core (model, calibration and its subpackages: dataset, plans, ISO 9283, health,
+- the pure core (model, calibration and its subpackages: dataset, plans, ISO 9283, residuals,
   discovery; errors, atomic) imports the standard library, numpy, scipy and itself only, and of the
   standard library nothing that does I/O concurrency (asyncio, socket, subprocess, threading,
   selectors, multiprocessing, concurrent);
@@ -306,7 +306,7 @@ def test_no_module_imports_by_a_string_except_through_the_cli_table() -> None:
         ("daemon.model.identify", "asyncio", False),
         ("daemon.calibration.plans", "socket", False),
         ("daemon.calibration.discovery.workflow", "subprocess", False),
-        ("daemon.calibration.health", "threading", False),
+        ("daemon.calibration.residuals", "threading", False),
         ("daemon.model.model", "selectors", False),
         ("daemon.model", "concurrent.futures", False),
         ("daemon.calibration.dataset", "pydantic", False),

@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 from helpers.daemon_harness import REPO, write_test_model
 
-from daemon.calibration.health import Settled
+from daemon.calibration.residuals import Settled
 from daemon.config import MAX_RECORD_KEEP_DAYS, MIN_SLEW_UM_PER_S, ActuatorConfig, ConfigError, load_config
 from daemon.model.model import FittedTerm, Model, Training, save_model
 from daemon.model.terms import parse_term

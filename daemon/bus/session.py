@@ -123,8 +123,8 @@ OnTarget = Callable[[bytes, "zenoh.Query | None"], None]
 OnQuery = Callable[["zenoh.Query"], None]
 
 #: How the ``command`` and ``error`` publishers (the answers) meet a subscriber that does not read.
-#: BLOCK (before): one frozen subscriber blocked every put for zenoh's ``block.wait_before_close``
-#: (5 s) until its link was closed, so nobody got an answer (tests/service/test_congestion.py).
+#: Not BLOCK: one frozen subscriber would block every put for zenoh's ``block.wait_before_close``
+#: (5 s) until its link is closed, so nobody would get an answer (tests/service/test_congestion.py).
 #: DROP: only that subscriber misses answers. Not express: answers are batched when the link backs
 #: up, so a queue of 2 batches holds hundreds of answers instead of 2 and a healthy client that
 #: lags a few ms loses none (DROP + express lost 1 and 82 answers of a 5000-target burst in

@@ -15,6 +15,9 @@ Files are refused with a message naming the file, the row (1-based line number a
 it) and the column. Several files fitted together (:func:`concat`) stay separate runs: each
 row knows its file (``Dataset.segment``), so stateful terms restart and held-out blocks stay inside
 one file.
+
+One module of ~400 lines on purpose: the contract's reader, its writer and its row-by-row appender
+(:class:`CsvAppender`, recorded runs) live together, so what is written is what is read.
 """
 
 from __future__ import annotations

@@ -37,9 +37,9 @@ from daemon.assembly import simulated_drivers
 from daemon.atomic import atomic_write_text
 from daemon.calibration.dataset import DataError
 from daemon.calibration.discovery import discover
-from daemon.calibration.health import MIN_RESIDUALS, BiasTracker
 from daemon.calibration.iso9283 import TestResult
 from daemon.calibration.plans import PAPER_TIMING
+from daemon.calibration.residuals import MIN_RESIDUALS, BiasTracker
 from daemon.commands._cell import scenario_seed
 from daemon.commands._demo_serve import serve
 from daemon.errors import UserError

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from daemon.calibration.health import BiasTracker
+from daemon.calibration.residuals import BiasTracker
 from daemon.commands._cell import guards, open_cell
 from daemon.errors import UserError
 from daemon.model.model import ModelFileError, load_model

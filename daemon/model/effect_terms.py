@@ -22,7 +22,16 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from daemon.model.terms import Channels, Term, TermStream, _ChannelStream, _LagStream, lag_filter, register_term
+from daemon.model.terms import (
+    Channels,
+    Term,
+    TermStream,
+    _ChannelStream,
+    _LagStream,
+    lag_filter,
+    register_term,
+    time_constant,
+)
 
 CREEP_DEADBAND_UM = 0.5
 
@@ -79,9 +88,7 @@ class Rate(Term):
     """
 
     def __init__(self, channel: str, tau_s: float) -> None:
-        if not (math.isfinite(tau_s) and tau_s > 0):
-            raise ValueError(f"rate smoothing time constant must be a finite number > 0 s, got {tau_s}")
-        self.channel, self.tau_s = channel, float(tau_s)
+        self.channel, self.tau_s = channel, time_constant(tau_s, "rate smoothing time constant")
         self.channels = (channel,)
 
     @property
@@ -130,11 +137,10 @@ class Creep(Term):
     uses_x = True
 
     def __init__(self, tau_s: float, deadband_um: float = CREEP_DEADBAND_UM) -> None:
-        if not (math.isfinite(tau_s) and tau_s > 0):
-            raise ValueError(f"creep time constant must be a finite number > 0 s, got {tau_s}")
+        self.tau_s = time_constant(tau_s, "creep time constant")
         if not (math.isfinite(deadband_um) and deadband_um >= 0):
             raise ValueError(f"creep deadband must be a finite number >= 0 um, got {deadband_um}")
-        self.tau_s, self.deadband_um = float(tau_s), float(deadband_um)
+        self.deadband_um = float(deadband_um)
 
     @property
     def name(self) -> str:

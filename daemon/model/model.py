@@ -10,7 +10,7 @@ reload can never keep serving an old model under a new file's name; ``nanodrift 
 deliberately edited file its new id. Loading also refuses what could only serve nonsense: non-finite
 numbers, powers beyond ``x^12`` and a prediction that overflows inside the training box.
 
-Longer than most modules (~540 lines) on purpose: the model, its id and the file format's checks
+Longer than most modules (~580 lines) on purpose: the model, its id and the file format's checks
 live together so that what is hashed, what is written and what is checked cannot drift apart (the
 covariance block's own checks and its streaming evaluation are in :mod:`daemon.model.uncertainty`).
 """
@@ -88,7 +88,7 @@ class Model:
     selection: dict[str, Any] = field(default_factory=dict)
     provenance: dict[str, Any] = field(default_factory=dict)
     id: str = ""
-    #: the coefficients' covariance and the residual RMS (None in files written before they were kept)
+    #: the coefficients' covariance and the residual RMS (None: the file has no covariance block)
     covariance: Covariance | None = None
 
     def __post_init__(self) -> None:
@@ -103,8 +103,8 @@ class Model:
         Covered: the format, every term's canonical name, coefficient and standard error (the
         prediction and its uncertainty), the training ranges of x and of every channel (they
         decide which commands are flagged as extrapolating) and, when the file has one, the
-        covariance block (it decides every command's ``q_sigma_um``; a file without one keeps the
-        id it had before covariances were stored). Not covered: fit statistics, the selection
+        covariance block (it decides every command's ``q_sigma_um``; a file without one is hashed
+        without the key, so such a file keeps its id). Not covered: fit statistics, the selection
         history and provenance, which describe how the model was made; editing those changes
         nothing that is served.
         """
@@ -117,15 +117,6 @@ class Model:
         if self.covariance is not None:
             content["covariance"] = self.covariance.content()
         text = json.dumps(content, separators=(",", ":"), sort_keys=True, allow_nan=False)
-        return "m-" + hashlib.sha256(text.encode()).hexdigest()[:12]
-
-    def legacy_content_id(self) -> str:
-        """The id nanodrift wrote before ids covered standard errors and training ranges.
-
-        Files stamped that way still load (their id is still checked, against terms and
-        coefficients); ``nanodrift restamp`` moves them to :meth:`content_id`.
-        """
-        text = json.dumps([[ft.term.name, ft.coef] for ft in self.terms])
         return "m-" + hashlib.sha256(text.encode()).hexdigest()[:12]
 
     @property
@@ -184,9 +175,8 @@ class Model:
         coefficients' covariance (how well the calibration run pinned them; it grows away from the
         training data, so outside the training ranges), s the residual RMS a fresh run sees, κ·g the
         curvature the training range cannot rule out (0 inside it). A model file without a
-        covariance block (written before nanodrift kept one) gives the fit's residual RMS alone,
-        the same for every row (``fit.rmse_um``; nan if the file lacks that too): it cannot say how
-        uncertain an extrapolation is.
+        covariance block gives the fit's residual RMS alone, the same for every row (``fit.rmse_um``;
+        nan if the file lacks that too): it cannot say how uncertain an extrapolation is.
         """
         if self.covariance is None:
             return np.full(np.asarray(data.t).shape[0], self.residual_rms_um)
@@ -318,10 +308,6 @@ class Evaluator:
         self.moved(x, t)
         return q
 
-    def row(self, t: float, x: float, temps: Mapping[str, float]) -> float:
-        self.observe(t, temps)
-        return self.command(x, t)
-
 
 # --- model file ---------------------------------------------------------------------------------
 
@@ -367,10 +353,10 @@ def _file_kind(mode: int) -> str:
 def _read_model_text(path: Path) -> str:
     """The text of a model file, refused unless it is a regular file of at most :data:`MAX_MODEL_BYTES`.
 
-    Checked before reading: a FIFO blocked the daemon's event loop (targets refused as stale while
-    it waited for a writer) and ``/dev/zero`` was read until memory ran out. Opened with O_NONBLOCK
-    and checked again on the open file, so a FIFO swapped in after the check cannot block either, and
-    at most one byte more than the bound is ever read.
+    Checked before reading: a FIFO would block the daemon's event loop (targets refused as stale
+    while it waits for a writer) and ``/dev/zero`` would be read until memory ran out. Opened with
+    O_NONBLOCK and checked again on the open file, so a FIFO swapped in after the check cannot block
+    either, and at most one byte more than the bound is ever read.
     """
     try:
         info = os.stat(path)
@@ -503,7 +489,7 @@ def _check_id(model: Model, claimed: Any, where: str) -> None:
             f"{where}: has no 'id'; a model's id is the hash of its content ({actual} for this one): "
             f"stamp it with `nanodrift restamp {where}`"
         )
-    if claimed not in (actual, model.legacy_content_id()):
+    if claimed != actual:
         raise ModelFileError(
             f"{where}: its id {claimed!r} does not match its content (its terms, coefficients, standard "
             f"errors and training ranges give {actual!r}): the file was changed after it was made. If the "

@@ -3,7 +3,7 @@
 Why a QR factor and not the Gram matrix: the candidate terms (x, x^2, x^3 with x up to 480 um,
 temperatures near 20 degC that barely move) are badly scaled and strongly correlated. Forming
 X'X squares the condition number, and then an exact duplicate column leaves a residual of about
-1e-8 instead of 1e-16, so collinearity can no longer be told apart from a real (small) effect.
+1e-8 instead of 1e-16, so collinearity cannot be told apart from a real (small) effect.
 Instead, the centred data [X - mean, y - mean] is reduced ONCE to its small (p+1)x(p+1)
 triangular factor R (Householder QR, in row chunks so no n x p copy is made). Because the data
 equals Q R with orthonormal Q, every regression of y on any subset of columns gives exactly the

@@ -167,6 +167,13 @@ class Channel(Term):
 # --- stateful terms ---------------------------------------------------------------------------
 
 
+def time_constant(tau_s: float, what: str) -> float:
+    """``tau_s`` as a float; ValueError naming ``what`` unless it is a finite number > 0 s."""
+    if not (math.isfinite(tau_s) and tau_s > 0):
+        raise ValueError(f"{what} must be a finite number > 0 s, got {tau_s}")
+    return float(tau_s)
+
+
 def lag_filter(t: np.ndarray, u: np.ndarray, tau_s: float) -> np.ndarray:
     """First-order lag of ``u`` sampled at times ``t``, exact per sample: y_k = y_{k-1} + α_k (u_k - y_{k-1}).
 
@@ -238,9 +245,7 @@ class Lag(Term):
     """
 
     def __init__(self, channel: str, tau_s: float) -> None:
-        if not (math.isfinite(tau_s) and tau_s > 0):
-            raise ValueError(f"lag time constant must be a finite number > 0 s, got {tau_s}")
-        self.channel, self.tau_s = channel, float(tau_s)
+        self.channel, self.tau_s = channel, time_constant(tau_s, "lag time constant")
         self.channels = (channel,)
 
     @property

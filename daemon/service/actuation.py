@@ -26,6 +26,11 @@ the write returns. Motion itself (where a move starts, the slew, the limits of w
 - **Shutdown**: :meth:`Actuation.stop` with ``final=True`` ramps to a finite ``safe_voltage_v`` within
   ``SAFE_RAMP_BUDGET_S`` (the unit's stop timeout less a margin), retrying a transient failure, and
   runs in a ``finally``: an exception on the way out never skips it.
+
+One module of ~410 lines on purpose: it is one object, :class:`Actuation`, whose goal, fault and
+reopen cycle and shutdown ramp share one state (the goal, what was sent, the device open now) driven
+by one task on the loop; split, each part would reach into the others' state. The motion rules it
+applies are already :mod:`daemon.motion`'s.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Target -> :class:`Command`, or a :class:`Refusal`: the loaded model, the sensor table, the actuator limits.
 
 Each command carries ``q_sigma_um`` (:meth:`Evaluator.sigma`, taken before the move) and, with
-``[adapt] mode = "bias"``, ``correction_um``: the health unit's correction (``daemon.service.health``
+``[adapt] mode = "bias"``, ``correction_um``: the health unit's correction (``daemon.service.health_unit``
 sets :attr:`Compensator.correction_um` under the state lock), already added to ``q_um`` before the
 voltage is computed and checked. With a position sensor every command that goes out is appended, with
 its cell-clock time, to :attr:`Compensator.served` for the health unit (one append: the answer never

@@ -25,6 +25,10 @@ retention, so a step of the system clock (NTP, ``date -s``) neither stalls rows 
 - Recording is never on the answer's path: :class:`Recorder` queues rows for a writer thread. A
   full disk or a permission error is logged once per outage (``record_failed``), rows are lost until
   writing works again (``record_resumed`` says how many, once), and the daemon keeps serving.
+
+One module of ~400 lines on purpose: one job, a settled target to a row of a day's file; the row's
+columns (:func:`record_row`), the files' rules (parts, resume, retention: :class:`DayRecorder`) and
+the writer thread (:class:`Recorder`) change together when the contract above does.
 """
 
 from __future__ import annotations
@@ -45,7 +49,7 @@ from typing import Any, Protocol
 
 from daemon.atomic import atomic_write_text
 from daemon.calibration.dataset import RESERVED, CsvAppender, DataError, WriteBytes
-from daemon.calibration.health import Settled
+from daemon.calibration.residuals import Settled
 from drivers.base import MonotonicClock
 
 #: the columns before the channels, in this order

@@ -26,7 +26,7 @@ from daemon.config import ConfigError, load_config, missing_model_channels
 from daemon.model.model import Model, ModelFileError, load_model
 from daemon.sdnotify import Notifier
 from daemon.service.compensator import Compensator
-from daemon.service.health import HealthUnit
+from daemon.service.health_unit import HealthUnit
 from daemon.service.state import CellState
 from daemon.service.table import SensorTable
 from drivers.base import DriverContext, DriverSet, DriverSetupError
@@ -35,10 +35,9 @@ from drivers.base import DriverContext, DriverSet, DriverSetupError
 def same_content(old: Model | None, new: Model) -> bool:
     """Whether ``new`` serves exactly what ``old`` does, so its evaluator (lag filters, direction) can be kept.
 
-    The whole file's content, not the stored id: a file stamped with the old id scheme
-    (:meth:`Model.legacy_content_id`) may change standard errors, covariance or training ranges under
-    the same id, and a file without a covariance serves ``fit.rmse_um`` as every command's sigma. A
-    reload applies any change of content; an unchanged file keeps the running filters.
+    The whole file's content, not the stored id: the id leaves out fit statistics, yet a file without
+    a covariance serves ``fit.rmse_um`` as every command's sigma. A reload applies any change of
+    content; an unchanged file keeps the running filters.
     """
     if old is None:
         return False

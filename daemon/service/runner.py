@@ -28,8 +28,9 @@ from daemon.logs import get_logger
 from daemon.sdnotify import Notifier
 from daemon.service.actuation import Actuation
 from daemon.service.compensator import Compensator, load_model_or_problem
-from daemon.service.health import HealthUnit
-from daemon.service.metrics import AnswerLatency, MetricsServer
+from daemon.service.health_unit import HealthUnit
+from daemon.service.metrics import AnswerLatency
+from daemon.service.metrics_server import MetricsServer
 from daemon.service.polling import GroupPoller, first_attempts, pollers_healthy
 from daemon.service.recorder import Recorder
 from daemon.service.reload import Reloader

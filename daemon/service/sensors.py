@@ -4,7 +4,7 @@ Runs on the asyncio loop (the pollers' callbacks). The table is updated under th
 telemetry is published after the lock is released, so a slow publish never holds up a target.
 The ``role = "position"`` sensor's readings, each with whether it is ok and fresh, the good
 temperatures, and every temperature reading (ok or not: a recorded row carries every polled channel)
-go to the health unit (``daemon.service.health``) under the same lock; its log lines and
+go to the health unit (``daemon.service.health_unit``) under the same lock; its log lines and
 ``health`` sample after it.
 """
 
@@ -17,7 +17,7 @@ from typing import Any
 import zenoh
 
 from daemon.bus.protocol import encode_telemetry
-from daemon.service.health import HealthUnit
+from daemon.service.health_unit import HealthUnit
 from daemon.service.state import CellState
 from drivers.base import Reading, SensorGroup, State
 

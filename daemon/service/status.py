@@ -18,7 +18,7 @@ from daemon.bus.protocol import dumps
 from daemon.bus.session import Bus
 from daemon.config import ZENOH_KIND, Config
 from daemon.service.actuation import Actuation
-from daemon.service.health import HealthUnit
+from daemon.service.health_unit import HealthUnit
 from daemon.service.state import CellState
 from drivers.base import State
 

@@ -26,7 +26,6 @@ class ModbusActuator(Actuator):
         self.hub = hub
         self.description = (f"modbus output (hub {hub.name!r} at {hub.endpoint}, device {config.device_id}, "
                             f"holding register {config.address})")
-        self.writes = 0  # successful writes, for tests and benchmarks
         self._lease = HubLease(hub)
 
     def __repr__(self) -> str:
@@ -81,4 +80,3 @@ class ModbusActuator(Actuator):
                 read_raw, read_v = self.volts(back)
                 raise DeviceError(f"{self.description}: wrote raw {raw} ({voltage_v:.4f} V), read back raw "
                                   f"{read_raw} ({read_v:.4f} V)")
-        self.writes += 1

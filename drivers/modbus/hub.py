@@ -99,8 +99,9 @@ class ModbusHub:
         if config.type == "tcp" and not str(config.port).isdigit():
             raise ValueError(f"hub {config.name!r}: type = 'tcp' needs a numeric port, got {config.port!r}")
         self.config = config
-        self.requests = 0  # requests sent, for benchmarks and tests
-        self.connect_attempts = 0  # connections tried, for tests (one per caller that found the link down)
+        #: connections tried: a caller that queued for the lock while an attempt failed takes that failure as
+        #: its own answer instead of trying again (:meth:`_connect_locked`)
+        self.connect_attempts = 0
         self._client: AsyncModbusTcpClient | AsyncModbusSerialClient | None = None
         self._lost = asyncio.Event()
         self._lock = asyncio.Lock()
@@ -272,7 +273,6 @@ class ModbusHub:
             self._lost_link()
             raise DeviceError(f"modbus hub {self.name!r}: {self.endpoint}: {error} ({verb} {where})") from error
         lost = asyncio.ensure_future(self._lost.wait())
-        self.requests += 1
         try:
             done, _ = await asyncio.wait(
                 {call, lost}, timeout=self.request_budget_s + 0.5, return_when=asyncio.FIRST_COMPLETED

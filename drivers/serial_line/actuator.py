@@ -38,7 +38,6 @@ class SerialLineActuator(Actuator):
         self.port = port
         self.owns_port = owns_port
         self.description = f"controller on {config.port}"
-        self.writes = 0  # commands accepted, for tests and benchmarks
         self.template = CommandTemplate(config.command)
         self._readback = re.compile(config.readback_pattern)
         self._error_ok = re.compile(config.error_ok)
@@ -122,4 +121,3 @@ class SerialLineActuator(Actuator):
             answer = await self._ask(c.error_query, text)
             if not self._error_ok.fullmatch(answer.strip()):
                 raise DeviceError(f"{self.description}: the controller reports error {_shown(answer)} after {text!r}")
-        self.writes += 1

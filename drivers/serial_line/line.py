@@ -88,7 +88,6 @@ class SerialLineGroup(SensorGroup):
         self._seq = 0  # lines received so far
         self._generation = 0  # one per opened port: late callbacks of a closed port are ignored
         self._arrived = asyncio.Event()
-        self.open_attempts = 0  # ports opened or tried, for tests
         self._lock = asyncio.Lock()  # one request/answer at a time on the port (a query, an actuator's command)
         self._outstanding = False  # a request waits for its answer: the next line is it
         self._answer: tuple[str, float] | None = None  # the line that answered the current request
@@ -116,7 +115,6 @@ class SerialLineGroup(SensorGroup):
                     "write_timeout": c.timeout_s}
         loop = asyncio.get_running_loop()
         self._generation += 1
-        self.open_attempts += 1
         try:
             # asyncio.timeout, not wait_for: on 3.11 wait_for can swallow a cancellation, and a daemon
             # stopping or reloading then waits for ever on the task that swallowed it (found by the chaos suite)

@@ -10,7 +10,7 @@ parameter, on a default calibration run: 24 ``train`` cycles (``bidirectional`` 
 Two need more, and why matters: over the 3.3 h of 24 ``train`` cycles the room only falls and rises
 once, so what the four thermocouples cannot explain of a lag of 1-3 h is, to a correlation of 0.97,
 a straight line in time. The lag's time constant is then not pinned and the two cannot be told
-apart, so discovery mostly names neither (what it named there used to make a fresh run worse);
+apart, so discovery mostly names neither (naming one there can make a fresh run worse: the bar refuses it);
 48 cycles (6.6 h: the room settles, the hidden part's tail shows) separate them.
 ``tests/calibration/test_discovery.py`` checks it all with these defaults.
 """

@@ -77,8 +77,8 @@ def test_daemon_evaluator_reproduces_predict_with_every_new_term(tmp_path) -> No
     model = load_model(tmp_path / "m.json")  # what the daemon would load
     batch = model.predict(data)
     evaluator = model.evaluator()
-    online = np.array([
-        evaluator.row(float(data.t[k]), float(data.x[k]), {c: float(v[k]) for c, v in data.channels.items()})
-        for k in range(len(data))
-    ])
+    online = np.empty(len(data))
+    for k in range(len(data)):
+        evaluator.observe(float(data.t[k]), {c: float(v[k]) for c, v in data.channels.items()})
+        online[k] = evaluator.command(float(data.x[k]), float(data.t[k]))
     assert np.max(np.abs(online - batch)) < 1e-9

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import asyncio
 import json
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,6 +21,9 @@ from daemon.model.identify import fit
 from daemon.model.model import load_model, save_model
 from daemon.procedure.validation import run_validation
 from daemon.reports.validation import table1
+
+REPO = Path(__file__).resolve().parents[2]
+DATA_DIR = REPO / "daemon" / "data"
 
 
 def test_iso9283_one_axis():
@@ -112,11 +118,11 @@ def test_simulate_command_writes_a_fittable_calibration(tmp_path, capsys):
     assert "valid effects: thermal_lag, hysteresis" in capsys.readouterr().err
 
 
-def test_shipped_sample_data_and_model_are_what_the_command_makes(tmp_path):
-    from drivers.simulated.make_default_data import DATA_DIR
-    from drivers.simulated.make_default_data import main as make
-
-    assert make(["--dir", str(tmp_path)]) == 0
+def test_shipped_sample_data_and_model_are_what_the_script_makes(tmp_path):
+    made = subprocess.run([sys.executable, str(REPO / "scripts" / "make_default_data.py"), str(tmp_path)],
+                          capture_output=True, text=True, timeout=300)
+    assert made.returncode == 0, made.stderr
+    assert made.stdout.startswith(f"wrote {tmp_path / 'sample_calibration.csv'} and ")
     shipped = read_csv(DATA_DIR / "sample_calibration.csv")
     fresh = read_csv(tmp_path / "sample_calibration.csv")
     assert np.array_equal(shipped.x, fresh.x) and np.array_equal(shipped.channels["T4"], fresh.channels["T4"])

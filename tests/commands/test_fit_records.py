@@ -12,7 +12,7 @@ import pytest
 
 from daemon.atomic import file_sha256
 from daemon.calibration.dataset import read_csv, write_csv
-from daemon.calibration.health import Settled
+from daemon.calibration.residuals import Settled
 from daemon.cli import main
 from daemon.model.model import load_model
 from daemon.service.recorder import DayRecorder

@@ -25,7 +25,8 @@ def stream_rows(model: Model, data) -> np.ndarray:
     names = list(data.channels)
     out = np.empty(len(data.t))
     for k in range(len(data.t)):
-        out[k] = ev.row(float(data.t[k]), float(data.x[k]), {c: float(data.channels[c][k]) for c in names})
+        ev.observe(float(data.t[k]), {c: float(data.channels[c][k]) for c in names})
+        out[k] = ev.command(float(data.x[k]), float(data.t[k]))
     return out
 
 

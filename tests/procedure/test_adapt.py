@@ -1,7 +1,7 @@
 """``validate --adapt``: the daemon's bias tracker in the validation procedure, online = offline.
 
 Offline is ``validate --adapt`` (:func:`daemon.procedure.validation.run_validation`); online is the
-daemon's health unit (``daemon.service.health``) fed through its compensator, command by command and
+daemon's health unit (``daemon.service.health_unit``) fed through its compensator, command by command and
 reading by reading: both must give the same corrections, float for float.
 """
 
@@ -17,14 +17,14 @@ from helpers.sim_helpers import Capture, trained_model
 from daemon.assembly import simulated_drivers
 from daemon.bus.protocol import Target
 from daemon.calibration import iso9283
-from daemon.calibration.health import BiasTracker
+from daemon.calibration.residuals import BiasTracker
 from daemon.cli import main
 from daemon.config import parse_config
 from daemon.logs import get_logger
 from daemon.model.model import Model, save_model
 from daemon.procedure.validation import run_validation
 from daemon.service.compensator import Compensator
-from daemon.service.health import HealthUnit
+from daemon.service.health_unit import HealthUnit
 from daemon.service.table import SensorTable
 from drivers.base import Reading, SensorConfig
 from drivers.simulated.plugin import shared_cell

@@ -36,7 +36,7 @@ from daemon.bus.protocol import Command, Target
 from daemon.config import DEFAULT_MODEL_PATH, Config, parse_config
 from daemon.model.model import Model, load_model, save_model
 from daemon.service.compensator import Compensator
-from daemon.service.health import HealthUnit
+from daemon.service.health_unit import HealthUnit
 from daemon.service.state import CellState
 from daemon.service.status import status_line
 from daemon.service.table import SensorTable

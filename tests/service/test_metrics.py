@@ -48,14 +48,8 @@ from helpers.daemon_harness import (
 from prometheus_client.parser import text_string_to_metric_families
 
 from daemon.config import ConfigError, parse_config
-from daemon.service.metrics import (
-    ERROR_KINDS,
-    INDEX_TEXT,
-    LATENCY_BUCKETS_S,
-    AnswerLatency,
-    MetricsServer,
-    build_version,
-)
+from daemon.service.metrics import ERROR_KINDS, LATENCY_BUCKETS_S, AnswerLatency, build_version
+from daemon.service.metrics_server import INDEX_TEXT, MetricsServer
 from drivers.base import State
 
 Samples = dict[tuple[str, tuple[tuple[str, str], ...]], float]

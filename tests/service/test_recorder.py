@@ -21,11 +21,11 @@ from hypothesis import strategies as st
 import daemon.calibration.dataset as dataset_module
 from daemon.bus.protocol import Target
 from daemon.calibration.dataset import CsvAppender, read_csv
-from daemon.calibration.health import Settled
+from daemon.calibration.residuals import Settled
 from daemon.config import HealthSettings, parse_config
 from daemon.logs import get_logger
 from daemon.service.compensator import Compensator
-from daemon.service.health import HealthUnit
+from daemon.service.health_unit import HealthUnit
 from daemon.service.recorder import DayRecorder, Polled, PolledChannels, Recorder, file_name
 from daemon.service.table import SensorTable
 from drivers.base import Reading, SensorConfig
@@ -419,7 +419,7 @@ def test_the_health_unit_hands_every_polled_channel_over_the_window_to_the_recor
 
 WRITER = """
 import sys
-from daemon.calibration.health import Settled
+from daemon.calibration.residuals import Settled
 from daemon.config import HealthSettings
 from daemon.service.recorder import DayRecorder
 

@@ -9,13 +9,12 @@ non-simulated driver found by entry point, as a lab's own would be.
 Also: a deeply nested *config* on SIGHUP, a reload from the simulated cell to Modbus, and a
 reload that fails in an unexpected way are refused, logged as ``reload_refused`` and counted, and
 the daemon keeps serving with what it had; check-config says the same as the reload does; and a
-model stamped with the old id scheme whose served content changed under the same id is applied.
+model whose served sigma changed under the same id is applied.
 """
 
 from __future__ import annotations
 
 import asyncio
-import json
 import re
 import signal
 import subprocess
@@ -25,10 +24,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pytest
 from helpers.daemon_harness import (
-    MODEL_TERMS,
     REPO,
     TEMPS,
     Client,
@@ -48,7 +45,6 @@ import daemon.service.reload as reload_module
 from daemon.assembly import build_drivers
 from daemon.config import DEFAULT_MODEL_PATH, TOO_DEEP, load_config
 from daemon.model.model import Model, load_model, save_model
-from daemon.model.uncertainty import Covariance
 from daemon.service.runner import Service
 
 NESTED = "[" * 100_000 + "]" * 100_000
@@ -312,41 +308,36 @@ def test_check_config_and_the_reload_agree_on_a_sensorless_file(restore: Served)
     served_from_file(s.client, s, "after-sensorless")
 
 
-# --- a model stamped with the old id scheme ----------------------------------------------------------
+# --- a model whose served content changed under the same id ------------------------------------------
 
 
-def legacy_model(path: Path, residual_rms_um: float, x_range: tuple[float, float]) -> Model:
-    """The harness's model with a covariance block (what makes q_sigma_um), stamped with the old id scheme."""
-    base = write_test_model(path)
-    model = Model(terms=base.terms, training=base.training.__class__(x_range, dict(base.training.channel_ranges),
-                                                                     base.training.rows, base.training.t_span_s),
-                  covariance=Covariance(np.zeros((len(MODEL_TERMS), len(MODEL_TERMS))), residual_rms_um))
+def model_without_covariance(path: Path, rmse_um: float) -> Model:
+    """The harness's model without a covariance block: every command's q_sigma_um is ``fit.rmse_um``,
+    which the id does not cover (fit statistics describe how the model was made)."""
+    model = write_test_model(path)
+    model.fit = {"rmse_um": rmse_um}
     save_model(model, path)
-    doc = json.loads(path.read_text())
-    doc["id"] = model.legacy_content_id()  # the same for any covariance and training range
-    path.write_text(json.dumps(doc))
     return load_model(path)
 
 
-def test_a_legacy_stamped_model_whose_content_changed_under_the_same_id_is_applied(restore: Served) -> None:
-    """Reload kept the old evaluator when the stored ids matched; the old id scheme covers only terms and
-    coefficients, so a changed covariance (the served q_sigma_um) was never applied."""
+def test_a_model_whose_served_sigma_changed_under_the_same_id_is_applied(restore: Served) -> None:
+    """Reload kept the old evaluator when the stored ids matched; a file without a covariance serves
+    ``fit.rmse_um`` as its sigma and the id does not cover it, so an edited RMS was never applied."""
     s = restore
-    before = legacy_model(s.model_path, 0.01, (0.0, 480.0))
+    before = model_without_covariance(s.model_path, 0.01)
     line = hup_and_wait(s.daemon, "reload_applied", "reload_refused")
     assert line["event"] == "reload_applied" and line["model"] == before.id, line
-    ok, command = s.client.query({"x_um": 470.0, "id": "legacy-1"})
+    ok, command = s.client.query({"x_um": 470.0, "id": "sigma-1"})
     assert ok and command["model"] == before.id, command
-    assert command["q_sigma_um"] == pytest.approx(0.01) and command["extrapolating"] == [], command
+    assert command["q_sigma_um"] == pytest.approx(0.01), command
 
-    after = legacy_model(s.model_path, 0.25, (0.0, 450.0))  # a wider sigma, a narrower x range
-    assert after.id == before.id and after.content_id() != before.content_id()
+    after = model_without_covariance(s.model_path, 0.25)
+    assert after.id == before.id
     line = hup_and_wait(s.daemon, "reload_applied", "reload_refused")
     assert line["event"] == "reload_applied" and line["model"] == after.id, line
-    ok, command = s.client.query({"x_um": 470.0, "id": "legacy-2"})
+    ok, command = s.client.query({"x_um": 470.0, "id": "sigma-2"})
     assert ok and command["model"] == after.id, command
-    assert command["q_sigma_um"] == pytest.approx(0.25), command  # the new covariance, not the kept evaluator's
-    assert command["extrapolating"] == ["x"], command  # the new training range
+    assert command["q_sigma_um"] == pytest.approx(0.25), command  # the new RMS, not the kept evaluator's
 
 
 # --- a reload that fails in an unexpected way -----------------------------------------------------------

@@ -61,7 +61,7 @@ def test_a_voltage_the_template_would_round_past_v_max_is_sent_inside(controller
         await actuator.close()
         sent = [line for line in controller.lines if line.startswith("SVA ")]
         assert sent == ["SVA 1 9.1", "SVA 1 9.1", "SVA 1 -9.1", "SVA 1 9.1"]  # never 9.2
-        assert actuator.writes == 4 and controller.voltage == pytest.approx(9.1)
+        assert controller.voltage == pytest.approx(9.1)
 
     run(body())
 

@@ -1,8 +1,11 @@
-"""Regenerate the shipped sample calibration and default model: ``python -m drivers.simulated.make_default_data``.
+"""Regenerate the shipped sample calibration and default model: ``python scripts/make_default_data.py [DIR]``.
 
-``daemon/data/sample_calibration.csv``: a simulated 24-cycle ``train`` run (seed 0, no hidden
-effects), one row per step average; ``daemon/data/default_model.json``: the model ``fit`` identifies
-from it. Both are deterministic: running this again reproduces them (a test checks it).
+``sample_calibration.csv``: a simulated 24-cycle ``train`` run (seed 0, no hidden effects), one row
+per step average; ``default_model.json``: the model ``fit`` identifies from it. Both are written to
+DIR (default: this repository's ``daemon/data``, the package data). Both are deterministic: running
+this again reproduces them (``tests/calibration/test_validation.py`` checks it).
+
+A maintenance script, not part of the installed package: it writes into the source tree.
 """
 
 from __future__ import annotations
@@ -15,7 +18,7 @@ from daemon.model.identify import fit
 from daemon.model.model import Model, save_model
 from drivers.simulated.datasets import simulate_dataset
 
-DATA_DIR = Path(__file__).resolve().parents[2] / "daemon" / "data"
+DATA_DIR = Path(__file__).resolve().parents[1] / "daemon" / "data"
 SCENARIO, SEED, CYCLES = "train", 0, 24
 
 
@@ -29,7 +32,8 @@ def default_model(csv_path: Path) -> Model:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--dir", type=Path, default=DATA_DIR, help="where to write (default: daemon/data)")
+    parser.add_argument("dir", nargs="?", type=Path, default=DATA_DIR,
+                        help=f"where to write (default: {DATA_DIR})")
     args = parser.parse_args(argv)
     csv_path = args.dir / "sample_calibration.csv"
     write_csv(sample_dataset(), csv_path)

@@ -1,6 +1,6 @@
 """The daemon's health unit: is the served model still right, and (``[adapt] mode = "bias"``) its correction.
 
-The pure pieces are ``daemon.calibration.health``'s (the same classes ``validate --adapt`` runs):
+The pure pieces are ``daemon.calibration.residuals``'s (the same classes ``validate --adapt`` runs):
 served commands and position readings go through :class:`SettleTracker` into :class:`HealthMonitor`
 (rolling statistics, state, advice with :class:`RangeWatch`'s "since when outside the training
 range") and, with adaptation on, :class:`BiasTracker`, whose correction the compensator adds to every
@@ -43,7 +43,7 @@ import zenoh
 
 from daemon.bus.protocol import Command, dumps
 from daemon.bus.session import Bus
-from daemon.calibration.health import BiasTracker, HealthMonitor, RangeWatch, Settled, SettleTracker
+from daemon.calibration.residuals import BiasTracker, HealthMonitor, RangeWatch, Settled, SettleTracker
 from daemon.config import Config
 from daemon.model.model import Model
 from daemon.service.compensator import Compensator
