@@ -18,17 +18,17 @@ from pydantic import BaseModel
 
 from daemon.bus.actuator import ZenohActuator
 from daemon.config import ZENOH_KIND, Config, parse_config
+from daemon.drivers_set import DriverSet
 from drivers.base import (
     Actuator,
     Clock,
     DriverContext,
     DriverPlugin,
-    DriverSet,
     DriverSetupError,
     MonotonicClock,
     SensorGroup,
 )
-from drivers.registry import available, load_plugin
+from drivers.registry import load_plugin, owner_of_section, virtual_cell_plugin
 
 
 def _plugins(config: Config) -> dict[str, DriverPlugin]:
@@ -37,25 +37,21 @@ def _plugins(config: Config) -> dict[str, DriverPlugin]:
     if config.actuator.kind != ZENOH_KIND:
         plugins.setdefault(config.actuator.kind, load_plugin(config.actuator.kind))
     for name in config.sections:
-        for plugin in plugins.values():
-            if plugin.section == name:
-                break
-        else:
-            for kind in available():
-                plugin = load_plugin(kind)
-                if plugin.section == name:
-                    plugins[kind] = plugin
+        owner = owner_of_section(name, plugins)
+        if owner is not None:
+            plugins.setdefault(owner, load_plugin(owner))
     return plugins
 
 
 def make_context(config: Config, *, virtual_start_s: float | None = None) -> DriverContext:
     """The clock, hubs and plugin sections the plugins share."""
     clock: Clock = MonotonicClock()
-    for plugin in _plugins(config).values():
-        if plugin.virtual_cell:
-            section: BaseModel | None = config.section(plugin.section) if plugin.section else None
-            clock = plugin.make_clock(section, virtual_start_s=virtual_start_s)
-            break
+    plugins = _plugins(config)
+    found = virtual_cell_plugin(plugins, plugins.get)
+    if found is not None:
+        _, cell = found
+        section: BaseModel | None = config.section(cell.section) if cell.section else None
+        clock = cell.make_clock(section, virtual_start_s=virtual_start_s)
     return DriverContext(clock=clock, hubs={h.name: h for h in config.hubs}, sections=config.sections)
 
 

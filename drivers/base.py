@@ -12,6 +12,10 @@ in the future). The keys are declared here so every plugin's sensors have them.
 Connection-level trouble (port gone, timeout, socket closed) is raised as :class:`DeviceError` so
 the daemon can reopen the group with backoff; a channel-level problem on a healthy device
 (thermocouple burnout) is a ``fault`` reading.
+
+Every config table a plugin validates is a :class:`StrictModel`. A plugin that *is* the cell (the
+simulated one) is a :class:`VirtualCellPlugin`. Longer than most modules on purpose: this is the
+whole contract a plugin author reads, in one file.
 """
 
 from __future__ import annotations
@@ -23,7 +27,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import Any, ClassVar, Literal, Protocol
+from typing import Any, ClassVar, Literal, Protocol, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
@@ -81,24 +85,6 @@ class MonotonicClock:
         await asyncio.sleep(max(0.0, seconds))
 
 
-class ScaledClock:
-    """Real sleeps, but simulated time runs ``speed`` times faster than the wall clock."""
-
-    def __init__(self, speed: float = 1.0, start: float | None = None) -> None:
-        # monotonic like MonotonicClock: a wall-clock step moves neither
-        if speed <= 0:
-            raise ValueError(f"speed must be > 0, got {speed}")
-        self.speed = speed
-        self._start = time.time() if start is None else start
-        self._mono0 = time.monotonic()
-
-    def now(self) -> float:
-        return self._start + self.speed * (time.monotonic() - self._mono0)
-
-    async def sleep(self, seconds: float) -> None:
-        await asyncio.sleep(max(0.0, seconds) / self.speed)
-
-
 #: bounds of a sensor's timing keys: physical values, so ``interval_s = 1e-300`` (the poller spins)
 #: and ``max_age_s = 1e308`` (a reading of any age is fresh, as with inf) are refused naming the key
 MIN_INTERVAL_S = 0.001
@@ -110,16 +96,24 @@ MAX_AGE_S = 86400.0
 POSITION_FROZEN_AFTER_S = 30.0
 
 
-class SensorConfig(BaseModel):
-    """Keys common to every ``[[sensors]]`` entry. A plugin subclasses it with its own keys.
+class StrictModel(BaseModel):
+    """The base of every table of the operator's config: the daemon's own, and a plugin's (its sensors,
+    hubs, section and actuator keys). A plugin's own tables subclass it (or :class:`SensorConfig`,
+    :class:`ActuatorOptions`, which do).
 
     ``extra="forbid"``: a typo in an operator's config must be an error, never silently ignored.
     ``allow_inf_nan=False``: ``max_age_s = inf`` would make a reading of any age fresh.
     ``strict=True``: ``scale = "0.1"`` (a string) is refused, not read as a number; an int is a fine
-    float. A plugin's own keys inherit it (a path written as a string needs ``Strict(False)``).
+    float (a path written as a string needs ``Strict(False)``). ``frozen``: a validated config is
+    never changed in place.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, strict=True)
+
+
+class SensorConfig(StrictModel):
+    """Keys common to every ``[[sensors]]`` entry. A plugin subclasses it with its own keys (strict, as
+    every :class:`StrictModel`)."""
 
     name: str = Field(pattern=r"^[A-Za-z_][A-Za-z0-9_.\-]*$", description="channel name the model uses")
     role: Literal["temperature", "position"] = "temperature"
@@ -182,19 +176,56 @@ class SensorConfig(BaseModel):
         return None
 
 
+_T = TypeVar("_T")
+
+
+class SharedResources:
+    """Objects a plugin shares between its sensor groups and its actuator (one connection per hub, one
+    simulated cell), under keys the plugin chooses (``"<kind>.<what>"``).
+
+    Typed on the way out: :meth:`get` checks the object is of the class asked for, so two plugins that
+    chose one key get a ``TypeError`` naming it, never each other's object.
+    """
+
+    def __init__(self) -> None:
+        self._objects: dict[str, object] = {}
+
+    def get(self, key: str, cls: type[_T]) -> _T | None:
+        """The object under ``key`` (None: none yet); a ``TypeError`` when it is not a ``cls``."""
+        value = self._objects.get(key)
+        if value is None:
+            return None
+        if not isinstance(value, cls):
+            raise TypeError(f"shared resource {key!r} is a {type(value).__name__}, not a {cls.__name__}")
+        return value
+
+    def setdefault(self, key: str, default: _T) -> _T:
+        """The object under ``key`` (checked as :meth:`get` does, against ``default``'s class), or
+        ``default``, stored there first."""
+        found = self.get(key, type(default))
+        if found is None:
+            self._objects[key] = default
+            return default
+        return found
+
+    def put(self, key: str, value: object) -> None:
+        """Store ``value`` under ``key``, replacing what was there."""
+        self._objects[key] = value
+
+
 @dataclass
 class DriverContext:
     """What a plugin may need besides its own sensor configs.
 
     ``hubs`` and ``sections`` were validated by the plugin that owns them (its ``hub_model`` and
-    ``section_model``); ``resources`` holds objects a plugin shares between its groups and its
-    actuator (one connection per hub, one simulated cell), keyed by names the plugin chooses.
+    ``section_model``); ``resources`` holds the objects a plugin shares between its groups and its
+    actuator (:class:`SharedResources`).
     """
 
     clock: Clock = field(default_factory=MonotonicClock)
     hubs: Mapping[str, BaseModel] = field(default_factory=dict)
     sections: Mapping[str, BaseModel] = field(default_factory=dict)
-    resources: dict[str, Any] = field(default_factory=dict)
+    resources: SharedResources = field(default_factory=SharedResources)
 
 
 class SensorGroup(ABC):
@@ -299,15 +330,13 @@ def output_step_problem(step_v: float, v_min: float, v_max: float, volts_per_um:
             f"up to {step_v:.4g} V off")
 
 
-class ActuatorOptions(BaseModel):
+class ActuatorOptions(StrictModel):
     """The ``[actuator]`` keys a plugin owns (everything but the core's gain, limits and motion keys).
 
-    A plugin subclasses it with its own keys and names it as ``actuator_model``. ``extra="forbid"``:
-    a misspelt key is an error naming ``actuator.<key>``; ``strict=True`` as for sensors (no
-    ``"0.001"`` for 0.001).
+    A plugin subclasses it with its own keys and names it as ``actuator_model``. Strict (a
+    :class:`StrictModel`): a misspelt key is an error naming ``actuator.<key>``, and no ``"0.001"``
+    for 0.001.
     """
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, strict=True)
 
     kind: str
 
@@ -349,10 +378,9 @@ class DriverPlugin(ABC):
       which they report through ``hub_name()``;
     - ``actuator_model``: validates ``[actuator]`` when its ``kind`` names this plugin (None: this
       plugin cannot move the stage); ``create_actuator`` then builds the actuator, sharing the
-      connections (``context.resources``) the plugin's sensor groups use;
-    - ``virtual_cell``: the plugin *is* the cell (readings and stage simulated): it supplies the
-      clock (``make_clock``) and, when its section is present without sensors, the sensors
-      (``default_sensors``). A reload never switches between a virtual and a real cell.
+      connections (``context.resources``) the plugin's sensor groups use.
+
+    A plugin that *is* the cell (the simulated one) subclasses :class:`VirtualCellPlugin` instead.
     """
 
     name: ClassVar[str]
@@ -361,7 +389,6 @@ class DriverPlugin(ABC):
     section_model: ClassVar[type[BaseModel] | None] = None
     hub_model: ClassVar[type[BaseModel] | None] = None
     actuator_model: ClassVar[type[ActuatorOptions] | None] = None
-    virtual_cell: ClassVar[bool] = False
 
     @abstractmethod
     def create(self, configs: Sequence[SensorConfig], context: DriverContext) -> list[SensorGroup]: ...
@@ -382,35 +409,21 @@ class DriverPlugin(ABC):
         ``sensors[2] (T3).port: ...`` or ``actuator.port: ...``."""
         return []
 
+
+class VirtualCellPlugin(DriverPlugin):
+    """A plugin that *is* the cell (readings and stage simulated): optional, found with ``isinstance``
+    (``drivers.registry.virtual_cell_plugin``).
+
+    It supplies the clock (``make_clock``) and, when its section is present without ``[[sensors]]``,
+    the sensors (``default_sensors``). A reload never switches between a virtual and a real cell, and a
+    virtual cell's stage is moved only by its own actuator.
+    """
+
+    @abstractmethod
     def default_sensors(self, section: BaseModel) -> list[SensorConfig]:
-        """Sensors implied by this plugin's section when the config lists none (virtual cells)."""
-        return []
+        """Sensors implied by this plugin's section when the config lists none."""
 
+    @abstractmethod
     def make_clock(self, section: BaseModel | None, *, virtual_start_s: float | None = None) -> Clock:
-        """The clock of a virtual cell: scaled wall time for the daemon, or (``virtual_start_s``
-        given) a virtual clock whose sleeps take no wall time, for procedures."""
-        return MonotonicClock()
-
-
-@dataclass
-class DriverSet:
-    """A cell's drivers once assembled: what the daemon polls and what a procedure drives."""
-
-    context: DriverContext
-    groups: list[SensorGroup]
-    actuator: Actuator | None
-    roles: dict[str, str]
-    max_age_s: dict[str, float]
-    description: str = ""
-
-    @property
-    def clock(self) -> Clock:
-        return self.context.clock
-
-    @property
-    def position_channel(self) -> str | None:
-        return next((name for name, role in self.roles.items() if role == "position"), None)
-
-    @property
-    def temperature_channels(self) -> tuple[str, ...]:
-        return tuple(name for name, role in self.roles.items() if role == "temperature")
+        """The cell's clock: scaled wall time for the daemon, or (``virtual_start_s`` given) a virtual
+        clock whose sleeps take no wall time, for procedures."""

@@ -13,6 +13,8 @@
 - the service layer (service, bus, procedure, config, logs, sdnotify, reports) never names a concrete
   plugin, nor the CLI or the assembly;
 - only ``daemon.assembly`` and the CLI (``daemon.cli``, ``daemon.commands``) name concrete plugins;
+- ``daemon.bus`` loads without plugin discovery: nothing it imports, directly or through other modules
+  (a module's parent packages included), imports ``drivers.registry``;
 - the CLI's ``HANDLERS`` table (command -> module, imported by name) names ``daemon.commands``
   modules only, and counts as imports; no other module imports by a string;
 - no cycle between units (a unit: a top-level module of ``daemon``/``drivers``, or a package's own
@@ -44,6 +46,10 @@ PLUGIN_ROOTS = ("drivers.simulated", "drivers.modbus", "drivers.serial_line")
 SIMULATOR_PURE = {f"drivers.simulated.{name}" for name in ("physics", "scenarios", "effects", "runs", "datasets",
                                                            "clock")}
 ASSEMBLY_ROOTS = ("daemon.assembly", "daemon.cli", "daemon.commands")
+#: modules that load without plugin discovery: every Zenoh client of the daemon (``nanodrift target``, a
+#: lab's script) imports the bus, and must neither wait for nor fail on the installed plugins
+NO_PLUGIN_DISCOVERY = ("daemon.bus",)
+PLUGIN_DISCOVERY = "drivers.registry"
 COMMANDS_PACKAGE = "daemon.commands"
 #: optional heavy dependencies a function may import lazily, with the reason
 LAZY_ALLOWED = {
@@ -214,6 +220,32 @@ def find_cycles(graph: dict[str, set[str]]) -> list[str]:
     return cycles
 
 
+def packages_of(module: str) -> list[str]:
+    """The packages Python imports before ``module``: ``daemon.config._lines`` -> daemon, daemon.config."""
+    parts = module.split(".")
+    return [".".join(parts[:end]) for end in range(1, len(parts))]
+
+
+def import_chain(start: str, goal: str, graph: dict[str, set[str]]) -> list[str] | None:
+    """The shortest chain by which importing ``start`` imports ``goal``, or None when it never does.
+
+    A module's parent packages count as its imports: importing ``daemon.config._lines`` runs
+    ``daemon/config/__init__.py`` first, whatever that imports."""
+    previous: dict[str, str | None] = {start: None}
+    queue = [start]
+    for module in queue:
+        if module == goal:
+            chain = [module]
+            while (before := previous[chain[-1]]) is not None:
+                chain.append(before)
+            return chain[::-1]
+        for nxt in [*packages_of(module), *sorted(graph.get(module, ()))]:
+            if nxt not in previous:
+                previous[nxt] = module
+                queue.append(nxt)
+    return None
+
+
 def string_imports(source: str) -> list[str]:
     """Calls that import a module named at run time (``importlib.import_module``, ``__import__``), except
     the CLI's dispatch through its ``HANDLERS`` table (whose values the checks above read)."""
@@ -258,6 +290,15 @@ def test_no_cycle_between_units() -> None:
 def test_no_cycle_between_modules() -> None:
     cycles = find_cycles(module_graph(all_edges()))
     assert not cycles, "import cycles between modules:\n" + "\n".join(cycles)
+
+
+def test_the_bus_loads_without_plugin_discovery() -> None:
+    graph = module_graph(all_edges())
+    chains = [import_chain(module, PLUGIN_DISCOVERY, graph) for module in sorted(MODULE_NAMES)
+              if within(module, NO_PLUGIN_DISCOVERY)]
+    found = [" -> ".join(chain) for chain in chains if chain is not None]
+    assert not found, "plugin discovery reached from the bus (import plain tables from daemon.settings):\n" + \
+        "\n".join(found)
 
 
 def test_function_level_imports_are_only_optional_dependencies() -> None:
@@ -373,6 +414,18 @@ def test_the_cycle_checks_catch_a_subpackage_and_its_parent_and_two_modules() ->
     assert find_cycles(module_graph(inside_a_unit)) == [
         "daemon.model.model -> daemon.model.terms -> daemon.model.model"]
     assert find_cycles(module_graph(inside_a_unit[:1])) == []
+
+
+def test_the_discovery_check_follows_imports_and_parent_packages() -> None:
+    through_modules = {"daemon.bus.session": {"daemon.config"}, "daemon.config": {"daemon.config._dispatch"},
+                       "daemon.config._dispatch": {"drivers.registry"}}
+    assert import_chain("daemon.bus.session", PLUGIN_DISCOVERY, through_modules) == [
+        "daemon.bus.session", "daemon.config", "daemon.config._dispatch", "drivers.registry"]
+    through_a_package = {"daemon.bus.session": {"daemon.config._schema"}, "daemon.config": {"drivers.registry"}}
+    assert import_chain("daemon.bus.session", PLUGIN_DISCOVERY, through_a_package) == [
+        "daemon.bus.session", "daemon.config._schema", "daemon.config", "drivers.registry"]
+    plain = {"daemon.bus.session": {"daemon.settings"}, "daemon.settings": {"drivers.base", "daemon.motion"}}
+    assert import_chain("daemon.bus.session", PLUGIN_DISCOVERY, plain) is None
 
 
 def test_the_handler_table_is_read_and_checked() -> None:

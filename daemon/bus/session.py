@@ -18,7 +18,7 @@ from typing import Any
 import zenoh
 
 from daemon.bus.protocol import MAX_PAYLOAD_BYTES, Keys, Oversized
-from daemon.config import ZenohSettings
+from daemon.settings import ZenohSettings
 
 # Keys is re-exported: a client opens a session and names the keys with one import
 __all__ = ["ANSWER_CONGESTION", "ANSWER_EXPRESS", "Bus", "Keys", "describe_zenoh_error", "listen_endpoints",

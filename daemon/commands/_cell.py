@@ -15,10 +15,10 @@ from typing import Any
 
 from daemon.assembly import procedure_drivers
 from daemon.config import ZENOH_KIND, Config, load_config
+from daemon.drivers_set import DriverSet
 from daemon.errors import UserError
 from daemon.procedure.follow import FollowCheck
 from daemon.procedure.preflight import check_not_served, wait_for_output
-from drivers.base import DriverSet
 from drivers.simulated.config import SECTION, SimulationConfig
 from drivers.simulated.effects import UnknownNameError, resolve_effects
 from drivers.simulated.scenarios import get_scenario

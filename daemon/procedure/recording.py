@@ -14,12 +14,12 @@ from typing import IO
 from daemon.calibration.dataset import CsvAppender, DataError, read_csv
 from daemon.calibration.plans import PAPER_TIMING, PlannedStep, StepResult, StepTiming, calibration_plan
 from daemon.config import ActuatorConfig
+from daemon.drivers_set import DriverSet
 from daemon.model.identify import FitResult, fit
 from daemon.model.model import save_model
 from daemon.procedure.follow import FollowCheck
 from daemon.procedure.progress import Progress
 from daemon.procedure.steps import run_steps
-from drivers.base import DriverSet
 
 
 def calibration_columns(drivers: DriverSet) -> list[str]:

@@ -9,7 +9,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.base import DeviceError, DriverSet, Reading, SensorGroup, State
+from daemon.drivers_set import DriverSet
+from drivers.base import DeviceError, Reading, SensorGroup, State
 
 
 @dataclass

@@ -19,11 +19,12 @@ from collections.abc import Awaitable, Callable, Sequence
 
 from daemon.calibration.plans import PAPER_TIMING, PlannedStep, StepResult, StepTiming, ramp_commands
 from daemon.config import ActuatorConfig
+from daemon.drivers_set import DriverSet
 from daemon.procedure.follow import FollowCheck
 from daemon.procedure.progress import Progress
 from daemon.procedure.sampler import Sampler
 from daemon.service.actuation import checked_sent_voltage, locate_stage
-from drivers.base import Actuator, Clock, DriverSet
+from drivers.base import Actuator, Clock
 
 CommandFor = Callable[[PlannedStep, float], float]
 

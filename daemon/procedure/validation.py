@@ -15,10 +15,10 @@ from daemon.calibration.iso9283 import TestResult, summarize
 from daemon.calibration.plans import PlannedStep, StepResult, StepTiming, validation_plan
 from daemon.calibration.residuals import BiasTracker
 from daemon.config import ActuatorConfig
+from daemon.drivers_set import DriverSet
 from daemon.procedure.follow import FollowCheck
 from daemon.procedure.progress import Progress
 from daemon.procedure.steps import run_steps
-from drivers.base import DriverSet
 
 
 def feed_tracker(tracker: BiasTracker, result: StepResult) -> float:

@@ -23,13 +23,14 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from daemon.config import ConfigError, load_config, missing_model_channels
+from daemon.drivers_set import DriverSet
 from daemon.model.model import Model, ModelFileError, load_model
 from daemon.sdnotify import Notifier
 from daemon.service.compensator import Compensator
 from daemon.service.health_unit import HealthUnit
 from daemon.service.state import CellState
 from daemon.service.table import SensorTable
-from drivers.base import DriverContext, DriverSet, DriverSetupError
+from drivers.base import DriverContext, DriverSetupError
 
 
 def same_content(old: Model | None, new: Model) -> bool:

@@ -23,6 +23,7 @@ import zenoh
 
 from daemon.bus.session import Bus, describe_zenoh_error, listen_endpoints, session_config
 from daemon.config import Config, missing_model_channels
+from daemon.drivers_set import DriverSet
 from daemon.errors import UserError
 from daemon.logs import get_logger
 from daemon.sdnotify import Notifier
@@ -40,7 +41,7 @@ from daemon.service.status import StatusHandler, status_doc, status_line
 from daemon.service.supervision import SensorWatch, Supervisor
 from daemon.service.table import SensorTable
 from daemon.service.targets import TargetHandler
-from drivers.base import DriverContext, DriverSet, DriverSetupError, MonotonicClock
+from drivers.base import DriverContext, DriverSetupError, MonotonicClock
 
 #: config (and a running context to keep) -> drivers: ``daemon.assembly.build_drivers``, handed in by
 #: ``nanodrift run`` so that the service names no plugin

@@ -4,16 +4,15 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import AllowInfNan, BaseModel, ConfigDict, Field, FiniteFloat, field_validator, model_validator
+from pydantic import AllowInfNan, Field, FiniteFloat, field_validator, model_validator
 
-from drivers.base import ActuatorOptions, SensorConfig, output_step_problem
+from drivers.base import ActuatorOptions, SensorConfig, StrictModel, output_step_problem
 from drivers.modbus.codec import DATA_TYPES, DataTypeName, SwapName, raw_for, register_count, step_v
 
 
-class ModbusHubConfig(BaseModel):
-    """A ``[[hubs]]`` entry: a connection shared by several channels (Home Assistant modbus naming)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, strict=True)  # no "502" for 502
+class ModbusHubConfig(StrictModel):
+    """A ``[[hubs]]`` entry: a connection shared by several channels (Home Assistant modbus naming); strict: no
+    ``"502"`` for 502."""
 
     name: str
     type: Literal["tcp", "serial"] = "tcp"

@@ -66,7 +66,7 @@ class SerialLinePlugin(DriverPlugin):
     def create(self, configs: Sequence[SensorConfig], context: DriverContext) -> list[SensorGroup]:
         groups: list[SensorGroup] = []
         owners: dict[str, SerialLineGroup] = {}
-        context.resources[PORTS_KEY] = owners  # this build's ports only
+        context.resources.put(PORTS_KEY, owners)  # this build's ports only
         for config in configs:
             if not isinstance(config, SerialLineSensorConfig):
                 config = SerialLineSensorConfig.model_validate(config.model_dump())
@@ -81,7 +81,8 @@ class SerialLinePlugin(DriverPlugin):
     def create_actuator(self, config: ActuatorOptions, context: DriverContext) -> Actuator:
         if not isinstance(config, SerialLineActuatorConfig):
             config = SerialLineActuatorConfig.model_validate(config.model_dump())
-        sensor = context.resources.get(PORTS_KEY, {}).get(config.port)
+        owners: dict[str, SerialLineGroup] = context.resources.get(PORTS_KEY, dict) or {}
+        sensor = owners.get(config.port)
         if sensor is None:
             own = SerialLineSensorConfig(name="actuator", port=config.port, timeout_s=config.timeout_s,
                                          **{key: getattr(config, key) for key in SHARED_SETTINGS})

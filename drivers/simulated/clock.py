@@ -1,5 +1,9 @@
-"""A clock whose sleeps take no wall time: hours of simulated procedure run in seconds.
+"""The simulated cell's clocks: scaled wall time for the daemon, virtual time for procedures.
 
+:class:`ScaledClock`: real sleeps, but simulated time runs ``speed`` times faster than the wall clock
+(``[simulation] speed``; the tests' emulated cell too).
+
+:class:`VirtualClock`: sleeps take no wall time, so hours of simulated procedure run in seconds.
 A discrete-event scheduler on top of asyncio: ``sleep`` registers a wake-up time and waits; a single
 advancer task moves simulated time to the earliest pending wake-up only when no other task is
 runnable (the event loop's ready queue is empty), then wakes every sleeper due at that instant.
@@ -14,10 +18,31 @@ from __future__ import annotations
 import asyncio
 import heapq
 import itertools
+import time
 from typing import Any
 
 
+class ScaledClock:
+    """Real sleeps, but simulated time runs ``speed`` times faster than the wall clock."""
+
+    def __init__(self, speed: float = 1.0, start: float | None = None) -> None:
+        # monotonic like drivers.base.MonotonicClock: a wall-clock step moves neither
+        if speed <= 0:
+            raise ValueError(f"speed must be > 0, got {speed}")
+        self.speed = speed
+        self._start = time.time() if start is None else start
+        self._mono0 = time.monotonic()
+
+    def now(self) -> float:
+        return self._start + self.speed * (time.monotonic() - self._mono0)
+
+    async def sleep(self, seconds: float) -> None:
+        await asyncio.sleep(max(0.0, seconds) / self.speed)
+
+
 class VirtualClock:
+    """Sleeps take no wall time: simulated time jumps to the next wake-up when nothing else can run."""
+
     def __init__(self, start: float = 0.0) -> None:
         self._now = float(start)
         self._heap: list[tuple[float, int, asyncio.Future[None]]] = []

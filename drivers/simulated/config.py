@@ -16,9 +16,9 @@ from __future__ import annotations
 from dataclasses import fields
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import Field, field_validator
 
-from drivers.base import ActuatorOptions, SensorConfig
+from drivers.base import ActuatorOptions, SensorConfig, StrictModel
 from drivers.simulated.effects import resolve_effects
 from drivers.simulated.physics import CellParams, CellPhysics
 from drivers.simulated.scenarios import get_scenario
@@ -31,8 +31,8 @@ MAX_SPEED = 10_000.0
 _PARAM_NAMES = {f.name for f in fields(CellParams)} - {"offsets_c", "geometry_e_um"}
 
 
-class SimulationConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, strict=True)  # no "2" for 2
+class SimulationConfig(StrictModel):
+    """The ``[simulation]`` table (strict: no ``"2"`` for 2)."""
 
     scenario: str = Field(default="train", description="room-temperature history (see drivers/simulated/README.md)")
     speed: float = Field(

@@ -1,6 +1,7 @@
 """The ``simulated`` driver kind: sensor groups and an actuator on one shared :class:`SimulatedCell`.
 
-An ordinary plugin (python-can's ``virtual`` bus, pyvisa-sim): it owns the ``[simulation]`` table,
+An ordinary plugin (python-can's ``virtual`` bus, pyvisa-sim), and a virtual cell
+(:class:`~drivers.base.VirtualCellPlugin`): it owns the ``[simulation]`` table,
 supplies the cell's clock (scaled wall time in the daemon, a virtual clock in procedures) and, when
 the table is present without ``[[sensors]]``, the paper's four thermocouples and interferometer.
 Temperature sensors with the same poll interval form one group (like one Modbus module answering
@@ -19,16 +20,15 @@ from drivers.base import (
     ActuatorOptions,
     Clock,
     DriverContext,
-    DriverPlugin,
     DriverSetupError,
     MonotonicClock,
     Reading,
-    ScaledClock,
     SensorConfig,
     SensorGroup,
+    VirtualCellPlugin,
 )
 from drivers.simulated.cell import CHANNELS, SimulatedCell
-from drivers.simulated.clock import VirtualClock
+from drivers.simulated.clock import ScaledClock, VirtualClock
 from drivers.simulated.config import SECTION, SimulatedActuatorConfig, SimulatedSensorConfig, SimulationConfig
 from drivers.simulated.physics import POSITION_CHANNEL
 
@@ -41,14 +41,14 @@ def shared_cell(context: DriverContext) -> SimulatedCell:
     On a :class:`VirtualClock` (procedures) scenario time is clock time, so a resumed calibration
     continues the same room history; on wall time the scenario starts when the cell is created.
     """
-    cell = context.resources.get(RESOURCE_KEY)
+    cell = context.resources.get(RESOURCE_KEY, SimulatedCell)
     if cell is None:
         settings = context.sections.get(SECTION)
         config = settings if isinstance(settings, SimulationConfig) else SimulationConfig()
         cell = SimulatedCell(config.physics(), context.clock)
         if isinstance(context.clock, VirtualClock):
             cell.epoch = 0.0
-        context.resources[RESOURCE_KEY] = cell
+        context.resources.put(RESOURCE_KEY, cell)
     return cell
 
 
@@ -97,13 +97,12 @@ class SimulatedActuator(Actuator):
         return ("q_um", self.cell.state.q)
 
 
-class SimulatedPlugin(DriverPlugin):
+class SimulatedPlugin(VirtualCellPlugin):
     name = "simulated"
     config_model: ClassVar[type[SensorConfig]] = SimulatedSensorConfig
     section = SECTION
     section_model = SimulationConfig
     actuator_model = SimulatedActuatorConfig
-    virtual_cell = True
 
     def create(self, configs: Sequence[SensorConfig], context: DriverContext) -> list[SensorGroup]:
         cell = shared_cell(context)

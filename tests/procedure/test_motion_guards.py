@@ -18,10 +18,11 @@ from daemon.calibration.dataset import read_csv
 from daemon.calibration.plans import PlannedStep, StepTiming, calibration_plan
 from daemon.cli import main
 from daemon.config import ActuatorConfig
+from daemon.drivers_set import DriverSet
 from daemon.procedure.follow import FollowCheck, StageNotFollowingError
 from daemon.procedure.recording import record_calibration
 from daemon.procedure.steps import run_steps
-from drivers.base import Actuator, Clock, DriverSet
+from drivers.base import Actuator, Clock
 
 
 class Wired(Actuator):

@@ -9,6 +9,7 @@ import pytest
 
 from drivers.base import DeviceError, DriverContext, State
 from drivers.registry import load_plugin
+from drivers.simulated.cell import SimulatedCell
 from drivers.simulated.clock import VirtualClock
 from drivers.simulated.config import SimulatedActuatorConfig, SimulatedSensorConfig, SimulationConfig
 from drivers.simulated.plugin import PLUGIN, RESOURCE_KEY, default_sensor_configs
@@ -74,7 +75,8 @@ def test_plugin_found_by_entry_point_and_shares_one_cell():
 
     value, t = asyncio.run(main())
     assert value == pytest.approx(240.0, abs=0.5) and t == 10.0
-    assert ctx.resources[RESOURCE_KEY].commands == 1
+    cell = ctx.resources.get(RESOURCE_KEY, SimulatedCell)
+    assert cell is not None and cell.commands == 1
 
 
 def test_sensor_channel_mapping_and_bad_channels():
@@ -93,7 +95,8 @@ def test_sensor_channel_mapping_and_bad_channels():
 def test_injected_faults_reach_the_readings():
     ctx = _context()
     groups = PLUGIN.create(default_sensor_configs(), ctx)
-    cell = ctx.resources[RESOURCE_KEY]
+    cell = ctx.resources.get(RESOURCE_KEY, SimulatedCell)
+    assert cell is not None
     temps = next(g for g in groups if "T2" in g.names)
     cell.inject_fault("T2", 5.0, 10.0, "fault")
     cell.inject_fault("T3", 5.0, 10.0, "stale")

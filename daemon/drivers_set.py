@@ -1,0 +1,35 @@
+"""A cell's drivers once assembled (by ``daemon.assembly``): what the daemon polls and a procedure drives.
+
+Not part of the plugin contract (a plugin never builds one), so it lives with the daemon; the service
+and the procedures import it from here, never from the assembly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from drivers.base import Actuator, Clock, DriverContext, SensorGroup
+
+
+@dataclass
+class DriverSet:
+    """The sensor groups and the actuator of one config, with the context they share."""
+
+    context: DriverContext
+    groups: list[SensorGroup]
+    actuator: Actuator | None
+    roles: dict[str, str]
+    max_age_s: dict[str, float]
+    description: str = ""
+
+    @property
+    def clock(self) -> Clock:
+        return self.context.clock
+
+    @property
+    def position_channel(self) -> str | None:
+        return next((name for name, role in self.roles.items() if role == "position"), None)
+
+    @property
+    def temperature_channels(self) -> tuple[str, ...]:
+        return tuple(name for name, role in self.roles.items() if role == "temperature")
