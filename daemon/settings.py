@@ -114,7 +114,7 @@ MAX_RECORD_KEEP_DAYS = 36_500
 
 
 class HealthSettings(StrictModel):
-    """``[health]``: the model's health from the position sensor (``daemon.service.health``); needs a
+    """``[health]``: the model's health from the position sensor (``daemon.service.health_unit``); needs a
     ``role = "position"`` sensor, else the state stays ``unknown``. ``record_dir``/``record_keep_days``:
     recorded operation (daily CSVs of every settled target; a relative path is relative to the config
     file's folder)."""
