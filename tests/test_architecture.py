@@ -15,6 +15,9 @@
 - only ``daemon.assembly`` and the CLI (``daemon.cli``, ``daemon.commands``) name concrete plugins;
 - ``daemon.bus`` loads without plugin discovery: nothing it imports, directly or through other modules
   (a module's parent packages included), imports ``drivers.registry``;
+- ``drivers.testing`` (the device emulators, for tests) imports ``drivers.base``, the registry, the
+  plugins, pymodbus and pyserial, never the daemon beyond the pure core; nothing else of nanodrift
+  imports it (the daemon never runs an emulator);
 - the CLI's ``HANDLERS`` table (command -> module, imported by name) names ``daemon.commands``
   modules only, and counts as imports; no other module imports by a string;
 - no cycle between units (a unit: a top-level module of ``daemon``/``drivers``, or a package's own
@@ -50,6 +53,8 @@ ASSEMBLY_ROOTS = ("daemon.assembly", "daemon.cli", "daemon.commands")
 #: lab's script) imports the bus, and must neither wait for nor fail on the installed plugins
 NO_PLUGIN_DISCOVERY = ("daemon.bus",)
 PLUGIN_DISCOVERY = "drivers.registry"
+#: the device emulators shipped for tests (a lab's plugin tests use them too)
+TESTING_ROOT = "drivers.testing"
 COMMANDS_PACKAGE = "daemon.commands"
 #: optional heavy dependencies a function may import lazily, with the reason
 LAZY_ALLOWED = {
@@ -146,6 +151,12 @@ def forbidden(importer: str, imported: str) -> str | None:
     target = unit_of(imported)
     top = imported.split(".")[0]
     stdlib = top in sys.stdlib_module_names or top == "__future__"
+    if within(unit, [TESTING_ROOT]):
+        if top == "daemon" and not within(target, CORE_ROOTS):
+            return "the emulators import drivers.base, the plugins and their libraries, never the daemon service"
+        return None
+    if within(target, [TESTING_ROOT]):
+        return "drivers.testing is for tests: nothing of nanodrift imports the emulators"
     if within(unit, CORE_ROOTS):
         if top in PACKAGES:
             return None if within(target, CORE_ROOTS) else "the pure core imports only itself"
@@ -378,6 +389,21 @@ def test_no_module_imports_by_a_string_except_through_the_cli_table() -> None:
         ("daemon.procedure", "daemon.assembly", False),
         ("daemon.assembly", "drivers.registry", True),
         ("daemon.commands", "drivers.simulated.datasets", True),
+        # the emulators: drivers.base, plugins, their libraries; never the service, never imported by nanodrift
+        ("drivers.testing.modbus_server", "drivers.modbus.config", True),
+        ("drivers.testing", "drivers.serial_line.plugin", True),
+        ("drivers.testing.pty_devices", "drivers.base", True),
+        ("drivers.testing.modbus_server", "pymodbus.server", True),
+        ("drivers.testing.pty_devices", "serial", True),
+        ("drivers.testing.protocol", "drivers.testing.pty_devices", True),
+        ("drivers.testing.modbus_server", "daemon.service.runner", False),
+        ("drivers.testing", "daemon.config", False),
+        ("drivers.testing.pty_devices", "daemon.procedure.sampler", False),
+        ("drivers.modbus.hub", "drivers.testing.modbus_server", False),
+        ("drivers.base", "drivers.testing", False),
+        ("daemon.service.runner", "drivers.testing.pty_devices", False),
+        ("daemon.assembly", "drivers.testing", False),
+        ("daemon.cli", "drivers.testing.modbus_server", False),
     ],
 )
 def test_the_rules_themselves(importer: str, imported: str, allowed: bool) -> None:

@@ -34,7 +34,7 @@ from typing import Any
 
 import zenoh
 
-from daemon.bus.protocol import Command, Refusal, encode_command, encode_error, parse_target
+from daemon.bus.protocol import Command, Refusal, Target, encode_command, encode_error, parse_target
 from daemon.bus.session import Bus
 from daemon.logs import RateLimitedLog
 from daemon.service.actuation import Actuation
@@ -83,6 +83,7 @@ class TargetHandler:
                         query.drop()
                     return
                 state.counters.targets += 1
+                target: Target | None = None
                 try:
                     target = parse_target(payload)
                     if state.stopping:
@@ -97,7 +98,8 @@ class TargetHandler:
                     refusal = refused
                 except Exception as error:  # a bug must still produce an answer, and a traceback in the log
                     failure = error
-                    refusal = Refusal("internal", f"internal error: {type(error).__name__}: {error}")
+                    refusal = Refusal("internal", f"internal error: {type(error).__name__}: {error}",
+                                      target.id if target is not None else None)
                 if refusal is not None:
                     state.counters.errors[refusal.kind] += 1
                     log_refusal = self.refused_log.limiter.allow()

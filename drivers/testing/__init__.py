@@ -1,0 +1,75 @@
+"""Device emulators for testing driver plugins, nanodrift's own and a lab's, against real interfaces.
+
+Installed with nanodrift (it needs only pymodbus and pyserial, which nanodrift depends on), so a lab
+that writes a plugin for its own instrument tests it the way nanodrift tests its plugins: the
+plugin opens a real socket or a real serial port, and the test looks at what the device received.
+
+- :mod:`drivers.testing.modbus_server`: :class:`ModbusTestServer` (pymodbus' own TCP server on
+  127.0.0.1, or RTU on a serial port) serving :class:`ModbusTestDevice` register maps, which record
+  every request and can be told to fail (exception codes, refused or slow writes);
+- :mod:`drivers.testing.pty_devices`: instruments on a pty behind a stable link, which can be
+  unplugged and plugged back: :class:`FakeInterferometer` (``P <nm> nm`` lines, queried or streamed),
+  :class:`FakeGcsController` (a PI controller speaking GCS), and :class:`PtyDevice` to write another;
+- :mod:`drivers.testing.protocol`: :func:`expected_protocol`, a pty device that expects an exact
+  conversation (PyMeasure's ``expected_protocol``) and fails on anything else.
+
+A lab's plugin (registered in the ``nanodrift.drivers`` entry-point group) tested against them::
+
+    import asyncio
+    from drivers.base import DriverContext
+    from drivers.registry import load_plugin
+    from drivers.testing import FakeGcsController
+
+    def test_my_controller_gets_the_voltage(tmp_path):
+        controller = FakeGcsController(tmp_path / "ttyPI")
+        plugin = load_plugin("mylab")                      # found through its entry point
+        config = plugin.actuator_model.model_validate({"kind": "mylab", "port": controller.port})
+        actuator = plugin.create_actuator(config, DriverContext())
+
+        async def body():
+            await actuator.open()
+            await actuator.command(100.0, 2.0)
+            await actuator.close()
+
+        try:
+            asyncio.run(asyncio.wait_for(body(), 10))
+            assert controller.voltage == actuator.sent_voltage(2.0)
+        finally:
+            controller.close()
+
+nanodrift's contract tests (``tests/drivers/test_sensor_contract.py``,
+``tests/drivers/test_actuator_contract.py``) run one set of checks against every plugin, a lab's own
+included: the same checks are what a lab's plugin must pass. Nothing in nanodrift itself imports this
+package (``tests/test_architecture.py`` enforces it).
+"""
+
+from drivers.testing.modbus_server import (
+    FC_READ_HOLDING,
+    FC_READ_INPUT,
+    ModbusTestDevice,
+    ModbusTestServer,
+    PtyNullModem,
+    crc16_modbus,
+    device_registers,
+    free_port,
+    tcp_context,
+)
+from drivers.testing.protocol import ScriptedDevice, expected_protocol
+from drivers.testing.pty_devices import FakeGcsController, FakeInterferometer, PtyDevice
+
+__all__ = [
+    "FC_READ_HOLDING",
+    "FC_READ_INPUT",
+    "FakeGcsController",
+    "FakeInterferometer",
+    "ModbusTestDevice",
+    "ModbusTestServer",
+    "PtyDevice",
+    "PtyNullModem",
+    "ScriptedDevice",
+    "crc16_modbus",
+    "device_registers",
+    "expected_protocol",
+    "free_port",
+    "tcp_context",
+]

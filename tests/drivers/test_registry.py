@@ -1,0 +1,69 @@
+"""``drivers.registry``: plugins found by name through the ``nanodrift.drivers`` entry points, a lab's
+own included, and what a missing or wrong one says."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from helpers import lab_plugin
+
+from drivers.base import DriverPlugin
+from drivers.modbus.plugin import PLUGIN as MODBUS
+from drivers.registry import GROUP, UnknownDriverError, available, load_plugin
+from drivers.serial_line.plugin import PLUGIN as SERIAL_LINE
+from drivers.simulated.plugin import PLUGIN as SIMULATED
+
+
+@pytest.fixture
+def lab(tmp_path: Path) -> Iterator[None]:
+    with lab_plugin.installed(tmp_path / "lab"):
+        yield
+
+
+def test_nanodrifts_own_plugins_are_found_by_name() -> None:
+    assert GROUP == "nanodrift.drivers"
+    assert available() == {"modbus": "drivers.modbus.plugin:PLUGIN", "serial_line": "drivers.serial_line.plugin:PLUGIN",
+                           "simulated": "drivers.simulated.plugin:PLUGIN"}
+    assert load_plugin("modbus") is MODBUS
+    assert load_plugin("serial_line") is SERIAL_LINE
+    assert load_plugin("simulated") is SIMULATED
+    assert [load_plugin(kind).name for kind in available()] == ["modbus", "serial_line", "simulated"]
+
+
+def test_a_labs_plugin_installed_with_an_entry_point_is_found_and_forgotten_when_removed(lab: None) -> None:
+    assert available()["labbox"] == "helpers.lab_plugin:PLUGIN"
+    plugin = load_plugin("labbox")
+    assert plugin is lab_plugin.PLUGIN and isinstance(plugin, DriverPlugin)
+    assert load_plugin("labbox") is plugin  # loaded once
+    assert [load_plugin(kind).name for kind in available()] == ["labbox", "modbus", "serial_line", "simulated"]
+
+
+def test_after_the_lab_package_is_gone_its_kind_is_unknown(tmp_path: Path) -> None:
+    with lab_plugin.installed(tmp_path / "lab"):
+        assert "labbox" in available()
+    assert "labbox" not in available()
+    with pytest.raises(UnknownDriverError) as error:
+        load_plugin("labbox")
+    assert str(error.value) == ("unknown sensor kind 'labbox'; installed driver kinds: modbus, serial_line, "
+                                "simulated")
+
+
+def test_a_misspelt_kind_names_every_installed_kind() -> None:
+    with pytest.raises(UnknownDriverError, match=r"unknown sensor kind 'modbsu'; installed driver kinds: modbus, "
+                                                 r"serial_line, simulated$"):
+        load_plugin("modbsu")
+    assert isinstance(UnknownDriverError("x"), LookupError)
+
+
+def test_an_entry_point_that_names_something_else_than_a_plugin_is_refused_naming_it(tmp_path: Path) -> None:
+    entry = "broken = test_registry_target:NOT_A_PLUGIN"
+    target = tmp_path / "lab" / "test_registry_target.py"
+    target.parent.mkdir(parents=True)
+    target.write_text("NOT_A_PLUGIN = object()\n")
+    with lab_plugin.installed(tmp_path / "lab", entry):
+        with pytest.raises(UnknownDriverError) as error:
+            load_plugin("broken")
+    assert str(error.value) == ("driver 'broken' (test_registry_target:NOT_A_PLUGIN) is not a "
+                                "drivers.base.DriverPlugin instance")
