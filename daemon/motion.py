@@ -55,6 +55,20 @@ def within_limits(limits: MotionLimits, voltage_v: float) -> bool:
     return limits.v_min <= voltage_v <= limits.v_max
 
 
+class VoltageLimitError(ValueError):
+    """A command whose voltage would leave ``[v_min, v_max]``: never sent."""
+
+
+def checked_voltage(limits: MotionLimits, q_um: float) -> float:
+    """:func:`voltage_for`, or a :class:`VoltageLimitError` naming the command and the limits: the one
+    check of a command against the limits, for the daemon's targets and the procedures' steps alike."""
+    voltage = voltage_for(limits, q_um)
+    if not within_limits(limits, voltage):  # NaN fails it too
+        raise VoltageLimitError(f"command q {q_um:.4f} µm needs {voltage:.4f} V, outside "
+                                f"[{limits.v_min:g}, {limits.v_max:g}] V")
+    return voltage
+
+
 @dataclass(frozen=True, slots=True)
 class StartPoint:
     """Where the stage is before a move (``voltage_v`` None: unknown), how that is known, and why a

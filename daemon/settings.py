@@ -31,10 +31,6 @@ STATE_MODEL_PATH = Path("/var/lib/nanodrift/model.json")
 BUILTIN_SOURCE = "<built-in default config>"
 
 
-class VoltageLimitError(ValueError):
-    """A command whose voltage would leave ``[v_min, v_max]``: never sent."""
-
-
 #: a path written as a TOML string (strict mode would take only a Path object)
 PathText = Annotated[Path, Strict(False)]
 
@@ -262,12 +258,8 @@ class ActuatorConfig(StrictModel):
         return motion.within_limits(self, voltage_v)
 
     def checked_voltage(self, q_um: float) -> float:
-        """:meth:`voltage`, or a :class:`VoltageLimitError` naming the command and the limits."""
-        voltage = self.voltage(q_um)
-        if not self.within_limits(voltage):
-            raise VoltageLimitError(
-                f"command q {q_um:.4f} um needs {voltage:.4f} V, outside [{self.v_min:g}, {self.v_max:g}] V")
-        return voltage
+        """:meth:`voltage`, or a :class:`~daemon.motion.VoltageLimitError` naming the command and the limits."""
+        return motion.checked_voltage(self, q_um)
 
 
 class ProcedureSettings(StrictModel):
@@ -284,6 +276,8 @@ class ProcedureSettings(StrictModel):
     step_um: float | None = Field(default=None, gt=0, description="or: targets 0, step_um, ... up to max_um")
     max_um: float | None = Field(default=None, gt=0)
     cycles: int = Field(default=24, ge=1, description="calibration sweeps (calibrate --cycles overrides it)")
+    trajectory: Literal["forward", "bidirectional"] = Field(
+        default="forward", description="calibration sweeps: forward (the paper's, up only) or up and down")
     rise_s: float = Field(default=PAPER_TIMING.ramp_s, ge=0, description="the command ramps to the next target")
     hold_s: float = Field(default=PAPER_TIMING.hold_s, gt=0, description="then holds it this long")
     average_s: float = Field(default=PAPER_TIMING.window_s, gt=0, description="the last average_s of the hold")
@@ -355,10 +349,6 @@ class Config(StrictModel):
     @property
     def virtual_cell(self) -> bool:
         return self._virtual_cell
-
-    @property
-    def key_prefix(self) -> str:
-        return f"nanodrift/{self.cell}"
 
     def section(self, name: str) -> BaseModel | None:
         return self._sections.get(name)

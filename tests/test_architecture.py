@@ -20,6 +20,8 @@
   imports it (the daemon never runs an emulator);
 - the CLI's ``HANDLERS`` table (command -> module, imported by name) names ``daemon.commands``
   modules only, and counts as imports; no other module imports by a string;
+- a command module (``daemon.commands.<name>``) is imported by the CLI only: no command imports
+  another, nor does a helper (``daemon.commands._<name>``, what several commands share) import a command;
 - no cycle between units (a unit: a top-level module of ``daemon``/``drivers``, or a package's own
   modules; a subpackage is a unit of its own, so a subpackage and its parent may not import each
   other both ways), and no cycle between modules.
@@ -321,6 +323,26 @@ def test_function_level_imports_are_only_optional_dependencies() -> None:
     assert not lazy, "imports inside functions (hoist them; a cycle must be broken, not hidden):\n" + "\n".join(lazy)
 
 
+def is_command(module: str) -> bool:
+    """``daemon.commands.fit`` is a command; ``daemon.commands._cell`` (a helper) and the package are not."""
+    parts = module.split(".")
+    return len(parts) == 3 and module.startswith(COMMANDS_PACKAGE + ".") and not parts[-1].startswith("_")
+
+
+def command_import_problems(edges: Iterable[tuple[str, str, int]]) -> list[str]:
+    """``importer:line imports command``, for every import of a command module by anything but the CLI."""
+    return [f"{importer}:{line} imports {imported}: a command is imported by daemon.cli only (shared code "
+            f"goes into a helper, {COMMANDS_PACKAGE}._name, or below the CLI)"
+            for importer, imported, line in edges
+            if is_command(imported) and importer != "daemon.cli" and importer != imported]
+
+
+def test_no_command_imports_another_command() -> None:
+    edges = [(module, imported, line) for module, path in MODULES for imported, line, _ in imports(module, path)]
+    problems = command_import_problems(edges)
+    assert not problems, "\n".join(problems)
+
+
 def handler_problems(source: str) -> list[str]:
     problems = []
     for target, line in handler_table(ast.parse(source)):
@@ -465,6 +487,25 @@ def test_the_handler_table_is_read_and_checked() -> None:
     ]
     with pytest.raises(AssertionError, match="module names as strings"):
         handler_table(ast.parse("HANDLERS = {'run': NAME}\n"))
+
+
+def test_a_command_importing_a_command_is_caught() -> None:
+    assert is_command("daemon.commands.fit") and not is_command("daemon.commands._cell")
+    assert not is_command("daemon.commands") and not is_command("daemon.cli")
+    source = ("from daemon.commands.fit import read_runs\n"
+              "from daemon.commands import target\n"
+              "from daemon.commands._cell import open_cell\n"
+              "import daemon.commands.status\n")
+    for importer in ("daemon.commands.discover", "daemon.commands._client"):  # a command, and a helper
+        edges = [(importer, imported, line) for imported, line, _ in imports_in(importer, source)]
+        assert command_import_problems(edges) == [
+            f"{importer}:{line} imports {command}: a command is imported by daemon.cli only (shared code goes "
+            "into a helper, daemon.commands._name, or below the CLI)"
+            for line, command in ((1, "daemon.commands.fit"), (2, "daemon.commands.target"),
+                                  (4, "daemon.commands.status"))]
+    cli = [("daemon.cli", imported, line) for imported, line, _ in
+           imports_in("daemon.cli", 'HANDLERS = {"fit": "daemon.commands.fit"}\n')]
+    assert cli and command_import_problems(cli) == []
 
 
 def test_a_string_import_outside_the_table_is_caught() -> None:

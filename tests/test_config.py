@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 
+from daemon.bus.protocol import Keys
 from daemon.config import DEFAULT_MODEL_PATH, ConfigError, default_config, load_config, missing_model_channels
 from drivers.base import POSITION_FROZEN_AFTER_S
 from drivers.simulated.config import SimulatedSensorConfig
@@ -60,7 +61,7 @@ def problems_of(path: Path) -> list[str]:
 def test_full_config_is_read_with_relative_paths_resolved(tmp_path: Path) -> None:
     path = write(tmp_path, LAB_LIKE)
     config = load_config(path)
-    assert config.cell == "lab1" and config.key_prefix == "nanodrift/lab1"
+    assert config.cell == "lab1" and Keys(config.cell).prefix == "nanodrift/lab1"
     assert config.zenoh.mode == "client" and config.zenoh.connect == ["tcp/10.0.0.2:7447"]
     assert config.model.path == (tmp_path / "models" / "model.json").resolve()
     assert config.actuator.volts_per_um == 0.025 and config.actuator.v_min == -2.0  # default kept

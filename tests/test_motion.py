@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -12,6 +13,8 @@ from daemon.motion import (
     MAX_STEP_INTERVAL_S,
     RAMP_PERIOD_S,
     Slew,
+    VoltageLimitError,
+    checked_voltage,
     q_um_for,
     ramp_seconds,
     trusted_start,
@@ -125,3 +128,13 @@ def test_a_start_point_is_always_inside_the_limits_or_unknown(read: float | None
 def test_the_voltage_rule_and_its_inverse(q: float) -> None:
     limits = Limits(volts_per_um=0.021, offset_v=-0.3)
     assert math.isclose(q_um_for(limits, voltage_for(limits, q)), q, rel_tol=1e-12, abs_tol=1e-9)
+
+
+def test_the_one_voltage_limit_check_names_the_command_and_the_limits() -> None:
+    """The daemon's ``voltage_limit`` refusal and the procedures' steps both go through checked_voltage."""
+    assert checked_voltage(Limits(), 500.0) == pytest.approx(10.0)
+    for q in (700.0, -150.0, math.nan):
+        with pytest.raises(VoltageLimitError) as refused:
+            checked_voltage(Limits(), q)
+        message = str(refused.value)
+        assert message.startswith(f"command q {q:.4f} µm needs ") and message.endswith("outside [-2, 12] V")

@@ -3,7 +3,7 @@
 Bytes in, bytes out, no session: the contract can be tested (and is pinned byte for byte in
 ``tests/bus/test_payload_bytes.py``) without a network.
 
-- :class:`Keys`: the key expressions under ``nanodrift/<cell>/``.
+- :func:`key_prefix` and :class:`Keys`: the key expressions under ``nanodrift/<cell>/``.
 - :func:`parse_target`: a client's payload -> :class:`Target`, or a :class:`Refusal` saying what was
   wrong. The usual target is matched by a regular expression without building a dict.
 - :class:`Command`: one answer on ``command``; :func:`encode_command` is the one encoder that turns
@@ -28,11 +28,16 @@ MAX_ID_CHARS = 200
 _ID_LIMIT = 2**63
 
 
+def key_prefix(cell: str) -> str:
+    """``nanodrift/<cell>``, under which every key of a cell lives (``cell`` ``*``: every cell's)."""
+    return f"nanodrift/{cell}"
+
+
 class Keys:
     """The contract's key expressions for one cell."""
 
     def __init__(self, cell: str) -> None:
-        self.prefix = f"nanodrift/{cell}"
+        self.prefix = key_prefix(cell)
         self.target = f"{self.prefix}/target"
         self.command = f"{self.prefix}/command"
         self.error = f"{self.prefix}/error"
@@ -157,12 +162,13 @@ def validate_target(doc: Any) -> Target:
 # --- payloads out -------------------------------------------------------------------------------
 
 
-@dataclass(slots=True)
+@dataclass(slots=True, kw_only=True)
 class Command:
-    """One answer on ``command`` (and a ``compensate`` reply). The fields are the payload's keys, in
-    wire order; the optional ones at the end are left out of the payload when None (a procedure step
-    has a ``procedure`` and no ``extrapolating``; the daemon's command ends with ``q_sigma_um`` and, with
-    ``[adapt] mode = "bias"``, ``correction_um``). Treat it as immutable once encoded."""
+    """One answer on ``command`` (and a ``compensate`` reply), built by keyword only. The fields are
+    the payload's keys, in wire order; the optional ones at the end are left out of the payload when
+    None (a procedure step has a ``procedure`` and no ``extrapolating``; the daemon's command ends with
+    ``q_sigma_um`` and, with ``[adapt] mode = "bias"``, ``correction_um``). Treat it as immutable once
+    encoded."""
 
     id: str | int | None
     x_um: float

@@ -403,3 +403,12 @@ def _drop_partial_last_line(path: Path) -> bool:
             return False
         handle.truncate(data.rfind(b"\n") + 1)
         return True
+
+
+def read_runs(paths: Sequence[str], purpose: str = "to fit") -> list[Dataset]:
+    """Read every file; a bad one, or one without ``q_um``, is refused by name."""
+    runs = [read_csv(p) for p in paths]
+    for ds in runs:
+        if ds.q is None:
+            raise DataError(f"{ds.source}: no q_um column (the command sent to the stage) {purpose}")
+    return runs

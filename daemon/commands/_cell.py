@@ -1,8 +1,10 @@
 """What ``calibrate`` and ``validate`` drive: the config's cell, or the built-in simulated cell.
 
-The command line names the simulated plugin here (the CLI may; the core may not) to apply
-``--scenario/--effects/--seed`` over the ``[simulation]`` table, and holds the one seeding rule
-(:func:`scenario_seed`) that ``validate``, ``demo`` and ``benchmarks/paper_table1.py`` share.
+The options that choose it are declared here (``--config``, the ``--scenario/--effects/--seed``
+overrides of the simulated cell, ``--no-output-check``) beside the code that reads them. The command
+line names the simulated plugin here (the CLI may; the core may not) to apply the overrides over the
+``[simulation]`` table, and holds the one seeding rule (:func:`scenario_seed`) that ``validate``,
+``demo`` and ``benchmarks/paper_table1.py`` share.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from collections.abc import Awaitable, Callable
 from typing import Any
 
 from daemon.assembly import procedure_drivers
+from daemon.commands._catalogues import effect_names, scenario_names
 from daemon.config import ZENOH_KIND, Config, load_config
 from daemon.drivers_set import DriverSet
 from daemon.errors import UserError
@@ -39,25 +42,48 @@ def scenario_seed(seed: int, scenario: str) -> int:
     return seed * 100 + int(match["n"]) if match else seed
 
 
-def open_cell(config_path: str | None, args: argparse.Namespace, default_scenario: str,
-              start_s: float = 0.0) -> tuple[Config, DriverSet]:
+def add_config_flag(parser: argparse.ArgumentParser) -> None:
+    """``--config F``: the operator's cell; without it, the built-in simulated cell."""
+    parser.add_argument("--config", metavar="F", help="operator config (TOML); none: the built-in simulated cell")
+
+
+def add_simulation_flags(parser: argparse.ArgumentParser, default_scenario: str) -> None:
+    """For the simulated cell (no --config, or a config with simulated sensors): override [simulation]."""
+    parser.add_argument("--scenario", metavar="S",
+                        help=f"simulated room history, one of {scenario_names()} (default: {default_scenario} "
+                             "with no --config, else the config's [simulation] scenario)")
+    parser.add_argument("--effects", metavar="a,b",
+                        help=f"hidden effects of the simulated cell, from {effect_names()} "
+                             "(default: none, or the config's)")
+    parser.add_argument("--seed", type=int, metavar="N",
+                        help="simulation seed (default: 0, or the config's); the paper's test N runs with "
+                             "seed*100+N, as in demo")
+
+
+def add_output_check_flag(parser: argparse.ArgumentParser) -> None:
+    """Procedures on hardware with [actuator] kind = "zenoh" refuse to start with nobody applying the steps."""
+    parser.add_argument("--no-output-check", action="store_true",
+                        help="start even when no output node is subscribed to nanodrift/<cell>/command")
+
+
+def open_cell(args: argparse.Namespace, default_scenario: str, start_s: float = 0.0) -> tuple[Config, DriverSet]:
     """The config of ``--config`` (or the built-in simulated cell) and its drivers for a procedure.
 
     ``--scenario/--effects/--seed`` override the ``[simulation]`` table when given; the seed the
     simulated cell then runs with is :func:`scenario_seed` of that seed and scenario.
     """
-    config = load_config(config_path)
+    config = load_config(args.config)
     updates: dict[str, Any] = {}
-    scenario = getattr(args, "scenario", None) or (default_scenario if config_path is None else None)
+    scenario = args.scenario or (default_scenario if args.config is None else None)
     try:
         if scenario:
             get_scenario(scenario)
             updates["scenario"] = scenario
-        if getattr(args, "effects", None):
+        if args.effects:
             updates["effects"] = resolve_effects(args.effects)
     except UnknownNameError as err:
         raise UserError(str(err)) from None
-    if getattr(args, "seed", None) is not None:
+    if args.seed is not None:
         updates["seed"] = args.seed
     section = config.section(SECTION)
     if isinstance(section, SimulationConfig):
@@ -66,7 +92,7 @@ def open_cell(config_path: str | None, args: argparse.Namespace, default_scenari
     try:
         return config, procedure_drivers(config, start_s=start_s)
     except ValueError as err:
-        raise UserError(f"{config_path or 'built-in config'}: {err}") from None
+        raise UserError(f"{config.source}: {err}") from None
 
 
 def guards(config: Config, drivers: DriverSet, args: argparse.Namespace
@@ -82,6 +108,6 @@ def guards(config: Config, drivers: DriverSet, args: argparse.Namespace
     if config.virtual_cell:
         return follow, None
     check_not_served(config)
-    if config.actuator.kind == ZENOH_KIND and not getattr(args, "no_output_check", False):
+    if config.actuator.kind == ZENOH_KIND and not args.no_output_check:
         return follow, functools.partial(wait_for_output, config)
     return follow, None

@@ -1,9 +1,11 @@
 """``nanodrift calibrate``: the paper's procedure (Fig. 6, 7) on the configured cell, then the fit.
 
 With no ``--config`` the cell is simulated on a virtual clock (a 4-hour calibration in seconds).
-On hardware the configured actuator moves the stage, ``[procedure]`` sets the trajectory and timing,
-and the run is refused while a daemon serves the cell; it stops within its first steps when the
-position sensor does not see the stage move.
+``[procedure]`` sets the trajectory (``trajectory``: forward sweeps as in the paper, or up-and-down)
+and the timing, on the simulated cell and on hardware alike; ``--scenario`` is only the simulated
+room's history. On hardware the configured actuator moves the stage, and the run is refused while a
+daemon serves the cell; it stops within its first steps when the position sensor does not see the
+stage move.
 """
 
 from __future__ import annotations
@@ -15,10 +17,10 @@ from pathlib import Path
 
 from daemon.calibration.dataset import DataError
 from daemon.calibration.plans import bidirectional_plan, calibration_plan
-from daemon.commands._cell import guards, open_cell
-from daemon.commands.fit import training_lines
+from daemon.commands._catalogues import scenario_epilog
+from daemon.commands._cell import add_config_flag, add_output_check_flag, add_simulation_flags, guards, open_cell
 from daemon.errors import UserError
-from daemon.model.equation import equation
+from daemon.model.equation import equation, training_lines
 from daemon.model.identify import FitError
 from daemon.procedure.follow import StageNotFollowingError
 from daemon.procedure.preflight import PreflightError
@@ -29,6 +31,18 @@ from daemon.procedure.recording import (
     record_calibration,
     resume_hint,
 )
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.epilog = scenario_epilog()
+    add_config_flag(parser)
+    parser.add_argument("--out", required=True, metavar="M.json", help="the model file to write")
+    parser.add_argument("--data", metavar="D.csv", help="where the recorded steps go (default: beside --out)")
+    parser.add_argument("--cycles", type=int, metavar="N",
+                        help="calibration sweeps (default: the config's [procedure] cycles, 24 as in the paper)")
+    parser.add_argument("--resume", action="store_true", help="continue an interrupted run from --data")
+    add_simulation_flags(parser, "train")
+    add_output_check_flag(parser)
 
 
 def _data_path(args: argparse.Namespace) -> Path:
@@ -44,17 +58,17 @@ def main(args: argparse.Namespace) -> int:
     data = _data_path(args)
     if args.resume and not data.exists():
         raise UserError(f"--resume: {data} does not exist (nothing to continue)")
-    config, drivers = open_cell(args.config, args, "train")
+    config, drivers = open_cell(args, "train")
     columns = calibration_columns(drivers)
     cycles = args.cycles if args.cycles is not None else config.procedure.cycles
     points = config.procedure.calibration_points
-    plan = (bidirectional_plan if _is_bidirectional(args) else calibration_plan)(cycles, points)
+    plan = (bidirectional_plan if config.procedure.trajectory == "bidirectional" else calibration_plan)(cycles, points)
     try:
         done, last_t = completed_steps(data, columns) if args.resume else (0, 0.0)
     except DataError as err:
         raise UserError(str(err)) from None
     if args.resume and config.virtual_cell and done:  # the simulated room continues where the file ends
-        config, drivers = open_cell(args.config, args, "train", start_s=last_t + 1.0)
+        config, drivers = open_cell(args, "train", start_s=last_t + 1.0)
     follow, ready = guards(config, drivers, args)
     print(f"calibration on {drivers.description}: {len(plan)} steps ({cycles} cycles), data -> {data}"
           + (f", resuming after {done} recorded steps" if done else ""), file=sys.stderr)
@@ -83,7 +97,3 @@ def main(args: argparse.Namespace) -> int:
     print(f"fit residual {residual:.1f} nm RMS over {model.fit.get('rows')} steps", file=sys.stderr)
     print("\n".join(training_lines(model)), file=sys.stderr)
     return 0
-
-
-def _is_bidirectional(args: argparse.Namespace) -> bool:
-    return getattr(args, "scenario", None) == "bidirectional"

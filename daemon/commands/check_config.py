@@ -21,6 +21,7 @@ from pathlib import Path
 
 import zenoh
 
+from daemon.bus.protocol import Keys
 from daemon.bus.session import session_config
 from daemon.config import (
     SAFE_RAMP_BUDGET_S,
@@ -150,7 +151,7 @@ def describe_actuator(config: Config) -> str:
     a = config.actuator
     limits = f"[{a.v_min:g}, {a.v_max:g}] V"
     if a.kind == ZENOH_KIND:
-        return f"kind zenoh: an output node applies {config.key_prefix}/command, {limits}"
+        return f"kind zenoh: an output node applies {Keys(config.cell).command}, {limits}"
     keys = a.options.model_dump(exclude={"kind"}) if a.options is not None else {}
     where = ", ".join(f"{k} = {v!r}" for k, v in keys.items() if k in ("hub", "device_id", "address", "port"))
     return f"kind {a.kind}" + (f" ({where})" if where else "") + f", {limits}"
@@ -184,13 +185,19 @@ def file_lines(path: str, problems: Sequence[str]) -> list[int | None]:
     return [locate(text, p) for p in problems]
 
 
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("file", metavar="F", help="the operator config (TOML) to check")
+    parser.add_argument("--strict", action="store_true",
+                        help="warnings (a channel the model needs is missing, unused sensors) are errors too")
+
+
 def main(args: argparse.Namespace) -> int:
     config = load_config(args.file)
     model, problem = model_problem(config)
     emptied, sensorless = no_sensors(config, model)
     problems = [p for p in (problem, zenoh_problem(config), emptied) if p]
     warnings = config_warnings(config, model) + ([sensorless] if sensorless else [])
-    if getattr(args, "strict", False):
+    if args.strict:
         problems += [f"{w} (an error with --strict)" for w in warnings]
         warnings = []
     if problems:

@@ -40,6 +40,7 @@ from daemon.calibration.discovery import discover
 from daemon.calibration.iso9283 import TestResult
 from daemon.calibration.plans import PAPER_TIMING
 from daemon.calibration.residuals import MIN_RESIDUALS, BiasTracker
+from daemon.commands._catalogues import scenario_epilog
 from daemon.commands._cell import scenario_seed
 from daemon.commands._demo_serve import serve
 from daemon.errors import UserError
@@ -64,6 +65,30 @@ TESTS: dict[str, str] = {
     "test5": "with the model, OUTSIDE the training range (the room 0.7 °C warmer and rising)",
 }
 IN_RANGE = ("test2", "test3", "test4")
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.epilog = scenario_epilog()
+    # the demo starts its own daemon and client on loopback; these pick the endpoints
+    parser.add_argument("-l", "--listen", action="append", default=[], metavar="EP",
+                        help="endpoint the demo's daemon listens on (default: a free port on 127.0.0.1)")
+    parser.add_argument("-e", "--connect", action="append", default=[], metavar="EP",
+                        help="endpoint the demo's client connects to (default: the --listen endpoint)")
+    parser.add_argument("--mode", choices=["peer", "client", "router"],
+                        help="accepted as for run; the demo's daemon is always a peer and its client a client")
+    parser.add_argument("--tests", nargs="+", default=list(TESTS), metavar="T",
+                        help="the paper's tests to run: test1 (without compensation), test2-test4 (inside the "
+                             "training range), test5 (outside it)")
+    parser.add_argument("--cycles", type=int, default=PAPER_CYCLES, metavar="N",
+                        help="ISO 9283 validation sweeps per test (the paper: 30)")
+    parser.add_argument("--calibration-cycles", type=int, default=PAPER_CALIBRATION_CYCLES, metavar="N",
+                        help="calibration sweeps of the 'train' room before the tests (the paper: 24)")
+    parser.add_argument("--speed", type=float, default=50.0,
+                        help="simulated seconds per wall second of the served cell (the serving step)")
+    parser.add_argument("--seed", type=int, default=0, metavar="N",
+                        help="simulation seed: the same seed gives the same Table I as validate --seed N")
+    parser.add_argument("--keep", metavar="DIR",
+                        help="keep the model, data, Table I (JSON), config and daemon log in DIR")
 
 
 def check_args(args: argparse.Namespace) -> list[str]:
@@ -290,7 +315,7 @@ def health_line(health: dict[str, Any]) -> str:
 def main(args: argparse.Namespace) -> int:
     tests = check_args(args)
     started = time.monotonic()
-    keep = getattr(args, "keep", None)
+    keep = args.keep
     with tempfile.TemporaryDirectory(prefix="nanodrift-demo-") as tmp:
         workdir = (Path(keep) if keep else Path(tmp)).resolve()  # the daemon runs with cwd=workdir
         workdir.mkdir(parents=True, exist_ok=True)

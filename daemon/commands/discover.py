@@ -18,17 +18,26 @@ import argparse
 import json
 import sys
 
-from daemon.calibration.dataset import DataError, common_channels, concat
+from daemon.calibration.dataset import DataError, common_channels, concat, read_runs
 from daemon.calibration.discovery import DiscoveryError, DiscoveryResult, discover
-from daemon.commands.fit import data_files, paths_of, read_runs
 from daemon.errors import UserError
 from daemon.model.model import MissingChannelError, ModelFileError, load_model, save_model
+from daemon.model.provenance import stamp_data
 
 NOTHING_FOUND = "nothing found; no model written"
 
 
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("data", metavar="D.csv", nargs="+",
+                        help="recorded data (CSV) the model is tested against; several files are runs of their own")
+    parser.add_argument("--model", required=True, metavar="M.json", help="the model to extend")
+    parser.add_argument("--out", required=True, metavar="M2.json", help="the extended model file to write")
+    parser.add_argument("--report", metavar="DIR", help="also write report.md and figures into DIR")
+    parser.add_argument("--json", action="store_true", help="print the result as JSON")
+
+
 def main(args: argparse.Namespace) -> int:
-    paths = paths_of(args)
+    paths = [str(p) for p in args.data]
     try:
         runs = read_runs(paths, "to compare with")
         model = load_model(args.model)
@@ -44,10 +53,7 @@ def main(args: argparse.Namespace) -> int:
     model_out: str | None = None
     if result.found:
         extended = result.model
-        files = data_files(paths, runs)
-        extended.provenance["data_file"] = paths[0]  # the first file; every file in data_files
-        extended.provenance["data_sha256"] = files[0]["sha256"]
-        extended.provenance["data_files"] = files
+        stamp_data(extended, [(p, len(ds)) for p, ds in zip(paths, runs, strict=True)])
         extended.id = extended.content_id()
         result.final["model"] = extended.id
         save_model(extended, args.out)

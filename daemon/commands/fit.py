@@ -12,13 +12,29 @@ import sys
 from collections.abc import Sequence
 from typing import Any, SupportsFloat
 
-from daemon.atomic import file_sha256
-from daemon.calibration.dataset import DataError, Dataset, common_channels, concat, read_csv
+from daemon.calibration.dataset import DataError, Dataset, common_channels, concat, read_runs
 from daemon.errors import UserError
-from daemon.model.equation import equation
+from daemon.model.equation import equation, training_lines
 from daemon.model.identify import FitError, fit
 from daemon.model.model import Model, save_model
+from daemon.model.provenance import stamp_data
 from daemon.model.terms import MAX_POWER
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("data", metavar="D.csv", nargs="+",
+                        help="recorded data (CSV: t_s, x_um, q_um, one column per channel); several files (a "
+                             "calibration plus recorded operation) are fitted together, each a run of its own")
+    parser.add_argument("--out", required=True, metavar="M.json", help="the model file to write")
+    parser.add_argument("--order", default="auto", help="geometric order n1, or auto (held-out cycles)")
+    parser.add_argument("--exclude", action="append", default=[], metavar="CH",
+                        help="leave a channel out (repeatable)")
+    parser.add_argument("--penter", type=float, default=0.05, metavar="P",
+                        help="stepwise: a term enters when its p-value is below P")
+    parser.add_argument("--premove", type=float, default=0.10, metavar="P",
+                        help="stepwise: a term leaves when its p-value is above P (>= --penter)")
+    parser.add_argument("--json", action="store_true",
+                        help="print the summary as JSON (residuals in nm, keys ending _nm)")
 
 
 def _order(text: str) -> int | str:
@@ -31,20 +47,6 @@ def _order(text: str) -> int | str:
     if not 1 <= value <= MAX_POWER:
         raise UserError(f"--order must be 'auto' or between 1 and {MAX_POWER}, got {value}")
     return value
-
-
-def paths_of(args: argparse.Namespace) -> list[str]:
-    """The data files given (one or several), as strings."""
-    return [str(p) for p in (args.data if isinstance(args.data, list | tuple) else [args.data])]
-
-
-def read_runs(paths: Sequence[str], purpose: str = "to fit") -> list[Dataset]:
-    """Read every file; a bad one, or one without ``q_um``, is refused by name."""
-    runs = [read_csv(p) for p in paths]
-    for ds in runs:
-        if ds.q is None:
-            raise DataError(f"{ds.source}: no q_um column (the command sent to the stage) {purpose}")
-    return runs
 
 
 def check_fit_channels(runs: Sequence[Dataset], exclude: Sequence[str]) -> None:
@@ -63,13 +65,8 @@ def check_fit_channels(runs: Sequence[Dataset], exclude: Sequence[str]) -> None:
                   file=sys.stderr)
 
 
-def data_files(paths: Sequence[str], runs: Sequence[Dataset]) -> list[dict[str, Any]]:
-    """Provenance: every file the model was made from, with its SHA-256 and rows."""
-    return [{"path": p, "sha256": file_sha256(p), "rows": len(ds)} for p, ds in zip(paths, runs, strict=True)]
-
-
 def main(args: argparse.Namespace) -> int:
-    paths = paths_of(args)
+    paths = [str(p) for p in args.data]
     try:
         runs = read_runs(paths)
         check_fit_channels(runs, args.exclude)
@@ -85,11 +82,7 @@ def main(args: argparse.Namespace) -> int:
         raise UserError(str(err)) from None
     model = result.model
     model.selection["excluded"] = list(args.exclude)
-    files = data_files(paths, runs)
-    model.provenance["data_file"] = paths[0]  # the first file (the calibration); every file in data_files
-    model.provenance["data_sha256"] = files[0]["sha256"]
-    model.provenance["data_files"] = files
-    model.id = model.content_id()
+    stamp_data(model, [(p, len(ds)) for p, ds in zip(paths, runs, strict=True)])
     save_model(model, args.out)
     if args.json:
         print(json.dumps(fit_summary(model, args.out), indent=2))
@@ -174,16 +167,3 @@ def describe_model(model: Model, path: str | None = None) -> str:
                      + ", ".join(f"{f['path']} ({f['rows']} rows)" for f in files))
     lines.extend(training_lines(model))
     return "\n".join(lines)
-
-
-def training_lines(model: Model) -> list[str]:
-    """The training ranges, in µm and °C: outside them the model extrapolates."""
-    tr = model.training
-    lines = [f"trained on x {_tenths(tr.x_range[0])}..{_tenths(tr.x_range[1])} µm"]
-    lines.extend(f"  {ch}: {lo:.3f}..{hi:.3f} °C" for ch, (lo, hi) in tr.channel_ranges.items())
-    return lines
-
-
-def _tenths(value: float) -> str:
-    text = f"{value:.1f}"
-    return "0.0" if text == "-0.0" else text  # a measured -0.02 µm is the 0 µm point, not "-0.0"

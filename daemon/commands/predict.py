@@ -31,6 +31,12 @@ def extrapolating_rows(model: Model, data: Series) -> tuple[int, dict[str, int]]
     return rows, counts
 
 
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--model", required=True, metavar="M.json", help="the model to apply")
+    parser.add_argument("data", metavar="D.csv", help="data with t_s, x_um and the model's channels")
+    parser.add_argument("--out", required=True, metavar="P.csv", help="D plus columns q_pred_um and q_sigma_um (µm)")
+
+
 def main(args: argparse.Namespace) -> int:
     try:
         model = load_model(args.model)

@@ -16,6 +16,11 @@ from daemon.errors import UserError
 from daemon.model.model import ModelFileError, load_model, save_model
 
 
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("model", metavar="M.json", help="the edited model file")
+    parser.add_argument("--out", metavar="M2.json", help="write here instead of over M.json")
+
+
 def main(args: argparse.Namespace) -> int:
     try:
         model = load_model(args.model, check_id=False)

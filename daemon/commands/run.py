@@ -11,6 +11,7 @@ import argparse
 from typing import Any
 
 from daemon.assembly import build_drivers
+from daemon.commands._cell import add_config_flag
 from daemon.config import load_config
 from daemon.logs import configure_logging
 from daemon.service import run_service
@@ -19,21 +20,32 @@ from daemon.service import run_service
 TRYOUT_LISTEN = "tcp/127.0.0.1:7447"
 
 
+def configure(parser: argparse.ArgumentParser) -> None:
+    add_config_flag(parser)
+    # the zenoh-python examples' conventions; they override the config file
+    parser.add_argument("-l", "--listen", action="append", default=[], metavar="EP",
+                        help="endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable; overrides [zenoh] listen)")
+    parser.add_argument("-e", "--connect", action="append", default=[], metavar="EP",
+                        help="endpoint to connect to (repeatable; overrides [zenoh] connect)")
+    parser.add_argument("--mode", choices=["peer", "client", "router"],
+                        help="zenoh session mode (overrides [zenoh] mode, whose default is peer)")
+    parser.add_argument("--no-multicast-scouting", action="store_true",
+                        help="do not look for peers by UDP multicast")
+    parser.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"],
+                        help="the least severe log lines printed")
+
+
 def zenoh_overrides(args: argparse.Namespace) -> dict[str, Any]:
     """``-l``/``-e``/``--mode``: they replace what the config file says (zenoh examples' rule)."""
-    overrides: dict[str, Any] = {
-        "mode": getattr(args, "mode", None),
-        "listen": list(getattr(args, "listen", None) or []),
-        "connect": list(getattr(args, "connect", None) or []),
-    }
-    if getattr(args, "config", None) is None and not overrides["listen"]:
+    overrides: dict[str, Any] = {"mode": args.mode, "listen": list(args.listen), "connect": list(args.connect)}
+    if args.config is None and not overrides["listen"]:
         overrides["listen"] = [TRYOUT_LISTEN]
-    if getattr(args, "no_multicast_scouting", False):
+    if args.no_multicast_scouting:
         overrides["multicast_scouting"] = False
     return overrides
 
 
 def main(args: argparse.Namespace) -> int:
-    configure_logging(getattr(args, "log_level", None) or "info")
+    configure_logging(args.log_level)
     config = load_config(args.config)
     return run_service(config, build_drivers, config_path=args.config, zenoh_overrides=zenoh_overrides(args))

@@ -6,9 +6,23 @@ import argparse
 import sys
 
 from daemon.calibration.dataset import write_csv
+from daemon.commands._catalogues import effects_epilog, scenario_epilog, scenario_names
 from daemon.errors import UserError
 from drivers.simulated.datasets import simulate_dataset
 from drivers.simulated.effects import UnknownNameError, resolve_effects
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.epilog = scenario_epilog() + "\n\n" + effects_epilog()
+    parser.add_argument("--scenario", required=True, metavar="S",
+                        help=f"room history and trajectory, one of {scenario_names()} (see below)")
+    parser.add_argument("--effects", default="", metavar="a,b",
+                        help="hidden effects to switch on, with optional parameters, e.g. "
+                             "thermal_lag:tau_s=1800,creep (see below; default: none)")
+    parser.add_argument("--cycles", type=int, metavar="N",
+                        help="sweeps to record (default: the scenario's: 24 calibration or 30 validation sweeps)")
+    parser.add_argument("--seed", type=int, default=0, metavar="N", help="noise and room seed: same seed, same data")
+    parser.add_argument("--out", required=True, metavar="F.csv", help="the CSV to write (data contract columns)")
 
 
 def main(args: argparse.Namespace) -> int:

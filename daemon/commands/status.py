@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import textwrap
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -23,7 +24,8 @@ from typing import Any, TextIO
 
 import zenoh
 
-from daemon.commands.target import client_config, open_client_session
+from daemon.bus.protocol import key_prefix
+from daemon.commands._client import add_client_flags, open_client
 
 #: ANSI: cursor home, clear the screen (what ``watch`` does)
 CLEAR = "\x1b[H\x1b[2J"
@@ -32,8 +34,29 @@ NO_CELL_HINT = ("no cell answered on {key} within {timeout:g} s (is a daemon run
                 "give its endpoint with -e tcp/HOST:PORT, or --zenoh-config F)")
 
 
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.epilog = textwrap.fill(
+        "columns: CELL, STATE (ok | degraded: a sensor not ok | extrapolating | no-model | stalled: "
+        "a sensor poller stopped), SENSORS ok/total, MODEL id and MODEL AGE (since it was made), "
+        "HEALTH (state and residual RMS, when the daemon measures it), ACTUATOR (kind and state), "
+        "TARGETS/MIN and REFUSED/MIN (averaged since the daemon started; with --watch, over the "
+        "last interval). Exit 1 when no cell answers.", 96)
+    add_client_flags(parser, endpoint_of="a daemon or router")
+    parser.add_argument("--cell", default=None, metavar="C",
+                        help="only this cell (key nanodrift/C/status; default: every cell, nanodrift/*/status)")
+    parser.add_argument("--json", action="store_true", help="print the status documents as a JSON list")
+    parser.add_argument("--watch", type=float, default=None, metavar="S",
+                        help="refresh every S seconds until Ctrl-C: in place on a terminal, a block per refresh "
+                             "otherwise")
+    parser.add_argument("--count", type=int, default=0, metavar="N",
+                        help="with --watch: stop after N refreshes (default: until Ctrl-C)")
+    parser.add_argument("--timeout", type=float, default=2.0, metavar="S",
+                        help="seconds to collect the cells' replies")
+
+
 def status_key(cell: str | None) -> str:
-    return f"nanodrift/{cell or '*'}/status"
+    """One cell's ``status`` key, or every cell's (``None``: the wildcard)."""
+    return f"{key_prefix(cell or '*')}/status"
 
 
 def query_status(session: zenoh.Session, key: str, timeout_s: float) -> list[dict[str, Any]]:
@@ -226,7 +249,7 @@ def watch(session: zenoh.Session, args: argparse.Namespace, out: TextIO,
 
 def main(args: argparse.Namespace) -> int:
     """One query (or ``--watch``); non-zero exit when no cell answers a single query."""
-    session = open_client_session(args, client_config(args))
+    session = open_client(args)
     try:
         if args.watch:
             return watch(session, args, sys.stdout)

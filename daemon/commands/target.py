@@ -5,14 +5,20 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from pathlib import Path
 from typing import Any
 
 import zenoh
 
-from daemon.bus.session import Keys, describe_zenoh_error, session_config
-from daemon.config import ZenohSettings
-from daemon.errors import UserError
+from daemon.bus.protocol import Keys
+from daemon.commands._client import add_client_flags, open_client
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("x", nargs="+", type=float, metavar="X", help="target positions (µm)")
+    add_client_flags(parser, endpoint_of="the daemon")
+    parser.add_argument("--cell", default="cell0", help="cell name (key prefix nanodrift/<cell>)")
+    parser.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for each answer")
+    parser.add_argument("--json", action="store_true", help="print JSON lines")
 
 
 def _format_command(doc: dict[str, Any]) -> str:
@@ -22,47 +28,10 @@ def _format_command(doc: dict[str, Any]) -> str:
             f"[model {doc['model']}; {temps}]{extra}")
 
 
-def client_config(args: argparse.Namespace) -> zenoh.Config:
-    """The client's session config: ``--zenoh-config F`` (credentials, TLS) as the base, then ``-e``/``--mode``.
-
-    Without a file: client mode towards ``-e`` endpoints, else a peer that scouts. With a file, its
-    mode, endpoints and scouting stand unless ``-e``/``--mode`` are given (the zenoh examples' rule).
-    """
-    file = getattr(args, "zenoh_config", None)
-    if not file:
-        return session_config(
-            mode=args.mode or ("client" if args.connect else "peer"),
-            connect=args.connect,
-            multicast_scouting=not args.connect,  # an explicit endpoint needs no scouting
-        )
-    if not Path(file).is_file():
-        raise UserError(f"--zenoh-config {file}: no such file")
-    try:
-        return session_config(
-            ZenohSettings(config_file=Path(file)),
-            mode=args.mode,
-            connect=args.connect,
-            multicast_scouting=False if args.connect else None,
-        )
-    except zenoh.ZError as error:
-        raise UserError(f"--zenoh-config {file}: zenoh cannot use it: {error}") from None
-
-
-def open_client_session(args: argparse.Namespace, conf: zenoh.Config) -> zenoh.Session:
-    """The client's session, or a one-sentence :class:`UserError` (``target`` and ``status`` share it)."""
-    try:
-        return zenoh.open(conf)
-    except zenoh.ZError as error:
-        where = ", ".join(args.connect) or getattr(args, "zenoh_config", None) or "scouting"
-        raise UserError(f"cannot open a zenoh session ({where}): "
-                        f"{describe_zenoh_error(error, connect=args.connect)}") from None
-
-
 def main(args: argparse.Namespace) -> int:
     """A client: each target through the ``compensate`` queryable; non-zero exit if any is refused."""
     keys = Keys(args.cell)
-    conf = client_config(args)
-    session = open_client_session(args, conf)
+    session = open_client(args)
     failures = 0
     try:
         for index, x in enumerate(args.x):

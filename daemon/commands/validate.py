@@ -15,11 +15,32 @@ from typing import Any
 import numpy as np
 
 from daemon.calibration.residuals import BiasTracker
-from daemon.commands._cell import guards, open_cell
+from daemon.commands._catalogues import scenario_epilog
+from daemon.commands._cell import add_config_flag, add_output_check_flag, add_simulation_flags, guards, open_cell
 from daemon.errors import UserError
 from daemon.model.model import ModelFileError, load_model
 from daemon.procedure.validation import run_validation
 from daemon.reports.validation import table1, write_report
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.epilog = scenario_epilog()
+    add_config_flag(parser)
+    parser.add_argument("--model", required=True, metavar="M.json", help="the model to validate")
+    parser.add_argument("--cycles", type=int, default=30, metavar="N", help="validation sweeps (ISO 9283: 30)")
+    parser.add_argument("--json", action="store_true", help="print the results as JSON instead of Table I")
+    parser.add_argument("--report", metavar="DIR",
+                        help="also write Table I, JSON, raw steps and figures (PNG + SVG) into DIR")
+    parser.add_argument("--no-compensation", action="store_true", help="command the targets as they are (test 1)")
+    parser.add_argument("--adapt", action="store_true",
+                        help="correct the commands with the daemon's bias tracker ([adapt] mode = \"bias\"), fed "
+                             "by each step's residual")
+    parser.add_argument("--adapt-tau-s", type=float, default=600.0, metavar="S",
+                        help="the tracker's time constant (default 600 s, as [adapt] tau_s)")
+    parser.add_argument("--adapt-max-um", type=float, default=1.0, metavar="UM",
+                        help="clamp on the correction (default 1 µm, as [adapt] max_um)")
+    add_simulation_flags(parser, "test2")
+    add_output_check_flag(parser)
 
 
 def main(args: argparse.Namespace) -> int:
@@ -29,11 +50,11 @@ def main(args: argparse.Namespace) -> int:
         model = load_model(args.model)
     except (ModelFileError, OSError) as err:
         raise UserError(str(err)) from None
-    config, drivers = open_cell(args.config, args, "test2")
-    name = getattr(args, "scenario", None) or ("test2" if args.config is None else "validation")
-    compensate = not getattr(args, "no_compensation", False)
+    config, drivers = open_cell(args, "test2")
+    name = args.scenario or ("test2" if args.config is None else "validation")
+    compensate = not args.no_compensation
     tracker = None
-    if getattr(args, "adapt", False):
+    if args.adapt:
         if not compensate:
             raise UserError("--adapt corrects the model's commands: it cannot run with --no-compensation")
         if not (args.adapt_tau_s > 0 and args.adapt_max_um >= 0):

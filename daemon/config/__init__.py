@@ -19,6 +19,7 @@ from daemon.config._dispatch import actuator_line, parse_config
 from daemon.config._lines import ConfigError, locate
 from daemon.config._load import TOO_DEEP, default_config, load_config
 from daemon.settings import (
+    BUILTIN_SOURCE,
     DEFAULT_MODEL_PATH,
     MAX_RECORD_KEEP_DAYS,
     MIN_SLEW_UM_PER_S,
@@ -32,6 +33,7 @@ from daemon.settings import (
 )
 
 __all__ = [
+    "BUILTIN_SOURCE",
     "DEFAULT_MODEL_PATH",
     "DEFAULT_TEMPERATURE_RANGE_C",
     "MAX_RECORD_KEEP_DAYS",

@@ -1,6 +1,7 @@
 """The model as one readable equation, for people: ``q = 6.728e-09·x³ − 5.182e-06·x² + 1.000523·x − … − 27.92``.
 
-One formatter, so ``calibrate``, ``demo`` and ``fit`` print a model the same way. Signs are joined
+One formatter, so ``calibrate``, ``demo`` and ``fit`` print a model the same way (and
+:func:`training_lines`, the ranges it was trained on, so ``fit`` and ``calibrate`` print those alike). Signs are joined
 into the sum (never ``+ -5.2``), powers of x are superscripts, the bias is the bare constant.
 
 Each coefficient gets at least ``digits`` significant digits, and as many more as it takes for the
@@ -85,3 +86,16 @@ def equation(model: Model | Sequence[FittedTerm], *, digits: int = 4, lhs: str =
         else:
             parts.append(f"{MINUS if negative else '+'} {body}")
     return f"{lhs} = " + (" ".join(parts) if parts else "0")
+
+
+def training_lines(model: Model) -> list[str]:
+    """The training ranges, in µm and °C: outside them the model extrapolates."""
+    tr = model.training
+    lines = [f"trained on x {_tenths(tr.x_range[0])}..{_tenths(tr.x_range[1])} µm"]
+    lines.extend(f"  {ch}: {lo:.3f}..{hi:.3f} °C" for ch, (lo, hi) in tr.channel_ranges.items())
+    return lines
+
+
+def _tenths(value: float) -> str:
+    text = f"{value:.1f}"
+    return "0.0" if text == "-0.0" else text  # a measured -0.02 µm is the 0 µm point, not "-0.0"

@@ -9,8 +9,6 @@ restart at each run's first row and no held-out block spans two runs (:mod:`daem
 
 from __future__ import annotations
 
-import datetime as dt
-import importlib.metadata
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -20,6 +18,7 @@ import numpy as np
 from scipy import stats
 
 from daemon.model.model import FittedTerm, Model, Training
+from daemon.model.provenance import created_now, software
 from daemon.model.segments import features, runs, spans_s
 from daemon.model.series import Series
 from daemon.model.stepwise import stepwisefit
@@ -27,17 +26,6 @@ from daemon.model.terms import Bias, Channel, Power, Term
 from daemon.model.uncertainty import Covariance, ar1_inflation, estimate, uncertainty_blocks
 
 MAX_AUTO_ORDER = 5
-
-
-def software() -> str:
-    """What a model file records as the software that fitted it: ``"nanodrift <version>"``.
-
-    Provenance only: never part of the model's id (the same terms and coefficients are the same model).
-    """
-    try:
-        return f"nanodrift {importlib.metadata.version('nanodrift')}"
-    except importlib.metadata.PackageNotFoundError:  # a source tree that was never installed
-        return "nanodrift 0+unknown"
 
 
 class FitError(ValueError):
@@ -179,8 +167,7 @@ def fit_terms(
         },
     }
     selection.update(extra_selection or {})
-    provenance = {"created": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"), "data_file": source,
-                  "software": software()}
+    provenance = {"created": created_now(), "data_file": source, "software": software()}
     return Model(
         terms=terms,
         training=Training.of(data, channels),

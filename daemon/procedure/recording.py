@@ -17,6 +17,7 @@ from daemon.config import ActuatorConfig
 from daemon.drivers_set import DriverSet
 from daemon.model.identify import FitResult, fit
 from daemon.model.model import save_model
+from daemon.model.provenance import stamp_data
 from daemon.procedure.follow import FollowCheck
 from daemon.procedure.progress import Progress
 from daemon.procedure.steps import run_steps
@@ -94,8 +95,10 @@ def resume_hint(out: str | Path, data: str | Path, recorded: int, total: int) ->
 
 
 def fit_recorded(data_path: str | Path, model_path: str | Path) -> FitResult:
-    """Identify the model from the recorded steps (valid rows only) and save it atomically."""
+    """Identify the model from the recorded steps (valid rows only), stamp the data file (its SHA-256 and
+    rows) into its provenance and save it atomically."""
     ds = read_csv(data_path)
     result = fit(ds, source=str(data_path))
+    stamp_data(result.model, [(data_path, len(ds))])
     save_model(result.model, model_path)
     return result

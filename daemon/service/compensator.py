@@ -25,6 +25,7 @@ from typing import Any
 from daemon.bus.protocol import Command, Refusal, Target
 from daemon.config import ActuatorConfig
 from daemon.model.model import Evaluator, Model, ModelFileError, load_model
+from daemon.motion import VoltageLimitError, checked_voltage
 from daemon.service.table import SensorTable
 from drivers.base import State
 
@@ -129,20 +130,18 @@ class Compensator:
         q = evaluator.value(x, now)
         if correction is not None:
             q += correction  # q = model + correction: the voltage and its limits are the corrected command's
-        voltage = actuator.voltage(q)
-        if not actuator.within_limits(voltage):  # NaN fails this too
-            raise Refusal(
-                "voltage_limit",
-                f"command q {q:.4f} µm needs {voltage:.4f} V, outside [{actuator.v_min:g}, {actuator.v_max:g}] V",
-                target.id,
-            )
+        try:
+            voltage = checked_voltage(actuator, q)
+        except VoltageLimitError as error:
+            raise Refusal("voltage_limit", str(error), target.id) from None
         sigma = evaluator.sigma(x, now)  # before the move: motion terms see what value() saw
         evaluator.moved(x, now)  # only a command that goes out moves the stage
         lo, hi = self._x_range
         extrapolating = [*self._temps_outside] if lo <= x <= hi else ["x", *self._temps_outside]
         self.last_extrapolating = extrapolating
-        command = Command(target.id, x, q, voltage, self._temps, self._model_id, unix_now, extrapolating, None, sigma,
-                          correction)
+        command = Command(id=target.id, x_um=x, q_um=q, voltage_v=voltage, temperatures_c=self._temps,
+                          model=self._model_id, t=unix_now, extrapolating=extrapolating, q_sigma_um=sigma,
+                          correction_um=correction)
         if self.served is not None:
             self.served.append((now, command))
         return command

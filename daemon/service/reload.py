@@ -22,7 +22,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
 
-from daemon.config import ConfigError, load_config, missing_model_channels
+from daemon.config import BUILTIN_SOURCE, ConfigError, load_config, missing_model_channels
 from daemon.drivers_set import DriverSet
 from daemon.model.model import Model, ModelFileError, load_model
 from daemon.sdnotify import Notifier
@@ -90,13 +90,14 @@ class Reloader:
                 return await self._reload()
             except Exception as error:  # never lost in a dead task: refused, logged with the reason, counted
                 await self._restart_stopped()
-                return self._refuse(self._source(), [f"internal error: {type(error).__name__}: {error}"],
+                return self._refuse(self.source(), [f"internal error: {type(error).__name__}: {error}"],
                                     exc_info=True)
             finally:
                 self.notifier.ready(self.status_line())
 
-    def _source(self) -> str:
-        return str(self.config_path) if self.config_path else "<built-in default config>"
+    def source(self) -> str:
+        """What the daemon's config came from, as its log lines name it: the file, or the built-in default."""
+        return str(self.config_path) if self.config_path else BUILTIN_SOURCE
 
     def _refuse(self, source: str, problems: list[str], **details: Any) -> bool:
         self.state.counters.reload_failures += 1
@@ -111,7 +112,7 @@ class Reloader:
 
     async def _reload(self) -> bool:
         state = self.state
-        source = self._source()
+        source = self.source()
         try:
             new = load_config(self.config_path)
         except ConfigError as error:

@@ -198,7 +198,7 @@ class Service:
             error = None if task.cancelled() else task.exception()
             if error is not None:
                 self.state.counters.reload_failures += 1
-                self.log.error("reload_refused", config=str(self.config_path or "<built-in default config>"),
+                self.log.error("reload_refused", config=self.reloader.source(),
                                problems=[f"internal error: {type(error).__name__}: {error}"], exc_info=error)
 
         task = asyncio.get_running_loop().create_task(self.reloader.reload(), name="reload")

@@ -115,7 +115,8 @@ def test_the_regex_fast_path_agrees_with_json_on_every_variant() -> None:
 
 def command(target_id: object = "k", **changes: object) -> Command:
     temps = MappingProxyType({"T1": 21.8, "T2": 21.9})
-    base = Command(target_id, 240.0, 236.5, 4.73, temps, "m-1", 1.7e9 + 0.123456789, [])
+    base = Command(id=target_id, x_um=240.0, q_um=236.5, voltage_v=4.73, temperatures_c=temps, model="m-1",
+                   t=1.7e9 + 0.123456789, extrapolating=[])
     return replace(base, **changes)
 
 

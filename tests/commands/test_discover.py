@@ -14,7 +14,8 @@ from daemon.cli import main
 from daemon.model.model import load_model, save_model
 
 SOFTWARE = f"nanodrift {importlib.metadata.version('nanodrift')}"
-HINTS = ("nanodrift simulate --scenario bidirectional", "nanodrift calibrate --scenario bidirectional")
+HINTS = ("nanodrift simulate --scenario bidirectional",
+         'nanodrift calibrate` with `[procedure] trajectory = "bidirectional"` on the stage')
 
 
 def recorded(tmp_path: Path, effects: str, seed: int, bidirectional: bool = False) -> tuple[Path, Path]:

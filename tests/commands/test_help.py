@@ -1,14 +1,17 @@
 """``--help`` describes every option of every command, with defaults; ``--version`` (issue 13, item 4)."""
 
 import argparse
+import ast
+import importlib
 import importlib.metadata
 import re
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
-from daemon.cli import HANDLERS, build_parser, main
+from daemon.cli import HANDLERS, SUMMARIES, build_parser, main
 from drivers.simulated.effects import EFFECTS
 from drivers.simulated.scenarios import SCENARIOS
 
@@ -27,7 +30,44 @@ def help_of(capsys, *argv: str) -> str:
 
 
 def test_every_command_is_in_the_parser():
-    assert set(subparsers()) == set(HANDLERS)
+    assert set(subparsers()) == set(HANDLERS) == set(SUMMARIES)
+
+
+def args_read(source: str) -> set[str]:
+    """Every ``args.NAME`` a module reads, and every ``getattr(args, ...)`` (an option the parser may lack)."""
+    read = set()
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id == "args":
+            read.add(node.attr)
+        if (isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "getattr"
+                and node.args and isinstance(node.args[0], ast.Name) and node.args[0].id == "args"):
+            read.add(f"getattr({ast.unparse(node.args[1])})")
+    return read
+
+
+@pytest.mark.parametrize("command", sorted(HANDLERS))
+def test_a_command_reads_only_the_options_its_parser_declares(command):
+    """Each command module owns its parser (``configure``): every ``args.X`` its ``main`` reads is declared
+    there, with its default, so no ``getattr(args, "x", default)`` is needed (nor allowed)."""
+    declared = {action.dest for action in subparsers()[command]._actions} | {"command"}
+    module = importlib.import_module(HANDLERS[command])
+    read = args_read(Path(module.__file__).read_text())
+    assert read <= declared, f"{command} reads {sorted(read - declared)}, which its parser does not declare"
+
+
+def test_the_read_check_sees_getattr():
+    assert args_read("def main(args):\n    return args.out, getattr(args, 'keep', None)\n") == {
+        "out", "getattr('keep')"}
+
+
+def test_only_the_command_that_runs_is_imported():
+    """``nanodrift --help`` imports no command module, ``nanodrift fit --help`` only fit's."""
+    code = ("import sys\nfrom daemon.cli import main\n"
+            "try:\n    main(sys.argv[1:])\nexcept SystemExit:\n    pass\n"
+            "print(sorted(m for m in sys.modules if m.startswith('daemon.commands.')))")
+    for argv, expected in (([], "[]"), (["fit"], "['daemon.commands.fit']")):
+        run = subprocess.run([sys.executable, "-c", code, *argv, "--help"], capture_output=True, text=True, check=True)
+        assert run.stdout.strip().splitlines()[-1] == expected
 
 
 def test_every_option_of_every_command_has_a_description():

@@ -167,3 +167,23 @@ def test_calibrate_takes_its_trajectory_and_timing_from_the_procedure_table(tmp_
     assert main(["calibrate", "--config", str(config), "--out", str(tmp_path / "m2.json"), "--data", str(short),
                  "--cycles", "3"]) == 0
     assert len(read_csv(short)) == 27  # --cycles overrides [procedure] cycles
+
+
+def test_the_trajectory_is_the_procedure_tables_and_the_scenario_only_the_simulated_room(tmp_path: Path) -> None:
+    """``[procedure] trajectory`` chooses the sweeps on every cell; ``--scenario bidirectional`` names the
+    simulated room's history, never the stage's trajectory (it used to, on hardware too)."""
+    table = "[procedure]\nstep_um = 120\nmax_um = 480\ncycles = 2\nrise_s = 1\nhold_s = 4\naverage_s = 1\n"
+    up_down = tmp_path / "bidirectional.toml"
+    up_down.write_text('[simulation]\nscenario = "train"\n' + table + 'trajectory = "bidirectional"\n')
+    forward = tmp_path / "forward.toml"
+    forward.write_text('[simulation]\nscenario = "train"\n' + table)
+    runs = {"table": (up_down, []), "scenario": (forward, ["--scenario", "bidirectional"])}
+    q = {}
+    for name, (config, extra) in runs.items():
+        data = tmp_path / f"{name}.csv"
+        assert main(["calibrate", "--config", str(config), "--out", str(tmp_path / f"{name}.json"),
+                     "--data", str(data), *extra]) == 0
+        q[name] = list(read_csv(data).q)
+    sweep = [0.0, 120.0, 240.0, 360.0, 480.0]
+    assert q["table"] == sweep + sweep[::-1]
+    assert q["scenario"] == sweep + sweep

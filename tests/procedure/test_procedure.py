@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import hashlib
 import importlib.metadata
 import json
 
@@ -31,6 +32,10 @@ def test_calibrate_command_end_to_end(tmp_path, capsys):
     assert model.fit["residual_rms_nm"] < 35.0  # the noise: 20 nm white + 25 nm slow interferometer wander
     assert "x" in model.term_names() and set(model.channels) <= {"T1", "T2", "T3", "T4"} and model.channels
     assert model.provenance["software"] == f"nanodrift {importlib.metadata.version('nanodrift')}"
+    # the data file is stamped as fit and discover stamp theirs: its path, SHA-256 and rows
+    digest = hashlib.sha256(data.read_bytes()).hexdigest()
+    assert model.provenance["data_file"] == str(data) and model.provenance["data_sha256"] == digest
+    assert model.provenance["data_files"] == [{"path": str(data), "sha256": digest, "rows": 8 * 17}]
     err = capsys.readouterr().err
     assert "fit residual" in err and "model ->" in err and "·x³" in err and "+ -" not in err
 

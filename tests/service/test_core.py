@@ -16,6 +16,7 @@ from helpers.daemon_harness import MODEL_TERMS, expected_q, write_test_model
 from daemon.bus.protocol import Refusal, Target
 from daemon.config import ActuatorConfig
 from daemon.logs import RateLimiter
+from daemon.motion import VoltageLimitError
 from daemon.sdnotify import Notifier, watchdog_interval_s
 from daemon.service.compensator import Compensator
 from daemon.service.polling import GroupPoller, pollers_healthy
@@ -84,6 +85,9 @@ def test_refusals_stale_workspace_voltage_and_no_model(compensator: Compensator,
     with pytest.raises(Refusal) as volts:
         tight.compensate(Target(3, 250.0), now=11.0, unix_now=0.0)
     assert volts.value.kind == "voltage_limit" and "outside [-2, 4] V" in volts.value.message
+    with pytest.raises(VoltageLimitError) as procedure:  # a procedure's step is refused in the same words
+        tight.actuator.checked_voltage(tight.evaluator.value(250.0, 11.0))
+    assert str(procedure.value) == volts.value.message
     assert tight.compensate(Target(4, 150.0), now=11.0, unix_now=0.0).voltage_v <= 4.0
     none = Compensator(None, ActuatorConfig(), compensator.table, model_problem="m.json: no such model file")
     with pytest.raises(Refusal) as no_model:

@@ -188,7 +188,8 @@ def _minority_direction_share(direction: np.ndarray) -> float:
 
 #: the run that shows what a forward-only calibration cannot (the simulated cell, then the stage)
 BIDIRECTIONAL_HINT = ("record a bidirectional run (up and down sweeps): `nanodrift simulate --scenario bidirectional` "
-                      "on the simulated cell, `nanodrift calibrate --scenario bidirectional` on the stage")
+                      "on the simulated cell, `nanodrift calibrate` with `[procedure] trajectory = \"bidirectional\"` "
+                      "on the stage")
 
 
 def untestable(data: Dataset, settings: Settings) -> list[dict[str, str]]:

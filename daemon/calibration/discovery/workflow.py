@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import datetime as dt
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -22,8 +21,9 @@ from daemon.calibration.discovery.diagnostics import (
 )
 from daemon.calibration.discovery.settings import DEFAULT_SETTINGS, NOT_APPLIED_ONLINE, Settings
 from daemon.calibration.discovery.summary import summarise
-from daemon.model.identify import holdout_blocks, model_covariance, ols, software
+from daemon.model.identify import holdout_blocks, model_covariance, ols
 from daemon.model.model import FittedTerm, Model, Training
+from daemon.model.provenance import created_now, software
 from daemon.model.segments import features
 from daemon.model.stepwise import stepwisefit
 from daemon.model.terms import Bias, Term, UnknownTermError, parse_term
@@ -161,7 +161,7 @@ def _final_model(data: Dataset, given: Model, terms: list[Term], nuisance: dict[
              "residual_rms_nm": _rms(residual_full) * 1000.0},
         selection=selection,
         provenance={**given.provenance, "software": software(),
-                    "created": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+                    "created": created_now(),
                     "discovered_from": data.source, "base_model": given.id},
         covariance=covariance,
     )

@@ -1,0 +1,43 @@
+"""What a model file records about how it was made (``provenance``): never part of its id.
+
+One function stamps the data a model was made from (:func:`stamp_data`), so ``fit``, ``discover`` and
+``calibrate`` (and the demo's calibration) record it alike: the first file as ``data_file`` with its
+SHA-256 as ``data_sha256``, and every file with its SHA-256 and rows as ``data_files``.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import importlib.metadata
+from collections.abc import Sequence
+from pathlib import Path
+
+from daemon.atomic import file_sha256
+from daemon.model.model import Model
+
+
+def software() -> str:
+    """What a model file records as the software that fitted it: ``"nanodrift <version>"``.
+
+    Provenance only: never part of the model's id (the same terms and coefficients are the same model).
+    """
+    try:
+        return f"nanodrift {importlib.metadata.version('nanodrift')}"
+    except importlib.metadata.PackageNotFoundError:  # a source tree that was never installed
+        return "nanodrift 0+unknown"
+
+
+def created_now() -> str:
+    """When a model is made: UTC, to the second."""
+    return dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
+
+
+def stamp_data(model: Model, files: Sequence[tuple[str | Path, int]]) -> None:
+    """Record the data files ``model`` was made from, ``(path, rows)`` each, the first the main one (a
+    calibration; recorded operation after it): ``data_file``, ``data_sha256`` and ``data_files``."""
+    if not files:
+        raise ValueError("a model is made from at least one data file")
+    records = [{"path": str(path), "sha256": file_sha256(path), "rows": rows} for path, rows in files]
+    model.provenance["data_file"] = records[0]["path"]
+    model.provenance["data_sha256"] = records[0]["sha256"]
+    model.provenance["data_files"] = records
