@@ -382,6 +382,12 @@ class DriverPlugin(ABC):
         ``sensors[2] (T3).port: ...`` or ``actuator.port: ...``."""
         return []
 
+    def config_warnings(self, sensors: Sequence[tuple[int, SensorConfig]],
+                        actuator: ActuatorOptions | None) -> list[str]:
+        """What ``check-config`` warns about across entries (the daemon accepts it), named like
+        :meth:`config_problems`' lines: e.g. a shared connection whose answers could be mismatched."""
+        return []
+
     def default_sensors(self, section: BaseModel) -> list[SensorConfig]:
         """Sensors implied by this plugin's section when the config lists none (virtual cells)."""
         return []
