@@ -409,6 +409,12 @@ class DriverPlugin(ABC):
         ``sensors[2] (T3).port: ...`` or ``actuator.port: ...``."""
         return []
 
+    def config_warnings(self, sensors: Sequence[tuple[int, SensorConfig]],
+                        actuator: ActuatorOptions | None) -> list[str]:
+        """What ``check-config`` warns about across entries (the daemon accepts it), named like
+        :meth:`config_problems`' lines: e.g. a shared connection whose answers could be mismatched."""
+        return []
+
 
 class VirtualCellPlugin(DriverPlugin):
     """A plugin that *is* the cell (readings and stage simulated): optional, found with ``isinstance``

@@ -5,7 +5,8 @@ a reload: an invalid config, a model file that is missing or cannot be loaded, a
 config_file`` zenoh cannot read. Exit 0 with warnings on stderr for what the daemon accepts but an
 operator should know (a channel the model needs that no sensor provides, sensors the model does not
 use, a ramp to ``safe_voltage_v`` longer than a stop may take, an actuator's own warnings such as a
-command template coarser than the stage needs), in the errors' form
+command template coarser than the stage needs, a driver's warnings across entries such as a serial
+port shared without a resync query), in the errors' form
 (``<file>:<line>: warning: sensors[2] (T3).name: ...``); ``--strict`` makes those errors too, for a
 commissioned cell where they are mistakes.
 """
@@ -35,6 +36,7 @@ from daemon.config import (
     missing_model_channels,
 )
 from daemon.model.model import Model, ModelFileError, load_model
+from drivers.registry import UnknownDriverError, load_plugin
 
 
 def model_problem(config: Config) -> tuple[Model | None, str | None]:
@@ -127,9 +129,25 @@ def actuator_warnings(config: Config) -> list[str]:
                                                                             a.offset_v)]
 
 
+def driver_warnings(config: Config) -> list[str]:
+    """Each driver plugin's warnings across its sensors and its actuator (a shared port, ...)."""
+    options = config.actuator.options
+    sensors = list(enumerate(config.sensors))
+    kinds = dict.fromkeys([s.kind for _, s in sensors] + ([options.kind] if options is not None else []))
+    warnings: list[str] = []
+    for kind in kinds:
+        try:
+            plugin = load_plugin(kind)
+        except UnknownDriverError:  # the config was read with it: cannot happen, and nothing to warn about
+            continue
+        warnings += plugin.config_warnings([(i, s) for i, s in sensors if s.kind == kind],
+                                           options if options is not None and options.kind == kind else None)
+    return warnings
+
+
 def config_warnings(config: Config, model: Model | None) -> list[str]:
     """``field: message`` lines for what the daemon accepts but an operator should know."""
-    warnings = network_warnings(config) + actuator_warnings(config)
+    warnings = network_warnings(config) + actuator_warnings(config) + driver_warnings(config)
     warnings += safe_ramp_warnings(config)
     if model is None:
         return warnings

@@ -37,6 +37,32 @@ def value_pattern(pattern: str, example: str) -> str:
     return pattern
 
 
+def any_pattern(pattern: str) -> str:
+    """``pattern`` if it compiles; else why not."""
+    try:
+        re.compile(pattern)
+    except re.error as error:
+        raise ValueError(f"not a valid regular expression: {error}") from None
+    return pattern
+
+
+RESYNC_QUERY_HELP = ("sent before the next request once a request on this port went unanswered (e.g. GCS "
+                     "'*IDN?\\n'); every line up to its answer is discarded; empty: none (the line waits to go "
+                     "quiet instead)")
+RESYNC_PATTERN_HELP = ("regex searched in the resync query's answer (e.g. 'PI|Physik'); it must match no "
+                       "answer to any other request on the port")
+
+
+def resync_problem(query: str, pattern: str) -> str | None:
+    """Why a resync query and pattern do not go together (both or neither), or None."""
+    if bool(query) != bool(pattern):
+        missing = "resync_pattern" if query else "resync_query"
+        return (f"{missing}: resync_query and resync_pattern go together: the query is sent, and its answer "
+                "is the first line the pattern is found in (e.g. resync_query = \"*IDN?\\n\", "
+                "resync_pattern = 'PI|Physik')")
+    return None
+
+
 class SerialLineSensorConfig(SensorConfig):
     """One value per line of text from a serial port (queried, or streamed by the device).
 
@@ -61,6 +87,8 @@ class SerialLineSensorConfig(SensorConfig):
         default="\n", description="line terminator; '\\n' and '\\r\\n' behave the same (a trailing '\\r' is "
                                   "dropped); '\\r' for devices that end lines with CR only")
     unit: str | None = Field(default=None, description="unit of the scaled value; default um / degC by role")
+    resync_query: str = Field(default="", description=RESYNC_QUERY_HELP)
+    resync_pattern: str = Field(default="", description=RESYNC_PATTERN_HELP)
 
     @field_validator("scale")
     @classmethod
@@ -73,6 +101,26 @@ class SerialLineSensorConfig(SensorConfig):
     @classmethod
     def _pattern_has_value_group(cls, pattern: str) -> str:
         return value_pattern(pattern, "'P (?P<value>[-+0-9.]+) nm'")
+
+    @field_validator("resync_pattern")
+    @classmethod
+    def _resync_pattern(cls, pattern: str) -> str:
+        return any_pattern(pattern)
+
+    @model_validator(mode="after")
+    def _resync(self) -> SerialLineSensorConfig:
+        problem = resync_problem(self.resync_query, self.resync_pattern)
+        if problem is not None:
+            raise ValueError(problem)
+        if self.resync_query and self.streaming:
+            raise ValueError("resync_query: a sensor that streams (query = \"\") asks nothing, so nothing on its "
+                             "line can go unanswered; give it a query, or drop resync_query and resync_pattern")
+        return self
+
+    @property
+    def resync(self) -> tuple[str, str] | None:
+        """(query, pattern) of the resynchronisation query, or None."""
+        return (self.resync_query, self.resync_pattern) if self.resync_query else None
 
     @property
     def value_unit(self) -> str:
@@ -131,6 +179,8 @@ class SerialLineActuatorConfig(ActuatorOptions):
     error_ok: str = Field(default="0", description="regex the whole answer to error_query matches when all is well")
     eol: Literal["\r\n", "\n", "\r"] = Field(default="\n", description="how the controller ends its answers")
     timeout_s: float = Field(default=1.0, gt=0, description="an answer must come within this")
+    resync_query: str = Field(default="", description=RESYNC_QUERY_HELP)
+    resync_pattern: str = Field(default="", description=RESYNC_PATTERN_HELP)
 
     @field_validator("command")
     @classmethod
@@ -147,23 +197,32 @@ class SerialLineActuatorConfig(ActuatorOptions):
     def _readback_has_value_group(cls, pattern: str) -> str:
         return value_pattern(pattern, "'=(?P<value>[-+0-9.eE]+)'")
 
-    @field_validator("error_ok")
+    @field_validator("error_ok", "resync_pattern")
     @classmethod
     def _regex(cls, pattern: str) -> str:
-        try:
-            re.compile(pattern)
-        except re.error as error:
-            raise ValueError(f"not a valid regular expression: {error}") from None
-        return pattern
+        return any_pattern(pattern)
 
     @model_validator(mode="after")
     def _readback_field(self) -> SerialLineActuatorConfig:
+        problem = resync_problem(self.resync_query, self.resync_pattern)
+        if problem is not None:
+            raise ValueError(problem)
         if self.readback and self.readback_field is None:
             names = set(template_fields(self.command))
             if len(names) != 1:
                 raise ValueError(f"readback_field: the command names {', '.join(sorted(names))}; say which one the "
                                  "readback answers (voltage_v, q_um or x_um)")
         return self
+
+    @property
+    def resync(self) -> tuple[str, str] | None:
+        """(query, pattern) of the resynchronisation query, or None."""
+        return (self.resync_query, self.resync_pattern) if self.resync_query else None
+
+    @property
+    def asks(self) -> bool:
+        """The actuator asks the controller questions (a readback or an error query)."""
+        return bool(self.readback or self.error_query)
 
     @property
     def expected_field(self) -> str:

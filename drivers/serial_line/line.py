@@ -20,9 +20,18 @@ A port that answers requests (a queried sensor, an actuator's controller, or bot
   that), discarding what comes: a late answer to an earlier request is not taken for the answer to
   the next one. A line that does not go quiet is a fault for that request, with nothing sent.
 
-An answer later than the quiet period after its request timed out cannot be told from a fresh one
-(the protocol carries no request ids): it may still be taken for the next answer, once; the answer
-that follows it is then a late answer, and the line is drained again.
+Without more, an answer later than the quiet period after its request timed out cannot be told from
+a fresh one (the protocol carries no request ids): it may still be taken for the next answer, once
+(found by the serial chaos suite: a late ``SVA? 1`` answer, ``1=-0.5883``, published as the position).
+A line with a *resynchronisation query* (``resync_query``/``resync_pattern``, e.g. GCS ``*IDN?`` and
+``PI|Physik``) closes that gap: before the next request on a dirty line it sends the resync query
+instead of waiting for quiet, and discards every line until one in which ``resync_pattern`` is found.
+A controller answers in the order it was asked, so whatever came before that answer is the past,
+however late. No such line within ``timeout_s`` is a fault for that request, with nothing sent, and
+the line stays dirty. The resync queries that went unanswered are counted: an answer to one of them
+that comes later (a line the pattern is found in) is discarded, never taken for another request's
+answer. A write that expects no answer (an actuator's ``SVA``) goes out on a dirty line without the
+resync: it takes no answer, and the controller works through it in order.
 
 What goes wrong, and how it is reported:
 
@@ -42,6 +51,7 @@ import contextlib
 import math
 import re
 from functools import partial
+from typing import Literal
 
 import structlog
 
@@ -70,7 +80,8 @@ class SerialLineGroup(SensorGroup):
 
     def __init__(self, config: SerialLineSensorConfig, clock: Clock, *, solicited: bool | None = None) -> None:
         """``solicited``: the port only speaks when asked (default: when the sensor queries); the
-        actuator's own port is one, whatever its placeholder sensor config says."""
+        actuator's own port is one, whatever its placeholder sensor config says. The resync query is
+        the sensor config's (:meth:`use_resync` sets the actuator's on a shared port)."""
         self.config = config
         self.clock = clock
         self.names = (config.name,)
@@ -89,13 +100,21 @@ class SerialLineGroup(SensorGroup):
         self._generation = 0  # one per opened port: late callbacks of a closed port are ignored
         self._arrived = asyncio.Event()
         self._lock = asyncio.Lock()  # one request/answer at a time on the port (a query, an actuator's command)
-        self._outstanding = False  # a request waits for its answer: the next line is it
+        # a request waits for its answer ("answer": the next line is it; "resync": the next line the resync
+        # pattern is found in)
+        self._outstanding: Literal["answer", "resync"] | None = None
         self._answer: tuple[str, float] | None = None  # the line that answered the current request
         self._dirty = False  # a late answer may still come: wait for quiet before the next request
         self._dirty_since = 0.0  # loop time the line went dirty
         self._last_line = -math.inf  # loop time of the last line received
         self._episode = False  # late answers are being discarded (logged once, at the first)
         self.late_answers = 0  # lines (or unread fragments) nobody asked for, discarded
+        self._resync_query: bytes | None = None
+        self._resync_pattern: re.Pattern[str] | None = None
+        self._resyncs_pending = 0  # resync queries sent whose answer has not come (yet)
+        self.resyncs = 0  # resync queries sent, for tests
+        if config.resync is not None:
+            self.use_resync(*config.resync)
 
     def __repr__(self) -> str:
         return f"SerialLineGroup({self.config.name!r}, port={self.config.port!r})"
@@ -103,6 +122,18 @@ class SerialLineGroup(SensorGroup):
     @property
     def port(self) -> str:
         return self.config.port
+
+    @property
+    def resync(self) -> tuple[str, str] | None:
+        """(query, pattern) of the resynchronisation query, or None (a dirty line waits for quiet)."""
+        if self._resync_query is None or self._resync_pattern is None:
+            return None
+        return self._resync_query.decode("latin-1"), self._resync_pattern.pattern
+
+    def use_resync(self, query: str, pattern: str) -> None:
+        """Resynchronise a dirty line with ``query``, whose answer is the first line ``pattern`` is found in
+        (the actuator's keys on a port whose sensor declares none)."""
+        self._resync_query, self._resync_pattern = query.encode("latin-1"), re.compile(pattern)
 
     # -- the port ---------------------------------------------------------------------------------
 
@@ -143,10 +174,23 @@ class SerialLineGroup(SensorGroup):
         self._latest = line
         self._seq += 1
         self._last_line = asyncio.get_running_loop().time()
-        if self._outstanding:  # the first line after a request is its answer
-            self._answer, self._outstanding = line, False
+        text = line[0]
+        resync_answer = (self._resyncs_pending > 0 and self._resync_pattern is not None
+                         and self._resync_pattern.search(text) is not None)
+        if resync_answer:
+            self._resyncs_pending -= 1
+        if self._outstanding == "resync":  # everything before the resync query's answer is the past
+            if resync_answer:
+                self._answer, self._outstanding = line, None
+            else:
+                self._discarded(text)
+        elif self._outstanding == "answer":  # the first line after a request is its answer ...
+            if resync_answer:  # ... but an earlier resync query's (it timed out): in order, the answer is next
+                self._discarded(text, dirty=False)
+            else:
+                self._answer, self._outstanding = line, None
         elif self.solicited:  # nobody asked: a late answer (or a second line to one request)
-            self._discarded(line[0])
+            self._discarded(text, dirty=not resync_answer)  # a late resync answer: the one awaited, counted
         self._arrived.set()
 
     def _discarded(self, text: str, *, dirty: bool = True) -> None:
@@ -201,23 +245,55 @@ class SerialLineGroup(SensorGroup):
 
     async def _request(self, data: bytes, what: str, *, answer: bool, timeout_s: float,
                        until: float | None = None) -> tuple[str, float] | None:
-        """Make a dirty line quiet, send ``data`` and (``answer``) wait ``timeout_s`` for the line that
-        answers it (None: silence); ``until`` (loop time) caps the whole. The lock is held."""
+        """Make a dirty line clean (the resync query, else a quiet wait), send ``data`` and (``answer``) wait
+        ``timeout_s`` for the line that answers it (None: silence); ``until`` (loop time) caps the whole.
+        The lock is held."""
         loop = asyncio.get_running_loop()
         if self._reader is None:  # closed while this request waited for the lock
             await self.open()
-        if self._dirty and self.solicited:
+        was_dirty = self._dirty and self.solicited
+        if was_dirty and self._resync_query is not None:
+            if answer:  # a write that takes no answer needs no clean line: the controller answers in order
+                await self._resynchronise(timeout_s, until)
+        elif was_dirty:
             quiet_s = quiet_for(timeout_s)
             budget_s = timeout_s + quiet_s if until is None else min(timeout_s + quiet_s, until - loop.time())
             await self._quiet(budget_s, quiet_s)
-            was_dirty = True
-        else:
-            was_dirty = False
         late_before = self.late_answers
         deadline = loop.time() + timeout_s if until is None else min(loop.time() + timeout_s, until)
+        line = await self._send(data, what, "answer" if answer else None, timeout_s, deadline)
+        if line is not None and not was_dirty and self.late_answers == late_before:
+            self._episode = False  # a whole request without a late answer: the episode is over
+        return line
+
+    async def _resynchronise(self, timeout_s: float, until: float | None) -> None:
+        """Send the resync query and discard every line up to its answer (:meth:`_on_line`); the line is
+        clean then. :class:`LineBusyError` (nothing else sent; the line stays dirty) when no answer comes
+        within ``timeout_s`` (or by ``until``)."""
+        assert self._resync_query is not None and self._resync_pattern is not None
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout_s if until is None else min(loop.time() + timeout_s, until)
+        discarded = self.late_answers
+        query = self._resync_query.decode("latin-1")
+        line = await self._send(self._resync_query, f"resync query {query!r}", "resync", timeout_s, deadline)
+        if line is None:
+            await self._raise_if_vanished()
+            raise LineBusyError(
+                f"{self.port}: no answer matching resync_pattern {self._resync_pattern.pattern!r} to the resync "
+                f"query {query!r} within {timeout_s:g} s after an unanswered request ({self.late_answers - discarded} "
+                "late line(s) discarded meanwhile); nothing was sent")
+        self._dirty = False
+
+    async def _send(self, data: bytes, what: str, awaits: Literal["answer", "resync"] | None, timeout_s: float,
+                    deadline: float) -> tuple[str, float] | None:
+        """Write ``data`` and wait until ``deadline`` (loop time) for the line ``awaits`` (None: no answer)."""
+        loop = asyncio.get_running_loop()
         reader = self._reader
         assert reader is not None
-        self._answer, self._outstanding = None, answer
+        self._answer, self._outstanding = None, awaits
+        if awaits == "resync":
+            self._resyncs_pending += 1
+            self.resyncs += 1
         try:
             try:
                 async with asyncio.timeout(max(0.0, deadline - loop.time())):
@@ -230,7 +306,7 @@ class SerialLineGroup(SensorGroup):
                 raise DeviceError(f"{self.port}: cannot send {what}: {error}") from error
             if dropped:
                 self._discarded(f"({dropped} unread byte(s) before {what})", dirty=False)  # gone with the flush
-            if not answer:
+            if awaits is None:
                 return None
             while self._answer is None and self._error is None:
                 left = deadline - loop.time()
@@ -240,12 +316,10 @@ class SerialLineGroup(SensorGroup):
                 with contextlib.suppress(TimeoutError):
                     async with asyncio.timeout(left):
                         await self._arrived.wait()
-            if self._answer is not None and not was_dirty and self.late_answers == late_before:
-                self._episode = False  # a whole request without a late answer: the episode is over
             return self._answer
         finally:
             if self._outstanding:  # timed out, failed or cancelled: its answer may still come
-                self._outstanding = False
+                self._outstanding = None
                 self._dirty, self._dirty_since = True, loop.time()
 
     async def _quiet(self, budget_s: float, quiet_s: float) -> None:

@@ -5,6 +5,13 @@ A shared port is one request at a time, each answer matched to its request (``li
 that *streams* cannot share a port with an actuator that asks questions (``readback``,
 ``error_query``): nothing tells its lines from the answers, so that config is refused when it is
 read (:meth:`SerialLinePlugin.config_problems`), and again when the drivers are built.
+
+The resynchronisation query (``resync_query``/``resync_pattern``) is a setting of the line: either the
+sensor or the actuator on a shared port may declare it (both: the same). A port on which a querying
+sensor and an actuator that asks questions share the line without one is accepted, with a warning
+(:meth:`SerialLinePlugin.config_warnings`, shown by ``check-config``; an error with ``--strict``): an
+answer later than the quiet period can then be taken for the other device's answer. Not refused:
+controllers without an identification query exist, and such configs ran before the keys did.
 """
 
 from __future__ import annotations
@@ -23,7 +30,7 @@ from drivers.base import (
 )
 from drivers.serial_line.actuator import SerialLineActuator
 from drivers.serial_line.config import SerialLineActuatorConfig, SerialLineSensorConfig
-from drivers.serial_line.line import SerialLineGroup
+from drivers.serial_line.line import QUIET_S, SerialLineGroup
 
 #: key of the port owners in ``DriverContext.resources``: port -> the sensor group reading it
 PORTS_KEY = "serial_line.ports"
@@ -61,7 +68,32 @@ class SerialLinePlugin(DriverPlugin):
                                     "port, one setting)")
             if sensor.streaming and (actuator.readback or actuator.error_query):
                 problems.append(_streaming_problem("actuator.port: ", where, actuator.port))
+            if sensor.resync is not None and actuator.resync is not None and sensor.resync != actuator.resync:
+                problems.append(f"actuator.resync_query: port {actuator.port!r} is resynchronised by {where} with "
+                                f"{_resync_text(sensor.resync)}, the actuator says {_resync_text(actuator.resync)} "
+                                "(one port, one resync query: declare it once)")
+            if sensor.streaming and actuator.resync is not None:
+                problems.append(f"actuator.resync_query: {where} streams lines on {actuator.port!r}: nothing on "
+                                "the line is a request's answer to resynchronise (drop resync_query and "
+                                "resync_pattern)")
         return problems
+
+    def config_warnings(self, sensors: Sequence[tuple[int, SensorConfig]],
+                        actuator: ActuatorOptions | None) -> list[str]:
+        """A port shared by a querying sensor and an actuator that asks questions, without a resync query."""
+        if not isinstance(actuator, SerialLineActuatorConfig) or not actuator.asks or actuator.resync is not None:
+            return []
+        for index, sensor in sensors:
+            if (isinstance(sensor, SerialLineSensorConfig) and sensor.port == actuator.port and not sensor.streaming
+                    and sensor.resync is None):
+                asks = " and ".join(repr(q) for q in (actuator.readback, actuator.error_query) if q)
+                return [f"actuator.port: port {actuator.port!r} is shared by sensors[{index}] ({sensor.name}), "
+                        f"querying {sensor.query!r}, and the actuator asking {asks}, with no resync_query: an "
+                        f"answer that comes later than min(timeout_s, {QUIET_S:g} s) after its request timed out "
+                        "looks like a fresh one (no request ids) and can be taken, once, for the other's answer "
+                        "(a voltage published as the position); declare resync_query and resync_pattern (GCS: "
+                        "resync_query = \"*IDN?\\n\", resync_pattern = 'PI|Physik')"]
+        return []
 
     def create(self, configs: Sequence[SensorConfig], context: DriverContext) -> list[SensorGroup]:
         groups: list[SensorGroup] = []
@@ -86,7 +118,10 @@ class SerialLinePlugin(DriverPlugin):
         if sensor is None:
             own = SerialLineSensorConfig(name="actuator", port=config.port, timeout_s=config.timeout_s,
                                          **{key: getattr(config, key) for key in SHARED_SETTINGS})
-            return SerialLineActuator(config, SerialLineGroup(own, context.clock, solicited=True), owns_port=True)
+            line = SerialLineGroup(own, context.clock, solicited=True)
+            if config.resync is not None:  # a controller alone on its port: its own late answers
+                line.use_resync(*config.resync)
+            return SerialLineActuator(config, line, owns_port=True)
         name = sensor.config.name
         for key in SHARED_SETTINGS:
             if getattr(sensor.config, key) != getattr(config, key):
@@ -96,7 +131,17 @@ class SerialLinePlugin(DriverPlugin):
                     "setting)")
         if sensor.config.streaming and (config.readback or config.error_query):
             raise DriverSetupError(_streaming_problem("actuator: ", f"sensor {name!r}", config.port))
+        if config.resync is not None:
+            if sensor.resync is not None and sensor.resync != config.resync:
+                raise DriverSetupError(f"actuator: port {config.port!r} is resynchronised by sensor {name!r} with "
+                                       f"{_resync_text(sensor.resync)}, the actuator says "
+                                       f"{_resync_text(config.resync)} (one port, one resync query)")
+            sensor.use_resync(*config.resync)  # the line's setting, whichever of the two declares it
         return SerialLineActuator(config, sensor, owns_port=False)
+
+
+def _resync_text(resync: tuple[str, str]) -> str:
+    return f"resync_query = {resync[0]!r}, resync_pattern = {resync[1]!r}"
 
 
 def _streaming_problem(prefix: str, sensor: str, port: str) -> str:

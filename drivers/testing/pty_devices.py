@@ -109,14 +109,17 @@ class FakeInterferometer(PtyDevice):
 class FakeGcsController(PtyDevice):
     """A PI controller speaking GCS on a pty behind ``link``: ``SVA 1 <V>`` sets the axis' voltage (no
     answer), ``SVA? 1`` -> ``1=<V>``, ``POS? 1`` -> ``1=<position>`` (``position_per_volt`` x V),
-    ``ERR?`` -> the error code (then 0). An unknown command or axis sets error 2 / 15, as GCS does.
+    ``ERR?`` -> the error code (then 0), ``*IDN?`` -> :data:`IDN` (the resync query: no value answer looks
+    like it). An unknown command or axis sets error 2 / 15, as GCS does.
 
     Misbehaviours for tests: ``silent`` (answers nothing), ``answer`` (answers every query with this
     instead), ``amplifier_off`` (``SVA`` is accepted but the voltage does not change), ``late_s``
     (command word -> seconds: that query is answered this late; answers leave in the order asked, as
-    from a controller that works through its input, at least ``spacing_s`` apart), ``inject`` (bytes
-    sent as they are, unasked).
+    from a controller that works through its input, at least ``spacing_s`` apart: an ``*IDN?`` asked
+    after a late ``SVA?`` is answered after it), ``inject`` (bytes sent as they are, unasked).
     """
+
+    IDN = "(c)2015 Physik Instrumente (PI) GmbH & Co. KG, E-709, 0115018620, 01.502"
 
     def __init__(self, link: Path, position_per_volt: float = 100.0) -> None:
         self.position_per_volt = position_per_volt
@@ -143,6 +146,8 @@ class FakeGcsController(PtyDevice):
         if not words:
             return None
         command, args = words[0], words[1:]
+        if command == "*IDN?":
+            return self.IDN
         if command == "ERR?":
             code, self.error = self.error, 0
             return str(code)

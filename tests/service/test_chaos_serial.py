@@ -3,9 +3,11 @@
 :class:`SerialChaosMachine` is :class:`helpers.chaos.ChaosMachine` (``test_chaos.py``) with another output:
 one ``nanodrift run`` per example whose ``[actuator] kind = "serial_line"`` (``SVA 1 {voltage_v:.4f}``,
 readback ``SVA? 1``, ``ERR?``) and whose position sensor (``kind = "serial_line"``, ``role = "position"``,
-``POS? 1``) share one pty, served by an emulated controller (:class:`ChaosController`, on a thread of this
-process) that stamps every line it receives and answers ``POS? 1`` with the position of the voltage it holds
-(``1=<V / STAGE_V_PER_UM>``: the interferometer follows the stage). Both answers look alike (``1=5.0000``,
+``POS? 1``) share one pty, resynchronised after an unanswered request by ``*IDN?`` (``resync_query``,
+declared by the sensor; ``resync_pattern = 'PI|Physik'``), served by an emulated controller
+(:class:`ChaosController`, on a thread of this process) that stamps every line it receives and answers
+``POS? 1`` with the position of the voltage it holds (``1=<V / STAGE_V_PER_UM>``: the interferometer follows
+the stage). Both answers look alike (``1=5.0000``,
 ``1=250.0000``): only the daemon's matching of answers to requests (``drivers/serial_line/line.py``) tells
 them apart. Temperatures come from the ``file`` sensor plugin, as in the first machine.
 
@@ -29,7 +31,10 @@ After every step, on the device side (the lines the controller received, parsed)
    position of the voltage the controller holds (``ok``; ``fault`` when that lies outside the valid range);
 5. the daemon is alive and ``status`` shows the limits in force.
 
-Found by it and fixed: a reload while the actuator retried a failing controller could hang for good (the
+Found by it and fixed: an ``SVA?`` answer later than the actuator's timeout plus the quiet period that follows
+it was taken, once, for the next ``POS?`` answer (``1=-0.5883`` published as the position, ``ok``): the line
+now resynchronises with ``*IDN?``, whose answer comes after every earlier one (``drivers/serial_line/line.py``);
+a reload while the actuator retried a failing controller could hang for good (the
 actuator task was cancelled once and awaited without bound, and Python 3.11's ``asyncio.wait_for`` in the
 serial line could swallow that cancellation). The regression test at the end repeats the sequence.
 
@@ -202,6 +207,7 @@ class SerialChaosMachine(ChaosMachine):
                     f"max_slew_um_per_s = {limits.max_slew_um_per_s!r}\nsafe_voltage_v = {safe!r}\n{tail}")
         sensor = (f'[[sensors]]\nname = "stage"\nrole = "position"\nkind = "serial_line"\nport = "{port}"\n'
                   "baudrate = 115200\nquery = \"POS? 1\\n\"\npattern = '^1=(?P<value>[-+0-9.]+)$'\n"
+                  "resync_query = \"*IDN?\\n\"\nresync_pattern = 'PI|Physik'\n"
                   f"timeout_s = {SENSOR_TIMEOUT_S}\ninterval_s = 0.05\nmax_age_s = 2.0\nfrozen_after_s = 0.0\n")
         return actuator, sensor
 
