@@ -158,7 +158,7 @@ class HealthUnit:
         self._feed(t, value_um, True)
 
     def on_reached(self, t: float, q_um: float) -> None:
-        """The output reached command ``q_um`` at cell time ``t`` (on the loop, under state.lock)."""
+        """The output reached command ``q_um`` at cell time ``t`` (on the loop: the queue is the loop's)."""
         self._reached.append((t, q_um))
 
     def _feed(self, t: float, value_um: float, ok: bool) -> None:

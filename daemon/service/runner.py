@@ -247,9 +247,11 @@ class Service:
             await self.actuation.stop(final=final)
 
     def _output_reached(self, goal: Any, _monotonic_s: float) -> None:
-        """The output holds a served command: the health unit's settle time starts now (cell clock)."""
-        with self.state.lock:
-            self.health.on_reached(self.state.clock.now(), goal.q_um)
+        """The output holds a served command: the health unit's settle time starts now (cell clock).
+
+        No state lock: the health unit's reach queue is only touched on the loop (here and in the sensor
+        ingest), and the target path must not wait for a write's bookkeeping."""
+        self.health.on_reached(self.state.clock.now(), goal.q_um)
 
     def _log_start(self) -> None:
         config, comp = self.state.config, self.state.compensator
