@@ -55,7 +55,9 @@ class PtyDevice:
         self.unplug()
 
     def _serve(self, master: int, stop: threading.Event) -> None:
-        raise NotImplementedError
+        """What the device does with the bytes it gets, on its own thread until ``stop`` is set: a
+        subclass says (the base device is a port nobody answers on, as an unpowered instrument)."""
+        stop.wait()
 
 
 class FakeInterferometer(PtyDevice):
