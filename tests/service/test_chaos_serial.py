@@ -231,13 +231,19 @@ class SerialChaosMachine(ChaosMachine):
         window = 0.4 + max(controller.late_s.values(), default=0.0)
         deadline = time.monotonic() + 20.0
         state = None
+        def quiet_for() -> float:
+            # quiet since the last actuator line *and* since the last target: a command just answered may
+            # still be waiting for the shared line (a POS? in flight) before its SVA goes out
+            since_target = time.monotonic() - max(self.sent_at.values(), default=-1e9)
+            return min(controller.quiet_for(), since_target)
+
         while True:
             self.daemon.check_alive()
-            if controller.quiet_for() >= window:
+            if quiet_for() >= window:
                 if self.mode != "ok":
                     return
                 state = self.client.status(3.0)["actuator"]["state"]
-                if state == "ok" and controller.quiet_for() >= window:
+                if state == "ok" and quiet_for() >= window:
                     return
             assert time.monotonic() < deadline, (
                 f"the actuation never went quiet (controller quiet for {controller.quiet_for():.2f} s, actuator "
@@ -416,5 +422,21 @@ def test_a_reload_while_the_actuator_retries_a_failing_controller_ends() -> None
             machine.reload_valid_limits(Limits(-1.0, 12.0, 0.0, (0.025, 0.01)[attempt % 2]), mid_motion=0.0)
             machine.controller_works_again()
             machine.check()
+    finally:
+        machine.teardown()
+
+
+
+def test_a_command_served_while_a_slow_poll_holds_the_line_reaches_the_controller() -> None:
+    """A release run's finding, in the harness: the command's SVA waits for the line behind a slow POS?, so
+    "quiet" must count from the last target too (else the check read the controller before the write)."""
+    machine = SerialChaosMachine()
+    try:
+        machine.start_daemon(Limits(-2.0, 2.5, 0.0, 0.01))
+        machine.check()
+        machine.controller_answers_slowly()
+        machine.check()
+        machine.send_targets([("valid", 0.0)])
+        machine.check()
     finally:
         machine.teardown()
