@@ -60,6 +60,9 @@ from drivers.serial_line.config import SerialLineSensorConfig
 from drivers.serial_line.reader import SerialLineReader
 
 log = structlog.get_logger(__name__)
+#: ports closed while a request on them was left unanswered (the line dirty): the device may still
+#: answer it, so whoever opens the port next (a reload builds a new line for it) resynchronises first
+_UNSETTLED_PORTS: set[str] = set()
 
 SHOWN_CHARS = 60  # of a garbage line in a fault reason
 GRACE_S = 0.25  # callers' limit beyond timeout_s, so the driver's own verdict ("no line ...") comes first
@@ -158,8 +161,13 @@ class SerialLineGroup(SensorGroup):
             raise DeviceError(f"cannot open {c.port}: no answer from the OS within {c.timeout_s:g} s") from None
         except Exception as error:  # SerialException, OSError, ValueError for a malformed URL
             raise DeviceError(f"cannot open {c.port}: {error}") from error
+        if self.port in _UNSETTLED_PORTS:  # a line closed before this one left a request unanswered
+            _UNSETTLED_PORTS.discard(self.port)
+            self._dirty, self._dirty_since = True, loop.time()
 
     async def close(self) -> None:
+        if self._dirty or self._outstanding:
+            _UNSETTLED_PORTS.add(self.port)
         reader, self._reader = self._reader, None
         self._generation += 1
         self._error = None

@@ -156,6 +156,34 @@ def test_with_resync_an_answer_however_late_is_never_the_next_position(
     run(body())
 
 
+def test_a_late_answer_is_never_taken_by_the_line_a_reload_opens_next(controller: FakeGcsController) -> None:
+    """The serial chaos suite's finding: a reload closes the line while its SVA? is unanswered and builds a new
+    line for the port; the late answer must not be the new line's first position."""
+    async def body() -> None:
+        group, actuator = shared(controller.port, resync_on="sensor")
+        await group.open()
+        controller.voltage = 2.767
+        assert (await group.read())["stage"].value == pytest.approx(276.7)
+        controller.late_s, controller.spacing_s = {"SVA?": 0.5}, 0.05
+        with pytest.raises(DeviceError, match=r"no answer to 'SVA\? 1\\n'"):
+            await actuator.command(276.5, 5.53)
+        await actuator.close()  # the reload stops the drivers ...
+        await group.close()
+        controller.late_s = {}
+        group2, actuator2 = shared(controller.port, resync_on="sensor")  # ... and builds new ones
+        await group2.open()
+        reading = (await group2.read())["stage"]
+        assert reading.value != pytest.approx(5.53), "the late SVA? answer was taken as the position"
+        assert reading.state is State.OK and reading.value == pytest.approx(553.0), reading
+        assert group2.resyncs == 1  # the new line knew the port was left unsettled
+        assert (await group2.read())["stage"].value == pytest.approx(553.0)
+        assert group2.resyncs == 1  # and only once
+        await actuator2.close()
+        await group2.close()
+
+    run(body())
+
+
 def test_a_resync_answer_that_comes_late_is_a_fault_then_never_an_answer(controller: FakeGcsController) -> None:
     async def body() -> None:
         group, actuator = shared(controller.port, sensor_timeout_s=0.3, resync_on="sensor")
