@@ -397,3 +397,51 @@ class Served:
     def close(self) -> int:
         self.client.close()
         return self.daemon.stop()
+
+
+class HealthCell:
+    """A daemon on a config, a client, and every ``health`` sample the client received."""
+
+    def __init__(self, root: Path, cell: str, config: str, plugins: Path | None = None) -> None:
+        self.port = free_port()
+        self.config_path = root / "nanodrift.toml"
+        self.config_path.write_text(config.replace("@PORT@", str(self.port)))
+        self.daemon = Daemon(["--config", str(self.config_path)], root / "daemon.log",
+                             [plugins] if plugins is not None else [])
+        self.client: Client | None = None
+        self.health_samples: list[dict[str, Any]] = []
+        self._lock = threading.Lock()
+        try:
+            self.daemon.wait_log("serving", timeout=30)
+            self.client = Client(self.port, cell)
+            self._sub = self.client.session.declare_subscriber(f"nanodrift/{cell}/health", self._health)
+        except BaseException:
+            self.close()
+            raise
+
+    def _health(self, sample: Any) -> None:
+        with self._lock:
+            self.health_samples.append(json.loads(sample.payload.to_bytes()))
+
+    def samples(self) -> list[dict[str, Any]]:
+        with self._lock:
+            return list(self.health_samples)
+
+    def health(self) -> dict[str, Any]:
+        assert self.client is not None
+        return self.client.status()["health"]
+
+    def settle(self, x: float, target_id: object) -> dict[str, Any]:
+        """Serve ``x`` and wait until the health unit has its settled residual; the command."""
+        assert self.client is not None
+        before = self.health()["n"]
+        ok, command = self.client.query({"x_um": x, "id": target_id})
+        assert ok, command
+        wait_until(lambda: self.health()["n"] > before, 15, f"the settled residual of target {target_id}",
+                   interval=0.02)
+        return command
+
+    def close(self) -> int:
+        if self.client is not None:
+            self.client.close()
+        return self.daemon.stop()

@@ -10,10 +10,8 @@ harness's ``file`` plugin, whose readings the test controls exactly. The health 
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import signal
-import threading
 import urllib.request
 from pathlib import Path
 from typing import Any
@@ -21,8 +19,7 @@ from typing import Any
 import pytest
 from helpers.daemon_harness import (
     TEMPS,
-    Client,
-    Daemon,
+    HealthCell,
     SensorFile,
     file_sensor_config,
     free_port,
@@ -83,61 +80,13 @@ def sim_config(cell: str, port: int, model_path: Path, *, position: bool = True,
             f'[simulation]\nscenario = "{scenario}"\nspeed = {SPEED}\nseed = {seed}\n{sensors}')
 
 
-class Cell:
-    """A daemon on a config, a client, and every ``health`` sample the client received."""
-
-    def __init__(self, root: Path, cell: str, config: str, plugins: Path | None = None) -> None:
-        self.port = free_port()
-        self.config_path = root / "nanodrift.toml"
-        self.config_path.write_text(config.replace("@PORT@", str(self.port)))
-        self.daemon = Daemon(["--config", str(self.config_path)], root / "daemon.log",
-                             [plugins] if plugins is not None else [])
-        self.client: Client | None = None
-        self.health_samples: list[dict[str, Any]] = []
-        self._lock = threading.Lock()
-        try:
-            self.daemon.wait_log("serving", timeout=30)
-            self.client = Client(self.port, cell)
-            self._sub = self.client.session.declare_subscriber(f"nanodrift/{cell}/health", self._health)
-        except BaseException:
-            self.close()
-            raise
-
-    def _health(self, sample: Any) -> None:
-        with self._lock:
-            self.health_samples.append(json.loads(sample.payload.to_bytes()))
-
-    def samples(self) -> list[dict[str, Any]]:
-        with self._lock:
-            return list(self.health_samples)
-
-    def health(self) -> dict[str, Any]:
-        assert self.client is not None
-        return self.client.status()["health"]
-
-    def settle(self, x: float, target_id: object) -> dict[str, Any]:
-        """Serve ``x`` and wait until the health unit has its settled residual; the command."""
-        assert self.client is not None
-        before = self.health()["n"]
-        ok, command = self.client.query({"x_um": x, "id": target_id})
-        assert ok, command
-        wait_until(lambda: self.health()["n"] > before, 15, f"the settled residual of target {target_id}",
-                   interval=0.02)
-        return command
-
-    def close(self) -> int:
-        if self.client is not None:
-            self.client.close()
-        return self.daemon.stop()
-
-
 # --- over Zenoh, on the simulated cell -------------------------------------------------------------
 
 
 def test_a_model_with_its_bias_moved_goes_degraded_and_every_command_states_its_uncertainty(tmp_path: Path) -> None:
     model = shifted_model(tmp_path / "shifted.json", +0.3)
     config = sim_config("hbias", 0, tmp_path / "shifted.json").replace("127.0.0.1:0", "127.0.0.1:@PORT@")
-    cell = Cell(tmp_path, "hbias", config + f'[metrics]\nlisten = "127.0.0.1:{free_port()}"\n')
+    cell = HealthCell(tmp_path, "hbias", config + f'[metrics]\nlisten = "127.0.0.1:{free_port()}"\n')
     try:
         assert cell.client is not None
         cell.client.wait_ready(["T1", "T2", "T3", "T4", "interferometer"])
@@ -188,7 +137,7 @@ def test_the_right_model_stays_ok_and_adaptation_cancels_a_bias_after_a_reload(t
     adapt = 'mode = "bias"\ntau_s = 5.0\nmax_um = 1.0\n'
     config = sim_config("hadapt", 0, DEFAULT_MODEL_PATH, adapt=adapt, seed=6).replace("127.0.0.1:0",
                                                                                        "127.0.0.1:@PORT@")
-    cell = Cell(tmp_path, "hadapt", config)
+    cell = HealthCell(tmp_path, "hadapt", config)
     try:
         assert cell.client is not None
         cell.client.wait_ready(["T1", "T2", "T3", "T4", "interferometer"])
@@ -229,7 +178,7 @@ def test_without_a_position_sensor_health_is_unknown_and_extrapolation_raises_th
     """Test 5's room (beyond the training range from the start), no interferometer."""
     config = sim_config("hnone", 0, DEFAULT_MODEL_PATH, position=False, scenario="test5").replace(
         "127.0.0.1:0", "127.0.0.1:@PORT@")
-    cell = Cell(tmp_path, "hnone", config)
+    cell = HealthCell(tmp_path, "hnone", config)
     try:
         assert cell.client is not None
         cell.client.wait_ready(["T1", "T2", "T3", "T4"])
@@ -268,7 +217,7 @@ def test_a_faulted_or_stale_interferometer_never_feeds_the_monitor_or_the_tracke
              "interval_s = 0.05\nmax_age_s = 1.0\n")
     config = file_sensor_config(tmp_path, cell="hstale", port=0, model_path=model, sensor_file=sensors.path,
                                 extra=extra).replace("127.0.0.1:0", "127.0.0.1:@PORT@")
-    cell = Cell(tmp_path, "hstale", config, plugins)
+    cell = HealthCell(tmp_path, "hstale", config, plugins)
     try:
         client = cell.client
         assert client is not None

@@ -19,11 +19,9 @@ from typing import Any
 import pytest
 from helpers.daemon_harness import (
     TEMPS,
-    Client,
-    Daemon,
+    HealthCell,
     SensorFile,
     file_sensor_config,
-    free_port,
     install_file_plugin,
     wait_until,
     write_test_model,
@@ -32,42 +30,6 @@ from helpers.daemon_harness import (
 from daemon.calibration.dataset import Dataset, read_csv
 
 SETTLE_S, WINDOW_S = 0.1, 0.2
-
-
-class Cell:
-    """A daemon on the ``file`` plugin and a client on its cell."""
-
-    def __init__(self, root: Path, cell: str, config: str, plugins: Path) -> None:
-        port = free_port()
-        config_path = root / "nanodrift.toml"
-        config_path.write_text(config.replace("@PORT@", str(port)))
-        self.daemon = Daemon(["--config", str(config_path)], root / "daemon.log", [plugins])
-        self.client: Client | None = None
-        try:
-            self.daemon.wait_log("serving", timeout=30)
-            self.client = Client(port, cell)
-        except BaseException:
-            self.close()
-            raise
-
-    def health(self) -> dict[str, Any]:
-        assert self.client is not None
-        return self.client.status()["health"]
-
-    def settle(self, x: float, target_id: object) -> dict[str, Any]:
-        """Serve ``x`` and wait until the health unit has its settled residual; the command."""
-        assert self.client is not None
-        before = self.health()["n"]
-        ok, command = self.client.query({"x_um": x, "id": target_id})
-        assert ok, command
-        wait_until(lambda: self.health()["n"] > before, 15, f"the settled residual of target {target_id}",
-                   interval=0.02)
-        return command
-
-    def close(self) -> int:
-        if self.client is not None:
-            self.client.close()
-        return self.daemon.stop()
 
 
 @contextmanager
@@ -91,7 +53,7 @@ def live(sensors: SensorFile, ifm_um: float) -> Iterator[None]:
         thread.join(5)
 
 
-def start(tmp_path: Path, cell: str, ifm_keys: str, ifm_um: float) -> tuple[Cell, SensorFile]:
+def start(tmp_path: Path, cell: str, ifm_keys: str, ifm_um: float) -> tuple[HealthCell, SensorFile]:
     """T1, T2 and the position sensor ``ifm`` on one file; health on, bias adaptation on, records on."""
     plugins = install_file_plugin(tmp_path / "plugins")
     model = tmp_path / "model.json"
@@ -103,15 +65,15 @@ def start(tmp_path: Path, cell: str, ifm_keys: str, ifm_um: float) -> tuple[Cell
              f"interval_s = 0.05\nmax_age_s = 1.0\n{ifm_keys}")
     config = file_sensor_config(tmp_path, cell=cell, port=0, model_path=model, sensor_file=sensors.path,
                                 extra=extra).replace("127.0.0.1:0", "127.0.0.1:@PORT@")
-    return Cell(tmp_path, cell, config, plugins), sensors
+    return HealthCell(tmp_path, cell, config, plugins), sensors
 
 
-def ifm_status(cell: Cell) -> dict[str, Any]:
+def ifm_status(cell: HealthCell) -> dict[str, Any]:
     assert cell.client is not None
     return cell.client.status()["sensors"]["ifm"]
 
 
-def read_after(cell: Cell, command: dict[str, Any]) -> None:
+def read_after(cell: HealthCell, command: dict[str, Any]) -> None:
     """Until the daemon has a position reading stamped after the command's settle window."""
     client = cell.client
     assert client is not None
