@@ -7,10 +7,10 @@ stepwise selection chooses among them for every axis.
 
 Names use the axes' own letters, so a model file reads as physics: ``x``, ``x^2`` and ``x*T1`` are
 the one-axis terms (the ``x`` argument is always the x axis' position); ``y``, ``y^3``, ``x*y``,
-``y*z``, ``y*T1`` are these. They parse only for a multi-axis model (``parse_term(name, axes)``):
-in a one-axis file ``y`` stays a channel named ``y``. Their features read the other axes' positions
-from ``channels[position_key(axis)]`` over a series (``daemon.model.segments.features`` puts them
-there) and from :meth:`TermStream.targets` in the daemon.
+``y*z``, ``y*T1``, ``dir(y)`` and ``creep(y, 15 s)`` are these. They parse only for a multi-axis
+model (``parse_term(name, axes)``): in a one-axis file ``y`` stays a channel named ``y``. Their
+features read the other axes' positions from ``channels[position_key(axis)]`` over a series
+(``daemon.model.segments.features`` puts them there) and from :meth:`TermStream.targets` in the daemon.
 """
 
 from __future__ import annotations
@@ -21,13 +21,17 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from daemon.model.effect_terms import CREEP_DEADBAND_UM, Creep, _CreepStream
 from daemon.model.terms import (
     _CHANNEL,
+    _NUMBER,
     MAX_POWER,
     Channels,
+    Direction,
     Term,
     TermStream,
     _ChannelStream,
+    _DirectionStream,
     position_key,
     register_axis_term,
 )
@@ -163,9 +167,91 @@ class AxisCoupling(Term):
         return _AxisCouplingStream(self.axis, self.channel)
 
 
+class _AxisDirectionStream(_DirectionStream):
+    __slots__ = ("axis", "positions")
+
+    def __init__(self, axis: str, deadband: float) -> None:
+        super().__init__(deadband)
+        self.axis = axis
+        self.positions: Mapping[str, float] = {}
+
+    def targets(self, positions: Mapping[str, float]) -> None:
+        self.positions = positions
+
+    def value(self, t: float, x: float) -> float:
+        return super().value(t, self.positions.get(self.axis, math.nan))
+
+    def moved(self, t: float, x: float) -> None:
+        super().moved(t, self.positions.get(self.axis, math.nan))
+
+
+class AxisDirection(Direction):
+    """``dir(y)``: the direction of the last step of axis y (hysteresis of that axis' piezo stack)."""
+
+    def __init__(self, axis: str, deadband_um: float = 0.5) -> None:
+        if axis == "x":
+            raise ValueError("the x axis' direction is the one-axis term dir")
+        super().__init__(deadband_um)
+        self.axis = axis
+        self.axes = (axis,)
+
+    @property
+    def name(self) -> str:
+        return f"dir({self.axis})" if self.deadband_um == 0.5 else f"dir({self.axis}, {self.deadband_um:g} um)"
+
+    def batch(self, t: np.ndarray, x: np.ndarray, channels: Channels) -> np.ndarray:
+        return super().batch(t, _position(self.axis, x, channels), channels)
+
+    def stream(self) -> TermStream:
+        return _AxisDirectionStream(self.axis, self.deadband_um)
+
+
+class _AxisCreepStream(_CreepStream):
+    __slots__ = ("axis", "positions")
+
+    def __init__(self, axis: str, tau_s: float, deadband: float) -> None:
+        super().__init__(tau_s, deadband)
+        self.axis = axis
+        self.positions: Mapping[str, float] = {}
+
+    def targets(self, positions: Mapping[str, float]) -> None:
+        self.positions = positions
+
+    def value(self, t: float, x: float) -> float:
+        return super().value(t, self.positions.get(self.axis, math.nan))
+
+    def moved(self, t: float, x: float) -> None:
+        super().moved(t, self.positions.get(self.axis, math.nan))
+
+
+class AxisCreep(Creep):
+    """``creep(y, 15 s)``: axis y's steps, each decaying with time constant τ (that axis' piezo creep)."""
+
+    def __init__(self, axis: str, tau_s: float, deadband_um: float = CREEP_DEADBAND_UM) -> None:
+        if axis == "x":
+            raise ValueError("the x axis' creep is the one-axis term creep(τ s)")
+        super().__init__(tau_s, deadband_um)
+        self.axis = axis
+        self.axes = (axis,)
+
+    @property
+    def name(self) -> str:
+        if self.deadband_um == CREEP_DEADBAND_UM:
+            return f"creep({self.axis}, {self.tau_s:g} s)"
+        return f"creep({self.axis}, {self.tau_s:g} s, {self.deadband_um:g} um)"
+
+    def batch(self, t: np.ndarray, x: np.ndarray, channels: Channels) -> np.ndarray:
+        return super().batch(t, _position(self.axis, x, channels), channels)
+
+    def stream(self) -> TermStream:
+        return _AxisCreepStream(self.axis, self.tau_s, self.deadband_um)
+
+
 _POWER = re.compile(r"^(?P<axis>[a-z])(?:\^(?P<k>[1-9]\d*))?$")
 _PRODUCT = re.compile(r"^(?P<a>[a-z])\s*\*\s*(?P<b>[a-z])$")
 _COUPLING = re.compile(rf"^(?P<axis>[a-z])\s*\*\s*(?P<ch>{_CHANNEL})$")
+_DIRECTION = re.compile(rf"^dir\(\s*(?P<axis>[a-z])\s*(?:,\s*(?P<db>{_NUMBER})\s*um\s*)?\)$")
+_CREEP = re.compile(rf"^creep\(\s*(?P<axis>[a-z])\s*,\s*(?P<tau>{_NUMBER})\s*s\s*(?:,\s*(?P<db>{_NUMBER})\s*um\s*)?\)$")
 
 
 def _parse(name: str, axes: tuple[str, ...]) -> Term | None:
@@ -176,6 +262,10 @@ def _parse(name: str, axes: tuple[str, ...]) -> Term | None:
         return AxisProduct(m["a"], m["b"])
     if (m := _COUPLING.match(name)) and m["axis"] in axes and m["axis"] != "x" and m["ch"] not in axes:
         return AxisCoupling(m["axis"], m["ch"])
+    if (m := _DIRECTION.match(name)) and m["axis"] in axes and m["axis"] != "x":
+        return AxisDirection(m["axis"], float(m["db"]) if m["db"] else 0.5)
+    if (m := _CREEP.match(name)) and m["axis"] in axes and m["axis"] != "x":
+        return AxisCreep(m["axis"], float(m["tau"]), float(m["db"]) if m["db"] else CREEP_DEADBAND_UM)
     return None
 
 
