@@ -87,6 +87,8 @@ class Dataset:
     positions: dict[str, np.ndarray] = field(default_factory=dict)
     #: a multi-axis run: the command sent per axis (``q_<axis>_um``), when recorded; empty for one axis
     commands: dict[str, np.ndarray] = field(default_factory=dict)
+    #: the axis whose command ``q`` is (:meth:`axis_view`); ``x`` for a one-axis run
+    axis: str = "x"
 
     def __len__(self) -> int:
         return int(self.t.shape[0])
@@ -100,6 +102,11 @@ class Dataset:
     def multi_axis(self) -> bool:
         return len(self.positions) > 1
 
+    @property
+    def own_position(self) -> np.ndarray:
+        """The position of :attr:`axis` (``x`` for a one-axis run): what its own motion terms read."""
+        return self.positions[self.axis] if self.multi_axis else self.x
+
     def axis_view(self, axis: str) -> Dataset:
         """The rows as identification of ``axis`` sees them: its command as ``q``, every axis' position kept.
 
@@ -111,7 +118,7 @@ class Dataset:
         if not self.multi_axis:
             return self
         return Dataset(self.t, self.x, self.commands.get(axis), self.channels, self.extra,
-                       f"{self.source} (axis {axis})", self.segment, self.positions, self.commands)
+                       f"{self.source} (axis {axis})", self.segment, self.positions, self.commands, axis)
 
     @property
     def channel_names(self) -> tuple[str, ...]:
@@ -129,6 +136,7 @@ class Dataset:
             segment=None if self.segment is None else self.segment[rows],
             positions={k: v[rows] for k, v in self.positions.items()},
             commands={k: v[rows] for k, v in self.commands.items()},
+            axis=self.axis,
         )
 
     def valid_rows(self) -> Dataset:
@@ -349,7 +357,7 @@ def concat(datasets: Sequence[Dataset], channels: Sequence[str] | None = None) -
         if list(ds.channels) == wanted:
             return ds
         return Dataset(ds.t, ds.x, ds.q, {c: ds.channels[c] for c in wanted}, ds.extra, ds.source, ds.segment,
-                       ds.positions, ds.commands)
+                       ds.positions, ds.commands, ds.axis)
     commands = [d.q for d in datasets if d.q is not None]
     extra: dict[str, np.ndarray] = {}
     names = [n for n in datasets[0].extra if all(n in d.extra for d in datasets[1:])]

@@ -61,6 +61,8 @@ EFFECT_WORDS = {
     "unmonitored_drift": "an unmonitored drift",
     "sensor_exclusion": "leaving a sensor out",
     "missing_channel": "a channel the model left out",
+    "crosstalk": "crosstalk from another axis",
+    "coupled_bending": "coupled bending of two axes",
 }
 
 BEFORE_COLOR, AFTER_COLOR = WITH_COLOR, WITHOUT_COLOR  # given model: orange, extended: blue
@@ -323,6 +325,10 @@ def format_params(c: Candidate) -> str:
         parts.append(f"channel {p['channel']}")
     elif c.effect == "sensor_exclusion":
         parts.append(f"leave {p['channel']} out")
+    elif c.effect == "crosstalk":
+        parts.append(f"from axis {p['axis']}")
+    elif c.effect == "coupled_bending":
+        parts.append(f"term {p['axes']}")
     if p.get("deferred_to"):
         parts.append(f"deferred to the same effect on {p['deferred_to']}, the fastest channel (rule 5)")
     if p.get("alike"):

@@ -3,10 +3,12 @@
 Pure computation (numpy/scipy, no I/O). The method, step by step and with its special rules, is in
 ``METHOD.md`` beside this file. The modules, in the order the workflow uses them: ``settings`` (the
 bar), ``diagnostics`` (residual structure), ``workspace`` (the regression), ``candidates`` (judging
-one), ``catalogue`` (the effects), ``workflow`` (the loop), ``summary`` (the finding in words).
+one), ``catalogue`` (the effects), ``workflow`` (the loop), ``summary`` (the finding in words);
+``cell``: the loop per axis of a multi-axis cell.
 """
 
 from daemon.calibration.discovery.candidates import Candidate
+from daemon.calibration.discovery.cell import CellDiscoveryResult, discover_cell
 from daemon.calibration.discovery.workflow import DiscoveryError, DiscoveryResult, discover
 
-__all__ = ["Candidate", "DiscoveryError", "DiscoveryResult", "discover"]
+__all__ = ["Candidate", "CellDiscoveryResult", "DiscoveryError", "DiscoveryResult", "discover", "discover_cell"]
