@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import sys
 from pathlib import Path
 
@@ -41,7 +40,7 @@ from daemon.procedure.recording import (
     record_calibration,
     resume_hint,
 )
-from daemon.procedure.serving import ServeError, check_writable, serve_model
+from daemon.procedure.serving import ServeError, check_writable, serve_model, toml_string
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -142,7 +141,7 @@ def narrow_warnings(data: Path) -> list[str]:
 def serving_lines(args: argparse.Namespace, config: Config, model: Model) -> str:
     """Which config serves the new model, and how to make it (or a reload) do so."""
     out = Path(args.out).resolve()
-    path_line = f"[model] path = {json.dumps(str(out), ensure_ascii=False)}"
+    path_line = f"[model] path = {toml_string(str(out))}"
     if not args.config:
         return (f"served by: no config yet (nanodrift run with no --config serves the shipped model); to serve "
                 f"{model.id}: put {path_line} in a config (e.g. a copy of config/sim.toml), then "

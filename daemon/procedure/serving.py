@@ -8,7 +8,6 @@ serve the new model is never written.
 
 from __future__ import annotations
 
-import json
 import os
 import re
 import tomllib
@@ -27,6 +26,12 @@ _PATH_KEY = re.compile(r"^(?P<indent>\s*)path\s*=")
 NOTE = "nanodrift calibrate --serve"
 
 
+def toml_string(value: str) -> str:
+    """``value`` as a TOML basic string: quotes, backslashes and control characters (DEL too) escaped."""
+    escaped = value.replace("\\", "\\\\").replace('"', '\\"')
+    return '"' + "".join(f"\\u{ord(c):04x}" if ord(c) < 0x20 or ord(c) == 0x7F else c for c in escaped) + '"'
+
+
 class ServeError(Exception):
     """The config cannot be made to serve the model; the message says why and what to do by hand."""
 
@@ -41,15 +46,19 @@ def check_writable(config_path: Path) -> None:
                              "[model] path by hand")
 
 
+def _is_model_header(line: str) -> bool:
+    found = _HEADER.match(line)
+    return found is not None and not line.lstrip().startswith("[[") and found["name"].strip("\"' ") == "model"
+
+
 def with_model_path(text: str, model_path: Path, note: str) -> str:
     """``text`` with ``[model] path = "<model_path>"``: the existing line replaced (kept as a comment above
     it, ``note`` saying by whom), or a new line at the end of the table's first paragraph, or a new table."""
     newline = "\r\n" if "\r\n" in text else "\n"
-    lines = text.splitlines(keepends=True)
-    value = f"path = {json.dumps(str(model_path), ensure_ascii=False)}"
+    lines = [line for line in re.split(r"(?<=\n)", text) if line]  # TOML's lines: not str.splitlines' (\x85, ...)
+    value = f"path = {toml_string(str(model_path))}"
     headers = [i for i, line in enumerate(lines) if _HEADER.match(line)]
-    start = next((i for i in headers if _HEADER.match(lines[i])["name"].strip("\"' ") == "model"  # type: ignore[index]
-                  and not lines[i].lstrip().startswith("[[")), None)
+    start = next((i for i in headers if _is_model_header(lines[i])), None)
     if start is None:
         ending = "" if not text or text.endswith(("\n", "\r")) else newline
         return f"{text}{ending}{newline}[model]{newline}{value}   # {note}{newline}"
@@ -91,7 +100,7 @@ def serve_model(config_path: Path, model_path: Path) -> bool:
     check_writable(config_path)
     model_path = model_path.resolve()
     text = config_path.read_text(encoding="utf-8")
-    by_hand = f"it is unchanged: set [model] path = {json.dumps(str(model_path), ensure_ascii=False)} by hand"
+    by_hand = f"it is unchanged: set [model] path = {toml_string(str(model_path))} by hand"
     try:
         if _served_path(text, config_path) == model_path:
             return False
