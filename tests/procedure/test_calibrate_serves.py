@@ -14,6 +14,7 @@ import tomllib
 from pathlib import Path
 
 import pytest
+from helpers.daemon_harness import Client, Daemon, free_port
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -46,6 +47,21 @@ def test_calibrate_serve_makes_the_shipped_config_serve_a_model_that_passes_stri
     assert len(added) == 1 and NOTE in added[0]
     assert main(["check-config", "--strict", str(config)]) == 0
     assert f"model: {out.resolve()} ({model.id})" in capsys.readouterr().out
+    # the daemon on that config serves the new model in its room, and 0 µm is no extrapolation
+    port = free_port()
+    daemon = Daemon(["--config", str(config), "-l", f"tcp/127.0.0.1:{port}"], tmp_path / "daemon.log")
+    try:
+        assert daemon.wait_log("serving", timeout=30)["model"] == model.id
+        client = Client(port, "cell0")
+        try:
+            client.wait_ready(model.channels, timeout=30)
+            for x_um in (0.0, 480.0):
+                ok, command = client.query({"x_um": x_um, "id": 1})
+                assert ok and command["model"] == model.id and command["extrapolating"] == [], command
+        finally:
+            client.close()
+    finally:
+        assert daemon.stop() == 0
     # calibrating again into the same file leaves the config alone (no pile of comments)
     before = config.read_text()
     assert main(["calibrate", "--config", str(config), "--out", str(out), "--data", str(tmp_path / "again.csv"),
