@@ -131,11 +131,15 @@ def main(args: argparse.Namespace) -> int:
 
 
 def narrow_warnings(data: Path) -> list[str]:
-    """A channel whose calibration range is below :data:`NARROW_RANGE_C`: its effect is barely measured."""
-    return [f"{name} varied only {hi - lo:.3f} °C during the calibration ({lo:.3f}..{hi:.3f} °C), less than "
-            f"{NARROW_RANGE_C:g} °C: its coefficient is mostly noise, and the model extrapolates as soon as the "
-            "room moves further; calibrate while the room swings wider (the simulated cell: --scenario train)"
-            for name, (lo, hi) in narrow_channels(data).items()]
+    """A line per channel whose calibration range is below :data:`NARROW_RANGE_C`, then what it means."""
+    narrow = narrow_channels(data)
+    if not narrow:
+        return []
+    return [f"{name} varied only {hi - lo:.3f} °C during the calibration ({lo:.3f}..{hi:.3f} °C)"
+            for name, (lo, hi) in narrow.items()] + [
+        f"a range below {NARROW_RANGE_C:g} °C is too narrow to trust: the channel's coefficient is mostly noise, and "
+        "the model extrapolates as soon as the room moves further; calibrate while the room swings wider (on the "
+        "simulated cell: --scenario train, the default)"]
 
 
 def serving_lines(args: argparse.Namespace, config: Config, model: Model) -> str:
@@ -146,8 +150,8 @@ def serving_lines(args: argparse.Namespace, config: Config, model: Model) -> str
         return (f"served by: no config yet (nanodrift run with no --config serves the shipped model); to serve "
                 f"{model.id}: put {path_line} in a config (e.g. a copy of config/sim.toml), then "
                 "nanodrift run --config F; or calibrate with --config F --serve")
-    reload = ("a running daemon applies it on reload (systemctl reload nanodrift, or kill -HUP its pid); check "
-              f"first: nanodrift check-config {args.config} --strict")
+    reload = ("the daemon takes it at its next start or reload (systemctl start or reload nanodrift; by hand: "
+              f"kill -HUP its pid); check first: nanodrift check-config {args.config} --strict")
     if args.serve or Path(config.model.path).resolve() == out:
         verb = "now serves" if args.serve else "serves"
         return f"served by: {args.config} {verb} {model.id} ({path_line}); {reload}"

@@ -97,6 +97,7 @@ def serve_model(config_path: Path, model_path: Path) -> bool:
     The new text must parse, pass the daemon's config checks and name ``model_path`` as its model;
     otherwise :class:`ServeError` and the file is untouched.
     """
+    config_path = config_path.resolve()  # a symlinked config: its file is edited, the link stays a link
     check_writable(config_path)
     model_path = model_path.resolve()
     text = config_path.read_text(encoding="utf-8")
