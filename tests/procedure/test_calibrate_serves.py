@@ -119,6 +119,7 @@ def test_a_temperature_range_too_narrow_to_trust_is_warned_about_by_name(
         span = float(values.max() - values.min())
         assert span < NARROW_RANGE_C  # the room: every channel narrow
         assert f"warning: {name} varied only {span:.3f} °C during the calibration" in err, err
+    assert f"a range below {NARROW_RANGE_C:g} °C is too narrow to trust" in err
     assert "varied only" not in printed  # warnings on stderr, the result on stdout
     assert "model -> " in printed and "trained on x 0.0.." in printed and "served by: no config yet" in printed
 
