@@ -47,11 +47,15 @@ def add_config_flag(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", metavar="F", help="operator config (TOML); none: the built-in simulated cell")
 
 
-def add_simulation_flags(parser: argparse.ArgumentParser, default_scenario: str) -> None:
-    """For the simulated cell (no --config, or a config with simulated sensors): override [simulation]."""
+def add_simulation_flags(parser: argparse.ArgumentParser, default_scenario: str, *,
+                         over_config: bool = False) -> None:
+    """For the simulated cell (no --config, or a config with simulated sensors): override [simulation].
+
+    ``over_config``: ``default_scenario`` applies with a config too (see :func:`open_cell`)."""
+    default = (f"{default_scenario}, whatever the config's [simulation] scenario (the room the daemon serves in)"
+               if over_config else f"{default_scenario} with no --config, else the config's [simulation] scenario")
     parser.add_argument("--scenario", metavar="S",
-                        help=f"simulated room history, one of {scenario_names()} (default: {default_scenario} "
-                             "with no --config, else the config's [simulation] scenario)")
+                        help=f"simulated room history, one of {scenario_names()} (default: {default})")
     parser.add_argument("--effects", metavar="a,b",
                         help=f"hidden effects of the simulated cell, from {effect_names()} "
                              "(default: none, or the config's)")
@@ -66,15 +70,19 @@ def add_output_check_flag(parser: argparse.ArgumentParser) -> None:
                         help="start even when no output node is subscribed to nanodrift/<cell>/command")
 
 
-def open_cell(args: argparse.Namespace, default_scenario: str, start_s: float = 0.0) -> tuple[Config, DriverSet]:
+def open_cell(args: argparse.Namespace, default_scenario: str, start_s: float = 0.0, *,
+              over_config: bool = False) -> tuple[Config, DriverSet]:
     """The config of ``--config`` (or the built-in simulated cell) and its drivers for a procedure.
 
     ``--scenario/--effects/--seed`` override the ``[simulation]`` table when given; the seed the
-    simulated cell then runs with is :func:`scenario_seed` of that seed and scenario.
+    simulated cell then runs with is :func:`scenario_seed` of that seed and scenario. Without
+    ``--scenario`` the simulated room is ``default_scenario`` with no config; with one, the config's
+    ``[simulation] scenario``, unless ``over_config`` (calibrate: the config's scenario is the room the
+    daemon serves in, and a calibration needs the paper's training room, whatever the daemon serves in).
     """
     config = load_config(args.config)
     updates: dict[str, Any] = {}
-    scenario = args.scenario or (default_scenario if args.config is None else None)
+    scenario = args.scenario or (default_scenario if args.config is None or over_config else None)
     try:
         if scenario:
             get_scenario(scenario)
