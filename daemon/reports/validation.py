@@ -10,7 +10,7 @@
 PNGs are 150 dpi; the SVGs keep text as text. Every figure carries a footer saying where it came
 from (:func:`add_provenance`: the model id, its data file, the cell and seed).
 - ``validation_raw.csv``: one row per step: test, cycle, target, command, measured position, the
-  computed uncompensated position, validity and the temperatures; on a simulated cell also
+  computed uncompensated position, validity and the temperatures; on a simulated cell a last column,
   ``x_true_um``, the position the stage truly attained (hardware has no such column).
 
 On a simulated cell every figure is also given against the true position (``TestResult.x_true_um``):
@@ -107,14 +107,15 @@ def raw_csv(results: Sequence[TestResult]) -> str:
     truth = any(r.has_truth for r in results)  # a simulated cell: the column hardware cannot have
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")
-    writer.writerow(["test", "t_s", "cycle", "target_um", "q_um", "x_measured_um", "x_without_um",
-                     *(["x_true_um"] if truth else []), "valid", *channels])
+    writer.writerow(["test", "t_s", "cycle", "target_um", "q_um", "x_measured_um", "x_without_um", "valid",
+                     *channels, *(["x_true_um"] if truth else [])])
     for r in results:
         trues = r.x_true_um if r.has_truth else [math.nan] * len(r.steps)
         for s, x_true in zip(r.steps, trues, strict=True):
             writer.writerow([r.name, repr(s.t_s), s.step.cycle, repr(s.step.target_um), repr(s.q_um), repr(s.x_um),
-                             repr(x_without(s)), *([repr(x_true)] if truth else []), int(s.valid),
-                             *(repr(s.temperatures.get(c, math.nan)) for c in channels)])
+                             repr(x_without(s)), int(s.valid),
+                             *(repr(s.temperatures.get(c, math.nan)) for c in channels),
+                             *([repr(x_true)] if truth else [])])
     return out.getvalue()
 
 
