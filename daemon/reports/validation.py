@@ -188,6 +188,14 @@ def _footer_fraction(fig: Any, provenance: str) -> float:
     return FOOTER_IN / fig.get_figheight() if provenance else 0.0
 
 
+def with_footer(fig: Any, provenance: str) -> Any:
+    """A figure drawn without a footer, given one (:func:`add_provenance`) and laid out again above it."""
+    if provenance:
+        add_provenance(fig, provenance)
+        fig.tight_layout(rect=(0, _footer_fraction(fig, provenance), 1, 1))
+    return fig
+
+
 def figure_drift(results: Sequence[TestResult], *, provenance: str = "", training: Training | None = None) -> Any:
     """After the paper's Fig. 9 and 10: per test, the drift at x' = 0 over time, and the temperatures
     with each channel's training range shaded (a test outside it is a model extrapolating)."""
