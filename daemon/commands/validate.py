@@ -38,6 +38,8 @@ from daemon.model.model import Model, ModelFileError, load_model
 from daemon.procedure.validation import run_validation
 from daemon.reports.validation import provenance_text, table1, truth_table, write_report
 from drivers.simulated.config import SECTION, SimulationConfig
+from drivers.simulated.effects import UnknownNameError
+from drivers.simulated.scenarios import get_scenario
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -75,6 +77,11 @@ def main(args: argparse.Namespace) -> int:
             raise UserError(f"--adapt-tau-s must be > 0 and --adapt-max-um >= 0, got {args.adapt_tau_s:g}, "
                             f"{args.adapt_max_um:g}")
     scenarios = scenario_list(args.scenario)
+    for scenario in scenarios:  # every name checked before the first test runs
+        try:
+            get_scenario(scenario)
+        except UnknownNameError as err:
+            raise UserError(f"--scenario: {err}") from None
     given = load_config(args.config)  # as given, before --scenario/--seed override its [simulation]
     if len(scenarios) > 1 and not given.virtual_cell:
         raise UserError(f"several --scenario ({', '.join(scenarios)}) need the simulated cell; "

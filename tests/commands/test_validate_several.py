@@ -90,3 +90,11 @@ def test_several_tests_on_hardware_are_refused_before_anything_moves(model_path,
     assert main(["validate", "--config", lab, "--model", model_path, "--scenario", "test2,test3"]) == 2
     err = capsys.readouterr().err
     assert "several --scenario (test2, test3) need the simulated cell" in err and "lab.toml" in err
+
+
+def test_an_unknown_test_among_several_is_refused_before_the_first_runs(model_path, tmp_path, capsys) -> None:
+    report = tmp_path / "report"
+    assert main(["validate", "--model", model_path, "--scenario", "test2,test9", "--report", str(report)]) == 2
+    err = capsys.readouterr().err
+    assert "unknown scenario 'test9'" in err and "valid scenarios: steady, train" in err
+    assert not report.exists()
