@@ -229,7 +229,7 @@ def _draw_drift(plt: Any, results: Sequence[TestResult], training: Training | No
         if r.has_truth:
             true_zero = [x for s, x in zip(r.steps, r.x_true_um, strict=True) if s.step.target_um == 0.0 and s.valid]
             ax.plot(hours, [1e3 * x for x in true_zero], "-", lw=1.0, color="0.15",
-                    label="true position (simulated cell; no interferometer noise)")
+                    label="true position (simulated cell: no interferometer noise or wander)")
         ax.set_title(f"{r.name} ({'with' if r.compensated else 'without'} compensation): position at x′ = 0 µm")
         ax.set_ylabel("drift at x′ = 0 µm (nm)")
         ax.grid(alpha=0.3)
