@@ -15,6 +15,7 @@ import argparse
 import asyncio
 import json
 import sys
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -88,19 +89,15 @@ def main(args: argparse.Namespace) -> int:
                         f"{given.source} drives hardware")
     asked: list[str | None] = list(scenarios) or [None]  # None: the config's (or the default) room
     runs = [_run_one(args, model, scenario) for scenario in asked]
-    results = [result for result, _, _, _ in runs]
-    trackers = [tracker for _, tracker, _, _ in runs]
-    config, drivers = runs[0][2], runs[0][3]
+    results = [run.result for run in runs]
+    config = runs[0].config
     text = table1(results)
     truth = truth_table(results)
-    doc: dict[str, Any] = {"model": model.id, "backend": drivers.description, "cycles": args.cycles}
-    if len(results) == 1:
-        doc.update(results[0].to_dict())
-        if trackers[0] is not None:
-            doc["adapt"] = _adapt_doc(trackers[0])
+    doc: dict[str, Any] = {"model": model.id, "backend": runs[0].drivers.description, "cycles": args.cycles}
+    if len(runs) == 1:  # one test: the document validate always printed
+        doc.update(runs[0].to_dict())
     else:
-        doc["tests"] = [r.to_dict() | ({"adapt": _adapt_doc(t)} if t is not None else {})
-                        for r, t in zip(results, trackers, strict=True)]
+        doc["tests"] = [run.to_dict() for run in runs]
     if args.report:
         report_text = text + (f"\n\n{truth}" if truth else "")
         files = write_report(results, args.report, report_text, doc, training=model.training,
@@ -113,14 +110,29 @@ def main(args: argparse.Namespace) -> int:
     print(text)
     if truth:
         print(f"\n{truth}")
-    for result, tracker, _, _ in runs:
-        _print_details(result, tracker, compensate, several=len(results) > 1)
+    for run in runs:
+        _print_details(run.result, run.tracker, compensate, several=len(runs) > 1)
     return 0
 
 
-def _run_one(args: argparse.Namespace, model: Model, scenario: str | None
-             ) -> tuple[TestResult, BiasTracker | None, Config, DriverSet]:
-    """One test on a fresh cell: its result, its tracker (``--adapt``), the config and drivers it ran on."""
+@dataclass
+class ValidationRun:
+    """One test as it ran: its result, its tracker (``--adapt``), the config and drivers of its cell."""
+
+    result: TestResult
+    tracker: BiasTracker | None
+    config: Config
+    drivers: DriverSet
+
+    def to_dict(self) -> dict[str, Any]:
+        doc = self.result.to_dict()
+        if self.tracker is not None:
+            doc["adapt"] = {"mode": "bias", "tau_s": self.tracker.tau_s, "max_um": self.tracker.max_um}
+        return doc
+
+
+def _run_one(args: argparse.Namespace, model: Model, scenario: str | None) -> ValidationRun:
+    """One test on a fresh cell (``scenario`` None: the config's room, or test2 with no config)."""
     config, drivers = open_cell(argparse.Namespace(**{**vars(args), "scenario": scenario}), "test2")
     name = scenario or ("test2" if args.config is None else "validation")
     compensate = not args.no_compensation
@@ -133,11 +145,7 @@ def _run_one(args: argparse.Namespace, model: Model, scenario: str | None
                                             true_position=simulated_truth(drivers)))
     except ValueError as err:
         raise UserError(str(err)) from None
-    return result, tracker, config, drivers
-
-
-def _adapt_doc(tracker: BiasTracker) -> dict[str, Any]:
-    return {"mode": "bias", "tau_s": tracker.tau_s, "max_um": tracker.max_um}
+    return ValidationRun(result, tracker, config, drivers)
 
 
 def _cell_text(config: Config, given: Config, args: argparse.Namespace, results: list[TestResult]) -> str:
