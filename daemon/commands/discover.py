@@ -69,8 +69,10 @@ def main(args: argparse.Namespace) -> int:
     if args.report:
         # matplotlib (slow to import) only when a report is asked for; not a cycle
         from daemon.reports.discovery import write_report
+        from daemon.reports.validation import provenance_text
 
-        write_report(result, args.report, model_out)
+        footer = provenance_text(model.id, model.provenance.get("data_file"), f"discovered on {', '.join(paths)}")
+        write_report(result, args.report, model_out, provenance=footer)
     if args.json:
         print(json.dumps(result.to_dict(model_out), indent=2, allow_nan=False))
     else:

@@ -34,7 +34,7 @@ import numpy as np
 from daemon.atomic import atomic_write_text
 from daemon.calibration.discovery import Candidate, DiscoveryResult
 from daemon.calibration.discovery.settings import Settings
-from daemon.reports.validation import STYLE, WITH_COLOR, WITHOUT_COLOR, save_figure
+from daemon.reports.validation import STYLE, WITH_COLOR, WITHOUT_COLOR, save_figure, with_footer
 
 #: where the method is written out in full (the report's Method section points there)
 METHOD_DOC = "daemon/calibration/discovery/METHOD.md"
@@ -465,8 +465,11 @@ def markdown(result: DiscoveryResult, figures: Sequence[str], model_out: str | N
     return "\n".join(lines)
 
 
-def write_report(result: DiscoveryResult, directory: str | Path, model_out: str | None = None) -> list[Path]:
-    """Write the figures (PNG + SVG) and ``report.md`` into ``directory``; returns the files written."""
+def write_report(result: DiscoveryResult, directory: str | Path, model_out: str | None = None, *,
+                 provenance: str = "") -> list[Path]:
+    """Write the figures (PNG + SVG) and ``report.md`` into ``directory``; returns the files written.
+
+    ``provenance``: each figure's footer (the model and the data files it was run on)."""
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
@@ -476,7 +479,7 @@ def write_report(result: DiscoveryResult, directory: str | Path, model_out: str 
     ]
     drawings.append(("gap", lambda: figure_gap(result)))
     for stem, draw in drawings:
-        fig = draw()
+        fig = with_footer(draw(), provenance)
         try:
             written += save_figure(fig, out / stem)
         finally:
