@@ -433,3 +433,8 @@ class VirtualCellPlugin(DriverPlugin):
     def make_clock(self, section: BaseModel | None, *, virtual_start_s: float | None = None) -> Clock:
         """The cell's clock: scaled wall time for the daemon, or (``virtual_start_s`` given) a virtual
         clock whose sleeps take no wall time, for procedures."""
+
+    def timing_warnings(self, section: BaseModel | None, sensors: Sequence[tuple[int, SensorConfig]]) -> list[str]:
+        """What ``check-config`` warns about the sensors' timing on this cell's clock (every sensor: the
+        daemon judges them all on it), e.g. a ``max_age_s`` a sped-up clock cannot keep fresh."""
+        return []

@@ -131,7 +131,13 @@ class SimulatedPlugin(VirtualCellPlugin):
         return SimulatedActuator(shared_cell(context))
 
     def default_sensors(self, section: BaseModel) -> list[SensorConfig]:
-        return list(default_sensor_configs())
+        speed = section.speed if isinstance(section, SimulationConfig) else 1.0
+        return list(default_sensor_configs(speed=speed))
+
+    def timing_warnings(self, section: BaseModel | None, sensors: Sequence[tuple[int, SensorConfig]]) -> list[str]:
+        """Sensors (of any kind: the whole daemon runs on the cell's clock) too fast for ``speed``."""
+        config = section if isinstance(section, SimulationConfig) else SimulationConfig()
+        return config.timing_warnings(sensors)
 
     def make_clock(self, section: BaseModel | None, *, virtual_start_s: float | None = None) -> Clock:
         if virtual_start_s is not None:
@@ -143,11 +149,20 @@ class SimulatedPlugin(VirtualCellPlugin):
 PLUGIN = SimulatedPlugin()
 
 
-def default_sensor_configs(interferometer_interval_s: float = 0.1, thermocouple_interval_s: float = 0.5
-                           ) -> list[SimulatedSensorConfig]:
-    """The paper's cell: T1..T4 and the interferometer (what a config with no sensors runs)."""
-    temps = [SimulatedSensorConfig(name=n, role="temperature", interval_s=thermocouple_interval_s, max_age_s=5.0)
+def default_sensor_configs(interferometer_interval_s: float = 0.1, thermocouple_interval_s: float = 0.5, *,
+                           speed: float = 1.0) -> list[SimulatedSensorConfig]:
+    """The paper's cell: T1..T4 and the interferometer (what a config with no sensors runs).
+
+    On a fast clock the intervals and ages grow to what the daemon serves at ``speed`` (in cell seconds:
+    :attr:`SimulationConfig.min_interval_s`, :attr:`SimulationConfig.min_max_age_s`): the paper's 0.5 s
+    and 5 s at speed 10000 are 50 µs and 0.5 ms of wall time, which no poller keeps.
+    """
+    limits = SimulationConfig(speed=speed)
+    tc_interval_s = max(thermocouple_interval_s, limits.min_interval_s)
+    position_interval_s = max(interferometer_interval_s, limits.min_interval_s)
+    temps = [SimulatedSensorConfig(name=n, role="temperature", interval_s=tc_interval_s,
+                                   max_age_s=max(5.0, limits.min_max_age_s, 3 * tc_interval_s))
              for n in ("T1", "T2", "T3", "T4")]
-    position = SimulatedSensorConfig(name=POSITION_CHANNEL, role="position",
-                                     interval_s=interferometer_interval_s, max_age_s=1.0)
+    position = SimulatedSensorConfig(name=POSITION_CHANNEL, role="position", interval_s=position_interval_s,
+                                     max_age_s=max(1.0, limits.min_max_age_s, 3 * position_interval_s))
     return [*temps, position]
