@@ -8,6 +8,7 @@ seed = 0
 effects = ["thermal_lag", "hysteresis"]          # or a table with parameters:
 # effects = { thermal_lag = { tau_s = 1800.0 }, creep = {} }
 params = { interferometer_noise_um = 0.01 }      # overrides of the cell's baseline magnitudes
+truth_log = "truth.csv"       # every interferometer reading beside the true position (benchmarks/week.py)
 ```
 """
 
@@ -56,6 +57,10 @@ class SimulationConfig(StrictModel):
         default_factory=list, description="hidden effects: names, or name -> {param = value}"
     )
     params: dict[str, float] = Field(default_factory=dict, description="overrides of CellParams magnitudes")
+    truth_log: str = Field(
+        default="", description='"" = off; else a CSV the cell appends every interferometer reading to, beside the '
+                                "true attained position (t_s on the cell's clock, q_um, true_x_um, measured_x_um): "
+                                "what a benchmark scores the daemon against")
 
     @field_validator("scenario")
     @classmethod

@@ -10,7 +10,8 @@ four thermocouples); the interferometer is a group of its own.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
 from typing import ClassVar, Literal
 
 from pydantic import BaseModel
@@ -45,7 +46,7 @@ def shared_cell(context: DriverContext) -> SimulatedCell:
     if cell is None:
         settings = context.sections.get(SECTION)
         config = settings if isinstance(settings, SimulationConfig) else SimulationConfig()
-        cell = SimulatedCell(config.physics(), context.clock)
+        cell = SimulatedCell(config.physics(), context.clock, truth_log=config.truth_log or None)
         if isinstance(context.clock, VirtualClock):
             cell.epoch = 0.0
         context.resources.put(RESOURCE_KEY, cell)
@@ -144,6 +145,11 @@ class SimulatedPlugin(VirtualCellPlugin):
             return VirtualClock(virtual_start_s)
         speed = section.speed if isinstance(section, SimulationConfig) else 1.0
         return ScaledClock(speed) if speed != 1.0 else MonotonicClock()
+
+    def label_clock(self, clock: Clock) -> Callable[[], float]:
+        """A scaled clock labels its own records: it reads unix seconds from the daemon's start on, ``speed``
+        times faster, so the recorder's day files are the simulated lab's days (a simulated week: 7 files)."""
+        return clock.now if isinstance(clock, ScaledClock) else time.time
 
 
 PLUGIN = SimulatedPlugin()
