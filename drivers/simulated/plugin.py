@@ -40,7 +40,8 @@ def shared_cell(context: DriverContext) -> SimulatedCell:
     """The one cell of this daemon/procedure, created on first use from the ``[simulation]`` table.
 
     On a :class:`VirtualClock` (procedures) scenario time is clock time, so a resumed calibration
-    continues the same room history; on wall time the scenario starts when the cell is created.
+    continues the same room history; on a :class:`ScaledClock` the scenario starts when the clock does
+    (at a UTC midnight: see :meth:`SimulatedPlugin.make_clock`); on wall time, when the cell is created.
     """
     cell = context.resources.get(RESOURCE_KEY, SimulatedCell)
     if cell is None:
@@ -49,6 +50,8 @@ def shared_cell(context: DriverContext) -> SimulatedCell:
         cell = SimulatedCell(config.physics(), context.clock, truth_log=config.truth_log or None)
         if isinstance(context.clock, VirtualClock):
             cell.epoch = 0.0
+        elif isinstance(context.clock, ScaledClock):
+            cell.epoch = context.clock.start_unix_s
         context.resources.put(RESOURCE_KEY, cell)
     return cell
 
@@ -144,7 +147,11 @@ class SimulatedPlugin(VirtualCellPlugin):
         if virtual_start_s is not None:
             return VirtualClock(virtual_start_s)
         speed = section.speed if isinstance(section, SimulationConfig) else 1.0
-        return ScaledClock(speed) if speed != 1.0 else MonotonicClock()
+        if speed == 1.0:
+            return MonotonicClock()
+        # the simulated lab's clock starts at the last UTC midnight, with the scenario: its day k is the
+        # scenario's day k and the recorder's k-th day file (the ``week`` scenario's Monday is day 0)
+        return ScaledClock(speed, start=utc_midnight_before(time.time()))
 
     def label_clock(self, clock: Clock) -> Callable[[], float]:
         """A scaled clock labels its own records: it reads unix seconds from the daemon's start on, ``speed``
@@ -153,6 +160,11 @@ class SimulatedPlugin(VirtualCellPlugin):
 
 
 PLUGIN = SimulatedPlugin()
+
+
+def utc_midnight_before(unix_s: float) -> float:
+    """The UTC midnight at or before ``unix_s``."""
+    return unix_s - unix_s % 86400.0
 
 
 def default_sensor_configs(interferometer_interval_s: float = 0.1, thermocouple_interval_s: float = 0.5, *,
