@@ -65,7 +65,7 @@ DAYS = 7
 DAY_S = 86400.0
 CHANNELS = ("T1", "T2", "T3", "T4")
 INTERVAL_S = 20.0  # every sensor, in cell seconds: 2 ms of wall time at speed 10000
-MAX_AGE_S = 600.0
+MAX_AGE_S = 1000.0  # what the daemon keeps fresh at speed 10000 (drivers/simulated/config.py WALL_LATENCY_S)
 SETTLE_S, WINDOW_S = 300.0, 600.0  # a target's residual: the mean over 600 s from 300 s after it was reached
 #: the tracker's clamp: the static model's error reaches -1.4 um at the weekend setback (1.7 degC below
 #: the training range), beyond the default 1 um clamp

@@ -35,9 +35,9 @@ MAX_SPEED = 10_000.0
 #: of wall time before a target is judged against it (hand-offs of the GIL between Zenoh's threads and
 #: the event loop, a process descheduled on a busy machine). At ``speed`` these are ``speed`` times as
 #: many seconds of the cell's clock, the one every age is judged on: at speed 10000 a poll at most every
-#: 20 s and a reading fresh for at least 500 s of cell time.
+#: 20 s and a reading fresh for at least 1000 s of cell time.
 WALL_POLL_S = 0.002
-WALL_LATENCY_S = 0.05
+WALL_LATENCY_S = 0.1
 
 _PARAM_NAMES = {f.name for f in fields(CellParams)} - {"offsets_c", "geometry_e_um"}
 

@@ -154,7 +154,7 @@ class SimulatedPlugin(VirtualCellPlugin):
         return ScaledClock(speed, start=utc_midnight_before(time.time()))
 
     def label_clock(self, clock: Clock) -> Callable[[], float]:
-        """A scaled clock labels its own records: it reads unix seconds from the daemon's start on, ``speed``
+        """A scaled clock labels its own records: it reads unix seconds from the last UTC midnight on, ``speed``
         times faster, so the recorder's day files are the simulated lab's days (a simulated week: 7 files)."""
         return clock.now if isinstance(clock, ScaledClock) else time.time
 

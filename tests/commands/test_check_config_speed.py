@@ -22,12 +22,12 @@ def test_sensors_too_fast_for_the_speed_are_a_warning_naming_sensor_key_and_limi
     path = tmp_path / "fast.toml"
     path.write_text('[model]\npath = "model.json"\n[simulation]\nspeed = 10000.0\n'
                     '[[sensors]]\nname = "T1"\nkind = "simulated"\ninterval_s = 0.5\nmax_age_s = 5.0\n'
-                    '[[sensors]]\nname = "T2"\nkind = "simulated"\ninterval_s = 20.0\nmax_age_s = 600.0\n')
+                    '[[sensors]]\nname = "T2"\nkind = "simulated"\ninterval_s = 20.0\nmax_age_s = 1000.0\n')
     code, err = check(capsys, path)
     assert code == 0
     assert "warning: sensors[0] (T1).max_age_s: 5 s of cell time is 0.5 ms of wall time at simulation.speed 10000" \
         in err
-    assert "make it at least 500 s or lower the speed to 100" in err
+    assert "make it at least 1000 s or lower the speed to 50" in err
     assert "warning: sensors[0] (T1).interval_s:" in err
     assert "(T2)" not in err
     path.write_text('[model]\npath = "model.json"\n[simulation]\nspeed = 10000.0\n')
