@@ -11,7 +11,8 @@ virtual clock for procedures, so a four-hour calibration takes seconds.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import time
+from collections.abc import Callable, Mapping
 from typing import Any
 
 from pydantic import BaseModel
@@ -46,13 +47,16 @@ def _plugins(config: Config) -> dict[str, DriverPlugin]:
 def make_context(config: Config, *, virtual_start_s: float | None = None) -> DriverContext:
     """The clock, hubs and plugin sections the plugins share."""
     clock: Clock = MonotonicClock()
+    label_clock: Callable[[], float] = time.time  # the wall clock labels records
     plugins = _plugins(config)
     found = virtual_cell_plugin(plugins, plugins.get)
     if found is not None:
         _, cell = found
         section: BaseModel | None = config.section(cell.section) if cell.section else None
         clock = cell.make_clock(section, virtual_start_s=virtual_start_s)
-    return DriverContext(clock=clock, hubs={h.name: h for h in config.hubs}, sections=config.sections)
+        label_clock = cell.label_clock(clock)
+    return DriverContext(clock=clock, label_clock=label_clock, hubs={h.name: h for h in config.hubs},
+                         sections=config.sections)
 
 
 def build_drivers(config: Config, context: DriverContext | None = None, *,

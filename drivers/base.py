@@ -24,7 +24,7 @@ import asyncio
 import math
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any, ClassVar, Literal, Protocol, TypeVar
@@ -219,10 +219,13 @@ class DriverContext:
 
     ``hubs`` and ``sections`` were validated by the plugin that owns them (its ``hub_model`` and
     ``section_model``); ``resources`` holds the objects a plugin shares between its groups and its
-    actuator (:class:`SharedResources`).
+    actuator (:class:`SharedResources`). ``label_clock`` labels what is recorded (the recorder's
+    ``t_s`` and its day files): the wall clock, except on a virtual cell whose clock runs faster
+    (:meth:`VirtualCellPlugin.label_clock`), where a record's day is the simulated lab's day.
     """
 
     clock: Clock = field(default_factory=MonotonicClock)
+    label_clock: Callable[[], float] = time.time
     hubs: Mapping[str, BaseModel] = field(default_factory=dict)
     sections: Mapping[str, BaseModel] = field(default_factory=dict)
     resources: SharedResources = field(default_factory=SharedResources)
@@ -433,3 +436,13 @@ class VirtualCellPlugin(DriverPlugin):
     def make_clock(self, section: BaseModel | None, *, virtual_start_s: float | None = None) -> Clock:
         """The cell's clock: scaled wall time for the daemon, or (``virtual_start_s`` given) a virtual
         clock whose sleeps take no wall time, for procedures."""
+
+    def timing_warnings(self, section: BaseModel | None, sensors: Sequence[tuple[int, SensorConfig]]) -> list[str]:
+        """What ``check-config`` warns about the sensors' timing on this cell's clock (every sensor: the
+        daemon judges them all on it), e.g. a ``max_age_s`` a sped-up clock cannot keep fresh."""
+        return []
+
+    def label_clock(self, clock: Clock) -> Callable[[], float]:
+        """What labels records on this cell (unix seconds): the wall clock, unless ``clock`` (from
+        :meth:`make_clock`) runs faster than it, so that a simulated day is recorded as a day."""
+        return time.time

@@ -36,6 +36,7 @@ from daemon.config import (
     missing_model_channels,
 )
 from daemon.model.model import Model, ModelFileError, load_model
+from drivers.base import VirtualCellPlugin
 from drivers.registry import UnknownDriverError, load_plugin
 
 
@@ -142,6 +143,9 @@ def driver_warnings(config: Config) -> list[str]:
             continue
         warnings += plugin.config_warnings([(i, s) for i, s in sensors if s.kind == kind],
                                            options if options is not None and options.kind == kind else None)
+        if isinstance(plugin, VirtualCellPlugin):  # its clock times every sensor
+            section = config.section(plugin.section) if plugin.section else None
+            warnings += plugin.timing_warnings(section, sensors)
     return warnings
 
 

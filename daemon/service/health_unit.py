@@ -77,6 +77,8 @@ class HealthUnit:
         self._reached: deque[tuple[float, float]] = deque(maxlen=SERVED_QUEUE)
         #: why the position sensor's last reading was not believed ("" when it was): the advice names it
         self.position_problem = ""
+        #: labels settled rows (unix s): the drivers' ``DriverContext.label_clock`` once they start
+        self.label_clock: Callable[[], float] = time.time
         self._configure(config, model)
         self._configure_polled(config)
         self._announced = self.monitor.state
@@ -185,9 +187,10 @@ class HealthUnit:
             correction = self.tracker.update(settled.t, settled.residual_um)
             if self._compensator is not None:
                 self._compensator.correction_um = correction
-        # the cell clock decided the window; the wall clock only labels the row (t_s, the file's day)
+        # the cell clock decided the window; the label clock (the wall clock, or a simulated lab's own
+        # clock when it runs faster) only labels the row (t_s, the file's day)
         polled = self.polled.window(settled.t - self.settle.window_s, settled.t)
-        self._fresh.append((settled, time.time(), polled))
+        self._fresh.append((settled, self.label_clock(), polled))
 
     # --- what it says ----------------------------------------------------------------------------
 

@@ -9,9 +9,10 @@ of its ok readings over the same window (:class:`PolledChannels`). A channel tha
 (faulted, or no fresh reading) keeps the row with ``valid = 0`` and its last ok value (else 0), as
 an invalid calibration step is kept: never a NaN.
 
-The wall clock only labels: ``t_s`` and the day in the file name. What decides runs on the daemon's
-monotonic clock (:class:`drivers.base.MonotonicClock`): the settle timing (the health unit's) and
-retention, so a step of the system clock (NTP, ``date -s``) neither stalls rows nor deletes files.
+The wall clock only labels: ``t_s`` and the day in the file name (on a simulated cell whose clock runs
+faster, that clock labels instead, ``DriverContext.label_clock``: a simulated day is a day file). What
+decides runs on the daemon's monotonic clock (:class:`drivers.base.MonotonicClock`): the settle timing (the
+health unit's) and retention, so a step of the system clock (NTP, ``date -s``) neither stalls rows nor deletes files.
 
 - One file per UTC day of the label, ``records-YYYY-MM-DD.csv``. A new file is created atomically
   (header in a temp file, fsync, rename): a crash never leaves a file without its header. Each row

@@ -225,6 +225,7 @@ class Service:
         self.drivers = drivers
         with self.state.lock:
             self.state.clock = drivers.context.clock
+            self.health.label_clock = drivers.context.label_clock
             self.health.awaits_reach = drivers.actuator is not None
         if drivers.actuator is not None:
             await self.actuation.start(drivers.actuator, self.state.config.actuator)

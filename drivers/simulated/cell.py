@@ -5,6 +5,10 @@ One instance per daemon/procedure, shared by every simulated sensor group and th
 clock's, relative to the cell's creation (scenario time 0). Faults can be injected per channel
 for tests and demos: ``fault`` (burnout reading), ``stale`` (the device repeats an old sample),
 ``device_error`` (the link fails: :class:`~drivers.base.DeviceError`).
+
+``truth_log``: a CSV the cell appends each interferometer reading to with the true attained position
+(``t_s,q_um,true_x_um,measured_x_um``, one line each, line-buffered: nothing held in memory), so a
+benchmark can score what the daemon served against the truth, not only the interferometer's view.
 """
 
 from __future__ import annotations
@@ -12,7 +16,8 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Literal
+from pathlib import Path
+from typing import Literal, TextIO
 
 import numpy as np
 
@@ -32,7 +37,9 @@ class FaultWindow:
 
 
 class SimulatedCell:
-    def __init__(self, physics: CellPhysics, clock: Clock | None = None) -> None:
+    TRUTH_HEADER = "t_s,q_um,true_x_um,measured_x_um\n"
+
+    def __init__(self, physics: CellPhysics, clock: Clock | None = None, truth_log: str | None = None) -> None:
         self.physics = physics
         self.clock = clock or MonotonicClock()
         self.epoch = self.clock.now()
@@ -43,6 +50,8 @@ class SimulatedCell:
         self._noise_rng = np.random.default_rng([physics.seed, 3])
         self._last_ok: dict[str, Reading] = {}
         self._offsets = dict(physics.params.offsets_c)
+        self.truth_log = truth_log
+        self._truth_file: TextIO | None = None
 
     def sim_time(self) -> float:
         return self.clock.now() - self.epoch
@@ -92,7 +101,10 @@ class SimulatedCell:
                 continue
             noise = float(self._noise_rng.standard_normal())
             if name == POSITION_CHANNEL:
-                value = self.physics.measure_position1(t, self.physics.attained_now(t, self.state), noise)
+                true_x = self.physics.attained_now(t, self.state)
+                value = self.physics.measure_position1(t, true_x, noise)
+                if self.truth_log is not None:
+                    self._log_truth(now, true_x, value)
             else:
                 node = THERMOCOUPLES.get(name) or TRUTH_CHANNELS[name]
                 value = self.physics.measure_temperature1(thermal[node] + offsets.get(name, 0.0), noise)
@@ -101,3 +113,13 @@ class SimulatedCell:
                 self._last_ok[name] = reading
             out[name] = reading
         return out
+
+    def _log_truth(self, t: float, true_x_um: float, measured_x_um: float) -> None:
+        if self._truth_file is None:
+            assert self.truth_log is not None
+            path = Path(self.truth_log)
+            fresh = not path.exists() or path.stat().st_size == 0
+            self._truth_file = open(path, "a", buffering=1, encoding="utf-8")  # held open: a line a poll
+            if fresh:
+                self._truth_file.write(self.TRUTH_HEADER)
+        self._truth_file.write(f"{t!r},{self.state.q!r},{true_x_um!r},{measured_x_um!r}\n")

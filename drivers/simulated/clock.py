@@ -30,11 +30,12 @@ class ScaledClock:
         if speed <= 0:
             raise ValueError(f"speed must be > 0, got {speed}")
         self.speed = speed
-        self._start = time.time() if start is None else start
+        #: what ``now()`` read when the clock was made (unix seconds of the simulated lab)
+        self.start_unix_s = time.time() if start is None else start
         self._mono0 = time.monotonic()
 
     def now(self) -> float:
-        return self._start + self.speed * (time.monotonic() - self._mono0)
+        return self.start_unix_s + self.speed * (time.monotonic() - self._mono0)
 
     async def sleep(self, seconds: float) -> None:
         await asyncio.sleep(max(0.0, seconds) / self.speed)

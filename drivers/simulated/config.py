@@ -2,17 +2,19 @@
 
 ```toml
 [simulation]
-scenario = "train"            # steady | train | bidirectional | test1..test5 | daily
+scenario = "train"            # steady | train | bidirectional | test1..test5 | room | daily | week
 speed = 60.0                  # simulated seconds per wall second (daemon); procedures use a VirtualClock
 seed = 0
 effects = ["thermal_lag", "hysteresis"]          # or a table with parameters:
 # effects = { thermal_lag = { tau_s = 1800.0 }, creep = {} }
 params = { interferometer_noise_um = 0.01 }      # overrides of the cell's baseline magnitudes
+truth_log = "truth.csv"       # every interferometer reading beside the true position (benchmarks/week.py)
 ```
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import fields
 from typing import Any, Literal
 
@@ -27,6 +29,15 @@ from drivers.simulated.scenarios import get_scenario
 SECTION = "simulation"
 #: the fastest ``speed``: each poll makes the cell compute ``speed`` x the wall time since the last one
 MAX_SPEED = 10_000.0
+
+#: What the daemon can serve on a scaled clock, in WALL seconds: each poll costs about a millisecond of
+#: wall time, so a group is polled at most every WALL_POLL_S; and a reading may wait up to WALL_LATENCY_S
+#: of wall time before a target is judged against it (hand-offs of the GIL between Zenoh's threads and
+#: the event loop, a process descheduled on a busy machine). At ``speed`` these are ``speed`` times as
+#: many seconds of the cell's clock, the one every age is judged on: at speed 10000 a poll at most every
+#: 20 s and a reading fresh for at least 1000 s of cell time.
+WALL_POLL_S = 0.002
+WALL_LATENCY_S = 0.1
 
 _PARAM_NAMES = {f.name for f in fields(CellParams)} - {"offsets_c", "geometry_e_um"}
 
@@ -46,6 +57,10 @@ class SimulationConfig(StrictModel):
         default_factory=list, description="hidden effects: names, or name -> {param = value}"
     )
     params: dict[str, float] = Field(default_factory=dict, description="overrides of CellParams magnitudes")
+    truth_log: str = Field(
+        default="", description='"" = off; else a CSV the cell appends every interferometer reading to, beside the '
+                                "true attained position (t_s on the cell's clock, q_um, true_x_um, measured_x_um): "
+                                "what a benchmark scores the daemon against")
 
     @field_validator("scenario")
     @classmethod
@@ -67,6 +82,36 @@ class SimulationConfig(StrictModel):
             known = ", ".join(sorted(_PARAM_NAMES))
             raise ValueError(f"unknown cell parameter(s) {', '.join(unknown)}; known: {known}")
         return value
+
+    @property
+    def min_interval_s(self) -> float:
+        """The shortest poll interval (cell seconds) the daemon keeps at this speed: :data:`WALL_POLL_S`."""
+        return self.speed * WALL_POLL_S
+
+    @property
+    def min_max_age_s(self) -> float:
+        """The shortest ``max_age_s`` (cell seconds) that stays fresh at this speed: :data:`WALL_LATENCY_S`."""
+        return self.speed * WALL_LATENCY_S
+
+    def timing_warnings(self, sensors: Sequence[tuple[int, SensorConfig]]) -> list[str]:
+        """Sensors whose timing this speed cannot serve, in check-config's form (``sensors[2] (T3).max_age_s: ...``)."""
+        out = []
+        for index, sensor in sensors:
+            where = f"sensors[{index}] ({sensor.name})"
+            if sensor.max_age_s < self.min_max_age_s:
+                out.append(
+                    f"{where}.max_age_s: {sensor.max_age_s:g} s of cell time is "
+                    f"{1e3 * sensor.max_age_s / self.speed:.3g} ms of wall time at simulation.speed {self.speed:g}: "
+                    f"shorter than the daemon's latency ({1e3 * WALL_LATENCY_S:g} ms of wall time), so the channel "
+                    f"flaps between ok and stale and targets are refused; make it at least {self.min_max_age_s:g} s "
+                    f"or lower the speed to {sensor.max_age_s / WALL_LATENCY_S:g}")
+            if sensor.interval_s < self.min_interval_s:
+                out.append(
+                    f"{where}.interval_s: {sensor.interval_s:g} s of cell time is "
+                    f"{1e3 * sensor.interval_s / self.speed:.3g} ms of wall time at simulation.speed {self.speed:g}: "
+                    f"the daemon polls at most every {1e3 * WALL_POLL_S:g} ms of wall time (the poller spins a core "
+                    f"trying); make it at least {self.min_interval_s:g} s")
+        return out
 
     def physics(self) -> CellPhysics:
         return CellPhysics.create(self.scenario, self.effects, self.seed, CellParams().with_overrides(self.params))

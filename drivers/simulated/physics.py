@@ -102,11 +102,18 @@ class Exogenous:
     """Everything that depends on time only, on a lazily extended knot grid.
 
     Per knot: air temperature, interferometer wander, unmonitored random walk, and the exact state
-    of every thermal node. Chunks are generated in order from per-chunk seeds, so any query order
-    gives the same numbers.
+    of every thermal node. Chunks are generated in order from per-chunk seeds, each continuing the
+    last knot of the one before, so any query order gives the same numbers.
+
+    Memory is bounded: at most :attr:`KEEP_CHUNKS` chunks are held (more only while one query spans
+    more). A daemon's queries move forward in time, so the oldest chunks are dropped as new ones are
+    made; a later query before the oldest held chunk regenerates the grid from the start (identical
+    numbers, at the cost of recomputing the history up to it: about a millisecond per simulated day).
     """
 
     CHUNK = 720
+    #: chunks held at most (each CHUNK knots): two days at the default 30 s knots
+    KEEP_CHUNKS = 8
 
     def __init__(self, scenario: Scenario, params: CellParams, node_taus: Mapping[str, float], seed: int,
                  walk_um_per_sqrt_h: float = 0.0) -> None:
@@ -118,20 +125,50 @@ class Exogenous:
         self.walk_sigma = walk_um_per_sqrt_h * math.sqrt(params.knot_dt_s / 3600.0)
         self.t0 = scenario.start_h * 3600.0
         self.dt = params.knot_dt_s
+        a = np.exp(-self.dt / self.taus)
+        r = (self.taus / self.dt) * (1.0 - a)
+        self._a, self._b_now, self._b_prev = a, 1.0 - r, r - a
+        self._restart()
+
+    def _restart(self) -> None:
+        """Back to an empty grid: the next chunk made is chunk 0."""
         self.t = np.empty(0)
         self.air = np.empty(0)
         self.wander = np.empty(0)
         self.walk = np.empty(0)
         self.nodes = np.empty((0, len(self.node_names)))
         self._fluct_last = 0.0
-        self._chunks = 0
-        a = np.exp(-self.dt / self.taus)
-        r = (self.taus / self.dt) * (1.0 - a)
-        self._a, self._b_now, self._b_prev = a, 1.0 - r, r - a
+        self._chunks = 0  # chunks made so far, held or dropped
+        self.first_knot = 0  # global index of the first held knot (t[0] is knot first_knot of the grid)
 
-    def ensure(self, t_max: float) -> None:
+    @property
+    def knots_held(self) -> int:
+        return int(self.t.size)
+
+    def _knot(self, t: float) -> int:
+        """Global index of the knot at or before ``t`` (times before the grid: knot 0)."""
+        return max(0, int((t - self.t0) // self.dt))
+
+    def ensure(self, t_max: float, t_min: float | None = None) -> None:
+        """Hold every knot needed to evaluate times in ``[t_min, t_max]`` (``t_min`` None: ``t_max``)."""
+        low = self._knot(t_max if t_min is None else min(t_min, t_max))
+        if low < self.first_knot:  # before the oldest held chunk: regenerate from the start
+            self._restart()
         while self.t.size < 2 or self.t[-1] < t_max + self.dt:
             self._extend()
+            self._drop_before(low // self.CHUNK)
+
+    def _drop_before(self, needed_chunk: int) -> None:
+        """Drop the oldest chunks beyond :attr:`KEEP_CHUNKS`, never chunk ``needed_chunk`` or later."""
+        first_chunk = self.first_knot // self.CHUNK
+        drop = min(needed_chunk, self._chunks - self.KEEP_CHUNKS) - first_chunk
+        if drop <= 0:
+            return
+        cut = drop * self.CHUNK
+        self.t, self.air = self.t[cut:].copy(), self.air[cut:].copy()
+        self.wander, self.walk = self.wander[cut:].copy(), self.walk[cut:].copy()
+        self.nodes = self.nodes[cut:].copy()
+        self.first_knot += cut
 
     def _extend(self) -> None:
         p, k, n = self.params, self._chunks, self.CHUNK
@@ -167,9 +204,12 @@ class Exogenous:
     def at(self, t: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray, np.ndarray]:
         """(air, nodes by name, wander, walk) at times ``t``: exact for the nodes, linear otherwise."""
         t = np.asarray(t, dtype=np.float64)
-        self.ensure(float(t.max()) if t.size else 0.0)
-        tc = np.maximum(t, self.t[0])
-        i = np.minimum(((tc - self.t[0]) // self.dt).astype(np.int64), self.t.size - 2)
+        if t.size:
+            self.ensure(float(t.max()), float(t.min()))
+        else:
+            self.ensure(0.0)
+        tc = np.maximum(t, self.t0)
+        i = np.minimum(((tc - self.t0) // self.dt).astype(np.int64) - self.first_knot, self.t.size - 2)
         h = tc - self.t[i]
         u0, u1 = self.air[i], self.air[i + 1]
         slope = (u1 - u0) / self.dt
@@ -185,8 +225,8 @@ class Exogenous:
     def at1(self, t: float) -> tuple[float, dict[str, float], float, float]:
         """:meth:`at` for one time, in plain floats (the stepped drivers call this per sample)."""
         self.ensure(t)
-        tc = max(t, float(self.t[0]))
-        i = min(int((tc - self.t[0]) // self.dt), self.t.size - 2)
+        tc = max(t, self.t0)
+        i = min(int((tc - self.t0) // self.dt) - self.first_knot, self.t.size - 2)
         h = tc - float(self.t[i])
         u0, u1 = float(self.air[i]), float(self.air[i + 1])
         slope = (u1 - u0) / self.dt

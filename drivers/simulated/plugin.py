@@ -10,7 +10,8 @@ four thermocouples); the interferometer is a group of its own.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
 from typing import ClassVar, Literal
 
 from pydantic import BaseModel
@@ -39,15 +40,18 @@ def shared_cell(context: DriverContext) -> SimulatedCell:
     """The one cell of this daemon/procedure, created on first use from the ``[simulation]`` table.
 
     On a :class:`VirtualClock` (procedures) scenario time is clock time, so a resumed calibration
-    continues the same room history; on wall time the scenario starts when the cell is created.
+    continues the same room history; on a :class:`ScaledClock` the scenario starts when the clock does
+    (at a UTC midnight: see :meth:`SimulatedPlugin.make_clock`); on wall time, when the cell is created.
     """
     cell = context.resources.get(RESOURCE_KEY, SimulatedCell)
     if cell is None:
         settings = context.sections.get(SECTION)
         config = settings if isinstance(settings, SimulationConfig) else SimulationConfig()
-        cell = SimulatedCell(config.physics(), context.clock)
+        cell = SimulatedCell(config.physics(), context.clock, truth_log=config.truth_log or None)
         if isinstance(context.clock, VirtualClock):
             cell.epoch = 0.0
+        elif isinstance(context.clock, ScaledClock):
+            cell.epoch = context.clock.start_unix_s
         context.resources.put(RESOURCE_KEY, cell)
     return cell
 
@@ -131,23 +135,52 @@ class SimulatedPlugin(VirtualCellPlugin):
         return SimulatedActuator(shared_cell(context))
 
     def default_sensors(self, section: BaseModel) -> list[SensorConfig]:
-        return list(default_sensor_configs())
+        speed = section.speed if isinstance(section, SimulationConfig) else 1.0
+        return list(default_sensor_configs(speed=speed))
+
+    def timing_warnings(self, section: BaseModel | None, sensors: Sequence[tuple[int, SensorConfig]]) -> list[str]:
+        """Sensors (of any kind: the whole daemon runs on the cell's clock) too fast for ``speed``."""
+        config = section if isinstance(section, SimulationConfig) else SimulationConfig()
+        return config.timing_warnings(sensors)
 
     def make_clock(self, section: BaseModel | None, *, virtual_start_s: float | None = None) -> Clock:
         if virtual_start_s is not None:
             return VirtualClock(virtual_start_s)
         speed = section.speed if isinstance(section, SimulationConfig) else 1.0
-        return ScaledClock(speed) if speed != 1.0 else MonotonicClock()
+        if speed == 1.0:
+            return MonotonicClock()
+        # the simulated lab's clock starts at the last UTC midnight, with the scenario: its day k is the
+        # scenario's day k and the recorder's k-th day file (the ``week`` scenario's Monday is day 0)
+        return ScaledClock(speed, start=utc_midnight_before(time.time()))
+
+    def label_clock(self, clock: Clock) -> Callable[[], float]:
+        """A scaled clock labels its own records: it reads unix seconds from the last UTC midnight on, ``speed``
+        times faster, so the recorder's day files are the simulated lab's days (a simulated week: 7 files)."""
+        return clock.now if isinstance(clock, ScaledClock) else time.time
 
 
 PLUGIN = SimulatedPlugin()
 
 
-def default_sensor_configs(interferometer_interval_s: float = 0.1, thermocouple_interval_s: float = 0.5
-                           ) -> list[SimulatedSensorConfig]:
-    """The paper's cell: T1..T4 and the interferometer (what a config with no sensors runs)."""
-    temps = [SimulatedSensorConfig(name=n, role="temperature", interval_s=thermocouple_interval_s, max_age_s=5.0)
+def utc_midnight_before(unix_s: float) -> float:
+    """The UTC midnight at or before ``unix_s``."""
+    return unix_s - unix_s % 86400.0
+
+
+def default_sensor_configs(interferometer_interval_s: float = 0.1, thermocouple_interval_s: float = 0.5, *,
+                           speed: float = 1.0) -> list[SimulatedSensorConfig]:
+    """The paper's cell: T1..T4 and the interferometer (what a config with no sensors runs).
+
+    On a fast clock the intervals and ages grow to what the daemon serves at ``speed`` (in cell seconds:
+    :attr:`SimulationConfig.min_interval_s`, :attr:`SimulationConfig.min_max_age_s`): the paper's 0.5 s
+    and 5 s at speed 10000 are 50 µs and 0.5 ms of wall time, which no poller keeps.
+    """
+    limits = SimulationConfig(speed=speed)
+    tc_interval_s = max(thermocouple_interval_s, limits.min_interval_s)
+    position_interval_s = max(interferometer_interval_s, limits.min_interval_s)
+    temps = [SimulatedSensorConfig(name=n, role="temperature", interval_s=tc_interval_s,
+                                   max_age_s=max(5.0, limits.min_max_age_s, 3 * tc_interval_s))
              for n in ("T1", "T2", "T3", "T4")]
-    position = SimulatedSensorConfig(name=POSITION_CHANNEL, role="position",
-                                     interval_s=interferometer_interval_s, max_age_s=1.0)
+    position = SimulatedSensorConfig(name=POSITION_CHANNEL, role="position", interval_s=position_interval_s,
+                                     max_age_s=max(1.0, limits.min_max_age_s, 3 * position_interval_s))
     return [*temps, position]

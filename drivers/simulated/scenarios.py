@@ -48,6 +48,50 @@ class Scenario:
         return temps[i] + (temps[i + 1] - temps[i]) * shape
 
 
+#: the ``week`` scenario's room (hours from Monday 00:00, °C): what a lab's air does over a week
+WEEK_MEAN_C = 21.78  # the middle of the ``train`` range: the lab's set-point
+WEEK_DAILY_AMPLITUDE_C = 1.0  # day/night: warmest at 15:00, coolest at 03:00
+WEEK_HVAC_STEP_C = 0.2  # weekdays: the HVAC's day mode from 07:00 to 19:00 (30 min transitions)
+WEEK_SETBACK_C = -0.5  # weekend: Friday 19:00-21:00 down, back on Monday 05:00-07:00
+WEEK_DOOR_DIP_C = -0.3  # a door opened on a weekday: the air dips for ~12 min
+WEEK_DOOR_TIMES_H = (8.5, 10.75, 12.25, 13.67, 16.0, 17.08)  # hour of the day of each opening (weekdays)
+
+
+def _ramp(h: float, start_h: float, length_h: float) -> float:
+    return min(1.0, max(0.0, (h - start_h) / length_h))
+
+
+def week_air_c(h: float) -> float:
+    """The ``week`` room's air without the door openings: daily cycle + HVAC day mode + weekend setback."""
+    day, hour = divmod(h, 24.0)
+    weekday = int(day) % 7  # 0: Monday
+    daily = WEEK_DAILY_AMPLITUDE_C * float(np.sin(2 * np.pi * (hour - 9.0) / 24.0))
+    hvac = WEEK_HVAC_STEP_C * (_ramp(hour, 7.0, 0.5) - _ramp(hour, 19.0, 0.5)) if weekday < 5 else 0.0
+    if weekday == 4:
+        setback = _ramp(hour, 19.0, 2.0)
+    elif weekday in (5, 6):
+        setback = 1.0
+    elif weekday == 0:
+        setback = 1.0 - _ramp(hour, 5.0, 2.0)
+    else:
+        setback = 0.0
+    return WEEK_MEAN_C + daily + hvac + WEEK_SETBACK_C * setback
+
+
+def _week_waypoints(days: int = 8) -> tuple[tuple[float, float], ...]:
+    """Every 30 min of :func:`week_air_c`, with each door opening as three extra points (start, bottom
+    3 min later, back 12 min after the start); from 2 h before Monday (the room's history)."""
+    points = {float(h): week_air_c(float(h)) for h in np.arange(-2.0, 24.0 * days + 1e-9, 0.5)}
+    for day in range(days):
+        if day % 7 >= 5:
+            continue
+        for hour in WEEK_DOOR_TIMES_H:
+            start = 24.0 * day + hour
+            for offset_h, dip in ((0.0, 0.0), (0.05, WEEK_DOOR_DIP_C), (0.2, 0.0)):
+                points[start + offset_h] = week_air_c(start + offset_h) + dip
+    return tuple(sorted(points.items()))
+
+
 SCENARIOS: dict[str, Scenario] = {
     s.name: s
     for s in (
@@ -104,6 +148,15 @@ SCENARIOS: dict[str, Scenario] = {
             "daily",
             "a day/night room cycle (±0.4 °C over 24 h) for long daemon runs",
             tuple((h, 22.0 + 0.4 * float(np.sin(2 * np.pi * h / 24.0))) for h in np.arange(-2.0, 240.0, 1.0)),
+        ),
+        Scenario(
+            "week",
+            f"a lab's week from Monday 00:00: ±{WEEK_DAILY_AMPLITUDE_C:g} °C day/night around {WEEK_MEAN_C:g} °C, "
+            f"HVAC day mode {WEEK_HVAC_STEP_C:+g} °C 07:00-19:00 on weekdays, weekend setback "
+            f"{WEEK_SETBACK_C:+g} °C (Friday 19:00 to Monday 07:00), {len(WEEK_DOOR_TIMES_H)} door openings "
+            f"a weekday ({WEEK_DOOR_DIP_C:+g} °C for ~12 min); 8 days, then held",
+            _week_waypoints(),
+            trajectory="validation",
         ),
     )
 }
