@@ -11,6 +11,7 @@ import numpy as np
 from scipy import optimize, stats
 
 from daemon.calibration.dataset import Dataset
+from daemon.calibration.discovery.confirmation import FreshExpectation, TauRange
 from daemon.calibration.discovery.diagnostics import ar1_deflation, json_float
 from daemon.calibration.discovery.settings import NOT_APPLIED_ONLINE, Settings
 from daemon.calibration.discovery.workspace import Workspace, standardise
@@ -40,6 +41,27 @@ class Candidate:
     trend_like: bool = False  # indistinguishable from a drift in time over this run
     pinned: bool = True  # its searched parameter is determined by the run (see pinned())
     profile: list[tuple[float, float]] = field(default_factory=list, repr=False)  # (param, training RMS)
+    #: the held-out SSE per block as a function of the searched time constant, and its search range: kept so
+    #: the τ range is computed for the candidate that is named, and only for it
+    held_out: Callable[[float], np.ndarray] | None = field(default=None, repr=False)
+    tau_bounds: tuple[float, float] | None = None
+    tau_range: TauRange | None = None  # the τ the run supports (named candidates with a searched τ)
+    fresh_expected: FreshExpectation | None = None  # what a fresh run of the same kind should show
+    fresh_measured: FreshExpectation | None = None  # what the fresh run given (--fresh) showed
+    fresh_if_source_remains: FreshExpectation | None = None  # a nuisance: the fresh run still drifts
+
+    @property
+    def bar_p(self) -> float:
+        """The p the bar tests, and the one a verdict cites (see :attr:`bar_p_test`)."""
+        return self.p_iid if self.remove else self.p_value
+
+    @property
+    def bar_p_test(self) -> str:
+        if self.remove:
+            return ("the stepwise's F-test of the channel, rows taken as independent (how firmly the paper's "
+                    "selection keeps it)")
+        return ("partial F-test of the added terms, autocorrelation-deflated, one degree of freedom per searched "
+                "time constant, Bonferroni over the channels tried")
 
     @property
     def holdout_gain(self) -> float:
@@ -64,7 +86,29 @@ class Candidate:
             "applied_online": self.effect not in NOT_APPLIED_ONLINE,
             "f_stat": json_float(self.f_stat), "holdout_gain": json_float(self.holdout_gain),
             "blocks_improved": json_float(self.blocks_improved),
+            "p_bar": json_float(self.bar_p), "p_bar_test": self.bar_p_test,
+            **self._tau_dict(), **self._fresh_dict(),
         }
+
+    def _tau_dict(self) -> dict[str, Any]:
+        if self.tau_range is None:
+            return {}
+        r = self.tau_range
+        out: dict[str, Any] = {"tau_range_s": [r.lo_s, r.hi_s], "tau_pinned": r.pinned, "tau_range": r.words()}
+        if "tau_behind_fastest_s" in self.params:
+            shift = float(self.params["tau_behind_fastest_s"]) - float(self.params["tau_s"])
+            out["tau_behind_fastest_range_s"] = [round_sig(r.lo_s + shift), round_sig(r.hi_s + shift)]
+        return out
+
+    def _fresh_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for key, value in (("expected", self.fresh_expected), ("measured", self.fresh_measured),
+                           ("if_source_remains", self.fresh_if_source_remains)):
+            if value is not None:
+                out[f"fresh_gain_{key}"] = json_float(value.ratio)
+                out[f"fresh_rms_{key}_um"] = [json_float(value.rms_before_um), json_float(value.rms_after_um)]
+                out[f"fresh_gain_{key}_by"] = value.method
+        return out
 
 
 def round_sig(value: float, digits: int = 3) -> float:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -127,8 +128,19 @@ def _thermal_response(ctx: Context) -> list[Candidate]:
         cand.profile = [(p, math.sqrt(v / ctx.ws.n)) for p, v in profile]
         cand.trend_like = tau >= 0.9 * tau_max  # as long as the run: a trend, not an identified lag
         cand.pinned = pinned(sse, tau, ctx.ws.n * ctx.deflate, s)
+        cand.tau_bounds = (s.lag_tau_s[0], tau_max)
+        cand.held_out = partial(_held_out_lag, ctx, c, base)
         out.append(ctx.judge(cand, ctx.columns(feats)))
     return _prefer_fastest(out, ctx)
+
+
+def _held_out_lag(ctx: Context, channel: str, base: list[np.ndarray], tau: float) -> np.ndarray:
+    """Held-out SSE per block with ``lag(channel, tau)`` (and the channel, if the model lacks it) added."""
+    return ctx.ws.evaluate(ctx.columns([*base, features(Lag(channel, tau), ctx.data)]))[1]
+
+
+def _held_out_creep(ctx: Context, tau: float) -> np.ndarray:
+    return ctx.ws.evaluate(ctx.columns([features(Creep(tau), ctx.data)]))[1]
 
 
 def _prefer_fastest(cands: list[Candidate], ctx: Context) -> list[Candidate]:
@@ -246,6 +258,8 @@ def _creep(ctx: Context) -> list[Candidate]:
     term = Creep(tau)
     cand = Candidate("creep", [term], [], {"tau_s": tau}, 1, 1)
     cand.pinned = pinned(sse, tau, ctx.ws.n * ctx.deflate, ctx.settings)
+    cand.tau_bounds = ctx.settings.creep_tau_s
+    cand.held_out = partial(_held_out_creep, ctx)
     cand.profile = [(p, math.sqrt(v / ctx.ws.n)) for p, v in profile]
     return [ctx.judge(cand, ctx.columns([ctx.feature(term)]))]
 

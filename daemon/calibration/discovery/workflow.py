@@ -12,6 +12,14 @@ import numpy as np
 from daemon.calibration.dataset import Dataset
 from daemon.calibration.discovery.candidates import Candidate, Context, round_sig
 from daemon.calibration.discovery.catalogue import PROPOSERS, channel_delays, drift_alike, told_apart, untestable
+from daemon.calibration.discovery.confirmation import (
+    MEASURED_METHOD,
+    NUISANCE_METHOD,
+    FreshExpectation,
+    expected_fresh,
+    tau_range,
+    worse_than,
+)
 from daemon.calibration.discovery.diagnostics import (
     Disagreement,
     durbin_watson,
@@ -168,9 +176,17 @@ def _final_model(data: Dataset, given: Model, terms: list[Term], nuisance: dict[
     return model, residual_full
 
 
-def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS) -> DiscoveryResult:
-    """The whole workflow on one recorded run: disagreements, named effects, the extended model."""
+def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS,
+             fresh: Dataset | None = None) -> DiscoveryResult:
+    """The whole workflow on one recorded run: disagreements, named effects, the extended model.
+
+    Each named step carries the gain a fresh run of the same kind should show (and, for a searched
+    time constant, the range the run supports); ``fresh``: a run discovery never saw, on which each
+    step's gain is also measured.
+    """
     data = data.valid_rows()
+    if fresh is not None:
+        fresh = _checked_fresh(fresh, model)
     if data.q is None:
         raise DiscoveryError(f"{data.source}: no q_um column (the command sent to the stage) to compare with")
     n = len(data)
@@ -192,6 +208,8 @@ def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS)
     penter = float(model.selection.get("penter", 0.05))
     premove = float(model.selection.get("premove", 0.10))
     ctx = Context(data, working, nuisance, folds, settings, excluded, delays)
+    searched = 0  # time constants searched so far (each a fitted parameter the fresh-run estimate charges)
+    snapshots: list[tuple[list[Term], dict[str, np.ndarray]]] = []  # the working model after each step
     baseline: dict[str, Any] = {
         "model": model.id, "terms": [ft.term.name for ft in model.terms], "rows": n,
         "rms_um": _rms(residual0), "refit_rms_um": math.sqrt(ctx.sse0 / n),
@@ -211,7 +229,13 @@ def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS)
             chosen.params = {"rate_um_per_h": round_sig(-coef["t"], 3)}
         if chosen.effect == "thermal_lag":
             chosen.params.update(drift_alike(ctx, chosen))
+        if chosen.held_out is not None and chosen.tau_bounds is not None:
+            tau = float(chosen.params["tau_s"])
+            rows = np.array([b - a for a, b in ctx.ws.bounds], dtype=np.float64)
+            chosen.tau_range = tau_range(worse_than(chosen.held_out, tau, rows, settings), tau, chosen.tau_bounds)
         steps.append(chosen)
+        previous, searched_before = ctx, searched
+        searched += chosen.searched
         working = [t for t in working if t not in chosen.remove] + chosen.add
         excluded.update(t.name for t in chosen.remove)
         nuisance.update(chosen.nuisance)
@@ -222,6 +246,10 @@ def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS)
             if wider.held0 < ctx.held0:
                 chosen.params["readmitted"] = [t.name for t in back]
                 working, ctx = working + back, wider
+        before_fixed = previous.ws.residual - _drift_column(ctx) if chosen.nuisance else previous.ws.residual
+        chosen.fresh_expected, chosen.fresh_if_source_remains = _expected(
+            before_fixed, previous.ws.residual, previous.k0 + searched_before, ctx, searched)
+        snapshots.append((list(working), dict(nuisance)))
     extended, residual1 = _final_model(data, model, working, nuisance, steps, settings)
     coefs = {ft.term.name: ft.coef for ft in extended.terms}
     for step in steps:
@@ -233,6 +261,17 @@ def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS)
         "holdout_rms_um": math.sqrt(ctx.held0 / n),
         "not_applied_online": [s.effect for s in steps if s.effect in NOT_APPLIED_ONLINE],
     }
+    if steps:
+        given_fixed = residual0 - _drift_column(ctx) if nuisance else residual0
+        overall, _ = _expected(given_fixed, residual0, len(model.terms), ctx, searched)
+        final.update(_fresh_keys("expected", overall))
+        if fresh is not None:
+            models = [model] + [_final_model(data, model, list(w), dict(u), steps[:i + 1], settings)[0]
+                                for i, (w, u) in enumerate(snapshots)]
+            errors = [_rms(np.asarray(fresh.q) - m.predict(fresh)) for m in models]
+            for i, step in enumerate(steps):
+                step.fresh_measured = FreshExpectation(errors[i], errors[i + 1], MEASURED_METHOD)
+            final.update(_fresh_keys("measured", FreshExpectation(errors[0], errors[-1], MEASURED_METHOD)))
     gap0 = baseline["holdout_rms_um"]
     final["holdout_gap_removed"] = (gap0 - final["holdout_rms_um"]) / gap0 if gap0 > 0 else 0.0
     if not steps:  # nothing named: the given model stands (a refit under a new id would be the same model)
@@ -252,3 +291,49 @@ def _nuisance_coef(ctx: Context, nuisance: Mapping[str, np.ndarray]) -> dict[str
     extra = list(nuisance.values())
     fit = ols(np.column_stack(cols + extra), np.asarray(ctx.data.q, dtype=np.float64))
     return {name: float(fit.coef[len(cols) + j]) for j, name in enumerate(nuisance)}
+
+
+def _checked_fresh(fresh: Dataset, model: Model) -> Dataset:
+    fresh = fresh.valid_rows()
+    if fresh.q is None:
+        raise DiscoveryError(f"{fresh.source}: no q_um column (the command sent to the stage) to compare with")
+    if len(fresh) == 0:
+        raise DiscoveryError(f"{fresh.source}: no valid rows to measure the fresh-run gain on")
+    model.check_channels(list(fresh.channels), fresh.source)
+    return fresh
+
+
+def _drift_column(ctx: Context) -> np.ndarray:
+    """What the working fit attributes to its nuisance columns (a drift no sensor sees), µm per row; 0 at t = 0."""
+    if not ctx.nuisance:
+        return np.zeros(ctx.ws.n)
+    cols = [features(t, ctx.data) for t in ctx.terms] + list(ctx.nuisance.values())
+    fit = ols(np.column_stack(cols), np.asarray(ctx.data.q, dtype=np.float64))
+    k = len(ctx.terms)
+    return sum((fit.coef[k + j] * v for j, v in enumerate(ctx.nuisance.values())), np.zeros(ctx.ws.n))
+
+
+def _expected(before_fixed: np.ndarray, before: np.ndarray, params_before: int, after: Context,
+              searched: int) -> tuple[FreshExpectation, FreshExpectation | None]:
+    """(the expected fresh-run RMS without and with the working model ``after``, the same if a nuisance remains).
+
+    With a nuisance (a drift not applied online) the first is judged on a fresh run without it (its
+    source fixed): the model without the effect keeps the coefficients that absorbed the drift
+    (``before_fixed``); the second on one that still drifts, where the written model (drift left
+    out, bias of the run's start) errs by the whole drift.
+    """
+    n = after.ws.n
+    in_after, held_after = math.sqrt(after.sse0 / n), math.sqrt(after.held0 / n)
+    params_after = after.k0 + searched
+    if not after.nuisance:
+        return expected_fresh(_rms(before), in_after, held_after, params_before, params_after), None
+    fixed = expected_fresh(_rms(before_fixed), in_after, held_after, params_before, params_after, NUISANCE_METHOD)
+    drifting = after.ws.residual + _drift_column(after)
+    remains = expected_fresh(_rms(before), _rms(drifting), math.sqrt(held_after**2 + _rms(drifting)**2 - in_after**2),
+                             params_before, params_after, "as above, on a fresh run that still drifts")
+    return fixed, remains
+
+
+def _fresh_keys(kind: str, value: FreshExpectation) -> dict[str, Any]:
+    return {f"fresh_gain_{kind}": value.ratio, f"fresh_rms_{kind}_um": [value.rms_before_um, value.rms_after_um],
+            f"fresh_gain_{kind}_by": value.method}
