@@ -336,6 +336,13 @@ def format_params(c: Candidate) -> str:
     return "; ".join(parts)
 
 
+def _change(gain: float) -> str:
+    """A held-out gain in words: a cut, or a rise when the candidate predicts held-out blocks worse."""
+    if gain >= 0:
+        return f"cuts the held-out RMS by {100 * gain:.1f} %"
+    return f"raises the held-out RMS by {-100 * gain:.1f} %"
+
+
 def _p_cell(c: Candidate) -> str:
     """The p the verdict cites, marked when it is the stepwise's (rows taken as independent)."""
     return f"{c.bar_p:.2g}" + (" (rows independent)" if c.remove else "")
@@ -360,8 +367,8 @@ def verdict(c: Candidate, chosen: bool, settings: Settings) -> str:
                        "hardly leans on it; rule 6 removes only a channel the fit leans on hard yet predicts new "
                        "data worse with (the paper's hot plate), and a weakly kept one is not that signature")
         if c.holdout_gain < settings.exclusion_gain:
-            why.append(f"leaving it out cuts the held-out RMS by {100 * c.holdout_gain:.1f} %, less than "
-                       f"{100 * settings.exclusion_gain:.0f} %")
+            why.append(f"leaving it out {_change(c.holdout_gain)} (a cut of {100 * settings.exclusion_gain:.0f} % is "
+                       "needed)")
         if c.blocks_improved < settings.exclusion_blocks:
             why.append(f"leaving it out predicts {100 * c.blocks_improved:.0f} % of the held-out blocks better, fewer "
                        f"than {100 * settings.exclusion_blocks:.0f} %")
@@ -370,8 +377,8 @@ def verdict(c: Candidate, chosen: bool, settings: Settings) -> str:
     if not c.p_value < settings.p_max:
         why.append(f"p {c.bar_p:.2g} ≥ {settings.p_max:g}: the improvement could be chance (rule 2)")
     if c.holdout_gain < needed:
-        why.append(f"held-out gain {100 * c.holdout_gain:.1f} % < {100 * needed:.0f} %"
-                   + (" (trend-like, rule 4)" if c.trend_like else " (rule 2)"))
+        why.append(f"it {_change(c.holdout_gain)} (a cut of {100 * needed:.0f} % is needed"
+                   + (": trend-like, rule 4)" if c.trend_like else ", rule 2)"))
     if c.blocks_improved < 0.5:
         why.append(f"improves only {100 * c.blocks_improved:.0f} % of the blocks (rule 2)")
     if not c.pinned:
