@@ -222,6 +222,9 @@ def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS,
         winners = sorted((c for c in cands if c.clears), key=lambda c: c.rank_key(settings))
         chosen = winners[0] if winners else None
         rounds.append(Round(cands, chosen))
+        range_of = chosen.held_out if chosen is not None else None
+        for c in cands:  # each holds this round's working model (its Gram matrices): keep none beyond the round
+            c.held_out = None
         if chosen is None:
             break
         if chosen.effect == "unmonitored_drift":
@@ -229,12 +232,12 @@ def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS,
             chosen.params = {"rate_um_per_h": round_sig(-coef["t"], 3)}
         if chosen.effect == "thermal_lag":
             chosen.params.update(drift_alike(ctx, chosen))
-        if chosen.held_out is not None and chosen.tau_bounds is not None:
+        if range_of is not None and chosen.tau_bounds is not None:
             tau = float(chosen.params["tau_s"])
             rows = np.array([b - a for a, b in ctx.ws.bounds], dtype=np.float64)
-            chosen.tau_range = tau_range(worse_than(chosen.held_out, tau, rows, settings), tau, chosen.tau_bounds)
+            chosen.tau_range = tau_range(worse_than(range_of, tau, rows, settings), tau, chosen.tau_bounds)
         steps.append(chosen)
-        previous, searched_before = ctx, searched
+        residual_before, params_before = ctx.ws.residual, ctx.k0 + searched  # not the whole context: memory
         searched += chosen.searched
         working = [t for t in working if t not in chosen.remove] + chosen.add
         excluded.update(t.name for t in chosen.remove)
@@ -246,9 +249,9 @@ def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS,
             if wider.held0 < ctx.held0:
                 chosen.params["readmitted"] = [t.name for t in back]
                 working, ctx = working + back, wider
-        before_fixed = previous.ws.residual - _drift_column(ctx) if chosen.nuisance else previous.ws.residual
+        before_fixed = residual_before - _drift_column(ctx) if chosen.nuisance else residual_before
         chosen.fresh_expected, chosen.fresh_if_source_remains = _expected(
-            before_fixed, previous.ws.residual, previous.k0 + searched_before, ctx, searched)
+            before_fixed, residual_before, params_before, ctx, searched)
         snapshots.append((list(working), dict(nuisance)))
     extended, residual1 = _final_model(data, model, working, nuisance, steps, settings)
     coefs = {ft.term.name: ft.coef for ft in extended.terms}
