@@ -7,17 +7,19 @@ x 0.66; the hidden lag is 2 h behind the air.
 
 from __future__ import annotations
 
+import json
 import re
 
 import numpy as np
 import pytest
 from helpers.discovery_helpers import cell_run, paper_model
 
-from daemon.calibration.dataset import Dataset
+from daemon.calibration.dataset import Dataset, read_csv, write_csv
 from daemon.calibration.discovery import discover
 from daemon.calibration.discovery.confirmation import expected_fresh, tau_range
+from daemon.cli import main
 from daemon.commands.discover import describe
-from daemon.model.model import Model
+from daemon.model.model import Model, load_model, save_model
 from daemon.reports.discovery import markdown
 from drivers.simulated.effects import EFFECTS
 
@@ -93,3 +95,25 @@ def test_the_p_beside_each_verdict_is_the_p_the_verdict_cites() -> None:
     assert f"p = {step.bar_p:.1g}" in result.summary
     (line,) = [row for row in describe(result, "m2.json").splitlines() if row.strip().startswith("thermal_lag ")]
     assert line.split()[1] == f"{step.bar_p:.2g}"
+
+
+def test_cli_fresh_measures_each_step_on_a_run_discovery_never_saw(tmp_path, capsys) -> None:
+    data, fresh = cell_run("creep", seed=7), cell_run("creep", seed=1007)
+    write_csv(data, tmp_path / "d.csv")
+    write_csv(fresh, tmp_path / "f.csv")
+    given = paper_model(data)
+    save_model(given, tmp_path / "m.json")
+    args = ["discover", str(tmp_path / "d.csv"), "--model", str(tmp_path / "m.json"),
+            "--out", str(tmp_path / "m2.json")]
+    assert main([*args, "--fresh", str(tmp_path / "f.csv"), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    (step,) = doc["steps"]
+    extended = load_model(tmp_path / "m2.json")
+    measured = rms(read_csv(tmp_path / "f.csv"), extended) / rms(read_csv(tmp_path / "f.csv"), given)
+    assert step["fresh_gain_measured"] == pytest.approx(measured, rel=1e-9)
+    assert doc["final"]["fresh_gain_measured"] == pytest.approx(measured, rel=1e-9)
+    assert step["tau_range_s"][0] <= step["params"]["tau_s"] <= step["tau_range_s"][1]
+    del fresh.channels[given.channels[0]]  # a fresh run without a channel the model needs: refused by name
+    write_csv(fresh, tmp_path / "f2.csv")
+    assert main([*args, "--fresh", str(tmp_path / "f2.csv")]) == 2
+    assert given.channels[0] in capsys.readouterr().err
