@@ -447,7 +447,8 @@ def rules(settings: Settings, result: DiscoveryResult) -> list[str]:
         "With `--fresh` the gain is also measured on a run discovery never saw. A named time constant comes with "
         "the range the run supports: the τ whose held-out blocks are not worse than at the τ named (one-sided "
         f"paired t-test over the blocks, {100 * s.tau_range_confidence:.0f} %); an edge at the end of the searched "
-        "range means the run cannot pin τ on that side.",
+        "range means the run cannot pin τ on that side. Rule 11 tests τ on the training fit; the range, on blocks "
+        "the fit did not see, is the stricter: where they disagree, the range says what the run can tell.",
     ]
 
 

@@ -79,7 +79,7 @@ class TauRange:
         if self.pinned:
             return f"the run supports τ from {lo} to {hi}"
         if self.pinned_lo:
-            return (f"the run pins τ only from below: from {lo} up to the longest searched ({hi}) held-out blocks "
+            return (f"the run pins τ only from below: from {lo} up to the longest searched ({hi}), held-out blocks "
                     "are predicted as well")
         if self.pinned_hi:
             return (f"the run pins τ only from above: up to {hi}, down to the shortest searched ({lo}), held-out "
