@@ -41,10 +41,13 @@ class Candidate:
     trend_like: bool = False  # indistinguishable from a drift in time over this run
     pinned: bool = True  # its searched parameter is determined by the run (see pinned())
     profile: list[tuple[float, float]] = field(default_factory=list, repr=False)  # (param, training RMS)
-    #: the held-out SSE per block as a function of the searched time constant, and its search range: kept so
-    #: the τ range is computed for the candidate that is named, and only for it
-    held_out: Callable[[float], np.ndarray] | None = field(default=None, repr=False)
+    #: per block, (training SSE of the fit on the other blocks, held-out SSE of the block) as a function of the
+    #: searched time constant, and its search range: kept (for the round only) so that the τ range and the
+    #: τ chosen without each block are computed for the candidate that is named, and only for it
+    fold_errors: Callable[[float], tuple[np.ndarray, np.ndarray]] | None = field(default=None, repr=False)
     tau_bounds: tuple[float, float] | None = None
+    #: held-out RMS with the time constant chosen without each block (the search confirmed on unseen blocks)
+    holdout_rms_nested_um: float = math.nan
     tau_range: TauRange | None = None  # the τ the run supports (named candidates with a searched τ)
     fresh_expected: FreshExpectation | None = None  # what a fresh run of the same kind should show
     fresh_measured: FreshExpectation | None = None  # what the fresh run given (--fresh) showed
@@ -94,7 +97,8 @@ class Candidate:
         if self.tau_range is None:
             return {}
         r = self.tau_range
-        out: dict[str, Any] = {"tau_range_s": [r.lo_s, r.hi_s], "tau_pinned": r.pinned, "tau_range": r.words()}
+        out: dict[str, Any] = {"tau_range_s": [r.lo_s, r.hi_s], "tau_pinned": r.pinned, "tau_range": r.words(),
+                               "holdout_rms_nested_um": json_float(self.holdout_rms_nested_um)}
         if "tau_behind_fastest_s" in self.params:
             shift = float(self.params["tau_behind_fastest_s"]) - float(self.params["tau_s"])
             out["tau_behind_fastest_range_s"] = [round_sig(r.lo_s + shift), round_sig(r.hi_s + shift)]

@@ -129,18 +129,19 @@ def _thermal_response(ctx: Context) -> list[Candidate]:
         cand.trend_like = tau >= 0.9 * tau_max  # as long as the run: a trend, not an identified lag
         cand.pinned = pinned(sse, tau, ctx.ws.n * ctx.deflate, s)
         cand.tau_bounds = (s.lag_tau_s[0], tau_max)
-        cand.held_out = partial(_held_out_lag, ctx, c, base)
+        cand.fold_errors = partial(_fold_errors_lag, ctx, c, base)
         out.append(ctx.judge(cand, ctx.columns(feats)))
     return _prefer_fastest(out, ctx)
 
 
-def _held_out_lag(ctx: Context, channel: str, base: list[np.ndarray], tau: float) -> np.ndarray:
-    """Held-out SSE per block with ``lag(channel, tau)`` (and the channel, if the model lacks it) added."""
-    return ctx.ws.evaluate(ctx.columns([*base, features(Lag(channel, tau), ctx.data)]))[1]
+def _fold_errors_lag(ctx: Context, channel: str, base: list[np.ndarray], tau: float
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Per block (training SSE without it, its held-out SSE) with ``lag(channel, tau)`` (and the channel) added."""
+    return ctx.ws.fold_errors(ctx.columns([*base, features(Lag(channel, tau), ctx.data)]))
 
 
-def _held_out_creep(ctx: Context, tau: float) -> np.ndarray:
-    return ctx.ws.evaluate(ctx.columns([features(Creep(tau), ctx.data)]))[1]
+def _fold_errors_creep(ctx: Context, tau: float) -> tuple[np.ndarray, np.ndarray]:
+    return ctx.ws.fold_errors(ctx.columns([features(Creep(tau), ctx.data)]))
 
 
 def _prefer_fastest(cands: list[Candidate], ctx: Context) -> list[Candidate]:
@@ -259,7 +260,7 @@ def _creep(ctx: Context) -> list[Candidate]:
     cand = Candidate("creep", [term], [], {"tau_s": tau}, 1, 1)
     cand.pinned = pinned(sse, tau, ctx.ws.n * ctx.deflate, ctx.settings)
     cand.tau_bounds = ctx.settings.creep_tau_s
-    cand.held_out = partial(_held_out_creep, ctx)
+    cand.fold_errors = partial(_fold_errors_creep, ctx)
     cand.profile = [(p, math.sqrt(v / ctx.ws.n)) for p, v in profile]
     return [ctx.judge(cand, ctx.columns([ctx.feature(term)]))]
 

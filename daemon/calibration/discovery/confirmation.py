@@ -21,10 +21,10 @@ from scipy import stats
 from daemon.calibration.discovery.settings import Settings
 
 #: how the expected fresh-run gain is estimated (the report and ``--json`` carry it beside the figure)
-EXPECTED_METHOD = ("expected RMS on a fresh run of the same kind = sqrt(in-sample MSE + ω), ω = held-out MSE "
-                   "minus in-sample MSE of the model with the effect (what fitting hides of the run's own slow "
-                   "noise), charged to the model without it in proportion to its fitted parameters")
-#: the same for an effect fitted as a nuisance (a drift no sensor sees): judged once its source is fixed
+EXPECTED_METHOD = ("expected RMS on a fresh run of the same kind = sqrt(in-sample MSE + ω), ω = held-out MSE minus "
+                   "in-sample MSE of the model with the effect (what fitting hides of the run's own slow noise; a "
+                   "searched time constant chosen without each held-out block), charged to the model without it in "
+                   "proportion to its fitted parameters")
 NUISANCE_METHOD = ("for a drift not applied online, judged on a fresh run without it (its source fixed or sensed): "
                    "the model with the drift fitted as a nuisance errs there by its in-sample error (its held-out "
                    "error mostly measures how well a line follows the drift's own wander, which that run does not "
@@ -94,19 +94,40 @@ def _duration(seconds: float) -> str:
     return f"{seconds / 60:.0f} min" if seconds < 3 * 3600 else f"{seconds / 3600:.1f} h"
 
 
-def worse_than(held_out: Callable[[float], np.ndarray], tau: float, block_rows: np.ndarray,
+FoldErrors = Callable[[float], tuple[np.ndarray, np.ndarray]]
+
+
+def nested_held_out(fold_errors: FoldErrors, tau: float, bounds: tuple[float, float]) -> np.ndarray:
+    """Held-out SSE per block with the time constant chosen without that block.
+
+    The named τ was searched on all rows, so its held-out blocks helped choose it; here each block's
+    τ minimises the training SSE of the other blocks (over a log grid of the searched range, finer
+    around τ), and the block is predicted with it: the search itself confirmed on unseen data.
+    """
+    lo, hi = bounds
+    fine = [tau * 1.15**k for k in range(-8, 9)]
+    grid = sorted({*np.geomspace(lo, hi, 12).tolist(), *(t for t in fine if lo <= t <= hi)})
+    errors = [fold_errors(t) for t in grid]
+    train = np.array([e[0] for e in errors])
+    held = np.array([e[1] for e in errors])
+    pick = np.argmin(train, axis=0)
+    chosen: np.ndarray = held[pick, np.arange(held.shape[1])]
+    return chosen
+
+
+def worse_than(fold_errors: FoldErrors, tau: float, block_rows: np.ndarray,
                settings: Settings) -> Callable[[float], bool]:
     """Whether held-out blocks are predicted significantly worse at τ' than at ``tau``.
 
-    ``held_out(τ)``: the held-out SSE of each block (each predicted by a fit on the others). The
+    ``fold_errors(τ)[1]``: the held-out SSE of each block (each predicted by a fit on the others). The
     blocks are the run's independent units (whole cycles, apart in time), so the test is a one-sided
     paired t-test over them of the per-row error increase, at ``1 - tau_range_confidence``.
     """
-    reference = held_out(tau) / block_rows
+    reference = fold_errors(tau)[1] / block_rows
     critical = float(stats.t.ppf(settings.tau_range_confidence, max(block_rows.size - 1, 1)))
 
     def worse(other: float) -> bool:
-        increase = held_out(other) / block_rows - reference
+        increase = fold_errors(other)[1] / block_rows - reference
         mean = float(np.mean(increase))
         spread = float(np.std(increase, ddof=1)) if increase.size > 1 else 0.0
         if spread == 0.0:

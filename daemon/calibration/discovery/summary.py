@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -58,6 +60,10 @@ def summarise(disagreements: Sequence[Disagreement], steps: Sequence[Candidate],
         lines += _fresh_lines(s)
         if s.tau_range is not None:
             lines.append(f"  Time constant: {_tau_words(s)}.")
+        if math.isfinite(s.holdout_rms_nested_um):
+            lines.append(f"  Chosen without each held-out block, τ predicts the blocks to "
+                         f"{s.holdout_rms_nested_um * 1000:.1f} nm RMS ({s.holdout_rms_after_um * 1000:.1f} nm when "
+                         "chosen on all rows).")
         if s.params.get("alike"):
             lines.append(f"  In this run it looks like {s.params['alike']} (their columns correlate "
                          f"{s.params['alike_correlation']:.2f} beyond the model's terms: the room fell and rose "

@@ -17,6 +17,7 @@ from daemon.calibration.discovery.confirmation import (
     NUISANCE_METHOD,
     FreshExpectation,
     expected_fresh,
+    nested_held_out,
     tau_range,
     worse_than,
 )
@@ -209,6 +210,7 @@ def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS,
     premove = float(model.selection.get("premove", 0.10))
     ctx = Context(data, working, nuisance, folds, settings, excluded, delays)
     searched = 0  # time constants searched so far (each a fitted parameter the fresh-run estimate charges)
+    search_hidden_mse = 0.0  # um^2: held-out MSE the named time constants gain when chosen without the block
     snapshots: list[tuple[list[Term], dict[str, np.ndarray]]] = []  # the working model after each step
     baseline: dict[str, Any] = {
         "model": model.id, "terms": [ft.term.name for ft in model.terms], "rows": n,
@@ -222,9 +224,9 @@ def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS,
         winners = sorted((c for c in cands if c.clears), key=lambda c: c.rank_key(settings))
         chosen = winners[0] if winners else None
         rounds.append(Round(cands, chosen))
-        range_of = chosen.held_out if chosen is not None else None
+        searched_errors = chosen.fold_errors if chosen is not None else None
         for c in cands:  # each holds this round's working model (its Gram matrices): keep none beyond the round
-            c.held_out = None
+            c.fold_errors = None
         if chosen is None:
             break
         if chosen.effect == "unmonitored_drift":
@@ -232,10 +234,14 @@ def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS,
             chosen.params = {"rate_um_per_h": round_sig(-coef["t"], 3)}
         if chosen.effect == "thermal_lag":
             chosen.params.update(drift_alike(ctx, chosen))
-        if range_of is not None and chosen.tau_bounds is not None:
+        if searched_errors is not None and chosen.tau_bounds is not None:
             tau = float(chosen.params["tau_s"])
             rows = np.array([b - a for a, b in ctx.ws.bounds], dtype=np.float64)
-            chosen.tau_range = tau_range(worse_than(range_of, tau, rows, settings), tau, chosen.tau_bounds)
+            chosen.tau_range = tau_range(worse_than(searched_errors, tau, rows, settings), tau, chosen.tau_bounds)
+            nested = float(np.sum(nested_held_out(searched_errors, tau, chosen.tau_bounds)))
+            chosen.holdout_rms_nested_um = math.sqrt(nested / n)
+            # what choosing τ on all rows hid from the held-out blocks, in MSE (carried by every later model)
+            search_hidden_mse += max(chosen.holdout_rms_nested_um**2 - chosen.holdout_rms_after_um**2, 0.0)
         steps.append(chosen)
         residual_before, params_before = ctx.ws.residual, ctx.k0 + searched  # not the whole context: memory
         searched += chosen.searched
@@ -251,7 +257,7 @@ def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS,
                 working, ctx = working + back, wider
         before_fixed = residual_before - _drift_column(ctx) if chosen.nuisance else residual_before
         chosen.fresh_expected, chosen.fresh_if_source_remains = _expected(
-            before_fixed, residual_before, params_before, ctx, searched)
+            before_fixed, residual_before, params_before, ctx, searched, search_hidden_mse)
         snapshots.append((list(working), dict(nuisance)))
     extended, residual1 = _final_model(data, model, working, nuisance, steps, settings)
     coefs = {ft.term.name: ft.coef for ft in extended.terms}
@@ -266,7 +272,7 @@ def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS,
     }
     if steps:
         given_fixed = residual0 - _drift_column(ctx) if nuisance else residual0
-        overall, _ = _expected(given_fixed, residual0, len(model.terms), ctx, searched)
+        overall, _ = _expected(given_fixed, residual0, len(model.terms), ctx, searched, search_hidden_mse)
         final.update(_fresh_keys("expected", overall))
         if fresh is not None:
             models = [model] + [_final_model(data, model, list(w), dict(u), steps[:i + 1], settings)[0]
@@ -317,16 +323,17 @@ def _drift_column(ctx: Context) -> np.ndarray:
 
 
 def _expected(before_fixed: np.ndarray, before: np.ndarray, params_before: int, after: Context,
-              searched: int) -> tuple[FreshExpectation, FreshExpectation | None]:
+              searched: int, search_hidden_mse: float) -> tuple[FreshExpectation, FreshExpectation | None]:
     """(the expected fresh-run RMS without and with the working model ``after``, the same if a nuisance remains).
 
     With a nuisance (a drift not applied online) the first is judged on a fresh run without it (its
     source fixed): the model without the effect keeps the coefficients that absorbed the drift
     (``before_fixed``); the second on one that still drifts, where the written model (drift left
-    out, bias of the run's start) errs by the whole drift.
+    out, bias of the run's start) errs by the whole drift. ``search_hidden_mse``: what the held-out
+    blocks gain when each named time constant is chosen without them.
     """
     n = after.ws.n
-    in_after, held_after = math.sqrt(after.sse0 / n), math.sqrt(after.held0 / n)
+    in_after, held_after = math.sqrt(after.sse0 / n), math.sqrt(after.held0 / n + search_hidden_mse)
     params_after = after.k0 + searched
     if not after.nuisance:
         return expected_fresh(_rms(before), in_after, held_after, params_before, params_after), None
