@@ -11,6 +11,11 @@ columns the project adds (documented in the README):
   measured, ``q_um`` the command sent);
 - ``residual_um``: measured position minus target (recorded operation).
 
+Multi-axis files (an XY or XYZ stage: ARCHITECTURE.md "Multi-axis cells") have one position column
+per axis, ``<axis>_um`` (``x_um``, ``y_um``, ``z_um``; the axis is one lowercase letter and ``x`` is always
+one of them), and commands ``q_<axis>_um`` instead of ``q_um``. No column ending in ``_um`` is ever a
+temperature channel: ``<axis>_true_um``, ``q_pred_<axis>_um`` and the like are kept as reserved columns.
+
 Files are refused with a message naming the file, the row (1-based line number as an editor shows
 it) and the column. Several files fitted together (:func:`concat`) stay separate runs: each
 row knows its file (``Dataset.segment``), so stateful terms restart and held-out blocks stay inside
@@ -42,6 +47,24 @@ RESERVED = ("t_s", "x_um", "q_um", "q_pred_um", "q_sigma_um", "cycle", "valid", 
 CHANNEL_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_.\-]*$")
 #: names a channel may not take because a model term would read them as something else
 FORBIDDEN_CHANNELS = frozenset({"x", "dir", "t", "1"})
+#: a position column of a multi-axis file: ``<axis>_um``, the axis one lowercase letter but q (``q_um`` is the
+#: one-axis command)
+AXIS_COLUMN = re.compile(r"^(?P<axis>[a-pr-z])_um$")
+#: a command column of a multi-axis file: ``q_<axis>_um``
+COMMAND_COLUMN = re.compile(r"^q_(?P<axis>[a-pr-z])_um$")
+
+
+def position_column(axis: str) -> str:
+    return f"{axis}_um"
+
+
+def command_column(axis: str) -> str:
+    return f"q_{axis}_um"
+
+
+def is_reserved(name: str) -> bool:
+    """A column that is not a temperature channel: the contract's reserved names and anything ending in ``_um``."""
+    return name in RESERVED or name.endswith("_um")
 
 
 class DataError(ValueError):
@@ -60,9 +83,42 @@ class Dataset:
     source: str = "<memory>"
     #: the 0-based index of the file each row came from when several were read together; None: one run
     segment: np.ndarray | None = None
+    #: a multi-axis run: position per axis in the cell's axis order (``x`` is also :attr:`x`); empty for one axis
+    positions: dict[str, np.ndarray] = field(default_factory=dict)
+    #: a multi-axis run: the command sent per axis (``q_<axis>_um``), when recorded; empty for one axis
+    commands: dict[str, np.ndarray] = field(default_factory=dict)
+    #: the axis whose command ``q`` is (:meth:`axis_view`); ``x`` for a one-axis run
+    axis: str = "x"
 
     def __len__(self) -> int:
         return int(self.t.shape[0])
+
+    @property
+    def axes(self) -> tuple[str, ...]:
+        """The axes the rows position: ``("x",)`` for a one-axis file."""
+        return tuple(self.positions) or ("x",)
+
+    @property
+    def multi_axis(self) -> bool:
+        return len(self.positions) > 1
+
+    @property
+    def own_position(self) -> np.ndarray:
+        """The position of :attr:`axis` (``x`` for a one-axis run): what its own motion terms read."""
+        return self.positions[self.axis] if self.multi_axis else self.x
+
+    def axis_view(self, axis: str) -> Dataset:
+        """The rows as identification of ``axis`` sees them: its command as ``q``, every axis' position kept.
+
+        ``x`` stays the x axis' position (a term named ``x`` is always that axis); the other axes'
+        positions reach the terms that read them through :attr:`positions`.
+        """
+        if axis not in self.axes:
+            raise KeyError(f"{self.source} has no axis {axis!r} (axes: {', '.join(self.axes)})")
+        if not self.multi_axis:
+            return self
+        return Dataset(self.t, self.x, self.commands.get(axis), self.channels, self.extra,
+                       f"{self.source} (axis {axis})", self.segment, self.positions, self.commands, axis)
 
     @property
     def channel_names(self) -> tuple[str, ...]:
@@ -78,6 +134,9 @@ class Dataset:
             extra={k: v[rows] for k, v in self.extra.items()},
             source=self.source,
             segment=None if self.segment is None else self.segment[rows],
+            positions={k: v[rows] for k, v in self.positions.items()},
+            commands={k: v[rows] for k, v in self.commands.items()},
+            axis=self.axis,
         )
 
     def valid_rows(self) -> Dataset:
@@ -112,7 +171,10 @@ class Dataset:
     def columns(self, extra_columns: Mapping[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
         """All columns in contract order, for writing."""
         cols: dict[str, np.ndarray] = {"t_s": self.t, "x_um": self.x}
-        if self.q is not None:
+        if self.multi_axis:
+            cols.update({position_column(a): v for a, v in self.positions.items()})
+            cols.update({command_column(a): v for a, v in self.commands.items()})
+        elif self.q is not None:
             cols["q_um"] = self.q
         cols.update(self.extra)
         cols.update(self.channels)
@@ -164,8 +226,24 @@ def _parse_header(path: Path, line: str) -> list[str]:
         if name in seen:
             raise DataError(f"{path}, row 1, column {col}: duplicate column {name!r}")
         seen.add(name)
-        if name not in RESERVED:
+        if not is_reserved(name):
             check_channel_name(name, f"{path}, row 1, column {col}")
+    axes = [m["axis"] for name in header if (m := AXIS_COLUMN.match(name))]
+    commanded = [m["axis"] for name in header if (m := COMMAND_COLUMN.match(name))]
+    if len(axes) > 1 and "q_um" in header:
+        raise DataError(f"{path}, row 1: a multi-axis file ({', '.join(a + '_um' for a in axes)}) names its commands "
+                        f"{', '.join(command_column(a) for a in axes)}, not q_um")
+    clash = [name for name in header if len(axes) > 1 and name in axes]
+    if clash:
+        raise DataError(f"{path}, row 1, column {header.index(clash[0]) + 1}: {clash[0]!r} is an axis of this "
+                        "multi-axis file; a temperature channel may not take an axis' name")
+    stray = [command_column(a) for a in commanded if a not in axes]
+    if stray:
+        raise DataError(f"{path}, row 1: column {stray[0]} commands an axis with no position column "
+                        f"(axes: {', '.join(a + '_um' for a in axes)})")
+    if commanded and len(commanded) != len(axes):
+        missing = [command_column(a) for a in axes if a not in commanded]
+        raise DataError(f"{path}, row 1: missing column {missing[0]!r} (every axis needs its command when one has)")
     return header
 
 
@@ -225,12 +303,23 @@ def _to_dataset(path: Path, header: list[str], values: np.ndarray) -> Dataset:
         if name in cols and not np.array_equal(cols[name], np.round(cols[name])):
             i = int(np.flatnonzero(cols[name] != np.round(cols[name]))[0])
             raise DataError(f"{path}, row {i + 2}, column {name}: expected a whole number, got {cols[name][i]:g}")
+    axes = [m["axis"] for name in header if (m := AXIS_COLUMN.match(name))]
+    if len(axes) > 1:
+        positions = {a: cols[position_column(a)] for a in axes}
+        commands = {a: cols[command_column(a)] for a in axes if command_column(a) in cols}
+        taken = {"t_s", *map(position_column, axes), *map(command_column, axes)}
+        return Dataset(
+            t=t, x=cols["x_um"], q=None,
+            channels={n: cols[n] for n in header if not is_reserved(n)},
+            extra={n: cols[n] for n in header if is_reserved(n) and n not in taken},
+            source=str(path), positions=positions, commands=commands,
+        )
     return Dataset(
         t=t,
         x=cols["x_um"],
         q=cols.get("q_um"),
-        channels={n: cols[n] for n in header if n not in RESERVED},
-        extra={n: cols[n] for n in header if n in RESERVED and n not in ("t_s", "x_um", "q_um")},
+        channels={n: cols[n] for n in header if not is_reserved(n)},
+        extra={n: cols[n] for n in header if is_reserved(n) and n not in ("t_s", "x_um", "q_um")},
         source=str(path),
     )
 
@@ -258,11 +347,17 @@ def concat(datasets: Sequence[Dataset], channels: Sequence[str] | None = None) -
                 f"{ds.source}: lacks channel(s) {', '.join(missing)} that {datasets[0].source} has "
                 f"(its channels: {', '.join(ds.channels) or 'none'})"
             )
+    axes = datasets[0].axes
+    for ds in datasets[1:]:
+        if ds.axes != axes:
+            raise DataError(f"{ds.source}: positions axes {', '.join(ds.axes)}, but {datasets[0].source} "
+                            f"positions {', '.join(axes)} (runs fitted together must be of one cell)")
     if len(datasets) == 1:
         ds = datasets[0]
         if list(ds.channels) == wanted:
             return ds
-        return Dataset(ds.t, ds.x, ds.q, {c: ds.channels[c] for c in wanted}, ds.extra, ds.source, ds.segment)
+        return Dataset(ds.t, ds.x, ds.q, {c: ds.channels[c] for c in wanted}, ds.extra, ds.source, ds.segment,
+                       ds.positions, ds.commands, ds.axis)
     commands = [d.q for d in datasets if d.q is not None]
     extra: dict[str, np.ndarray] = {}
     names = [n for n in datasets[0].extra if all(n in d.extra for d in datasets[1:])]
@@ -285,6 +380,9 @@ def concat(datasets: Sequence[Dataset], channels: Sequence[str] | None = None) -
         extra=extra,
         source=", ".join(d.source for d in datasets),
         segment=np.concatenate([np.full(len(d), i, dtype=np.int64) for i, d in enumerate(datasets)]),
+        positions={a: np.concatenate([d.positions[a] for d in datasets]) for a in datasets[0].positions},
+        commands=({a: np.concatenate([d.commands[a] for d in datasets]) for a in datasets[0].commands}
+                  if all(d.commands for d in datasets) else {}),
     )
 
 
@@ -341,7 +439,7 @@ class CsvAppender:
         self.intact = True
         self._write = write
         for col, name in enumerate(self.columns, start=1):
-            if name not in RESERVED:
+            if not is_reserved(name):
                 check_channel_name(name, f"{self.path}, column {col}")
         self.path.parent.mkdir(parents=True, exist_ok=True)
         exists = self.path.exists() and self.path.stat().st_size > 0
@@ -409,6 +507,9 @@ def read_runs(paths: Sequence[str], purpose: str = "to fit") -> list[Dataset]:
     """Read every file; a bad one, or one without ``q_um``, is refused by name."""
     runs = [read_csv(p) for p in paths]
     for ds in runs:
-        if ds.q is None:
+        if ds.multi_axis and not ds.commands:
+            raise DataError(f"{ds.source}: no {', '.join(command_column(a) for a in ds.axes)} columns "
+                            f"(the commands sent to the stage's axes) {purpose}")
+        if ds.q is None and not ds.multi_axis:
             raise DataError(f"{ds.source}: no q_um column (the command sent to the stage) {purpose}")
     return runs

@@ -16,10 +16,15 @@ stage would have reached with the uncompensated command, x_without = x_measured 
 stage's closed loop makes the attained position follow the command with unit gain (its nonlinearity
 over the sub-µm difference q' - x' is below a nm), so this is the same period's drift without the
 model, computed from the same measurements.
+
+Against the truth (a simulated cell only): ``x_true_um``, per step, is the position the stage truly
+attained over the step's window (no interferometer noise or wander). Real hardware has none: the list
+is empty and nothing is reported against it.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -52,6 +57,8 @@ class TestResult:
     #: ... and the model's standard uncertainty for its command
     q_sigma_um: list[float] = field(default_factory=list)
     adapted: bool = False
+    #: per step, the true attained position (a simulated cell only; empty on hardware)
+    x_true_um: list[float] = field(default_factory=list)
 
     @property
     def accuracy_nm(self) -> float:
@@ -66,6 +73,34 @@ class TestResult:
     def improvement(self) -> float:
         return self.accuracy_without_nm / self.accuracy_nm if self.compensated else float("nan")
 
+    @property
+    def has_truth(self) -> bool:
+        return len(self.x_true_um) == len(self.steps) > 0
+
+    def true_points(self) -> list[PointStats]:
+        """ISO 9283 per point against the true position (as :attr:`points` against the interferometer)."""
+        if not self.has_truth:
+            return []
+        truths = [s for s in zip(self.steps, self.x_true_um, strict=True) if s[0].valid]
+        out = []
+        for target in sorted({s.step.target_um for s, _ in truths}):
+            here = [(s, x) for s, x in truths if s.step.target_um == target]
+            with_ = np.array([x for _, x in here])
+            without = np.array([x - (s.q_um - s.step.target_um) for s, x in here])
+            acc, rep = iso9283(with_, target)
+            acc0, rep0 = iso9283(without, target)
+            out.append(PointStats(target, len(here), acc * 1e3, rep * 1e3, acc0 * 1e3, rep0 * 1e3))
+        return out
+
+    def true_accuracy_nm(self) -> tuple[float, float]:
+        """Table I against the true position: (without, with) compensation; with is NaN for an uncompensated
+        test, both NaN without truth."""
+        points = self.true_points()
+        if not points:
+            return math.nan, math.nan
+        without = float(np.mean([p.accuracy_without_nm for p in points]))
+        return without, float(np.mean([p.accuracy_nm for p in points])) if self.compensated else math.nan
+
     def coverage(self, k: float = 2.0) -> float:
         """Share of valid steps whose error (position - target) lies within ±k q_sigma_um (nan without sigmas)."""
         inside = [abs(s.x_um - s.step.target_um) <= k * sigma
@@ -74,9 +109,30 @@ class TestResult:
         return float(np.mean(inside)) if inside else float("nan")
 
     def to_dict(self) -> dict[str, Any]:
-        def num(v: float) -> float | None:
-            return None if not np.isfinite(v) else round(float(v), 3)
+        doc = self._measured_dict()
+        if self.has_truth:
+            doc["true_position"] = self._true_dict()
+        return doc
 
+    def _true_dict(self) -> dict[str, Any]:
+        """The same figures against the true attained position (a simulated cell only)."""
+        without, with_ = self.true_accuracy_nm()
+        return {
+            "without_comp_nm": _num(without),
+            "with_comp_nm": _num(with_),
+            "improvement_ratio": _num(without / with_) if self.compensated else None,
+            "points": [
+                {"x_um": p.target_um, "visits": p.visits,
+                 "accuracy_nm": _num(p.accuracy_nm) if self.compensated else None,
+                 "repeatability_nm": _num(p.repeatability_nm) if self.compensated else None,
+                 "accuracy_without_nm": _num(p.accuracy_without_nm),
+                 "repeatability_without_nm": _num(p.repeatability_without_nm)}
+                for p in self.true_points()
+            ],
+        }
+
+    def _measured_dict(self) -> dict[str, Any]:
+        num = _num
         return {
             "test": self.name,
             "compensated": self.compensated,
@@ -100,6 +156,10 @@ class TestResult:
                 for p in self.points
             ],
         }
+
+
+def _num(v: float) -> float | None:
+    return None if not np.isfinite(v) else round(float(v), 3)
 
 
 def iso9283(positions: np.ndarray, target: float) -> tuple[float, float]:

@@ -22,8 +22,10 @@ from daemon.drivers_set import DriverSet
 from daemon.errors import UserError
 from daemon.procedure.follow import FollowCheck
 from daemon.procedure.preflight import check_not_served, wait_for_output
+from drivers.simulated.cell import SimulatedCell
 from drivers.simulated.config import SECTION, SimulationConfig
 from drivers.simulated.effects import UnknownNameError, resolve_effects
+from drivers.simulated.plugin import RESOURCE_KEY
 from drivers.simulated.scenarios import get_scenario
 
 _PAPER_TEST = re.compile(r"test(?P<n>[1-9])")
@@ -47,11 +49,23 @@ def add_config_flag(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", metavar="F", help="operator config (TOML); none: the built-in simulated cell")
 
 
-def add_simulation_flags(parser: argparse.ArgumentParser, default_scenario: str) -> None:
-    """For the simulated cell (no --config, or a config with simulated sensors): override [simulation]."""
-    parser.add_argument("--scenario", metavar="S",
-                        help=f"simulated room history, one of {scenario_names()} (default: {default_scenario} "
-                             "with no --config, else the config's [simulation] scenario)")
+def add_simulation_flags(parser: argparse.ArgumentParser, default_scenario: str, *, several: bool = False,
+                         over_config: bool = False) -> None:
+    """For the simulated cell (no --config, or a config with simulated sensors): override [simulation].
+
+    ``several``: ``--scenario`` may name several rooms, comma-separated or repeated (a list, read with
+    :func:`scenario_list`), each run in turn. ``over_config``: ``default_scenario`` applies with a config
+    too (see :func:`open_cell`)."""
+    default = (f"{default_scenario}, whatever the config's [simulation] scenario (the room the daemon serves in)"
+               if over_config else f"{default_scenario} with no --config, else the config's [simulation] scenario")
+    if several:
+        parser.add_argument("--scenario", metavar="S", action="append",
+                            help=f"simulated room history, one of {scenario_names()}; several, comma-separated "
+                                 "or repeated (--scenario test2,test3 or --scenario test2 --scenario test3), "
+                                 f"are run in turn into one report (default: {default})")
+    else:
+        parser.add_argument("--scenario", metavar="S",
+                            help=f"simulated room history, one of {scenario_names()} (default: {default})")
     parser.add_argument("--effects", metavar="a,b",
                         help=f"hidden effects of the simulated cell, from {effect_names()} "
                              "(default: none, or the config's)")
@@ -60,21 +74,31 @@ def add_simulation_flags(parser: argparse.ArgumentParser, default_scenario: str)
                              "seed*100+N, as in demo")
 
 
+def scenario_list(values: list[str] | None) -> list[str]:
+    """``--scenario`` given several times or comma-separated, in order, each once (empty: none given)."""
+    names = [name.strip() for value in values or [] for name in value.split(",") if name.strip()]
+    return list(dict.fromkeys(names))
+
+
 def add_output_check_flag(parser: argparse.ArgumentParser) -> None:
     """Procedures on hardware with [actuator] kind = "zenoh" refuse to start with nobody applying the steps."""
     parser.add_argument("--no-output-check", action="store_true",
                         help="start even when no output node is subscribed to nanodrift/<cell>/command")
 
 
-def open_cell(args: argparse.Namespace, default_scenario: str, start_s: float = 0.0) -> tuple[Config, DriverSet]:
+def open_cell(args: argparse.Namespace, default_scenario: str, start_s: float = 0.0, *,
+              over_config: bool = False) -> tuple[Config, DriverSet]:
     """The config of ``--config`` (or the built-in simulated cell) and its drivers for a procedure.
 
     ``--scenario/--effects/--seed`` override the ``[simulation]`` table when given; the seed the
-    simulated cell then runs with is :func:`scenario_seed` of that seed and scenario.
+    simulated cell then runs with is :func:`scenario_seed` of that seed and scenario. Without
+    ``--scenario`` the simulated room is ``default_scenario`` with no config; with one, the config's
+    ``[simulation] scenario``, unless ``over_config`` (calibrate: the config's scenario is the room the
+    daemon serves in, and a calibration needs the paper's training room, whatever the daemon serves in).
     """
     config = load_config(args.config)
     updates: dict[str, Any] = {}
-    scenario = args.scenario or (default_scenario if args.config is None else None)
+    scenario = args.scenario or (default_scenario if args.config is None or over_config else None)
     try:
         if scenario:
             get_scenario(scenario)
@@ -111,3 +135,25 @@ def guards(config: Config, drivers: DriverSet, args: argparse.Namespace
     if config.actuator.kind == ZENOH_KIND and not args.no_output_check:
         return follow, functools.partial(wait_for_output, config)
     return follow, None
+
+
+#: samples of the true position averaged over a step's window (the interferometer samples it at 10 Hz;
+#: the truth moves by well under a nm within the window, so a few points suffice)
+TRUTH_SAMPLES = 6
+
+
+def simulated_truth(drivers: DriverSet) -> Callable[[float, float], float] | None:
+    """The simulated cell's true attained position, averaged over ``[start_s, end_s]`` of its clock
+    (what a validation scores as ``x_true_um``); None on any other cell: hardware knows no truth.
+
+    The one place the truth leaves the simulated cell; called between steps, while the stage holds.
+    """
+    cell = drivers.context.resources.get(RESOURCE_KEY, SimulatedCell)
+    if cell is None:
+        return None
+
+    def true_position(start_s: float, end_s: float) -> float:
+        times = [start_s + (end_s - start_s) * i / (TRUTH_SAMPLES - 1) for i in range(TRUTH_SAMPLES)]
+        return sum(cell.true_position(t - cell.epoch) for t in times) / TRUTH_SAMPLES
+
+    return true_position

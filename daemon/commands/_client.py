@@ -1,17 +1,22 @@
-"""The client side of ``target`` and ``status``: their shared options and the Zenoh session they open.
+"""The client side of ``target`` and ``status``: their shared options, the Zenoh session they open, and
+the query that finds the cells on the network.
 
 :func:`add_client_flags` declares ``-e/--connect``, ``--mode`` and ``--zenoh-config``; :func:`open_client`
 reads them (and nothing else) into a session, so the rule "a file as the base, then ``-e``/``--mode``"
-is written once.
+is written once. :func:`query_status` is ``status``'s query, which ``target`` also asks when its cell
+does not answer (to name the cells that do).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
+from typing import Any
 
 import zenoh
 
+from daemon.bus.protocol import key_prefix
 from daemon.bus.session import describe_zenoh_error, session_config
 from daemon.config import ZenohSettings
 from daemon.errors import UserError
@@ -62,3 +67,26 @@ def open_client(args: argparse.Namespace) -> zenoh.Session:
         where = ", ".join(args.connect) or args.zenoh_config or "scouting"
         raise UserError(f"cannot open a zenoh session ({where}): "
                         f"{describe_zenoh_error(error, connect=args.connect)}") from None
+
+
+def status_key(cell: str | None) -> str:
+    """One cell's ``status`` key, or every cell's (``None``: the wildcard)."""
+    return f"{key_prefix(cell or '*')}/status"
+
+
+def query_status(session: zenoh.Session, key: str, timeout_s: float) -> list[dict[str, Any]]:
+    """Every reply to one query on ``key``, sorted by cell; errors and non-JSON replies are skipped."""
+    docs: dict[str, dict[str, Any]] = {}
+    for reply in session.get(key, target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
+                             timeout=timeout_s):
+        sample = reply.ok
+        if sample is None:
+            continue
+        try:
+            doc = json.loads(sample.payload.to_bytes())
+        except ValueError:
+            continue
+        if isinstance(doc, dict):
+            cell = str(doc.get("cell") or str(sample.key_expr).split("/")[1])
+            docs[cell] = doc
+    return [docs[cell] for cell in sorted(docs)]

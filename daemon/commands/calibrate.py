@@ -3,9 +3,14 @@
 With no ``--config`` the cell is simulated on a virtual clock (a 4-hour calibration in seconds).
 ``[procedure]`` sets the trajectory (``trajectory``: forward sweeps as in the paper, or up-and-down)
 and the timing, on the simulated cell and on hardware alike; ``--scenario`` is only the simulated
-room's history. On hardware the configured actuator moves the stage, and the run is refused while a
+room's history: the paper's training room (``train``) unless given, whatever room the config's daemon
+serves in. On hardware the configured actuator moves the stage, and the run is refused while a
 daemon serves the cell; it stops within its first steps when the position sensor does not see the
 stage move.
+
+The result goes to stdout: the model, its training ranges, and which config serves it (``--serve``
+writes the config's ``[model] path``); progress and warnings (a temperature range too narrow to
+trust) go to stderr.
 """
 
 from __future__ import annotations
@@ -19,18 +24,23 @@ from daemon.calibration.dataset import DataError
 from daemon.calibration.plans import bidirectional_plan, calibration_plan
 from daemon.commands._catalogues import scenario_epilog
 from daemon.commands._cell import add_config_flag, add_output_check_flag, add_simulation_flags, guards, open_cell
+from daemon.config import Config, missing_model_channels
 from daemon.errors import UserError
 from daemon.model.equation import equation, training_lines
 from daemon.model.identify import FitError
+from daemon.model.model import Model
 from daemon.procedure.follow import StageNotFollowingError
 from daemon.procedure.preflight import PreflightError
 from daemon.procedure.recording import (
+    NARROW_RANGE_C,
     calibration_columns,
     completed_steps,
     fit_recorded,
+    narrow_channels,
     record_calibration,
     resume_hint,
 )
+from daemon.procedure.serving import ServeError, check_writable, serve_model, toml_string
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -41,7 +51,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cycles", type=int, metavar="N",
                         help="calibration sweeps (default: the config's [procedure] cycles, 24 as in the paper)")
     parser.add_argument("--resume", action="store_true", help="continue an interrupted run from --data")
-    add_simulation_flags(parser, "train")
+    parser.add_argument("--serve", action="store_true",
+                        help="write the new model's path into the --config file's [model] path (atomically, the "
+                             "rest of the file kept), so the daemon serves it after a reload")
+    add_simulation_flags(parser, "train", over_config=True)
     add_output_check_flag(parser)
 
 
@@ -55,10 +68,18 @@ def _data_path(args: argparse.Namespace) -> Path:
 def main(args: argparse.Namespace) -> int:
     if args.cycles is not None and args.cycles < 1:
         raise UserError(f"--cycles must be at least 1, got {args.cycles}")
+    if args.serve and not args.config:
+        raise UserError("--serve needs --config F: the config whose [model] path is to name the new model "
+                        "(the built-in simulated cell has no file)")
+    if args.serve:
+        try:
+            check_writable(Path(args.config))  # refused now, not after hours of calibration
+        except ServeError as err:
+            raise UserError(str(err)) from None
     data = _data_path(args)
     if args.resume and not data.exists():
         raise UserError(f"--resume: {data} does not exist (nothing to continue)")
-    config, drivers = open_cell(args, "train")
+    config, drivers = open_cell(args, "train", over_config=True)
     columns = calibration_columns(drivers)
     cycles = args.cycles if args.cycles is not None else config.procedure.cycles
     points = config.procedure.calibration_points
@@ -68,7 +89,7 @@ def main(args: argparse.Namespace) -> int:
     except DataError as err:
         raise UserError(str(err)) from None
     if args.resume and config.virtual_cell and done:  # the simulated room continues where the file ends
-        config, drivers = open_cell(args, "train", start_s=last_t + 1.0)
+        config, drivers = open_cell(args, "train", start_s=last_t + 1.0, over_config=True)
     follow, ready = guards(config, drivers, args)
     print(f"calibration on {drivers.description}: {len(plan)} steps ({cycles} cycles), data -> {data}"
           + (f", resuming after {done} recorded steps" if done else ""), file=sys.stderr)
@@ -88,12 +109,65 @@ def main(args: argparse.Namespace) -> int:
             raise UserError(str(err)) from None
         raise
     try:
-        result = fit_recorded(data, args.out)
+        result = fit_recorded(data, args.out, commanded_um=[step.target_um for step in plan])
     except (FitError, DataError) as err:
         raise UserError(f"the recorded steps in {data} are kept, but the fit failed: {err}") from None
     model = result.model
-    print(f"model -> {args.out} ({model.id}): {equation(model)}", file=sys.stderr)
+    print(f"model -> {args.out} ({model.id}): {equation(model)}")
     residual = model.fit.get("residual_rms_nm", float("nan"))
-    print(f"fit residual {residual:.1f} nm RMS over {model.fit.get('rows')} steps", file=sys.stderr)
-    print("\n".join(training_lines(model)), file=sys.stderr)
+    print(f"fit residual {residual:.1f} nm RMS over {model.fit.get('rows')} steps")
+    print("\n".join(training_lines(model)))
+    for warning in narrow_warnings(data):
+        print(f"nanodrift calibrate: warning: {warning}", file=sys.stderr)
+    if args.serve:
+        try:
+            serve_model(Path(args.config), Path(args.out))
+        except ServeError as err:
+            raise UserError(f"the model {args.out} is written, but {err}") from None
+    print(serving_lines(args, config, model))
+    for warning in sensor_warnings(config, model) if args.config else []:
+        print(f"nanodrift calibrate: warning: {warning}", file=sys.stderr)
     return 0
+
+
+def narrow_warnings(data: Path) -> list[str]:
+    """A line per channel whose calibration range is below :data:`NARROW_RANGE_C`, then what it means."""
+    narrow = narrow_channels(data)
+    if not narrow:
+        return []
+    return [f"{name} varied only {hi - lo:.3f} °C during the calibration ({lo:.3f}..{hi:.3f} °C)"
+            for name, (lo, hi) in narrow.items()] + [
+        f"a range below {NARROW_RANGE_C:g} °C is too narrow to trust: the channel's coefficient is mostly noise, and "
+        "the model extrapolates as soon as the room moves further; calibrate while the room swings wider (on the "
+        "simulated cell: --scenario train, the default)"]
+
+
+def serving_lines(args: argparse.Namespace, config: Config, model: Model) -> str:
+    """Which config serves the new model, and how to make it (or a reload) do so."""
+    out = Path(args.out).resolve()
+    path_line = f"[model] path = {toml_string(str(out))}"
+    if not args.config:
+        return (f"served by: no config yet (nanodrift run with no --config serves the shipped model); to serve "
+                f"{model.id}: put {path_line} in a config (e.g. a copy of config/sim.toml), then "
+                "nanodrift run --config F; or calibrate with --config F --serve")
+    reload = ("the daemon takes it at its next start or reload (systemctl start or reload nanodrift; by hand: "
+              f"kill -HUP its pid); check first: nanodrift check-config {args.config} --strict")
+    if args.serve or Path(config.model.path).resolve() == out:
+        verb = "now serves" if args.serve else "serves"
+        return f"served by: {args.config} {verb} {model.id} ({path_line}); {reload}"
+    return (f"served by: {args.config} still serves {config.model.path}, not {model.id}; to serve it: "
+            f"calibrate with --serve, or set {path_line} in {args.config}; {reload}")
+
+
+def sensor_warnings(config: Config, model: Model) -> list[str]:
+    """What ``check-config --strict`` will refuse about the new model and the config's sensors."""
+    warnings = []
+    missing = missing_model_channels(config, model.channels)
+    if missing:
+        warnings.append(f"the model needs {', '.join(missing)}, which no temperature sensor of {config.source} "
+                        "provides: targets will be refused until they are configured")
+    unused = [s.name for s in config.sensors if s.role == "temperature" and s.name not in model.channels]
+    if unused:
+        warnings.append(f"sensor(s) {', '.join(unused)} of {config.source} are not used by {model.id} "
+                        "(check-config --strict refuses that: remove them, or keep them as monitored only)")
+    return warnings

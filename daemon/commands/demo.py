@@ -15,8 +15,13 @@
 5. what nanodrift adds beyond the paper (:func:`what_nanodrift_adds`; printed once it has content).
 
 Steps are numbered as they are printed. A bad ``--tests`` value is refused before anything runs. The
-daemon's log is kept in ``--keep DIR``; without it, a failing daemon's last log lines are printed
-inline (never a path to a file the demo has deleted).
+daemon's log is kept in ``--keep DIR``, with the figures of ``validate --report`` (fig9, fig11) of the
+tests; without it, a failing daemon's last log lines are printed inline (never a path to a file the
+demo has deleted).
+
+The simulated cell knows where the stage truly is: each test is also scored against that true
+position, beside the interferometer's view (which includes its noise and wander); real hardware has
+no such truth.
 """
 
 from __future__ import annotations
@@ -40,8 +45,7 @@ from daemon.calibration.discovery import discover
 from daemon.calibration.iso9283 import TestResult
 from daemon.calibration.plans import PAPER_TIMING
 from daemon.calibration.residuals import MIN_RESIDUALS, BiasTracker
-from daemon.commands._catalogues import scenario_epilog
-from daemon.commands._cell import scenario_seed
+from daemon.commands._cell import scenario_seed, simulated_truth
 from daemon.commands._demo_serve import serve
 from daemon.errors import UserError
 from daemon.model.equation import equation
@@ -49,7 +53,14 @@ from daemon.model.identify import FitError
 from daemon.model.model import Model
 from daemon.procedure.recording import fit_recorded, record_calibration
 from daemon.procedure.validation import run_validation
-from daemon.reports.validation import PAPER_TABLE1, results_json, table1
+from daemon.reports.validation import (
+    PAPER_TABLE1,
+    provenance_text,
+    results_json,
+    table1,
+    truth_table,
+    write_figures,
+)
 from drivers.simulated.datasets import simulate_dataset
 from drivers.simulated.effects import resolve_effects
 
@@ -68,14 +79,12 @@ IN_RANGE = ("test2", "test3", "test4")
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.epilog = scenario_epilog()
-    # the demo starts its own daemon and client on loopback; these pick the endpoints
+    parser.epilog = "tests (--tests):\n" + "\n".join(f"  {name}  {what}" for name, what in TESTS.items())
+    # the demo starts its own daemon (a peer) and client (a client) on loopback; these pick the endpoints
     parser.add_argument("-l", "--listen", action="append", default=[], metavar="EP",
                         help="endpoint the demo's daemon listens on (default: a free port on 127.0.0.1)")
     parser.add_argument("-e", "--connect", action="append", default=[], metavar="EP",
                         help="endpoint the demo's client connects to (default: the --listen endpoint)")
-    parser.add_argument("--mode", choices=["peer", "client", "router"],
-                        help="accepted as for run; the demo's daemon is always a peer and its client a client")
     parser.add_argument("--tests", nargs="+", default=list(TESTS), metavar="T",
                         help="the paper's tests to run: test1 (without compensation), test2-test4 (inside the "
                              "training range), test5 (outside it)")
@@ -88,7 +97,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, metavar="N",
                         help="simulation seed: the same seed gives the same Table I as validate --seed N")
     parser.add_argument("--keep", metavar="DIR",
-                        help="keep the model, data, Table I (JSON), config and daemon log in DIR")
+                        help="keep the model, data, Table I (JSON), the figures (fig9, fig11; PNG + SVG), config "
+                             "and daemon log in DIR")
 
 
 def check_args(args: argparse.Namespace) -> list[str]:
@@ -157,18 +167,23 @@ def training_ranges(model: Model) -> str:
 
 # ----- 2. validate -------------------------------------------------------------------------------
 def validate(model: Model, test: str, cycles: int, seed: int, adapt: BiasTracker | None = None) -> TestResult:
-    """One of the paper's tests, exactly as ``nanodrift validate --scenario TEST --seed SEED [--adapt]`` runs it."""
+    """One of the paper's tests, exactly as ``nanodrift validate --scenario TEST --seed SEED [--adapt]`` runs it
+    (scored against the true position as well, as ``validate`` does on the simulated cell)."""
     drivers = simulated_drivers(test, seed=scenario_seed(seed, test))
     use = None if test == "test1" else model
     return asyncio.run(run_validation(drivers, use, name=test, cycles=cycles, progress_stream=io.StringIO(),
-                                      adapt=adapt))
+                                      adapt=adapt, true_position=simulated_truth(drivers)))
 
 
 def result_line(result: TestResult) -> str:
+    """What one test gave, as the interferometer saw it, then against the true position."""
+    true_without, true_with = result.true_accuracy_nm()
     if not result.compensated:
-        return f"accuracy {result.accuracy_without_nm:.0f} nm without compensation"
+        return (f"accuracy {result.accuracy_without_nm:.0f} nm without compensation (interferometer); "
+                f"{true_without:.0f} nm against the true position")
     line = (f"accuracy {result.accuracy_nm:.0f} nm with the model, {result.accuracy_without_nm:.0f} nm without "
-            f"(computed); {result.improvement:.1f}× better")
+            f"(computed); {result.improvement:.1f}× better (interferometer); against the true position "
+            f"{true_with:.0f} nm with, {true_without:.0f} nm without")
     total = len(result.steps)
     if result.extrapolating_steps:
         line += f"; {result.extrapolating_steps} of {total} steps outside the training range"
@@ -238,6 +253,10 @@ def explain(results: Sequence[TestResult], model: Model, args: argparse.Namespac
 
 
 # ----- 5. what nanodrift adds ------------------------------------------------------------------------
+#: what the bias tracker costs, said beside what it gives
+ADAPTATION_NEEDS = ("adaptation needs the interferometer (a position sensor) kept in service: the bias tracker "
+                    "feeds on its settled residuals; the paper's method needs it only to calibrate, then compensates "
+                    "from the temperatures alone")
 #: the discovery line's run: the train room swept up and down, with an effect the forward sweeps cannot show
 DISCOVERY_SCENARIO, DISCOVERY_EFFECT, DISCOVERY_CYCLES = "bidirectional", "hysteresis", 6
 
@@ -283,14 +302,17 @@ def what_nanodrift_adds(run: DemoRun) -> list[str]:
         adapted = validate(run.model, test, run.args.cycles, run.args.seed, adapt=BiasTracker(*tracker_defaults))
         lines.append(f"adaptation on {test} ([adapt] mode = \"bias\", tau_s {tracker_defaults[0]:g} s): "
                      f"{static.accuracy_nm:.0f} nm static -> {adapted.accuracy_nm:.0f} nm adaptive "
-                     f"({adapted.improvement:.1f}× against {static.improvement:.1f}×); the correction ended at "
-                     f"{adapted.corrections_um[-1] * 1000:+.0f} nm")
+                     f"({adapted.improvement:.1f}× against {static.improvement:.1f}×; interferometer), "
+                     f"{static.true_accuracy_nm()[1]:.0f} nm -> {adapted.true_accuracy_nm()[1]:.0f} nm against the "
+                     f"true position; the correction ended at {adapted.corrections_um[-1] * 1000:+.0f} nm")
+    if any(line.startswith("adaptation on") for line in lines):
+        lines.append(ADAPTATION_NEEDS)
     lines.append(discovery_line(run.model, run.args.seed))
     covered = [r for r in run.results if r.compensated and r.q_sigma_um]
     if covered:
         shares = ", ".join(f"{r.name} {r.coverage() * 100:.0f} %" for r in covered)
-        lines.append(f"uncertainty: every command carries q_sigma_um; the true error lay within ±2σ in {shares} "
-                     "of the steps (it grows outside the training range)")
+        lines.append(f"uncertainty: every command carries q_sigma_um; the error the interferometer saw lay within "
+                     f"±2σ in {shares} of the steps (it grows outside the training range)")
     health = next((a["health"] for a in reversed(run.served) if isinstance(a.get("health"), dict)), None)
     if health is not None:
         lines.append(health_line(health))
@@ -309,6 +331,16 @@ def health_line(health: dict[str, Any]) -> str:
     if health.get("advice"):
         line += f"; advice: {health['advice']}"
     return line
+
+
+def keep_figures(run: DemoRun) -> list[Path]:
+    """fig9 and fig11 of the tests into the kept folder (the PNGs listed; each has an SVG beside it)."""
+    assert run.model is not None
+    tests = ", ".join(r.name for r in run.results)
+    cell = f"simulated cell: {tests}, --seed {run.args.seed}, {run.args.cycles} sweeps (nanodrift demo)"
+    written = write_figures(run.results, run.workdir, training=run.model.training,
+                            provenance=provenance_text(run.model.id, run.model.provenance.get("data_file"), cell))
+    return [path for path in written if path.suffix == ".png"]
 
 
 # ----- the story -----------------------------------------------------------------------------------
@@ -344,12 +376,17 @@ def main(args: argparse.Namespace) -> int:
 
         steps.start("Table I, beside the paper's")
         print(table1(run.results, paper=PAPER_TABLE1))
+        truth = truth_table(run.results)
+        if truth:
+            print(f"\n{truth}\n")
         for line in explain(run.results, model, args):
             print(line)
         if keep:
             atomic_write_text(workdir / "table1.json", json.dumps(
                 results_json(run.results, model=model.id, seed=args.seed, cycles=args.cycles,
                              calibration_cycles=args.calibration_cycles), indent=2) + "\n")
+            figures = keep_figures(run)
+            print(f"Figures (PNG + SVG, as validate --report draws them): {', '.join(str(f) for f in figures)}")
             one = tests[-1]
             flags = " --no-compensation" if one == "test1" else ""
             print(f"The same figures from the command line, e.g.: nanodrift validate --model {run.model_path} "
@@ -369,6 +406,7 @@ def main(args: argparse.Namespace) -> int:
             for line in extra:
                 print(f"   {line}")
 
-        where = f"files in {workdir}" if keep else "nothing kept (--keep DIR keeps the model, data, config and log)"
+        where = (f"files in {workdir}" if keep
+                 else "nothing kept (--keep DIR keeps the model, data, figures, config and log)")
         print(f"\n(demo took {time.monotonic() - started:.0f} s; {where})")
     return 0

@@ -23,10 +23,11 @@ import argparse
 import json
 import sys
 
-from daemon.calibration.dataset import DataError, common_channels, concat, read_runs
-from daemon.calibration.discovery import DiscoveryError, DiscoveryResult, discover
+from daemon.calibration.dataset import DataError, Dataset, common_channels, concat, read_runs
+from daemon.calibration.discovery import CellDiscoveryResult, DiscoveryError, DiscoveryResult, discover, discover_cell
 from daemon.errors import UserError
-from daemon.model.model import MissingChannelError, ModelFileError, load_model, save_model
+from daemon.model.cell_model import CellModel, load_any_model, save_cell_model
+from daemon.model.model import MissingChannelError, ModelFileError, save_model
 from daemon.model.provenance import stamp_data
 
 NOTHING_FOUND = "nothing found; no model written"
@@ -47,15 +48,23 @@ def main(args: argparse.Namespace) -> int:
     paths = [str(p) for p in args.data]
     try:
         runs = read_runs(paths, "to compare with")
-        model = load_model(args.model)
+        model = load_any_model(args.model)
         for ds in runs:
-            model.check_channels(list(ds.channels), ds.source)
+            for axis_model in (model.models.values() if isinstance(model, CellModel) else [model]):
+                axis_model.check_channels(list(ds.channels), ds.source)
         channels = common_channels(runs)
         left_out = sorted({c for ds in runs for c in ds.channels} - set(channels))
         if left_out:
             print(f"nanodrift: note: channel(s) {', '.join(left_out)} not in every file, left out", file=sys.stderr)
+        data = concat(runs, channels)
         fresh = read_runs([str(args.fresh)], "to measure the fresh-run gain on")[0] if args.fresh else None
-        result = discover(concat(runs, channels), model, fresh=fresh)
+        if isinstance(model, CellModel):
+            return _main_cell(args, paths, runs, discover_cell(data, model, fresh=fresh))
+        for run in (data, fresh):
+            if run is not None and run.multi_axis:
+                raise DiscoveryError(f"{run.source} positions axes {', '.join(run.axes)}, but {args.model} is a "
+                                     "one-axis model")
+        result = discover(data, model, fresh=fresh)
     except (DataError, ModelFileError, MissingChannelError, DiscoveryError) as err:
         raise UserError(str(err)) from None
     model_out: str | None = None
@@ -69,8 +78,10 @@ def main(args: argparse.Namespace) -> int:
     if args.report:
         # matplotlib (slow to import) only when a report is asked for; not a cycle
         from daemon.reports.discovery import write_report
+        from daemon.reports.validation import provenance_text
 
-        write_report(result, args.report, model_out)
+        footer = provenance_text(model.id, model.provenance.get("data_file"), f"discovered on {', '.join(paths)}")
+        write_report(result, args.report, model_out, provenance=footer)
     if args.json:
         print(json.dumps(result.to_dict(model_out), indent=2, allow_nan=False))
     else:
@@ -97,3 +108,34 @@ def describe(result: DiscoveryResult, model_out: str | None) -> str:
     else:
         lines.append(f"extended model {result.final['model']} -> {model_out}: {', '.join(result.final['terms'])}")
     return "\n".join(lines)
+
+
+def _main_cell(args: argparse.Namespace, paths: list[str], runs: list[Dataset], result: CellDiscoveryResult) -> int:
+    """A multi-axis cell: every axis' discovery, one cell model written, a report directory per axis."""
+    model_out: str | None = None
+    if result.found:
+        extended = result.model
+        for axis, axis_result in result.axes.items():
+            if axis_result.found:
+                stamp_data(extended.models[axis], [(p, len(ds)) for p, ds in zip(paths, runs, strict=True)])
+        save_cell_model(extended, args.out)
+        model_out = str(args.out)
+        for axis, axis_result in result.axes.items():
+            axis_result.final["model"] = extended.models[axis].id
+    if args.report:
+        from daemon.reports.discovery import write_report  # matplotlib only when asked, as above
+
+        for axis, axis_result in result.axes.items():
+            write_report(axis_result, f"{args.report}/axis_{axis}", model_out)
+    if args.json:
+        print(json.dumps(result.to_dict(model_out), indent=2, allow_nan=False))
+        return 0
+    for axis, axis_result in result.axes.items():
+        print(f"== axis {axis}")
+        print(describe(axis_result, model_out if axis_result.found else None))
+        print()
+    if model_out is None:
+        print(f"{NOTHING_FOUND} (the cell model {result.given.id} stands)")
+    else:
+        print(f"extended cell model {result.model.id} -> {model_out}")
+    return 0

@@ -24,12 +24,12 @@ from typing import Any, TextIO
 
 import zenoh
 
-from daemon.bus.protocol import key_prefix
-from daemon.commands._client import add_client_flags, open_client
+from daemon.commands._client import add_client_flags, open_client, query_status, status_key
 
 #: ANSI: cursor home, clear the screen (what ``watch`` does)
 CLEAR = "\x1b[H\x1b[2J"
-COLUMNS = ("CELL", "STATE", "SENSORS", "MODEL", "MODEL AGE", "HEALTH", "ACTUATOR", "TARGETS/MIN", "REFUSED/MIN")
+COLUMNS = ("CELL", "STATE", "SENSORS", "MODEL", "MODEL AGE", "HEALTH", "CORRECTION", "ACTUATOR", "TARGETS/MIN",
+           "REFUSED/MIN")
 NO_CELL_HINT = ("no cell answered on {key} within {timeout:g} s (is a daemon running? "
                 "give its endpoint with -e tcp/HOST:PORT, or --zenoh-config F)")
 
@@ -38,7 +38,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.epilog = textwrap.fill(
         "columns: CELL, STATE (ok | degraded: a sensor not ok | extrapolating | no-model | stalled: "
         "a sensor poller stopped), SENSORS ok/total, MODEL id and MODEL AGE (since it was made), "
-        "HEALTH (state and residual RMS, when the daemon measures it), ACTUATOR (kind and state), "
+        "HEALTH (state and residual RMS, when the daemon measures it), CORRECTION (the bias the adaptation "
+        "adds to every command, [adapt] mode = \"bias\"; - when it is off), ACTUATOR (kind and state), "
         "TARGETS/MIN and REFUSED/MIN (averaged since the daemon started; with --watch, over the "
         "last interval). Exit 1 when no cell answers.", 96)
     add_client_flags(parser, endpoint_of="a daemon or router")
@@ -52,29 +53,6 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="with --watch: stop after N refreshes (default: until Ctrl-C)")
     parser.add_argument("--timeout", type=float, default=2.0, metavar="S",
                         help="seconds to collect the cells' replies")
-
-
-def status_key(cell: str | None) -> str:
-    """One cell's ``status`` key, or every cell's (``None``: the wildcard)."""
-    return f"{key_prefix(cell or '*')}/status"
-
-
-def query_status(session: zenoh.Session, key: str, timeout_s: float) -> list[dict[str, Any]]:
-    """Every reply to one query on ``key``, sorted by cell; errors and non-JSON replies are skipped."""
-    docs: dict[str, dict[str, Any]] = {}
-    for reply in session.get(key, target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
-                             timeout=timeout_s):
-        sample = reply.ok
-        if sample is None:
-            continue
-        try:
-            doc = json.loads(sample.payload.to_bytes())
-        except ValueError:
-            continue
-        if isinstance(doc, dict):
-            cell = str(doc.get("cell") or str(sample.key_expr).split("/")[1])
-            docs[cell] = doc
-    return [docs[cell] for cell in sorted(docs)]
 
 
 def collect(session: zenoh.Session, key: str, timeout_s: float, *, retry_s: float = 0.2) -> list[dict[str, Any]]:
@@ -169,6 +147,13 @@ def _health(doc: dict[str, Any]) -> str:
     return f"{text} {rms:.0f} nm" if isinstance(rms, int | float) else text
 
 
+def _correction(doc: dict[str, Any]) -> str:
+    """The adaptation's bias correction in nm (``-``: adaptation off, or a daemon that does not say)."""
+    health = doc.get("health")
+    correction = health.get("correction_um") if isinstance(health, dict) else None
+    return f"{correction * 1000.0:+.0f} nm" if isinstance(correction, int | float) else "-"
+
+
 def _actuator(doc: dict[str, Any]) -> str:
     actuator = doc.get("actuator")
     if not isinstance(actuator, dict):
@@ -194,6 +179,7 @@ def row(doc: dict[str, Any], previous: dict[str, Any] | None, now: datetime) -> 
         str(model.get("id")) if model else "none",
         _age(model.get("created"), now) if model else "-",
         _health(doc),
+        _correction(doc),
         _actuator(doc),
         _rate(r.targets_per_min),
         _rate(r.refused_per_min),

@@ -2,6 +2,11 @@
 
 ``--adapt`` runs the daemon's bias tracker (``[adapt] mode = "bias"``) over the test, so a lab can see
 offline what adaptation would have given.
+
+On the simulated cell ``--scenario`` may name several tests (``--scenario test2,test3,test5``, or
+repeated): each runs in turn and one report holds them all (Table I a row per test, the figures
+comparing them). There each step is also scored against the true position the cell knows
+(:func:`daemon.commands._cell.simulated_truth`), beside the interferometer's view.
 """
 
 from __future__ import annotations
@@ -10,17 +15,32 @@ import argparse
 import asyncio
 import json
 import sys
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from daemon.calibration.iso9283 import TestResult
 from daemon.calibration.residuals import BiasTracker
 from daemon.commands._catalogues import scenario_epilog
-from daemon.commands._cell import add_config_flag, add_output_check_flag, add_simulation_flags, guards, open_cell
+from daemon.commands._cell import (
+    add_config_flag,
+    add_output_check_flag,
+    add_simulation_flags,
+    guards,
+    open_cell,
+    scenario_list,
+    simulated_truth,
+)
+from daemon.config import Config, load_config
+from daemon.drivers_set import DriverSet
 from daemon.errors import UserError
-from daemon.model.model import ModelFileError, load_model
+from daemon.model.model import Model, ModelFileError, load_model
 from daemon.procedure.validation import run_validation
-from daemon.reports.validation import table1, write_report
+from daemon.reports.validation import provenance_text, table1, truth_table, write_report
+from drivers.simulated.config import SECTION, SimulationConfig
+from drivers.simulated.effects import UnknownNameError
+from drivers.simulated.scenarios import get_scenario
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -39,7 +59,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="the tracker's time constant (default 600 s, as [adapt] tau_s)")
     parser.add_argument("--adapt-max-um", type=float, default=1.0, metavar="UM",
                         help="clamp on the correction (default 1 µm, as [adapt] max_um)")
-    add_simulation_flags(parser, "test2")
+    add_simulation_flags(parser, "test2", several=True)
     add_output_check_flag(parser)
 
 
@@ -50,49 +70,119 @@ def main(args: argparse.Namespace) -> int:
         model = load_model(args.model)
     except (ModelFileError, OSError) as err:
         raise UserError(str(err)) from None
-    config, drivers = open_cell(args, "test2")
-    name = args.scenario or ("test2" if args.config is None else "validation")
     compensate = not args.no_compensation
-    tracker = None
     if args.adapt:
         if not compensate:
             raise UserError("--adapt corrects the model's commands: it cannot run with --no-compensation")
         if not (args.adapt_tau_s > 0 and args.adapt_max_um >= 0):
             raise UserError(f"--adapt-tau-s must be > 0 and --adapt-max-um >= 0, got {args.adapt_tau_s:g}, "
                             f"{args.adapt_max_um:g}")
-        tracker = BiasTracker(args.adapt_tau_s, args.adapt_max_um)
+    scenarios = scenario_list(args.scenario)
+    for scenario in scenarios:  # every name checked before the first test runs
+        try:
+            get_scenario(scenario)
+        except UnknownNameError as err:
+            raise UserError(f"--scenario: {err}") from None
+    given = load_config(args.config)  # as given, before --scenario/--seed override its [simulation]
+    if len(scenarios) > 1 and not given.virtual_cell:
+        raise UserError(f"several --scenario ({', '.join(scenarios)}) need the simulated cell; "
+                        f"{given.source} drives hardware")
+    asked: list[str | None] = list(scenarios) or [None]  # None: the config's (or the default) room
+    runs = [_run_one(args, model, scenario) for scenario in asked]
+    results = [run.result for run in runs]
+    config = runs[0].config
+    text = table1(results)
+    truth = truth_table(results)
+    doc: dict[str, Any] = {"model": model.id, "backend": runs[0].drivers.description, "cycles": args.cycles}
+    if len(runs) == 1:  # one test: the document validate always printed
+        doc.update(runs[0].to_dict())
+    else:
+        doc["tests"] = [run.to_dict() for run in runs]
+    if args.report:
+        report_text = text + (f"\n\n{truth}" if truth else "")
+        files = write_report(results, args.report, report_text, doc, training=model.training,
+                             provenance=provenance_text(model.id, model.provenance.get("data_file"),
+                                                        _cell_text(config, given, args, results)))
+        print(f"report: {', '.join(str(f) for f in files)}", file=sys.stderr)
+    if args.json:
+        print(json.dumps(doc, indent=2, default=_json_default))
+        return 0
+    print(text)
+    if truth:
+        print(f"\n{truth}")
+    for run in runs:
+        _print_details(run.result, run.tracker, compensate, several=len(runs) > 1)
+    return 0
+
+
+@dataclass
+class ValidationRun:
+    """One test as it ran: its result, its tracker (``--adapt``), the config and drivers of its cell."""
+
+    result: TestResult
+    tracker: BiasTracker | None
+    config: Config
+    drivers: DriverSet
+
+    def to_dict(self) -> dict[str, Any]:
+        doc = self.result.to_dict()
+        if self.tracker is not None:
+            doc["adapt"] = {"mode": "bias", "tau_s": self.tracker.tau_s, "max_um": self.tracker.max_um}
+        return doc
+
+
+def _run_one(args: argparse.Namespace, model: Model, scenario: str | None) -> ValidationRun:
+    """One test on a fresh cell (``scenario`` None: the config's room, or test2 with no config)."""
+    config, drivers = open_cell(argparse.Namespace(**{**vars(args), "scenario": scenario}), "test2")
+    name = scenario or ("test2" if args.config is None else "validation")
+    compensate = not args.no_compensation
+    tracker = BiasTracker(args.adapt_tau_s, args.adapt_max_um) if args.adapt else None
     follow, ready = guards(config, drivers, args)
     try:
         result = asyncio.run(run_validation(drivers, model if compensate else None, limits=config.actuator,
                                             name=name, cycles=args.cycles, timing=config.procedure.timing,
-                                            follow=follow, ready=ready, adapt=tracker))
+                                            follow=follow, ready=ready, adapt=tracker,
+                                            true_position=simulated_truth(drivers)))
     except ValueError as err:
         raise UserError(str(err)) from None
-    text = table1([result])
-    doc: dict[str, Any] = {"model": model.id, "backend": drivers.description, "cycles": args.cycles,
-                           **result.to_dict()}
+    return ValidationRun(result, tracker, config, drivers)
+
+
+def _cell_text(config: Config, given: Config, args: argparse.Namespace, results: list[TestResult]) -> str:
+    """Where the figures' data came from: the simulated rooms and the seed that reproduces them, or the
+    config of the hardware."""
+    given_section = given.section(SECTION)
+    if isinstance(config.section(SECTION), SimulationConfig):
+        seed = args.seed if args.seed is not None else (
+            given_section.seed if isinstance(given_section, SimulationConfig) else 0)
+        rooms = ", ".join(r.name for r in results)
+        where = "" if args.config is None else f" of {config.source}"
+        return f"simulated cell{where}: {rooms}, --seed {seed}"
+    return f"cell of {config.source}"
+
+
+def _print_details(result: TestResult, tracker: BiasTracker | None, compensate: bool, *, several: bool) -> None:
+    """What follows Table I for one test: the tracker, the uncertainty's coverage, the figures per point.
+
+    Several tests: one block per test, each after a blank line and naming its test."""
+    which = f" ({result.name})" if several else ""
+    gap = "" if several else "\n"  # one test: as validate always printed it
+    if several:
+        print()
     if tracker is not None:
-        doc["adapt"] = {"mode": "bias", "tau_s": tracker.tau_s, "max_um": tracker.max_um}
-    if args.report:
-        files = write_report([result], args.report, text, doc)
-        print(f"report: {', '.join(str(f) for f in files)}", file=sys.stderr)
-    if args.json:
-        print(json.dumps(doc, indent=2, default=_json_default))
-    else:
-        print(text)
-        if tracker is not None:
-            print(f"\nadaptation: bias tracker (tau_s {tracker.tau_s:g} s, max {tracker.max_um:g} um), "
-                  f"{tracker.updates} settled residuals, final correction {tracker.correction_um * 1e3:+.0f} nm")
-        if compensate and result.q_sigma_um:
-            print(f"uncertainty: {result.coverage() * 100:.0f} % of the steps within ±2 q_sigma "
-                  f"(median q_sigma {np.median(result.q_sigma_um) * 1e3:.0f} nm)")
-        print(f"\nper point ({'with compensation' if compensate else 'without compensation'}):")
-        for p in result.points:
-            acc, rep = (p.accuracy_nm, p.repeatability_nm) if compensate else (p.accuracy_without_nm,
-                                                                                 p.repeatability_without_nm)
-            print(f"  x' = {p.target_um:5.0f} µm: accuracy {acc:7.1f} nm, repeatability {rep:7.1f} nm "
-                  f"({p.visits} visits)")
-    return 0
+        print(f"{gap}adaptation{which}: bias tracker (tau_s {tracker.tau_s:g} s, "
+              f"max {tracker.max_um:g} um), {tracker.updates} settled residuals, final correction "
+              f"{tracker.correction_um * 1e3:+.0f} nm")
+    if compensate and result.q_sigma_um:
+        print(f"uncertainty{which}: {result.coverage() * 100:.0f} % of the steps within ±2 q_sigma "
+              f"(median q_sigma {np.median(result.q_sigma_um) * 1e3:.0f} nm)")
+    kind = "with compensation" if compensate else "without compensation"
+    print(f"{gap}per point ({f'{result.name}, ' if several else ''}{kind}):")
+    for p in result.points:
+        acc, rep = (p.accuracy_nm, p.repeatability_nm) if compensate else (p.accuracy_without_nm,
+                                                                             p.repeatability_without_nm)
+        print(f"  x' = {p.target_um:5.0f} µm: accuracy {acc:7.1f} nm, repeatability {rep:7.1f} nm "
+              f"({p.visits} visits)")
 
 
 def _json_default(value: Any) -> Any:

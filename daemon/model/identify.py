@@ -10,17 +10,19 @@ restart at each run's first row and no held-out block spans two runs (:mod:`daem
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from scipy import stats
 
+from daemon.model.axis_terms import AxisPower, AxisProduct
+from daemon.model.cell_model import CellModel
 from daemon.model.model import FittedTerm, Model, Training
 from daemon.model.provenance import created_now, software
 from daemon.model.segments import features, runs, spans_s
-from daemon.model.series import Series
+from daemon.model.series import CellSeries, Series
 from daemon.model.stepwise import stepwisefit
 from daemon.model.terms import Bias, Channel, Power, Term
 from daemon.model.uncertainty import Covariance, ar1_inflation, estimate, uncertainty_blocks
@@ -216,6 +218,25 @@ def candidate_terms(channels: Sequence[str], order: int, exclude: Sequence[str] 
     return [Power(k) for k in range(order, 0, -1)] + [Channel(c) for c in channels if c not in exclude]
 
 
+def axis_position_term(axis: str, k: int = 1) -> Term:
+    """``x^k`` for the x axis (the one-axis term), ``y^k`` for another axis."""
+    return Power(k) if axis == "x" else AxisPower(axis, k)
+
+
+def cell_candidate_terms(axis: str, axes: Sequence[str], channels: Sequence[str], order: int,
+                         exclude: Sequence[str] = ()) -> list[Term]:
+    """Candidates for one axis of a multi-axis cell: its own powers up to ``order``, every other axis'
+    position and square (crosstalk, non-orthogonality, sag), every product of two axes (coupled
+    bending), and the channels. The same stepwise selection keeps what the data supports."""
+    own = [axis_position_term(axis, k) for k in range(order, 0, -1)]
+    others: list[Term] = []
+    for b in axes:
+        if b != axis:
+            others += [axis_position_term(b, 1), axis_position_term(b, 2)]
+    products: list[Term] = [AxisProduct(a, b) for i, a in enumerate(axes) for b in axes[i + 1:]]
+    return own + others + products + candidate_terms(channels, 1, exclude)[1:]
+
+
 def holdout_blocks(data: Series, max_folds: int = 6) -> np.ndarray:
     """Fold index per row: whole cycles grouped into contiguous blocks (time blocks if one cycle).
 
@@ -268,8 +289,13 @@ def fit(
     penter: float = 0.05,
     premove: float = 0.10,
     source: str | None = None,
+    candidates: Callable[[int], list[Term]] | None = None,
 ) -> FitResult:
-    """The paper's identification: stepwise over x^1..x^n1 and the channels; n1 fixed or chosen."""
+    """The paper's identification: stepwise over x^1..x^n1 and the channels; n1 fixed or chosen.
+
+    ``candidates(n1)``: the candidate terms for geometric order n1 (default: x^1..x^n1 and the channels
+    not excluded; a multi-axis cell's axis passes :func:`cell_candidate_terms`).
+    """
     if penter > premove:
         raise FitError(f"penter ({penter}) must not exceed premove ({premove})")
     where = source or data.source
@@ -279,9 +305,12 @@ def fit(
     channels = list(data.channels)
     scores: dict[int, float] = {}
     folds = 0
+    if candidates is None:
+        def candidates(n1: int) -> list[Term]:
+            return candidate_terms(channels, n1, exclude)
 
     def too_few(order_n1: int, purpose: str, advice: str) -> FitError:
-        n, terms = len(data), len(candidate_terms(channels, order_n1, exclude))
+        n, terms = len(data), len(candidates(order_n1))
         left_out = f" ({given - n} more marked valid = 0 left out)" if given > n else ""
         powers = "x" if order_n1 == 1 else "x, x^2" if order_n1 == 2 else f"x..x^{order_n1}"
         used = [c for c in channels if c not in exclude]
@@ -294,13 +323,13 @@ def fit(
     first = 1 if order == "auto" else int(order)
     if first < 1:
         raise FitError(f"order must be >= 1 or 'auto', got {order}")
-    needed = len(candidate_terms(channels, first, exclude)) + 2
+    needed = len(candidates(first)) + 2
     if len(data) < needed:
         raise too_few(first, "to fit", f"record at least {needed} rows")
     if order == "auto":
         for n1 in range(1, max_order + 1):
             try:
-                scores[n1], folds = holdout_rms(data, candidate_terms(channels, n1, exclude), penter, premove)
+                scores[n1], folds = holdout_rms(data, candidates(n1), penter, premove)
             except FitError:  # the blocks left after holding one out are too short for this order
                 if n1 == 1:
                     raise too_few(1, "to choose the geometric order on held-out blocks (each fitted from the "
@@ -318,9 +347,48 @@ def fit(
         "excluded": list(exclude),
     }
     model = fit_terms(
-        data, candidate_terms(channels, chosen, exclude), penter=penter, premove=premove, source=source,
-        extra_selection=extra,
+        data, candidates(chosen), penter=penter, premove=premove, source=source, extra_selection=extra,
     )
     if scores:
         model.fit["holdout_rms_um"] = scores[chosen]
     return FitResult(model=model, order=chosen, order_scores=scores, folds=folds)
+
+
+@dataclass
+class CellFitResult:
+    """A multi-axis cell's identification: the cell model and each axis' fit."""
+
+    model: CellModel
+    axes: dict[str, FitResult]
+
+
+def fit_cell(
+    data: CellSeries,
+    *,
+    order: int | str = "auto",
+    max_order: int = MAX_AUTO_ORDER,
+    exclude: Sequence[str] = (),
+    penter: float = 0.05,
+    premove: float = 0.10,
+    source: str | None = None,
+) -> CellFitResult:
+    """Identification of every axis of a multi-axis run: :func:`fit` per axis over :func:`cell_candidate_terms`,
+    the geometric order chosen per axis on held-out cycles."""
+    axes = data.axes
+    channels = list(data.channels)
+    unknown = [c for c in exclude if c not in channels]
+    if unknown:
+        raise FitError(f"--exclude names channel(s) {', '.join(unknown)} not in the data ({', '.join(channels)})")
+    missing = [a for a in axes if a not in data.commands]
+    if missing:
+        raise FitError(f"{source or data.source}: no q_{missing[0]}_um column (the command sent to axis {missing[0]}) "
+                       "to fit")
+    results: dict[str, FitResult] = {}
+    for axis in axes:
+        def candidates(n1: int, axis: str = axis) -> list[Term]:
+            return cell_candidate_terms(axis, axes, channels, n1, exclude)
+
+        results[axis] = fit(data.axis_view(axis), order=order, max_order=max_order, exclude=exclude,
+                            penter=penter, premove=premove, source=source, candidates=candidates)
+    models = {a: r.model for a, r in results.items()}
+    return CellFitResult(CellModel(axes, models, provenance=dict(models[axes[0]].provenance)), results)

@@ -33,7 +33,7 @@ import numpy as np
 from daemon.atomic import atomic_write_text
 from daemon.model.segments import features, spans_s
 from daemon.model.series import Series
-from daemon.model.terms import Power, Term, TermStream, UnknownTermError, parse_term
+from daemon.model.terms import Power, Term, TermStream, UnknownTermError, parse_term, position_key
 from daemon.model.uncertainty import Covariance, SigmaStream
 
 FORMAT = "nanodrift-model/1"
@@ -68,16 +68,32 @@ class Training:
     channel_ranges: dict[str, tuple[float, float]]
     rows: int
     t_span_s: float
+    #: a multi-axis cell: the range of every axis but x (x is ``x_range``); empty for one axis
+    position_ranges: dict[str, tuple[float, float]] = field(default_factory=dict)
 
     @classmethod
     def of(cls, data: Series, channels: Sequence[str]) -> Training:
         t = np.asarray(data.t)
+        positions = getattr(data, "positions", None) or {}
         return cls(
             x_range=(float(np.min(data.x)), float(np.max(data.x))),
             channel_ranges={c: (float(np.min(data.channels[c])), float(np.max(data.channels[c]))) for c in channels},
             rows=int(t.shape[0]),
             t_span_s=float(sum(spans_s(data))),  # several runs: the time they cover, not the gaps between
+            position_ranges={a: (float(np.min(v)), float(np.max(v))) for a, v in positions.items() if a != "x"},
         )
+
+    def ranges_dict(self) -> dict[str, Any]:
+        """The ``training`` block of a model file."""
+        out: dict[str, Any] = {
+            "x_um": list(self.x_range),
+            "channels": {c: list(r) for c, r in self.channel_ranges.items()},
+            "rows": self.rows,
+            "t_span_s": self.t_span_s,
+        }
+        if self.position_ranges:
+            out["positions_um"] = {a: list(r) for a, r in self.position_ranges.items()}
+        return out
 
 
 @dataclass
@@ -114,6 +130,9 @@ class Model:
             "x_um": [float(v) for v in self.training.x_range],
             "channels": {c: [float(lo), float(hi)] for c, (lo, hi) in sorted(self.training.channel_ranges.items())},
         }
+        if self.training.position_ranges:  # multi-axis only: a one-axis model hashes as it always has
+            content["positions_um"] = {a: [float(lo), float(hi)]
+                                       for a, (lo, hi) in sorted(self.training.position_ranges.items())}
         if self.covariance is not None:
             content["covariance"] = self.covariance.content()
         text = json.dumps(content, separators=(",", ":"), sort_keys=True, allow_nan=False)
@@ -205,12 +224,7 @@ class Model:
             "id": self.id,
             "terms": [{"term": ft.term.name, "coef": ft.coef, "se": _num(ft.se), "p": _num(ft.p)} for ft in self.terms],
             "channels": list(self.channels),
-            "training": {
-                "x_um": list(self.training.x_range),
-                "channels": {c: list(r) for c, r in self.training.channel_ranges.items()},
-                "rows": self.training.rows,
-                "t_span_s": self.training.t_span_s,
-            },
+            "training": self.training.ranges_dict(),
             "fit": self.fit,
             "selection": self.selection,
             "provenance": self.provenance,
@@ -218,8 +232,9 @@ class Model:
         }
 
     @classmethod
-    def from_dict(cls, doc: Any, where: str = "model", *, check_id: bool = True) -> Model:
-        return _model_from_dict(doc, where, check_id=check_id)
+    def from_dict(cls, doc: Any, where: str = "model", *, check_id: bool = True,
+                  axes: tuple[str, ...] = ("x",)) -> Model:
+        return _model_from_dict(doc, where, check_id=check_id, axes=axes)
 
 
 def _num(value: float) -> float | None:
@@ -234,8 +249,8 @@ class Evaluator:
     uncertainty (:meth:`sigma`) likewise (see :class:`daemon.model.uncertainty.SigmaStream`).
     """
 
-    __slots__ = ("_dynamic", "_poly", "_sigma", "_sigma_const", "_static", "_static_sum", "_streams", "model",
-                 "seen")
+    __slots__ = ("_dynamic", "_poly", "_positional", "_sigma", "_sigma_const", "_static", "_static_sum", "_streams",
+                 "model", "seen")
 
     def __init__(self, model: Model) -> None:
         self.model = model
@@ -252,6 +267,8 @@ class Evaluator:
             else:
                 self._static.append((ft.coef, stream))
         self._poly = tuple(reversed(poly))  # highest power first, for Horner
+        #: streams of the terms that read another axis' position (multi-axis cells)
+        self._positional = [stream for ft, stream in zip(model.terms, self._streams, strict=True) if ft.term.axes]
         self.seen: set[str] = set()
         self._static_sum = self._sum_static()
         cov = model.covariance
@@ -276,6 +293,11 @@ class Evaluator:
         self._static_sum = self._sum_static()
         if self._sigma is not None:
             self._sigma.observe(temps)
+
+    def targets(self, positions: Mapping[str, float]) -> None:
+        """A multi-axis target's positions (every axis, µm), before ``value``/``sigma``/``moved`` for it."""
+        for stream in self._positional:
+            stream.targets(positions)
 
     def value(self, x: float, t: float) -> float:
         """q for target ``x`` at ``t``, changing nothing: the caller may still refuse the target."""
@@ -423,7 +445,7 @@ def _optional_number(value: Any, what: str, fail: Any, low: float, high: float =
     return float(value)
 
 
-def _model_from_dict(doc: Any, where: str, *, check_id: bool = True) -> Model:
+def _model_from_dict(doc: Any, where: str, *, check_id: bool = True, axes: tuple[str, ...] = ("x",)) -> Model:
     def fail(msg: str) -> ModelFileError:
         return ModelFileError(f"{where}: {msg}")
 
@@ -441,7 +463,7 @@ def _model_from_dict(doc: Any, where: str, *, check_id: bool = True) -> Model:
         if not isinstance(item, dict) or not isinstance(item.get("term"), str):
             raise fail(f"terms[{i}]: expected an object with a 'term' name")
         try:
-            term = parse_term(item["term"])
+            term = parse_term(item["term"], axes)
         except (UnknownTermError, ValueError) as err:
             raise fail(f"terms[{i}]: {err}") from None
         coef = item.get("coef")
@@ -474,6 +496,10 @@ def _model_from_dict(doc: Any, where: str, *, check_id: bool = True) -> Model:
     unranged = [c for c in model.channels if c not in training.channel_ranges]
     if unranged:
         raise fail(f"training ranges missing for channel(s) {', '.join(unranged)}")
+    read_axes = sorted({a for ft in terms for a in ft.term.axes})
+    unranged = [a for a in read_axes if a not in training.position_ranges]
+    if unranged:
+        raise fail(f"training ranges missing for axis/axes {', '.join(unranged)} (training.positions_um)")
     problem = _box_problem(model)
     if problem:
         raise fail(problem)
@@ -542,9 +568,11 @@ def _box_problem(model: Model) -> str:
 
 def _largest_feature(term: Term, tr: Training) -> float:
     """The largest magnitude of a term's feature over the corners of (x range) x (its channels' ranges)."""
-    axes = [tr.x_range, *(tr.channel_ranges[c] for c in term.channels)]
-    corners = np.array(list(itertools.product(*axes)), dtype=np.float64)
-    channels = {c: corners[:, 1 + i] for i, c in enumerate(term.channels)}
+    names = [*term.channels, *(position_key(a) for a in term.axes)]
+    ranges = [tr.x_range, *(tr.channel_ranges[c] for c in term.channels),
+              *(tr.position_ranges[a] for a in term.axes)]
+    corners = np.array(list(itertools.product(*ranges)), dtype=np.float64)
+    channels = {c: corners[:, 1 + i] for i, c in enumerate(names)}
     t = np.arange(corners.shape[0], dtype=np.float64)
     with np.errstate(all="ignore"):
         values = np.asarray(term.batch(t, corners[:, 0], channels), dtype=np.float64)
@@ -573,9 +601,13 @@ def _training_from_dict(raw: Any, fail: Any) -> Training:
     if not isinstance(rows, int) or isinstance(rows, bool) or rows < 0:
         raise fail(f"training.rows must be a whole number >= 0, got {rows!r}")
     t_span_s = _optional_number(raw.get("t_span_s"), "training.t_span_s", fail, 0.0)
+    positions = raw.get("positions_um") or {}
+    if not isinstance(positions, dict):
+        raise fail("training.positions_um must be an object {axis: [low, high]}")
     return Training(
         x_range=pair(raw.get("x_um"), "x_um"),
         channel_ranges={str(c): pair(r, c) for c, r in channels.items()},
         rows=rows,
         t_span_s=0.0 if math.isnan(t_span_s) else t_span_s,
+        position_ranges={str(a): pair(r, f"{a}_um") for a, r in positions.items()},
     )

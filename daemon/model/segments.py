@@ -10,11 +10,12 @@ rows of one run are contiguous); without it the series is one run and nothing ch
 from __future__ import annotations
 
 import itertools
+from collections.abc import Mapping
 
 import numpy as np
 
 from daemon.model.series import Series
-from daemon.model.terms import Term
+from daemon.model.terms import Term, position_key
 
 
 def segment_slices(segment: np.ndarray | None, n: int | None = None) -> list[slice]:
@@ -34,14 +35,26 @@ def runs(data: Series) -> list[slice]:
     return segment_slices(getattr(data, "segment", None), len(data))
 
 
+def _inputs(term: Term, data: Series) -> Mapping[str, np.ndarray]:
+    """The channels ``term.batch`` reads: a multi-axis term also gets the axes' positions (``<axis>_um``)."""
+    if not term.axes:
+        return data.channels
+    positions = getattr(data, "positions", None) or {}
+    missing = [a for a in term.axes if a not in positions]
+    if missing:
+        raise KeyError(f"{data.source} has no position of axis {missing[0]!r} that term {term.name} reads")
+    return {**data.channels, **{position_key(a): positions[a] for a in term.axes}}
+
+
 def features(term: Term, data: Series) -> np.ndarray:
     """``term.batch`` over ``data``, restarted at each run's first row."""
     parts = runs(data)
+    inputs = _inputs(term, data)
     if len(parts) == 1:
-        return term.batch(data.t, data.x, data.channels)
+        return term.batch(data.t, data.x, inputs)
     t, x = np.asarray(data.t), np.asarray(data.x)
     return np.concatenate([
-        np.asarray(term.batch(t[p], x[p], {c: np.asarray(v)[p] for c, v in data.channels.items()}),
+        np.asarray(term.batch(t[p], x[p], {c: np.asarray(v)[p] for c, v in inputs.items()}),
                    dtype=np.float64)
         for p in parts
     ])

@@ -53,3 +53,22 @@ class Series(Protocol):
     def cycles(self) -> np.ndarray:
         """Calibration cycle index per row (held-out blocks are whole cycles)."""
         ...
+
+
+class CellSeries(Series, Protocol):
+    """A multi-axis run (an XY or XYZ stage): every axis' position and, when recorded, command."""
+
+    @property
+    def axes(self) -> tuple[str, ...]: ...
+
+    @property
+    def positions(self) -> Mapping[str, np.ndarray]:  # um per axis, the cell's axis order
+        ...
+
+    @property
+    def commands(self) -> Mapping[str, np.ndarray]:  # um per axis: q_<axis>_um
+        ...
+
+    def axis_view(self, axis: str) -> Series:
+        """The rows as ``axis``' identification sees them: its command as ``q``."""
+        ...

@@ -46,6 +46,13 @@ class TermStream:
     def moved(self, t: float, x: float) -> None:
         """The stage was commanded to ``x`` at ``t``."""
 
+    def targets(self, positions: Mapping[str, float]) -> None:
+        """A multi-axis cell's target, every axis' position (µm), given before ``value`` and ``moved``.
+
+        Only terms that read an axis other than ``x`` (:attr:`Term.axes`) use it: ``x`` itself is
+        the ``x`` argument, as in a one-axis cell.
+        """
+
 
 class Term(ABC):
     """A named feature of the model."""
@@ -54,6 +61,9 @@ class Term(ABC):
     channels: tuple[str, ...] = ()
     #: depends on the target or the motion (else only on temperatures and time)
     uses_x: bool = False
+    #: axes other than ``x`` whose position the feature reads (multi-axis cells): in a series they
+    #: arrive in ``channels`` as ``<axis>_um`` (:func:`position_key`), in a stream through ``targets``
+    axes: tuple[str, ...] = ()
 
     @property
     @abstractmethod
@@ -337,9 +347,33 @@ def register_term(pattern: str, factory: Callable[[re.Match[str]], Term]) -> Non
     _KINDS.insert(len(_KINDS) - 1 if _KINDS else 0, _TermKind(regex, factory))
 
 
-def parse_term(name: str) -> Term:
-    """The term a canonical name stands for; :class:`UnknownTermError` if none does."""
+def position_key(axis: str) -> str:
+    """Where a series' ``channels`` mapping carries an axis' position for the terms that read it."""
+    return f"{axis}_um"
+
+
+#: makers of the terms only a multi-axis cell has, tried first when a name is parsed for such a cell
+#: (``daemon.model.axis_terms`` registers them): one-axis names parse exactly as before
+_AXIS_KINDS: list[Callable[[str, tuple[str, ...]], Term | None]] = []
+
+
+def register_axis_term(factory: Callable[[str, tuple[str, ...]], Term | None]) -> None:
+    """Teach :func:`parse_term` a multi-axis term: ``factory(name, axes)`` returns it or None."""
+    _AXIS_KINDS.append(factory)
+
+
+def parse_term(name: str, axes: tuple[str, ...] = ("x",)) -> Term:
+    """The term a canonical name stands for; :class:`UnknownTermError` if none does.
+
+    ``axes``: the cell's axes. With more than one, a name made of axis letters (``y``, ``y^2``, ``x*y``,
+    ``y*T1``) is that axis' term, never a channel named ``y``.
+    """
     text = name.strip()
+    if len(axes) > 1:
+        for factory in _AXIS_KINDS:
+            made = factory(text, axes)
+            if made is not None:
+                return made
     for kind in _KINDS:
         match = kind.pattern.match(text)
         if match:

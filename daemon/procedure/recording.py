@@ -6,6 +6,7 @@ an existing file is never overwritten without ``--resume``.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Awaitable, Callable, Sequence
 from pathlib import Path
@@ -16,7 +17,7 @@ from daemon.calibration.plans import PAPER_TIMING, PlannedStep, StepResult, Step
 from daemon.config import ActuatorConfig
 from daemon.drivers_set import DriverSet
 from daemon.model.identify import FitResult, fit
-from daemon.model.model import save_model
+from daemon.model.model import Model, save_model
 from daemon.model.provenance import stamp_data
 from daemon.procedure.follow import FollowCheck
 from daemon.procedure.progress import Progress
@@ -94,11 +95,46 @@ def resume_hint(out: str | Path, data: str | Path, recorded: int, total: int) ->
             f"Resume with: nanodrift calibrate --out {out} --data {data} --resume")
 
 
-def fit_recorded(data_path: str | Path, model_path: str | Path) -> FitResult:
+def fit_recorded(data_path: str | Path, model_path: str | Path, *, commanded_um: Sequence[float] = ()) -> FitResult:
     """Identify the model from the recorded steps (valid rows only), stamp the data file (its SHA-256 and
-    rows) into its provenance and save it atomically."""
+    rows) into its provenance and save it atomically.
+
+    ``commanded_um``: the plan's targets. The model's x training range becomes the union of the measured
+    positions and these, so a commanded point (0 µm, measured at 0.1 µm) is never flagged as an
+    extrapolation (:func:`cover_commanded`). Empty: the measured range alone, as ``nanodrift fit`` gives.
+    """
     ds = read_csv(data_path)
     result = fit(ds, source=str(data_path))
+    cover_commanded(result.model, commanded_um)
     stamp_data(result.model, [(data_path, len(ds))])
     save_model(result.model, model_path)
     return result
+
+
+def cover_commanded(model: Model, commanded_um: Sequence[float]) -> None:
+    """Widen the model's x training range to the commanded trajectory, and give it the id of that content.
+
+    The x range decides which targets are flagged as extrapolating. A calibration commands 0..480 µm
+    and measures 0.1..480.4 µm: the sub-micrometre gap is the stage's noise and offset, not a part of
+    the travel the model has not seen. Only a newly fitted model is widened (the range is part of
+    its id): files already written keep theirs.
+    """
+    if len(commanded_um) == 0:
+        return
+    low, high = model.training.x_range
+    widened = (min(low, float(min(commanded_um))), max(high, float(max(commanded_um))))
+    model.training = dataclasses.replace(model.training, x_range=widened)
+    model.id = model.content_id()
+
+
+#: a temperature channel that varied less than this during a calibration is too narrow a range to trust:
+#: its coefficient is mostly the interferometer's wander, and the room leaves the range at once
+NARROW_RANGE_C = 0.3
+
+
+def narrow_channels(data_path: str | Path) -> dict[str, tuple[float, float]]:
+    """The temperature channels of a calibration's valid rows whose range is below :data:`NARROW_RANGE_C`."""
+    ds = read_csv(data_path).valid_rows()
+    ranges = {name: (float(ds.channels[name].min()), float(ds.channels[name].max()))
+              for name in ds.channel_names if len(ds)}
+    return {name: (lo, hi) for name, (lo, hi) in ranges.items() if hi - lo < NARROW_RANGE_C}

@@ -4,6 +4,10 @@ With ``adapt`` (``validate --adapt``) the model's command gets the daemon's bias
 :class:`daemon.calibration.residuals.BiasTracker`, fed with each valid step's settled residual (the
 step's averaged position minus its target, the measurement the daemon's monitor takes while a
 target is held), its correction added to every following command.
+
+With ``true_position`` (a simulated cell: :func:`daemon.commands._cell.simulated_truth`) each step also
+records the position the stage truly attained over its averaging window (``TestResult.x_true_um``),
+so the test is scored against the truth beside the interferometer. Hardware has no such function.
 """
 
 from __future__ import annotations
@@ -19,6 +23,9 @@ from daemon.drivers_set import DriverSet
 from daemon.procedure.follow import FollowCheck
 from daemon.procedure.progress import Progress
 from daemon.procedure.steps import run_steps
+
+#: ``(start_s, end_s) -> µm``: the true attained position, averaged over that span of the cell's clock
+TruePosition = Callable[[float, float], float]
 
 
 def feed_tracker(tracker: BiasTracker, result: StepResult) -> float:
@@ -40,12 +47,14 @@ async def run_validation(
     follow: FollowCheck | None = None,
     ready: Callable[[], Awaitable[None]] | None = None,
     adapt: BiasTracker | None = None,
+    true_position: TruePosition | None = None,
 ) -> TestResult:
     """One test: drive the validation plan with the model (or without when ``model`` is None).
 
     ``adapt``: a bias tracker (``[adapt] mode = "bias"``) whose correction is added to the model's
     commands, fed by each valid step. The result records, per step, the correction its command
-    carried and the model's ``q_sigma_um`` for it.
+    carried and the model's ``q_sigma_um`` for it. ``true_position(start_s, end_s)``: the true attained
+    position over a window of the cell's clock, recorded per step in ``x_true_um``.
     """
     timing = timing or StepTiming()
     plan = validation_plan(cycles)
@@ -56,6 +65,7 @@ async def run_validation(
     extrapolating = 0
     corrections: list[float] = []
     sigmas: list[float] = []
+    truths: list[float] = []
     if model is not None:
         missing = [c for c in model.channels if c not in drivers.temperature_channels]
         if missing:
@@ -80,6 +90,8 @@ async def run_validation(
         return float(evaluator.command(step.target_um, t)) + correction
 
     def on_step(result: StepResult) -> None:
+        if true_position is not None:  # before the next command: the stage still holds this step
+            truths.append(true_position(result.t_s - timing.window_s, result.t_s))
         if adapt is not None:
             feed_tracker(adapt, result)
 
@@ -88,6 +100,7 @@ async def run_validation(
                             on_step=on_step, on_temperatures=observe, progress=progress, follow=follow,
                             ready=ready)
     result = summarize(name, steps, model is not None, extrapolating)
+    result.x_true_um = truths
     if model is not None:
         result.corrections_um = corrections
         result.q_sigma_um = sigmas

@@ -34,7 +34,7 @@ import numpy as np
 from daemon.atomic import atomic_write_text
 from daemon.calibration.discovery import Candidate, DiscoveryResult
 from daemon.calibration.discovery.settings import Settings
-from daemon.reports.validation import STYLE, WITH_COLOR, WITHOUT_COLOR, save_figure
+from daemon.reports.validation import STYLE, WITH_COLOR, WITHOUT_COLOR, save_figure, with_footer
 
 #: where the method is written out in full (the report's Method section points there)
 METHOD_DOC = "daemon/calibration/discovery/METHOD.md"
@@ -61,6 +61,8 @@ EFFECT_WORDS = {
     "unmonitored_drift": "an unmonitored drift",
     "sensor_exclusion": "leaving a sensor out",
     "missing_channel": "a channel the model left out",
+    "crosstalk": "crosstalk from another axis",
+    "coupled_bending": "coupled bending of two axes",
 }
 
 BEFORE_COLOR, AFTER_COLOR = WITH_COLOR, WITHOUT_COLOR  # given model: orange, extended: blue
@@ -323,6 +325,10 @@ def format_params(c: Candidate) -> str:
         parts.append(f"channel {p['channel']}")
     elif c.effect == "sensor_exclusion":
         parts.append(f"leave {p['channel']} out")
+    elif c.effect == "crosstalk":
+        parts.append(f"from axis {p['axis']}")
+    elif c.effect == "coupled_bending":
+        parts.append(f"term {p['axes']}")
     if p.get("deferred_to"):
         parts.append(f"deferred to the same effect on {p['deferred_to']}, the fastest channel (rule 5)")
     if p.get("alike"):
@@ -511,8 +517,11 @@ def markdown(result: DiscoveryResult, figures: Sequence[str], model_out: str | N
     return "\n".join(lines)
 
 
-def write_report(result: DiscoveryResult, directory: str | Path, model_out: str | None = None) -> list[Path]:
-    """Write the figures (PNG + SVG) and ``report.md`` into ``directory``; returns the files written."""
+def write_report(result: DiscoveryResult, directory: str | Path, model_out: str | None = None, *,
+                 provenance: str = "") -> list[Path]:
+    """Write the figures (PNG + SVG) and ``report.md`` into ``directory``; returns the files written.
+
+    ``provenance``: each figure's footer (the model and the data files it was run on)."""
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
@@ -522,7 +531,7 @@ def write_report(result: DiscoveryResult, directory: str | Path, model_out: str 
     ]
     drawings.append(("gap", lambda: figure_gap(result)))
     for stem, draw in drawings:
-        fig = draw()
+        fig = with_footer(draw(), provenance)
         try:
             written += save_figure(fig, out / stem)
         finally:

@@ -4,12 +4,17 @@
 - ``table1.txt`` and ``validation.json``: what ``validate`` prints;
 - ``fig9_drift_at_zero.png`` / ``.svg``: per test, the drift at the zero position over time (the
   uncompensated position, measured or computed), the compensation the model applied (x' - q') and
-  the temperatures;
-- ``fig11_accuracy.png`` / ``.svg``: accuracy with and without compensation per test (bars) and per
-  point, on a linear axis unless the values span more than a decade;
-PNGs are 150 dpi; the SVGs keep text as text.
+  the temperatures, each channel's training range shaded (outside it the model extrapolates);
+- ``fig11_accuracy.png`` / ``.svg``: accuracy and repeatability with and without compensation per
+  test (bars) and accuracy per point, on a linear axis unless the values span more than a decade;
+PNGs are 150 dpi; the SVGs keep text as text. Every figure carries a footer saying where it came
+from (:func:`add_provenance`: the model id, its data file, the cell and seed).
 - ``validation_raw.csv``: one row per step: test, cycle, target, command, measured position, the
-  computed uncompensated position, validity and the temperatures.
+  computed uncompensated position, validity and the temperatures; on a simulated cell a last column,
+  ``x_true_um``, the position the stage truly attained (hardware has no such column).
+
+On a simulated cell every figure is also given against the true position (``TestResult.x_true_um``):
+the interferometer's view includes its noise and slow wander, the truth does not.
 """
 
 from __future__ import annotations
@@ -27,6 +32,8 @@ from daemon.calibration.iso9283 import TestResult, x_without
 
 if TYPE_CHECKING:
     from matplotlib.typing import RcKeyType
+
+    from daemon.model.model import Training
 
 PAPER_TABLE1: dict[str, tuple[float, float | None]] = {
     "test1": (546.0, None),
@@ -72,6 +79,22 @@ def table1(results: Sequence[TestResult], paper: Mapping[str, tuple[float, float
     return "\n".join(lines)
 
 
+def truth_table(results: Sequence[TestResult]) -> str:
+    """Table I again, scored against the true attained position (a simulated cell only; "" without truth)."""
+    known = [r for r in results if r.has_truth]
+    if not known:
+        return ""
+    head = f"{'Test':<10}{'Without comp.':>15}{'With comp.':>12}{'Improvement':>13}"
+    lines = ["Against the TRUE position (simulated cell only): Table I without the interferometer's noise and wander",
+             head, "-" * len(head)]
+    for r in known:
+        without, with_ = r.true_accuracy_nm()
+        star = "*" if r.compensated else " "
+        ratio = without / with_ if r.compensated else None
+        lines.append(f"{r.name:<10}{_nm(without) + star:>15}{_nm(with_):>12}{ratio_text(ratio):>13}")
+    return "\n".join(lines)
+
+
 def results_json(results: Sequence[TestResult], **extra: Any) -> dict[str, Any]:
     return {"tests": [r.to_dict() for r in results], **extra}
 
@@ -81,15 +104,18 @@ def raw_csv(results: Sequence[TestResult]) -> str:
     for r in results:
         for s in r.steps:
             channels.extend(c for c in s.temperatures if c not in channels)
+    truth = any(r.has_truth for r in results)  # a simulated cell: the column hardware cannot have
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")
     writer.writerow(["test", "t_s", "cycle", "target_um", "q_um", "x_measured_um", "x_without_um", "valid",
-                     *channels])
+                     *channels, *(["x_true_um"] if truth else [])])
     for r in results:
-        for s in r.steps:
+        trues = r.x_true_um if r.has_truth else [math.nan] * len(r.steps)
+        for s, x_true in zip(r.steps, trues, strict=True):
             writer.writerow([r.name, repr(s.t_s), s.step.cycle, repr(s.step.target_um), repr(s.q_um), repr(s.x_um),
                              repr(x_without(s)), int(s.valid),
-                             *(repr(s.temperatures.get(c, math.nan)) for c in channels)])
+                             *(repr(s.temperatures.get(c, math.nan)) for c in channels),
+                             *([repr(x_true)] if truth else [])])
     return out.getvalue()
 
 
@@ -107,8 +133,24 @@ PNG_DPI = 150
 WITHOUT_COLOR, WITH_COLOR = "#4c72b0", "#dd8452"
 
 
-def write_report(results: Sequence[TestResult], directory: str | Path, text: str, doc: Mapping[str, Any]) -> list[Path]:
-    """Write the report files (each atomically); returns their paths."""
+def write_report(results: Sequence[TestResult], directory: str | Path, text: str, doc: Mapping[str, Any], *,
+                 provenance: str = "", training: Training | None = None) -> list[Path]:
+    """Write the report files (each atomically); returns their paths.
+
+    ``provenance``: the figures' footer (:func:`provenance_text`); ``training``: the model's training
+    ranges, shaded on the figures."""
+    out = Path(directory)
+    out.mkdir(parents=True, exist_ok=True)
+    written = [out / "table1.txt", out / "validation.json", out / "validation_raw.csv"]
+    atomic_write_text(written[0], text + "\n")
+    atomic_write_text(written[1], json.dumps(doc, indent=2) + "\n")
+    atomic_write_text(written[2], raw_csv(results))
+    return written + write_figures(results, out, provenance=provenance, training=training)
+
+
+def write_figures(results: Sequence[TestResult], directory: str | Path, *, provenance: str = "",
+                  training: Training | None = None) -> list[Path]:
+    """fig9 and fig11 as PNG and SVG into ``directory`` (each atomically); returns their paths."""
     import matplotlib  # figures only when a report is asked for
 
     matplotlib.use("Agg")
@@ -116,27 +158,57 @@ def write_report(results: Sequence[TestResult], directory: str | Path, text: str
 
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
-    written = [out / "table1.txt", out / "validation.json", out / "validation_raw.csv"]
-    atomic_write_text(written[0], text + "\n")
-    atomic_write_text(written[1], json.dumps(doc, indent=2) + "\n")
-    atomic_write_text(written[2], raw_csv(results))
+    written: list[Path] = []
     with plt.rc_context(STYLE):
         for stem, draw in (("fig9_drift_at_zero", figure_drift), ("fig11_accuracy", figure_accuracy)):
-            fig = draw(results)
+            fig = draw(results, provenance=provenance, training=training)
             written.extend(save_figure(fig, out / stem))
             plt.close(fig)
     return written
 
 
-def figure_drift(results: Sequence[TestResult]) -> Any:
-    """After the paper's Fig. 9 and 10: per test, the drift at x' = 0 over time, and the temperatures."""
+def provenance_text(model_id: str, model_data: str | None, cell: str) -> str:
+    """The figures' footer: ``model m-… (fitted on calibration.csv) · simulated cell, test2, --seed 3``."""
+    fitted = f" (fitted on {model_data})" if model_data else ""
+    return f"model {model_id}{fitted} · {cell}"
+
+
+#: the footer's height (inches) and the offset (points) of a note drawn above it
+FOOTER_IN, FOOTER_PT = 0.22, 15
+
+
+def add_provenance(fig: Any, text: str) -> None:
+    """A small grey footer at the bottom left saying where the figure came from (nothing when ``text`` is "")."""
+    if text:
+        fig.text(0.006, 0.006, text, ha="left", va="bottom", fontsize=7, color="0.35", gid="provenance")
+
+
+def _footer_fraction(fig: Any, provenance: str) -> float:
+    """The share of the figure's height its footer takes (0 without one)."""
+    return FOOTER_IN / fig.get_figheight() if provenance else 0.0
+
+
+def with_footer(fig: Any, provenance: str) -> Any:
+    """A figure drawn without a footer, given one (:func:`add_provenance`) and laid out again above it."""
+    if provenance:
+        add_provenance(fig, provenance)
+        fig.tight_layout(rect=(0, _footer_fraction(fig, provenance), 1, 1))
+    return fig
+
+
+def figure_drift(results: Sequence[TestResult], *, provenance: str = "", training: Training | None = None) -> Any:
+    """After the paper's Fig. 9 and 10: per test, the drift at x' = 0 over time, and the temperatures
+    with each channel's training range shaded (a test outside it is a model extrapolating)."""
     import matplotlib.pyplot as plt  # figures only when a report is asked for
 
     with plt.rc_context(STYLE):
-        return _draw_drift(plt, results)
+        fig = _draw_drift(plt, results, training)
+        add_provenance(fig, provenance)
+        fig.tight_layout(rect=(0, _footer_fraction(fig, provenance), 1, 1))
+        return fig
 
 
-def _draw_drift(plt: Any, results: Sequence[TestResult]) -> Any:
+def _draw_drift(plt: Any, results: Sequence[TestResult], training: Training | None) -> Any:
     fig, axes = plt.subplots(2 * len(results), 1, figsize=(9, 4.2 * len(results) + 0.4), squeeze=False,
                              gridspec_kw={"height_ratios": [3, 1.4] * len(results)})
     for i, r in enumerate(results):
@@ -154,6 +226,10 @@ def _draw_drift(plt: Any, results: Sequence[TestResult]) -> Any:
         else:
             ax.plot(hours, [1e3 * s.x_um for s in zero], "o-", ms=4, color=WITHOUT_COLOR,
                     label="drift (measured position, no compensation)")
+        if r.has_truth:
+            true_zero = [x for s, x in zip(r.steps, r.x_true_um, strict=True) if s.step.target_um == 0.0 and s.valid]
+            ax.plot(hours, [1e3 * x for x in true_zero], "-", lw=1.0, color="0.15",
+                    label="true position (simulated cell: no interferometer noise or wander)")
         ax.set_title(f"{r.name} ({'with' if r.compensated else 'without'} compensation): position at x′ = 0 µm")
         ax.set_ylabel("drift at x′ = 0 µm (nm)")
         ax.grid(alpha=0.3)
@@ -163,7 +239,13 @@ def _draw_drift(plt: Any, results: Sequence[TestResult]) -> Any:
         channels = list(dict.fromkeys(c for s in valid for c in s.temperatures))
         for channel in channels:
             points = [(s.t_s / 3600.0, s.temperatures[channel]) for s in valid if channel in s.temperatures]
-            tax.plot([t for t, _ in points], [v for _, v in points], lw=1.2, label=channel)
+            (line,) = tax.plot([t for t, _ in points], [v for _, v in points], lw=1.2, label=channel)
+            if training is not None and channel in training.channel_ranges:
+                low, high = training.channel_ranges[channel]
+                tax.axhspan(low, high, color=line.get_color(), alpha=0.08, lw=0, label=f"{channel} training range",
+                            gid=f"training-range-{channel}")
+                for edge in (low, high):  # the edges stay readable where several channels' bands overlap
+                    tax.axhline(edge, color=line.get_color(), lw=0.8, ls=":")
         tax.set_title(f"{r.name}: temperatures")
         tax.set_ylabel("temperature (°C)")
         tax.yaxis.get_major_formatter().set_useOffset(False)
@@ -172,42 +254,96 @@ def _draw_drift(plt: Any, results: Sequence[TestResult]) -> Any:
             tax.legend(loc="center left", bbox_to_anchor=(1.0, 0.5), ncol=1, frameon=False)
         tax.sharex(ax)
         tax.set_xlabel("time (h)")
-    fig.tight_layout()
     return fig
 
 
-def figure_accuracy(results: Sequence[TestResult]) -> Any:
-    """After the paper's Fig. 11: Table I as bars, and the accuracy at each test point."""
+def figure_accuracy(results: Sequence[TestResult], *, provenance: str = "", training: Training | None = None
+                    ) -> Any:
+    """After the paper's Fig. 11: Table I as bars, repeatability as bars, and the accuracy at each test point.
+
+    ``axes[0]`` is Table I, ``axes[1]`` the per-point accuracy, ``axes[2]`` the repeatability (drawn
+    between them)."""
     import matplotlib.pyplot as plt  # figures only when a report is asked for
 
     with plt.rc_context(STYLE):
-        return _draw_accuracy(plt, results)
+        fig = _draw_accuracy(plt, results, training)
+        compensated = any(r.compensated for r in results)
+        footer = _footer_fraction(fig, provenance)
+        if compensated:
+            fig.axes[0].annotate("* without compensation: computed from the same run, x − (q′ − x′)", (0, 0),
+                                 xycoords="figure fraction", xytext=(8, 4 + (FOOTER_PT if provenance else 0)),
+                                 textcoords="offset points", fontsize=8, color="0.3")
+        add_provenance(fig, provenance)
+        fig.tight_layout(rect=(0, footer + (0.04 if compensated else 0), 1, 1))
+        return fig
 
 
-def _draw_accuracy(plt: Any, results: Sequence[TestResult]) -> Any:
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 4.8))
+PAIR_WIDTH, SINGLE_WIDTH = 0.38, 0.6  # bar widths: a without/with pair per test, or one bar
+
+
+def _bar_shift(results: Sequence[TestResult]) -> float:
+    """How far a compensated test's "without" and "with" bars stand either side of its tick."""
+    return PAIR_WIDTH / 2 if any(r.compensated for r in results) else 0.0
+
+
+def _bars(ax: Any, results: Sequence[TestResult], without: Sequence[float], with_: Sequence[float]) -> None:
+    """Per test a "without" bar and, for a compensated test, a "with" bar beside it, labelled in nm."""
     compensated = [i for i, r in enumerate(results) if r.compensated]
-    width = 0.38 if compensated else 0.6
-    shift = width / 2 if compensated else 0.0
-    without = ax1.bar([i - shift if r.compensated else i for i, r in enumerate(results)],
-                      [r.accuracy_without_nm for r in results], width, color=WITHOUT_COLOR,
-                      label="without compensation")
-    ax1.bar_label(without, fmt="%.0f", padding=2, fontsize=9)
+    width = PAIR_WIDTH if compensated else SINGLE_WIDTH
+    shift = _bar_shift(results)
+    bars = ax.bar([i - shift if r.compensated else i for i, r in enumerate(results)], without, width,
+                  color=WITHOUT_COLOR, label="without compensation")
+    ax.bar_label(bars, fmt="%.0f", padding=2, fontsize=9)
     if compensated:
-        with_ = ax1.bar([i + shift for i in compensated], [results[i].accuracy_nm for i in compensated], width,
-                        color=WITH_COLOR, label="with compensation")
-        ax1.bar_label(with_, fmt="%.0f", padding=2, fontsize=9)
-    ax1.set_xticks(range(len(results)), [r.name + ("*" if r.compensated else "") for r in results])
+        bars = ax.bar([i + shift for i in compensated], [with_[i] for i in compensated], width, color=WITH_COLOR,
+                      label="with compensation")
+        ax.bar_label(bars, fmt="%.0f", padding=2, fontsize=9)
+    ax.set_xticks(range(len(results)), [r.name + ("*" if r.compensated else "") for r in results])
+    ax.set_xlim(-0.75, len(results) - 0.25)
+    ax.margins(y=0.12)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.08), ncol=2, frameon=False)
+
+
+def _truth_marks(ax: Any, results: Sequence[TestResult]) -> None:
+    """On the Table I bars: where each bar would stand against the true position (a simulated cell only)."""
+    xs: list[float] = []
+    ys: list[float] = []
+    shift = _bar_shift(results)
+    for i, r in enumerate(results):
+        if not r.has_truth:
+            continue
+        without, with_ = r.true_accuracy_nm()
+        xs.append(i - shift if r.compensated else i)
+        ys.append(without)
+        if r.compensated:
+            xs.append(i + shift)
+            ys.append(with_)
+    if xs:
+        ax.scatter(xs, ys, marker="D", s=22, color="0.1", zorder=3, label="against the true position")
+        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.08), ncol=2, frameon=False)
+
+
+def _draw_accuracy(plt: Any, results: Sequence[TestResult], training: Training | None) -> Any:
+    fig = plt.figure(figsize=(16, 5.2))
+    grid = fig.add_gridspec(1, 3, width_ratios=(1, 1, 1.4))
+    ax1, ax2, ax_rep = fig.add_subplot(grid[0, 0]), fig.add_subplot(grid[0, 2]), fig.add_subplot(grid[0, 1])
+    _bars(ax1, results, [r.accuracy_without_nm for r in results], [r.accuracy_nm for r in results])
+    _truth_marks(ax1, results)
     ax1.set_ylabel("accuracy (nm)")
     ax1.set_title("Table I: mean accuracy per test")
-    ax1.set_xlim(-0.75, len(results) - 0.25)
-    ax1.margins(y=0.12)
-    ax1.legend(loc="upper center", bbox_to_anchor=(0.5, -0.08), ncol=2, frameon=False)
-    if compensated:
-        ax1.annotate("* without compensation: computed from the same run, x − (q′ − x′)", (0, 0),
-                     xycoords="figure fraction", xytext=(8, 6), textcoords="offset points", fontsize=8,
-                     color="0.3")
+    _bars(ax_rep, results, [_mean([p.repeatability_without_nm for p in r.points]) for r in results],
+          [_mean([p.repeatability_nm for p in r.points]) for r in results])
+    ax_rep.set_ylabel("repeatability (nm)")
+    ax_rep.set_title("mean repeatability per test (ISO 9283 RP)")
+    _draw_points(ax2, results, training)
+    return fig
 
+
+def _mean(values: Sequence[float]) -> float:
+    return sum(values) / len(values) if values else math.nan
+
+
+def _draw_points(ax2: Any, results: Sequence[TestResult], training: Training | None) -> None:
     values: list[float] = []
     for k, r in enumerate(results):
         color = f"C{k}"
@@ -224,11 +360,12 @@ def _draw_accuracy(plt: Any, results: Sequence[TestResult]) -> Any:
     points = sorted({p.target_um for r in results for p in r.points})
     if points:
         ax2.set_xticks(points)
+        if training is not None and (points[0] < training.x_range[0] or points[-1] > training.x_range[1]):
+            ax2.axvspan(*training.x_range, color="0.5", alpha=0.1, lw=0, label="training x range",
+                        gid="training-range-x")
     value_axis(ax2, values)
     ax2.grid(alpha=0.3)
-    ax2.legend(loc="best", ncol=2 if len(results) > 2 else 1, framealpha=0.85)
-    fig.tight_layout(rect=(0, 0.04 if compensated else 0, 1, 1))
-    return fig
+    ax2.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=3 if len(results) > 1 else 2, frameon=False)
 
 
 def value_axis(ax: Any, values: Sequence[float]) -> None:

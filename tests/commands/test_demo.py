@@ -171,3 +171,43 @@ def test_demo_shows_what_adaptation_and_the_uncertainty_add(tmp_path: Path) -> N
     assert health.group(1) == "ok"  # so the daemon says so (RMS under alarm_rms_nm)
     degrade = next(line for line in out.splitlines() if line.startswith("Test 5 degrades"))
     assert re.search(r": \d+ nm against \d+ nm in range;", degrade), degrade  # one in-range test: "38 nm", not "38–38"
+
+
+def test_kept_folder_holds_the_figures_the_output_lists(demo) -> None:
+    """Issue 19: ``--keep`` keeps fig9 and fig11 (PNG + SVG), each saying which model and seed made it."""
+    result, keep = demo
+    listed = re.search(r"^Figures \(PNG \+ SVG, as validate --report draws them\): (.+)$", result.stdout, re.MULTILINE)
+    assert listed, result.stdout
+    pngs = [Path(p) for p in listed.group(1).split(", ")]
+    assert pngs == [keep / "fig9_drift_at_zero.png", keep / "fig11_accuracy.png"]
+    model_id = load_model(keep / "model.json").id
+    for png in pngs:
+        assert png.read_bytes()[:4] == b"\x89PNG"
+        svg = png.with_suffix(".svg").read_text()
+        assert model_id in svg and "--seed 3" in svg and "test1, test5" in svg
+
+
+def test_the_demo_scores_against_the_truth_and_says_what_adaptation_needs(demo) -> None:
+    """Issue 19, item 2: accuracy against the true position beside the interferometer's; the tracker's cost."""
+    out = demo[0].stdout
+    test5 = re.search(r"^   test5: .*\n\s+accuracy (\d+) nm with the model.*\(interferometer\); against the true "
+                      r"position (\d+) nm with, (\d+) nm without", out, re.MULTILINE)
+    assert test5, out
+    truth_rows = out.split("Against the TRUE position")[1].splitlines()
+    assert re.match(rf"test5\s+{test5.group(3)} nm\*\s+{test5.group(2)} nm", truth_rows[4]), truth_rows
+    assert re.search(r"adaptation on test5 .*static -> \d+ nm adaptive .*\d+ nm -> \d+ nm against the true position",
+                     out), out
+    assert "adaptation needs the interferometer (a position sensor) kept in service" in out
+
+
+def test_demo_help_lists_only_what_the_demo_takes(capsys) -> None:
+    """No scenario catalogue (the demo takes --tests, not --scenario) and no --mode it would ignore."""
+    with pytest.raises(SystemExit):
+        main(["demo", "--help"])
+    text = capsys.readouterr().out
+    assert "--mode" not in text and "--scenario" not in text
+    assert not re.search(r"^\s+(train|bidirectional|daily|steady|room)\s", text, re.MULTILINE), text
+    assert all(re.search(rf"^\s+{test}\s", text, re.MULTILINE) for test in ("test1", "test5"))
+    with pytest.raises(SystemExit) as refused:
+        main(["demo", "--mode", "peer"])
+    assert refused.value.code == 2

@@ -78,3 +78,16 @@ def test_the_extended_model_records_the_running_version(tmp_path, capsys) -> Non
     extended = load_model(out)
     assert extended.provenance["software"] == SOFTWARE
     assert extended.provenance["base_model"] == load_model(model).id
+
+
+def test_the_reports_figures_name_the_model_and_the_data_they_came_from(tmp_path, capsys) -> None:
+    """Issue 19, item 7: every figure carries a footer with the model id and the data file it was run on."""
+    data, model = recorded(tmp_path, "", seed=0)
+    report = tmp_path / "report"
+    assert main(["discover", str(data), "--model", str(model), "--out", str(tmp_path / "m2.json"),
+                 "--report", str(report)]) == 0
+    svgs = sorted(report.glob("*.svg"))
+    assert svgs
+    for svg in svgs:
+        text = svg.read_text()
+        assert load_model(model).id in text and f"discovered on {data}" in text, svg.name

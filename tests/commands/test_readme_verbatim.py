@@ -172,3 +172,29 @@ def test_the_operator_guides_calibrate_then_enable_block_runs_verbatim(tmp_path:
     finally:
         if daemon is not None:
             assert daemon.stop() == 0
+
+
+def test_the_install_block_puts_nanodrift_on_path_and_the_unit_runs_the_same_script(tmp_path: Path) -> None:
+    """Issue 19: after the README's /opt install, ``nanodrift`` was not a command. The block's ``ln`` runs
+    under a temporary root, against a stand-in for the venv's script."""
+    commands = readme_block("Install")
+    venv = commands[0][commands[0].index("venv") + 1]
+    script = f"{venv}/bin/nanodrift"
+    links = [c for c in commands if c[0] == "ln"]
+    assert len(links) == 1 and links[0][-2] == script, commands
+    link_dir = str(Path(links[0][-1]).parent)
+    assert link_dir in ("/usr/local/bin", "/usr/bin"), f"{link_dir} is not on a default PATH"
+    root = tmp_path / "root"
+    (root / venv.lstrip("/") / "bin").mkdir(parents=True)
+    (root / script.lstrip("/")).write_text("#!/bin/sh\necho venv nanodrift\n")
+    (root / script.lstrip("/")).chmod(0o755)
+    (root / link_dir.lstrip("/")).mkdir(parents=True)
+    rooted = [w if not w.startswith("/") else str(root) + w for w in links[0]]
+    subprocess.run(rooted, check=True)
+    found = shutil.which("nanodrift", path=str(root) + link_dir)
+    assert found is not None
+    assert subprocess.run([found], capture_output=True, text=True).stdout == "venv nanodrift\n"
+    unit = (REPO / "systemd" / "nanodrift.service").read_text()
+    for key in ("ExecStartPre", "ExecStart"):
+        line = re.search(rf"^{key}=(\S+) ", unit, re.MULTILINE)
+        assert line and line[1] == script, f"the unit's {key} does not run {script}"

@@ -223,3 +223,13 @@ def test_watch_redraws_in_place_on_a_terminal(monkeypatch: pytest.MonkeyPatch) -
     assert screens[0] == "" and len(screens) == 3  # each refresh starts by clearing the screen
     second = parse_table(screens[2].split("\n", 1)[1])["c"]
     assert second["TARGETS/MIN"] == "120.0" and second["REFUSED/MIN"] == "60.0"  # over the last 1 s
+
+
+def test_table_shows_the_adaptations_correction() -> None:
+    base = {"cell": "c", "healthy": True, "uptime_s": 60.0, "sensors": {}, "model": {"id": "m-1"},
+            "counters": {"targets": 0, "errors": {}}}
+    adapting = {**base, "health": {"state": "ok", "residual_rms_nm": 20.0, "correction_um": -0.0124}}
+    off = {**base, "cell": "d", "health": {"state": "ok", "residual_rms_nm": 20.0, "correction_um": None}}
+    rows = parse_table(table([adapting, off]))
+    assert rows["c"]["CORRECTION"] == "-12 nm" and rows["d"]["CORRECTION"] == "-"
+    assert rows["c"]["HEALTH"] == "ok 20 nm"  # the column sits beside HEALTH, which keeps its own value

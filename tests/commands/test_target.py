@@ -11,6 +11,8 @@ from pathlib import Path
 import pytest
 from helpers.daemon_harness import REPO, TEMPS, Served, expected_q
 
+from daemon.commands import target as target_command
+
 
 @pytest.fixture(scope="module")
 def served(tmp_path_factory: pytest.TempPathFactory):
@@ -53,3 +55,34 @@ def test_target_without_a_daemon_says_so(tmp_path: Path) -> None:
     )
     assert result.returncode != 0
     assert "cannot open a zenoh session" in result.stderr or "no answer" in result.stderr
+
+
+def test_target_readable_output_shows_sigma_and_degrees(served: Served) -> None:
+    result = target(served, "240")
+    assert result.returncode == 0, result.stderr
+    for channel, value in TEMPS.items():
+        assert f"{channel}={value:.3f} °C" in result.stdout, result.stdout
+    # the harness' model has no covariance nor fit RMS: its commands' σ is null, and said to be unknown
+    assert json.loads(target(served, "240", "--json").stdout)["q_sigma_um"] is None
+    assert f"[model {served.model.id}; σ unknown; T1=" in result.stdout, result.stdout
+
+
+def test_a_commands_sigma_and_correction_are_printed_in_micrometres() -> None:
+    doc = {"id": 0, "x_um": 240.0, "q_um": 239.6231, "voltage_v": 4.79246, "temperatures_c": {"T1": 21.8},
+           "model": "m-1", "t": 0.0, "extrapolating": ["T1"], "q_sigma_um": 0.01854, "correction_um": -0.0123}
+    assert target_command._format_command(doc) == (
+        "x 240.0000 µm -> q 239.6231 µm, 4.79246 V [model m-1; σ 0.0185 µm; correction -0.0123 µm; "
+        "T1=21.800 °C] EXTRAPOLATING T1")
+
+
+def test_a_wrong_cell_is_named_with_the_cells_that_answer(served: Served) -> None:
+    result = subprocess.run(  # the daemon is up, but for another cell
+        [sys.executable, "-m", "daemon.cli", "target", "1", "2", "-e", f"tcp/127.0.0.1:{served.port}",
+         "--cell", "nosuchcell"],
+        capture_output=True, text=True, cwd=REPO, timeout=60,
+    )
+    assert result.returncode == 1
+    lines = result.stderr.splitlines()
+    assert len(lines) == 2 and all("no daemon serves cell 'nosuchcell'" in line for line in lines), result.stderr
+    assert f"the cell(s) answering on this network: {served.cell} (--cell {served.cell})" in lines[0]
+    assert "is the daemon running" not in result.stderr

@@ -30,9 +30,9 @@ def test_fit_prints_its_training_ranges_in_micrometres_and_degrees(tmp_path, cap
 def test_calibrate_and_validate_print_micrometres_and_degrees(tmp_path, capsys) -> None:
     model = tmp_path / "m.json"
     assert main(["calibrate", "--out", str(model), "--cycles", "2"]) == 0
-    err = capsys.readouterr().err
-    assert re.search(r"^trained on x 0\.0\.\.\d+\.\d µm$", err, re.MULTILINE), err  # never "-0.0"
-    assert " °C" in err and not ASCII_UNITS.search(err)
+    printed = capsys.readouterr().out  # calibrate's result is on stdout (issue 19)
+    assert re.search(r"^trained on x 0\.0\.\.\d+\.\d µm$", printed, re.MULTILINE), printed  # never "-0.0"
+    assert " °C" in printed and not ASCII_UNITS.search(printed)
     assert main(["validate", "--model", str(model), "--cycles", "1"]) == 0
     out = capsys.readouterr().out
     points = re.findall(r"^  x' = +(\d+) µm: accuracy", out, re.MULTILINE)

@@ -42,3 +42,46 @@ def paper_run(
             q += coef * channels[name]
     q += rng.normal(0.0, noise_um, n)
     return Dataset(t=t, x=x, q=q, channels=channels, extra={"cycle": cycle.astype(float)}, source="synthetic")
+
+
+#: the true inverse model of :func:`xy_run`, per axis (q of each axis from both positions and T1, T2)
+XY_TRUE_TERMS = {
+    "x": {"x^3": 3.0e-9, "x^2": -4.0e-6, "x": 1.0012, "y": -0.0043, "x*y": -2.0e-6, "T1": -0.6, "1": 13.0},
+    "y": {"y^3": -2.0e-9, "y^2": 3.0e-6, "y": 0.9990, "x": 0.0021, "x*y": 1.5e-6, "T2": 0.45, "1": -9.0},
+}
+
+
+def xy_run(cycles: int = 4, seed: int = 0, noise_um: float = 0.02,
+           terms: dict[str, dict[str, float]] | None = None) -> Dataset:
+    """An XY calibration run: a 9 x 9 grid visited in a fresh random order each cycle, 29 s a step.
+
+    The measured positions are the targets plus noise; each axis' command follows ``terms`` (the
+    cross terms of a multi-axis cell: crosstalk ``y``, coupled bending ``x*y``) plus noise.
+    """
+    rng = np.random.default_rng(seed)
+    terms = XY_TRUE_TERMS if terms is None else terms
+    grid = [(a, b) for a in np.arange(0.0, 481.0, 60.0) for b in np.arange(0.0, 481.0, 60.0)]
+    order = np.concatenate([rng.permutation(len(grid)) for _ in range(cycles)])
+    n = order.size
+    t = np.arange(n) * 29.0
+    positions = {"x": np.array([grid[i][0] for i in order]) + rng.normal(0.0, 0.01, n),
+                 "y": np.array([grid[i][1] for i in order]) + rng.normal(0.0, 0.01, n)}
+    phase = t / t[-1]
+    channels = {"T1": 21.0 - 0.5 * np.sin(np.pi * phase) + rng.normal(0, 0.005, n),
+                "T2": 21.0 + 0.4 * np.cos(2 * np.pi * phase) + rng.normal(0, 0.005, n)}
+    values = {**positions, **channels, "x*y": positions["x"] * positions["y"]}
+    commands = {}
+    for axis, axis_terms in terms.items():
+        q = np.zeros(n)
+        for name, coef in axis_terms.items():
+            if name == "1":
+                q += coef
+            elif "^" in name:
+                base, k = name.split("^")
+                q += coef * values[base] ** int(k)
+            else:
+                q += coef * values[name]
+        commands[axis] = q + rng.normal(0.0, noise_um, n)
+    cycle = np.repeat(np.arange(cycles), len(grid)).astype(float)
+    return Dataset(t=t, x=positions["x"], q=None, channels=channels, extra={"cycle": cycle}, source="synthetic xy",
+                   positions=positions, commands=commands)

@@ -36,8 +36,8 @@ def test_calibrate_command_end_to_end(tmp_path, capsys):
     digest = hashlib.sha256(data.read_bytes()).hexdigest()
     assert model.provenance["data_file"] == str(data) and model.provenance["data_sha256"] == digest
     assert model.provenance["data_files"] == [{"path": str(data), "sha256": digest, "rows": 8 * 17}]
-    err = capsys.readouterr().err
-    assert "fit residual" in err and "model ->" in err and "·x³" in err and "+ -" not in err
+    out = capsys.readouterr().out  # the result is on stdout (issue 19); progress stays on stderr
+    assert "fit residual" in out and "model ->" in out and "·x³" in out and "+ -" not in out
 
 
 def test_progress_is_a_line_per_cycle_when_not_a_tty(tmp_path):

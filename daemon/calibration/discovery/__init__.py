@@ -4,10 +4,11 @@ Pure computation (numpy/scipy, no I/O). The method, step by step and with its sp
 ``METHOD.md`` beside this file. The modules, in the order the workflow uses them: ``settings`` (the
 bar), ``diagnostics`` (residual structure), ``workspace`` (the regression), ``candidates`` (judging
 one), ``catalogue`` (the effects), ``workflow`` (the loop), ``confirmation`` (what a fresh run should
-show, the τ range), ``summary`` (the finding in words).
+show, the τ range), ``summary`` (the finding in words); ``cell``: the loop per axis of a multi-axis cell.
 """
 
 from daemon.calibration.discovery.candidates import Candidate
+from daemon.calibration.discovery.cell import CellDiscoveryResult, discover_cell
 from daemon.calibration.discovery.workflow import DiscoveryError, DiscoveryResult, discover
 
-__all__ = ["Candidate", "DiscoveryError", "DiscoveryResult", "discover"]
+__all__ = ["Candidate", "CellDiscoveryResult", "DiscoveryError", "DiscoveryResult", "discover", "discover_cell"]

@@ -160,7 +160,7 @@ class Context:
         self.data, self.terms, self.nuisance, self.settings = data, terms, nuisance, settings
         self.excluded, self.delays = excluded, delays
         self.t = np.asarray(data.t, dtype=np.float64)
-        self.x = np.asarray(data.x, dtype=np.float64)
+        self.x = np.asarray(data.own_position, dtype=np.float64)  # the modelled axis' position
         assert data.q is not None
         cols = [features(term, data) for term in terms] + list(nuisance.values())
         matrix = np.column_stack(cols) if cols else np.empty((len(data), 0))

@@ -12,6 +12,7 @@ import numpy as np
 from daemon.calibration.dataset import Dataset
 from daemon.calibration.discovery.candidates import Candidate, Context, pinned, round_sig, search_tau
 from daemon.calibration.discovery.settings import Settings
+from daemon.model.axis_terms import AxisCoupling, AxisCreep, AxisDirection, AxisPower, AxisProduct
 from daemon.model.effect_terms import CREEP_DEADBAND_UM, Creep, PositionCoupling, Rate
 from daemon.model.segments import features, run_time_s, spans_s
 from daemon.model.terms import Channel, Direction, Lag, Power, Term
@@ -27,21 +28,46 @@ EFFECTS = (
     "unmonitored_drift",
     "sensor_exclusion",
     "missing_channel",
+    "crosstalk",
+    "coupled_bending",
 )
 
 
-def _powers(terms: Sequence[Term]) -> set[int]:
-    return {t.k for t in terms if isinstance(t, Power)}
+# --- the modelled axis' own terms: the one-axis terms for x, the axis' own for y or z (multi-axis cells) ----
+
+
+def own_power(axis: str, k: int) -> Term:
+    return Power(k) if axis == "x" else AxisPower(axis, k)
+
+
+def own_direction(axis: str) -> Direction:
+    return Direction() if axis == "x" else AxisDirection(axis)
+
+
+def own_coupling(axis: str, channel: str) -> Term:
+    return PositionCoupling(channel) if axis == "x" else AxisCoupling(axis, channel)
+
+
+def own_creep(axis: str, tau_s: float) -> Creep:
+    return Creep(tau_s) if axis == "x" else AxisCreep(axis, tau_s)
+
+
+def _powers(terms: Sequence[Term], axis: str = "x") -> set[int]:
+    """The powers of ``axis``' own position among ``terms``."""
+    if axis == "x":
+        return {t.k for t in terms if isinstance(t, Power)}
+    return {t.k for t in terms if isinstance(t, AxisPower) and t.axis == axis}
 
 
 def _geometric(ctx: Context) -> list[Candidate]:
-    have = _powers(ctx.terms)
+    axis = ctx.data.axis
+    have = _powers(ctx.terms, axis)
     top = max(have, default=0)
     out = []
     for k in range(1, max(top + 1, 3) + 1):
         if k in have or k > ctx.settings.max_power:
             continue
-        term = Power(k)
+        term = own_power(axis, k)
         cand = Candidate("geometric_order", [term], [], {"order": max(top, k), "term": term.name}, 0, 1)
         out.append(ctx.judge(cand, ctx.columns([ctx.feature(term)])))
     return out
@@ -184,7 +210,7 @@ def _hysteresis(ctx: Context) -> list[Candidate]:
     at x = 0" (a geometric or creep detail, not hysteresis): the direction must be the minority on
     at least ``min_direction_share`` of the rows.
     """
-    term = Direction()
+    term = own_direction(ctx.data.axis)
     if term in ctx.terms:
         return []
     f = ctx.feature(term)
@@ -238,7 +264,7 @@ def _coupling(ctx: Context) -> list[Candidate]:
     channels = list(ctx.data.channels)
     out = []
     for c in channels:
-        term = PositionCoupling(c)
+        term = own_coupling(ctx.data.axis, c)
         if term in ctx.terms:
             continue
         out.append(ctx.judge(Candidate("position_thermal_coupling", [term], [], {"channel": c}, 0, len(channels)),
@@ -252,11 +278,13 @@ def _creep(ctx: Context) -> list[Candidate]:
     if not np.any(np.abs(np.diff(ctx.x)) > CREEP_DEADBAND_UM):
         return []
 
+    axis = ctx.data.axis
+
     def sse(tau: float) -> float:
-        return ctx.ws.sse_with(ctx.columns([features(Creep(tau), ctx.data)]))
+        return ctx.ws.sse_with(ctx.columns([features(own_creep(axis, tau), ctx.data)]))
 
     tau, profile = search_tau(sse, *ctx.settings.creep_tau_s, ctx.settings)
-    term = Creep(tau)
+    term = own_creep(axis, tau)
     cand = Candidate("creep", [term], [], {"tau_s": tau}, 1, 1)
     cand.pinned = pinned(sse, tau, ctx.ws.n * ctx.deflate, ctx.settings)
     cand.tau_bounds = ctx.settings.creep_tau_s
@@ -285,6 +313,32 @@ def _exclusion(ctx: Context) -> list[Candidate]:
     return out
 
 
+def _cross_axis(ctx: Context) -> list[Candidate]:
+    """What only a multi-axis cell shows: the modelled axis moved by another axis' position.
+
+    ``crosstalk``: a share of another axis' position (``y`` in x's model), whether the actuators
+    couple or the axes are not orthogonal: both move x in proportion to y, the data cannot tell
+    them apart and the compensation is the same (the share in µrad is the equivalent angle).
+    ``coupled_bending``: the stage bends when both axes are out (``x*y``). Each is named only if it
+    clears the same bar as every effect.
+    """
+    data = ctx.data
+    if not data.multi_axis:
+        return []
+    axis, others = data.axis, [b for b in data.axes if b != data.axis]
+    out = []
+    for b in others:
+        term = own_power(b, 1)
+        if term not in ctx.terms:
+            out.append(ctx.judge(Candidate("crosstalk", [term], [], {"axis": b}, 0, len(others)),
+                                 ctx.columns([ctx.feature(term)])))
+        product = AxisProduct(axis, b)
+        if product not in ctx.terms:
+            out.append(ctx.judge(Candidate("coupled_bending", [product], [], {"axes": product.name}, 0, len(others)),
+                                 ctx.columns([ctx.feature(product)])))
+    return out
+
+
 PROPOSERS: dict[str, Callable[[Context], list[Candidate]]] = {
     "geometric_order": _geometric,
     "thermal_response": _thermal_response,
@@ -294,6 +348,7 @@ PROPOSERS: dict[str, Callable[[Context], list[Candidate]]] = {
     "creep": _creep,
     "unmonitored_drift": _drift,
     "sensor_exclusion": _exclusion,
+    "cross_axis": _cross_axis,
 }
 
 

@@ -13,6 +13,7 @@ from scipy import stats
 
 from daemon.calibration.dataset import Dataset
 from daemon.calibration.discovery.settings import DEFAULT_SETTINGS, Settings
+from daemon.model.axis_terms import AxisDirection
 from daemon.model.effect_terms import CREEP_DEADBAND_UM, Rate
 from daemon.model.segments import features, first_rows, run_time_s
 from daemon.model.terms import Direction
@@ -70,6 +71,11 @@ def structure_variables(data: Dataset, settings: Settings = DEFAULT_SETTINGS) ->
         "t": ("time since the start of the run (s)", run_time_s(data)),
         "x": ("position x (µm)", x),
     }
+    for axis, position in data.positions.items():  # a multi-axis cell: every axis' position
+        if axis != "x":
+            out[axis] = (f"position {axis} (µm)", np.asarray(position, dtype=np.float64))
+    x = np.asarray(data.own_position, dtype=np.float64)  # the motion below is the modelled axis'
+    own = "" if data.axis == "x" else f" of axis {data.axis}"
     for c, v in data.channels.items():
         out[c] = (f"temperature {c} (°C)", np.asarray(v, dtype=np.float64))
     tau = settings.rate_probe_tau_s
@@ -78,15 +84,16 @@ def structure_variables(data: Dataset, settings: Settings = DEFAULT_SETTINGS) ->
             f"rate of change of {c} (°C/h, smoothed over {tau:g} s)",
             features(Rate(c, tau), data) * 3600.0,
         )
-    out["dir"] = ("direction of the last move (+1 up, -1 down)", features(Direction(), data))
+    direction = Direction() if data.axis == "x" else AxisDirection(data.axis)
+    out["dir"] = (f"direction of the last move{own} (+1 up, -1 down)", features(direction, data))
     first = first_rows(data)  # several runs: a run's first row follows no step
     step = np.diff(x, prepend=x[:1])
     step[first == np.arange(x.size)] = 0.0
     moved = np.abs(step) > CREEP_DEADBAND_UM
     idx = np.maximum(np.where(moved, np.arange(x.size), 0), first)
     np.maximum.accumulate(idx, out=idx)
-    out["last_step"] = ("size of the last step (µm)", np.where(moved[idx], step[idx], 0.0))
-    out["time_since_step"] = ("time since the last step (s)", t - t[idx])
+    out["last_step"] = (f"size of the last step{own} (µm)", np.where(moved[idx], step[idx], 0.0))
+    out["time_since_step"] = (f"time since the last step{own} (s)", t - t[idx])
     return out
 
 

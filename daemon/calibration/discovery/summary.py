@@ -32,6 +32,11 @@ def _describe(c: Candidate) -> str:
         return f"channel {p['channel']}, which the model had left out (term {p['channel']})"
     if c.effect == "sensor_exclusion":
         return f"leaving out channel {p['channel']}, which fits the training blocks but hurts held-out ones"
+    if c.effect == "crosstalk":
+        return (f"crosstalk from axis {p['axis']}: this axis moves with {p['axis']}'s position (actuator coupling "
+                f"or axes that are not orthogonal; term {c.add[0].name})")
+    if c.effect == "coupled_bending":
+        return f"coupled bending: the stage bends when both axes are out (term {c.add[0].name})"
     return c.effect
 
 

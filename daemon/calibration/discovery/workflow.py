@@ -47,7 +47,7 @@ def selection_pool(model: Model, data: Dataset) -> list[Term]:
     pool = []
     for name in model.selection.get("candidates") or []:
         try:
-            term = parse_term(str(name))
+            term = parse_term(str(name), data.axes)
         except UnknownTermError:
             continue
         if not isinstance(term, Bias) and all(c in data.channels for c in term.channels):

@@ -1,0 +1,232 @@
+"""A multi-axis cell's model: one :class:`Model` per axis, each over every axis' position, in one file.
+
+An XY or XYZ stage is one cell: the command of each axis depends on where the others are
+(crosstalk, non-orthogonality, coupled bending: :mod:`daemon.model.axis_terms`), so each axis has
+its own term list, chosen by the same stepwise selection, and reads the positions of all axes.
+Each axis' model is an ordinary :class:`Model` (its covariance, ``q_sigma``, stateful terms and file
+checks are the one-axis ones); this class only keeps them together under one id and one file.
+
+File layout (``"format": "nanodrift-model/1"`` with ``"axes"``)::
+
+    {"format", "id", "axes": ["x", "y"], "channels": [...],
+     "training": {"positions_um": {"x": [lo, hi], "y": [lo, hi]}},
+     "models": {"x": <a one-axis model document>, "y": <...>}, "provenance": {...}}
+
+A one-axis file has no ``axes`` and loads as a :class:`Model`, exactly as before
+(:func:`load_any_model` reads either). The cell's id hashes the axes and every axis model's id.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from daemon.atomic import atomic_write_text
+from daemon.model.model import FORMAT, Model, ModelFileError, _read_model_text, load_model, save_model
+from daemon.model.series import Series
+
+#: letters an axis may take: not q (``q_um`` is the one-axis command column)
+AXIS_LETTERS = "abcdefghijklmnoprstuvwxyz"
+
+
+@dataclass
+class CellModel:
+    """One model per axis of a multi-axis cell, applied together."""
+
+    axes: tuple[str, ...]
+    models: dict[str, Model]
+    provenance: dict[str, Any] = field(default_factory=dict)
+    id: str = ""
+
+    def __post_init__(self) -> None:
+        if len(self.axes) < 2 or tuple(self.models) != self.axes:
+            raise ValueError(f"a cell model needs a model per axis in order, got axes {self.axes} and "
+                             f"models for {tuple(self.models)}")
+        if not self.id:
+            self.id = self.content_id()
+
+    def content_id(self) -> str:
+        """Hash of the axes and every axis model's content id (what decides every command)."""
+        content = {"format": FORMAT, "axes": list(self.axes),
+                   "models": {a: self.models[a].content_id() for a in self.axes}}
+        text = json.dumps(content, separators=(",", ":"), sort_keys=True)
+        return "m-" + hashlib.sha256(text.encode()).hexdigest()[:12]
+
+    @property
+    def channels(self) -> tuple[str, ...]:
+        """Every temperature channel some axis' model reads, in first-use order."""
+        seen: dict[str, None] = {}
+        for a in self.axes:
+            for c in self.models[a].channels:
+                seen[c] = None
+        return tuple(seen)
+
+    @property
+    def position_ranges(self) -> dict[str, tuple[float, float]]:
+        """The training range of every axis' position."""
+        first = self.models[self.axes[0]].training
+        return {a: (first.x_range if a == "x" else first.position_ranges[a]) for a in self.axes}
+
+    @property
+    def channel_ranges(self) -> dict[str, tuple[float, float]]:
+        out: dict[str, tuple[float, float]] = {}
+        for a in self.axes:
+            out.update(self.models[a].training.channel_ranges)
+        return out
+
+    def predict(self, data: Series) -> dict[str, np.ndarray]:
+        """The command per axis for every row (``data``: a multi-axis series)."""
+        return {a: self.models[a].predict(data) for a in self.axes}
+
+    def q_sigma(self, data: Series) -> dict[str, np.ndarray]:
+        return {a: self.models[a].q_sigma(data) for a in self.axes}
+
+    def out_of_range(self, positions: Mapping[str, float] | None = None,
+                     temps: Mapping[str, float] | None = None) -> list[str]:
+        """Axis names and channels whose value lies outside what the models were trained on."""
+        out = []
+        for axis, (lo, hi) in self.position_ranges.items():
+            if positions is not None and axis in positions and not lo <= positions[axis] <= hi:
+                out.append(axis)
+        ranges = self.channel_ranges
+        for name, value in (temps or {}).items():
+            bounds = ranges.get(name)
+            if bounds is not None and not bounds[0] <= value <= bounds[1]:
+                out.append(name)
+        return out
+
+    def evaluator(self) -> CellEvaluator:
+        return CellEvaluator(self)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "format": FORMAT,
+            "id": self.id,
+            "axes": list(self.axes),
+            "channels": list(self.channels),
+            "training": {"positions_um": {a: list(r) for a, r in self.position_ranges.items()}},
+            "models": {a: self.models[a].to_dict() for a in self.axes},
+            "provenance": self.provenance,
+        }
+
+    @classmethod
+    def from_dict(cls, doc: Any, where: str = "model", *, check_id: bool = True) -> CellModel:
+        return _cell_model_from_dict(doc, where, check_id=check_id)
+
+
+class CellEvaluator:
+    """Every axis' :class:`Evaluator`, fed one temperature stream and one target (all axes) at a time."""
+
+    __slots__ = ("axes", "evaluators", "model")
+
+    def __init__(self, model: CellModel) -> None:
+        self.model = model
+        self.axes = model.axes
+        self.evaluators = {a: model.models[a].evaluator() for a in model.axes}
+
+    @property
+    def ready(self) -> bool:
+        return all(ev.ready for ev in self.evaluators.values())
+
+    def observe(self, t: float, temps: Mapping[str, float]) -> None:
+        for ev in self.evaluators.values():
+            ev.observe(t, temps)
+
+    def _aim(self, positions: Mapping[str, float]) -> float:
+        for ev in self.evaluators.values():
+            ev.targets(positions)
+        return positions.get("x", math.nan)
+
+    def value(self, positions: Mapping[str, float], t: float) -> dict[str, float]:
+        """q per axis for the target ``positions`` at ``t``, changing nothing."""
+        x = self._aim(positions)
+        return {a: ev.value(x, t) for a, ev in self.evaluators.items()}
+
+    def sigma(self, positions: Mapping[str, float], t: float) -> dict[str, float]:
+        x = self._aim(positions)
+        return {a: ev.sigma(x, t) for a, ev in self.evaluators.items()}
+
+    def moved(self, positions: Mapping[str, float], t: float) -> None:
+        x = self._aim(positions)
+        for ev in self.evaluators.values():
+            ev.moved(x, t)
+
+    def command(self, positions: Mapping[str, float], t: float) -> dict[str, float]:
+        q = self.value(positions, t)
+        self.moved(positions, t)
+        return q
+
+
+def save_cell_model(model: CellModel, path: str | os.PathLike[str]) -> None:
+    """Write the file atomically, every axis model and the cell stamped with their content's id."""
+    for m in model.models.values():
+        m.id = m.content_id()
+    model.id = model.content_id()
+    atomic_write_text(path, json.dumps(model.to_dict(), indent=2, allow_nan=False) + "\n")
+
+
+def save_any_model(model: Model | CellModel, path: str | os.PathLike[str]) -> None:
+    if isinstance(model, CellModel):
+        save_cell_model(model, path)
+    else:
+        save_model(model, path)
+
+
+def load_any_model(path: str | os.PathLike[str], *, check_id: bool = True) -> Model | CellModel:
+    """A one-axis model file as a :class:`Model`, a multi-axis one (``"axes"``) as a :class:`CellModel`."""
+    path = Path(path)
+    text = _read_model_text(path)
+    try:
+        doc = json.loads(text)
+    except (ValueError, RecursionError):
+        return load_model(path, check_id=check_id)  # its messages say what is wrong with the text
+    if isinstance(doc, dict) and "axes" in doc:
+        return _cell_model_from_dict(doc, str(path), check_id=check_id)
+    return Model.from_dict(doc, str(path), check_id=check_id)
+
+
+def _cell_model_from_dict(doc: Any, where: str, *, check_id: bool = True) -> CellModel:
+    def fail(msg: str) -> ModelFileError:
+        return ModelFileError(f"{where}: {msg}")
+
+    if not isinstance(doc, dict):
+        raise fail("expected a JSON object")
+    if doc.get("format") != FORMAT:
+        raise fail(f"format is {doc.get('format')!r}, expected {FORMAT!r}")
+    axes = doc.get("axes")
+    if (not isinstance(axes, list) or len(axes) < 2 or len(set(axes)) != len(axes)
+            or not all(isinstance(a, str) and len(a) == 1 and a in AXIS_LETTERS for a in axes) or "x" not in axes):
+        raise fail(f"'axes' must list 2 or more distinct lowercase letters including x, got {axes!r}")
+    raw_models = doc.get("models")
+    if not isinstance(raw_models, dict) or sorted(raw_models) != sorted(axes):
+        raise fail(f"'models' must hold one model per axis ({', '.join(axes)}), got "
+                   f"{sorted(raw_models) if isinstance(raw_models, dict) else type(raw_models).__name__}")
+    cell_axes = tuple(axes)
+    models = {a: Model.from_dict(raw_models[a], f"{where}: models.{a}", check_id=check_id, axes=cell_axes)
+              for a in cell_axes}
+    for a, m in models.items():
+        missing = [b for b in cell_axes if b != "x" and b not in m.training.position_ranges]
+        if missing:
+            raise fail(f"models.{a}: training ranges missing for axis/axes {', '.join(missing)} "
+                       "(training.positions_um)")
+    provenance = doc.get("provenance") or {}
+    if not isinstance(provenance, dict):
+        raise fail(f"'provenance' must be an object, got {type(provenance).__name__}")
+    claimed = doc.get("id")
+    if claimed is not None and not isinstance(claimed, str):
+        raise fail(f"'id' must be a string, got {claimed!r}")
+    model = CellModel(cell_axes, models, dict(provenance), claimed or "")
+    if check_id:
+        actual = model.content_id()
+        if claimed != actual:
+            raise fail(f"its id {claimed!r} does not match its content ({actual!r}): the file was changed after "
+                       f"it was made; if deliberately, re-stamp it: `nanodrift restamp {where}`")
+    return model
