@@ -79,8 +79,10 @@ class Candidate:
     def rank_key(self, settings: Settings) -> float:
         return self.holdout_rms_after_um * (1.0 + settings.search_penalty * self.searched)
 
-    def to_dict(self) -> dict[str, Any]:
-        return {
+    def to_dict(self, confirmation: bool = True) -> dict[str, Any]:
+        """The step for ``--json``; ``confirmation=False``: without the p the bar tested, the τ range and the
+        fresh-run gain (the form a model file's ``selection`` records, unchanged by them)."""
+        out = {
             "effect": self.effect, "params": self.params, "p_value": json_float(self.p_value),
             "rms_before_um": json_float(self.rms_before_um), "rms_after_um": json_float(self.rms_after_um),
             "holdout_rms_before_um": json_float(self.holdout_rms_before_um),
@@ -89,9 +91,11 @@ class Candidate:
             "applied_online": self.effect not in NOT_APPLIED_ONLINE,
             "f_stat": json_float(self.f_stat), "holdout_gain": json_float(self.holdout_gain),
             "blocks_improved": json_float(self.blocks_improved),
-            "p_bar": json_float(self.bar_p), "p_bar_test": self.bar_p_test,
-            **self._tau_dict(), **self._fresh_dict(),
         }
+        if confirmation:
+            out.update({"p_bar": json_float(self.bar_p), "p_bar_test": self.bar_p_test,
+                        **self._tau_dict(), **self._fresh_dict()})
+        return out
 
     def _tau_dict(self) -> dict[str, Any]:
         if self.tau_range is None:

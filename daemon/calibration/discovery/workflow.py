@@ -155,7 +155,7 @@ def _final_model(data: Dataset, given: Model, terms: list[Term], nuisance: dict[
     selection = dict(given.selection)
     selection["discovery"] = {
         "base_model": given.id,
-        "steps": [s.to_dict() for s in steps],
+        "steps": [s.to_dict(confirmation=False) for s in steps],
         "p_max": settings.p_max,
         "min_holdout_gain": settings.min_holdout_gain,
         "not_applied_online": {
@@ -264,7 +264,7 @@ def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS,
     for step in steps:
         if step.add:
             step.params["coef"] = {t.name: coefs[t.name] for t in step.add if t.name in coefs}
-    extended.selection["discovery"]["steps"] = [s.to_dict() for s in steps]
+    extended.selection["discovery"]["steps"] = [s.to_dict(confirmation=False) for s in steps]
     final: dict[str, Any] = {
         "model": extended.id, "terms": extended.term_names(), "rms_um": _rms(residual1),
         "holdout_rms_um": math.sqrt(ctx.held0 / n),
