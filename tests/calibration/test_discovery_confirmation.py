@@ -16,7 +16,7 @@ from helpers.discovery_helpers import cell_run, paper_model
 
 from daemon.calibration.dataset import Dataset, read_csv, write_csv
 from daemon.calibration.discovery import discover
-from daemon.calibration.discovery.confirmation import expected_fresh, tau_range
+from daemon.calibration.discovery.confirmation import expected_fresh, hidden_by_fit_um2, tau_range
 from daemon.cli import main
 from daemon.commands.discover import describe
 from daemon.model.model import Model, load_model, save_model
@@ -51,13 +51,13 @@ def test_the_issue_run_expects_the_gain_a_fresh_run_shows_and_does_not_overstate
 
 
 def test_the_expected_fresh_error_adds_back_what_fitting_hides() -> None:
-    e = expected_fresh(in_before_um=0.030, in_after_um=0.018, held_after_um=0.024, params_before=7, params_after=9)
-    omega = 0.024**2 - 0.018**2
+    omega = hidden_by_fit_um2(in_sample_um=0.018, held_out_um=0.024)
+    assert omega == 0.024**2 - 0.018**2
+    assert hidden_by_fit_um2(0.020, 0.010) == 0.0  # held-out better than in-sample (chance): nothing taken away
+    e = expected_fresh(in_before_um=0.030, in_after_um=0.018, omega_after_um2=omega, params_before=7, params_after=9)
     assert e.rms_after_um == np.sqrt(0.018**2 + omega)
-    assert e.rms_before_um == np.sqrt(0.030**2 + omega * 7 / 9)
+    assert e.rms_before_um == np.sqrt(0.030**2 + omega * 7 / 9)  # charged in proportion to its parameters
     assert e.ratio == e.rms_after_um / e.rms_before_um
-    # held-out better than in-sample (chance): nothing is taken away
-    assert expected_fresh(0.03, 0.02, 0.01, 7, 8).ratio == 0.02 / 0.03
 
 
 def test_the_tau_range_walks_out_to_where_held_out_blocks_get_worse() -> None:

@@ -11,7 +11,7 @@ import numpy as np
 from scipy import optimize, stats
 
 from daemon.calibration.dataset import Dataset
-from daemon.calibration.discovery.confirmation import FreshExpectation, TauRange
+from daemon.calibration.discovery.confirmation import FreshGain, TauRange
 from daemon.calibration.discovery.diagnostics import ar1_deflation, json_float
 from daemon.calibration.discovery.settings import NOT_APPLIED_ONLINE, Settings
 from daemon.calibration.discovery.workspace import Workspace, standardise
@@ -49,9 +49,9 @@ class Candidate:
     #: held-out RMS with the time constant chosen without each block (the search confirmed on unseen blocks)
     holdout_rms_nested_um: float = math.nan
     tau_range: TauRange | None = None  # the τ the run supports (named candidates with a searched τ)
-    fresh_expected: FreshExpectation | None = None  # what a fresh run of the same kind should show
-    fresh_measured: FreshExpectation | None = None  # what the fresh run given (--fresh) showed
-    fresh_if_source_remains: FreshExpectation | None = None  # a nuisance: the fresh run still drifts
+    fresh_expected: FreshGain | None = None  # what a fresh run of the same kind should show
+    fresh_measured: FreshGain | None = None  # what the fresh run given (--fresh) showed
+    fresh_if_source_remains: FreshGain | None = None  # a nuisance: the fresh run still drifts
 
     @property
     def bar_p(self) -> float:

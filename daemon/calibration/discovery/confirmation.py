@@ -5,8 +5,10 @@ history and slow interferometer wander, and the blocks at the run's ends make th
 extrapolate its missing effect. A fresh run of the same kind errs, for each model, by its in-sample
 error plus an optimism ω: what fitting the run hid of its own slow noise and what the coefficients'
 errors add on new data. ω is measured where the residual is mostly noise, on the model with the effect
-(``held-out MSE - in-sample MSE``), and charged to the model without it in proportion to its fitted
-parameters. ``benchmarks/discovery_fresh.py`` checks the estimate against fresh runs of every effect.
+(``held-out MSE - in-sample MSE``, a searched time constant chosen without each held-out block: the
+search confirmed on blocks it did not see), and charged to the model without it in proportion to its
+fitted parameters. ``benchmarks/discovery_fresh.py`` checks the estimate against fresh runs of every
+effect. A named time constant also gets the range of τ the held-out blocks cannot tell from it.
 """
 
 from __future__ import annotations
@@ -25,17 +27,15 @@ EXPECTED_METHOD = ("expected RMS on a fresh run of the same kind = sqrt(in-sampl
                    "in-sample MSE of the model with the effect (what fitting hides of the run's own slow noise; a "
                    "searched time constant chosen without each held-out block), charged to the model without it in "
                    "proportion to its fitted parameters")
-NUISANCE_METHOD = ("for a drift not applied online, judged on a fresh run without it (its source fixed or sensed): "
-                   "the model with the drift fitted as a nuisance errs there by its in-sample error (its held-out "
-                   "error mostly measures how well a line follows the drift's own wander, which that run does not "
-                   "have), the model without it by its in-sample error less the fitted drift (its coefficients "
-                   "absorbed the drift)")
+NUISANCE_METHOD = EXPECTED_METHOD + ("; for a drift not applied online: on a fresh run without it (its source fixed "
+                                     "or sensed), where the model without the effect errs by its residual less the "
+                                     "fitted drift (its coefficients absorbed the drift)")
 MEASURED_METHOD = "measured on the fresh run given (--fresh): RMS of q - q_pred with and without the step"
 
 
 @dataclass(frozen=True)
-class FreshExpectation:
-    """The RMS a fresh run of the same kind should show without and with an effect (µm), and their ratio."""
+class FreshGain:
+    """The RMS of a fresh run without and with an effect (µm), expected or measured, and how it was found."""
 
     rms_before_um: float
     rms_after_um: float
@@ -47,18 +47,21 @@ class FreshExpectation:
         return self.rms_after_um / self.rms_before_um if self.rms_before_um > 0 else 1.0
 
 
-def expected_fresh(in_before_um: float, in_after_um: float, held_after_um: float, params_before: int,
-                   params_after: int, method: str = EXPECTED_METHOD) -> FreshExpectation:
-    """Expected fresh-run RMS without and with an effect, from one run's in-sample and held-out errors.
+def hidden_by_fit_um2(in_sample_um: float, held_out_um: float) -> float:
+    """ω: the MSE a fit hides of its own run (held-out MSE - in-sample MSE; 0 when held-out is better by chance)."""
+    return max(held_out_um**2 - in_sample_um**2, 0.0)
 
-    ``in_*``: RMS on all rows of the model fitted on all rows; ``held_after_um``: the model with the
-    effect on held-out blocks (each predicted by a fit on the others); ``params_*``: fitted parameters
-    (intercept and searched time constants included).
+
+def expected_fresh(in_before_um: float, in_after_um: float, omega_after_um2: float, params_before: int,
+                   params_after: int, method: str = EXPECTED_METHOD) -> FreshGain:
+    """Expected fresh-run RMS without and with an effect: each model's in-sample MSE plus its ω.
+
+    ``in_*``: RMS on all rows of the model fitted on all rows; ``omega_after_um2``: ω of the model with
+    the effect (:func:`hidden_by_fit_um2`); the model without it is charged ω in proportion to the
+    fitted parameters (``params_*``: intercept and searched time constants included).
     """
-    omega_after = max(held_after_um**2 - in_after_um**2, 0.0)
-    omega_before = omega_after * params_before / max(params_after, 1)
-    return FreshExpectation(math.sqrt(in_before_um**2 + omega_before), math.sqrt(in_after_um**2 + omega_after),
-                            method)
+    omega_before = omega_after_um2 * params_before / max(params_after, 1)
+    return FreshGain(math.sqrt(in_before_um**2 + omega_before), math.sqrt(in_after_um**2 + omega_after_um2), method)
 
 
 @dataclass(frozen=True)

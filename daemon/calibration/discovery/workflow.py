@@ -15,8 +15,9 @@ from daemon.calibration.discovery.catalogue import PROPOSERS, channel_delays, dr
 from daemon.calibration.discovery.confirmation import (
     MEASURED_METHOD,
     NUISANCE_METHOD,
-    FreshExpectation,
+    FreshGain,
     expected_fresh,
+    hidden_by_fit_um2,
     nested_held_out,
     tau_range,
     worse_than,
@@ -279,8 +280,8 @@ def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS,
                                 for i, (w, u) in enumerate(snapshots)]
             errors = [_rms(np.asarray(fresh.q) - m.predict(fresh)) for m in models]
             for i, step in enumerate(steps):
-                step.fresh_measured = FreshExpectation(errors[i], errors[i + 1], MEASURED_METHOD)
-            final.update(_fresh_keys("measured", FreshExpectation(errors[0], errors[-1], MEASURED_METHOD)))
+                step.fresh_measured = FreshGain(errors[i], errors[i + 1], MEASURED_METHOD)
+            final.update(_fresh_keys("measured", FreshGain(errors[0], errors[-1], MEASURED_METHOD)))
     gap0 = baseline["holdout_rms_um"]
     final["holdout_gap_removed"] = (gap0 - final["holdout_rms_um"]) / gap0 if gap0 > 0 else 0.0
     if not steps:  # nothing named: the given model stands (a refit under a new id would be the same model)
@@ -323,7 +324,7 @@ def _drift_column(ctx: Context) -> np.ndarray:
 
 
 def _expected(before_fixed: np.ndarray, before: np.ndarray, params_before: int, after: Context,
-              searched: int, search_hidden_mse: float) -> tuple[FreshExpectation, FreshExpectation | None]:
+              searched: int, search_hidden_mse: float) -> tuple[FreshGain, FreshGain | None]:
     """(the expected fresh-run RMS without and with the working model ``after``, the same if a nuisance remains).
 
     With a nuisance (a drift not applied online) the first is judged on a fresh run without it (its
@@ -333,17 +334,18 @@ def _expected(before_fixed: np.ndarray, before: np.ndarray, params_before: int, 
     blocks gain when each named time constant is chosen without them.
     """
     n = after.ws.n
-    in_after, held_after = math.sqrt(after.sse0 / n), math.sqrt(after.held0 / n + search_hidden_mse)
+    in_after = math.sqrt(after.sse0 / n)
+    omega = hidden_by_fit_um2(in_after, math.sqrt(after.held0 / n + search_hidden_mse))
     params_after = after.k0 + searched
     if not after.nuisance:
-        return expected_fresh(_rms(before), in_after, held_after, params_before, params_after), None
-    fixed = expected_fresh(_rms(before_fixed), in_after, held_after, params_before, params_after, NUISANCE_METHOD)
-    drifting = after.ws.residual + _drift_column(after)
-    remains = expected_fresh(_rms(before), _rms(drifting), math.sqrt(held_after**2 + _rms(drifting)**2 - in_after**2),
-                             params_before, params_after, "as above, on a fresh run that still drifts")
+        return expected_fresh(_rms(before), in_after, omega, params_before, params_after), None
+    fixed = expected_fresh(_rms(before_fixed), in_after, omega, params_before, params_after, NUISANCE_METHOD)
+    still_drifting = after.ws.residual + _drift_column(after)  # the written model leaves the drift out
+    remains = expected_fresh(_rms(before), _rms(still_drifting), omega, params_before, params_after,
+                             "as above, on a fresh run that still drifts")
     return fixed, remains
 
 
-def _fresh_keys(kind: str, value: FreshExpectation) -> dict[str, Any]:
+def _fresh_keys(kind: str, value: FreshGain) -> dict[str, Any]:
     return {f"fresh_gain_{kind}": value.ratio, f"fresh_rms_{kind}_um": [value.rms_before_um, value.rms_after_um],
             f"fresh_gain_{kind}_by": value.method}
