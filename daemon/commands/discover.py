@@ -1,4 +1,4 @@
-"""``nanodrift discover D.csv [D2.csv ...] --model M.json --out M2.json [--report DIR] [--json]``.
+"""``nanodrift discover D.csv [D2.csv ...] --model M.json --out M2.json [--fresh F.csv] [--report DIR] [--json]``.
 
 Read, discover, write.
 
@@ -10,6 +10,11 @@ When nothing clears the bar no model is written (an "extended" model with the gi
 be a new id for the same model): "nothing found; no model written", exit 0, ``"steps": []`` and
 ``"model_out": null`` in ``--json``. Effects the run's trajectory cannot show (hysteresis in
 forward-only sweeps) are named with the run that would show them, found or not.
+
+Each named step says what a fresh run of the same kind should show (``fresh_gain_expected``: RMS
+after / before) and, for a searched time constant, the range the run supports (``tau_range_s``);
+``--fresh F.csv``, a run discovery never saw, also measures each step's gain on it
+(``fresh_gain_measured``).
 """
 
 from __future__ import annotations
@@ -33,6 +38,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="recorded data (CSV) the model is tested against; several files are runs of their own")
     parser.add_argument("--model", required=True, metavar="M.json", help="the model to extend")
     parser.add_argument("--out", required=True, metavar="M2.json", help="the extended model file to write")
+    parser.add_argument("--fresh", metavar="F.csv",
+                        help="a run discovery does not see (e.g. recorded later): each step's gain is measured on it")
     parser.add_argument("--report", metavar="DIR", help="also write report.md and figures into DIR")
     parser.add_argument("--json", action="store_true", help="print the result as JSON")
 
@@ -50,12 +57,14 @@ def main(args: argparse.Namespace) -> int:
         if left_out:
             print(f"nanodrift: note: channel(s) {', '.join(left_out)} not in every file, left out", file=sys.stderr)
         data = concat(runs, channels)
+        fresh = read_runs([str(args.fresh)], "to measure the fresh-run gain on")[0] if args.fresh else None
         if isinstance(model, CellModel):
-            return _main_cell(args, paths, runs, discover_cell(data, model))
-        if data.multi_axis:
-            raise DiscoveryError(f"{data.source} positions axes {', '.join(data.axes)}, but {args.model} is a "
-                                 "one-axis model")
-        result = discover(data, model)
+            return _main_cell(args, paths, runs, discover_cell(data, model, fresh=fresh))
+        for run in (data, fresh):
+            if run is not None and run.multi_axis:
+                raise DiscoveryError(f"{run.source} positions axes {', '.join(run.axes)}, but {args.model} is a "
+                                     "one-axis model")
+        result = discover(data, model, fresh=fresh)
     except (DataError, ModelFileError, MissingChannelError, DiscoveryError) as err:
         raise UserError(str(err)) from None
     model_out: str | None = None
@@ -83,13 +92,17 @@ def main(args: argparse.Namespace) -> int:
 def describe(result: DiscoveryResult, model_out: str | None) -> str:
     lines = [result.summary, ""]
     if result.steps:
-        lines.append(f"{'effect':>26} {'p':>9} {'held-out before':>16} {'after':>9}  terms")
+        lines.append(f"{'effect':>26} {'p':>9} {'held-out before':>16} {'after':>9} {'fresh run x':>11}  terms")
         for s in result.steps:
+            expected = f"{s.fresh_expected.ratio:.2f}" if s.fresh_expected is not None else "-"
             lines.append(
-                f"{s.effect:>26} {s.p_value:>9.2g} {s.holdout_rms_before_um * 1000:>13.1f} nm "
-                f"{s.holdout_rms_after_um * 1000:>6.1f} nm  {', '.join(t.name for t in s.add) or '-'}"
+                f"{s.effect:>26} {s.bar_p:>9.2g} {s.holdout_rms_before_um * 1000:>13.1f} nm "
+                f"{s.holdout_rms_after_um * 1000:>6.1f} nm {expected:>11}  {', '.join(t.name for t in s.add) or '-'}"
                 + (f" (removed {', '.join(t.name for t in s.remove)})" if s.remove else "")
             )
+    if result.steps:
+        lines.append("(fresh run x: the RMS ratio after / before expected on a fresh run of the same kind; "
+                     "held-out blocks of this run flatter it)")
     if model_out is None:
         lines.append(f"{NOTHING_FOUND} (the model {result.final['model']} stands)")
     else:

@@ -342,8 +342,23 @@ def format_params(c: Candidate) -> str:
     return "; ".join(parts)
 
 
+def _change(gain: float) -> str:
+    """A held-out gain in words: a cut, or a rise when the candidate predicts held-out blocks worse."""
+    if gain >= 0:
+        return f"cuts the held-out RMS by {100 * gain:.1f} %"
+    return f"raises the held-out RMS by {-100 * gain:.1f} %"
+
+
+def _p_cell(c: Candidate) -> str:
+    """The p the verdict cites, marked when it is the stepwise's (rows taken as independent)."""
+    return f"{c.bar_p:.2g}" + (" (rows independent)" if c.remove else "")
+
+
 def verdict(c: Candidate, chosen: bool, settings: Settings) -> str:
-    """Why a candidate was or was not named, in the terms of the rules below."""
+    """Why a candidate was or was not named, in words and in the terms of the rules below.
+
+    Every p cited is the candidate's :attr:`Candidate.bar_p`, the one the report's p column shows.
+    """
     if chosen:
         return "**named**"
     if c.params.get("deferred_to"):
@@ -353,20 +368,31 @@ def verdict(c: Candidate, chosen: bool, settings: Settings) -> str:
     why = []
     if c.remove:
         if not c.p_iid < settings.exclusion_p_iid:
-            why.append(f"kept without conviction (p {c.p_iid:.2g} ≥ {settings.exclusion_p_iid:g})")
+            why.append(f"kept without conviction: the stepwise's own test of {c.params['channel']} (rows taken as "
+                       f"independent) gives p {c.bar_p:.2g}, not below {settings.exclusion_p_iid:g}, so the model "
+                       "hardly leans on it; rule 6 removes only a channel the fit leans on hard yet predicts new "
+                       "data worse with (the paper's hot plate), and a weakly kept one is not that signature")
         if c.holdout_gain < settings.exclusion_gain:
-            why.append(f"held-out gain {100 * c.holdout_gain:.1f} % < {100 * settings.exclusion_gain:.0f} %")
+            why.append(f"leaving it out {_change(c.holdout_gain)} (a cut of {100 * settings.exclusion_gain:.0f} % is "
+                       "needed)")
         if c.blocks_improved < settings.exclusion_blocks:
-            why.append(f"improves {100 * c.blocks_improved:.0f} % of blocks < {100 * settings.exclusion_blocks:.0f} %")
+            why.append(f"leaving it out predicts {100 * c.blocks_improved:.0f} % of the held-out blocks better, fewer "
+                       f"than {100 * settings.exclusion_blocks:.0f} %")
         return "; ".join(why) + " (rule 6)" if why else "not named"
     needed = settings.trend_gain if c.trend_like else settings.min_holdout_gain
     if not c.p_value < settings.p_max:
-        why.append(f"p ≥ {settings.p_max:g}")
+        why.append(f"p {c.bar_p:.2g} ≥ {settings.p_max:g}: the improvement could be chance (rule 2)")
     if c.holdout_gain < needed:
-        why.append(f"held-out gain {100 * c.holdout_gain:.1f} % < {100 * needed:.0f} %"
-                   + (" (trend-like, rule 4)" if c.trend_like else ""))
+        why.append(f"it {_change(c.holdout_gain)} (a cut of {100 * needed:.0f} % is needed"
+                   + (": trend-like, rule 4)" if c.trend_like else ", rule 2)"))
     if c.blocks_improved < 0.5:
-        why.append(f"improves only {100 * c.blocks_improved:.0f} % of the blocks")
+        why.append(f"improves only {100 * c.blocks_improved:.0f} % of the blocks (rule 2)")
+    if not c.pinned:
+        factor = f"{settings.pin_factor:g}"
+        why.append(f"its time constant is not pinned: the fit at {factor}× or 1/{factor}× τ is not worse beyond "
+                   "chance (rule 11)")
+    if c.params.get("not_told_from"):
+        why.append("the run cannot tell this drift from a slow thermal lag (rule 12)")
     return "; ".join(why) or "not named"
 
 
@@ -413,6 +439,22 @@ def rules(settings: Settings, result: DiscoveryResult) -> list[str]:
         f"{_minutes(s.lag_tau_s[0])}–{_minutes(s.lag_tau_s[1])}, creep {s.creep_tau_s[0]:g}–{s.creep_tau_s[1]:g} s) "
         "then refined by bounded minimisation of the training error; a lag shorter than "
         f"{_minutes(s.rate_tau_max_s)} acts through the rate of change and is named a temperature rate.",
+        f"11. **Pinned time constants.** A searched time constant must be pinned by the run: the fit at "
+        f"{s.pin_factor:g}× τ and at τ / {s.pin_factor:g} must both be worse than at τ beyond chance "
+        f"(likelihood ratio, χ²₁ 95 % = {s.pin_chi2:g}, on the autocorrelation-deflated rows); otherwise applying τ "
+        "can make a fresh run worse.",
+        f"12. **Drift or lag.** An unmonitored drift is named only when its held-out RMS is below "
+        f"{100 * s.drift_vs_lag:.0f} % of the best thermal lag's: otherwise the run cannot tell a source no sensor "
+        "sees from a slow thermal one.",
+        "13. **What a fresh run should show.** Held-out blocks of the run an effect was chosen on flatter it (they "
+        "share its room history and slow interferometer wander), so each step also gives the RMS expected on a fresh "
+        "run of the same kind: the in-sample error plus what fitting hides (measured as held-out minus in-sample "
+        "error on the model with the effect, charged to the model without it in proportion to its parameters). "
+        "With `--fresh` the gain is also measured on a run discovery never saw. A named time constant comes with "
+        "the range the run supports: the τ whose held-out blocks are not worse than at the τ named (one-sided "
+        f"paired t-test over the blocks, {100 * s.tau_range_confidence:.0f} %); an edge at the end of the searched "
+        "range means the run cannot pin τ on that side. Rule 11 tests τ on the training fit; the range, on blocks "
+        "the fit did not see, is the stricter: where they disagree, the range says what the run can tell.",
     ]
 
 
@@ -431,6 +473,14 @@ def markdown(result: DiscoveryResult, figures: Sequence[str], model_out: str | N
     else:
         lines.append("- nothing found; no model written: no effect clears the bar (rule 2), so the given model "
                      "stands (a copy under a new id would be the same model)")
+    if "fresh_gain_expected" in f:
+        before, after = f["fresh_rms_expected_um"]
+        lines.append(f"- expected on a fresh run of the same kind (rule 13): {_fmt(before, 1000)} → "
+                     f"{_fmt(after, 1000)} nm, RMS × {f['fresh_gain_expected']:.2f}")
+    if "fresh_gain_measured" in f:
+        before, after = f["fresh_rms_measured_um"]
+        lines.append(f"- measured on the fresh run given (`--fresh`): {_fmt(before, 1000)} → {_fmt(after, 1000)} nm, "
+                     f"RMS × {f['fresh_gain_measured']:.2f}")
     if f.get("not_applied_online"):
         lines.append(f"- named but not applied online (rule 4): {', '.join(f['not_applied_online'])}")
     if result.untestable:
@@ -447,13 +497,15 @@ def markdown(result: DiscoveryResult, figures: Sequence[str], model_out: str | N
         lines += ["", f"## Round {i}: candidates", "",
                   "Held-out RMS before and after adding the candidate; gain = the share of the held-out RMS it "
                   "removes; blocks = the share of held-out blocks it predicts better.", "",
+                  "p: the test the verdict cites (rule 2's partial F-test; for leaving a sensor out, rule 6's "
+                  "stepwise test taking rows as independent).", "",
                   "| effect | terms | parameters | p | held-out before (nm) | after (nm) | gain | blocks | verdict |",
                   "|---|---|---|---|---|---|---|---|---|"]
         for c in sorted(rnd.candidates, key=lambda c: c.holdout_rms_after_um):
             terms = ", ".join([t.name for t in c.add] + [f"{MINUS}{t.name}" for t in c.remove]
                               + [f"{n} (nuisance)" for n in c.nuisance]) or "–"
             lines.append(
-                f"| {c.effect} | {terms} | {format_params(c)} | {c.p_value:.2g} | "
+                f"| {c.effect} | {terms} | {format_params(c)} | {_p_cell(c)} | "
                 f"{_fmt(c.holdout_rms_before_um, 1000)} | {_fmt(c.holdout_rms_after_um, 1000)} | "
                 f"{100 * c.holdout_gain:.1f} % | {_fmt(c.blocks_improved, 100, '.0f')} % | "
                 f"{verdict(c, c is rnd.chosen, s)} |"

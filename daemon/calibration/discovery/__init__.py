@@ -3,8 +3,8 @@
 Pure computation (numpy/scipy, no I/O). The method, step by step and with its special rules, is in
 ``METHOD.md`` beside this file. The modules, in the order the workflow uses them: ``settings`` (the
 bar), ``diagnostics`` (residual structure), ``workspace`` (the regression), ``candidates`` (judging
-one), ``catalogue`` (the effects), ``workflow`` (the loop), ``summary`` (the finding in words);
-``cell``: the loop per axis of a multi-axis cell.
+one), ``catalogue`` (the effects), ``workflow`` (the loop), ``confirmation`` (what a fresh run should
+show, the τ range), ``summary`` (the finding in words); ``cell``: the loop per axis of a multi-axis cell.
 """
 
 from daemon.calibration.discovery.candidates import Candidate

@@ -11,6 +11,7 @@ import numpy as np
 from scipy import optimize, stats
 
 from daemon.calibration.dataset import Dataset
+from daemon.calibration.discovery.confirmation import FreshGain, TauRange
 from daemon.calibration.discovery.diagnostics import ar1_deflation, json_float
 from daemon.calibration.discovery.settings import NOT_APPLIED_ONLINE, Settings
 from daemon.calibration.discovery.workspace import Workspace, standardise
@@ -40,6 +41,30 @@ class Candidate:
     trend_like: bool = False  # indistinguishable from a drift in time over this run
     pinned: bool = True  # its searched parameter is determined by the run (see pinned())
     profile: list[tuple[float, float]] = field(default_factory=list, repr=False)  # (param, training RMS)
+    #: per block, (training SSE of the fit on the other blocks, held-out SSE of the block) as a function of the
+    #: searched time constant, and its search range: kept (for the round only) so that the τ range and the
+    #: τ chosen without each block are computed for the candidate that is named, and only for it
+    fold_errors: Callable[[float], tuple[np.ndarray, np.ndarray]] | None = field(default=None, repr=False)
+    tau_bounds: tuple[float, float] | None = None
+    #: held-out RMS with the time constant chosen without each block (the search confirmed on unseen blocks)
+    holdout_rms_nested_um: float = math.nan
+    tau_range: TauRange | None = None  # the τ the run supports (named candidates with a searched τ)
+    fresh_expected: FreshGain | None = None  # what a fresh run of the same kind should show
+    fresh_measured: FreshGain | None = None  # what the fresh run given (--fresh) showed
+    fresh_if_source_remains: FreshGain | None = None  # a nuisance: the fresh run still drifts
+
+    @property
+    def bar_p(self) -> float:
+        """The p the bar tests, and the one a verdict cites (see :attr:`bar_p_test`)."""
+        return self.p_iid if self.remove else self.p_value
+
+    @property
+    def bar_p_test(self) -> str:
+        if self.remove:
+            return ("the stepwise's F-test of the channel, rows taken as independent (how firmly the paper's "
+                    "selection keeps it)")
+        return ("partial F-test of the added terms, autocorrelation-deflated, one degree of freedom per searched "
+                "time constant, Bonferroni over the channels tried")
 
     @property
     def holdout_gain(self) -> float:
@@ -54,8 +79,10 @@ class Candidate:
     def rank_key(self, settings: Settings) -> float:
         return self.holdout_rms_after_um * (1.0 + settings.search_penalty * self.searched)
 
-    def to_dict(self) -> dict[str, Any]:
-        return {
+    def to_dict(self, confirmation: bool = True) -> dict[str, Any]:
+        """The step for ``--json``; ``confirmation=False``: without the p the bar tested, the τ range and the
+        fresh-run gain (the form a model file's ``selection`` records, unchanged by them)."""
+        out = {
             "effect": self.effect, "params": self.params, "p_value": json_float(self.p_value),
             "rms_before_um": json_float(self.rms_before_um), "rms_after_um": json_float(self.rms_after_um),
             "holdout_rms_before_um": json_float(self.holdout_rms_before_um),
@@ -65,6 +92,31 @@ class Candidate:
             "f_stat": json_float(self.f_stat), "holdout_gain": json_float(self.holdout_gain),
             "blocks_improved": json_float(self.blocks_improved),
         }
+        if confirmation:
+            out.update({"p_bar": json_float(self.bar_p), "p_bar_test": self.bar_p_test,
+                        **self._tau_dict(), **self._fresh_dict()})
+        return out
+
+    def _tau_dict(self) -> dict[str, Any]:
+        if self.tau_range is None:
+            return {}
+        r = self.tau_range
+        out: dict[str, Any] = {"tau_range_s": [r.lo_s, r.hi_s], "tau_pinned": r.pinned, "tau_range": r.words(),
+                               "holdout_rms_nested_um": json_float(self.holdout_rms_nested_um)}
+        if "tau_behind_fastest_s" in self.params:
+            shift = float(self.params["tau_behind_fastest_s"]) - float(self.params["tau_s"])
+            out["tau_behind_fastest_range_s"] = [round_sig(r.lo_s + shift), round_sig(r.hi_s + shift)]
+        return out
+
+    def _fresh_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for key, value in (("expected", self.fresh_expected), ("measured", self.fresh_measured),
+                           ("if_source_remains", self.fresh_if_source_remains)):
+            if value is not None:
+                out[f"fresh_gain_{key}"] = json_float(value.ratio)
+                out[f"fresh_rms_{key}_um"] = [json_float(value.rms_before_um), json_float(value.rms_after_um)]
+                out[f"fresh_gain_{key}_by"] = value.method
+        return out
 
 
 def round_sig(value: float, digits: int = 3) -> float:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -153,8 +154,20 @@ def _thermal_response(ctx: Context) -> list[Candidate]:
         cand.profile = [(p, math.sqrt(v / ctx.ws.n)) for p, v in profile]
         cand.trend_like = tau >= 0.9 * tau_max  # as long as the run: a trend, not an identified lag
         cand.pinned = pinned(sse, tau, ctx.ws.n * ctx.deflate, s)
+        cand.tau_bounds = (s.lag_tau_s[0], tau_max)
+        cand.fold_errors = partial(_fold_errors_lag, ctx, c, base)
         out.append(ctx.judge(cand, ctx.columns(feats)))
     return _prefer_fastest(out, ctx)
+
+
+def _fold_errors_lag(ctx: Context, channel: str, base: list[np.ndarray], tau: float
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Per block (training SSE without it, its held-out SSE) with ``lag(channel, tau)`` (and the channel) added."""
+    return ctx.ws.fold_errors(ctx.columns([*base, features(Lag(channel, tau), ctx.data)]))
+
+
+def _fold_errors_creep(ctx: Context, tau: float) -> tuple[np.ndarray, np.ndarray]:
+    return ctx.ws.fold_errors(ctx.columns([features(Creep(tau), ctx.data)]))
 
 
 def _prefer_fastest(cands: list[Candidate], ctx: Context) -> list[Candidate]:
@@ -274,6 +287,8 @@ def _creep(ctx: Context) -> list[Candidate]:
     term = own_creep(axis, tau)
     cand = Candidate("creep", [term], [], {"tau_s": tau}, 1, 1)
     cand.pinned = pinned(sse, tau, ctx.ws.n * ctx.deflate, ctx.settings)
+    cand.tau_bounds = ctx.settings.creep_tau_s
+    cand.fold_errors = partial(_fold_errors_creep, ctx)
     cand.profile = [(p, math.sqrt(v / ctx.ws.n)) for p, v in profile]
     return [ctx.judge(cand, ctx.columns([ctx.feature(term)]))]
 

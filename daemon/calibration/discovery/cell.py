@@ -41,11 +41,15 @@ class CellDiscoveryResult:
         return {"axes": axes, "final": {"model": final_id}, "model_out": model_out}
 
 
-def discover_cell(data: Dataset, model: CellModel, settings: Settings = DEFAULT_SETTINGS) -> CellDiscoveryResult:
-    """:func:`discover` for every axis of ``model`` on the multi-axis run ``data``."""
-    if data.axes != model.axes:
-        raise DiscoveryError(f"{data.source} positions axes {', '.join(data.axes)}, the model serves "
-                             f"{', '.join(model.axes)}")
-    results = {axis: discover(data.axis_view(axis), model.models[axis], settings) for axis in model.axes}
+def discover_cell(data: Dataset, model: CellModel, settings: Settings = DEFAULT_SETTINGS,
+                  fresh: Dataset | None = None) -> CellDiscoveryResult:
+    """:func:`discover` for every axis of ``model`` on the multi-axis run ``data`` (``fresh``: see there)."""
+    for run in (data, fresh):
+        if run is not None and run.axes != model.axes:
+            raise DiscoveryError(f"{run.source} positions axes {', '.join(run.axes)}, the model serves "
+                                 f"{', '.join(model.axes)}")
+    results = {axis: discover(data.axis_view(axis), model.models[axis], settings,
+                              fresh=fresh.axis_view(axis) if fresh is not None else None)
+               for axis in model.axes}
     extended = CellModel(model.axes, {a: r.model for a, r in results.items()}, dict(model.provenance))
     return CellDiscoveryResult(results, extended, model)

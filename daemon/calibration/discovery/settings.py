@@ -27,6 +27,9 @@ class Settings:
     #: fits the held-out blocks and still hurts a fresh run (benchmarks/discovery_fresh.py)
     pin_factor: float = 2.0
     pin_chi2: float = 3.84
+    #: the τ range reported for a named time constant: the τ whose held-out blocks are not worse than at the
+    #: named τ by a one-sided paired t-test over the blocks at this confidence
+    tau_range_confidence: float = 0.95
     #: a drift in time is named only when its held-out RMS is below this fraction of the best thermal
     #: lag's (any channel, any τ): otherwise the run cannot tell an unmonitored source from a slow
     #: thermal one, and a model cleaned of a "drift" that was a lag is far worse on a fresh run

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -58,8 +59,15 @@ def summarise(disagreements: Sequence[Disagreement], steps: Sequence[Candidate],
     for i, s in enumerate(steps, 1):
         lines.append(
             f"Step {i}: {_describe(s)} cuts the held-out RMS from {s.holdout_rms_before_um * 1000:.1f} to "
-            f"{s.holdout_rms_after_um * 1000:.1f} nm ({100 * s.holdout_gain:.0f} % of the gap; p = {s.p_value:.1g})."
+            f"{s.holdout_rms_after_um * 1000:.1f} nm ({100 * s.holdout_gain:.0f} % of the gap; p = {s.bar_p:.1g})."
         )
+        lines += _fresh_lines(s)
+        if s.tau_range is not None:
+            lines.append(f"  Time constant: {_tau_words(s)}.")
+        if math.isfinite(s.holdout_rms_nested_um):
+            lines.append(f"  Chosen without each held-out block, τ predicts the blocks to "
+                         f"{s.holdout_rms_nested_um * 1000:.1f} nm RMS ({s.holdout_rms_after_um * 1000:.1f} nm when "
+                         "chosen on all rows).")
         if s.params.get("alike"):
             lines.append(f"  In this run it looks like {s.params['alike']} (their columns correlate "
                          f"{s.params['alike_correlation']:.2f} beyond the model's terms: the room fell and rose "
@@ -73,6 +81,46 @@ def summarise(disagreements: Sequence[Disagreement], steps: Sequence[Candidate],
             f"Overall the held-out RMS went from {baseline['holdout_rms_um'] * 1000:.1f} to "
             f"{final['holdout_rms_um'] * 1000:.1f} nm ({100 * final['holdout_gap_removed']:.0f} % removed)."
         )
+        if "fresh_gain_expected" in final:
+            before, after = final["fresh_rms_expected_um"]
+            lines.append(f"On a fresh run of the same kind expect about {before * 1000:.1f} → {after * 1000:.1f} nm "
+                         f"(RMS × {final['fresh_gain_expected']:.2f})"
+                         + (f"; measured on the fresh run given: {final['fresh_rms_measured_um'][0] * 1000:.1f} → "
+                            f"{final['fresh_rms_measured_um'][1] * 1000:.1f} nm (× {final['fresh_gain_measured']:.2f})"
+                            if "fresh_gain_measured" in final else "") + ".")
     for blind in untestable:
         lines.append(f"This run cannot show {blind['effect']}: {blind['reason']}; {blind['hint']}.")
     return "\n".join(lines)
+
+
+def _fresh_lines(s: Candidate) -> list[str]:
+    """What the step promises a fresh run (and, when one was given, what it did there)."""
+    lines = []
+    if s.fresh_expected is not None:
+        e = s.fresh_expected
+        lines.append(
+            f"  On a fresh run of the same kind expect about {e.rms_before_um * 1000:.1f} → "
+            f"{e.rms_after_um * 1000:.1f} nm "
+            f"(RMS × {e.ratio:.2f}), not the held-out figures: held-out blocks share this run's room history and slow "
+            "interferometer wander, so the estimate adds back what fitting hides of them"
+            + (" (with the drift's source fixed or sensed)" if s.fresh_if_source_remains is not None else "") + ".")
+    if s.fresh_if_source_remains is not None:
+        r = s.fresh_if_source_remains
+        lines.append(f"  While the drift's source remains, a fresh run is worse with the written model: about "
+                     f"{r.rms_before_um * 1000:.1f} → {r.rms_after_um * 1000:.1f} nm (× {r.ratio:.2f}).")
+    if s.fresh_measured is not None:
+        m = s.fresh_measured
+        lines.append(f"  Measured on the fresh run given: {m.rms_before_um * 1000:.1f} → "
+                     f"{m.rms_after_um * 1000:.1f} nm (× {m.ratio:.2f}).")
+    return lines
+
+
+def _tau_words(s: Candidate) -> str:
+    assert s.tau_range is not None
+    words = s.tau_range.words() + " (held-out blocks not significantly worse than at the τ named)"
+    if "tau_behind_fastest_s" in s.params:
+        shift = float(s.params["tau_behind_fastest_s"]) - float(s.params["tau_s"])
+        lo, hi = s.tau_range.lo_s + shift, s.tau_range.hi_s + shift
+        words += (f"; behind the fastest channel about {lo / 60:.0f}–{hi / 60:.0f} min (delays in series add only "
+                  "approximately)")
+    return words

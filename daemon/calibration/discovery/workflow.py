@@ -12,6 +12,16 @@ import numpy as np
 from daemon.calibration.dataset import Dataset
 from daemon.calibration.discovery.candidates import Candidate, Context, round_sig
 from daemon.calibration.discovery.catalogue import PROPOSERS, channel_delays, drift_alike, told_apart, untestable
+from daemon.calibration.discovery.confirmation import (
+    MEASURED_METHOD,
+    NUISANCE_METHOD,
+    FreshGain,
+    expected_fresh,
+    hidden_by_fit_um2,
+    nested_held_out,
+    tau_range,
+    worse_than,
+)
 from daemon.calibration.discovery.diagnostics import (
     Disagreement,
     durbin_watson,
@@ -146,7 +156,7 @@ def _final_model(data: Dataset, given: Model, terms: list[Term], nuisance: dict[
     selection = dict(given.selection)
     selection["discovery"] = {
         "base_model": given.id,
-        "steps": [s.to_dict() for s in steps],
+        "steps": [s.to_dict(confirmation=False) for s in steps],
         "p_max": settings.p_max,
         "min_holdout_gain": settings.min_holdout_gain,
         "not_applied_online": {
@@ -168,9 +178,17 @@ def _final_model(data: Dataset, given: Model, terms: list[Term], nuisance: dict[
     return model, residual_full
 
 
-def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS) -> DiscoveryResult:
-    """The whole workflow on one recorded run: disagreements, named effects, the extended model."""
+def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS,
+             fresh: Dataset | None = None) -> DiscoveryResult:
+    """The whole workflow on one recorded run: disagreements, named effects, the extended model.
+
+    Each named step carries the gain a fresh run of the same kind should show (and, for a searched
+    time constant, the range the run supports); ``fresh``: a run discovery never saw, on which each
+    step's gain is also measured.
+    """
     data = data.valid_rows()
+    if fresh is not None:
+        fresh = _checked_fresh(fresh, model)
     if data.q is None:
         raise DiscoveryError(f"{data.source}: no q_um column (the command sent to the stage) to compare with")
     n = len(data)
@@ -192,6 +210,9 @@ def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS)
     penter = float(model.selection.get("penter", 0.05))
     premove = float(model.selection.get("premove", 0.10))
     ctx = Context(data, working, nuisance, folds, settings, excluded, delays)
+    searched = 0  # time constants searched so far (each a fitted parameter the fresh-run estimate charges)
+    search_hidden_mse = 0.0  # um^2: held-out MSE the named time constants gain when chosen without the block
+    snapshots: list[tuple[list[Term], dict[str, np.ndarray]]] = []  # the working model after each step
     baseline: dict[str, Any] = {
         "model": model.id, "terms": [ft.term.name for ft in model.terms], "rows": n,
         "rms_um": _rms(residual0), "refit_rms_um": math.sqrt(ctx.sse0 / n),
@@ -204,6 +225,9 @@ def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS)
         winners = sorted((c for c in cands if c.clears), key=lambda c: c.rank_key(settings))
         chosen = winners[0] if winners else None
         rounds.append(Round(cands, chosen))
+        searched_errors = chosen.fold_errors if chosen is not None else None
+        for c in cands:  # each holds this round's working model (its Gram matrices): keep none beyond the round
+            c.fold_errors = None
         if chosen is None:
             break
         if chosen.effect == "unmonitored_drift":
@@ -211,7 +235,17 @@ def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS)
             chosen.params = {"rate_um_per_h": round_sig(-coef["t"], 3)}
         if chosen.effect == "thermal_lag":
             chosen.params.update(drift_alike(ctx, chosen))
+        if searched_errors is not None and chosen.tau_bounds is not None:
+            tau = float(chosen.params["tau_s"])
+            rows = np.array([b - a for a, b in ctx.ws.bounds], dtype=np.float64)
+            chosen.tau_range = tau_range(worse_than(searched_errors, tau, rows, settings), tau, chosen.tau_bounds)
+            nested = float(np.sum(nested_held_out(searched_errors, tau, chosen.tau_bounds)))
+            chosen.holdout_rms_nested_um = math.sqrt(nested / n)
+            # what choosing τ on all rows hid from the held-out blocks, in MSE (carried by every later model)
+            search_hidden_mse += max(chosen.holdout_rms_nested_um**2 - chosen.holdout_rms_after_um**2, 0.0)
         steps.append(chosen)
+        residual_before, params_before = ctx.ws.residual, ctx.k0 + searched  # not the whole context: memory
+        searched += chosen.searched
         working = [t for t in working if t not in chosen.remove] + chosen.add
         excluded.update(t.name for t in chosen.remove)
         nuisance.update(chosen.nuisance)
@@ -222,17 +256,32 @@ def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS)
             if wider.held0 < ctx.held0:
                 chosen.params["readmitted"] = [t.name for t in back]
                 working, ctx = working + back, wider
+        before_fixed = residual_before - _drift_column(ctx) if chosen.nuisance else residual_before
+        chosen.fresh_expected, chosen.fresh_if_source_remains = _expected(
+            before_fixed, residual_before, params_before, ctx, searched, search_hidden_mse)
+        snapshots.append((list(working), dict(nuisance)))
     extended, residual1 = _final_model(data, model, working, nuisance, steps, settings)
     coefs = {ft.term.name: ft.coef for ft in extended.terms}
     for step in steps:
         if step.add:
             step.params["coef"] = {t.name: coefs[t.name] for t in step.add if t.name in coefs}
-    extended.selection["discovery"]["steps"] = [s.to_dict() for s in steps]
+    extended.selection["discovery"]["steps"] = [s.to_dict(confirmation=False) for s in steps]
     final: dict[str, Any] = {
         "model": extended.id, "terms": extended.term_names(), "rms_um": _rms(residual1),
         "holdout_rms_um": math.sqrt(ctx.held0 / n),
         "not_applied_online": [s.effect for s in steps if s.effect in NOT_APPLIED_ONLINE],
     }
+    if steps:
+        given_fixed = residual0 - _drift_column(ctx) if nuisance else residual0
+        overall, _ = _expected(given_fixed, residual0, len(model.terms), ctx, searched, search_hidden_mse)
+        final.update(_fresh_keys("expected", overall))
+        if fresh is not None:
+            models = [model] + [_final_model(data, model, list(w), dict(u), steps[:i + 1], settings)[0]
+                                for i, (w, u) in enumerate(snapshots)]
+            errors = [_rms(np.asarray(fresh.q) - m.predict(fresh)) for m in models]
+            for i, step in enumerate(steps):
+                step.fresh_measured = FreshGain(errors[i], errors[i + 1], MEASURED_METHOD)
+            final.update(_fresh_keys("measured", FreshGain(errors[0], errors[-1], MEASURED_METHOD)))
     gap0 = baseline["holdout_rms_um"]
     final["holdout_gap_removed"] = (gap0 - final["holdout_rms_um"]) / gap0 if gap0 > 0 else 0.0
     if not steps:  # nothing named: the given model stands (a refit under a new id would be the same model)
@@ -252,3 +301,51 @@ def _nuisance_coef(ctx: Context, nuisance: Mapping[str, np.ndarray]) -> dict[str
     extra = list(nuisance.values())
     fit = ols(np.column_stack(cols + extra), np.asarray(ctx.data.q, dtype=np.float64))
     return {name: float(fit.coef[len(cols) + j]) for j, name in enumerate(nuisance)}
+
+
+def _checked_fresh(fresh: Dataset, model: Model) -> Dataset:
+    fresh = fresh.valid_rows()
+    if fresh.q is None:
+        raise DiscoveryError(f"{fresh.source}: no q_um column (the command sent to the stage) to compare with")
+    if len(fresh) == 0:
+        raise DiscoveryError(f"{fresh.source}: no valid rows to measure the fresh-run gain on")
+    model.check_channels(list(fresh.channels), fresh.source)
+    return fresh
+
+
+def _drift_column(ctx: Context) -> np.ndarray:
+    """What the working fit attributes to its nuisance columns (a drift no sensor sees), µm per row; 0 at t = 0."""
+    if not ctx.nuisance:
+        return np.zeros(ctx.ws.n)
+    cols = [features(t, ctx.data) for t in ctx.terms] + list(ctx.nuisance.values())
+    fit = ols(np.column_stack(cols), np.asarray(ctx.data.q, dtype=np.float64))
+    k = len(ctx.terms)
+    return sum((fit.coef[k + j] * v for j, v in enumerate(ctx.nuisance.values())), np.zeros(ctx.ws.n))
+
+
+def _expected(before_fixed: np.ndarray, before: np.ndarray, params_before: int, after: Context,
+              searched: int, search_hidden_mse: float) -> tuple[FreshGain, FreshGain | None]:
+    """(the expected fresh-run RMS without and with the working model ``after``, the same if a nuisance remains).
+
+    With a nuisance (a drift not applied online) the first is judged on a fresh run without it (its
+    source fixed): the model without the effect keeps the coefficients that absorbed the drift
+    (``before_fixed``); the second on one that still drifts, where the written model (drift left
+    out, bias of the run's start) errs by the whole drift. ``search_hidden_mse``: what the held-out
+    blocks gain when each named time constant is chosen without them.
+    """
+    n = after.ws.n
+    in_after = math.sqrt(after.sse0 / n)
+    omega = hidden_by_fit_um2(in_after, math.sqrt(after.held0 / n + search_hidden_mse))
+    params_after = after.k0 + searched
+    if not after.nuisance:
+        return expected_fresh(_rms(before), in_after, omega, params_before, params_after), None
+    fixed = expected_fresh(_rms(before_fixed), in_after, omega, params_before, params_after, NUISANCE_METHOD)
+    still_drifting = after.ws.residual + _drift_column(after)  # the written model leaves the drift out
+    remains = expected_fresh(_rms(before), _rms(still_drifting), omega, params_before, params_after,
+                             "as above, on a fresh run that still drifts")
+    return fixed, remains
+
+
+def _fresh_keys(kind: str, value: FreshGain) -> dict[str, Any]:
+    return {f"fresh_gain_{kind}": value.ratio, f"fresh_rms_{kind}_um": [value.rms_before_um, value.rms_after_um],
+            f"fresh_gain_{kind}_by": value.method}

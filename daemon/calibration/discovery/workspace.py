@@ -115,6 +115,20 @@ class Workspace:
             held[bi] = max(float(g[target, target] - 2.0 * b @ g[S, target] + b @ g[np.ix_(S, S)] @ b), 0.0)
         return max(sse, 0.0), held, len(S)
 
+    def fold_errors(self, F: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """Per block: (training SSE of the fit on the other blocks, over those blocks; held-out SSE of the block)."""
+        G, S = self._augmented(F, ())
+        total = G.sum(axis=0)
+        target = total.shape[0] - 1
+        train_sse, held = np.empty(len(self.bounds)), np.empty(len(self.bounds))
+        for bi in range(len(self.bounds)):
+            train = total - G[bi]
+            b = self._solve(train, S, target)
+            train_sse[bi] = max(float(train[target, target] - b @ train[S, target]), 0.0)
+            g = G[bi]
+            held[bi] = max(float(g[target, target] - 2.0 * b @ g[S, target] + b @ g[np.ix_(S, S)] @ b), 0.0)
+        return train_sse, held
+
     def residual_with(self, F: np.ndarray | None, drop: Sequence[int] = ()) -> np.ndarray:
         G, S = self._augmented(F, drop)
         total = G.sum(axis=0)
