@@ -93,7 +93,7 @@ def validation_plan(cycles: int, points: Sequence[float] = VALIDATION_POINTS_UM)
 
 # ----- multi-axis cells (an XY or XYZ stage) ---------------------------------------------------------
 
-#: per extra axis of a calibration design: (slope, shift per cycle) of its level index, see :func:`cell_calibration_plan`
+#: per extra axis of a calibration design: (slope, shift per cycle) of its level index (:func:`cell_calibration_plan`)
 _DESIGN_LINES: dict[int, tuple[int, int]] = {1: (1, 5), 2: (13, 6)}
 
 
