@@ -31,7 +31,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from daemon.calibration.dataset import Dataset
-from daemon.calibration.plans import cell_validation_plan
+from daemon.calibration.plans import cell_calibration_plan, cell_validation_plan
+from drivers.simulated.effects import resolve_cross_effects
 from drivers.simulated.physics import THERMOCOUPLES, CellParams, CellPhysics, Exogenous
 from drivers.simulated.runs import StepSchedule, _window_offsets
 from drivers.simulated.scenarios import get_scenario
@@ -301,3 +302,27 @@ def run_cell_validation(physics: MultiAxisPhysics, command: CommandFor | None, *
     without = simulate_cell_steps(physics, targets, step_cycles)
     with_ = simulate_cell_steps(physics, targets, step_cycles, command_for=counted) if command else None
     return CellValidationRun(name or physics.room.scenario.name, physics.axes, targets, without, with_, extrapolating)
+
+
+def cross_params(spec: str | None = None) -> CrossParams:
+    """The stack's cross-axis magnitudes with ``spec`` (the ``--effects`` text over the cross-axis catalogue,
+    ``drivers.simulated.effects.CROSS_AXIS_EFFECTS``) applied."""
+    effects = resolve_cross_effects(spec)
+    return CrossParams(crosstalk_fraction=effects["crosstalk"]["fraction"],
+                       non_orthogonality_rad=effects["non_orthogonality"]["rad"],
+                       bending_um=effects["coupled_bending"]["um"])
+
+
+def simulate_cell_dataset(axes: str | Sequence[str] = "xy", scenario: str = "train", effects: str | None = None,
+                          *, cycles: int | None = None, seed: int = 0) -> Dataset:
+    """A run of the simulated multi-axis cell as ``nanodrift simulate --axes`` writes it: the space-filling
+    calibration (24 cycles) on a calibration scenario, the ISO 9283 points (30 cycles both ways) on a
+    validation scenario; the true positions in ``<axis>_true_um``."""
+    physics = MultiAxisPhysics.create(axes, scenario, seed, cross_params(effects))
+    validation = physics.room.scenario.trajectory == "validation"
+    n = (30 if validation else 24) if cycles is None else cycles
+    if n < 1:
+        raise ValueError(f"cycles must be at least 1, got {n}")
+    plan = cell_validation_plan(physics.axes, n) if validation else cell_calibration_plan(physics.axes, n)
+    out = simulate_cell_steps(physics, {a: [s.target(a) for s in plan] for a in physics.axes}, [s.cycle for s in plan])
+    return steps_dataset(out, physics.axes, f"simulated:{''.join(physics.axes)}:{scenario}:seed {seed}")
