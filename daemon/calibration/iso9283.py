@@ -195,13 +195,14 @@ class CellTestResult:
 
 def summarize_cell(name: str, targets_um: dict[str, np.ndarray], attained_um: dict[str, np.ndarray]
                    ) -> CellTestResult:
-    """ISO 9283 per point (rows with the same target on every axis) from per-step targets and attained
-    positions (µm, one array per axis): AP/RP in the cell's dimension and per axis, in nm."""
+    """ISO 9283 per point (rows with the same target on every axis, in first-visit order) from per-step
+    targets and attained positions (µm, one array per axis): AP/RP in the cell's dimension and per axis, in nm."""
     axes = tuple(targets_um)
     target = np.column_stack([np.asarray(targets_um[a], dtype=np.float64) for a in axes])
     attained = np.column_stack([np.asarray(attained_um[a], dtype=np.float64) for a in axes])
     points = []
-    for row in np.unique(target, axis=0):
+    rows, first = np.unique(target, axis=0, return_index=True)
+    for row in rows[np.argsort(first)]:  # in the order the plan first visits them (P1..P5)
         here = attained[np.all(target == row, axis=1)]
         per_axis = {a: iso9283(here[:, j], float(row[j])) for j, a in enumerate(axes)}
         points.append(CellPointStats(

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from daemon.calibration.residuals import BiasTracker
+from daemon.commands import _cell_validate
 from daemon.commands._catalogues import scenario_epilog
 from daemon.commands._cell import add_config_flag, add_output_check_flag, add_simulation_flags, guards, open_cell
 from daemon.errors import UserError
@@ -46,6 +47,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def main(args: argparse.Namespace) -> int:
     if args.cycles < 1:
         raise UserError(f"--cycles must be at least 1, got {args.cycles}")
+    if _cell_validate.is_cell_model_file(args.model):  # a multi-axis model: the simulated XY/XYZ cell
+        return _cell_validate.main(args)
     try:
         model = load_model(args.model)
     except (ModelFileError, OSError) as err:
