@@ -88,7 +88,8 @@ class CrossParams:
 
     def bending(self, to: str, a: str, b: str) -> float:
         """µm that axis ``to`` moves when both ``a`` and ``b`` are at full stroke."""
-        return self.bending_um * BENDING.get((to, *sorted((a, b))), 0.0)
+        first, second = sorted((a, b))
+        return self.bending_um * BENDING.get((to, first, second), 0.0)
 
 
 #: (moved axis, pushing axis) -> share of the crosstalk fraction. The signs: every cross effect pushes an axis
@@ -188,7 +189,7 @@ CommandFor = Callable[[dict[str, float], float, dict[str, float]], dict[str, flo
 
 def simulate_cell_steps(
     physics: MultiAxisPhysics,
-    targets: Mapping[str, Sequence[float]],
+    targets: Mapping[str, Sequence[float] | np.ndarray],
     cycles: Sequence[int],
     *,
     schedule: StepSchedule | None = None,

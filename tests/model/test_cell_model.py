@@ -71,6 +71,6 @@ def test_model_file_round_trip_id_and_tamper(tmp_path, xy_data, xy_model):
     doc = json.loads(path.read_text())
     doc["models"]["x"]["terms"][0]["coef"] *= 1.001
     path.write_text(json.dumps(doc))
-    with pytest.raises(ModelFileError, match="models.x: its id .* does not match its content"):
+    with pytest.raises(ModelFileError, match=r"models\.x: its id .* does not match its content"):
         load_any_model(path)
     assert isinstance(load_any_model(path, check_id=False), CellModel)
