@@ -122,7 +122,9 @@ class MultiAxisPhysics:
         # one slow wander per beam: the x beam is the room's own, the others independent draws
         self.beams: dict[str, Exogenous] = {}
         for k, axis in enumerate(self.axes[1:], start=1):
-            self.beams[axis] = Exogenous(self.room.scenario, self.room.params, {}, (self.room.seed + 1) * 1_000_003 + k)
+            beam_node = {"beam": self.room.params.tau_beam_s}  # only its wander is read
+            self.beams[axis] = Exogenous(self.room.scenario, self.room.params, beam_node,
+                                         (self.room.seed + 1) * 1_000_003 + k)
 
     @classmethod
     def create(cls, axes: str | Sequence[str] = "xy", scenario: str = "train", seed: int = 0,
