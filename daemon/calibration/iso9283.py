@@ -16,6 +16,10 @@ stage would have reached with the uncompensated command, x_without = x_measured 
 stage's closed loop makes the attained position follow the command with unit gain (its nonlinearity
 over the sub-µm difference q' - x' is below a nm), so this is the same period's drift without the
 model, computed from the same measurements.
+
+A multi-axis cell (:func:`summarize_cell`): per point, ISO 9283's pose accuracy AP = |barycentre of the
+attained points - target| and repeatability RP = l̄ + 3 S_l (l_i = |attained_i - barycentre|) in 2-D/3-D,
+and the one-axis figures per axis (Table I per axis).
 """
 
 from __future__ import annotations

@@ -4,6 +4,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from daemon.calibration.dataset import Dataset
 from daemon.calibration.iso9283 import pose_accuracy, pose_repeatability, summarize_cell
@@ -143,3 +145,16 @@ def test_cross_terms_beat_independent_one_axis_models_by_a_wide_factor():
     assert without > 800.0
     assert alone_nm > 5.0 * cell_nm  # the benchmark's 8 seeds: 10-50x
     assert without > 10.0 * cell_nm
+
+
+@given(st.lists(st.tuples(st.floats(-1e3, 1e3), st.floats(-1e3, 1e3)), min_size=2, max_size=30),
+       st.floats(-1e3, 1e3), st.floats(-1e3, 1e3), st.floats(0.0, 2 * math.pi))
+def test_pose_figures_do_not_depend_on_where_or_how_the_plane_is_drawn(points, dx, dy, angle):
+    """AP and RP are distances: moving and turning the attained points and the target together changes neither."""
+    attained = np.array(points)
+    target = np.array([3.0, -7.0])
+    turn = np.array([[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]])
+    moved, moved_target = attained @ turn.T + [dx, dy], turn @ target + [dx, dy]
+    assert pose_accuracy(moved, moved_target) == pytest.approx(pose_accuracy(attained, target), abs=1e-6)
+    assert pose_repeatability(moved) == pytest.approx(pose_repeatability(attained), abs=1e-6)
+    assert pose_repeatability(attained) >= 0.0
