@@ -20,6 +20,10 @@ model, computed from the same measurements.
 Against the truth (a simulated cell only): ``x_true_um``, per step, is the position the stage truly
 attained over the step's window (no interferometer noise or wander). Real hardware has none: the list
 is empty and nothing is reported against it.
+
+A multi-axis cell (:func:`summarize_cell`): per point, ISO 9283's pose accuracy AP = |barycentre of the
+attained points - target| and repeatability RP = l̄ + 3 S_l (l_i = |attained_i - barycentre|) in 2-D/3-D,
+and the one-axis figures per axis (Table I per axis).
 """
 
 from __future__ import annotations
@@ -188,3 +192,86 @@ def summarize(name: str, steps: Sequence[StepResult], compensated: bool, extrapo
     return result
 
 
+
+
+# ----- multi-axis cells: ISO 9283 pose accuracy and repeatability in 2-D / 3-D -------------------------
+
+def pose_accuracy(attained: np.ndarray, target: Sequence[float]) -> float:
+    """ISO 9283 pose accuracy AP: distance from the barycentre of the attained points (rows) to the target."""
+    points = np.atleast_2d(np.asarray(attained, dtype=np.float64))
+    return float(np.linalg.norm(points.mean(axis=0) - np.asarray(target, dtype=np.float64)))
+
+
+def pose_repeatability(attained: np.ndarray) -> float:
+    """ISO 9283 pose repeatability RP = l̄ + 3 S_l, l_i the distance of attained point i to the barycentre
+    (S_l with N - 1; 0 for a single visit)."""
+    points = np.atleast_2d(np.asarray(attained, dtype=np.float64))
+    dist = np.linalg.norm(points - points.mean(axis=0), axis=1)
+    spread = float(np.std(dist, ddof=1)) if dist.size > 1 else 0.0
+    return float(dist.mean()) + 3.0 * spread
+
+
+@dataclass
+class CellPointStats:
+    """One ISO 9283 point of a multi-axis test: AP and RP in 2-D/3-D and per axis (nm)."""
+
+    target_um: dict[str, float]
+    visits: int
+    accuracy_nm: float
+    repeatability_nm: float
+    axis_accuracy_nm: dict[str, float]
+    axis_repeatability_nm: dict[str, float]
+
+
+@dataclass
+class CellTestResult:
+    """The ISO 9283 figures of one multi-axis test run (with or without the model), against one reference."""
+
+    name: str
+    axes: tuple[str, ...]
+    points: list[CellPointStats]
+
+    @property
+    def accuracy_nm(self) -> float:
+        """The test's figure: AP in 2-D/3-D, mean over the points."""
+        return float(np.mean([p.accuracy_nm for p in self.points]))
+
+    @property
+    def repeatability_nm(self) -> float:
+        return float(np.mean([p.repeatability_nm for p in self.points]))
+
+    def axis_accuracy_nm(self, axis: str) -> float:
+        """Table I for one axis: mean over the points of |mean attained - target| along ``axis``."""
+        return float(np.mean([p.axis_accuracy_nm[axis] for p in self.points]))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "test": self.name, "axes": list(self.axes),
+            "accuracy_nm": round(self.accuracy_nm, 3), "repeatability_nm": round(self.repeatability_nm, 3),
+            "axis_accuracy_nm": {a: round(self.axis_accuracy_nm(a), 3) for a in self.axes},
+            "points": [{"target_um": p.target_um, "visits": p.visits, "accuracy_nm": round(p.accuracy_nm, 3),
+                        "repeatability_nm": round(p.repeatability_nm, 3),
+                        "axis_accuracy_nm": {a: round(v, 3) for a, v in p.axis_accuracy_nm.items()},
+                        "axis_repeatability_nm": {a: round(v, 3) for a, v in p.axis_repeatability_nm.items()}}
+                       for p in self.points],
+        }
+
+
+def summarize_cell(name: str, targets_um: dict[str, np.ndarray], attained_um: dict[str, np.ndarray]
+                   ) -> CellTestResult:
+    """ISO 9283 per point (rows with the same target on every axis, in first-visit order) from per-step
+    targets and attained positions (µm, one array per axis): AP/RP in the cell's dimension and per axis, in nm."""
+    axes = tuple(targets_um)
+    target = np.column_stack([np.asarray(targets_um[a], dtype=np.float64) for a in axes])
+    attained = np.column_stack([np.asarray(attained_um[a], dtype=np.float64) for a in axes])
+    points = []
+    rows, first = np.unique(target, axis=0, return_index=True)
+    for row in rows[np.argsort(first)]:  # in the order the plan first visits them (P1..P5)
+        here = attained[np.all(target == row, axis=1)]
+        per_axis = {a: iso9283(here[:, j], float(row[j])) for j, a in enumerate(axes)}
+        points.append(CellPointStats(
+            target_um={a: float(row[j]) for j, a in enumerate(axes)}, visits=int(here.shape[0]),
+            accuracy_nm=pose_accuracy(here, row) * 1e3, repeatability_nm=pose_repeatability(here) * 1e3,
+            axis_accuracy_nm={a: v[0] * 1e3 for a, v in per_axis.items()},
+            axis_repeatability_nm={a: v[1] * 1e3 for a, v in per_axis.items()}))
+    return CellTestResult(name, axes, points)

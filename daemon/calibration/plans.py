@@ -89,3 +89,93 @@ def validation_plan(cycles: int, points: Sequence[float] = VALIDATION_POINTS_UM)
         for x in (points if c % 2 == 0 else list(points)[::-1]):
             steps.append(PlannedStep(len(steps), c, float(x)))
     return steps
+
+
+# ----- multi-axis cells (an XY or XYZ stage) ---------------------------------------------------------
+
+#: per extra axis of a calibration design: (slope, shift per cycle) of its level index (:func:`cell_calibration_plan`)
+_DESIGN_LINES: dict[int, tuple[int, int]] = {1: (1, 5), 2: (13, 6)}
+
+
+@dataclass(frozen=True)
+class PlannedCellStep:
+    """One step of a multi-axis plan: every axis' target (µm), in the cell's axis order."""
+
+    index: int
+    cycle: int
+    targets_um: tuple[tuple[str, float], ...]
+
+    def target(self, axis: str) -> float:
+        return dict(self.targets_um)[axis]
+
+
+def cell_calibration_plan(axes: Sequence[str], cycles: int = 24,
+                          levels: Sequence[float] = CALIBRATION_POINTS_UM) -> list[PlannedCellStep]:
+    """A space-filling calibration of 2 or 3 axes: a Latin hypercube per cycle on the paper's 17 levels.
+
+    Why this design: each cycle is the paper's forward sweep of the first axis (0, 30, ..., 480 µm,
+    Fig. 7) while every other axis visits each of the same 17 levels exactly once, at level index
+    ``(slope * i + shift * cycle) mod 17`` for the first axis' level ``i`` (17 is prime, so every cycle
+    is a permutation). For y the slope is 1 and the shift 5 per cycle: over 17 cycles every (x, y) pair
+    of the 17 x 17 grid is visited exactly once, so the plan is a full factorial spread over time, with
+    the room's history across every part of the workspace (not one corner while it is cold). For z
+    the slope is 13 and the shift 6, chosen so that over 24 cycles no two of the centred candidate
+    terms (x, y, z, x^2, y^2, z^2, x*y, x*z, y*z) correlate by more than 0.03: each cross term is
+    identified on its own. A full grid per cycle would take 289 steps (2.3 h) per cycle; this takes
+    the paper's 17 steps per cycle, so the paper's 24 cycles are its 408 steps of 4 s + 25 s: 3.3 h,
+    for 2 axes and for 3. The validation points (:data:`CELL_VALIDATION_FRACTIONS`) lie between levels.
+    """
+    axes = tuple(axes)
+    if not 2 <= len(axes) <= 1 + len(_DESIGN_LINES):
+        raise ValueError(f"a multi-axis calibration has 2 or 3 axes, got {', '.join(axes)}")
+    n = len(levels)
+    steps: list[PlannedCellStep] = []
+    for c in range(cycles):
+        for i in range(n):
+            targets = [(axes[0], float(levels[i]))]
+            for k, axis in enumerate(axes[1:], start=1):
+                slope, shift = _DESIGN_LINES[k]
+                targets.append((axis, float(levels[(slope * i + shift * c) % n])))
+            steps.append(PlannedCellStep(len(steps), c, tuple(targets)))
+    return steps
+
+
+#: ISO 9283 test points as fractions of each axis' range: P1 near the centre, P2..P5 near the corners of
+#: the test plane (2 axes: the XY square; 3 axes: the cube's diagonal plane through two opposite edges);
+#: ISO puts P2..P5 10 % in from the corners (48 and 432 µm of 480) and P1 at the centre: here each
+#: coordinate is moved to the nearest midpoint between two calibration levels (45, 255, 435 µm), so no
+#: validation coordinate is a training level.
+CELL_VALIDATION_FRACTIONS: dict[int, tuple[tuple[float, ...], ...]] = {
+    2: ((255 / 480, 255 / 480), (45 / 480, 45 / 480), (435 / 480, 45 / 480), (435 / 480, 435 / 480),
+        (45 / 480, 435 / 480)),
+    3: ((255 / 480, 255 / 480, 255 / 480), (45 / 480, 45 / 480, 45 / 480), (435 / 480, 45 / 480, 45 / 480),
+        (435 / 480, 435 / 480, 435 / 480), (45 / 480, 435 / 480, 435 / 480)),
+}
+
+
+def cell_validation_points(axes: Sequence[str], ranges_um: dict[str, tuple[float, float]] | None = None
+                           ) -> list[tuple[tuple[str, float], ...]]:
+    """The ISO 9283 points P1..P5 of a 2- or 3-axis cell over ``ranges_um`` (default 0..480 µm per axis)."""
+    axes = tuple(axes)
+    if len(axes) not in CELL_VALIDATION_FRACTIONS:
+        raise ValueError(f"ISO 9283 points are defined for 2 or 3 axes, got {', '.join(axes)}")
+    out = []
+    for fractions in CELL_VALIDATION_FRACTIONS[len(axes)]:
+        point = []
+        for axis, f in zip(axes, fractions, strict=True):
+            lo, hi = (ranges_um or {}).get(axis, (0.0, 480.0))
+            point.append((axis, round(lo + f * (hi - lo), 3)))
+        out.append(tuple(point))
+    return out
+
+
+def cell_validation_plan(axes: Sequence[str], cycles: int = 30,
+                         ranges_um: dict[str, tuple[float, float]] | None = None) -> list[PlannedCellStep]:
+    """ISO 9283 cycles over P1..P5, alternately P1 -> P5 and P5 -> P1: every point is approached from two
+    directions (along every axis), as the one-axis plan's up and down sweeps do."""
+    points = cell_validation_points(axes, ranges_um)
+    steps: list[PlannedCellStep] = []
+    for c in range(cycles):
+        for p in (points if c % 2 == 0 else points[::-1]):
+            steps.append(PlannedCellStep(len(steps), c, p))
+    return steps

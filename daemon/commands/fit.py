@@ -14,8 +14,9 @@ from typing import Any, SupportsFloat
 
 from daemon.calibration.dataset import DataError, Dataset, common_channels, concat, read_runs
 from daemon.errors import UserError
+from daemon.model.cell_model import CellModel, save_cell_model
 from daemon.model.equation import equation, training_lines
-from daemon.model.identify import FitError, fit
+from daemon.model.identify import FitError, fit, fit_cell
 from daemon.model.model import Model, save_model
 from daemon.model.provenance import stamp_data
 from daemon.model.terms import MAX_POWER
@@ -74,6 +75,8 @@ def main(args: argparse.Namespace) -> int:
         data = concat(runs, channels)
         # a channel excluded because some file lacks it is already out; one no file has is a typo (refused)
         exclude = [c for c in args.exclude if c in channels or not any(c in ds.channels for ds in runs)]
+        if data.multi_axis:
+            return _fit_cell(args, paths, runs, data, exclude)
         result = fit(
             data, order=_order(args.order), exclude=exclude, penter=args.penter, premove=args.premove,
             source=", ".join(paths),
@@ -89,6 +92,46 @@ def main(args: argparse.Namespace) -> int:
     else:
         print(describe_model(model, args.out))
     return 0
+
+
+def _fit_cell(args: argparse.Namespace, paths: list[str], runs: Sequence[Dataset], data: Dataset,
+              exclude: list[str]) -> int:
+    """A multi-axis file: one model per axis over every axis' position (``fit_cell``), in one model file."""
+    try:
+        cell = fit_cell(data, order=_order(args.order), exclude=exclude, penter=args.penter, premove=args.premove,
+                        source=", ".join(paths)).model
+    except (DataError, FitError, ValueError) as err:
+        raise UserError(str(err)) from None
+    for model in cell.models.values():
+        model.selection["excluded"] = list(args.exclude)
+        stamp_data(model, [(p, len(ds)) for p, ds in zip(paths, runs, strict=True)])
+    cell.provenance = dict(cell.models[cell.axes[0]].provenance)
+    save_cell_model(cell, args.out)
+    if args.json:
+        print(json.dumps(cell_fit_summary(cell, args.out), indent=2))
+    else:
+        print(describe_cell_model(cell, args.out))
+    return 0
+
+
+def cell_fit_summary(cell: CellModel, path: str) -> dict[str, Any]:
+    """``fit --json`` of a multi-axis model: the cell's id and, per axis, what :func:`fit_summary` gives for one."""
+    axes = {}
+    for axis, model in cell.models.items():
+        axes[axis] = fit_summary(model, path)
+        axes[axis]["equation"] = equation(model, lhs=f"q_{axis}")
+    return {"model": cell.id, "model_out": str(path), "axes": axes}
+
+
+def describe_cell_model(cell: CellModel, path: str | None = None) -> str:
+    """Per axis, the one-axis summary with that axis' command on the left (``q_x = ...``)."""
+    ranges = ", ".join(f"{a} {lo:.1f}..{hi:.1f} µm" for a, (lo, hi) in cell.position_ranges.items())
+    lines = [f"model {cell.id} (axes {', '.join(cell.axes)})" + (f" -> {path}" if path else ""),
+             f"trained on positions {ranges}"]
+    for axis, model in cell.models.items():
+        own = [line for line in describe_model(model).split("\n")[2:] if not line.startswith("trained on x ")]
+        lines += ["", f"axis {axis} (model {model.id}):", equation(model, lhs=f"q_{axis}"), *own]
+    return "\n".join(lines)
 
 
 def _nm(value_um: SupportsFloat | None) -> float | None:

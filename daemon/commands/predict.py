@@ -12,9 +12,10 @@ import math
 
 import numpy as np
 
-from daemon.calibration.dataset import DataError, read_csv, write_csv
+from daemon.calibration.dataset import DataError, Dataset, read_csv, write_csv
 from daemon.errors import UserError
-from daemon.model.model import MissingChannelError, Model, ModelFileError, load_model
+from daemon.model.cell_model import CellModel, load_any_model
+from daemon.model.model import MissingChannelError, Model, ModelFileError
 from daemon.model.series import Series
 
 
@@ -39,8 +40,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     try:
-        model = load_model(args.model)
+        any_model = load_any_model(args.model)
         data = read_csv(args.data)
+        if isinstance(any_model, CellModel) or data.multi_axis:
+            return _predict_cell(args, any_model, data)
+        model = any_model
         q_pred = model.predict(data)
         q_sigma = model.q_sigma(data)
     except (DataError, ModelFileError, MissingChannelError) as err:
@@ -68,4 +72,52 @@ def main(args: argparse.Namespace) -> int:
     sigma = (f"q_sigma_um (median {np.median(q_sigma) * 1e3:.0f} nm)" if sigma_known
              else "no q_sigma_um (the model file has neither a covariance block nor fit.rmse_um)")
     print(f"predicted q_pred_um and {sigma} for {len(q_pred)} rows with model {model.id} -> {args.out}; {outside}")
+    return 0
+
+
+def _predict_cell(args: argparse.Namespace, model: Model | CellModel, data: Dataset) -> int:
+    """A multi-axis model on a multi-axis file: ``q_pred_<axis>_um`` and ``q_sigma_<axis>_um`` per axis."""
+    if not isinstance(model, CellModel):
+        raise UserError(f"{args.model} is a one-axis model but {args.data} positions axes {', '.join(data.axes)}: "
+                        "give the multi-axis model fitted for this cell")
+    if data.axes != model.axes:
+        kind = "a multi-axis file" if data.multi_axis else "a one-axis file"
+        raise UserError(f"{args.data} positions axes {', '.join(data.axes)} ({kind}) but {args.model} serves axes "
+                        f"{', '.join(model.axes)}")
+    try:
+        q_pred = model.predict(data)
+        q_sigma = model.q_sigma(data)
+    except MissingChannelError as err:
+        raise UserError(str(err)) from None
+    columns: dict[str, np.ndarray] = {}
+    for axis in model.axes:
+        bad = np.flatnonzero(~np.isfinite(q_pred[axis]) | ~np.isfinite(q_sigma[axis]))
+        if bad.size:  # never write inf/nan: the project's own reader would refuse the file
+            i = int(bad[0])
+            where = ", ".join(f"{a}_um = {data.positions[a][i]:g}" for a in model.axes)
+            raise UserError(f"{args.data}, row {i + 2}: the model gives no finite command or uncertainty for axis "
+                            f"{axis} at {where} ({bad.size} such row(s)); nothing written to {args.out}")
+        columns[f"q_pred_{axis}_um"] = q_pred[axis]
+        columns[f"q_sigma_{axis}_um"] = q_sigma[axis]
+    for name in columns:
+        data.extra.pop(name, None)
+    write_csv(data, args.out, columns)
+    outside = np.zeros(len(data), dtype=bool)
+    counts: dict[str, int] = {}
+    for axis, (low, high) in model.position_ranges.items():
+        mask = (data.positions[axis] < low) | (data.positions[axis] > high)
+        counts[axis] = int(mask.sum())
+        outside |= mask
+    for channel, (low, high) in model.channel_ranges.items():
+        if channel in data.channels:
+            mask = (data.channels[channel] < low) | (data.channels[channel] > high)
+            counts[channel] = int(mask.sum())
+            outside |= mask
+    counts = {k: v for k, v in counts.items() if v}
+    rows = int(outside.sum())
+    listed = ", ".join(f"{name} in {n}" for name, n in counts.items())
+    extrapolating = f"{rows} extrapolating (outside the training range: {listed})" if rows else "none extrapolating"
+    sigmas = ", ".join(f"{a} {np.median(q_sigma[a]) * 1e3:.0f} nm" for a in model.axes)
+    print(f"predicted q_pred_<axis>_um and q_sigma_<axis>_um (median {sigmas}) for axes {', '.join(model.axes)}, "
+          f"{len(data)} rows with model {model.id} -> {args.out}; {extrapolating}")
     return 0

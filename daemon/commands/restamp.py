@@ -13,7 +13,8 @@ import argparse
 import datetime as dt
 
 from daemon.errors import UserError
-from daemon.model.model import ModelFileError, load_model, save_model
+from daemon.model.cell_model import CellModel, load_any_model, save_any_model
+from daemon.model.model import ModelFileError
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -23,19 +24,21 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     try:
-        model = load_model(args.model, check_id=False)
+        model = load_any_model(args.model, check_id=False)
     except ModelFileError as err:
         raise UserError(str(err)) from None
     old, new = model.id, model.content_id()
+    # a multi-axis file: every axis' model carries its own id too (the cell's id hashes their contents)
+    axes_stale = isinstance(model, CellModel) and any(m.id != m.content_id() for m in model.models.values())
     out = args.out or args.model
-    if old == new and out == args.model:
+    if old == new and not axes_stale and out == args.model:
         print(f"{args.model}: id {new} already matches its content; nothing written")
         return 0
-    if old != new:
+    if old != new or axes_stale:
         model.provenance["restamped_from"] = old or None
         model.provenance["restamped"] = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
     try:
-        save_model(model, out)
+        save_any_model(model, out)
     except OSError as err:
         raise UserError(f"{out}: cannot write the model file ({err.strerror or err})") from None
     print(f"{args.model}: id {old or '(none)'} -> {model.id}" + (f", written to {out}" if out != args.model else ""))

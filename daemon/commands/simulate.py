@@ -9,7 +9,8 @@ from daemon.calibration.dataset import write_csv
 from daemon.commands._catalogues import effects_epilog, scenario_epilog, scenario_names
 from daemon.errors import UserError
 from drivers.simulated.datasets import simulate_dataset
-from drivers.simulated.effects import UnknownNameError, resolve_effects
+from drivers.simulated.effects import CROSS_AXIS_EFFECTS, EFFECTS, UnknownNameError, resolve_effects
+from drivers.simulated.multiaxis import CELL_AXES, simulate_cell_dataset
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -23,15 +24,26 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="sweeps to record (default: the scenario's: 24 calibration or 30 validation sweeps)")
     parser.add_argument("--seed", type=int, default=0, metavar="N", help="noise and room seed: same seed, same data")
     parser.add_argument("--out", required=True, metavar="F.csv", help="the CSV to write (data contract columns)")
+    parser.add_argument("--axes", choices=sorted(CELL_AXES), metavar="xy|xyz",
+                        help="a multi-axis cell (stacked stages): columns x_um, y_um[, z_um], q_x_um, ... and the "
+                             "true positions x_true_um, ...; calibration scenarios run the space-filling plan, "
+                             "validation scenarios the ISO 9283 points; --effects then names the cross-axis "
+                             f"effects ({', '.join(CROSS_AXIS_EFFECTS)}: all on; a parameter 0 switches one off). "
+                             "Default: one axis")
 
 
 def main(args: argparse.Namespace) -> int:
     if args.cycles is not None and args.cycles < 1:
         raise UserError(f"--cycles must be at least 1, got {args.cycles}")
+    if args.axes:
+        return _multi_axis(args)
     try:
         effects = resolve_effects(args.effects or None)
         ds = simulate_dataset(args.scenario, effects, cycles=args.cycles, seed=args.seed)
     except UnknownNameError as err:
+        if any(name in (args.effects or "") for name in CROSS_AXIS_EFFECTS):
+            raise UserError(f"{err} (the cross-axis effects {', '.join(CROSS_AXIS_EFFECTS)} need --axes xy or "
+                            "xyz)") from None
         raise UserError(str(err)) from None
     write_csv(ds, args.out)
     cycles = ds.extra["cycle"]
@@ -39,4 +51,21 @@ def main(args: argparse.Namespace) -> int:
     print(f"wrote {args.out}: {len(ds)} steps ({len(ds) // max(1, len(set(cycles.tolist())))} per cycle, "
           f"{span:.2f} h), scenario {args.scenario}, effects {','.join(effects) or 'none'}, seed {args.seed}",
           file=sys.stderr)
+    return 0
+
+
+def _multi_axis(args: argparse.Namespace) -> int:
+    """``--axes xy|xyz``: the stacked-stage cell (``drivers.simulated.multiaxis``)."""
+    try:
+        ds = simulate_cell_dataset(args.axes, args.scenario, args.effects or None, cycles=args.cycles, seed=args.seed)
+    except UnknownNameError as err:
+        one_axis = [name for name in EFFECTS if name in (args.effects or "")]
+        hint = (f" ({', '.join(one_axis)}: a one-axis effect; the multi-axis cell simulates the cross-axis effects "
+                "only)") if one_axis else ""
+        raise UserError(f"{err}{hint}") from None
+    write_csv(ds, args.out)
+    span = (ds.t[-1] - ds.t[0]) / 3600.0
+    cycles = len(set(ds.extra["cycle"].tolist()))
+    print(f"wrote {args.out}: {len(ds)} steps of axes {','.join(ds.axes)} ({len(ds) // max(1, cycles)} per cycle, "
+          f"{span:.2f} h), scenario {args.scenario}, seed {args.seed}", file=sys.stderr)
     return 0

@@ -22,6 +22,7 @@ import numpy as np
 
 from daemon.calibration.iso9283 import TestResult
 from daemon.calibration.residuals import BiasTracker
+from daemon.commands import _cell_validate
 from daemon.commands._catalogues import scenario_epilog
 from daemon.commands._cell import (
     add_config_flag,
@@ -66,6 +67,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def main(args: argparse.Namespace) -> int:
     if args.cycles < 1:
         raise UserError(f"--cycles must be at least 1, got {args.cycles}")
+    if _cell_validate.is_cell_model_file(args.model):  # a multi-axis model: the simulated XY/XYZ cell
+        return _cell_validate.main(args)
     try:
         model = load_model(args.model)
     except (ModelFileError, OSError) as err:

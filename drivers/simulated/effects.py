@@ -83,6 +83,44 @@ EFFECTS: dict[str, EffectSpec] = {
 }
 
 
+#: what only a multi-axis cell (``simulate --axes xy|xyz``, :mod:`drivers.simulated.multiaxis`) shows: the stacked
+#: stages always have them (all on, at these magnitudes: the issue's XY stage); ``--effects`` there overrides a
+#: parameter, 0 switches one off. A one-axis cell has none of them, and a multi-axis cell none of the above.
+CROSS_AXIS_EFFECTS: dict[str, EffectSpec] = {
+    spec.name: spec
+    for spec in (
+        EffectSpec(
+            "crosstalk",
+            "an axis' actuator pushes the other axes by a fraction of its stroke: x += fraction * share * y "
+            "(shares of +-0.8..1 per pair)",
+            "y (another axis' position)",
+            {"fraction": 0.0025},
+        ),
+        EffectSpec(
+            "non_orthogonality",
+            "an upper stage is mounted off square to a lower one: the lower axis moves by rad * share * its travel",
+            "y (another axis' position)",
+            {"rad": 0.0018},
+        ),
+        EffectSpec(
+            "coupled_bending",
+            "with two axes extended the stack bends: x += um * share * (x / 480) * (y / 480)",
+            "x*y",
+            {"um": 0.30},
+        ),
+    )
+}
+
+
+def resolve_cross_effects(spec: str | None) -> dict[str, dict[str, float]]:
+    """Every cross-axis effect with its parameters, ``spec`` (``"crosstalk:fraction=0.004"``) overriding
+    the defaults; a name that is not a cross-axis effect raises :class:`UnknownNameError`."""
+    out = {name: dict(e.defaults) for name, e in CROSS_AXIS_EFFECTS.items()}
+    if spec:
+        out.update(_parse_cli(spec, CROSS_AXIS_EFFECTS))
+    return out
+
+
 def _unknown(kind: str, name: str, valid: Sequence[str]) -> UnknownNameError:
     return UnknownNameError(f"unknown {kind} {name!r}; valid {kind}s: {', '.join(valid)}")
 
@@ -109,7 +147,7 @@ def resolve_effects(spec: str | Sequence[str] | Mapping[str, Any] | None) -> dic
     return merged
 
 
-def _parse_cli(text: str) -> dict[str, dict[str, float]]:
+def _parse_cli(text: str, catalogue: Mapping[str, EffectSpec] | None = None) -> dict[str, dict[str, float]]:
     """``thermal_lag:tau_s=1800,k_um_per_c=-0.5,hysteresis``: a bare ``p=v`` continues the previous effect."""
     out: dict[str, dict[str, float]] = {}
     current: str | None = None
@@ -126,7 +164,7 @@ def _parse_cli(text: str) -> dict[str, dict[str, float]]:
             params = [token]
         else:
             current, params = token, []
-        _check_effect(current)
+        _check_effect(current, catalogue)
         overrides = out.setdefault(current, {})
         for p in params:
             key, sep, value = p.partition("=")
@@ -138,17 +176,19 @@ def _parse_cli(text: str) -> dict[str, dict[str, float]]:
                 raise UnknownNameError(
                     f"effect {current}: parameter {key.strip()} = {value!r} is not a number"
                 ) from None
-    return {name: _with_defaults(name, params) for name, params in out.items()}
+    return {name: _with_defaults(name, params, catalogue) for name, params in out.items()}
 
 
-def _check_effect(name: str) -> None:
-    if name not in EFFECTS:
-        raise _unknown("effect", name, list(EFFECTS))
+def _check_effect(name: str, catalogue: Mapping[str, EffectSpec] | None = None) -> None:
+    known = EFFECTS if catalogue is None else catalogue
+    if name not in known:
+        raise _unknown("effect", name, list(known))
 
 
-def _with_defaults(name: str, overrides: Mapping[str, Any]) -> dict[str, float]:
-    _check_effect(name)
-    defaults = EFFECTS[name].defaults
+def _with_defaults(name: str, overrides: Mapping[str, Any],
+                   catalogue: Mapping[str, EffectSpec] | None = None) -> dict[str, float]:
+    _check_effect(name, catalogue)
+    defaults = (EFFECTS if catalogue is None else catalogue)[name].defaults
     params = dict(defaults)
     for key, value in overrides.items():
         if key not in defaults:

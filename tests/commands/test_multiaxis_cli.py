@@ -1,0 +1,120 @@
+"""The multi-axis commands as a user runs them, and the one-axis outputs they must leave byte for byte."""
+
+import hashlib
+import json
+import subprocess
+import sys
+
+import pytest
+
+from daemon.calibration.dataset import read_csv
+from daemon.cli import main
+from daemon.model.cell_model import CellModel, load_any_model
+
+
+def _run(*args, cwd):
+    return subprocess.run([sys.executable, "-m", "daemon.cli", *args], capture_output=True, text=True, cwd=cwd)
+
+
+@pytest.fixture(scope="module")
+def xy_files(tmp_path_factory):
+    """A simulated XY calibration and its model, made through the command line (subprocess)."""
+    tmp = tmp_path_factory.mktemp("xy")
+    sim = _run("simulate", "--scenario", "train", "--axes", "xy", "--seed", "2", "--out", "cal.csv",
+               cwd=tmp)
+    assert sim.returncode == 0, sim.stderr
+    assert "408 steps of axes x,y (17 per cycle, 3.28 h)" in sim.stderr
+    fitted = _run("fit", "cal.csv", "--out", "m.json", cwd=tmp)
+    assert fitted.returncode == 0, fitted.stderr
+    return tmp, fitted.stdout
+
+
+def test_fit_and_predict_a_multi_axis_file_from_the_command_line(xy_files):
+    tmp, fit_out = xy_files
+    assert "(axes x, y)" in fit_out and "\nq_x = " in fit_out and "\nq_y = " in fit_out
+    assert "axis y (model m-" in fit_out
+    model = load_any_model(tmp / "m.json")
+    assert isinstance(model, CellModel) and model.id in fit_out
+    assert "y" in model.models["x"].term_names()  # the crosstalk the stage has, found from the file
+    pred = _run("predict", "--model", "m.json", "cal.csv", "--out", "p.csv", cwd=tmp)
+    assert pred.returncode == 0, pred.stderr
+    out = read_csv(tmp / "p.csv")
+    for a in "xy":
+        residual = out.extra[f"q_pred_{a}_um"] - out.commands[a]
+        assert abs(residual).max() < 0.2 and 0 < out.extra[f"q_sigma_{a}_um"].min()
+    assert "q_pred_um" not in out.extra
+
+
+def test_fit_json_per_axis_restamp_and_refusals(xy_files, tmp_path, capsys):
+    tmp, _ = xy_files
+    assert main(["fit", str(tmp / "cal.csv"), "--out", str(tmp_path / "m.json"), "--json", "--order", "3"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert list(doc["axes"]) == ["x", "y"] and doc["axes"]["y"]["equation"].startswith("q_y = ")
+    assert doc["model"] == load_any_model(tmp_path / "m.json").id
+
+    edited = json.loads((tmp_path / "m.json").read_text())
+    edited["models"]["y"]["terms"][-1]["coef"] += 0.01  # a deliberate hand edit of y's bias
+    (tmp_path / "m.json").write_text(json.dumps(edited))
+    assert main(["predict", "--model", str(tmp_path / "m.json"), str(tmp / "cal.csv"), "--out",
+                 str(tmp_path / "p.csv")]) == 2
+    assert "models.y: its id" in capsys.readouterr().err and not (tmp_path / "p.csv").exists()
+    assert main(["restamp", str(tmp_path / "m.json")]) == 0
+    restamped = load_any_model(tmp_path / "m.json")  # loads with the id check
+    assert restamped.id != doc["model"] and restamped.provenance["restamped_from"] == doc["model"]
+
+    one_axis = tmp_path / "one.csv"
+    one_axis.write_text("t_s,x_um,q_um,T1,T2,T3,T4\n0,0,0,22,22,22,22\n")
+    assert main(["predict", "--model", str(tmp_path / "m.json"), str(one_axis), "--out", str(tmp_path / "p.csv")]) == 2
+    assert "positions axes x (a one-axis file) but" in capsys.readouterr().err
+
+
+def test_validate_a_multi_axis_model_on_the_simulated_cell(xy_files, tmp_path, capsys):
+    tmp, _ = xy_files
+    code = main(["validate", "--model", str(tmp / "m.json"), "--cycles", "4", "--report", str(tmp_path / "r")])
+    assert code == 0
+    out = capsys.readouterr().out
+    for label in ("axis x", "axis y", "AP 2-D", "RP 2-D", "(x = 45, y = 435) µm"):
+        assert label in out
+    doc = json.loads((tmp_path / "r" / "validation.json").read_text())
+    truth = doc["against_truth"]
+    assert truth["improvement_ratio"] > 10 and len(truth["with"]["points"]) == 5
+    assert (tmp_path / "r" / "fig_cell_accuracy.png").stat().st_size > 10_000
+
+
+def test_simulate_refuses_effects_of_the_other_kind(tmp_path, capsys):
+    assert main(["simulate", "--scenario", "train", "--axes", "xy", "--effects", "thermal_lag",
+                 "--out", str(tmp_path / "a.csv")]) == 2
+    assert "a one-axis effect" in capsys.readouterr().err
+    assert main(["simulate", "--scenario", "train", "--effects", "crosstalk", "--out", str(tmp_path / "b.csv")]) == 2
+    assert "need --axes xy or xyz" in capsys.readouterr().err
+    assert not (tmp_path / "a.csv").exists() and not (tmp_path / "b.csv").exists()
+
+
+#: one-axis outputs as made before the multi-axis work (commit 4d39ca7): simulate's CSV, fit's and predict's
+#: printout, and the model id, for ``simulate --scenario train --cycles 3 --seed 5``
+ONE_AXIS_SHA256 = {
+    "s.csv": "4c7edb5d54ca3fb2b4ab156e9ca4a28ba64d1bea8ae0977d9903d54e74318364",
+    "fit": "32a6dfcc42bec66444f1ef3139476ae30ffc399550735091a2af1fb870d666a3",
+    "p.csv": "df652b6cd66c97f7360b5326a2b8ca64e992bbb0d6a43e1276c53301440ee07d",
+    "predict": "e93e4a8f6ace803965ee1803e8164e3fa4933db0a6925b6bfc0b37b68e8a625d",
+}
+ONE_AXIS_MODEL_ID = "m-67bf915de2f0"
+
+
+def test_one_axis_outputs_and_model_id_unchanged(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+
+    def sha(data: bytes) -> str:
+        return hashlib.sha256(data).hexdigest()
+
+    assert main(["simulate", "--scenario", "train", "--cycles", "3", "--seed", "5", "--out", "s.csv"]) == 0
+    capsys.readouterr()
+    assert main(["fit", "s.csv", "--out", "m.json"]) == 0
+    fit_out = capsys.readouterr().out
+    assert main(["predict", "--model", "m.json", "s.csv", "--out", "p.csv"]) == 0
+    predict_out = capsys.readouterr().out
+    assert json.loads((tmp_path / "m.json").read_text())["id"] == ONE_AXIS_MODEL_ID
+    assert sha((tmp_path / "s.csv").read_bytes()) == ONE_AXIS_SHA256["s.csv"]
+    assert sha((tmp_path / "p.csv").read_bytes()) == ONE_AXIS_SHA256["p.csv"]
+    assert sha(fit_out.encode()) == ONE_AXIS_SHA256["fit"]
+    assert sha(predict_out.encode()) == ONE_AXIS_SHA256["predict"]
