@@ -12,7 +12,9 @@ import pytest
 
 from daemon.calibration.dataset import write_csv
 from daemon.calibration.discovery import discover_cell
+from daemon.calibration.discovery.catalogue import untestable
 from daemon.calibration.discovery.diagnostics import structure_variables
+from daemon.calibration.discovery.settings import DEFAULT_SETTINGS
 from daemon.model.cell_model import CellModel, load_any_model, save_cell_model
 from daemon.model.identify import axis_position_term, fit, fit_cell
 from daemon.model.terms import Channel
@@ -74,3 +76,10 @@ def test_discover_writes_a_cell_model_from_the_command_line(tmp_path: Path, xy) 
     extended = load_any_model(out)
     assert isinstance(extended, CellModel) and doc["final"]["model"] == extended.id
     assert "y" in extended.models["x"].term_names() and "x" in extended.models["y"].term_names()
+
+
+def test_what_a_run_cannot_show_is_judged_on_the_modelled_axis_motion(xy) -> None:
+    forward_x = xy.select(np.argsort(xy.positions["x"], kind="stable"))  # x only ever steps up, y both ways
+    forward_x.t = np.arange(len(forward_x)) * 29.0
+    assert [u["effect"] for u in untestable(forward_x.axis_view("x"), DEFAULT_SETTINGS)] == ["hysteresis"]
+    assert untestable(forward_x.axis_view("y"), DEFAULT_SETTINGS) == []

@@ -236,11 +236,12 @@ def untestable(data: Dataset, settings: Settings) -> list[dict[str, str]]:
 
     Read from the data's own motion, not from how it was recorded: a forward-only calibration (the
     paper's Fig. 7) approaches every point moving up, so ``dir`` only marks the return to 0 and a
-    direction-dependent offset (hysteresis) is invisible; a run with no steps cannot show creep.
+    direction-dependent offset (hysteresis) is invisible; a run with no steps cannot show creep. In a
+    multi-axis cell, the modelled axis' own motion.
     """
-    x = np.asarray(data.x, dtype=np.float64)
+    x = np.asarray(data.own_position, dtype=np.float64)
     out = []
-    direction = features(Direction(), data)
+    direction = features(own_direction(data.axis), data)
     share = _minority_direction_share(direction)
     if share < settings.min_direction_share:
         way = "up" if float(np.mean(direction > 0)) >= 0.5 else "down"
