@@ -47,6 +47,7 @@ from daemon.calibration.plans import PAPER_TIMING
 from daemon.calibration.residuals import MIN_RESIDUALS, BiasTracker
 from daemon.commands._cell import scenario_seed, simulated_truth
 from daemon.commands._demo_serve import serve
+from daemon.commands._demo_xy import two_axis_part
 from daemon.errors import UserError
 from daemon.model.equation import equation
 from daemon.model.identify import FitError
@@ -401,10 +402,15 @@ def main(args: argparse.Namespace) -> int:
         run.served, run.endpoint = serve(args, workdir, run.model_path, run.kept)
 
         extra = what_nanodrift_adds(run)
-        if extra:
-            steps.start("What nanodrift adds")
-            for line in extra:
-                print(f"   {line}")
+        steps.start("What nanodrift adds")
+        for line in extra:
+            print(f"   {line}")
+        t0 = time.monotonic()
+        print("   two axes: an XY stage calibrated and validated as one cell (the paper's future work, its follow-up's "
+              "2-DoF case), as `simulate --axes xy`, `fit` and `validate` do it:")
+        for line in two_axis_part(args.seed, args.cycles, args.calibration_cycles, workdir if keep else None):
+            print(f"      {line}")
+        print(f"      ({time.monotonic() - t0:.1f} s)")
 
         where = (f"files in {workdir}" if keep
                  else "nothing kept (--keep DIR keeps the model, data, figures, config and log)")

@@ -22,6 +22,7 @@ from helpers.daemon_harness import REPO
 from daemon.cli import main
 from daemon.commands._cell import scenario_seed
 from daemon.commands.demo import check_args, nm_span
+from daemon.model.cell_model import CellModel, load_any_model
 from daemon.model.model import load_model
 
 SHORT = ["--cycles", "2", "--calibration-cycles", "6", "--tests", "test1,test5", "--seed", "3"]
@@ -211,3 +212,15 @@ def test_demo_help_lists_only_what_the_demo_takes(capsys) -> None:
     with pytest.raises(SystemExit) as refused:
         main(["demo", "--mode", "peer"])
     assert refused.value.code == 2
+
+
+def test_the_demo_calibrates_and_validates_an_xy_cell_beside_two_one_axis_models(demo) -> None:
+    out, kept = demo[0].stdout, demo[1]
+    assert "two axes: an XY stage calibrated and validated as one cell" in out
+    row = re.search(r"AP 2-D\s+(\d+) nm\s+(\d+) nm\s+(\d+) nm\s+(\d+)×", out)
+    assert row, out
+    without, alone, cell, gain = (int(v) for v in row.groups())
+    assert cell < alone < without and gain == round(without / cell)  # cross terms beat two one-axis cells
+    assert "1400 nm -> 200 nm" in out  # the follow-up's 2-DoF anchor beside it
+    model = load_any_model(kept / "xy_model.json")
+    assert isinstance(model, CellModel) and model.axes == ("x", "y") and model.id in out
