@@ -14,15 +14,23 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 from daemon.calibration.iso9283 import summarize_cell
-from daemon.commands._cell import scenario_seed
+from daemon.commands._cell import scenario_list, scenario_seed
 from daemon.errors import UserError
 from daemon.model.cell_model import CellModel, load_any_model
 from daemon.model.model import ModelFileError
-from daemon.reports.cell_validation import CellScores, cell_json, cell_table
+from daemon.reports.cell_validation import CellScores, cell_json, cell_table, write_cell_report
 from drivers.simulated.effects import UnknownNameError
-from drivers.simulated.multiaxis import CellValidationRun, MultiAxisPhysics, cross_params, run_cell_validation
+from drivers.simulated.multiaxis import (
+    CellValidationRun,
+    CrossParams,
+    MultiAxisPhysics,
+    cross_params,
+    run_cell_validation,
+)
+from drivers.simulated.scenarios import get_scenario
 
 
 def is_cell_model_file(path: str) -> bool:
@@ -54,16 +62,35 @@ def main(args: argparse.Namespace) -> int:
                         "simulated cell (no --config); the daemon's multi-axis procedure on hardware is not built yet")
     if args.adapt:
         raise UserError("--adapt runs the one-axis bias tracker: not available for a multi-axis model")
-    scenario = args.scenario or "test2"
-    seed = scenario_seed(args.seed or 0, scenario)
-    try:
-        physics = MultiAxisPhysics.create(model.axes, scenario, seed, cross_params(args.effects or None))
-    except (UnknownNameError, KeyError, ValueError) as err:
-        raise UserError(f"simulated {''.join(model.axes)} cell: {err}") from None
-    evaluator = model.evaluator()
     missing = [c for c in model.channels if c not in ("T1", "T2", "T3", "T4")]
     if missing:
         raise UserError(f"{args.model} needs channel(s) {', '.join(missing)} that the simulated cell does not measure")
+    scenarios = scenario_list(args.scenario) or ["test2"]
+    try:
+        for scenario in scenarios:  # every name checked before the first test runs
+            get_scenario(scenario)
+        cross = cross_params(args.effects or None)
+    except (UnknownNameError, KeyError, ValueError) as err:
+        raise UserError(f"simulated {''.join(model.axes)} cell: {err}") from None
+    texts, docs = [], []
+    for scenario in scenarios:
+        text, doc = _one_test(args, model, scenario, cross)
+        texts.append(text)
+        docs.append(doc)
+    if args.json:
+        print(json.dumps(docs[0] if len(docs) == 1 else {"model": model.id, "tests": docs}, indent=2))
+    else:
+        print("\n\n".join(texts))
+    return 0
+
+
+def _one_test(args: argparse.Namespace, model: CellModel, scenario: str,
+              cross: CrossParams) -> tuple[str, dict[str, Any]]:
+    """One test on a fresh simulated cell: its Table I text and JSON document (and report, with --report:
+    one directory per test when several are asked for)."""
+    seed = scenario_seed(args.seed or 0, scenario)
+    physics = MultiAxisPhysics.create(model.axes, scenario, seed, cross)
+    evaluator = model.evaluator()
 
     def command(targets: dict[str, float], t: float, temps: dict[str, float]) -> dict[str, float]:
         evaluator.observe(t, temps)
@@ -79,10 +106,9 @@ def main(args: argparse.Namespace) -> int:
                     f"scenario {scenario}, seed {seed}", cycles=args.cycles,
                     extrapolating_steps=run.extrapolating_steps)
     if args.report:
-        from daemon.reports.cell_validation import write_cell_report
-
-        files = write_cell_report(args.report, text, doc, truth, run.targets_um, run.attained(False, "truth"),
+        several = args.scenario is not None and len(scenario_list(args.scenario)) > 1
+        directory = Path(args.report) / scenario if several else Path(args.report)
+        files = write_cell_report(directory, text, doc, truth, run.targets_um, run.attained(False, "truth"),
                                   run.attained(True, "truth") if run.compensated is not None else None)
         print(f"report: {', '.join(str(f) for f in files)}", file=sys.stderr)
-    print(json.dumps(doc, indent=2) if args.json else text)
-    return 0
+    return text, doc

@@ -81,6 +81,19 @@ def test_validate_a_multi_axis_model_on_the_simulated_cell(xy_files, tmp_path, c
     assert (tmp_path / "r" / "fig_cell_accuracy.png").stat().st_size > 10_000
 
 
+def test_validate_a_multi_axis_model_over_several_tests_in_one_call(xy_files, tmp_path, capsys):
+    tmp, _ = xy_files
+    code = main(["validate", "--model", str(tmp / "m.json"), "--cycles", "2", "--scenario", "test2,test5", "--json",
+                 "--report", str(tmp_path / "r")])
+    assert code == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert [t["test"] for t in doc["tests"]] == ["test2", "test5"]
+    assert all(t["model"] == doc["model"] for t in doc["tests"])
+    assert sorted(p.name for p in (tmp_path / "r").iterdir()) == ["test2", "test5"]
+    assert main(["validate", "--model", str(tmp / "m.json"), "--scenario", "test2,nope"]) == 2
+    assert "nope" in capsys.readouterr().err
+
+
 def test_simulate_refuses_effects_of_the_other_kind(tmp_path, capsys):
     assert main(["simulate", "--scenario", "train", "--axes", "xy", "--effects", "thermal_lag",
                  "--out", str(tmp_path / "a.csv")]) == 2
