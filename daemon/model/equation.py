@@ -18,8 +18,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from daemon.model.axis_terms import AxisPower
 from daemon.model.model import FittedTerm, Model, Training
-from daemon.model.terms import Bias, Power, Term
+from daemon.model.terms import Bias, Power, Term, position_key
 
 #: the most a printed coefficient's rounding may change its term inside the training box (µm)
 ROUNDING_TOLERANCE_UM = 1e-3
@@ -35,6 +36,8 @@ def term_label(term: object) -> str:
         return ""
     if isinstance(term, Power):
         return "x" if term.k == 1 else "x" + str(term.k).translate(_SUPERSCRIPT)
+    if isinstance(term, AxisPower):  # another axis of a multi-axis cell: y³ as x³
+        return term.axis if term.k == 1 else term.axis + str(term.k).translate(_SUPERSCRIPT)
     return str(getattr(term, "name", term)).replace("*", "·")
 
 
@@ -46,8 +49,9 @@ def feature_bound(term: Term, training: Training) -> float | None:
     """The largest |feature| of ``term`` on the corners of the training box (x and every channel at
     their ends, held in turn: a lag or a product of them stays within the same bounds), or None when
     the training ranges do not name what the term reads."""
-    channels = list(training.channel_ranges)
-    corners = list(itertools.product(training.x_range, *(training.channel_ranges[c] for c in channels)))
+    ranges = {**training.channel_ranges, **{position_key(a): r for a, r in training.position_ranges.items()}}
+    channels = list(ranges)
+    corners = list(itertools.product(training.x_range, *(ranges[c] for c in channels)))
     x = np.repeat([c[0] for c in corners], 2)  # each corner held for two samples, 30 s apart
     t = np.arange(x.size, dtype=np.float64) * 30.0
     values = {c: np.repeat([corner[i + 1] for corner in corners], 2) for i, c in enumerate(channels)}
