@@ -210,8 +210,13 @@ def _cell_model_from_dict(doc: Any, where: str, *, check_id: bool = True) -> Cel
         raise fail(f"'models' must hold one model per axis ({', '.join(axes)}), got "
                    f"{sorted(raw_models) if isinstance(raw_models, dict) else type(raw_models).__name__}")
     cell_axes = tuple(axes)
-    models = {a: Model.from_dict(raw_models[a], f"{where}: models.{a}", check_id=check_id, axes=cell_axes)
+    models = {a: Model.from_dict(raw_models[a], f"{where}: models.{a}", check_id=False, axes=cell_axes)
               for a in cell_axes}
+    for a, m in models.items():
+        claimed_axis = raw_models[a].get("id")
+        if check_id and claimed_axis != m.content_id():
+            raise fail(f"models.{a}: its id {claimed_axis!r} does not match its content ({m.content_id()!r}): the file "
+                       f"was changed after it was made; if deliberately, re-stamp it: `nanodrift restamp {where}`")
     for a, m in models.items():
         missing = [b for b in cell_axes if b != "x" and b not in m.training.position_ranges]
         if missing:
