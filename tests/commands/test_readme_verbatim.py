@@ -198,3 +198,18 @@ def test_the_install_block_puts_nanodrift_on_path_and_the_unit_runs_the_same_scr
     for key in ("ExecStartPre", "ExecStart"):
         line = re.search(rf"^{key}=(\S+) ", unit, re.MULTILINE)
         assert line and line[1] == script, f"the unit's {key} does not run {script}"
+
+
+def test_the_multi_axis_block_runs_verbatim(tmp_path: Path) -> None:
+    """Calibrating an XY stage from the command line, as the README's multi-axis section writes it."""
+    commands = readme_block("Calibrating an XY stage.")
+    assert [c[1] for c in commands] == ["simulate", "fit", "predict", "validate", "discover"]
+    outputs = []
+    for words in commands:
+        done = subprocess.run([str(NANODRIFT), *words[1:]], capture_output=True, text=True, cwd=tmp_path, timeout=120)
+        assert done.returncode == 0, f"{shlex.join(words)}: {done.stderr}"
+        outputs.append(done.stdout)
+    assert "q_x = " in outputs[1] and "·y" in outputs[1] and "x·y" in outputs[1]  # the cross terms were kept
+    header = (tmp_path / "xy_pred.csv").read_text().splitlines()[0].split(",")
+    assert {"q_pred_x_um", "q_sigma_x_um", "q_pred_y_um", "q_sigma_y_um"} <= set(header)
+    assert outputs[3].count("AP 2-D") == 2  # test2 and test5, one call
