@@ -46,12 +46,13 @@ paper's result over several days, 400 nm static and 100 nm adaptive.
 
 The accuracy bars are over the full days 1-6; day 0 is printed beside them: it holds the start-up and
 the bias tracker's cold start (its first residual weighs one 30 s step, ``BiasTracker.first_dt_s``), with
-Monday morning still in the weekend setback. What the refit is (seed 1, measured): still linear in
-T1..T4, now over the week's range, it spreads the bending's curvature over that range (residual RMS
+Monday morning still in the weekend setback. What the refit is (seeds 1 and 3, measured): still linear
+in T1..T4, now over the week's range, it spreads the bending's curvature over that range (residual RMS
 ~210 nm on its training data, worst full day of week 2 ~115 nm); the curvature swamps the
 calibration's geometric nonlinearity (x², x³: ~19 nm mean at the 7 points), which stepwise then leaves
-out (order 1), and a bias tracker, one offset for every position, cannot remove that per-point error, which is most
-of why the refit with the tracker stays ~20-45 nm a day where ``train`` with the tracker is ~10 nm.
+out (order 1), and a bias tracker, one offset for every position, cannot remove that per-point error,
+which is most of why the refit with the tracker stays ~20-57 nm a day (close to its bar) where
+``train`` with it is ~5-25 nm.
 """
 
 from __future__ import annotations
@@ -415,7 +416,7 @@ def main() -> int:
     results = {run.name: scores(run) for run in runs}
     print("ISO 9283 accuracy per day, nm (mean over the 7 points of |the day's mean error|) against the TRUE position "
           "(truth) and the interferometer (interf.); rows = settled targets scored")
-    print("day  weekday " + "".join(f"| {t:^21}" for t in titles) + "| RSS MB of the week 2 runs")
+    print("day  weekday " + "".join(f"| {t:^21}" for t in titles) + "| RSS MB, week 2 runs in this order")
     print("             " + "|  truth interf. rows  " * len(runs) + "|")
     weekdays = ("Mon", "Tue", "Wed", "Thu", "Fri", "Sat", "Sun")
     for day in range(DAYS):
@@ -429,7 +430,8 @@ def main() -> int:
         rss = " / ".join(f"{r.rss_mb[day]:.1f}" if day < len(r.rss_mb) else "-" for r in week2)
         label = f"{day}{'*' if day == 0 else ' '}"
         print(f"{label:4} {weekdays[day]:8}" + "".join(cells) + f"| {rss}")
-    print(f"* day 0 from the first served target: {week1.day0_hours:.1f} h of the day in week 1 (the daemon's "
+    day0_hours = " / ".join(f"{run.day0_hours:.1f}" for run in runs)
+    print(f"* day 0 from the first served target: {day0_hours} h of the day in these runs (the daemon's "
           "start-up is hours of cell time), with the bias tracker's cold start: it gives its first residual the "
           "weight of one 30 s step (BiasTracker first_dt_s), so the first targets, in the weekend setback, carry "
           "the static error; the bars below are over the full days 1-6, day 0 beside them\n")
