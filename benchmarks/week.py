@@ -1,15 +1,32 @@
-"""A simulated week served by ``nanodrift run``: static model versus adaptive, per day, against the TRUE position.
+"""Two simulated weeks served by ``nanodrift run``, as a lab runs them: serve, record, refit, serve again.
 
     nice python benchmarks/week.py [--speed 10000] [--period-s 1200] [--seed 1]
 
-The model: 24 ``train`` cycles of the vectorised simulator (``simulate_dataset``) fitted by ``fit``, as
-``benchmarks/adaptation.py`` calibrates. Then, twice (``[adapt] mode = "off"``, then ``"bias"``), a real
-``python -m daemon.cli run`` subprocess serves the simulated cell (``[simulation] scenario = "week"``:
-±1 °C day/night, HVAC steps, a weekend setback, door openings) on a clock ``--speed`` times faster than the
-wall clock, with T1..T4, the interferometer (the ``role = "position"`` sensor: the health unit, the bias
-tracker and the recorder read it) and ``[health] record_dir``. A client-mode Zenoh session on 127.0.0.1
-sends the ISO 9283 points (0..480 µm by 80, up and down sweeps) one every ``--period-s`` of cell time
-all week, and counts the answers and refusals.
+What a lab does with the paper's calibration, which saw T4 21.55-22.0 °C while a week's air spans
+20.3-23.0 °C (day/night, HVAC, the weekend setback):
+
+1. ``train``: ``nanodrift fit calibration.csv``, the calibration being 24 ``train`` cycles of the vectorised
+   simulator (``simulate_dataset``, seed 0), as ``benchmarks/adaptation.py`` calibrates.
+2. Week 1 (cell seed ``--seed``): ``train`` served statically (``[adapt] mode = "off"``), recording every
+   settled target with every polled channel (``[health] record_dir``). This is also the "paper's
+   calibration only" line, printed beside the follow-up paper's 400 nm static over days (no bar): the
+   bracket's bending (-0.4 µm/°C²) is invisible inside the calibration's range, and a model linear in
+   T1..T4 cannot follow it outside (the paper's test 5, for days).
+3. ``refit``: ``nanodrift fit calibration.csv records/*.csv`` (week 1's seven day files, each a run of its
+   own), in a subprocess as the lab runs it; its terms and training ranges are printed.
+4. Week 2 (seed ``--seed`` + 1: the same weekly pattern, new noise, fluctuations and door dips), three
+   runs: ``refit`` static (the static bar, <= 200 nm), ``train`` with the bias tracker (``mode = "bias"``:
+   the follow-up's case, the paper's method plus the tracker, which the 100 nm anchor measured) and
+   ``refit`` with the tracker (what the lab would run after refitting). The adaptive bar (<= 60 nm)
+   applies to both adaptive runs. RSS growth (< 10 MB) and the seven day files with every polled
+   channel are checked on week 2's runs.
+
+Each run is a real ``python -m daemon.cli run`` subprocess serving the simulated cell (``[simulation]
+scenario = "week"``: ±1 °C day/night, HVAC steps, a weekend setback, door openings) on a clock ``--speed``
+times faster than the wall clock, with T1..T4, the interferometer (the ``role = "position"`` sensor: the
+health unit, the bias tracker and the recorder read it) and ``[health] record_dir``. A client-mode Zenoh
+session on 127.0.0.1 sends the ISO 9283 points (0..480 µm by 80, up and down sweeps) one every
+``--period-s`` of cell time all week, and counts the answers and refusals.
 
 A "day" is the simulated lab's: the scaled clock starts at the last UTC midnight together with the
 scenario (Monday 00:00), and the recorder labels its rows with that clock, so day k of the scenario is
@@ -27,12 +44,17 @@ The figure is ISO 9283 accuracy as in Table I: per point |mean error over the da
 the 7 points. Daemon RSS is read from /proc/<pid>/status at the end of each day. Anchor: the follow-up
 paper's result over several days, 400 nm static and 100 nm adaptive.
 
-The accuracy bars (static <= 200 nm, adaptive <= 60 nm) are over the full days 1-6; day 0 is printed
-beside them: it holds the start-up and the bias tracker's cold start (its first residual weighs one 30 s
-step, ``BiasTracker.first_dt_s``), with Monday morning still in the weekend setback. The static model
-is calibrated on T4 21.55-22.0 °C; the week's air spans 20.3-23.0 °C, where the bracket's bending
-(-0.4 µm/°C², invisible inside the training range) is what a model linear in T1..T4 cannot follow
-(the paper's test 5, for days).
+The accuracy bars are over the full days 1-6; day 0 is printed beside them: it holds the start-up and
+the bias tracker's cold start (its first residual weighs one 30 s step, ``BiasTracker.first_dt_s``), with
+Monday morning still in the weekend setback. What the refit is (seeds 1 and 3, measured): still linear
+in T1..T4, now over the week's range, it spreads the bending's curvature over that range (residual RMS
+~210 nm on its training data, worst full day of week 2 ~115 nm); the curvature swamps the
+calibration's geometric nonlinearity (x², x³: ~19 nm mean at the 7 points), which stepwise then leaves
+out (order 1), and a bias tracker, one offset for every position, cannot remove that per-point error,
+which is most of why the refit with the tracker stays ~20-57 nm a day (close to its bar) where
+``train`` with it is ~5-25 nm. The runs are paced by the wall clock (the start-up's length, the
+machine's load), so two runs of one seed differ in their rows, and with them in the channels the refit
+selects (T1..T4 are nearly collinear over a week: T1-T4 once, T1-T3 in another run of seed 1).
 """
 
 from __future__ import annotations
@@ -60,9 +82,8 @@ import zenoh
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from anywhere, never tests/drivers
 
+from daemon.calibration.dataset import write_csv
 from daemon.calibration.plans import VALIDATION_POINTS_UM
-from daemon.model.identify import fit
-from daemon.model.model import save_model
 from daemon.service.recorder import RECORD_COLUMNS
 from drivers.simulated.datasets import simulate_dataset
 
@@ -168,7 +189,11 @@ class WeekClient:
 
 @dataclass
 class Run:
-    mode: str
+    name: str
+    mode: str  # [adapt] mode: off (static) or bias
+    model: Path
+    seed: int
+    run_dir: Path
     rows: list[dict[str, float]] = field(default_factory=list)  # valid rows, with "true_x_um" added
     invalid_rows: int = 0
     unmatched_rows: int = 0
@@ -193,8 +218,9 @@ def wait_for(predicate: Callable[[], T | None], timeout_s: float, what: str) -> 
     raise SystemExit(f"timed out after {timeout_s:g} s waiting for {what}")
 
 
-def serve_week(mode: str, model: Path, root: Path, *, speed: float, period_s: float, seed: int) -> Run:
-    run_dir = root / mode
+def serve_week(name: str, mode: str, model: Path, root: Path, *, speed: float, period_s: float, seed: int) -> Run:
+    """One week of ``nanodrift run`` (``[adapt] mode``) with ``model`` on the ``week`` cell of ``seed``, scored."""
+    run_dir = root / name
     run_dir.mkdir()
     port = free_port()
     config = run_dir / "week.toml"
@@ -205,7 +231,7 @@ def serve_week(mode: str, model: Path, root: Path, *, speed: float, period_s: fl
     with open(log, "wb") as log_file:
         daemon = subprocess.Popen([sys.executable, "-m", "daemon.cli", "run", "--config", str(config)],
                                   stdout=subprocess.DEVNULL, stderr=log_file, cwd=REPO, env=env)
-    run = Run(mode)
+    run = Run(name, mode, model, seed, run_dir)
     client: WeekClient | None = None
     try:
         wait_for(lambda: daemon.poll() is not None or '"serving"' in log.read_text(errors="replace"), 60,
@@ -318,49 +344,99 @@ def per_day(run: Run) -> dict[int, list[dict[str, float]]]:
     return days
 
 
+def nanodrift_fit(data: list[Path], out: Path) -> str:
+    """``nanodrift fit DATA... --out OUT`` in a subprocess, as the lab runs it; its summary (terms, ranges)."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+    done = subprocess.run([sys.executable, "-m", "daemon.cli", "fit", *map(str, data), "--out", str(out)],
+                          capture_output=True, text=True, cwd=REPO, env=env, check=False)
+    if done.returncode != 0:
+        raise SystemExit(f"nanodrift fit failed ({done.returncode}):\n{done.stderr}")
+    return done.stdout.strip()
+
+
+def record_files(run: Run) -> list[Path]:
+    return sorted((run.run_dir / "records").glob("records-*.csv"))
+
+
+def indent(text: str) -> str:
+    return "\n".join("    " + line for line in text.splitlines())
+
+
+@dataclass
+class Scores:
+    """A run's per-day accuracy against the truth and the interferometer, and its worst full day."""
+
+    by_day: dict[int, tuple[float, float, int]]  # day -> (truth nm, interferometer nm, rows)
+    worst_full_day_nm: float  # against the truth, over days 1-6
+    day0_nm: float
+
+
+def scores(run: Run) -> Scores:
+    by_day: dict[int, tuple[float, float, int]] = {}
+    for day, rows in per_day(run).items():
+        by_day[day] = (day_accuracy_nm(rows, "true_x_um"), day_accuracy_nm(rows, "x_um"), len(rows))
+    full = [by_day[d][0] for d in range(1, DAYS) if d in by_day]
+    worst = max(full) if len(full) == DAYS - 1 else float("inf")  # a full day without a row fails the bar
+    return Scores(by_day, worst, by_day[0][0] if 0 in by_day else float("nan"))
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--speed", type=float, default=10_000.0, help="cell seconds per wall second")
     parser.add_argument("--period-s", type=float, default=1200.0, help="a target every this many cell seconds")
-    parser.add_argument("--seed", type=int, default=1, help="the simulated cell's seed (the calibration's: 0)")
+    parser.add_argument("--seed", type=int, default=1,
+                        help="week 1's cell seed; week 2's is seed + 1 (the calibration's: 0)")
     args = parser.parse_args()
     wall0 = time.perf_counter()
     root = Path(tempfile.mkdtemp(prefix="nanodrift-week-"))
-    model_path = root / "model.json"
-    save_model(fit(simulate_dataset("train", cycles=24, seed=0)).model, model_path)
-    print(f"A simulated week (scenario week, seed {args.seed}) served by `nanodrift run` at speed {args.speed:g}: "
-          f"a target every {args.period_s:g} cell s (ISO 9283 points 0..480 by 80), settle {SETTLE_S:g} s + "
-          f"window {WINDOW_S:g} s, sensors every {INTERVAL_S:g} s (max_age_s {MAX_AGE_S:g}); model: 24 train "
-          f"cycles + fit; files in {root}\n")
-    runs = {mode: serve_week(mode, model_path, root, speed=args.speed, period_s=args.period_s, seed=args.seed)
-            for mode in ("off", "bias")}
-    names = {"off": "static", "bias": "adaptive"}
-    days = {mode: per_day(run) for mode, run in runs.items()}
-    print("ISO 9283 accuracy per day, nm (mean over the 7 points of |day's mean error|); rows = settled targets")
-    print("day  weekday     static: truth  interf.  rows   adaptive: truth  interf.  rows   RSS MB static / adaptive")
+    calibration = root / "calibration.csv"
+    write_csv(simulate_dataset("train", cycles=24, seed=0), calibration)
+    train_model, refit_model = root / "train.json", root / "refit.json"
+    train_summary = nanodrift_fit([calibration], train_model)
+    serve = {"speed": args.speed, "period_s": args.period_s}
+    print(f"Two simulated weeks (scenario week) served by `nanodrift run` at speed {args.speed:g}: a target every "
+          f"{args.period_s:g} cell s (ISO 9283 points 0..480 by 80), settle {SETTLE_S:g} s + window {WINDOW_S:g} s, "
+          f"sensors every {INTERVAL_S:g} s (max_age_s {MAX_AGE_S:g}); files in {root}\n")
+    print(f"Model 'train': `nanodrift fit calibration.csv` (24 train cycles of the simulator, seed 0):\n"
+          f"{indent(train_summary)}\n")
+
+    week1 = serve_week("week1-static-train", "off", train_model, root, seed=args.seed, **serve)
+    week1_files = record_files(week1)
+    refit_summary = nanodrift_fit([calibration, *week1_files], refit_model)
+    recorded = len(week1.rows) + week1.invalid_rows + week1.unmatched_rows
+    print(f"Model 'refit': `nanodrift fit calibration.csv <week 1's {len(week1_files)} record files>` "
+          f"(week 1: seed {args.seed}, served statically with 'train'; {recorded} "
+          f"rows recorded, {week1.invalid_rows} with valid = 0 that fit leaves out):\n{indent(refit_summary)}\n")
+
+    week2_seed = args.seed + 1
+    week2 = [serve_week("week2-static-refit", "off", refit_model, root, seed=week2_seed, **serve),
+             serve_week("week2-adaptive-train", "bias", train_model, root, seed=week2_seed, **serve),
+             serve_week("week2-adaptive-refit", "bias", refit_model, root, seed=week2_seed, **serve)]
+    runs = [week1, *week2]
+    titles = [f"wk1 static {week1.model.stem}", *(f"wk2 {'static' if r.mode == 'off' else 'adaptive'} {r.model.stem}"
+                                                   for r in week2)]
+    results = {run.name: scores(run) for run in runs}
+    print("ISO 9283 accuracy per day, nm (mean over the 7 points of |the day's mean error|) against the TRUE position "
+          "(truth) and the interferometer (interf.); rows = settled targets scored")
+    print("day  weekday " + "".join(f"| {t:^21}" for t in titles) + "| RSS MB, week 2 runs in this order")
+    print("             " + "|  truth interf. rows  " * len(runs) + "|")
     weekdays = ("Mon", "Tue", "Wed", "Thu", "Fri", "Sat", "Sun")
-    worst = {"off": 0.0, "bias": 0.0}  # over the full days (1-6)
-    day0 = {"off": float("nan"), "bias": float("nan")}
     for day in range(DAYS):
         cells = []
-        for mode in ("off", "bias"):
-            rows = days[mode].get(day, [])
-            if rows:
-                truth_nm, interf_nm = day_accuracy_nm(rows, "true_x_um"), day_accuracy_nm(rows, "x_um")
-                if day == 0:
-                    day0[mode] = truth_nm
-                else:
-                    worst[mode] = max(worst[mode], truth_nm)
-                cells.append(f"{truth_nm:13.1f} {interf_nm:8.1f} {len(rows):5d}")
+        for run in runs:
+            if day in results[run.name].by_day:
+                truth_nm, interf_nm, rows = results[run.name].by_day[day]
+                cells.append(f"| {truth_nm:6.1f} {interf_nm:7.1f} {rows:4d}  ")
             else:
-                cells.append(f"{'-':>13} {'-':>8} {0:5d}")
-        rss = [runs[m].rss_mb[day] if day < len(runs[m].rss_mb) else float("nan") for m in ("off", "bias")]
+                cells.append(f"| {'-':>6} {'-':>7} {0:4d}  ")
+        rss = " / ".join(f"{r.rss_mb[day]:.1f}" if day < len(r.rss_mb) else "-" for r in week2)
         label = f"{day}{'*' if day == 0 else ' '}"
-        print(f"{label:4} {weekdays[day]:8} {cells[0]}          {cells[1]}   {rss[0]:7.1f} / {rss[1]:6.1f}")
-    print(f"* day 0 from the first served target: {runs['off'].day0_hours:.1f} h of the day (the daemon's start-up "
-          "is hours of cell time), with the bias tracker's cold start: it gives its first residual the weight of one "
-          "30 s step (BiasTracker first_dt_s), so the first targets, in the weekend setback, carry the static error; "
-          "the bars below are over the full days 1-6, day 0 beside them\n")
+        print(f"{label:4} {weekdays[day]:8}" + "".join(cells) + f"| {rss}")
+    day0_hours = " / ".join(f"{run.day0_hours:.1f}" for run in runs)
+    print(f"* day 0 from the first served target: {day0_hours} h of the day in these runs (the daemon's "
+          "start-up is hours of cell time), with the bias tracker's cold start: it gives its first residual the "
+          "weight of one 30 s step (BiasTracker first_dt_s), so the first targets, in the weekend setback, carry "
+          "the static error; the bars below are over the full days 1-6, day 0 beside them\n")
     ok = True
 
     def check(passed: bool, text: str) -> None:
@@ -368,28 +444,36 @@ def main() -> int:
         ok &= passed
         print(f"{'PASS' if passed else 'FAIL'}  {text}")
 
-    check(worst["off"] <= GOAL_STATIC_NM, f"static worst full day against the truth {worst['off']:.1f} nm <= "
-          f"{GOAL_STATIC_NM:g} nm (day 0: {day0['off']:.1f} nm)   anchor: the follow-up's {ANCHOR_STATIC_NM:g} nm "
-          "static over days")
-    check(worst["bias"] <= GOAL_ADAPTIVE_NM, f"adaptive worst full day against the truth {worst['bias']:.1f} nm <= "
-          f"{GOAL_ADAPTIVE_NM:g} nm (day 0: {day0['bias']:.1f} nm)   anchor: the follow-up's "
-          f"{ANCHOR_ADAPTIVE_NM:g} nm adaptive over days")
-    for mode, run in runs.items():
-        name = names[mode]
+    first = results[week1.name]
+    print(f"INFO  week 1 static, the paper's calibration only ('train'): worst full day against the truth "
+          f"{first.worst_full_day_nm:.1f} nm (day 0: {first.day0_nm:.1f} nm)   anchor: the follow-up's "
+          f"{ANCHOR_STATIC_NM:g} nm static over days (no bar: the model has not seen the room's range)")
+    for run in week2:
+        result = results[run.name]
+        static = run.mode == "off"
+        goal, anchor = (GOAL_STATIC_NM, ANCHOR_STATIC_NM) if static else (GOAL_ADAPTIVE_NM, ANCHOR_ADAPTIVE_NM)
+        kind = "static" if static else "adaptive (bias tracker)"
+        check(result.worst_full_day_nm <= goal,
+              f"week 2 {kind}, model '{run.model.stem}': worst full day against the truth "
+              f"{result.worst_full_day_nm:.1f} nm <= {goal:g} nm (day 0: {result.day0_nm:.1f} nm)   anchor: the "
+              f"follow-up's {anchor:g} nm {'static' if static else 'adaptive'} over days")
+    for run in week2:
         growth = run.rss_mb[-1] - run.rss_mb[0] if len(run.rss_mb) >= 2 else float("nan")
-        check(growth < GOAL_RSS_MB, f"{name}: daemon RSS growth from the end of day 0 to the end of the week "
+        check(growth < GOAL_RSS_MB, f"{run.name}: daemon RSS growth from the end of day 0 to the end of the week "
               f"{growth:+.1f} MB < {GOAL_RSS_MB:g} MB ({run.rss_mb[0]:.1f} -> {run.rss_mb[-1]:.1f} MB)")
         expected = [*RECORD_COLUMNS, *CHANNELS]
-        complete = [name_ for name_, header in run.files if all(c in header for c in expected)]
+        complete = [name for name, header in run.files if all(c in header for c in expected)]
         check(len(run.files) == DAYS and len(complete) == DAYS,
-              f"{name}: {len(run.files)} record files (one per day), {len(complete)} with every polled channel "
+              f"{run.name}: {len(run.files)} record files (one per day), {len(complete)} with every polled channel "
               f"({', '.join(CHANNELS)}): {', '.join(n for n, _ in run.files)}")
+    for run in runs:
         refused = sum(run.refusals.values())
         check(refused == 0 and run.commands == run.sent,
-              f"{name}: {run.sent} targets sent, {run.commands} commands, {refused} refused "
+              f"{run.name}: {run.sent} targets sent, {run.commands} commands, {refused} refused "
               f"{run.refusals or ''} {run.first_refusal}")
-        print(f"      {name}: {len(run.rows)} valid rows scored, {run.invalid_rows} invalid (valid = 0), "
-              f"{run.unmatched_rows} whose readings were not found in the truth log; run {run.wall_s:.0f} s wall")
+        print(f"      {run.name} (seed {run.seed}): {len(run.rows)} valid rows scored, {run.invalid_rows} invalid "
+              f"(valid = 0), {run.unmatched_rows} whose readings were not found in the truth log; "
+              f"run {run.wall_s:.0f} s wall")
     print(f"\n{time.perf_counter() - wall0:.0f} s wall")
     return 0 if ok else 1
 
