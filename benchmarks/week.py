@@ -344,10 +344,10 @@ def per_day(run: Run) -> dict[int, list[dict[str, float]]]:
     return days
 
 
-def nanodrift_fit(data: list[Path], out: Path, *options: str) -> str:
+def nanodrift_fit(data: list[Path], out: Path) -> str:
     """``nanodrift fit DATA... --out OUT`` in a subprocess, as the lab runs it; its summary (terms, ranges)."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
-    done = subprocess.run([sys.executable, "-m", "daemon.cli", "fit", *map(str, data), "--out", str(out), *options],
+    done = subprocess.run([sys.executable, "-m", "daemon.cli", "fit", *map(str, data), "--out", str(out)],
                           capture_output=True, text=True, cwd=REPO, env=env, check=False)
     if done.returncode != 0:
         raise SystemExit(f"nanodrift fit failed ({done.returncode}):\n{done.stderr}")
@@ -402,13 +402,9 @@ def main() -> int:
 
     week1 = serve_week("week1-static-train", "off", train_model, root, seed=args.seed, **serve)
     week1_files = record_files(week1)
-    # the refit keeps the calibration's geometric order: over a week the records' thermal spread (~200 nm a
-    # model linear in T cannot follow) hides the x^2, x^3 terms from the held-out choice of the order, and a
-    # bias tracker cannot put a per-position error back (`fit --order N`, as the README's refit section says)
-    order = json.loads(train_model.read_text())["selection"]["order"]
-    refit_summary = nanodrift_fit([calibration, *week1_files], refit_model, "--order", str(order))
+    refit_summary = nanodrift_fit([calibration, *week1_files], refit_model)
     recorded = len(week1.rows) + week1.invalid_rows + week1.unmatched_rows
-    print(f"Model 'refit': `nanodrift fit calibration.csv <week 1's {len(week1_files)} record files> --order {order}` "
+    print(f"Model 'refit': `nanodrift fit calibration.csv <week 1's {len(week1_files)} record files>` "
           f"(week 1: seed {args.seed}, served statically with 'train'; {recorded} "
           f"rows recorded, {week1.invalid_rows} with valid = 0 that fit leaves out):\n{indent(refit_summary)}\n")
 
