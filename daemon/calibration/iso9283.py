@@ -52,6 +52,8 @@ class TestResult:
     #: ... and the model's standard uncertainty for its command
     q_sigma_um: list[float] = field(default_factory=list)
     adapted: bool = False
+    #: the model's ``wander_um``: what the position sensor adds to a measured error beside q_sigma
+    measurement_sigma_um: float = 0.0
 
     @property
     def accuracy_nm(self) -> float:
@@ -66,11 +68,38 @@ class TestResult:
     def improvement(self) -> float:
         return self.accuracy_without_nm / self.accuracy_nm if self.compensated else float("nan")
 
+    @property
+    def has_truth(self) -> bool:
+        """Whether every valid step knows the true attained position (a simulated cell)."""
+        valid = [s for s in self.steps if s.valid]
+        return bool(valid) and all(np.isfinite(s.x_true_um) for s in valid)
+
+    @property
+    def accuracy_true_nm(self) -> float:
+        """Table I's "with comp." against the true position (nan on hardware or without the model)."""
+        if not (self.compensated and self.has_truth):
+            return float("nan")
+        valid = [s for s in self.steps if s.valid]
+        targets = sorted({s.step.target_um for s in valid})
+        return float(np.mean([iso9283(np.array([s.x_true_um for s in valid if s.step.target_um == x]), x)[0]
+                              for x in targets])) * 1e3
+
     def coverage(self, k: float = 2.0) -> float:
-        """Share of valid steps whose error (position - target) lies within ±k q_sigma_um (nan without sigmas)."""
-        inside = [abs(s.x_um - s.step.target_um) <= k * sigma
+        """Share of valid steps whose measured error (position - target) lies within ±k σ (nan without sigmas).
+
+        σ = sqrt(q_sigma² + measurement_sigma²): the measured error carries the sensor's wander besides
+        the true error q_sigma is for."""
+        m2 = self.measurement_sigma_um ** 2
+        inside = [abs(s.x_um - s.step.target_um) <= k * float(np.sqrt(sigma * sigma + m2))
                   for s, sigma in zip(self.steps, self.q_sigma_um, strict=False)
                   if s.valid and np.isfinite(sigma)]
+        return float(np.mean(inside)) if inside else float("nan")
+
+    def coverage_true(self, k: float = 2.0) -> float:
+        """Share of valid steps whose TRUE error (true position - target) lies within ±k q_sigma (nan: no truth)."""
+        inside = [abs(s.x_true_um - s.step.target_um) <= k * sigma
+                  for s, sigma in zip(self.steps, self.q_sigma_um, strict=False)
+                  if s.valid and np.isfinite(sigma) and np.isfinite(s.x_true_um)]
         return float(np.mean(inside)) if inside else float("nan")
 
     def to_dict(self) -> dict[str, Any]:
@@ -91,6 +120,8 @@ class TestResult:
             "final_correction_um": num(self.corrections_um[-1]) if self.adapted and self.corrections_um else None,
             "q_sigma_median_nm": num(float(np.median(self.q_sigma_um)) * 1e3) if self.q_sigma_um else None,
             "within_2_sigma": num(self.coverage()),
+            **({"with_comp_true_nm": num(self.accuracy_true_nm), "within_2_sigma_true": num(self.coverage_true())}
+               if self.has_truth and self.compensated else {}),
             "points": [
                 {"x_um": p.target_um, "visits": p.visits,
                  "accuracy_nm": num(p.accuracy_nm) if self.compensated else None,

@@ -92,5 +92,7 @@ async def run_validation(
         result.corrections_um = corrections
         result.q_sigma_um = sigmas
         result.adapted = adapt is not None
+        wander = model.covariance.wander_um if model.covariance is not None else None
+        result.measurement_sigma_um = wander or 0.0
     return result
 

@@ -43,6 +43,9 @@ class SimulatedCell:
         self._noise_rng = np.random.default_rng([physics.seed, 3])
         self._last_ok: dict[str, Reading] = {}
         self._offsets = dict(physics.params.offsets_c)
+        #: the true attained position behind the last interferometer reading (nan before one):
+        #: what a validation on the simulated cell is scored against besides the interferometer
+        self.last_true_position_um = math.nan
 
     def sim_time(self) -> float:
         return self.clock.now() - self.epoch
@@ -92,7 +95,8 @@ class SimulatedCell:
                 continue
             noise = float(self._noise_rng.standard_normal())
             if name == POSITION_CHANNEL:
-                value = self.physics.measure_position1(t, self.physics.attained_now(t, self.state), noise)
+                self.last_true_position_um = self.physics.attained_now(t, self.state)
+                value = self.physics.measure_position1(t, self.last_true_position_um, noise)
             else:
                 node = THERMOCOUPLES.get(name) or TRUTH_CHANNELS[name]
                 value = self.physics.measure_temperature1(thermal[node] + offsets.get(name, 0.0), noise)
