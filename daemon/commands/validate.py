@@ -20,7 +20,7 @@ from daemon.commands._cell import add_config_flag, add_output_check_flag, add_si
 from daemon.errors import UserError
 from daemon.model.model import ModelFileError, load_model
 from daemon.procedure.validation import run_validation
-from daemon.reports.validation import table1, write_report
+from daemon.reports.validation import coverage_lines, table1, write_report
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -71,6 +71,11 @@ def main(args: argparse.Namespace) -> int:
     text = table1([result])
     doc: dict[str, Any] = {"model": model.id, "backend": drivers.description, "cycles": args.cycles,
                            **result.to_dict()}
+    coverage_text, coverage_warning = coverage_lines(result)
+    if coverage_text:
+        doc["coverage_warning"] = coverage_warning
+    if coverage_warning:
+        print(f"warning: {coverage_warning}", file=sys.stderr)
     if tracker is not None:
         doc["adapt"] = {"mode": "bias", "tau_s": tracker.tau_s, "max_um": tracker.max_um}
     if args.report:
@@ -83,9 +88,8 @@ def main(args: argparse.Namespace) -> int:
         if tracker is not None:
             print(f"\nadaptation: bias tracker (tau_s {tracker.tau_s:g} s, max {tracker.max_um:g} um), "
                   f"{tracker.updates} settled residuals, final correction {tracker.correction_um * 1e3:+.0f} nm")
-        if compensate and result.q_sigma_um:
-            print(f"uncertainty: {result.coverage() * 100:.0f} % of the steps within ±2 q_sigma "
-                  f"(median q_sigma {np.median(result.q_sigma_um) * 1e3:.0f} nm)")
+        for line in coverage_text:
+            print(line)
         print(f"\nper point ({'with compensation' if compensate else 'without compensation'}):")
         for p in result.points:
             acc, rep = (p.accuracy_nm, p.repeatability_nm) if compensate else (p.accuracy_without_nm,

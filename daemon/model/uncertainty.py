@@ -410,7 +410,7 @@ def estimate(X: np.ndarray, y: np.ndarray, t_s: np.ndarray, run_slices: Sequence
         lo, hi = float(mean.min()), float(mean.max())
         if hi > lo and y.shape[0] > k + 2:
             B, bounds = np.column_stack([A, (mean - 0.5 * (lo + hi)) ** 2]), (lo, hi)
-    noise = fit_noise(A, y, t_s, run_slices)
+    noise = fit_noise(B, y, t_s, run_slices)
     cov = sandwich(A, t_s, run_slices, noise)
     curvature = None
     if bounds is not None:  # κ: the standard error of a quadratic term in T̄ fitted beside the model's

@@ -22,6 +22,8 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from daemon.atomic import atomic_write_text, atomic_writer
 from daemon.calibration.iso9283 import TestResult, x_without
 
@@ -70,6 +72,40 @@ def table1(results: Sequence[TestResult], paper: Mapping[str, tuple[float, float
         lines.append(line)
     lines.append("* from calculation, not measurement: x_without = x_measured - (q' - x') over the same period.")
     return "\n".join(lines)
+
+
+#: the share of errors within ±2 σ a calibrated q_sigma keeps (95 % for a normal error; 90-98 % allowed)
+COVERAGE_GOAL = (0.90, 0.98)
+
+
+def coverage_lines(result: TestResult) -> tuple[list[str], str | None]:
+    """What ``validate`` says about q_sigma (and the truth, on a simulated cell), and a warning if miscalibrated.
+
+    The coverage judged is the truth's when the cell knows it, else the interferometer's (whose
+    errors carry its wander too, so they are judged against sqrt(q_sigma² + wander²)).
+    """
+    if not (result.compensated and result.q_sigma_um):
+        return [], None
+    median_nm = float(np.median(result.q_sigma_um)) * 1e3
+    measured = result.coverage()
+    wander = (f"; the interferometer's wander, {result.measurement_sigma_um * 1e3:.0f} nm, added in quadrature"
+              if result.measurement_sigma_um > 0 else "")
+    lines = [f"uncertainty: {measured * 100:.0f} % of the steps' measured errors (position - target) lie within "
+             f"±2 q_sigma (median q_sigma {median_nm:.0f} nm{wander}); a calibrated q_sigma keeps 90-98 %"]
+    judged, what = measured, "measured errors"
+    if result.has_truth:
+        judged, what = result.coverage_true(), "true errors"
+        lines.append(f"against the true position (simulated cell): accuracy {_nm(result.accuracy_true_nm)} with "
+                     f"compensation (interferometer: {_nm(result.accuracy_nm)}); {judged * 100:.0f} % of the true "
+                     "errors (true position - target) within ±2 q_sigma")
+    lo, hi = COVERAGE_GOAL
+    if not math.isfinite(judged) or lo <= judged <= hi:
+        return lines, None
+    side = ("understates the error (the run left the model more wrong than its calibration showed)"
+            if judged < lo else "overstates the error (the commands are better than the model claims)")
+    return lines, (f"q_sigma is not calibrated on this run: {judged * 100:.0f} % of the {what} within ±2 q_sigma "
+                   f"(expected {lo * 100:.0f}-{hi * 100:.0f} % over {sum(s.valid for s in result.steps)} steps); "
+                   f"it {side}")
 
 
 def results_json(results: Sequence[TestResult], **extra: Any) -> dict[str, Any]:
