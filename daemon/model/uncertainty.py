@@ -324,20 +324,25 @@ def _whitened_gram(M: np.ndarray, decay: np.ndarray, share: np.ndarray) -> tuple
     return gram, logdet
 
 
-def fit_noise(A: np.ndarray, y: np.ndarray, t_s: np.ndarray, run_slices: Sequence[slice]) -> Noise:
-    """White noise plus wander for the residual of y on A, by restricted maximum likelihood (REML).
+def fit_noise(A: np.ndarray, y: np.ndarray, t_s: np.ndarray, run_slices: Sequence[slice]) -> list[tuple[float, Noise]]:
+    """Noise models (white plus wander) for the residual of y on A, each with its weight: REML's posterior.
 
-    REML judges a noise model on what the regression leaves, accounting for what it absorbed: a
-    wander slow enough to look like the temperatures is partly fitted away, so the residual alone
-    (its RMS, its lag-1 autocorrelation) understates it. The grid spans the share of the variance
-    that wanders (0..99.5 %) and τ from half a row spacing to 400 of them; the best model is kept.
+    REML (restricted maximum likelihood) judges a noise model on what the regression leaves,
+    accounting for what it absorbed: a wander slow enough to look like the temperatures is partly
+    fitted away, so the residual alone (its RMS, its lag-1 autocorrelation) understates it. A few
+    hours of calibration cannot pin a wander's time constant (the likelihood is flat over a factor
+    of ten in τ, and a short τ makes the bias look better known than a long one), so every model on
+    the grid is kept with its likelihood as weight (the posterior under a flat prior in the wander's
+    share and in log τ) rather than betting on the best one. The grid spans the share of the
+    variance that wanders (0..99.5 %) and τ from half a row spacing to 400 of them. The weights sum
+    to 1; models under 0.1 % of the best one's weight are dropped.
     """
     n = y.shape[0]
     basis, _ = np.linalg.qr(A)  # the same column space, well conditioned: REML depends on nothing else
     p = basis.shape[1]
     if n <= p + 2:
         r = y - basis @ (basis.T @ y)
-        return Noise(float(np.sqrt(r @ r / max(n - p, 1))), 0.0, 0.0)
+        return [(1.0, Noise(float(np.sqrt(r @ r / max(n - p, 1))), 0.0, 0.0))]
     t = np.asarray(t_s, dtype=np.float64)
     spacing = float(np.median(np.diff(t)))
     spacing = spacing if math.isfinite(spacing) and spacing > 0 else 1.0
@@ -355,10 +360,14 @@ def fit_noise(A: np.ndarray, y: np.ndarray, t_s: np.ndarray, run_slices: Sequenc
             score[k] = (n - p) * math.log(rss / (n - p)) + float(logdet[k]) + log_gram  # -2 log likelihood
             variance[k] = rss / (n - p) * y_scale * y_scale
     if not np.isfinite(score).any():
-        return Noise(0.0, 0.0, 0.0)
-    best = int(np.argmin(score))
-    return Noise(math.sqrt(variance[best] * (1.0 - share[best])), math.sqrt(variance[best] * share[best]),
-                 float(tau[best]) if share[best] > 0 else 0.0)
+        return [(1.0, Noise(0.0, 0.0, 0.0))]
+    weight = np.exp(-0.5 * (score - score.min()))
+    keep = np.flatnonzero(weight >= 1e-3)
+    total = float(weight[keep].sum())
+    return [(float(weight[k]) / total,
+             Noise(math.sqrt(variance[k] * (1.0 - share[k])), math.sqrt(variance[k] * share[k]),
+                   float(tau[k]) if share[k] > 0 else 0.0))
+            for k in keep]
 
 
 def noise_times(M: np.ndarray, t_s: np.ndarray, run_slices: Sequence[slice], noise: Noise) -> np.ndarray:
@@ -384,12 +393,16 @@ def noise_times(M: np.ndarray, t_s: np.ndarray, run_slices: Sequence[slice], noi
 
 def sandwich(A: np.ndarray, t_s: np.ndarray, run_slices: Sequence[slice], noise: Noise) -> np.ndarray:
     """The covariance of least-squares coefficients of A when the noise is ``noise``: B·AᵀΣA·B, B = (AᵀA)⁻¹."""
+    return _sandwich(A, noise_times(A, t_s, run_slices, noise))
+
+
+def _sandwich(A: np.ndarray, sigma_a: np.ndarray) -> np.ndarray:
+    """(AᵀA)⁻¹ Aᵀ(ΣA) (AᵀA)⁻¹ given ΣA, computed on unit-norm columns (x³ and a bias differ by 10⁸)."""
     scale = np.linalg.norm(A, axis=0)
     scale[scale == 0] = 1.0
     As = A / scale
     bread = np.linalg.pinv(As.T @ As)
-    meat = As.T @ noise_times(As, t_s, run_slices, noise)
-    cov = bread @ meat @ bread / np.outer(scale, scale)
+    cov = bread @ (As.T @ (sigma_a / scale)) @ bread / np.outer(scale, scale)
     return np.asarray(0.5 * (cov + cov.T))
 
 
@@ -400,7 +413,8 @@ def estimate(X: np.ndarray, y: np.ndarray, t_s: np.ndarray, run_slices: Sequence
     ``t_s`` the rows' times and ``run_slices`` the runs (the wander restarts at each); ``temperatures``
     the channels the model reads (none: no curvature part). Returns (C, s, curvature, noise): C in
     the fit's order (the columns, then the intercept), s the white part of the residual and the
-    curvature's κ, all under the noise model :func:`fit_noise` finds, which is returned too.
+    curvature's κ, averaged over the noise models :func:`fit_noise` weighs (variances averaged), and
+    that average noise. The noise is what neither the model's terms nor the curvature explain.
     """
     A = np.column_stack([X, np.ones(y.shape[0])])
     k = A.shape[1]
@@ -410,13 +424,20 @@ def estimate(X: np.ndarray, y: np.ndarray, t_s: np.ndarray, run_slices: Sequence
         lo, hi = float(mean.min()), float(mean.max())
         if hi > lo and y.shape[0] > k + 2:
             B, bounds = np.column_stack([A, (mean - 0.5 * (lo + hi)) ** 2]), (lo, hi)
-    noise = fit_noise(B, y, t_s, run_slices)
-    cov = sandwich(A, t_s, run_slices, noise)
+    cov = np.zeros((k, k))
+    white2 = wander2 = tau = var_quad = 0.0
+    for weight, noise in fit_noise(B, y, t_s, run_slices):
+        meat_b = noise_times(B, t_s, run_slices, noise)  # Σ·B once; its first k columns are Σ·A
+        cov += weight * _sandwich(A, meat_b[:, :k])
+        if bounds is not None:
+            var_quad += weight * float(_sandwich(B, meat_b)[-1, -1])
+        white2 += weight * noise.white_um**2
+        wander2 += weight * noise.wander_um**2
+        tau += weight * noise.tau_s
     curvature = None
     if bounds is not None:  # κ: the standard error of a quadratic term in T̄ fitted beside the model's
-        var_quad = float(sandwich(B, t_s, run_slices, noise)[-1, -1])
         curvature = Curvature(tuple(temperatures), bounds, math.sqrt(max(var_quad, 0.0)))
-    return cov, noise.white_um, curvature, noise
+    return cov, math.sqrt(white2), curvature, Noise(math.sqrt(white2), math.sqrt(wander2), tau)
 
 
 # --- streaming ---------------------------------------------------------------------------------

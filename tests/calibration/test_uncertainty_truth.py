@@ -32,11 +32,14 @@ def validate(model: Model, test: str, seed: int, cycles: int, effects: str | Non
                                       adapt=adapt))
 
 
-def true_inside(result: TestResult) -> tuple[int, int]:
-    """(steps whose true error lies within ±2 q_sigma, valid steps)."""
-    inside = [abs(s.x_true_um - s.step.target_um) <= 2.0 * sigma
-              for s, sigma in zip(result.steps, result.q_sigma_um, strict=True) if s.valid]
-    return sum(inside), len(inside)
+def true_inside(result: TestResult) -> tuple[int, int, float, float]:
+    """(steps whose true error lies within ±2 q_sigma, valid steps, RMS true error, median q_sigma)."""
+    pairs = [(s.x_true_um - s.step.target_um, sigma)
+             for s, sigma in zip(result.steps, result.q_sigma_um, strict=True) if s.valid]
+    errors = np.array([e for e, _ in pairs])
+    sigmas = np.array([sg for _, sg in pairs])
+    return (int(np.sum(np.abs(errors) <= 2.0 * sigmas)), len(pairs), float(np.sqrt(np.mean(errors**2))),
+            float(np.median(sigmas)))
 
 
 def test_every_validation_step_on_the_simulated_cell_knows_the_true_position() -> None:
@@ -48,27 +51,35 @@ def test_every_validation_step_on_the_simulated_cell_knows_the_true_position() -
     assert result.has_truth and np.isfinite(result.accuracy_true_nm)
 
 
-@pytest.mark.parametrize("test", ["test2", "test3"])
-def test_two_sigma_holds_most_but_not_all_true_errors_in_range(test: str) -> None:
-    """Pooled over calibrations (seeds): the true error is within ±2 q_sigma about 95 % of the time.
-
-    On main q_sigma was 2-5x too wide: every true error was inside."""
+def test_two_sigma_holds_the_true_error_in_range_without_claiming_far_more_than_it() -> None:
+    """Pooled over calibrations (seeds 0-3, test 2): ±2 q_sigma holds >= 90 % of the true errors, and
+    q_sigma is the size of those errors, not several times it (main: 88 nm for a 41 nm error)."""
     inside = steps = 0
+    square_errors, sigmas = [], []
     for seed in range(4):
-        i, n = true_inside(validate(trained_model(seed), test, seed=100 * seed + int(test[-1]), cycles=6))
+        i, n, rms_um, sigma_um = true_inside(validate(trained_model(seed), "test2", seed=100 * seed + 2, cycles=6))
         inside, steps = inside + i, steps + n
-    assert 0.85 <= inside / steps <= 0.99, (inside, steps)
+        square_errors.append(rms_um**2)
+        sigmas.append(sigma_um)
+    assert inside / steps >= 0.90, (inside, steps)
+    ratio = float(np.median(sigmas)) / float(np.sqrt(np.mean(square_errors)))  # a run's errors share one offset:
+    assert 0.7 < ratio < 2.0, (sigmas, square_errors)  # judged over the calibrations, not per run
 
 
 def test_two_sigma_holds_the_true_error_out_of_range_and_on_a_discovery_extended_model() -> None:
-    model = trained_model(1)
-    i, n = true_inside(validate(model, "test5", seed=105, cycles=6))
-    assert i / n >= 0.85, (i, n)  # out of range: the curvature allowance must cover the bracket's bending
-    data = cell_run("creep:c=0.01,tau_s=15", seed=7)
-    extended = discover(data, paper_model(data)).model
+    i, n, _, _ = true_inside(validate(trained_model(1), "test5", seed=105, cycles=6))
+    assert i / n >= 0.90, (i, n)  # out of range: the curvature allowance covers the bracket's bending
+    effect = "creep:c=0.01,tau_s=15"
+    data = cell_run(effect, seed=5)
+    given = paper_model(data)
+    extended = discover(data, given).model
     assert extended.covariance is not None and extended.covariance.wander_um is not None
-    i, n = true_inside(validate(extended, "test2", seed=11, cycles=6, effects="creep:c=0.01,tau_s=15"))
-    assert 0.85 <= i / n <= 0.99, (i, n)
+    i, n, rms_um, sigma_um = true_inside(validate(extended, "test2", seed=11, cycles=6, effects=effect))
+    assert i / n >= 0.90 and sigma_um < 2.0 * max(rms_um, 0.010), (i, n, rms_um, sigma_um)
+    # the given model (no creep term) on the same run: its error is the creep it lacks, and its
+    # q_sigma, from a calibration whose forward sweeps hid that creep, says so by not holding it
+    i, n, _, _ = true_inside(validate(given, "test2", seed=11, cycles=6, effects=effect))
+    assert i / n < 0.5
 
 
 def test_adaptation_is_scored_against_the_truth_not_only_the_interferometer_it_follows() -> None:
