@@ -291,8 +291,8 @@ def _row_decay(t_s: np.ndarray, run_slices: Sequence[slice], tau_s: np.ndarray) 
         if part.stop > part.start:
             dt[part.start] = np.inf
     with np.errstate(invalid="ignore"):
-        out: np.ndarray = np.exp(-np.maximum(dt, 0.0)[:, None] / tau_s[None, :])
-    return np.nan_to_num(out, nan=0.0)
+        out: np.ndarray = np.nan_to_num(np.exp(-np.maximum(dt, 0.0)[:, None] / tau_s[None, :]), nan=0.0)
+    return out
 
 
 def _whitened_gram(M: np.ndarray, decay: np.ndarray, share: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -325,17 +325,18 @@ def _whitened_gram(M: np.ndarray, decay: np.ndarray, share: np.ndarray) -> tuple
 
 
 def fit_noise(A: np.ndarray, y: np.ndarray, t_s: np.ndarray, run_slices: Sequence[slice]) -> list[tuple[float, Noise]]:
-    """Noise models (white plus wander) for the residual of y on A, each with its weight: REML's posterior.
+    """Noise models (white plus wander) for the residual of y on A, each with its weight.
 
     REML (restricted maximum likelihood) judges a noise model on what the regression leaves,
     accounting for what it absorbed: a wander slow enough to look like the temperatures is partly
     fitted away, so the residual alone (its RMS, its lag-1 autocorrelation) understates it. A few
-    hours of calibration cannot pin a wander's time constant (the likelihood is flat over a factor
-    of ten in τ, and a short τ makes the bias look better known than a long one), so every model on
-    the grid is kept with its likelihood as weight (the posterior under a flat prior in the wander's
-    share and in log τ) rather than betting on the best one. The grid spans the share of the
-    variance that wanders (0..99.5 %) and τ from half a row spacing to 400 of them. The weights sum
-    to 1; models under 0.1 % of the best one's weight are dropped.
+    hours of calibration pin how the variance splits into white and wander, but hardly the wander's
+    time constant (the likelihood is flat over a factor of ten in τ, and a short τ makes the bias
+    look better known than a long one). So for each τ the split is the most likely one (profile
+    likelihood), and the τs are kept with their likelihoods as weights (a flat prior in log τ)
+    rather than betting on the best one. The grid spans the wander's share of the variance
+    (0..99.5 %) and τ from half a row spacing to 400 of them. The weights sum to 1; models under
+    0.1 % of the best one's weight are dropped.
     """
     n = y.shape[0]
     basis, _ = np.linalg.qr(A)  # the same column space, well conditioned: REML depends on nothing else
@@ -361,7 +362,13 @@ def fit_noise(A: np.ndarray, y: np.ndarray, t_s: np.ndarray, run_slices: Sequenc
             variance[k] = rss / (n - p) * y_scale * y_scale
     if not np.isfinite(score).any():
         return [(1.0, Noise(0.0, 0.0, 0.0))]
-    weight = np.exp(-0.5 * (score - score.min()))
+    # per τ the best share (profile likelihood), then every τ weighted by its likelihood
+    by_tau = score.reshape(_SHARES.size, _TAU_ROWS.size)
+    profile = np.full(score.size, np.inf)
+    best_share = np.argmin(by_tau, axis=0)
+    for j, i in enumerate(best_share):
+        profile[i * _TAU_ROWS.size + j] = by_tau[i, j]
+    weight = np.exp(-0.5 * (profile - score.min()))
     keep = np.flatnonzero(weight >= 1e-3)
     total = float(weight[keep].sum())
     return [(float(weight[k]) / total,
@@ -428,7 +435,7 @@ def estimate(X: np.ndarray, y: np.ndarray, t_s: np.ndarray, run_slices: Sequence
     white2 = wander2 = tau = var_quad = 0.0
     for weight, noise in fit_noise(B, y, t_s, run_slices):
         meat_b = noise_times(B, t_s, run_slices, noise)  # Σ·B once; its first k columns are Σ·A
-        cov += weight * _sandwich(A, meat_b[:, :k])
+        cov += weight * _sandwich(A, meat_b[:, :k])  # C and κ² averaged over the weighed models
         if bounds is not None:
             var_quad += weight * float(_sandwich(B, meat_b)[-1, -1])
         white2 += weight * noise.white_um**2

@@ -17,8 +17,8 @@ from helpers.discovery_helpers import cell_run, paper_model
 from helpers.sim_helpers import Capture, trained_model
 
 from daemon.assembly import simulated_drivers
+from daemon.calibration import iso9283
 from daemon.calibration.discovery import discover
-from daemon.calibration.iso9283 import TestResult
 from daemon.calibration.residuals import BiasTracker
 from daemon.cli import main
 from daemon.model.model import Model, save_model
@@ -26,13 +26,13 @@ from daemon.procedure.validation import run_validation
 
 
 def validate(model: Model, test: str, seed: int, cycles: int, effects: str | None = None,
-             adapt: BiasTracker | None = None) -> TestResult:
+             adapt: BiasTracker | None = None) -> iso9283.TestResult:
     drivers = simulated_drivers(test, effects, seed=seed)
     return asyncio.run(run_validation(drivers, model, name=test, cycles=cycles, progress_stream=Capture(),
                                       adapt=adapt))
 
 
-def true_inside(result: TestResult) -> tuple[int, int, float, float]:
+def true_inside(result: iso9283.TestResult) -> tuple[int, int, float, float]:
     """(steps whose true error lies within ±2 q_sigma, valid steps, RMS true error, median q_sigma)."""
     pairs = [(s.x_true_um - s.step.target_um, sigma)
              for s, sigma in zip(result.steps, result.q_sigma_um, strict=True) if s.valid]
