@@ -420,3 +420,27 @@ def test_any_mutated_covariance_block_loads_usable_or_is_refused_naming_the_file
                       channels={c: np.asarray(tr.channel_ranges[c]) for c in model.channels})
     sigma = model.q_sigma(corners)
     assert np.all(np.isfinite(sigma)) and np.all(sigma >= 0), sigma
+
+
+@pytest.mark.parametrize("wander", [-0.01, float("nan"), "25 nm", True])
+def test_a_bad_wander_is_refused_naming_the_field(tmp_path: Path, wander: Any) -> None:
+    doc = good_doc()
+    doc["covariance"]["wander_um"] = wander
+    path = tmp_path / "m.json"
+    path.write_text(json.dumps(restamped(doc)))
+    with pytest.raises(ModelFileError, match=r"covariance.wander_um must be a finite number >= 0"):
+        load_model(path)
+
+
+def test_the_wander_is_optional_and_hashed_only_when_present(tmp_path: Path) -> None:
+    doc = good_doc()
+    without = dict(doc["covariance"])
+    without.pop("wander_um", None)
+    path = tmp_path / "m.json"
+    path.write_text(json.dumps(restamped(dict(doc, covariance=without))))
+    old = load_model(path)
+    assert old.covariance is not None and old.covariance.wander_um is None
+    path.write_text(json.dumps(restamped(dict(doc, covariance=dict(without, wander_um=0.03)))))
+    new = load_model(path)
+    assert new.covariance is not None and new.covariance.wander_um == 0.03 and new.id != old.id
+    np.testing.assert_array_equal(new.q_sigma(stepped_rows()), old.q_sigma(stepped_rows()))  # not in q_sigma
