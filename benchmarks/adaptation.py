@@ -1,7 +1,7 @@
 """Table I over seeds of the simulated cell, static model versus adaptive (the daemon's bias tracker),
-and whether each command's ``q_sigma_um`` is calibrated.
+scored against the TRUE position as well as the interferometer, and whether ``q_sigma_um`` is calibrated.
 
-    nice .venv/bin/python benchmarks/adaptation.py [--seeds 8] [--tau-s 600] [--cycles 30]
+    nice python benchmarks/adaptation.py [--seeds 8] [--tau-s 600] [--cycles 30]
 
 Per seed: a 24-cycle ``train`` calibration (vectorised simulator, the same physics and step schedule
 as the procedure), fitted by ``fit``; then tests 2-5 (``validate`` on the simulated cell through the
@@ -10,18 +10,23 @@ with ``--adapt`` (``BiasTracker(tau_s, max_um)``, the daemon's tracker, fed by e
 residual). Both runs of a test see the same room, sensors and noise. Improvement = without / with
 (Table I: "without" is computed from the same run, x - (q - x')).
 
-Goals (issue 12): adaptive test 5 median >= 10x and worst >= 5x; on tests 2-4 the adaptive run is
-never worse than the static one on any seed. Coverage: the share of the static runs' valid steps
-whose error (measured position - target) lies within ±2 q_sigma (goal 90-98 %).
+Two views of accuracy: the interferometer's (what Table I measures, as on the bench) and the truth's
+(the simulated cell's true attained position over the same averaging window). The tracker is fed by
+the interferometer, so it follows the interferometer's own slow wander (25 nm, ~20 min): its gain
+looks larger through the interferometer than it is in truth.
 
-The tracker is fed by the interferometer that also measures the error, so on the simulated cell it
-also follows the interferometer's own slow wander (25 nm): what Table I measures, as on the bench.
+Goals (issue 12): adaptive test 5 median >= 10x and worst >= 5x (interferometer's view, as Table I);
+on tests 2-4 the adaptive run is never worse than the static one against the truth on any seed.
+Coverage (issue 19): per test and seed, the share of the static run's valid steps whose TRUE error
+(true position - target) lies within ±2 q_sigma; goal 90-98 % (median over the seeds), no seed
+below 80 %.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import io
 import statistics
 import sys
 import time
@@ -39,36 +44,23 @@ TESTS = ("test2", "test3", "test4", "test5")
 GOAL_TEST5_MEDIAN, GOAL_TEST5_WORST = 10.0, 5.0
 
 
-class _Null:
-    def write(self, _: str) -> int:
-        return 0
-
-    def flush(self) -> None:
-        return None
-
-    def isatty(self) -> bool:
-        return False
-
-
 def one_seed(seed: int, cycles: int, tau_s: float, max_um: float) -> dict[str, dict[str, float]]:
     model = fit(simulate_dataset("train", cycles=24, seed=seed)).model
     out: dict[str, dict[str, float]] = {}
     for name in TESTS:
         run_seed = seed * 100 + int(name[-1])
         static = asyncio.run(run_validation(simulated_drivers(name, seed=run_seed), model, name=name, cycles=cycles,
-                                            progress_stream=_Null()))
+                                            progress_stream=io.StringIO()))
         tracker = BiasTracker(tau_s, max_um)
         adaptive = asyncio.run(run_validation(simulated_drivers(name, seed=run_seed), model, name=name,
-                                              cycles=cycles, progress_stream=_Null(), adapt=tracker))
-        steps = [s for s in static.steps if s.valid]
-        inside = static.coverage() * len(steps)
+                                              cycles=cycles, progress_stream=io.StringIO(), adapt=tracker))
         out[name] = {
             "static": static.improvement, "adaptive": adaptive.improvement,
             "static_nm": static.accuracy_nm, "adaptive_nm": adaptive.accuracy_nm,
-            "without_nm": static.accuracy_without_nm, "inside": inside, "steps": len(steps),
-            "coverage_adaptive": adaptive.coverage(),
+            "static_true_nm": static.accuracy_true_nm, "adaptive_true_nm": adaptive.accuracy_true_nm,
+            "coverage_true": static.coverage_true(), "coverage_measured": static.coverage(),
+            "coverage_true_adaptive": adaptive.coverage_true(),
             "sigma_nm": statistics.median(static.q_sigma_um) * 1e3,
-            "final_correction_nm": tracker.correction_um * 1e3,
         }
     return out
 
@@ -89,43 +81,57 @@ def main() -> int:
     runs = [one_seed(seed, args.cycles, args.tau_s, args.max_um) for seed in range(args.seeds)]
     wall = time.perf_counter() - start
 
-    print("seed  " + "  ".join(f"{name:>19}" for name in TESTS))
-    print("      " + "  ".join(f"{'static -> adaptive':>19}" for _ in TESTS))
+    print("accuracy with compensation (nm), static -> adaptive, against the interferometer | against the TRUE position")
+    print("seed  " + "  ".join(f"{name:>27}" for name in TESTS))
     for seed, run in enumerate(runs):
-        print(f"{seed:4d}  " + "  ".join(f"{run[n]['static']:7.1f}x -> {run[n]['adaptive']:6.1f}x" for n in TESTS))
-    print("\n        static (median, worst)   adaptive (median, worst)   adaptive worse than static   "
-          "with comp. nm (median static -> adaptive)")
+        print(f"{seed:4d}  " + "  ".join(
+            f"{run[n]['static_nm']:5.0f}->{run[n]['adaptive_nm']:4.0f} | {run[n]['static_true_nm']:5.0f}->"
+            f"{run[n]['adaptive_true_nm']:4.0f}   " for n in TESTS))
+    print("\n        improvement (interferometer's view, Table I)     accuracy nm, median over seeds        "
+          "adaptive worse than static")
+    print("        static (median, worst)  adaptive (median, worst)  interferometer      truth            "
+          "(truth)")
     ok = True
     for name in TESTS:
         s = [r[name]["static"] for r in runs]
         a = [r[name]["adaptive"] for r in runs]
-        worse = sum(r[name]["adaptive_nm"] > r[name]["static_nm"] for r in runs)
-        nm_s = statistics.median(r[name]["static_nm"] for r in runs)
-        nm_a = statistics.median(r[name]["adaptive_nm"] for r in runs)
-        print(f"  {name}  {statistics.median(s):7.1f}x {min(s):7.1f}x      {statistics.median(a):7.1f}x "
-              f"{min(a):7.1f}x           {worse}/{len(runs)} seeds                  {nm_s:6.1f} -> {nm_a:6.1f}")
+        worse = sum(r[name]["adaptive_true_nm"] > r[name]["static_true_nm"] for r in runs)
+        nm = {key: statistics.median(r[name][key] for r in runs)
+              for key in ("static_nm", "adaptive_nm", "static_true_nm", "adaptive_true_nm")}
+        print(f"  {name}  {statistics.median(s):6.1f}x {min(s):6.1f}x      {statistics.median(a):6.1f}x {min(a):6.1f}x"
+              f"        {nm['static_nm']:5.0f} -> {nm['adaptive_nm']:4.0f}    {nm['static_true_nm']:5.0f} -> "
+              f"{nm['adaptive_true_nm']:4.0f}        {worse}/{len(runs)} seeds")
         if name != "test5":
             ok &= worse == 0
     a5 = [r["test5"]["adaptive"] for r in runs]
     goal5 = statistics.median(a5) >= GOAL_TEST5_MEDIAN and min(a5) >= GOAL_TEST5_WORST
-    print(f"\ngoal: adaptive test5 median >= {GOAL_TEST5_MEDIAN:g}x and worst >= {GOAL_TEST5_WORST:g}x: "
-          f"{statistics.median(a5):.1f}x / {min(a5):.1f}x -> {'met' if goal5 else 'NOT met'}")
-    print(f"goal: tests 2-4 adaptive never worse than static on any seed -> {'met' if ok else 'NOT met'}")
+    print(f"\ngoal: adaptive test5 median >= {GOAL_TEST5_MEDIAN:g}x and worst >= {GOAL_TEST5_WORST:g}x "
+          f"(interferometer's view): {statistics.median(a5):.1f}x / {min(a5):.1f}x -> {'met' if goal5 else 'NOT met'}")
+    print(f"goal: tests 2-4 adaptive never worse than static against the truth on any seed -> "
+          f"{'met' if ok else 'NOT met'}")
 
-    print("\nuncertainty: share of the static runs' valid steps with |position - target| <= 2 q_sigma "
-          "(goal 90-98 %)")
-    inside = steps = 0.0
+    print("\nuncertainty: share of the static runs' valid steps with |TRUE position - target| <= 2 q_sigma, per seed "
+          "(goal 90-98 % median over seeds, no seed below 80 %);")
+    print("  'mean' pools the seeds; 'interferometer': the measured errors within ±2 sqrt(q_sigma² + wander²), "
+          "median over seeds; 'adaptive': the adaptive runs' true errors within ±2 q_sigma, median over seeds")
+    print("       " + "".join(f"{seed:>5d}" for seed in range(len(runs)))
+          + "  median   mean  worst  q_sigma  interferometer  adaptive")
+    covered = True
     for name in TESTS:
-        i = sum(r[name]["inside"] for r in runs)
-        n = sum(r[name]["steps"] for r in runs)
-        inside, steps = inside + i, steps + n
-        per_seed = [r[name]["inside"] / r[name]["steps"] for r in runs]
-        print(f"  {name}: {100 * i / n:5.1f} %  (per seed {min(per_seed) * 100:.0f}..{max(per_seed) * 100:.0f} %; "
-              f"median q_sigma {statistics.median(r[name]['sigma_nm'] for r in runs):.0f} nm)")
-    coverage = inside / steps
-    print(f"  all : {100 * coverage:5.1f} %  -> {'within' if 0.90 <= coverage <= 0.98 else 'OUTSIDE'} the goal")
+        per_seed = [100 * r[name]["coverage_true"] for r in runs]
+        median, worst = statistics.median(per_seed), min(per_seed)
+        mean = statistics.fmean(per_seed)
+        good = 90.0 <= median <= 98.0 and worst >= 80.0
+        covered &= good
+        sigma_nm = statistics.median(r[name]["sigma_nm"] for r in runs)
+        measured = statistics.median(100 * r[name]["coverage_measured"] for r in runs)
+        adaptive = statistics.median(100 * r[name]["coverage_true_adaptive"] for r in runs)
+        print(f"  {name}" + "".join(f"{c:5.0f}" for c in per_seed)
+              + f"  {median:6.1f} {mean:6.1f}  {worst:5.0f} {sigma_nm:6.0f} nm  {measured:12.1f} %  {adaptive:6.1f} %"
+              f"  {'ok' if good else 'OUTSIDE the goal'}")
+    print(f"goal: coverage -> {'met' if covered else 'NOT met'}")
     print(f"\n{wall:.0f} s wall")
-    return 0 if goal5 and ok else 1
+    return 0 if goal5 and ok and covered else 1
 
 
 if __name__ == "__main__":

@@ -253,6 +253,15 @@ class SensorGroup(ABC):
     async def close(self) -> None:
         """Release the device; safe to call twice and after a failed ``open``."""
 
+    def true_values(self) -> Mapping[str, float]:
+        """What the last :meth:`read`'s quantities truly were, per channel, when the group can know it.
+
+        Optional: only a simulated cell knows the truth (the true attained position behind its
+        interferometer reading), so a validation there can be scored against the truth as well as
+        against the instrument. Hardware knows nothing: the default is empty.
+        """
+        return {}
+
 
 class Actuator(ABC):
     """Puts the compensated command on the stage (its amplifier, its controller, or a simulated cell).

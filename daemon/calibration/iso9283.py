@@ -63,6 +63,8 @@ class TestResult:
     adapted: bool = False
     #: per step, the true attained position (a simulated cell only; empty on hardware)
     x_true_um: list[float] = field(default_factory=list)
+    #: the model's ``wander_um``: what the position sensor adds to a measured error beside q_sigma
+    measurement_sigma_um: float = 0.0
 
     @property
     def accuracy_nm(self) -> float:
@@ -79,7 +81,8 @@ class TestResult:
 
     @property
     def has_truth(self) -> bool:
-        return len(self.x_true_um) == len(self.steps) > 0
+        """Whether every step knows the true attained position (a simulated cell; never on hardware)."""
+        return len(self.x_true_um) == len(self.steps) > 0 and all(map(math.isfinite, self.x_true_um))
 
     def true_points(self) -> list[PointStats]:
         """ISO 9283 per point against the true position (as :attr:`points` against the interferometer)."""
@@ -105,10 +108,28 @@ class TestResult:
         without = float(np.mean([p.accuracy_without_nm for p in points]))
         return without, float(np.mean([p.accuracy_nm for p in points])) if self.compensated else math.nan
 
+    @property
+    def accuracy_true_nm(self) -> float:
+        """Table I's "with comp." against the true position (nan on hardware or without the model)."""
+        return self.true_accuracy_nm()[1]
+
     def coverage(self, k: float = 2.0) -> float:
-        """Share of valid steps whose error (position - target) lies within ±k q_sigma_um (nan without sigmas)."""
-        inside = [abs(s.x_um - s.step.target_um) <= k * sigma
+        """Share of valid steps whose measured error (position - target) lies within ±k σ (nan without sigmas).
+
+        σ = sqrt(q_sigma² + measurement_sigma²): the measured error carries the sensor's wander besides
+        the true error q_sigma is for."""
+        m2 = self.measurement_sigma_um ** 2
+        inside = [abs(s.x_um - s.step.target_um) <= k * float(np.sqrt(sigma * sigma + m2))
                   for s, sigma in zip(self.steps, self.q_sigma_um, strict=False)
+                  if s.valid and np.isfinite(sigma)]
+        return float(np.mean(inside)) if inside else float("nan")
+
+    def coverage_true(self, k: float = 2.0) -> float:
+        """Share of valid steps whose TRUE error (true position - target) lies within ±k q_sigma (nan: no truth)."""
+        if not self.has_truth:
+            return float("nan")
+        inside = [abs(x_true - s.step.target_um) <= k * sigma
+                  for s, sigma, x_true in zip(self.steps, self.q_sigma_um, self.x_true_um, strict=False)
                   if s.valid and np.isfinite(sigma)]
         return float(np.mean(inside)) if inside else float("nan")
 
@@ -151,6 +172,8 @@ class TestResult:
             "final_correction_um": num(self.corrections_um[-1]) if self.adapted and self.corrections_um else None,
             "q_sigma_median_nm": num(float(np.median(self.q_sigma_um)) * 1e3) if self.q_sigma_um else None,
             "within_2_sigma": num(self.coverage()),
+            **({"with_comp_true_nm": num(self.accuracy_true_nm), "within_2_sigma_true": num(self.coverage_true())}
+               if self.has_truth and self.compensated else {}),
             "points": [
                 {"x_um": p.target_um, "visits": p.visits,
                  "accuracy_nm": num(p.accuracy_nm) if self.compensated else None,

@@ -80,6 +80,8 @@ class StepResult:
     retries: int = 0
     problem: str = ""
     t_command_s: float = math.nan
+    #: the true attained position over the same window, when the cell knows it (simulated); nan on hardware
+    x_true_um: float = math.nan
 
 
 def validation_plan(cycles: int, points: Sequence[float] = VALIDATION_POINTS_UM) -> list[PlannedStep]:

@@ -22,10 +22,8 @@ from daemon.drivers_set import DriverSet
 from daemon.errors import UserError
 from daemon.procedure.follow import FollowCheck
 from daemon.procedure.preflight import check_not_served, wait_for_output
-from drivers.simulated.cell import SimulatedCell
 from drivers.simulated.config import SECTION, SimulationConfig
 from drivers.simulated.effects import UnknownNameError, resolve_effects
-from drivers.simulated.plugin import RESOURCE_KEY
 from drivers.simulated.scenarios import get_scenario
 
 _PAPER_TEST = re.compile(r"test(?P<n>[1-9])")
@@ -135,25 +133,3 @@ def guards(config: Config, drivers: DriverSet, args: argparse.Namespace
     if config.actuator.kind == ZENOH_KIND and not args.no_output_check:
         return follow, functools.partial(wait_for_output, config)
     return follow, None
-
-
-#: samples of the true position averaged over a step's window (the interferometer samples it at 10 Hz;
-#: the truth moves by well under a nm within the window, so a few points suffice)
-TRUTH_SAMPLES = 6
-
-
-def simulated_truth(drivers: DriverSet) -> Callable[[float, float], float] | None:
-    """The simulated cell's true attained position, averaged over ``[start_s, end_s]`` of its clock
-    (what a validation scores as ``x_true_um``); None on any other cell: hardware knows no truth.
-
-    The one place the truth leaves the simulated cell; called between steps, while the stage holds.
-    """
-    cell = drivers.context.resources.get(RESOURCE_KEY, SimulatedCell)
-    if cell is None:
-        return None
-
-    def true_position(start_s: float, end_s: float) -> float:
-        times = [start_s + (end_s - start_s) * i / (TRUTH_SAMPLES - 1) for i in range(TRUTH_SAMPLES)]
-        return sum(cell.true_position(t - cell.epoch) for t in times) / TRUTH_SAMPLES
-
-    return true_position

@@ -45,7 +45,7 @@ from daemon.calibration.discovery import discover
 from daemon.calibration.iso9283 import TestResult
 from daemon.calibration.plans import PAPER_TIMING
 from daemon.calibration.residuals import MIN_RESIDUALS, BiasTracker
-from daemon.commands._cell import scenario_seed, simulated_truth
+from daemon.commands._cell import scenario_seed
 from daemon.commands._demo_serve import serve
 from daemon.commands._demo_xy import two_axis_part
 from daemon.errors import UserError
@@ -173,7 +173,7 @@ def validate(model: Model, test: str, cycles: int, seed: int, adapt: BiasTracker
     drivers = simulated_drivers(test, seed=scenario_seed(seed, test))
     use = None if test == "test1" else model
     return asyncio.run(run_validation(drivers, use, name=test, cycles=cycles, progress_stream=io.StringIO(),
-                                      adapt=adapt, true_position=simulated_truth(drivers)))
+                                      adapt=adapt))
 
 
 def result_line(result: TestResult) -> str:
@@ -303,17 +303,19 @@ def what_nanodrift_adds(run: DemoRun) -> list[str]:
         adapted = validate(run.model, test, run.args.cycles, run.args.seed, adapt=BiasTracker(*tracker_defaults))
         lines.append(f"adaptation on {test} ([adapt] mode = \"bias\", tau_s {tracker_defaults[0]:g} s): "
                      f"{static.accuracy_nm:.0f} nm static -> {adapted.accuracy_nm:.0f} nm adaptive "
-                     f"({adapted.improvement:.1f}× against {static.improvement:.1f}×; interferometer), "
-                     f"{static.true_accuracy_nm()[1]:.0f} nm -> {adapted.true_accuracy_nm()[1]:.0f} nm against the "
-                     f"true position; the correction ended at {adapted.corrections_um[-1] * 1000:+.0f} nm")
+                     f"({adapted.improvement:.1f}× against {static.improvement:.1f}×) as the interferometer the "
+                     f"tracker follows sees it, {static.accuracy_true_nm:.0f} nm -> {adapted.accuracy_true_nm:.0f} nm "
+                     f"against the true position; the correction ended at "
+                     f"{adapted.corrections_um[-1] * 1000:+.0f} nm")
     if any(line.startswith("adaptation on") for line in lines):
         lines.append(ADAPTATION_NEEDS)
     lines.append(discovery_line(run.model, run.args.seed))
     covered = [r for r in run.results if r.compensated and r.q_sigma_um]
     if covered:
-        shares = ", ".join(f"{r.name} {r.coverage() * 100:.0f} %" for r in covered)
-        lines.append(f"uncertainty: every command carries q_sigma_um; the error the interferometer saw lay within "
-                     f"±2σ in {shares} of the steps (it grows outside the training range)")
+        shares = ", ".join(f"{r.name} {(r.coverage_true() if r.has_truth else r.coverage()) * 100:.0f} %"
+                           for r in covered)
+        lines.append(f"uncertainty: every command carries q_sigma_um; the {'true ' if covered[0].has_truth else ''}"
+                     f"error lay within ±2σ in {shares} of the steps (it grows outside the training range)")
     health = next((a["health"] for a in reversed(run.served) if isinstance(a.get("health"), dict)), None)
     if health is not None:
         lines.append(health_line(health))

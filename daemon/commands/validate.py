@@ -6,7 +6,7 @@ offline what adaptation would have given.
 On the simulated cell ``--scenario`` may name several tests (``--scenario test2,test3,test5``, or
 repeated): each runs in turn and one report holds them all (Table I a row per test, the figures
 comparing them). There each step is also scored against the true position the cell knows
-(:func:`daemon.commands._cell.simulated_truth`), beside the interferometer's view.
+(the simulated cell's sensor group), beside the interferometer's view.
 """
 
 from __future__ import annotations
@@ -31,14 +31,13 @@ from daemon.commands._cell import (
     guards,
     open_cell,
     scenario_list,
-    simulated_truth,
 )
 from daemon.config import Config, load_config
 from daemon.drivers_set import DriverSet
 from daemon.errors import UserError
 from daemon.model.model import Model, ModelFileError, load_model
 from daemon.procedure.validation import run_validation
-from daemon.reports.validation import provenance_text, table1, truth_table, write_report
+from daemon.reports.validation import coverage_lines, provenance_text, table1, truth_table, write_report
 from drivers.simulated.config import SECTION, SimulationConfig
 from drivers.simulated.effects import UnknownNameError
 from drivers.simulated.scenarios import get_scenario
@@ -93,6 +92,10 @@ def main(args: argparse.Namespace) -> int:
     asked: list[str | None] = list(scenarios) or [None]  # None: the config's (or the default) room
     runs = [_run_one(args, model, scenario) for scenario in asked]
     results = [run.result for run in runs]
+    for run in runs:  # a miscalibrated q_sigma is said on stderr, whatever is printed
+        warning = coverage_lines(run.result)[1]
+        if warning:
+            print(f"warning: {warning}" + (f" ({run.result.name})" if len(runs) > 1 else ""), file=sys.stderr)
     config = runs[0].config
     text = table1(results)
     truth = truth_table(results)
@@ -129,6 +132,9 @@ class ValidationRun:
 
     def to_dict(self) -> dict[str, Any]:
         doc = self.result.to_dict()
+        coverage_text, coverage_warning = coverage_lines(self.result)
+        if coverage_text:
+            doc["coverage_warning"] = coverage_warning
         if self.tracker is not None:
             doc["adapt"] = {"mode": "bias", "tau_s": self.tracker.tau_s, "max_um": self.tracker.max_um}
         return doc
@@ -144,8 +150,7 @@ def _run_one(args: argparse.Namespace, model: Model, scenario: str | None) -> Va
     try:
         result = asyncio.run(run_validation(drivers, model if compensate else None, limits=config.actuator,
                                             name=name, cycles=args.cycles, timing=config.procedure.timing,
-                                            follow=follow, ready=ready, adapt=tracker,
-                                            true_position=simulated_truth(drivers)))
+                                            follow=follow, ready=ready, adapt=tracker))
     except ValueError as err:
         raise UserError(str(err)) from None
     return ValidationRun(result, tracker, config, drivers)
@@ -176,9 +181,8 @@ def _print_details(result: TestResult, tracker: BiasTracker | None, compensate: 
         print(f"{gap}adaptation{which}: bias tracker (tau_s {tracker.tau_s:g} s, "
               f"max {tracker.max_um:g} um), {tracker.updates} settled residuals, final correction "
               f"{tracker.correction_um * 1e3:+.0f} nm")
-    if compensate and result.q_sigma_um:
-        print(f"uncertainty{which}: {result.coverage() * 100:.0f} % of the steps within ±2 q_sigma "
-              f"(median q_sigma {np.median(result.q_sigma_um) * 1e3:.0f} nm)")
+    for line in coverage_lines(result)[0]:
+        print(line.replace("uncertainty:", f"uncertainty{which}:", 1))
     kind = "with compensation" if compensate else "without compensation"
     print(f"{gap}per point ({f'{result.name}, ' if several else ''}{kind}):")
     for p in result.points:

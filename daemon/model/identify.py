@@ -21,11 +21,11 @@ from daemon.model.axis_terms import AxisPower, AxisProduct
 from daemon.model.cell_model import CellModel
 from daemon.model.model import FittedTerm, Model, Training
 from daemon.model.provenance import created_now, software
-from daemon.model.segments import features, runs, spans_s
+from daemon.model.segments import features, runs
 from daemon.model.series import CellSeries, Series
 from daemon.model.stepwise import stepwisefit
 from daemon.model.terms import Bias, Channel, Power, Term
-from daemon.model.uncertainty import Covariance, ar1_inflation, estimate, uncertainty_blocks
+from daemon.model.uncertainty import Covariance, estimate
 
 MAX_AUTO_ORDER = 5
 
@@ -142,8 +142,10 @@ def fit_terms(
         rmse = float(math.sqrt(resid @ resid / max(len(y) - 1, 1)))
         terms.append(FittedTerm(Bias(), mean, rmse / math.sqrt(len(y)), math.nan))
         fit_stats = {"rmse_um": rmse, "r2": 0.0, "dof": len(y) - 1}
-        variance = rmse * rmse / len(y) * ar1_inflation(resid)
-        covariance = Covariance(np.array([[variance]]), rmse) if uncertainty else None
+        covariance = None
+        if uncertainty:
+            cov, s, _, noise = estimate(np.empty((len(y), 0)), y, np.asarray(data.t, dtype=np.float64), runs(data), {})
+            covariance = Covariance(cov, s, wander_um=noise.wander_um)
     else:
         terms.append(FittedTerm(Bias(), final.intercept, final.intercept_se, final.intercept_p))
         fit_stats = {"rmse_um": final.rmse, "r2": final.r2, "dof": final.dof}
@@ -190,9 +192,8 @@ def model_covariance(X: np.ndarray, y: np.ndarray, final: OLS, data: Series, ter
     time); the bias then absorbs their value at the start of the run, and C follows.
     """
     channels = [c for c in data.channels if any(c in t.channels for t in terms)]
-    blocks = uncertainty_blocks(float(sum(spans_s(data))))
-    cov, s, curvature = estimate(X, y, final.cov, final.rmse, holdout_blocks(data, max_folds=blocks),
-                                 {c: data.channels[c] for c in channels})
+    cov, s, curvature, noise = estimate(X, y, np.asarray(data.t, dtype=np.float64), runs(data),
+                                        {c: data.channels[c] for c in channels})
     k = len(terms)
     m = 0 if nuisance is None else nuisance.shape[1]
     J = np.zeros((k + 1, k + m + 1))  # the model's coefficients from the fit's: bias = intercept + Σ coef·start
@@ -200,7 +201,7 @@ def model_covariance(X: np.ndarray, y: np.ndarray, final: OLS, data: Series, ter
     if nuisance is not None:
         J[k, k:k + m] = nuisance[0]
     J[k, k + m] = 1.0
-    return Covariance(J @ cov @ J.T, s, curvature)
+    return Covariance(J @ cov @ J.T, s, curvature, noise.wander_um)
 
 
 def _rows(n: int) -> str:

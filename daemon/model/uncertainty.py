@@ -1,31 +1,42 @@
 """How uncertain a command is: the model file's ``covariance`` block, batch and streaming.
 
-The standard uncertainty of the command predicted for a row with features f (the model's terms in
-order, bias included) is
+``q_sigma`` is the standard uncertainty of the TRUE error a command leaves (true attained position
+minus target, when the command is the model's prediction). For a row with features f (the model's
+terms in order, bias included)
 
     q_sigma = sqrt(f·C·f + s² + (κ·g)²)
 
-- ``f·C·f``: C is the covariance of the fitted coefficients, what the calibration run could not pin
-  down. It grows with the distance from the training data, so outside the training ranges. The
-  least-squares covariance takes rows as independent; the residual of a calibration run is not (the
-  interferometer wanders over tens of minutes), so C is that covariance times the AR(1) variance
-  inflation (1 + ρ)/(1 - ρ) of the residual (ρ its lag-1 autocorrelation): the run holds fewer
-  independent rows than it has rows.
-- ``s``: what no coefficient explains (interferometer noise and wander, landing error, unmodelled
-  effects), as a fresh run sees it: the RMS of held-out blocks of whole cycles, each predicted by
-  the model fitted on the others (never less than the in-sample residual standard deviation). The
-  in-sample residual alone is too small: part of the slow wander is absorbed by the temperature
-  terms and the bias, and neither it nor its autocorrelation can show that part. The blocks are
-  about an hour long (:func:`uncertainty_blocks`: 3 for the paper's 3.3 h calibration), long
-  against the interferometer's wander (~20 min), so a held-out block's offset is independent of
-  the blocks the model is fitted on; the ~30 min blocks used to choose the order are not, and
-  understate a fresh run's error (``benchmarks/adaptation.py``, 8 seeds of the simulated cell:
-  ±2σ held 81 % of the validation steps with them, 92 % with hour-long blocks).
+How the parts are estimated from one calibration run, and why:
+
+- The residual of a calibration is not white: the interferometer wanders (tens of nm over tens of
+  minutes) besides its fast noise and the stage's landing error. It is modelled as white noise
+  (sd ``s``) plus an Ornstein-Uhlenbeck wander (a continuous-time AR(1): sd w, time constant τ),
+  independent between runs. (s, w, τ) are found by restricted maximum likelihood
+  (:func:`fit_noise`, a Kalman filter whitens the rows): REML scores a noise model on what the
+  regression leaves *accounting for what it absorbed*. That matters: the temperature terms and the
+  bias soak up much of a slow wander, so neither the residual's RMS nor its lag-1 autocorrelation
+  shows it, and the old AR(1) inflation (1 + ρ)/(1 - ρ) from the lag-1 ρ, diluted by the white part,
+  understated the coefficients' uncertainty.
+- ``f·C·f``: C is the covariance of the least-squares coefficients under that noise (the sandwich
+  (AᵀA)⁻¹AᵀΣA(AᵀA)⁻¹). It is what the calibration's wander did to the bias and the temperature
+  coefficients, which on a fresh run shows as an offset of the whole run (on the simulated cell
+  the largest part of the true error in range), and it grows with the distance from the training
+  data.
+- ``s``: the white part of the residual: a fresh run's step-to-step scatter (landing, noise).
+- the wander itself is NOT in q_sigma: it belongs to the instrument that measured the calibration,
+  not to where the stage goes. A fresh run measured by the same instrument carries it again, so the
+  block keeps w (``wander_um``, optional) and the error *measured* by the interferometer is judged
+  against sqrt(q_sigma² + w²) (``validate`` on hardware, where the truth is unknown). One instrument
+  cannot tell its own wander from a slow effect no term models; both are taken as the instrument's.
 - ``κ·g``: the curvature a linear thermal model cannot see inside a narrow training range (the
-  bracket's bending, which makes the paper's test 5 degrade). κ is the standard error (AR-inflated)
-  of a quadratic term in the mean temperature T̄ of the model's channels, fitted beside the model's
-  terms: how much curvature the training data cannot rule out. g = (T̄ - lo)(T̄ - hi) outside the
-  training range [lo, hi] of T̄ (the gap between a parabola and its chord), 0 inside.
+  bracket's bending, which makes the paper's test 5 degrade). κ is the standard error, under the
+  same noise model, of a quadratic term in the mean temperature T̄ of the model's channels fitted
+  beside the model's terms: how much curvature the training data cannot rule out. g = (T̄ - lo)(T̄ -
+  hi) outside the training range [lo, hi] of T̄ (the gap between a parabola and its chord), 0 inside.
+
+Nothing is scaled to make a benchmark pass: ``benchmarks/adaptation.py`` measures the coverage of
+±2 q_sigma against the simulated cell's true position (and reports where it misses). The block
+layout is unchanged but for the optional ``wander_um`` (files without it load with their ids).
 
 :func:`estimate` computes all of it from the final fit; :class:`SigmaStream` evaluates it per target
 in the daemon. Kept apart from :mod:`daemon.model.model` so the block's checks, its estimation and
@@ -103,6 +114,10 @@ class Covariance:
     matrix: np.ndarray  # (k, k), symmetric positive semi-definite, µm² per feature unit²
     residual_rms_um: float  # s
     curvature: Curvature | None = None
+    #: the slow wander of the calibration residual (optional; files before it have none): the position
+    #: sensor's, as far as one instrument can tell. A fresh run's error measured by that sensor carries
+    #: it besides q_sigma; the true error does not.
+    wander_um: float | None = None
 
     def __post_init__(self) -> None:
         m = np.array(self.matrix, dtype=np.float64)
@@ -112,6 +127,8 @@ class Covariance:
         m.setflags(write=False)
         object.__setattr__(self, "matrix", m)
         object.__setattr__(self, "residual_rms_um", float(self.residual_rms_um))
+        if self.wander_um is not None:
+            object.__setattr__(self, "wander_um", float(self.wander_um))
 
     @property
     def size(self) -> int:
@@ -137,6 +154,8 @@ class Covariance:
                                "residual_rms_um": float(self.residual_rms_um)}
         if self.curvature is not None:
             out["curvature"] = self.curvature.to_dict()
+        if self.wander_um is not None:
+            out["wander_um"] = float(self.wander_um)
         return out
 
     def to_dict(self, names: Sequence[str]) -> dict[str, Any]:
@@ -147,7 +166,7 @@ class Covariance:
         """The file's ``covariance`` block, checked; ``fail(message)`` builds the error naming the file."""
         if not isinstance(raw, dict):
             raise fail(f"'covariance' must be an object with terms, matrix and residual_rms_um, got {_kind(raw)}")
-        unknown = sorted(set(raw) - {"terms", "matrix", "residual_rms_um", "curvature"})
+        unknown = sorted(set(raw) - {"terms", "matrix", "residual_rms_um", "curvature", "wander_um"})
         if unknown:
             raise fail(f"covariance: unknown key(s) {', '.join(repr(k) for k in unknown)}")
         terms = raw.get("terms")
@@ -158,7 +177,10 @@ class Covariance:
         if not _finite_number(rms) or rms < 0:
             raise fail(f"covariance.residual_rms_um must be a finite number >= 0, got {rms!r}")
         curvature = None if raw.get("curvature") is None else Curvature.from_dict(raw["curvature"], channels, fail)
-        return cls(m, float(rms), curvature)
+        wander = raw.get("wander_um")
+        if wander is not None and (not _finite_number(wander) or wander < 0):
+            raise fail(f"covariance.wander_um must be a finite number >= 0 (or absent), got {wander!r}")
+        return cls(m, float(rms), curvature, None if wander is None else float(wander))
 
 
 def _matrix(rows: Any, names: Sequence[str], fail: Fail) -> np.ndarray:
@@ -207,7 +229,11 @@ def _kind(value: Any) -> str:
 
 
 def ar1_inflation(residual: np.ndarray) -> float:
-    """(1 + ρ)/(1 - ρ) for a positively autocorrelated residual (ρ its lag-1 autocorrelation), else 1."""
+    """(1 + ρ)/(1 - ρ) for a positively autocorrelated residual (ρ its lag-1 autocorrelation), else 1.
+
+    Right for a pure AR(1) residual; a residual that is white noise plus a slow wander has a small
+    lag-1 ρ but a large long-run variance, which :func:`fit_noise` models instead.
+    """
     r = np.asarray(residual, dtype=np.float64)
     if r.size < 3:
         return 1.0
@@ -219,7 +245,7 @@ def ar1_inflation(residual: np.ndarray) -> float:
 
 
 def uncertainty_blocks(t_span_s: float) -> int:
-    """How many held-out blocks estimate s: about an hour each, at least 3, at most 6."""
+    """How many held-out blocks :func:`heldout_rms` uses: about an hour each, at least 3, at most 6."""
     if not math.isfinite(t_span_s):
         return 3
     return min(6, max(3, int(t_span_s // UNCERTAINTY_BLOCK_S)))
@@ -241,35 +267,184 @@ def heldout_rms(X: np.ndarray, y: np.ndarray, folds: np.ndarray) -> float:
     return float(np.sqrt(np.mean(e * e)))
 
 
-def estimate(X: np.ndarray, y: np.ndarray, cov: np.ndarray, rmse: float, folds: np.ndarray,
-             temperatures: Mapping[str, np.ndarray]) -> tuple[np.ndarray, float, Curvature | None]:
-    """The block's parts for a least-squares fit of ``y`` on ``X`` (plus intercept) whose covariance is ``cov``.
+@dataclass(frozen=True)
+class Noise:
+    """The calibration residual as white noise plus a wander (Ornstein-Uhlenbeck: a continuous AR(1)).
 
-    ``cov`` in the fit's order (columns, then the intercept), taking rows as independent; ``folds``
-    the held-out blocks (whole cycles); ``temperatures`` the channels the model reads (none: no
-    curvature part). Returns (C, s, curvature) with C in ``cov``'s order, AR(1)-inflated.
+    ``white_um`` and ``wander_um`` are standard deviations, ``tau_s`` the wander's correlation time.
     """
-    A = np.column_stack([np.ones(y.shape[0]), X])
-    coef, *_ = np.linalg.lstsq(A, y, rcond=None)
-    inflation = ar1_inflation(y - A @ coef)
-    held = heldout_rms(X, y, folds)
-    s = max(rmse, held) if math.isfinite(held) else rmse
-    curvature = None
+
+    white_um: float
+    wander_um: float
+    tau_s: float
+
+
+#: the grid :func:`fit_noise` searches: the wander's share of the residual variance, and τ in row spacings
+_SHARES = np.array([0.0, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.85, 0.9, 0.95, 0.98, 0.995])
+_TAU_ROWS = np.geomspace(0.5, 400.0, 28)
+
+
+def _row_decay(t_s: np.ndarray, run_slices: Sequence[slice], tau_s: np.ndarray) -> np.ndarray:
+    """exp(-Δt/τ) from each row's predecessor in its run (0 at a run's first row): (rows, len(tau_s))."""
+    dt = np.diff(np.asarray(t_s, dtype=np.float64), prepend=-np.inf)
+    for part in run_slices:
+        if part.stop > part.start:
+            dt[part.start] = np.inf
+    with np.errstate(invalid="ignore"):
+        out: np.ndarray = np.nan_to_num(np.exp(-np.maximum(dt, 0.0)[:, None] / tau_s[None, :]), nan=0.0)
+    return out
+
+
+def _whitened_gram(M: np.ndarray, decay: np.ndarray, share: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Gram matrices of the Kalman-whitened columns of ``M`` (rows, m) under unit-variance noise models.
+
+    One model per entry of ``share`` (the wander's share of the variance) and column of ``decay``
+    (exp(-Δt/τ) per row): the prediction errors of a scalar Kalman filter, each divided by its
+    standard deviation, are Σ^(-1/2)·M. Returns Σ_rows z zᵀ (models, m, m) and each log det Σ.
+    """
+    n, m = M.shape
+    g = share.size
+    state = np.zeros((g, m))
+    p = np.zeros(g)  # variance of the filter's estimate of the wander
+    logdet = np.zeros(g)
+    gram = np.zeros((g, m, m))
+    white = 1.0 - share
+    for i in range(n):
+        a = decay[i]
+        p_pred = a * a * p + share * (1.0 - a * a)
+        f = p_pred + white
+        pred = a[:, None] * state
+        e = M[i][None, :] - pred
+        gain = p_pred / f
+        state = pred + gain[:, None] * e
+        p = (1.0 - gain) * p_pred
+        logdet += np.log(f)
+        z = e / np.sqrt(f)[:, None]
+        gram += z[:, :, None] * z[:, None, :]
+    return gram, logdet
+
+
+def fit_noise(A: np.ndarray, y: np.ndarray, t_s: np.ndarray, run_slices: Sequence[slice]) -> list[tuple[float, Noise]]:
+    """Noise models (white plus wander) for the residual of y on A, each with its weight.
+
+    REML (restricted maximum likelihood) judges a noise model on what the regression leaves,
+    accounting for what it absorbed: a wander slow enough to look like the temperatures is partly
+    fitted away, so the residual alone (its RMS, its lag-1 autocorrelation) understates it. A few
+    hours of calibration pin how the variance splits into white and wander, but hardly the wander's
+    time constant (the likelihood is flat over a factor of ten in τ, and a short τ makes the bias
+    look better known than a long one). So for each τ the split is the most likely one (profile
+    likelihood), and the τs are kept with their likelihoods as weights (a flat prior in log τ)
+    rather than betting on the best one. The grid spans the wander's share of the variance
+    (0..99.5 %) and τ from half a row spacing to 400 of them. The weights sum to 1; models under
+    0.1 % of the best one's weight are dropped.
+    """
+    n = y.shape[0]
+    basis, _ = np.linalg.qr(A)  # the same column space, well conditioned: REML depends on nothing else
+    p = basis.shape[1]
+    if n <= p + 2:
+        r = y - basis @ (basis.T @ y)
+        return [(1.0, Noise(float(np.sqrt(r @ r / max(n - p, 1))), 0.0, 0.0))]
+    t = np.asarray(t_s, dtype=np.float64)
+    spacing = float(np.median(np.diff(t)))
+    spacing = spacing if math.isfinite(spacing) and spacing > 0 else 1.0
+    share = np.repeat(_SHARES, _TAU_ROWS.size)
+    tau = np.tile(_TAU_ROWS * spacing, _SHARES.size)
+    y_scale = float(np.std(y)) or 1.0
+    gram, logdet = _whitened_gram(np.column_stack([basis, y / y_scale]), _row_decay(t, run_slices, tau), share)
+    score = np.full(share.size, np.inf)
+    variance = np.zeros(share.size)
+    for k in range(share.size):
+        g_aa, g_ay, g_yy = gram[k, :p, :p], gram[k, :p, p], gram[k, p, p]
+        sign, log_gram = np.linalg.slogdet(g_aa)
+        rss = float(g_yy - g_ay @ np.linalg.solve(g_aa, g_ay)) if sign > 0 else math.nan
+        if rss > 0:  # False for nan
+            score[k] = (n - p) * math.log(rss / (n - p)) + float(logdet[k]) + log_gram  # -2 log likelihood
+            variance[k] = rss / (n - p) * y_scale * y_scale
+    if not np.isfinite(score).any():
+        return [(1.0, Noise(0.0, 0.0, 0.0))]
+    # per τ the best share (profile likelihood), then every τ weighted by its likelihood
+    by_tau = score.reshape(_SHARES.size, _TAU_ROWS.size)
+    profile = np.full(score.size, np.inf)
+    best_share = np.argmin(by_tau, axis=0)
+    for j, i in enumerate(best_share):
+        profile[i * _TAU_ROWS.size + j] = by_tau[i, j]
+    weight = np.exp(-0.5 * (profile - score.min()))
+    keep = np.flatnonzero(weight >= 1e-3)
+    total = float(weight[keep].sum())
+    return [(float(weight[k]) / total,
+             Noise(math.sqrt(variance[k] * (1.0 - share[k])), math.sqrt(variance[k] * share[k]),
+                   float(tau[k]) if share[k] > 0 else 0.0))
+            for k in keep]
+
+
+def noise_times(M: np.ndarray, t_s: np.ndarray, run_slices: Sequence[slice], noise: Noise) -> np.ndarray:
+    """Σ·M: the noise model's covariance (white + wander, independent between runs) times ``M``."""
+    M = np.asarray(M, dtype=np.float64)
+    out = noise.white_um**2 * M
+    if noise.wander_um > 0 and noise.tau_s > 0:
+        a = _row_decay(t_s, run_slices, np.array([noise.tau_s]))[:, 0]
+        n = M.shape[0]
+        forward = np.empty_like(M)
+        backward = np.empty_like(M)
+        acc = np.zeros(M.shape[1])
+        for i in range(n):  # Σ_j<=i exp(-(t_i - t_j)/τ) M_j, within the run
+            acc = a[i] * acc + M[i]
+            forward[i] = acc
+        acc = np.zeros(M.shape[1])
+        for i in range(n - 1, -1, -1):  # Σ_j>=i exp(-(t_j - t_i)/τ) M_j
+            acc = M[i] + (a[i + 1] * acc if i + 1 < n else 0.0)
+            backward[i] = acc
+        out = out + noise.wander_um**2 * (forward + backward - M)
+    return out
+
+
+def sandwich(A: np.ndarray, t_s: np.ndarray, run_slices: Sequence[slice], noise: Noise) -> np.ndarray:
+    """The covariance of least-squares coefficients of A when the noise is ``noise``: B·AᵀΣA·B, B = (AᵀA)⁻¹."""
+    return _sandwich(A, noise_times(A, t_s, run_slices, noise))
+
+
+def _sandwich(A: np.ndarray, sigma_a: np.ndarray) -> np.ndarray:
+    """(AᵀA)⁻¹ Aᵀ(ΣA) (AᵀA)⁻¹ given ΣA, computed on unit-norm columns (x³ and a bias differ by 10⁸)."""
+    scale = np.linalg.norm(A, axis=0)
+    scale[scale == 0] = 1.0
+    As = A / scale
+    bread = np.linalg.pinv(As.T @ As)
+    cov = bread @ (As.T @ (sigma_a / scale)) @ bread / np.outer(scale, scale)
+    return np.asarray(0.5 * (cov + cov.T))
+
+
+def estimate(X: np.ndarray, y: np.ndarray, t_s: np.ndarray, run_slices: Sequence[slice],
+             temperatures: Mapping[str, np.ndarray]) -> tuple[np.ndarray, float, Curvature | None, Noise]:
+    """The block's parts for a least-squares fit of ``y`` on ``X`` (plus intercept).
+
+    ``t_s`` the rows' times and ``run_slices`` the runs (the wander restarts at each); ``temperatures``
+    the channels the model reads (none: no curvature part). Returns (C, s, curvature, noise): C in
+    the fit's order (the columns, then the intercept), s the white part of the residual and the
+    curvature's κ, averaged over the noise models :func:`fit_noise` weighs (variances averaged), and
+    that average noise. The noise is what neither the model's terms nor the curvature explain.
+    """
+    A = np.column_stack([X, np.ones(y.shape[0])])
+    k = A.shape[1]
+    B, bounds = A, None
     if temperatures:
         mean = np.mean([np.asarray(v, dtype=np.float64) for v in temperatures.values()], axis=0)
         lo, hi = float(mean.min()), float(mean.max())
-        quad = (mean - 0.5 * (lo + hi)) ** 2
-        if hi > lo and y.shape[0] > X.shape[1] + 2:
-            B = np.column_stack([A, quad])
-            beta, *_ = np.linalg.lstsq(B, y, rcond=None)
-            r = y - B @ beta
-            sigma2 = float(r @ r) / (y.shape[0] - B.shape[1])
-            scale = np.linalg.norm(B, axis=0)
-            scale[scale == 0] = 1.0
-            inv = np.linalg.pinv((B / scale).T @ (B / scale))
-            var_quad = sigma2 * float(inv[-1, -1]) / float(scale[-1]) ** 2 * ar1_inflation(r)
-            curvature = Curvature(tuple(temperatures), (lo, hi), math.sqrt(max(var_quad, 0.0)))
-    return cov * inflation, s, curvature
+        if hi > lo and y.shape[0] > k + 2:
+            B, bounds = np.column_stack([A, (mean - 0.5 * (lo + hi)) ** 2]), (lo, hi)
+    cov = np.zeros((k, k))
+    white2 = wander2 = tau = var_quad = 0.0
+    for weight, noise in fit_noise(B, y, t_s, run_slices):
+        meat_b = noise_times(B, t_s, run_slices, noise)  # Σ·B once; its first k columns are Σ·A
+        cov += weight * _sandwich(A, meat_b[:, :k])  # C and κ² averaged over the weighed models
+        if bounds is not None:
+            var_quad += weight * float(_sandwich(B, meat_b)[-1, -1])
+        white2 += weight * noise.white_um**2
+        wander2 += weight * noise.wander_um**2
+        tau += weight * noise.tau_s
+    curvature = None
+    if bounds is not None:  # κ: the standard error of a quadratic term in T̄ fitted beside the model's
+        curvature = Curvature(tuple(temperatures), bounds, math.sqrt(max(var_quad, 0.0)))
+    return cov, math.sqrt(white2), curvature, Noise(math.sqrt(white2), math.sqrt(wander2), tau)
 
 
 # --- streaming ---------------------------------------------------------------------------------

@@ -27,6 +27,8 @@ class Sampler:
     samples: dict[str, list[_Sample]] = field(default_factory=dict)
     latest: dict[str, Reading] = field(default_factory=dict)
     on_temperatures: Callable[[float, dict[str, float]], None] | None = None
+    #: per channel, (when polled, true value) from groups that know the truth (a simulated cell); else empty
+    truth: dict[str, list[tuple[float, float]]] = field(default_factory=dict)
     _broken: set[int] = field(default_factory=set)
 
     async def open(self) -> None:
@@ -61,6 +63,9 @@ class Sampler:
             self._broken.add(key)
             reason = f"device error: {err}" if str(err) else f"device error: {type(err).__name__}"
             readings = {name: Reading.fault(now, reason) for name in group.names}
+        else:
+            for name, value in group.true_values().items():
+                self.truth.setdefault(name, []).append((now, value))
         temps: dict[str, float] = {}
         for name, reading in readings.items():
             self.samples.setdefault(name, []).append(_Sample(now, reading))
@@ -114,6 +119,16 @@ class Sampler:
                     return means, f"{name}: stale (reading {s.t - s.reading.t:.1f} s old > max_age_s {max_age:g})"
             means[name] = float(np.mean([s.reading.value for s in inside]))
         return means, ""
+
+    def clear(self) -> None:
+        """Forget the samples (and true values) of the step before: a new window starts."""
+        self.samples.clear()
+        self.truth.clear()
+
+    def true_mean(self, channel: str, start: float, end: float) -> float:
+        """The mean true value of ``channel`` over [start, end]; nan when its group does not know the truth."""
+        inside = [v for t, v in self.truth.get(channel, []) if start - 1e-9 <= t <= end + 1e-9]
+        return float(np.mean(inside)) if inside else math.nan
 
     def fallback(self, channels: Sequence[str], start: float, end: float) -> dict[str, float]:
         """For an invalid step: means of the clean samples, else the last clean value, else 0."""

@@ -71,7 +71,7 @@ async def measure_step(sampler: Sampler, step: PlannedStep, q_from: float | None
     assert actuator is not None and backend.position_channel is not None
     t_command = clock.now()
     await ramp(actuator, clock, q_from, q_to, timing, limits)
-    sampler.samples.clear()
+    sampler.clear()
     channels = (backend.position_channel, *backend.temperature_channels)
     # temperatures all through the hold (stateful model terms see them); the position where it is used
     thermal_groups = [g for g in backend.groups if backend.position_channel not in g.names]
@@ -81,17 +81,18 @@ async def measure_step(sampler: Sampler, step: PlannedStep, q_from: float | None
     while True:
         end = clock.now()
         means, problem = sampler.window(channels, end - timing.window_s, end)
+        x_true = sampler.true_mean(backend.position_channel, end - timing.window_s, end)
         if not problem:
             return StepResult(step, end, q_to, means[backend.position_channel],
                               {c: means[c] for c in backend.temperature_channels}, True, retries,
-                              t_command_s=t_command)
+                              t_command_s=t_command, x_true_um=x_true)
         if retries >= timing.max_retries:
             fb = sampler.fallback(channels, end - timing.window_s, end)
             return StepResult(step, end, q_to, fb[backend.position_channel],
                               {c: fb[c] for c in backend.temperature_channels}, False, retries, problem,
-                              t_command_s=t_command)
+                              t_command_s=t_command, x_true_um=x_true)
         retries += 1
-        sampler.samples.clear()
+        sampler.clear()
         await sampler.sample_for(timing.window_s)
 
 

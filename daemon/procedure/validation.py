@@ -5,13 +5,15 @@ With ``adapt`` (``validate --adapt``) the model's command gets the daemon's bias
 step's averaged position minus its target, the measurement the daemon's monitor takes while a
 target is held), its correction added to every following command.
 
-With ``true_position`` (a simulated cell: :func:`daemon.commands._cell.simulated_truth`) each step also
-records the position the stage truly attained over its averaging window (``TestResult.x_true_um``),
-so the test is scored against the truth beside the interferometer. Hardware has no such function.
+On a simulated cell each step also carries the position the stage truly attained, averaged over the
+same readings as the interferometer's (``StepResult.x_true_um``, from the sensor group's
+``true_values``), and the result lists them (``TestResult.x_true_um``): the test is scored against the
+truth beside the interferometer. Hardware knows no truth: the list stays empty.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Awaitable, Callable
 from typing import IO, Any
 
@@ -23,9 +25,6 @@ from daemon.drivers_set import DriverSet
 from daemon.procedure.follow import FollowCheck
 from daemon.procedure.progress import Progress
 from daemon.procedure.steps import run_steps
-
-#: ``(start_s, end_s) -> µm``: the true attained position, averaged over that span of the cell's clock
-TruePosition = Callable[[float, float], float]
 
 
 def feed_tracker(tracker: BiasTracker, result: StepResult) -> float:
@@ -47,14 +46,12 @@ async def run_validation(
     follow: FollowCheck | None = None,
     ready: Callable[[], Awaitable[None]] | None = None,
     adapt: BiasTracker | None = None,
-    true_position: TruePosition | None = None,
 ) -> TestResult:
     """One test: drive the validation plan with the model (or without when ``model`` is None).
 
     ``adapt``: a bias tracker (``[adapt] mode = "bias"``) whose correction is added to the model's
     commands, fed by each valid step. The result records, per step, the correction its command
-    carried and the model's ``q_sigma_um`` for it. ``true_position(start_s, end_s)``: the true attained
-    position over a window of the cell's clock, recorded per step in ``x_true_um``.
+    carried and the model's ``q_sigma_um`` for it.
     """
     timing = timing or StepTiming()
     plan = validation_plan(cycles)
@@ -65,7 +62,6 @@ async def run_validation(
     extrapolating = 0
     corrections: list[float] = []
     sigmas: list[float] = []
-    truths: list[float] = []
     if model is not None:
         missing = [c for c in model.channels if c not in drivers.temperature_channels]
         if missing:
@@ -90,8 +86,6 @@ async def run_validation(
         return float(evaluator.command(step.target_um, t)) + correction
 
     def on_step(result: StepResult) -> None:
-        if true_position is not None:  # before the next command: the stage still holds this step
-            truths.append(true_position(result.t_s - timing.window_s, result.t_s))
         if adapt is not None:
             feed_tracker(adapt, result)
 
@@ -100,10 +94,13 @@ async def run_validation(
                             on_step=on_step, on_temperatures=observe, progress=progress, follow=follow,
                             ready=ready)
     result = summarize(name, steps, model is not None, extrapolating)
-    result.x_true_um = truths
+    truths = [s.x_true_um for s in steps]
+    result.x_true_um = truths if truths and all(math.isfinite(x) for x in truths) else []
     if model is not None:
         result.corrections_um = corrections
         result.q_sigma_um = sigmas
         result.adapted = adapt is not None
+        wander = model.covariance.wander_um if model.covariance is not None else None
+        result.measurement_sigma_um = wander or 0.0
     return result
 

@@ -27,6 +27,8 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from daemon.atomic import atomic_write_text, atomic_writer
 from daemon.calibration.iso9283 import TestResult, x_without
 
@@ -93,6 +95,48 @@ def truth_table(results: Sequence[TestResult]) -> str:
         ratio = without / with_ if r.compensated else None
         lines.append(f"{r.name:<10}{_nm(without) + star:>15}{_nm(with_):>12}{ratio_text(ratio):>13}")
     return "\n".join(lines)
+
+
+#: the share of errors within ±2 σ a calibrated q_sigma keeps (95 % for a normal error; 90-98 % allowed)
+COVERAGE_GOAL = (0.90, 0.98)
+
+
+def coverage_lines(result: TestResult) -> tuple[list[str], str | None]:
+    """What ``validate`` says about q_sigma (and the truth, on a simulated cell), and a warning if miscalibrated.
+
+    The errors judged are the true ones when the cell knows them, else the interferometer's (which
+    carry its wander too, so they are judged against sqrt(q_sigma² + wander²)). Under 90 % within
+    ±2σ: q_sigma understates the error. Over 98 %: it overstates it only if the errors are also
+    small against σ (RMS under half the median σ); a run's steps share one offset (the calibration's
+    coefficients are off the same way for all of them), so a run whose offset is within 2σ has
+    every step inside, which alone says little.
+    """
+    if not (result.compensated and result.q_sigma_um):
+        return [], None
+    median_nm = float(np.median(result.q_sigma_um)) * 1e3
+    measured = result.coverage()
+    wander = (f"; the interferometer's wander, {result.measurement_sigma_um * 1e3:.0f} nm, added in quadrature"
+              if result.measurement_sigma_um > 0 else "")
+    lines = [f"uncertainty: {measured * 100:.0f} % of the steps' measured errors (position - target) lie within "
+             f"±2 q_sigma (median q_sigma {median_nm:.0f} nm{wander}); a calibrated q_sigma keeps 90-98 %"]
+    valid = [s for s in result.steps if s.valid]
+    if result.has_truth:
+        judged, what = result.coverage_true(), "true errors"
+        errors = [s.x_true_um - s.step.target_um for s in valid]
+        lines.append(f"against the true position (simulated cell): accuracy {_nm(result.accuracy_true_nm)} with "
+                     f"compensation (interferometer: {_nm(result.accuracy_nm)}); {judged * 100:.0f} % of the true "
+                     "errors (true position - target) within ±2 q_sigma")
+    else:
+        judged, what = measured, "measured errors"
+        errors = [s.x_um - s.step.target_um for s in valid]
+    lo, hi = COVERAGE_GOAL
+    rms_nm = float(np.sqrt(np.mean(np.square(errors)))) * 1e3 if errors else math.nan
+    if not math.isfinite(judged) or lo <= judged <= hi or (judged > hi and rms_nm >= 0.5 * median_nm):
+        return lines, None
+    side = ("understates the error" if judged < lo
+            else f"overstates the error (RMS error {rms_nm:.0f} nm against a median q_sigma of {median_nm:.0f} nm)")
+    return lines, (f"q_sigma is not calibrated on this run: {judged * 100:.0f} % of the {what} within ±2 q_sigma "
+                   f"(expected {lo * 100:.0f}-{hi * 100:.0f} % over {len(valid)} steps); it {side}")
 
 
 def results_json(results: Sequence[TestResult], **extra: Any) -> dict[str, Any]:

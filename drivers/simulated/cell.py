@@ -52,6 +52,9 @@ class SimulatedCell:
         self._offsets = dict(physics.params.offsets_c)
         self.truth_log = truth_log
         self._truth_file: TextIO | None = None
+        #: the true attained position behind the last interferometer reading (nan before one):
+        #: what a validation on the simulated cell is scored against besides the interferometer
+        self.last_true_position_um = math.nan
 
     def sim_time(self) -> float:
         return self.clock.now() - self.epoch
@@ -101,7 +104,7 @@ class SimulatedCell:
                 continue
             noise = float(self._noise_rng.standard_normal())
             if name == POSITION_CHANNEL:
-                true_x = self.physics.attained_now(t, self.state)
+                self.last_true_position_um = true_x = self.physics.attained_now(t, self.state)
                 value = self.physics.measure_position1(t, true_x, noise)
                 if self.truth_log is not None:
                     self._log_truth(now, true_x, value)

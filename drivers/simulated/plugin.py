@@ -76,6 +76,11 @@ class SimulatedGroup(SensorGroup):
     async def close(self) -> None:
         self.is_open = False
 
+    def true_values(self) -> dict[str, float]:
+        """The true attained position behind this group's last interferometer reading (temperatures: none)."""
+        return {name: self.cell.last_true_position_um for name, source in self._sources.items()
+                if source == POSITION_CHANNEL}
+
 
 class SimulatedActuator(Actuator):
     """Moves the simulated stage: the closed loop takes ``q_um`` (the voltage is informational)."""

@@ -6,18 +6,17 @@ from __future__ import annotations
 import asyncio
 import json
 import math
+from dataclasses import replace
 
 import pytest
 from helpers.daemon_harness import REPO
 from helpers.sim_helpers import Capture, trained_model
 
 from daemon.assembly import simulated_drivers
+from daemon.calibration.iso9283 import summarize
 from daemon.cli import main
-from daemon.commands._cell import simulated_truth
-from daemon.drivers_set import DriverSet
 from daemon.model.model import save_model
 from daemon.procedure.validation import run_validation
-from drivers.base import DriverContext
 
 #: an interferometer that reads the truth: no white noise, no wander (its 0.3 nm resolution remains)
 PERFECT_INTERFEROMETER = {"interferometer_noise_um": 0.0, "interferometer_wander_um": 0.0}
@@ -32,12 +31,12 @@ def model_path(tmp_path_factory: pytest.TempPathFactory) -> str:
 
 def test_the_truth_is_what_a_perfect_interferometer_reads_and_only_a_simulated_cell_has_it() -> None:
     drivers = simulated_drivers("test2", seed=4, params=PERFECT_INTERFEROMETER)
-    result = asyncio.run(run_validation(drivers, trained_model(0), name="test2", cycles=2, progress_stream=Capture(),
-                                        true_position=simulated_truth(drivers)))
-    assert len(result.x_true_um) == len(result.steps) == 14
+    result = asyncio.run(run_validation(drivers, trained_model(0), name="test2", cycles=2, progress_stream=Capture()))
+    assert len(result.x_true_um) == len(result.steps) == 14 and result.has_truth
     assert max(abs(s.x_um - x) for s, x in zip(result.steps, result.x_true_um, strict=True)) < 0.002
-    hardware = DriverSet(DriverContext(), groups=[], actuator=None, roles={}, max_age_s={})
-    assert simulated_truth(hardware) is None
+    # hardware: steps without a true position (nan) give a result without truth, and no truth figures
+    blind = summarize("test2", [replace(s, x_true_um=math.nan) for s in result.steps], True, 0)
+    assert not blind.has_truth and "true_position" not in blind.to_dict()
 
 
 def test_validate_on_the_simulated_cell_reports_accuracy_against_the_true_position(model_path, capsys) -> None:
