@@ -1,0 +1,115 @@
+"""A two-axis cell served over real Zenoh (127.0.0.1), driving a real Modbus output module with two registers.
+
+The daemon is a separate process (``nanodrift run``); the module is pymodbus' TCP server with one
+holding register per axis; the temperatures come from the test-only ``file`` plugin. The registers are
+read back from the module itself: what the stage gets is what was published, every axis of it, and a
+target refused on one axis leaves both registers as they were.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from helpers.cell_helpers import ThreadedModbus, expected_cell_q, write_cell_model
+from helpers.daemon_harness import TEMPS, Client, Daemon, SensorFile, free_port, install_file_plugin, wait_until
+
+SCALE_V = 0.001  # volts per count of the module's outputs
+ADDRESSES = {"x": 10, "y": 11}
+
+
+def cell_config(root: Path, *, port: int, modbus_port: int, model: Path, sensors: Path) -> str:
+    axes = "".join(
+        f'[[axes]]\nname = "{axis}"\nmin_um = 0.0\nmax_um = {max_um}\n[axes.actuator]\nkind = "modbus"\nhub = "dac"\n'
+        f"address = {address}\nscale = {SCALE_V}\nvolts_per_um = 0.02\nv_min = -2.0\nv_max = 12.0\n\n"
+        for (axis, address), max_um in zip(ADDRESSES.items(), (480.0, 400.0), strict=True))
+    channels = "".join(f'[[sensors]]\nname = "{ch}"\nkind = "file"\npath = "{sensors}"\ninterval_s = 0.05\n'
+                       "max_age_s = 2.0\ntimeout_s = 0.5\n\n" for ch in ("T1", "T2"))
+    return (f'cell = "xy"\n[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{port}"]\nmulticast_scouting = false\n'
+            f'[model]\npath = "{model}"\n\n{axes}[[hubs]]\nname = "dac"\nhost = "127.0.0.1"\nport = {modbus_port}\n'
+            f"timeout_s = 0.5\n\n{channels}")
+
+
+class XYCell:
+    def __init__(self, root: Path) -> None:
+        self.module = ThreadedModbus().start()
+        self.port = free_port()
+        plugins = install_file_plugin(root / "plugins")
+        self.model = write_cell_model(root / "model.json", ("x", "y"))
+        self.sensors = SensorFile(root / "sensors.json", TEMPS)
+        config = root / "xy.toml"
+        config.write_text(cell_config(root, port=self.port, modbus_port=self.module.port, model=root / "model.json",
+                                      sensors=self.sensors.path))
+        self.daemon = Daemon(["--config", str(config)], root / "daemon.log", [plugins])
+        self.daemon.wait_log("serving", timeout=30)
+        self.client = Client(self.port, "xy")
+        self.client.wait_alive()
+        self.client.wait_ready(("T1", "T2"))
+
+    def volts(self, axis: str) -> float:
+        return self.module.registers(ADDRESSES[axis])[0] * SCALE_V
+
+    def close(self) -> None:
+        self.client.close()
+        self.daemon.stop()
+        self.module.stop()
+
+
+@pytest.fixture
+def cell(tmp_path: Path) -> Iterator[XYCell]:
+    served = XYCell(tmp_path)
+    yield served
+    served.close()
+
+
+def test_a_two_axis_target_is_one_command_and_both_registers_hold_its_voltages(cell: XYCell) -> None:
+    ok, command = cell.client.query({"x_um": 240, "y_um": 100, "id": 7})
+    assert ok, command
+    q = expected_cell_q({"x": 240.0, "y": 100.0}, TEMPS)
+    assert list(command) == ["id", "x_um", "y_um", "q_um", "voltage_v", "q_sigma_um", "temperatures_c", "model", "t",
+                             "extrapolating"]
+    assert command["id"] == 7 and command["x_um"] == 240 and command["y_um"] == 100
+    assert command["model"] == cell.model.id and command["extrapolating"] == []
+    assert command["q_um"] == pytest.approx(q, abs=1e-9)
+    assert command["voltage_v"] == pytest.approx({a: 0.02 * q[a] for a in q}, abs=1e-9)
+    assert set(command["q_sigma_um"]) == {"x", "y"}
+    published = cell.client.wait(lambda: [c for c in cell.client.commands if c.get("id") == 7], 5, "command 7")
+    assert published == [command]  # published once, every axis in it
+    for axis in ("x", "y"):  # what the module holds is what was published, to the count
+        wait_until(lambda a=axis: abs(cell.volts(a) - command["voltage_v"][a]) <= SCALE_V / 2, 5,
+                   f"register of axis {axis} at {command['voltage_v'][axis]:.4f} V")
+    status = cell.client.status()
+    assert set(status["axes"]) == {"x", "y"}
+    assert status["axes"]["y"]["max_um"] == 400.0 and status["axes"]["y"]["actuator"]["state"] == "ok"
+    assert status["axes"]["x"]["actuator"]["last_voltage_v"] == pytest.approx(command["voltage_v"]["x"],
+                                                                                abs=SCALE_V)
+
+
+def test_a_partial_or_out_of_workspace_target_is_refused_whole_and_no_register_is_written(cell: XYCell) -> None:
+    ok, first = cell.client.query({"x_um": 100, "y_um": 50, "id": 1})
+    assert ok, first
+    for axis in ("x", "y"):
+        wait_until(lambda a=axis: abs(cell.volts(a) - first["voltage_v"][a]) <= SCALE_V / 2, 5, f"axis {axis}")
+    writes_before = {a: len(cell.module.written(address)) for a, address in ADDRESSES.items()}
+
+    ok, error = cell.client.query({"x_um": 1, "id": 2})
+    assert not ok and error["kind"] == "bad_payload" and "'y_um'" in error["error"], error
+    ok, error = cell.client.query({"x_um": 1, "y_um": 2, "z_um": 3, "id": 3})
+    assert not ok and error["kind"] == "bad_payload" and "'z'" in error["error"], error
+    ok, error = cell.client.query({"x_um": 300, "y_um": 450, "id": 4})  # y's workspace ends at 400
+    assert not ok and error["kind"] == "out_of_workspace", error
+    assert "axis y" in error["error"] and "x_um" not in error["error"], error
+
+    # a later target is served: the refusals above were answered and passed; nothing reached the module
+    ok, after = cell.client.query({"x_um": 100, "y_um": 50, "id": 5})
+    assert ok, after
+    published_ids = [c["id"] for c in cell.client.commands]
+    assert 2 not in published_ids and 3 not in published_ids and 4 not in published_ids
+    writes = {a: cell.module.written(address)[writes_before[a]:] for a, address in ADDRESSES.items()}
+    expected = {a: [round(first["voltage_v"][a] / SCALE_V)] for a in ADDRESSES}
+    assert all(w == [expected[a]] * len(w) for a, w in writes.items()), writes  # only command 5's (same) values
+    assert json.loads(json.dumps(cell.client.status()["counters"]["errors"])) == {"bad_payload": 2,
+                                                                                  "out_of_workspace": 1}
