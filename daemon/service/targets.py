@@ -126,11 +126,11 @@ class TargetHandler:
                     bus.publish_command(data)
                     wake_actuator = self.actuation.offer(command.q_um, command.voltage_v, command.x_um)  # type: ignore[arg-type]
                 elif command is not None:
-                    assert isinstance(command, CellCommand)
+                    actuation = self.actuation
+                    assert isinstance(command, CellCommand) and isinstance(actuation, CellActuation)
                     data = encode_cell_command(command)  # published once, every axis; then handed over whole
                     bus.publish_command(data)
-                    wake_actuator = self.actuation.offer(command.q_um, command.voltage_v,  # type: ignore[arg-type]
-                                                         command.positions_um)
+                    wake_actuator = actuation.offer(command.q_um, command.voltage_v, command.positions_um)
                 else:
                     assert refusal is not None
                     data = encode_error(refusal)

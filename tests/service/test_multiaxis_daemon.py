@@ -13,7 +13,6 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-
 from helpers.cell_helpers import ThreadedModbus, expected_cell_q, write_cell_model
 from helpers.daemon_harness import TEMPS, Client, Daemon, SensorFile, free_port, install_file_plugin, wait_until
 
@@ -52,6 +51,13 @@ class XYCell:
     def volts(self, axis: str) -> float:
         return self.module.registers(ADDRESSES[axis])[0] * SCALE_V
 
+    def wait_registers(self, voltage_v: dict[str, float]) -> None:
+        """Until every axis' register holds the count of its published voltage."""
+        def held() -> bool:
+            return all(abs(self.volts(axis) - v) <= SCALE_V / 2 for axis, v in voltage_v.items())
+
+        wait_until(held, 5, f"registers at {voltage_v} V")
+
     def close(self) -> None:
         self.client.close()
         self.daemon.stop()
@@ -78,9 +84,7 @@ def test_a_two_axis_target_is_one_command_and_both_registers_hold_its_voltages(c
     assert set(command["q_sigma_um"]) == {"x", "y"}
     published = cell.client.wait(lambda: [c for c in cell.client.commands if c.get("id") == 7], 5, "command 7")
     assert published == [command]  # published once, every axis in it
-    for axis in ("x", "y"):  # what the module holds is what was published, to the count
-        wait_until(lambda a=axis: abs(cell.volts(a) - command["voltage_v"][a]) <= SCALE_V / 2, 5,
-                   f"register of axis {axis} at {command['voltage_v'][axis]:.4f} V")
+    cell.wait_registers(command["voltage_v"])  # what the module holds is what was published, to the count
     status = cell.client.status()
     assert set(status["axes"]) == {"x", "y"}
     assert status["axes"]["y"]["max_um"] == 400.0 and status["axes"]["y"]["actuator"]["state"] == "ok"
@@ -91,8 +95,7 @@ def test_a_two_axis_target_is_one_command_and_both_registers_hold_its_voltages(c
 def test_a_partial_or_out_of_workspace_target_is_refused_whole_and_no_register_is_written(cell: XYCell) -> None:
     ok, first = cell.client.query({"x_um": 100, "y_um": 50, "id": 1})
     assert ok, first
-    for axis in ("x", "y"):
-        wait_until(lambda a=axis: abs(cell.volts(a) - first["voltage_v"][a]) <= SCALE_V / 2, 5, f"axis {axis}")
+    cell.wait_registers(first["voltage_v"])
     writes_before = {a: len(cell.module.written(address)) for a, address in ADDRESSES.items()}
 
     ok, error = cell.client.query({"x_um": 1, "id": 2})
