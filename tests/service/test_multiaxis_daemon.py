@@ -9,12 +9,14 @@ target refused on one axis leaves both registers as they were.
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 from helpers.cell_helpers import ThreadedModbus, expected_cell_q, write_cell_model
-from helpers.daemon_harness import TEMPS, Client, Daemon, SensorFile, free_port, install_file_plugin, wait_until
+from helpers.daemon_harness import REPO, TEMPS, Client, Daemon, SensorFile, free_port, install_file_plugin, wait_until
 
 SCALE_V = 0.001  # volts per count of the module's outputs
 ADDRESSES = {"x": 10, "y": 11}
@@ -116,3 +118,31 @@ def test_a_partial_or_out_of_workspace_target_is_refused_whole_and_no_register_i
     assert all(w == [expected[a]] * len(w) for a, w in writes.items()), writes  # only command 5's (same) values
     assert json.loads(json.dumps(cell.client.status()["counters"]["errors"])) == {"bad_payload": 2,
                                                                                   "out_of_workspace": 1}
+
+
+def cli(cell: XYCell, *args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "daemon.cli", *args, "-e", f"tcp/127.0.0.1:{cell.port}",
+                           "--cell", "xy"], capture_output=True, text=True, cwd=REPO, timeout=60)
+
+
+def test_the_cli_sends_one_point_per_target_in_the_cells_axis_order_and_status_shows_each_axis(cell: XYCell) -> None:
+    result = cli(cell, "target", "240,100", "0,0", "--json")
+    assert result.returncode == 0, result.stderr
+    answers = [json.loads(line) for line in result.stdout.splitlines()]
+    assert [(a["x_um"], a["y_um"]) for a in answers] == [(240.0, 100.0), (0.0, 0.0)]
+    assert answers[0]["q_um"] == pytest.approx(expected_cell_q({"x": 240.0, "y": 100.0}, TEMPS), abs=1e-9)
+
+    result = cli(cell, "target", "100,50", "300,450")
+    assert result.returncode == 1
+    assert result.stdout.startswith("x 100.0000 y 50.0000 µm -> q x ") and cell.model.id in result.stdout
+    assert "300,450 µm refused: y_um 450 outside axis y's workspace [0, 400] µm" in result.stderr, result.stderr
+    result = cli(cell, "target", "100")  # one number in an XY cell: refused by the daemon, naming y
+    assert result.returncode == 1 and "'y_um'" in result.stderr, result.stderr
+    result = cli(cell, "target", "1,2,3")
+    assert result.returncode == 2 and "cell xy has axes x, y" in result.stderr, result.stderr
+
+    cell.wait_registers({"x": 0.02 * expected_cell_q({"x": 100.0, "y": 50.0}, TEMPS)["x"]})
+    result = cli(cell, "status")
+    assert result.returncode == 0, result.stderr
+    assert "x:modbus:ok y:modbus:ok" in result.stdout, result.stdout
+    assert "xy axis y: [0, 400] µm, modbus ok at " in result.stdout, result.stdout
