@@ -201,7 +201,7 @@ def axis_lines(doc: dict[str, Any]) -> list[str]:
             sensor = (f", position {each.get('position_sensor')} {position.get('state')}"
                       + (f" {value:.3f} µm" if isinstance(value, int | float) else ""))
         out.append(f"  {doc.get('cell', '?')} axis {axis}: [{_number(each.get('min_um')):g}, "
-                   f"{_number(each.get("max_um")):g}] µm, {_actuator({'actuator': actuator})}"
+                   f"{_number(each.get('max_um')):g}] µm, {_actuator({'actuator': actuator})}"
                    + (f" at {volts:.5f} V" if isinstance(volts, int | float) else "") + sensor)
     return out
 
