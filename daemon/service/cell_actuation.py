@@ -11,8 +11,9 @@ shared line (a GCS controller's port, a Modbus module's connection):
   every axis holds its goal.
 - **Where each axis is** (:func:`daemon.service.actuation.locate_stage`): its read-back checked
   against its limits and what was sent to it, else unknown (the next command is written as it is).
-- **What is sent** is checked per axis (:func:`checked_sent_voltage`): inside that axis' limits, or
-  nothing is written to it, and the cell is in fault.
+- **What is sent** is checked per axis (:func:`checked_sent_voltage`): inside that axis' limits, for
+  every axis of a step before any axis is written, or nothing of the step is written and the cell is
+  in fault.
 - **Faults**: a failure on any axis puts the cell's output in fault (targets refused with
   ``actuator_fault`` naming the axis); every axis is closed and reopened with backoff and the goal
   written again.
@@ -279,31 +280,35 @@ class CellActuation:
                                  reason="the served command is outside the limits now in force: the stage holds")
                 self._goal, self._goal_on_device = None, True
                 return
+            began_s = time.monotonic()
+            step = []  # every axis' value of this step, each checked before any axis is written
             for axis, out in outputs.items():
                 if axis in reached:
                     continue
-                began_s = time.monotonic()
                 goal_v = goal.voltage_v[axis]
                 voltage = out.slew.next_voltage(out.config, out.at_v, goal_v, began_s)
                 at_goal = voltage == goal_v
                 if not at_goal:
                     voltage = min(max(voltage, out.config.v_min), out.config.v_max)
+                try:
+                    sent_v = checked_sent_voltage(out.actuator, out.config, voltage)
+                except ValueError as error:
+                    raise AxisFault(f"axis {axis}: {error}") from None
                 q_um = goal.q_um[axis] if at_goal else out.config.q_um_for(voltage)
                 x_um = goal.positions_um.get(axis) if goal.positions_um is not None else None
-                await self._write(out, q_um, voltage, x_um)
+                step.append((out, q_um, voltage, sent_v, x_um, at_goal))
+            for out, q_um, voltage, sent_v, x_um, at_goal in step:
+                await self._write(out, q_um, voltage, sent_v, x_um)
                 out.slew.wrote(began_s, at_goal)
                 if at_goal:
-                    reached.add(axis)
+                    reached.add(out.axis)
             if len(reached) == len(outputs):
                 self._goal_on_device = True
                 return
             await asyncio.sleep(RAMP_PERIOD_S)
 
-    async def _write(self, out: AxisOutput, q_um: float, voltage_v: float, x_um: float | None) -> None:
-        try:
-            sent_v = checked_sent_voltage(out.actuator, out.config, voltage_v)
-        except ValueError as error:
-            raise AxisFault(f"axis {out.axis}: {error}") from None
+    async def _write(self, out: AxisOutput, q_um: float, voltage_v: float, sent_v: float,
+                     x_um: float | None) -> None:
         out.tried_v = sent_v
         out.at_v = None
         await _guarded(out.actuator.command(q_um, voltage_v, x_um=x_um), out.axis, "write")
