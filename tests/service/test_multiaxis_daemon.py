@@ -9,8 +9,10 @@ target refused on one axis leaves both registers as they were.
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
+import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -22,7 +24,7 @@ SCALE_V = 0.001  # volts per count of the module's outputs
 ADDRESSES = {"x": 10, "y": 11}
 
 
-def cell_config(root: Path, *, port: int, modbus_port: int, model: Path, sensors: Path) -> str:
+def cell_config(root: Path, *, port: int, modbus_port: int, model: Path, sensors: Path, metrics_port: int) -> str:
     axes = "".join(
         f'[[axes]]\nname = "{axis}"\nmin_um = 0.0\nmax_um = {max_um}\n[axes.actuator]\nkind = "modbus"\nhub = "dac"\n'
         f"address = {address}\nscale = {SCALE_V}\nvolts_per_um = 0.02\nv_min = -2.0\nv_max = 12.0\n\n"
@@ -30,7 +32,8 @@ def cell_config(root: Path, *, port: int, modbus_port: int, model: Path, sensors
     channels = "".join(f'[[sensors]]\nname = "{ch}"\nkind = "file"\npath = "{sensors}"\ninterval_s = 0.05\n'
                        "max_age_s = 2.0\ntimeout_s = 0.5\n\n" for ch in ("T1", "T2"))
     return (f'cell = "xy"\n[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{port}"]\nmulticast_scouting = false\n'
-            f'[model]\npath = "{model}"\n\n{axes}[[hubs]]\nname = "dac"\nhost = "127.0.0.1"\nport = {modbus_port}\n'
+            f'[metrics]\nlisten = "127.0.0.1:{metrics_port}"\n[model]\npath = "{model}"\n\n{axes}'
+            f'[[hubs]]\nname = "dac"\nhost = "127.0.0.1"\nport = {modbus_port}\n'
             f"timeout_s = 0.5\n\n{channels}")
 
 
@@ -38,12 +41,13 @@ class XYCell:
     def __init__(self, root: Path) -> None:
         self.module = ThreadedModbus().start()
         self.port = free_port()
+        self.metrics_port = free_port()
         plugins = install_file_plugin(root / "plugins")
         self.model = write_cell_model(root / "model.json", ("x", "y"))
         self.sensors = SensorFile(root / "sensors.json", TEMPS)
         config = root / "xy.toml"
         config.write_text(cell_config(root, port=self.port, modbus_port=self.module.port, model=root / "model.json",
-                                      sensors=self.sensors.path))
+                                      sensors=self.sensors.path, metrics_port=self.metrics_port))
         self.daemon = Daemon(["--config", str(config)], root / "daemon.log", [plugins])
         self.daemon.wait_log("serving", timeout=30)
         self.client = Client(self.port, "xy")
@@ -92,6 +96,12 @@ def test_a_two_axis_target_is_one_command_and_both_registers_hold_its_voltages(c
     assert status["axes"]["y"]["max_um"] == 400.0 and status["axes"]["y"]["actuator"]["state"] == "ok"
     assert status["axes"]["x"]["actuator"]["last_voltage_v"] == pytest.approx(command["voltage_v"]["x"],
                                                                                 abs=SCALE_V)
+    with urllib.request.urlopen(f"http://127.0.0.1:{cell.metrics_port}/metrics", timeout=5) as page:
+        metrics = page.read().decode()
+    assert 'nanodrift_actuator_ok{axis="y",cell="xy",kind="modbus"} 1.0' in metrics, metrics
+    assert 'nanodrift_actuator_state{axis="x",cell="xy",kind="modbus",state="ok"} 1.0' in metrics
+    volts = re.search(r'nanodrift_actuator_voltage_volts\{axis="y",cell="xy"\} (\S+)', metrics)
+    assert volts is not None and float(volts[1]) == pytest.approx(command["voltage_v"]["y"], abs=SCALE_V)
 
 
 def test_a_partial_or_out_of_workspace_target_is_refused_whole_and_no_register_is_written(cell: XYCell) -> None:
