@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import re
+import signal
 import subprocess
 import sys
 import urllib.request
@@ -18,7 +19,17 @@ from pathlib import Path
 
 import pytest
 from helpers.cell_helpers import ThreadedModbus, expected_cell_q, write_cell_model
-from helpers.daemon_harness import REPO, TEMPS, Client, Daemon, SensorFile, free_port, install_file_plugin, wait_until
+from helpers.daemon_harness import (
+    REPO,
+    TEMPS,
+    Client,
+    Daemon,
+    SensorFile,
+    free_port,
+    install_file_plugin,
+    wait_until,
+    write_test_model,
+)
 
 SCALE_V = 0.001  # volts per count of the module's outputs
 ADDRESSES = {"x": 10, "y": 11}
@@ -156,3 +167,36 @@ def test_the_cli_sends_one_point_per_target_in_the_cells_axis_order_and_status_s
     assert result.returncode == 0, result.stderr
     assert "x:modbus:ok y:modbus:ok" in result.stdout, result.stdout
     assert "xy axis y: [0, 400] µm, modbus ok at " in result.stdout, result.stdout
+
+
+def test_a_reload_keeps_the_axes_and_carries_the_goal_to_the_reopened_outputs(cell: XYCell, tmp_path: Path) -> None:
+    ok, command = cell.client.query({"x_um": 200, "y_um": 150, "id": 1})
+    assert ok, command
+    cell.wait_registers(command["voltage_v"])
+    config = tmp_path / "xy.toml"
+    good = config.read_text()
+
+    # an edit that adds a z axis is refused whole (a restart is needed): the daemon keeps serving x and y
+    z_axis = '[[axes]]\nname = "z"\n[axes.actuator]\nkind = "zenoh"\n\n'
+    config.write_text(good.replace("[[hubs]]", z_axis + "[[hubs]]", 1))
+    cell.daemon.signal(signal.SIGHUP)
+    refused = cell.daemon.wait_log("reload_refused")
+    assert any("the edited config has axes x, y, z, the daemon runs axes x, y: a reload never adds or removes axes"
+               in p for p in refused["problems"]), refused
+    # a one-axis model for this cell is refused with both sides named
+    write_test_model(tmp_path / "one_axis.json")
+    config.write_text(good.replace(str(tmp_path / "model.json"), str(tmp_path / "one_axis.json")))
+    cell.daemon.signal(signal.SIGHUP)
+    refused = cell.daemon.wait_log("reload_refused", count=2)
+    assert any("serves axes x (one axis), the cell has axes x, y" in p for p in refused["problems"]), refused
+
+    # a valid edit of y's output (another v_max) reopens the outputs: the goal is written to them again
+    writes_before = len(cell.module.written(ADDRESSES["y"]))
+    config.write_text(good.replace("v_max = 12.0", "v_max = 11.0"))
+    cell.daemon.signal(signal.SIGHUP)
+    applied = cell.daemon.wait_log("reload_applied")
+    assert applied["drivers_restarted"] is True
+    wait_until(lambda: len(cell.module.written(ADDRESSES["y"])) > writes_before, 5, "the goal rewritten to y")
+    cell.wait_registers(command["voltage_v"])
+    ok, after = cell.client.query({"x_um": 200, "y_um": 150, "id": 2})
+    assert ok and after["q_um"] == pytest.approx(command["q_um"], abs=1e-9)
