@@ -27,7 +27,7 @@ import asyncio
 import random
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -94,6 +94,8 @@ class CellActuation:
         self._fault_since = 0.0
         self.write_failures = 0
         self._known: dict[str, AxisOutput] = {}  # axis -> its last output (kept over a restart on the same device)
+        #: told (on the loop) when every axis holds a served goal: the goal and the monotonic time
+        self.reached_listeners: list[Callable[[CellGoal, float], None]] = []
 
     # --- the target path (any thread) -----------------------------------------------------------
 
@@ -304,6 +306,9 @@ class CellActuation:
                     reached.add(out.axis)
             if len(reached) == len(outputs):
                 self._goal_on_device = True
+                if follow_pending:  # a served goal (not the safe stop's)
+                    for listener in self.reached_listeners:
+                        listener(goal, time.monotonic())
                 return
             await asyncio.sleep(RAMP_PERIOD_S)
 

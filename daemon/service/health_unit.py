@@ -145,9 +145,11 @@ class HealthUnit:
         """One reading of a temperature channel (ok or not) taken at ``t``: the rows carry every polled channel."""
         self.polled.observe(name, t, value_c, ok)
 
-    def on_position(self, now: float, t: float, value_um: float, ok: bool, problem: str = "") -> None:
+    def on_position(self, now: float, t: float, value_um: float, ok: bool, problem: str = "",
+                    channel: str | None = None) -> None:
         """One reading of the position sensor taken at ``t``; ``ok``: ok and fresh at ``now``; else
-        ``problem`` says why not (``stale: value frozen at ...``), for the advice."""
+        ``problem`` says why not (``stale: value frozen at ...``), for the advice. (``channel``: which
+        sensor; a one-axis cell has one position sensor.)"""
         if self.position_channel is None:
             return
         self.position_problem = "" if ok else (problem or "not ok")

@@ -28,6 +28,7 @@ from daemon.model.cell_model import CellModel
 from daemon.model.model import Model, ModelFileError
 from daemon.sdnotify import Notifier
 from daemon.service.cell_compensator import CellCompensator, load_served_model
+from daemon.service.cell_health import CellHealth
 from daemon.service.compensator import Compensator
 from daemon.service.health_unit import HealthUnit
 from daemon.service.state import CellState
@@ -70,7 +71,7 @@ class Reloader:
         *,
         status_line: Callable[[], str],
         table_replaced: Callable[[], None],
-        health: HealthUnit | None = None,
+        health: HealthUnit | CellHealth | None = None,
     ) -> None:
         self.state = state
         self.config_path = config_path

@@ -30,6 +30,7 @@ from daemon.sdnotify import Notifier
 from daemon.service.actuation import Actuation
 from daemon.service.cell_actuation import CellActuation
 from daemon.service.cell_compensator import CellCompensator, load_cell_model_or_problem
+from daemon.service.cell_health import CellHealth
 from daemon.service.compensator import Compensator, load_model_or_problem
 from daemon.service.health_unit import HealthUnit
 from daemon.service.metrics import AnswerLatency
@@ -69,12 +70,14 @@ class Service:
         self.log = get_logger("nanodrift.daemon")
         compensator: Compensator | CellCompensator
         self.actuation: Actuation | CellActuation
+        self.health: HealthUnit | CellHealth
         if config.multi_axis:  # an XY/XYZ cell: every axis from one snapshot, all axes' outputs by one task
             cell_model, problem = load_cell_model_or_problem(config.model.path, config.axis_names)
             table = SensorTable(config.sensors, config.actuator.workspace_um, config.sensor_workspaces())
             compensator = CellCompensator(cell_model, config.axis_actuators(), table, problem)
-            self.health = HealthUnit(config, cell_model, self.log)
+            self.health = CellHealth(config, cell_model, self.log)
             self.actuation = CellActuation(self.log)
+            self.actuation.reached_listeners.append(self._output_reached)
         else:
             model, problem = load_model_or_problem(config.model.path)
             table = SensorTable(config.sensors, config.actuator.workspace_um)  # judges every reading
@@ -266,7 +269,7 @@ class Service:
 
         No state lock: the health unit's reach queue is only touched on the loop (here and in the sensor
         ingest), and the target path must not wait for a write's bookkeeping."""
-        self.health.on_reached(self.state.clock.now(), goal.q_um)
+        self.health.on_reached(self.state.clock.now(), goal.q_um)  # a multi-axis goal: q per axis
 
     def _log_start(self) -> None:
         config, comp = self.state.config, self.state.compensator

@@ -19,13 +19,14 @@ from daemon.bus.session import Bus
 from daemon.config import ZENOH_KIND, Config
 from daemon.service.actuation import Actuation
 from daemon.service.cell_actuation import CellActuation
+from daemon.service.cell_health import CellHealth
 from daemon.service.health_unit import HealthUnit
 from daemon.service.state import CellState
 from drivers.base import State
 
 
 def status_doc(state: CellState, healthy: bool, actuation: Actuation | CellActuation | None = None,
-               health: HealthUnit | None = None) -> dict[str, Any]:
+               health: HealthUnit | CellHealth | None = None) -> dict[str, Any]:
     """The ``status`` payload's document (README, Zenoh keys ``status``)."""
     driven = actuation.doc() if actuation is not None else None
     with state.lock:
@@ -53,7 +54,7 @@ def status_doc(state: CellState, healthy: bool, actuation: Actuation | CellActua
         return doc
 
 
-def status_line(state: CellState, health: HealthUnit | None = None) -> str:
+def status_line(state: CellState, health: HealthUnit | CellHealth | None = None) -> str:
     """``cell c: 3/4 sensors ok, model m-..., 12 commands, 0 refused, health ok`` (systemd's STATUS=)."""
     with state.lock:
         now = state.clock.now()
@@ -71,7 +72,8 @@ class StatusHandler:
     """``on_status`` for the bus (called on the loop)."""
 
     def __init__(self, state: CellState, bus: Bus, healthy: Callable[[], bool], log: Any,
-                 actuation: Actuation | CellActuation | None = None, health: HealthUnit | None = None) -> None:
+                 actuation: Actuation | CellActuation | None = None,
+                 health: HealthUnit | CellHealth | None = None) -> None:
         self.state = state
         self.actuation = actuation
         self.health = health
