@@ -174,6 +174,9 @@ class CellCollector(Collector):
         health = doc.get("health")
         if not isinstance(health, dict):
             return
+        if isinstance(health.get("axes"), dict):
+            yield from self._axis_health(health["axes"], cell)
+            return
         for name, key, scale, text in (
             ("nanodrift_health_residual_rms_meters", "residual_rms_nm", 1e-9, "RMS of the settled residuals"),
             ("nanodrift_health_residual_mean_meters", "residual_mean_nm", 1e-9, "mean of the settled residuals"),
@@ -214,6 +217,30 @@ class CellCollector(Collector):
         ok = GaugeMetricFamily("nanodrift_actuator_ok", "1 unless the actuator is in fault", labels=["cell", "kind"])
         ok.add_metric([cell, kind], 0.0 if current == "fault" else 1.0)
         yield from (family, ok)
+
+    def _axis_health(self, axes: dict[str, Any], cell: str) -> Iterator[Any]:
+        """A multi-axis cell's health: the one-axis families with an ``axis`` label."""
+        families = {key: GaugeMetricFamily(name, text, labels=["cell", "axis"]) for name, key, text in (
+            ("nanodrift_health_residual_rms_meters", "residual_rms_nm", "RMS of the settled residuals"),
+            ("nanodrift_health_residual_mean_meters", "residual_mean_nm", "mean of the settled residuals"),
+            ("nanodrift_health_correction_meters", "correction_um", "the adaptive correction applied"),
+            ("nanodrift_health_residuals", "n", "settled residuals in the rolling statistics"))}
+        scale = {"residual_rms_nm": 1e-9, "residual_mean_nm": 1e-9, "correction_um": 1e-6, "n": 1.0}
+        state = GaugeMetricFamily("nanodrift_health_state",
+                                  "1 for the health state the daemon is in (unknown, ok, degraded)",
+                                  labels=["cell", "axis", "state"])
+        for axis, health in axes.items():
+            if not isinstance(health, dict):
+                continue
+            for key, family in families.items():
+                number = _number(health.get(key))
+                if number is not None:
+                    family.add_metric([cell, axis], number * scale[key])
+            if health.get("state") is not None:
+                current = str(health["state"])
+                for name in dict.fromkeys((*HEALTH_STATES, current)):
+                    state.add_metric([cell, axis, name], 1.0 if name == current else 0.0)
+        yield from (*families.values(), state)
 
     def _axis_actuators(self, axes: dict[str, Any], cell: str) -> Iterator[Any]:
         """A multi-axis cell's outputs: the one-axis families with an ``axis`` label, and each output's voltage."""

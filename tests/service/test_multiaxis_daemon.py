@@ -35,7 +35,8 @@ SCALE_V = 0.001  # volts per count of the module's outputs
 ADDRESSES = {"x": 10, "y": 11}
 
 
-def cell_config(root: Path, *, port: int, modbus_port: int, model: Path, sensors: Path, metrics_port: int) -> str:
+def cell_config(root: Path, *, port: int, modbus_port: int, model: Path, sensors: Path, metrics_port: int,
+                extra: str = "") -> str:
     axes = "".join(
         f'[[axes]]\nname = "{axis}"\nmin_um = 0.0\nmax_um = {max_um}\n[axes.actuator]\nkind = "modbus"\nhub = "dac"\n'
         f"address = {address}\nscale = {SCALE_V}\nvolts_per_um = 0.02\nv_min = -2.0\nv_max = 12.0\n\n"
@@ -45,20 +46,20 @@ def cell_config(root: Path, *, port: int, modbus_port: int, model: Path, sensors
     return (f'cell = "xy"\n[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{port}"]\nmulticast_scouting = false\n'
             f'[metrics]\nlisten = "127.0.0.1:{metrics_port}"\n[model]\npath = "{model}"\n\n{axes}'
             f'[[hubs]]\nname = "dac"\nhost = "127.0.0.1"\nport = {modbus_port}\n'
-            f"timeout_s = 0.5\n\n{channels}")
+            f"timeout_s = 0.5\n\n{channels}{extra}")
 
 
 class XYCell:
-    def __init__(self, root: Path) -> None:
+    def __init__(self, root: Path, extra: str = "", values: dict[str, float] | None = None) -> None:
         self.module = ThreadedModbus().start()
         self.port = free_port()
         self.metrics_port = free_port()
         plugins = install_file_plugin(root / "plugins")
         self.model = write_cell_model(root / "model.json", ("x", "y"))
-        self.sensors = SensorFile(root / "sensors.json", TEMPS)
+        self.sensors = SensorFile(root / "sensors.json", {**TEMPS, **(values or {})})
         config = root / "xy.toml"
         config.write_text(cell_config(root, port=self.port, modbus_port=self.module.port, model=root / "model.json",
-                                      sensors=self.sensors.path, metrics_port=self.metrics_port))
+                                      sensors=self.sensors.path, metrics_port=self.metrics_port, extra=extra))
         self.daemon = Daemon(["--config", str(config)], root / "daemon.log", [plugins])
         self.daemon.wait_log("serving", timeout=30)
         self.client = Client(self.port, "xy")
@@ -200,3 +201,37 @@ def test_a_reload_keeps_the_axes_and_carries_the_goal_to_the_reopened_outputs(ce
     cell.wait_registers(command["voltage_v"])
     ok, after = cell.client.query({"x_um": 200, "y_um": 150, "id": 2})
     assert ok and after["q_um"] == pytest.approx(command["q_um"], abs=1e-9)
+
+
+def test_each_axis_has_its_health_and_its_own_bias_correction(tmp_path: Path) -> None:
+    sensor_file = tmp_path / "sensors.json"
+    positions = "".join(f'[[sensors]]\nname = "ifm_{axis}"\nkind = "file"\npath = "{sensor_file}"\n'
+                        f'role = "position"\naxis = "{axis}"\ninterval_s = 0.05\nmax_age_s = 2.0\n\n'
+                        for axis in ("x", "y"))
+    extra = positions + '[health]\nsettle_s = 0.05\nwindow_s = 0.3\n[adapt]\nmode = "bias"\ntau_s = 1.0\nmax_um = 1.0\n'
+    # the stage lands 0.3 um over the target on x, 0.2 um under it on y
+    cell = XYCell(tmp_path, extra, {"ifm_x": 100.3, "ifm_y": 49.8})
+    try:
+        ok, first = cell.client.query({"x_um": 100, "y_um": 50, "id": 1})
+        assert ok and first["correction_um"] == {"x": 0.0, "y": 0.0}, first
+
+        def settled() -> dict[str, object] | None:
+            health = cell.client.status()["health"]
+            return health if all(health["axes"][a]["n"] >= 1 for a in ("x", "y")) else None
+
+        health = wait_until(settled, 10, "a settled residual on both axes")
+        assert health["axes"]["x"]["residual_mean_nm"] == pytest.approx(300.0, abs=1.0), health
+        assert health["axes"]["y"]["residual_mean_nm"] == pytest.approx(-200.0, abs=1.0), health
+        ok, second = cell.client.query({"x_um": 100, "y_um": 50, "id": 2})
+        assert ok, second
+        correction = second["correction_um"]
+        assert correction["x"] < 0 < correction["y"], correction  # each axis pushed against its own residual
+        with urllib.request.urlopen(f"http://127.0.0.1:{cell.metrics_port}/metrics", timeout=5) as page:
+            metrics = page.read().decode()
+        mean = re.search(r'nanodrift_health_residual_mean_meters\{axis="y",cell="xy"\} (\S+)', metrics)
+        assert mean is not None and float(mean[1]) == pytest.approx(-200e-9, abs=1e-9), metrics
+        assert 'nanodrift_health_state{axis="x",cell="xy",state="unknown"} 1.0' in metrics
+        q = expected_cell_q({"x": 100.0, "y": 50.0}, TEMPS)
+        assert second["q_um"] == pytest.approx({a: q[a] + correction[a] for a in q}, abs=1e-9)
+    finally:
+        cell.close()
