@@ -7,13 +7,14 @@ statistics and, with ``[adapt] mode = "bias"``, its own bias tracker, whose corr
 axis' actuator and position sensor, every temperature sensor) and of the model (its axis' model).
 
 The ``health`` document is the worst state of the axes (degraded, then ok, then unknown) with every
-axis' own document under ``"axes"``. Recording settled targets is not per axis yet: a multi-axis
-cell records nothing (its rows need every axis' position at once, ``x_um, y_um, q_x_um, ...``).
+axis' own document under ``"axes"``. A target held on every watched axis is one recorded row
+(:class:`daemon.service.recorder.CellSettled`: ``x_um, y_um, q_x_um, q_y_um, target_x_um, ...``).
 """
 
 from __future__ import annotations
 
 import asyncio
+import functools
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -26,9 +27,11 @@ from daemon.config import Config
 from daemon.model.cell_model import CellModel
 from daemon.service.cell_compensator import CellCompensator
 from daemon.service.health_unit import PUBLISH_INTERVAL_S, HealthUnit
-from daemon.service.recorder import Polled
+from daemon.service.recorder import CellSettled, Polled
 
 #: a cell's state is its worst axis'
+#: targets held on some axes, waiting for the others (oldest dropped beyond this)
+MAX_PENDING_TARGETS = 64
 _RANK = {"degraded": 2, "ok": 1, "unknown": 0}
 
 
@@ -96,8 +99,11 @@ class CellHealth:
         self.units = {axis: HealthUnit(axis_view(config, axis), model.models[axis] if model is not None else None,
                                        log.bind(axis=axis) if hasattr(log, "bind") else log)
                       for axis in self.axes}
-        #: not per axis yet: nothing is recorded for a multi-axis cell (kept for the service's wiring)
-        self.settled_listeners: list[Callable[[Settled, float, Polled], None]] = []
+        #: told (on the loop) of every target settled on every watched axis: one row of the cell (the recorder)
+        self.settled_listeners: list[Callable[[CellSettled, float, Polled], None]] = []
+        self._pending: dict[Any, dict[str, tuple[Settled, float, Polled]]] = {}  # target id -> axes settled
+        for axis, unit in self.units.items():
+            unit.settled_listeners.append(functools.partial(self._axis_settled, axis))
         self._served = _Served(self.units)
         self._publisher: Any = None
         self._announced = self.state
@@ -133,6 +139,24 @@ class CellHealth:
         if cell is not None:
             watched = any(u.position_channel is not None for u in self.units.values())
             cell.served = self._served if watched else None  # type: ignore[assignment]
+
+    def _axis_settled(self, axis: str, settled: Settled, unix_s: float, polled: Polled) -> None:
+        """One axis held a target: once every watched axis held it, the cell's row goes to the listeners."""
+        watched = [a for a, u in self.units.items() if u.position_channel is not None]
+        key = repr(settled.target_id)
+        axes = self._pending.setdefault(key, {})
+        axes[axis] = (settled, unix_s, polled)
+        if len(self._pending) > MAX_PENDING_TARGETS:  # an axis that never settles must not grow this
+            self._pending.pop(next(iter(self._pending)))
+        if not all(a in axes for a in watched):
+            return
+        del self._pending[key]
+        cell = CellSettled({a: axes[a][0] for a in watched})
+        last = max(watched, key=lambda a: axes[a][1])
+        valid = all(axes[a][2].valid for a in watched)
+        polled_cell = Polled(axes[last][2].values_c, valid)
+        for listener in self.settled_listeners:
+            listener(cell, axes[last][1], polled_cell)
 
     def on_temperatures(self, t: float, temps: Mapping[str, float]) -> None:
         for unit in self.units.values():

@@ -8,6 +8,7 @@ target refused on one axis leaves both registers as they were.
 
 from __future__ import annotations
 
+import csv
 import json
 import re
 import signal
@@ -30,6 +31,8 @@ from helpers.daemon_harness import (
     wait_until,
     write_test_model,
 )
+
+from daemon.calibration.dataset import read_csv
 
 SCALE_V = 0.001  # volts per count of the module's outputs
 ADDRESSES = {"x": 10, "y": 11}
@@ -208,7 +211,8 @@ def test_each_axis_has_its_health_and_its_own_bias_correction(tmp_path: Path) ->
     positions = "".join(f'[[sensors]]\nname = "ifm_{axis}"\nkind = "file"\npath = "{sensor_file}"\n'
                         f'role = "position"\naxis = "{axis}"\ninterval_s = 0.05\nmax_age_s = 2.0\n\n'
                         for axis in ("x", "y"))
-    extra = positions + '[health]\nsettle_s = 0.05\nwindow_s = 0.3\n[adapt]\nmode = "bias"\ntau_s = 1.0\nmax_um = 1.0\n'
+    extra = positions + (f'[health]\nsettle_s = 0.05\nwindow_s = 0.3\nrecord_dir = "{tmp_path / "records"}"\n'
+                         '[adapt]\nmode = "bias"\ntau_s = 1.0\nmax_um = 1.0\n')
     # the stage lands 0.3 um over the target on x, 0.2 um under it on y
     cell = XYCell(tmp_path, extra, {"ifm_x": 100.3, "ifm_y": 49.8})
     try:
@@ -231,6 +235,20 @@ def test_each_axis_has_its_health_and_its_own_bias_correction(tmp_path: Path) ->
         mean = re.search(r'nanodrift_health_residual_mean_meters\{axis="y",cell="xy"\} (\S+)', metrics)
         assert mean is not None and float(mean[1]) == pytest.approx(-200e-9, abs=1e-9), metrics
         assert 'nanodrift_health_state{axis="x",cell="xy",state="unknown"} 1.0' in metrics
+
+        # the recorder: one row per target held on both axes, in the multi-axis CSV contract
+        def rows() -> list[dict[str, str]]:
+            return [row for path in sorted((tmp_path / "records").glob("records-*.csv"))
+                    for row in csv.DictReader(path.open())]
+
+        recorded = wait_until(rows, 10, "a recorded row")
+        assert list(recorded[0]) == ["t_s", "x_um", "y_um", "q_x_um", "q_y_um", "target_x_um", "target_y_um",
+                                     "residual_x_um", "residual_y_um", "valid", "T1", "T2"]
+        assert float(recorded[0]["x_um"]) == pytest.approx(100.3) and float(recorded[0]["y_um"]) == pytest.approx(49.8)
+        assert float(recorded[0]["q_y_um"]) == pytest.approx(first["q_um"]["y"], abs=1e-9)
+        assert float(recorded[0]["residual_y_um"]) == pytest.approx(-0.2, abs=1e-9)
+        data = read_csv(next((tmp_path / "records").glob("records-*.csv")))  # fit reads it back
+        assert data.axes == ("x", "y") and list(data.channels) == ["T1", "T2"]
         q = expected_cell_q({"x": 100.0, "y": 50.0}, TEMPS)
         assert second["q_um"] == pytest.approx({a: q[a] + correction[a] for a in q}, abs=1e-9)
     finally:
