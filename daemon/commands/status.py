@@ -200,9 +200,12 @@ def axis_lines(doc: dict[str, Any]) -> list[str]:
             value = position.get("value")
             sensor = (f", position {each.get('position_sensor')} {position.get('state')}"
                       + (f" {value:.3f} µm" if isinstance(value, int | float) else ""))
+        health = doc.get("health")
+        axis_health = health.get("axes", {}).get(axis) if isinstance(health, dict) else None
+        shown = f", health {_health({'health': axis_health})}" if isinstance(axis_health, dict) else ""
         out.append(f"  {doc.get('cell', '?')} axis {axis}: [{_number(each.get('min_um')):g}, "
                    f"{_number(each.get('max_um')):g}] µm, {_actuator({'actuator': actuator})}"
-                   + (f" at {volts:.5f} V" if isinstance(volts, int | float) else "") + sensor)
+                   + (f" at {volts:.5f} V" if isinstance(volts, int | float) else "") + sensor + shown)
     return out
 
 

@@ -159,7 +159,7 @@ class FakeGcsController(PtyDevice):
         if command in ("SVA", "SVA?", "POS?") and (not args or args[0] not in self.axes):
             self.error = 15  # invalid axis identifier
             return None
-        axis = args[0]
+        axis = args[0] if command in ("SVA", "SVA?", "POS?") else self.axes[0]
         if command == "SVA" and len(args) == 2:
             try:
                 volts = float(args[1])

@@ -249,6 +249,10 @@ def test_each_axis_has_its_health_and_its_own_bias_correction(tmp_path: Path) ->
         assert float(recorded[0]["residual_y_um"]) == pytest.approx(-0.2, abs=1e-9)
         data = read_csv(next((tmp_path / "records").glob("records-*.csv")))  # fit reads it back
         assert data.axes == ("x", "y") and list(data.channels) == ["T1", "T2"]
+        shown = cli(cell, "status")
+        assert "axis y: [0, 400] µm, modbus ok at " in shown.stdout, shown.stdout
+        assert ", position ifm_y ok 49.800 µm, health unknown -200 nm" not in shown.stdout  # rms, not the mean
+        assert re.search(r"position ifm_y ok 49\.800 µm, health unknown 200 nm", shown.stdout), shown.stdout
         q = expected_cell_q({"x": 100.0, "y": 50.0}, TEMPS)
         assert second["q_um"] == pytest.approx({a: q[a] + correction[a] for a in q}, abs=1e-9)
     finally:
