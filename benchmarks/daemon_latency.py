@@ -81,7 +81,8 @@ class TargetsOnLoop(Service):
 
     def serve(self, loop: asyncio.AbstractEventLoop, targets: TargetHandler, status: StatusHandler) -> None:
         assert self.bus is not None
-        self.bus.serve(loop, functools.partial(loop.call_soon_threadsafe, targets.on_target), status.on_status)
+        self.bus.serve(loop, functools.partial(loop.call_soon_threadsafe, targets.on_target),  # type: ignore[arg-type]
+                       status.on_status)
 
 
 def daemon_on_loop(config_path: str) -> int:
@@ -177,7 +178,7 @@ def rss_mb(pid: int) -> float:
     return float("nan")
 
 
-def wait_line(proc: subprocess.Popen[str], stream_path: Path | None, needle: str, timeout: float) -> None:
+def wait_line(proc: subprocess.Popen[Any], stream_path: Path | None, needle: str, timeout: float) -> None:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if proc.poll() is not None:
@@ -376,9 +377,9 @@ def main() -> int:
           f"of {args.paced // max(1, args.paced // ROUND)}), burst of {args.burst}")
     print(f"{'':10}{'p50 us':>10}{'p99 us':>10}{'paced lost':>12}{'burst lost':>12}{'burst/s':>10}")
     for name in probers:
-        r = results[name]
-        print(f"{name:10}{r['p50_us']:10.1f}{r['p99_us']:10.1f}{r['paced_lost']:12d}{r['burst_lost']:12d}"
-              f"{r['burst_rate']:10.0f}")
+        row = results[name]
+        print(f"{name:10}{row['p50_us']:10.1f}{row['p99_us']:10.1f}{row['paced_lost']:12.0f}{row['burst_lost']:12.0f}"
+              f"{row['burst_rate']:10.0f}")
     print(f"ratio daemon/echo: p50 {r50:.2f}x (budget 1.3x), p99 {r99:.2f}x (budget 1.5x)")
     if args.targets_on_loop:
         print("(daemon variant: targets handed to the asyncio loop first, benchmarks' TargetsOnLoop)")

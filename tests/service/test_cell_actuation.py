@@ -119,3 +119,14 @@ def test_a_slewed_three_axis_move_ramps_each_axis_at_its_own_rate_in_steps_of_wh
     axes_in_order = [n for n, _ in written]
     assert axes_in_order[:3] == ["1", "2", "3"]  # each step writes the axes in the cell's order
     assert [v for n, v in written if n == "2"][-1] == 2.0 and all(v == 0.0 for n, v in written if n == "3")
+
+
+def test_two_axes_of_one_modbus_module_share_one_connection_and_its_lock() -> None:
+    axes = [{"name": axis, "min_um": 0.0, "max_um": 500.0,
+             "actuator": {"kind": "modbus", "hub": "dac", "address": address, "scale": 0.001}}
+            for axis, address in (("x", 10), ("y", 11))]
+    config = parse_config({"cell": "xy", "axes": axes, "hubs": [{"name": "dac", "port": 5020}]})
+    drivers = build_drivers(config)
+    x, y = drivers.actuators["x"], drivers.actuators["y"]
+    assert x.hub is y.hub  # type: ignore[attr-defined]  # one ModbusHub: one connection, one lock
+    assert (x.config.address, y.config.address) == (10, 11)  # type: ignore[attr-defined]
