@@ -123,6 +123,9 @@ def procedure_drivers(config: Config, *, start_s: float = 0.0) -> DriverSet:
     """What a calibration or validation drives: the config's drivers, a virtual clock for a simulated
     cell (scenario time ``start_s``), and with ``kind = "zenoh"`` the Zenoh actuator (each step
     published on ``nanodrift/<cell>/command`` for the lab's output node)."""
+    if config.multi_axis:  # the daemon serves [[axes]]; a procedure's plan and recording are one axis'
+        raise DriverSetupError(f"the config describes a multi-axis cell (axes {', '.join(config.axis_names)}): "
+                               "calibrate and validate drive one axis; use a one-axis config ([actuator]) for them")
     drivers = build_drivers(config, virtual_start_s=start_s if config.virtual_cell else None)
     if drivers.position_channel is None:
         raise DriverSetupError("the config has no position sensor (role = \"position\"); a procedure needs one")

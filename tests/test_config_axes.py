@@ -6,7 +6,9 @@ from pathlib import Path
 
 import pytest
 
+from daemon.assembly import procedure_drivers
 from daemon.config import ConfigError, load_config
+from drivers.base import DriverSetupError
 
 AXIS = '''[[axes]]
 name = "{name}"
@@ -68,3 +70,9 @@ def test_a_sensor_on_an_unknown_axis_is_refused_naming_it(tmp_path: Path) -> Non
     hub = '[[hubs]]\nname = "h"\n'
     lines = problems(tmp_path, 'cell = "c"\n' + axes("x", "y") + hub + sensor)
     assert any(":24: sensors[0] (T1).axis: unknown axis 'z'; the cell's axes: x, y" in line for line in lines), lines
+
+
+def test_a_procedure_refuses_a_multi_axis_config_instead_of_driving_one_axis_of_it(tmp_path: Path) -> None:
+    config = load_config(write(tmp_path, 'cell = "c"\n' + axes("x", "y")))
+    with pytest.raises(DriverSetupError, match=r"multi-axis cell \(axes x, y\): calibrate and validate drive one axis"):
+        procedure_drivers(config)

@@ -97,7 +97,7 @@ class CellHealth:
         self.log = log
         self.axes = config.axis_names
         self.units = {axis: HealthUnit(axis_view(config, axis), model.models[axis] if model is not None else None,
-                                       log.bind(axis=axis) if hasattr(log, "bind") else log)
+                                       log.bind(axis=axis) if hasattr(log, "bind") else log, axis=axis)
                       for axis in self.axes}
         #: told (on the loop) of every target settled on every watched axis: one row of the cell (the recorder)
         self.settled_listeners: list[Callable[[CellSettled, float, Polled], None]] = []

@@ -62,8 +62,10 @@ POLLED_MARGIN_S = 10.0
 class HealthUnit:
     """Served commands and position readings in; the ``health`` document, log events and the correction out."""
 
-    def __init__(self, config: Config, model: Model | CellModel | None, log: Any) -> None:
+    def __init__(self, config: Config, model: Model | CellModel | None, log: Any, *, axis: str = "x") -> None:
         self.log = log
+        #: the axis this unit watches (a multi-axis cell has one unit per axis: ``daemon.service.cell_health``)
+        self.axis = axis
         self.served: deque[tuple[float, Command]] = deque(maxlen=SERVED_QUEUE)
         #: called on the loop, outside the state lock, with every settled target, the unix time it settled
         #: at (a label only) and every polled temperature channel over its window (the recorder's
@@ -97,7 +99,9 @@ class HealthUnit:
         self.monitor = HealthMonitor(health.history, health.alarm_rms_nm, has_position_sensor=position is not None)
         ranges: dict[str, tuple[float, float]] = {}
         if isinstance(model, Model):
-            ranges = {"x": model.training.x_range, **model.training.channel_ranges}
+            training = model.training
+            position_range = training.x_range if self.axis == "x" else training.position_ranges[self.axis]
+            ranges = {self.axis: position_range, **training.channel_ranges}
         self.ranges = RangeWatch(ranges)
         # adaptation per axis is not built yet: a multi-axis cell serves without a correction
         per_axis = config.multi_axis
@@ -178,7 +182,7 @@ class HealthUnit:
                 t_command, command = served.popleft()
             self.settle.commanded(t_command, command.x_um, command.q_um, command.temperatures_c, command.id,
                                   reached=not self.awaits_reach)
-            self.ranges.observe(t_command, {"x": command.x_um})
+            self.ranges.observe(t_command, {self.axis: command.x_um})
         reached = self._reached
         while reached and reached[0][0] <= t:
             self.settle.reached(*reached.popleft())
