@@ -9,7 +9,12 @@ One run, side by side, on this machine:
 
 Budget: p50 within 1.3x of the echo, p99 within 1.5x, nothing lost in the burst.
 
-    .venv/bin/python benchmarks/daemon_latency.py [--paced 3000] [--burst 5000] [--idle-s 10]
+``--axes N`` (2 or 3) adds a multi-axis cell (``[[axes]]`` x, y[, z], ``kind = "zenoh"`` outputs, a
+hand-made cell model with cross terms) and a one-axis cell on the same sensors (two temperatures in a
+Modbus module emulated in this process), each its own daemon, measured in the same alternating rounds:
+the multi-axis cell's p50 must be within 1.2x of the one-axis cell's.
+
+    .venv/bin/python benchmarks/daemon_latency.py [--paced 3000] [--burst 5000] [--idle-s 10] [--axes 3]
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ import argparse
 import asyncio
 import functools
 import json
+import logging
 import os
 import socket
 import subprocess
@@ -26,6 +32,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import zenoh
 
@@ -74,7 +81,8 @@ class TargetsOnLoop(Service):
 
     def serve(self, loop: asyncio.AbstractEventLoop, targets: TargetHandler, status: StatusHandler) -> None:
         assert self.bus is not None
-        self.bus.serve(loop, functools.partial(loop.call_soon_threadsafe, targets.on_target), status.on_status)
+        self.bus.serve(loop, functools.partial(loop.call_soon_threadsafe, targets.on_target),  # type: ignore[arg-type]
+                       status.on_status)
 
 
 def daemon_on_loop(config_path: str) -> int:
@@ -120,6 +128,9 @@ class Prober:
                 self._cond.wait(max(0.0, deadline - time.monotonic()))
             return len(self.received)
 
+    #: the target's payload: position(s) then id (a multi-axis cell's names every axis)
+    template = b'{"x_um": %.3f, "id": %d}'
+
     def run(self, n: int, period_s: float, first_id: int) -> list[float]:
         """Send ``n`` targets every ``period_s`` (0: as fast as possible); round trips in seconds."""
         self.received.clear()
@@ -133,7 +144,9 @@ class Prober:
                     if due - now > 0.0003:
                         time.sleep(0.0001)
             target_id = first_id + i
-            payload = b'{"x_um": %.3f, "id": %d}' % (40.0 + (i % 400), target_id)
+            x = 40.0 + (i % 400)
+            payload = (self.template % (x, target_id) if self.template.count(b"%") == 2
+                       else self.template % ((x,) * (self.template.count(b"%") - 1) + (target_id,)))
             sent[target_id] = time.perf_counter()
             self.publisher.put(payload)
         self.wait_count(n, timeout=10.0 + n * 0.002)
@@ -165,7 +178,7 @@ def rss_mb(pid: int) -> float:
     return float("nan")
 
 
-def wait_line(proc: subprocess.Popen[str], stream_path: Path | None, needle: str, timeout: float) -> None:
+def wait_line(proc: subprocess.Popen[Any], stream_path: Path | None, needle: str, timeout: float) -> None:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if proc.poll() is not None:
@@ -176,6 +189,71 @@ def wait_line(proc: subprocess.Popen[str], stream_path: Path | None, needle: str
     raise SystemExit(f"timed out waiting for {needle!r}")
 
 
+# --- --axes N: a multi-axis cell beside a one-axis cell on the same sensors --------------------------
+
+
+def write_models(tmp: Path, axes: tuple[str, ...]) -> tuple[Path, Path]:
+    """A one-axis model and an N-axis cell model (every axis: its position, the next axis', their product,
+    T1, T2), both in the range the benchmark's targets and temperatures stay in."""
+    from daemon.model.cell_model import CellModel, save_cell_model
+    from daemon.model.model import FittedTerm, Model, Training, save_model
+    from daemon.model.terms import parse_term
+
+    ranges = {"T1": (20.0, 25.0), "T2": (20.0, 25.0)}
+
+    def model(terms: dict[str, float], cell_axes: tuple[str, ...]) -> Model:
+        training = Training(x_range=(0.0, 480.0), channel_ranges=dict(ranges), rows=100, t_span_s=3600.0,
+                            position_ranges={a: (0.0, 480.0) for a in cell_axes if a != "x"})
+        return Model(terms=[FittedTerm(parse_term(n, cell_axes), c) for n, c in terms.items()], training=training)
+
+    one = tmp / "one_axis.json"
+    save_model(model({"x": 1.002, "x^2": -1e-5, "T1": -0.6, "T2": -0.5, "1": 0.5}, ("x",)), one)
+    models = {}
+    for i, axis in enumerate(axes):
+        other = axes[(i + 1) % len(axes)]
+        models[axis] = model({axis: 1.002, f"{axis}^2": -1e-5, other: 0.0025, "*".join(sorted((axis, other))): 2e-6,
+                              "T1": -0.6, "T2": -0.5, "1": 0.5}, axes)
+    cell = tmp / "cell.json"
+    save_cell_model(CellModel(axes, models), cell)
+    return one, cell
+
+
+def modbus_temperatures() -> tuple[int, Any]:
+    """T1 and T2 (int16, 0.01 degC) in input registers 0 and 1 of an emulated module on this process' thread."""
+    from drivers.testing.modbus_server import ModbusTestDevice, ModbusTestServer
+
+    logging.getLogger("pymodbus").setLevel(logging.WARNING)  # its server logs every frame at debug
+    server = ModbusTestServer([ModbusTestDevice(device_id=1)])
+    ready = threading.Event()
+    stop: dict[str, Any] = {}
+
+    async def serve() -> None:
+        stop["loop"], stop["event"] = asyncio.get_running_loop(), asyncio.Event()
+        await server.start()
+        await server.set_registers(1, 0, [2180, 2190], "input")
+        ready.set()
+        await stop["event"].wait()
+        await server.stop()
+
+    threading.Thread(target=asyncio.run, args=(serve(),), daemon=True, name="modbus").start()
+    if not ready.wait(10):
+        raise SystemExit("the emulated Modbus module did not start")
+    return server.port, lambda: stop["loop"].call_soon_threadsafe(stop["event"].set)
+
+
+def hardware_config(cell: str, port: int, modbus_port: int, model: Path, axes: tuple[str, ...]) -> str:
+    sensors = "".join(f'[[sensors]]\nname = "{name}"\nkind = "modbus"\nhub = "temps"\naddress = {address}\n'
+                      'scale = 0.01\ninterval_s = 0.1\n' for address, name in enumerate(("T1", "T2")))
+    if len(axes) == 1:
+        actuator = '[actuator]\nkind = "zenoh"\n'
+    else:
+        actuator = "".join(f'[[axes]]\nname = "{a}"\nmin_um = 0.0\nmax_um = 500.0\n[axes.actuator]\nkind = "zenoh"\n'
+                           for a in axes)
+    return (f'cell = "{cell}"\n[zenoh]\nlisten = ["tcp/127.0.0.1:{port}"]\nmulticast_scouting = false\n'
+            f'[model]\npath = "{model}"\n{actuator}[[hubs]]\nname = "temps"\nhost = "127.0.0.1"\n'
+            f"port = {modbus_port}\n{sensors}")
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--paced", type=int, default=3000, help="targets at 1 kHz")
@@ -184,6 +262,9 @@ def main() -> int:
     parser.add_argument("--targets-on-loop", action="store_true",
                         help="the daemon hands each target to its asyncio loop (one more thread hop) instead of "
                              "answering on Zenoh's thread: shows why it does not")
+    parser.add_argument("--axes", type=int, choices=(2, 3), default=None,
+                        help="also a multi-axis cell and a one-axis cell on the same (Modbus) sensors: p50 side "
+                             "by side (budget 1.2x)")
     parser.add_argument("--echo-node", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--daemon-on-loop", help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -205,6 +286,23 @@ def main() -> int:
         command = ([sys.executable, __file__, "--daemon-on-loop", str(config)] if args.targets_on_loop
                    else [sys.executable, "-m", "daemon.cli", "run", "--config", str(config)])
         daemon = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=log_file, cwd=REPO)
+    cells: dict[str, tuple[int, subprocess.Popen[bytes], Path, bytes]] = {}  # name -> port, process, log, template
+    stop_modbus: Any = None
+    if args.axes:
+        axes = ("x", "y", "z")[:args.axes]
+        one_model, cell_model = write_models(tmp, axes)
+        modbus_port, stop_modbus = modbus_temperatures()
+        template = b"{" + b", ".join(b'"%s_um": %%.3f' % a.encode() for a in axes) + b', "id": %d}'
+        for name, model, cell_axes, payload in (("one-axis", one_model, ("x",), Prober.template),
+                                                (f"{len(axes)}-axis", cell_model, axes, template)):
+            port = free_port()
+            path = tmp / f"{name}.toml"
+            path.write_text(hardware_config(name, port, modbus_port, model, cell_axes))
+            cell_log = tmp / f"{name}.log"
+            with open(cell_log, "w") as log_file:
+                cells[name] = (port, subprocess.Popen([sys.executable, "-m", "daemon.cli", "run", "--config",
+                                                       str(path)], stdout=subprocess.DEVNULL, stderr=log_file,
+                                                      cwd=REPO), cell_log, payload)
     echo = subprocess.Popen([sys.executable, __file__, "--echo-node", str(e_port)], stdin=subprocess.PIPE,
                             stdout=subprocess.PIPE, text=True)
     try:
@@ -214,21 +312,30 @@ def main() -> int:
         wait_line(daemon, log, '"serving"', 30)
         d = Prober(d_port, "nanodrift/bench/target", "nanodrift/bench/command", "nanodrift/bench/error")
         e = Prober(e_port, ECHO_IN, ECHO_OUT)
-        # the daemon answers once its sensors are read: wait for the first command
-        deadline = time.monotonic() + 20
-        while not d.run(1, 0, 10**9) and time.monotonic() < deadline:
-            time.sleep(0.2)
-
-        # paced: alternate rounds so both see the same background load on this shared machine
-        paced: dict[str, list[float]] = {"echo": [], "daemon": []}
-        lost: dict[str, int] = {"echo": 0, "daemon": 0}
         probers = {"echo": e, "daemon": d}
+        for name, (port, process, cell_log, payload) in cells.items():
+            wait_line(process, cell_log, '"serving"', 30)
+            probers[name] = Prober(port, f"nanodrift/{name}/target", f"nanodrift/{name}/command",
+                                   f"nanodrift/{name}/error")
+            probers[name].template = payload
+        # a daemon answers once its sensors are read: wait for the first command
+        for name, prober in probers.items():
+            if name == "echo":
+                continue
+            deadline = time.monotonic() + 20
+            while not prober.run(1, 0, 10**9) and time.monotonic() < deadline:
+                time.sleep(0.2)
+
+        # paced: alternate rounds so all see the same background load on this shared machine
+        paced: dict[str, list[float]] = {name: [] for name in probers}
+        lost: dict[str, int] = dict.fromkeys(probers, 0)
         for prober in probers.values():
             prober.run(300, 0.001, 0)  # warm-up
         rounds = max(1, args.paced // ROUND)
         per_round = args.paced // rounds
+        order = list(probers)
         for r in range(rounds):
-            for name in (("echo", "daemon") if r % 2 == 0 else ("daemon", "echo")):
+            for name in (order if r % 2 == 0 else order[::-1]):
                 times = probers[name].run(per_round, 0.001, 1_000_000 + r * per_round)
                 paced[name].extend(times)
                 lost[name] += per_round - len(times)
@@ -250,11 +357,16 @@ def main() -> int:
         time.sleep(args.idle_s)  # measuring idle CPU: the daemon must be left alone for this window
         idle_cpu = 100.0 * (cpu_seconds(daemon.pid) - cpu0) / (time.monotonic() - t0)
         rss = rss_mb(daemon.pid)
-        d.close()
-        e.close()
+        for prober in probers.values():
+            prober.close()
     finally:
         daemon.terminate()
         daemon.wait(10)
+        for _, process, _, _ in cells.values():
+            process.terminate()
+            process.wait(10)
+        if stop_modbus is not None:
+            stop_modbus()
         if echo.stdin:
             echo.stdin.close()
         echo.wait(10)
@@ -264,16 +376,22 @@ def main() -> int:
     print(f"round trip target -> answer over tcp/127.0.0.1, {args.paced} targets at 1 kHz (alternating rounds "
           f"of {args.paced // max(1, args.paced // ROUND)}), burst of {args.burst}")
     print(f"{'':10}{'p50 us':>10}{'p99 us':>10}{'paced lost':>12}{'burst lost':>12}{'burst/s':>10}")
-    for name in ("echo", "daemon"):
-        r = results[name]
-        print(f"{name:10}{r['p50_us']:10.1f}{r['p99_us']:10.1f}{r['paced_lost']:12d}{r['burst_lost']:12d}"
-              f"{r['burst_rate']:10.0f}")
+    for name in probers:
+        row = results[name]
+        print(f"{name:10}{row['p50_us']:10.1f}{row['p99_us']:10.1f}{row['paced_lost']:12.0f}{row['burst_lost']:12.0f}"
+              f"{row['burst_rate']:10.0f}")
     print(f"ratio daemon/echo: p50 {r50:.2f}x (budget 1.3x), p99 {r99:.2f}x (budget 1.5x)")
     if args.targets_on_loop:
         print("(daemon variant: targets handed to the asyncio loop first, benchmarks' TargetsOnLoop)")
     print(f"daemon burst refusals: {dd['burst_refused']} (should be 0: every target was valid)")
     print(f"daemon idle CPU over {args.idle_s:g} s: {idle_cpu:.1f}% of one core; RSS {rss:.1f} MB")
     within = r50 <= 1.3 and r99 <= 1.5 and dd["burst_lost"] == 0 and dd["paced_lost"] == 0
+    if args.axes:
+        one, many = results["one-axis"], results[f"{args.axes}-axis"]
+        ratio = many["p50_us"] / one["p50_us"]
+        print(f"{args.axes}-axis cell / one-axis cell (same Modbus-fed sensors, kind zenoh outputs): p50 {ratio:.2f}x "
+              "(budget 1.2x)")
+        within = within and ratio <= 1.2 and many["burst_lost"] == 0 and many["paced_lost"] == 0
     print("within budget" if within else "OVER BUDGET")
     return 0 if within else 1
 

@@ -35,8 +35,9 @@ from drivers.registry import load_plugin, owner_of_section, virtual_cell_plugin
 def _plugins(config: Config) -> dict[str, DriverPlugin]:
     """Every plugin the config involves: its sensors' kinds, its actuator's and the owners of its sections."""
     plugins = {kind: load_plugin(kind) for kind in config.kinds()}
-    if config.actuator.kind != ZENOH_KIND:
-        plugins.setdefault(config.actuator.kind, load_plugin(config.actuator.kind))
+    for actuator in config.axis_actuators().values():
+        if actuator.kind != ZENOH_KIND:
+            plugins.setdefault(actuator.kind, load_plugin(actuator.kind))
     for name in config.sections:
         owner = owner_of_section(name, plugins)
         if owner is not None:
@@ -79,8 +80,9 @@ def build_drivers(config: Config, context: DriverContext | None = None, *,
         except Exception as error:
             raise DriverSetupError(f"driver {kind!r}: {error}") from error
     actuator: Actuator | None = None
+    actuators = _axis_actuators(config, plugins, context) if config.multi_axis else {}
     kind, options = config.actuator.kind, config.actuator.options
-    if kind != ZENOH_KIND:  # after the sensors: the actuator shares their connections
+    if kind != ZENOH_KIND and not config.multi_axis:  # after the sensors: the actuator shares their connections
         try:
             if options is None:
                 raise DriverSetupError("[actuator] was not validated by its plugin (use parse_config)")
@@ -95,13 +97,39 @@ def build_drivers(config: Config, context: DriverContext | None = None, *,
         roles={s.name: s.role for s in config.sensors},
         max_age_s={s.name: s.max_age_s for s in config.sensors},
         description=description,
+        actuators=actuators,
+        position_axes={config.sensor_axis(s.name): s.name for s in config.sensors if s.role == "position"},
     )
+
+
+def _axis_actuators(config: Config, plugins: Mapping[str, DriverPlugin], context: DriverContext) -> dict[str, Actuator]:
+    """Each axis' output of a multi-axis cell, built by kind (:meth:`DriverPlugin.create_actuators`: the
+    axes of one module or controller share its connection)."""
+    by_kind: dict[str, list[str]] = {}
+    for axis, actuator in config.axis_actuators().items():
+        if actuator.kind != ZENOH_KIND:
+            by_kind.setdefault(actuator.kind, []).append(axis)
+    built: dict[str, Actuator] = {}
+    configs = config.axis_actuators()
+    for kind, axes in by_kind.items():
+        options = [configs[a].options for a in axes]
+        try:
+            if any(o is None for o in options):
+                raise DriverSetupError("[axes.actuator] was not validated by its plugin (use parse_config)")
+            made = plugins[kind].create_actuators([o for o in options if o is not None], context)
+        except Exception as error:
+            raise DriverSetupError(f"actuator kind {kind!r} (axes {', '.join(axes)}): {error}") from error
+        built.update(zip(axes, made, strict=True))
+    return {axis: built[axis] for axis in config.axis_names if axis in built}
 
 
 def procedure_drivers(config: Config, *, start_s: float = 0.0) -> DriverSet:
     """What a calibration or validation drives: the config's drivers, a virtual clock for a simulated
     cell (scenario time ``start_s``), and with ``kind = "zenoh"`` the Zenoh actuator (each step
     published on ``nanodrift/<cell>/command`` for the lab's output node)."""
+    if config.multi_axis:  # the daemon serves [[axes]]; a procedure's plan and recording are one axis'
+        raise DriverSetupError(f"the config describes a multi-axis cell (axes {', '.join(config.axis_names)}): "
+                               "calibrate and validate drive one axis; use a one-axis config ([actuator]) for them")
     drivers = build_drivers(config, virtual_start_s=start_s if config.virtual_cell else None)
     if drivers.position_channel is None:
         raise DriverSetupError("the config has no position sensor (role = \"position\"); a procedure needs one")

@@ -6,7 +6,7 @@ and the procedures import it from here, never from the assembly.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from drivers.base import Actuator, Clock, DriverContext, SensorGroup
 
@@ -21,6 +21,10 @@ class DriverSet:
     roles: dict[str, str]
     max_age_s: dict[str, float]
     description: str = ""
+    #: a multi-axis cell's output per axis (an axis with ``kind = "zenoh"`` has none); empty for a one-axis cell
+    actuators: dict[str, Actuator] = field(default_factory=dict)
+    #: a multi-axis cell's position sensor per axis
+    position_axes: dict[str, str] = field(default_factory=dict)
 
     @property
     def clock(self) -> Clock:

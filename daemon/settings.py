@@ -262,6 +262,38 @@ class ActuatorConfig(StrictModel):
         return motion.checked_voltage(self, q_um)
 
 
+#: letters an axis may take (``daemon.model.cell_model.AXIS_LETTERS``: not q, ``q_um`` is the one-axis command)
+AXIS_NAME_PATTERN = r"^[a-pr-z]$"
+
+
+class AxisKeys(StrictModel):
+    """``[[axes]]``' own keys (its ``[axes.actuator]`` is validated as an ``[actuator]`` table)."""
+
+    name: str = Field(pattern=AXIS_NAME_PATTERN, description="one lowercase letter (not q): positions are <name>_um")
+    min_um: float = 0.0
+    max_um: float = 500.0
+
+    @model_validator(mode="after")
+    def _ordered(self) -> AxisKeys:
+        if self.min_um >= self.max_um:
+            raise ValueError(f"min_um ({self.min_um:g}) must be below max_um ({self.max_um:g})")
+        return self
+
+
+class AxisConfig(BaseModel):
+    """One axis of a multi-axis cell: its name and its actuator (whose ``x_min_um``/``x_max_um`` are the
+    axis' ``min_um``/``max_um``: every motion rule of a one-axis cell applies per axis unchanged)."""
+
+    model_config = {"frozen": True}
+
+    name: str
+    actuator: ActuatorConfig
+
+    @property
+    def workspace_um(self) -> tuple[float, float]:
+        return self.actuator.workspace_um
+
+
 class ProcedureSettings(StrictModel):
     """``[procedure]``: the trajectory and step timing of ``calibrate`` and ``validate`` (the paper's by default).
 
@@ -331,12 +363,48 @@ class Config(StrictModel):
     adapt: AdaptSettings = Field(default_factory=AdaptSettings)
     hubs: list[Any] = Field(default_factory=list)
     sensors: list[Any] = Field(default_factory=list)
+    #: ``[[axes]]`` (validated by ``daemon.config``): empty for a one-axis cell, whose axis is ``[actuator]``'s x
+    axes: list[Any] = Field(default_factory=list)
     #: where it came from (a file path, or the built-in default); not a TOML key
     _source: str = PrivateAttr(default=BUILTIN_SOURCE)
     #: plugin-owned top-level tables, validated by their plugin; not typed here
     _sections: dict[str, BaseModel] = PrivateAttr(default_factory=dict)
     #: the cell is simulated by a plugin (``virtual_cell``): a reload never switches this
     _virtual_cell: bool = PrivateAttr(default=False)
+    #: position sensor name -> the axis it measures (``[[sensors]] axis``, default x)
+    _sensor_axes: dict[str, str] = PrivateAttr(default_factory=dict)
+
+    @property
+    def multi_axis(self) -> bool:
+        """A cell with ``[[axes]]`` (an XY or XYZ stage); without, today's one-axis cell."""
+        return bool(self.axes)
+
+    @property
+    def axis_names(self) -> tuple[str, ...]:
+        """The cell's axes in their config order (``("x",)`` for a one-axis cell)."""
+        return tuple(a.name for a in self.axes) if self.axes else ("x",)
+
+    def axis_actuators(self) -> dict[str, ActuatorConfig]:
+        """Each axis' actuator (a one-axis cell: ``{"x": [actuator]}``)."""
+        if not self.axes:
+            return {"x": self.actuator}
+        return {a.name: a.actuator for a in self.axes}
+
+    def sensor_axis(self, name: str) -> str:
+        """The axis a position sensor measures (x unless it says otherwise)."""
+        return self._sensor_axes.get(name, "x")
+
+    def sensor_workspaces(self) -> dict[str, tuple[float, float]]:
+        """Each position sensor's axis workspace (its default valid range); empty for a one-axis cell."""
+        if not self.axes:
+            return {}
+        actuators = self.axis_actuators()
+        return {s.name: actuators[self.sensor_axis(s.name)].workspace_um for s in self.sensors
+                if s.role == "position" and self.sensor_axis(s.name) in actuators}
+
+    def position_sensors(self) -> dict[str, SensorConfig]:
+        """axis -> its position sensor (at most one per axis)."""
+        return {self.sensor_axis(s.name): s for s in self.sensors if s.role == "position"}
 
     @property
     def source(self) -> str:

@@ -413,6 +413,12 @@ class DriverPlugin(ABC):
         """
         raise DriverSetupError(f"driver {self.name!r} cannot move the stage")
 
+    def create_actuators(self, configs: Sequence[ActuatorOptions], context: DriverContext) -> list[Actuator]:
+        """The actuators of several axes of one multi-axis cell (``[axes.actuator]`` of this kind, in the
+        cell's axis order). The default: :meth:`create_actuator` for each. A plugin whose outputs share a
+        device (one connection, one port) overrides it to build them on one object."""
+        return [self.create_actuator(config, context) for config in configs]
+
     def config_problems(self, sensors: Sequence[tuple[int, SensorConfig]],
                         actuator: ActuatorOptions | None) -> list[str]:
         """Problems only seen across entries, found when the config is read (so check-config reports

@@ -292,3 +292,98 @@ def _finite(value: Any) -> Any:
     if isinstance(value, list | tuple):
         return [_finite(v) for v in value]
     return value
+
+
+# --- a multi-axis cell --------------------------------------------------------------------------
+
+
+@dataclass(slots=True)
+class CellTarget:
+    """A multi-axis target: every axis of the cell, ``positions_um`` in the cell's axis order."""
+
+    id: str | int | None
+    positions_um: dict[str, float]
+
+
+def parse_cell_target(payload: bytes, axes: Sequence[str], max_bytes: int = MAX_PAYLOAD_BYTES) -> CellTarget:
+    """Decode ``{"x_um": .., "y_um": .., "id": ..}`` for a cell with ``axes``; a :class:`Refusal` naming a
+    missing or extra axis, or anything else wrong (the one-axis rules: finite numbers, the id's type)."""
+    if len(payload) > max_bytes or type(payload) is Oversized:
+        size = payload.size if isinstance(payload, Oversized) else len(payload)
+        raise Refusal("bad_payload", f"payload of {size} bytes exceeds the {max_bytes}-byte limit")
+    expected = ", ".join(f'"{a}_um": number' for a in axes)
+    try:
+        doc = json.loads(payload.decode("utf-8"))
+    except (UnicodeDecodeError, ValueError, RecursionError) as error:
+        reason = "not UTF-8 text" if isinstance(error, UnicodeDecodeError) else f"not valid JSON ({error})"
+        raise Refusal("bad_payload", f"payload is {reason}; expected {{{expected}, \"id\": ...}}") from None
+    if not isinstance(doc, dict):
+        raise Refusal("bad_payload", f"payload must be a JSON object, got {type(doc).__name__}")
+    target_id, id_problem = _id_of(doc)
+    if id_problem:
+        raise Refusal("bad_payload", id_problem)
+    missing = [f"{a}_um" for a in axes if f"{a}_um" not in doc]
+    if missing:
+        raise Refusal("bad_payload", f"missing field {', '.join(repr(m) for m in missing)}: a target names every "
+                      f"axis of the cell ({', '.join(axes)})", target_id)
+    wanted = {f"{a}_um" for a in axes}
+    extra = [k for k in doc if k not in wanted and k != "id"]
+    if extra:
+        axis_like = [k for k in extra if re.fullmatch(r"[a-z]_um", k)]
+        what = (f"axis {', '.join(repr(k[0]) for k in axis_like)} is not an axis of this cell"
+                if axis_like else f"unknown field {', '.join(repr(k) for k in extra)}")
+        raise Refusal("bad_payload", f"{what} (axes: {', '.join(axes)})", target_id)
+    positions: dict[str, float] = {}
+    for axis in axes:
+        key = f"{axis}_um"
+        value = doc[key]
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise Refusal("bad_payload", f"'{key}' must be a number, got {type(value).__name__}", target_id)
+        try:
+            value = float(value)
+        except OverflowError:
+            value = math.inf
+        if not math.isfinite(value):
+            raise Refusal("bad_payload", f"'{key}' must be a finite number", target_id)
+        positions[axis] = value
+    return CellTarget(target_id, positions)
+
+
+@dataclass(slots=True, kw_only=True)
+class CellCommand:
+    """One answer of a multi-axis cell on ``command``: every axis from one temperature snapshot. The
+    payload (:func:`encode_cell_command`) is ``{"id", "<axis>_um"..., "q_um": {axis: ..}, "voltage_v": {..},
+    "q_sigma_um": {..}, "temperatures_c", "model", "t", "extrapolating"[, "correction_um": {..}]}``."""
+
+    id: str | int | None
+    positions_um: Mapping[str, float]
+    q_um: Mapping[str, float]
+    voltage_v: Mapping[str, float]
+    q_sigma_um: Mapping[str, float]
+    temperatures_c: Mapping[str, float]
+    model: str | None
+    t: float  # unix seconds
+    extrapolating: Sequence[str]  # axis names and channels outside the model's training range
+    correction_um: Mapping[str, float] | None = None  # the bias correction per axis, inside q_um (adaptation on)
+
+
+def cell_command_doc(command: CellCommand) -> dict[str, Any]:
+    """``command`` as the JSON object of the contract, keys in wire order."""
+    doc: dict[str, Any] = {"id": command.id}
+    for axis, value in command.positions_um.items():
+        doc[f"{axis}_um"] = value
+    doc["q_um"] = dict(command.q_um)
+    doc["voltage_v"] = dict(command.voltage_v)
+    doc["q_sigma_um"] = dict(command.q_sigma_um)
+    doc["temperatures_c"] = dict(command.temperatures_c)
+    doc["model"] = command.model
+    doc["t"] = command.t
+    doc["extrapolating"] = list(command.extrapolating)
+    if command.correction_um is not None:
+        doc["correction_um"] = dict(command.correction_um)
+    return doc
+
+
+def encode_cell_command(command: CellCommand) -> bytes:
+    """A multi-axis ``command`` as compact JSON (``null`` for a non-finite number, as :func:`dumps`)."""
+    return dumps(cell_command_doc(command))

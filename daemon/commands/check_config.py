@@ -35,15 +35,18 @@ from daemon.config import (
     locate,
     missing_model_channels,
 )
-from daemon.model.model import Model, ModelFileError, load_model
+from daemon.model.cell_model import CellModel
+from daemon.model.model import Model, ModelFileError
+from daemon.service.cell_compensator import load_served_model
 from drivers.base import VirtualCellPlugin
 from drivers.registry import UnknownDriverError, load_plugin
 
 
-def model_problem(config: Config) -> tuple[Model | None, str | None]:
-    """The model the daemon would load, or a ``model.path: ...`` problem line saying why it would refuse it."""
+def model_problem(config: Config) -> tuple[Model | CellModel | None, str | None]:
+    """The model the daemon would load, or a ``model.path: ...`` problem line saying why it would refuse it
+    (a model of other axes than the cell's included)."""
     try:
-        return load_model(config.model.path), None
+        return load_served_model(config.model.path, config.axis_names), None
     except ModelFileError as error:
         reason = str(error)
     except RecursionError:  # a hostile, deeply nested JSON document
@@ -149,10 +152,14 @@ def driver_warnings(config: Config) -> list[str]:
     return warnings
 
 
-def config_warnings(config: Config, model: Model | None) -> list[str]:
+def config_warnings(config: Config, model: Model | CellModel | None) -> list[str]:
     """``field: message`` lines for what the daemon accepts but an operator should know."""
-    warnings = network_warnings(config) + actuator_warnings(config) + driver_warnings(config)
-    warnings += safe_ramp_warnings(config)
+    warnings = network_warnings(config)
+    for where, one in _per_axis(config):  # a multi-axis cell: each axis' actuator as a one-axis cell's
+        for warning in actuator_warnings(one) + driver_warnings(one) + safe_ramp_warnings(one):
+            warning = where + warning[len("actuator"):] if warning.startswith("actuator") else warning
+            if warning not in warnings:
+                warnings.append(warning)
     if model is None:
         return warnings
     missing = missing_model_channels(config, model.channels)
@@ -179,7 +186,15 @@ def describe_actuator(config: Config) -> str:
     return f"kind {a.kind}" + (f" ({where})" if where else "") + f", {limits}"
 
 
-def no_sensors(config: Config, model: Model | None) -> tuple[str | None, str | None]:
+def _per_axis(config: Config) -> list[tuple[str, Config]]:
+    """(where, the config as a one-axis cell's with that axis' actuator) for every axis."""
+    if not config.multi_axis:
+        return [("actuator", config)]
+    return [(f"axes[{i}] ({axis}).actuator", config.model_copy(update={"actuator": actuator}))
+            for i, (axis, actuator) in enumerate(config.axis_actuators().items())]
+
+
+def no_sensors(config: Config, model: Model | CellModel | None) -> tuple[str | None, str | None]:
     """(problem, warning) for a config that lists no sensors, as the daemon's reload rule judges it.
 
     A reload never removes every sensor of a running cell (daemon/service/reload.py). A sensor-less
@@ -227,7 +242,12 @@ def main(args: argparse.Namespace) -> int:
     names = ", ".join(f"{s.name} ({s.kind}, {s.role})" for s in config.sensors)
     print(f"{args.file}: ok: cell {config.cell!r}, {len(config.sensors)} sensor(s): {names}")
     print(f"  model: {config.model.path} ({model.id if model else '-'})")
-    print(f"  actuator: {describe_actuator(config)}")
+    if config.multi_axis:
+        for (_, one), axis in zip(_per_axis(config), config.axis_names, strict=True):
+            a = one.actuator
+            print(f"  axis {axis}: [{a.x_min_um:g}, {a.x_max_um:g}] um, actuator: {describe_actuator(one)}")
+    else:
+        print(f"  actuator: {describe_actuator(config)}")
     for warning, line in zip(warnings, file_lines(args.file, warnings), strict=True):
         print(f"{args.file}:{line}: warning: {warning}" if line else f"{args.file}: warning: {warning}",
               file=sys.stderr)

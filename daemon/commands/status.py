@@ -155,12 +155,43 @@ def _correction(doc: dict[str, Any]) -> str:
 
 
 def _actuator(doc: dict[str, Any]) -> str:
+    axes = doc.get("axes")
+    if isinstance(axes, dict) and axes:  # a multi-axis cell: each axis' output
+        return " ".join(f"{axis}:{_actuator({'actuator': each.get('actuator')})}".replace(" ", ":", 1)
+                        for axis, each in axes.items() if isinstance(each, dict))
     actuator = doc.get("actuator")
     if not isinstance(actuator, dict):
         return "-"
     kind = str(actuator.get("kind") or "-")
     state = actuator.get("state")
     return f"{kind} {state}" if state else kind
+
+
+def axis_lines(doc: dict[str, Any]) -> list[str]:
+    """A multi-axis cell's axes under the table: workspace, output and its last voltage, position sensor."""
+    axes = doc.get("axes")
+    if not isinstance(axes, dict):
+        return []
+    out = []
+    for axis, each in axes.items():
+        if not isinstance(each, dict):
+            continue
+        actuator = each.get("actuator")
+        actuator = actuator if isinstance(actuator, dict) else {}
+        volts = actuator.get("last_voltage_v")
+        position = each.get("position")
+        sensor = ""
+        if isinstance(position, dict):
+            value = position.get("value")
+            sensor = (f", position {each.get('position_sensor')} {position.get('state')}"
+                      + (f" {value:.3f} µm" if isinstance(value, int | float) else ""))
+        health = doc.get("health")
+        axis_health = health.get("axes", {}).get(axis) if isinstance(health, dict) else None
+        shown = f", health {_health({'health': axis_health})}" if isinstance(axis_health, dict) else ""
+        out.append(f"  {doc.get('cell', '?')} axis {axis}: [{_number(each.get('min_um')):g}, "
+                   f"{_number(each.get('max_um')):g}] µm, {_actuator({'actuator': actuator})}"
+                   + (f" at {volts:.5f} V" if isinstance(volts, int | float) else "") + sensor + shown)
+    return out
 
 
 def _rate(value: float | None) -> str:
@@ -193,6 +224,8 @@ def table(docs: Sequence[dict[str, Any]], previous: dict[str, dict[str, Any]] | 
     rows = [list(COLUMNS)] + [row(d, (previous or {}).get(str(d.get("cell"))), now) for d in docs]
     widths = [max(len(r[i]) for r in rows) for i in range(len(COLUMNS))]
     lines = ["  ".join(cell.ljust(widths[i]) for i, cell in enumerate(r)).rstrip() for r in rows]
+    for doc in docs:
+        lines += axis_lines(doc)
     since = "over the last interval" if previous else "averaged since each daemon started"
     return "\n".join([*lines, f"({len(docs)} cell{'s' if len(docs) != 1 else ''}; rates {since})"])
 

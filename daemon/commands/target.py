@@ -2,6 +2,9 @@
 
 A target nobody answers is explained once: the cells that answer ``status`` on the network are asked
 for (the query of ``nanodrift status``), so a wrong ``--cell`` is told from a daemon that is not running.
+
+A multi-axis cell's target is one comma-separated point in the cell's axis order (``240,100``), the
+axes learnt from the cell's ``status``; a one-axis cell's stays one number, and nothing else is asked.
 """
 
 from __future__ import annotations
@@ -21,11 +24,52 @@ DISCOVERY_TIMEOUT_S = 2.0
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("x", nargs="+", type=float, metavar="X", help="target positions (µm)")
+    parser.add_argument("x", nargs="+", type=_point, metavar="X", help=(
+        "target positions (µm); a multi-axis cell: one comma-separated point per target in its axis order, "
+        "e.g. 240,100 (put -- before a point that starts with -)"))
     add_client_flags(parser, endpoint_of="the daemon")
     parser.add_argument("--cell", default="cell0", help="cell name (key prefix nanodrift/<cell>)")
     parser.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for each answer")
     parser.add_argument("--json", action="store_true", help="print JSON lines")
+
+
+def _point(text: str) -> float | tuple[float, ...]:
+    """One number (a one-axis target), or a comma-separated point (a multi-axis cell's)."""
+    if "," not in text:
+        return float(text)
+    return tuple(float(part) for part in text.split(","))
+
+
+_point.__name__ = "float"  # argparse's message for a bad value stays "invalid float value: 'abc'"
+
+
+def _cell_axes(session: zenoh.Session, keys: Keys, timeout_s: float) -> tuple[str, ...] | None:
+    """The cell's axes from its ``status`` (``("x",)`` for a one-axis cell); None when it does not answer."""
+    for reply in session.get(keys.status, timeout=timeout_s):
+        if isinstance(reply.result, zenoh.Sample):
+            doc = json.loads(reply.result.payload.to_bytes())
+            return tuple(doc["axes"]) if isinstance(doc.get("axes"), dict) else ("x",)
+    return None
+
+
+def _request(target: float | tuple[float, ...], axes: tuple[str, ...] | None, index: int) -> str:
+    if isinstance(target, tuple):
+        assert axes is not None
+        return json.dumps({**{f"{a}_um": v for a, v in zip(axes, target, strict=True)}, "id": index})
+    return json.dumps({"x_um": target, "id": index})
+
+
+def _shown(target: float | tuple[float, ...]) -> str:
+    return ",".join(f"{v:g}" for v in target) if isinstance(target, tuple) else f"{target:g}"
+
+
+def _format_cell_command(doc: dict[str, Any]) -> str:
+    axes = list(doc["q_um"])
+    temps = " ".join(f"{k}={v:.3f}" for k, v in (doc.get("temperatures_c") or {}).items())
+    extra = f" EXTRAPOLATING {','.join(doc['extrapolating'])}" if doc.get("extrapolating") else ""
+    return (" ".join(f"{a} {doc[f'{a}_um']:.4f}" for a in axes) + " µm -> q "
+            + " ".join(f"{a} {doc['q_um'][a]:.4f}" for a in axes) + " µm, "
+            + " ".join(f"{a} {doc['voltage_v'][a]:.5f}" for a in axes) + f" V [model {doc['model']}; {temps}]{extra}")
 
 
 def _format_command(doc: dict[str, Any]) -> str:
@@ -64,8 +108,21 @@ def main(args: argparse.Namespace) -> int:
     failures = 0
     unanswered = ""  # why the cell does not answer, asked once
     try:
+        axes: tuple[str, ...] | None = None
+        if any(isinstance(x, tuple) for x in args.x):
+            axes = _cell_axes(session, keys, args.timeout)
+            if axes is None:
+                print(f"no answer from {keys.status} within {args.timeout:g} s to learn the cell's axes (is the "
+                      "daemon running? -e tcp/HOST:PORT)", file=sys.stderr)
+                return 1
+            wrong = [_shown(x) for x in args.x if len(x if isinstance(x, tuple) else (x,)) != len(axes)]
+            if wrong:
+                print(f"cell {args.cell} has axes {', '.join(axes)}: each target is one point of {len(axes)} "
+                      f"comma-separated values in that order (got {', '.join(wrong)})", file=sys.stderr)
+                return 2
+            args.x = [x if isinstance(x, tuple) else (x,) for x in args.x]
         for index, x in enumerate(args.x):
-            request = json.dumps({"x_um": x, "id": index})
+            request = _request(x, axes, index)
             answer: dict[str, Any] | None = None
             ok = False
             for reply in session.get(keys.compensate, payload=request, timeout=args.timeout):
@@ -86,7 +143,9 @@ def main(args: argparse.Namespace) -> int:
             if args.json:
                 print(json.dumps(answer))
             elif ok:
-                print(_format_command(answer))
+                print(_format_cell_command(answer) if isinstance(answer.get("q_um"), dict) else _format_command(answer))
+            elif isinstance(x, tuple):
+                print(f"{_shown(x)} µm refused: {answer.get('error')}", file=sys.stderr)
             else:
                 print(f"x {x:g} µm refused: {answer.get('error')}", file=sys.stderr)
     finally:

@@ -20,7 +20,7 @@ from pydantic import BaseModel, ValidationError
 
 from daemon.config._checks import points_problems, valid_range_problems
 from daemon.config._lines import ConfigError, problems_of, sensor_where
-from daemon.settings import BUILTIN_SOURCE, STATE_MODEL_PATH, ZENOH_KIND, ActuatorConfig, Config
+from daemon.settings import BUILTIN_SOURCE, STATE_MODEL_PATH, ZENOH_KIND, ActuatorConfig, AxisConfig, AxisKeys, Config
 from drivers.base import ActuatorOptions, DriverPlugin, SensorConfig, VirtualCellPlugin
 from drivers.registry import (
     UnknownDriverError,
@@ -90,7 +90,9 @@ def parse_config(data: Mapping[str, Any], source: str = BUILTIN_SOURCE, base_dir
     data = dict(data)
     raw_sensors = data.pop("sensors", None)
     raw_hubs = data.pop("hubs", [])
+    has_actuator = "actuator" in data
     raw_actuator = data.pop("actuator", {})
+    raw_axes = data.pop("axes", None)
     parse = _Parse()
     kinds = _sensor_kinds(raw_sensors)
 
@@ -112,24 +114,45 @@ def parse_config(data: Mapping[str, Any], source: str = BUILTIN_SOURCE, base_dir
         parse.problems.extend(problems_of("", error))
         config = None
 
-    sensors = _parse_sensors(parse, raw_sensors, sections, owners)
+    sensor_axes: dict[str, str] = {}
+    sensors = _parse_sensors(parse, raw_sensors, sections, owners, sensor_axes)
     in_use = [*(s.kind for _, s in sensors), *owners.values()]  # each loaded above
     virtual_cell = virtual_cell_plugin(in_use, lambda kind: parse.plugin(kind, "sensors")) is not None
-    actuator = _parse_actuator(parse, raw_actuator, virtual_cell)
-    hub_user = actuator.options.hub_name() if actuator is not None and actuator.options is not None else None
+    axes: list[AxisConfig] = []
+    if raw_axes is None:
+        actuator = _parse_actuator(parse, raw_actuator, virtual_cell)
+        actuators = [("actuator", actuator)] if actuator is not None else []
+    else:
+        if has_actuator:
+            keys = ", ".join(raw_actuator) if isinstance(raw_actuator, Mapping) else ""
+            parse.problems.append(
+                "actuator: a cell with [[axes]] has one actuator per axis: move the keys of [actuator]"
+                + (f" ({keys})" if keys else "") + " into each axis' [axes.actuator] and remove [actuator]")
+        axes = _parse_axes(parse, raw_axes, virtual_cell)
+        actuators = [(f"{_axis_where(i, a.name)}.actuator", a.actuator) for i, a in enumerate(axes)]
+        actuator = next((a.actuator for a in axes if a.name == "x"), None)
+    axis_names = [a.name for a in axes]
+    if raw_axes is not None and isinstance(raw_axes, list):  # an axis refused for its actuator is still an axis
+        axis_names = [r["name"] for r in raw_axes if isinstance(r, Mapping) and isinstance(r.get("name"), str)]
+    _sensor_axis_problems(parse, sensors, sensor_axes, axis_names)
+    hub_users = [(where, a.options.hub_name(), a.kind) for where, a in actuators if a.options is not None]
     hubs = _parse_hubs(parse, raw_hubs, sensors,
-                       actuator=(hub_user, actuator.kind) if actuator is not None and hub_user is not None else None)
+                       actuators=[(where, hub, kind) for where, hub, kind in hub_users if hub is not None])
     if config is not None and actuator is not None:
         parse.problems.extend(points_problems(config.procedure, actuator))
-    _check_across(parse, sensors, actuator)
-    if actuator is not None:
-        parse.problems.extend(valid_range_problems(sensors, actuator))
+    for where, each in actuators:
+        _check_across(parse, sensors, each, where)
+    for axis_actuator, mine in _sensors_by_workspace(sensors, sensor_axes, axes, actuator):
+        for problem in valid_range_problems(mine, axis_actuator):
+            if problem not in parse.problems:
+                parse.problems.append(problem)
 
     if parse.problems:
         raise ConfigError(source, parse.problems)
     assert config is not None and actuator is not None
     base = base_dir or Path.cwd()
-    updates: dict[str, Any] = {"sensors": [sensor for _, sensor in sensors], "hubs": hubs, "actuator": actuator}
+    updates: dict[str, Any] = {"sensors": [sensor for _, sensor in sensors], "hubs": hubs, "actuator": actuator,
+                               "axes": axes}
     if "path" not in config.model.model_fields_set and not virtual_cell:
         # the package's model belongs to the simulated cell: real hardware gets its own, calibrated one
         updates["model"] = config.model.model_copy(update={"path": STATE_MODEL_PATH})
@@ -145,7 +168,45 @@ def parse_config(data: Mapping[str, Any], source: str = BUILTIN_SOURCE, base_dir
     result._source = source
     result._sections = sections
     result._virtual_cell = virtual_cell
+    result._sensor_axes = {name: axis for name, axis in sensor_axes.items() if axis != "x"}
     return result
+
+
+def _sensor_axis_problems(parse: _Parse, sensors: Sequence[tuple[int, SensorConfig]], sensor_axes: Mapping[str, str],
+                          axes: Sequence[str]) -> None:
+    """``[[sensors]] axis``: a known axis, on a position sensor only, and one position sensor per axis."""
+    names = set(axes) or {"x"}
+    by_axis: dict[str, list[str]] = {}
+    for index, sensor in sensors:
+        axis = sensor_axes.get(sensor.name, "x")
+        if axis not in names:
+            parse.problems.append(f"{sensor_where(index, sensor)}.axis: unknown axis {axis!r}; the cell's axes: "
+                                  f"{', '.join(axes) or 'x (a one-axis cell)'}")
+        elif sensor.role != "position" and sensor.name in sensor_axes:
+            parse.problems.append(f"{sensor_where(index, sensor)}.axis: only a position sensor (role = "
+                                  "\"position\") measures an axis")
+        if sensor.role == "position":
+            by_axis.setdefault(axis, []).append(sensor.name)
+    for axis, positions in by_axis.items():
+        if len(positions) > 1:
+            parse.problems.append(
+                f"sensors: more than one position sensor ({', '.join(positions)})"
+                + ("; the cell has one axis" if not axes else f" on axis {axis} (one per axis: set axis = ...)"))
+
+
+def _sensors_by_workspace(sensors: Sequence[tuple[int, SensorConfig]], sensor_axes: Mapping[str, str],
+                          axes: Sequence[AxisConfig], actuator: ActuatorConfig | None,
+                          ) -> list[tuple[ActuatorConfig, list[tuple[int, SensorConfig]]]]:
+    """Which workspace judges each sensor's default valid range: its axis' for a position sensor."""
+    if not axes:
+        return [(actuator, list(sensors))] if actuator is not None else []
+    out = []
+    for axis in axes:
+        mine = [(i, s) for i, s in sensors
+                if (s.role != "position" and axis.name == "x")
+                or (s.role == "position" and sensor_axes.get(s.name, "x") == axis.name)]
+        out.append((axis.actuator, mine))
+    return out
 
 
 def _actuator_kinds() -> list[str]:
@@ -158,56 +219,107 @@ def _moves_the_stage(plugin: DriverPlugin | None) -> bool:
     return plugin is not None and plugin.actuator_model is not None
 
 
-def _parse_actuator(parse: _Parse, raw: Any, virtual_cell: bool) -> ActuatorConfig | None:
+def _parse_actuator(parse: _Parse, raw: Any, virtual_cell: bool, where: str = "actuator") -> ActuatorConfig | None:
     """``[actuator]``: the core keys by :class:`ActuatorConfig`, the rest by the kind's plugin.
 
     The default kind is the virtual cell's own plugin for a simulated cell (its stage must move),
     else ``zenoh``. A simulated stage is never driven by a hardware output, nor the reverse.
     """
     if not isinstance(raw, Mapping):
-        parse.problems.append("actuator: expected a table")
+        parse.problems.append(f"{where}: expected a table")
         return None
     core = {k: v for k, v in raw.items() if k in ActuatorConfig.model_fields}
     rest = {k: v for k, v in raw.items() if k not in ActuatorConfig.model_fields}
     if "kind" not in core:
         core["kind"] = _virtual_kind() if virtual_cell else ZENOH_KIND
     kind = core["kind"]
-    actuator = parse.validate(ActuatorConfig, core, "actuator")
+    actuator = parse.validate(ActuatorConfig, core, where)
     if not isinstance(kind, str):
         return None  # reported by the line above
     options: ActuatorOptions | None = None
     if kind == ZENOH_KIND:
-        parse.problems.extend(f"actuator.{key}: unknown key (typo?); kind = {ZENOH_KIND!r} takes no device keys"
+        parse.problems.extend(f"{where}.{key}: unknown key (typo?); kind = {ZENOH_KIND!r} takes no device keys"
                               for key in rest)
         if virtual_cell:
-            parse.problems.append(f"actuator.kind: {ZENOH_KIND!r} would leave the simulated stage unmoved; a simulated "
+            parse.problems.append(f"{where}.kind: {ZENOH_KIND!r} would leave the simulated stage unmoved; a simulated "
                                   "cell is driven by its own plugin (remove kind)")
     elif kind not in available():
-        parse.problems.append(f"actuator.kind: unknown actuator kind {kind!r}; kinds: {', '.join(_actuator_kinds())}")
+        parse.problems.append(f"{where}.kind: unknown actuator kind {kind!r}; kinds: {', '.join(_actuator_kinds())}")
     else:
-        plugin = parse.plugin(kind, "actuator.kind")
+        plugin = parse.plugin(kind, f"{where}.kind")
         if plugin is None:
             return None
         if plugin.actuator_model is None:
-            parse.problems.append(f"actuator.kind: driver {kind!r} cannot move the stage; kinds that can: "
+            parse.problems.append(f"{where}.kind: driver {kind!r} cannot move the stage; kinds that can: "
                                   f"{', '.join(_actuator_kinds())}")
             return None
         if isinstance(plugin, VirtualCellPlugin) != virtual_cell:
             cell = "simulated" if virtual_cell else "real hardware"
-            parse.problems.append(f"actuator.kind: {kind!r} cannot drive this cell: its sensors are {cell}")
-        validated = parse.validate(plugin.actuator_model, {**rest, "kind": kind}, "actuator")
+            parse.problems.append(f"{where}.kind: {kind!r} cannot drive this cell: its sensors are {cell}")
+        validated = parse.validate(plugin.actuator_model, {**rest, "kind": kind}, where)
         options = validated if isinstance(validated, ActuatorOptions) else None
         if options is not None and actuator is not None:
             problem = options.voltage_range_problem(actuator.v_min, actuator.v_max, actuator.volts_per_um)
             if problem:
-                parse.problems.append(actuator_line(options, problem))
+                parse.problems.append(actuator_line(options, problem, where))
     return actuator.with_options(options) if actuator is not None else None
 
 
-def actuator_line(options: ActuatorOptions, message: str) -> str:
+def actuator_line(options: ActuatorOptions, message: str, where: str = "actuator") -> str:
     """``actuator.command: ...`` for a plugin's message that starts with one of its keys, else ``actuator: ...``."""
     key = message.split(":", 1)[0]
-    return f"actuator.{message}" if key in type(options).model_fields else f"actuator: {message}"
+    return f"{where}.{message}" if key in type(options).model_fields else f"{where}: {message}"
+
+
+def _axis_where(index: int, name: Any) -> str:
+    """``axes[1] (y)``: the index in the file's order (0-based) and the axis' name when it has one."""
+    return f"axes[{index}] ({name})" if isinstance(name, str) and name else f"axes[{index}]"
+
+
+#: ``[axes.actuator]`` keys that belong to the axis itself
+_WORKSPACE_KEYS = {"x_min_um": "min_um", "x_max_um": "max_um"}
+
+
+def _parse_axes(parse: _Parse, raw_axes: Any, virtual_cell: bool) -> list[AxisConfig]:
+    """``[[axes]]``: each axis' name and workspace, and its ``[axes.actuator]`` validated as an ``[actuator]``
+    (the workspace is the axis'). Names are unique; an x axis is required (the CSV contract's positions)."""
+    if not isinstance(raw_axes, list) or not raw_axes:
+        parse.problems.append("axes: expected an array of tables ([[axes]]), one per axis")
+        return []
+    axes: list[AxisConfig] = []
+    seen: set[str] = set()
+    for index, raw in enumerate(raw_axes):
+        where = _axis_where(index, raw.get("name") if isinstance(raw, Mapping) else None)
+        if not isinstance(raw, Mapping):
+            parse.problems.append(f"{where}: expected a table")
+            continue
+        raw = dict(raw)
+        raw_actuator = raw.pop("actuator", {})
+        keys = parse.validate(AxisKeys, raw, where)
+        if isinstance(raw_actuator, Mapping):
+            for key, instead in _WORKSPACE_KEYS.items():
+                if key in raw_actuator:
+                    parse.problems.append(f"{where}.actuator.{key}: the axis' workspace is its own {instead} "
+                                          "(in [[axes]], not in [axes.actuator])")
+            raw_actuator = {k: v for k, v in raw_actuator.items() if k not in _WORKSPACE_KEYS}
+            if keys is not None:
+                raw_actuator = {**raw_actuator, "x_min_um": keys.min_um, "x_max_um": keys.max_um}
+        actuator = _parse_actuator(parse, raw_actuator, virtual_cell, f"{where}.actuator")
+        if keys is None:
+            continue
+        if keys.name in seen:
+            parse.problems.append(f"{where}.name: axis {keys.name!r} is named twice (axis names are unique)")
+            continue
+        seen.add(keys.name)
+        if actuator is not None:
+            axes.append(AxisConfig(name=keys.name, actuator=actuator))
+    if len(raw_axes) == 1:
+        parse.problems.append("axes: one [[axes]] table: a one-axis cell is written without [[axes]] (its "
+                              "[actuator] table configures the x axis)")
+    if seen and "x" not in seen:
+        parse.problems.append(f"axes: no axis named x (axes: {', '.join(sorted(seen))}); a multi-axis cell needs "
+                              "an x axis: the calibration CSV's positions start with x_um")
+    return axes
 
 
 def _virtual_kind() -> str:
@@ -218,8 +330,9 @@ def _virtual_kind() -> str:
 
 
 def _check_across(parse: _Parse, sensors: Sequence[tuple[int, SensorConfig]],
-                  actuator: ActuatorConfig | None) -> None:
-    """Each plugin's :meth:`~drivers.base.DriverPlugin.config_problems` over its sensors and its actuator."""
+                  actuator: ActuatorConfig | None, where: str = "actuator") -> None:
+    """Each plugin's :meth:`~drivers.base.DriverPlugin.config_problems` over its sensors and its actuator
+    (once per axis' actuator in a multi-axis cell: a problem seen twice is listed once)."""
     options = actuator.options if actuator is not None else None
     kinds = dict.fromkeys([s.kind for _, s in sensors] + ([options.kind] if options is not None else []))
     for kind in kinds:
@@ -227,12 +340,18 @@ def _check_across(parse: _Parse, sensors: Sequence[tuple[int, SensorConfig]],
         if plugin is None:
             continue
         mine = [(i, s) for i, s in sensors if s.kind == kind]
-        parse.problems.extend(plugin.config_problems(mine, options if options is not None and options.kind == kind
-                                                     else None))
+        for problem in plugin.config_problems(mine, options if options is not None and options.kind == kind
+                                              else None):
+            if where != "actuator" and problem.startswith("actuator"):
+                problem = where + problem[len("actuator"):]
+            if problem not in parse.problems:
+                parse.problems.append(problem)
 
 
 def _parse_sensors(parse: _Parse, raw_sensors: Any, sections: Mapping[str, BaseModel],
-                   owners: Mapping[str, str]) -> list[tuple[int, SensorConfig]]:
+                   owners: Mapping[str, str], sensor_axes: dict[str, str]) -> list[tuple[int, SensorConfig]]:
+    """Each ``[[sensors]]`` entry by its kind's plugin; ``axis`` (the daemon's key: which axis a position
+    sensor measures) is taken out first into ``sensor_axes``."""
     indexed: list[tuple[int, SensorConfig]] = []
     if raw_sensors is None:  # a virtual cell's table without sensors: the plugin's own
         for name, section in sections.items():
@@ -255,9 +374,16 @@ def _parse_sensors(parse: _Parse, raw_sensors: Any, sections: Mapping[str, BaseM
         plugin = parse.plugin(kind, f"{prefix}.kind")
         if plugin is None:
             continue
+        raw = dict(raw)
+        axis = raw.pop("axis", None)
+        if axis is not None and not isinstance(axis, str):
+            parse.problems.append(f"{prefix}.axis: expected an axis name (a lowercase letter), got {axis!r}")
+            axis = None
         sensor = parse.validate(plugin.config_model, raw, prefix)
         if sensor is not None:
             indexed.append((index, sensor))
+            if axis is not None:
+                sensor_axes[sensor.name] = axis
 
     seen: set[str] = set()
     for index, sensor in indexed:
@@ -265,18 +391,14 @@ def _parse_sensors(parse: _Parse, raw_sensors: Any, sections: Mapping[str, BaseM
             parse.problems.append(
                 f"{sensor_where(index, sensor)}.name: {sensor.name!r} is used twice (names must be unique)")
         seen.add(sensor.name)
-    positions = [s.name for _, s in indexed if s.role == "position"]
-    if len(positions) > 1:
-        parse.problems.append(
-            f"sensors: more than one position sensor ({', '.join(positions)}); the cell has one axis")
     return indexed
 
 
 def _parse_hubs(parse: _Parse, raw_hubs: Any, sensors: Sequence[tuple[int, SensorConfig]], *,
-                actuator: tuple[str, str] | None = None) -> list[Any]:
-    """Each ``[[hubs]]`` entry validated by the plugin of the sensors (and the actuator) that name it.
+                actuators: Sequence[tuple[str, str, str]] = ()) -> list[Any]:
+    """Each ``[[hubs]]`` entry validated by the plugin of the sensors (and the actuators) that name it.
 
-    ``actuator``: (hub, kind) when ``[actuator]`` names a hub: it is a user of that hub like a sensor.
+    ``actuators``: (where, hub, kind) of each actuator naming a hub: a user of that hub like a sensor.
     """
     if not isinstance(raw_hubs, list):
         parse.problems.append("hubs: expected an array of tables ([[hubs]])")
@@ -295,11 +417,10 @@ def _parse_hubs(parse: _Parse, raw_hubs: Any, sensors: Sequence[tuple[int, Senso
         users.setdefault(hub, [])
         if sensor.kind not in users[hub]:
             users[hub].append(sensor.kind)
-    if actuator is not None:
-        hub, kind = actuator
+    for where, hub, kind in actuators:
         if hub not in names:
             known = ", ".join(n for n in names if isinstance(n, str)) or "none defined"
-            parse.problems.append(f"actuator.hub: no [[hubs]] named {hub!r} (hubs: {known})")
+            parse.problems.append(f"{where}.hub: no [[hubs]] named {hub!r} (hubs: {known})")
         if kind not in users.setdefault(hub, []):
             users[hub].append(kind)
     hubs: list[Any] = []

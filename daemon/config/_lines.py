@@ -98,7 +98,20 @@ def locate(text: str, problem: str) -> int | None:
     if key is None:
         return start + 1
     end = next((n for n, _, _ in headers if n > start), len(lines))
+    if index is not None and key in _SUBTABLES.get(table, ()):  # axes[1] (y).actuator.kind: in [axes.actuator]
+        sub = next((n for n, name, array in headers if n > start and ((array and name == table)
+                    or name == f"{table}.{key}")), None)
+        if sub is not None and headers[[h[0] for h in headers].index(sub)][1] == f"{table}.{key}":
+            rest = problem[match.end():]
+            sub_key = re.match(r"\.(?P<k>[\w-]+)", rest)
+            sub_end = next((n for n, _, _ in headers if n > sub), len(lines))
+            found = _key_line(lines, sub_key["k"], sub + 1, sub_end) if sub_key else None
+            return found or sub + 1
     return _key_line(lines, key, start + 1, end) or start + 1
+
+
+#: an array of tables' sub-table (``[axes.actuator]`` inside each ``[[axes]]``)
+_SUBTABLES = {"axes": ("actuator",)}
 
 
 def _key_line(lines: Sequence[str], key: str, start: int, end: int) -> int | None:

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any
@@ -26,7 +26,7 @@ from daemon.bus.protocol import Command, Refusal, Target
 from daemon.config import ActuatorConfig
 from daemon.model.model import Evaluator, Model, ModelFileError, load_model
 from daemon.motion import VoltageLimitError, checked_voltage
-from daemon.service.table import SensorTable
+from daemon.service.table import ChannelEntry, SensorTable
 from drivers.base import State
 
 _NO_TEMPERATURES: Mapping[str, float] = MappingProxyType({})
@@ -38,6 +38,23 @@ def load_model_or_problem(path: Path) -> tuple[Model | None, str]:
         return load_model(path), ""
     except ModelFileError as error:
         return None, str(error)
+
+
+def temperature_snapshot(entries: Sequence[tuple[str, ChannelEntry]], missing: Sequence[str],
+                         ranges: Sequence[tuple[str, float, float]]) -> tuple[float, Mapping[str, float], list[str]]:
+    """What the model's channels say now: the cell-clock time until which every one is fresh (-inf: one
+    is not ok, or missing), their values (read-only: commands share it) and those outside their
+    training range. Derived once per table change, never per target; one snapshot serves every axis."""
+    fresh_until = math.inf
+    temps: dict[str, float] = {}
+    for _, entry in entries:
+        if entry.device_state is not State.OK or entry.t is None or entry.value is None:
+            return -math.inf, _NO_TEMPERATURES, []
+        fresh_until = min(fresh_until, entry.t + entry.max_age_s)
+        temps[entry.name] = entry.value
+    if missing:
+        return -math.inf, _NO_TEMPERATURES, []
+    return fresh_until, MappingProxyType(temps), [name for name, lo, hi in ranges if not lo <= temps[name] <= hi]
 
 
 class Compensator:
@@ -74,20 +91,8 @@ class Compensator:
 
     def _snapshot(self) -> None:
         self._version = self.table.version
-        fresh_until = math.inf
-        temps: dict[str, float] = {}
-        for _, entry in self._entries:
-            if entry.device_state is not State.OK or entry.t is None or entry.value is None:
-                fresh_until = -math.inf
-                break
-            fresh_until = min(fresh_until, entry.t + entry.max_age_s)
-            temps[entry.name] = entry.value
-        if fresh_until == -math.inf or self.missing:
-            self._fresh_until, self._temps, self._temps_outside = -math.inf, _NO_TEMPERATURES, []
-            return
-        self._fresh_until = fresh_until
-        self._temps = MappingProxyType(temps)
-        self._temps_outside = [name for name, lo, hi in self._ranges if not lo <= temps[name] <= hi]
+        self._fresh_until, self._temps, self._temps_outside = temperature_snapshot(
+            self._entries, self.missing, self._ranges)
 
     def observe(self, t: float, temps: Mapping[str, float]) -> None:
         if self.evaluator is not None and temps:

@@ -45,7 +45,9 @@ from daemon.bus.protocol import Command, dumps
 from daemon.bus.session import Bus
 from daemon.calibration.residuals import BiasTracker, HealthMonitor, RangeWatch, Settled, SettleTracker
 from daemon.config import Config
+from daemon.model.cell_model import CellModel
 from daemon.model.model import Model
+from daemon.service.cell_compensator import CellCompensator
 from daemon.service.compensator import Compensator
 from daemon.service.recorder import Polled, PolledChannels
 
@@ -60,14 +62,16 @@ POLLED_MARGIN_S = 10.0
 class HealthUnit:
     """Served commands and position readings in; the ``health`` document, log events and the correction out."""
 
-    def __init__(self, config: Config, model: Model | None, log: Any) -> None:
+    def __init__(self, config: Config, model: Model | CellModel | None, log: Any, *, axis: str = "x") -> None:
         self.log = log
+        #: the axis this unit watches (a multi-axis cell has one unit per axis: ``daemon.service.cell_health``)
+        self.axis = axis
         self.served: deque[tuple[float, Command]] = deque(maxlen=SERVED_QUEUE)
         #: called on the loop, outside the state lock, with every settled target, the unix time it settled
         #: at (a label only) and every polled temperature channel over its window (the recorder's
         #: ``on_settled``); a listener must not block
         self.settled_listeners: list[Callable[[Settled, float, Polled], None]] = []
-        self._compensator: Compensator | None = None
+        self._compensator: Compensator | CellCompensator | None = None
         self._publisher: Any = None
         self._fresh: list[tuple[Settled, float, Polled]] = []
         self.polled = PolledChannels({}, 0.0)
@@ -85,9 +89,10 @@ class HealthUnit:
 
     # --- configuration (under state.lock) ------------------------------------------------------
 
-    def _configure(self, config: Config, model: Model | None) -> None:
+    def _configure(self, config: Config, model: Model | CellModel | None) -> None:
         health, adapt = config.health, config.adapt
-        position = next((s for s in config.sensors if s.role == "position"), None)
+        # a multi-axis cell's health per axis is not built yet: its state stays unknown
+        position = None if config.multi_axis else next((s for s in config.sensors if s.role == "position"), None)
         self._settings = _settings(config)
         self.model_id = model.id if model is not None else None
         self.position_channel: str | None = position.name if position is not None else None
@@ -95,22 +100,26 @@ class HealthUnit:
         self.settle = SettleTracker(health.settle_s, health.window_s)
         self.monitor = HealthMonitor(health.history, health.alarm_rms_nm, has_position_sensor=position is not None)
         ranges: dict[str, tuple[float, float]] = {}
-        if model is not None:
-            ranges = {"x": model.training.x_range, **model.training.channel_ranges}
+        if isinstance(model, Model):
+            training = model.training
+            position_range = training.x_range if self.axis == "x" else training.position_ranges[self.axis]
+            ranges = {self.axis: position_range, **training.channel_ranges}
         self.ranges = RangeWatch(ranges)
-        self.tracker = BiasTracker(adapt.tau_s, adapt.max_um) if adapt.mode == "bias" else None
+        # adaptation per axis is not built yet: a multi-axis cell serves without a correction
+        per_axis = config.multi_axis
+        self.tracker = BiasTracker(adapt.tau_s, adapt.max_um) if adapt.mode == "bias" and not per_axis else None
         self.served.clear()
         self._reached.clear()
         self._last_position_t: float | None = None
 
-    def attach(self, compensator: Compensator) -> None:
+    def attach(self, compensator: Compensator | CellCompensator) -> None:
         """Serve through ``compensator`` (at start and after every reload): it queues its commands
         here (only with a position sensor) and adds the tracker's correction (only with adaptation on)."""
         self._compensator = compensator
         compensator.served = self.served if self.position_channel is not None else None
         compensator.correction_um = self.tracker.correction_um if self.tracker is not None else None
 
-    def reconfigure(self, config: Config, compensator: Compensator) -> None:
+    def reconfigure(self, config: Config, compensator: Compensator | CellCompensator) -> None:
         """A reload (under state.lock): a new model, new ``[health]`` monitor or ``[adapt]`` settings or
         another position sensor start the monitor and the tracker afresh (residuals of the old model say
         nothing about the new one); otherwise (recording settings included) they carry on through the
@@ -142,9 +151,11 @@ class HealthUnit:
         """One reading of a temperature channel (ok or not) taken at ``t``: the rows carry every polled channel."""
         self.polled.observe(name, t, value_c, ok)
 
-    def on_position(self, now: float, t: float, value_um: float, ok: bool, problem: str = "") -> None:
+    def on_position(self, now: float, t: float, value_um: float, ok: bool, problem: str = "",
+                    channel: str | None = None) -> None:
         """One reading of the position sensor taken at ``t``; ``ok``: ok and fresh at ``now``; else
-        ``problem`` says why not (``stale: value frozen at ...``), for the advice."""
+        ``problem`` says why not (``stale: value frozen at ...``), for the advice. (``channel``: which
+        sensor; a one-axis cell has one position sensor.)"""
         if self.position_channel is None:
             return
         self.position_problem = "" if ok else (problem or "not ok")
@@ -173,7 +184,7 @@ class HealthUnit:
                 t_command, command = served.popleft()
             self.settle.commanded(t_command, command.x_um, command.q_um, command.temperatures_c, command.id,
                                   reached=not self.awaits_reach)
-            self.ranges.observe(t_command, {"x": command.x_um})
+            self.ranges.observe(t_command, {self.axis: command.x_um})
         reached = self._reached
         while reached and reached[0][0] <= t:
             self.settle.reached(*reached.popleft())

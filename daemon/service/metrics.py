@@ -132,8 +132,9 @@ class CellCollector(Collector):
         age, and the state as a state set (one series per state, 1 for the current one)."""
         temperature = GaugeMetricFamily("nanodrift_temperature_celsius", "each temperature channel's last reading",
                                         labels=["cell", "channel"])
+        axes = _axes_of_positions(doc)  # a multi-axis cell: each position channel's axis as a label
         position = GaugeMetricFamily("nanodrift_position_meters", "each position channel's last reading",
-                                     labels=["cell", "channel"])
+                                     labels=["cell", "channel", "axis"] if axes is not None else ["cell", "channel"])
         age = GaugeMetricFamily("nanodrift_sensor_age_seconds", "age of each channel's last reading",
                                 labels=["cell", "channel"])
         states = GaugeMetricFamily("nanodrift_sensor_state", "1 for the state each channel is in (ok, stale, fault)",
@@ -145,7 +146,7 @@ class CellCollector(Collector):
             if reading is not None and sensor.get("role") == "temperature":
                 temperature.add_metric([cell, name], reading)
             elif reading is not None and sensor.get("role") == "position":
-                position.add_metric([cell, name], reading * 1e-6)
+                position.add_metric([cell, name] if axes is None else [cell, name, axes.get(name, "x")], reading * 1e-6)
             seconds = _number(sensor.get("age_s"))
             if seconds is not None:
                 age.add_metric([cell, name], seconds)
@@ -173,6 +174,9 @@ class CellCollector(Collector):
         health = doc.get("health")
         if not isinstance(health, dict):
             return
+        if isinstance(health.get("axes"), dict):
+            yield from self._axis_health(health["axes"], cell)
+            return
         for name, key, scale, text in (
             ("nanodrift_health_residual_rms_meters", "residual_rms_nm", 1e-9, "RMS of the settled residuals"),
             ("nanodrift_health_residual_mean_meters", "residual_mean_nm", 1e-9, "mean of the settled residuals"),
@@ -199,6 +203,9 @@ class CellCollector(Collector):
             yield state
 
     def _actuator(self, doc: dict[str, Any], cell: str) -> Iterator[Any]:
+        if isinstance(doc.get("axes"), dict):
+            yield from self._axis_actuators(doc["axes"], cell)
+            return
         actuator = doc.get("actuator")
         if not isinstance(actuator, dict) or actuator.get("state") is None:
             return
@@ -210,3 +217,57 @@ class CellCollector(Collector):
         ok = GaugeMetricFamily("nanodrift_actuator_ok", "1 unless the actuator is in fault", labels=["cell", "kind"])
         ok.add_metric([cell, kind], 0.0 if current == "fault" else 1.0)
         yield from (family, ok)
+
+    def _axis_health(self, axes: dict[str, Any], cell: str) -> Iterator[Any]:
+        """A multi-axis cell's health: the one-axis families with an ``axis`` label."""
+        families = {key: GaugeMetricFamily(name, text, labels=["cell", "axis"]) for name, key, text in (
+            ("nanodrift_health_residual_rms_meters", "residual_rms_nm", "RMS of the settled residuals"),
+            ("nanodrift_health_residual_mean_meters", "residual_mean_nm", "mean of the settled residuals"),
+            ("nanodrift_health_correction_meters", "correction_um", "the adaptive correction applied"),
+            ("nanodrift_health_residuals", "n", "settled residuals in the rolling statistics"))}
+        scale = {"residual_rms_nm": 1e-9, "residual_mean_nm": 1e-9, "correction_um": 1e-6, "n": 1.0}
+        state = GaugeMetricFamily("nanodrift_health_state",
+                                  "1 for the health state the daemon is in (unknown, ok, degraded)",
+                                  labels=["cell", "axis", "state"])
+        for axis, health in axes.items():
+            if not isinstance(health, dict):
+                continue
+            for key, family in families.items():
+                number = _number(health.get(key))
+                if number is not None:
+                    family.add_metric([cell, axis], number * scale[key])
+            if health.get("state") is not None:
+                current = str(health["state"])
+                for name in dict.fromkeys((*HEALTH_STATES, current)):
+                    state.add_metric([cell, axis, name], 1.0 if name == current else 0.0)
+        yield from (*families.values(), state)
+
+    def _axis_actuators(self, axes: dict[str, Any], cell: str) -> Iterator[Any]:
+        """A multi-axis cell's outputs: the one-axis families with an ``axis`` label, and each output's voltage."""
+        family = GaugeMetricFamily("nanodrift_actuator_state", "1 for the state the actuator is in (ok, fault, closed)",
+                                   labels=["cell", "axis", "kind", "state"])
+        ok = GaugeMetricFamily("nanodrift_actuator_ok", "1 unless the actuator is in fault",
+                               labels=["cell", "axis", "kind"])
+        volts = GaugeMetricFamily("nanodrift_actuator_voltage_volts", "the last voltage written to each axis' output",
+                                  labels=["cell", "axis"])
+        for axis, each in axes.items():
+            actuator = each.get("actuator") if isinstance(each, dict) else None
+            if not isinstance(actuator, dict) or actuator.get("state") is None:
+                continue
+            kind, current = str(actuator.get("kind", "")), str(actuator["state"])
+            for state in dict.fromkeys((*ACTUATOR_STATES, current)):
+                family.add_metric([cell, axis, kind, state], 1.0 if state == current else 0.0)
+            ok.add_metric([cell, axis, kind], 0.0 if current == "fault" else 1.0)
+            last = _number(actuator.get("last_voltage_v"))
+            if last is not None:
+                volts.add_metric([cell, axis], last)
+        yield from (family, ok, volts)
+
+
+def _axes_of_positions(doc: dict[str, Any]) -> dict[str, str] | None:
+    """position channel -> its axis in a multi-axis cell's status (None: a one-axis cell)."""
+    axes = doc.get("axes")
+    if not isinstance(axes, dict):
+        return None
+    return {str(each["position_sensor"]): axis for axis, each in axes.items()
+            if isinstance(each, dict) and each.get("position_sensor")}

@@ -132,10 +132,38 @@ class PolledChannels:
         return Polled(values, valid)
 
 
-def record_row(settled: Settled, unix_s: float, polled: Polled | None = None) -> dict[str, float]:
+class CellSettled:
+    """A multi-axis cell's settled target: every watched axis' :class:`Settled` for one command."""
+
+    def __init__(self, axes: Mapping[str, Settled]) -> None:
+        self.axes = dict(axes)
+        first = next(iter(self.axes.values()))
+        self.temperatures = first.temperatures
+
+    def fixed_columns(self) -> dict[str, float]:
+        """``<axis>_um`` measured, ``q_<axis>_um``, ``target_<axis>_um``, ``residual_<axis>_um`` (the CSV contract's
+        multi-axis columns; ``target_``/``residual_`` end in ``_um``, so no reader takes them for a channel)."""
+        row: dict[str, float] = {}
+        for axis, s in self.axes.items():
+            row[f"{axis}_um"] = float(s.position_um)
+        for prefix, value in (("q", lambda s: s.q_um), ("target", lambda s: s.x_um),
+                              ("residual", lambda s: s.residual_um)):
+            for axis, s in self.axes.items():
+                row[f"{prefix}_{axis}_um"] = float(value(s))
+        return row
+
+
+def record_row(settled: Settled | CellSettled, unix_s: float, polled: Polled | None = None) -> dict[str, float]:
     """One settled target as a row of the data contract; ``polled`` None: the command's channels, valid."""
     if polled is None:
         polled = Polled(settled.temperatures, True)
+    if isinstance(settled, CellSettled):
+        row = {"t_s": float(unix_s), **settled.fixed_columns(), "valid": 1.0 if polled.valid else 0.0}
+        for channel, value in polled.values_c.items():
+            if channel in RESERVED or channel.endswith("_um"):
+                raise DataError(f"channel {channel!r} has the name of a reserved column; it cannot be recorded")
+            row[channel] = float(value)
+        return row
     row = {
         "t_s": float(unix_s),
         "x_um": float(settled.position_um),
@@ -179,7 +207,7 @@ class DayRecorder:
         self._failure: str | None = None  # what was logged, until a row is written again
         self._lost_in_outage = 0
 
-    def record(self, settled: Settled, unix_s: float, polled: Polled | None = None) -> bool:
+    def record(self, settled: Settled | CellSettled, unix_s: float, polled: Polled | None = None) -> bool:
         """Append one row; False (logged once per outage) when it could not be written. Never raises."""
         try:
             row = record_row(settled, unix_s, polled)
@@ -212,19 +240,24 @@ class DayRecorder:
             self._expire(today)
             self._expired_before = today
         channels = [c for c in row if c not in RECORD_COLUMNS]
-        same_columns = set(channels) == set(self._columns[len(RECORD_COLUMNS):])
+        fixed: Sequence[str] = RECORD_COLUMNS
+        if "q_um" not in row:  # a multi-axis cell's row: its positions, commands, targets, residuals
+            fixed = [c for c in row if c in RESERVED or c.endswith("_um")]
+            channels = [c for c in row if c not in fixed]
+        same_columns = set(row) == set(self._columns)
         if self._appender is None or day != self._day or not same_columns or row["t_s"] <= self._last_t:
-            self._open(day, channels, row["t_s"])
+            self._open(day, channels, row["t_s"], fixed)
         assert self._appender is not None
         self._appender.append(row)
         self._last_t = row["t_s"]
 
-    def _open(self, day: dt.date, channels: Sequence[str], t_s: float) -> None:
+    def _open(self, day: dt.date, channels: Sequence[str], t_s: float,
+              fixed: Sequence[str] = RECORD_COLUMNS) -> None:
         """The day's last file if it has these columns and a row at ``t_s`` comes after its rows; else a new one."""
         self.close()
         self.directory.mkdir(parents=True, exist_ok=True)
         parts = self._parts(day)
-        wanted = [*RECORD_COLUMNS, *channels]
+        wanted = [*fixed, *channels]
         last = parts[-1] if parts else 0
         if last:
             path = self.directory / file_name(day, last)
@@ -349,11 +382,11 @@ class Recorder:
         self.writer: DayRecorder | None = None  # the writer thread's
         self.dropped = 0
         self._target: tuple[str, int] | None = None
-        self._queue: queue.Queue[tuple[Settled, float, Polled | None] | _Retarget | None] = queue.Queue(
+        self._queue: queue.Queue[tuple[Settled | CellSettled, float, Polled | None] | _Retarget | None] = queue.Queue(
             maxsize=max_rows)
         self._thread: threading.Thread | None = None
 
-    def on_settled(self, settled: Settled, unix_s: float, polled: Polled | None = None) -> None:
+    def on_settled(self, settled: Settled | CellSettled, unix_s: float, polled: Polled | None = None) -> None:
         """A ``settled_listeners`` entry: never blocks, never raises. ``unix_s`` labels the row (wall clock)."""
         config = self.settings()
         target = (config.record_dir, config.record_keep_days)
@@ -377,7 +410,7 @@ class Recorder:
     def running(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
 
-    def _put(self, item: tuple[Settled, float, Polled | None] | _Retarget) -> bool:
+    def _put(self, item: tuple[Settled | CellSettled, float, Polled | None] | _Retarget) -> bool:
         if self._thread is None:
             self._thread = threading.Thread(target=self._run, name="nanodrift-recorder", daemon=True)
             self._thread.start()

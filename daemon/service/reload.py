@@ -24,8 +24,11 @@ from typing import Any, Protocol
 
 from daemon.config import BUILTIN_SOURCE, ConfigError, load_config, missing_model_channels
 from daemon.drivers_set import DriverSet
-from daemon.model.model import Model, ModelFileError, load_model
+from daemon.model.cell_model import CellModel
+from daemon.model.model import Model, ModelFileError
 from daemon.sdnotify import Notifier
+from daemon.service.cell_compensator import CellCompensator, load_served_model
+from daemon.service.cell_health import CellHealth
 from daemon.service.compensator import Compensator
 from daemon.service.health_unit import HealthUnit
 from daemon.service.state import CellState
@@ -33,7 +36,7 @@ from daemon.service.table import SensorTable
 from drivers.base import DriverContext, DriverSetupError
 
 
-def same_content(old: Model | None, new: Model) -> bool:
+def same_content(old: Model | CellModel | None, new: Model | CellModel) -> bool:
     """Whether ``new`` serves exactly what ``old`` does, so its evaluator (lag filters, direction) can be kept.
 
     The whole file's content, not the stored id: the id leaves out fit statistics, yet a file without
@@ -68,7 +71,7 @@ class Reloader:
         *,
         status_line: Callable[[], str],
         table_replaced: Callable[[], None],
-        health: HealthUnit | None = None,
+        health: HealthUnit | CellHealth | None = None,
     ) -> None:
         self.state = state
         self.config_path = config_path
@@ -117,11 +120,15 @@ class Reloader:
             new = load_config(self.config_path)
         except ConfigError as error:
             return self._refuse(source, error.problems)
+        old = state.config
+        if new.axis_names != old.axis_names:
+            return self._refuse(source, [f"axes: the edited config has axes {', '.join(new.axis_names)}, the daemon "
+                                         f"runs axes {', '.join(old.axis_names)}: a reload never adds or removes "
+                                         "axes (systemctl restart nanodrift)"])
         try:
-            model = load_model(new.model.path)
+            model = load_served_model(new.model.path, new.axis_names)
         except ModelFileError as error:
             return self._refuse(source, [f"model.path: {error}"])
-        old = state.config
         if new.cell != old.cell or new.zenoh != old.zenoh:
             self.log.warning("reload_needs_restart", detail="cell and [zenoh] changes apply at the next restart")
             new = new.model_copy(update={"cell": old.cell, "zenoh": old.zenoh})
@@ -134,8 +141,9 @@ class Reloader:
             return self._refuse(source, ["sensors: the edited config lists no sensors (an emptied file?); a reload "
                                          "never removes every sensor of a running cell (restart to run one "
                                          "without sensors)"])
-        drivers_changed = (new.sensors, new.hubs, new.sections, new.actuator) != (
-            old.sensors, old.hubs, old.sections, old.actuator)
+        drivers_changed = (new.sensors, new.hubs, new.sections, new.actuator, new.axes,
+                           new.sensor_workspaces()) != (old.sensors, old.hubs, old.sections, old.actuator, old.axes,
+                                                        old.sensor_workspaces())
         if drivers_changed:
             running = self.host.drivers
             context = running.context if running is not None and new.sections == old.sections else None
@@ -148,9 +156,13 @@ class Reloader:
         with state.lock:  # the swap is atomic for the target path on Zenoh's threads
             table = state.table
             if drivers_changed:  # [actuator] too: a position sensor's default range follows the workspace
-                table = SensorTable(new.sensors, new.actuator.workspace_um)
+                table = SensorTable(new.sensors, new.actuator.workspace_um, new.sensor_workspaces())
                 table.carry_over(state.table)
-            compensator = Compensator(model, new.actuator, table)
+            compensator: Compensator | CellCompensator
+            if isinstance(model, CellModel):
+                compensator = CellCompensator(model, new.axis_actuators(), table)
+            else:
+                compensator = Compensator(model, new.actuator, table)
             old_comp = state.compensator
             if old_comp.evaluator is not None and same_content(old_comp.model, model):
                 compensator.evaluator = old_comp.evaluator  # same model: keep lag filters and direction

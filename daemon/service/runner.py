@@ -28,6 +28,9 @@ from daemon.errors import UserError
 from daemon.logs import get_logger
 from daemon.sdnotify import Notifier
 from daemon.service.actuation import Actuation
+from daemon.service.cell_actuation import CellActuation
+from daemon.service.cell_compensator import CellCompensator, load_cell_model_or_problem
+from daemon.service.cell_health import CellHealth
 from daemon.service.compensator import Compensator, load_model_or_problem
 from daemon.service.health_unit import HealthUnit
 from daemon.service.metrics import AnswerLatency
@@ -65,17 +68,28 @@ class Service:
         self.zenoh_overrides = dict(zenoh_overrides or {})
         self.notifier = notifier or Notifier()
         self.log = get_logger("nanodrift.daemon")
-        model, problem = load_model_or_problem(config.model.path)
-        table = SensorTable(config.sensors, config.actuator.workspace_um)  # judges every reading
-        compensator = Compensator(model, config.actuator, table, problem)
+        compensator: Compensator | CellCompensator
+        self.actuation: Actuation | CellActuation
+        self.health: HealthUnit | CellHealth
+        if config.multi_axis:  # an XY/XYZ cell: every axis from one snapshot, all axes' outputs by one task
+            cell_model, problem = load_cell_model_or_problem(config.model.path, config.axis_names)
+            table = SensorTable(config.sensors, config.actuator.workspace_um, config.sensor_workspaces())
+            compensator = CellCompensator(cell_model, config.axis_actuators(), table, problem)
+            self.health = CellHealth(config, cell_model, self.log)
+            self.actuation = CellActuation(self.log)
+            self.actuation.reached_listeners.append(self._output_reached)
+        else:
+            model, problem = load_model_or_problem(config.model.path)
+            table = SensorTable(config.sensors, config.actuator.workspace_um)  # judges every reading
+            compensator = Compensator(model, config.actuator, table, problem)
+            self.health = HealthUnit(config, model, self.log)
+            self.actuation = Actuation(self.log)
+            self.actuation.reached_listeners.append(self._output_reached)
         self.state = CellState(config, compensator, MonotonicClock())  # the drivers' clock once they start
-        self.health = HealthUnit(config, model, self.log)
         self.health.attach(compensator)
         # [health] record_dir: settled targets to daily CSVs on a thread of its own (read anew after a reload)
         self.recorder = Recorder(lambda: self.state.config.health, self.log)
         self.health.settled_listeners.append(self.recorder.on_settled)
-        self.actuation = Actuation(self.log)
-        self.actuation.reached_listeners.append(self._output_reached)
         self.drivers: DriverSet | None = None
         self.pollers: list[GroupPoller] = []
         self.bus: Bus | None = None
@@ -226,8 +240,12 @@ class Service:
         with self.state.lock:
             self.state.clock = drivers.context.clock
             self.health.label_clock = drivers.context.label_clock
-            self.health.awaits_reach = drivers.actuator is not None
-        if drivers.actuator is not None:
+            self.health.awaits_reach = drivers.actuator is not None or bool(drivers.actuators)
+        if isinstance(self.actuation, CellActuation):
+            if drivers.actuators:
+                configs = self.state.config.axis_actuators()
+                await self.actuation.start(drivers.actuators, {axis: configs[axis] for axis in drivers.actuators})
+        elif drivers.actuator is not None:
             await self.actuation.start(drivers.actuator, self.state.config.actuator)
         ingest = self.ingest
         self.pollers = [
@@ -252,12 +270,15 @@ class Service:
 
         No state lock: the health unit's reach queue is only touched on the loop (here and in the sensor
         ingest), and the target path must not wait for a write's bookkeeping."""
-        self.health.on_reached(self.state.clock.now(), goal.q_um)
+        self.health.on_reached(self.state.clock.now(), goal.q_um)  # a multi-axis goal: q per axis
 
     def _log_start(self) -> None:
         config, comp = self.state.config, self.state.compensator
         model = comp.model
         missing = missing_model_channels(config, model.channels) if model else []
+        if config.multi_axis:
+            self.log.info("axes", axes={a: {"workspace_um": list(c.workspace_um), "kind": c.kind}
+                                        for a, c in config.axis_actuators().items()})
         self.log.info("starting", config=config.source, cell=config.cell,
                       model_path=str(config.model.path), model=model.id if model else None,
                       model_problem=comp.model_problem or None, missing_channels=missing or None)

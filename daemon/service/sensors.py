@@ -17,6 +17,7 @@ from typing import Any
 import zenoh
 
 from daemon.bus.protocol import encode_telemetry
+from daemon.service.cell_health import CellHealth
 from daemon.service.health_unit import HealthUnit
 from daemon.service.state import CellState
 from drivers.base import Reading, SensorGroup, State
@@ -32,7 +33,7 @@ class SensorIngest:
     """The pollers' callbacks: readings, a group that failed, a group that recovered."""
 
     def __init__(self, state: CellState, publish_telemetry: PublishTelemetry, log: Any,
-                 health: HealthUnit | None = None) -> None:
+                 health: HealthUnit | CellHealth | None = None) -> None:
         self.state = state
         self.publish_telemetry = publish_telemetry
         self.log = log
@@ -61,7 +62,7 @@ class SensorIngest:
                     channel_state, reason = table.state(name, now)
                     ok = channel_state == State.OK
                     health.on_position(now, reading.t, reading.value, ok,
-                                       problem="" if ok else f"{_STATE_WORDS[channel_state]}: {reason}")
+                                       problem="" if ok else f"{_STATE_WORDS[channel_state]}: {reason}", channel=name)
                 telemetry.append((entry.role, name, reading.value, entry.unit, reading.t, entry.device_state.value,
                                   entry.reason))
             if temps and t_obs is not None:
@@ -83,7 +84,11 @@ class SensorIngest:
             self.state.table.mark_fault(group.names, f"device error: {reason}")
             if health is not None:
                 now = self.state.clock.now()
-                if health.position_channel in group.names:  # a device that fails voids the window
+                if isinstance(health, CellHealth):  # routed by channel to its axis' unit
+                    for name in group.names:
+                        health.on_position(now, now, math.nan, False, problem=f"faulted: device error: {reason}",
+                                           channel=name)
+                elif health.position_channel in group.names:  # a device that fails voids the window
                     health.on_position(now, now, math.nan, False, problem=f"faulted: device error: {reason}")
                 for name in group.names:
                     if group.roles.get(name) == "temperature":

@@ -13,6 +13,7 @@ from collections import Counter
 from typing import Any
 
 from daemon.config import Config
+from daemon.service.cell_compensator import CellCompensator
 from daemon.service.compensator import Compensator
 from daemon.service.table import SensorTable
 from drivers.base import Clock
@@ -46,7 +47,7 @@ class CellState:
     on other threads take the lock and read the attributes each time instead of keeping them.
     """
 
-    def __init__(self, config: Config, compensator: Compensator, clock: Clock) -> None:
+    def __init__(self, config: Config, compensator: Compensator | CellCompensator, clock: Clock) -> None:
         self.lock = threading.Lock()
         self.config = config
         self.compensator = compensator

@@ -18,13 +18,15 @@ from daemon.bus.protocol import dumps
 from daemon.bus.session import Bus
 from daemon.config import ZENOH_KIND, Config
 from daemon.service.actuation import Actuation
+from daemon.service.cell_actuation import CellActuation
+from daemon.service.cell_health import CellHealth
 from daemon.service.health_unit import HealthUnit
 from daemon.service.state import CellState
 from drivers.base import State
 
 
-def status_doc(state: CellState, healthy: bool, actuation: Actuation | None = None,
-               health: HealthUnit | None = None) -> dict[str, Any]:
+def status_doc(state: CellState, healthy: bool, actuation: Actuation | CellActuation | None = None,
+               health: HealthUnit | CellHealth | None = None) -> dict[str, Any]:
     """The ``status`` payload's document (README, Zenoh keys ``status``)."""
     driven = actuation.doc() if actuation is not None else None
     with state.lock:
@@ -41,16 +43,18 @@ def status_doc(state: CellState, healthy: bool, actuation: Actuation | None = No
             "model_problem": comp.model_problem or None,
             "sensors": comp.table.snapshot(now),
             "extrapolating": sorted(set(comp.extrapolating_now(now)) | set(comp.last_extrapolating)),
-            "actuator": actuator_doc(config, driven),
+            "actuator": actuator_doc(config, driven) if not config.multi_axis else cell_actuator_doc(driven),
             "counters": state.counters.as_dict(),
             "healthy": healthy,
         }
+        if config.multi_axis:
+            doc["axes"] = axes_doc(config, driven, comp.table.snapshot(now))
         if health is not None:
             doc["health"] = health.document()
         return doc
 
 
-def status_line(state: CellState, health: HealthUnit | None = None) -> str:
+def status_line(state: CellState, health: HealthUnit | CellHealth | None = None) -> str:
     """``cell c: 3/4 sensors ok, model m-..., 12 commands, 0 refused, health ok`` (systemd's STATUS=)."""
     with state.lock:
         now = state.clock.now()
@@ -68,7 +72,8 @@ class StatusHandler:
     """``on_status`` for the bus (called on the loop)."""
 
     def __init__(self, state: CellState, bus: Bus, healthy: Callable[[], bool], log: Any,
-                 actuation: Actuation | None = None, health: HealthUnit | None = None) -> None:
+                 actuation: Actuation | CellActuation | None = None,
+                 health: HealthUnit | CellHealth | None = None) -> None:
         self.state = state
         self.actuation = actuation
         self.health = health
@@ -106,3 +111,34 @@ def actuator_doc(config: Config, driven: Mapping[str, Any] | None = None) -> dic
         doc.update(driven)
         doc["output"] = "device"
     return doc
+
+
+def cell_actuator_doc(driven: Mapping[str, Any] | None) -> dict[str, Any]:
+    """A multi-axis cell's outputs as one actuator in ``status`` (the state of all its axes: one fault
+    refuses every target); the per-axis detail is in ``axes``."""
+    if driven is None:  # every axis published (kind = "zenoh")
+        return {"kind": "axes", "state": "ok", "reason": None, "output": "published"}
+    return {"kind": "axes", "state": driven["state"], "reason": driven["reason"], "failures": driven["failures"],
+            "output": "device"}
+
+
+def axes_doc(config: Config, driven: Mapping[str, Any] | None, sensors: Mapping[str, Any]) -> dict[str, Any]:
+    """``"axes"`` in a multi-axis cell's status: each axis' workspace, actuator (as ``actuator`` of a
+    one-axis cell, with its device's state) and position sensor."""
+    devices = (driven or {}).get("axes", {})
+    positions = {config.sensor_axis(s.name): s.name for s in config.sensors if s.role == "position"}
+    out: dict[str, Any] = {}
+    for axis, actuator in config.axis_actuators().items():
+        one = config.model_copy(update={"actuator": actuator, "axes": []})
+        device = devices.get(axis)
+        doc = actuator_doc(one, None)
+        if device is not None:
+            doc.update(state=driven["state"] if driven else "ok", reason=driven["reason"] if driven else None,
+                       output="device", **device)
+        elif actuator.kind != ZENOH_KIND:
+            doc.update(state="closed", reason=None, output="device", device=None)
+        position = positions.get(axis)
+        out[axis] = {"min_um": actuator.x_min_um, "max_um": actuator.x_max_um, "actuator": doc,
+                     "position_sensor": position,
+                     "position": sensors.get(position) if position is not None else None}
+    return out

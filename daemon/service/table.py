@@ -18,7 +18,7 @@ So the table's ``value`` of an ``ok`` channel is always finite and inside its va
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -64,11 +64,14 @@ class SensorTable:
     valid range its default one; without it such a sensor is judged on finiteness only.
     """
 
-    def __init__(self, sensors: Sequence[SensorConfig], workspace_um: tuple[float, float] | None = None) -> None:
+    def __init__(self, sensors: Sequence[SensorConfig], workspace_um: tuple[float, float] | None = None,
+                 sensor_workspaces: Mapping[str, tuple[float, float]] | None = None) -> None:
+        """``sensor_workspaces``: a multi-axis cell's position sensors, each judged on its own axis' workspace."""
         self.workspace_um = workspace_um
+        own = sensor_workspaces or {}
         self.entries: dict[str, ChannelEntry] = {
-            s.name: ChannelEntry(s.name, s.role, UNITS.get(s.role, ""), s.max_age_s, *valid_range(s, workspace_um),
-                                 s.frozen_after_s)
+            s.name: ChannelEntry(s.name, s.role, UNITS.get(s.role, ""), s.max_age_s,
+                                 *valid_range(s, own.get(s.name, workspace_um)), s.frozen_after_s)
             for s in sensors
         }
         #: bumped by every change, so readers can cache what they derive from the entries

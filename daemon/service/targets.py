@@ -34,10 +34,22 @@ from typing import Any
 
 import zenoh
 
-from daemon.bus.protocol import Command, Refusal, Target, encode_command, encode_error, parse_target
+from daemon.bus.protocol import (
+    CellCommand,
+    CellTarget,
+    Command,
+    Refusal,
+    Target,
+    encode_cell_command,
+    encode_command,
+    encode_error,
+    parse_cell_target,
+    parse_target,
+)
 from daemon.bus.session import Bus
 from daemon.logs import RateLimitedLog
 from daemon.service.actuation import Actuation
+from daemon.service.cell_actuation import CellActuation
 from daemon.service.metrics import AnswerLatency
 from daemon.service.state import CellState
 
@@ -53,9 +65,11 @@ def debug_enabled(log: Any) -> bool:
 class TargetHandler:
     """``on_target`` for the bus: thread-safe, never blocks the loop."""
 
-    def __init__(self, state: CellState, bus: Bus, loop: asyncio.AbstractEventLoop, actuation: Actuation,
-                 log: Any, latency: AnswerLatency | None = None) -> None:
+    def __init__(self, state: CellState, bus: Bus, loop: asyncio.AbstractEventLoop,
+                 actuation: Actuation | CellActuation, log: Any, latency: AnswerLatency | None = None) -> None:
         self.state = state
+        #: a multi-axis cell's axes (fixed for the daemon's life: a reload never changes them), else None
+        self.cell_axes: tuple[str, ...] | None = state.config.axis_names if state.config.multi_axis else None
         self.latency = latency or AnswerLatency()
         #: checked once: at info level the hot path never builds a debug line
         self.debug = debug_enabled(log)
@@ -71,7 +85,7 @@ class TargetHandler:
         """Answer one target: compute under ``state.lock``, publish under ``answer_lock``, then reply."""
         started = time.perf_counter()
         state, bus = self.state, self.bus
-        command: Command | None = None
+        command: Command | CellCommand | None = None
         refusal: Refusal | None = None
         failure: Exception | None = None
         log_refusal = wake_actuator = False
@@ -83,16 +97,17 @@ class TargetHandler:
                         query.drop()
                     return
                 state.counters.targets += 1
-                target: Target | None = None
+                target: Target | CellTarget | None = None
                 try:
-                    target = parse_target(payload)
+                    target = parse_target(payload) if self.cell_axes is None else parse_cell_target(payload,
+                                                                                                     self.cell_axes)
                     if state.stopping:
                         raise Refusal("shutting_down", "the daemon is stopping: target not served", target.id)
                     fault = self.actuation.fault_reason
                     if fault is not None:  # before the model: a refused target must not move `dir` or lags
                         raise Refusal("actuator_fault",
                                       f"actuator fault: {fault}; the stage holds its last position", target.id)
-                    command = state.compensator.compensate(target, state.clock.now(), time.time())
+                    command = state.compensator.compensate(target, state.clock.now(), time.time())  # type: ignore[arg-type]
                     state.counters.commands += 1
                 except Refusal as refused:
                     refusal = refused
@@ -106,10 +121,16 @@ class TargetHandler:
                     if log_refusal:
                         suppressed = self.refused_log.limiter.take_suppressed()
             try:
-                if command is not None:
+                if type(command) is Command:
                     data = encode_command(command)
                     bus.publish_command(data)
-                    wake_actuator = self.actuation.offer(command.q_um, command.voltage_v, command.x_um)
+                    wake_actuator = self.actuation.offer(command.q_um, command.voltage_v, command.x_um)  # type: ignore[arg-type]
+                elif command is not None:
+                    actuation = self.actuation
+                    assert isinstance(command, CellCommand) and isinstance(actuation, CellActuation)
+                    data = encode_cell_command(command)  # published once, every axis; then handed over whole
+                    bus.publish_command(data)
+                    wake_actuator = actuation.offer(command.q_um, command.voltage_v, command.positions_um)
                 else:
                     assert refusal is not None
                     data = encode_error(refusal)
@@ -151,9 +172,12 @@ class TargetHandler:
             fields["suppressed_before"] = suppressed_before
         self.log.warning("target_refused", **fields)
 
-    def _log_answer(self, command: Command | None, refusal: Refusal | None, elapsed_s: float) -> None:
+    def _log_answer(self, command: Command | CellCommand | None, refusal: Refusal | None, elapsed_s: float) -> None:
         latency_us = round(elapsed_s * 1e6, 1)
-        if command is not None:
+        if isinstance(command, CellCommand):
+            self.log.debug("target_answered", id=command.id, positions_um=dict(command.positions_um),
+                           q_um=dict(command.q_um), voltage_v=dict(command.voltage_v), latency_us=latency_us)
+        elif command is not None:
             self.log.debug("target_answered", id=command.id, x_um=command.x_um, q_um=round(command.q_um, 6),
                            voltage_v=round(command.voltage_v, 6), latency_us=latency_us)
         elif refusal is not None:

@@ -110,6 +110,31 @@ class SerialLinePlugin(DriverPlugin):
             groups.append(group)
         return groups
 
+    def create_actuators(self, configs: Sequence[ActuatorOptions], context: DriverContext) -> list[Actuator]:
+        """Several axes of one controller (a multi-axis GCS controller): the axes on one port share one
+        line (one lock: each request its own answer); the first axis' actuator owns it when no sensor does."""
+        actuators: list[Actuator] = []
+        lines: dict[str, SerialLineActuator] = {}
+        for config in configs:
+            if not isinstance(config, SerialLineActuatorConfig):
+                config = SerialLineActuatorConfig.model_validate(config.model_dump())
+            first = lines.get(config.port)
+            if first is None:
+                actuator = self.create_actuator(config, context)
+                assert isinstance(actuator, SerialLineActuator)
+                lines[config.port] = actuator
+                actuators.append(actuator)
+                continue
+            for key in SHARED_SETTINGS:
+                if getattr(first.config, key) != getattr(config, key):
+                    raise DriverSetupError(f"actuator: port {config.port!r} is driven by another axis with {key} = "
+                                           f"{getattr(first.config, key)!r}, this axis says {getattr(config, key)!r} "
+                                           "(one port, one setting)")
+            if config.resync is not None:
+                first.port.use_resync(*config.resync)
+            actuators.append(SerialLineActuator(config, first.port, owns_port=False))
+        return actuators
+
     def create_actuator(self, config: ActuatorOptions, context: DriverContext) -> Actuator:
         if not isinstance(config, SerialLineActuatorConfig):
             config = SerialLineActuatorConfig.model_validate(config.model_dump())

@@ -123,8 +123,11 @@ class FakeGcsController(PtyDevice):
 
     IDN = "(c)2015 Physik Instrumente (PI) GmbH & Co. KG, E-709, 0115018620, 01.502"
 
-    def __init__(self, link: Path, position_per_volt: float = 100.0) -> None:
+    def __init__(self, link: Path, position_per_volt: float = 100.0, axes: tuple[str, ...] = ("1",)) -> None:
         self.position_per_volt = position_per_volt
+        #: the controller's axis identifiers (a multi-axis controller: ("1", "2", "3")); ``voltage`` is the first's
+        self.axes = axes
+        self.voltages = dict.fromkeys(axes, 0.0)
         self.voltage = 0.0
         self.error = 0
         self.silent = False
@@ -153,9 +156,10 @@ class FakeGcsController(PtyDevice):
         if command == "ERR?":
             code, self.error = self.error, 0
             return str(code)
-        if command in ("SVA", "SVA?", "POS?") and args[:1] != ["1"]:
+        if command in ("SVA", "SVA?", "POS?") and (not args or args[0] not in self.axes):
             self.error = 15  # invalid axis identifier
             return None
+        axis = args[0] if command in ("SVA", "SVA?", "POS?") else self.axes[0]
         if command == "SVA" and len(args) == 2:
             try:
                 volts = float(args[1])
@@ -163,14 +167,17 @@ class FakeGcsController(PtyDevice):
                 self.error = 1  # parameter syntax error
                 return None
             if not self.amplifier_off:
-                self.voltage = volts
-                if self.on_voltage is not None:
-                    self.on_voltage(volts)
+                self.voltages[axis] = volts
+                if axis == self.axes[0]:
+                    self.voltage = volts
+                    if self.on_voltage is not None:
+                        self.on_voltage(volts)
             return None
+        volts_now = self.voltage if axis == self.axes[0] else self.voltages[axis]
         if command == "SVA?":
-            return f"1={self.voltage:.4f}"
+            return f"{axis}={volts_now:.4f}"
         if command == "POS?":
-            return f"1={self.voltage * self.position_per_volt:.4f}"
+            return f"{axis}={volts_now * self.position_per_volt:.4f}"
         self.error = 2  # unknown command
         return None
 
