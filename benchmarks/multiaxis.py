@@ -26,13 +26,12 @@ import time
 from daemon.calibration.dataset import Dataset
 from daemon.calibration.iso9283 import summarize_cell
 from daemon.calibration.plans import cell_calibration_plan
-from daemon.model.cell_model import CellModel
 from daemon.model.identify import fit, fit_cell
-from daemon.model.model import Model
 from drivers.simulated.multiaxis import (
     CellValidationRun,
-    CommandFor,
     MultiAxisPhysics,
+    cell_command,
+    independent_command,
     run_cell_validation,
     simulate_cell_steps,
     steps_dataset,
@@ -50,35 +49,6 @@ def calibrate(axes: str, seed: int) -> Dataset:
     return steps_dataset(out, physics.axes, f"simulated {axes} train seed {seed}")
 
 
-def one_axis_view(data: Dataset, axis: str) -> Dataset:
-    """``axis`` as a one-axis file: its position as x_um, its command as q_um, the other axes dropped."""
-    return Dataset(t=data.t, x=data.positions[axis], q=data.commands[axis], channels=data.channels,
-                   extra={"cycle": data.extra["cycle"]}, source=f"{data.source} ({axis} alone)")
-
-
-def cell_command(model: CellModel) -> CommandFor:
-    evaluator = model.evaluator()
-
-    def command(targets: dict[str, float], t: float, temps: dict[str, float]) -> dict[str, float]:
-        evaluator.observe(t, temps)
-        return evaluator.command(targets, t)
-
-    return command
-
-
-def independent_command(models: dict[str, Model]) -> CommandFor:
-    evaluators = {a: m.evaluator() for a, m in models.items()}
-
-    def command(targets: dict[str, float], t: float, temps: dict[str, float]) -> dict[str, float]:
-        out = {}
-        for axis, ev in evaluators.items():
-            ev.observe(t, temps)
-            out[axis] = float(ev.command(targets[axis], t))
-        return out
-
-    return command
-
-
 def accuracy_nm(run: CellValidationRun, with_model: bool, against: str) -> float:
     return summarize_cell(run.name, run.targets_um, run.attained(with_model, against)).accuracy_nm
 
@@ -86,7 +56,7 @@ def accuracy_nm(run: CellValidationRun, with_model: bool, against: str) -> float
 def one_seed(axes: str, seed: int) -> list[dict[str, float | str]]:
     data = calibrate(axes, seed)
     cell = fit_cell(data).model
-    singles = {a: fit(one_axis_view(data, a)).model for a in data.axes}
+    singles = {a: fit(data.alone(a)).model for a in data.axes}
     rows: list[dict[str, float | str]] = []
     for test in TESTS:
         test_seed = seed * 100 + int(test[-1])  # the paper's tests draw their own room and noise (scenario_seed)

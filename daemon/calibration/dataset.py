@@ -107,6 +107,13 @@ class Dataset:
         """The position of :attr:`axis` (``x`` for a one-axis run): what its own motion terms read."""
         return self.positions[self.axis] if self.multi_axis else self.x
 
+    def alone(self, axis: str) -> Dataset:
+        """``axis`` as a one-axis run (its position as ``x``, its command as ``q``, the other axes dropped):
+        what a one-axis cell on that axis would have recorded."""
+        extra = {k: v for k, v in self.extra.items() if k in ("cycle", "valid")}
+        return Dataset(t=self.t, x=self.positions[axis], q=self.commands.get(axis), channels=self.channels,
+                       extra=extra, source=f"{self.source} ({axis} alone)", segment=self.segment)
+
     def axis_view(self, axis: str) -> Dataset:
         """The rows as identification of ``axis`` sees them: its command as ``q``, every axis' position kept.
 

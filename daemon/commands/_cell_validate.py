@@ -27,6 +27,7 @@ from drivers.simulated.multiaxis import (
     CellValidationRun,
     CrossParams,
     MultiAxisPhysics,
+    cell_command,
     cross_params,
     run_cell_validation,
 )
@@ -90,14 +91,8 @@ def _one_test(args: argparse.Namespace, model: CellModel, scenario: str,
     one directory per test when several are asked for)."""
     seed = scenario_seed(args.seed or 0, scenario)
     physics = MultiAxisPhysics.create(model.axes, scenario, seed, cross)
-    evaluator = model.evaluator()
-
-    def command(targets: dict[str, float], t: float, temps: dict[str, float]) -> dict[str, float]:
-        evaluator.observe(t, temps)
-        return evaluator.command(targets, t)
-
-    run = run_cell_validation(physics, None if args.no_compensation else command, cycles=args.cycles, name=scenario,
-                              out_of_range=lambda p, temps: bool(model.out_of_range(p, temps)))
+    run = run_cell_validation(physics, None if args.no_compensation else cell_command(model), cycles=args.cycles,
+                              name=scenario, out_of_range=lambda p, temps: bool(model.out_of_range(p, temps)))
     truth, measured = scores(run, "truth"), scores(run, "interferometer")
     text = cell_table(scenario, truth, measured)
     if run.extrapolating_steps:

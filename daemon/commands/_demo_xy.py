@@ -11,68 +11,34 @@ independent one-axis models (each axis' command from its own position) and the f
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from pathlib import Path
 
-from daemon.calibration.dataset import Dataset, write_csv
+from daemon.calibration.dataset import write_csv
 from daemon.calibration.iso9283 import summarize_cell
 from daemon.commands._cell import scenario_seed
-from daemon.model.cell_model import CellModel, save_cell_model
-from daemon.model.identify import axis_position_term, fit, fit_cell
-from daemon.model.model import Model
-from daemon.model.terms import Channel, Term
+from daemon.model.cell_model import save_cell_model
+from daemon.model.identify import fit, fit_cell
 from daemon.reports.cell_validation import ANCHOR_2DOF_NM
-from drivers.simulated.multiaxis import CommandFor, MultiAxisPhysics, run_cell_validation, simulate_cell_dataset
+from drivers.simulated.multiaxis import (
+    MultiAxisPhysics,
+    cell_command,
+    independent_command,
+    run_cell_validation,
+    simulate_cell_dataset,
+)
 
 AXES = ("x", "y")
-
-
-def _cell_command(model: CellModel) -> CommandFor:
-    evaluator = model.evaluator()
-
-    def command(targets: dict[str, float], t: float, temps: dict[str, float]) -> dict[str, float]:
-        evaluator.observe(t, temps)
-        return evaluator.command(targets, t)
-
-    return command
-
-
-def _independent_models(data: Dataset) -> dict[str, Model]:
-    """Each axis as a one-axis cell would model it: its own position's powers and the channels, no cross term."""
-    models = {}
-    for axis in AXES:
-        view = data.axis_view(axis)
-
-        def own_terms(n: int, axis: str = axis, view: Dataset = view) -> list[Term]:
-            return [*(axis_position_term(axis, k) for k in range(n, 0, -1)), *(Channel(c) for c in view.channels)]
-
-        models[axis] = fit(view, candidates=own_terms).model
-    return models
-
-
-def _independent_command(models: Mapping[str, Model]) -> CommandFor:
-    evaluators = {a: m.evaluator() for a, m in models.items()}
-
-    def command(targets: dict[str, float], t: float, temps: dict[str, float]) -> dict[str, float]:
-        out = {}
-        for axis, ev in evaluators.items():
-            ev.observe(t, temps)
-            ev.targets(targets)
-            out[axis] = ev.command(targets["x"], t)
-        return out
-
-    return command
 
 
 def two_axis_part(seed: int, cycles: int, calibration_cycles: int, keep: Path | None) -> list[str]:
     """The lines the demo prints for the XY cell (and, with ``keep``, its data and model files)."""
     data = simulate_cell_dataset("xy", "train", cycles=calibration_cycles, seed=seed)
     cell = fit_cell(data).model
-    independent = _independent_models(data)
+    independent = {axis: fit(data.alone(axis)).model for axis in AXES}  # two one-axis cells' models
     test = "test2"
     physics = MultiAxisPhysics.create(AXES, test, scenario_seed(seed, test))
-    run = run_cell_validation(physics, _cell_command(cell), cycles=cycles, name=test)
-    alone = run_cell_validation(physics, _independent_command(independent), cycles=cycles, name=test)
+    run = run_cell_validation(physics, cell_command(cell), cycles=cycles, name=test)
+    alone = run_cell_validation(physics, independent_command(independent), cycles=cycles, name=test)
     targets = run.targets_um
     without = summarize_cell(test, targets, run.attained(False, "truth"))
     with_cell = summarize_cell(test, targets, run.attained(True, "truth"))

@@ -43,19 +43,28 @@ def _position(axis: str, x: np.ndarray | float, channels: Channels) -> np.ndarra
     return np.asarray(channels[position_key(axis)], dtype=np.float64)
 
 
-class _AxisStream(TermStream):
-    """Holds the target's positions; ``x`` comes as the ``x`` argument, the other axes through ``targets``."""
+class _Aimed:
+    """Holds the target's positions (``targets``); each stream declares the ``positions`` slot."""
+
+    __slots__ = ()
+    positions: Mapping[str, float]
+
+    def targets(self, positions: Mapping[str, float]) -> None:
+        # the slot is each stream's own (two bases with slots cannot be combined), which mypy cannot see here
+        self.positions = positions  # type: ignore[misc]
+
+    def at(self, axis: str, x: float) -> float:
+        """The target's position on ``axis``: ``x`` itself for the x axis, nan before any target."""
+        return x if axis == "x" else self.positions.get(axis, math.nan)
+
+
+class _AxisStream(_Aimed, TermStream):
+    """``x`` comes as the ``x`` argument, the other axes through ``targets``."""
 
     __slots__ = ("positions",)
 
     def __init__(self) -> None:
-        self.positions: Mapping[str, float] = {}
-
-    def targets(self, positions: Mapping[str, float]) -> None:
-        self.positions = positions
-
-    def at(self, axis: str, x: float) -> float:
-        return x if axis == "x" else self.positions.get(axis, math.nan)
+        self.positions = {}
 
 
 class _AxisPowerStream(_AxisStream):
@@ -128,19 +137,16 @@ class AxisProduct(Term):
         return _ProductStream(self.a, self.b)
 
 
-class _AxisCouplingStream(_ChannelStream):
+class _AxisCouplingStream(_Aimed, _ChannelStream):
     __slots__ = ("axis", "positions")
 
     def __init__(self, axis: str, channel: str) -> None:
         super().__init__(channel)
         self.axis = axis
-        self.positions: Mapping[str, float] = {}
-
-    def targets(self, positions: Mapping[str, float]) -> None:
-        self.positions = positions
+        self.positions = {}
 
     def value(self, t: float, x: float) -> float:
-        return self.positions.get(self.axis, math.nan) * self.last
+        return self.at(self.axis, x) * self.last
 
 
 class AxisCoupling(Term):
@@ -167,22 +173,19 @@ class AxisCoupling(Term):
         return _AxisCouplingStream(self.axis, self.channel)
 
 
-class _AxisDirectionStream(_DirectionStream):
+class _AxisDirectionStream(_Aimed, _DirectionStream):
     __slots__ = ("axis", "positions")
 
     def __init__(self, axis: str, deadband: float) -> None:
         super().__init__(deadband)
         self.axis = axis
-        self.positions: Mapping[str, float] = {}
-
-    def targets(self, positions: Mapping[str, float]) -> None:
-        self.positions = positions
+        self.positions = {}
 
     def value(self, t: float, x: float) -> float:
-        return super().value(t, self.positions.get(self.axis, math.nan))
+        return super().value(t, self.at(self.axis, x))
 
     def moved(self, t: float, x: float) -> None:
-        super().moved(t, self.positions.get(self.axis, math.nan))
+        super().moved(t, self.at(self.axis, x))
 
 
 class AxisDirection(Direction):
@@ -206,22 +209,19 @@ class AxisDirection(Direction):
         return _AxisDirectionStream(self.axis, self.deadband_um)
 
 
-class _AxisCreepStream(_CreepStream):
+class _AxisCreepStream(_Aimed, _CreepStream):
     __slots__ = ("axis", "positions")
 
     def __init__(self, axis: str, tau_s: float, deadband: float) -> None:
         super().__init__(tau_s, deadband)
         self.axis = axis
-        self.positions: Mapping[str, float] = {}
-
-    def targets(self, positions: Mapping[str, float]) -> None:
-        self.positions = positions
+        self.positions = {}
 
     def value(self, t: float, x: float) -> float:
-        return super().value(t, self.positions.get(self.axis, math.nan))
+        return super().value(t, self.at(self.axis, x))
 
     def moved(self, t: float, x: float) -> None:
-        super().moved(t, self.positions.get(self.axis, math.nan))
+        super().moved(t, self.at(self.axis, x))
 
 
 class AxisCreep(Creep):

@@ -377,9 +377,7 @@ def fit_cell(
     the geometric order chosen per axis on held-out cycles."""
     axes = data.axes
     channels = list(data.channels)
-    unknown = [c for c in exclude if c not in channels]
-    if unknown:
-        raise FitError(f"--exclude names channel(s) {', '.join(unknown)} not in the data ({', '.join(channels)})")
+    candidate_terms(channels, 1, exclude)  # refuses an --exclude naming a channel the data lacks
     missing = [a for a in axes if a not in data.commands]
     if missing:
         raise FitError(f"{source or data.source}: no q_{missing[0]}_um column (the command sent to axis {missing[0]}) "

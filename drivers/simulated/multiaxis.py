@@ -32,6 +32,8 @@ import numpy as np
 
 from daemon.calibration.dataset import Dataset
 from daemon.calibration.plans import cell_calibration_plan, cell_validation_plan
+from daemon.model.cell_model import CellModel
+from daemon.model.model import Model
 from drivers.simulated.effects import resolve_cross_effects
 from drivers.simulated.physics import THERMOCOUPLES, CellParams, CellPhysics, Exogenous
 from drivers.simulated.runs import StepSchedule, _window_offsets
@@ -282,6 +284,32 @@ class CellValidationRun:
             raise ValueError(f"{self.name}: ran without a model")
         suffix = "_true_um" if against == "truth" else "_um"
         return {a: run[a + suffix] for a in self.axes}
+
+
+def cell_command(model: CellModel) -> CommandFor:
+    """A cell model as a run's ``command_for``: every axis' command from one temperature sample and target."""
+    evaluator = model.evaluator()
+
+    def command(targets: dict[str, float], t: float, temps: dict[str, float]) -> dict[str, float]:
+        evaluator.observe(t, temps)
+        return evaluator.command(targets, t)
+
+    return command
+
+
+def independent_command(models: Mapping[str, Model]) -> CommandFor:
+    """One-axis models side by side (each fitted on ``Dataset.alone``): each axis' command from its own
+    target only, what two or three one-axis cells on the stage would serve."""
+    evaluators = {a: m.evaluator() for a, m in models.items()}
+
+    def command(targets: dict[str, float], t: float, temps: dict[str, float]) -> dict[str, float]:
+        out = {}
+        for axis, ev in evaluators.items():
+            ev.observe(t, temps)
+            out[axis] = float(ev.command(targets[axis], t))
+        return out
+
+    return command
 
 
 def run_cell_validation(physics: MultiAxisPhysics, command: CommandFor | None, *, cycles: int = 30,
