@@ -57,7 +57,7 @@ def make_context(config: Config, *, virtual_start_s: float | None = None) -> Dri
         clock = cell.make_clock(section, virtual_start_s=virtual_start_s)
         label_clock = cell.label_clock(clock)
     return DriverContext(clock=clock, label_clock=label_clock, hubs={h.name: h for h in config.hubs},
-                         sections=config.sections)
+                         sections=config.sections, axes=config.axis_names)
 
 
 def build_drivers(config: Config, context: DriverContext | None = None, *,
