@@ -34,12 +34,18 @@ def cell_drive(config: Config, drivers: DriverSet) -> CellDrive:
     return CellDrive(drivers, config.axis_actuators())
 
 
+#: an axis' move shorter than this is not follow-checked: the other axes' moves push it by up to a couple of
+#: micrometres on a stacked stage (crosstalk and non-orthogonality: ~0.4 % of their travel)
+CELL_FOLLOW_MIN_MOVE_UM = 10.0
+
+
 def follow_checks(config: Config, drive: CellDrive) -> dict[str, FollowCheck]:
     """One follow check per axis on its own position sensor (none when ``[procedure] follow_steps = 0``)."""
     settings = config.procedure
     if not settings.follow_steps:
         return {}
-    return {axis: FollowCheck(channel, settings.follow_tolerance, settings.follow_steps)
+    return {axis: FollowCheck(channel, settings.follow_tolerance, settings.follow_steps,
+                              min_move_um=CELL_FOLLOW_MIN_MOVE_UM)
             for axis, channel in drive.position_channels.items()}
 
 
