@@ -128,7 +128,8 @@ def _one_test(args: argparse.Namespace, model: CellModel, scenario: str,
 def _on_drivers(args: argparse.Namespace, model: CellModel) -> int:
     """The ISO 9283 plan through the config's drivers, per ``--scenario`` (none: the config's room)."""
     texts, docs = [], []
-    for scenario in scenario_list(args.scenario) or [None]:
+    scenarios: list[str | None] = [*scenario_list(args.scenario)] or [None]
+    for scenario in scenarios:
         text, doc = _driven_test(args, model, scenario)
         texts.append(text)
         docs.append(doc)

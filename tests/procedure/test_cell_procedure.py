@@ -33,8 +33,8 @@ def _config(tmp_path: Path, axes: str = "xy") -> Path:
     return path
 
 
-def test_calibrate_drives_every_axis_along_the_plan_and_writes_a_cell_model(tmp_path: Path,
-                                                                             capsys: pytest.CaptureFixture[str]) -> None:
+def test_calibrate_drives_every_axis_along_the_plan_and_writes_a_cell_model(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     config = _config(tmp_path)
     out = tmp_path / "xy.json"
     assert cli(["calibrate", "--config", str(config), "--cycles", "2", "--out", str(out)]) == 0
