@@ -57,7 +57,7 @@ def make_context(config: Config, *, virtual_start_s: float | None = None) -> Dri
         clock = cell.make_clock(section, virtual_start_s=virtual_start_s)
         label_clock = cell.label_clock(clock)
     return DriverContext(clock=clock, label_clock=label_clock, hubs={h.name: h for h in config.hubs},
-                         sections=config.sections)
+                         sections=config.sections, axes=config.axis_names)
 
 
 def build_drivers(config: Config, context: DriverContext | None = None, *,
@@ -127,9 +127,8 @@ def procedure_drivers(config: Config, *, start_s: float = 0.0) -> DriverSet:
     """What a calibration or validation drives: the config's drivers, a virtual clock for a simulated
     cell (scenario time ``start_s``), and with ``kind = "zenoh"`` the Zenoh actuator (each step
     published on ``nanodrift/<cell>/command`` for the lab's output node)."""
-    if config.multi_axis:  # the daemon serves [[axes]]; a procedure's plan and recording are one axis'
-        raise DriverSetupError(f"the config describes a multi-axis cell (axes {', '.join(config.axis_names)}): "
-                               "calibrate and validate drive one axis; use a one-axis config ([actuator]) for them")
+    if config.multi_axis:
+        return _cell_procedure_drivers(config, start_s=start_s)
     drivers = build_drivers(config, virtual_start_s=start_s if config.virtual_cell else None)
     if drivers.position_channel is None:
         raise DriverSetupError("the config has no position sensor (role = \"position\"); a procedure needs one")
@@ -141,6 +140,25 @@ def procedure_drivers(config: Config, *, start_s: float = 0.0) -> DriverSet:
         drivers.description = f"hardware; stage commands published on {actuator.key}"
     else:
         drivers.description = f"hardware; stage driven by the {drivers.actuator.description}"
+    return drivers
+
+
+def _cell_procedure_drivers(config: Config, *, start_s: float) -> DriverSet:
+    """A multi-axis cell's drivers for a procedure: every axis needs its own output and position sensor (a
+    procedure drives and measures each axis; ``kind = "zenoh"`` outputs are the daemon's, not a procedure's)."""
+    published = [axis for axis, actuator in config.axis_actuators().items() if actuator.kind == ZENOH_KIND]
+    if published:
+        raise DriverSetupError(f"axis {', '.join(published)}: [axes.actuator] kind = \"zenoh\" has no output a "
+                               "procedure can drive; a multi-axis calibration drives each axis' own output "
+                               "(kind = \"modbus\", \"serial_line\", ...)")
+    drivers = build_drivers(config, virtual_start_s=start_s if config.virtual_cell else None)
+    unmeasured = [axis for axis in config.axis_names if axis not in drivers.position_axes]
+    if unmeasured:
+        raise DriverSetupError(f"axis {', '.join(unmeasured)} has no position sensor (role = \"position\", "
+                               "axis = ...); a procedure measures every axis")
+    outputs = ", ".join(f"{axis}: {actuator.description}" for axis, actuator in drivers.actuators.items())
+    drivers.description = ("simulated cell (virtual clock)" if config.virtual_cell
+                           else f"hardware; stage driven by {outputs}")
     return drivers
 
 

@@ -229,6 +229,9 @@ class DriverContext:
     hubs: Mapping[str, BaseModel] = field(default_factory=dict)
     sections: Mapping[str, BaseModel] = field(default_factory=dict)
     resources: SharedResources = field(default_factory=SharedResources)
+    #: the cell's axes in the config's order (``("x",)``: a one-axis cell); :meth:`DriverPlugin.create_actuators`
+    #: gets one options table per axis of its kind in this order
+    axes: tuple[str, ...] = ("x",)
 
 
 class SensorGroup(ABC):
@@ -446,6 +449,15 @@ class VirtualCellPlugin(DriverPlugin):
     @abstractmethod
     def default_sensors(self, section: BaseModel) -> list[SensorConfig]:
         """Sensors implied by this plugin's section when the config lists none."""
+
+    def default_sensor_axes(self, section: BaseModel) -> dict[str, str]:
+        """The axis each of :meth:`default_sensors`' position sensors measures (``[[sensors]] axis``; none: x)."""
+        return {}
+
+    def default_axes(self, section: BaseModel) -> list[dict[str, Any]]:
+        """``[[axes]]`` tables (as written in TOML) implied by this plugin's section when the config has none:
+        a simulated multi-axis stage; empty (the default): a one-axis cell."""
+        return []
 
     @abstractmethod
     def make_clock(self, section: BaseModel | None, *, virtual_start_s: float | None = None) -> Clock:

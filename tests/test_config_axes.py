@@ -72,7 +72,9 @@ def test_a_sensor_on_an_unknown_axis_is_refused_naming_it(tmp_path: Path) -> Non
     assert any(":24: sensors[0] (T1).axis: unknown axis 'z'; the cell's axes: x, y" in line for line in lines), lines
 
 
-def test_a_procedure_refuses_a_multi_axis_config_instead_of_driving_one_axis_of_it(tmp_path: Path) -> None:
+def test_a_procedure_refuses_a_multi_axis_cell_whose_outputs_it_cannot_drive(tmp_path: Path) -> None:
+    """A multi-axis procedure drives each axis' own output (daemon/procedure/cell_steps.py): kind = "zenoh"
+    axes (the daemon's published command is their actuation) are refused, naming them."""
     config = load_config(write(tmp_path, 'cell = "c"\n' + axes("x", "y")))
-    with pytest.raises(DriverSetupError, match=r"multi-axis cell \(axes x, y\): calibrate and validate drive one axis"):
+    with pytest.raises(DriverSetupError, match=r'axis x, y: \[axes.actuator\] kind = "zenoh" has no output'):
         procedure_drivers(config)

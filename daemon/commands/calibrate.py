@@ -22,6 +22,7 @@ from pathlib import Path
 
 from daemon.calibration.dataset import DataError
 from daemon.calibration.plans import bidirectional_plan, calibration_plan
+from daemon.commands import _cell_calibrate
 from daemon.commands._catalogues import scenario_epilog
 from daemon.commands._cell import add_config_flag, add_output_check_flag, add_simulation_flags, guards, open_cell
 from daemon.config import Config, missing_model_channels
@@ -80,6 +81,8 @@ def main(args: argparse.Namespace) -> int:
     if args.resume and not data.exists():
         raise UserError(f"--resume: {data} does not exist (nothing to continue)")
     config, drivers = open_cell(args, "train", over_config=True)
+    if config.multi_axis:  # an XY/XYZ cell: the space-filling plan on every axis
+        return _cell_calibrate.main(args, config, drivers, data)
     columns = calibration_columns(drivers)
     cycles = args.cycles if args.cycles is not None else config.procedure.cycles
     points = config.procedure.calibration_points

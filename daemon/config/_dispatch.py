@@ -20,7 +20,16 @@ from pydantic import BaseModel, ValidationError
 
 from daemon.config._checks import points_problems, valid_range_problems
 from daemon.config._lines import ConfigError, problems_of, sensor_where
-from daemon.settings import BUILTIN_SOURCE, STATE_MODEL_PATH, ZENOH_KIND, ActuatorConfig, AxisConfig, AxisKeys, Config
+from daemon.settings import (
+    BUILTIN_SOURCE,
+    DATA_DIR,
+    STATE_MODEL_PATH,
+    ZENOH_KIND,
+    ActuatorConfig,
+    AxisConfig,
+    AxisKeys,
+    Config,
+)
 from drivers.base import ActuatorOptions, DriverPlugin, SensorConfig, VirtualCellPlugin
 from drivers.registry import (
     UnknownDriverError,
@@ -107,6 +116,13 @@ def parse_config(data: Mapping[str, Any], source: str = BUILTIN_SOURCE, base_dir
         if value is not None:
             sections[name], owners[name] = value, kind
 
+    implied_axes = False  # [[axes]] supplied by a virtual cell's table (``[simulation] axes = "xy"``)
+    if raw_axes is None:
+        for name, section in sections.items():
+            owner = parse.plugin(owners[name], name)  # loaded when its section was validated
+            if isinstance(owner, VirtualCellPlugin) and owner.default_axes(section):
+                raw_axes, implied_axes = owner.default_axes(section), True
+
     config: Config | None
     try:
         config = Config.model_validate(data)
@@ -123,7 +139,12 @@ def parse_config(data: Mapping[str, Any], source: str = BUILTIN_SOURCE, base_dir
         actuator = _parse_actuator(parse, raw_actuator, virtual_cell)
         actuators = [("actuator", actuator)] if actuator is not None else []
     else:
-        if has_actuator:
+        if has_actuator and implied_axes:
+            axes_text = ", ".join(a["name"] for a in raw_axes)
+            parse.problems.append(f"actuator: the simulated cell has axes {axes_text} (its [simulation] axes): each "
+                                  "axis has its own output; remove [actuator] (or describe each axis with [[axes]] "
+                                  "and its [axes.actuator])")
+        elif has_actuator:
             keys = ", ".join(raw_actuator) if isinstance(raw_actuator, Mapping) else ""
             parse.problems.append(
                 "actuator: a cell with [[axes]] has one actuator per axis: move the keys of [actuator]"
@@ -156,6 +177,11 @@ def parse_config(data: Mapping[str, Any], source: str = BUILTIN_SOURCE, base_dir
     if "path" not in config.model.model_fields_set and not virtual_cell:
         # the package's model belongs to the simulated cell: real hardware gets its own, calibrated one
         updates["model"] = config.model.model_copy(update={"path": STATE_MODEL_PATH})
+    elif "path" not in config.model.model_fields_set and axes:
+        # the simulated stacked stage's own shipped model (fitted on it: daemon/data/default_model_xy.json)
+        shipped = DATA_DIR / f"default_model_{''.join(a.name for a in axes)}.json"
+        if shipped.is_file():
+            updates["model"] = config.model.model_copy(update={"path": shipped})
     elif not config.model.path.is_absolute():
         updates["model"] = config.model.model_copy(update={"path": (base / config.model.path).resolve()})
     record_dir = config.health.record_dir
@@ -358,6 +384,7 @@ def _parse_sensors(parse: _Parse, raw_sensors: Any, sections: Mapping[str, BaseM
             owner = parse.plugin(owners[name], name)  # loaded when its section was validated
             if isinstance(owner, VirtualCellPlugin):
                 indexed.extend(enumerate(owner.default_sensors(section)))
+                sensor_axes.update(owner.default_sensor_axes(section))
         return indexed
     if not isinstance(raw_sensors, list):
         parse.problems.append("sensors: expected an array of tables ([[sensors]])")

@@ -38,6 +38,8 @@ class FaultWindow:
 
 class SimulatedCell:
     TRUTH_HEADER = "t_s,q_um,true_x_um,measured_x_um\n"
+    #: what a sensor may read (``[[sensors]] channel``)
+    channels: tuple[str, ...] = CHANNELS
 
     def __init__(self, physics: CellPhysics, clock: Clock | None = None, truth_log: str | None = None) -> None:
         self.physics = physics
@@ -72,8 +74,8 @@ class SimulatedCell:
     # ----- sensor side ---------------------------------------------------------------------------
     def inject_fault(self, channel: str, start_s: float, end_s: float, mode: FaultMode = "fault") -> None:
         """Make ``channel`` misbehave during [start_s, end_s) of scenario time."""
-        if channel not in CHANNELS:
-            raise ValueError(f"unknown simulated channel {channel!r}; channels: {', '.join(CHANNELS)}")
+        if channel not in self.channels:
+            raise ValueError(f"unknown simulated channel {channel!r}; channels: {', '.join(self.channels)}")
         self.faults.append(FaultWindow(channel, start_s, end_s, mode))
 
     def _fault(self, channel: str, t: float) -> FaultWindow | None:
@@ -88,13 +90,13 @@ class SimulatedCell:
         now = self.clock.now()
         names = list(channels)
         out: dict[str, Reading] = {}
-        thermal = self.physics.thermal1(t) if any(c != POSITION_CHANNEL for c in names) else {}
+        thermal = self.physics.thermal1(t) if any(not self.is_position(c) for c in names) else {}
         offsets = self._offsets
         for name in names:
             window = self._fault(name, t) if self.faults else None
             if window is not None and window.mode == "device_error":
                 raise DeviceError(f"simulated {name}: link failure (injected)")
-            unit = "um" if name == POSITION_CHANNEL else "degC"
+            unit = "um" if self.is_position(name) else "degC"
             if window is not None and window.mode == "fault":
                 out[name] = Reading.fault(now, "open thermocouple (injected)" if unit == "degC" else
                                           "beam lost (injected)", unit=unit)
@@ -103,11 +105,8 @@ class SimulatedCell:
                 out[name] = self._last_ok[name]
                 continue
             noise = float(self._noise_rng.standard_normal())
-            if name == POSITION_CHANNEL:
-                self.last_true_position_um = true_x = self.physics.attained_now(t, self.state)
-                value = self.physics.measure_position1(t, true_x, noise)
-                if self.truth_log is not None:
-                    self._log_truth(now, true_x, value)
+            if self.is_position(name):
+                value = self._read_position(name, t, now, noise)
             else:
                 node = THERMOCOUPLES.get(name) or TRUTH_CHANNELS[name]
                 value = self.physics.measure_temperature1(thermal[node] + offsets.get(name, 0.0), noise)
@@ -117,7 +116,25 @@ class SimulatedCell:
             out[name] = reading
         return out
 
+    def is_position(self, channel: str) -> bool:
+        """Whether ``channel`` is an interferometer (µm), not a temperature."""
+        return channel == POSITION_CHANNEL
+
+    def true_reading(self, channel: str) -> float | None:
+        """The true attained position behind ``channel``'s last reading (None: a temperature channel)."""
+        return self.last_true_position_um if channel == POSITION_CHANNEL else None
+
+    def _read_position(self, channel: str, t: float, now: float, noise: float) -> float:
+        self.last_true_position_um = true_x = self.physics.attained_now(t, self.state)
+        value = self.physics.measure_position1(t, true_x, noise)
+        if self.truth_log is not None:
+            self._log_truth(now, true_x, value)
+        return value
+
     def _log_truth(self, t: float, true_x_um: float, measured_x_um: float) -> None:
+        self._log_line(f"{t!r},{self.state.q!r},{true_x_um!r},{measured_x_um!r}\n")
+
+    def _log_line(self, line: str) -> None:
         if self._truth_file is None:
             assert self.truth_log is not None
             path = Path(self.truth_log)
@@ -125,4 +142,4 @@ class SimulatedCell:
             self._truth_file = open(path, "a", buffering=1, encoding="utf-8")  # held open: a line a poll
             if fresh:
                 self._truth_file.write(self.TRUTH_HEADER)
-        self._truth_file.write(f"{t!r},{self.state.q!r},{true_x_um!r},{measured_x_um!r}\n")
+        self._truth_file.write(line)

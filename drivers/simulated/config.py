@@ -9,6 +9,7 @@ effects = ["thermal_lag", "hysteresis"]          # or a table with parameters:
 # effects = { thermal_lag = { tau_s = 1800.0 }, creep = {} }
 params = { interferometer_noise_um = 0.01 }      # overrides of the cell's baseline magnitudes
 truth_log = "truth.csv"       # every interferometer reading beside the true position (benchmarks/week.py)
+axes = "xy"                   # a stacked XY (or "xyz") stage: one simulated output and interferometer per axis
 ```
 """
 
@@ -18,10 +19,11 @@ from collections.abc import Sequence
 from dataclasses import fields
 from typing import Any, Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
 from drivers.base import ActuatorOptions, SensorConfig, StrictModel
 from drivers.simulated.effects import resolve_effects
+from drivers.simulated.multiaxis import CELL_AXES, MultiAxisPhysics
 from drivers.simulated.physics import CellParams, CellPhysics
 from drivers.simulated.scenarios import get_scenario
 
@@ -61,6 +63,33 @@ class SimulationConfig(StrictModel):
         default="", description='"" = off; else a CSV the cell appends every interferometer reading to, beside the '
                                 "true attained position (t_s on the cell's clock, q_um, true_x_um, measured_x_um): "
                                 "what a benchmark scores the daemon against")
+
+    axes: str = Field(
+        default="", description='"" = the paper\'s one-axis cell; "xy" or "xyz": a stacked XY/XYZ stage in the same '
+                                "room (drivers/simulated/multiaxis.py): one simulated output per axis "
+                                "([axes.actuator] kind = \"simulated\") and one interferometer beam per axis "
+                                "(channels interferometer_x, interferometer_y[, interferometer_z])")
+
+    @field_validator("axes")
+    @classmethod
+    def _known_axes(cls, value: str) -> str:
+        if value and value not in CELL_AXES:
+            raise ValueError(f'unknown simulated axes {value!r}; expected "" (one axis), '
+                             + " or ".join(f'"{name}"' for name in CELL_AXES))
+        return value
+
+    @model_validator(mode="after")
+    def _multi_axis_effects(self) -> SimulationConfig:
+        if self.axes and self.effects:
+            raise ValueError(f"effects: the hidden effects are the one-axis cell's; the simulated {self.axes} cell has "
+                             "its cross-axis effects (crosstalk, non-orthogonality, coupled bending) built in: "
+                             "remove effects or axes")
+        return self
+
+    @property
+    def axis_names(self) -> tuple[str, ...]:
+        """The simulated stage's axes (``("x",)``: the one-axis cell)."""
+        return CELL_AXES[self.axes] if self.axes else ("x",)
 
     @field_validator("scenario")
     @classmethod
@@ -115,6 +144,11 @@ class SimulationConfig(StrictModel):
 
     def physics(self) -> CellPhysics:
         return CellPhysics.create(self.scenario, self.effects, self.seed, CellParams().with_overrides(self.params))
+
+    def multi_axis_physics(self) -> MultiAxisPhysics:
+        """The stacked stage of ``axes`` (set) in this table's room, seed and magnitudes."""
+        return MultiAxisPhysics.create(self.axes, self.scenario, self.seed,
+                                       params=CellParams().with_overrides(self.params))
 
 
 class SimulatedSensorConfig(SensorConfig):

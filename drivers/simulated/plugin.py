@@ -4,6 +4,11 @@ An ordinary plugin (python-can's ``virtual`` bus, pyvisa-sim), and a virtual cel
 (:class:`~drivers.base.VirtualCellPlugin`): it owns the ``[simulation]`` table,
 supplies the cell's clock (scaled wall time in the daemon, a virtual clock in procedures) and, when
 the table is present without ``[[sensors]]``, the paper's four thermocouples and interferometer.
+With ``[simulation] axes = "xy"`` (or ``"xyz"``) the cell is a stacked stage
+(:class:`~drivers.simulated.multicell.SimulatedMultiCell`): one simulated output per axis
+(``[axes.actuator] kind = "simulated"``, built by :meth:`SimulatedPlugin.create_actuators`) and one
+interferometer per axis (``interferometer_x``, ``interferometer_y``, ...); without ``[[axes]]`` the
+plugin supplies them (workspace 0..480 µm), and without ``[[sensors]]`` T1..T4 and one beam per axis.
 Temperature sensors with the same poll interval form one group (like one Modbus module answering
 four thermocouples); the interferometer is a group of its own.
 """
@@ -12,7 +17,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from typing import ClassVar, Literal
+from typing import Any, ClassVar, Literal
 
 from pydantic import BaseModel
 
@@ -28,12 +33,16 @@ from drivers.base import (
     SensorGroup,
     VirtualCellPlugin,
 )
-from drivers.simulated.cell import CHANNELS, SimulatedCell
+from drivers.simulated.cell import SimulatedCell
 from drivers.simulated.clock import ScaledClock, VirtualClock
 from drivers.simulated.config import SECTION, SimulatedActuatorConfig, SimulatedSensorConfig, SimulationConfig
+from drivers.simulated.multicell import SimulatedMultiCell, position_channel
 from drivers.simulated.physics import POSITION_CHANNEL
 
 RESOURCE_KEY = "simulated.cell"
+PLUGIN_KIND = "simulated"
+#: each axis' workspace on the default stacked stage (µm): the paper's calibrated travel
+DEFAULT_AXIS_MAX_UM = 480.0
 
 
 def shared_cell(context: DriverContext) -> SimulatedCell:
@@ -47,7 +56,9 @@ def shared_cell(context: DriverContext) -> SimulatedCell:
     if cell is None:
         settings = context.sections.get(SECTION)
         config = settings if isinstance(settings, SimulationConfig) else SimulationConfig()
-        cell = SimulatedCell(config.physics(), context.clock, truth_log=config.truth_log or None)
+        truth_log = config.truth_log or None
+        cell = (SimulatedMultiCell(config.multi_axis_physics(), context.clock, truth_log=truth_log) if config.axes
+                else SimulatedCell(config.physics(), context.clock, truth_log=truth_log))
         if isinstance(context.clock, VirtualClock):
             cell.epoch = 0.0
         elif isinstance(context.clock, ScaledClock):
@@ -78,8 +89,8 @@ class SimulatedGroup(SensorGroup):
 
     def true_values(self) -> dict[str, float]:
         """The true attained position behind this group's last interferometer reading (temperatures: none)."""
-        return {name: self.cell.last_true_position_um for name, source in self._sources.items()
-                if source == POSITION_CHANNEL}
+        truth = {name: self.cell.true_reading(source) for name, source in self._sources.items()}
+        return {name: value for name, value in truth.items() if value is not None}
 
 
 class SimulatedActuator(Actuator):
@@ -106,8 +117,31 @@ class SimulatedActuator(Actuator):
         return ("q_um", self.cell.state.q)
 
 
+class SimulatedAxisActuator(Actuator):
+    """Moves one axis of the simulated stacked stage (its closed loop takes ``q_um``)."""
+
+    def __init__(self, cell: SimulatedMultiCell, axis: str) -> None:
+        self.cell = cell
+        self.axis = axis
+        self.description = f"simulated stage, axis {axis}"
+        self.last_voltage_v: float | None = None
+
+    async def open(self) -> None:
+        return None
+
+    async def command(self, q_um: float, voltage_v: float, *, x_um: float | None = None) -> None:
+        self.last_voltage_v = voltage_v
+        self.cell.command_axis(self.axis, q_um)
+
+    async def close(self) -> None:
+        return None
+
+    async def read_back(self) -> tuple[Literal["voltage_v", "q_um"], float] | None:
+        return ("q_um", self.cell.q_um[self.axis])
+
+
 class SimulatedPlugin(VirtualCellPlugin):
-    name = "simulated"
+    name = PLUGIN_KIND
     config_model: ClassVar[type[SensorConfig]] = SimulatedSensorConfig
     section = SECTION
     section_model = SimulationConfig
@@ -118,12 +152,12 @@ class SimulatedPlugin(VirtualCellPlugin):
         sims = [c if isinstance(c, SimulatedSensorConfig) else SimulatedSensorConfig.model_validate(c.model_dump())
                 for c in configs]
         for c in sims:
-            if c.source not in CHANNELS:
+            if c.source not in cell.channels:
                 raise DriverSetupError(
-                    f"sensor {c.name}: no simulated channel {c.source!r}; set channel to one of {', '.join(CHANNELS)}"
-                )
-            if (c.source == POSITION_CHANNEL) != (c.role == "position"):
-                expected = "position" if c.source == POSITION_CHANNEL else "temperature"
+                    f"sensor {c.name}: no simulated channel {c.source!r}; set channel to one of "
+                    f"{', '.join(cell.channels)}")
+            if cell.is_position(c.source) != (c.role == "position"):
+                expected = "position" if cell.is_position(c.source) else "temperature"
                 raise DriverSetupError(
                     f"sensor {c.name}: simulated channel {c.source} has role {expected}, not {c.role}")
         groups: list[SensorGroup] = []
@@ -137,11 +171,41 @@ class SimulatedPlugin(VirtualCellPlugin):
         return groups
 
     def create_actuator(self, config: ActuatorOptions, context: DriverContext) -> Actuator:
-        return SimulatedActuator(shared_cell(context))
+        cell = shared_cell(context)
+        if isinstance(cell, SimulatedMultiCell):
+            raise DriverSetupError(f"the simulated cell has axes {', '.join(cell.axes)}: one output per axis "
+                                   "([[axes]] with [axes.actuator] kind = \"simulated\")")
+        return SimulatedActuator(cell)
+
+    def create_actuators(self, configs: Sequence[ActuatorOptions], context: DriverContext) -> list[Actuator]:
+        """One output per axis of the stacked stage, the config's axes (``context.axes``) being its axes."""
+        cell = shared_cell(context)
+        if not isinstance(cell, SimulatedMultiCell):
+            raise DriverSetupError(f"the config has axes {', '.join(context.axes)} but the simulated cell has one: "
+                                   'set [simulation] axes = "' + "".join(context.axes) + '"')
+        if sorted(context.axes) != sorted(cell.axes) or len(configs) != len(cell.axes):
+            raise DriverSetupError(f"the config's axes ({', '.join(context.axes)}) are not the simulated cell's "
+                                   f"([simulation] axes = \"{''.join(cell.axes)}\"): name the [[axes]] "
+                                   f"{', '.join(cell.axes)}")
+        return [SimulatedAxisActuator(cell, axis) for axis in context.axes]
 
     def default_sensors(self, section: BaseModel) -> list[SensorConfig]:
-        speed = section.speed if isinstance(section, SimulationConfig) else 1.0
-        return list(default_sensor_configs(speed=speed))
+        config = section if isinstance(section, SimulationConfig) else SimulationConfig()
+        if config.axes:
+            return list(default_cell_sensor_configs(config.axis_names, speed=config.speed))
+        return list(default_sensor_configs(speed=config.speed))
+
+    def default_sensor_axes(self, section: BaseModel) -> dict[str, str]:
+        config = section if isinstance(section, SimulationConfig) else SimulationConfig()
+        return {position_channel(axis): axis for axis in config.axis_names} if config.axes else {}
+
+    def default_axes(self, section: BaseModel) -> list[dict[str, Any]]:
+        """``[[axes]]`` of the stacked stage: each 0..480 µm (the paper's travel) on a simulated output."""
+        config = section if isinstance(section, SimulationConfig) else SimulationConfig()
+        if not config.axes:
+            return []
+        return [{"name": axis, "min_um": 0.0, "max_um": DEFAULT_AXIS_MAX_UM, "actuator": {"kind": PLUGIN_KIND}}
+                for axis in config.axis_names]
 
     def timing_warnings(self, section: BaseModel | None, sensors: Sequence[tuple[int, SensorConfig]]) -> list[str]:
         """Sensors (of any kind: the whole daemon runs on the cell's clock) too fast for ``speed``."""
@@ -189,3 +253,12 @@ def default_sensor_configs(interferometer_interval_s: float = 0.1, thermocouple_
     position = SimulatedSensorConfig(name=POSITION_CHANNEL, role="position", interval_s=position_interval_s,
                                      max_age_s=max(1.0, limits.min_max_age_s, 3 * position_interval_s))
     return [*temps, position]
+
+
+def default_cell_sensor_configs(axes: Sequence[str], *, speed: float = 1.0) -> list[SimulatedSensorConfig]:
+    """The stacked stage's default sensors: T1..T4 as on the one-axis cell, and one interferometer per axis
+    (``interferometer_<axis>``, timed like the one-axis interferometer)."""
+    one_axis = default_sensor_configs(speed=speed)
+    temps = [c for c in one_axis if c.role == "temperature"]
+    [beam] = [c for c in one_axis if c.role == "position"]
+    return [*temps, *(beam.model_copy(update={"name": position_channel(axis)}) for axis in axes)]
