@@ -46,9 +46,11 @@ class Keys:
         self.alive = f"{self.prefix}/alive"
         self.health = f"{self.prefix}/health"
 
-    def telemetry(self, role: str, channel: str) -> str:
+    def telemetry(self, role: str, channel: str, axis: str | None = None) -> str:
+        """``sensors/temperature/<channel>``, ``sensors/position``; a multi-axis cell's position sensors each
+        on ``sensors/position/<axis>`` (``axis`` given), so a client tells its axes apart."""
         if role == "position":
-            return f"{self.prefix}/sensors/position"
+            return f"{self.prefix}/sensors/position" if axis is None else f"{self.prefix}/sensors/position/{axis}"
         return f"{self.prefix}/sensors/temperature/{channel}"
 
 

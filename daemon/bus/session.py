@@ -182,8 +182,8 @@ class Bus:
         self._declared.append(self.session.declare_queryable(self.keys.status, status_query))
         self._token = self.session.liveliness().declare_token(self.keys.alive)
 
-    def publish_telemetry(self, role: str, channel: str, payload: bytes) -> None:
-        key = self.keys.telemetry(role, channel)
+    def publish_telemetry(self, role: str, channel: str, payload: bytes, axis: str | None = None) -> None:
+        key = self.keys.telemetry(role, channel, axis)
         publisher = self._telemetry.get(key)
         if publisher is None:
             publisher = self._telemetry[key] = self.session.declare_publisher(key)

@@ -228,7 +228,9 @@ class Service:
 
     def _publish_telemetry(self, role: str, channel: str, payload: bytes) -> None:
         if self.bus is not None:  # none before the session is open
-            self.bus.publish_telemetry(role, channel, payload)
+            config = self.state.config
+            axis = config.sensor_axis(channel) if role == "position" and config.multi_axis else None
+            self.bus.publish_telemetry(role, channel, payload, axis)
 
     # --- the drivers (also called by the Reloader) ------------------------------------------------
 

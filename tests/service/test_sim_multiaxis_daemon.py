@@ -57,6 +57,13 @@ def test_a_target_on_the_simulated_stacked_stage_moves_every_axis_to_it(tmp_path
         status = client.status()
         assert set(status["axes"]) == set(axes)
         assert status["counters"]["commands"] == 2
+        # each axis' position telemetry on its own key, so a client tells the axes apart (never sensors/position)
+        last = {a: targets[a] for a in axes}
+        beams = wait_until(lambda: ({a: client.telemetry[f"position/{a}"] for a in axes}
+                                    if all(f"position/{a}" in client.telemetry for a in axes) else None),
+                           10, "position telemetry per axis", interval=0.05)
+        assert all(abs(beams[a]["value"] - last[a]) < 0.5 and beams[a]["unit"] == "um" for a in axes), beams
+        assert "position" not in client.telemetry
     finally:
         client.close()
         assert daemon.stop() == 0
