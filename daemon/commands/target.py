@@ -64,12 +64,22 @@ def _shown(target: float | tuple[float, ...]) -> str:
 
 
 def _format_cell_command(doc: dict[str, Any]) -> str:
+    """``x 240.0000 y 100.0000 µm -> q x … y … µm, x … y … V [model m-…; σ x 0.0185 y 0.0210 µm; T1=… °C]``."""
     axes = list(doc["q_um"])
-    temps = " ".join(f"{k}={v:.3f}" for k, v in (doc.get("temperatures_c") or {}).items())
+    sigma = doc.get("q_sigma_um") or {}
+    correction = doc.get("correction_um")
+    details = [f"model {doc['model']}",
+               "σ " + " ".join(f"{a} {sigma[a]:.4f}" if isinstance(sigma.get(a), int | float) else f"{a} unknown"
+                               for a in axes) + " µm"]
+    if isinstance(correction, dict):
+        details.append("correction " + " ".join(f"{a} {correction[a]:+.4f}" for a in axes if a in correction) + " µm")
+    temps = ", ".join(f"{k}={v:.3f} °C" for k, v in (doc.get("temperatures_c") or {}).items())
+    if temps:
+        details.append(temps)
     extra = f" EXTRAPOLATING {','.join(doc['extrapolating'])}" if doc.get("extrapolating") else ""
     return (" ".join(f"{a} {doc[f'{a}_um']:.4f}" for a in axes) + " µm -> q "
             + " ".join(f"{a} {doc['q_um'][a]:.4f}" for a in axes) + " µm, "
-            + " ".join(f"{a} {doc['voltage_v'][a]:.5f}" for a in axes) + f" V [model {doc['model']}; {temps}]{extra}")
+            + " ".join(f"{a} {doc['voltage_v'][a]:.5f}" for a in axes) + f" V [{'; '.join(details)}]{extra}")
 
 
 def _format_command(doc: dict[str, Any]) -> str:

@@ -160,6 +160,8 @@ def test_the_cli_sends_one_point_per_target_in_the_cells_axis_order_and_status_s
     result = cli(cell, "target", "100,50", "300,450")
     assert result.returncode == 1
     assert result.stdout.startswith("x 100.0000 y 50.0000 µm -> q x ") and cell.model.id in result.stdout
+    # σ per axis (this hand-made model has no covariance nor residual RMS: unknown) and °C, as one axis shows them
+    assert re.search(r"σ x (\d+\.\d{4}|unknown) y (\d+\.\d{4}|unknown) µm; T1=21\.800 °C", result.stdout), result.stdout
     assert "300,450 µm refused: y_um 450 outside axis y's workspace [0, 400] µm" in result.stderr, result.stderr
     result = cli(cell, "target", "100")  # one number in an XY cell: refused by the daemon, naming y
     assert result.returncode == 1 and "'y_um'" in result.stderr, result.stderr
