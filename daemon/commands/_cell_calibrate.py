@@ -17,10 +17,10 @@ from pathlib import Path
 from daemon.calibration.dataset import DataError
 from daemon.calibration.plans import cell_calibration_plan
 from daemon.commands._cell import guards, open_cell
-from daemon.commands.fit import describe_cell_model
 from daemon.config import Config
 from daemon.drivers_set import DriverSet
 from daemon.errors import UserError
+from daemon.model.describe import describe_cell_model
 from daemon.model.identify import FitError
 from daemon.procedure.cell_recording import cell_calibration_columns, fit_cell_recorded, record_cell_calibration
 from daemon.procedure.cell_steps import CellDrive

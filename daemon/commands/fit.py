@@ -15,7 +15,8 @@ from typing import Any, SupportsFloat
 from daemon.calibration.dataset import DataError, Dataset, common_channels, concat, read_runs
 from daemon.errors import UserError
 from daemon.model.cell_model import CellModel, save_cell_model
-from daemon.model.equation import equation, training_lines
+from daemon.model.describe import describe_cell_model, describe_model
+from daemon.model.equation import equation
 from daemon.model.identify import FitError, fit, fit_cell
 from daemon.model.model import Model, save_model
 from daemon.model.provenance import stamp_data
@@ -123,17 +124,6 @@ def cell_fit_summary(cell: CellModel, path: str) -> dict[str, Any]:
     return {"model": cell.id, "model_out": str(path), "axes": axes}
 
 
-def describe_cell_model(cell: CellModel, path: str | None = None) -> str:
-    """Per axis, the one-axis summary with that axis' command on the left (``q_x = ...``)."""
-    ranges = ", ".join(f"{a} {lo:.1f}..{hi:.1f} µm" for a, (lo, hi) in cell.position_ranges.items())
-    lines = [f"model {cell.id} (axes {', '.join(cell.axes)})" + (f" -> {path}" if path else ""),
-             f"trained on positions {ranges}"]
-    for axis, model in cell.models.items():
-        own = [line for line in describe_model(model).split("\n")[2:] if not line.startswith("trained on x ")]
-        lines += ["", f"axis {axis} (model {model.id}):", equation(model, lhs=f"q_{axis}"), *own]
-    return "\n".join(lines)
-
-
 def _nm(value_um: SupportsFloat | None) -> float | None:
     return None if value_um is None else float(value_um) * 1000.0
 
@@ -179,34 +169,3 @@ def fit_summary(model: Model, path: str) -> dict[str, Any]:
         "training": model.to_dict()["training"],
         "data_files": model.provenance.get("data_files", []),
     }
-
-
-def describe_model(model: Model, path: str | None = None) -> str:
-    """The human summary an operator reads: order, terms, residual, ranges."""
-    sel, fit_stats = model.selection, model.fit
-    lines = [f"model {model.id}" + (f" -> {path}" if path else ""), equation(model)]
-    scores = sel.get("order_holdout_rms_um") or {}
-    if scores:
-        tried = ", ".join(f"n1={k}: {float(v) * 1000:.1f} nm" for k, v in scores.items())
-        lines.append(f"geometric order n1 = {sel.get('order')} (chosen on held-out cycles; {tried})")
-    elif sel.get("order"):
-        lines.append(f"geometric order n1 = {sel.get('order')} (fixed)")
-    if sel.get("excluded"):
-        lines.append(f"excluded channels: {', '.join(sel['excluded'])}")
-    lines.append(f"{'term':>16} {'coef':>14} {'SE':>11} {'p':>9}")
-    for ft in model.terms:
-        lines.append(f"{ft.term.name:>16} {ft.coef:>14.6g} {ft.se:>11.3g} {ft.p:>9.2g}")
-    dropped = sel.get("not_selected") or {}
-    if dropped:
-        lines.append("not selected: " + ", ".join(
-            f"{name} (p if added {v['p_if_added']:.2g})" if v.get("p_if_added") is not None else name
-            for name, v in dropped.items()
-        ))
-    if "residual_rms_nm" in fit_stats:
-        lines.append(f"residual RMS {fit_stats['residual_rms_nm']:.1f} nm over {fit_stats.get('rows')} rows")
-    files = model.provenance.get("data_files") or []
-    if len(files) > 1:
-        lines.append(f"from {len(files)} runs, each with its own time and held-out blocks: "
-                     + ", ".join(f"{f['path']} ({f['rows']} rows)" for f in files))
-    lines.extend(training_lines(model))
-    return "\n".join(lines)

@@ -229,8 +229,10 @@ class Service:
     def _publish_telemetry(self, role: str, channel: str, payload: bytes) -> None:
         if self.bus is not None:  # none before the session is open
             config = self.state.config
-            axis = config.sensor_axis(channel) if role == "position" and config.multi_axis else None
-            self.bus.publish_telemetry(role, channel, payload, axis)
+            if role == "position" and config.multi_axis:  # each axis' sensor on its own key
+                self.bus.publish_telemetry(role, channel, payload, config.sensor_axis(channel))
+            else:
+                self.bus.publish_telemetry(role, channel, payload)
 
     # --- the drivers (also called by the Reloader) ------------------------------------------------
 
