@@ -20,7 +20,7 @@ from daemon.model.equation import equation
 from daemon.model.identify import FitError, fit, fit_cell
 from daemon.model.model import Model, save_model
 from daemon.model.provenance import stamp_data
-from daemon.model.terms import MAX_POWER
+from daemon.model.terms import MAX_POWER, Term, UnknownTermError, parse_term
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -31,6 +31,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--order", default="auto", help="geometric order n1, or auto (held-out cycles)")
     parser.add_argument("--exclude", action="append", default=[], metavar="CH",
                         help="leave a channel out (repeatable)")
+    parser.add_argument("--keep", action="append", default=[], metavar="TERM",
+                        help="a term kept in the model whatever the stepwise says, e.g. --keep x^3 --keep x^2 "
+                             "(a refit with days of records keeping the calibration's geometry); one-axis files")
     parser.add_argument("--penter", type=float, default=0.05, metavar="P",
                         help="stepwise: a term enters when its p-value is below P")
     parser.add_argument("--premove", type=float, default=0.10, metavar="P",
@@ -49,6 +52,22 @@ def _order(text: str) -> int | str:
     if not 1 <= value <= MAX_POWER:
         raise UserError(f"--order must be 'auto' or between 1 and {MAX_POWER}, got {value}")
     return value
+
+
+def _kept_terms(names: Sequence[str], channels: Sequence[str], exclude: Sequence[str]) -> list[Term]:
+    """``--keep`` names as terms; a name no term has, or one reading a channel the fit does not use, is refused."""
+    terms = []
+    for name in names:
+        try:
+            term = parse_term(name)
+        except (UnknownTermError, ValueError) as err:
+            raise UserError(f"--keep {name}: {err}") from None
+        unused = [c for c in term.channels if c not in channels or c in exclude]
+        if unused:
+            raise UserError(f"--keep {name}: reads channel {', '.join(unused)}, which this fit does not use "
+                            f"(channels: {', '.join(c for c in channels if c not in exclude) or 'none'})")
+        terms.append(term)
+    return terms
 
 
 def check_fit_channels(runs: Sequence[Dataset], exclude: Sequence[str]) -> None:
@@ -77,10 +96,12 @@ def main(args: argparse.Namespace) -> int:
         # a channel excluded because some file lacks it is already out; one no file has is a typo (refused)
         exclude = [c for c in args.exclude if c in channels or not any(c in ds.channels for ds in runs)]
         if data.multi_axis:
+            if args.keep:
+                raise UserError("--keep is for one-axis files: a multi-axis file's axes choose their terms each")
             return _fit_cell(args, paths, runs, data, exclude)
         result = fit(
             data, order=_order(args.order), exclude=exclude, penter=args.penter, premove=args.premove,
-            source=", ".join(paths),
+            source=", ".join(paths), keep=_kept_terms(args.keep, channels, exclude),
         )
     except (DataError, FitError, ValueError) as err:
         raise UserError(str(err)) from None

@@ -19,6 +19,8 @@ def describe_model(model: Model, path: str | None = None) -> str:
         lines.append(f"geometric order n1 = {sel.get('order')} (fixed)")
     if sel.get("excluded"):
         lines.append(f"excluded channels: {', '.join(sel['excluded'])}")
+    if sel.get("forced"):
+        lines.append(f"kept whatever the stepwise says (--keep): {', '.join(sel['forced'])}")
     lines.append(f"{'term':>16} {'coef':>14} {'SE':>11} {'p':>9}")
     for ft in model.terms:
         lines.append(f"{ft.term.name:>16} {ft.coef:>14.6g} {ft.se:>11.3g} {ft.p:>9.2g}")

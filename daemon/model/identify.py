@@ -268,14 +268,15 @@ def _run_blocks(data: Series, max_folds: int) -> np.ndarray:
     return (np.arange(len(data)) * folds) // max(len(data), 1)
 
 
-def holdout_rms(data: Series, candidates: Sequence[Term], penter: float, premove: float) -> tuple[float, int]:
+def holdout_rms(data: Series, candidates: Sequence[Term], penter: float, premove: float,
+                always: Sequence[Term] = ()) -> tuple[float, int]:
     """RMS (um) of the command predicted for each held-out block by a model fitted on the others."""
     folds = holdout_blocks(data)
     y = _commands(data)
     errors = []
     for k in np.unique(folds):
         train, test = data.select(folds != k), data.select(folds == k)
-        model = fit_terms(train, candidates, penter=penter, premove=premove, uncertainty=False)
+        model = fit_terms(train, candidates, always=always, penter=penter, premove=premove, uncertainty=False)
         errors.append(y[folds == k] - model.predict(test))
     err = np.concatenate(errors)
     return float(np.sqrt(np.mean(err**2))), int(np.unique(folds).size)
@@ -291,8 +292,12 @@ def fit(
     premove: float = 0.10,
     source: str | None = None,
     candidates: Callable[[int], list[Term]] | None = None,
+    keep: Sequence[Term] = (),
 ) -> FitResult:
     """The paper's identification: stepwise over x^1..x^n1 and the channels; n1 fixed or chosen.
+
+    ``keep``: terms in the model whatever the stepwise says (``fit --keep``: e.g. a refit with days of
+    recorded operation keeping the calibration's x^2, x^3, which the records' thermal spread would hide).
 
     ``candidates(n1)``: the candidate terms for geometric order n1 (default: x^1..x^n1 and the channels
     not excluded; a multi-axis cell's axis passes :func:`cell_candidate_terms`).
@@ -330,7 +335,7 @@ def fit(
     if order == "auto":
         for n1 in range(1, max_order + 1):
             try:
-                scores[n1], folds = holdout_rms(data, candidates(n1), penter, premove)
+                scores[n1], folds = holdout_rms(data, candidates(n1), penter, premove, keep)
             except FitError:  # the blocks left after holding one out are too short for this order
                 if n1 == 1:
                     raise too_few(1, "to choose the geometric order on held-out blocks (each fitted from the "
@@ -348,7 +353,7 @@ def fit(
         "excluded": list(exclude),
     }
     model = fit_terms(
-        data, candidates(chosen), penter=penter, premove=premove, source=source, extra_selection=extra,
+        data, candidates(chosen), always=keep, penter=penter, premove=premove, source=source, extra_selection=extra,
     )
     if scores:
         model.fit["holdout_rms_um"] = scores[chosen]

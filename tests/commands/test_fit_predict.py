@@ -160,3 +160,21 @@ def test_predict_adds_the_uncertainty_of_each_command(tmp_path, capsys):
             measured_sigma = np.hypot(sigma[name], model.covariance.wander_um)
             assert np.mean(np.abs(pred.q - pred.extra["q_pred_um"]) <= 2 * measured_sigma) > 0.9
     assert np.median(sigma["hot.csv"]) > 1.5 * np.max(sigma["fresh.csv"])
+
+
+def test_keep_forces_a_term_the_stepwise_would_leave_out_and_refuses_what_it_cannot_fit(tmp_path, capsys):
+    data = tmp_path / "d.csv"
+    write_csv(paper_run(cycles=8, seed=2), data)  # T3 has no part in the true model: the stepwise leaves it out
+    assert main(["fit", str(data), "--out", str(tmp_path / "m.json")]) == 0
+    assert "T3" not in load_model(tmp_path / "m.json").term_names()
+    capsys.readouterr()
+    assert main(["fit", str(data), "--out", str(tmp_path / "k.json"), "--keep", "T3", "--keep", "x^3"]) == 0
+    out = capsys.readouterr().out
+    kept = load_model(tmp_path / "k.json")
+    assert {"T3", "x^3"} <= set(kept.term_names()) and kept.selection["forced"] == ["T3", "x^3"]
+    assert "kept whatever the stepwise says (--keep): T3, x^3" in out
+    for bad, said in ((["--keep", "T9"], "--keep T9: reads channel T9"), (["--keep", "x^99"], "--keep x^99: power"),
+                      (["--keep", "T3", "--exclude", "T3"], "--keep T3: reads channel T3")):
+        assert main(["fit", str(data), "--out", str(tmp_path / "no.json"), *bad]) == 2
+        assert said in capsys.readouterr().err
+        assert not (tmp_path / "no.json").exists()
