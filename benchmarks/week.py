@@ -402,15 +402,9 @@ def main() -> int:
 
     week1 = serve_week("week1-static-train", "off", train_model, root, seed=args.seed, **serve)
     week1_files = record_files(week1)
-    # the refit keeps the calibration's geometry (its powers of x): over a week the records' thermal spread
-    # (~200 nm a model linear in T cannot follow) hides x^2, x^3 from the stepwise, and a bias tracker cannot
-    # put a per-position error back (README, "Recorded operation": `fit --keep`)
-    geometry = [t["term"] for t in json.loads(train_model.read_text())["terms"] if t["term"].startswith("x")]
-    refit_summary = nanodrift_fit([calibration, *week1_files], refit_model,
-                                  *(option for term in geometry for option in ("--keep", term)))
+    refit_summary = nanodrift_fit([calibration, *week1_files], refit_model)
     recorded = len(week1.rows) + week1.invalid_rows + week1.unmatched_rows
-    print(f"Model 'refit': `nanodrift fit calibration.csv <week 1's {len(week1_files)} record files> "
-          f"{' '.join(f'--keep {t}' for t in geometry)}` "
+    print(f"Model 'refit': `nanodrift fit calibration.csv <week 1's {len(week1_files)} record files>` "
           f"(week 1: seed {args.seed}, served statically with 'train'; {recorded} "
           f"rows recorded, {week1.invalid_rows} with valid = 0 that fit leaves out):\n{indent(refit_summary)}\n")
 
@@ -468,10 +462,16 @@ def main() -> int:
         check(growth < GOAL_RSS_MB, f"{run.name}: daemon RSS growth from the end of day 0 to the end of the week "
               f"{growth:+.1f} MB < {GOAL_RSS_MB:g} MB ({run.rss_mb[0]:.1f} -> {run.rss_mb[-1]:.1f} MB)")
         expected = [*RECORD_COLUMNS, *CHANNELS]
-        complete = [name for name, header in run.files if all(c in header for c in expected)]
-        check(len(run.files) == DAYS and len(complete) == DAYS,
-              f"{run.name}: {len(run.files)} record files (one per day), {len(complete)} with every polled channel "
-              f"({', '.join(CHANNELS)}): {', '.join(n for n, _ in run.files)}")
+        week_days = {(dt.datetime.fromtimestamp(run.week_start, dt.UTC).date() + dt.timedelta(days=d)).isoformat()
+                     for d in range(DAYS)}
+        in_week = [(name, header) for name, header in run.files if name[len("records-"):][:10] in week_days]
+        after = [name for name, header in run.files if (name, header) not in in_week]
+        complete = [name for name, header in in_week if all(c in header for c in expected)]
+        check(len(in_week) == DAYS and len(complete) == DAYS,
+              f"{run.name}: {len(in_week)} record files for the week's {DAYS} days, {len(complete)} with every polled "
+              f"channel ({', '.join(CHANNELS)}): {', '.join(n for n, _ in in_week)}"
+              + (f" (and {', '.join(after)}: the last target, sent in the week, settled after its end: the "
+                 "client's pacing is wall-clock, 0.1 s of which is 1000 cell s)" if after else ""))
     for run in runs:
         refused = sum(run.refusals.values())
         check(refused == 0 and run.commands == run.sent,
