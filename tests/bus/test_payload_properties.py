@@ -276,7 +276,7 @@ def test_every_target_published_over_zenoh_gets_exactly_one_answer(
     def nulls() -> int:
         return len(client.answers_for(None))
 
-    @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+    @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
     @given(st.one_of(correlated.map(lambda c: ("correlated", c)), correlated.map(lambda c: ("correlated", c)),
                      uncorrelated.map(lambda u: ("raw", u))))
     def one_target(case: tuple[str, Any]) -> None:
@@ -299,7 +299,8 @@ def test_every_target_published_over_zenoh_gets_exactly_one_answer(
         assert count() == wanted, client.answers_for(target_id)
 
     one_target()
-    assert len(sent) >= 30 and sent.count(None) >= 5 and len(set(sent) - {None}) >= 10, sent  # both kinds
+    # both kinds were sent (hypothesis draws them at random: ~1 in 2 has a usable id; 9 of 40 once)
+    assert len(sent) >= 40 and sent.count(None) >= 5 and len(set(sent) - {None}) >= 5, sent
     client.put(json.dumps({"x_um": 240.0, "id": "last"}))  # answered after every earlier one
     client.wait(lambda: client.answers_for("last"), 10, "the last target's answer")
     for target_id in set(sent) - {None}:
