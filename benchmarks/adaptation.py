@@ -31,10 +31,14 @@ import statistics
 import sys
 import time
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from anywhere, never tests/drivers
 
 from daemon.assembly import simulated_drivers
+from daemon.calibration.iso9283 import TestResult
 from daemon.calibration.residuals import BiasTracker
 from daemon.model.identify import fit
 from daemon.procedure.validation import run_validation
@@ -44,9 +48,9 @@ TESTS = ("test2", "test3", "test4", "test5")
 GOAL_TEST5_MEDIAN, GOAL_TEST5_WORST = 10.0, 5.0
 
 
-def one_seed(seed: int, cycles: int, tau_s: float, max_um: float) -> dict[str, dict[str, float]]:
+def one_seed(seed: int, cycles: int, tau_s: float, max_um: float) -> dict[str, dict[str, Any]]:
     model = fit(simulate_dataset("train", cycles=24, seed=seed)).model
-    out: dict[str, dict[str, float]] = {}
+    out: dict[str, dict[str, Any]] = {}
     for name in TESTS:
         run_seed = seed * 100 + int(name[-1])
         static = asyncio.run(run_validation(simulated_drivers(name, seed=run_seed), model, name=name, cycles=cycles,
@@ -61,8 +65,47 @@ def one_seed(seed: int, cycles: int, tau_s: float, max_um: float) -> dict[str, d
             "coverage_true": static.coverage_true(), "coverage_measured": static.coverage(),
             "coverage_true_adaptive": adaptive.coverage_true(),
             "sigma_nm": statistics.median(static.q_sigma_um) * 1e3,
+            **true_errors(static),
         }
     return out
+
+
+def true_errors(result: TestResult) -> dict[str, Any]:
+    """The static run's valid steps: true error (true position - target) and q_sigma, nm."""
+    rows = [(x_true - s.step.target_um, sigma) for s, sigma, x_true
+            in zip(result.steps, result.q_sigma_um, result.x_true_um, strict=False)
+            if s.valid and np.isfinite(sigma)]
+    error, sigma = (np.array(v) * 1e3 for v in zip(*rows, strict=True))
+    return {"error_nm": error, "q_sigma_nm": sigma}
+
+
+def coverage_goal_met(per_seed: list[float]) -> bool:
+    return 90.0 <= statistics.median(per_seed) <= 98.0 and min(per_seed) >= 80.0
+
+
+def oracle_scan(runs: list[dict[str, dict[str, Any]]], name: str) -> tuple[str, str, str]:
+    """Could ANY σ of the calibration's kind meet the per-seed goal on these very errors?
+
+    σ comes from the calibration alone, so it cannot know the offset a seed's calibration left. Two
+    families are scanned with the true errors in hand (an oracle): one σ for every step of every
+    seed, and q_sigma scaled by one factor c. Each answer is the range that meets the goal, or none.
+    """
+    errors = [r[name]["error_nm"] for r in runs]
+    sigmas = [r[name]["q_sigma_nm"] for r in runs]
+
+    def meets(widths: list[np.ndarray]) -> bool:
+        inside = [100 * float(np.mean(np.abs(e) <= 2 * w)) for e, w in zip(errors, widths, strict=True)]
+        return coverage_goal_met(inside)
+
+    def span(values: np.ndarray, make: Any, unit: str) -> str:
+        ok = [v for v in values if meets(make(v))]
+        return f"{min(ok):.3g}-{max(ok):.3g}{unit}" if ok else "none"
+
+    constant = span(np.geomspace(1.0, 2000.0, 400), lambda v: [np.full(e.shape, v) for e in errors], " nm")
+    scaled = span(np.geomspace(0.05, 5.0, 400), lambda c: [c * s for s in sigmas], "x")
+    # the factor at which q_sigma would hold 95 % of the steps pooled over the seeds (the usual calibration)
+    ratio = np.abs(np.concatenate(errors)) / (2 * np.concatenate(sigmas))
+    return constant, scaled, f"{float(np.quantile(ratio, 0.95)):.2f}x"
 
 
 def main() -> int:
@@ -121,7 +164,7 @@ def main() -> int:
         per_seed = [100 * r[name]["coverage_true"] for r in runs]
         median, worst = statistics.median(per_seed), min(per_seed)
         mean = statistics.fmean(per_seed)
-        good = 90.0 <= median <= 98.0 and worst >= 80.0
+        good = coverage_goal_met(per_seed)
         covered &= good
         sigma_nm = statistics.median(r[name]["sigma_nm"] for r in runs)
         measured = statistics.median(100 * r[name]["coverage_measured"] for r in runs)
@@ -130,6 +173,26 @@ def main() -> int:
               + f"  {median:6.1f} {mean:6.1f}  {worst:5.0f} {sigma_nm:6.0f} nm  {measured:12.1f} %  {adaptive:6.1f} %"
               f"  {'ok' if good else 'OUTSIDE the goal'}")
     print(f"goal: coverage -> {'met' if covered else 'NOT met'}")
+
+    print("\nwhy: the static runs' true error per seed is one offset (what the calibration's own interferometer "
+          "wander left in the bias and the")
+    print("temperature coefficients, plus what a linear thermal model misses) and a scatter about it. A seed's "
+          "coverage is near 100 % or near 0 %")
+    print("unless the scatter is comparable to the offsets. 'offset' = each seed's mean true error, "
+          "'scatter' = its SD; 'oracle' = the widths that would meet")
+    print("the goal, scanned with the true errors in hand: one σ for all seeds, or q_sigma times one factor "
+          "('none': no such width exists);")
+    print("'pooled 95 %': the factor at which c·q_sigma would hold 95 % of the steps of all seeds together "
+          "(1.00x: q_sigma calibrated pooled)")
+    print("        offsets by seed (nm)" + " " * 23
+          + "RMS  scatter (median)  oracle: one σ      c·q_sigma  pooled 95 %")
+    for name in TESTS:
+        offsets = [float(np.mean(r[name]["error_nm"])) for r in runs]
+        scatter = statistics.median(float(np.std(r[name]["error_nm"])) for r in runs)
+        rms = float(np.sqrt(np.mean(np.square(offsets))))
+        constant, scaled, pooled = oracle_scan(runs, name)
+        print(f"  {name}" + "".join(f"{o:6.0f}" for o in offsets)
+              + f"  {rms:6.0f}  {scatter:8.0f}          {constant:>12}  {scaled:>12}  {pooled:>10}")
     print(f"\n{wall:.0f} s wall")
     return 0 if goal5 and ok and covered else 1
 
