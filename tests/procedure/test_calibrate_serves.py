@@ -21,6 +21,7 @@ from hypothesis import strategies as st
 from daemon.calibration.dataset import read_csv
 from daemon.cli import main
 from daemon.config import load_config
+from daemon.model.cell_model import CellModel, load_any_model
 from daemon.model.model import load_model
 from daemon.procedure import serving
 from daemon.procedure.recording import NARROW_RANGE_C
@@ -143,3 +144,32 @@ def test_any_model_path_lands_in_model_path_and_nothing_else_changes(name: str) 
     assert parsed["model"]["path"] == str(Path("/var/lib") / name)
     assert parsed == {**original, "model": {**original["model"], "path": str(Path("/var/lib") / name)}}
     assert [line for line in result.split("\n") if not line.startswith("path = ")] == text.split("\n")
+
+
+def test_calibrate_serve_on_an_xy_config_makes_its_daemon_serve_the_new_cell_model(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The multi-axis path: the shipped ``config/sim_xy.toml`` calibrated, served, and answered with."""
+    port = free_port()
+    config = tmp_path / "xy.toml"
+    config.write_text((REPO / "config" / "sim_xy.toml").read_text().replace("tcp/127.0.0.1:7447",
+                                                                               f"tcp/127.0.0.1:{port}"))
+    out = tmp_path / "xy.json"
+    assert main(["calibrate", "--config", str(config), "--out", str(out), "--cycles", "4", "--serve"]) == 0
+    cell = load_any_model(out)
+    assert isinstance(cell, CellModel) and cell.axes == ("x", "y")
+    assert f"served by: {config} now serves {cell.id}" in capsys.readouterr().out
+    assert load_config(config).model.path == out.resolve()
+    assert main(["check-config", str(config)]) == 0
+    assert f"({cell.id})" in capsys.readouterr().out
+    daemon = Daemon(["--config", str(config)], tmp_path / "daemon.log")
+    try:
+        assert daemon.wait_log("serving", timeout=30)["model"] == cell.id
+        client = Client(port, "xy0")
+        try:
+            client.wait_ready(["T1", "T2", "T4", "interferometer_x", "interferometer_y"], timeout=30)
+            ok, command = client.query({"x_um": 240.0, "y_um": 100.0, "id": 1})
+            assert ok and command["model"] == cell.id and set(command["q_um"]) == {"x", "y"}, command
+        finally:
+            client.close()
+    finally:
+        assert daemon.stop() == 0
