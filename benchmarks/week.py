@@ -51,7 +51,7 @@ in T1..T4, now over the week's range, it spreads the bending's curvature over th
 ~210 nm on its training data, worst full day of week 2 ~115 nm); the curvature swamps the
 calibration's geometric nonlinearity (x², x³: ~19 nm mean at the 7 points), which stepwise then leaves
 out (order 1), and a bias tracker, one offset for every position, cannot remove that per-point error,
-which is most of why the refit with the tracker stays ~20-57 nm a day (close to its bar) where
+which is most of why the refit with the tracker stays ~20-68 nm a day (at its bar: 67.8 nm failed it once) where
 ``train`` with it is ~5-25 nm. The runs are paced by the wall clock (the start-up's length, the
 machine's load), so two runs of one seed differ in their rows, and with them in the channels the refit
 selects (T1..T4 are nearly collinear over a week: T1-T4 once, T1-T3 in another run of seed 1).
