@@ -46,15 +46,14 @@ paper's result over several days, 400 nm static and 100 nm adaptive.
 
 The accuracy bars are over the full days 1-6; day 0 is printed beside them: it holds the start-up and
 the bias tracker's cold start (its first residual weighs one 30 s step, ``BiasTracker.first_dt_s``), with
-Monday morning still in the weekend setback. What the refit is (seeds 1 and 3, measured): still linear
-in T1..T4, now over the week's range, it spreads the bending's curvature over that range (residual RMS
-~210 nm on its training data, worst full day of week 2 ~115 nm); the curvature swamps the
-calibration's geometric nonlinearity (x², x³: ~19 nm mean at the 7 points), which stepwise then leaves
-out (order 1), and a bias tracker, one offset for every position, cannot remove that per-point error,
-which is most of why the refit with the tracker stays ~20-68 nm a day (at its bar: 67.8 nm failed it once) where
-``train`` with it is ~5-25 nm. The runs are paced by the wall clock (the start-up's length, the
-machine's load), so two runs of one seed differ in their rows, and with them in the channels the refit
-selects (T1..T4 are nearly collinear over a week: T1-T4 once, T1-T3 in another run of seed 1).
+Monday morning still in the weekend setback. What the refit is (seed 1, measured): over the week's 2.7 °C
+``fit`` offers each channel's square (it does only where the data spans >= 1 °C) and the stepwise keeps
+``(T2 - 21.59)^2`` at 0.399 µm/°C² (the simulated bracket bends 0.40), with x², x³ and T1, T2, T4:
+residual RMS 24 nm on its training data where the same fit linear in T1..T4 left 211 nm, dropped x², x³
+and picked a T3/T4 pair of ±7 µm/°C (worst full day of week 2 then: static 103 nm, with the tracker 68
+nm). With the square, week 2's worst full day is ~8 nm static and ~13 nm with the tracker. The runs are
+paced by the wall clock (the start-up's length, the machine's load), so two runs of one seed differ in
+their rows, and so in the linear channels the refit selects (T1..T4 are nearly collinear over a week).
 """
 
 from __future__ import annotations

@@ -20,7 +20,7 @@ import numpy as np
 
 from daemon.model.axis_terms import AxisPower
 from daemon.model.model import FittedTerm, Model, Training
-from daemon.model.terms import Bias, Power, Term, position_key
+from daemon.model.terms import Bias, ChannelSquare, Power, Term, position_key
 
 #: the most a printed coefficient's rounding may change its term inside the training box (µm)
 ROUNDING_TOLERANCE_UM = 1e-3
@@ -31,11 +31,14 @@ MINUS = "−"  # U+2212: a minus sign, not a hyphen
 
 
 def term_label(term: object) -> str:
-    """``x³`` for a power of x, ``x·T1`` for a product, other names as they are; ``""`` for the bias."""
+    """``x³`` for a power of x, ``x·T1`` for a product, ``(T2 − 22.05)²`` for a channel's square, other
+    names as they are; ``""`` for the bias."""
     if isinstance(term, Bias):
         return ""
     if isinstance(term, Power):
         return "x" if term.k == 1 else "x" + str(term.k).translate(_SUPERSCRIPT)
+    if isinstance(term, ChannelSquare):  # (T2 − 22.05)², the centre as exact as in the name
+        return term.name.replace(" - ", f" {MINUS} ").removesuffix("^2") + "²"
     if isinstance(term, AxisPower):  # another axis of a multi-axis cell: y³ as x³
         return term.axis if term.k == 1 else term.axis + str(term.k).translate(_SUPERSCRIPT)
     return str(getattr(term, "name", term)).replace("*", "·")

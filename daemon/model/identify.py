@@ -1,6 +1,8 @@
 """Identification (paper section II.C): stepwise selection of eq. 3's terms from recorded data.
 
-Candidates are ``x^1..x^n1`` and every temperature channel not excluded; the bias is always in.
+Candidates are ``x^1..x^n1`` and every temperature channel not excluded, plus a channel's square
+``(T2 - 22.05)^2`` where the data spans at least 1 °C of it (days of recorded operation: the curvature a
+0.5 °C calibration cannot see); the bias is always in.
 The geometric order n1 cannot be chosen by training error (it always falls with order), so
 ``order="auto"`` picks it by the error on held-out blocks of the run: whole calibration cycles.
 Several runs fitted together (calibration plus recorded operation) keep their own time: features
@@ -24,10 +26,15 @@ from daemon.model.provenance import created_now, software
 from daemon.model.segments import features, runs
 from daemon.model.series import CellSeries, Series
 from daemon.model.stepwise import stepwisefit
-from daemon.model.terms import Bias, Channel, Power, Term
+from daemon.model.terms import Bias, Channel, ChannelSquare, Power, Term
 from daemon.model.uncertainty import Covariance, estimate
 
 MAX_AUTO_ORDER = 5
+#: a channel's square is a candidate only where the data spans at least this much of it (°C). The
+#: curvature's sagitta over a span s is k2·s²/4: over the paper's 0.5 °C calibration the bracket's
+#: -0.4 µm/°C² bends 25 nm, no more than the interferometer's wander, so a square fitted there is that
+#: wander, extrapolated quadratically; over 1 °C it is 100 nm, over a week's 2.7 °C 0.7 µm.
+CURVATURE_MIN_SPAN_C = 1.0
 
 
 class FitError(ValueError):
@@ -192,6 +199,8 @@ def model_covariance(X: np.ndarray, y: np.ndarray, final: OLS, data: Series, ter
     time); the bias then absorbs their value at the start of the run, and C follows.
     """
     channels = [c for c in data.channels if any(c in t.channels for t in terms)]
+    if any(isinstance(t, ChannelSquare) for t in terms):
+        channels = []  # the model fits its curvature: C carries it, no allowance for an unseen one
     cov, s, curvature, noise = estimate(X, y, np.asarray(data.t, dtype=np.float64), runs(data),
                                         {c: data.channels[c] for c in channels})
     k = len(terms)
@@ -217,6 +226,21 @@ def candidate_terms(channels: Sequence[str], order: int, exclude: Sequence[str] 
     if unknown:
         raise FitError(f"--exclude names channel(s) {', '.join(unknown)} not in the data ({', '.join(channels)})")
     return [Power(k) for k in range(order, 0, -1)] + [Channel(c) for c in channels if c not in exclude]
+
+
+def curvature_candidates(data: Series, exclude: Sequence[str] = ()) -> list[Term]:
+    """``(T - centre)^2`` for each channel not excluded that the (valid) rows span by at least
+    :data:`CURVATURE_MIN_SPAN_C`; the centre is the middle of its range, to 0.01 °C."""
+    squares: list[Term] = []
+    for name, values in data.channels.items():
+        v = np.asarray(values, dtype=np.float64)
+        v = v[np.isfinite(v)]
+        if name in exclude or v.size == 0:
+            continue
+        lo, hi = float(v.min()), float(v.max())
+        if hi - lo >= CURVATURE_MIN_SPAN_C:
+            squares.append(ChannelSquare(name, round(0.5 * (lo + hi), 2)))
+    return squares
 
 
 def axis_position_term(axis: str, k: int = 1) -> Term:
@@ -300,7 +324,8 @@ def fit(
     recorded operation keeping the calibration's x^2, x^3, which the records' thermal spread would hide).
 
     ``candidates(n1)``: the candidate terms for geometric order n1 (default: x^1..x^n1 and the channels
-    not excluded; a multi-axis cell's axis passes :func:`cell_candidate_terms`).
+    not excluded; a multi-axis cell's axis passes :func:`cell_candidate_terms`). The squares of the
+    channels the data spans widely enough (:func:`curvature_candidates`) are added to either.
     """
     if penter > premove:
         raise FitError(f"penter ({penter}) must not exceed premove ({premove})")
@@ -311,12 +336,14 @@ def fit(
     channels = list(data.channels)
     scores: dict[int, float] = {}
     folds = 0
-    if candidates is None:
-        def candidates(n1: int) -> list[Term]:
-            return candidate_terms(channels, n1, exclude)
+    squares = curvature_candidates(data, exclude)
+
+    def pool(n1: int) -> list[Term]:
+        base = candidates(n1) if candidates is not None else candidate_terms(channels, n1, exclude)
+        return base + squares
 
     def too_few(order_n1: int, purpose: str, advice: str) -> FitError:
-        n, terms = len(data), len(candidates(order_n1))
+        n, terms = len(data), len(pool(order_n1))
         left_out = f" ({given - n} more marked valid = 0 left out)" if given > n else ""
         powers = "x" if order_n1 == 1 else "x, x^2" if order_n1 == 2 else f"x..x^{order_n1}"
         used = [c for c in channels if c not in exclude]
@@ -329,13 +356,13 @@ def fit(
     first = 1 if order == "auto" else int(order)
     if first < 1:
         raise FitError(f"order must be >= 1 or 'auto', got {order}")
-    needed = len(candidates(first)) + 2
+    needed = len(pool(first)) + 2
     if len(data) < needed:
         raise too_few(first, "to fit", f"record at least {needed} rows")
     if order == "auto":
         for n1 in range(1, max_order + 1):
             try:
-                scores[n1], folds = holdout_rms(data, candidates(n1), penter, premove, keep)
+                scores[n1], folds = holdout_rms(data, pool(n1), penter, premove, keep)
             except FitError:  # the blocks left after holding one out are too short for this order
                 if n1 == 1:
                     raise too_few(1, "to choose the geometric order on held-out blocks (each fitted from the "
@@ -353,7 +380,7 @@ def fit(
         "excluded": list(exclude),
     }
     model = fit_terms(
-        data, candidates(chosen), always=keep, penter=penter, premove=premove, source=source, extra_selection=extra,
+        data, pool(chosen), always=keep, penter=penter, premove=premove, source=source, extra_selection=extra,
     )
     if scores:
         model.fit["holdout_rms_um"] = scores[chosen]

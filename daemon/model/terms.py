@@ -1,6 +1,7 @@
 """A model is a list of named terms: this module is that vocabulary.
 
-A term is a feature with a physical meaning (``x^3``, ``T2``, ``1``, ``lag(T4, 2100 s)``, ``dir``).
+A term is a feature with a physical meaning (``x^3``, ``T2``, ``1``, ``lag(T4, 2100 s)``, ``dir``,
+``(T2 - 22.05)^2``).
 Each computes its feature two ways that must agree:
 
 - ``batch(t, x, channels)`` over a whole recorded series (fit, predict, discovery), and
@@ -172,6 +173,47 @@ class Channel(Term):
 
     def stream(self) -> TermStream:
         return _ChannelStream(self.channel)
+
+
+class _ChannelSquareStream(_ChannelStream):
+    __slots__ = ("centre_c",)
+
+    def __init__(self, channel: str, centre_c: float) -> None:
+        super().__init__(channel)
+        self.centre_c = centre_c
+
+    def value(self, t: float, x: float) -> float:
+        return (self.last - self.centre_c) ** 2
+
+
+class ChannelSquare(Term):
+    """``(T2 - 22.05)^2``: a channel's curvature about a centre (the bracket's bending, II.B.2).
+
+    Invisible in the paper's 0.5 °C calibration, it is what a linear thermal model misses over a week's
+    few degrees; :func:`daemon.model.identify.curvature_candidates` offers it only where the data spans
+    enough of the channel to estimate it. The centre (the training range's middle) keeps the feature
+    small and the fit well conditioned; beside the channel's linear term and the bias any centre spans
+    the same models.
+    """
+
+    def __init__(self, channel: str, centre_c: float) -> None:
+        if not math.isfinite(centre_c):
+            raise ValueError(f"the centre of ({channel} - c)^2 must be a finite temperature, got {centre_c}")
+        self.channel = channel
+        self.centre_c = float(centre_c)
+        self.channels = (channel,)
+
+    @property
+    def name(self) -> str:
+        sign = "-" if self.centre_c >= 0 else "+"
+        centre = repr(abs(self.centre_c))  # the shortest text that reads back as the same float
+        return f"({self.channel} {sign} {centre.removesuffix('.0')})^2"
+
+    def batch(self, t: np.ndarray, x: np.ndarray, channels: Channels) -> np.ndarray:
+        return (np.asarray(channels[self.channel], dtype=np.float64) - self.centre_c) ** 2
+
+    def stream(self) -> TermStream:
+        return _ChannelSquareStream(self.channel, self.centre_c)
 
 
 # --- stateful terms ---------------------------------------------------------------------------
@@ -399,6 +441,12 @@ _KINDS.append(
     _TermKind(
         re.compile(rf"^lag\(\s*(?P<ch>{_CHANNEL})\s*,\s*(?P<tau>{_NUMBER})\s*s\s*\)$"),
         lambda m: Lag(m.group("ch"), float(m.group("tau"))),
+    )
+)
+_KINDS.append(
+    _TermKind(
+        re.compile(rf"^\(\s*(?P<ch>{_CHANNEL}) (?P<sign>[-+]) (?P<c>{_NUMBER})\s*\)\^2$"),
+        lambda m: ChannelSquare(m.group("ch"), float(m.group("c")) * (1.0 if m.group("sign") == "-" else -1.0)),
     )
 )
 _KINDS.append(_TermKind(re.compile(rf"^(?P<ch>{_CHANNEL})$"), lambda m: Channel(m.group("ch"))))

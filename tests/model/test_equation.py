@@ -29,6 +29,13 @@ def test_first_term_negative_products_and_named_terms():
     assert "+ -" not in text and "*" not in text
 
 
+def test_a_channels_square_reads_as_a_square_about_its_exact_centre():
+    model = Model(terms=[FittedTerm(parse_term("(T2 - 21.5937)^2"), 0.3991),
+                         FittedTerm(parse_term("(T-1 + 5)^2"), -0.1), FittedTerm(parse_term("1"), 3.0)],
+                  training=Training((0.0, 480.0), {}, 10, 100.0))
+    assert equation(model) == "q = 0.3991·(T2 − 21.5937)² − 0.1·(T-1 + 5)² + 3"
+
+
 # --- rounding never hides more than a nanometre (issue 13 follow-up: 1.00049 printed "1·x") -------------
 
 TRAINED = Training((0.0, 480.0), {"T1": (21.5, 22.1), "T2": (21.6, 22.0)}, 100, 3600.0)

@@ -1,10 +1,22 @@
 """Identification: known models are recovered; the order is chosen on held-out cycles; exclusions hold."""
 
+import math
+
 import numpy as np
 import pytest
 from helpers.synthetic import TRUE_TERMS, paper_run
 
-from daemon.model.identify import FitError, candidate_terms, fit, holdout_blocks
+from daemon.calibration.dataset import concat
+from daemon.model.identify import (
+    CURVATURE_MIN_SPAN_C,
+    FitError,
+    candidate_terms,
+    curvature_candidates,
+    fit,
+    holdout_blocks,
+)
+from daemon.model.terms import ChannelSquare
+from drivers.simulated.datasets import simulate_dataset
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2, 3])
@@ -76,3 +88,44 @@ def test_rows_marked_invalid_are_ignored():
     data.extra["valid"] = valid
     model = fit(data, order=3).model
     assert model.fit["residual_rms_nm"] < 25.0
+
+
+def _without_squares(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr("daemon.model.identify.CURVATURE_MIN_SPAN_C", math.inf)
+
+
+def test_a_calibration_narrower_than_a_degree_is_offered_no_square():
+    """The paper's 0.45 °C calibration: a square fitted there would be the interferometer's wander."""
+    data = simulate_dataset("train", cycles=24, seed=3)
+    assert max(float(np.ptp(v)) for v in data.channels.values()) < CURVATURE_MIN_SPAN_C
+    assert curvature_candidates(data) == []
+    model = fit(data).model
+    assert not [n for n in model.selection["candidates"] if n.endswith(")^2")]
+
+
+def test_records_over_degrees_let_the_fit_find_the_bracket_bending(monkeypatch):
+    """Calibration plus a run 1.5 °C warmer (test 5's room): the squares enter, and a fresh run in
+    either room is predicted better than by the same fit with no square on offer."""
+    calibration = simulate_dataset("train", cycles=24, seed=3)
+    warm = simulate_dataset("test5", cycles=30, seed=305)
+    both = concat([calibration, warm])
+    squares = curvature_candidates(both)
+    assert [t.name for t in squares] == ["(T1 - 22.53)^2", "(T2 - 22.41)^2", "(T3 - 22.58)^2", "(T4 - 22.49)^2"]
+    curved = fit(both).model
+    assert any(isinstance(ft.term, ChannelSquare) for ft in curved.terms), curved.term_names()
+    assert curved.covariance is not None and curved.covariance.curvature is None  # the model fits its curvature
+    _without_squares(monkeypatch)
+    straight = fit(both).model
+    assert not any(isinstance(ft.term, ChannelSquare) for ft in straight.terms)
+    for scenario, seed in (("test5", 353), ("train", 350), ("test2", 351)):
+        fresh = simulate_dataset(scenario, cycles=30, seed=seed)
+        rms_curved, rms_straight = (float(np.sqrt(np.mean((fresh.q - m.predict(fresh)) ** 2)))
+                                    for m in (curved, straight))
+        assert rms_curved < 0.75 * rms_straight, (scenario, rms_curved, rms_straight)
+
+
+def test_excluded_channel_gets_no_square_either():
+    both = concat([simulate_dataset("train", cycles=24, seed=3), simulate_dataset("test5", cycles=30, seed=305)])
+    assert "T2" not in {t.channels[0] for t in curvature_candidates(both, exclude=["T2"])}
+    model = fit(both, exclude=["T2"]).model
+    assert not [n for n in model.selection["candidates"] if "T2" in n]

@@ -38,13 +38,15 @@ def model_of(terms: dict[str, float], channels=("T1", "T4")) -> Model:
 
 
 @pytest.mark.parametrize(
-    "name", ["x", "x^2", "x^3", "1", "T1", "stage.top", "lag(T4, 2100 s)", "lag(T4, 0.5 s)", "dir"]
+    "name", ["x", "x^2", "x^3", "1", "T1", "stage.top", "lag(T4, 2100 s)", "lag(T4, 0.5 s)", "dir", "(T2 - 22.05)^2",
+             "(T2 + 5)^2", "(stage.top - 0.125)^2"]
 )
 def test_term_names_round_trip(name):
     assert parse_term(name).name == name
 
 
-@pytest.mark.parametrize("name", ["x^0", "y^2", "lag(T4)", "lag(T4, -5 s)", "lag(T4, 0 s)", "sin(T1)", "", "T 1"])
+@pytest.mark.parametrize("name", ["x^0", "y^2", "lag(T4)", "lag(T4, -5 s)", "lag(T4, 0 s)", "sin(T1)", "", "T 1",
+                                  "(T2 - 22)^3", "(T2 - nan)^2", "(T2 - inf)^2", "(T2 22)^2", "T2^2"])
 def test_unknown_or_invalid_term_names_are_refused(name):
     with pytest.raises((UnknownTermError, ValueError)):
         parse_term(name)
@@ -82,7 +84,7 @@ def test_streaming_equals_predict_for_every_term_kind():
     data.x = data.x[rng.permutation(len(data.x))]  # moves up and down
     model = model_of(
         {"x^3": 3e-9, "x^2": -4e-6, "x": 1.001, "T1": -0.6, "lag(T4, 2100 s)": -0.8, "lag(T1, 40 s)": 0.1,
-         "dir": 0.07, "1": 21.0}
+         "dir": 0.07, "(T4 - 19.9)^2": 0.4, "1": 21.0}
     )
     batch = model.predict(data)
     assert np.max(np.abs(stream_rows(model, data) - batch)) < 1e-9

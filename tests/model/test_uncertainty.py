@@ -29,14 +29,15 @@ from daemon.model.uncertainty import (
 )
 
 REPO = Path(__file__).resolve().parents[2]
-TERMS = ["x^3", "x^2", "x", "T1", "lag(T2, 300 s)", "rate(T4, 300 s)", "dir", "x*T1", "creep(15 s)", "1"]
+TERMS = ["x^3", "x^2", "x", "T1", "lag(T2, 300 s)", "rate(T4, 300 s)", "dir", "x*T1", "creep(15 s)", "(T2 - 19.8)^2",
+         "1"]
 
 
 def rich_model(seed: int = 0, curvature: bool = True) -> Model:
-    """Every kind of term (powers, channel, lag, rate, dir, coupling, creep, bias) and a random covariance."""
+    """Every kind of term (powers, channel, lag, rate, dir, coupling, creep, square, bias) and a random covariance."""
     rng = np.random.default_rng(seed)
     k = len(TERMS)
-    scale = np.array([1e-8, 1e-6, 1e-3, 0.05, 0.05, 5.0, 0.01, 1e-4, 0.01, 1.0])
+    scale = np.array([1e-8, 1e-6, 1e-3, 0.05, 0.05, 5.0, 0.01, 1e-4, 0.01, 0.05, 1.0])
     a = rng.normal(size=(k, k + 3))
     cov = np.diag(scale) @ (a @ a.T / k) @ np.diag(scale)
     cv = Curvature(("T1", "T2"), (19.6, 20.1), 0.3) if curvature else None
@@ -298,8 +299,8 @@ BAD_BLOCKS = {
     "not an object": ((), [1, 2], "'covariance' must be an object"),
     "unknown key": (("extra",), 1, "covariance: unknown key(s) 'extra'"),
     "terms out of order": (("terms",), list(reversed(TERMS)), "covariance.terms must list the model's terms"),
-    "too few rows": (("matrix",), [[1.0] * 10] * 9, "covariance.matrix must be 10 rows of 10 numbers"),
-    "a short row": (("matrix", 3), [0.0] * 9, "covariance.matrix[3] must be 10 numbers, got 9 numbers"),
+    "too few rows": (("matrix",), [[1.0] * 11] * 10, "covariance.matrix must be 11 rows of 11 numbers"),
+    "a short row": (("matrix", 3), [0.0] * 10, "covariance.matrix[3] must be 11 numbers, got 10 numbers"),
     "a string": (("matrix", 2, 5), "0.1", "covariance.matrix[2][5] must be a finite number, got '0.1'"),
     "null": (("matrix", 0, 0), None, "covariance.matrix[0][0] must be a finite number, got None"),
     "a boolean": (("matrix", 1, 1), True, "covariance.matrix[1][1] must be a finite number, got True"),
