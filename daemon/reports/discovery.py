@@ -61,6 +61,7 @@ EFFECT_WORDS = {
     "unmonitored_drift": "an unmonitored drift",
     "sensor_exclusion": "leaving a sensor out",
     "missing_channel": "a channel the model left out",
+    "thermal_curvature": "a curvature in a temperature (bending)",
     "crosstalk": "crosstalk from another axis",
     "coupled_bending": "coupled bending of two axes",
 }
@@ -270,6 +271,8 @@ def figure_gap(result: DiscoveryResult) -> Any:
 
 
 def _step_variable(step: Candidate) -> str:
+    if step.effect == "thermal_curvature":  # the bending shows against its channel's temperature
+        return str(step.params["channel"])
     if step.effect in ("thermal_lag", "temperature_rate"):
         channel = step.params["channel"]
         return f"rate({channel})" if step.effect == "temperature_rate" else channel
@@ -323,6 +326,8 @@ def format_params(c: Candidate) -> str:
         parts.append("fitted as a nuisance, not applied online")
     elif c.effect in ("position_thermal_coupling", "missing_channel"):
         parts.append(f"channel {p['channel']}")
+    elif c.effect == "thermal_curvature":
+        parts.append(f"channel {p['channel']}, about {p['centre_c']:g} °C")
     elif c.effect == "sensor_exclusion":
         parts.append(f"leave {p['channel']} out")
     elif c.effect == "crosstalk":

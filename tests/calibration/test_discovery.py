@@ -12,6 +12,7 @@ room settles) tell them apart; the 24-cycle run names nothing (the CLI test belo
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,13 +20,14 @@ import numpy as np
 import pytest
 from helpers.discovery_helpers import cell_run, paper_model
 
-from daemon.calibration.dataset import Dataset, write_csv
+from daemon.calibration.dataset import Dataset, concat, write_csv
 from daemon.calibration.discovery import discover
 from daemon.cli import main
 from daemon.model.identify import candidate_terms, fit, fit_terms
 from daemon.model.model import Model, load_model, save_model
-from daemon.model.terms import Channel
+from daemon.model.terms import Channel, ChannelSquare
 from daemon.reports.discovery import METHOD_DOC
+from drivers.simulated.datasets import simulate_dataset
 from drivers.simulated.effects import EFFECTS
 
 
@@ -253,3 +255,28 @@ def test_cli_names_a_default_thermal_lag_from_simulate_fit_discover(tmp_path, ca
     assert [s["effect"] for s in doc["steps"]] == ["thermal_lag"], doc["final"]["summary"]
     assert "alike" not in doc["steps"][0]["params"]
     assert any(name.startswith("lag(") for name in load_model(extended).term_names())
+
+
+def test_a_bending_over_degrees_of_records_is_named_thermal_curvature(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Calibration plus a run 1.5 °C warmer, a model linear in temperature: the residual tracks the
+    temperatures (the bracket's bending) and discovery names a channel's square for it."""
+    data = concat([simulate_dataset("train", cycles=24, seed=3), simulate_dataset("test5", cycles=30, seed=305)])
+    with monkeypatch.context() as patch:  # the linear fit a lab had before the square was on offer
+        patch.setattr("daemon.model.identify.CURVATURE_MIN_SPAN_C", math.inf)
+        given = fit(data).model
+    result = discover(data, given)
+    assert "thermal_curvature" in {c.effect for c in result.rounds[0].candidates}
+    assert result.steps and result.steps[0].effect == "thermal_curvature", result.summary
+    first = result.steps[0]
+    assert first.p_value < 0.01 and first.holdout_gain >= 0.5
+    assert any(isinstance(ft.term, ChannelSquare) for ft in result.model.terms), result.model.term_names()
+    fresh = simulate_dataset("test5", cycles=30, seed=353)
+    assert rms(fresh, result.model) < 0.6 * rms(fresh, given)
+
+
+def test_thermal_curvature_is_not_proposed_on_a_calibration_narrower_than_a_degree() -> None:
+    data = cell_run("", seed=3)
+    result = discover(data, paper_model(data))
+    tried = {c.effect for r in result.rounds for c in r.candidates}
+    assert "missing_channel" in tried or "position_thermal_coupling" in tried  # the catalogue did run
+    assert "thermal_curvature" not in tried

@@ -14,8 +14,9 @@ from daemon.calibration.discovery.candidates import Candidate, Context, pinned, 
 from daemon.calibration.discovery.settings import Settings
 from daemon.model.axis_terms import AxisCoupling, AxisCreep, AxisDirection, AxisPower, AxisProduct
 from daemon.model.effect_terms import CREEP_DEADBAND_UM, Creep, PositionCoupling, Rate
+from daemon.model.identify import curvature_candidates
 from daemon.model.segments import features, run_time_s, spans_s
-from daemon.model.terms import Channel, Direction, Lag, Power, Term
+from daemon.model.terms import Channel, ChannelSquare, Direction, Lag, Power, Term
 
 #: the names an effect can be given (the vocabulary of the README's discovery section)
 EFFECTS = (
@@ -28,6 +29,7 @@ EFFECTS = (
     "unmonitored_drift",
     "sensor_exclusion",
     "missing_channel",
+    "thermal_curvature",
     "crosstalk",
     "coupled_bending",
 )
@@ -203,6 +205,20 @@ def _missing_channel(ctx: Context) -> list[Candidate]:
     ]
 
 
+def _thermal_curvature(ctx: Context) -> list[Candidate]:
+    """A channel's square (the bracket's bending), where the run spans enough of the channel to see it
+    (:func:`daemon.model.identify.curvature_candidates`: records of days, not a 0.5 °C calibration)."""
+    if any(isinstance(t, ChannelSquare) for t in ctx.terms):
+        return []
+    squares = curvature_candidates(ctx.data, ctx.excluded)
+    return [
+        ctx.judge(Candidate("thermal_curvature", [term], [], {"channel": term.channels[0],
+                                                              "centre_c": term.centre_c}, 0, len(squares)),
+                  ctx.columns([ctx.feature(term)]))
+        for term in squares if isinstance(term, ChannelSquare)
+    ]
+
+
 def _hysteresis(ctx: Context) -> list[Candidate]:
     """``dir``, when the run approaches its points from both sides.
 
@@ -344,6 +360,7 @@ PROPOSERS: dict[str, Callable[[Context], list[Candidate]]] = {
     "geometric_order": _geometric,
     "thermal_response": _thermal_response,
     "missing_channel": _missing_channel,
+    "thermal_curvature": _thermal_curvature,
     "hysteresis": _hysteresis,
     "position_thermal_coupling": _coupling,
     "creep": _creep,
