@@ -12,7 +12,7 @@ restart at each run's first row and no held-out block spans two runs (:mod:`daem
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -228,7 +228,7 @@ def candidate_terms(channels: Sequence[str], order: int, exclude: Sequence[str] 
     return [Power(k) for k in range(order, 0, -1)] + [Channel(c) for c in channels if c not in exclude]
 
 
-def curvature_candidates(data: Series, exclude: Sequence[str] = ()) -> list[Term]:
+def curvature_candidates(data: Series, exclude: Collection[str] = ()) -> list[Term]:
     """``(T - centre)^2`` for each channel not excluded that the (valid) rows span by at least
     :data:`CURVATURE_MIN_SPAN_C`; the centre is the middle of its range, to 0.01 °C."""
     squares: list[Term] = []
