@@ -6,7 +6,9 @@ For nothing hidden and for each effect of the simulator's catalogue hidden (its 
 parameters), over ``--seeds`` seeds: a calibration run of the simulated cell (the runs of
 ``tests/calibration/test_discovery.py``: 24 ``train`` cycles; 48 for ``thermal_lag`` and
 ``unmonitored_drift``; up-and-down sweeps for ``hysteresis``), the paper's model fitted on it
-(``fit --order 3``), ``discover`` on it; then both models predict a fresh run of the same scenario
+(``fit --order 3``), ``discover`` on it; and ``thermal_curvature``: the same calibration plus 30
+cycles of test 5's room (1.5 °C warmer, seed + 500) as a second run, the model fitted linear in
+temperature; then both models predict a fresh run of the same scenario
 (seed + 1000, never seen) and the ratio of their RMS errors (after / before) is the figure: < 1
 helps, > 1.05 hurts by more than 5 %. When nothing is named the model is unchanged (ratio 1).
 
@@ -31,6 +33,11 @@ parameter fitted to these seeds; the fresh runs (seed + 1000) are never seen by 
 Exit status 1 when a seed is hurt or a prediction is off by more than ``FACTOR``. Measured against
 the interferometer (``x_um`` of the fresh run, as a user measures it, and as the report predicts);
 beside it, ``vs truth``: the same fresh run with a perfect interferometer, so x is the true position.
+Known miss (measured, 16 seeds): on ``thermal_curvature`` seed 0 discovery names an unmonitored drift
+after the curvature (test 5's room warms steadily, so in that run a line in time looks like what the
+square leaves); the written model then costs the fresh run 1.63x. The report warns of it (a fresh
+run with the drift's source still there: x 3.05), but the seed counts as hurt and the exit status is
+1. Not fixed yet: a drift test that knows a second run of records is no calibration cycle.
 ``--predictor held-out`` puts the held-out ratio in its place (what the report implied before it
 gave a fresh-run figure): it fails the check, which shows the check can fail.
 """
@@ -48,7 +55,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from anywhere, never tests/drivers
 
-from daemon.calibration.dataset import Dataset
+from daemon.calibration.dataset import Dataset, concat
 from daemon.calibration.discovery import discover
 from daemon.model.identify import fit
 from daemon.model.model import Model
@@ -69,12 +76,20 @@ RUNS = {"": Run(), "thermal_lag": Run(48), "unmonitored_drift": Run(48), "hyster
         # the user's default story (`nanodrift simulate` makes 24 cycles): the room falls and rises once,
         # so a lag of hours and a drift in time look alike and the lag's time constant is not pinned
         "thermal_lag@24": Run(24), "unmonitored_drift@24": Run(24)}
-DEFAULT = ",".join(["", *EFFECTS, "thermal_lag@24", "unmonitored_drift@24"])
+#: not a hidden effect: the bracket's bending is always in the cell, and shows over degrees. Its run is the
+#: calibration plus a day of records in test 5's room, 1.5 °C warmer; the given model is eq. 3 linear in
+#: temperature (``fit(..., squares=False)``), as a lab fitted it before the square was on offer
+CURVATURE = "thermal_curvature"
+DEFAULT = ",".join(["", *EFFECTS, "thermal_lag@24", "unmonitored_drift@24", CURVATURE])
 
 
 def cell_run(effect: str, seed: int, source_fixed: bool = False, truth: bool = False) -> Dataset:
     """A run with ``effect`` hidden; ``source_fixed``: without an unmonitored drift (other effects stay);
     ``truth``: x is the true position (the interferometer's noise and wander switched off)."""
+    if effect == CURVATURE:
+        quiet = {"interferometer_noise_um": 0.0, "interferometer_wander_um": 0.0} if truth else {}
+        return concat([simulate_dataset("train", cycles=24, seed=seed, **quiet),
+                       simulate_dataset("test5", cycles=30, seed=seed + 500, **quiet)])
     run = RUNS.get(effect, Run())
     effect = effect.split("@")[0]
     hidden = None if not effect or (source_fixed and effect == "unmonitored_drift") else effect
@@ -103,7 +118,7 @@ class Seed:
 
 def one(effect: str, seed: int, predictor: str = "report") -> Seed:
     data = cell_run(effect, seed)
-    given = fit(data, order=3).model
+    given = fit(data, order=3, squares=effect != CURVATURE).model
     start = time.perf_counter()
     result = discover(data, given)
     seconds = time.perf_counter() - start

@@ -317,6 +317,7 @@ def fit(
     source: str | None = None,
     candidates: Callable[[int], list[Term]] | None = None,
     keep: Sequence[Term] = (),
+    squares: bool = True,
 ) -> FitResult:
     """The paper's identification: stepwise over x^1..x^n1 and the channels; n1 fixed or chosen.
 
@@ -325,7 +326,8 @@ def fit(
 
     ``candidates(n1)``: the candidate terms for geometric order n1 (default: x^1..x^n1 and the channels
     not excluded; a multi-axis cell's axis passes :func:`cell_candidate_terms`). The squares of the
-    channels the data spans widely enough (:func:`curvature_candidates`) are added to either.
+    channels the data spans widely enough (:func:`curvature_candidates`) are added to either, unless
+    ``squares`` is False (eq. 3 as the paper wrote it, linear in temperature over any range).
     """
     if penter > premove:
         raise FitError(f"penter ({penter}) must not exceed premove ({premove})")
@@ -336,11 +338,11 @@ def fit(
     channels = list(data.channels)
     scores: dict[int, float] = {}
     folds = 0
-    squares = curvature_candidates(data, exclude)
+    curved = curvature_candidates(data, exclude) if squares else []
 
     def pool(n1: int) -> list[Term]:
         base = candidates(n1) if candidates is not None else candidate_terms(channels, n1, exclude)
-        return base + squares
+        return base + curved
 
     def too_few(order_n1: int, purpose: str, advice: str) -> FitError:
         n, terms = len(data), len(pool(order_n1))
