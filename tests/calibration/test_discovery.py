@@ -12,7 +12,6 @@ room settles) tell them apart; the 24-cycle run names nothing (the CLI test belo
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -257,13 +256,11 @@ def test_cli_names_a_default_thermal_lag_from_simulate_fit_discover(tmp_path, ca
     assert any(name.startswith("lag(") for name in load_model(extended).term_names())
 
 
-def test_a_bending_over_degrees_of_records_is_named_thermal_curvature(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_bending_over_degrees_of_records_is_named_thermal_curvature() -> None:
     """Calibration plus a run 1.5 °C warmer, a model linear in temperature: the residual tracks the
     temperatures (the bracket's bending) and discovery names a channel's square for it."""
     data = concat([simulate_dataset("train", cycles=24, seed=3), simulate_dataset("test5", cycles=30, seed=305)])
-    with monkeypatch.context() as patch:  # the linear fit a lab had before the square was on offer
-        patch.setattr("daemon.model.identify.CURVATURE_MIN_SPAN_C", math.inf)
-        given = fit(data).model
+    given = fit(data, squares=False).model  # the linear fit a lab had before the square was on offer
     result = discover(data, given)
     assert "thermal_curvature" in {c.effect for c in result.rounds[0].candidates}
     assert result.steps and result.steps[0].effect == "thermal_curvature", result.summary
