@@ -34,6 +34,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--keep", action="append", default=[], metavar="TERM",
                         help="a term kept in the model whatever the stepwise says, e.g. --keep x^3 --keep x^2 "
                              "(a refit with days of records keeping the calibration's geometry); one-axis files")
+    parser.add_argument("--no-squares", action="store_true",
+                        help="eq. 3 as the paper wrote it: no channel's square (T2 - c)^2 among the candidates, "
+                             "which fit otherwise offers for a channel the data spans by 1 degC or more")
     parser.add_argument("--penter", type=float, default=0.05, metavar="P",
                         help="stepwise: a term enters when its p-value is below P")
     parser.add_argument("--premove", type=float, default=0.10, metavar="P",
@@ -101,7 +104,7 @@ def main(args: argparse.Namespace) -> int:
             return _fit_cell(args, paths, runs, data, exclude)
         result = fit(
             data, order=_order(args.order), exclude=exclude, penter=args.penter, premove=args.premove,
-            source=", ".join(paths), keep=_kept_terms(args.keep, channels, exclude),
+            source=", ".join(paths), keep=_kept_terms(args.keep, channels, exclude), squares=not args.no_squares,
         )
     except (DataError, FitError, ValueError) as err:
         raise UserError(str(err)) from None
@@ -121,7 +124,7 @@ def _fit_cell(args: argparse.Namespace, paths: list[str], runs: Sequence[Dataset
     """A multi-axis file: one model per axis over every axis' position (``fit_cell``), in one model file."""
     try:
         cell = fit_cell(data, order=_order(args.order), exclude=exclude, penter=args.penter, premove=args.premove,
-                        source=", ".join(paths)).model
+                        source=", ".join(paths), squares=not args.no_squares).model
     except (DataError, FitError, ValueError) as err:
         raise UserError(str(err)) from None
     for model in cell.models.values():

@@ -406,6 +406,7 @@ def fit_cell(
     penter: float = 0.05,
     premove: float = 0.10,
     source: str | None = None,
+    squares: bool = True,
 ) -> CellFitResult:
     """Identification of every axis of a multi-axis run: :func:`fit` per axis over :func:`cell_candidate_terms`,
     the geometric order chosen per axis on held-out cycles."""
@@ -422,6 +423,6 @@ def fit_cell(
             return cell_candidate_terms(axis, axes, channels, n1, exclude)
 
         results[axis] = fit(data.axis_view(axis), order=order, max_order=max_order, exclude=exclude,
-                            penter=penter, premove=premove, source=source, candidates=candidates)
+                            penter=penter, premove=premove, source=source, candidates=candidates, squares=squares)
     models = {a: r.model for a, r in results.items()}
     return CellFitResult(CellModel(axes, models, provenance=dict(models[axes[0]].provenance)), results)

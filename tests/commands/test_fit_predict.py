@@ -12,6 +12,7 @@ from helpers.synthetic import paper_run
 from daemon.calibration.dataset import read_csv, write_csv
 from daemon.cli import main
 from daemon.model.model import load_model
+from drivers.simulated.datasets import simulate_dataset
 
 
 def test_fit_then_predict_round_trip(tmp_path, capsys):
@@ -178,3 +179,22 @@ def test_keep_forces_a_term_the_stepwise_would_leave_out_and_refuses_what_it_can
         assert main(["fit", str(data), "--out", str(tmp_path / "no.json"), *bad]) == 2
         assert said in capsys.readouterr().err
         assert not (tmp_path / "no.json").exists()
+
+
+def test_fit_offers_a_square_over_a_warm_run_and_no_squares_keeps_eq3_linear(tmp_path, capsys):
+    """A calibration plus a run 1.5 °C warmer, as two files: `fit` keeps a channel's square and prints it
+    in the equation; `--no-squares` fits eq. 3 linear in temperature, with no square even offered."""
+    calibration, warm = tmp_path / "calibration.csv", tmp_path / "warm.csv"
+    write_csv(simulate_dataset("train", cycles=24, seed=3), calibration)
+    write_csv(simulate_dataset("test5", cycles=30, seed=305), warm)
+    assert main(["fit", str(calibration), str(warm), "--out", str(tmp_path / "curved.json")]) == 0
+    out = capsys.readouterr().out
+    curved = load_model(tmp_path / "curved.json")
+    squares = [n for n in curved.term_names() if re.fullmatch(r"\(T\d - [\d.]+\)\^2", n)]
+    assert squares, curved.term_names()
+    assert re.search(r"·\(T\d − [\d.]+\)²", out), out  # the equation prints the square
+    assert main(["fit", str(calibration), str(warm), "--out", str(tmp_path / "linear.json"), "--no-squares"]) == 0
+    linear = load_model(tmp_path / "linear.json")
+    assert not [n for n in linear.selection["candidates"] if n.endswith(")^2")]
+    assert main(["fit", str(calibration), "--out", str(tmp_path / "cal.json")]) == 0  # 0.45 °C: none offered
+    assert not [n for n in load_model(tmp_path / "cal.json").selection["candidates"] if n.endswith(")^2")]
