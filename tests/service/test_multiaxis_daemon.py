@@ -106,7 +106,14 @@ def test_a_two_axis_target_is_one_command_and_both_registers_hold_its_voltages(c
     published = cell.client.wait(lambda: [c for c in cell.client.commands if c.get("id") == 7], 5, "command 7")
     assert published == [command]  # published once, every axis in it
     cell.wait_registers(command["voltage_v"])  # what the module holds is what was published, to the count
-    status = cell.client.status()
+
+    def verified() -> dict | None:  # the daemon claims a voltage once its readback confirmed it, just after the write
+        doc = cell.client.status()
+        last = {a: doc["axes"][a]["actuator"]["last_voltage_v"] for a in ("x", "y")}
+        return doc if all(v is not None and abs(v - command["voltage_v"][a]) <= SCALE_V for a, v in last.items()) \
+            else None
+
+    status = wait_until(verified, 5, "both axes' written voltages verified")
     assert set(status["axes"]) == {"x", "y"}
     assert status["axes"]["y"]["max_um"] == 400.0 and status["axes"]["y"]["actuator"]["state"] == "ok"
     assert status["axes"]["x"]["actuator"]["last_voltage_v"] == pytest.approx(command["voltage_v"]["x"],
