@@ -228,10 +228,10 @@ def candidate_terms(channels: Sequence[str], order: int, exclude: Sequence[str] 
     return [Power(k) for k in range(order, 0, -1)] + [Channel(c) for c in channels if c not in exclude]
 
 
-def curvature_candidates(data: Series, exclude: Collection[str] = ()) -> list[Term]:
+def curvature_candidates(data: Series, exclude: Collection[str] = ()) -> list[ChannelSquare]:
     """``(T - centre)^2`` for each channel not excluded that the (valid) rows span by at least
     :data:`CURVATURE_MIN_SPAN_C`; the centre is the middle of its range, to 0.01 °C."""
-    squares: list[Term] = []
+    squares: list[ChannelSquare] = []
     for name, values in data.channels.items():
         v = np.asarray(values, dtype=np.float64)
         v = v[np.isfinite(v)]
@@ -350,6 +350,8 @@ def fit(
         powers = "x" if order_n1 == 1 else "x, x^2" if order_n1 == 2 else f"x..x^{order_n1}"
         used = [c for c in channels if c not in exclude]
         kinds = f"{powers} and channel{'s' if len(used) > 1 else ''} {', '.join(used)}" if used else powers
+        if curved:
+            kinds += f", squares of {', '.join(t.channel for t in curved)}"
         return FitError(
             f"{where}: {_rows(n)}{left_out} {'is' if n == 1 else 'are'} too few {purpose} {terms} candidate "
             f"term{'s' if terms != 1 else ''} ({kinds}) plus a bias: {advice}"

@@ -212,10 +212,10 @@ def _thermal_curvature(ctx: Context) -> list[Candidate]:
         return []
     squares = curvature_candidates(ctx.data, ctx.excluded)
     return [
-        ctx.judge(Candidate("thermal_curvature", [term], [], {"channel": term.channels[0],
-                                                              "centre_c": term.centre_c}, 0, len(squares)),
+        ctx.judge(Candidate("thermal_curvature", [term], [], {"channel": term.channel, "centre_c": term.centre_c},
+                            0, len(squares)),
                   ctx.columns([ctx.feature(term)]))
-        for term in squares if isinstance(term, ChannelSquare)
+        for term in squares
     ]
 
 
