@@ -169,8 +169,8 @@ class Command:
     """One answer on ``command`` (and a ``compensate`` reply), built by keyword only. The fields are
     the payload's keys, in wire order; the optional ones at the end are left out of the payload when
     None (a procedure step has a ``procedure`` and no ``extrapolating``; the daemon's command ends with
-    ``q_sigma_um`` and, with ``[adapt] mode = "bias"``, ``correction_um``). Treat it as immutable once
-    encoded."""
+    ``q_sigma_um`` and, with ``[adapt] mode = "bias"``, ``correction_um`` and ``q_sigma_adapted_um``).
+    Treat it as immutable once encoded."""
 
     id: str | int | None
     x_um: float
@@ -183,6 +183,8 @@ class Command:
     procedure: str | None = None  # the calibration or validation that sent this step
     q_sigma_um: float | None = None  # standard uncertainty of the model's q at this target and temperatures
     correction_um: float | None = None  # the bias tracker's correction, already inside q_um (adaptation on)
+    #: the standard uncertainty of the corrected command, what the tracker leaves (adaptation on)
+    q_sigma_adapted_um: float | None = None
 
 
 _KEYS = tuple(f.name for f in fields(Command))
@@ -209,8 +211,9 @@ def command_doc(command: Command) -> dict[str, Any]:
 
 def _daemon_template(temps: Mapping[str, float], model: str | None, correction: bool) -> str:
     """The daemon's command (every required key, then ``extrapolating``, ``q_sigma_um`` and, when
-    ``correction``, ``correction_um``) with its temperatures and model written in, the rest left as
-    %-fields: id, x_um, q_um, voltage_v, t, extrapolating, q_sigma_um[, correction_um]."""
+    ``correction``, ``correction_um`` and ``q_sigma_adapted_um``) with its temperatures and model
+    written in, the rest left as %-fields: id, x_um, q_um, voltage_v, t, extrapolating, q_sigma_um[,
+    correction_um, q_sigma_adapted_um]."""
     parts = []
     for key in _KEYS:
         if key == "temperatures_c":
@@ -219,7 +222,7 @@ def _daemon_template(temps: Mapping[str, float], model: str | None, correction: 
             value = _encode_string(model).replace("%", "%%")
         elif key == "extrapolating":
             value = "[%s]"
-        elif key == "q_sigma_um" or (key == "correction_um" and correction):
+        elif key == "q_sigma_um" or (key in ("correction_um", "q_sigma_adapted_um") and correction):
             value = "%s"
         elif key in _OPTIONAL:
             continue
@@ -239,11 +242,12 @@ def encode_command(command: Command) -> bytes:
     Anything else (a procedure step, numpy numbers, a NaN) goes through ``json``.
     """
     global _template_cache
-    target_id, x, q, v, temps, model, t, extrapolating, procedure, sigma, correction = _values(command)
+    target_id, x, q, v, temps, model, t, extrapolating, procedure, sigma, correction, adapted = _values(command)
     c = 0.0 if correction is None else correction
+    a = 0.0 if correction is None else adapted  # with a correction comes its σ (None: through json)
     if (type(x) is float and type(q) is float and type(v) is float and type(t) is float and type(sigma) is float
-            and type(c) is float and procedure is None and extrapolating is not None
-            and (x + q + v + t + sigma + c) - (x + q + v + t + sigma + c) == 0.0):
+            and type(c) is float and type(a) is float and procedure is None and extrapolating is not None
+            and (x + q + v + t + sigma + c + a) - (x + q + v + t + sigma + c + a) == 0.0):
         if target_id is None:
             id_json = "null"
         elif type(target_id) is int:
@@ -260,7 +264,7 @@ def encode_command(command: Command) -> bytes:
                 _template_cache = (temps, model, corrected, template)
         names = ",".join([_encode_string(n) for n in extrapolating]) if extrapolating else ""
         if corrected:
-            return (template % (id_json, x, q, v, t, names, sigma, c)).encode()
+            return (template % (id_json, x, q, v, t, names, sigma, c, a)).encode()
         return (template % (id_json, x, q, v, t, names, sigma)).encode()
     return dumps(command_doc(command))
 
@@ -355,7 +359,8 @@ def parse_cell_target(payload: bytes, axes: Sequence[str], max_bytes: int = MAX_
 class CellCommand:
     """One answer of a multi-axis cell on ``command``: every axis from one temperature snapshot. The
     payload (:func:`encode_cell_command`) is ``{"id", "<axis>_um"..., "q_um": {axis: ..}, "voltage_v": {..},
-    "q_sigma_um": {..}, "temperatures_c", "model", "t", "extrapolating"[, "correction_um": {..}]}``."""
+    "q_sigma_um": {..}, "temperatures_c", "model", "t", "extrapolating"[, "correction_um": {..},
+    "q_sigma_adapted_um": {..}]}``."""
 
     id: str | int | None
     positions_um: Mapping[str, float]
@@ -367,6 +372,8 @@ class CellCommand:
     t: float  # unix seconds
     extrapolating: Sequence[str]  # axis names and channels outside the model's training range
     correction_um: Mapping[str, float] | None = None  # the bias correction per axis, inside q_um (adaptation on)
+    #: per corrected axis, the standard uncertainty of its corrected command (adaptation on)
+    q_sigma_adapted_um: Mapping[str, float] | None = None
 
 
 def cell_command_doc(command: CellCommand) -> dict[str, Any]:
@@ -383,6 +390,8 @@ def cell_command_doc(command: CellCommand) -> dict[str, Any]:
     doc["extrapolating"] = list(command.extrapolating)
     if command.correction_um is not None:
         doc["correction_um"] = dict(command.correction_um)
+    if command.q_sigma_adapted_um is not None:
+        doc["q_sigma_adapted_um"] = dict(command.q_sigma_adapted_um)
     return doc
 
 

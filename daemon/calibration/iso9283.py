@@ -61,6 +61,8 @@ class TestResult:
     #: ... and the model's standard uncertainty for its command
     q_sigma_um: list[float] = field(default_factory=list)
     adapted: bool = False
+    #: with ``--adapt``: the standard uncertainty of the corrected command (what the tracker leaves)
+    q_sigma_adapted_um: list[float] = field(default_factory=list)
     #: per step, the true attained position (a simulated cell only; empty on hardware)
     x_true_um: list[float] = field(default_factory=list)
     #: the model's ``wander_um``: what the position sensor adds to a measured error beside q_sigma
@@ -113,6 +115,11 @@ class TestResult:
         """Table I's "with comp." against the true position (nan on hardware or without the model)."""
         return self.true_accuracy_nm()[1]
 
+    @property
+    def command_sigma_um(self) -> list[float]:
+        """The σ of what each step commanded: the tracker's with ``--adapt``, else the model's q_sigma."""
+        return self.q_sigma_adapted_um if self.adapted and self.q_sigma_adapted_um else self.q_sigma_um
+
     def coverage(self, k: float = 2.0) -> float:
         """Share of valid steps whose measured error (position - target) lies within ±k σ (nan without sigmas).
 
@@ -120,16 +127,17 @@ class TestResult:
         the true error q_sigma is for."""
         m2 = self.measurement_sigma_um ** 2
         inside = [abs(s.x_um - s.step.target_um) <= k * float(np.sqrt(sigma * sigma + m2))
-                  for s, sigma in zip(self.steps, self.q_sigma_um, strict=False)
+                  for s, sigma in zip(self.steps, self.command_sigma_um, strict=False)
                   if s.valid and np.isfinite(sigma)]
         return float(np.mean(inside)) if inside else float("nan")
 
     def coverage_true(self, k: float = 2.0) -> float:
-        """Share of valid steps whose TRUE error (true position - target) lies within ±k q_sigma (nan: no truth)."""
+        """Share of valid steps whose TRUE error (true position - target) lies within ±k σ (nan: no truth);
+        σ: :attr:`command_sigma_um`."""
         if not self.has_truth:
             return float("nan")
         inside = [abs(x_true - s.step.target_um) <= k * sigma
-                  for s, sigma, x_true in zip(self.steps, self.q_sigma_um, self.x_true_um, strict=False)
+                  for s, sigma, x_true in zip(self.steps, self.command_sigma_um, self.x_true_um, strict=False)
                   if s.valid and np.isfinite(sigma)]
         return float(np.mean(inside)) if inside else float("nan")
 
@@ -171,6 +179,8 @@ class TestResult:
             "adapted": self.adapted,
             "final_correction_um": num(self.corrections_um[-1]) if self.adapted and self.corrections_um else None,
             "q_sigma_median_nm": num(float(np.median(self.q_sigma_um)) * 1e3) if self.q_sigma_um else None,
+            **({"q_sigma_adapted_median_nm": num(float(np.median(self.q_sigma_adapted_um)) * 1e3)}
+               if self.adapted and self.q_sigma_adapted_um else {}),
             "within_2_sigma": num(self.coverage()),
             **({"with_comp_true_nm": num(self.accuracy_true_nm), "within_2_sigma_true": num(self.coverage_true())}
                if self.has_truth and self.compensated else {}),

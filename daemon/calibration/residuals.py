@@ -249,15 +249,40 @@ class BiasTracker:
         self.tau_s = tau_s
         self.max_um = max_um
         self.first_dt_s = first_dt_s
-        self.correction_um = 0.0
-        self._last_t: float | None = None
-        self.updates = 0
+        self.reset()
 
     def reset(self) -> None:
         """A new model is loaded: its errors are not the old one's."""
         self.correction_um = 0.0
-        self._last_t = None
+        self._last_t: float | None = None
         self.updates = 0
+        #: the share of the model's own error the correction has not taken out yet: the product of
+        #: the updates' exp(-dt / tau_s) (1 before the first residual)
+        self.uncorrected = 1.0
+        #: the residuals' mean square, weighted as the correction weighs them (µm²)
+        self._residual_ms_um2 = 0.0
+
+    @property
+    def residual_rms_um(self) -> float:
+        """RMS of the recent settled residuals (after correction), on the correction's own time scale."""
+        filled = 1.0 - self.uncorrected  # the EWMA started from 0: divide by the weight it has gathered
+        return math.sqrt(self._residual_ms_um2 / filled) if filled > 0 else 0.0
+
+    def sigma_um(self, static_sigma_um: float, wander_um: float) -> float:
+        """``q_sigma`` of a corrected command: what the tracker leaves of the true error.
+
+        The correction takes out the model's error (``static_sigma_um``, the model's own q_sigma)
+        at the rate it learns, and puts in what it followed that is not the stage: the position
+        sensor's own wander (``wander_um``, the calibration's estimate, taken whole: its time
+        constant is not kept, and a filter slower than the wander would pass less of it) and the
+        lag and scatter its residuals still show (their recent RMS, as the sensor sees them). Before
+        the first residual it is the static σ; then
+
+            σ² = u²·static² + (1 - u²)·(wander² + residual RMS²),   u = :attr:`uncorrected`.
+        """
+        u2 = self.uncorrected * self.uncorrected
+        followed = wander_um * wander_um + self.residual_rms_um ** 2
+        return math.sqrt(u2 * static_sigma_um * static_sigma_um + (1.0 - u2) * followed)
 
     def update(self, t: float, residual_um: float) -> float:
         """Feed one settled residual (ok readings only) ending at ``t``; the new correction."""
@@ -266,6 +291,8 @@ class BiasTracker:
         dt = self.first_dt_s if self._last_t is None else max(0.0, t - self._last_t)
         self._last_t = t
         weight = 1.0 - math.exp(-dt / self.tau_s)
+        self.uncorrected *= 1.0 - weight
+        self._residual_ms_um2 += weight * (residual_um * residual_um - self._residual_ms_um2)
         step = -weight * residual_um
         limit = self.max_um * SLEW_TAUS * dt / self.tau_s
         step = max(-limit, min(limit, step))

@@ -38,6 +38,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from daemon.assembly import simulated_drivers
 from daemon.atomic import atomic_write_text
 from daemon.calibration.dataset import DataError
@@ -281,6 +283,17 @@ def discovery_line(model: Model, seed: int) -> str:
             f"to {result.final['holdout_rms_um'] * 1000:.0f} nm" + took)
 
 
+def adapted_sigma_words(static: TestResult, adapted: TestResult) -> str:
+    """The σ of the corrected commands (``q_sigma_adapted_um``) beside the model's, and what it held."""
+    if not (adapted.q_sigma_adapted_um and static.q_sigma_um):
+        return ""
+    held = adapted.coverage_true() if adapted.has_truth else adapted.coverage()
+    return (f"; their σ (q_sigma_adapted_um, what the tracker leaves) median "
+            f"{np.median(adapted.q_sigma_adapted_um) * 1000:.0f} nm against the model's "
+            f"{np.median(static.q_sigma_um) * 1000:.0f} nm, holding {held * 100:.0f} % of the "
+            f"{'true ' if adapted.has_truth else ''}errors within ±2σ")
+
+
 def what_nanodrift_adds(run: DemoRun) -> list[str]:
     """What the service adds beyond the paper's static model, shown on the same tests and seed.
 
@@ -306,7 +319,7 @@ def what_nanodrift_adds(run: DemoRun) -> list[str]:
                      f"({adapted.improvement:.1f}× against {static.improvement:.1f}×) as the interferometer the "
                      f"tracker follows sees it, {static.accuracy_true_nm:.0f} nm -> {adapted.accuracy_true_nm:.0f} nm "
                      f"against the true position; the correction ended at "
-                     f"{adapted.corrections_um[-1] * 1000:+.0f} nm")
+                     f"{adapted.corrections_um[-1] * 1000:+.0f} nm" + adapted_sigma_words(static, adapted))
     if any(line.startswith("adaptation on") for line in lines):
         lines.append(ADAPTATION_NEEDS)
     lines.append(discovery_line(run.model, run.args.seed))

@@ -73,6 +73,10 @@ def _format_cell_command(doc: dict[str, Any]) -> str:
                                for a in axes) + " µm"]
     if isinstance(correction, dict):
         details.append("correction " + " ".join(f"{a} {correction[a]:+.4f}" for a in axes if a in correction) + " µm")
+    adapted = doc.get("q_sigma_adapted_um")
+    if isinstance(adapted, dict):
+        details.append("σ adapted " + " ".join(f"{a} {adapted[a]:.4f}" if isinstance(adapted.get(a), int | float)
+                                               else f"{a} unknown" for a in axes if a in adapted) + " µm")
     temps = ", ".join(f"{k}={v:.3f} °C" for k, v in (doc.get("temperatures_c") or {}).items())
     if temps:
         details.append(temps)
@@ -83,13 +87,17 @@ def _format_cell_command(doc: dict[str, Any]) -> str:
 
 
 def _format_command(doc: dict[str, Any]) -> str:
-    """``x 240.0000 µm -> q 239.6231 µm, 4.79246 V [model m-…; σ 0.0185 µm; T1=21.800 °C, …]``."""
+    """``x 240.0000 µm -> q 239.6231 µm, 4.79246 V [model m-…; σ 0.0185 µm; T1=21.800 °C, …]``
+    (with adaptation, ``correction …`` and ``σ adapted …`` after the model's σ)."""
     temps = ", ".join(f"{k}={v:.3f} °C" for k, v in (doc.get("temperatures_c") or {}).items())
     sigma = doc.get("q_sigma_um")
     details = [f"model {doc['model']}", f"σ {sigma:.4f} µm" if isinstance(sigma, int | float) else "σ unknown"]
     correction = doc.get("correction_um")
     if isinstance(correction, int | float):
         details.append(f"correction {correction:+.4f} µm")
+    adapted = doc.get("q_sigma_adapted_um")
+    if isinstance(adapted, int | float):  # the corrected command's σ: what the bias tracker leaves
+        details.append(f"σ adapted {adapted:.4f} µm")
     if temps:
         details.append(temps)
     extra = f" EXTRAPOLATING {','.join(doc['extrapolating'])}" if doc.get("extrapolating") else ""

@@ -62,6 +62,9 @@ async def run_validation(
     extrapolating = 0
     corrections: list[float] = []
     sigmas: list[float] = []
+    adapted_sigmas: list[float] = []
+    covariance = model.covariance if model is not None else None
+    wander_um = (covariance.wander_um or 0.0) if covariance is not None else 0.0
     if model is not None:
         missing = [c for c in model.channels if c not in drivers.temperature_channels]
         if missing:
@@ -82,7 +85,10 @@ async def run_validation(
             extrapolating += 1
         correction = adapt.correction_um if adapt is not None else 0.0
         corrections.append(correction)
-        sigmas.append(evaluator.sigma(step.target_um, t))
+        sigma = evaluator.sigma(step.target_um, t)
+        sigmas.append(sigma)
+        if adapt is not None:
+            adapted_sigmas.append(adapt.sigma_um(sigma, wander_um))
         return float(evaluator.command(step.target_um, t)) + correction
 
     def on_step(result: StepResult) -> None:
@@ -99,8 +105,8 @@ async def run_validation(
     if model is not None:
         result.corrections_um = corrections
         result.q_sigma_um = sigmas
+        result.q_sigma_adapted_um = adapted_sigmas
         result.adapted = adapt is not None
-        wander = model.covariance.wander_um if model.covariance is not None else None
-        result.measurement_sigma_um = wander or 0.0
+        result.measurement_sigma_um = wander_um
     return result
 

@@ -109,23 +109,26 @@ def coverage_lines(result: TestResult) -> tuple[list[str], str | None]:
     ±2σ: q_sigma understates the error. Over 98 %: it overstates it only if the errors are also
     small against σ (RMS under half the median σ); a run's steps share one offset (the calibration's
     coefficients are off the same way for all of them), so a run whose offset is within 2σ has
-    every step inside, which alone says little.
+    every step inside, which alone says little. With ``--adapt`` the σ judged is the corrected
+    command's (``q_sigma_adapted``, what the tracker leaves), not the model's.
     """
-    if not (result.compensated and result.q_sigma_um):
+    sigmas = result.command_sigma_um
+    if not (result.compensated and sigmas):
         return [], None
-    median_nm = float(np.median(result.q_sigma_um)) * 1e3
+    name = "q_sigma_adapted" if sigmas is result.q_sigma_adapted_um else "q_sigma"
+    median_nm = float(np.median(sigmas)) * 1e3
     measured = result.coverage()
     wander = (f"; the interferometer's wander, {result.measurement_sigma_um * 1e3:.0f} nm, added in quadrature"
               if result.measurement_sigma_um > 0 else "")
     lines = [f"uncertainty: {measured * 100:.0f} % of the steps' measured errors (position - target) lie within "
-             f"±2 q_sigma (median q_sigma {median_nm:.0f} nm{wander}); a calibrated q_sigma keeps 90-98 %"]
+             f"±2 {name} (median {name} {median_nm:.0f} nm{wander}); a calibrated {name} keeps 90-98 %"]
     valid = [s for s in result.steps if s.valid]
     if result.has_truth:
         judged, what = result.coverage_true(), "true errors"
         errors = [s.x_true_um - s.step.target_um for s in valid]
         lines.append(f"against the true position (simulated cell): accuracy {_nm(result.accuracy_true_nm)} with "
                      f"compensation (interferometer: {_nm(result.accuracy_nm)}); {judged * 100:.0f} % of the true "
-                     "errors (true position - target) within ±2 q_sigma")
+                     f"errors (true position - target) within ±2 {name}")
     else:
         judged, what = measured, "measured errors"
         errors = [s.x_um - s.step.target_um for s in valid]
@@ -134,8 +137,8 @@ def coverage_lines(result: TestResult) -> tuple[list[str], str | None]:
     if not math.isfinite(judged) or lo <= judged <= hi or (judged > hi and rms_nm >= 0.5 * median_nm):
         return lines, None
     side = ("understates the error" if judged < lo
-            else f"overstates the error (RMS error {rms_nm:.0f} nm against a median q_sigma of {median_nm:.0f} nm)")
-    return lines, (f"q_sigma is not calibrated on this run: {judged * 100:.0f} % of the {what} within ±2 q_sigma "
+            else f"overstates the error (RMS error {rms_nm:.0f} nm against a median {name} of {median_nm:.0f} nm)")
+    return lines, (f"{name} is not calibrated on this run: {judged * 100:.0f} % of the {what} within ±2 {name} "
                    f"(expected {lo * 100:.0f}-{hi * 100:.0f} % over {len(valid)} steps); it {side}")
 
 

@@ -20,6 +20,7 @@ from types import MappingProxyType
 from typing import Any
 
 from daemon.bus.protocol import CellCommand, CellTarget, Refusal
+from daemon.calibration.residuals import BiasTracker
 from daemon.config import ActuatorConfig
 from daemon.model.cell_model import CellEvaluator, CellModel, load_any_model
 from daemon.model.model import Model, ModelFileError, load_model
@@ -84,6 +85,11 @@ class CellCompensator:
         self.last_extrapolating: list[str] = []
         #: the bias correction per axis (None: adaptation off); health per axis is not built yet
         self.correction_um: dict[str, float] | None = None
+        #: the trackers behind those corrections, per axis (set by the health units): a corrected axis'
+        #: command carries the σ its tracker leaves (``q_sigma_adapted_um``, :meth:`BiasTracker.sigma_um`)
+        self.trackers: dict[str, BiasTracker] = {}
+        self._wander_um = {a: (m.covariance.wander_um or 0.0) if m.covariance is not None else 0.0
+                           for a, m in (model.models.items() if model is not None else ())}
         #: (cell time, command) of every command served, for a health unit (None: none listens)
         self.served: deque[tuple[float, Any]] | None = None
         self._model_id = model.id if model is not None else None
@@ -148,6 +154,8 @@ class CellCompensator:
                 raise Refusal("voltage_limit", f"axis {axis}: {error}: no axis moves", target.id) from None
             q_um[axis] = q
         sigma = evaluator.sigma(positions, now)
+        adapted = {axis: tracker.sigma_um(sigma[axis], self._wander_um.get(axis, 0.0))
+                   for axis, tracker in self.trackers.items()} or None
         evaluator.moved(positions, now)  # only a command that goes out moves the stage
         outside_axes = [a for a in self.axes if a in self._position_ranges
                         and not self._position_ranges[a][0] <= positions[a] <= self._position_ranges[a][1]]
@@ -156,7 +164,8 @@ class CellCompensator:
         command = CellCommand(id=target.id, positions_um=positions, q_um=q_um, voltage_v=voltage_v,
                               q_sigma_um={a: sigma[a] for a in self.axes}, temperatures_c=self._temps,
                               model=self._model_id, t=unix_now, extrapolating=extrapolating,
-                              correction_um=dict(correction) if correction is not None else None)
+                              correction_um=dict(correction) if correction is not None else None,
+                              q_sigma_adapted_um=adapted)
         if self.served is not None:
             self.served.append((now, command))
         return command

@@ -23,7 +23,7 @@ import zenoh
 
 from daemon.bus.protocol import CellCommand, Command, dumps
 from daemon.bus.session import Bus
-from daemon.calibration.residuals import Settled
+from daemon.calibration.residuals import BiasTracker, Settled
 from daemon.config import Config
 from daemon.model.cell_model import CellModel
 from daemon.service.cell_compensator import CellCompensator
@@ -71,6 +71,19 @@ class _AxisCompensator:
             self.cell.correction_um = {}
         self.cell.correction_um[self.axis] = value
 
+    @property
+    def tracker(self) -> BiasTracker | None:
+        return self.cell.trackers.get(self.axis) if self.cell is not None else None
+
+    @tracker.setter
+    def tracker(self, value: BiasTracker | None) -> None:
+        if self.cell is None:
+            return
+        if value is None:
+            self.cell.trackers.pop(self.axis, None)
+        else:
+            self.cell.trackers[self.axis] = value
+
 
 class _Served:
     """The cell compensator's ``served`` queue: each command split into one per watched axis."""
@@ -84,11 +97,12 @@ class _Served:
             if unit.position_channel is None:
                 continue
             correction = command.correction_um.get(axis) if command.correction_um is not None else None
+            adapted = command.q_sigma_adapted_um.get(axis) if command.q_sigma_adapted_um is not None else None
             unit.served.append((t, Command(
                 id=command.id, x_um=command.positions_um[axis], q_um=command.q_um[axis],
                 voltage_v=command.voltage_v[axis], temperatures_c=command.temperatures_c, model=command.model,
                 t=command.t, extrapolating=command.extrapolating, q_sigma_um=command.q_sigma_um[axis],
-                correction_um=correction)))
+                correction_um=correction, q_sigma_adapted_um=adapted)))
 
 
 class CellHealth:

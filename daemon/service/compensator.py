@@ -23,6 +23,7 @@ from types import MappingProxyType
 from typing import Any
 
 from daemon.bus.protocol import Command, Refusal, Target
+from daemon.calibration.residuals import BiasTracker
 from daemon.config import ActuatorConfig
 from daemon.model.model import Evaluator, Model, ModelFileError, load_model
 from daemon.motion import VoltageLimitError, checked_voltage
@@ -73,6 +74,11 @@ class Compensator:
         self.last_extrapolating: list[str] = []
         #: the bias correction added to every command (None: adaptation off); set by the health unit
         self.correction_um: float | None = None
+        #: the tracker behind that correction (set by the health unit): a corrected command carries, beside
+        #: the model's q_sigma, the σ the tracker leaves (``q_sigma_adapted_um``, :meth:`BiasTracker.sigma_um`)
+        self.tracker: BiasTracker | None = None
+        covariance = model.covariance if model is not None else None
+        self._wander_um = (covariance.wander_um or 0.0) if covariance is not None else 0.0
         #: (cell time, command) of every command served, for the health unit (None: no position sensor)
         self.served: deque[tuple[float, Command]] | None = None
         # the hot path: channel entries and training ranges, prepared once
@@ -140,13 +146,15 @@ class Compensator:
         except VoltageLimitError as error:
             raise Refusal("voltage_limit", str(error), target.id) from None
         sigma = evaluator.sigma(x, now)  # before the move: motion terms see what value() saw
+        tracker = self.tracker
+        adapted = tracker.sigma_um(sigma, self._wander_um) if tracker is not None else None
         evaluator.moved(x, now)  # only a command that goes out moves the stage
         lo, hi = self._x_range
         extrapolating = [*self._temps_outside] if lo <= x <= hi else ["x", *self._temps_outside]
         self.last_extrapolating = extrapolating
         command = Command(id=target.id, x_um=x, q_um=q, voltage_v=voltage, temperatures_c=self._temps,
                           model=self._model_id, t=unix_now, extrapolating=extrapolating, q_sigma_um=sigma,
-                          correction_um=correction)
+                          correction_um=correction, q_sigma_adapted_um=adapted)
         if self.served is not None:
             self.served.append((now, command))
         return command

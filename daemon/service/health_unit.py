@@ -118,6 +118,8 @@ class HealthUnit:
         self._compensator = compensator
         compensator.served = self.served if self.position_channel is not None else None
         compensator.correction_um = self.tracker.correction_um if self.tracker is not None else None
+        if not isinstance(compensator, CellCompensator):  # a cell's axes attach through their own views
+            compensator.tracker = self.tracker
 
     def reconfigure(self, config: Config, compensator: Compensator | CellCompensator) -> None:
         """A reload (under state.lock): a new model, new ``[health]`` monitor or ``[adapt]`` settings or

@@ -17,6 +17,7 @@ from helpers.daemon_harness import write_test_model
 
 from daemon.bus.actuator import ZenohActuator
 from daemon.bus.protocol import Refusal, Target, encode_command, encode_error, parse_target
+from daemon.calibration.residuals import BiasTracker
 from daemon.config import ActuatorConfig, parse_config
 from daemon.service.compensator import Compensator
 from daemon.service.table import SensorTable
@@ -88,6 +89,17 @@ def test_command_payload_bytes_with_uncertainty_and_correction(compensator: Comp
         b'{"id":"k","x_um":200.0,"q_um":176.37999999999997,"voltage_v":3.5275999999999996,'
         b'"temperatures_c":{"T1":21.8,"T2":21.9},"model":"m-735e979167ac","t":1700000000.25,"extrapolating":[],'
         b'"q_sigma_um":0.025,"correction_um":-0.25}'
+    )
+    # the tracker behind it (issue 19): the corrected command's own σ follows its correction
+    tracker = BiasTracker(600.0, 1.0)
+    tracker.update(0.0, 0.3)
+    tracker.update(30.0, 0.1)
+    compensator.tracker, compensator.correction_um = tracker, tracker.correction_um
+    # σ² = u²·0.025² + (1 - u²)·RMS², u = exp(-60/600), RMS of the residuals 0.3 and 0.1 as weighted
+    assert command_bytes(compensator, Target("k", 200.0)) == (
+        b'{"id":"k","x_um":200.0,"q_um":176.61049176980026,"voltage_v":3.532209835396005,'
+        b'"temperatures_c":{"T1":21.8,"T2":21.9},"model":"m-735e979167ac","t":1700000000.25,"extrapolating":[],'
+        b'"q_sigma_um":0.025,"correction_um":-0.019508230199714392,"q_sigma_adapted_um":0.09692232753519878}'
     )
 
 

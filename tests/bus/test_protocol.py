@@ -147,17 +147,23 @@ def test_the_fast_command_encoder_writes_the_same_json_as_json_dumps(target_id: 
         {"q_sigma_um": 0.0125, "correction_um": 0.0, "extrapolating": ["T4"]},
         {"q_sigma_um": math.nan},  # a model that cannot say: null
         {"q_sigma_um": np.float64(0.02), "correction_um": 0.1},
+        {"q_sigma_um": 0.0125, "correction_um": -0.3, "q_sigma_adapted_um": 0.031},  # the tracker's σ last
+        {"q_sigma_um": 0.0125, "correction_um": -0.3, "q_sigma_adapted_um": math.nan},
+        {"q_sigma_um": 0.0125, "correction_um": -0.3, "q_sigma_adapted_um": np.float64(0.031)},
     ],
     ids=["daemon", "no-model", "percent", "dict-temps", "nan-temp", "inf", "numpy", "procedure", "sigma",
-         "sigma-correction", "zero-correction", "nan-sigma", "numpy-sigma"],
+         "sigma-correction", "zero-correction", "nan-sigma", "numpy-sigma", "adapted-sigma", "nan-adapted",
+         "numpy-adapted"],
 )
 def test_every_command_encodes_as_json_of_its_document(changes: dict[str, object]) -> None:
     value = command(**changes)
     doc = command_doc(value)
     assert encode_command(value) == dumps(doc)
     assert list(doc) == [k for k in ("id", "x_um", "q_um", "voltage_v", "temperatures_c", "model", "t",
-                                     "extrapolating", "procedure", "q_sigma_um", "correction_um") if k in doc]
+                                     "extrapolating", "procedure", "q_sigma_um", "correction_um",
+                                     "q_sigma_adapted_um") if k in doc]
     assert ("correction_um" in doc) == (value.correction_um is not None)
+    assert ("q_sigma_adapted_um" in doc) == (value.q_sigma_adapted_um is not None)
     assert ("extrapolating" in doc) == (value.extrapolating is not None)
     assert ("procedure" in doc) == (value.procedure is not None)
 

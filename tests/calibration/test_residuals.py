@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import pytest
@@ -101,3 +102,50 @@ def test_bias_tracker_never_jumps_or_leaves_its_clamp(steps, tau_s: float, max_u
         assert abs(after) <= max_um + 1e-12
         allowed = max_um * (dt if tracker.updates > 1 else tracker.first_dt_s) / tau_s
         assert abs(after - before) <= allowed + 1e-12
+
+
+def test_a_corrected_commands_sigma_goes_from_the_models_to_what_the_tracker_follows() -> None:
+    """Issue 19: with ``[adapt] mode = "bias"`` q_sigma is what the tracker leaves, not the static model's."""
+    tracker = BiasTracker(tau_s=600.0, max_um=1.0)
+    static_um, wander_um = 1.0, 0.03  # out of range: the static model could be 1 µm off
+    assert tracker.sigma_um(static_um, wander_um) == static_um  # nothing learnt yet: the model's own σ
+    error_um, scatter_um = 0.4, 0.01
+    sigmas = []
+    for k in range(200):
+        residual = error_um + tracker.correction_um + (scatter_um if k % 2 else -scatter_um)
+        tracker.update(30.0 * k, residual)
+        sigmas.append(tracker.sigma_um(static_um, wander_um))
+    assert tracker.uncorrected == pytest.approx(math.exp(-(30.0 + 199 * 30.0) / 600.0))
+    # learnt: the error is taken out; what is left is the wander it follows and the scatter it still sees
+    assert tracker.residual_rms_um == pytest.approx(scatter_um, rel=0.1)  # and what is left of the first ones
+    assert sigmas[-1] == pytest.approx(math.hypot(wander_um, scatter_um), rel=0.02)
+    assert sigmas[0] < static_um and all(b <= a + 1e-12 for a, b in itertools.pairwise(sigmas[20:]))
+    tracker.reset()  # a new model: its errors are not the old one's
+    assert (tracker.uncorrected, tracker.residual_rms_um) == (1.0, 0.0)
+    assert tracker.sigma_um(static_um, wander_um) == static_um
+
+
+def test_a_tracker_held_at_its_clamp_keeps_a_wide_sigma() -> None:
+    """A correction stuck at ``max_um`` leaves the rest of the error: its residuals say so, and σ keeps it."""
+    tracker = BiasTracker(tau_s=60.0, max_um=0.5)
+    for k in range(200):
+        tracker.update(30.0 * k, 2.0 + tracker.correction_um)
+    assert tracker.correction_um == -0.5
+    assert tracker.sigma_um(0.1, 0.02) == pytest.approx(1.5, rel=0.01)  # 2 µm error, 0.5 µm corrected
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.tuples(st.floats(0.1, 120.0), st.floats(-50.0, 50.0)), min_size=1, max_size=50),
+       st.floats(1.0, 3600.0), st.floats(0.0, 10.0), st.floats(0.0, 1.0))
+def test_the_trackers_sigma_is_finite_and_between_its_parts(steps, tau_s: float, static_um: float,
+                                                             wander_um: float) -> None:
+    tracker = BiasTracker(tau_s=tau_s, max_um=1.0)
+    t = 0.0
+    for dt, residual in steps:
+        t += dt
+        tracker.update(t, residual)
+        sigma = tracker.sigma_um(static_um, wander_um)
+        followed = math.hypot(wander_um, tracker.residual_rms_um)
+        assert math.isfinite(sigma)
+        assert min(static_um, followed) - 1e-9 <= sigma <= max(static_um, followed) + 1e-9
+        assert tracker.residual_rms_um <= max(abs(r) for _, r in steps) + 1e-9

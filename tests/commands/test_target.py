@@ -69,10 +69,17 @@ def test_target_readable_output_shows_sigma_and_degrees(served: Served) -> None:
 
 def test_a_commands_sigma_and_correction_are_printed_in_micrometres() -> None:
     doc = {"id": 0, "x_um": 240.0, "q_um": 239.6231, "voltage_v": 4.79246, "temperatures_c": {"T1": 21.8},
-           "model": "m-1", "t": 0.0, "extrapolating": ["T1"], "q_sigma_um": 0.01854, "correction_um": -0.0123}
+           "model": "m-1", "t": 0.0, "extrapolating": ["T1"], "q_sigma_um": 0.01854, "correction_um": -0.0123,
+           "q_sigma_adapted_um": 0.03107}
     assert target_command._format_command(doc) == (
         "x 240.0000 µm -> q 239.6231 µm, 4.79246 V [model m-1; σ 0.0185 µm; correction -0.0123 µm; "
-        "T1=21.800 °C] EXTRAPOLATING T1")
+        "σ adapted 0.0311 µm; T1=21.800 °C] EXTRAPOLATING T1")
+    cell = {"id": 0, "x_um": 1.0, "y_um": 2.0, "q_um": {"x": 1.1, "y": 2.2}, "voltage_v": {"x": 0.1, "y": 0.2},
+            "q_sigma_um": {"x": 0.02, "y": None}, "temperatures_c": {}, "model": "m-2", "t": 0.0,
+            "extrapolating": [], "correction_um": {"x": -0.3, "y": 0.2}, "q_sigma_adapted_um": {"x": 0.3, "y": None}}
+    assert target_command._format_cell_command(cell) == (
+        "x 1.0000 y 2.0000 µm -> q x 1.1000 y 2.2000 µm, x 0.10000 y 0.20000 V [model m-2; σ x 0.0200 y unknown µm; "
+        "correction x -0.3000 y +0.2000 µm; σ adapted x 0.3000 y unknown µm]")
 
 
 def test_a_wrong_cell_is_named_with_the_cells_that_answer(served: Served) -> None:

@@ -30,14 +30,18 @@ def cell_terms(axes: Sequence[str]) -> dict[str, dict[str, float]]:
     return terms
 
 
-def write_cell_model(path: Path, axes: Sequence[str] = ("x", "y"), max_um: float = 480.0) -> CellModel:
+def write_cell_model(path: Path, axes: Sequence[str] = ("x", "y"), max_um: float = 480.0,
+                     rmse_um: float | None = None) -> CellModel:
+    """A hand-made cell model (:func:`expected_cell_q` computes its q); with ``rmse_um`` its σ is that
+    residual RMS, without it σ is unknown (no covariance, no fit)."""
     axes = tuple(axes)
     models = {}
     for axis, terms in cell_terms(axes).items():
         training = Training(x_range=(0.0, max_um), channel_ranges=dict(CELL_CHANNEL_RANGES), rows=100,
                             t_span_s=3600.0, position_ranges={a: (0.0, max_um) for a in axes if a != "x"})
         models[axis] = Model(terms=[FittedTerm(parse_term(name, axes), coef) for name, coef in terms.items()],
-                             training=training, provenance={"source": "tests/helpers/cell_helpers.py"})
+                             training=training, provenance={"source": "tests/helpers/cell_helpers.py"},
+                             fit={} if rmse_um is None else {"rmse_um": rmse_um})
     model = CellModel(axes, models, {"source": "tests/helpers/cell_helpers.py"})
     save_cell_model(model, path)
     return model

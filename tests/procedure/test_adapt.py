@@ -65,7 +65,8 @@ def test_online_and_offline_trackers_agree_sample_for_sample() -> None:
 
 def test_the_daemons_health_unit_gives_validate_adapts_corrections_sample_for_sample() -> None:
     """The residuals of a ``validate --adapt`` run (one invalid step included), served by the daemon's
-    own pieces: each command's ``correction_um`` equals the correction ``validate`` gave that step."""
+    own pieces: each command's ``correction_um`` equals the correction ``validate`` gave that step, and
+    its ``q_sigma_um`` the σ the tracker left there (issue 19)."""
     model = shifted(trained_model(0), 0.3)
     offline_tracker = BiasTracker(300.0, 1.0)
     offline = validate(model, 4, offline_tracker, fault=True)
@@ -82,8 +83,10 @@ def test_the_daemons_health_unit_gives_validate_adapts_corrections_sample_for_sa
     compensator = Compensator(model, config.actuator, table)
     health = HealthUnit(config, model, get_logger("test"))
     health.attach(compensator)
+    assert model.covariance is not None
+    wander_um = model.covariance.wander_um or 0.0
 
-    online = []
+    online, online_sigma = [], []
     for i, step in enumerate(offline.steps):
         # the daemon's window (settle 3 s, then 2 s) ends where the step's average ended: integer
         # offsets from t_s, so the window's end is t_s to the last bit
@@ -91,11 +94,23 @@ def test_the_daemons_health_unit_gives_validate_adapts_corrections_sample_for_sa
         for channel, value in step.temperatures.items():
             table.update(channel, Reading(value, t=t_command))
         compensator.observe(t_command, step.temperatures)
+        assert compensator.evaluator is not None and health.tracker is not None
+        static_um = compensator.evaluator.sigma(step.step.target_um, t_command)  # the model's own σ here
+        left_um = health.tracker.sigma_um(static_um, wander_um)  # what the tracker leaves of it
         command = compensator.compensate(Target(i, step.step.target_um), t_command, 1.7e9)
         online.append(command.correction_um)
+        online_sigma.append((command.q_sigma_adapted_um, left_um, static_um))
+        assert command.q_sigma_um == static_um  # the model's own σ, as the contract has it
         health.on_position(step.t_s - 1.0, step.t_s - 1.0, step.x_um, step.valid)  # inside the window
         health.on_position(step.t_s + 0.5, step.t_s + 0.5, step.x_um, True)  # the next reading closes it
     assert online == offline.corrections_um  # identical floats, command by command
+    assert [a for a, _, _ in online_sigma] == [left for _, left, _ in online_sigma]
+    assert online_sigma[0][0] == online_sigma[0][2]  # nothing learnt yet: the model's own σ
+    # the +0.3 µm the residuals showed widened σ; taken out, it no longer counts (as in validate --adapt)
+    sent = [a for a, _, _ in online_sigma]
+    assert sent[1:] == pytest.approx(offline.q_sigma_adapted_um[1:], rel=0.01)  # the same σ as validate --adapt gave
+    assert max(sent) > 0.15  # the +0.3 µm the residuals show counts until it is taken out ...
+    assert sent[-1] < 0.6 * max(sent) and sent[-1] > 0.3 + online[-1]  # ... and what is left still does
     assert health.correction_um == offline_tracker.correction_um
     assert health.monitor.n == sum(s.valid for s in offline.steps)
     assert online[-1] < -0.1  # it moved towards cancelling the +0.3 um

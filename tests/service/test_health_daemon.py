@@ -145,7 +145,8 @@ def test_the_right_model_stays_ok_and_adaptation_cancels_a_bias_after_a_reload(t
         health = cell.health()
         assert health["state"] == "ok", health  # the model fits the cell: no alarm
         assert abs(health["residual_mean_nm"]) < 80.0 and health["residual_rms_nm"] < 100.0
-        assert right[0]["correction_um"] == 0.0  # adaptation on: every command shows its correction
+        assert right[0]["correction_um"] == 0.0  # adaptation on: every command shows its correction ...
+        assert right[0]["q_sigma_adapted_um"] == right[0]["q_sigma_um"]  # ... and its σ (nothing learnt yet)
         assert all(abs(c["correction_um"]) < 0.1 for c in right)
         assert not cell.daemon.log_events("health_degraded")
 
@@ -160,8 +161,11 @@ def test_the_right_model_stays_ok_and_adaptation_cancels_a_bias_after_a_reload(t
 
         first = cell.settle(240.0, "after-reload")
         assert first["model"] == shifted.id and first["correction_um"] == 0.0
+        assert first["q_sigma_adapted_um"] == first["q_sigma_um"]  # a fresh tracker: the new model's own σ
         # its residual (+0.3 um) moved the correction towards -0.3 um; q = model + correction
         later = [cell.settle(X_CYCLE[i % len(X_CYCLE)], f"later-{i}") for i in range(4)]
+        # the +0.3 um the first residual showed counts in the corrected commands' σ (issue 19)
+        assert later[0]["q_sigma_adapted_um"] > 0.2 > later[0]["q_sigma_um"]
         for command in later:
             assert command["correction_um"] == pytest.approx(-0.3, abs=0.08)
             assert command["q_um"] == pytest.approx(model_q(shifted, command) + command["correction_um"], abs=1e-9)

@@ -53,12 +53,13 @@ def cell_config(root: Path, *, port: int, modbus_port: int, model: Path, sensors
 
 
 class XYCell:
-    def __init__(self, root: Path, extra: str = "", values: dict[str, float] | None = None) -> None:
+    def __init__(self, root: Path, extra: str = "", values: dict[str, float] | None = None,
+                 rmse_um: float | None = None) -> None:
         self.module = ThreadedModbus().start()
         self.port = free_port()
         self.metrics_port = free_port()
         plugins = install_file_plugin(root / "plugins")
-        self.model = write_cell_model(root / "model.json", ("x", "y"))
+        self.model = write_cell_model(root / "model.json", ("x", "y"), rmse_um=rmse_um)
         self.sensors = SensorFile(root / "sensors.json", {**TEMPS, **(values or {})})
         config = root / "xy.toml"
         config.write_text(cell_config(root, port=self.port, modbus_port=self.module.port, model=root / "model.json",
@@ -223,10 +224,12 @@ def test_each_axis_has_its_health_and_its_own_bias_correction(tmp_path: Path) ->
     extra = positions + (f'[health]\nsettle_s = 0.05\nwindow_s = 0.3\nrecord_dir = "{tmp_path / "records"}"\n'
                          '[adapt]\nmode = "bias"\ntau_s = 1.0\nmax_um = 1.0\n')
     # the stage lands 0.3 um over the target on x, 0.2 um under it on y
-    cell = XYCell(tmp_path, extra, {"ifm_x": 100.3, "ifm_y": 49.8})
+    cell = XYCell(tmp_path, extra, {"ifm_x": 100.3, "ifm_y": 49.8}, rmse_um=0.02)
     try:
         ok, first = cell.client.query({"x_um": 100, "y_um": 50, "id": 1})
         assert ok and first["correction_um"] == {"x": 0.0, "y": 0.0}, first
+        # nothing learnt yet: the model's own σ
+        assert first["q_sigma_adapted_um"] == first["q_sigma_um"] == {"x": 0.02, "y": 0.02}, first
 
         def settled() -> dict[str, object] | None:
             health = cell.client.status()["health"]
@@ -239,6 +242,11 @@ def test_each_axis_has_its_health_and_its_own_bias_correction(tmp_path: Path) ->
         assert ok, second
         correction = second["correction_um"]
         assert correction["x"] < 0 < correction["y"], correction  # each axis pushed against its own residual
+        # each axis' σ is what its own tracker leaves: the 0.3 (0.2) µm its one residual showed (tau_s 1 s:
+        # learnt at once; a model without covariance has no wander to add)
+        adapted = second["q_sigma_adapted_um"]
+        assert adapted == pytest.approx({"x": 0.3, "y": 0.2}, abs=1e-6), second
+        assert second["q_sigma_um"] == first["q_sigma_um"], second  # the model's own σ: same targets, temperatures
         with urllib.request.urlopen(f"http://127.0.0.1:{cell.metrics_port}/metrics", timeout=5) as page:
             metrics = page.read().decode()
         mean = re.search(r'nanodrift_health_residual_mean_meters\{axis="y",cell="xy"\} (\S+)', metrics)
