@@ -288,7 +288,7 @@ def adapted_sigma_words(static: TestResult, adapted: TestResult) -> str:
     if not (adapted.q_sigma_adapted_um and static.q_sigma_um):
         return ""
     held = adapted.coverage_true() if adapted.has_truth else adapted.coverage()
-    return (f"; their σ (q_sigma_adapted_um, what the tracker leaves) median "
+    return (f"; the corrected commands' σ (q_sigma_adapted_um, what the tracker leaves) median "
             f"{np.median(adapted.q_sigma_adapted_um) * 1000:.0f} nm against the model's "
             f"{np.median(static.q_sigma_um) * 1000:.0f} nm, holding {held * 100:.0f} % of the "
             f"{'true ' if adapted.has_truth else ''}errors within ±2σ")
