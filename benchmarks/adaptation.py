@@ -17,9 +17,11 @@ looks larger through the interferometer than it is in truth.
 
 Goals (issue 12): adaptive test 5 median >= 10x and worst >= 5x (interferometer's view, as Table I);
 on tests 2-4 the adaptive run is never worse than the static one against the truth on any seed.
-Coverage (issue 19): per test and seed, the share of the static run's valid steps whose TRUE error
-(true position - target) lies within ±2 q_sigma; goal 90-98 % (median over the seeds), no seed
-below 80 %.
+Coverage (issue 19): per test and seed, the share of the valid steps whose TRUE error (true position
+- target) lies within ±2σ; goal 90-98 % (median over the seeds), no seed below 80 %. σ is the
+model's q_sigma in the static runs and the corrected command's q_sigma_adapted (what the tracker
+leaves, ``BiasTracker.sigma_um``) in the adaptive ones. With the true errors in hand it also scans
+which widths could meet the goal at all (the oracle), for both kinds of run.
 """
 
 from __future__ import annotations
