@@ -187,6 +187,12 @@ class Model:
         value = self.fit.get("rmse_um")
         return float(value) if _is_number(value) and math.isfinite(value) and value >= 0 else math.nan
 
+    @property
+    def wander_um(self) -> float:
+        """The position sensor's slow wander the calibration saw (``covariance.wander_um``; 0 without it)."""
+        covariance = self.covariance
+        return (covariance.wander_um or 0.0) if covariance is not None else 0.0
+
     def q_sigma(self, data: Series) -> np.ndarray:
         """Standard uncertainty (µm) of the command :meth:`predict` gives for every row.
 

@@ -63,8 +63,7 @@ async def run_validation(
     corrections: list[float] = []
     sigmas: list[float] = []
     adapted_sigmas: list[float] = []
-    covariance = model.covariance if model is not None else None
-    wander_um = (covariance.wander_um or 0.0) if covariance is not None else 0.0
+    wander_um = model.wander_um if model is not None else 0.0
     if model is not None:
         missing = [c for c in model.channels if c not in drivers.temperature_channels]
         if missing:

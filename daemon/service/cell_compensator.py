@@ -83,13 +83,12 @@ class CellCompensator:
         self.channels: tuple[str, ...] = model.channels if model is not None else ()
         self.missing = tuple(c for c in self.channels if c not in table.entries)
         self.last_extrapolating: list[str] = []
-        #: the bias correction per axis (None: adaptation off); health per axis is not built yet
+        #: the bias correction per axis (None: adaptation off); set by the axes' health units
         self.correction_um: dict[str, float] | None = None
         #: the trackers behind those corrections, per axis (set by the health units): a corrected axis'
         #: command carries the σ its tracker leaves (``q_sigma_adapted_um``, :meth:`BiasTracker.sigma_um`)
         self.trackers: dict[str, BiasTracker] = {}
-        self._wander_um = {a: (m.covariance.wander_um or 0.0) if m.covariance is not None else 0.0
-                           for a, m in (model.models.items() if model is not None else ())}
+        self._wander_um = {a: m.wander_um for a, m in (model.models.items() if model is not None else ())}
         #: (cell time, command) of every command served, for a health unit (None: none listens)
         self.served: deque[tuple[float, Any]] | None = None
         self._model_id = model.id if model is not None else None

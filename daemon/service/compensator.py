@@ -77,8 +77,7 @@ class Compensator:
         #: the tracker behind that correction (set by the health unit): a corrected command carries, beside
         #: the model's q_sigma, the σ the tracker leaves (``q_sigma_adapted_um``, :meth:`BiasTracker.sigma_um`)
         self.tracker: BiasTracker | None = None
-        covariance = model.covariance if model is not None else None
-        self._wander_um = (covariance.wander_um or 0.0) if covariance is not None else 0.0
+        self._wander_um = model.wander_um if model is not None else 0.0
         #: (cell time, command) of every command served, for the health unit (None: no position sensor)
         self.served: deque[tuple[float, Command]] | None = None
         # the hot path: channel entries and training ranges, prepared once
