@@ -1,6 +1,6 @@
 """From a target arriving to the device holding the new value, against the device's bare round trip, same run.
 
-- The daemon is ``python -m daemon.cli run`` (what ``nanodrift run`` runs) in its own process, with the
+- The daemon is ``python -m nanodrift.cli run`` (what ``nanodrift run`` runs) in its own process, with the
   test harness' ``file`` temperature sensors and a small known model; a client-mode Zenoh session on
   127.0.0.1 puts each target on ``nanodrift/<cell>/target``. "target -> held" runs from just before
   that ``put`` to the device's own stamp of the write (every process reads CLOCK_MONOTONIC through
@@ -58,11 +58,11 @@ from helpers.daemon_harness import (
 )
 from helpers.serial_helpers import FakeGcsController
 
-from drivers.base import DriverContext
-from drivers.modbus.config import ModbusActuatorConfig, ModbusHubConfig
-from drivers.modbus.plugin import PLUGIN as MODBUS
-from drivers.serial_line.config import SerialLineActuatorConfig
-from drivers.serial_line.plugin import PLUGIN as SERIAL_LINE
+from nanodrift.drivers.base import DriverContext
+from nanodrift.drivers.modbus.config import ModbusActuatorConfig, ModbusHubConfig
+from nanodrift.drivers.modbus.plugin import PLUGIN as MODBUS
+from nanodrift.drivers.serial_line.config import SerialLineActuatorConfig
+from nanodrift.drivers.serial_line.plugin import PLUGIN as SERIAL_LINE
 
 ADDRESS = 10  # the daemon's (and the driver's) output register
 BARE_ADDRESS = 11  # the bare client's: never read back by the daemon's verify

@@ -39,12 +39,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from anywhere, never tests/drivers
 
-from daemon.assembly import simulated_drivers
-from daemon.calibration.iso9283 import TestResult
-from daemon.calibration.residuals import BiasTracker
-from daemon.model.identify import fit
-from daemon.procedure.validation import run_validation
-from drivers.simulated.datasets import simulate_dataset
+from nanodrift.assembly import simulated_drivers
+from nanodrift.calibration.iso9283 import TestResult
+from nanodrift.calibration.residuals import BiasTracker
+from nanodrift.drivers.simulated.datasets import simulate_dataset
+from nanodrift.model.identify import fit
+from nanodrift.procedure.validation import run_validation
 
 TESTS = ("test2", "test3", "test4", "test5")
 GOAL_TEST5_MEDIAN, GOAL_TEST5_WORST = 10.0, 5.0

@@ -1,7 +1,7 @@
 """Round trip target -> command through the daemon, against a bare Zenoh echo node (the floor).
 
 One run, side by side, on this machine:
-- the daemon (``python -m daemon.cli run``, simulated cell, shipped model) and a bare echo node
+- the daemon (``python -m nanodrift.cli run``, simulated cell, shipped model) and a bare echo node
   (a subscriber that republishes each payload from Zenoh's callback thread), each in its own process,
   each reached by a client-mode session over tcp/127.0.0.1;
 - p50/p99 of the round trip at 1 kHz (targets paced at 1 ms), a burst of targets sent as fast as
@@ -36,12 +36,12 @@ from typing import Any
 
 import zenoh
 
-from daemon.assembly import build_drivers
-from daemon.config import load_config
-from daemon.logs import configure_logging
-from daemon.service import Service
-from daemon.service.status import StatusHandler
-from daemon.service.targets import TargetHandler
+from nanodrift.assembly import build_drivers
+from nanodrift.config import load_config
+from nanodrift.logs import configure_logging
+from nanodrift.service import Service
+from nanodrift.service.status import StatusHandler
+from nanodrift.service.targets import TargetHandler
 
 REPO = Path(__file__).resolve().parent.parent
 ECHO_IN, ECHO_OUT = "bench/echo/target", "bench/echo/command"
@@ -195,9 +195,9 @@ def wait_line(proc: subprocess.Popen[Any], stream_path: Path | None, needle: str
 def write_models(tmp: Path, axes: tuple[str, ...]) -> tuple[Path, Path]:
     """A one-axis model and an N-axis cell model (every axis: its position, the next axis', their product,
     T1, T2), both in the range the benchmark's targets and temperatures stay in."""
-    from daemon.model.cell_model import CellModel, save_cell_model
-    from daemon.model.model import FittedTerm, Model, Training, save_model
-    from daemon.model.terms import parse_term
+    from nanodrift.model.cell_model import CellModel, save_cell_model
+    from nanodrift.model.model import FittedTerm, Model, Training, save_model
+    from nanodrift.model.terms import parse_term
 
     ranges = {"T1": (20.0, 25.0), "T2": (20.0, 25.0)}
 
@@ -220,7 +220,7 @@ def write_models(tmp: Path, axes: tuple[str, ...]) -> tuple[Path, Path]:
 
 def modbus_temperatures() -> tuple[int, Any]:
     """T1 and T2 (int16, 0.01 degC) in input registers 0 and 1 of an emulated module on this process' thread."""
-    from drivers.testing.modbus_server import ModbusTestDevice, ModbusTestServer
+    from nanodrift.drivers.testing.modbus_server import ModbusTestDevice, ModbusTestServer
 
     logging.getLogger("pymodbus").setLevel(logging.WARNING)  # its server logs every frame at debug
     server = ModbusTestServer([ModbusTestDevice(device_id=1)])
@@ -284,7 +284,7 @@ def main() -> int:
     log = tmp / "daemon.log"
     with open(log, "w") as log_file:
         command = ([sys.executable, __file__, "--daemon-on-loop", str(config)] if args.targets_on_loop
-                   else [sys.executable, "-m", "daemon.cli", "run", "--config", str(config)])
+                   else [sys.executable, "-m", "nanodrift.cli", "run", "--config", str(config)])
         daemon = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=log_file, cwd=REPO)
     cells: dict[str, tuple[int, subprocess.Popen[bytes], Path, bytes]] = {}  # name -> port, process, log, template
     stop_modbus: Any = None
@@ -300,7 +300,7 @@ def main() -> int:
             path.write_text(hardware_config(name, port, modbus_port, model, cell_axes))
             cell_log = tmp / f"{name}.log"
             with open(cell_log, "w") as log_file:
-                cells[name] = (port, subprocess.Popen([sys.executable, "-m", "daemon.cli", "run", "--config",
+                cells[name] = (port, subprocess.Popen([sys.executable, "-m", "nanodrift.cli", "run", "--config",
                                                        str(path)], stdout=subprocess.DEVNULL, stderr=log_file,
                                                       cwd=REPO), cell_log, payload)
     echo = subprocess.Popen([sys.executable, __file__, "--echo-node", str(e_port)], stdin=subprocess.PIPE,

@@ -23,13 +23,13 @@ import tracemalloc
 
 import numpy as np
 
-from daemon.calibration.dataset import Dataset
+from nanodrift.calibration.dataset import Dataset
 
 BUDGET_S, BUDGET_BYTES = 30.0, 2 * 1024**3
 
 
 def synthetic_run(n: int, seed: int = 0) -> Dataset:
-    from daemon.model.terms import lag_filter
+    from nanodrift.model.terms import lag_filter
 
     rng = np.random.default_rng(seed)
     t = np.arange(n) * 29.0
@@ -52,8 +52,8 @@ def synthetic_run(n: int, seed: int = 0) -> Dataset:
 
 def measure(n: int) -> dict[str, float]:
     """One size, in this process: data, given model, baseline fit time, discovery time and memory."""
-    from daemon.calibration.discovery import discover
-    from daemon.model.identify import fit, ols
+    from nanodrift.calibration.discovery import discover
+    from nanodrift.model.identify import fit, ols
 
     data = synthetic_run(n)
     given = fit(data, order=3).model

@@ -28,7 +28,7 @@ Predicted beside measured: each report carries the fresh-run gain it expects (``
 ``unmonitored_drift`` with its source fixed). Printed: its median over the seeds beside the median
 measured ratio, and the median of the per-seed quotient. Must hold, for every scenario, over the
 seeds where something is named: the median predicted within a factor ``FACTOR`` of the median
-measured. The predictor is the report's own (``daemon.calibration.discovery.confirmation``), with no
+measured. The predictor is the report's own (``nanodrift.calibration.discovery.confirmation``), with no
 parameter fitted to these seeds; the fresh runs (seed + 1000) are never seen by discovery.
 Exit status 1 when a seed is hurt or a prediction is off by more than ``FACTOR``. Measured against
 the interferometer (``x_um`` of the fresh run, as a user measures it, and as the report predicts);
@@ -55,12 +55,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from anywhere, never tests/drivers
 
-from daemon.calibration.dataset import Dataset, concat
-from daemon.calibration.discovery import discover
-from daemon.model.identify import fit
-from daemon.model.model import Model
-from drivers.simulated.datasets import simulate_dataset
-from drivers.simulated.effects import EFFECTS
+from nanodrift.calibration.dataset import Dataset, concat
+from nanodrift.calibration.discovery import discover
+from nanodrift.drivers.simulated.datasets import simulate_dataset
+from nanodrift.drivers.simulated.effects import EFFECTS
+from nanodrift.model.identify import fit
+from nanodrift.model.model import Model
 
 HURT = 1.05
 FACTOR = 1.5  # the predicted fresh-run gain must be within this factor of the measured one

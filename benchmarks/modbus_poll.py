@@ -17,10 +17,10 @@ import statistics
 import time
 from multiprocessing.synchronize import Event
 
-from drivers.base import DriverContext, SensorGroup
-from drivers.modbus.config import ModbusHubConfig, ModbusSensorConfig
-from drivers.modbus.group import ModbusBlockGroup, plan_blocks
-from drivers.modbus.hub import ModbusHub
+from nanodrift.drivers.base import DriverContext, SensorGroup
+from nanodrift.drivers.modbus.config import ModbusHubConfig, ModbusSensorConfig
+from nanodrift.drivers.modbus.group import ModbusBlockGroup, plan_blocks
+from nanodrift.drivers.modbus.hub import ModbusHub
 
 CHANNELS = 8
 

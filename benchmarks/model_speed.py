@@ -21,9 +21,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from helpers.synthetic import paper_run
 
-from daemon.calibration.dataset import Dataset, read_csv, write_csv
-from daemon.model.identify import candidate_terms, fit, fit_terms
-from daemon.model.model import save_model
+from nanodrift.calibration.dataset import Dataset, read_csv, write_csv
+from nanodrift.model.identify import candidate_terms, fit, fit_terms
+from nanodrift.model.model import save_model
 
 
 def per_call_us(fn, x_values, repeats: int = 31) -> list[float]:
@@ -128,7 +128,7 @@ def bench_predict(rows: int = 1_000_000) -> None:
         t_write = time.perf_counter() - start
         # the command as a user runs it: its own process, wall time and peak RSS
         start = time.perf_counter()
-        subprocess.run([sys.executable, "-m", "daemon.cli", "predict", "--model", str(mpath), str(src),
+        subprocess.run([sys.executable, "-m", "nanodrift.cli", "predict", "--model", str(mpath), str(src),
                         "--out", str(out)], check=True)
         total = time.perf_counter() - start
         peak_rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1e3

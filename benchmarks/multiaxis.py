@@ -2,7 +2,7 @@
 
 Per cell (2 and 3 axes) and seed (8 each, seeds 0..7; the stage's magnitudes were set on seeds 100..103):
 
-1. Calibration: the space-filling plan (``daemon.calibration.plans.cell_calibration_plan``: 24 cycles of 17
+1. Calibration: the space-filling plan (``nanodrift.calibration.plans.cell_calibration_plan``: 24 cycles of 17
    steps, 4 s ramp + 25 s hold, 3.3 h) through the vectorised multi-axis run in the ``train`` room;
    fitted with ``fit_cell`` (cross terms) and, on the same rows, as independent one-axis models of
    the paper's form (each axis' command on its own position and T1..T4: ``fit`` on a one-axis view).
@@ -23,11 +23,10 @@ import argparse
 import sys
 import time
 
-from daemon.calibration.dataset import Dataset
-from daemon.calibration.iso9283 import summarize_cell
-from daemon.calibration.plans import cell_calibration_plan
-from daemon.model.identify import fit, fit_cell
-from drivers.simulated.multiaxis import (
+from nanodrift.calibration.dataset import Dataset
+from nanodrift.calibration.iso9283 import summarize_cell
+from nanodrift.calibration.plans import cell_calibration_plan
+from nanodrift.drivers.simulated.multiaxis import (
     CellValidationRun,
     MultiAxisPhysics,
     cell_command,
@@ -36,6 +35,7 @@ from drivers.simulated.multiaxis import (
     simulate_cell_steps,
     steps_dataset,
 )
+from nanodrift.model.identify import fit, fit_cell
 
 ANCHOR = (1400.0, 200.0)  # Tan, Clévy, Chaillet 2015: 2-DoF accuracy without / with, nm
 FLOORS = {"test2": 10.0, "test5": 4.0}

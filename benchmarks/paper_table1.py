@@ -2,10 +2,10 @@
 
 1. Calibration: the async procedure (4 s ramp, 25 s hold, mean of the last 5 s, 0..480 µm by 30,
    24 cycles) on the simulated cell (``train`` room) on a virtual clock; the recorded CSV is fitted
-   with ``daemon.model.identify.fit``. Its wall time is printed.
+   with ``nanodrift.model.identify.fit``. Its wall time is printed.
 2. Validation: tests 1-5 (scenarios ``test1``..``test5``, 30 cycles each) through the same async
    procedure; test 1 without the model, tests 2-5 with it ("without" computed, marked *). Seeds follow
-   ``daemon.commands._cell.scenario_seed`` (test N: seed * 100 + N), the rule ``nanodrift validate``
+   ``nanodrift.commands._cell.scenario_seed`` (test N: seed * 100 + N), the rule ``nanodrift validate``
    and ``nanodrift demo`` use, so the same --seed gives the same Table I through all three.
 3. Table I side by side with the paper's, and the floors: >= 7x in tests 2-4, >= 2.4x in test 5.
 4. The spread over more seeds (``--seeds``), through the vectorised simulator (same physics and
@@ -25,17 +25,17 @@ from typing import Any
 
 import numpy as np
 
-from daemon.assembly import simulated_drivers
-from daemon.calibration.dataset import Dataset
-from daemon.calibration.plans import VALIDATION_POINTS_UM, calibration_plan, validation_plan
-from daemon.commands._cell import scenario_seed
-from daemon.model.equation import equation
-from daemon.model.identify import fit
-from daemon.procedure.recording import fit_recorded, record_calibration
-from daemon.procedure.validation import run_validation
-from daemon.reports.validation import PAPER_TABLE1, table1
-from drivers.simulated.physics import THERMOCOUPLES, CellPhysics
-from drivers.simulated.runs import simulate_steps
+from nanodrift.assembly import simulated_drivers
+from nanodrift.calibration.dataset import Dataset
+from nanodrift.calibration.plans import VALIDATION_POINTS_UM, calibration_plan, validation_plan
+from nanodrift.commands._cell import scenario_seed
+from nanodrift.drivers.simulated.physics import THERMOCOUPLES, CellPhysics
+from nanodrift.drivers.simulated.runs import simulate_steps
+from nanodrift.model.equation import equation
+from nanodrift.model.identify import fit
+from nanodrift.procedure.recording import fit_recorded, record_calibration
+from nanodrift.procedure.validation import run_validation
+from nanodrift.reports.validation import PAPER_TABLE1, table1
 
 TESTS = ("test1", "test2", "test3", "test4", "test5")
 

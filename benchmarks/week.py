@@ -21,7 +21,7 @@ What a lab does with the paper's calibration, which saw T4 21.55-22.0 °C while 
    applies to both adaptive runs. RSS growth (< 10 MB) and the seven day files with every polled
    channel are checked on week 2's runs.
 
-Each run is a real ``python -m daemon.cli run`` subprocess serving the simulated cell (``[simulation]
+Each run is a real ``python -m nanodrift.cli run`` subprocess serving the simulated cell (``[simulation]
 scenario = "week"``: ±1 °C day/night, HVAC steps, a weekend setback, door openings) on a clock ``--speed``
 times faster than the wall clock, with T1..T4, the interferometer (the ``role = "position"`` sensor: the
 health unit, the bias tracker and the recorder read it) and ``[health] record_dir``. A client-mode Zenoh
@@ -81,10 +81,10 @@ import zenoh
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from anywhere, never tests/drivers
 
-from daemon.calibration.dataset import write_csv
-from daemon.calibration.plans import VALIDATION_POINTS_UM
-from daemon.service.recorder import RECORD_COLUMNS
-from drivers.simulated.datasets import simulate_dataset
+from nanodrift.calibration.dataset import write_csv
+from nanodrift.calibration.plans import VALIDATION_POINTS_UM
+from nanodrift.drivers.simulated.datasets import simulate_dataset
+from nanodrift.service.recorder import RECORD_COLUMNS
 
 REPO = Path(__file__).resolve().parent.parent
 T = TypeVar("T")
@@ -228,7 +228,7 @@ def serve_week(name: str, mode: str, model: Path, root: Path, *, speed: float, p
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
     started = time.monotonic()
     with open(log, "wb") as log_file:
-        daemon = subprocess.Popen([sys.executable, "-m", "daemon.cli", "run", "--config", str(config)],
+        daemon = subprocess.Popen([sys.executable, "-m", "nanodrift.cli", "run", "--config", str(config)],
                                   stdout=subprocess.DEVNULL, stderr=log_file, cwd=REPO, env=env)
     run = Run(name, mode, model, seed, run_dir)
     client: WeekClient | None = None
@@ -346,7 +346,7 @@ def per_day(run: Run) -> dict[int, list[dict[str, float]]]:
 def nanodrift_fit(data: list[Path], out: Path, *options: str) -> str:
     """``nanodrift fit DATA... --out OUT`` in a subprocess, as the lab runs it; its summary (terms, ranges)."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
-    done = subprocess.run([sys.executable, "-m", "daemon.cli", "fit", *map(str, data), "--out", str(out), *options],
+    done = subprocess.run([sys.executable, "-m", "nanodrift.cli", "fit", *map(str, data), "--out", str(out), *options],
                           capture_output=True, text=True, cwd=REPO, env=env, check=False)
     if done.returncode != 0:
         raise SystemExit(f"nanodrift fit failed ({done.returncode}):\n{done.stderr}")

@@ -17,10 +17,9 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from daemon.bus.actuator import ZenohActuator
-from daemon.config import ZENOH_KIND, Config, parse_config
-from daemon.drivers_set import DriverSet
-from drivers.base import (
+from nanodrift.bus.actuator import ZenohActuator
+from nanodrift.config import ZENOH_KIND, Config, parse_config
+from nanodrift.drivers.base import (
     Actuator,
     Clock,
     DriverContext,
@@ -29,7 +28,8 @@ from drivers.base import (
     MonotonicClock,
     SensorGroup,
 )
-from drivers.registry import load_plugin, owner_of_section, virtual_cell_plugin
+from nanodrift.drivers.registry import load_plugin, owner_of_section, virtual_cell_plugin
+from nanodrift.drivers_set import DriverSet
 
 
 def _plugins(config: Config) -> dict[str, DriverPlugin]:

@@ -16,24 +16,24 @@ import sys
 from collections.abc import Sequence
 from typing import Any, NoReturn
 
-from daemon.errors import UserError
-from daemon.logs import json_line
+from nanodrift.errors import UserError
+from nanodrift.logs import json_line
 
 #: command -> the module under daemon/commands whose ``configure(parser)`` declares its options and
 #: whose ``main(args)`` runs it
 HANDLERS = {
-    "run": "daemon.commands.run",
-    "demo": "daemon.commands.demo",
-    "target": "daemon.commands.target",
-    "status": "daemon.commands.status",
-    "check-config": "daemon.commands.check_config",
-    "simulate": "daemon.commands.simulate",
-    "calibrate": "daemon.commands.calibrate",
-    "validate": "daemon.commands.validate",
-    "fit": "daemon.commands.fit",
-    "predict": "daemon.commands.predict",
-    "restamp": "daemon.commands.restamp",
-    "discover": "daemon.commands.discover",
+    "run": "nanodrift.commands.run",
+    "demo": "nanodrift.commands.demo",
+    "target": "nanodrift.commands.target",
+    "status": "nanodrift.commands.status",
+    "check-config": "nanodrift.commands.check_config",
+    "simulate": "nanodrift.commands.simulate",
+    "calibrate": "nanodrift.commands.calibrate",
+    "validate": "nanodrift.commands.validate",
+    "fit": "nanodrift.commands.fit",
+    "predict": "nanodrift.commands.predict",
+    "restamp": "nanodrift.commands.restamp",
+    "discover": "nanodrift.commands.discover",
 }
 
 #: command -> its line in ``nanodrift --help`` (and, capitalised, its ``--help`` description), in the

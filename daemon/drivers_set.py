@@ -1,4 +1,4 @@
-"""A cell's drivers once assembled (by ``daemon.assembly``): what the daemon polls and a procedure drives.
+"""A cell's drivers once assembled (by ``nanodrift.assembly``): what the daemon polls and a procedure drives.
 
 Not part of the plugin contract (a plugin never builds one), so it lives with the daemon; the service
 and the procedures import it from here, never from the assembly.
@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from drivers.base import Actuator, Clock, DriverContext, SensorGroup
+from nanodrift.drivers.base import Actuator, Clock, DriverContext, SensorGroup
 
 
 @dataclass

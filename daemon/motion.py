@@ -1,6 +1,6 @@
 """The one owner of motion: where a move starts, how fast it goes, what may be sent. Pure computation.
 
-The daemon's actuation (``daemon.service.actuation``) and the procedures (``daemon.procedure.steps``)
+The daemon's actuation (``nanodrift.service.actuation``) and the procedures (``nanodrift.procedure.steps``)
 both move the stage through these rules, so a calibration run and the service can never disagree on
 what is safe:
 
@@ -31,7 +31,7 @@ READ_BACK_TOLERANCE_V = 0.001
 
 
 class MotionLimits(Protocol):
-    """What motion needs of ``[actuator]`` (``daemon.config.ActuatorConfig`` has it): gain and limits."""
+    """What motion needs of ``[actuator]`` (``nanodrift.config.ActuatorConfig`` has it): gain and limits."""
 
     volts_per_um: float
     offset_v: float

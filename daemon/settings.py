@@ -1,11 +1,11 @@
 """The daemon's own config tables as plain pydantic models: ``[zenoh]``, ``[model]``, ``[actuator]``'s
 core keys, ``[procedure]``, ``[metrics]``, ``[health]``, ``[adapt]``, and :class:`Config`, which holds them.
 
-Plain on purpose: no plugin machinery (no ``drivers.registry``, no entry points), so the bus and any
-other importer of a table (``daemon.bus.session`` takes :class:`ZenohSettings`) loads without plugin
+Plain on purpose: no plugin machinery (no ``nanodrift.drivers.registry``, no entry points), so the bus and any
+other importer of a table (``nanodrift.bus.session`` takes :class:`ZenohSettings`) loads without plugin
 discovery. Validating a whole document, where plugins validate their own tables, is
-:mod:`daemon.config`'s job, which re-exports everything here: callers import from ``daemon.config``.
-Every table is a :class:`drivers.base.StrictModel` (no unknown keys, no inf/nan, no strings for
+:mod:`nanodrift.config`'s job, which re-exports everything here: callers import from ``nanodrift.config``.
+Every table is a :class:`nanodrift.drivers.base.StrictModel` (no unknown keys, no inf/nan, no strings for
 numbers).
 """
 
@@ -19,9 +19,9 @@ from typing import Annotated, Any, Literal
 
 from pydantic import AllowInfNan, BaseModel, Field, PrivateAttr, Strict, field_validator, model_validator
 
-from daemon import motion
-from daemon.calibration.plans import CALIBRATION_POINTS_UM, PAPER_TIMING, StepTiming
-from drivers.base import ActuatorOptions, SensorConfig, StrictModel
+from nanodrift import motion
+from nanodrift.calibration.plans import CALIBRATION_POINTS_UM, PAPER_TIMING, StepTiming
+from nanodrift.drivers.base import ActuatorOptions, SensorConfig, StrictModel
 
 DATA_DIR = Path(__file__).resolve().parent / "data"
 #: the simulated cell's model, shipped with the package (a config that runs the simulator uses it by default)
@@ -56,7 +56,7 @@ _HOST_LABEL = re.compile(r"[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?")
 
 
 class MetricsSettings(StrictModel):
-    """``[metrics]``: Prometheus metrics over HTTP (``daemon.service.metrics``); off unless ``listen`` is set.
+    """``[metrics]``: Prometheus metrics over HTTP (``nanodrift.service.metrics``); off unless ``listen`` is set.
 
     The host is checked here (an IP address, ``[v6]`` in brackets, or a host name of 1-63 character
     labels and 253 characters in all), so that a mistyped one is refused by ``check-config`` rather
@@ -110,7 +110,7 @@ MAX_RECORD_KEEP_DAYS = 36_500
 
 
 class HealthSettings(StrictModel):
-    """``[health]``: the model's health from the position sensor (``daemon.service.health_unit``); needs a
+    """``[health]``: the model's health from the position sensor (``nanodrift.service.health_unit``); needs a
     ``role = "position"`` sensor, else the state stays ``unknown``. ``record_dir``/``record_keep_days``:
     recorded operation (daily CSVs of every settled target; a relative path is relative to the config
     file's folder)."""
@@ -246,7 +246,7 @@ class ActuatorConfig(StrictModel):
         return distance_um / self.max_slew_um_per_s, distance_um, from_v
 
     def voltage(self, q_um: float) -> float:
-        """What the amplifier gets for command ``q_um`` (:func:`daemon.motion.voltage_for`)."""
+        """What the amplifier gets for command ``q_um`` (:func:`nanodrift.motion.voltage_for`)."""
         return motion.voltage_for(self, q_um)
 
     def q_um_for(self, voltage_v: float) -> float:
@@ -258,11 +258,11 @@ class ActuatorConfig(StrictModel):
         return motion.within_limits(self, voltage_v)
 
     def checked_voltage(self, q_um: float) -> float:
-        """:meth:`voltage`, or a :class:`~daemon.motion.VoltageLimitError` naming the command and the limits."""
+        """:meth:`voltage`, or a :class:`~nanodrift.motion.VoltageLimitError` naming the command and the limits."""
         return motion.checked_voltage(self, q_um)
 
 
-#: letters an axis may take (``daemon.model.cell_model.AXIS_LETTERS``: not q, ``q_um`` is the one-axis command)
+#: letters an axis may take (``nanodrift.model.cell_model.AXIS_LETTERS``: not q, ``q_um`` is the one-axis command)
 AXIS_NAME_PATTERN = r"^[a-pr-z]$"
 
 
@@ -363,7 +363,7 @@ class Config(StrictModel):
     adapt: AdaptSettings = Field(default_factory=AdaptSettings)
     hubs: list[Any] = Field(default_factory=list)
     sensors: list[Any] = Field(default_factory=list)
-    #: ``[[axes]]`` (validated by ``daemon.config``): empty for a one-axis cell, whose axis is ``[actuator]``'s x
+    #: ``[[axes]]`` (validated by ``nanodrift.config``): empty for a one-axis cell, whose axis is ``[actuator]``'s x
     axes: list[Any] = Field(default_factory=list)
     #: where it came from (a file path, or the built-in default); not a TOML key
     _source: str = PrivateAttr(default=BUILTIN_SOURCE)

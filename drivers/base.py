@@ -124,7 +124,7 @@ class SensorConfig(StrictModel):
                              description="older readings are stale; at least interval_s, at most a day")
     timeout_s: float = Field(default=1.0, gt=0, description="one poll may take this long")
     valid_min: float | None = Field(default=None, description="lowest believable value, in the sensor's unit "
-                                    "(None: the role's default, see daemon.config.valid_range)")
+                                    "(None: the role's default, see nanodrift.config.valid_range)")
     valid_max: float | None = Field(default=None, description="highest believable value, in the sensor's unit")
     frozen_after_s: float = Field(default=0.0, ge=0, le=MAX_AGE_S,
                                   description="a value bit-identical for longer is stale; 0 = off (the default "
@@ -439,7 +439,7 @@ class DriverPlugin(ABC):
 
 class VirtualCellPlugin(DriverPlugin):
     """A plugin that *is* the cell (readings and stage simulated): optional, found with ``isinstance``
-    (``drivers.registry.virtual_cell_plugin``).
+    (``nanodrift.drivers.registry.virtual_cell_plugin``).
 
     It supplies the clock (``make_clock``) and, when its section is present without ``[[sensors]]``,
     the sensors (``default_sensors``). A reload never switches between a virtual and a real cell, and a

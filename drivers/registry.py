@@ -12,7 +12,7 @@ from collections.abc import Callable, Iterable
 from functools import cache
 from importlib.metadata import entry_points
 
-from drivers.base import DriverPlugin, VirtualCellPlugin
+from nanodrift.drivers.base import DriverPlugin, VirtualCellPlugin
 
 GROUP = "nanodrift.drivers"
 
@@ -39,7 +39,7 @@ def load_plugin(kind: str) -> DriverPlugin:
             plugin = ep.load()
             if not isinstance(plugin, DriverPlugin):
                 raise UnknownDriverError(
-                    f"driver {kind!r} ({ep.value}) is not a drivers.base.DriverPlugin instance")
+                    f"driver {kind!r} ({ep.value}) is not a nanodrift.drivers.base.DriverPlugin instance")
             return plugin
     names = ", ".join(sorted(available())) or "none (is nanodrift installed?)"
     raise UnknownDriverError(f"unknown sensor kind {kind!r}; installed driver kinds: {names}")

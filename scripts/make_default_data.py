@@ -13,10 +13,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from daemon.calibration.dataset import Dataset, read_csv, write_csv
-from daemon.model.identify import fit
-from daemon.model.model import Model, save_model
-from drivers.simulated.datasets import simulate_dataset
+from nanodrift.calibration.dataset import Dataset, read_csv, write_csv
+from nanodrift.drivers.simulated.datasets import simulate_dataset
+from nanodrift.model.identify import fit
+from nanodrift.model.model import Model, save_model
 
 DATA_DIR = Path(__file__).resolve().parents[1] / "daemon" / "data"
 SCENARIO, SEED, CYCLES = "train", 0, 24

@@ -4,24 +4,24 @@
   discovery; errors, atomic) imports the standard library, numpy, scipy and itself only, and of the
   standard library nothing that does I/O concurrency (asyncio, socket, subprocess, threading,
   selectors, multiprocessing, concurrent);
-- ``drivers.base`` / ``drivers.registry`` never import ``daemon``;
-- a plugin imports ``drivers.base``, the registry, the pure core and its own libraries, never the
+- ``nanodrift.drivers.base`` / ``nanodrift.drivers.registry`` never import ``daemon``;
+- a plugin imports ``nanodrift.drivers.base``, the registry, the pure core and its own libraries, never the
   service, the procedures, the bus, the config or the CLI;
 - the simulator's physics, scenarios, effects, runs, datasets and clock import the pure core, each
-  other, numpy, scipy and the standard library only (no ``drivers.base``, no pydantic): the cell's
+  other, numpy, scipy and the standard library only (no ``nanodrift.drivers.base``, no pydantic): the cell's
   physics works without the plugin around it;
 - the service layer (service, bus, procedure, config, logs, sdnotify, reports) never names a concrete
   plugin, nor the CLI or the assembly;
-- only ``daemon.assembly`` and the CLI (``daemon.cli``, ``daemon.commands``) name concrete plugins;
-- ``daemon.bus`` loads without plugin discovery: nothing it imports, directly or through other modules
-  (a module's parent packages included), imports ``drivers.registry``;
-- ``drivers.testing`` (the device emulators, for tests) imports ``drivers.base``, the registry, the
+- only ``nanodrift.assembly`` and the CLI (``nanodrift.cli``, ``nanodrift.commands``) name concrete plugins;
+- ``nanodrift.bus`` loads without plugin discovery: nothing it imports, directly or through other modules
+  (a module's parent packages included), imports ``nanodrift.drivers.registry``;
+- ``nanodrift.drivers.testing`` (the device emulators, for tests) imports ``nanodrift.drivers.base``, the registry, the
   plugins, pymodbus and pyserial, never the daemon beyond the pure core; nothing else of nanodrift
   imports it (the daemon never runs an emulator);
-- the CLI's ``HANDLERS`` table (command -> module, imported by name) names ``daemon.commands``
+- the CLI's ``HANDLERS`` table (command -> module, imported by name) names ``nanodrift.commands``
   modules only, and counts as imports; no other module imports by a string;
-- a command module (``daemon.commands.<name>``) is imported by the CLI only: no command imports
-  another, nor does a helper (``daemon.commands._<name>``, what several commands share) import a command;
+- a command module (``nanodrift.commands.<name>``) is imported by the CLI only: no command imports
+  another, nor does a helper (``nanodrift.commands._<name>``, what several commands share) import a command;
 - no cycle between units (a unit: a top-level module of ``daemon``/``drivers``, or a package's own
   modules; a subpackage is a unit of its own, so a subpackage and its parent may not import each
   other both ways), and no cycle between modules.
@@ -39,29 +39,32 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-PACKAGES = ("daemon", "drivers")
-CORE_ROOTS = ("daemon.model", "daemon.calibration", "daemon.motion", "daemon.errors", "daemon.atomic")
+#: the import package and the design card's folders it is installed from (pyproject's package-dir)
+TOP = "nanodrift"
+DRIVERS = "nanodrift.drivers"
+FOLDERS = {TOP: "daemon", DRIVERS: "drivers"}
+CORE_ROOTS = ("nanodrift.model", "nanodrift.calibration", "nanodrift.motion", "nanodrift.errors", "nanodrift.atomic")
 CORE_THIRD_PARTY = {"numpy", "scipy"}
 #: standard library the pure core may not use: it computes, it does not wait on devices or threads
 CORE_FORBIDDEN_STDLIB = {"asyncio", "socket", "subprocess", "threading", "selectors", "multiprocessing",
                          "concurrent"}
-DRIVER_CORE_UNITS = {"drivers.base", "drivers.registry"}
-PLUGIN_ROOTS = ("drivers.simulated", "drivers.modbus", "drivers.serial_line")
+DRIVER_CORE_UNITS = {"nanodrift.drivers.base", "nanodrift.drivers.registry"}
+PLUGIN_ROOTS = ("nanodrift.drivers.simulated", "nanodrift.drivers.modbus", "nanodrift.drivers.serial_line")
 #: the simulated cell's computation: pure core + numpy/scipy/stdlib + each other
-SIMULATOR_PURE = {f"drivers.simulated.{name}" for name in ("physics", "scenarios", "effects", "runs", "datasets",
+SIMULATOR_PURE = {f"{DRIVERS}.simulated.{name}" for name in ("physics", "scenarios", "effects", "runs", "datasets",
                                                            "clock")}
-ASSEMBLY_ROOTS = ("daemon.assembly", "daemon.cli", "daemon.commands")
+ASSEMBLY_ROOTS = ("nanodrift.assembly", "nanodrift.cli", "nanodrift.commands")
 #: modules that load without plugin discovery: every Zenoh client of the daemon (``nanodrift target``, a
 #: lab's script) imports the bus, and must neither wait for nor fail on the installed plugins
-NO_PLUGIN_DISCOVERY = ("daemon.bus",)
-PLUGIN_DISCOVERY = "drivers.registry"
+NO_PLUGIN_DISCOVERY = ("nanodrift.bus",)
+PLUGIN_DISCOVERY = "nanodrift.drivers.registry"
 #: the device emulators shipped for tests (a lab's plugin tests use them too)
-TESTING_ROOT = "drivers.testing"
-COMMANDS_PACKAGE = "daemon.commands"
+TESTING_ROOT = "nanodrift.drivers.testing"
+COMMANDS_PACKAGE = "nanodrift.commands"
 #: optional heavy dependencies a function may import lazily, with the reason
 LAZY_ALLOWED = {
     "matplotlib": "figures are drawn only when a report is asked for",
-    "daemon.reports": "they import matplotlib (half a second) only when a report is asked for",
+    "nanodrift.reports": "they import matplotlib (half a second) only when a report is asked for",
     "scipy.signal": "a second at every command's start (it pulls in scipy.stats); only series filtering needs it",
 }
 
@@ -69,12 +72,12 @@ Import = tuple[str, int, bool]  # (imported module, line, inside a function)
 
 
 def modules() -> Iterator[tuple[str, Path]]:
-    for package in PACKAGES:
-        for path in sorted((REPO / package).rglob("*.py")):
-            parts = path.relative_to(REPO).with_suffix("").parts
+    for package, folder in FOLDERS.items():
+        for path in sorted((REPO / folder).rglob("*.py")):
+            parts = path.relative_to(REPO / folder).with_suffix("").parts
             if parts[-1] == "__init__":
                 parts = parts[:-1]
-            yield ".".join(parts), path
+            yield ".".join([package, *parts]), path
 
 
 MODULES = list(modules())
@@ -86,14 +89,25 @@ def within(name: str, roots: Iterable[str]) -> bool:
     return any(name == root or name.startswith(root + ".") for root in roots)
 
 
+def ours(name: str) -> bool:
+    """A module of nanodrift (the daemon's folder or the drivers')."""
+    return within(name, [TOP])
+
+
+def in_daemon(name: str) -> bool:
+    """A module of the daemon's folder (``nanodrift`` but not ``nanodrift.drivers``)."""
+    return ours(name) and not within(name, [DRIVERS])
+
+
 def unit_of(module: str) -> str:
-    """``daemon.config`` -> itself; ``daemon.model.terms`` -> ``daemon.model``; a (sub)package is its
-    own unit: ``daemon.calibration.discovery.workflow`` -> ``daemon.calibration.discovery``, not
-    ``daemon.calibration``; a third-party module -> its distribution's top name."""
+    """``nanodrift.config`` -> itself; ``nanodrift.model.terms`` -> ``nanodrift.model``; a (sub)package is its
+    own unit: ``nanodrift.calibration.discovery.workflow`` -> ``nanodrift.calibration.discovery``, not
+    ``nanodrift.calibration``; a third-party module -> its distribution's top name."""
     parts = module.split(".")
-    if parts[0] not in PACKAGES:
+    if not ours(module):
         return parts[0]
-    if module in PACKAGE_NAMES or len(parts) <= 2:
+    root = DRIVERS if within(module, [DRIVERS]) else TOP
+    if module in PACKAGE_NAMES or len(parts) - len(root.split(".")) <= 1:
         return module
     return ".".join(parts[:-1])
 
@@ -117,7 +131,7 @@ def imports_in(module: str, source: str, *, is_package: bool = False, filename: 
                 else:
                     target = child.module or ""
                 yield target, child.lineno, in_function
-                for alias in child.names:  # "from daemon import config" imports daemon.config
+                for alias in child.names:  # "from daemon import config" imports nanodrift.config
                     candidate = f"{target}.{alias.name}"
                     if candidate in MODULE_NAMES:
                         yield candidate, child.lineno, in_function
@@ -154,13 +168,14 @@ def forbidden(importer: str, imported: str) -> str | None:
     top = imported.split(".")[0]
     stdlib = top in sys.stdlib_module_names or top == "__future__"
     if within(unit, [TESTING_ROOT]):
-        if top == "daemon" and not within(target, CORE_ROOTS):
-            return "the emulators import drivers.base, the plugins and their libraries, never the daemon service"
+        if in_daemon(imported) and not within(target, CORE_ROOTS):
+            return ("the emulators import nanodrift.drivers.base, the plugins and their libraries, "
+                    "never the daemon service")
         return None
     if within(target, [TESTING_ROOT]):
-        return "drivers.testing is for tests: nothing of nanodrift imports the emulators"
+        return "nanodrift.drivers.testing is for tests: nothing of nanodrift imports the emulators"
     if within(unit, CORE_ROOTS):
-        if top in PACKAGES:
+        if ours(imported):
             return None if within(target, CORE_ROOTS) else "the pure core imports only itself"
         if top in CORE_FORBIDDEN_STDLIB:
             return f"the pure core computes; it never uses {top} (I/O and concurrency belong to the service)"
@@ -168,7 +183,7 @@ def forbidden(importer: str, imported: str) -> str | None:
             return None
         return f"the pure core imports only the standard library, numpy and scipy, not {top}"
     if importer in SIMULATOR_PURE:
-        if top in PACKAGES:
+        if ours(imported):
             if imported in SIMULATOR_PURE or within(target, CORE_ROOTS):
                 return None
             return "the simulator's physics imports only the pure core and its own pure modules, not the plugin layer"
@@ -176,10 +191,11 @@ def forbidden(importer: str, imported: str) -> str | None:
             return None
         return f"the simulator's physics imports only the standard library, numpy and scipy, not {top}"
     if unit in DRIVER_CORE_UNITS:
-        return "drivers.base and the registry never import daemon" if top == "daemon" else None
+        return "the drivers' contract never imports the daemon" if in_daemon(imported) else None
     if within(unit, PLUGIN_ROOTS):
-        if top == "daemon" and not within(target, CORE_ROOTS):
-            return "a plugin imports drivers.base and the pure core only, never the service, bus, config or CLI"
+        if in_daemon(imported) and not within(target, CORE_ROOTS):
+            return ("a plugin imports nanodrift.drivers.base and the pure core only, "
+                    "never the service, bus, config or CLI")
         own = next(root for root in PLUGIN_ROOTS if within(unit, [root]))
         if within(target, PLUGIN_ROOTS) and not within(target, [own]):
             return "a plugin never imports another plugin"
@@ -188,7 +204,7 @@ def forbidden(importer: str, imported: str) -> str | None:
         return None
     # the service layer: everything else in daemon
     if within(target, PLUGIN_ROOTS):
-        return "only daemon.assembly and the CLI name concrete plugins"
+        return "only nanodrift.assembly and the CLI name concrete plugins"
     if within(target, ASSEMBLY_ROOTS):
         return "the service layer never imports the assembly or the CLI"
     return None
@@ -199,7 +215,7 @@ def unit_graph(edges: Iterable[tuple[str, str]]) -> dict[str, set[str]]:
     graph: dict[str, set[str]] = {}
     for importer, imported in edges:
         source, target = unit_of(importer), unit_of(imported)
-        if imported.split(".")[0] in PACKAGES and target != source:
+        if ours(imported) and target != source:
             graph.setdefault(source, set()).add(target)
     return graph
 
@@ -234,7 +250,7 @@ def find_cycles(graph: dict[str, set[str]]) -> list[str]:
 
 
 def packages_of(module: str) -> list[str]:
-    """The packages Python imports before ``module``: ``daemon.config._lines`` -> daemon, daemon.config."""
+    """The packages Python imports before ``module``: ``nanodrift.config._lines`` -> daemon, nanodrift.config."""
     parts = module.split(".")
     return [".".join(parts[:end]) for end in range(1, len(parts))]
 
@@ -242,7 +258,7 @@ def packages_of(module: str) -> list[str]:
 def import_chain(start: str, goal: str, graph: dict[str, set[str]]) -> list[str] | None:
     """The shortest chain by which importing ``start`` imports ``goal``, or None when it never does.
 
-    A module's parent packages count as its imports: importing ``daemon.config._lines`` runs
+    A module's parent packages count as its imports: importing ``nanodrift.config._lines`` runs
     ``daemon/config/__init__.py`` first, whatever that imports."""
     previous: dict[str, str | None] = {start: None}
     queue = [start]
@@ -310,7 +326,7 @@ def test_the_bus_loads_without_plugin_discovery() -> None:
     chains = [import_chain(module, PLUGIN_DISCOVERY, graph) for module in sorted(MODULE_NAMES)
               if within(module, NO_PLUGIN_DISCOVERY)]
     found = [" -> ".join(chain) for chain in chains if chain is not None]
-    assert not found, "plugin discovery reached from the bus (import plain tables from daemon.settings):\n" + \
+    assert not found, "plugin discovery reached from the bus (import plain tables from nanodrift.settings):\n" + \
         "\n".join(found)
 
 
@@ -324,17 +340,17 @@ def test_function_level_imports_are_only_optional_dependencies() -> None:
 
 
 def is_command(module: str) -> bool:
-    """``daemon.commands.fit`` is a command; ``daemon.commands._cell`` (a helper) and the package are not."""
+    """``nanodrift.commands.fit`` is a command; ``nanodrift.commands._cell`` (a helper) and the package are not."""
     parts = module.split(".")
     return len(parts) == 3 and module.startswith(COMMANDS_PACKAGE + ".") and not parts[-1].startswith("_")
 
 
 def command_import_problems(edges: Iterable[tuple[str, str, int]]) -> list[str]:
     """``importer:line imports command``, for every import of a command module by anything but the CLI."""
-    return [f"{importer}:{line} imports {imported}: a command is imported by daemon.cli only (shared code "
+    return [f"{importer}:{line} imports {imported}: a command is imported by nanodrift.cli only (shared code "
             f"goes into a helper, {COMMANDS_PACKAGE}._name, or below the CLI)"
             for importer, imported, line in edges
-            if is_command(imported) and importer != "daemon.cli" and importer != imported]
+            if is_command(imported) and importer != "nanodrift.cli" and importer != imported]
 
 
 def test_no_command_imports_another_command() -> None:
@@ -356,7 +372,7 @@ def test_the_cli_dispatches_to_command_modules_only_and_they_count_as_imports() 
     table = handler_table(ast.parse(cli.read_text()))
     assert len(table) >= 10, "the CLI's HANDLERS table was not found (renamed?): its imports would be unchecked"
     assert not handler_problems(cli.read_text())
-    edges = {imported for imported, _, _ in imports("daemon.cli", cli)}
+    edges = {imported for imported, _, _ in imports("nanodrift.cli", cli)}
     assert {target for target, _ in table} <= edges
 
 
@@ -371,61 +387,62 @@ def test_no_module_imports_by_a_string_except_through_the_cli_table() -> None:
 @pytest.mark.parametrize(
     ("importer", "imported", "allowed"),
     [
-        ("daemon.model", "numpy", True),
-        ("daemon.model.terms", "math", True),
-        ("daemon.model", "zenoh", False),
-        ("daemon.calibration", "drivers.simulated.cell", False),
-        ("daemon.calibration", "matplotlib.pyplot", False),
+        ("nanodrift.model", "numpy", True),
+        ("nanodrift.model.terms", "math", True),
+        ("nanodrift.model", "zenoh", False),
+        ("nanodrift.calibration", "nanodrift.drivers.simulated.cell", False),
+        ("nanodrift.calibration", "matplotlib.pyplot", False),
         # (b) the core does no I/O concurrency, and takes none of the service's libraries
-        ("daemon.model.identify", "asyncio", False),
-        ("daemon.calibration.plans", "socket", False),
-        ("daemon.calibration.discovery.workflow", "subprocess", False),
-        ("daemon.calibration.residuals", "threading", False),
-        ("daemon.model.model", "selectors", False),
-        ("daemon.model", "concurrent.futures", False),
-        ("daemon.calibration.dataset", "pydantic", False),
-        ("daemon.calibration", "structlog", False),
-        ("daemon.model", "serial", False),
-        ("daemon.calibration.discovery", "pymodbus.client", False),
-        ("daemon.calibration.discovery.workflow", "daemon.service.runner", False),
-        ("daemon.calibration.discovery.workflow", "daemon.model.terms", True),
-        ("drivers.base", "daemon.config", False),
-        ("drivers.simulated", "daemon.calibration.plans", True),
-        ("drivers.simulated", "daemon.service.runner", False),
-        ("drivers.modbus", "drivers.simulated.cell", False),
-        ("drivers.modbus.hub", "drivers.modbus.config", True),
+        ("nanodrift.model.identify", "asyncio", False),
+        ("nanodrift.calibration.plans", "socket", False),
+        ("nanodrift.calibration.discovery.workflow", "subprocess", False),
+        ("nanodrift.calibration.residuals", "threading", False),
+        ("nanodrift.model.model", "selectors", False),
+        ("nanodrift.model", "concurrent.futures", False),
+        ("nanodrift.calibration.dataset", "pydantic", False),
+        ("nanodrift.calibration", "structlog", False),
+        ("nanodrift.model", "serial", False),
+        ("nanodrift.calibration.discovery", "pymodbus.client", False),
+        ("nanodrift.calibration.discovery.workflow", "nanodrift.service.runner", False),
+        ("nanodrift.calibration.discovery.workflow", "nanodrift.model.terms", True),
+        ("nanodrift.drivers.base", "nanodrift.config", False),
+        ("nanodrift.drivers.simulated", "nanodrift.calibration.plans", True),
+        ("nanodrift.drivers.simulated", "nanodrift.service.runner", False),
+        ("nanodrift.drivers.modbus", "nanodrift.drivers.simulated.cell", False),
+        ("nanodrift.drivers.modbus.hub", "nanodrift.drivers.modbus.config", True),
         # (d) the simulator's computation stays free of the plugin layer
-        ("drivers.simulated.physics", "drivers.base", False),
-        ("drivers.simulated.runs", "pydantic", False),
-        ("drivers.simulated.datasets", "drivers.simulated.cell", False),
-        ("drivers.simulated.clock", "zenoh", False),
-        ("drivers.simulated.effects", "daemon.config", False),
-        ("drivers.simulated.physics", "scipy.signal", True),
-        ("drivers.simulated.physics", "drivers.simulated.effects", True),
-        ("drivers.simulated.runs", "daemon.calibration.plans", True),
-        ("drivers.simulated.clock", "asyncio", True),
-        ("drivers.simulated.plugin", "drivers.base", True),
-        ("drivers.simulated.config", "pydantic", True),
-        ("daemon.service", "drivers.base", True),
-        ("daemon.service", "drivers.simulated.plugin", False),
-        ("daemon.procedure", "daemon.assembly", False),
-        ("daemon.assembly", "drivers.registry", True),
-        ("daemon.commands", "drivers.simulated.datasets", True),
-        # the emulators: drivers.base, plugins, their libraries; never the service, never imported by nanodrift
-        ("drivers.testing.modbus_server", "drivers.modbus.config", True),
-        ("drivers.testing", "drivers.serial_line.plugin", True),
-        ("drivers.testing.pty_devices", "drivers.base", True),
-        ("drivers.testing.modbus_server", "pymodbus.server", True),
-        ("drivers.testing.pty_devices", "serial", True),
-        ("drivers.testing.protocol", "drivers.testing.pty_devices", True),
-        ("drivers.testing.modbus_server", "daemon.service.runner", False),
-        ("drivers.testing", "daemon.config", False),
-        ("drivers.testing.pty_devices", "daemon.procedure.sampler", False),
-        ("drivers.modbus.hub", "drivers.testing.modbus_server", False),
-        ("drivers.base", "drivers.testing", False),
-        ("daemon.service.runner", "drivers.testing.pty_devices", False),
-        ("daemon.assembly", "drivers.testing", False),
-        ("daemon.cli", "drivers.testing.modbus_server", False),
+        ("nanodrift.drivers.simulated.physics", "nanodrift.drivers.base", False),
+        ("nanodrift.drivers.simulated.runs", "pydantic", False),
+        ("nanodrift.drivers.simulated.datasets", "nanodrift.drivers.simulated.cell", False),
+        ("nanodrift.drivers.simulated.clock", "zenoh", False),
+        ("nanodrift.drivers.simulated.effects", "nanodrift.config", False),
+        ("nanodrift.drivers.simulated.physics", "scipy.signal", True),
+        ("nanodrift.drivers.simulated.physics", "nanodrift.drivers.simulated.effects", True),
+        ("nanodrift.drivers.simulated.runs", "nanodrift.calibration.plans", True),
+        ("nanodrift.drivers.simulated.clock", "asyncio", True),
+        ("nanodrift.drivers.simulated.plugin", "nanodrift.drivers.base", True),
+        ("nanodrift.drivers.simulated.config", "pydantic", True),
+        ("nanodrift.service", "nanodrift.drivers.base", True),
+        ("nanodrift.service", "nanodrift.drivers.simulated.plugin", False),
+        ("nanodrift.procedure", "nanodrift.assembly", False),
+        ("nanodrift.assembly", "nanodrift.drivers.registry", True),
+        ("nanodrift.commands", "nanodrift.drivers.simulated.datasets", True),
+        # the emulators: nanodrift.drivers.base, plugins, their libraries; never the service,
+        # never imported by nanodrift
+        ("nanodrift.drivers.testing.modbus_server", "nanodrift.drivers.modbus.config", True),
+        ("nanodrift.drivers.testing", "nanodrift.drivers.serial_line.plugin", True),
+        ("nanodrift.drivers.testing.pty_devices", "nanodrift.drivers.base", True),
+        ("nanodrift.drivers.testing.modbus_server", "pymodbus.server", True),
+        ("nanodrift.drivers.testing.pty_devices", "serial", True),
+        ("nanodrift.drivers.testing.protocol", "nanodrift.drivers.testing.pty_devices", True),
+        ("nanodrift.drivers.testing.modbus_server", "nanodrift.service.runner", False),
+        ("nanodrift.drivers.testing", "nanodrift.config", False),
+        ("nanodrift.drivers.testing.pty_devices", "nanodrift.procedure.sampler", False),
+        ("nanodrift.drivers.modbus.hub", "nanodrift.drivers.testing.modbus_server", False),
+        ("nanodrift.drivers.base", "nanodrift.drivers.testing", False),
+        ("nanodrift.service.runner", "nanodrift.drivers.testing.pty_devices", False),
+        ("nanodrift.assembly", "nanodrift.drivers.testing", False),
+        ("nanodrift.cli", "nanodrift.drivers.testing.modbus_server", False),
     ],
 )
 def test_the_rules_themselves(importer: str, imported: str, allowed: bool) -> None:
@@ -436,12 +453,12 @@ def test_the_rules_themselves(importer: str, imported: str, allowed: bool) -> No
 @pytest.mark.parametrize(
     ("module", "unit"),
     [
-        ("daemon.config", "daemon.config"),
-        ("daemon.model.terms", "daemon.model"),
-        ("daemon.calibration.plans", "daemon.calibration"),
-        ("daemon.calibration.discovery", "daemon.calibration.discovery"),
-        ("daemon.calibration.discovery.workflow", "daemon.calibration.discovery"),
-        ("drivers.modbus.hub", "drivers.modbus"),
+        ("nanodrift.config", "nanodrift.config"),
+        ("nanodrift.model.terms", "nanodrift.model"),
+        ("nanodrift.calibration.plans", "nanodrift.calibration"),
+        ("nanodrift.calibration.discovery", "nanodrift.calibration.discovery"),
+        ("nanodrift.calibration.discovery.workflow", "nanodrift.calibration.discovery"),
+        ("nanodrift.drivers.modbus.hub", "nanodrift.drivers.modbus"),
         ("numpy.linalg", "numpy"),
     ],
 )
@@ -451,67 +468,72 @@ def test_a_subpackage_is_a_unit_of_its_own(module: str, unit: str) -> None:
 
 def test_the_cycle_checks_catch_a_subpackage_and_its_parent_and_two_modules() -> None:
     parent_and_child = [
-        ("daemon.calibration.plans", "daemon.calibration.discovery.workflow"),
-        ("daemon.calibration.discovery.workflow", "daemon.calibration.dataset"),
+        ("nanodrift.calibration.plans", "nanodrift.calibration.discovery.workflow"),
+        ("nanodrift.calibration.discovery.workflow", "nanodrift.calibration.dataset"),
     ]
     assert find_cycles(unit_graph(parent_and_child)) == [
-        "daemon.calibration -> daemon.calibration.discovery -> daemon.calibration"]
+        "nanodrift.calibration -> nanodrift.calibration.discovery -> nanodrift.calibration"]
     assert find_cycles(unit_graph(parent_and_child[:1])) == []
-    inside_a_unit = [("daemon.model.terms", "daemon.model.model"), ("daemon.model.model", "daemon.model.terms")]
+    inside_a_unit = [("nanodrift.model.terms", "nanodrift.model.model"),
+                     ("nanodrift.model.model", "nanodrift.model.terms")]
     assert find_cycles(unit_graph(inside_a_unit)) == []  # one unit: only the module graph sees it
     assert find_cycles(module_graph(inside_a_unit)) == [
-        "daemon.model.model -> daemon.model.terms -> daemon.model.model"]
+        "nanodrift.model.model -> nanodrift.model.terms -> nanodrift.model.model"]
     assert find_cycles(module_graph(inside_a_unit[:1])) == []
 
 
 def test_the_discovery_check_follows_imports_and_parent_packages() -> None:
-    through_modules = {"daemon.bus.session": {"daemon.config"}, "daemon.config": {"daemon.config._dispatch"},
-                       "daemon.config._dispatch": {"drivers.registry"}}
-    assert import_chain("daemon.bus.session", PLUGIN_DISCOVERY, through_modules) == [
-        "daemon.bus.session", "daemon.config", "daemon.config._dispatch", "drivers.registry"]
-    through_a_package = {"daemon.bus.session": {"daemon.config._schema"}, "daemon.config": {"drivers.registry"}}
-    assert import_chain("daemon.bus.session", PLUGIN_DISCOVERY, through_a_package) == [
-        "daemon.bus.session", "daemon.config._schema", "daemon.config", "drivers.registry"]
-    plain = {"daemon.bus.session": {"daemon.settings"}, "daemon.settings": {"drivers.base", "daemon.motion"}}
-    assert import_chain("daemon.bus.session", PLUGIN_DISCOVERY, plain) is None
+    through_modules = {"nanodrift.bus.session": {"nanodrift.config"},
+                       "nanodrift.config": {"nanodrift.config._dispatch"},
+                       "nanodrift.config._dispatch": {"nanodrift.drivers.registry"}}
+    assert import_chain("nanodrift.bus.session", PLUGIN_DISCOVERY, through_modules) == [
+        "nanodrift.bus.session", "nanodrift.config", "nanodrift.config._dispatch", "nanodrift.drivers.registry"]
+    through_a_package = {"nanodrift.bus.session": {"nanodrift.config._schema"},
+                         "nanodrift.config": {"nanodrift.drivers.registry"}}
+    assert import_chain("nanodrift.bus.session", PLUGIN_DISCOVERY, through_a_package) == [
+        "nanodrift.bus.session", "nanodrift.config._schema", "nanodrift.config", "nanodrift.drivers.registry"]
+    plain = {"nanodrift.bus.session": {"nanodrift.settings"},
+             "nanodrift.settings": {"nanodrift.drivers.base", "nanodrift.motion"}}
+    assert import_chain("nanodrift.bus.session", PLUGIN_DISCOVERY, plain) is None
 
 
 def test_the_handler_table_is_read_and_checked() -> None:
-    source = ('HANDLERS = {\n    "run": "daemon.commands.run",\n    "sneak": "drivers.simulated.cell",\n'
-              '    "core": "daemon.service.runner",\n}\n')
-    found = [(imported, line) for imported, line, _ in imports_in("daemon.cli", source)]
-    assert found == [("daemon.commands.run", 2), ("drivers.simulated.cell", 3), ("daemon.service.runner", 4)]
+    source = ('HANDLERS = {\n    "run": "nanodrift.commands.run",\n    "sneak": "nanodrift.drivers.simulated.cell",\n'
+              '    "core": "nanodrift.service.runner",\n}\n')
+    found = [(imported, line) for imported, line, _ in imports_in("nanodrift.cli", source)]
+    assert found == [("nanodrift.commands.run", 2), ("nanodrift.drivers.simulated.cell", 3),
+                     ("nanodrift.service.runner", 4)]
     assert handler_problems(source) == [
-        "line 3: 'drivers.simulated.cell' is not a module of daemon.commands",
-        "line 4: 'daemon.service.runner' is not a module of daemon.commands",
+        "line 3: 'nanodrift.drivers.simulated.cell' is not a module of nanodrift.commands",
+        "line 4: 'nanodrift.service.runner' is not a module of nanodrift.commands",
     ]
     with pytest.raises(AssertionError, match="module names as strings"):
         handler_table(ast.parse("HANDLERS = {'run': NAME}\n"))
 
 
 def test_a_command_importing_a_command_is_caught() -> None:
-    assert is_command("daemon.commands.fit") and not is_command("daemon.commands._cell")
-    assert not is_command("daemon.commands") and not is_command("daemon.cli")
-    source = ("from daemon.commands.fit import read_runs\n"
-              "from daemon.commands import target\n"
-              "from daemon.commands._cell import open_cell\n"
-              "import daemon.commands.status\n")
-    for importer in ("daemon.commands.discover", "daemon.commands._client"):  # a command, and a helper
+    assert is_command("nanodrift.commands.fit") and not is_command("nanodrift.commands._cell")
+    assert not is_command("nanodrift.commands") and not is_command("nanodrift.cli")
+    source = ("from nanodrift.commands.fit import read_runs\n"
+              "from nanodrift.commands import target\n"
+              "from nanodrift.commands._cell import open_cell\n"
+              "import nanodrift.commands.status\n")
+    for importer in ("nanodrift.commands.discover", "nanodrift.commands._client"):  # a command, and a helper
         edges = [(importer, imported, line) for imported, line, _ in imports_in(importer, source)]
         assert command_import_problems(edges) == [
-            f"{importer}:{line} imports {command}: a command is imported by daemon.cli only (shared code goes "
-            "into a helper, daemon.commands._name, or below the CLI)"
-            for line, command in ((1, "daemon.commands.fit"), (2, "daemon.commands.target"),
-                                  (4, "daemon.commands.status"))]
-    cli = [("daemon.cli", imported, line) for imported, line, _ in
-           imports_in("daemon.cli", 'HANDLERS = {"fit": "daemon.commands.fit"}\n')]
+            f"{importer}:{line} imports {command}: a command is imported by nanodrift.cli only (shared code goes "
+            "into a helper, nanodrift.commands._name, or below the CLI)"
+            for line, command in ((1, "nanodrift.commands.fit"), (2, "nanodrift.commands.target"),
+                                  (4, "nanodrift.commands.status"))]
+    cli = [("nanodrift.cli", imported, line) for imported, line, _ in
+           imports_in("nanodrift.cli", 'HANDLERS = {"fit": "nanodrift.commands.fit"}\n')]
     assert cli and command_import_problems(cli) == []
 
 
 def test_a_string_import_outside_the_table_is_caught() -> None:
     source = ("import importlib\n"
               "a = importlib.import_module(HANDLERS[name]).main\n"
-              "b = importlib.import_module('drivers.simulated.cell')\n"
+              "b = importlib.import_module('nanodrift.drivers.simulated.cell')\n"
               "c = __import__(name)\n")
     assert string_imports(source) == [
-        "line 3: importlib.import_module('drivers.simulated.cell')", "line 4: __import__(name)"]
+        "line 3: importlib.import_module('nanodrift.drivers.simulated.cell')", "line 4: __import__(name)"]

@@ -9,10 +9,10 @@ from pathlib import Path
 
 import pytest
 
-from daemon.bus.protocol import Keys
-from daemon.config import DEFAULT_MODEL_PATH, ConfigError, default_config, load_config, missing_model_channels
-from drivers.base import POSITION_FROZEN_AFTER_S
-from drivers.simulated.config import SimulatedSensorConfig
+from nanodrift.bus.protocol import Keys
+from nanodrift.config import DEFAULT_MODEL_PATH, ConfigError, default_config, load_config, missing_model_channels
+from nanodrift.drivers.base import POSITION_FROZEN_AFTER_S
+from nanodrift.drivers.simulated.config import SimulatedSensorConfig
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -155,7 +155,7 @@ def test_missing_model_channels() -> None:
 
 
 def run_cli(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "daemon.cli", *args], capture_output=True, text=True, cwd=REPO,
+    return subprocess.run([sys.executable, "-m", "nanodrift.cli", *args], capture_output=True, text=True, cwd=REPO,
                           timeout=60)
 
 

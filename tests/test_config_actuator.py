@@ -14,14 +14,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from daemon.assembly import build_drivers
-from daemon.calibration.plans import CALIBRATION_POINTS_UM, PAPER_TIMING
-from daemon.config import ConfigError, load_config, parse_config
-from drivers.modbus.actuator import ModbusActuator
-from drivers.modbus.config import ModbusActuatorConfig
-from drivers.serial_line.actuator import SerialLineActuator
-from drivers.serial_line.config import SerialLineActuatorConfig
-from drivers.simulated.config import SimulatedActuatorConfig
+from nanodrift.assembly import build_drivers
+from nanodrift.calibration.plans import CALIBRATION_POINTS_UM, PAPER_TIMING
+from nanodrift.config import ConfigError, load_config, parse_config
+from nanodrift.drivers.modbus.actuator import ModbusActuator
+from nanodrift.drivers.modbus.config import ModbusActuatorConfig
+from nanodrift.drivers.serial_line.actuator import SerialLineActuator
+from nanodrift.drivers.serial_line.config import SerialLineActuatorConfig
+from nanodrift.drivers.simulated.config import SimulatedActuatorConfig
 
 HARDWARE = """
 [[hubs]]

@@ -6,9 +6,9 @@ from pathlib import Path
 
 import pytest
 
-from daemon.assembly import procedure_drivers
-from daemon.config import ConfigError, load_config
-from drivers.base import DriverSetupError
+from nanodrift.assembly import procedure_drivers
+from nanodrift.config import ConfigError, load_config
+from nanodrift.drivers.base import DriverSetupError
 
 AXIS = '''[[axes]]
 name = "{name}"

@@ -20,14 +20,14 @@ from pathlib import Path
 import pytest
 from helpers.daemon_harness import REPO, write_test_model
 
-from daemon.calibration.residuals import Settled
-from daemon.config import MAX_RECORD_KEEP_DAYS, MIN_SLEW_UM_PER_S, ActuatorConfig, ConfigError, load_config
-from daemon.model.model import FittedTerm, Model, Training, save_model
-from daemon.model.terms import parse_term
-from daemon.motion import RAMP_PERIOD_S, Slew
-from daemon.service.recorder import DayRecorder, file_name
-from drivers.base import MAX_AGE_S, MAX_INTERVAL_S, MIN_INTERVAL_S
-from drivers.simulated.config import MAX_SPEED
+from nanodrift.calibration.residuals import Settled
+from nanodrift.config import MAX_RECORD_KEEP_DAYS, MIN_SLEW_UM_PER_S, ActuatorConfig, ConfigError, load_config
+from nanodrift.drivers.base import MAX_AGE_S, MAX_INTERVAL_S, MIN_INTERVAL_S
+from nanodrift.drivers.simulated.config import MAX_SPEED
+from nanodrift.model.model import FittedTerm, Model, Training, save_model
+from nanodrift.model.terms import parse_term
+from nanodrift.motion import RAMP_PERIOD_S, Slew
+from nanodrift.service.recorder import DayRecorder, file_name
 
 SIM_SENSOR = '[[sensors]]\nname = "T1"\nkind = "simulated"\n'
 MODBUS = ('[[hubs]]\nname = "adam"\nhost = "127.0.0.1"\n'
@@ -144,7 +144,7 @@ def test_the_slowest_slew_still_moves_the_stage() -> None:
 
 
 def run_cli(*args: str, cwd: Path = REPO) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "daemon.cli", *args], capture_output=True, text=True, cwd=cwd,
+    return subprocess.run([sys.executable, "-m", "nanodrift.cli", *args], capture_output=True, text=True, cwd=cwd,
                           timeout=60)
 
 

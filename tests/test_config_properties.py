@@ -21,9 +21,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from daemon.config import TOO_DEEP, Config, ConfigError, load_config, parse_config
-from drivers.base import MAX_AGE_S, MAX_INTERVAL_S, MIN_INTERVAL_S
-from drivers.simulated.config import MAX_SPEED
+from nanodrift.config import TOO_DEEP, Config, ConfigError, load_config, parse_config
+from nanodrift.drivers.base import MAX_AGE_S, MAX_INTERVAL_S, MIN_INTERVAL_S
+from nanodrift.drivers.simulated.config import MAX_SPEED
 
 SOURCE = "props.toml"
 SETTINGS = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])

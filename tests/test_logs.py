@@ -1,6 +1,6 @@
 """One JSON object per log line, always: the libraries' ``logging`` goes through the same renderer.
 
-Unit tests drive :func:`daemon.logs.configure_logging` in-process with a fake clock; the last test
+Unit tests drive :func:`nanodrift.logs.configure_logging` in-process with a fake clock; the last test
 runs the daemon against a Modbus TCP peer on 127.0.0.1 that answers with a wrong protocol id, a
 byte count that disagrees with the data, an unknown function code, a wrong transaction id and plain
 garbage, and parses every line the daemon wrote on stderr.
@@ -36,10 +36,10 @@ from helpers.modbus_peer import (
     wrong_protocol_id,
 )
 
-from daemon.logs import CHATTER_WINDOW_S, configure_logging, get_logger
-from drivers.base import DeviceError
-from drivers.modbus.config import ModbusHubConfig
-from drivers.modbus.hub import ModbusHub
+from nanodrift.drivers.base import DeviceError
+from nanodrift.drivers.modbus.config import ModbusHubConfig
+from nanodrift.drivers.modbus.hub import ModbusHub
+from nanodrift.logs import CHATTER_WINDOW_S, configure_logging, get_logger
 
 
 class FakeClock:

@@ -1,4 +1,4 @@
-"""daemon.motion: the one owner of motion (start point, slew on elapsed time, limits), as pure functions."""
+"""nanodrift.motion: the one owner of motion (start point, slew on elapsed time, limits), as pure functions."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from daemon.motion import (
+from nanodrift.motion import (
     MAX_STEP_INTERVAL_S,
     RAMP_PERIOD_S,
     Slew,

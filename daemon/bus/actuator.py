@@ -14,9 +14,9 @@ from typing import Any
 
 import zenoh
 
-from daemon.bus.protocol import Command, Keys, encode_command
-from daemon.bus.session import session_config
-from drivers.base import Actuator, DeviceError
+from nanodrift.bus.protocol import Command, Keys, encode_command
+from nanodrift.bus.session import session_config
+from nanodrift.drivers.base import Actuator, DeviceError
 
 
 class ZenohActuator(Actuator):

@@ -2,8 +2,8 @@
 
 Zenoh runs callbacks on its own threads. The status query is handed to the asyncio loop with
 ``loop.call_soon_threadsafe``; targets are answered right on Zenoh's thread by the service's
-thread-safe ``on_target`` (see ``daemon.service.targets``), because the hand-off alone would cost
-more than the latency budget allows. What the keys and payloads are is ``daemon.bus.protocol``'s.
+thread-safe ``on_target`` (see ``nanodrift.service.targets``), because the hand-off alone would cost
+more than the latency budget allows. What the keys and payloads are is ``nanodrift.bus.protocol``'s.
 """
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ from typing import Any
 
 import zenoh
 
-from daemon.bus.protocol import MAX_PAYLOAD_BYTES, Keys, Oversized
-from daemon.settings import ZenohSettings
+from nanodrift.bus.protocol import MAX_PAYLOAD_BYTES, Keys, Oversized
+from nanodrift.settings import ZenohSettings
 
 # Keys is re-exported: a client opens a session and names the keys with one import
 __all__ = ["ANSWER_CONGESTION", "ANSWER_EXPRESS", "Bus", "Keys", "describe_zenoh_error", "listen_endpoints",

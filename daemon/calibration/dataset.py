@@ -39,8 +39,8 @@ from pathlib import Path
 
 import numpy as np
 
-from daemon.atomic import atomic_writer
-from daemon.model.segments import segment_slices
+from nanodrift.atomic import atomic_writer
+from nanodrift.model.segments import segment_slices
 
 REQUIRED = ("t_s", "x_um")
 RESERVED = ("t_s", "x_um", "q_um", "q_pred_um", "q_sigma_um", "cycle", "valid", "target_um", "residual_um")

@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from daemon.calibration.plans import StepResult
+from nanodrift.calibration.plans import StepResult
 
 
 @dataclass

@@ -2,7 +2,7 @@
 
 One step: the command ramps from the previous target in ``ramp_s`` (4 s), holds ``hold_s`` (25 s),
 and the step's measurement is the average of the last ``window_s`` (5 s). The procedure that drives
-hardware (``daemon.procedure``), the vectorised simulated run (``drivers.simulated.runs``) and the
+hardware (``nanodrift.procedure``), the vectorised simulated run (``nanodrift.drivers.simulated.runs``) and the
 demo all take their timing from :class:`StepTiming`, and a move's sub-commands from :func:`ramp_commands`.
 """
 
@@ -41,7 +41,7 @@ def ramp_commands(q_from_um: float, q_to_um: float, duration_s: float,
 
     ``n = round(duration_s / interval_s)`` (at least 1) equal steps, one every ``duration_s / n``,
     the last one at the target. The procedure sends them on the cell's clock
-    (``daemon.procedure.steps``); the simulated run (``drivers.simulated.runs``) computes the same
+    (``nanodrift.procedure.steps``); the simulated run (``nanodrift.drivers.simulated.runs``) computes the same
     track in one pass, so a simulated calibration is commanded exactly as a driven one.
     """
     n = max(1, round(duration_s / interval_s))

@@ -1,7 +1,7 @@
 """Is the model still right? Settled residuals from the interferometer, their statistics, a bias tracker.
 
-Pure: the daemon's health unit (:mod:`daemon.service.health_unit`) feeds it commands and position
-readings, ``validate --adapt`` feeds it step averages (``daemon.procedure``); both get the same numbers
+Pure: the daemon's health unit (:mod:`nanodrift.service.health_unit`) feeds it commands and position
+readings, ``validate --adapt`` feeds it step averages (``nanodrift.procedure``); both get the same numbers
 from the same samples.
 
 - :class:`SettleTracker`: a served target the stage then holds (no newer command for ``settle_s``)

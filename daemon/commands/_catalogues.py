@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import textwrap
 
-from drivers.simulated.effects import EFFECTS
-from drivers.simulated.scenarios import SCENARIOS
+from nanodrift.drivers.simulated.effects import EFFECTS
+from nanodrift.drivers.simulated.scenarios import SCENARIOS
 
 
 def _epilog(title: str, items: dict[str, str]) -> str:

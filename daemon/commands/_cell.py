@@ -15,16 +15,16 @@ import re
 from collections.abc import Awaitable, Callable
 from typing import Any
 
-from daemon.assembly import procedure_drivers
-from daemon.commands._catalogues import effect_names, scenario_names
-from daemon.config import ZENOH_KIND, Config, load_config
-from daemon.drivers_set import DriverSet
-from daemon.errors import UserError
-from daemon.procedure.follow import FollowCheck
-from daemon.procedure.preflight import check_not_served, wait_for_output
-from drivers.simulated.config import SECTION, SimulationConfig
-from drivers.simulated.effects import UnknownNameError, resolve_effects
-from drivers.simulated.scenarios import get_scenario
+from nanodrift.assembly import procedure_drivers
+from nanodrift.commands._catalogues import effect_names, scenario_names
+from nanodrift.config import ZENOH_KIND, Config, load_config
+from nanodrift.drivers.simulated.config import SECTION, SimulationConfig
+from nanodrift.drivers.simulated.effects import UnknownNameError, resolve_effects
+from nanodrift.drivers.simulated.scenarios import get_scenario
+from nanodrift.drivers_set import DriverSet
+from nanodrift.errors import UserError
+from nanodrift.procedure.follow import FollowCheck
+from nanodrift.procedure.preflight import check_not_served, wait_for_output
 
 _PAPER_TEST = re.compile(r"test(?P<n>[1-9])")
 
@@ -120,7 +120,7 @@ def open_cell(args: argparse.Namespace, default_scenario: str, start_s: float = 
 def guards(config: Config, drivers: DriverSet, args: argparse.Namespace
            ) -> tuple[FollowCheck | None, Callable[[], Awaitable[None]] | None]:
     """What protects a procedure's run: the follow check (every cell), and on hardware the checks
-    before it starts. Refuses at once (:class:`~daemon.procedure.preflight.PreflightError`) when a
+    before it starts. Refuses at once (:class:`~nanodrift.procedure.preflight.PreflightError`) when a
     daemon serves the cell; returns the output check (``kind = "zenoh"``, unless ``--no-output-check``)
     to run once the drivers are open. The simulated cell on its virtual clock is alone: no checks."""
     settings = config.procedure

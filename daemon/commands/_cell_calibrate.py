@@ -1,10 +1,10 @@
 """``nanodrift calibrate --config xy.toml``: the space-filling calibration of an XY/XYZ cell through its drivers.
 
-The plan is :func:`daemon.calibration.plans.cell_calibration_plan` (the paper's 17 steps per cycle, every
+The plan is :func:`nanodrift.calibration.plans.cell_calibration_plan` (the paper's 17 steps per cycle, every
 axis moving); each step ramps every axis under its own limits, holds, and averages each axis' position
-sensor and the thermocouples (:mod:`daemon.procedure.cell_steps`); each step is appended to the
+sensor and the thermocouples (:mod:`nanodrift.procedure.cell_steps`); each step is appended to the
 multi-axis CSV as it is measured (``--resume`` continues it); then every axis' model is fitted into one
-model file. The one-axis calibration (``daemon.commands.calibrate``) hands a multi-axis config here.
+model file. The one-axis calibration (``nanodrift.commands.calibrate``) hands a multi-axis config here.
 """
 
 from __future__ import annotations
@@ -14,20 +14,20 @@ import asyncio
 import sys
 from pathlib import Path
 
-from daemon.calibration.dataset import DataError
-from daemon.calibration.plans import cell_calibration_plan
-from daemon.commands._cell import guards, open_cell
-from daemon.config import Config
-from daemon.drivers_set import DriverSet
-from daemon.errors import UserError
-from daemon.model.describe import describe_cell_model
-from daemon.model.identify import FitError
-from daemon.procedure.cell_recording import cell_calibration_columns, fit_cell_recorded, record_cell_calibration
-from daemon.procedure.cell_steps import CellDrive
-from daemon.procedure.follow import FollowCheck, StageNotFollowingError
-from daemon.procedure.preflight import PreflightError
-from daemon.procedure.recording import completed_steps, resume_hint
-from daemon.procedure.serving import ServeError, serve_model
+from nanodrift.calibration.dataset import DataError
+from nanodrift.calibration.plans import cell_calibration_plan
+from nanodrift.commands._cell import guards, open_cell
+from nanodrift.config import Config
+from nanodrift.drivers_set import DriverSet
+from nanodrift.errors import UserError
+from nanodrift.model.describe import describe_cell_model
+from nanodrift.model.identify import FitError
+from nanodrift.procedure.cell_recording import cell_calibration_columns, fit_cell_recorded, record_cell_calibration
+from nanodrift.procedure.cell_steps import CellDrive
+from nanodrift.procedure.follow import FollowCheck, StageNotFollowingError
+from nanodrift.procedure.preflight import PreflightError
+from nanodrift.procedure.recording import completed_steps, resume_hint
+from nanodrift.procedure.serving import ServeError, serve_model
 
 
 def cell_drive(config: Config, drivers: DriverSet) -> CellDrive:

@@ -2,10 +2,10 @@
 
 The cell's axes come from the model file. The ISO 9283 plan (P1..P5 off the calibration levels,
 ``--cycles`` cycles, each point approached from both sides) runs on the simulated stacked stage
-(:mod:`drivers.simulated.multiaxis`) through the model, and once more uncompensated in the same room
+(:mod:`nanodrift.drivers.simulated.multiaxis`) through the model, and once more uncompensated in the same room
 with the same noise; both are scored against the true position and against the interferometers.
 With ``--config`` (an XY/XYZ cell on hardware, or the simulated one of ``[simulation] axes``) the same
-plan is driven through the config's drivers (:mod:`daemon.procedure.cell_steps`): once uncompensated,
+plan is driven through the config's drivers (:mod:`nanodrift.procedure.cell_steps`): once uncompensated,
 then through the model, each axis' position sensor averaged per step; scored against the sensors, and
 against the true position where the cell knows it (simulated).
 """
@@ -22,20 +22,14 @@ from typing import Any
 
 import numpy as np
 
-from daemon.calibration.iso9283 import CellTestResult, summarize_cell
-from daemon.calibration.plans import cell_validation_plan
-from daemon.commands._cell import guards, open_cell, scenario_list, scenario_seed
-from daemon.commands._cell_calibrate import cell_drive, follow_checks
-from daemon.config import Config
-from daemon.drivers_set import DriverSet
-from daemon.errors import UserError
-from daemon.model.cell_model import CellModel, load_any_model
-from daemon.model.model import ModelFileError
-from daemon.procedure.cell_steps import CellStepResult, run_cell_steps
-from daemon.reports.cell_validation import CellScores, cell_json, cell_table, write_cell_report
-from drivers.simulated.config import SECTION, SimulationConfig
-from drivers.simulated.effects import UnknownNameError
-from drivers.simulated.multiaxis import (
+from nanodrift.calibration.iso9283 import CellTestResult, summarize_cell
+from nanodrift.calibration.plans import cell_validation_plan
+from nanodrift.commands._cell import guards, open_cell, scenario_list, scenario_seed
+from nanodrift.commands._cell_calibrate import cell_drive, follow_checks
+from nanodrift.config import Config
+from nanodrift.drivers.simulated.config import SECTION, SimulationConfig
+from nanodrift.drivers.simulated.effects import UnknownNameError
+from nanodrift.drivers.simulated.multiaxis import (
     CellValidationRun,
     CrossParams,
     MultiAxisPhysics,
@@ -43,7 +37,13 @@ from drivers.simulated.multiaxis import (
     cross_params,
     run_cell_validation,
 )
-from drivers.simulated.scenarios import get_scenario
+from nanodrift.drivers.simulated.scenarios import get_scenario
+from nanodrift.drivers_set import DriverSet
+from nanodrift.errors import UserError
+from nanodrift.model.cell_model import CellModel, load_any_model
+from nanodrift.model.model import ModelFileError
+from nanodrift.procedure.cell_steps import CellStepResult, run_cell_steps
+from nanodrift.reports.cell_validation import CellScores, cell_json, cell_table, write_cell_report
 
 
 def is_cell_model_file(path: str) -> bool:

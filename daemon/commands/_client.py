@@ -16,10 +16,10 @@ from typing import Any
 
 import zenoh
 
-from daemon.bus.protocol import key_prefix
-from daemon.bus.session import describe_zenoh_error, session_config
-from daemon.config import ZenohSettings
-from daemon.errors import UserError
+from nanodrift.bus.protocol import key_prefix
+from nanodrift.bus.session import describe_zenoh_error, session_config
+from nanodrift.config import ZenohSettings
+from nanodrift.errors import UserError
 
 
 def add_client_flags(parser: argparse.ArgumentParser, *, endpoint_of: str) -> None:

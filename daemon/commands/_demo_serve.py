@@ -21,10 +21,10 @@ from typing import Any
 
 import zenoh
 
-from daemon.bus.session import Keys, describe_zenoh_error, session_config
-from daemon.calibration.plans import PAPER_TIMING
-from daemon.commands._cell import scenario_seed
-from daemon.errors import UserError
+from nanodrift.bus.session import Keys, describe_zenoh_error, session_config
+from nanodrift.calibration.plans import PAPER_TIMING
+from nanodrift.commands._cell import scenario_seed
+from nanodrift.errors import UserError
 
 HOLD_S = PAPER_TIMING.hold_s  # paper III.B: each step is held 25 s, the last 5 s averaged
 WINDOW_S = PAPER_TIMING.window_s
@@ -169,7 +169,7 @@ def serve(args: argparse.Namespace, workdir: Path, model_path: Path, kept: bool
     print(f"   $ nanodrift target {targets} -e {connect} --cell {SERVE_CELL}   # a client, over Zenoh", flush=True)
     log_path = workdir / "serve.log"
     with open(log_path, "wb") as log:
-        daemon = subprocess.Popen([sys.executable, "-m", "daemon.cli", "run", "--config", str(config)],
+        daemon = subprocess.Popen([sys.executable, "-m", "nanodrift.cli", "run", "--config", str(config)],
                                   stdout=subprocess.DEVNULL, stderr=log, cwd=workdir,
                                   env={**os.environ, "PYTHONUNBUFFERED": "1"})
     client: CellClient | None = None

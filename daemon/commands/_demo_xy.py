@@ -13,19 +13,19 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from daemon.calibration.dataset import write_csv
-from daemon.calibration.iso9283 import summarize_cell
-from daemon.commands._cell import scenario_seed
-from daemon.model.cell_model import save_cell_model
-from daemon.model.identify import fit, fit_cell
-from daemon.reports.cell_validation import ANCHOR_2DOF_NM
-from drivers.simulated.multiaxis import (
+from nanodrift.calibration.dataset import write_csv
+from nanodrift.calibration.iso9283 import summarize_cell
+from nanodrift.commands._cell import scenario_seed
+from nanodrift.drivers.simulated.multiaxis import (
     MultiAxisPhysics,
     cell_command,
     independent_command,
     run_cell_validation,
     simulate_cell_dataset,
 )
+from nanodrift.model.cell_model import save_cell_model
+from nanodrift.model.identify import fit, fit_cell
+from nanodrift.reports.cell_validation import ANCHOR_2DOF_NM
 
 AXES = ("x", "y")
 

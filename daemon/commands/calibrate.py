@@ -20,19 +20,19 @@ import asyncio
 import sys
 from pathlib import Path
 
-from daemon.calibration.dataset import DataError
-from daemon.calibration.plans import bidirectional_plan, calibration_plan
-from daemon.commands import _cell_calibrate
-from daemon.commands._catalogues import scenario_epilog
-from daemon.commands._cell import add_config_flag, add_output_check_flag, add_simulation_flags, guards, open_cell
-from daemon.config import Config, missing_model_channels
-from daemon.errors import UserError
-from daemon.model.equation import equation, training_lines
-from daemon.model.identify import FitError
-from daemon.model.model import Model
-from daemon.procedure.follow import StageNotFollowingError
-from daemon.procedure.preflight import PreflightError
-from daemon.procedure.recording import (
+from nanodrift.calibration.dataset import DataError
+from nanodrift.calibration.plans import bidirectional_plan, calibration_plan
+from nanodrift.commands import _cell_calibrate
+from nanodrift.commands._catalogues import scenario_epilog
+from nanodrift.commands._cell import add_config_flag, add_output_check_flag, add_simulation_flags, guards, open_cell
+from nanodrift.config import Config, missing_model_channels
+from nanodrift.errors import UserError
+from nanodrift.model.equation import equation, training_lines
+from nanodrift.model.identify import FitError
+from nanodrift.model.model import Model
+from nanodrift.procedure.follow import StageNotFollowingError
+from nanodrift.procedure.preflight import PreflightError
+from nanodrift.procedure.recording import (
     NARROW_RANGE_C,
     calibration_columns,
     completed_steps,
@@ -41,7 +41,7 @@ from daemon.procedure.recording import (
     record_calibration,
     resume_hint,
 )
-from daemon.procedure.serving import ServeError, check_writable, serve_model, toml_string
+from nanodrift.procedure.serving import ServeError, check_writable, serve_model, toml_string
 
 
 def configure(parser: argparse.ArgumentParser) -> None:

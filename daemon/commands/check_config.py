@@ -22,9 +22,9 @@ from pathlib import Path
 
 import zenoh
 
-from daemon.bus.protocol import Keys
-from daemon.bus.session import session_config
-from daemon.config import (
+from nanodrift.bus.protocol import Keys
+from nanodrift.bus.session import session_config
+from nanodrift.config import (
     SAFE_RAMP_BUDGET_S,
     STOP_TIMEOUT_S,
     ZENOH_KIND,
@@ -35,11 +35,11 @@ from daemon.config import (
     locate,
     missing_model_channels,
 )
-from daemon.model.cell_model import CellModel
-from daemon.model.model import Model, ModelFileError
-from daemon.service.cell_compensator import load_served_model
-from drivers.base import VirtualCellPlugin
-from drivers.registry import UnknownDriverError, load_plugin
+from nanodrift.drivers.base import VirtualCellPlugin
+from nanodrift.drivers.registry import UnknownDriverError, load_plugin
+from nanodrift.model.cell_model import CellModel
+from nanodrift.model.model import Model, ModelFileError
+from nanodrift.service.cell_compensator import load_served_model
 
 
 def model_problem(config: Config) -> tuple[Model | CellModel | None, str | None]:
@@ -213,7 +213,7 @@ def no_sensors(config: Config, model: Model | CellModel | None) -> tuple[str | N
 
 
 def file_lines(path: str, problems: Sequence[str]) -> list[int | None]:
-    """The line of the file each problem or warning is at (as :func:`daemon.config.load_config` finds
+    """The line of the file each problem or warning is at (as :func:`nanodrift.config.load_config` finds
     it for the errors it raises), None where no line holds it."""
     try:
         text = Path(path).read_text(encoding="utf-8")

@@ -4,8 +4,8 @@
    stepwise identification -> a model file;
 2. validate: the paper's five tests (test 1 without compensation, tests 2-4 inside the training
    range, test 5 outside it), each over the paper's 30 sweeps through the procedure ``nanodrift
-   validate`` runs (:func:`daemon.procedure.validation.run_validation` on the simulated cell's
-   virtual clock), seeded by :func:`daemon.commands._cell.scenario_seed` as ``validate`` and
+   validate`` runs (:func:`nanodrift.procedure.validation.run_validation` on the simulated cell's
+   virtual clock), seeded by :func:`nanodrift.commands._cell.scenario_seed` as ``validate`` and
    ``benchmarks/paper_table1.py`` are: the same seed gives the same figures through all three;
 3. Table I beside the paper's, with a line on each difference (seed, sweeps, the simulated room) and
    on why the static model's test 5 degrades (it extrapolates);
@@ -40,23 +40,25 @@ from typing import Any
 
 import numpy as np
 
-from daemon.assembly import simulated_drivers
-from daemon.atomic import atomic_write_text
-from daemon.calibration.dataset import DataError
-from daemon.calibration.discovery import discover
-from daemon.calibration.iso9283 import TestResult
-from daemon.calibration.plans import PAPER_TIMING
-from daemon.calibration.residuals import MIN_RESIDUALS, BiasTracker
-from daemon.commands._cell import scenario_seed
-from daemon.commands._demo_serve import serve
-from daemon.commands._demo_xy import two_axis_part
-from daemon.errors import UserError
-from daemon.model.equation import equation
-from daemon.model.identify import FitError
-from daemon.model.model import Model
-from daemon.procedure.recording import fit_recorded, record_calibration
-from daemon.procedure.validation import run_validation
-from daemon.reports.validation import (
+from nanodrift.assembly import simulated_drivers
+from nanodrift.atomic import atomic_write_text
+from nanodrift.calibration.dataset import DataError
+from nanodrift.calibration.discovery import discover
+from nanodrift.calibration.iso9283 import TestResult
+from nanodrift.calibration.plans import PAPER_TIMING
+from nanodrift.calibration.residuals import MIN_RESIDUALS, BiasTracker
+from nanodrift.commands._cell import scenario_seed
+from nanodrift.commands._demo_serve import serve
+from nanodrift.commands._demo_xy import two_axis_part
+from nanodrift.drivers.simulated.datasets import simulate_dataset
+from nanodrift.drivers.simulated.effects import resolve_effects
+from nanodrift.errors import UserError
+from nanodrift.model.equation import equation
+from nanodrift.model.identify import FitError
+from nanodrift.model.model import Model
+from nanodrift.procedure.recording import fit_recorded, record_calibration
+from nanodrift.procedure.validation import run_validation
+from nanodrift.reports.validation import (
     PAPER_TABLE1,
     provenance_text,
     results_json,
@@ -64,8 +66,6 @@ from daemon.reports.validation import (
     truth_table,
     write_figures,
 )
-from drivers.simulated.datasets import simulate_dataset
-from drivers.simulated.effects import resolve_effects
 
 PAPER_CYCLES = 30  # ISO 9283 sweeps per test in the paper
 PAPER_CALIBRATION_CYCLES = 24

@@ -3,7 +3,7 @@
 Read, discover, write.
 
 Several files are runs of their own: stateful terms restart and held-out blocks stay within each
-file (:mod:`daemon.model.segments`); every file must hold the model's channels, and channels that
+file (:mod:`nanodrift.model.segments`); every file must hold the model's channels, and channels that
 only some files have are left out. The extended model's provenance lists every file's SHA-256.
 
 When nothing clears the bar no model is written (an "extended" model with the given terms would only
@@ -23,12 +23,18 @@ import argparse
 import json
 import sys
 
-from daemon.calibration.dataset import DataError, Dataset, common_channels, concat, read_runs
-from daemon.calibration.discovery import CellDiscoveryResult, DiscoveryError, DiscoveryResult, discover, discover_cell
-from daemon.errors import UserError
-from daemon.model.cell_model import CellModel, load_any_model, save_cell_model
-from daemon.model.model import MissingChannelError, ModelFileError, save_model
-from daemon.model.provenance import stamp_data
+from nanodrift.calibration.dataset import DataError, Dataset, common_channels, concat, read_runs
+from nanodrift.calibration.discovery import (
+    CellDiscoveryResult,
+    DiscoveryError,
+    DiscoveryResult,
+    discover,
+    discover_cell,
+)
+from nanodrift.errors import UserError
+from nanodrift.model.cell_model import CellModel, load_any_model, save_cell_model
+from nanodrift.model.model import MissingChannelError, ModelFileError, save_model
+from nanodrift.model.provenance import stamp_data
 
 NOTHING_FOUND = "nothing found; no model written"
 
@@ -77,8 +83,8 @@ def main(args: argparse.Namespace) -> int:
         model_out = str(args.out)
     if args.report:
         # matplotlib (slow to import) only when a report is asked for; not a cycle
-        from daemon.reports.discovery import write_report
-        from daemon.reports.validation import provenance_text
+        from nanodrift.reports.discovery import write_report
+        from nanodrift.reports.validation import provenance_text
 
         footer = provenance_text(model.id, model.provenance.get("data_file"), f"discovered on {', '.join(paths)}")
         write_report(result, args.report, model_out, provenance=footer)
@@ -123,7 +129,7 @@ def _main_cell(args: argparse.Namespace, paths: list[str], runs: list[Dataset], 
         for axis, axis_result in result.axes.items():
             axis_result.final["model"] = extended.models[axis].id
     if args.report:
-        from daemon.reports.discovery import write_report  # matplotlib only when asked, as above
+        from nanodrift.reports.discovery import write_report  # matplotlib only when asked, as above
 
         for axis, axis_result in result.axes.items():
             write_report(axis_result, f"{args.report}/axis_{axis}", model_out)

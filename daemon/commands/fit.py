@@ -12,15 +12,15 @@ import sys
 from collections.abc import Sequence
 from typing import Any, SupportsFloat
 
-from daemon.calibration.dataset import DataError, Dataset, common_channels, concat, read_runs
-from daemon.errors import UserError
-from daemon.model.cell_model import CellModel, save_cell_model
-from daemon.model.describe import describe_cell_model, describe_model
-from daemon.model.equation import equation
-from daemon.model.identify import FitError, fit, fit_cell
-from daemon.model.model import Model, save_model
-from daemon.model.provenance import stamp_data
-from daemon.model.terms import MAX_POWER, Term, UnknownTermError, parse_term
+from nanodrift.calibration.dataset import DataError, Dataset, common_channels, concat, read_runs
+from nanodrift.errors import UserError
+from nanodrift.model.cell_model import CellModel, save_cell_model
+from nanodrift.model.describe import describe_cell_model, describe_model
+from nanodrift.model.equation import equation
+from nanodrift.model.identify import FitError, fit, fit_cell
+from nanodrift.model.model import Model, save_model
+from nanodrift.model.provenance import stamp_data
+from nanodrift.model.terms import MAX_POWER, Term, UnknownTermError, parse_term
 
 
 def configure(parser: argparse.ArgumentParser) -> None:

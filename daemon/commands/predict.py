@@ -1,7 +1,7 @@
 """``nanodrift predict --model M.json D.csv --out P.csv``: the command the model gives for each row.
 
 Two columns are added: ``q_pred_um`` (the command) and ``q_sigma_um`` (its standard uncertainty,
-:meth:`daemon.model.model.Model.q_sigma`; the fit's residual RMS on every row for a model file
+:meth:`nanodrift.model.model.Model.q_sigma`; the fit's residual RMS on every row for a model file
 written before nanodrift stored the covariance).
 """
 
@@ -12,11 +12,11 @@ import math
 
 import numpy as np
 
-from daemon.calibration.dataset import DataError, Dataset, read_csv, write_csv
-from daemon.errors import UserError
-from daemon.model.cell_model import CellModel, load_any_model
-from daemon.model.model import MissingChannelError, Model, ModelFileError
-from daemon.model.series import Series
+from nanodrift.calibration.dataset import DataError, Dataset, read_csv, write_csv
+from nanodrift.errors import UserError
+from nanodrift.model.cell_model import CellModel, load_any_model
+from nanodrift.model.model import MissingChannelError, Model, ModelFileError
+from nanodrift.model.series import Series
 
 
 def extrapolating_rows(model: Model, data: Series) -> tuple[int, dict[str, int]]:

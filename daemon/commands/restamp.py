@@ -1,6 +1,6 @@
 """``nanodrift restamp M.json [--out M2.json]``: give a deliberately edited model file its new id.
 
-A model's id is the hash of its content (:meth:`daemon.model.model.Model.content_id`) and
+A model's id is the hash of its content (:meth:`nanodrift.model.model.Model.content_id`) and
 ``load_model`` refuses a file whose id does not match, so an edit can never be "reloaded" while the
 daemon keeps serving the old coefficients under the same id. After a deliberate hand edit this
 command checks everything else in the file exactly as a load does, then writes it (atomically) with
@@ -12,9 +12,9 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 
-from daemon.errors import UserError
-from daemon.model.cell_model import CellModel, load_any_model, save_any_model
-from daemon.model.model import ModelFileError
+from nanodrift.errors import UserError
+from nanodrift.model.cell_model import CellModel, load_any_model, save_any_model
+from nanodrift.model.model import ModelFileError
 
 
 def configure(parser: argparse.ArgumentParser) -> None:

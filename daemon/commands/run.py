@@ -10,11 +10,11 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from daemon.assembly import build_drivers
-from daemon.commands._cell import add_config_flag
-from daemon.config import load_config
-from daemon.logs import configure_logging
-from daemon.service import run_service
+from nanodrift.assembly import build_drivers
+from nanodrift.commands._cell import add_config_flag
+from nanodrift.config import load_config
+from nanodrift.logs import configure_logging
+from nanodrift.service import run_service
 
 #: where the built-in simulated cell listens unless ``-l`` says otherwise
 TRYOUT_LISTEN = "tcp/127.0.0.1:7447"

@@ -5,12 +5,12 @@ from __future__ import annotations
 import argparse
 import sys
 
-from daemon.calibration.dataset import write_csv
-from daemon.commands._catalogues import effects_epilog, scenario_epilog, scenario_names
-from daemon.errors import UserError
-from drivers.simulated.datasets import simulate_dataset
-from drivers.simulated.effects import CROSS_AXIS_EFFECTS, EFFECTS, UnknownNameError, resolve_effects
-from drivers.simulated.multiaxis import CELL_AXES, simulate_cell_dataset
+from nanodrift.calibration.dataset import write_csv
+from nanodrift.commands._catalogues import effects_epilog, scenario_epilog, scenario_names
+from nanodrift.drivers.simulated.datasets import simulate_dataset
+from nanodrift.drivers.simulated.effects import CROSS_AXIS_EFFECTS, EFFECTS, UnknownNameError, resolve_effects
+from nanodrift.drivers.simulated.multiaxis import CELL_AXES, simulate_cell_dataset
+from nanodrift.errors import UserError
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -55,7 +55,7 @@ def main(args: argparse.Namespace) -> int:
 
 
 def _multi_axis(args: argparse.Namespace) -> int:
-    """``--axes xy|xyz``: the stacked-stage cell (``drivers.simulated.multiaxis``)."""
+    """``--axes xy|xyz``: the stacked-stage cell (``nanodrift.drivers.simulated.multiaxis``)."""
     try:
         ds = simulate_cell_dataset(args.axes, args.scenario, args.effects or None, cycles=args.cycles, seed=args.seed)
     except UnknownNameError as err:

@@ -24,7 +24,7 @@ from typing import Any, TextIO
 
 import zenoh
 
-from daemon.commands._client import add_client_flags, open_client, query_status, status_key
+from nanodrift.commands._client import add_client_flags, open_client, query_status, status_key
 
 #: ANSI: cursor home, clear the screen (what ``watch`` does)
 CLEAR = "\x1b[H\x1b[2J"

@@ -16,8 +16,8 @@ from typing import Any
 
 import zenoh
 
-from daemon.bus.protocol import Keys
-from daemon.commands._client import add_client_flags, open_client, query_status, status_key
+from nanodrift.bus.protocol import Keys
+from nanodrift.commands._client import add_client_flags, open_client, query_status, status_key
 
 #: seconds to collect the cells' ``status`` replies when the target's cell did not answer
 DISCOVERY_TIMEOUT_S = 2.0

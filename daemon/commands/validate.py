@@ -20,11 +20,11 @@ from typing import Any
 
 import numpy as np
 
-from daemon.calibration.iso9283 import TestResult
-from daemon.calibration.residuals import BiasTracker
-from daemon.commands import _cell_validate
-from daemon.commands._catalogues import scenario_epilog
-from daemon.commands._cell import (
+from nanodrift.calibration.iso9283 import TestResult
+from nanodrift.calibration.residuals import BiasTracker
+from nanodrift.commands import _cell_validate
+from nanodrift.commands._catalogues import scenario_epilog
+from nanodrift.commands._cell import (
     add_config_flag,
     add_output_check_flag,
     add_simulation_flags,
@@ -32,15 +32,15 @@ from daemon.commands._cell import (
     open_cell,
     scenario_list,
 )
-from daemon.config import Config, load_config
-from daemon.drivers_set import DriverSet
-from daemon.errors import UserError
-from daemon.model.model import Model, ModelFileError, load_model
-from daemon.procedure.validation import run_validation
-from daemon.reports.validation import coverage_lines, provenance_text, table1, truth_table, write_report
-from drivers.simulated.config import SECTION, SimulationConfig
-from drivers.simulated.effects import UnknownNameError
-from drivers.simulated.scenarios import get_scenario
+from nanodrift.config import Config, load_config
+from nanodrift.drivers.simulated.config import SECTION, SimulationConfig
+from nanodrift.drivers.simulated.effects import UnknownNameError
+from nanodrift.drivers.simulated.scenarios import get_scenario
+from nanodrift.drivers_set import DriverSet
+from nanodrift.errors import UserError
+from nanodrift.model.model import Model, ModelFileError, load_model
+from nanodrift.procedure.validation import run_validation
+from nanodrift.reports.validation import coverage_lines, provenance_text, table1, truth_table, write_report
 
 
 def configure(parser: argparse.ArgumentParser) -> None:

@@ -2,7 +2,7 @@
 
 Callers import from here only; the modules behind it each do one job:
 
-- :mod:`daemon.settings` (outside this package, so that importing a table never starts plugin
+- :mod:`nanodrift.settings` (outside this package, so that importing a table never starts plugin
   discovery): the daemon's own tables as plain pydantic models, and :class:`Config`;
 - ``_dispatch``: which plugin validates which table, sensor, hub and actuator; every problem collected;
 - ``_checks``: checks across the daemon's own tables (points in the workspace, believable ranges);
@@ -14,11 +14,11 @@ Unknown keys are errors everywhere: a typo must never pass silently, and numbers
 ``scale = "0.1"`` (a string) is an error, not 0.1.
 """
 
-from daemon.config._checks import DEFAULT_TEMPERATURE_RANGE_C, missing_model_channels, valid_range
-from daemon.config._dispatch import actuator_line, parse_config
-from daemon.config._lines import ConfigError, locate
-from daemon.config._load import TOO_DEEP, default_config, load_config
-from daemon.settings import (
+from nanodrift.config._checks import DEFAULT_TEMPERATURE_RANGE_C, missing_model_channels, valid_range
+from nanodrift.config._dispatch import actuator_line, parse_config
+from nanodrift.config._lines import ConfigError, locate
+from nanodrift.config._load import TOO_DEEP, default_config, load_config
+from nanodrift.settings import (
     BUILTIN_SOURCE,
     DEFAULT_MODEL_PATH,
     MAX_RECORD_KEEP_DAYS,

@@ -10,9 +10,9 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-from daemon.config._lines import sensor_where
-from daemon.settings import ActuatorConfig, Config, ProcedureSettings
-from drivers.base import SensorConfig
+from nanodrift.config._lines import sensor_where
+from nanodrift.drivers.base import SensorConfig
+from nanodrift.settings import ActuatorConfig, Config, ProcedureSettings
 
 
 def points_problems(procedure: ProcedureSettings, actuator: ActuatorConfig) -> list[str]:

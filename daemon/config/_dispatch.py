@@ -1,13 +1,13 @@
 """Plugin dispatch: which plugin validates which part of the document, and the checks across them.
 
 Validation runs in two passes so every message names its field path: first the daemon's own tables
-(:mod:`daemon.settings`), then each ``[[sensors]]`` entry with the pydantic model of the driver
+(:mod:`nanodrift.settings`), then each ``[[sensors]]`` entry with the pydantic model of the driver
 plugin its ``kind`` names (a lab's own driver validates its own keys). ``[actuator]`` is split the
-same way: the core keys (gain, limits, motion) by :class:`~daemon.settings.ActuatorConfig`, the
+same way: the core keys (gain, limits, motion) by :class:`~nanodrift.settings.ActuatorConfig`, the
 device keys by the ``actuator_model`` of the plugin its ``kind`` names; ``[[hubs]]`` by the plugin of
 the sensors that use them; a top-level table by the plugin owning it
-(:func:`drivers.registry.owner_of_section`). Every problem is collected, then all are raised together
-as one :class:`~daemon.config._lines.ConfigError`.
+(:func:`nanodrift.drivers.registry.owner_of_section`). Every problem is collected, then all are raised together
+as one :class:`~nanodrift.config._lines.ConfigError`.
 """
 
 from __future__ import annotations
@@ -18,9 +18,18 @@ from typing import Any, TypeVar
 
 from pydantic import BaseModel, ValidationError
 
-from daemon.config._checks import points_problems, valid_range_problems
-from daemon.config._lines import ConfigError, problems_of, sensor_where
-from daemon.settings import (
+from nanodrift.config._checks import points_problems, valid_range_problems
+from nanodrift.config._lines import ConfigError, problems_of, sensor_where
+from nanodrift.drivers.base import ActuatorOptions, DriverPlugin, SensorConfig, VirtualCellPlugin
+from nanodrift.drivers.registry import (
+    UnknownDriverError,
+    available,
+    load_plugin,
+    owner_of_section,
+    quietly,
+    virtual_cell_plugin,
+)
+from nanodrift.settings import (
     BUILTIN_SOURCE,
     DATA_DIR,
     STATE_MODEL_PATH,
@@ -29,15 +38,6 @@ from daemon.settings import (
     AxisConfig,
     AxisKeys,
     Config,
-)
-from drivers.base import ActuatorOptions, DriverPlugin, SensorConfig, VirtualCellPlugin
-from drivers.registry import (
-    UnknownDriverError,
-    available,
-    load_plugin,
-    owner_of_section,
-    quietly,
-    virtual_cell_plugin,
 )
 
 _Model = TypeVar("_Model", bound=BaseModel)
@@ -65,7 +65,7 @@ class _Parse:
         return plugin
 
     def section_owner(self, name: str, kinds: Sequence[str]) -> str | None:
-        """The kind owning top-level table ``name`` (:func:`drivers.registry.owner_of_section`); a plugin
+        """The kind owning top-level table ``name`` (:func:`nanodrift.drivers.registry.owner_of_section`); a plugin
         that fails to load is a problem at ``sensors`` (a kind in use) or at ``name``."""
         return owner_of_section(name, kinds, lambda kind: self.plugin(kind, "sensors" if kind in kinds else name))
 
@@ -357,7 +357,7 @@ def _virtual_kind() -> str:
 
 def _check_across(parse: _Parse, sensors: Sequence[tuple[int, SensorConfig]],
                   actuator: ActuatorConfig | None, where: str = "actuator") -> None:
-    """Each plugin's :meth:`~drivers.base.DriverPlugin.config_problems` over its sensors and its actuator
+    """Each plugin's :meth:`~nanodrift.drivers.base.DriverPlugin.config_problems` over its sensors and its actuator
     (once per axis' actuator in a multi-axis cell: a problem seen twice is listed once)."""
     options = actuator.options if actuator is not None else None
     kinds = dict.fromkeys([s.kind for _, s in sensors] + ([options.kind] if options is not None else []))

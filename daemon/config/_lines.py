@@ -13,7 +13,7 @@ from typing import Any
 
 from pydantic import ValidationError
 
-from daemon.errors import UserError
+from nanodrift.errors import UserError
 
 
 class ConfigError(UserError):

@@ -1,7 +1,7 @@
 """Reading the operator's TOML file (or the built-in default) into a validated :class:`Config`.
 
 Every refusal is a :class:`ConfigError`, a hostile file included; the problems of a file that parses
-get their line (:func:`~daemon.config._lines.locate`).
+get their line (:func:`~nanodrift.config._lines.locate`).
 """
 
 from __future__ import annotations
@@ -10,9 +10,9 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-from daemon.config._dispatch import parse_config
-from daemon.config._lines import ConfigError, locate
-from daemon.settings import BUILTIN_SOURCE, Config
+from nanodrift.config._dispatch import parse_config
+from nanodrift.config._lines import ConfigError, locate
+from nanodrift.settings import BUILTIN_SOURCE, Config
 
 
 def load_config(path: str | Path | None) -> Config:

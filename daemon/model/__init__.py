@@ -3,4 +3,4 @@
 Pure computation (numpy/scipy only): no I/O beyond the model file, no asyncio, no zenoh.
 """
 
-from daemon.model import axis_terms, effect_terms  # noqa: F401  (register the multi-axis and discovery terms' names)
+from nanodrift.model import axis_terms, effect_terms  # noqa: F401  (register the multi-axis and discovery terms' names)

@@ -10,7 +10,7 @@ the one-axis terms (the ``x`` argument is always the x axis' position); ``y``, `
 ``y*z``, ``y*T1``, ``dir(y)`` and ``creep(y, 15 s)`` are these. They parse only for a multi-axis
 model (``parse_term(name, axes)``): in a one-axis file ``y`` stays a channel named ``y``. Their
 features read the other axes' positions from ``channels[position_key(axis)]`` over a series
-(``daemon.model.segments.features`` puts them there) and from :meth:`TermStream.targets` in the daemon.
+(``nanodrift.model.segments.features`` puts them there) and from :meth:`TermStream.targets` in the daemon.
 """
 
 from __future__ import annotations
@@ -21,8 +21,8 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from daemon.model.effect_terms import CREEP_DEADBAND_UM, Creep, _CreepStream
-from daemon.model.terms import (
+from nanodrift.model.effect_terms import CREEP_DEADBAND_UM, Creep, _CreepStream
+from nanodrift.model.terms import (
     _CHANNEL,
     _NUMBER,
     MAX_POWER,
@@ -85,7 +85,7 @@ class AxisPower(Term):
 
     def __init__(self, axis: str, k: int) -> None:
         if axis == "x":
-            raise ValueError("the x axis' powers are the one-axis terms x .. x^k (daemon.model.terms.Power)")
+            raise ValueError("the x axis' powers are the one-axis terms x .. x^k (nanodrift.model.terms.Power)")
         if not 1 <= k <= MAX_POWER:
             raise ValueError(f"power of {axis} must be between 1 and {MAX_POWER}, got {k}")
         self.axis, self.k = axis, k
@@ -156,7 +156,7 @@ class AxisCoupling(Term):
 
     def __init__(self, axis: str, channel: str) -> None:
         if axis == "x":
-            raise ValueError("x*T1 is the one-axis term (daemon.model.effect_terms.PositionCoupling)")
+            raise ValueError("x*T1 is the one-axis term (nanodrift.model.effect_terms.PositionCoupling)")
         self.axis, self.channel = axis, channel
         self.axes = (axis,)
         self.channels = (channel,)

@@ -1,7 +1,7 @@
 """A multi-axis cell's model: one :class:`Model` per axis, each over every axis' position, in one file.
 
 An XY or XYZ stage is one cell: the command of each axis depends on where the others are
-(crosstalk, non-orthogonality, coupled bending: :mod:`daemon.model.axis_terms`), so each axis has
+(crosstalk, non-orthogonality, coupled bending: :mod:`nanodrift.model.axis_terms`), so each axis has
 its own term list, chosen by the same stepwise selection, and reads the positions of all axes.
 Each axis' model is an ordinary :class:`Model` (its covariance, ``q_sigma``, stateful terms and file
 checks are the one-axis ones); this class only keeps them together under one id and one file.
@@ -29,9 +29,9 @@ from typing import Any
 
 import numpy as np
 
-from daemon.atomic import atomic_write_text
-from daemon.model.model import FORMAT, Model, ModelFileError, _read_model_text, load_model, save_model
-from daemon.model.series import Series
+from nanodrift.atomic import atomic_write_text
+from nanodrift.model.model import FORMAT, Model, ModelFileError, _read_model_text, load_model, save_model
+from nanodrift.model.series import Series
 
 #: letters an axis may take: not q (``q_um`` is the one-axis command column)
 AXIS_LETTERS = "abcdefghijklmnoprstuvwxyz"

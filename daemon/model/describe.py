@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from daemon.model.cell_model import CellModel
-from daemon.model.equation import equation, training_lines
-from daemon.model.model import Model
+from nanodrift.model.cell_model import CellModel
+from nanodrift.model.equation import equation, training_lines
+from nanodrift.model.model import Model
 
 
 def describe_model(model: Model, path: str | None = None) -> str:

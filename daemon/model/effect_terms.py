@@ -1,8 +1,8 @@
 """Terms for the effects discovery adds beyond the paper's model, registered with ``register_term``.
 
-Imported by ``daemon.model`` so a model file naming these terms loads anywhere. Each term computes
+Imported by ``nanodrift.model`` so a model file naming these terms loads anywhere. Each term computes
 its feature over a whole series (``batch``, vectorised) and sample by sample (``stream``) with the
-same result; ``lag(T4, 2100 s)`` and ``dir`` already live in :mod:`daemon.model.terms`.
+same result; ``lag(T4, 2100 s)`` and ``dir`` already live in :mod:`nanodrift.model.terms`.
 
 - ``x*T1``: position-thermal coupling, the stage's gain changes with its temperature.
 - ``rate(T4, 300 s)``: rate of change of a channel, smoothed by a first-order lag of time constant
@@ -22,7 +22,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from daemon.model.terms import (
+from nanodrift.model.terms import (
     Channels,
     Term,
     TermStream,

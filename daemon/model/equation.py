@@ -18,9 +18,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from daemon.model.axis_terms import AxisPower
-from daemon.model.model import FittedTerm, Model, Training
-from daemon.model.terms import Bias, ChannelSquare, Power, Term, position_key
+from nanodrift.model.axis_terms import AxisPower
+from nanodrift.model.model import FittedTerm, Model, Training
+from nanodrift.model.terms import Bias, ChannelSquare, Power, Term, position_key
 
 #: the most a printed coefficient's rounding may change its term inside the training box (µm)
 ROUNDING_TOLERANCE_UM = 1e-3

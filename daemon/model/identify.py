@@ -6,7 +6,7 @@ Candidates are ``x^1..x^n1`` and every temperature channel not excluded, plus a 
 The geometric order n1 cannot be chosen by training error (it always falls with order), so
 ``order="auto"`` picks it by the error on held-out blocks of the run: whole calibration cycles.
 Several runs fitted together (calibration plus recorded operation) keep their own time: features
-restart at each run's first row and no held-out block spans two runs (:mod:`daemon.model.segments`).
+restart at each run's first row and no held-out block spans two runs (:mod:`nanodrift.model.segments`).
 """
 
 from __future__ import annotations
@@ -19,15 +19,15 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from daemon.model.axis_terms import AxisPower, AxisProduct
-from daemon.model.cell_model import CellModel
-from daemon.model.model import FittedTerm, Model, Training
-from daemon.model.provenance import created_now, software
-from daemon.model.segments import features, runs
-from daemon.model.series import CellSeries, Series
-from daemon.model.stepwise import stepwisefit
-from daemon.model.terms import Bias, Channel, ChannelSquare, Power, Term
-from daemon.model.uncertainty import Covariance, estimate
+from nanodrift.model.axis_terms import AxisPower, AxisProduct
+from nanodrift.model.cell_model import CellModel
+from nanodrift.model.model import FittedTerm, Model, Training
+from nanodrift.model.provenance import created_now, software
+from nanodrift.model.segments import features, runs
+from nanodrift.model.series import CellSeries, Series
+from nanodrift.model.stepwise import stepwisefit
+from nanodrift.model.terms import Bias, Channel, ChannelSquare, Power, Term
+from nanodrift.model.uncertainty import Covariance, estimate
 
 MAX_AUTO_ORDER = 5
 #: a channel's square is a candidate only where the data spans at least this much of it (°C). The
@@ -193,7 +193,7 @@ def model_covariance(X: np.ndarray, y: np.ndarray, final: OLS, data: Series, ter
                      nuisance: np.ndarray | None = None) -> Covariance:
     """The model file's covariance block for ``final``, the least-squares fit of y on X.
 
-    See :mod:`daemon.model.uncertainty` for what it holds and why.
+    See :mod:`nanodrift.model.uncertainty` for what it holds and why.
 
     ``nuisance`` (n, m): the last m columns of X are fitted but not kept (discovery's drift in run
     time); the bias then absorbs their value at the start of the run, and C follows.

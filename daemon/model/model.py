@@ -12,7 +12,7 @@ numbers, powers beyond ``x^12`` and a prediction that overflows inside the train
 
 Longer than most modules (~580 lines) on purpose: the model, its id and the file format's checks
 live together so that what is hashed, what is written and what is checked cannot drift apart (the
-covariance block's own checks and its streaming evaluation are in :mod:`daemon.model.uncertainty`).
+covariance block's own checks and its streaming evaluation are in :mod:`nanodrift.model.uncertainty`).
 """
 
 from __future__ import annotations
@@ -30,11 +30,11 @@ from typing import Any, TypeGuard
 
 import numpy as np
 
-from daemon.atomic import atomic_write_text
-from daemon.model.segments import features, spans_s
-from daemon.model.series import Series
-from daemon.model.terms import Power, Term, TermStream, UnknownTermError, parse_term, position_key
-from daemon.model.uncertainty import Covariance, SigmaStream
+from nanodrift.atomic import atomic_write_text
+from nanodrift.model.segments import features, spans_s
+from nanodrift.model.series import Series
+from nanodrift.model.terms import Power, Term, TermStream, UnknownTermError, parse_term, position_key
+from nanodrift.model.uncertainty import Covariance, SigmaStream
 
 FORMAT = "nanodrift-model/1"
 #: deepest nesting of [ and { a model file may have (the format itself needs 4)
@@ -167,7 +167,7 @@ class Model:
 
     def predict(self, data: Series) -> np.ndarray:
         """The command q for every row; stateful terms run over the rows in order (restarting at each run's
-        first row when ``data`` holds several runs: :mod:`daemon.model.segments`).
+        first row when ``data`` holds several runs: :mod:`nanodrift.model.segments`).
 
         Far outside the training box a row's q may overflow to inf or nan: callers that write or
         serve q check it (``nanodrift predict`` refuses such a row by number).
@@ -196,7 +196,7 @@ class Model:
     def q_sigma(self, data: Series) -> np.ndarray:
         """Standard uncertainty (µm) of the command :meth:`predict` gives for every row.
 
-        ``sqrt(f·C·f + s² + (κ·g)²)`` row-wise (:mod:`daemon.model.uncertainty`): C the
+        ``sqrt(f·C·f + s² + (κ·g)²)`` row-wise (:mod:`nanodrift.model.uncertainty`): C the
         coefficients' covariance (how well the calibration run pinned them; it grows away from the
         training data, so outside the training ranges), s the residual RMS a fresh run sees, κ·g the
         curvature the training range cannot rule out (0 inside it). A model file without a
@@ -252,7 +252,7 @@ class Evaluator:
 
     Temperature-only terms are summed once per temperature sample (``observe``), so a target costs
     a cubic in Horner form plus the few terms that depend on the target or the motion; its
-    uncertainty (:meth:`sigma`) likewise (see :class:`daemon.model.uncertainty.SigmaStream`).
+    uncertainty (:meth:`sigma`) likewise (see :class:`nanodrift.model.uncertainty.SigmaStream`).
     """
 
     __slots__ = ("_dynamic", "_poly", "_positional", "_sigma", "_sigma_const", "_static", "_static_sum", "_streams",

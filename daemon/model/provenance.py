@@ -12,8 +12,8 @@ import importlib.metadata
 from collections.abc import Sequence
 from pathlib import Path
 
-from daemon.atomic import file_sha256
-from daemon.model.model import Model
+from nanodrift.atomic import file_sha256
+from nanodrift.model.model import Model
 
 
 def software() -> str:

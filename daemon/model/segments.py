@@ -3,7 +3,7 @@
 Each run keeps its own time: the runs are not one continuous series, so a stateful term (a lag, the
 direction of motion, creep) starts afresh at each run's first row, and anything measured in time
 (a drift, a span) is measured within a run. A series made of several runs says which run each row
-came from with an optional ``segment`` array (:class:`daemon.calibration.dataset.Dataset` has one;
+came from with an optional ``segment`` array (:class:`nanodrift.calibration.dataset.Dataset` has one;
 rows of one run are contiguous); without it the series is one run and nothing changes.
 """
 
@@ -14,8 +14,8 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from daemon.model.series import Series
-from daemon.model.terms import Term, position_key
+from nanodrift.model.series import Series
+from nanodrift.model.terms import Term, position_key
 
 
 def segment_slices(segment: np.ndarray | None, n: int | None = None) -> list[slice]:

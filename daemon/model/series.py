@@ -1,6 +1,6 @@
 """The one shape of recorded data the pure core reads: fit, predict and discovery take a ``Series``.
 
-:class:`daemon.calibration.dataset.Dataset` (a CSV of the data contract) is one; so is anything with
+:class:`nanodrift.calibration.dataset.Dataset` (a CSV of the data contract) is one; so is anything with
 these arrays and methods. Defined here, beside the model, so the model never depends on file I/O.
 Everything the core reads is declared here, so the core never asks ``getattr(data, ...)``.
 """

@@ -190,7 +190,7 @@ class ChannelSquare(Term):
     """``(T2 - 22.05)^2``: a channel's curvature about a centre (the bracket's bending, II.B.2).
 
     Invisible in the paper's 0.5 °C calibration, it is what a linear thermal model misses over a week's
-    few degrees; :func:`daemon.model.identify.curvature_candidates` offers it only where the data spans
+    few degrees; :func:`nanodrift.model.identify.curvature_candidates` offers it only where the data spans
     enough of the channel to estimate it. The centre (the training range's middle) keeps the feature
     small and the fit well conditioned; beside the channel's linear term and the bias any centre spans
     the same models.
@@ -395,7 +395,7 @@ def position_key(axis: str) -> str:
 
 
 #: makers of the terms only a multi-axis cell has, tried first when a name is parsed for such a cell
-#: (``daemon.model.axis_terms`` registers them): one-axis names parse exactly as before
+#: (``nanodrift.model.axis_terms`` registers them): one-axis names parse exactly as before
 _AXIS_KINDS: list[Callable[[str, tuple[str, ...]], Term | None]] = []
 
 

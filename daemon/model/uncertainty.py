@@ -39,7 +39,7 @@ Nothing is scaled to make a benchmark pass: ``benchmarks/adaptation.py`` measure
 layout is unchanged but for the optional ``wander_um`` (files without it load with their ids).
 
 :func:`estimate` computes all of it from the final fit; :class:`SigmaStream` evaluates it per target
-in the daemon. Kept apart from :mod:`daemon.model.model` so the block's checks, its estimation and
+in the daemon. Kept apart from :mod:`nanodrift.model.model` so the block's checks, its estimation and
 the streaming shortcut are read in one place.
 """
 
@@ -53,7 +53,7 @@ from typing import Any, TypeGuard
 
 import numpy as np
 
-from daemon.model.terms import Power, Term, TermStream
+from nanodrift.model.terms import Power, Term, TermStream
 
 #: the largest relative asymmetry |C_ij - C_ji| / sqrt(C_ii C_jj) a file may carry (rounding of a symmetric matrix)
 SYMMETRY_TOLERANCE = 1e-9
@@ -451,7 +451,7 @@ def estimate(X: np.ndarray, y: np.ndarray, t_s: np.ndarray, run_slices: Sequence
 
 
 class SigmaStream:
-    """``q_sigma`` per target in a few additions, for :class:`daemon.model.model.Evaluator`.
+    """``q_sigma`` per target in a few additions, for :class:`nanodrift.model.model.Evaluator`.
 
     The terms split three ways: *static* ones depend only on temperatures and time (channels, lags,
     rates, the bias), *powers* of x, and *other* target- or motion-dependent ones (``dir``,

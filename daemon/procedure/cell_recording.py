@@ -1,8 +1,8 @@
 """A multi-axis calibration: run (or continue) the space-filling plan, append each step to the CSV, fit.
 
-:mod:`daemon.procedure.recording` for an XY/XYZ cell: each completed step is one row of the
+:mod:`nanodrift.procedure.recording` for an XY/XYZ cell: each completed step is one row of the
 multi-axis CSV contract (``t_s, x_um, y_um, q_x_um, q_y_um, cycle, valid, T1, ...``), appended and
-fsynced, so an interrupted run resumes from the file; the fit is :func:`daemon.model.identify.fit_cell`
+fsynced, so an interrupted run resumes from the file; the fit is :func:`nanodrift.model.identify.fit_cell`
 on the valid rows.
 """
 
@@ -12,15 +12,15 @@ from collections.abc import Awaitable, Callable, Sequence
 from pathlib import Path
 from typing import IO
 
-from daemon.calibration.dataset import CsvAppender, command_column, position_column, read_csv
-from daemon.calibration.plans import PAPER_TIMING, PlannedCellStep, PlannedStep, StepTiming
-from daemon.model.cell_model import CellModel, save_cell_model
-from daemon.model.identify import fit_cell
-from daemon.model.provenance import stamp_data
-from daemon.procedure.cell_steps import CellDrive, CellStepResult, run_cell_steps
-from daemon.procedure.follow import FollowCheck
-from daemon.procedure.progress import Progress
-from daemon.procedure.recording import completed_steps
+from nanodrift.calibration.dataset import CsvAppender, command_column, position_column, read_csv
+from nanodrift.calibration.plans import PAPER_TIMING, PlannedCellStep, PlannedStep, StepTiming
+from nanodrift.model.cell_model import CellModel, save_cell_model
+from nanodrift.model.identify import fit_cell
+from nanodrift.model.provenance import stamp_data
+from nanodrift.procedure.cell_steps import CellDrive, CellStepResult, run_cell_steps
+from nanodrift.procedure.follow import FollowCheck
+from nanodrift.procedure.progress import Progress
+from nanodrift.procedure.recording import completed_steps
 
 
 def cell_calibration_columns(drive: CellDrive) -> list[str]:

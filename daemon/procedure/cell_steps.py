@@ -1,12 +1,12 @@
 """A multi-axis procedure step by step: ramp every axis together, hold, average each axis' window.
 
-The one-axis :mod:`daemon.procedure.steps` for an XY/XYZ cell, on its building blocks: the
-:class:`~daemon.procedure.sampler.Sampler` polls every group on its own schedule and judges a window
+The one-axis :mod:`nanodrift.procedure.steps` for an XY/XYZ cell, on its building blocks: the
+:class:`~nanodrift.procedure.sampler.Sampler` polls every group on its own schedule and judges a window
 (a faulted or stale sample in any channel, any axis' position sensor included, makes the window
 dirty: it is measured again up to ``max_retries`` times, then kept with ``valid = 0``); each axis'
 ``[axes.actuator]`` limits hold as in a one-axis run (slew, ``[v_min, v_max]`` checked on every
 sub-command, and every axis' sub-command of one instant checked before any is written); the
-:class:`~daemon.procedure.follow.FollowCheck` watches each axis' first moves on its own sensor; the
+:class:`~nanodrift.procedure.follow.FollowCheck` watches each axis' first moves on its own sensor; the
 stage starts where each output reads back and ends at each finite ``safe_voltage_v``.
 
 Every axis of a move ramps over the same time (the slowest axis' slew sets it), so the stage moves
@@ -20,15 +20,22 @@ import math
 from collections.abc import Awaitable, Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
-from daemon.calibration.plans import PAPER_TIMING, PlannedCellStep, PlannedStep, StepResult, StepTiming, ramp_commands
-from daemon.config import ActuatorConfig
-from daemon.drivers_set import DriverSet
-from daemon.procedure.follow import FollowCheck
-from daemon.procedure.progress import Progress
-from daemon.procedure.sampler import Sampler
-from daemon.procedure.steps import ramp_s, stage_q_um
-from daemon.service.actuation import checked_sent_voltage
-from drivers.base import Actuator
+from nanodrift.calibration.plans import (
+    PAPER_TIMING,
+    PlannedCellStep,
+    PlannedStep,
+    StepResult,
+    StepTiming,
+    ramp_commands,
+)
+from nanodrift.config import ActuatorConfig
+from nanodrift.drivers.base import Actuator
+from nanodrift.drivers_set import DriverSet
+from nanodrift.procedure.follow import FollowCheck
+from nanodrift.procedure.progress import Progress
+from nanodrift.procedure.sampler import Sampler
+from nanodrift.procedure.steps import ramp_s, stage_q_um
+from nanodrift.service.actuation import checked_sent_voltage
 
 #: (the step's targets per axis, the cell clock's now) -> the command per axis
 CellCommandFor = Callable[[dict[str, float], float], dict[str, float]]
@@ -159,7 +166,7 @@ async def run_cell_steps(
 ) -> list[CellStepResult]:
     """Drive ``plan`` step by step on every axis; ``command_for(targets, t)`` gives the commands (default: the
     targets). ``follow``: one check per axis, shown each step on its own axis. See
-    :func:`daemon.procedure.steps.run_steps` for the rest (the same rules, per axis)."""
+    :func:`nanodrift.procedure.steps.run_steps` for the rest (the same rules, per axis)."""
     drivers = drive.drivers
     sampler = Sampler(drivers, on_temperatures=on_temperatures)
     results: list[CellStepResult] = []

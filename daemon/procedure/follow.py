@@ -12,8 +12,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from daemon.calibration.plans import StepResult
-from daemon.errors import UserError
+from nanodrift.calibration.plans import StepResult
+from nanodrift.errors import UserError
 
 
 class StageNotFollowingError(UserError):

@@ -18,9 +18,9 @@ from typing import Any
 
 import zenoh
 
-from daemon.bus.session import Keys, session_config
-from daemon.config import Config, ZenohSettings
-from daemon.errors import UserError
+from nanodrift.bus.session import Keys, session_config
+from nanodrift.config import Config, ZenohSettings
+from nanodrift.errors import UserError
 
 ALIVE_WAIT_S = 1.0  # a daemon's token answers within milliseconds once connected
 OUTPUT_WAIT_S = 5.0  # an output node (re)connecting after the procedure's session opened

@@ -17,7 +17,7 @@ import time
 from collections.abc import Callable, Sequence
 from typing import IO
 
-from daemon.calibration.plans import PlannedStep, StepResult
+from nanodrift.calibration.plans import PlannedStep, StepResult
 
 
 class Progress:

@@ -12,16 +12,16 @@ from collections.abc import Awaitable, Callable, Sequence
 from pathlib import Path
 from typing import IO
 
-from daemon.calibration.dataset import CsvAppender, DataError, read_csv
-from daemon.calibration.plans import PAPER_TIMING, PlannedStep, StepResult, StepTiming, calibration_plan
-from daemon.config import ActuatorConfig
-from daemon.drivers_set import DriverSet
-from daemon.model.identify import FitResult, fit
-from daemon.model.model import Model, save_model
-from daemon.model.provenance import stamp_data
-from daemon.procedure.follow import FollowCheck
-from daemon.procedure.progress import Progress
-from daemon.procedure.steps import run_steps
+from nanodrift.calibration.dataset import CsvAppender, DataError, read_csv
+from nanodrift.calibration.plans import PAPER_TIMING, PlannedStep, StepResult, StepTiming, calibration_plan
+from nanodrift.config import ActuatorConfig
+from nanodrift.drivers_set import DriverSet
+from nanodrift.model.identify import FitResult, fit
+from nanodrift.model.model import Model, save_model
+from nanodrift.model.provenance import stamp_data
+from nanodrift.procedure.follow import FollowCheck
+from nanodrift.procedure.progress import Progress
+from nanodrift.procedure.steps import run_steps
 
 
 def calibration_columns(drivers: DriverSet) -> list[str]:
@@ -57,7 +57,7 @@ async def record_calibration(
 
     Returns the number of steps recorded in this call. With ``resume``, steps already in the file
     are skipped; without it, an existing non-empty file is an error (never overwrite hours of data).
-    ``follow`` and ``ready``: see :func:`daemon.procedure.steps.run_steps`.
+    ``follow`` and ``ready``: see :func:`nanodrift.procedure.steps.run_steps`.
     """
     path = Path(data_path)
     columns = calibration_columns(drivers)

@@ -9,8 +9,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from daemon.drivers_set import DriverSet
-from drivers.base import DeviceError, Reading, SensorGroup, State
+from nanodrift.drivers.base import DeviceError, Reading, SensorGroup, State
+from nanodrift.drivers_set import DriverSet
 
 
 @dataclass

@@ -14,8 +14,8 @@ import tomllib
 from datetime import UTC, datetime
 from pathlib import Path
 
-from daemon.atomic import atomic_write_text
-from daemon.config import ConfigError, parse_config
+from nanodrift.atomic import atomic_write_text
+from nanodrift.config import ConfigError, parse_config
 
 #: a table header line: ``[model]``, ``[[sensors]]`` (a comment may follow)
 _HEADER = re.compile(r"^\s*\[\[?\s*(?P<name>[A-Za-z0-9_.\-\"' ]+?)\s*\]\]?\s*(?:#.*)?$")

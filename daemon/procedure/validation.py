@@ -1,7 +1,7 @@
 """ISO 9283 validation on a cell: drive the validation plan through the model (or without it).
 
 With ``adapt`` (``validate --adapt``) the model's command gets the daemon's bias correction: the same
-:class:`daemon.calibration.residuals.BiasTracker`, fed with each valid step's settled residual (the
+:class:`nanodrift.calibration.residuals.BiasTracker`, fed with each valid step's settled residual (the
 step's averaged position minus its target, the measurement the daemon's monitor takes while a
 target is held), its correction added to every following command.
 
@@ -17,14 +17,14 @@ import math
 from collections.abc import Awaitable, Callable
 from typing import IO, Any
 
-from daemon.calibration.iso9283 import TestResult, summarize
-from daemon.calibration.plans import PlannedStep, StepResult, StepTiming, validation_plan
-from daemon.calibration.residuals import BiasTracker
-from daemon.config import ActuatorConfig
-from daemon.drivers_set import DriverSet
-from daemon.procedure.follow import FollowCheck
-from daemon.procedure.progress import Progress
-from daemon.procedure.steps import run_steps
+from nanodrift.calibration.iso9283 import TestResult, summarize
+from nanodrift.calibration.plans import PlannedStep, StepResult, StepTiming, validation_plan
+from nanodrift.calibration.residuals import BiasTracker
+from nanodrift.config import ActuatorConfig
+from nanodrift.drivers_set import DriverSet
+from nanodrift.procedure.follow import FollowCheck
+from nanodrift.procedure.progress import Progress
+from nanodrift.procedure.steps import run_steps
 
 
 def feed_tracker(tracker: BiasTracker, result: StepResult) -> float:

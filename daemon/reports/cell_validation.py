@@ -18,9 +18,9 @@ from typing import Any
 
 import numpy as np
 
-from daemon.atomic import atomic_write_text
-from daemon.calibration.iso9283 import CellTestResult
-from daemon.reports.validation import EMPTY, ratio_text, save_figure
+from nanodrift.atomic import atomic_write_text
+from nanodrift.calibration.iso9283 import CellTestResult
+from nanodrift.reports.validation import EMPTY, ratio_text, save_figure
 
 #: Tan, Clévy, Chaillet (Micromachines 2015): a 2-DoF stage's 2-D accuracy without / with compensation, nm
 ANCHOR_2DOF_NM = (1400.0, 200.0)

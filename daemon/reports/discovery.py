@@ -31,10 +31,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from daemon.atomic import atomic_write_text
-from daemon.calibration.discovery import Candidate, DiscoveryResult
-from daemon.calibration.discovery.settings import Settings
-from daemon.reports.validation import STYLE, WITH_COLOR, WITHOUT_COLOR, save_figure, with_footer
+from nanodrift.atomic import atomic_write_text
+from nanodrift.calibration.discovery import Candidate, DiscoveryResult
+from nanodrift.calibration.discovery.settings import Settings
+from nanodrift.reports.validation import STYLE, WITH_COLOR, WITHOUT_COLOR, save_figure, with_footer
 
 #: where the method is written out in full (the report's Method section points there)
 METHOD_DOC = "daemon/calibration/discovery/METHOD.md"

@@ -29,13 +29,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from daemon.atomic import atomic_write_text, atomic_writer
-from daemon.calibration.iso9283 import TestResult, x_without
+from nanodrift.atomic import atomic_write_text, atomic_writer
+from nanodrift.calibration.iso9283 import TestResult, x_without
 
 if TYPE_CHECKING:
     from matplotlib.typing import RcKeyType
 
-    from daemon.model.model import Training
+    from nanodrift.model.model import Training
 
 PAPER_TABLE1: dict[str, tuple[float, float | None]] = {
     "test1": (546.0, None),

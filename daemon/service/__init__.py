@@ -7,6 +7,6 @@ group), ``status``, ``supervision`` (state changes, watchdog), ``reload`` (SIGHU
 (what the target path and the loop share, behind one lock).
 """
 
-from daemon.service.runner import Service, run_service
+from nanodrift.service.runner import Service, run_service
 
 __all__ = ["Service", "run_service"]

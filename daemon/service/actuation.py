@@ -4,13 +4,13 @@ Answers hand their command over with :meth:`Actuation.offer` from Zenoh's thread
 on the asyncio loop. A target asks for a wake of the loop only when the loop is idle: while a write
 is under way, newer commands just replace the pending one, and the loop takes the newest as soon as
 the write returns. Motion itself (where a move starts, the slew, the limits of what is sent) is
-:mod:`daemon.motion`'s, the one owner the procedures use too; this module owns the device's lifecycle.
+:mod:`nanodrift.motion`'s, the one owner the procedures use too; this module owns the device's lifecycle.
 
 - **The goal** is the latest served command. It survives a reload that touches ``[actuator]``, a
   device reopened after a fault, and a target answered while the drivers were being swapped: once
   the (new) output is open, the goal is written to it (ramped from where the stage is). A goal the
   new limits forbid is dropped (``actuator_goal_dropped``) and the stage holds where it is.
-- **Where the stage is** (:func:`daemon.motion.trusted_start`): a read-back is believed only inside
+- **Where the stage is** (:func:`nanodrift.motion.trusted_start`): a read-back is believed only inside
   ``[v_min, v_max]`` and, once something was sent to this device, when it agrees with what was sent;
   else it is unknown (``actuator_readback_untrusted``), never a start point. Unknown: the next
   command is written as it is (``actuator_unramped`` says so, once).
@@ -30,7 +30,7 @@ the write returns. Motion itself (where a move starts, the slew, the limits of w
 One module of ~410 lines on purpose: it is one object, :class:`Actuation`, whose goal, fault and
 reopen cycle and shutdown ramp share one state (the goal, what was sent, the device open now) driven
 by one task on the loop; split, each part would reach into the others' state. The motion rules it
-applies are already :mod:`daemon.motion`'s.
+applies are already :mod:`nanodrift.motion`'s.
 """
 
 from __future__ import annotations
@@ -43,10 +43,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from daemon.config import SAFE_RAMP_BUDGET_S, ActuatorConfig
-from daemon.logs import RateLimitedLog
-from daemon.motion import RAMP_PERIOD_S, Slew, StartPoint, trusted_start
-from drivers.base import Actuator, DeviceError
+from nanodrift.config import SAFE_RAMP_BUDGET_S, ActuatorConfig
+from nanodrift.drivers.base import Actuator, DeviceError
+from nanodrift.logs import RateLimitedLog
+from nanodrift.motion import RAMP_PERIOD_S, Slew, StartPoint, trusted_start
 
 WRITE_PERIOD_S = RAMP_PERIOD_S  # any two writes are this far apart: a stream is coalesced to 50 writes a second
 WRITE_TIMEOUT_S = 3.0  # a write that takes longer is a fault
@@ -57,7 +57,7 @@ SENT_SLACK_V = 1e-9
 
 
 async def locate_stage(actuator: Actuator, config: ActuatorConfig, sent_v: tuple[float, ...] = ()) -> StartPoint:
-    """Where the stage is after ``actuator.open()`` (:func:`daemon.motion.trusted_start` on its read-back);
+    """Where the stage is after ``actuator.open()`` (:func:`nanodrift.motion.trusted_start` on its read-back);
     a failed read back raises, like a failed write. The procedures use it too."""
     read = await actuator.read_back()
     read_v = None

@@ -1,6 +1,6 @@
 """A multi-axis cell's outputs: every axis of one command written before any axis of the next.
 
-The multi-axis twin of :mod:`daemon.service.actuation` (a one-axis cell keeps that module, unchanged),
+The multi-axis twin of :mod:`nanodrift.service.actuation` (a one-axis cell keeps that module, unchanged),
 with the same rules per axis, applied by one task for all axes so that commands never interleave on a
 shared line (a GCS controller's port, a Modbus module's connection):
 
@@ -9,7 +9,7 @@ shared line (a GCS controller's port, a Modbus module's connection):
 - **Each step** computes every axis' next voltage under its own ``max_slew_um_per_s`` and writes the
   axes in the cell's order; axes that reached the goal are not written again for it. A ramp ends when
   every axis holds its goal.
-- **Where each axis is** (:func:`daemon.service.actuation.locate_stage`): its read-back checked
+- **Where each axis is** (:func:`nanodrift.service.actuation.locate_stage`): its read-back checked
   against its limits and what was sent to it, else unknown (the next command is written as it is).
 - **What is sent** is checked per axis (:func:`checked_sent_voltage`): inside that axis' limits, for
   every axis of a step before any axis is written, or nothing of the step is written and the cell is
@@ -31,10 +31,11 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from daemon.config import SAFE_RAMP_BUDGET_S, ActuatorConfig
-from daemon.logs import RateLimitedLog
-from daemon.motion import RAMP_PERIOD_S, Slew
-from daemon.service.actuation import (
+from nanodrift.config import SAFE_RAMP_BUDGET_S, ActuatorConfig
+from nanodrift.drivers.base import Actuator, DeviceError
+from nanodrift.logs import RateLimitedLog
+from nanodrift.motion import RAMP_PERIOD_S, Slew
+from nanodrift.service.actuation import (
     INITIAL_BACKOFF_S,
     MAX_BACKOFF_S,
     WRITE_PERIOD_S,
@@ -42,7 +43,6 @@ from daemon.service.actuation import (
     checked_sent_voltage,
     locate_stage,
 )
-from drivers.base import Actuator, DeviceError
 
 
 @dataclass(frozen=True, slots=True)

@@ -1,6 +1,6 @@
 """A multi-axis target -> :class:`CellCommand`, or a :class:`Refusal`: one temperature snapshot, every axis.
 
-The multi-axis twin of :mod:`daemon.service.compensator` (which serves a one-axis cell, unchanged). The
+The multi-axis twin of :mod:`nanodrift.service.compensator` (which serves a one-axis cell, unchanged). The
 rule it adds: **a target is served whole or refused whole.** Every axis' workspace, the model, the
 freshness of every channel, and every axis' voltage against its own ``[v_min, v_max]`` are checked
 before anything moves (the evaluator's ``moved`` is the last step); a refusal names the axis, and
@@ -19,15 +19,15 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-from daemon.bus.protocol import CellCommand, CellTarget, Refusal
-from daemon.calibration.residuals import BiasTracker
-from daemon.config import ActuatorConfig
-from daemon.model.cell_model import CellEvaluator, CellModel, load_any_model
-from daemon.model.model import Model, ModelFileError, load_model
-from daemon.motion import VoltageLimitError, checked_voltage
-from daemon.service.compensator import temperature_snapshot
-from daemon.service.table import SensorTable
-from drivers.base import State
+from nanodrift.bus.protocol import CellCommand, CellTarget, Refusal
+from nanodrift.calibration.residuals import BiasTracker
+from nanodrift.config import ActuatorConfig
+from nanodrift.drivers.base import State
+from nanodrift.model.cell_model import CellEvaluator, CellModel, load_any_model
+from nanodrift.model.model import Model, ModelFileError, load_model
+from nanodrift.motion import VoltageLimitError, checked_voltage
+from nanodrift.service.compensator import temperature_snapshot
+from nanodrift.service.table import SensorTable
 
 
 def _axes_text(axes: Sequence[str]) -> str:

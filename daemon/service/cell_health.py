@@ -1,6 +1,6 @@
 """A multi-axis cell's health and adaptation: one :class:`HealthUnit` per axis that has a position sensor.
 
-Each axis is watched exactly as a one-axis cell is (``daemon.service.health_unit``): its commands (the
+Each axis is watched exactly as a one-axis cell is (``nanodrift.service.health_unit``): its commands (the
 axis' position as the target, its ``q``), its position sensor's readings, the settle windows, the rolling
 statistics and, with ``[adapt] mode = "bias"``, its own bias tracker, whose correction the
 :class:`CellCompensator` adds to that axis' command. Each unit sees a one-axis view of the config (its
@@ -8,7 +8,7 @@ axis' actuator and position sensor, every temperature sensor) and of the model (
 
 The ``health`` document is the worst state of the axes (degraded, then ok, then unknown) with every
 axis' own document under ``"axes"``. A target held on every watched axis is one recorded row
-(:class:`daemon.service.recorder.CellSettled`: ``x_um, y_um, q_x_um, q_y_um, target_x_um, ...``).
+(:class:`nanodrift.service.recorder.CellSettled`: ``x_um, y_um, q_x_um, q_y_um, target_x_um, ...``).
 """
 
 from __future__ import annotations
@@ -21,14 +21,14 @@ from typing import Any
 
 import zenoh
 
-from daemon.bus.protocol import CellCommand, Command, dumps
-from daemon.bus.session import Bus
-from daemon.calibration.residuals import BiasTracker, Settled
-from daemon.config import Config
-from daemon.model.cell_model import CellModel
-from daemon.service.cell_compensator import CellCompensator
-from daemon.service.health_unit import PUBLISH_INTERVAL_S, HealthUnit
-from daemon.service.recorder import CellSettled, Polled
+from nanodrift.bus.protocol import CellCommand, Command, dumps
+from nanodrift.bus.session import Bus
+from nanodrift.calibration.residuals import BiasTracker, Settled
+from nanodrift.config import Config
+from nanodrift.model.cell_model import CellModel
+from nanodrift.service.cell_compensator import CellCompensator
+from nanodrift.service.health_unit import PUBLISH_INTERVAL_S, HealthUnit
+from nanodrift.service.recorder import CellSettled, Polled
 
 #: a cell's state is its worst axis'
 #: targets held on some axes, waiting for the others (oldest dropped beyond this)

@@ -1,7 +1,7 @@
 """Target -> :class:`Command`, or a :class:`Refusal`: the loaded model, the sensor table, the actuator limits.
 
 Each command carries ``q_sigma_um`` (:meth:`Evaluator.sigma`, taken before the move) and, with
-``[adapt] mode = "bias"``, ``correction_um``: the health unit's correction (``daemon.service.health_unit``
+``[adapt] mode = "bias"``, ``correction_um``: the health unit's correction (``nanodrift.service.health_unit``
 sets :attr:`Compensator.correction_um` under the state lock), already added to ``q_um`` before the
 voltage is computed and checked. With a position sensor every command that goes out is appended, with
 its cell-clock time, to :attr:`Compensator.served` for the health unit (one append: the answer never
@@ -9,8 +9,9 @@ waits for the monitor).
 
 Refused: a stale or faulted channel (named, with its reason), a target outside the workspace, a
 voltage outside the actuator's limits, no model. (An output device in fault is refused before this,
-by ``daemon.service.targets``: it is the actuation's state, not the model's.) What the command looks like on the wire is
-``daemon.bus.protocol``'s business, not this module's.
+by ``nanodrift.service.targets``: it is the actuation's state, not the model's.) What the command looks like on the
+wire is
+``nanodrift.bus.protocol``'s business, not this module's.
 """
 
 from __future__ import annotations
@@ -22,13 +23,13 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-from daemon.bus.protocol import Command, Refusal, Target
-from daemon.calibration.residuals import BiasTracker
-from daemon.config import ActuatorConfig
-from daemon.model.model import Evaluator, Model, ModelFileError, load_model
-from daemon.motion import VoltageLimitError, checked_voltage
-from daemon.service.table import ChannelEntry, SensorTable
-from drivers.base import State
+from nanodrift.bus.protocol import Command, Refusal, Target
+from nanodrift.calibration.residuals import BiasTracker
+from nanodrift.config import ActuatorConfig
+from nanodrift.drivers.base import State
+from nanodrift.model.model import Evaluator, Model, ModelFileError, load_model
+from nanodrift.motion import VoltageLimitError, checked_voltage
+from nanodrift.service.table import ChannelEntry, SensorTable
 
 _NO_TEMPERATURES: Mapping[str, float] = MappingProxyType({})
 

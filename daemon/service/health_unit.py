@@ -1,6 +1,6 @@
 """The daemon's health unit: is the served model still right, and (``[adapt] mode = "bias"``) its correction.
 
-The pure pieces are ``daemon.calibration.residuals``'s (the same classes ``validate --adapt`` runs):
+The pure pieces are ``nanodrift.calibration.residuals``'s (the same classes ``validate --adapt`` runs):
 served commands and position readings go through :class:`SettleTracker` into :class:`HealthMonitor`
 (rolling statistics, state, advice with :class:`RangeWatch`'s "since when outside the training
 range") and, with adaptation on, :class:`BiasTracker`, whose correction the compensator adds to every
@@ -23,7 +23,7 @@ sample (same time stamp) is not news and is skipped.
 Time: the settle windows run on the cell clock (the drivers' monotonic clock, like the readings and the
 served commands), so a step of the system clock neither stalls nor skews them; the wall clock only
 labels what is handed to the recorder (``t_s``, the file's day), with every polled temperature channel
-over the window (:class:`daemon.service.recorder.PolledChannels`).
+over the window (:class:`nanodrift.service.recorder.PolledChannels`).
 
 ``nanodrift/<cell>/health`` is published at once when the state changes and every
 :data:`PUBLISH_INTERVAL_S` of wall time besides: it is read by people and dashboards, who live in
@@ -41,15 +41,15 @@ from typing import Any
 
 import zenoh
 
-from daemon.bus.protocol import Command, dumps
-from daemon.bus.session import Bus
-from daemon.calibration.residuals import BiasTracker, HealthMonitor, RangeWatch, Settled, SettleTracker
-from daemon.config import Config
-from daemon.model.cell_model import CellModel
-from daemon.model.model import Model
-from daemon.service.cell_compensator import CellCompensator
-from daemon.service.compensator import Compensator
-from daemon.service.recorder import Polled, PolledChannels
+from nanodrift.bus.protocol import Command, dumps
+from nanodrift.bus.session import Bus
+from nanodrift.calibration.residuals import BiasTracker, HealthMonitor, RangeWatch, Settled, SettleTracker
+from nanodrift.config import Config
+from nanodrift.model.cell_model import CellModel
+from nanodrift.model.model import Model
+from nanodrift.service.cell_compensator import CellCompensator
+from nanodrift.service.compensator import Compensator
+from nanodrift.service.recorder import Polled, PolledChannels
 
 #: the health document is published this often (wall clock, s) besides at every change of state
 PUBLISH_INTERVAL_S = 5.0
@@ -64,7 +64,7 @@ class HealthUnit:
 
     def __init__(self, config: Config, model: Model | CellModel | None, log: Any, *, axis: str = "x") -> None:
         self.log = log
-        #: the axis this unit watches (a multi-axis cell has one unit per axis: ``daemon.service.cell_health``)
+        #: the axis this unit watches (a multi-axis cell has one unit per axis: ``nanodrift.service.cell_health``)
         self.axis = axis
         self.served: deque[tuple[float, Command]] = deque(maxlen=SERVED_QUEUE)
         #: called on the loop, outside the state lock, with every settled target, the unix time it settled

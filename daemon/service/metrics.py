@@ -7,7 +7,7 @@ depend on how they are measured. The one thing measured on the target path is th
 :class:`AnswerLatency` counts it into fixed buckets (a bisect and two additions under an
 uncontended lock), and the collector exposes the counts as a histogram.
 
-The HTTP endpoint that serves them is :mod:`daemon.service.metrics_server`'s.
+The HTTP endpoint that serves them is :mod:`nanodrift.service.metrics_server`'s.
 
 Names follow Prometheus' conventions: ``nanodrift_`` prefix, base units (seconds, metres), counters
 ending ``_total``; every series carries the ``cell`` label.

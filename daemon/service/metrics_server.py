@@ -1,7 +1,7 @@
 """The metrics' HTTP endpoint (``[metrics] listen``): ``/metrics`` served from the daemon's event loop, bounded.
 
 Each :class:`MetricsServer` has its own ``CollectorRegistry`` holding a
-:class:`daemon.service.metrics.CellCollector` (no global state: tests run several daemons in one
+:class:`nanodrift.service.metrics.CellCollector` (no global state: tests run several daemons in one
 process) and serves HTTP from the daemon's event loop (``asyncio.start_server``), bounded so that a
 flood of idle connections cannot take the daemon's file descriptors (with a thread per connection
 and no timeout, ~1000 idle ones would exhaust them): at most ``max_connections`` open, a request
@@ -23,8 +23,8 @@ from typing import Any
 from prometheus_client import CollectorRegistry
 from prometheus_client.exposition import choose_encoder
 
-from daemon.errors import UserError
-from daemon.service.metrics import AnswerLatency, CellCollector
+from nanodrift.errors import UserError
+from nanodrift.service.metrics import AnswerLatency, CellCollector
 
 
 def split_listen(listen: str) -> tuple[str, int]:

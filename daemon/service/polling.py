@@ -17,7 +17,7 @@ import time
 from collections.abc import Awaitable, Callable, Iterable
 from typing import Any
 
-from drivers.base import Clock, DeviceError, MonotonicClock, Reading, SensorGroup
+from nanodrift.drivers.base import Clock, DeviceError, MonotonicClock, Reading, SensorGroup
 
 #: (group, reason, retry_in_s, failures so far in this episode: 1 for the first)
 OnFailure = Callable[[SensorGroup, str, float, int], None]

@@ -11,12 +11,12 @@ an invalid calibration step is kept: never a NaN.
 
 The wall clock only labels: ``t_s`` and the day in the file name (on a simulated cell whose clock runs
 faster, that clock labels instead, ``DriverContext.label_clock``: a simulated day is a day file). What
-decides runs on the daemon's monotonic clock (:class:`drivers.base.MonotonicClock`): the settle timing (the
+decides runs on the daemon's monotonic clock (:class:`nanodrift.drivers.base.MonotonicClock`): the settle timing (the
 health unit's) and retention, so a step of the system clock (NTP, ``date -s``) neither stalls rows nor deletes files.
 
 - One file per UTC day of the label, ``records-YYYY-MM-DD.csv``. A new file is created atomically
   (header in a temp file, fsync, rename): a crash never leaves a file without its header. Each row
-  is one write, fsynced (:class:`daemon.calibration.dataset.CsvAppender`); a row that fails (a full
+  is one write, fsynced (:class:`nanodrift.calibration.dataset.CsvAppender`); a row that fails (a full
   disk) is cut back off, and a restart resumes the day's file, dropping a row a crash cut short.
 - A file's columns never change: when the channels change (a reload polling other channels) or the
   label steps back (``t_s`` must increase), the day continues in ``records-YYYY-MM-DD.2.csv``, ``.3``...
@@ -48,10 +48,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
-from daemon.atomic import atomic_write_text
-from daemon.calibration.dataset import RESERVED, CsvAppender, DataError, WriteBytes
-from daemon.calibration.residuals import Settled
-from drivers.base import MonotonicClock
+from nanodrift.atomic import atomic_write_text
+from nanodrift.calibration.dataset import RESERVED, CsvAppender, DataError, WriteBytes
+from nanodrift.calibration.residuals import Settled
+from nanodrift.drivers.base import MonotonicClock
 
 #: the columns before the channels, in this order
 RECORD_COLUMNS = ("t_s", "x_um", "q_um", "target_um", "residual_um", "valid")

@@ -22,18 +22,18 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
 
-from daemon.config import BUILTIN_SOURCE, ConfigError, load_config, missing_model_channels
-from daemon.drivers_set import DriverSet
-from daemon.model.cell_model import CellModel
-from daemon.model.model import Model, ModelFileError
-from daemon.sdnotify import Notifier
-from daemon.service.cell_compensator import CellCompensator, load_served_model
-from daemon.service.cell_health import CellHealth
-from daemon.service.compensator import Compensator
-from daemon.service.health_unit import HealthUnit
-from daemon.service.state import CellState
-from daemon.service.table import SensorTable
-from drivers.base import DriverContext, DriverSetupError
+from nanodrift.config import BUILTIN_SOURCE, ConfigError, load_config, missing_model_channels
+from nanodrift.drivers.base import DriverContext, DriverSetupError
+from nanodrift.drivers_set import DriverSet
+from nanodrift.model.cell_model import CellModel
+from nanodrift.model.model import Model, ModelFileError
+from nanodrift.sdnotify import Notifier
+from nanodrift.service.cell_compensator import CellCompensator, load_served_model
+from nanodrift.service.cell_health import CellHealth
+from nanodrift.service.compensator import Compensator
+from nanodrift.service.health_unit import HealthUnit
+from nanodrift.service.state import CellState
+from nanodrift.service.table import SensorTable
 
 
 def same_content(old: Model | CellModel | None, new: Model | CellModel) -> bool:

@@ -3,7 +3,7 @@
 Like aiohttp's ``web_runner``: setup and cleanup live here, apart from what serves (the handlers
 in ``targets``, ``status``, ``sensors``, ``supervision``, ``reload``, ``actuation``). One asyncio
 loop owns the sensors, the actuator, reloads and supervision; targets are answered on Zenoh's
-threads (``daemon.service.targets``).
+threads (``nanodrift.service.targets``).
 
 Signals: SIGHUP re-reads the config and the model (a bad edit is refused and the running
 configuration keeps serving), SIGTERM/SIGINT stop cleanly (liveliness token withdrawn, a finite
@@ -21,32 +21,32 @@ from typing import Any
 
 import zenoh
 
-from daemon.bus.session import Bus, describe_zenoh_error, listen_endpoints, session_config
-from daemon.config import Config, missing_model_channels
-from daemon.drivers_set import DriverSet
-from daemon.errors import UserError
-from daemon.logs import get_logger
-from daemon.sdnotify import Notifier
-from daemon.service.actuation import Actuation
-from daemon.service.cell_actuation import CellActuation
-from daemon.service.cell_compensator import CellCompensator, load_cell_model_or_problem
-from daemon.service.cell_health import CellHealth
-from daemon.service.compensator import Compensator, load_model_or_problem
-from daemon.service.health_unit import HealthUnit
-from daemon.service.metrics import AnswerLatency
-from daemon.service.metrics_server import MetricsServer
-from daemon.service.polling import GroupPoller, first_attempts, pollers_healthy
-from daemon.service.recorder import Recorder
-from daemon.service.reload import Reloader
-from daemon.service.sensors import SensorIngest
-from daemon.service.state import CellState
-from daemon.service.status import StatusHandler, status_doc, status_line
-from daemon.service.supervision import SensorWatch, Supervisor
-from daemon.service.table import SensorTable
-from daemon.service.targets import TargetHandler
-from drivers.base import DriverContext, DriverSetupError, MonotonicClock
+from nanodrift.bus.session import Bus, describe_zenoh_error, listen_endpoints, session_config
+from nanodrift.config import Config, missing_model_channels
+from nanodrift.drivers.base import DriverContext, DriverSetupError, MonotonicClock
+from nanodrift.drivers_set import DriverSet
+from nanodrift.errors import UserError
+from nanodrift.logs import get_logger
+from nanodrift.sdnotify import Notifier
+from nanodrift.service.actuation import Actuation
+from nanodrift.service.cell_actuation import CellActuation
+from nanodrift.service.cell_compensator import CellCompensator, load_cell_model_or_problem
+from nanodrift.service.cell_health import CellHealth
+from nanodrift.service.compensator import Compensator, load_model_or_problem
+from nanodrift.service.health_unit import HealthUnit
+from nanodrift.service.metrics import AnswerLatency
+from nanodrift.service.metrics_server import MetricsServer
+from nanodrift.service.polling import GroupPoller, first_attempts, pollers_healthy
+from nanodrift.service.recorder import Recorder
+from nanodrift.service.reload import Reloader
+from nanodrift.service.sensors import SensorIngest
+from nanodrift.service.state import CellState
+from nanodrift.service.status import StatusHandler, status_doc, status_line
+from nanodrift.service.supervision import SensorWatch, Supervisor
+from nanodrift.service.table import SensorTable
+from nanodrift.service.targets import TargetHandler
 
-#: config (and a running context to keep) -> drivers: ``daemon.assembly.build_drivers``, handed in by
+#: config (and a running context to keep) -> drivers: ``nanodrift.assembly.build_drivers``, handed in by
 #: ``nanodrift run`` so that the service names no plugin
 BuildDrivers = Callable[[Config, DriverContext | None], DriverSet]
 

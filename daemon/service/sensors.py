@@ -4,7 +4,7 @@ Runs on the asyncio loop (the pollers' callbacks). The table is updated under th
 telemetry is published after the lock is released, so a slow publish never holds up a target.
 The ``role = "position"`` sensor's readings, each with whether it is ok and fresh, the good
 temperatures, and every temperature reading (ok or not: a recorded row carries every polled channel)
-go to the health unit (``daemon.service.health_unit``) under the same lock; its log lines and
+go to the health unit (``nanodrift.service.health_unit``) under the same lock; its log lines and
 ``health`` sample after it.
 """
 
@@ -16,11 +16,11 @@ from typing import Any
 
 import zenoh
 
-from daemon.bus.protocol import encode_telemetry
-from daemon.service.cell_health import CellHealth
-from daemon.service.health_unit import HealthUnit
-from daemon.service.state import CellState
-from drivers.base import Reading, SensorGroup, State
+from nanodrift.bus.protocol import encode_telemetry
+from nanodrift.drivers.base import Reading, SensorGroup, State
+from nanodrift.service.cell_health import CellHealth
+from nanodrift.service.health_unit import HealthUnit
+from nanodrift.service.state import CellState
 
 #: how the health advice names a position sensor's state
 _STATE_WORDS = {State.FAULT: "faulted", State.STALE: "stale", State.OK: "ok"}

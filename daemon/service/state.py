@@ -2,7 +2,7 @@
 
 ``CellState.lock`` is held for short computations only, never while publishing: the loop takes it
 to ingest readings, swap a reload and build the status, so a publish that waits on a congested
-subscriber must never hold it (``daemon.service.targets`` publishes under its own answer lock).
+subscriber must never hold it (``nanodrift.service.targets`` publishes under its own answer lock).
 """
 
 from __future__ import annotations
@@ -12,11 +12,11 @@ import time
 from collections import Counter
 from typing import Any
 
-from daemon.config import Config
-from daemon.service.cell_compensator import CellCompensator
-from daemon.service.compensator import Compensator
-from daemon.service.table import SensorTable
-from drivers.base import Clock
+from nanodrift.config import Config
+from nanodrift.drivers.base import Clock
+from nanodrift.service.cell_compensator import CellCompensator
+from nanodrift.service.compensator import Compensator
+from nanodrift.service.table import SensorTable
 
 
 class Counters:

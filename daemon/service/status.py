@@ -14,15 +14,15 @@ from typing import Any
 
 import zenoh
 
-from daemon.bus.protocol import dumps
-from daemon.bus.session import Bus
-from daemon.config import ZENOH_KIND, Config
-from daemon.service.actuation import Actuation
-from daemon.service.cell_actuation import CellActuation
-from daemon.service.cell_health import CellHealth
-from daemon.service.health_unit import HealthUnit
-from daemon.service.state import CellState
-from drivers.base import State
+from nanodrift.bus.protocol import dumps
+from nanodrift.bus.session import Bus
+from nanodrift.config import ZENOH_KIND, Config
+from nanodrift.drivers.base import State
+from nanodrift.service.actuation import Actuation
+from nanodrift.service.cell_actuation import CellActuation
+from nanodrift.service.cell_health import CellHealth
+from nanodrift.service.health_unit import HealthUnit
+from nanodrift.service.state import CellState
 
 
 def status_doc(state: CellState, healthy: bool, actuation: Actuation | CellActuation | None = None,

@@ -15,12 +15,12 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from daemon.bus.protocol import encode_telemetry
-from daemon.logs import RateLimitedLog
-from daemon.sdnotify import Notifier, watchdog_interval_s
-from daemon.service.sensors import PublishTelemetry
-from daemon.service.state import CellState
-from drivers.base import State
+from nanodrift.bus.protocol import encode_telemetry
+from nanodrift.drivers.base import State
+from nanodrift.logs import RateLimitedLog
+from nanodrift.sdnotify import Notifier, watchdog_interval_s
+from nanodrift.service.sensors import PublishTelemetry
+from nanodrift.service.state import CellState
 
 SUPERVISE_INTERVAL_S = 0.25
 STATUS_INTERVAL_S = 5.0

@@ -5,7 +5,7 @@ believes it enough to compute a command (or a health residual) from it. Judged w
 (:meth:`SensorTable.update`, on the loop), never per target, with the daemon's cell clock:
 
 - ``fault``: the device said so; or the value is non-finite or outside the sensor's valid range
-  (``valid_min``/``valid_max``, defaults in :func:`daemon.config.valid_range`); or the reading is
+  (``valid_min``/``valid_max``, defaults in :func:`nanodrift.config.valid_range`); or the reading is
   stamped more than :data:`FUTURE_TOLERANCE_S` ahead of the daemon's clock. The last believed
   value is kept (shown in ``status``), never the rejected one.
 - ``stale``: nothing read yet; the last reading older than ``max_age_s`` (judged in :meth:`state`, as
@@ -22,8 +22,8 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from daemon.config import valid_range
-from drivers.base import Reading, SensorConfig, State
+from nanodrift.config import valid_range
+from nanodrift.drivers.base import Reading, SensorConfig, State
 
 UNITS = {"temperature": "degC", "position": "um"}
 #: a reading stamped further ahead of the daemon's clock than this is a fault (its clock is wrong): more

@@ -20,7 +20,7 @@ answer's path (the actuator, the log) is handed to the loop with ``call_soon_thr
 once per burst. At ``--log-level debug`` (checked once, when the handler is made) every answer is
 handed to the loop too and logged there (``target_answered``: id, x, q, V, latency in µs); at info
 that costs nothing. The answer latency (arrival to publish) is counted into the metrics' histogram
-buckets under the answer lock (:class:`daemon.service.metrics.AnswerLatency`).
+buckets under the answer lock (:class:`nanodrift.service.metrics.AnswerLatency`).
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ from typing import Any
 
 import zenoh
 
-from daemon.bus.protocol import (
+from nanodrift.bus.protocol import (
     CellCommand,
     CellTarget,
     Command,
@@ -46,12 +46,12 @@ from daemon.bus.protocol import (
     parse_cell_target,
     parse_target,
 )
-from daemon.bus.session import Bus
-from daemon.logs import RateLimitedLog
-from daemon.service.actuation import Actuation
-from daemon.service.cell_actuation import CellActuation
-from daemon.service.metrics import AnswerLatency
-from daemon.service.state import CellState
+from nanodrift.bus.session import Bus
+from nanodrift.logs import RateLimitedLog
+from nanodrift.service.actuation import Actuation
+from nanodrift.service.cell_actuation import CellActuation
+from nanodrift.service.metrics import AnswerLatency
+from nanodrift.service.state import CellState
 
 
 def debug_enabled(log: Any) -> bool:

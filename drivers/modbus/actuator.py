@@ -14,10 +14,10 @@ from __future__ import annotations
 
 from typing import Literal
 
-from drivers.base import Actuator, DeviceError
-from drivers.modbus.codec import decode, encode, raw_for
-from drivers.modbus.config import ModbusActuatorConfig
-from drivers.modbus.hub import HubLease, ModbusExceptionError, ModbusHub
+from nanodrift.drivers.base import Actuator, DeviceError
+from nanodrift.drivers.modbus.codec import decode, encode, raw_for
+from nanodrift.drivers.modbus.config import ModbusActuatorConfig
+from nanodrift.drivers.modbus.hub import HubLease, ModbusExceptionError, ModbusHub
 
 
 class ModbusActuator(Actuator):

@@ -6,8 +6,8 @@ from typing import Annotated, Literal
 
 from pydantic import AllowInfNan, Field, FiniteFloat, field_validator, model_validator
 
-from drivers.base import ActuatorOptions, SensorConfig, StrictModel, output_step_problem
-from drivers.modbus.codec import DATA_TYPES, DataTypeName, SwapName, raw_for, register_count, step_v
+from nanodrift.drivers.base import ActuatorOptions, SensorConfig, StrictModel, output_step_problem
+from nanodrift.drivers.modbus.codec import DATA_TYPES, DataTypeName, SwapName, raw_for, register_count, step_v
 
 
 class ModbusHubConfig(StrictModel):
@@ -141,7 +141,7 @@ class ModbusActuatorConfig(ActuatorOptions):
     def voltage_range_problem(self, v_min: float, v_max: float, volts_per_um: float) -> str | None:
         """Every voltage of ``[v_min, v_max]`` must fit ``data_type`` (checked at both ends: the raw value is
         monotonic in the voltage) and one step of the register must be fine enough
-        (:func:`drivers.base.output_step_problem`): ``scale = 10.0`` wrote a 4.73 V command as 0 V."""
+        (:func:`nanodrift.drivers.base.output_step_problem`): ``scale = 10.0`` wrote a 4.73 V command as 0 V."""
         for name, volts in (("v_min", v_min), ("v_max", v_max)):
             try:
                 raw_for(volts, self.scale, self.offset, self.data_type)

@@ -17,10 +17,10 @@ from dataclasses import dataclass
 
 import structlog
 
-from drivers.base import Clock, DeviceError, Reading, SensorGroup
-from drivers.modbus.codec import decode
-from drivers.modbus.config import ModbusSensorConfig
-from drivers.modbus.hub import HubLease, ModbusExceptionError, ModbusHub
+from nanodrift.drivers.base import Clock, DeviceError, Reading, SensorGroup
+from nanodrift.drivers.modbus.codec import decode
+from nanodrift.drivers.modbus.config import ModbusSensorConfig
+from nanodrift.drivers.modbus.hub import HubLease, ModbusExceptionError, ModbusHub
 
 MAX_GAP_REGISTERS = 4
 MAX_REGISTERS_PER_READ = 125

@@ -8,7 +8,7 @@ hub's decision: the daemon's poller owns the timing (exponential backoff with ji
 episode), so there is one back-off, not one per layer. It classifies what went wrong:
 
 - the device answered with an exception code -> :class:`ModbusExceptionError` (the channels fault);
-- no answer, lost connection, cannot connect -> :class:`drivers.base.DeviceError` (the daemon
+- no answer, lost connection, cannot connect -> :class:`nanodrift.drivers.base.DeviceError` (the daemon
   closes and reopens the group; the channels are refused until the module answers again);
 - an answer whose register count or byte count is not exactly what was asked -> ``DeviceError``
   naming the device, the address and both counts. pymodbus would take the byte count at its word
@@ -28,8 +28,8 @@ from pymodbus import FramerType, ModbusException
 from pymodbus.client import AsyncModbusSerialClient, AsyncModbusTcpClient
 from pymodbus.pdu.register_message import ReadHoldingRegistersResponse, ReadInputRegistersResponse
 
-from drivers.base import DeviceError
-from drivers.modbus.config import ModbusHubConfig
+from nanodrift.drivers.base import DeviceError
+from nanodrift.drivers.modbus.config import ModbusHubConfig
 
 #: Modbus application protocol spec v1.1b3, section 7
 EXCEPTION_NAMES: dict[int, str] = {

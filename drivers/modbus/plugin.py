@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import ClassVar
 
-from drivers.base import (
+from nanodrift.drivers.base import (
     Actuator,
     ActuatorOptions,
     DriverContext,
@@ -15,10 +15,10 @@ from drivers.base import (
     SensorConfig,
     SensorGroup,
 )
-from drivers.modbus.actuator import ModbusActuator
-from drivers.modbus.config import ModbusActuatorConfig, ModbusHubConfig, ModbusSensorConfig
-from drivers.modbus.group import ModbusBlockGroup, plan_blocks
-from drivers.modbus.hub import ModbusHub
+from nanodrift.drivers.modbus.actuator import ModbusActuator
+from nanodrift.drivers.modbus.config import ModbusActuatorConfig, ModbusHubConfig, ModbusSensorConfig
+from nanodrift.drivers.modbus.group import ModbusBlockGroup, plan_blocks
+from nanodrift.drivers.modbus.hub import ModbusHub
 
 #: key of the hubs in ``DriverContext.resources``: one connection per hub name per daemon
 SHARED_HUBS_KEY = "modbus.hubs"

@@ -20,10 +20,10 @@ import math
 import re
 from typing import Literal
 
-from drivers.base import Actuator, DeviceError
-from drivers.serial_line.config import SerialLineActuatorConfig
-from drivers.serial_line.line import SerialLineGroup
-from drivers.serial_line.template import CommandTemplate
+from nanodrift.drivers.base import Actuator, DeviceError
+from nanodrift.drivers.serial_line.config import SerialLineActuatorConfig
+from nanodrift.drivers.serial_line.line import SerialLineGroup
+from nanodrift.drivers.serial_line.template import CommandTemplate
 
 SHOWN_CHARS = 60  # of an unexpected answer in a message
 

@@ -9,8 +9,8 @@ from typing import Annotated, Literal
 
 from pydantic import AfterValidator, Field, FiniteFloat, field_validator, model_validator
 
-from drivers.base import ActuatorOptions, SensorConfig
-from drivers.serial_line.template import COMMAND_FIELDS, CommandTemplate
+from nanodrift.drivers.base import ActuatorOptions, SensorConfig
+from nanodrift.drivers.serial_line.template import COMMAND_FIELDS, CommandTemplate
 
 #: a line that is just a number: "12345.6", "-0.25", "+1.5e3" (anchored: patterns are searched)
 DEFAULT_PATTERN = r"^\s*(?P<value>[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*$"

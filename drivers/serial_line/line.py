@@ -55,9 +55,9 @@ from typing import Literal
 
 import structlog
 
-from drivers.base import Clock, DeviceError, Reading, SensorGroup
-from drivers.serial_line.config import SerialLineSensorConfig
-from drivers.serial_line.reader import SerialLineReader
+from nanodrift.drivers.base import Clock, DeviceError, Reading, SensorGroup
+from nanodrift.drivers.serial_line.config import SerialLineSensorConfig
+from nanodrift.drivers.serial_line.reader import SerialLineReader
 
 log = structlog.get_logger(__name__)
 #: ports closed while a request on them was left unanswered (the line dirty): the device may still

@@ -19,7 +19,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import ClassVar
 
-from drivers.base import (
+from nanodrift.drivers.base import (
     Actuator,
     ActuatorOptions,
     DriverContext,
@@ -28,9 +28,9 @@ from drivers.base import (
     SensorConfig,
     SensorGroup,
 )
-from drivers.serial_line.actuator import SerialLineActuator
-from drivers.serial_line.config import SerialLineActuatorConfig, SerialLineSensorConfig
-from drivers.serial_line.line import QUIET_S, SerialLineGroup
+from nanodrift.drivers.serial_line.actuator import SerialLineActuator
+from nanodrift.drivers.serial_line.config import SerialLineActuatorConfig, SerialLineSensorConfig
+from nanodrift.drivers.serial_line.line import QUIET_S, SerialLineGroup
 
 #: key of the port owners in ``DriverContext.resources``: port -> the sensor group reading it
 PORTS_KEY = "serial_line.ports"

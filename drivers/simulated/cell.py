@@ -4,7 +4,7 @@ One instance per daemon/procedure, shared by every simulated sensor group and th
 ``DriverContext.resources``), so a command moves the stage the interferometer then sees. Time is the
 clock's, relative to the cell's creation (scenario time 0). Faults can be injected per channel
 for tests and demos: ``fault`` (burnout reading), ``stale`` (the device repeats an old sample),
-``device_error`` (the link fails: :class:`~drivers.base.DeviceError`).
+``device_error`` (the link fails: :class:`~nanodrift.drivers.base.DeviceError`).
 
 ``truth_log``: a CSV the cell appends each interferometer reading to with the true attained position
 (``t_s,q_um,true_x_um,measured_x_um``, one line each, line-buffered: nothing held in memory), so a
@@ -21,8 +21,8 @@ from typing import Literal, TextIO
 
 import numpy as np
 
-from drivers.base import Clock, DeviceError, MonotonicClock, Reading, State
-from drivers.simulated.physics import POSITION_CHANNEL, THERMOCOUPLES, TRUTH_CHANNELS, CellPhysics, StageState
+from nanodrift.drivers.base import Clock, DeviceError, MonotonicClock, Reading, State
+from nanodrift.drivers.simulated.physics import POSITION_CHANNEL, THERMOCOUPLES, TRUTH_CHANNELS, CellPhysics, StageState
 
 FaultMode = Literal["fault", "stale", "device_error"]
 CHANNELS: tuple[str, ...] = (*THERMOCOUPLES, *TRUTH_CHANNELS, POSITION_CHANNEL)

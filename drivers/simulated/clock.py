@@ -26,7 +26,7 @@ class ScaledClock:
     """Real sleeps, but simulated time runs ``speed`` times faster than the wall clock."""
 
     def __init__(self, speed: float = 1.0, start: float | None = None) -> None:
-        # monotonic like drivers.base.MonotonicClock: a wall-clock step moves neither
+        # monotonic like nanodrift.drivers.base.MonotonicClock: a wall-clock step moves neither
         if speed <= 0:
             raise ValueError(f"speed must be > 0, got {speed}")
         self.speed = speed

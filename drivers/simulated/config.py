@@ -21,11 +21,11 @@ from typing import Any, Literal
 
 from pydantic import Field, field_validator, model_validator
 
-from drivers.base import ActuatorOptions, SensorConfig, StrictModel
-from drivers.simulated.effects import resolve_effects
-from drivers.simulated.multiaxis import CELL_AXES, MultiAxisPhysics
-from drivers.simulated.physics import CellParams, CellPhysics
-from drivers.simulated.scenarios import get_scenario
+from nanodrift.drivers.base import ActuatorOptions, SensorConfig, StrictModel
+from nanodrift.drivers.simulated.effects import resolve_effects
+from nanodrift.drivers.simulated.multiaxis import CELL_AXES, MultiAxisPhysics
+from nanodrift.drivers.simulated.physics import CellParams, CellPhysics
+from nanodrift.drivers.simulated.scenarios import get_scenario
 
 #: the top-level table this plugin owns
 SECTION = "simulation"

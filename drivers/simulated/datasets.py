@@ -3,7 +3,7 @@
 One code path for the command, the tests and scripts: the scenario's trajectory picks the plan
 (calibration: forward sweeps 0..480 µm by 30, the paper's Fig. 7; ``bidirectional``: alternating
 up/down sweeps, so direction-dependent effects show; validation: the ISO 9283 points, both ways),
-:func:`drivers.simulated.runs.simulate_steps` produces the step averages.
+:func:`nanodrift.drivers.simulated.runs.simulate_steps` produces the step averages.
 """
 
 from __future__ import annotations
@@ -11,10 +11,10 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from daemon.calibration.dataset import Dataset
-from daemon.calibration.plans import PlannedStep, bidirectional_plan, calibration_plan, validation_plan
-from drivers.simulated.physics import THERMOCOUPLES, CellParams, CellPhysics
-from drivers.simulated.runs import simulate_steps
+from nanodrift.calibration.dataset import Dataset
+from nanodrift.calibration.plans import PlannedStep, bidirectional_plan, calibration_plan, validation_plan
+from nanodrift.drivers.simulated.physics import THERMOCOUPLES, CellParams, CellPhysics
+from nanodrift.drivers.simulated.runs import simulate_steps
 
 #: cycles of a run when none are asked for: the paper's calibration (24 sweeps, ~3.3 h) and validation (30)
 DEFAULT_CYCLES = {"calibration": 24, "bidirectional": 24, "validation": 30}
@@ -41,7 +41,7 @@ def simulate_dataset(scenario: str = "train", effects: EffectsSpec = None, *, cy
     """A run of the simulated cell with ``effects`` hidden, exactly as ``nanodrift simulate`` writes it.
 
     ``effects``: the ``--effects`` text (``"thermal_lag,creep:c=0.02"``), a list of names, or a mapping
-    name -> parameters; unknown names raise :class:`drivers.simulated.effects.UnknownNameError`.
+    name -> parameters; unknown names raise :class:`nanodrift.drivers.simulated.effects.UnknownNameError`.
     ``cycles``: None for the scenario's default (24 calibration sweeps, 30 validation sweeps).
     ``bidirectional``: alternate up and down sweeps on a calibration scenario (the ``bidirectional``
     scenario always does). ``param_overrides``: the cell's magnitudes (``CellParams`` fields).

@@ -83,7 +83,8 @@ EFFECTS: dict[str, EffectSpec] = {
 }
 
 
-#: what only a multi-axis cell (``simulate --axes xy|xyz``, :mod:`drivers.simulated.multiaxis`) shows: the stacked
+#: what only a multi-axis cell (``simulate --axes xy|xyz``, :mod:`nanodrift.drivers.simulated.multiaxis`) shows:
+#: the stacked
 #: stages always have them (all on, at these magnitudes: the issue's XY stage); ``--effects`` there overrides a
 #: parameter, 0 switches one off. A one-axis cell has none of them, and a multi-axis cell none of the above.
 CROSS_AXIS_EFFECTS: dict[str, EffectSpec] = {

@@ -11,13 +11,13 @@ stacked stages and their brackets expand into different directions). What only a
   extension of both).
 
 The room (air, structure temperatures, thermocouples T1..T4) is the one-axis cell's
-(:class:`drivers.simulated.physics.CellPhysics`: shared by every axis); each axis has its own
+(:class:`nanodrift.drivers.simulated.physics.CellPhysics`: shared by every axis); each axis has its own
 interferometer beam with its own white noise and its own ~25 nm slow wander, independent of the
 others'. Magnitudes are calibrated so that on the 2-axis cell two independent one-axis models of the
 paper's form reach only about 2.7x (~1.9 µm -> ~0.7 µm, the issue's figures) while a model with
 cross terms reaches several tens (``benchmarks/multiaxis.py``).
 
-The run (:func:`simulate_cell_steps`) has the paper's step schedule (:mod:`drivers.simulated.runs`):
+The run (:func:`simulate_cell_steps`) has the paper's step schedule (:mod:`nanodrift.drivers.simulated.runs`):
 each step's measurement is the mean of the samples in the last seconds of its hold, when every
 axis' command has long landed, so the attained position is a function of the step's commands and the
 time. The true position is kept beside the measurement (``<axis>_true_um``) to score against.
@@ -30,14 +30,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from daemon.calibration.dataset import Dataset
-from daemon.calibration.plans import cell_calibration_plan, cell_validation_plan
-from daemon.model.cell_model import CellModel
-from daemon.model.model import Model
-from drivers.simulated.effects import resolve_cross_effects
-from drivers.simulated.physics import THERMOCOUPLES, CellParams, CellPhysics, Exogenous
-from drivers.simulated.runs import StepSchedule, _window_offsets
-from drivers.simulated.scenarios import get_scenario
+from nanodrift.calibration.dataset import Dataset
+from nanodrift.calibration.plans import cell_calibration_plan, cell_validation_plan
+from nanodrift.drivers.simulated.effects import resolve_cross_effects
+from nanodrift.drivers.simulated.physics import THERMOCOUPLES, CellParams, CellPhysics, Exogenous
+from nanodrift.drivers.simulated.runs import StepSchedule, _window_offsets
+from nanodrift.drivers.simulated.scenarios import get_scenario
+from nanodrift.model.cell_model import CellModel
+from nanodrift.model.model import Model
 
 #: the multi-axis cells ``simulate --axes`` knows
 CELL_AXES: dict[str, tuple[str, ...]] = {"xy": ("x", "y"), "xyz": ("x", "y", "z")}
@@ -71,7 +71,7 @@ class CrossParams:
     """The cross-axis magnitudes of the stack (the issue's XY stage model), scaled by three knobs.
 
     Per pair the sign and share are fixed (``CROSSTALK``, ``TILT``, ``BENDING``); the knobs scale them
-    all: 0 switches an effect off (the cross-axis effects of the catalogue, ``drivers.simulated.effects``).
+    all: 0 switches an effect off (the cross-axis effects of the catalogue, ``nanodrift.drivers.simulated.effects``).
     """
 
     crosstalk_fraction: float = 0.0025
@@ -201,12 +201,13 @@ def simulate_cell_steps(
     command_for: CommandFor | None = None,
     t_start: float = 0.0,
 ) -> dict[str, np.ndarray]:
-    """Step averages for ``targets`` (per axis, one entry per step), as :func:`drivers.simulated.runs.simulate_steps`.
+    """Step averages for ``targets`` (per axis, one entry per step), as
+    :func:`nanodrift.drivers.simulated.runs.simulate_steps`.
 
     Returns ``t_s``, per axis ``<a>_um`` (measured), ``q_<a>_um`` (commanded) and ``<a>_true_um`` (the
     true position averaged over the same window), ``cycle`` and the channels.
     ``command_for(targets, t, temps)`` turns one step's targets (every axis) into its commands (a
-    :class:`daemon.model.cell_model.CellModel`'s compensation); by default the command is the target.
+    :class:`nanodrift.model.cell_model.CellModel`'s compensation); by default the command is the target.
     """
     schedule = schedule or StepSchedule()
     axes = physics.axes
@@ -256,7 +257,7 @@ def simulate_cell_steps(
 
 def steps_dataset(out: Mapping[str, np.ndarray], axes: Sequence[str], source: str,
                   channels: Sequence[str] = tuple(THERMOCOUPLES)) -> Dataset:
-    """A :func:`simulate_cell_steps` result as a multi-axis :class:`daemon.calibration.dataset.Dataset`
+    """A :func:`simulate_cell_steps` result as a multi-axis :class:`nanodrift.calibration.dataset.Dataset`
     (the truth in ``<axis>_true_um`` columns)."""
     return Dataset(t=out["t_s"], x=out["x_um"], q=None, channels={c: out[c] for c in channels},
                    extra={"cycle": out["cycle"], **{f"{a}_true_um": out[f"{a}_true_um"] for a in axes}},
@@ -315,7 +316,7 @@ def independent_command(models: Mapping[str, Model]) -> CommandFor:
 def run_cell_validation(physics: MultiAxisPhysics, command: CommandFor | None, *, cycles: int = 30,
                         name: str | None = None, out_of_range: Callable[[dict[str, float], dict[str, float]], bool]
                         | None = None) -> CellValidationRun:
-    """The ISO 9283 plan (:func:`daemon.calibration.plans.cell_validation_plan`) on ``physics``, uncompensated
+    """The ISO 9283 plan (:func:`nanodrift.calibration.plans.cell_validation_plan`) on ``physics``, uncompensated
     and, given ``command`` (targets, t, temps -> commands), through it; ``out_of_range`` counts the steps
     a model extrapolates."""
     plan = cell_validation_plan(physics.axes, cycles)
@@ -337,7 +338,7 @@ def run_cell_validation(physics: MultiAxisPhysics, command: CommandFor | None, *
 
 def cross_params(spec: str | None = None) -> CrossParams:
     """The stack's cross-axis magnitudes with ``spec`` (the ``--effects`` text over the cross-axis catalogue,
-    ``drivers.simulated.effects.CROSS_AXIS_EFFECTS``) applied."""
+    ``nanodrift.drivers.simulated.effects.CROSS_AXIS_EFFECTS``) applied."""
     effects = resolve_cross_effects(spec)
     return CrossParams(crosstalk_fraction=effects["crosstalk"]["fraction"],
                        non_orthogonality_rad=effects["non_orthogonality"]["rad"],

@@ -1,6 +1,6 @@
 """The simulated XY/XYZ cell stepped through time: what the daemon's and a procedure's simulated drivers see.
 
-:class:`SimulatedCell` for a stacked stage (:class:`~drivers.simulated.multiaxis.MultiAxisPhysics`):
+:class:`SimulatedCell` for a stacked stage (:class:`~nanodrift.drivers.simulated.multiaxis.MultiAxisPhysics`):
 one room and its thermocouples T1..T4 (read as on the one-axis cell), one closed-loop setpoint per axis
 (each axis' output moves its own), and one interferometer beam per axis (channel
 ``interferometer_<axis>``) with its own white noise and slow wander. An axis' attained position depends
@@ -17,10 +17,10 @@ import math
 
 import numpy as np
 
-from drivers.base import Clock
-from drivers.simulated.cell import SimulatedCell
-from drivers.simulated.multiaxis import MultiAxisPhysics
-from drivers.simulated.physics import THERMOCOUPLES, TRUTH_CHANNELS
+from nanodrift.drivers.base import Clock
+from nanodrift.drivers.simulated.cell import SimulatedCell
+from nanodrift.drivers.simulated.multiaxis import MultiAxisPhysics
+from nanodrift.drivers.simulated.physics import THERMOCOUPLES, TRUTH_CHANNELS
 
 POSITION_PREFIX = "interferometer_"
 

@@ -29,8 +29,8 @@ from typing import Any
 
 import numpy as np
 
-from drivers.simulated.effects import resolve_effects
-from drivers.simulated.scenarios import Scenario, get_scenario
+from nanodrift.drivers.simulated.effects import resolve_effects
+from nanodrift.drivers.simulated.scenarios import Scenario, get_scenario
 
 #: temperature channels of the cell and the thermal node each reads (paper III.A, Fig. 5)
 THERMOCOUPLES: dict[str, str] = {"T1": "stage", "T2": "bracket", "T3": "t3", "T4": "t4"}

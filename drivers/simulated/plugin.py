@@ -1,11 +1,11 @@
 """The ``simulated`` driver kind: sensor groups and an actuator on one shared :class:`SimulatedCell`.
 
 An ordinary plugin (python-can's ``virtual`` bus, pyvisa-sim), and a virtual cell
-(:class:`~drivers.base.VirtualCellPlugin`): it owns the ``[simulation]`` table,
+(:class:`~nanodrift.drivers.base.VirtualCellPlugin`): it owns the ``[simulation]`` table,
 supplies the cell's clock (scaled wall time in the daemon, a virtual clock in procedures) and, when
 the table is present without ``[[sensors]]``, the paper's four thermocouples and interferometer.
 With ``[simulation] axes = "xy"`` (or ``"xyz"``) the cell is a stacked stage
-(:class:`~drivers.simulated.multicell.SimulatedMultiCell`): one simulated output per axis
+(:class:`~nanodrift.drivers.simulated.multicell.SimulatedMultiCell`): one simulated output per axis
 (``[axes.actuator] kind = "simulated"``, built by :meth:`SimulatedPlugin.create_actuators`) and one
 interferometer per axis (``interferometer_x``, ``interferometer_y``, ...); without ``[[axes]]`` the
 plugin supplies them (workspace 0..480 µm), and without ``[[sensors]]`` T1..T4 and one beam per axis.
@@ -21,7 +21,7 @@ from typing import Any, ClassVar, Literal
 
 from pydantic import BaseModel
 
-from drivers.base import (
+from nanodrift.drivers.base import (
     Actuator,
     ActuatorOptions,
     Clock,
@@ -33,11 +33,11 @@ from drivers.base import (
     SensorGroup,
     VirtualCellPlugin,
 )
-from drivers.simulated.cell import SimulatedCell
-from drivers.simulated.clock import ScaledClock, VirtualClock
-from drivers.simulated.config import SECTION, SimulatedActuatorConfig, SimulatedSensorConfig, SimulationConfig
-from drivers.simulated.multicell import SimulatedMultiCell, position_channel
-from drivers.simulated.physics import POSITION_CHANNEL
+from nanodrift.drivers.simulated.cell import SimulatedCell
+from nanodrift.drivers.simulated.clock import ScaledClock, VirtualClock
+from nanodrift.drivers.simulated.config import SECTION, SimulatedActuatorConfig, SimulatedSensorConfig, SimulationConfig
+from nanodrift.drivers.simulated.multicell import SimulatedMultiCell, position_channel
+from nanodrift.drivers.simulated.physics import POSITION_CHANNEL
 
 RESOURCE_KEY = "simulated.cell"
 PLUGIN_KIND = "simulated"

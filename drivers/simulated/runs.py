@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from daemon.calibration.plans import StepTiming, ramp_commands
-from drivers.simulated.physics import THERMOCOUPLES, CellPhysics
+from nanodrift.calibration.plans import StepTiming, ramp_commands
+from nanodrift.drivers.simulated.physics import THERMOCOUPLES, CellPhysics
 
 
 @dataclass(frozen=True)

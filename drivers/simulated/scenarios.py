@@ -17,7 +17,7 @@ from typing import Literal
 
 import numpy as np
 
-from drivers.simulated.effects import UnknownNameError
+from nanodrift.drivers.simulated.effects import UnknownNameError
 
 Trajectory = Literal["calibration", "bidirectional", "validation"]
 

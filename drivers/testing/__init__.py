@@ -4,21 +4,21 @@ Installed with nanodrift (it needs only pymodbus and pyserial, which nanodrift d
 that writes a plugin for its own instrument tests it the way nanodrift tests its plugins: the
 plugin opens a real socket or a real serial port, and the test looks at what the device received.
 
-- :mod:`drivers.testing.modbus_server`: :class:`ModbusTestServer` (pymodbus' own TCP server on
+- :mod:`nanodrift.drivers.testing.modbus_server`: :class:`ModbusTestServer` (pymodbus' own TCP server on
   127.0.0.1, or RTU on a serial port) serving :class:`ModbusTestDevice` register maps, which record
   every request and can be told to fail (exception codes, refused or slow writes);
-- :mod:`drivers.testing.pty_devices`: instruments on a pty behind a stable link, which can be
+- :mod:`nanodrift.drivers.testing.pty_devices`: instruments on a pty behind a stable link, which can be
   unplugged and plugged back: :class:`FakeInterferometer` (``P <nm> nm`` lines, queried or streamed),
   :class:`FakeGcsController` (a PI controller speaking GCS), and :class:`PtyDevice` to write another;
-- :mod:`drivers.testing.protocol`: :func:`expected_protocol`, a pty device that expects an exact
+- :mod:`nanodrift.drivers.testing.protocol`: :func:`expected_protocol`, a pty device that expects an exact
   conversation (PyMeasure's ``expected_protocol``) and fails on anything else.
 
 A lab's plugin (registered in the ``nanodrift.drivers`` entry-point group) tested against them::
 
     import asyncio
-    from drivers.base import DriverContext
-    from drivers.registry import load_plugin
-    from drivers.testing import FakeGcsController
+    from nanodrift.drivers.base import DriverContext
+    from nanodrift.drivers.registry import load_plugin
+    from nanodrift.drivers.testing import FakeGcsController
 
     def test_my_controller_gets_the_voltage(tmp_path):
         controller = FakeGcsController(tmp_path / "ttyPI")
@@ -43,7 +43,7 @@ included: the same checks are what a lab's plugin must pass. Nothing in nanodrif
 package (``tests/test_architecture.py`` enforces it).
 """
 
-from drivers.testing.modbus_server import (
+from nanodrift.drivers.testing.modbus_server import (
     FC_READ_HOLDING,
     FC_READ_INPUT,
     ModbusTestDevice,
@@ -54,8 +54,8 @@ from drivers.testing.modbus_server import (
     free_port,
     tcp_context,
 )
-from drivers.testing.protocol import ScriptedDevice, expected_protocol
-from drivers.testing.pty_devices import FakeGcsController, FakeInterferometer, PtyDevice
+from nanodrift.drivers.testing.protocol import ScriptedDevice, expected_protocol
+from nanodrift.drivers.testing.pty_devices import FakeGcsController, FakeInterferometer, PtyDevice
 
 __all__ = [
     "FC_READ_HOLDING",

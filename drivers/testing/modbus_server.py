@@ -11,7 +11,7 @@
 
 Also runnable as a separate process (a test kills and restarts it)::
 
-    python -m drivers.testing.modbus_server --port 15020 --values 21.5,22.0,...   # input registers 0.., x0.1
+    python -m nanodrift.drivers.testing.modbus_server --port 15020 --values 21.5,22.0,...   # input registers 0.., x0.1
 """
 
 from __future__ import annotations
@@ -32,9 +32,9 @@ from pymodbus.framer import FramerType
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from drivers.base import DriverContext
-from drivers.modbus.codec import encode
-from drivers.modbus.config import ModbusHubConfig
+from nanodrift.drivers.base import DriverContext
+from nanodrift.drivers.modbus.codec import encode
+from nanodrift.drivers.modbus.config import ModbusHubConfig
 
 FC_READ_HOLDING = 3
 FC_READ_INPUT = 4
@@ -167,7 +167,7 @@ _PYMODBUS_TYPES = {"int16": ModbusClientMixin.DATATYPE.INT16, "uint16": ModbusCl
 
 
 def device_registers(value: float, data_type: str, swap: str = "none") -> list[int]:
-    """What a device with that byte/word order sends (pymodbus' converter, not drivers.modbus.codec)."""
+    """What a device with that byte/word order sends (pymodbus' converter, not nanodrift.drivers.modbus.codec)."""
     regs = ModbusClientMixin.convert_to_registers(value, _PYMODBUS_TYPES[data_type],
                                                   word_order="little" if "word" in swap else "big")
     if swap in ("byte", "word_byte"):

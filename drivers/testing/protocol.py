@@ -22,7 +22,7 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
-from drivers.testing.pty_devices import PtyDevice
+from nanodrift.drivers.testing.pty_devices import PtyDevice
 
 Exchange = tuple[bytes, bytes | None]
 

@@ -9,9 +9,9 @@ import pytest
 import zenoh
 from helpers.daemon_harness import free_port
 
-from daemon.assembly import procedure_drivers
-from daemon.bus.actuator import ZenohActuator
-from daemon.config import parse_config
+from nanodrift.assembly import procedure_drivers
+from nanodrift.bus.actuator import ZenohActuator
+from nanodrift.config import parse_config
 
 
 def hardware_config(port: int):

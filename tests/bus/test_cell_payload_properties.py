@@ -15,7 +15,7 @@ from typing import Any
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from daemon.bus.protocol import CellTarget, Refusal, parse_cell_target
+from nanodrift.bus.protocol import CellTarget, Refusal, parse_cell_target
 
 AXES = ("x", "y", "z")
 KEYS = st.sampled_from(["x_um", "y_um", "z_um", "w_um", "id", "q_um", "x", "X_um", ""])

@@ -13,14 +13,14 @@ import pytest
 from helpers.cell_helpers import write_cell_model
 from helpers.daemon_harness import write_test_model
 
-from daemon.bus.protocol import Target, encode_command
-from daemon.config import ActuatorConfig, parse_config
-from daemon.model.model import Model, ModelFileError
-from daemon.service.cell_compensator import load_served_model
-from daemon.service.compensator import Compensator
-from daemon.service.table import SensorTable
-from daemon.settings import DEFAULT_MODEL_PATH
-from drivers.base import Reading, SensorConfig
+from nanodrift.bus.protocol import Target, encode_command
+from nanodrift.config import ActuatorConfig, parse_config
+from nanodrift.drivers.base import Reading, SensorConfig
+from nanodrift.model.model import Model, ModelFileError
+from nanodrift.service.cell_compensator import load_served_model
+from nanodrift.service.compensator import Compensator
+from nanodrift.service.table import SensorTable
+from nanodrift.settings import DEFAULT_MODEL_PATH
 
 
 def test_one_axis_model_ids_are_unchanged(tmp_path: Path) -> None:

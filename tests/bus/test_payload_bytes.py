@@ -1,7 +1,7 @@
 """The Zenoh payloads of the wire format, pinned byte for byte (a public contract, README).
 
 Each expected value below was produced by the code before the wire format moved to
-``daemon.bus.protocol`` (commit c198473); a refactoring that changes a single byte of a command, an
+``nanodrift.bus.protocol`` (commit c198473); a refactoring that changes a single byte of a command, an
 error or a procedure step fails here.
 """
 
@@ -15,13 +15,13 @@ import numpy as np
 import pytest
 from helpers.daemon_harness import write_test_model
 
-from daemon.bus.actuator import ZenohActuator
-from daemon.bus.protocol import Refusal, Target, encode_command, encode_error, parse_target
-from daemon.calibration.residuals import BiasTracker
-from daemon.config import ActuatorConfig, parse_config
-from daemon.service.compensator import Compensator
-from daemon.service.table import SensorTable
-from drivers.base import Reading, SensorConfig
+from nanodrift.bus.actuator import ZenohActuator
+from nanodrift.bus.protocol import Refusal, Target, encode_command, encode_error, parse_target
+from nanodrift.calibration.residuals import BiasTracker
+from nanodrift.config import ActuatorConfig, parse_config
+from nanodrift.drivers.base import Reading, SensorConfig
+from nanodrift.service.compensator import Compensator
+from nanodrift.service.table import SensorTable
 
 UNIX_NOW = 1700000000.25
 

@@ -26,8 +26,8 @@ from helpers.daemon_harness import Client, Daemon, free_port
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from daemon.bus.protocol import MAX_ID_CHARS, MAX_PAYLOAD_BYTES, Refusal, Target, parse_target
-from daemon.config import DEFAULT_MODEL_PATH
+from nanodrift.bus.protocol import MAX_ID_CHARS, MAX_PAYLOAD_BYTES, Refusal, Target, parse_target
+from nanodrift.config import DEFAULT_MODEL_PATH
 
 # --- JSON values, including what json.dumps never writes ------------------------------------------------
 

@@ -12,7 +12,7 @@ from types import MappingProxyType
 import numpy as np
 import pytest
 
-from daemon.bus.protocol import (
+from nanodrift.bus.protocol import (
     MAX_PAYLOAD_BYTES,
     Command,
     Keys,

@@ -5,8 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from daemon.bus.session import session_config
-from daemon.config import ZenohSettings
+from nanodrift.bus.session import session_config
+from nanodrift.config import ZenohSettings
 
 
 def test_session_config_from_a_zenoh_json5_file(tmp_path: Path) -> None:

@@ -9,7 +9,7 @@ import pytest
 import zenoh
 from helpers.daemon_harness import free_port
 
-from daemon.bus.session import describe_zenoh_error, listen_endpoints, session_config
+from nanodrift.bus.session import describe_zenoh_error, listen_endpoints, session_config
 
 
 def open_error(conf: zenoh.Config) -> zenoh.ZError:

@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daemon.calibration.dataset import CsvAppender, DataError, Dataset, read_csv, write_csv
+from nanodrift.calibration.dataset import CsvAppender, DataError, Dataset, read_csv, write_csv
 
 
 def write(tmp_path: Path, text: str, name: str = "d.csv") -> Path:
@@ -140,7 +140,7 @@ def test_written_files_get_normal_permissions_not_mkstemps_0600(tmp_path):
 
 
 def test_chunked_writing_loses_no_row_at_chunk_boundaries(tmp_path):
-    from daemon.calibration.dataset import _csv_chunks
+    from nanodrift.calibration.dataset import _csv_chunks
 
     ds = Dataset(t=np.arange(50.0), x=np.arange(50.0) * 1.5, channels={"T1": 20 + np.arange(50.0) / 7})
     path = tmp_path / "chunked.csv"

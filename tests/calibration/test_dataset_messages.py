@@ -17,9 +17,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from daemon.calibration.dataset import CsvAppender, DataError, read_csv
-from daemon.cli import main
-from daemon.model.identify import FitError, fit
+from nanodrift.calibration.dataset import CsvAppender, DataError, read_csv
+from nanodrift.cli import main
+from nanodrift.model.identify import FitError, fit
 
 BOM = "\ufeff"
 

@@ -19,15 +19,15 @@ import numpy as np
 import pytest
 from helpers.discovery_helpers import cell_run, paper_model
 
-from daemon.calibration.dataset import Dataset, concat, write_csv
-from daemon.calibration.discovery import discover
-from daemon.cli import main
-from daemon.model.identify import candidate_terms, fit, fit_terms
-from daemon.model.model import Model, load_model, save_model
-from daemon.model.terms import Channel, ChannelSquare
-from daemon.reports.discovery import METHOD_DOC
-from drivers.simulated.datasets import simulate_dataset
-from drivers.simulated.effects import EFFECTS
+from nanodrift.calibration.dataset import Dataset, concat, write_csv
+from nanodrift.calibration.discovery import discover
+from nanodrift.cli import main
+from nanodrift.drivers.simulated.datasets import simulate_dataset
+from nanodrift.drivers.simulated.effects import EFFECTS
+from nanodrift.model.identify import candidate_terms, fit, fit_terms
+from nanodrift.model.model import Model, load_model, save_model
+from nanodrift.model.terms import Channel, ChannelSquare
+from nanodrift.reports.discovery import METHOD_DOC
 
 
 def rms(data: Dataset, model: Model) -> float:

@@ -10,14 +10,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daemon.calibration.dataset import write_csv
-from daemon.calibration.discovery import discover_cell
-from daemon.calibration.discovery.catalogue import untestable
-from daemon.calibration.discovery.diagnostics import structure_variables
-from daemon.calibration.discovery.settings import DEFAULT_SETTINGS
-from daemon.model.cell_model import CellModel, load_any_model, save_cell_model
-from daemon.model.identify import axis_position_term, fit, fit_cell
-from daemon.model.terms import Channel
+from nanodrift.calibration.dataset import write_csv
+from nanodrift.calibration.discovery import discover_cell
+from nanodrift.calibration.discovery.catalogue import untestable
+from nanodrift.calibration.discovery.diagnostics import structure_variables
+from nanodrift.calibration.discovery.settings import DEFAULT_SETTINGS
+from nanodrift.model.cell_model import CellModel, load_any_model, save_cell_model
+from nanodrift.model.identify import axis_position_term, fit, fit_cell
+from nanodrift.model.terms import Channel
 from tests.helpers.synthetic import xy_run
 
 
@@ -67,7 +67,7 @@ def test_discover_writes_a_cell_model_from_the_command_line(tmp_path: Path, xy) 
     data, given, out = tmp_path / "xy.csv", tmp_path / "given.json", tmp_path / "extended.json"
     write_csv(xy, data)
     save_cell_model(_independent_axes(xy), given)
-    done = subprocess.run([sys.executable, "-m", "daemon.cli", "discover", str(data), "--model", str(given),
+    done = subprocess.run([sys.executable, "-m", "nanodrift.cli", "discover", str(data), "--model", str(given),
                            "--out", str(out), "--json"], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     doc = json.loads(done.stdout)

@@ -14,14 +14,14 @@ import numpy as np
 import pytest
 from helpers.discovery_helpers import cell_run, paper_model
 
-from daemon.calibration.dataset import Dataset, read_csv, write_csv
-from daemon.calibration.discovery import discover
-from daemon.calibration.discovery.confirmation import expected_fresh, hidden_by_fit_um2, tau_range
-from daemon.cli import main
-from daemon.commands.discover import describe
-from daemon.model.model import Model, load_model, save_model
-from daemon.reports.discovery import markdown
-from drivers.simulated.effects import EFFECTS
+from nanodrift.calibration.dataset import Dataset, read_csv, write_csv
+from nanodrift.calibration.discovery import discover
+from nanodrift.calibration.discovery.confirmation import expected_fresh, hidden_by_fit_um2, tau_range
+from nanodrift.cli import main
+from nanodrift.commands.discover import describe
+from nanodrift.drivers.simulated.effects import EFFECTS
+from nanodrift.model.model import Model, load_model, save_model
+from nanodrift.reports.discovery import markdown
 
 HIDDEN_TAU_S = EFFECTS["thermal_lag"].defaults["tau_s"]
 

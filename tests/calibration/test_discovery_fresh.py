@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 from helpers.discovery_helpers import cell_run, paper_model
 
-from daemon.calibration.dataset import Dataset
-from daemon.calibration.discovery import discover
-from daemon.calibration.discovery.candidates import pinned
-from daemon.calibration.discovery.settings import DEFAULT_SETTINGS
-from daemon.model.model import Model
+from nanodrift.calibration.dataset import Dataset
+from nanodrift.calibration.discovery import discover
+from nanodrift.calibration.discovery.candidates import pinned
+from nanodrift.calibration.discovery.settings import DEFAULT_SETTINGS
+from nanodrift.model.model import Model
 
 
 def rms(data: Dataset, model: Model) -> float:

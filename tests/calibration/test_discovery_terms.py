@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from helpers.discovery_helpers import cell_run
 
-from daemon.model.effect_terms import Creep, PositionCoupling, Rate
-from daemon.model.model import FittedTerm, Model, Training, load_model, save_model
-from daemon.model.terms import Bias, Channel, Direction, Lag, Power, UnknownTermError, parse_term
+from nanodrift.model.effect_terms import Creep, PositionCoupling, Rate
+from nanodrift.model.model import FittedTerm, Model, Training, load_model, save_model
+from nanodrift.model.terms import Bias, Channel, Direction, Lag, Power, UnknownTermError, parse_term
 
 
 @pytest.mark.parametrize(

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from helpers.discovery_helpers import cell_run, paper_model
 
-from daemon.calibration.discovery import discover
+from nanodrift.calibration.discovery import discover
 
 
 def test_the_extended_model_has_a_covariance_over_its_own_terms() -> None:

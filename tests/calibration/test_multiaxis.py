@@ -7,17 +7,16 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from daemon.calibration.dataset import Dataset
-from daemon.calibration.iso9283 import pose_accuracy, pose_repeatability, summarize_cell
-from daemon.calibration.plans import (
+from nanodrift.calibration.dataset import Dataset
+from nanodrift.calibration.iso9283 import pose_accuracy, pose_repeatability, summarize_cell
+from nanodrift.calibration.plans import (
     CALIBRATION_POINTS_UM,
     PAPER_TIMING,
     cell_calibration_plan,
     cell_validation_plan,
     cell_validation_points,
 )
-from daemon.model.identify import fit, fit_cell
-from drivers.simulated.multiaxis import (
+from nanodrift.drivers.simulated.multiaxis import (
     CrossParams,
     MultiAxisPhysics,
     cross_params,
@@ -25,6 +24,7 @@ from drivers.simulated.multiaxis import (
     simulate_cell_steps,
     steps_dataset,
 )
+from nanodrift.model.identify import fit, fit_cell
 
 
 def _x_moved_by_y(cross: CrossParams) -> float:

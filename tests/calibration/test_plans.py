@@ -1,4 +1,4 @@
-"""A move's sub-commands are computed in one place (``daemon.calibration.plans.ramp_commands``): the
+"""A move's sub-commands are computed in one place (``nanodrift.calibration.plans.ramp_commands``): the
 procedure sends them on the cell's clock and the simulated run uses the same numbers."""
 
 from __future__ import annotations
@@ -8,11 +8,11 @@ import asyncio
 import numpy as np
 import pytest
 
-from daemon.calibration.plans import PAPER_TIMING, StepTiming, ramp_commands
-from daemon.config import ActuatorConfig
-from daemon.procedure.steps import ramp
-from drivers.base import Actuator
-from drivers.simulated.clock import VirtualClock
+from nanodrift.calibration.plans import PAPER_TIMING, StepTiming, ramp_commands
+from nanodrift.config import ActuatorConfig
+from nanodrift.drivers.base import Actuator
+from nanodrift.drivers.simulated.clock import VirtualClock
+from nanodrift.procedure.steps import ramp
 
 
 def test_the_paper_ramp_is_sixteen_equal_steps_ending_at_the_target() -> None:

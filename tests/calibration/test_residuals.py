@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from daemon.calibration.residuals import BiasTracker, HealthMonitor, RangeWatch, Settled, SettleTracker
+from nanodrift.calibration.residuals import BiasTracker, HealthMonitor, RangeWatch, Settled, SettleTracker
 
 
 def _hold(tracker: SettleTracker, t0: float, x: float, readings: list[tuple[float, float, bool]]) -> list[Settled]:

@@ -16,13 +16,13 @@ import pytest
 from helpers.discovery_helpers import cell_run, paper_model
 from helpers.sim_helpers import Capture, trained_model
 
-from daemon.assembly import simulated_drivers
-from daemon.calibration import iso9283
-from daemon.calibration.discovery import discover
-from daemon.calibration.residuals import BiasTracker
-from daemon.cli import main
-from daemon.model.model import Model, save_model
-from daemon.procedure.validation import run_validation
+from nanodrift.assembly import simulated_drivers
+from nanodrift.calibration import iso9283
+from nanodrift.calibration.discovery import discover
+from nanodrift.calibration.residuals import BiasTracker
+from nanodrift.cli import main
+from nanodrift.model.model import Model, save_model
+from nanodrift.procedure.validation import run_validation
 
 
 def validate(model: Model, test: str, seed: int, cycles: int, effects: str | None = None,

@@ -12,15 +12,15 @@ import numpy as np
 import pytest
 from helpers.sim_helpers import Capture, trained_model
 
-from daemon.assembly import simulated_drivers
-from daemon.calibration.dataset import read_csv
-from daemon.calibration.iso9283 import iso9283, summarize
-from daemon.calibration.plans import PlannedStep, StepResult, validation_plan
-from daemon.cli import main
-from daemon.model.identify import fit
-from daemon.model.model import load_model, save_model
-from daemon.procedure.validation import run_validation
-from daemon.reports.validation import table1
+from nanodrift.assembly import simulated_drivers
+from nanodrift.calibration.dataset import read_csv
+from nanodrift.calibration.iso9283 import iso9283, summarize
+from nanodrift.calibration.plans import PlannedStep, StepResult, validation_plan
+from nanodrift.cli import main
+from nanodrift.model.identify import fit
+from nanodrift.model.model import load_model, save_model
+from nanodrift.procedure.validation import run_validation
+from nanodrift.reports.validation import table1
 
 REPO = Path(__file__).resolve().parents[2]
 DATA_DIR = REPO / "daemon" / "data"

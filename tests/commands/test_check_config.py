@@ -16,9 +16,9 @@ import pytest
 import structlog
 from helpers.daemon_harness import REPO, write_test_model
 
-from daemon.cli import main
-from daemon.config import SAFE_RAMP_BUDGET_S, STOP_TIMEOUT_S
-from daemon.service.actuation import Actuation
+from nanodrift.cli import main
+from nanodrift.config import SAFE_RAMP_BUDGET_S, STOP_TIMEOUT_S
+from nanodrift.service.actuation import Actuation
 
 
 def check(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, str]:
@@ -127,13 +127,13 @@ def test_a_listener_other_computers_reach_without_the_secure_zenoh_config_is_a_w
 # --- issue 16: what check-config accepts must work at runtime --------------------------------------
 
 def run_cli(*args: str, timeout_s: float = 60) -> subprocess.CompletedProcess[str]:
-    """``python -m daemon.cli ...`` in its own process, its memory capped at 1 GiB and its time at
+    """``python -m nanodrift.cli ...`` in its own process, its memory capped at 1 GiB and its time at
     ``timeout_s``: a regression that blocks on a FIFO or reads /dev/zero fails the test instead of
     hanging the suite or eating the machine's memory."""
     def cap_memory() -> None:
         resource.setrlimit(resource.RLIMIT_AS, (2**30, 2**30))
 
-    return subprocess.run([sys.executable, "-m", "daemon.cli", *args], capture_output=True, text=True, cwd=REPO,
+    return subprocess.run([sys.executable, "-m", "nanodrift.cli", *args], capture_output=True, text=True, cwd=REPO,
                           timeout=timeout_s, preexec_fn=cap_memory)
 
 

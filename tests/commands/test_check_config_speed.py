@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 from helpers.daemon_harness import write_test_model
 
-from daemon.cli import main
+from nanodrift.cli import main
 
 
 def check(capsys: pytest.CaptureFixture[str], path: Path) -> tuple[int, str]:

@@ -19,11 +19,11 @@ from types import ModuleType
 import pytest
 from helpers.daemon_harness import REPO
 
-from daemon.cli import main
-from daemon.commands._cell import scenario_seed
-from daemon.commands.demo import check_args, nm_span
-from daemon.model.cell_model import CellModel, load_any_model
-from daemon.model.model import load_model
+from nanodrift.cli import main
+from nanodrift.commands._cell import scenario_seed
+from nanodrift.commands.demo import check_args, nm_span
+from nanodrift.model.cell_model import CellModel, load_any_model
+from nanodrift.model.model import load_model
 
 SHORT = ["--cycles", "2", "--calibration-cycles", "6", "--tests", "test1,test5", "--seed", "3"]
 
@@ -32,7 +32,7 @@ SHORT = ["--cycles", "2", "--calibration-cycles", "6", "--tests", "test1,test5",
 def demo(tmp_path_factory: pytest.TempPathFactory) -> tuple[subprocess.CompletedProcess[str], Path]:
     """``--keep kept`` relative to the demo's working directory (the daemon it starts runs elsewhere)."""
     cwd = tmp_path_factory.mktemp("demo")
-    result = subprocess.run([sys.executable, "-m", "daemon.cli", "demo", *SHORT, "--keep", "kept"],
+    result = subprocess.run([sys.executable, "-m", "nanodrift.cli", "demo", *SHORT, "--keep", "kept"],
                             capture_output=True, text=True, cwd=cwd, timeout=180)
     assert result.returncode == 0, result.stdout + result.stderr
     return result, (cwd / "kept").resolve()
@@ -138,7 +138,7 @@ def test_the_discovery_line_is_measured_on_a_run_with_hysteresis_hidden(demo) ->
 
 def test_a_daemon_that_fails_is_explained_with_its_log_lines_not_a_deleted_path(tmp_path) -> None:
     result = subprocess.run(
-        [sys.executable, "-m", "daemon.cli", "demo", "--cycles", "1", "--calibration-cycles", "3",
+        [sys.executable, "-m", "nanodrift.cli", "demo", "--cycles", "1", "--calibration-cycles", "3",
          "--tests", "test2", "-l", "tcp/127.0.0.1:99999"],
         capture_output=True, text=True, cwd=REPO, timeout=180,
     )
@@ -154,7 +154,7 @@ def test_demo_shows_what_adaptation_and_the_uncertainty_add(tmp_path: Path) -> N
     result = subprocess.run(
         # the paper's 24 calibration sweeps (as fast as 8 on the virtual clock): 8 sweeps leave a model whose
         # in-range residual (~85 nm on the interferometer) sits at the health unit's 100 nm alarm
-        [sys.executable, "-m", "daemon.cli", "demo", "--tests", "test2", "test5", "--cycles", "6",
+        [sys.executable, "-m", "nanodrift.cli", "demo", "--tests", "test2", "test5", "--cycles", "6",
          "--calibration-cycles", "24"],
         capture_output=True, text=True, cwd=REPO, timeout=120,
     )

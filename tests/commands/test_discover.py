@@ -9,9 +9,9 @@ from pathlib import Path
 
 from helpers.discovery_helpers import cell_run, paper_model
 
-from daemon.calibration.dataset import write_csv
-from daemon.cli import main
-from daemon.model.model import load_model, save_model
+from nanodrift.calibration.dataset import write_csv
+from nanodrift.cli import main
+from nanodrift.model.model import load_model, save_model
 
 SOFTWARE = f"nanodrift {importlib.metadata.version('nanodrift')}"
 HINTS = ("nanodrift simulate --scenario bidirectional",

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from helpers.synthetic import paper_run
 
-from daemon.calibration.dataset import read_csv, write_csv
-from daemon.cli import main
-from daemon.model.model import load_model
-from drivers.simulated.datasets import simulate_dataset
+from nanodrift.calibration.dataset import read_csv, write_csv
+from nanodrift.cli import main
+from nanodrift.drivers.simulated.datasets import simulate_dataset
+from nanodrift.model.model import load_model
 
 
 def test_fit_then_predict_round_trip(tmp_path, capsys):
@@ -48,7 +48,7 @@ def test_errors_name_the_problem_and_write_nothing(tmp_path):
     bad = tmp_path / "bad.csv"
     bad.write_text("t_s,x_um,q_um,T1\n0,0,0,20\n1,30,30,oops\n")
     run = subprocess.run(
-        [sys.executable, "-m", "daemon.cli", "fit", str(bad), "--out", str(tmp_path / "m.json")],
+        [sys.executable, "-m", "nanodrift.cli", "fit", str(bad), "--out", str(tmp_path / "m.json")],
         capture_output=True, text=True,
     )
     assert run.returncode == 2
@@ -56,7 +56,7 @@ def test_errors_name_the_problem_and_write_nothing(tmp_path):
     assert not (tmp_path / "m.json").exists()
 
     run = subprocess.run(
-        [sys.executable, "-m", "daemon.cli", "predict", "--model", str(tmp_path / "none.json"), str(bad),
+        [sys.executable, "-m", "nanodrift.cli", "predict", "--model", str(tmp_path / "none.json"), str(bad),
          "--out", str(tmp_path / "p.csv")],
         capture_output=True, text=True,
     )

@@ -10,12 +10,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daemon.atomic import file_sha256
-from daemon.calibration.dataset import read_csv, write_csv
-from daemon.calibration.residuals import Settled
-from daemon.cli import main
-from daemon.model.model import load_model
-from daemon.service.recorder import DayRecorder
+from nanodrift.atomic import file_sha256
+from nanodrift.calibration.dataset import read_csv, write_csv
+from nanodrift.calibration.residuals import Settled
+from nanodrift.cli import main
+from nanodrift.model.model import load_model
+from nanodrift.service.recorder import DayRecorder
 
 MORNING = dt.datetime(2026, 11, 23, 8, tzinfo=dt.UTC).timestamp()
 

@@ -11,9 +11,9 @@ from pathlib import Path
 
 import pytest
 
-from daemon.cli import HANDLERS, SUMMARIES, build_parser, main
-from drivers.simulated.effects import EFFECTS
-from drivers.simulated.scenarios import SCENARIOS
+from nanodrift.cli import HANDLERS, SUMMARIES, build_parser, main
+from nanodrift.drivers.simulated.effects import EFFECTS
+from nanodrift.drivers.simulated.scenarios import SCENARIOS
 
 
 def subparsers() -> dict[str, argparse.ArgumentParser]:
@@ -62,10 +62,10 @@ def test_the_read_check_sees_getattr():
 
 def test_only_the_command_that_runs_is_imported():
     """``nanodrift --help`` imports no command module, ``nanodrift fit --help`` only fit's."""
-    code = ("import sys\nfrom daemon.cli import main\n"
+    code = ("import sys\nfrom nanodrift.cli import main\n"
             "try:\n    main(sys.argv[1:])\nexcept SystemExit:\n    pass\n"
-            "print(sorted(m for m in sys.modules if m.startswith('daemon.commands.')))")
-    for argv, expected in (([], "[]"), (["fit"], "['daemon.commands.fit']")):
+            "print(sorted(m for m in sys.modules if m.startswith('nanodrift.commands.')))")
+    for argv, expected in (([], "[]"), (["fit"], "['nanodrift.commands.fit']")):
         run = subprocess.run([sys.executable, "-c", code, *argv, "--help"], capture_output=True, text=True, check=True)
         assert run.stdout.strip().splitlines()[-1] == expected
 
@@ -117,7 +117,7 @@ def test_version(capsys):
 
 
 def test_the_offline_tools_never_import_zenoh():
-    run = subprocess.run([sys.executable, "-X", "importtime", "-m", "daemon.cli", "fit", "--help"],
+    run = subprocess.run([sys.executable, "-X", "importtime", "-m", "nanodrift.cli", "fit", "--help"],
                          capture_output=True, text=True, check=True)
     assert "import time:" in run.stderr and "zenoh" not in run.stderr
 

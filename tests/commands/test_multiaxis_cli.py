@@ -8,13 +8,13 @@ import sys
 
 import pytest
 
-from daemon.calibration.dataset import read_csv
-from daemon.cli import main
-from daemon.model.cell_model import CellModel, load_any_model
+from nanodrift.calibration.dataset import read_csv
+from nanodrift.cli import main
+from nanodrift.model.cell_model import CellModel, load_any_model
 
 
 def _run(*args, cwd):
-    return subprocess.run([sys.executable, "-m", "daemon.cli", *args], capture_output=True, text=True, cwd=cwd)
+    return subprocess.run([sys.executable, "-m", "nanodrift.cli", *args], capture_output=True, text=True, cwd=cwd)
 
 
 @pytest.fixture(scope="module")

@@ -5,9 +5,9 @@ import json
 
 from helpers.synthetic import paper_run
 
-from daemon.calibration.dataset import write_csv
-from daemon.cli import main
-from daemon.model.model import load_model
+from nanodrift.calibration.dataset import write_csv
+from nanodrift.cli import main
+from nanodrift.model.model import load_model
 
 SOFTWARE = f"nanodrift {importlib.metadata.version('nanodrift')}"
 

@@ -25,7 +25,7 @@ from pathlib import Path
 import pytest
 from helpers.daemon_harness import REPO, Client, Daemon
 
-from daemon.model.model import load_model
+from nanodrift.model.model import load_model
 
 NANODRIFT = Path(sys.executable).with_name("nanodrift")
 PORT = 7447

@@ -32,8 +32,8 @@ from helpers.daemon_harness import (
     write_test_model,
 )
 
-from daemon.commands import status as status_command
-from daemon.commands.status import COLUMNS, rates, table
+from nanodrift.commands import status as status_command
+from nanodrift.commands.status import COLUMNS, rates, table
 
 CELLS = ("alpha", "beta", "gamma")
 
@@ -66,7 +66,7 @@ class Network:
 
     def status(self, *args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
         env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(TESTS), str(REPO)]))
-        return subprocess.run([sys.executable, "-m", "daemon.cli", "status", *args], capture_output=True,
+        return subprocess.run([sys.executable, "-m", "nanodrift.cli", "status", *args], capture_output=True,
                               text=True, timeout=timeout, env=env, cwd=str(self.root))
 
     def close(self) -> None:
@@ -163,7 +163,7 @@ def test_no_cell_answers_exits_non_zero_with_a_hint(network: Network) -> None:
 
 def test_nobody_listening_is_one_sentence_without_rust_paths(tmp_path: Path) -> None:
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    result = subprocess.run([sys.executable, "-m", "daemon.cli", "status", "-e", f"tcp/127.0.0.1:{free_port()}"],
+    result = subprocess.run([sys.executable, "-m", "nanodrift.cli", "status", "-e", f"tcp/127.0.0.1:{free_port()}"],
                             capture_output=True, text=True, timeout=60, env=env, cwd=str(tmp_path))
     assert result.returncode == 2
     assert "nobody is listening at tcp/127.0.0.1:" in result.stderr

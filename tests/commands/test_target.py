@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from helpers.daemon_harness import REPO, TEMPS, Served, expected_q
 
-from daemon.commands import target as target_command
+from nanodrift.commands import target as target_command
 
 
 @pytest.fixture(scope="module")
@@ -23,7 +23,7 @@ def served(tmp_path_factory: pytest.TempPathFactory):
 
 def target(served: Served, *args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
-        [sys.executable, "-m", "daemon.cli", "target", *args, "-e", f"tcp/127.0.0.1:{served.port}",
+        [sys.executable, "-m", "nanodrift.cli", "target", *args, "-e", f"tcp/127.0.0.1:{served.port}",
          "--cell", served.cell],
         capture_output=True, text=True, cwd=REPO, timeout=60,
     )
@@ -49,7 +49,7 @@ def test_target_readable_output_and_refusals_exit_non_zero(served: Served) -> No
 
 def test_target_without_a_daemon_says_so(tmp_path: Path) -> None:
     result = subprocess.run(
-        [sys.executable, "-m", "daemon.cli", "target", "1", "--cell", "nobody", "--timeout", "0.5", "-e",
+        [sys.executable, "-m", "nanodrift.cli", "target", "1", "--cell", "nobody", "--timeout", "0.5", "-e",
          f"tcp/127.0.0.1:{1}"],
         capture_output=True, text=True, cwd=REPO, timeout=60,
     )
@@ -84,7 +84,7 @@ def test_a_commands_sigma_and_correction_are_printed_in_micrometres() -> None:
 
 def test_a_wrong_cell_is_named_with_the_cells_that_answer(served: Served) -> None:
     result = subprocess.run(  # the daemon is up, but for another cell
-        [sys.executable, "-m", "daemon.cli", "target", "1", "2", "-e", f"tcp/127.0.0.1:{served.port}",
+        [sys.executable, "-m", "nanodrift.cli", "target", "1", "2", "-e", f"tcp/127.0.0.1:{served.port}",
          "--cell", "nosuchcell"],
         capture_output=True, text=True, cwd=REPO, timeout=60,
     )

@@ -8,8 +8,8 @@ import re
 
 from helpers.synthetic import paper_run
 
-from daemon.calibration.dataset import write_csv
-from daemon.cli import main
+from nanodrift.calibration.dataset import write_csv
+from nanodrift.cli import main
 
 ASCII_UNITS = re.compile(r"\bum\b|\bdegC\b")
 

@@ -12,11 +12,11 @@ import pytest
 from helpers.daemon_harness import REPO
 from helpers.sim_helpers import Capture, trained_model
 
-from daemon.assembly import simulated_drivers
-from daemon.calibration.iso9283 import summarize
-from daemon.cli import main
-from daemon.model.model import save_model
-from daemon.procedure.validation import run_validation
+from nanodrift.assembly import simulated_drivers
+from nanodrift.calibration.iso9283 import summarize
+from nanodrift.cli import main
+from nanodrift.model.model import save_model
+from nanodrift.procedure.validation import run_validation
 
 #: an interferometer that reads the truth: no white noise, no wander (its 0.3 nm resolution remains)
 PERFECT_INTERFEROMETER = {"interferometer_noise_um": 0.0, "interferometer_wander_um": 0.0}

@@ -1,11 +1,11 @@
-"""The actuator contract (``drivers.base.Actuator``), one set of checks run against every plugin that can
+"""The actuator contract (``nanodrift.drivers.base.Actuator``), one set of checks run against every plugin that can
 move the stage, in the style of python-can's ``test/back2back_test.py``:
 
 - ``simulated``: the simulated cell's closed loop (it takes ``q_um``);
 - ``modbus``: an analog output (holding register 10, int16, 1 mV per count, ``verify``) on pymodbus'
-  TCP server on 127.0.0.1 (``drivers.testing``);
+  TCP server on 127.0.0.1 (``nanodrift.drivers.testing``);
 - ``serial_line``: a PI controller speaking GCS on a pty (``SVA 1 {voltage_v:.4f}``, ``SVA? 1``
-  read back, ``ERR?``; ``drivers.testing``);
+  read back, ``ERR?``; ``nanodrift.drivers.testing``);
 - ``labbox``: a lab's own output (``tests/helpers/lab_plugin.py``), found through a real entry point.
 
 Every assertion on what was written looks at the emulator's side (the register, the lines the
@@ -35,12 +35,12 @@ import pytest
 from helpers import lab_plugin
 from pymodbus.constants import ExcCodes
 
-from drivers.base import Actuator, DeviceError, DriverContext
-from drivers.modbus.codec import decode
-from drivers.registry import available, load_plugin
-from drivers.simulated.cell import SimulatedCell
-from drivers.simulated.plugin import RESOURCE_KEY
-from drivers.testing import FakeGcsController, ModbusTestDevice, ModbusTestServer, tcp_context
+from nanodrift.drivers.base import Actuator, DeviceError, DriverContext
+from nanodrift.drivers.modbus.codec import decode
+from nanodrift.drivers.registry import available, load_plugin
+from nanodrift.drivers.simulated.cell import SimulatedCell
+from nanodrift.drivers.simulated.plugin import RESOURCE_KEY
+from nanodrift.drivers.testing import FakeGcsController, ModbusTestDevice, ModbusTestServer, tcp_context
 
 T = 30.0  # a whole test's wall-clock bound
 GAIN = 0.02  # volts per um: every command here passes q_um = voltage_v / GAIN

@@ -1,4 +1,4 @@
-"""``drivers.base``: the contract's own pieces: readings, the common sensor keys and their checks, the
+"""``nanodrift.drivers.base``: the contract's own pieces: readings, the common sensor keys and their checks, the
 monotonic clock, and what the abstract classes give a plugin by default."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from typing import Any
 import pytest
 from pydantic import ValidationError
 
-from drivers.base import (
+from nanodrift.drivers.base import (
     Actuator,
     ActuatorOptions,
     DeviceError,

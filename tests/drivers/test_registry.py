@@ -1,4 +1,4 @@
-"""``drivers.registry``: plugins found by name through the ``nanodrift.drivers`` entry points, a lab's
+"""``nanodrift.drivers.registry``: plugins found by name through the ``nanodrift.drivers`` entry points, a lab's
 own included, and what a missing or wrong one says."""
 
 from __future__ import annotations
@@ -9,11 +9,11 @@ from pathlib import Path
 import pytest
 from helpers import lab_plugin
 
-from drivers.base import DriverPlugin
-from drivers.modbus.plugin import PLUGIN as MODBUS
-from drivers.registry import GROUP, UnknownDriverError, available, load_plugin
-from drivers.serial_line.plugin import PLUGIN as SERIAL_LINE
-from drivers.simulated.plugin import PLUGIN as SIMULATED
+from nanodrift.drivers.base import DriverPlugin
+from nanodrift.drivers.modbus.plugin import PLUGIN as MODBUS
+from nanodrift.drivers.registry import GROUP, UnknownDriverError, available, load_plugin
+from nanodrift.drivers.serial_line.plugin import PLUGIN as SERIAL_LINE
+from nanodrift.drivers.simulated.plugin import PLUGIN as SIMULATED
 
 
 @pytest.fixture
@@ -24,8 +24,9 @@ def lab(tmp_path: Path) -> Iterator[None]:
 
 def test_nanodrifts_own_plugins_are_found_by_name() -> None:
     assert GROUP == "nanodrift.drivers"
-    assert available() == {"modbus": "drivers.modbus.plugin:PLUGIN", "serial_line": "drivers.serial_line.plugin:PLUGIN",
-                           "simulated": "drivers.simulated.plugin:PLUGIN"}
+    assert available() == {"modbus": "nanodrift.drivers.modbus.plugin:PLUGIN",
+                           "serial_line": "nanodrift.drivers.serial_line.plugin:PLUGIN",
+                           "simulated": "nanodrift.drivers.simulated.plugin:PLUGIN"}
     assert load_plugin("modbus") is MODBUS
     assert load_plugin("serial_line") is SERIAL_LINE
     assert load_plugin("simulated") is SIMULATED
@@ -66,4 +67,4 @@ def test_an_entry_point_that_names_something_else_than_a_plugin_is_refused_namin
         with pytest.raises(UnknownDriverError) as error:
             load_plugin("broken")
     assert str(error.value) == ("driver 'broken' (test_registry_target:NOT_A_PLUGIN) is not a "
-                                "drivers.base.DriverPlugin instance")
+                                "nanodrift.drivers.base.DriverPlugin instance")

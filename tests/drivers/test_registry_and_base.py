@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import pytest
 
-from drivers.base import DriverPlugin, SharedResources, StrictModel, VirtualCellPlugin
-from drivers.registry import load_plugin, owner_of_section, quietly, virtual_cell_plugin
-from drivers.simulated.clock import ScaledClock
+from nanodrift.drivers.base import DriverPlugin, SharedResources, StrictModel, VirtualCellPlugin
+from nanodrift.drivers.registry import load_plugin, owner_of_section, quietly, virtual_cell_plugin
+from nanodrift.drivers.simulated.clock import ScaledClock
 
 
 def test_the_simulated_plugin_owns_its_table_and_is_the_virtual_cell() -> None:

@@ -1,11 +1,11 @@
-"""The sensor-group contract (``drivers.base.SensorGroup``), one set of checks run against every plugin.
+"""The sensor-group contract (``nanodrift.drivers.base.SensorGroup``), one set of checks run against every plugin.
 
 In the style of python-can's ``test/back2back_test.py``: one test class, and a fixture that gives it
 each backend in turn, behind a real interface:
 
 - ``simulated``: the simulated cell (its injected faults stand for the device's trouble);
-- ``modbus``: two thermocouple channels on pymodbus' TCP server on 127.0.0.1 (``drivers.testing``);
-- ``serial_line``: an interferometer on a pty, queried with ``POS?`` (``drivers.testing``);
+- ``modbus``: two thermocouple channels on pymodbus' TCP server on 127.0.0.1 (``nanodrift.drivers.testing``);
+- ``serial_line``: an interferometer on a pty, queried with ``POS?`` (``nanodrift.drivers.testing``);
 - ``labbox``: a lab's own plugin (``tests/helpers/lab_plugin.py``), found through a real entry point.
 
 Every group is built the daemon's way: the plugin found by name through the ``nanodrift.drivers``
@@ -34,12 +34,12 @@ import pytest
 from helpers import lab_plugin
 from helpers.daemon_harness import SensorFile
 
-from drivers.base import DeviceError, DriverContext, Reading, SensorGroup, State
-from drivers.modbus.codec import encode
-from drivers.registry import available, load_plugin
-from drivers.simulated.cell import SimulatedCell
-from drivers.simulated.plugin import RESOURCE_KEY
-from drivers.testing import FakeInterferometer, ModbusTestDevice, ModbusTestServer, tcp_context
+from nanodrift.drivers.base import DeviceError, DriverContext, Reading, SensorGroup, State
+from nanodrift.drivers.modbus.codec import encode
+from nanodrift.drivers.registry import available, load_plugin
+from nanodrift.drivers.simulated.cell import SimulatedCell
+from nanodrift.drivers.simulated.plugin import RESOURCE_KEY
+from nanodrift.drivers.testing import FakeInterferometer, ModbusTestDevice, ModbusTestServer, tcp_context
 
 T = 30.0  # a whole test's wall-clock bound
 

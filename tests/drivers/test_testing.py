@@ -1,4 +1,4 @@
-"""``drivers.testing.protocol``: the scripted device a lab tests its plugin's exact conversation with,
+"""``nanodrift.drivers.testing.protocol``: the scripted device a lab tests its plugin's exact conversation with,
 here driving the serial_line actuator; and its verdict on a conversation that differs."""
 
 from __future__ import annotations
@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from drivers.base import DriverContext
-from drivers.registry import load_plugin
-from drivers.testing import expected_protocol
+from nanodrift.drivers.base import DriverContext
+from nanodrift.drivers.registry import load_plugin
+from nanodrift.drivers.testing import expected_protocol
 
 
 def gcs_actuator(port: str) -> object:

@@ -13,10 +13,10 @@ from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
 
-from daemon.model.cell_model import CellModel, save_cell_model
-from daemon.model.model import FittedTerm, Model, Training
-from daemon.model.terms import parse_term
-from drivers.testing.modbus_server import ModbusTestDevice, ModbusTestServer
+from nanodrift.drivers.testing.modbus_server import ModbusTestDevice, ModbusTestServer
+from nanodrift.model.cell_model import CellModel, save_cell_model
+from nanodrift.model.model import FittedTerm, Model, Training
+from nanodrift.model.terms import parse_term
 
 #: each axis' terms over every axis' position (a 1 % crosstalk from the next axis) and T1
 CELL_CHANNEL_RANGES = {"T1": (21.5, 22.1), "T2": (21.6, 22.05)}

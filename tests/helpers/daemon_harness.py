@@ -5,7 +5,7 @@
   directory put on the daemon's ``PYTHONPATH``), exactly as a lab's own driver package would be.
   The file ``{"values": {ch: degC}, "age": {ch: s}, "fault": {ch: reason}, "error": msg}`` lets a
   test make a channel stale (its readings are ``age`` seconds old), faulted, or the whole device fail.
-- :class:`Daemon`: ``python -m daemon.cli run --config F`` with stderr (JSON log lines) in a file.
+- :class:`Daemon`: ``python -m nanodrift.cli run --config F`` with stderr (JSON log lines) in a file.
 - :class:`Client`: a client-mode Zenoh session (multicast scouting off) that collects ``command``
   and ``error`` samples and sends targets by put or by query.
 
@@ -28,10 +28,9 @@ from typing import Any
 
 import zenoh
 
-from daemon.atomic import atomic_write_text
-from daemon.model.model import FittedTerm, Model, Training, save_model
-from daemon.model.terms import parse_term
-from drivers.base import (
+from helpers.modbus_helpers import free_port  # one definition for every helper (re-exported here)
+from nanodrift.atomic import atomic_write_text
+from nanodrift.drivers.base import (
     Clock,
     DeviceError,
     DriverContext,
@@ -41,7 +40,8 @@ from drivers.base import (
     SensorConfig,
     SensorGroup,
 )
-from helpers.modbus_helpers import free_port  # one definition for every helper (re-exported here)
+from nanodrift.model.model import FittedTerm, Model, Training, save_model
+from nanodrift.model.terms import parse_term
 
 REPO = Path(__file__).resolve().parents[2]
 TESTS = Path(__file__).resolve().parents[1]
@@ -198,7 +198,7 @@ def file_sensor_config(
 
 
 class Daemon:
-    """``python -m daemon.cli run`` in its own process; its JSON log lines are parsed on demand."""
+    """``python -m nanodrift.cli run`` in its own process; its JSON log lines are parsed on demand."""
 
     def __init__(self, args: Sequence[str], log_path: Path, extra_pythonpath: Sequence[Path] = (),
                  env: dict[str, str] | None = None, cwd: Path = REPO) -> None:
@@ -212,7 +212,7 @@ class Daemon:
         environ.update(env or {})
         self._log_file = open(log_path, "wb")
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "daemon.cli", "run", *args],
+            [sys.executable, "-m", "nanodrift.cli", "run", *args],
             stdout=subprocess.DEVNULL, stderr=self._log_file, env=environ, cwd=str(cwd),
         )
 

@@ -1,15 +1,15 @@
 """Runs of the simulated cell for the discovery tests, in process (no subprocess, no CSV).
 
-A calibration run comes from :func:`drivers.simulated.datasets.simulate_dataset`, the code path of
+A calibration run comes from :func:`nanodrift.drivers.simulated.datasets.simulate_dataset`, the code path of
 ``nanodrift simulate``, so what discovery is tested on is exactly what a user's CSV holds.
 """
 
 from __future__ import annotations
 
-from daemon.calibration.dataset import Dataset
-from daemon.model.identify import fit
-from daemon.model.model import Model
-from drivers.simulated.datasets import simulate_dataset
+from nanodrift.calibration.dataset import Dataset
+from nanodrift.drivers.simulated.datasets import simulate_dataset
+from nanodrift.model.identify import fit
+from nanodrift.model.model import Model
 
 
 def cell_run(effects: str = "", seed: int = 0, cycles: int = 24, scenario: str = "train",

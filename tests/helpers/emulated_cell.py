@@ -6,7 +6,7 @@
 - an interferometer on a pty answering ``POS?\\r`` with ``P <nm> nm`` at the moment of the query;
 - optionally a PI controller on a pty (GCS ``SVA``) and a Zenoh output node applying ``command``.
 
-The physics runs on a :class:`~drivers.simulated.clock.ScaledClock` (``speed`` simulated seconds per wall
+The physics runs on a :class:`~nanodrift.drivers.simulated.clock.ScaledClock` (``speed`` simulated seconds per wall
 second), so a shortened calibration sees hours of room temperature. ``amplifier_connected = False``
 is a cable pulled out: the output still takes its value, the stage no longer moves.
 """
@@ -22,12 +22,12 @@ from typing import Any
 
 import zenoh
 
-from drivers.modbus.codec import decode, encode
-from drivers.simulated.cell import SimulatedCell
-from drivers.simulated.clock import ScaledClock
-from drivers.simulated.config import SimulationConfig
 from helpers.modbus_helpers import FC_READ_INPUT, ModbusTestDevice, ModbusTestServer, free_port
 from helpers.serial_helpers import FakeGcsController, FakeInterferometer
+from nanodrift.drivers.modbus.codec import decode, encode
+from nanodrift.drivers.simulated.cell import SimulatedCell
+from nanodrift.drivers.simulated.clock import ScaledClock
+from nanodrift.drivers.simulated.config import SimulationConfig
 
 VOLTS_PER_UM = 0.02  # the amplifier's gain, as [actuator] volts_per_um says
 AO_ADDRESS = 10

@@ -20,9 +20,9 @@ from typing import Literal
 
 from pydantic import Field
 
-from drivers import registry
-from drivers.base import Actuator, ActuatorOptions, DeviceError, DriverContext
 from helpers.daemon_harness import FilePlugin
+from nanodrift.drivers import registry
+from nanodrift.drivers.base import Actuator, ActuatorOptions, DeviceError, DriverContext
 
 STEP_V = 0.001  # one count of the box's output
 

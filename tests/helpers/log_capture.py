@@ -14,12 +14,12 @@ from typing import Any
 
 import structlog
 
-from daemon.logs import configure_logging
+from nanodrift.logs import configure_logging
 
 
 @contextmanager
 def captured_logging(level: str = "info", clock: Callable[[], float] = time.monotonic) -> Iterator[io.StringIO]:
-    """:func:`daemon.logs.configure_logging` writing JSON lines into the yielded buffer."""
+    """:func:`nanodrift.logs.configure_logging` writing JSON lines into the yielded buffer."""
     stream = io.StringIO()
     root = logging.getLogger()
     saved = (list(root.handlers), root.level, logging.getLogger("pymodbus").level, threading.excepthook,

@@ -1,4 +1,4 @@
-"""The Modbus emulators, now shipped in :mod:`drivers.testing.modbus_server`; re-exported for the tests.
+"""The Modbus emulators, now shipped in :mod:`nanodrift.drivers.testing.modbus_server`; re-exported for the tests.
 
 Also runnable as a separate process (the daemon-level tests kill and restart it)::
 
@@ -13,7 +13,7 @@ from pathlib import Path
 if __name__ == "__main__":  # run as a script: this checkout's drivers, not an installed copy
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from drivers.testing.modbus_server import (
+from nanodrift.drivers.testing.modbus_server import (
     FC_READ_HOLDING,
     FC_READ_INPUT,
     ModbusTestDevice,

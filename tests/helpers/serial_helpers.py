@@ -1,5 +1,5 @@
-"""The pty instruments, now shipped in :mod:`drivers.testing.pty_devices`; re-exported for the tests."""
+"""The pty instruments, now shipped in :mod:`nanodrift.drivers.testing.pty_devices`; re-exported for the tests."""
 
-from drivers.testing.pty_devices import FakeGcsController, FakeInterferometer, PtyDevice
+from nanodrift.drivers.testing.pty_devices import FakeGcsController, FakeInterferometer, PtyDevice
 
 __all__ = ["FakeGcsController", "FakeInterferometer", "PtyDevice"]

@@ -7,10 +7,10 @@ from functools import cache
 
 import numpy as np
 
-from daemon.calibration.dataset import Dataset
-from daemon.model.identify import fit
-from daemon.model.model import Model
-from drivers.simulated.datasets import simulate_dataset
+from nanodrift.calibration.dataset import Dataset
+from nanodrift.drivers.simulated.datasets import simulate_dataset
+from nanodrift.model.identify import fit
+from nanodrift.model.model import Model
 
 
 def run_dataset(scenario: str = "train", effects: object = None, seed: int = 0, cycles: int = 24,

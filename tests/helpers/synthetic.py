@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from daemon.calibration.dataset import Dataset
+from nanodrift.calibration.dataset import Dataset
 
 TRUE_TERMS = {"x^3": 3.0e-9, "x^2": -4.0e-6, "x": 1.0012, "T1": -0.6, "T2": -0.5, "T4": 0.2, "1": 22.0}
 STEPS_UM = np.arange(0.0, 481.0, 30.0)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from daemon.atomic import atomic_write_text
+from nanodrift.atomic import atomic_write_text
 
 SITE_DIR = Path(__file__).resolve().parent / "wall_shift"
 

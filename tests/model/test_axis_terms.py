@@ -7,11 +7,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from daemon.calibration.dataset import Dataset
-from daemon.model.axis_terms import AxisCoupling, AxisCreep, AxisDirection, AxisPower, AxisProduct
-from daemon.model.effect_terms import PositionCoupling
-from daemon.model.segments import features
-from daemon.model.terms import Channel, Power, UnknownTermError, parse_term
+from nanodrift.calibration.dataset import Dataset
+from nanodrift.model.axis_terms import AxisCoupling, AxisCreep, AxisDirection, AxisPower, AxisProduct
+from nanodrift.model.effect_terms import PositionCoupling
+from nanodrift.model.segments import features
+from nanodrift.model.terms import Channel, Power, UnknownTermError, parse_term
 
 XY = ("x", "y")
 XYZ = ("x", "y", "z")

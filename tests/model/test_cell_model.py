@@ -5,11 +5,11 @@ import json
 import numpy as np
 import pytest
 
-from daemon.calibration.dataset import DataError, read_csv, write_csv
-from daemon.model.cell_model import CellModel, load_any_model, save_cell_model
-from daemon.model.identify import fit_cell
-from daemon.model.model import ModelFileError
-from drivers.simulated.multiaxis import simulate_cell_dataset
+from nanodrift.calibration.dataset import DataError, read_csv, write_csv
+from nanodrift.drivers.simulated.multiaxis import simulate_cell_dataset
+from nanodrift.model.cell_model import CellModel, load_any_model, save_cell_model
+from nanodrift.model.identify import fit_cell
+from nanodrift.model.model import ModelFileError
 
 
 @pytest.fixture(scope="module")

@@ -6,9 +6,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from daemon.model.equation import coefficient_digits, equation, feature_bound
-from daemon.model.model import FittedTerm, Model, Training
-from daemon.model.terms import parse_term
+from nanodrift.model.equation import coefficient_digits, equation, feature_bound
+from nanodrift.model.model import FittedTerm, Model, Training
+from nanodrift.model.terms import parse_term
 
 
 def test_the_paper_model_reads_as_written():

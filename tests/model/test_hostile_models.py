@@ -24,11 +24,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-import daemon.model.model as model_module
-from daemon.calibration.dataset import Dataset, read_csv, write_csv
-from daemon.cli import main
-from daemon.model.model import MAX_MODEL_BYTES, FittedTerm, Model, ModelFileError, Training, load_model, save_model
-from daemon.model.terms import MAX_POWER, parse_term
+import nanodrift.model.model as model_module
+from nanodrift.calibration.dataset import Dataset, read_csv, write_csv
+from nanodrift.cli import main
+from nanodrift.model.model import MAX_MODEL_BYTES, FittedTerm, Model, ModelFileError, Training, load_model, save_model
+from nanodrift.model.terms import MAX_POWER, parse_term
 
 REPO = Path(__file__).resolve().parents[2]
 NESTED = "[" * 100_000 + "]" * 100_000
@@ -176,7 +176,7 @@ def test_check_config_with_a_nested_model_names_the_file(tmp_path: Path) -> None
     nested.write_text(NESTED)
     config = tmp_path / "cell.toml"
     config.write_text(f'cell = "c"\n[model]\npath = "{nested}"\n')
-    result = subprocess.run([sys.executable, "-m", "daemon.cli", "check-config", str(config)], cwd=REPO,
+    result = subprocess.run([sys.executable, "-m", "nanodrift.cli", "check-config", str(config)], cwd=REPO,
                             capture_output=True, text=True, timeout=120)
     output = result.stdout + result.stderr
     assert "Traceback" not in output and "RecursionError" not in output, output
@@ -257,7 +257,7 @@ def test_any_text_is_a_model_or_a_message_naming_the_file(tmp_path: Path, text: 
 
 LOAD = """
 import sys
-from daemon.model.model import ModelFileError, load_model
+from nanodrift.model.model import ModelFileError, load_model
 try:
     load_model(sys.argv[1])
 except ModelFileError as err:

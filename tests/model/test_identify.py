@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 from helpers.synthetic import TRUE_TERMS, paper_run
 
-from daemon.calibration.dataset import concat
-from daemon.model.identify import (
+from nanodrift.calibration.dataset import concat
+from nanodrift.drivers.simulated.datasets import simulate_dataset
+from nanodrift.model.identify import (
     CURVATURE_MIN_SPAN_C,
     FitError,
     candidate_terms,
@@ -13,8 +14,7 @@ from daemon.model.identify import (
     fit,
     holdout_blocks,
 )
-from daemon.model.terms import ChannelSquare
-from drivers.simulated.datasets import simulate_dataset
+from nanodrift.model.terms import ChannelSquare
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2, 3])

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from helpers.synthetic import paper_run
 
-from daemon.model.identify import fit
-from daemon.model.model import (
+from nanodrift.model.identify import fit
+from nanodrift.model.model import (
     FittedTerm,
     MissingChannelError,
     Model,
@@ -17,7 +17,7 @@ from daemon.model.model import (
     load_model,
     save_model,
 )
-from daemon.model.terms import Bias, Channel, Direction, Lag, Power, UnknownTermError, lag_filter, parse_term
+from nanodrift.model.terms import Bias, Channel, Direction, Lag, Power, UnknownTermError, lag_filter, parse_term
 
 
 def stream_rows(model: Model, data) -> np.ndarray:

@@ -15,9 +15,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from daemon.cli import main
-from daemon.model.model import FittedTerm, Model, ModelFileError, Training, load_model, save_model
-from daemon.model.terms import parse_term
+from nanodrift.cli import main
+from nanodrift.model.model import FittedTerm, Model, ModelFileError, Training, load_model, save_model
+from nanodrift.model.terms import parse_term
 
 DATA_DIR = Path(__file__).resolve().parents[2] / "daemon" / "data"
 TERMS = {"x^3": 2.0e-8, "x^2": -1.0e-5, "x": 1.002, "T1": -0.6, "lag(T2, 300 s)": -0.5, "1": 0.5}

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from helpers.synthetic import TRUE_TERMS, paper_run
 
-from daemon.calibration.dataset import DataError, Dataset, concat
-from daemon.model.effect_terms import Creep, Rate
-from daemon.model.identify import fit, holdout_blocks
-from daemon.model.segments import features, run_time_s, spans_s
-from daemon.model.terms import Direction, Lag, Term
+from nanodrift.calibration.dataset import DataError, Dataset, concat
+from nanodrift.model.effect_terms import Creep, Rate
+from nanodrift.model.identify import fit, holdout_blocks
+from nanodrift.model.segments import features, run_time_s, spans_s
+from nanodrift.model.terms import Direction, Lag, Term
 
 
 def two_runs() -> tuple[Dataset, Dataset, Dataset]:

@@ -1,4 +1,4 @@
-"""Tests for daemon.model.stepwise.stepwisefit against a brute-force reference.
+"""Tests for nanodrift.model.stepwise.stepwisefit against a brute-force reference.
 
 The reference below re-derives every p-value from separate least-squares fits of the full and
 reduced models (partial F-test), with no QR-factor tricks, and drives its own stepwise loop.
@@ -15,7 +15,7 @@ import pytest
 from numpy.typing import NDArray
 from scipy import stats
 
-from daemon.model.stepwise import StepwiseResult, stepwisefit
+from nanodrift.model.stepwise import StepwiseResult, stepwisefit
 
 # ----------------------------------------------------------------------------------------------
 # brute-force reference

@@ -17,11 +17,11 @@ from helpers.synthetic import paper_run
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from daemon.calibration.dataset import Dataset
-from daemon.model.identify import candidate_terms, fit, fit_terms, model_covariance, ols
-from daemon.model.model import FittedTerm, Model, ModelFileError, Training, load_model, save_model
-from daemon.model.terms import parse_term
-from daemon.model.uncertainty import (
+from nanodrift.calibration.dataset import Dataset
+from nanodrift.model.identify import candidate_terms, fit, fit_terms, model_covariance, ols
+from nanodrift.model.model import FittedTerm, Model, ModelFileError, Training, load_model, save_model
+from nanodrift.model.terms import parse_term
+from nanodrift.model.uncertainty import (
     Covariance,
     Curvature,
     ar1_inflation,

@@ -1,7 +1,7 @@
 """``validate --adapt``: the daemon's bias tracker in the validation procedure, online = offline.
 
-Offline is ``validate --adapt`` (:func:`daemon.procedure.validation.run_validation`); online is the
-daemon's health unit (``daemon.service.health_unit``) fed through its compensator, command by command and
+Offline is ``validate --adapt`` (:func:`nanodrift.procedure.validation.run_validation`); online is the
+daemon's health unit (``nanodrift.service.health_unit``) fed through its compensator, command by command and
 reading by reading: both must give the same corrections, float for float.
 """
 
@@ -14,20 +14,20 @@ import json
 import pytest
 from helpers.sim_helpers import Capture, trained_model
 
-from daemon.assembly import simulated_drivers
-from daemon.bus.protocol import Target
-from daemon.calibration import iso9283
-from daemon.calibration.residuals import BiasTracker
-from daemon.cli import main
-from daemon.config import parse_config
-from daemon.logs import get_logger
-from daemon.model.model import Model, save_model
-from daemon.procedure.validation import run_validation
-from daemon.service.compensator import Compensator
-from daemon.service.health_unit import HealthUnit
-from daemon.service.table import SensorTable
-from drivers.base import Reading, SensorConfig
-from drivers.simulated.plugin import shared_cell
+from nanodrift.assembly import simulated_drivers
+from nanodrift.bus.protocol import Target
+from nanodrift.calibration import iso9283
+from nanodrift.calibration.residuals import BiasTracker
+from nanodrift.cli import main
+from nanodrift.config import parse_config
+from nanodrift.drivers.base import Reading, SensorConfig
+from nanodrift.drivers.simulated.plugin import shared_cell
+from nanodrift.logs import get_logger
+from nanodrift.model.model import Model, save_model
+from nanodrift.procedure.validation import run_validation
+from nanodrift.service.compensator import Compensator
+from nanodrift.service.health_unit import HealthUnit
+from nanodrift.service.table import SensorTable
 
 
 def shifted(model: Model, bias_um: float) -> Model:

@@ -18,14 +18,14 @@ from helpers.daemon_harness import Client, Daemon, free_port
 from hypothesis import given
 from hypothesis import strategies as st
 
-from daemon.calibration.dataset import read_csv
-from daemon.cli import main
-from daemon.config import load_config
-from daemon.model.cell_model import CellModel, load_any_model
-from daemon.model.model import load_model
-from daemon.procedure import serving
-from daemon.procedure.recording import NARROW_RANGE_C
-from daemon.procedure.serving import NOTE, with_model_path
+from nanodrift.calibration.dataset import read_csv
+from nanodrift.cli import main
+from nanodrift.config import load_config
+from nanodrift.model.cell_model import CellModel, load_any_model
+from nanodrift.model.model import load_model
+from nanodrift.procedure import serving
+from nanodrift.procedure.recording import NARROW_RANGE_C
+from nanodrift.procedure.serving import NOTE, with_model_path
 
 REPO = Path(__file__).resolve().parents[2]
 SIM_TOML = REPO / "config" / "sim.toml"

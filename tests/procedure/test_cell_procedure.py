@@ -15,16 +15,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daemon.assembly import procedure_drivers
-from daemon.calibration.dataset import read_csv
-from daemon.calibration.plans import StepTiming, cell_calibration_plan
-from daemon.cli import main as cli
-from daemon.config import load_config
-from daemon.model.cell_model import CellModel, load_any_model
-from daemon.procedure.cell_recording import record_cell_calibration
-from daemon.procedure.cell_steps import CellDrive, CellStepResult, run_cell_steps
-from drivers.simulated.multicell import SimulatedMultiCell
-from drivers.simulated.plugin import RESOURCE_KEY
+from nanodrift.assembly import procedure_drivers
+from nanodrift.calibration.dataset import read_csv
+from nanodrift.calibration.plans import StepTiming, cell_calibration_plan
+from nanodrift.cli import main as cli
+from nanodrift.config import load_config
+from nanodrift.drivers.simulated.multicell import SimulatedMultiCell
+from nanodrift.drivers.simulated.plugin import RESOURCE_KEY
+from nanodrift.model.cell_model import CellModel, load_any_model
+from nanodrift.procedure.cell_recording import record_cell_calibration
+from nanodrift.procedure.cell_steps import CellDrive, CellStepResult, run_cell_steps
 
 
 def _config(tmp_path: Path, axes: str = "xy") -> Path:

@@ -17,9 +17,9 @@ import pytest
 from helpers.daemon_harness import Client, Daemon, free_port, wait_until
 from helpers.emulated_cell import EmulatedCell, write_config
 
-from daemon.calibration.dataset import read_csv
-from daemon.cli import main
-from daemon.model.model import load_model
+from nanodrift.calibration.dataset import read_csv
+from nanodrift.cli import main
+from nanodrift.model.model import load_model
 
 FAST = "cycles = 2\nrise_s = 0.05\nhold_s = 0.25\naverage_s = 0.1\n"
 

@@ -13,16 +13,16 @@ import numpy as np
 import pytest
 from helpers.sim_helpers import Capture
 
-from daemon.assembly import simulated_drivers
-from daemon.calibration.dataset import read_csv
-from daemon.calibration.plans import PlannedStep, StepTiming, calibration_plan
-from daemon.cli import main
-from daemon.config import ActuatorConfig
-from daemon.drivers_set import DriverSet
-from daemon.procedure.follow import FollowCheck, StageNotFollowingError
-from daemon.procedure.recording import record_calibration
-from daemon.procedure.steps import run_steps
-from drivers.base import Actuator, Clock
+from nanodrift.assembly import simulated_drivers
+from nanodrift.calibration.dataset import read_csv
+from nanodrift.calibration.plans import PlannedStep, StepTiming, calibration_plan
+from nanodrift.cli import main
+from nanodrift.config import ActuatorConfig
+from nanodrift.drivers.base import Actuator, Clock
+from nanodrift.drivers_set import DriverSet
+from nanodrift.procedure.follow import FollowCheck, StageNotFollowingError
+from nanodrift.procedure.recording import record_calibration
+from nanodrift.procedure.steps import run_steps
 
 
 class Wired(Actuator):

@@ -13,10 +13,10 @@ import zenoh
 from helpers.daemon_harness import free_port, wait_until
 from helpers.emulated_cell import EmulatedCell, write_config
 
-from daemon.calibration.dataset import read_csv
-from daemon.cli import main
-from daemon.config import ZenohSettings
-from daemon.procedure import preflight
+from nanodrift.calibration.dataset import read_csv
+from nanodrift.cli import main
+from nanodrift.config import ZenohSettings
+from nanodrift.procedure import preflight
 
 ONE_CYCLE = "cycles = 1\nrise_s = 0.05\nhold_s = 0.25\naverage_s = 0.1\n"
 TWO_CYCLES = ONE_CYCLE.replace("cycles = 1", "cycles = 2")

@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 from helpers.sim_helpers import Capture
 
-from daemon.assembly import simulated_drivers
-from daemon.calibration.dataset import read_csv
-from daemon.calibration.plans import StepResult, calibration_plan
-from daemon.cli import main
-from daemon.model.model import load_model
-from daemon.procedure.recording import record_calibration
-from drivers.simulated.plugin import shared_cell
+from nanodrift.assembly import simulated_drivers
+from nanodrift.calibration.dataset import read_csv
+from nanodrift.calibration.plans import StepResult, calibration_plan
+from nanodrift.cli import main
+from nanodrift.drivers.simulated.plugin import shared_cell
+from nanodrift.model.model import load_model
+from nanodrift.procedure.recording import record_calibration
 
 
 def test_calibrate_command_end_to_end(tmp_path, capsys):
@@ -111,7 +111,7 @@ def test_interrupt_keeps_every_step_and_resume_continues(tmp_path, capsys):
 
 
 def test_cli_interrupt_prints_how_to_resume(tmp_path, capsys, monkeypatch):
-    from daemon.procedure import steps as procedure
+    from nanodrift.procedure import steps as procedure
 
     data, out = tmp_path / "cal.csv", tmp_path / "m.json"
     original = procedure.measure_step
@@ -146,7 +146,7 @@ def test_ctrl_c_on_a_real_process_keeps_the_steps_and_says_how_to_resume(tmp_pat
 
     data, out = tmp_path / "cal.csv", tmp_path / "m.json"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "daemon.cli", "calibrate", "--out", str(out), "--data", str(data), "--cycles", "200"],
+        [sys.executable, "-m", "nanodrift.cli", "calibrate", "--out", str(out), "--data", str(data), "--cycles", "200"],
         stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"},
     )
     try:

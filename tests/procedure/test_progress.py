@@ -5,10 +5,10 @@ import io
 
 from helpers.sim_helpers import Capture
 
-from daemon.calibration.plans import StepResult, StepTiming, calibration_plan
-from daemon.config import ActuatorConfig
-from daemon.procedure.progress import Progress
-from daemon.procedure.steps import planned_seconds
+from nanodrift.calibration.plans import StepResult, StepTiming, calibration_plan
+from nanodrift.config import ActuatorConfig
+from nanodrift.procedure.progress import Progress
+from nanodrift.procedure.steps import planned_seconds
 
 
 class FakeWall:

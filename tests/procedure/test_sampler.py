@@ -1,4 +1,4 @@
-"""``daemon.procedure.sampler``: every group polled on its own schedule during a hold (on a virtual clock:
+"""``nanodrift.procedure.sampler``: every group polled on its own schedule during a hold (on a virtual clock:
 no wall time), a failing device recorded as fault samples and reopened, and the window's averages
 refused when a sample in it is not clean."""
 
@@ -11,10 +11,10 @@ from typing import Any
 
 import pytest
 
-from daemon.procedure import sampler as sampler_module
-from daemon.procedure.sampler import Sampler
-from drivers.base import Actuator, Clock, DeviceError, DriverContext, Reading, SensorGroup, State
-from drivers.simulated.clock import VirtualClock
+from nanodrift.drivers.base import Actuator, Clock, DeviceError, DriverContext, Reading, SensorGroup, State
+from nanodrift.drivers.simulated.clock import VirtualClock
+from nanodrift.procedure import sampler as sampler_module
+from nanodrift.procedure.sampler import Sampler
 
 #: the sampler's own name for the drivers it polls (wherever that class lives)
 DriverSet = sampler_module.DriverSet

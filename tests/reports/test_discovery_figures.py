@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from helpers.discovery_helpers import cell_run, paper_model
 
-from daemon.calibration.discovery import Candidate, discover
-from daemon.calibration.discovery.settings import DEFAULT_SETTINGS
-from daemon.model.terms import Lag
-from daemon.reports.discovery import figure_residuals, format_params, markdown, verdict, write_report
+from nanodrift.calibration.discovery import Candidate, discover
+from nanodrift.calibration.discovery.settings import DEFAULT_SETTINGS
+from nanodrift.model.terms import Lag
+from nanodrift.reports.discovery import figure_residuals, format_params, markdown, verdict, write_report
 
 
 @pytest.fixture(scope="module")

@@ -10,11 +10,11 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pytest
 
-from daemon.calibration import iso9283
-from daemon.calibration.iso9283 import summarize
-from daemon.calibration.plans import PlannedStep, StepResult, validation_plan
-from daemon.model.model import Training
-from daemon.reports.validation import figure_accuracy, figure_drift, raw_csv, table1, truth_table, write_report
+from nanodrift.calibration import iso9283
+from nanodrift.calibration.iso9283 import summarize
+from nanodrift.calibration.plans import PlannedStep, StepResult, validation_plan
+from nanodrift.model.model import Training
+from nanodrift.reports.validation import figure_accuracy, figure_drift, raw_csv, table1, truth_table, write_report
 
 TRAINING = Training(x_range=(0.0, 480.0), channel_ranges={"T1": (21.55, 21.98), "T4": (21.50, 21.95)}, rows=408,
                     t_span_s=12000.0)

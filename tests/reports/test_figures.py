@@ -8,9 +8,9 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import pytest
 
-from daemon.calibration.iso9283 import summarize
-from daemon.calibration.plans import PlannedStep, StepResult, validation_plan
-from daemon.reports.validation import figure_accuracy, figure_drift, table1, write_report
+from nanodrift.calibration.iso9283 import summarize
+from nanodrift.calibration.plans import PlannedStep, StepResult, validation_plan
+from nanodrift.reports.validation import figure_accuracy, figure_drift, table1, write_report
 
 
 def a_test(name: str, compensated: bool, error_um: float, drift_um: float):

@@ -1,8 +1,8 @@
 """Table I as people write it: ratios as "4.0×", empty cells as "—" (issue 13, item 6)."""
 
-from daemon.calibration.iso9283 import summarize
-from daemon.calibration.plans import PlannedStep, StepResult
-from daemon.reports.validation import PAPER_TABLE1, table1
+from nanodrift.calibration.iso9283 import summarize
+from nanodrift.calibration.plans import PlannedStep, StepResult
+from nanodrift.reports.validation import PAPER_TABLE1, table1
 
 
 def a_test(name: str, compensated: bool, error_um: float, drift_um: float):

@@ -45,10 +45,10 @@ from helpers.modbus_helpers import ModbusTestDevice, ModbusTestServer
 from helpers.serial_helpers import FakeGcsController
 from pydantic import Field
 
-from daemon.config import ActuatorConfig
-from daemon.motion import RAMP_PERIOD_S
-from daemon.service.actuation import Actuation
-from drivers.base import Actuator, ActuatorOptions, DeviceError, DriverContext
+from nanodrift.config import ActuatorConfig
+from nanodrift.drivers.base import Actuator, ActuatorOptions, DeviceError, DriverContext
+from nanodrift.motion import RAMP_PERIOD_S
+from nanodrift.service.actuation import Actuation
 
 SCALE = 0.001  # volts per count
 ADDRESS = 10
@@ -679,7 +679,7 @@ def test_a_labs_own_output_plugin_is_validated_by_its_own_model_and_driven_by_th
                                              sensor_file=tmp_path / "s.json", actuator=keys))
         env = {**os.environ, "PYTHONPATH": os.pathsep.join(
             [str(p) for p in (*pythonpath, install_file_plugin(tmp_path / "plugins"), TESTS, REPO)])}
-        return subprocess.run([sys.executable, "-m", "daemon.cli", "check-config", str(config)],
+        return subprocess.run([sys.executable, "-m", "nanodrift.cli", "check-config", str(config)],
                               capture_output=True, text=True, env=env, cwd=str(REPO), timeout=60)
 
     refused = check(f'kind = "labout"\npath = "{box}"\nchanel = 2\nchannel = 9\n{limits}')

@@ -15,11 +15,11 @@ from pathlib import Path
 
 import pytest
 
-from daemon.assembly import build_drivers
-from daemon.config import parse_config
-from daemon.logs import get_logger
-from daemon.service.cell_actuation import CellActuation
-from drivers.testing.pty_devices import FakeGcsController
+from nanodrift.assembly import build_drivers
+from nanodrift.config import parse_config
+from nanodrift.drivers.testing.pty_devices import FakeGcsController
+from nanodrift.logs import get_logger
+from nanodrift.service.cell_actuation import CellActuation
 
 AXES = {"x": "1", "y": "2", "z": "3"}
 

@@ -8,10 +8,10 @@ import itertools
 import time
 from collections.abc import Callable
 
-from daemon.config import ActuatorConfig
-from daemon.logs import get_logger
-from daemon.service.cell_actuation import CellActuation
-from drivers.base import Actuator, DeviceError
+from nanodrift.config import ActuatorConfig
+from nanodrift.drivers.base import Actuator, DeviceError
+from nanodrift.logs import get_logger
+from nanodrift.service.cell_actuation import CellActuation
 
 
 class FakeOutput(Actuator):

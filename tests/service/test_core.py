@@ -13,15 +13,15 @@ from pathlib import Path
 import pytest
 from helpers.daemon_harness import MODEL_TERMS, expected_q, write_test_model
 
-from daemon.bus.protocol import Refusal, Target
-from daemon.config import ActuatorConfig
-from daemon.logs import RateLimiter
-from daemon.motion import VoltageLimitError
-from daemon.sdnotify import Notifier, watchdog_interval_s
-from daemon.service.compensator import Compensator
-from daemon.service.polling import GroupPoller, pollers_healthy
-from daemon.service.table import SensorTable
-from drivers.base import MonotonicClock, Reading, SensorConfig, SensorGroup, State
+from nanodrift.bus.protocol import Refusal, Target
+from nanodrift.config import ActuatorConfig
+from nanodrift.drivers.base import MonotonicClock, Reading, SensorConfig, SensorGroup, State
+from nanodrift.logs import RateLimiter
+from nanodrift.motion import VoltageLimitError
+from nanodrift.sdnotify import Notifier, watchdog_interval_s
+from nanodrift.service.compensator import Compensator
+from nanodrift.service.polling import GroupPoller, pollers_healthy
+from nanodrift.service.table import SensorTable
 
 
 def sensors(*names: str, max_age_s: float = 5.0) -> list[SensorConfig]:
@@ -158,7 +158,7 @@ def test_watchdog_interval_is_half_of_systemds(monkeypatch: pytest.MonkeyPatch) 
 def test_logs_are_json_lines_for_journald_and_readable_on_a_terminal(capsys: pytest.CaptureFixture[str]) -> None:
     import structlog
 
-    from daemon.logs import RateLimitedLog, configure_logging, get_logger
+    from nanodrift.logs import RateLimitedLog, configure_logging, get_logger
 
     try:
         configure_logging("info", json_lines=True)

@@ -89,7 +89,7 @@ def test_info_stays_quiet_and_a_device_failure_is_one_sensor_state_line(tmp_path
 # --- issue 16 (problem 11): every stderr line of `nanodrift run` is JSON when stderr is not a terminal ----
 
 def run_with_stderr_piped(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "daemon.cli", *args], stdin=subprocess.DEVNULL,
+    return subprocess.run([sys.executable, "-m", "nanodrift.cli", *args], stdin=subprocess.DEVNULL,
                           capture_output=True, text=True, cwd=REPO, timeout=60)
 
 

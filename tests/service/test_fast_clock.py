@@ -16,7 +16,7 @@ from pathlib import Path
 
 from helpers.daemon_harness import Client, Daemon, free_port, wait_until
 
-from daemon.config import DEFAULT_MODEL_PATH
+from nanodrift.config import DEFAULT_MODEL_PATH
 
 CHANNELS = ("T1", "T2", "T3", "T4", "interferometer")
 SPEED = 10_000.0

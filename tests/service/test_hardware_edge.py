@@ -46,10 +46,10 @@ from helpers.modbus_helpers import ModbusTestDevice, ModbusTestServer
 from helpers.serial_helpers import FakeGcsController
 from helpers.wall_clock import WallShift
 
-from daemon.config import STOP_TIMEOUT_S
-from daemon.model.model import FittedTerm, Model, Training, save_model
-from daemon.model.terms import parse_term
-from daemon.motion import RAMP_PERIOD_S
+from nanodrift.config import STOP_TIMEOUT_S
+from nanodrift.model.model import FittedTerm, Model, Training, save_model
+from nanodrift.model.terms import parse_term
+from nanodrift.motion import RAMP_PERIOD_S
 
 SCALE = 0.001  # volts per count of the output register
 ADDRESS = 10

@@ -29,15 +29,15 @@ from helpers.daemon_harness import (
 )
 from prometheus_client.parser import text_string_to_metric_families
 
-from daemon.bus.protocol import Command, Target
-from daemon.config import DEFAULT_MODEL_PATH, Config, parse_config
-from daemon.model.model import Model, load_model, save_model
-from daemon.service.compensator import Compensator
-from daemon.service.health_unit import HealthUnit
-from daemon.service.state import CellState
-from daemon.service.status import status_line
-from daemon.service.table import SensorTable
-from drivers.base import MonotonicClock, Reading, SensorConfig
+from nanodrift.bus.protocol import Command, Target
+from nanodrift.config import DEFAULT_MODEL_PATH, Config, parse_config
+from nanodrift.drivers.base import MonotonicClock, Reading, SensorConfig
+from nanodrift.model.model import Model, load_model, save_model
+from nanodrift.service.compensator import Compensator
+from nanodrift.service.health_unit import HealthUnit
+from nanodrift.service.state import CellState
+from nanodrift.service.status import status_line
+from nanodrift.service.table import SensorTable
 
 SPEED = 5.0
 FAST_HEALTH = "settle_s = 0.5\nwindow_s = 0.5\n"  # simulated seconds: 0.2 s of wall time per held target

@@ -11,8 +11,8 @@ from pathlib import Path
 
 from helpers.daemon_harness import REPO, TESTS, Client, Daemon, free_port
 
-from daemon.config import DEFAULT_MODEL_PATH
-from daemon.model.model import load_model
+from nanodrift.config import DEFAULT_MODEL_PATH
+from nanodrift.model.model import load_model
 
 INSTALL = re.compile(r"^install -D -m 0644 config/lab\.toml /etc/nanodrift/nanodrift\.toml\s+# or config/sim\.toml",
                      re.MULTILINE)
@@ -27,7 +27,7 @@ def test_sim_toml_installed_as_the_readme_says_loads_the_shipped_model_from_anyw
     shipped = load_model(DEFAULT_MODEL_PATH)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(TESTS), str(REPO)])}
 
-    check = subprocess.run([sys.executable, "-m", "daemon.cli", "check-config", str(installed)], cwd=elsewhere,
+    check = subprocess.run([sys.executable, "-m", "nanodrift.cli", "check-config", str(installed)], cwd=elsewhere,
                            env=env, capture_output=True, text=True, timeout=60)
     assert check.returncode == 0, check.stderr
     assert f"model: {DEFAULT_MODEL_PATH} ({shipped.id})" in check.stdout

@@ -27,7 +27,7 @@ from helpers.daemon_harness import (
     write_test_model,
 )
 
-from daemon.calibration.dataset import Dataset, read_csv
+from nanodrift.calibration.dataset import Dataset, read_csv
 
 SETTLE_S, WINDOW_S = 0.1, 0.2
 

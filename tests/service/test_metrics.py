@@ -47,10 +47,10 @@ from helpers.daemon_harness import (
 )
 from prometheus_client.parser import text_string_to_metric_families
 
-from daemon.config import ConfigError, parse_config
-from daemon.service.metrics import ERROR_KINDS, LATENCY_BUCKETS_S, AnswerLatency, build_version
-from daemon.service.metrics_server import INDEX_TEXT, MetricsServer
-from drivers.base import State
+from nanodrift.config import ConfigError, parse_config
+from nanodrift.drivers.base import State
+from nanodrift.service.metrics import ERROR_KINDS, LATENCY_BUCKETS_S, AnswerLatency, build_version
+from nanodrift.service.metrics_server import INDEX_TEXT, MetricsServer
 
 Samples = dict[tuple[str, tuple[tuple[str, str], ...]], float]
 

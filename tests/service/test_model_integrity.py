@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 from helpers.daemon_harness import MODEL_TERMS, TEMPS, Daemon, Served, expected_q
 
-from daemon.cli import main
+from nanodrift.cli import main
 
 NESTED = "[" * 100_000 + "]" * 100_000
 

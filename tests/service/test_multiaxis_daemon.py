@@ -32,7 +32,7 @@ from helpers.daemon_harness import (
     write_test_model,
 )
 
-from daemon.calibration.dataset import read_csv
+from nanodrift.calibration.dataset import read_csv
 
 SCALE_V = 0.001  # volts per count of the module's outputs
 ADDRESSES = {"x": 10, "y": 11}
@@ -154,7 +154,7 @@ def test_a_partial_or_out_of_workspace_target_is_refused_whole_and_no_register_i
 
 
 def cli(cell: XYCell, *args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "daemon.cli", *args, "-e", f"tcp/127.0.0.1:{cell.port}",
+    return subprocess.run([sys.executable, "-m", "nanodrift.cli", *args, "-e", f"tcp/127.0.0.1:{cell.port}",
                            "--cell", "xy"], capture_output=True, text=True, cwd=REPO, timeout=60)
 
 

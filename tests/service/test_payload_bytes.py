@@ -13,12 +13,12 @@ from typing import Any
 import pytest
 from helpers.daemon_harness import write_test_model
 
-from daemon.assembly import build_drivers
-from daemon.bus.protocol import dumps
-from daemon.config import Config, parse_config
-from daemon.service import Service
-from daemon.service.status import status_doc
-from drivers.base import MonotonicClock, Reading, SensorConfig, SensorGroup
+from nanodrift.assembly import build_drivers
+from nanodrift.bus.protocol import dumps
+from nanodrift.config import Config, parse_config
+from nanodrift.drivers.base import MonotonicClock, Reading, SensorConfig, SensorGroup
+from nanodrift.service import Service
+from nanodrift.service.status import status_doc
 
 
 class RecordingBus:

@@ -15,17 +15,17 @@ from types import MappingProxyType
 from helpers.log_capture import captured_logging, json_lines
 from helpers.modbus_helpers import ModbusTestDevice, ModbusTestServer, free_port, tcp_context
 
-from daemon.config import ActuatorConfig, Config
-from daemon.logs import get_logger
-from daemon.service.compensator import Compensator
-from daemon.service.polling import GroupPoller, first_attempts
-from daemon.service.sensors import SensorIngest
-from daemon.service.state import CellState
-from daemon.service.table import SensorTable
-from drivers.base import DeviceError, MonotonicClock, Reading, SensorGroup, State
-from drivers.modbus.config import ModbusSensorConfig
-from drivers.modbus.group import ModbusBlockGroup
-from drivers.modbus.plugin import PLUGIN
+from nanodrift.config import ActuatorConfig, Config
+from nanodrift.drivers.base import DeviceError, MonotonicClock, Reading, SensorGroup, State
+from nanodrift.drivers.modbus.config import ModbusSensorConfig
+from nanodrift.drivers.modbus.group import ModbusBlockGroup
+from nanodrift.drivers.modbus.plugin import PLUGIN
+from nanodrift.logs import get_logger
+from nanodrift.service.compensator import Compensator
+from nanodrift.service.polling import GroupPoller, first_attempts
+from nanodrift.service.sensors import SensorIngest
+from nanodrift.service.state import CellState
+from nanodrift.service.table import SensorTable
 
 DEAD_WAITS = 8  # reopen attempts that fail before the module comes back
 

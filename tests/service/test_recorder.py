@@ -18,17 +18,17 @@ from helpers.log_capture import captured_logging, json_lines
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import daemon.calibration.dataset as dataset_module
-from daemon.bus.protocol import Target
-from daemon.calibration.dataset import CsvAppender, read_csv
-from daemon.calibration.residuals import Settled
-from daemon.config import HealthSettings, parse_config
-from daemon.logs import get_logger
-from daemon.service.compensator import Compensator
-from daemon.service.health_unit import HealthUnit
-from daemon.service.recorder import DayRecorder, Polled, PolledChannels, Recorder, file_name
-from daemon.service.table import SensorTable
-from drivers.base import Reading, SensorConfig
+import nanodrift.calibration.dataset as dataset_module
+from nanodrift.bus.protocol import Target
+from nanodrift.calibration.dataset import CsvAppender, read_csv
+from nanodrift.calibration.residuals import Settled
+from nanodrift.config import HealthSettings, parse_config
+from nanodrift.drivers.base import Reading, SensorConfig
+from nanodrift.logs import get_logger
+from nanodrift.service.compensator import Compensator
+from nanodrift.service.health_unit import HealthUnit
+from nanodrift.service.recorder import DayRecorder, Polled, PolledChannels, Recorder, file_name
+from nanodrift.service.table import SensorTable
 
 DAY = dt.date(2026, 11, 23)
 NOON = dt.datetime(2026, 11, 23, 12, tzinfo=dt.UTC).timestamp()
@@ -419,9 +419,9 @@ def test_the_health_unit_hands_every_polled_channel_over_the_window_to_the_recor
 
 WRITER = """
 import sys
-from daemon.calibration.residuals import Settled
-from daemon.config import HealthSettings
-from daemon.service.recorder import DayRecorder
+from nanodrift.calibration.residuals import Settled
+from nanodrift.config import HealthSettings
+from nanodrift.service.recorder import DayRecorder
 
 rec = DayRecorder(sys.argv[1])
 t0 = float(sys.argv[2])

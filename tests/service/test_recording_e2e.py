@@ -22,10 +22,10 @@ from helpers.daemon_harness import (
 )
 from helpers.wall_clock import WallShift
 
-from daemon.calibration.dataset import Dataset, read_csv
-from daemon.config import DEFAULT_MODEL_PATH
-from daemon.model.model import load_model
-from daemon.service.recorder import file_name
+from nanodrift.calibration.dataset import Dataset, read_csv
+from nanodrift.config import DEFAULT_MODEL_PATH
+from nanodrift.model.model import load_model
+from nanodrift.service.recorder import file_name
 
 TARGETS_UM = (80.0, 400.0, 160.0, 320.0, 240.0)
 

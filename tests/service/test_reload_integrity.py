@@ -41,11 +41,11 @@ from helpers.daemon_harness import (
 )
 from helpers.log_capture import captured_logging, json_lines
 
-import daemon.service.reload as reload_module
-from daemon.assembly import build_drivers
-from daemon.config import DEFAULT_MODEL_PATH, TOO_DEEP, load_config
-from daemon.model.model import Model, load_model, save_model
-from daemon.service.runner import Service
+import nanodrift.service.reload as reload_module
+from nanodrift.assembly import build_drivers
+from nanodrift.config import DEFAULT_MODEL_PATH, TOO_DEEP, load_config
+from nanodrift.model.model import Model, load_model, save_model
+from nanodrift.service.runner import Service
 
 NESTED = "[" * 100_000 + "]" * 100_000
 SIMULATED_CHANNELS = {"T3", "T4", "interferometer"}
@@ -264,7 +264,7 @@ def test_a_deeply_nested_config_on_sighup_is_refused_logged_and_counted(tmp_path
         assert line["config"] == str(config) and line["problems"] == [TOO_DEEP], line
         assert client.status()["counters"]["reload_failures"] == 1
         still_simulated(client, "after-deep-config")
-        check = subprocess.run([sys.executable, "-m", "daemon.cli", "check-config", str(config)], cwd=REPO,
+        check = subprocess.run([sys.executable, "-m", "nanodrift.cli", "check-config", str(config)], cwd=REPO,
                                capture_output=True, text=True, timeout=60)
         assert check.returncode == 2 and f"error: {config}: {TOO_DEEP}" in check.stderr, check.stderr
     stderr = daemon.log_path.read_text(errors="replace")
@@ -300,7 +300,7 @@ def test_check_config_and_the_reload_agree_on_a_sensorless_file(restore: Served)
     assert line["event"] == "reload_refused", line
     assert line["problems"][0].startswith("sensors: the edited config lists no sensors"), line["problems"]
     assert s.client.status()["counters"]["reload_failures"] == failures + 1
-    check = subprocess.run([sys.executable, "-m", "daemon.cli", "check-config", str(s.config_path)], cwd=REPO,
+    check = subprocess.run([sys.executable, "-m", "nanodrift.cli", "check-config", str(s.config_path)], cwd=REPO,
                            capture_output=True, text=True, timeout=60)
     assert check.returncode == 2, check
     assert f"{s.config_path}: sensors: the config lists no sensors (an emptied file?)" in check.stderr, check.stderr

@@ -39,8 +39,8 @@ from helpers.daemon_harness import (
     write_test_model,
 )
 
-from daemon.bus.session import session_config as daemon_session_config
-from daemon.config import load_config
+from nanodrift.bus.session import session_config as daemon_session_config
+from nanodrift.config import load_config
 
 CONFIG = REPO / "config"
 SHIPPED_DICTIONARY = "/etc/nanodrift/zenoh-credentials.txt"
@@ -131,7 +131,7 @@ def status_ok(session: zenoh.Session) -> bool:
 
 def nanodrift_target(config: Path, port: int, endpoint: str = "tcp/127.0.0.1") -> subprocess.CompletedProcess[str]:
     return subprocess.run(
-        [sys.executable, "-m", "daemon.cli", "target", "240", "--cell", CELL, "--json", "--timeout", "3",
+        [sys.executable, "-m", "nanodrift.cli", "target", "240", "--cell", CELL, "--json", "--timeout", "3",
          "--zenoh-config", str(config), "-e", f"{endpoint}:{port}"],
         capture_output=True, text=True, cwd=REPO, timeout=60,
     )

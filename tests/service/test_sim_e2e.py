@@ -8,8 +8,8 @@ from pathlib import Path
 
 from helpers.daemon_harness import Client, Daemon, free_port, wait_until
 
-from daemon.config import DEFAULT_MODEL_PATH
-from daemon.model.model import load_model
+from nanodrift.config import DEFAULT_MODEL_PATH
+from nanodrift.model.model import load_model
 
 
 def test_run_without_config_serves_the_simulated_cell_with_the_shipped_model(tmp_path: Path) -> None:

@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 from helpers.daemon_harness import Client, Daemon, free_port, wait_until
 
-from daemon.model.cell_model import load_any_model
-from daemon.settings import DATA_DIR
+from nanodrift.model.cell_model import load_any_model
+from nanodrift.settings import DATA_DIR
 
 
 def _served(tmp_path: Path, axes: str) -> tuple[Daemon, Client]:

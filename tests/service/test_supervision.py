@@ -1,4 +1,4 @@
-"""``daemon.service.supervision``: sensor state changes logged once per change (channels that change
+"""``nanodrift.service.supervision``: sensor state changes logged once per change (channels that change
 together in one line), a wall-clock step logged once per step, and the supervisor's periodic work (the
 watchdog pinged only while healthy, the status line, the summaries of what the rate-limited logs held back)."""
 
@@ -12,14 +12,14 @@ from typing import Any
 
 import pytest
 
-from daemon.config import parse_config
-from daemon.logs import RateLimitedLog, RateLimiter
-from daemon.service import supervision
-from daemon.service.compensator import Compensator
-from daemon.service.state import CellState
-from daemon.service.supervision import CLOCK_STEP_S, ClockStepWatch, SensorWatch, Supervisor
-from daemon.service.table import SensorTable
-from drivers.base import Reading, SensorConfig
+from nanodrift.config import parse_config
+from nanodrift.drivers.base import Reading, SensorConfig
+from nanodrift.logs import RateLimitedLog, RateLimiter
+from nanodrift.service import supervision
+from nanodrift.service.compensator import Compensator
+from nanodrift.service.state import CellState
+from nanodrift.service.supervision import CLOCK_STEP_S, ClockStepWatch, SensorWatch, Supervisor
+from nanodrift.service.table import SensorTable
 
 
 class Events:

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 from helpers.daemon_harness import Served
 
-from daemon.config import SAFE_RAMP_BUDGET_S, STOP_TIMEOUT_S
+from nanodrift.config import SAFE_RAMP_BUDGET_S, STOP_TIMEOUT_S
 
 REPO = Path(__file__).resolve().parents[2]
 UNIT = REPO / "systemd" / "nanodrift.service"

@@ -15,11 +15,11 @@ from helpers.daemon_harness import TEMPS, write_test_model
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from daemon.bus.protocol import Refusal, Target
-from daemon.config import DEFAULT_TEMPERATURE_RANGE_C, parse_config, valid_range
-from daemon.service.compensator import Compensator
-from daemon.service.table import FUTURE_TOLERANCE_S, SensorTable
-from drivers.base import POSITION_FROZEN_AFTER_S, Reading, SensorConfig, State
+from nanodrift.bus.protocol import Refusal, Target
+from nanodrift.config import DEFAULT_TEMPERATURE_RANGE_C, parse_config, valid_range
+from nanodrift.drivers.base import POSITION_FROZEN_AFTER_S, Reading, SensorConfig, State
+from nanodrift.service.compensator import Compensator
+from nanodrift.service.table import FUTURE_TOLERANCE_S, SensorTable
 
 
 def ifm(**keys: float) -> SensorConfig:

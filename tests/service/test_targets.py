@@ -1,4 +1,4 @@
-"""``daemon.service.targets``: every target gets exactly one answer, a command or an error with its id.
+"""``nanodrift.service.targets``: every target gets exactly one answer, a command or an error with its id.
 
 A real :class:`CellState` and :class:`Compensator` (the harness' known model), a real
 :class:`Actuation` driving a recording actuator, and a recording bus standing for Zenoh; targets
@@ -20,14 +20,14 @@ import pytest
 import zenoh
 from helpers.daemon_harness import TEMPS, expected_q, write_test_model
 
-from daemon.bus.protocol import Keys
-from daemon.config import parse_config
-from daemon.service.actuation import Actuation
-from daemon.service.compensator import Compensator
-from daemon.service.state import CellState
-from daemon.service.table import SensorTable
-from daemon.service.targets import TargetHandler
-from drivers.base import Actuator, Reading, SensorConfig
+from nanodrift.bus.protocol import Keys
+from nanodrift.config import parse_config
+from nanodrift.drivers.base import Actuator, Reading, SensorConfig
+from nanodrift.service.actuation import Actuation
+from nanodrift.service.compensator import Compensator
+from nanodrift.service.state import CellState
+from nanodrift.service.table import SensorTable
+from nanodrift.service.targets import TargetHandler
 
 NOW = 1000.0
 
@@ -61,7 +61,7 @@ class Events:
 
 
 class RecordingBus:
-    """Stands for :class:`daemon.bus.session.Bus`: every call, in order, in the shared ``events``."""
+    """Stands for :class:`nanodrift.bus.session.Bus`: every call, in order, in the shared ``events``."""
 
     def __init__(self, events: list[tuple[Any, ...]]) -> None:
         self.keys = Keys("t")

@@ -7,8 +7,8 @@ one), ``catalogue`` (the effects), ``workflow`` (the loop), ``confirmation`` (wh
 show, the τ range), ``summary`` (the finding in words); ``cell``: the loop per axis of a multi-axis cell.
 """
 
-from daemon.calibration.discovery.candidates import Candidate
-from daemon.calibration.discovery.cell import CellDiscoveryResult, discover_cell
-from daemon.calibration.discovery.workflow import DiscoveryError, DiscoveryResult, discover
+from nanodrift.calibration.discovery.candidates import Candidate
+from nanodrift.calibration.discovery.cell import CellDiscoveryResult, discover_cell
+from nanodrift.calibration.discovery.workflow import DiscoveryError, DiscoveryResult, discover
 
 __all__ = ["Candidate", "CellDiscoveryResult", "DiscoveryError", "DiscoveryResult", "discover", "discover_cell"]

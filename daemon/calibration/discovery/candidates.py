@@ -10,13 +10,13 @@ from typing import Any
 import numpy as np
 from scipy import optimize, stats
 
-from daemon.calibration.dataset import Dataset
-from daemon.calibration.discovery.confirmation import FreshGain, TauRange
-from daemon.calibration.discovery.diagnostics import ar1_deflation, json_float
-from daemon.calibration.discovery.settings import NOT_APPLIED_ONLINE, Settings
-from daemon.calibration.discovery.workspace import Workspace, standardise
-from daemon.model.segments import features
-from daemon.model.terms import Term
+from nanodrift.calibration.dataset import Dataset
+from nanodrift.calibration.discovery.confirmation import FreshGain, TauRange
+from nanodrift.calibration.discovery.diagnostics import ar1_deflation, json_float
+from nanodrift.calibration.discovery.settings import NOT_APPLIED_ONLINE, Settings
+from nanodrift.calibration.discovery.workspace import Workspace, standardise
+from nanodrift.model.segments import features
+from nanodrift.model.terms import Term
 
 
 @dataclass

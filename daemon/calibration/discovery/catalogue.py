@@ -9,14 +9,14 @@ from typing import Any
 
 import numpy as np
 
-from daemon.calibration.dataset import Dataset
-from daemon.calibration.discovery.candidates import Candidate, Context, pinned, round_sig, search_tau
-from daemon.calibration.discovery.settings import Settings
-from daemon.model.axis_terms import AxisCoupling, AxisCreep, AxisDirection, AxisPower, AxisProduct
-from daemon.model.effect_terms import CREEP_DEADBAND_UM, Creep, PositionCoupling, Rate
-from daemon.model.identify import curvature_candidates
-from daemon.model.segments import features, run_time_s, spans_s
-from daemon.model.terms import Channel, ChannelSquare, Direction, Lag, Power, Term
+from nanodrift.calibration.dataset import Dataset
+from nanodrift.calibration.discovery.candidates import Candidate, Context, pinned, round_sig, search_tau
+from nanodrift.calibration.discovery.settings import Settings
+from nanodrift.model.axis_terms import AxisCoupling, AxisCreep, AxisDirection, AxisPower, AxisProduct
+from nanodrift.model.effect_terms import CREEP_DEADBAND_UM, Creep, PositionCoupling, Rate
+from nanodrift.model.identify import curvature_candidates
+from nanodrift.model.segments import features, run_time_s, spans_s
+from nanodrift.model.terms import Channel, ChannelSquare, Direction, Lag, Power, Term
 
 #: the names an effect can be given (the vocabulary of the README's discovery section)
 EFFECTS = (
@@ -207,7 +207,7 @@ def _missing_channel(ctx: Context) -> list[Candidate]:
 
 def _thermal_curvature(ctx: Context) -> list[Candidate]:
     """A channel's square (the bracket's bending), where the run spans enough of the channel to see it
-    (:func:`daemon.model.identify.curvature_candidates`: records of days, not a 0.5 °C calibration)."""
+    (:func:`nanodrift.model.identify.curvature_candidates`: records of days, not a 0.5 °C calibration)."""
     if any(isinstance(t, ChannelSquare) for t in ctx.terms):
         return []
     squares = curvature_candidates(ctx.data, ctx.excluded)

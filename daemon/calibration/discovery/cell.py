@@ -12,10 +12,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from daemon.calibration.dataset import Dataset
-from daemon.calibration.discovery.settings import DEFAULT_SETTINGS, Settings
-from daemon.calibration.discovery.workflow import DiscoveryError, DiscoveryResult, discover
-from daemon.model.cell_model import CellModel
+from nanodrift.calibration.dataset import Dataset
+from nanodrift.calibration.discovery.settings import DEFAULT_SETTINGS, Settings
+from nanodrift.calibration.discovery.workflow import DiscoveryError, DiscoveryResult, discover
+from nanodrift.model.cell_model import CellModel
 
 
 @dataclass

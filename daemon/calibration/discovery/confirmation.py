@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from daemon.calibration.discovery.settings import Settings
+from nanodrift.calibration.discovery.settings import Settings
 
 #: how the expected fresh-run gain is estimated (the report and ``--json`` carry it beside the figure)
 EXPECTED_METHOD = ("expected RMS on a fresh run of the same kind = sqrt(in-sample MSE + ω), ω = held-out MSE minus "

@@ -11,12 +11,12 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from daemon.calibration.dataset import Dataset
-from daemon.calibration.discovery.settings import DEFAULT_SETTINGS, Settings
-from daemon.model.axis_terms import AxisDirection
-from daemon.model.effect_terms import CREEP_DEADBAND_UM, Rate
-from daemon.model.segments import features, first_rows, run_time_s
-from daemon.model.terms import Direction
+from nanodrift.calibration.dataset import Dataset
+from nanodrift.calibration.discovery.settings import DEFAULT_SETTINGS, Settings
+from nanodrift.model.axis_terms import AxisDirection
+from nanodrift.model.effect_terms import CREEP_DEADBAND_UM, Rate
+from nanodrift.model.segments import features, first_rows, run_time_s
+from nanodrift.model.terms import Direction
 
 
 def lag1_autocorr(r: np.ndarray) -> float:

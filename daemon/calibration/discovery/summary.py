@@ -6,8 +6,8 @@ import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from daemon.calibration.discovery.candidates import Candidate
-from daemon.calibration.discovery.diagnostics import Disagreement
+from nanodrift.calibration.discovery.candidates import Candidate
+from nanodrift.calibration.discovery.diagnostics import Disagreement
 
 
 def _describe(c: Candidate) -> str:

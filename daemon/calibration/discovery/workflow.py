@@ -9,10 +9,10 @@ from typing import Any
 
 import numpy as np
 
-from daemon.calibration.dataset import Dataset
-from daemon.calibration.discovery.candidates import Candidate, Context, round_sig
-from daemon.calibration.discovery.catalogue import PROPOSERS, channel_delays, drift_alike, told_apart, untestable
-from daemon.calibration.discovery.confirmation import (
+from nanodrift.calibration.dataset import Dataset
+from nanodrift.calibration.discovery.candidates import Candidate, Context, round_sig
+from nanodrift.calibration.discovery.catalogue import PROPOSERS, channel_delays, drift_alike, told_apart, untestable
+from nanodrift.calibration.discovery.confirmation import (
     MEASURED_METHOD,
     NUISANCE_METHOD,
     FreshGain,
@@ -22,21 +22,21 @@ from daemon.calibration.discovery.confirmation import (
     tau_range,
     worse_than,
 )
-from daemon.calibration.discovery.diagnostics import (
+from nanodrift.calibration.discovery.diagnostics import (
     Disagreement,
     durbin_watson,
     lag1_autocorr,
     residual_structure,
     structure_variables,
 )
-from daemon.calibration.discovery.settings import DEFAULT_SETTINGS, NOT_APPLIED_ONLINE, Settings
-from daemon.calibration.discovery.summary import summarise
-from daemon.model.identify import holdout_blocks, model_covariance, ols
-from daemon.model.model import FittedTerm, Model, Training
-from daemon.model.provenance import created_now, software
-from daemon.model.segments import features
-from daemon.model.stepwise import stepwisefit
-from daemon.model.terms import Bias, Term, UnknownTermError, parse_term
+from nanodrift.calibration.discovery.settings import DEFAULT_SETTINGS, NOT_APPLIED_ONLINE, Settings
+from nanodrift.calibration.discovery.summary import summarise
+from nanodrift.model.identify import holdout_blocks, model_covariance, ols
+from nanodrift.model.model import FittedTerm, Model, Training
+from nanodrift.model.provenance import created_now, software
+from nanodrift.model.segments import features
+from nanodrift.model.stepwise import stepwisefit
+from nanodrift.model.terms import Bias, Term, UnknownTermError, parse_term
 
 
 class DiscoveryError(ValueError):

@@ -14,11 +14,11 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from pymodbus.constants import ExcCodes
 
-from drivers.base import DeviceError, DriverContext
-from drivers.modbus.actuator import ModbusActuator
-from drivers.modbus.codec import raw_for
-from drivers.modbus.config import ModbusActuatorConfig, ModbusSensorConfig
-from drivers.modbus.plugin import PLUGIN
+from nanodrift.drivers.base import DeviceError, DriverContext
+from nanodrift.drivers.modbus.actuator import ModbusActuator
+from nanodrift.drivers.modbus.codec import raw_for
+from nanodrift.drivers.modbus.config import ModbusActuatorConfig, ModbusSensorConfig
+from nanodrift.drivers.modbus.plugin import PLUGIN
 
 
 def run(coro: Awaitable[None], timeout: float = 30.0) -> None:
@@ -62,7 +62,7 @@ def test_the_register_holds_the_voltage_after_each_command(data_type: str, swap:
                 await actuator.command(volts / 0.02, volts)
                 exact = (volts - offset) / scale
                 raw = exact if data_type == "float32" else round(exact)
-                # pymodbus' own converter says what the device must hold, not drivers.modbus.codec
+                # pymodbus' own converter says what the device must hold, not nanodrift.drivers.modbus.codec
                 assert await server.get_registers(1, 10, count) == device_registers(raw, data_type, swap), volts
             assert [(fc, address) for fc, address, _ in device.writes] == [(function_code, 10)] * 4
             assert device.reads == [(3, 10, count)] * 4  # verify = true: one read back per write

@@ -14,10 +14,10 @@ import pytest
 from helpers.modbus_helpers import tcp_context
 from helpers.modbus_peer import CraftedModbusPeer, Request, Responder, byte_count_says, correct, mbap, too_many
 
-from drivers.base import DeviceError, State
-from drivers.modbus.config import ModbusSensorConfig
-from drivers.modbus.hub import ModbusHub
-from drivers.modbus.plugin import PLUGIN
+from nanodrift.drivers.base import DeviceError, State
+from nanodrift.drivers.modbus.config import ModbusSensorConfig
+from nanodrift.drivers.modbus.hub import ModbusHub
+from nanodrift.drivers.modbus.plugin import PLUGIN
 
 
 def run(coro: Awaitable[None], timeout: float = 30.0) -> None:

@@ -9,8 +9,8 @@ import pytest
 from pydantic import ValidationError
 from pymodbus.client.mixin import ModbusClientMixin
 
-from drivers.modbus.codec import decode, encode, register_count
-from drivers.modbus.config import ModbusSensorConfig
+from nanodrift.drivers.modbus.codec import decode, encode, register_count
+from nanodrift.drivers.modbus.config import ModbusSensorConfig
 
 DT = ModbusClientMixin.DATATYPE
 PYMODBUS_TYPES = {"int16": DT.INT16, "uint16": DT.UINT16, "int32": DT.INT32, "uint32": DT.UINT32,

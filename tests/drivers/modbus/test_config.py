@@ -9,11 +9,11 @@ from hypothesis import event, given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
-from drivers.base import MAX_OUTPUT_STEP_FRACTION, MAX_OUTPUT_STEP_UM, DriverContext
-from drivers.modbus.codec import DATA_TYPES, decode, encode, raw_for
-from drivers.modbus.config import ModbusActuatorConfig, ModbusHubConfig, ModbusSensorConfig
-from drivers.modbus.group import ModbusBlockGroup, plan_blocks
-from drivers.modbus.plugin import PLUGIN
+from nanodrift.drivers.base import MAX_OUTPUT_STEP_FRACTION, MAX_OUTPUT_STEP_UM, DriverContext
+from nanodrift.drivers.modbus.codec import DATA_TYPES, decode, encode, raw_for
+from nanodrift.drivers.modbus.config import ModbusActuatorConfig, ModbusHubConfig, ModbusSensorConfig
+from nanodrift.drivers.modbus.group import ModbusBlockGroup, plan_blocks
+from nanodrift.drivers.modbus.plugin import PLUGIN
 
 
 def channel(name: str, address: int, **kw: object) -> ModbusSensorConfig:

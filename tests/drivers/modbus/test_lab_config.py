@@ -10,12 +10,12 @@ from pathlib import Path
 import pytest
 from helpers.daemon_harness import write_test_model
 
-from daemon.assembly import build_drivers
-from daemon.config import ConfigError, load_config, parse_config
-from drivers.modbus.config import ModbusSensorConfig
-from drivers.modbus.group import ModbusBlockGroup
-from drivers.serial_line.config import SerialLineSensorConfig
-from drivers.serial_line.line import SerialLineGroup
+from nanodrift.assembly import build_drivers
+from nanodrift.config import ConfigError, load_config, parse_config
+from nanodrift.drivers.modbus.config import ModbusSensorConfig
+from nanodrift.drivers.modbus.group import ModbusBlockGroup
+from nanodrift.drivers.serial_line.config import SerialLineSensorConfig
+from nanodrift.drivers.serial_line.line import SerialLineGroup
 
 LAB = Path(__file__).resolve().parents[3] / "config" / "lab.toml"
 
@@ -43,7 +43,7 @@ def test_lab_config_builds_one_request_for_eight_thermocouples() -> None:
 
 def test_check_config_accepts_it_once_calibrated(tmp_path: Path) -> None:
     def check(path: Path) -> subprocess.CompletedProcess[str]:
-        return subprocess.run([sys.executable, "-m", "daemon.cli", "check-config", str(path)],
+        return subprocess.run([sys.executable, "-m", "nanodrift.cli", "check-config", str(path)],
                               capture_output=True, text=True, timeout=60)
 
     # as shipped, before `nanodrift calibrate` wrote /var/lib/nanodrift/model.json: a reload would be refused

@@ -10,9 +10,9 @@ import tty
 import pytest
 from helpers.modbus_helpers import crc16_modbus, tcp_context
 
-from drivers.base import DriverContext
-from drivers.modbus.config import ModbusHubConfig, ModbusSensorConfig
-from drivers.modbus.plugin import PLUGIN
+from nanodrift.drivers.base import DriverContext
+from nanodrift.drivers.modbus.config import ModbusHubConfig, ModbusSensorConfig
+from nanodrift.drivers.modbus.plugin import PLUGIN
 
 # 8 thermocouples, raw int16 x0.1 degC; register 5 is an open thermocouple
 RAW = [215, 216, 217, 218, 219, 0x8000, 221, 222]

@@ -7,9 +7,9 @@ import asyncio
 import pytest
 from helpers.modbus_helpers import ModbusTestDevice, ModbusTestServer, PtyNullModem, device_registers
 
-from drivers.base import DeviceError, DriverContext, State
-from drivers.modbus.config import ModbusHubConfig, ModbusSensorConfig
-from drivers.modbus.plugin import PLUGIN
+from nanodrift.drivers.base import DeviceError, DriverContext, State
+from nanodrift.drivers.modbus.config import ModbusHubConfig, ModbusSensorConfig
+from nanodrift.drivers.modbus.plugin import PLUGIN
 
 
 def test_rtu_bus_with_two_devices_reads_every_type_and_faults() -> None:

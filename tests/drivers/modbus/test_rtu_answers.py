@@ -17,9 +17,9 @@ import time
 import pytest
 from helpers.modbus_helpers import PtyNullModem, crc16_modbus
 
-from drivers.base import DeviceError
-from drivers.modbus.config import ModbusHubConfig
-from drivers.modbus.hub import ModbusHub
+from nanodrift.drivers.base import DeviceError
+from nanodrift.drivers.modbus.config import ModbusHubConfig
+from nanodrift.drivers.modbus.hub import ModbusHub
 
 
 class CraftedRtuDevice:

@@ -10,10 +10,10 @@ import pytest
 from helpers.modbus_helpers import ModbusTestDevice, ModbusTestServer, device_registers, tcp_context
 from pymodbus.constants import ExcCodes
 
-from drivers.base import DeviceError, Reading, SensorGroup, State
-from drivers.modbus.config import ModbusSensorConfig
-from drivers.modbus.group import ModbusBlockGroup
-from drivers.modbus.plugin import PLUGIN
+from nanodrift.drivers.base import DeviceError, Reading, SensorGroup, State
+from nanodrift.drivers.modbus.config import ModbusSensorConfig
+from nanodrift.drivers.modbus.group import ModbusBlockGroup
+from nanodrift.drivers.modbus.plugin import PLUGIN
 
 VALUES = {"int16": -1234, "uint16": 54321, "int32": -7654321, "uint32": 3_000_000_000, "float32": 21.375}
 

@@ -12,10 +12,10 @@ from pathlib import Path
 import pytest
 from helpers.serial_helpers import FakeGcsController
 
-from drivers.base import DeviceError, DriverContext, DriverSetupError, State
-from drivers.serial_line.actuator import SerialLineActuator
-from drivers.serial_line.config import SerialLineActuatorConfig, SerialLineSensorConfig
-from drivers.serial_line.plugin import PLUGIN
+from nanodrift.drivers.base import DeviceError, DriverContext, DriverSetupError, State
+from nanodrift.drivers.serial_line.actuator import SerialLineActuator
+from nanodrift.drivers.serial_line.config import SerialLineActuatorConfig, SerialLineSensorConfig
+from nanodrift.drivers.serial_line.plugin import PLUGIN
 
 
 def run(coro: Awaitable[None], timeout: float = 30.0) -> None:

@@ -20,11 +20,11 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
-from drivers.base import DriverContext
-from drivers.serial_line.actuator import SerialLineActuator
-from drivers.serial_line.config import SerialLineActuatorConfig
-from drivers.serial_line.plugin import PLUGIN
-from drivers.serial_line.template import CommandTemplate
+from nanodrift.drivers.base import DriverContext
+from nanodrift.drivers.serial_line.actuator import SerialLineActuator
+from nanodrift.drivers.serial_line.config import SerialLineActuatorConfig
+from nanodrift.drivers.serial_line.plugin import PLUGIN
+from nanodrift.drivers.serial_line.template import CommandTemplate
 
 #: the number in a line as the device reads it (independent of the driver's own parsing)
 DEVICE_NUMBER = re.compile(r"SVA 1\s+(\S+)$")  # GCS splits its arguments on whitespace

@@ -13,10 +13,10 @@ from pathlib import Path
 import pytest
 from helpers.serial_helpers import FakeInterferometer
 
-from drivers.base import DriverContext, Reading, State
-from drivers.serial_line.config import DEFAULT_PATTERN, SerialLineSensorConfig
-from drivers.serial_line.line import SerialLineGroup
-from drivers.serial_line.plugin import PLUGIN
+from nanodrift.drivers.base import DriverContext, Reading, State
+from nanodrift.drivers.serial_line.config import DEFAULT_PATTERN, SerialLineSensorConfig
+from nanodrift.drivers.serial_line.line import SerialLineGroup
+from nanodrift.drivers.serial_line.plugin import PLUGIN
 
 DOCUMENTED = r"P (?P<value>[-+0-9.]+) nm"  # README and config/lab.toml
 

@@ -13,10 +13,10 @@ import serial
 from helpers.serial_helpers import FakeInterferometer
 from pydantic import ValidationError
 
-from drivers.base import DeviceError, DriverContext, State
-from drivers.serial_line.config import SerialLineSensorConfig
-from drivers.serial_line.line import SerialLineGroup
-from drivers.serial_line.plugin import PLUGIN
+from nanodrift.drivers.base import DeviceError, DriverContext, State
+from nanodrift.drivers.serial_line.config import SerialLineSensorConfig
+from nanodrift.drivers.serial_line.line import SerialLineGroup
+from nanodrift.drivers.serial_line.plugin import PLUGIN
 
 PATTERN = r"P (?P<value>[-+0-9.]+) nm"
 

@@ -24,13 +24,13 @@ from helpers.daemon_harness import write_test_model
 from helpers.log_capture import captured_logging, json_lines
 from helpers.serial_helpers import FakeGcsController
 
-from daemon.cli import main
-from daemon.config import ConfigError, parse_config
-from drivers.base import DeviceError, DriverContext, State
-from drivers.serial_line.actuator import SerialLineActuator
-from drivers.serial_line.config import SerialLineActuatorConfig, SerialLineSensorConfig
-from drivers.serial_line.line import SerialLineGroup
-from drivers.serial_line.plugin import PLUGIN
+from nanodrift.cli import main
+from nanodrift.config import ConfigError, parse_config
+from nanodrift.drivers.base import DeviceError, DriverContext, State
+from nanodrift.drivers.serial_line.actuator import SerialLineActuator
+from nanodrift.drivers.serial_line.config import SerialLineActuatorConfig, SerialLineSensorConfig
+from nanodrift.drivers.serial_line.line import SerialLineGroup
+from nanodrift.drivers.serial_line.plugin import PLUGIN
 
 POSITION = r"1=(?P<value>[-+0-9.]+)"  # an SVA? answer (1=5.5300) matches it too: only the matching can tell
 

@@ -7,12 +7,12 @@ import time
 
 import pytest
 
-from drivers.base import DeviceError, DriverContext, State
-from drivers.registry import load_plugin
-from drivers.simulated.cell import SimulatedCell
-from drivers.simulated.clock import VirtualClock
-from drivers.simulated.config import SimulatedActuatorConfig, SimulatedSensorConfig, SimulationConfig
-from drivers.simulated.plugin import PLUGIN, RESOURCE_KEY, default_sensor_configs
+from nanodrift.drivers.base import DeviceError, DriverContext, State
+from nanodrift.drivers.registry import load_plugin
+from nanodrift.drivers.simulated.cell import SimulatedCell
+from nanodrift.drivers.simulated.clock import VirtualClock
+from nanodrift.drivers.simulated.config import SimulatedActuatorConfig, SimulatedSensorConfig, SimulationConfig
+from nanodrift.drivers.simulated.plugin import PLUGIN, RESOURCE_KEY, default_sensor_configs
 
 
 def test_virtual_clock_interleaves_sleepers_like_real_time():

@@ -10,13 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.base import DriverContext, MonotonicClock
-from drivers.simulated.cell import SimulatedCell
-from drivers.simulated.clock import ScaledClock, VirtualClock
-from drivers.simulated.config import SimulationConfig
-from drivers.simulated.physics import CellPhysics, Exogenous
-from drivers.simulated.plugin import PLUGIN, RESOURCE_KEY, default_sensor_configs
-from drivers.simulated.scenarios import (
+from nanodrift.drivers.base import DriverContext, MonotonicClock
+from nanodrift.drivers.simulated.cell import SimulatedCell
+from nanodrift.drivers.simulated.clock import ScaledClock, VirtualClock
+from nanodrift.drivers.simulated.config import SimulationConfig
+from nanodrift.drivers.simulated.physics import CellPhysics, Exogenous
+from nanodrift.drivers.simulated.plugin import PLUGIN, RESOURCE_KEY, default_sensor_configs
+from nanodrift.drivers.simulated.scenarios import (
     WEEK_DAILY_AMPLITUDE_C,
     WEEK_DOOR_DIP_C,
     WEEK_DOOR_TIMES_H,

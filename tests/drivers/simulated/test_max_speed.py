@@ -2,7 +2,7 @@
 
 ``speed = 1e9`` used to pass validation; every poll then made the cell compute ever longer stretches
 of room history (billions of simulated seconds) in one synchronous call, so the event loop never ran
-the SIGTERM handler. ``speed`` is now at most :data:`~drivers.simulated.config.MAX_SPEED`; at that
+the SIGTERM handler. ``speed`` is now at most :data:`~nanodrift.drivers.simulated.config.MAX_SPEED`; at that
 speed the daemon answers targets and SIGTERM stops it within a few seconds.
 """
 
@@ -15,8 +15,8 @@ from pathlib import Path
 
 from helpers.daemon_harness import Client, Daemon, free_port, wait_until
 
-from daemon.config import DEFAULT_MODEL_PATH
-from drivers.simulated.config import MAX_SPEED
+from nanodrift.config import DEFAULT_MODEL_PATH
+from nanodrift.drivers.simulated.config import MAX_SPEED
 
 CHANNELS = ("T1", "T2", "T4")  # the shipped model's
 

@@ -7,11 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from daemon.config import ConfigError, load_config
-from daemon.settings import DATA_DIR
-from drivers.simulated.clock import VirtualClock
-from drivers.simulated.multiaxis import MultiAxisPhysics
-from drivers.simulated.multicell import SimulatedMultiCell
+from nanodrift.config import ConfigError, load_config
+from nanodrift.drivers.simulated.clock import VirtualClock
+from nanodrift.drivers.simulated.multiaxis import MultiAxisPhysics
+from nanodrift.drivers.simulated.multicell import SimulatedMultiCell
+from nanodrift.settings import DATA_DIR
 
 
 def _load(tmp_path: Path, text: str):  # type: ignore[no-untyped-def]

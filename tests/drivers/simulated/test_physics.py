@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from helpers.sim_helpers import rms, run_dataset
 
-from drivers.simulated.config import SimulationConfig
-from drivers.simulated.effects import EFFECTS, UnknownNameError, resolve_effects
-from drivers.simulated.physics import CellPhysics, StageState
-from drivers.simulated.scenarios import SCENARIOS, get_scenario
+from nanodrift.drivers.simulated.config import SimulationConfig
+from nanodrift.drivers.simulated.effects import EFFECTS, UnknownNameError, resolve_effects
+from nanodrift.drivers.simulated.physics import CellPhysics, StageState
+from nanodrift.drivers.simulated.scenarios import SCENARIOS, get_scenario
 
 
 def test_drift_opposes_temperature_about_1_1_um_per_degc():
