@@ -1,7 +1,14 @@
-"""Shared fixtures: a temp dir per test is pytest's ``tmp_path``; helpers live in their own modules."""
+"""Shared set-up: a temp dir per test is pytest's ``tmp_path``; helpers live in their own modules."""
 
+import os
 import sys
 from pathlib import Path
 
 # tests import their helpers as the package ``helpers`` (tests/helpers/)
 sys.path.insert(0, str(Path(__file__).parent))
+
+# The suite starts a few hundred Python subprocesses (daemons, CLI commands). On a machine whose environment
+# sets PYTHONDONTWRITEBYTECODE (some images do), each of them would compile nanodrift's modules anew; let the
+# first one cache them (in __pycache__, which git ignores). Nothing tested depends on it.
+os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
+sys.dont_write_bytecode = False

@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 from helpers.cell_helpers import write_cell_model
 from helpers.daemon_harness import write_test_model
+from helpers.numbers import assert_same
 
 from nanodrift.bus.protocol import Target, encode_command
 from nanodrift.config import ActuatorConfig, parse_config
@@ -41,13 +42,13 @@ def test_one_axis_command_payloads_are_byte_for_byte_unchanged(tmp_path: Path) -
         table.update(name, Reading(value, t=10.0))
     comp = Compensator(model, ActuatorConfig(), table)
     comp.observe(10.0, {"T1": 21.8, "T2": 22.3})
-    assert encode_command(comp.compensate(Target(7, 240.0), now=11.0, unix_now=1700000000.25)) == (
+    assert_same(encode_command(comp.compensate(Target(7, 240.0), now=11.0, unix_now=1700000000.25)), (
         b'{"id":7,"x_um":240.0,"q_um":216.45048000000003,"voltage_v":4.329009600000001,"temperatures_c":'
         b'{"T1":21.8,"T2":22.3},"model":"m-735e979167ac","t":1700000000.25,"extrapolating":["T2"],'
-        b'"q_sigma_um":null}')
-    assert encode_command(comp.compensate(Target("a", 490.0), now=11.5, unix_now=1700000000.5)) == (
+        b'"q_sigma_um":null}'))
+    assert_same(encode_command(comp.compensate(Target("a", 490.0), now=11.5, unix_now=1700000000.5)), (
         b'{"id":"a","x_um":490.0,"q_um":467.20198,"voltage_v":9.3440396,"temperatures_c":{"T1":21.8,"T2":22.3},'
-        b'"model":"m-735e979167ac","t":1700000000.5,"extrapolating":["x","T2"],"q_sigma_um":null}')
+        b'"model":"m-735e979167ac","t":1700000000.5,"extrapolating":["x","T2"],"q_sigma_um":null}'))
 
 
 def test_a_multi_axis_model_is_refused_by_a_one_axis_cell_and_the_reverse(tmp_path: Path) -> None:

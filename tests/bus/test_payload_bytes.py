@@ -2,7 +2,8 @@
 
 Each expected value below was produced by the code before the wire format moved to
 ``nanodrift.bus.protocol`` (commit c198473); a refactoring that changes a single byte of a command, an
-error or a procedure step fails here.
+error or a procedure step fails here. Computed numbers are compared with ``helpers.numbers.assert_same``:
+every byte but a float's last bits (which another CPU's or BLAS' rounding may move) is pinned.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from helpers.daemon_harness import write_test_model
+from helpers.numbers import assert_same
 
 from nanodrift.bus.actuator import ZenohActuator
 from nanodrift.bus.protocol import Refusal, Target, encode_command, encode_error, parse_target
@@ -46,31 +48,31 @@ def error_bytes(refusal: Refusal) -> bytes:
 
 
 def test_command_payload_bytes(compensator: Compensator) -> None:
-    assert command_bytes(compensator, Target("k", 200.0)) == (
+    assert_same(command_bytes(compensator, Target("k", 200.0)), (
         b'{"id":"k","x_um":200.0,"q_um":176.62999999999997,"voltage_v":3.5325999999999995,'
         b'"temperatures_c":{"T1":21.8,"T2":21.9},"model":"m-735e979167ac","t":1700000000.25,"extrapolating":[],'
         b'"q_sigma_um":null}'
-    )
-    assert command_bytes(compensator, Target(None, 0.0)) == (
+    ))
+    assert_same(command_bytes(compensator, Target(None, 0.0)), (
         b'{"id":null,"x_um":0.0,"q_um":-23.53,"voltage_v":-0.4706,'
         b'"temperatures_c":{"T1":21.8,"T2":21.9},"model":"m-735e979167ac","t":1700000000.25,"extrapolating":[],'
         b'"q_sigma_um":null}'
-    )
-    assert command_bytes(compensator, Target('quo"te\\ \u00e9', 12.5)) == (
+    ))
+    assert_same(command_bytes(compensator, Target('quo"te\\ \u00e9', 12.5)), (
         b'{"id":"quo\\"te\\\\ \\u00e9","x_um":12.5,"q_um":-11.006523437500002,"voltage_v":-0.22013046875000006,'
         b'"temperatures_c":{"T1":21.8,"T2":21.9},"model":"m-735e979167ac","t":1700000000.25,"extrapolating":[],'
         b'"q_sigma_um":null}'
-    )
+    ))
 
 
 def test_command_payload_bytes_when_extrapolating(compensator: Compensator) -> None:
     compensator.table.update("T2", Reading(23.0, t=10.5))
     compensator.observe(10.5, {"T2": 23.0})
-    assert command_bytes(compensator, Target(-7, 490.0)) == (
+    assert_same(command_bytes(compensator, Target(-7, 490.0)), (
         b'{"id":-7,"x_um":490.0,"q_um":466.85198,"voltage_v":9.3370396,'
         b'"temperatures_c":{"T1":21.8,"T2":23.0},"model":"m-735e979167ac","t":1700000000.25,'
         b'"extrapolating":["x","T2"],"q_sigma_um":null}'
-    )
+    ))
 
 
 def test_command_payload_bytes_with_uncertainty_and_correction(compensator: Compensator) -> None:
@@ -79,28 +81,28 @@ def test_command_payload_bytes_with_uncertainty_and_correction(compensator: Comp
     compensator.model.fit = {"rmse_um": 0.025}  # a model without covariance: sigma is its residual RMS
     compensator.evaluator = compensator.model.evaluator()
     compensator.observe(10.0, {"T1": 21.8, "T2": 21.9})
-    assert command_bytes(compensator, Target("k", 200.0)) == (
+    assert_same(command_bytes(compensator, Target("k", 200.0)), (
         b'{"id":"k","x_um":200.0,"q_um":176.62999999999997,"voltage_v":3.5325999999999995,'
         b'"temperatures_c":{"T1":21.8,"T2":21.9},"model":"m-735e979167ac","t":1700000000.25,"extrapolating":[],'
         b'"q_sigma_um":0.025}'
-    )
+    ))
     compensator.correction_um = -0.25
-    assert command_bytes(compensator, Target("k", 200.0)) == (
+    assert_same(command_bytes(compensator, Target("k", 200.0)), (
         b'{"id":"k","x_um":200.0,"q_um":176.37999999999997,"voltage_v":3.5275999999999996,'
         b'"temperatures_c":{"T1":21.8,"T2":21.9},"model":"m-735e979167ac","t":1700000000.25,"extrapolating":[],'
         b'"q_sigma_um":0.025,"correction_um":-0.25}'
-    )
+    ))
     # the tracker behind it (issue 19): the corrected command's own σ follows its correction
     tracker = BiasTracker(600.0, 1.0)
     tracker.update(0.0, 0.3)
     tracker.update(30.0, 0.1)
     compensator.tracker, compensator.correction_um = tracker, tracker.correction_um
     # σ² = u²·0.025² + (1 - u²)·RMS², u = exp(-60/600), RMS of the residuals 0.3 and 0.1 as weighted
-    assert command_bytes(compensator, Target("k", 200.0)) == (
+    assert_same(command_bytes(compensator, Target("k", 200.0)), (
         b'{"id":"k","x_um":200.0,"q_um":176.61049176980026,"voltage_v":3.532209835396005,'
         b'"temperatures_c":{"T1":21.8,"T2":21.9},"model":"m-735e979167ac","t":1700000000.25,"extrapolating":[],'
         b'"q_sigma_um":0.025,"correction_um":-0.019508230199714392,"q_sigma_adapted_um":0.09692232753519878}'
-    )
+    ))
 
 
 def test_error_payload_bytes(compensator: Compensator) -> None:

@@ -18,9 +18,12 @@ After every step, on the device side (what the register received, decoded to vol
 3. every target got exactly one answer with its id (``command`` or ``error``, of a kind the step allows);
 4. the daemon is alive, ``status`` answers and shows the limits the test believes are in force.
 
-CI runs 6 examples of up to 15 steps (10-30 s, under a minute). A longer release run (~4 minutes)::
+The suite runs 3 examples of up to 12 steps (about 10 s). The release run (~4 minutes), with every other long
+test at its release size (``helpers.budget``)::
 
-    NANODRIFT_CHAOS_EXAMPLES=60 NANODRIFT_CHAOS_STEPS=40 python -m pytest -q -n 0 tests/service/test_chaos.py
+    NANODRIFT_LONG_TESTS=1 python -m pytest -q -n 0 tests/service/test_chaos.py
+
+(60 examples of up to 40 steps; ``NANODRIFT_CHAOS_EXAMPLES`` and ``NANODRIFT_CHAOS_STEPS`` set them.)
 
 ``NANODRIFT_CHAOS_SHRINK=0`` reports the first failing sequence unshrunk (each shrink step starts a daemon).
 
@@ -30,12 +33,11 @@ Found by it and fixed: a command whose write failed was not written again once t
 
 from __future__ import annotations
 
-import os
-
+from helpers.budget import sized
 from helpers.chaos import ChaosMachine, Limits, chaos_settings
 
-EXAMPLES = int(os.environ.get("NANODRIFT_CHAOS_EXAMPLES", "6"))
-STEPS = int(os.environ.get("NANODRIFT_CHAOS_STEPS", "15"))
+EXAMPLES = sized("NANODRIFT_CHAOS_EXAMPLES", 3, 60)
+STEPS = sized("NANODRIFT_CHAOS_STEPS", 12, 40)
 
 ChaosMachine.TestCase.settings = chaos_settings(EXAMPLES, STEPS)
 TestChaos = ChaosMachine.TestCase
