@@ -153,7 +153,7 @@ class ModbusRig(Rig):
                 "verify": True}
 
     def context(self) -> DriverContext:
-        return tcp_context(self.server.port, timeout_s=0.3)
+        return tcp_context(self.server.port, timeout_s=2.0)
 
     async def start(self) -> None:
         await self.server.start()
@@ -191,7 +191,7 @@ class SerialRig(Rig):
 
     def options(self) -> dict[str, Any]:
         return {"kind": "serial_line", "port": self.controller.port, "command": "SVA 1 {voltage_v:.4f}\n",
-                "readback": "SVA? 1\n", "error_query": "ERR?\n", "timeout_s": 0.3}
+                "readback": "SVA? 1\n", "error_query": "ERR?\n", "timeout_s": 2.0}
 
     async def stop(self) -> None:
         self.controller.close()

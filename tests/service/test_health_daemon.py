@@ -70,11 +70,13 @@ def scrape(url: str) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
 
 def sim_config(cell: str, port: int, model_path: Path, *, position: bool = True, scenario: str = "room",
                adapt: str = "", seed: int = 4) -> str:
-    sensors = "".join(f'[[sensors]]\nname = "{n}"\nkind = "simulated"\ninterval_s = 1.0\nmax_age_s = 30.0\n'
+    # max ages of 30 s of wall time (the clock runs at SPEED): a loaded machine may stall a poller for seconds, and
+    # a stale interferometer voids the window (tested with the file sensors below), so no residual would come
+    sensors = "".join(f'[[sensors]]\nname = "{n}"\nkind = "simulated"\ninterval_s = 1.0\nmax_age_s = {30 * SPEED}\n'
                       for n in ("T1", "T2", "T3", "T4"))
     if position:
         sensors += ('[[sensors]]\nname = "interferometer"\nrole = "position"\nkind = "simulated"\n'
-                    "interval_s = 0.1\nmax_age_s = 5.0\n")
+                    f"interval_s = 0.1\nmax_age_s = {30 * SPEED}\n")
     return (f'cell = "{cell}"\n[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{port}"]\nmulticast_scouting = false\n'
             f'[model]\npath = "{model_path}"\n[health]\n{FAST_HEALTH}[adapt]\n{adapt}\n'
             f'[simulation]\nscenario = "{scenario}"\nspeed = {SPEED}\nseed = {seed}\n{sensors}')

@@ -172,20 +172,27 @@ def test_the_supervisor_pings_only_while_healthy_and_writes_status_and_summaries
                             status_line=lambda: "serving", refusals_suppressed=take_suppressed,
                             actuator_failures=failures)
 
+    async def rounds(count: int) -> None:
+        """Until the supervisor has run ``count`` more rounds (a loaded machine runs fewer per second)."""
+        until = watch.checks + count
+        while watch.checks < until:
+            await asyncio.sleep(0.01)
+
     async def body() -> None:
         task = asyncio.create_task(supervisor.run())
-        await asyncio.sleep(0.3)
-        pinged = len(notifier.pings)
-        assert pinged >= 5, notifier.pings
+        while len(notifier.pings) < 5:
+            await asyncio.sleep(0.01)
         healthy[0] = False  # the pollers stalled: systemd must see the pings stop
-        await asyncio.sleep(0.05)
+        await rounds(2)  # a round under way when the flag changed may still ping
         stopped_at = len(notifier.pings)
         wall.offset_s = -120.0  # a step while running: one line, however many rounds follow
-        await asyncio.sleep(0.3)
+        await rounds(10)
         assert len(notifier.pings) == stopped_at
         healthy[0] = True
-        await asyncio.sleep(0.2)
+        await rounds(3)
         assert len(notifier.pings) > stopped_at  # healthy again: pinged again
+        while len(notifier.statuses) < 5:  # STATUS_INTERVAL_S apart
+            await asyncio.sleep(0.01)
         task.cancel()
         with pytest.raises(asyncio.CancelledError):
             await task
@@ -210,7 +217,8 @@ def test_without_systemds_watchdog_nothing_is_pinged(monkeypatch: pytest.MonkeyP
 
     async def body() -> None:
         task = asyncio.create_task(supervisor.run())
-        await asyncio.sleep(0.15)
+        while watch.checks < 5:  # rounds, however long a loaded machine takes for them
+            await asyncio.sleep(0.01)
         task.cancel()
         with pytest.raises(asyncio.CancelledError):
             await task
