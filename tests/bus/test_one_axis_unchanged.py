@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from helpers.cell_helpers import write_cell_model
 from helpers.daemon_harness import write_test_model
-from helpers.numbers import assert_same
+from helpers.floats import assert_same
 
 from nanodrift.bus.protocol import Target, encode_command
 from nanodrift.config import ActuatorConfig, parse_config

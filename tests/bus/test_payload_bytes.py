@@ -2,7 +2,7 @@
 
 Each expected value below was produced by the code before the wire format moved to
 ``nanodrift.bus.protocol`` (commit c198473); a refactoring that changes a single byte of a command, an
-error or a procedure step fails here. Computed numbers are compared with ``helpers.numbers.assert_same``:
+error or a procedure step fails here. Computed numbers are compared with ``helpers.floats.assert_same``:
 every byte but a float's last bits (which another CPU's or BLAS' rounding may move) is pinned.
 """
 
@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from helpers.daemon_harness import write_test_model
-from helpers.numbers import assert_same
+from helpers.floats import assert_same
 
 from nanodrift.bus.actuator import ZenohActuator
 from nanodrift.bus.protocol import Refusal, Target, encode_command, encode_error, parse_target

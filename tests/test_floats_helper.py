@@ -1,9 +1,9 @@
-"""The tolerant comparison the "unchanged output" pins use (tests/helpers/numbers.py) still catches a change."""
+"""The tolerant comparison the "unchanged output" pins use (tests/helpers/floats.py) still catches a change."""
 
 from __future__ import annotations
 
 import pytest
-from helpers.numbers import assert_same, differences, last_digit_unit
+from helpers.floats import assert_same, differences, last_digit_unit
 
 
 def test_the_last_bits_of_a_float_do_not_count() -> None:
