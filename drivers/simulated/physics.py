@@ -5,8 +5,8 @@ Thermal part: the air temperature is piecewise linear between knots (every ``kno
 scenario's shape plus a small random fluctuation). Every structure/sensor temperature is a
 first-order lag of the air, and a first-order lag of a piecewise-linear input has an exact closed
 form, so node temperatures are exact at any time, at any spacing, with no integration step. The
-state at the knots is computed once per chunk with ``scipy.signal.lfilter`` (the exact recursion),
-and the grid is extended lazily, so a daemon can run for days.
+state at the knots is computed once per chunk by the exact recursion (:func:`first_order_filter`), and
+the grid is extended lazily, so a daemon can run for days.
 
 Mechanical part: the stage follows each command (closed-loop setpoint) with a few nm of landing
 error; the optional effects add direction memory (hysteresis) and settling (creep). The state after
@@ -88,14 +88,25 @@ class CellParams:
         return q + u * (e1 + u * (e2 + u * e3))
 
 
+def first_order_filter(b0: float, b1: float, a1: float, x: np.ndarray, z0: float) -> np.ndarray:
+    """``y[n] = b0 x[n] + b1 x[n-1] - a1 y[n-1]`` with initial state ``z0``: ``scipy.signal.lfilter([b0, b1],
+    [1, a1], x, zi=[z0])[0]``, the same operations in the same order (direct form II transposed), so the same
+    bits. Written out because importing ``scipy.signal`` costs every simulated daemon and CLI run a second
+    of CPU; a chunk is a few hundred knots, so the loop costs under a millisecond."""
+    out = np.empty(len(x))
+    z = z0
+    for n, xn in enumerate(x.tolist()):
+        yn = z + b0 * xn
+        z = xn * b1 - yn * a1
+        out[n] = yn
+    return out
+
+
 def _ou_step(prev: float, n: int, dt: float, tau: float, sigma: float, rng: np.random.Generator) -> np.ndarray:
     """``n`` further samples of an Ornstein-Uhlenbeck process (stationary std ``sigma``), exact."""
-    from scipy.signal import lfilter  # a second to import: only once the cell computes, not to check a config
-
     a = math.exp(-dt / tau)
     shocks = rng.normal(0.0, sigma * math.sqrt(1.0 - a * a), n)
-    out, _ = lfilter([1.0], [1.0, -a], shocks, zi=[a * prev])
-    return out
+    return first_order_filter(1.0, 0.0, -a, shocks, a * prev)
 
 
 class Exogenous:
@@ -185,15 +196,13 @@ class Exogenous:
         if k == 0:
             steps[0] = 0.0
         walk = (float(self.walk[-1]) if self.walk.size else 0.0) + np.cumsum(steps)
-        from scipy.signal import lfilter  # as in _ou_step
-
         nodes = np.empty((n, len(self.node_names)))
         for j in range(len(self.node_names)):
             if self.nodes.shape[0]:
-                zi = [self._b_prev[j] * self.air[-1] + self._a[j] * self.nodes[-1, j]]
+                zi = self._b_prev[j] * self.air[-1] + self._a[j] * self.nodes[-1, j]
             else:  # equilibrium with the first knot's air
-                zi = [air[0] * (1.0 - self._b_now[j])]
-            nodes[:, j], _ = lfilter([self._b_now[j], self._b_prev[j]], [1.0, -self._a[j]], air, zi=zi)
+                zi = air[0] * (1.0 - self._b_now[j])
+            nodes[:, j] = first_order_filter(self._b_now[j], self._b_prev[j], -self._a[j], air, zi)
         self.t = np.concatenate((self.t, t))
         self.air = np.concatenate((self.air, air))
         self.wander = np.concatenate((self.wander, wander))
