@@ -203,9 +203,10 @@ class ActuatorRig:
         default, for a device that cannot tell, is empty."""
         return []
 
-    def connections_open(self) -> int | None:
-        """How many connections the device has open now, when it can tell (None: it cannot). Outputs
-        of one device share one connection (one hub's, one port's): the checks expect 1."""
+    def connection_ids(self) -> set[str] | None:
+        """The connections the device has open now, each by an id the emulator gives it, when it can tell
+        (None: it cannot). Outputs of one device share one connection (a hub's): the checks expect one,
+        the same one before and after an output is closed, and none once every output is closed."""
         return None
 
 
@@ -237,6 +238,21 @@ async def assert_output_serves(rig: ActuatorRig, outputs: Sequence[Actuator], in
     assert written and written[-1] == pytest.approx(sent, abs=TOLERANCE_V), (index, voltage_v, written)
     for other, before in others.items():
         assert rig.output_written_v(other) == before, f"commanding output {index} wrote output {other}'s channel"
+
+
+def assert_one_connection(rig: ActuatorRig) -> set[str] | None:
+    """The outputs share one connection to the device, when it can tell; its id."""
+    ids = rig.connection_ids()
+    assert ids is None or len(ids) == 1, f"the outputs of one device share one connection; the device sees {ids}"
+    return ids
+
+
+async def assert_no_connection_left(rig: ActuatorRig, within_s: float = 2.0) -> None:
+    """Every output closed: the device sees its connection go (the emulator may notice a moment later)."""
+    deadline = time.monotonic() + within_s
+    while (ids := rig.connection_ids()) and time.monotonic() < deadline:
+        await asyncio.sleep(0.01)
+    assert not ids, f"every output closed, the device still has connections {ids}"
 
 
 class ActuatorContract:
@@ -444,11 +460,11 @@ class ActuatorContract:
             await rig.start()
             try:
                 outputs = await self._open_outputs(rig)
-                assert rig.connections_open() in (None, 1), "the outputs of one device share one connection"
                 for index in range(len(outputs)):
                     assert rig.output_written_v(index) == [], f"output {index} was written before any command"
                 for index in range(len(outputs)):
                     await assert_output_serves(rig, outputs, index, 1.0 + index)
+                assert_one_connection(rig)
                 for index in reversed(range(len(outputs))):
                     await assert_output_serves(rig, outputs, index, 5.25 - index)
                 for output in outputs:
@@ -476,7 +492,7 @@ class ActuatorContract:
                     expected = [output.sent_voltage(v) for v in asked[index]]
                     assert rig.output_written_v(index) == pytest.approx(expected, abs=TOLERANCE_V), index
                 assert rig.overlapping_exchanges() == [], "two outputs' exchanges overlapped on the device"
-                assert rig.connections_open() in (None, 1), "the outputs of one device share one connection"
+                assert_one_connection(rig)
                 for output in outputs:
                     await output.close()
             finally:
@@ -494,13 +510,17 @@ class ActuatorContract:
                     outputs = await self._open_outputs(rig)
                     for index in range(len(outputs)):
                         await assert_output_serves(rig, outputs, index, 2.0 + index)
+                    shared = assert_one_connection(rig)
                     await outputs[closed].close()
                     await outputs[closed].close()  # safe twice, and still leaves the others alone
                     for index in range(len(outputs)):
                         if index != closed:
                             await assert_output_serves(rig, outputs, index, 3.5 + index)
+                    assert assert_one_connection(rig) == shared, (
+                        f"closing output {closed} took the shared connection with it (the others reconnected)")
                     for output in outputs:  # all closed, the closed one again: the device is free for the next turn
                         await output.close()
+                    await assert_no_connection_left(rig)
             finally:
                 await rig.stop()
 

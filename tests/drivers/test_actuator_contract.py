@@ -171,9 +171,9 @@ class ModbusRig(ActuatorRig):
                   if address not in self.ADDRESSES]
         return self.device.overlaps + strays
 
-    def connections_open(self) -> int | None:
+    def connection_ids(self) -> set[str] | None:
         server = self.server._server
-        return None if server is None else len(server.active_connections)
+        return None if server is None else set(server.active_connections)
 
 
 class SerialRig(ActuatorRig):
