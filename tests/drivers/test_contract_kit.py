@@ -182,6 +182,7 @@ def test_a_lab_runs_the_kit_on_its_own_plugin_and_a_lying_plugin_fails_naming_th
     liar = outcomes(out, "TestLiarBox")
     assert liar["test_the_device_holds_sent_voltage_after_each_command"] == "FAILED", out
     assert liar["test_read_back_after_a_command_is_what_was_sent"] == "FAILED", out
+    assert "assert ('voltage_v', 3.333) ==" in out, out  # the kit's asserts are rewritten: the values compared show
     assert ("FAILED test_mybox_contract.py::TestLiarBox::test_the_device_holds_sent_voltage_after_each_command"
             in out), out
 

@@ -1,36 +1,5 @@
-"""The plugin contract kit: the checks every driver plugin must pass, as pytest test classes a lab imports.
-
-nanodrift runs its own plugins (``simulated``, ``modbus``, ``serial_line``) through exactly these classes
-(``tests/drivers/test_actuator_contract.py``, ``tests/drivers/test_sensor_contract.py``); a lab runs its
-plugin through them in its own repository. A rig says how to build the plugin's device emulator and how
-to read what the device actually received; the contract class holds the checks::
-
-    # tests/test_mybox_contract.py, in the lab's repository (its plugin installed: pip install -e .)
-    from nanodrift.drivers.testing.contract import ActuatorContract, ActuatorRig
-
-    class MyBoxRig(ActuatorRig):
-        kind = "mybox"                            # its name in the nanodrift.drivers entry points
-        limit_case = ((0.0, 5.0), 5.0, 5.0)
-        multi_output_unsupported = "one output per box"
-
-        def options(self):                        # its [actuator] table
-            return {"kind": "mybox", "path": str(self.tmp_path / "out.txt")}
-
-        async def held_v(self): ...               # read from the emulator, never from the actuator
-        def written_v(self): ...
-        async def refuse_writes(self): ...
-        async def gone(self): ...
-        async def back(self): ...
-
-    class TestMyBox(ActuatorContract):
-        rig = MyBoxRig
-
-pytest collects ``TestMyBox`` (the kit's own classes do not start with ``Test``, so importing them
-collects nothing) and runs every check against ``MyBoxRig``; a failure names the check
-(``TestMyBox::test_the_device_holds_sent_voltage_after_each_command``). A check a rig cannot take part
-in (a device that cannot fail, a device that takes any value, a single output) is skipped with the
-rig's reason. Every assertion on what was written looks at the emulator's side, never at the
-actuator's own account.
+"""The checks and rigs of the plugin contract kit (imported through :mod:`nanodrift.drivers.testing.contract`,
+which has pytest rewrite this module's asserts first, so a failed check shows the values it compared).
 
 The actuator contract (``nanodrift.drivers.base.Actuator``): ``open``/``command``/``close`` (close safe
 twice and after a failed open; open again retries); ``sent_voltage(v)`` is what the device then holds
@@ -41,7 +10,8 @@ device cannot represent; :class:`DeviceError` (no other exception) for a write t
 for a device that is gone, and the actuator works again once the device does; ``read_back`` after a
 command returns what was sent, or None for a device that cannot say. Several outputs of one plugin
 (``DriverPlugin.create_actuators``): each writes only its own channel, two written concurrently never
-overlap an exchange on the device, and closing one leaves the others working.
+overlap an exchange on the device, closing one leaves the others working (on the same connection,
+where the device can tell), and none is left once all are closed.
 
 The sensor contract (``nanodrift.drivers.base.SensorGroup``): ``open``/``read``/``close``; ``read``
 returns a reading for every name in ``names`` and no other, stamped on ``context.clock`` during the
@@ -51,8 +21,7 @@ reason) while the others stay ``ok``; a device that is gone raises :class:`Devic
 exception) from ``read``, and from ``open`` while it stays gone; ``close`` is safe twice and after a
 failed ``open``; close then open again recovers once the device is back.
 
-This module imports pytest: it is for test suites, and ``nanodrift.drivers.testing`` does not import
-it (the emulators work without pytest).
+Every assertion on what was written looks at the emulator's side, never at the actuator's own account.
 """
 
 from __future__ import annotations
