@@ -17,7 +17,8 @@
   (a module's parent packages included), imports ``nanodrift.drivers.registry``;
 - ``nanodrift.drivers.testing`` (the device emulators, for tests) imports ``nanodrift.drivers.base``, the registry, the
   plugins, pymodbus and pyserial, never the daemon beyond the pure core; nothing else of nanodrift
-  imports it (the daemon never runs an emulator);
+  imports it (the daemon never runs an emulator); only its contract kit (``nanodrift.drivers.testing.contract``)
+  imports pytest, and no other module of it imports the kit (the emulators work without pytest);
 - the CLI's ``HANDLERS`` table (command -> module, imported by name) names ``nanodrift.commands``
   modules only, and counts as imports; no other module imports by a string;
 - a command module (``nanodrift.commands.<name>``) is imported by the CLI only: no command imports
@@ -60,6 +61,12 @@ NO_PLUGIN_DISCOVERY = ("nanodrift.bus",)
 PLUGIN_DISCOVERY = "nanodrift.drivers.registry"
 #: the device emulators shipped for tests (a lab's plugin tests use them too)
 TESTING_ROOT = "nanodrift.drivers.testing"
+#: the plugin contract kit: pytest test classes a lab's test suite imports
+CONTRACT_KIT = "nanodrift.drivers.testing.contract"
+#: what the kit may import beyond the emulators' libraries, with the reason (no other emulator module may)
+CONTRACT_KIT_THIRD_PARTY = {
+    "pytest": "the kit is pytest test classes (approx, raises, skip); a lab's test suite runs under pytest",
+}
 COMMANDS_PACKAGE = "nanodrift.commands"
 #: optional heavy dependencies a function may import lazily, with the reason
 LAZY_ALLOWED = {
@@ -171,6 +178,11 @@ def forbidden(importer: str, imported: str) -> str | None:
         if in_daemon(imported) and not within(target, CORE_ROOTS):
             return ("the emulators import nanodrift.drivers.base, the plugins and their libraries, "
                     "never the daemon service")
+        in_kit = within(importer, [CONTRACT_KIT])
+        if top in CONTRACT_KIT_THIRD_PARTY and not in_kit:
+            return f"only the contract kit imports {top}: the emulators work without it"
+        if within(imported, [CONTRACT_KIT]) and not in_kit:
+            return "the emulators never import the contract kit (it needs pytest); a test imports it by name"
         return None
     if within(target, [TESTING_ROOT]):
         return "nanodrift.drivers.testing is for tests: nothing of nanodrift imports the emulators"
@@ -443,6 +455,15 @@ def test_no_module_imports_by_a_string_except_through_the_cli_table() -> None:
         ("nanodrift.service.runner", "nanodrift.drivers.testing.pty_devices", False),
         ("nanodrift.assembly", "nanodrift.drivers.testing", False),
         ("nanodrift.cli", "nanodrift.drivers.testing.modbus_server", False),
+        # the contract kit: pytest there only, and never imported by the emulators
+        ("nanodrift.drivers.testing.contract", "pytest", True),
+        ("nanodrift.drivers.testing.contract", "nanodrift.drivers.registry", True),
+        ("nanodrift.drivers.testing.contract", "nanodrift.service.runner", False),
+        ("nanodrift.drivers.testing", "pytest", False),
+        ("nanodrift.drivers.testing.pty_devices", "pytest", False),
+        ("nanodrift.drivers.testing", "nanodrift.drivers.testing.contract", False),
+        ("nanodrift.drivers.testing.protocol", "nanodrift.drivers.testing.contract", False),
+        ("nanodrift.drivers.base", "nanodrift.drivers.testing.contract", False),
     ],
 )
 def test_the_rules_themselves(importer: str, imported: str, allowed: bool) -> None:

@@ -37,10 +37,11 @@ A lab's plugin (registered in the ``nanodrift.drivers`` entry-point group) teste
         finally:
             controller.close()
 
-nanodrift's contract tests (``tests/drivers/test_sensor_contract.py``,
-``tests/drivers/test_actuator_contract.py``) run one set of checks against every plugin, a lab's own
-included: the same checks are what a lab's plugin must pass. Nothing in nanodrift itself imports this
-package (``tests/test_architecture.py`` enforces it).
+The checks every plugin must pass are the contract kit, :mod:`nanodrift.drivers.testing.contract`
+(pytest test classes and the rigs a lab subclasses); it needs pytest, so this package does not import
+it: import it by its full name. nanodrift's contract tests (``tests/drivers/test_sensor_contract.py``,
+``tests/drivers/test_actuator_contract.py``) run its own plugins and a lab's through it. Nothing in
+nanodrift itself imports this package (``tests/test_architecture.py`` enforces it).
 """
 
 from nanodrift.drivers.testing.modbus_server import (

@@ -1,7 +1,5 @@
-"""The sensor-group contract (``nanodrift.drivers.base.SensorGroup``), one set of checks run against every plugin.
-
-In the style of python-can's ``test/back2back_test.py``: one test class, and a fixture that gives it
-each backend in turn, behind a real interface:
+"""The sensor-group contract (``nanodrift.drivers.testing.contract``) run against every plugin, exactly as a lab
+runs it against its own plugin: a rig per plugin, a ``Test...`` subclass per rig, each behind a real interface:
 
 - ``simulated``: the simulated cell (its injected faults stand for the device's trouble);
 - ``modbus``: two thermocouple channels on pymodbus' TCP server on 127.0.0.1 (``nanodrift.drivers.testing``);
@@ -10,23 +8,12 @@ each backend in turn, behind a real interface:
 
 Every group is built the daemon's way: the plugin found by name through the ``nanodrift.drivers``
 entry points, its configs validated by its own ``config_model``, ``create`` with a context whose
-clock is :class:`OffsetClock`, a time base no plugin could stamp by accident (neither ``time.time``
-nor ``time.monotonic``).
-
-The contract: ``open``/``read``/``close``; ``read`` returns a reading for every name in ``names`` and
-no other, stamped on ``context.clock`` during the read; ``ok`` readings carry the device's value
-(finite, in the channel's unit); a channel-level problem on a working device is a ``fault`` reading
-(NaN, with a reason) while the others stay ``ok``; a device that is gone raises :class:`DeviceError`
-(never another exception) from ``read``, and from ``open`` while it stays gone; ``close`` is safe
-twice and after a failed ``open``; close then open again recovers once the device is back.
+clock is the kit's ``OffsetClock``, a time base no plugin could stamp by accident.
 """
 
 from __future__ import annotations
 
-import asyncio
-import math
-import time
-from collections.abc import Awaitable, Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -34,82 +21,18 @@ import pytest
 from helpers import lab_plugin
 from helpers.daemon_harness import SensorFile
 
-from nanodrift.drivers.base import DeviceError, DriverContext, Reading, SensorGroup, State
+from nanodrift.drivers.base import DriverContext, Reading
 from nanodrift.drivers.modbus.codec import encode
-from nanodrift.drivers.registry import available, load_plugin
+from nanodrift.drivers.registry import available
 from nanodrift.drivers.simulated.cell import SimulatedCell
 from nanodrift.drivers.simulated.plugin import RESOURCE_KEY
 from nanodrift.drivers.testing import FakeInterferometer, ModbusTestDevice, ModbusTestServer, tcp_context
+from nanodrift.drivers.testing.contract import SensorContract, SensorRig
 
-T = 30.0  # a whole test's wall-clock bound
-
-
-class OffsetClock:
-    """Monotonic time 123456789 s ahead: neither the wall clock nor the raw monotonic clock."""
-
-    OFFSET_S = 123_456_789.0
-
-    def now(self) -> float:
-        return time.monotonic() + self.OFFSET_S
-
-    async def sleep(self, seconds: float) -> None:
-        await asyncio.sleep(max(0.0, seconds))
+# --- the rigs -------------------------------------------------------------------------------------
 
 
-def run(body: Callable[[], Awaitable[None]]) -> None:
-    asyncio.run(asyncio.wait_for(body(), T))
-
-
-# --- the backends ---------------------------------------------------------------------------------
-
-
-class Rig:
-    """One backend behind a real interface: what it builds, and how its device misbehaves."""
-
-    kind: str
-    names: tuple[str, ...]
-    roles: ClassVar[dict[str, str]]
-    units: ClassVar[dict[str, str]]
-    #: whether ``open`` can fail (a simulated cell is always there)
-    can_fail_open = True
-
-    def __init__(self, tmp_path: Path) -> None:
-        self.tmp_path = tmp_path
-        self.clock = OffsetClock()
-
-    def sensor_configs(self) -> list[dict[str, Any]]:
-        raise NotImplementedError
-
-    def context(self) -> DriverContext:
-        return DriverContext(clock=self.clock)
-
-    async def start(self) -> None: ...
-
-    async def stop(self) -> None: ...
-
-    def check_values(self, readings: dict[str, Reading]) -> None:
-        """The ok readings carry what the device holds."""
-        raise NotImplementedError
-
-    async def fault_channel(self) -> str:
-        """Make one channel report a problem while the device keeps answering; its name."""
-        raise NotImplementedError
-
-    async def gone(self) -> None:
-        raise NotImplementedError
-
-    async def back(self) -> None:
-        raise NotImplementedError
-
-    def group(self) -> SensorGroup:
-        self.built_context = self.context()
-        plugin = load_plugin(self.kind)  # through the entry point, as the daemon finds it
-        configs = [plugin.config_model.model_validate(raw) for raw in self.sensor_configs()]
-        [group] = plugin.create(configs, self.built_context)
-        return group
-
-
-class SimulatedRig(Rig):
+class SimulatedRig(SensorRig):
     kind = "simulated"
     names = ("T1", "T2")
     roles: ClassVar[dict[str, str]] = {"T1": "temperature", "T2": "temperature"}
@@ -141,7 +64,7 @@ class SimulatedRig(Rig):
         self.cell.faults.clear()
 
 
-class ModbusRig(Rig):
+class ModbusRig(SensorRig):
     kind = "modbus"
     names = ("T1", "T2")
     roles: ClassVar[dict[str, str]] = {"T1": "temperature", "T2": "temperature"}
@@ -181,7 +104,7 @@ class ModbusRig(Rig):
         await self.server.start()
 
 
-class SerialRig(Rig):
+class SerialRig(SensorRig):
     kind = "serial_line"
     names = ("ifm",)
     roles: ClassVar[dict[str, str]] = {"ifm": "position"}
@@ -213,7 +136,7 @@ class SerialRig(Rig):
         self.device.replug()
 
 
-class LabRig(Rig):
+class LabRig(SensorRig):
     """A lab's own plugin: its ``file`` sensors read a JSON file."""
 
     kind = "labbox"
@@ -244,9 +167,8 @@ class LabRig(Rig):
         self.file.write()
 
 
-RIGS: dict[str, type[Rig]] = {"simulated": SimulatedRig, "modbus": ModbusRig, "serial_line": SerialRig,
-                              "labbox": LabRig}
-FAILING = [name for name, rig in RIGS.items() if rig.can_fail_open]
+RIGS: dict[str, type[SensorRig]] = {"simulated": SimulatedRig, "modbus": ModbusRig, "serial_line": SerialRig,
+                                    "labbox": LabRig}
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -256,141 +178,28 @@ def lab_package(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
         yield
 
 
-@pytest.fixture(params=list(RIGS))
-def rig(request: pytest.FixtureRequest, tmp_path: Path) -> Rig:
-    return RIGS[request.param](tmp_path)
+# --- the contract, per rig ------------------------------------------------------------------------
 
 
-@pytest.fixture(params=FAILING)
-def failing_rig(request: pytest.FixtureRequest, tmp_path: Path) -> Rig:
-    return RIGS[request.param](tmp_path)
+class TestSimulated(SensorContract):
+    rig = SimulatedRig
 
 
-async def read(group: SensorGroup) -> dict[str, Reading]:
-    """One poll, bounded as the daemon bounds it (``timeout_s``) plus a margin."""
-    return await asyncio.wait_for(group.read(), group.timeout_s + 2.0)
+class TestModbus(SensorContract):
+    rig = ModbusRig
 
 
-async def read_stamped(rig: Rig, group: SensorGroup) -> dict[str, Reading]:
-    """A poll whose readings were all stamped on the rig's clock while it ran."""
-    before = rig.clock.now()
-    readings = await read(group)
-    after = rig.clock.now()
-    assert set(readings) == set(group.names), readings  # one per name, nothing else
-    for name, reading in readings.items():
-        assert before <= reading.t <= after, (name, reading.t, before, after)
-        assert reading.unit == rig.units[name], (name, reading)
-    return readings
+class TestSerialLine(SensorContract):
+    rig = SerialRig
 
 
-def assert_all_ok(rig: Rig, readings: dict[str, Reading]) -> None:
-    for name, reading in readings.items():
-        assert reading.state is State.OK and reading.reason == "", (name, reading)
-        assert math.isfinite(reading.value), (name, reading)
-    rig.check_values(readings)
-
-
-class TestSensorContract:
-    def test_open_read_close_a_reading_per_name_on_the_context_clock(self, rig: Rig) -> None:
-        async def body() -> None:
-            await rig.start()
-            try:
-                group = rig.group()
-                assert group.names == rig.names
-                assert dict(group.roles) == rig.roles
-                assert group.interval_s > 0 and group.timeout_s > 0
-                await group.open()
-                for _ in range(3):
-                    assert_all_ok(rig, await read_stamped(rig, group))
-                await group.close()
-            finally:
-                await rig.stop()
-
-        run(body)
-
-    def test_close_is_safe_twice_and_the_group_reopens(self, rig: Rig) -> None:
-        async def body() -> None:
-            await rig.start()
-            try:
-                group = rig.group()
-                await group.open()
-                await read(group)
-                await group.close()
-                await group.close()
-                await group.open()  # the daemon reopens a closed group
-                assert_all_ok(rig, await read_stamped(rig, group))
-                await group.close()
-            finally:
-                await rig.stop()
-
-        run(body)
-
-    def test_a_channel_problem_is_a_fault_reading_and_the_others_stay_ok(self, rig: Rig) -> None:
-        async def body() -> None:
-            await rig.start()
-            try:
-                group = rig.group()
-                await group.open()
-                assert_all_ok(rig, await read_stamped(rig, group))
-                faulted = await rig.fault_channel()
-                readings = await read_stamped(rig, group)
-                bad = readings[faulted]
-                assert bad.state is State.FAULT and math.isnan(bad.value) and bad.reason, bad
-                for name, reading in readings.items():
-                    if name != faulted:
-                        assert reading.state is State.OK and math.isfinite(reading.value), (name, reading)
-                await group.close()
-            finally:
-                await rig.stop()
-
-        run(body)
-
-    def test_a_device_that_is_gone_raises_device_error_and_recovers_after_reopening(self, rig: Rig) -> None:
-        async def body() -> None:
-            await rig.start()
-            try:
-                group = rig.group()
-                await group.open()
-                assert_all_ok(rig, await read_stamped(rig, group))
-                await rig.gone()
-                for _ in range(2):  # every poll while it is gone, not only the first
-                    with pytest.raises(DeviceError):
-                        await read(group)
-                await group.close()  # what the daemon does on DeviceError: close, back off, open
-                await rig.back()
-                await group.open()
-                assert_all_ok(rig, await read_stamped(rig, group))
-                await group.close()
-            finally:
-                await rig.stop()
-
-        run(body)
-
-    def test_close_is_safe_after_a_failed_open(self, failing_rig: Rig) -> None:
-        rig = failing_rig
-
-        async def body() -> None:
-            await rig.start()
-            try:
-                group = rig.group()
-                await rig.gone()
-                with pytest.raises(DeviceError):
-                    await asyncio.wait_for(group.open(), group.timeout_s + 5.0)
-                await group.close()
-                await group.close()
-                with pytest.raises(DeviceError):  # calling open again retries, and fails again
-                    await asyncio.wait_for(group.open(), group.timeout_s + 5.0)
-                await group.close()
-                await rig.back()
-                await group.open()
-                assert_all_ok(rig, await read_stamped(rig, group))
-                await group.close()
-            finally:
-                await rig.stop()
-
-        run(body)
+class TestLabBox(SensorContract):
+    rig = LabRig
 
 
 def test_every_installed_plugin_with_sensors_is_run_through_the_contract() -> None:
-    """A new plugin in nanodrift's entry points must get a rig here (the lab's is installed by the fixture)."""
+    """A new plugin in nanodrift's entry points must get a rig and a class here (the lab's is installed by
+    the fixture)."""
     assert set(available()) == set(RIGS)
+    tested = {cls.rig.kind for cls in SensorContract.__subclasses__() if cls.__module__ == __name__}
+    assert tested == set(RIGS)
