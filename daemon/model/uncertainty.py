@@ -295,6 +295,10 @@ def _row_decay(t_s: np.ndarray, run_slices: Sequence[slice], tau_s: np.ndarray) 
     return out
 
 
+#: rows of whitened columns summed into the Gram matrices at once by :func:`_whitened_gram`
+_GRAM_BLOCK_ROWS = 64
+
+
 def _whitened_gram(M: np.ndarray, decay: np.ndarray, share: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Gram matrices of the Kalman-whitened columns of ``M`` (rows, m) under unit-variance noise models.
 
@@ -309,6 +313,9 @@ def _whitened_gram(M: np.ndarray, decay: np.ndarray, share: np.ndarray) -> tuple
     logdet = np.zeros(g)
     gram = np.zeros((g, m, m))
     white = 1.0 - share
+    # the whitened rows are summed into the Gram matrices a block at a time (one batched matrix product, not
+    # an outer product per row: most of the time a fit spends here); the filter itself is row by row
+    block = np.empty((g, m, _GRAM_BLOCK_ROWS))
     for i in range(n):
         a = decay[i]
         p_pred = a * a * p + share * (1.0 - a * a)
@@ -319,8 +326,11 @@ def _whitened_gram(M: np.ndarray, decay: np.ndarray, share: np.ndarray) -> tuple
         state = pred + gain[:, None] * e
         p = (1.0 - gain) * p_pred
         logdet += np.log(f)
-        z = e / np.sqrt(f)[:, None]
-        gram += z[:, :, None] * z[:, None, :]
+        filled = i % _GRAM_BLOCK_ROWS
+        block[:, :, filled] = e / np.sqrt(f)[:, None]
+        if filled == _GRAM_BLOCK_ROWS - 1 or i == n - 1:
+            rows = block[:, :, : filled + 1]
+            gram += rows @ rows.transpose(0, 2, 1)
     return gram, logdet
 
 
