@@ -16,6 +16,7 @@ import sys
 from collections.abc import Sequence
 from typing import Any, NoReturn
 
+from nanodrift import blas_threads  # noqa: F401  (first: before anything imports numpy)
 from nanodrift.errors import UserError
 from nanodrift.logs import json_line
 

@@ -12,3 +12,8 @@ sys.path.insert(0, str(Path(__file__).parent))
 # first one cache them (in __pycache__, which git ignores). Nothing tested depends on it.
 os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
 sys.dont_write_bytecode = False
+
+# One BLAS thread in the test processes, as ``nanodrift`` itself runs (daemon/blas_threads.py): OpenBLAS's
+# threads made a small solve 100x slower on a loaded two-core machine. Before any test module imports numpy.
+assert "numpy" not in sys.modules, "conftest must set the BLAS threads before numpy is imported"
+from nanodrift import blas_threads  # noqa: E402, F401
