@@ -3,7 +3,8 @@
 Bytes in, bytes out, no session: the contract can be tested (and is pinned byte for byte in
 ``tests/bus/test_payload_bytes.py``) without a network.
 
-- :func:`key_prefix` and :class:`Keys`: the key expressions under ``nanodrift/<cell>/``.
+- :func:`key_prefix` and :class:`Keys`: the key expressions under ``<prefix>/<cell>/`` (``nanodrift/<cell>/``
+  by default).
 - :func:`parse_target`: a client's payload -> :class:`Target`, or a :class:`Refusal` saying what was
   wrong. The usual target is matched by a regular expression without building a dict.
 - :class:`Command`: one answer on ``command``; :func:`encode_command` is the one encoder that turns
@@ -28,16 +29,22 @@ MAX_ID_CHARS = 200
 _ID_LIMIT = 2**63
 
 
-def key_prefix(cell: str) -> str:
-    """``nanodrift/<cell>``, under which every key of a cell lives (``cell`` ``*``: every cell's)."""
-    return f"nanodrift/{cell}"
+#: the contract's default key tree (``[zenoh] prefix``; the client's ``prefix=`` and ``--prefix``)
+DEFAULT_PREFIX = "nanodrift"
+
+
+def key_prefix(cell: str, prefix: str = DEFAULT_PREFIX) -> str:
+    """``<prefix>/<cell>`` (``nanodrift/<cell>`` by default), under which every key of a cell lives
+    (``cell`` ``*``: every cell's)."""
+    return f"{prefix}/{cell}"
 
 
 class Keys:
-    """The contract's key expressions for one cell."""
+    """The contract's key expressions for one cell, under ``<prefix>/<cell>/`` (``[zenoh] prefix``, default
+    ``nanodrift``; validated by :func:`nanodrift.settings.prefix_problem` where it comes in)."""
 
-    def __init__(self, cell: str) -> None:
-        self.prefix = key_prefix(cell)
+    def __init__(self, cell: str, prefix: str = DEFAULT_PREFIX) -> None:
+        self.prefix = key_prefix(cell, prefix)
         self.target = f"{self.prefix}/target"
         self.command = f"{self.prefix}/command"
         self.error = f"{self.prefix}/error"

@@ -17,7 +17,7 @@ from typing import Any
 
 import zenoh
 
-from nanodrift.bus.protocol import MAX_PAYLOAD_BYTES, Keys, Oversized
+from nanodrift.bus.protocol import DEFAULT_PREFIX, MAX_PAYLOAD_BYTES, Keys, Oversized
 from nanodrift.settings import ZenohSettings
 
 # Keys is re-exported: a client opens a session and names the keys with one import
@@ -136,9 +136,9 @@ ANSWER_EXPRESS = False
 class Bus:
     """The daemon's declarations on one Zenoh session."""
 
-    def __init__(self, session: zenoh.Session, cell: str) -> None:
+    def __init__(self, session: zenoh.Session, cell: str, prefix: str = DEFAULT_PREFIX) -> None:
         self.session = session
-        self.keys = Keys(cell)
+        self.keys = Keys(cell, prefix)
         self._declared: list[Any] = []
         self._telemetry: dict[str, zenoh.Publisher] = {}
         self._token: zenoh.LivelinessToken | None = None

@@ -121,7 +121,7 @@ class Service:
         self.log.info("listening", endpoints=listen, zid=str(session.info.zid()),
                       **({"note": "port 0: zenoh picked a free port; -l tcp/HOST:PORT fixes it"}
                          if any(ep.endswith(":0") for ep in listen) else {}))
-        bus = self.bus = Bus(session, self.state.config.cell)
+        bus = self.bus = Bus(session, self.state.config.cell, self.state.config.zenoh.prefix)
         try:
             await self.start_drivers(self.build_drivers(self.state.config, None))
         except DriverSetupError as error:
