@@ -8,6 +8,7 @@ is in ``test_client_done.py``. Every wait is on an event (a reply, a sample), ne
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 import threading
@@ -280,6 +281,20 @@ def test_target_and_status_take_prefix(prefixed: PrefixedCell) -> None:
     assert result.returncode == 1 and "no cell answered on nanodrift/*/status" in result.stderr
     result = cli("status", "-e", ep, "--prefix", "bad//prefix")
     assert result.returncode == 2 and "argument --prefix: 'bad//prefix' has an empty chunk" in result.stderr
+
+
+def test_a_reload_never_changes_the_prefix(tmp_path: Path) -> None:
+    cell = PrefixedCell(tmp_path, "reloaded", PREFIX)
+    try:
+        cell.config.write_text(cell.config.read_text().replace(f'prefix = "{PREFIX}"', 'prefix = "other/tree"'))
+        cell.daemon.signal(signal.SIGHUP)
+        line = cell.daemon.wait_log("reload_needs_restart")
+        assert "prefix" in line["detail"]
+        cell.daemon.wait_log("reload_applied")
+        with Client(endpoint(cell.port), cell="reloaded", prefix=PREFIX) as client:
+            assert client.move(240.0, wait=False).q_um == pytest.approx(expected_q(240.0, TEMPS), abs=1e-9)
+    finally:
+        assert cell.close() == 0
 
 
 @pytest.mark.parametrize(("prefix", "expected"), [
