@@ -273,6 +273,14 @@ class Client:
         return json.dumps({"x_um": float(target), "id": target_id})
 
     def _compensate(self, cell: str, target: Position, target_id: str | int, timeout_s: float) -> Command:
+        try:
+            return self._ask(target, target_id, timeout_s)
+        except zenoh.ZError as error:  # the session closed under the query (close() from another thread)
+            self._check_open()
+            raise ConnectionError(f"the query of cell {cell!r} failed ({self._where}): "
+                                  f"{describe_zenoh_error(error, connect=self.endpoints)}") from None
+
+    def _ask(self, target: Position, target_id: str | int, timeout_s: float) -> Command:
         key = self.keys.compensate
         for reply in self.session.get(key, payload=self._request(target, target_id), timeout=timeout_s):
             result = reply.result  # a Sample, or a ReplyError
