@@ -172,6 +172,8 @@ class Client:
     ``endpoint``: ``"tcp/HOST:PORT"``, a list of them, or None (a peer that finds the daemons by
     scouting); ``zenoh_config``: a zenoh json5 file (credentials, TLS) used as the base; ``prefix``: the
     daemons' ``[zenoh] prefix``. A session that cannot open is a :class:`ConnectionError` naming where.
+    ``mode`` (``"peer"``/``"client"``) overrides the session's mode, as the CLI's ``--mode``; ``label`` is
+    how messages name ``zenoh_config`` (the CLI: ``--zenoh-config``).
 
     How a move is sent: through the ``compensate`` queryable, not a ``target`` put. A query gets exactly
     its own answer (the command, or the refusal as a reply error), so nothing has to pick this client's
