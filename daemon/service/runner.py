@@ -29,7 +29,6 @@ from nanodrift.errors import UserError
 from nanodrift.logs import get_logger
 from nanodrift.sdnotify import Notifier
 from nanodrift.service.actuation import Actuation
-from nanodrift.service.cell_actuation import CellActuation
 from nanodrift.service.cell_compensator import CellCompensator, load_cell_model_or_problem
 from nanodrift.service.cell_health import CellHealth
 from nanodrift.service.compensator import Compensator, load_model_or_problem
@@ -69,22 +68,20 @@ class Service:
         self.notifier = notifier or Notifier()
         self.log = get_logger("nanodrift.daemon")
         compensator: Compensator | CellCompensator
-        self.actuation: Actuation | CellActuation
         self.health: HealthUnit | CellHealth
         if config.multi_axis:  # an XY/XYZ cell: every axis from one snapshot, all axes' outputs by one task
             cell_model, problem = load_cell_model_or_problem(config.model.path, config.axis_names)
             table = SensorTable(config.sensors, config.actuator.workspace_um, config.sensor_workspaces())
             compensator = CellCompensator(cell_model, config.axis_actuators(), table, problem)
             self.health = CellHealth(config, cell_model, self.log)
-            self.actuation = CellActuation(self.log)
-            self.actuation.reached_listeners.append(self._output_reached)
         else:
             model, problem = load_model_or_problem(config.model.path)
             table = SensorTable(config.sensors, config.actuator.workspace_um)  # judges every reading
             compensator = Compensator(model, config.actuator, table, problem)
             self.health = HealthUnit(config, model, self.log)
-            self.actuation = Actuation(self.log)
-            self.actuation.reached_listeners.append(self._output_reached)
+        # every output of the cell (one axis: x), by one task; a one-axis cell's log lines keep their shape
+        self.actuation = Actuation(self.log, single=not config.multi_axis)
+        self.actuation.reached_listeners.append(self._output_reached)
         self.state = CellState(config, compensator, MonotonicClock())  # the drivers' clock once they start
         self.health.attach(compensator)
         # [health] record_dir: settled targets to daily CSVs on a thread of its own (read anew after a reload)
@@ -244,13 +241,10 @@ class Service:
         with self.state.lock:
             self.state.clock = drivers.context.clock
             self.health.label_clock = drivers.context.label_clock
-            self.health.awaits_reach = drivers.actuator is not None or bool(drivers.actuators)
-        if isinstance(self.actuation, CellActuation):
-            if drivers.actuators:
-                configs = self.state.config.axis_actuators()
-                await self.actuation.start(drivers.actuators, {axis: configs[axis] for axis in drivers.actuators})
-        elif drivers.actuator is not None:
-            await self.actuation.start(drivers.actuator, self.state.config.actuator)
+            self.health.awaits_reach = bool(drivers.actuators)
+        if drivers.actuators:  # none: every axis' actuation is the published command (kind = "zenoh")
+            configs = self.state.config.axis_actuators()
+            await self.actuation.start(drivers.actuators, {axis: configs[axis] for axis in drivers.actuators})
         ingest = self.ingest
         self.pollers = [
             GroupPoller(g, drivers.context.clock, ingest.on_readings, ingest.on_group_failure,
@@ -274,7 +268,7 @@ class Service:
 
         No state lock: the health unit's reach queue is only touched on the loop (here and in the sensor
         ingest), and the target path must not wait for a write's bookkeeping."""
-        self.health.on_reached(self.state.clock.now(), goal.q_um)  # a multi-axis goal: q per axis
+        self.health.on_reached(self.state.clock.now(), goal.q_um)  # q per axis: each health unit takes its own
 
     def _log_start(self) -> None:
         config, comp = self.state.config, self.state.compensator
