@@ -310,7 +310,7 @@ def _finite(value: Any) -> Any:
 DONE_STATES = ("reached", "superseded", "stopped", "failed")
 
 
-def encode_done(target_id: str | int | None, state: str, t: float, voltage_v: float | Mapping[str, float] | None,
+def encode_done(target_id: str | int | None, state: str, t: float, voltage_v: float | Mapping[str, float | None] | None,
                 error: str | None = None) -> bytes:
     """The ``done`` payload: ``{"id", "state", "t", "voltage_v", "error"}``, every key always present;
     ``voltage_v`` what the outputs hold (a number in a one-axis cell, ``{axis: V}`` in a cell of several,
@@ -350,7 +350,7 @@ def parse_stop(payload: bytes, max_bytes: int = MAX_PAYLOAD_BYTES) -> Stop:
     return Stop(stop_id)
 
 
-def encode_stop_reply(stop_id: str | int | None, voltage_v: float | Mapping[str, float] | None) -> bytes:
+def encode_stop_reply(stop_id: str | int | None, voltage_v: float | Mapping[str, float | None] | None) -> bytes:
     """A ``stop`` query's reply, once every ramp has ended: ``{"id", "voltage_v", "held": true}``, ``voltage_v``
     what each output holds (a number in a one-axis cell, ``{axis: V}`` in a cell of several; null where
     unknown)."""

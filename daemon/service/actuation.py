@@ -32,7 +32,23 @@ too; this module owns the devices' lifecycle.
   targets are refused (``actuator_fault``). One ``actuator_failed`` line per episode,
   ``actuator_recovered`` when the devices work again (a write, a reopen with nothing to write, or a
   reload onto devices that open: an episode a reload interrupted is kept until then).
-- **Shutdown**: :meth:`Actuation.stop` with ``final=True`` ramps every axis with a finite
+- **How each served command ends** (``done_listeners``; the runner publishes ``done``), exactly once:
+  ``reached`` when every output holds it (the write of the ramp's end returned, the driver's read-back
+  included); ``superseded`` when a newer command replaced it, pending (replaced in :meth:`offer`, told
+  when the loop takes the newest) or in flight (a newer one taken mid-ramp); ``failed`` when a write,
+  read-back or open faults while it is in flight, or a reload's limits drop it (the goal is still
+  written once the outputs work again: no second ``done``); ``stopped`` by :meth:`halt` or by the
+  daemon's stop. A cell with no output device at all (every axis ``kind = "zenoh"``, or no actuator)
+  still runs the drive task with no outputs: the published command is the actuation, so each command is
+  ``reached`` as soon as the loop takes it (not paced: only commands that arrive within one loop turn of
+  each other are ``superseded``), and what a published axis holds is the latest command's voltage.
+- **A client's stop** (:meth:`halt`): the drive task ends its ramp between two writes (a write under way
+  completes), every output holds what it has, the command in flight (and a pending one) ends
+  ``stopped``, and the goal is forgotten, so a reload or a reopen moves nothing. The next command moves
+  again, ramped from where each output is held; its first step covers no more than the time since the
+  output's last write (:class:`nanodrift.motion.Slew`, kept over a restart on the same device).
+- **Shutdown**: :meth:`Actuation.stop` with ``final=True`` ends the command in flight ``stopped``
+  (``failed``, with the fault's reason, when the outputs are in fault), then ramps every axis with a finite
   ``safe_voltage_v`` to it, together, within ``SAFE_RAMP_BUDGET_S`` (the unit's stop timeout less a
   margin), retrying a transient failure, and runs in a ``finally``: an exception on the way out never
   skips it.
@@ -92,15 +108,21 @@ def checked_sent_voltage(actuator: Actuator, config: ActuatorConfig, voltage_v: 
 
 @dataclass(frozen=True, slots=True, eq=False)
 class Goal:
-    """A command every axis should hold: q and voltage per axis, and the target's positions."""
+    """A command every axis should hold: q and voltage per axis, and the target's positions; ``id`` is the
+    served command's and ``served`` False for the safe stop's goal (no ``done`` is owed for it)."""
 
     q_um: Mapping[str, float]
     voltage_v: Mapping[str, float]
     positions_um: Mapping[str, float] | None = None
+    id: str | int | None = None
+    served: bool = True
 
 
 #: told (on the loop) when every output holds a goal: the goal and the monotonic time
 OnReached = Callable[[Goal, float], None]
+#: told (on the loop) once per served command, how it ended: the goal, the state (reached, superseded, stopped
+#: or failed), what each axis holds now (V, None where unknown) and, when it failed, why
+OnDone = Callable[[Goal, str, dict[str, float | None], str | None], None]
 
 
 @dataclass(eq=False)
@@ -150,6 +172,13 @@ class Actuation:
         self._goal: Goal | None = None  # the latest command taken: survives reloads and reopens
         self._goal_on_device = True  # the goal was written in full to the devices open now
         self.reached_listeners: list[OnReached] = []
+        # --- how each served command ends (exactly one ``done`` each) ---
+        self.done_listeners: list[OnDone] = []
+        self._superseded: list[Goal] = []  # pending commands a newer one replaced before the loop took them
+        self._inflight: Goal | None = None  # the served command the loop took and that has not ended yet
+        self._offered_v: dict[str, float] = {}  # the latest command's voltages: what a published axis holds
+        self._halt_waiters: list[asyncio.Future[dict[str, float | None]]] = []
+        self._halt_event = asyncio.Event()  # a stop was asked: ends a fault's backoff at once
         #: set while in fault (read without a lock on Zenoh's threads: one attribute, atomic)
         self.fault_reason: str | None = None
         self._fault_since = 0.0
@@ -160,12 +189,17 @@ class Actuation:
     # --- the target path (any thread) -----------------------------------------------------------
 
     def offer(self, q_um: Mapping[str, float], voltage_v: Mapping[str, float],
-              positions_um: Mapping[str, float] | None = None) -> bool:
+              positions_um: Mapping[str, float] | None = None, target_id: str | int | None = None) -> bool:
         """Make this the command every axis gets next (any thread). True: the caller must wake the loop
         (``loop.call_soon_threadsafe(actuation.wake)``); it is asked at most once per burst. While the
-        drivers are being swapped (a reload) the command waits for the new outputs."""
+        drivers are being swapped (a reload) the command waits for the new outputs. A pending command this
+        one replaces ends ``superseded`` (told from the loop, when it takes the newest)."""
+        goal = Goal(q_um, voltage_v, positions_um, target_id)
         with self._lock:
-            self._pending = Goal(q_um, voltage_v, positions_um)
+            if self._pending is not None:
+                self._superseded.append(self._pending)
+            self._pending = goal
+            self._offered_v = dict(voltage_v)
             if not self._active:
                 return False
             wake = not self._wake_pending
@@ -220,6 +254,7 @@ class Actuation:
                 out.last_voltage_v, out.last_write_t, out.tried_v = known.last_voltage_v, known.last_write_t, \
                     known.tried_v
                 out.writes = known.writes
+                out.slew = known.slew  # when it was last written bounds the first step of the next move
             actuator.limits_v = (config.v_min, config.v_max)
             outputs[axis] = out
         self._outputs = outputs
@@ -241,6 +276,7 @@ class Actuation:
                     self._still_failing(reason)
                 else:
                     self._enter_fault(reason)
+                self._end_inflight("failed", reason)  # a command a reload carried over: its outputs fault
             self._stashed_episode = None
         with self._lock:
             self._active, self._wake_pending = True, False
@@ -248,7 +284,9 @@ class Actuation:
 
     async def stop(self, *, final: bool = False) -> None:
         """Stop writing and close every axis' device (a failure to close is logged). ``final`` (the daemon
-        stops): first ramp every axis to its finite ``safe_voltage_v``, whatever happened before."""
+        stops): every command still in flight ends ``stopped`` (``failed``, with the reason, when the outputs
+        are in fault), then every axis ramps to its finite ``safe_voltage_v``, whatever happened before. Not
+        ``final`` (a reload): the goal and the command in flight wait for the next :meth:`start`."""
         with self._lock:
             self._active = False
         outputs, self._outputs = self._outputs, {}
@@ -264,6 +302,10 @@ class Actuation:
             if error is not None:  # the drive loop catches its own; this is a bug, not a reason to skip the safe ramp
                 self.log.error("actuator_task_failed", error=_reason(error))
         finally:
+            if self._halt_waiters:  # a client's stop the cancelled task did not carry out: done here
+                self._halted()
+            if final:
+                self._end_all("failed" if fault is not None else "stopped", fault)
             if outputs:
                 if fault is not None and not final:
                     self._stashed_episode = (self._fault_since, self._episode_failures)
@@ -324,11 +366,20 @@ class Actuation:
     # --- writing --------------------------------------------------------------------------------
 
     def _take_pending(self) -> Goal | None:
+        """The newest served command, if one came (on the loop): it is now the command in flight, and
+        the one it replaces (and any a newer one replaced before) ends ``superseded``."""
         with self._lock:
             pending, self._pending = self._pending, None
             if pending is None:
                 self._wake_pending = False
-            return pending
+            superseded, self._superseded = self._superseded, []
+        for goal in superseded:
+            self._done(goal, "superseded")
+        if pending is not None:
+            if self._inflight is not None and self._inflight is not pending:
+                self._done(self._inflight, "superseded")
+            self._inflight = pending
+        return pending
 
     def _next_goal(self) -> Goal | None:
         """A newer served command, else the goal when these devices do not hold it yet."""
@@ -337,13 +388,99 @@ class Actuation:
             return pending
         return self._goal if not self._goal_on_device else None
 
+    # --- how commands end -----------------------------------------------------------------------
+
+    def held(self) -> dict[str, float | None]:
+        """What each axis holds now: an output's last confirmed voltage (None: unknown, e.g. mid-write), a
+        published axis' (``kind = "zenoh"``) the latest command's voltage."""
+        held: dict[str, float | None] = dict(self._offered_v)
+        for axis, out in {**self._known, **self._outputs}.items():
+            held[axis] = out.at_v if out.at_v is not None else out.last_voltage_v
+        return held
+
+    def _done(self, goal: Goal, state: str, error: str | None = None) -> None:
+        if not goal.served:
+            return
+        held = self.held()
+        for listener in self.done_listeners:
+            try:
+                listener(goal, state, held, error)
+            except Exception as failure:  # a listener's bug must not stop the outputs
+                self.log.error("done_listener_failed", error=_reason(failure))
+
+    def _end_inflight(self, state: str, error: str | None = None) -> None:
+        inflight, self._inflight = self._inflight, None
+        if inflight is not None:
+            self._done(inflight, state, error)
+
+    def _end_all(self, state: str, error: str | None) -> None:
+        """Every command owed a ``done`` ends: those superseded, the one in flight and the pending one."""
+        with self._lock:
+            pending, self._pending = self._pending, None
+            superseded, self._superseded = self._superseded, []
+        for goal in superseded:
+            self._done(goal, "superseded")
+        self._end_inflight(state, error)
+        if pending is not None:
+            self._done(pending, state, error)
+
+    async def halt(self) -> dict[str, float | None]:
+        """A client's ``stop`` (on the loop): every ramp ends after the write under way, each output holds
+        the value it has, the command in flight (and one not yet taken) ends ``stopped``, and the goal is
+        forgotten (a reload or a reopen moves nothing). Returns what each axis holds then. The next served
+        command moves again as usual. Nothing in flight: nothing changes, and the answer is the same."""
+        task = self._task
+        if task is None or task.done():  # no drive loop (a reload between its stop and start, or stopped)
+            return self._halted()
+        waiter: asyncio.Future[dict[str, float | None]] = asyncio.get_running_loop().create_future()
+        self._halt_waiters.append(waiter)
+        self._halt_event.set()
+        self._event.set()
+        return await waiter
+
+    def _halted(self) -> dict[str, float | None]:
+        """Carry out a stop (on the loop, between two writes)."""
+        self._halt_event.clear()
+        with self._lock:
+            pending, self._pending = self._pending, None
+            superseded, self._superseded = self._superseded, []
+        for goal in superseded:
+            self._done(goal, "superseded")
+        moving = self._inflight is not None or pending is not None or not self._goal_on_device
+        self._end_inflight("stopped")
+        if pending is not None:
+            self._done(pending, "stopped")
+        self._goal, self._goal_on_device = None, True
+        for out in self._outputs.values():
+            out.slew.rest()
+        held = self.held()
+        if moving:
+            self.log.info("actuator_stopped", voltage_v=self._value(held))
+        waiters, self._halt_waiters = self._halt_waiters, []
+        for waiter in waiters:
+            if not waiter.done():
+                waiter.set_result(held)
+        return held
+
+    async def _nap(self, delay_s: float) -> None:
+        """Sleep ``delay_s``, or less when a stop is asked."""
+        try:
+            async with asyncio.timeout(delay_s):
+                await self._halt_event.wait()
+        except TimeoutError:
+            pass
+
     async def _drive(self) -> None:
         outputs = self._outputs  # this task's devices (a stop swaps them out before it cancels the task)
         backoff = INITIAL_BACKOFF_S
         while True:
+            if self._halt_waiters:
+                self._halted()
             if self.fault_reason is not None:
-                await asyncio.sleep(backoff * random.uniform(0.8, 1.2))
+                await self._nap(backoff * random.uniform(0.8, 1.2))
                 backoff = min(backoff * 2.0, MAX_BACKOFF_S)
+                if self._halt_waiters:
+                    continue
                 try:
                     await self._open_all(outputs)
                 except asyncio.CancelledError:
@@ -375,6 +512,7 @@ class Actuation:
                     self._enter_fault(reason)
                 else:
                     self._still_failing(reason)
+                self._end_inflight("failed", reason)  # written again once the outputs work, with no second done
                 await self._close_quietly(outputs)
                 continue
             if self.fault_reason is not None:
@@ -383,7 +521,8 @@ class Actuation:
             # Writes are paced at the ramp period: an isolated target is written at once, a stream is
             # coalesced to 50 writes/s (newest wins). Waking the loop for every target of a 1 kHz stream
             # halved the daemon's burst throughput and raised its answer latency (benchmarks/daemon_latency.py).
-            await asyncio.sleep(WRITE_PERIOD_S)
+            # No outputs (every axis published): nothing to pace, each command is reached as it is taken.
+            await asyncio.sleep(WRITE_PERIOD_S if outputs else 0.0)
 
     async def _move_to(self, goal: Goal, outputs: Mapping[str, AxisOutput], *, follow_pending: bool) -> None:
         """Write ``goal`` to every axis (ramped per axis under its slew limit; each step writes the axes in
@@ -392,6 +531,9 @@ class Actuation:
         reached: set[str] = set()
         while True:
             if follow_pending:
+                if self._halt_waiters:  # a stop: the ramp ends here, between two writes
+                    self._halted()
+                    return
                 newer = self._take_pending()
                 if newer is not None:
                     goal = self._goal = newer
@@ -400,6 +542,9 @@ class Actuation:
             if refused:  # a reload narrowed the limits under it: the stage holds, every axis
                 self._log_dropped(goal, outputs, refused)
                 self._goal, self._goal_on_device = None, True
+                if goal is self._inflight:
+                    self._end_inflight("failed", "the command is outside the limits now in force on axis "
+                                       f"{', '.join(refused)}: the stage holds")
                 return
             began_s = time.monotonic()
             step = []  # every axis' value of this step, each checked before any axis is written
@@ -433,6 +578,8 @@ class Actuation:
                 if outputs:
                     for listener in self.reached_listeners:
                         listener(goal, time.monotonic())
+                if goal is self._inflight:
+                    self._end_inflight("reached")
                 return
             await asyncio.sleep(RAMP_PERIOD_S)
 

@@ -124,12 +124,13 @@ class TargetHandler:
                     data = encode_command(command)
                     bus.publish_command(data)
                     wake_actuator = self.actuation.offer({"x": command.q_um}, {"x": command.voltage_v},
-                                                         {"x": command.x_um})
+                                                         {"x": command.x_um}, command.id)
                 elif command is not None:
                     assert isinstance(command, CellCommand)
                     data = encode_cell_command(command)  # published once, every axis; then handed over whole
                     bus.publish_command(data)
-                    wake_actuator = self.actuation.offer(command.q_um, command.voltage_v, command.positions_um)
+                    wake_actuator = self.actuation.offer(command.q_um, command.voltage_v, command.positions_um,
+                                                         command.id)
                 else:
                     assert refusal is not None
                     data = encode_error(refusal)

@@ -31,9 +31,10 @@ Y_SHARE = 0.5
 
 
 class RecordingActuator(Actuator):
-    """Records every write (and when it started); ``holds`` is what ``read_back`` answers (None: the device
-    cannot say); ``broken`` fails ``open``, ``unreadable`` fails ``read_back``, ``fail_writes`` the next N
-    writes. ``journal``, shared by the axes of a cell, is every write of every axis in order."""
+    """Records every write (and when it started); ``holds`` is what ``read_back`` answers before the first
+    write, then the last voltage written (None: the device cannot say); ``broken`` fails ``open``,
+    ``unreadable`` fails ``read_back``, ``fail_writes`` the next N writes. ``journal``, shared by the axes
+    of a cell, is every write of every axis in order."""
 
     def __init__(self, write_s: float = 0.0, description: str = "recording actuator",
                  holds: tuple[Literal["voltage_v", "q_um"], float] | None = None,
@@ -56,6 +57,8 @@ class RecordingActuator(Actuator):
     async def read_back(self) -> tuple[Literal["voltage_v", "q_um"], float] | None:
         if self.unreadable:
             raise DeviceError(f"{self.description}: no answer to the readback")
+        if self.holds is not None and self.written:  # a readable device reads back what it was last sent
+            return ("voltage_v", self.written[-1][1])
         return self.holds
 
     async def command(self, q_um: float, voltage_v: float, *, x_um: float | None = None) -> None:
@@ -447,3 +450,211 @@ def test_the_stop_ramps_every_axis_to_its_safe_voltage(axes: tuple[str, ...]) ->
         assert len(steps) >= 3 and all(b < a for a, b in itertools.pairwise(steps))  # ramped down
     [done] = log.named("actuator_safe")
     assert per_axis(done, "voltage_v", axes) == {a: configs[a].safe_voltage_v for a in axes}
+
+
+# --- how each served command ends: exactly one done each ---------------------------------------
+
+
+class Dones:
+    """Every ``done`` the actuation tells, as (id, state, held voltages, error)."""
+
+    def __init__(self, actuation: Actuation) -> None:
+        self.told: list[tuple[Any, str, dict[str, float | None], str | None]] = []
+        actuation.done_listeners.append(lambda goal, state, held, error: self.told.append((goal.id, state, held,
+                                                                                          error)))
+
+    def of(self, target_id: Any) -> list[tuple[Any, str, dict[str, float | None], str | None]]:
+        return [d for d in self.told if d[0] == target_id]
+
+    def state(self, target_id: Any) -> str | None:
+        mine = self.of(target_id)
+        assert len(mine) <= 1, f"more than one done for {target_id}: {mine}"
+        return mine[0][1] if mine else None
+
+    def ids(self) -> list[Any]:
+        return [d[0] for d in self.told]
+
+
+def serve(actuation: Actuation, configs: Mapping[str, ActuatorConfig], q_um: float, target_id: Any) -> None:
+    """A served target with its id: x at ``q_um``, y at its share."""
+    qs = {a: q_um * share(a) for a in configs}
+    if actuation.offer(qs, {a: configs[a].voltage(q) for a, q in qs.items()}, None, target_id):
+        actuation.wake()
+
+
+def volts(configs: Mapping[str, ActuatorConfig], q_um: float) -> dict[str, float]:
+    return {a: configs[a].voltage(q_um * share(a)) for a in configs}
+
+
+def test_a_flood_during_a_slow_ramp_ends_every_command_once_superseded_and_the_last_reached(
+        axes: tuple[str, ...]) -> None:
+    configs = {a: ActuatorConfig(max_slew_um_per_s=500.0) for a in axes}  # 0 -> 400 um: 0.8 s
+    outputs = devices(axes, holds=("voltage_v", 0.0))
+
+    async def main() -> Dones:
+        actuation = Actuation(Events())
+        dones = Dones(actuation)
+        await actuation.start(outputs, configs)
+        serve(actuation, configs, 400.0, 1)
+        await until(lambda: all(len(d.written) >= 3 for d in outputs.values()), 5, "the ramp under way")
+        for i in range(2, 31):
+            serve(actuation, configs, 400.0 + i, i)
+            await asyncio.sleep(0.001 if i % 10 else 0.03)
+        await until(lambda: dones.state(30) is not None, 10, "the last command's done")
+        await actuation.stop()
+        return dones
+
+    dones = asyncio.run(main())
+    assert sorted(dones.ids()) == list(range(1, 31))  # exactly one done per served command
+    assert all(dones.state(i) == "superseded" for i in range(1, 30))
+    [(_, state, held, error)] = dones.of(30)
+    assert state == "reached" and error is None
+    for axis, device in outputs.items():  # what the outputs hold: the last command, as the devices received it
+        assert device.written[-1][1] == volts(configs, 430.0)[axis] == held[axis]
+        assert all(v < volts(configs, 431.0)[axis] for _, v, _ in device.written)
+
+
+def test_a_stop_mid_ramp_holds_every_output_ends_the_command_stopped_and_the_next_moves_again(
+        axes: tuple[str, ...]) -> None:
+    configs = {a: ActuatorConfig(max_slew_um_per_s=200.0) for a in axes}  # 0 -> 400 um: 2 s
+    outputs = devices(axes, holds=("voltage_v", 0.0))
+    old_goal = volts(configs, 400.0)
+
+    async def main() -> tuple[Dones, dict[str, float | None], dict[str, int]]:
+        log = Events()
+        actuation = Actuation(log)
+        dones = Dones(actuation)
+        await actuation.start(outputs, configs)
+        serve(actuation, configs, 400.0, "far")
+        await until(lambda: all(len(d.written) >= 5 for d in outputs.values()), 5, "the ramp under way")
+        held = await actuation.halt()
+        assert dones.state("far") == "stopped"
+        counts = {a: len(d.written) for a, d in outputs.items()}
+        again = await actuation.halt()  # nothing moves: a no-op that still answers
+        assert again == held and len(dones.told) == 1
+        await actuation.stop()  # a reload after the stop: the old goal is not carried over ...
+        await actuation.start(outputs, configs)
+        await actuation.halt()  # (the drive loop has run: a halt is answered from it)
+        assert {a: len(d.written) for a, d in outputs.items()} == counts  # ... nothing was written
+        assert len(log.named("actuator_stopped")) == 1
+        serve(actuation, configs, 50.0, "next")  # the next target moves again
+        await until(lambda: dones.state("next") is not None, 10, "the next command's done")
+        await actuation.stop()
+        return dones, held, counts
+
+    dones, held, counts = asyncio.run(main())
+    [(_, _, stopped_held, error)] = dones.of("far")
+    assert error is None and stopped_held == held
+    assert dones.state("next") == "reached"
+    for axis, device in outputs.items():
+        sent = [v for _, v, _ in device.written]
+        at_stop = sent[counts[axis] - 1]
+        assert held[axis] == at_stop and 0.0 < at_stop < old_goal[axis]  # held where the ramp was
+        assert old_goal[axis] not in sent  # the old goal was never reached
+        after = sent[counts[axis]:]
+        assert after and after[-1] == volts(configs, 50.0)[axis]
+        if at_stop > after[-1]:  # from where it was held towards the next goal, by ramp steps, never back up
+            assert all(b < a for a, b in itertools.pairwise([at_stop, *after]))
+            assert at_stop - after[0] <= 200.0 * 0.02 * 5 * RAMP_PERIOD_S + 1e-9
+        assert_never_faster(device, 200.0)
+
+
+def test_a_fault_ends_the_command_failed_once_and_the_goal_is_still_written_after(axes: tuple[str, ...]) -> None:
+    journal: list[tuple[str, float]] = []
+    outputs = devices(axes, journal)
+    configs = {a: ActuatorConfig() for a in axes}
+    sick = axes[-1]
+
+    async def main() -> Dones:
+        actuation = Actuation(Events())
+        dones = Dones(actuation)
+        await actuation.start(outputs, configs)
+        outputs[sick].fail_writes = 1
+        serve(actuation, configs, 150.0, 5)
+        await until(lambda: dones.state(5) is not None, 5, "the command's done")
+        want = [(outputs[a].description, v) for a, v in volts(configs, 150.0).items()]
+        await until(lambda: journal[-len(axes):] == want and actuation.fault_reason is None, 10,
+                    "the goal written after the recovery")
+        await actuation.halt()
+        await actuation.stop()
+        return dones
+
+    dones = asyncio.run(main())
+    [(_, state, _, error)] = dones.of(5)  # one done, even though the goal was written later
+    assert state == "failed" and error is not None and "no answer" in error
+    assert error.startswith("recording actuator: " if len(axes) == 1 else f"axis {sick}: ")
+
+
+def test_the_daemon_stop_ends_a_command_in_flight_stopped_or_failed_when_the_outputs_are_in_fault(
+        axes: tuple[str, ...]) -> None:
+    configs = {a: ActuatorConfig(max_slew_um_per_s=200.0, safe_voltage_v=0.0) for a in axes}
+
+    async def main() -> tuple[Dones, Dones]:
+        moving = devices(axes, holds=("voltage_v", 0.0))
+        actuation = Actuation(Events(), safe_budget_s=5.0)
+        mid_ramp = Dones(actuation)
+        await actuation.start(moving, configs)
+        serve(actuation, configs, 400.0, "moving")
+        await until(lambda: all(len(d.written) >= 3 for d in moving.values()), 5, "the ramp under way")
+        await actuation.stop(final=True)
+
+        broken = devices(axes)
+        broken[axes[-1]].broken = True
+        faulted = Actuation(Events(), safe_budget_s=0.5)
+        in_fault = Dones(faulted)
+        await faulted.start(broken, configs)
+        serve(faulted, configs, 100.0, "never")  # served before the fault was noticed, never written
+        await faulted.stop(final=True)
+        return mid_ramp, in_fault
+
+    mid_ramp, in_fault = asyncio.run(main())
+    [(_, state, _, error)] = mid_ramp.of("moving")
+    assert state == "stopped" and error is None
+    [(_, state, _, error)] = in_fault.of("never")
+    assert state == "failed" and error is not None and "port gone" in error
+
+
+def test_a_reload_mid_ramp_carries_the_command_over_and_it_ends_once(axes: tuple[str, ...]) -> None:
+    configs = {a: ActuatorConfig(max_slew_um_per_s=500.0) for a in axes}
+    outputs = devices(axes, holds=("voltage_v", 0.0))
+
+    async def main() -> Dones:
+        actuation = Actuation(Events())
+        dones = Dones(actuation)
+        await actuation.start(outputs, configs)
+        serve(actuation, configs, 400.0, 9)
+        await until(lambda: all(len(d.written) >= 3 for d in outputs.values()), 5, "the ramp under way")
+        await actuation.stop()  # a reload mid-ramp
+        assert dones.told == []
+        await actuation.start(outputs, configs)  # the same outputs: they read back where the ramp left them
+        await until(lambda: dones.state(9) is not None, 10, "the command's done")
+        await actuation.stop()
+        return dones
+
+    dones = asyncio.run(main())
+    [(_, state, held, _)] = dones.of(9)
+    assert state == "reached" and held == volts(configs, 400.0)
+    for device in outputs.values():
+        assert_never_faster(device, 500.0)
+        assert all(b > a for a, b in itertools.pairwise([v for _, v, _ in device.written]))
+
+
+def test_with_no_outputs_each_command_is_reached_as_it_is_published(axes: tuple[str, ...]) -> None:
+    """Every axis ``kind = "zenoh"`` (or no actuator): no device to verify, the published command is the actuation."""
+    configs = {a: ActuatorConfig() for a in axes}
+
+    async def main() -> tuple[Dones, dict[str, float | None]]:
+        actuation = Actuation(Events(), single=len(axes) == 1)
+        dones = Dones(actuation)
+        await actuation.start({}, {})
+        for i in range(1, 21):
+            serve(actuation, configs, 10.0 * i, i)
+            await until(lambda i=i: dones.state(i) is not None, 5, f"command {i}'s done")
+        held = await actuation.halt()
+        await actuation.stop(final=True)
+        return dones, held
+
+    dones, held = asyncio.run(main())
+    assert [(i, s) for i, s, _, _ in dones.told] == [(i, "reached") for i in range(1, 21)]
+    assert all(h == volts(configs, 10.0 * i) for i, _, h, _ in dones.told)
+    assert held == volts(configs, 200.0)

@@ -96,9 +96,9 @@ class RecordingActuation(Actuation):
         self.events = events
 
     def offer(self, q_um: Mapping[str, float], voltage_v: Mapping[str, float],
-              positions_um: Mapping[str, float] | None = None) -> bool:
+              positions_um: Mapping[str, float] | None = None, target_id: str | int | None = None) -> bool:
         self.events.append(("offer", None if positions_um is None else positions_um["x"]))
-        return super().offer(q_um, voltage_v, positions_um)
+        return super().offer(q_um, voltage_v, positions_um, target_id)
 
     def wake(self) -> None:
         self.events.append(("wake",))
