@@ -206,7 +206,7 @@ class Client:
         self._id_base = uuid.uuid4().hex[:12]
         self._subscribers: list[Any] = []
         if cell is not None:
-            self._subscribers.append(self.session.declare_subscriber(f"{self.keys.prefix}/done", self._on_done))
+            self._subscribers.append(self.session.declare_subscriber(self.keys.done, self._on_done))
 
     # --- lifetime ---------------------------------------------------------------------------------
 
@@ -345,7 +345,7 @@ class Client:
         only as a put still gets it), then :class:`TimeoutError`. ``id``: the move to stop (optional).
         """
         self._cell()
-        key = f"{self.keys.prefix}/stop"
+        key = self.keys.stop
         payload = json.dumps({} if id is None else {"id": id})
         for reply in self.session.get(key, payload=payload, timeout=timeout_s):
             result = reply.result
