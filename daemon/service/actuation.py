@@ -302,10 +302,13 @@ class Actuation:
             if error is not None:  # the drive loop catches its own; this is a bug, not a reason to skip the safe ramp
                 self.log.error("actuator_task_failed", error=_reason(error))
         finally:
-            if self._halt_waiters:  # a client's stop the cancelled task did not carry out: done here
-                self._halted()
-            if final:
-                self._end_all("failed" if fault is not None else "stopped", fault)
+            try:
+                if self._halt_waiters:  # a client's stop the cancelled task did not carry out: done here
+                    self._halted()
+                if final:
+                    self._end_all("failed" if fault is not None else "stopped", fault)
+            except Exception as error:  # a bug: said, and never a reason to skip the safe ramp
+                self.log.error("actuator_done_failed", error=_reason(error))
             if outputs:
                 if fault is not None and not final:
                     self._stashed_episode = (self._fault_since, self._episode_failures)
