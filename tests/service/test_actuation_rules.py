@@ -690,3 +690,27 @@ def test_a_stop_during_a_fault_is_answered_at_once_and_the_recovered_outputs_mov
     dones, answered_s = asyncio.run(main())
     assert answered_s < 1.0, f"the stop waited {answered_s:.2f} s for the backoff"
     assert [d[0] for d in dones.told] == ["lost", "waiting"]
+
+
+def test_a_stop_ends_the_commands_served_before_it_never_one_served_after_it(axes: tuple[str, ...]) -> None:
+    configs = {a: ActuatorConfig(max_slew_um_per_s=500.0) for a in axes}
+    outputs = devices(axes, holds=("voltage_v", 0.0))
+
+    async def main() -> tuple[Dones, dict[str, float | None]]:
+        actuation = Actuation(Events())
+        dones = Dones(actuation)
+        await actuation.start(outputs, configs)
+        serve(actuation, configs, 400.0, "before")
+        await until(lambda: all(len(d.written) >= 3 for d in outputs.values()), 5, "the ramp under way")
+        mark = actuation.stop_mark()  # the stop arrives (on Zenoh's thread) ...
+        serve(actuation, configs, 100.0, "after")  # ... then a target, answered before the loop runs the stop
+        held = await actuation.halt(mark)
+        await until(lambda: dones.state("after") is not None, 10, "the later command's done")
+        await actuation.stop()
+        return dones, held
+
+    dones, held = asyncio.run(main())
+    assert [(i, s) for i, s, _, _ in dones.told] == [("before", "stopped"), ("after", "reached")]
+    for axis, device in outputs.items():
+        assert device.written[-1][1] == volts(configs, 100.0)[axis]
+        assert held[axis] is not None and held[axis] < volts(configs, 400.0)[axis]

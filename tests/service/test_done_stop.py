@@ -274,6 +274,11 @@ def test_every_served_command_gets_one_done_saying_how_it_ended(cell: ModbusCell
     held = cell.per_axis(done["voltage_v"])
     assert all(close_to(cell.register_v(a), held[a]) for a in axes)
 
+    # a stop put and a target put right after it: the stop ends what came before it, not the target
+    watch.stop_put(b"")
+    cell.put(420.0, "after")
+    assert watch.wait("after")["state"] == "reached"
+
     # a bad stop: a put is logged and ignored, a query gets a reply error
     watch.stop_put(b"{not json")
     refused = cell.daemon.wait_log("stop_refused")
@@ -289,9 +294,9 @@ def test_every_served_command_gets_one_done_saying_how_it_ended(cell: ModbusCell
     assert watch.wait(26)["state"] == "stopped"
     assert cell.daemon.proc.wait(20) == 0
 
-    for i in range(1, 27):  # exactly one done per served command
+    for i in [*range(1, 27), "after"]:  # exactly one done per served command
         assert len(watch.of(i)) == 1, (i, watch.of(i))
-    assert len(watch.dones) == 26
+    assert len(watch.dones) == 27
 
 
 def test_with_no_output_each_command_is_reached_right_after_its_publish(tmp_path: Path) -> None:
