@@ -121,7 +121,7 @@ def listen_endpoints(conf: zenoh.Config) -> list[str]:
 
 OnTarget = Callable[[bytes, "zenoh.Query | None"], None]
 OnQuery = Callable[["zenoh.Query"], None]
-#: a ``stop`` (its payload; the query when it came as one), called on the loop
+#: a ``stop`` (its payload; the query when it came as one), thread-safe, called on Zenoh's thread
 OnStop = Callable[[bytes, "zenoh.Query | None"], None]
 
 #: How the ``command`` and ``error`` publishers (the answers) meet a subscriber that does not read.
@@ -161,8 +161,9 @@ class Bus:
 
     def serve(self, loop: asyncio.AbstractEventLoop, on_target: OnTarget, on_status: OnQuery,
               on_stop: OnStop | None = None) -> None:
-        """Declare the target subscriber and the two queryables (and ``stop``'s subscriber and queryable,
-        handed to the loop like ``status``); announce liveliness last.
+        """Declare the target subscriber and the two queryables (and ``stop``'s subscriber and queryable:
+        ``on_stop`` runs on Zenoh's thread like ``on_target``, so a stop is ordered among the targets as
+        it arrived); announce liveliness last.
 
         ``on_target`` is thread-safe and runs on Zenoh's callback thread: handing each target to the
         loop costs a thread wake-up (~50 us here, as much as the whole Zenoh round trip's margin in
@@ -194,13 +195,12 @@ class Bus:
 
             def stop_sample(sample: zenoh.Sample) -> None:
                 payload = sample.payload
-                call(stop, payload.to_bytes() if len(payload) <= limit else Oversized.of(len(payload)), None)
+                stop(payload.to_bytes() if len(payload) <= limit else Oversized.of(len(payload)), None)
 
             def stop_query(query: zenoh.Query) -> None:
                 payload = query.payload
-                data = b"" if payload is None else (payload.to_bytes() if len(payload) <= limit
-                                                    else Oversized.of(len(payload)))
-                call(stop, data, query)
+                stop(b"" if payload is None else (payload.to_bytes() if len(payload) <= limit
+                                                  else Oversized.of(len(payload))), query)
 
             self._declared.append(self.session.declare_subscriber(self.keys.stop, stop_sample))
             self._declared.append(self.session.declare_queryable(self.keys.stop, stop_query))

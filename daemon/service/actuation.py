@@ -44,7 +44,9 @@ too; this module owns the devices' lifecycle.
   each other are ``superseded``), and what a published axis holds is the latest command's voltage.
 - **A client's stop** (:meth:`halt`): the drive task ends its ramp between two writes (a write under way
   completes), every output holds what it has, the command in flight (and a pending one) ends
-  ``stopped``, and the goal is forgotten, so a reload or a reopen moves nothing. The next command moves
+  ``stopped``, and the goal is forgotten, so a reload or a reopen moves nothing. A stop ends only the
+  commands served before it arrived (:meth:`stop_mark`, taken on Zenoh's thread): a target sent after
+  it moves. The next command moves
   again, ramped from where each output is held; its first step covers no more than the time since the
   output's last write (:class:`nanodrift.motion.Slew`, kept over a restart on the same device).
 - **Shutdown**: :meth:`Actuation.stop` with ``final=True`` ends the command in flight ``stopped``
@@ -116,6 +118,7 @@ class Goal:
     positions_um: Mapping[str, float] | None = None
     id: str | int | None = None
     served: bool = True
+    seq: int = 0  # the order in which commands were served (a stop ends those served before it)
 
 
 #: told (on the loop) when every output holds a goal: the goal and the monotonic time
@@ -177,7 +180,9 @@ class Actuation:
         self._superseded: list[Goal] = []  # pending commands a newer one replaced before the loop took them
         self._inflight: Goal | None = None  # the served command the loop took and that has not ended yet
         self._offered_v: dict[str, float] = {}  # the latest command's voltages: what a published axis holds
-        self._halt_waiters: list[asyncio.Future[dict[str, float | None]]] = []
+        self._seq = 0  # commands served so far (under the lock)
+        #: stops asked of the drive task: each one's answer and the last command it ends (its ``seq``)
+        self._halt_waiters: list[tuple[asyncio.Future[dict[str, float | None]], int]] = []
         self._halt_event = asyncio.Event()  # a stop was asked: ends a fault's backoff at once
         #: set while in fault (read without a lock on Zenoh's threads: one attribute, atomic)
         self.fault_reason: str | None = None
@@ -194,8 +199,9 @@ class Actuation:
         (``loop.call_soon_threadsafe(actuation.wake)``); it is asked at most once per burst. While the
         drivers are being swapped (a reload) the command waits for the new outputs. A pending command this
         one replaces ends ``superseded`` (told from the loop, when it takes the newest)."""
-        goal = Goal(q_um, voltage_v, positions_um, target_id)
         with self._lock:
+            self._seq += 1
+            goal = Goal(q_um, voltage_v, positions_um, target_id, seq=self._seq)
             if self._pending is not None:
                 self._superseded.append(self._pending)
             self._pending = goal
@@ -302,10 +308,13 @@ class Actuation:
             if error is not None:  # the drive loop catches its own; this is a bug, not a reason to skip the safe ramp
                 self.log.error("actuator_task_failed", error=_reason(error))
         finally:
-            if self._halt_waiters:  # a client's stop the cancelled task did not carry out: done here
-                self._halted()
-            if final:
-                self._end_all("failed" if fault is not None else "stopped", fault)
+            try:
+                if self._halt_waiters:  # a client's stop the cancelled task did not carry out: done here
+                    self._halted()
+                if final:
+                    self._end_all("failed" if fault is not None else "stopped", fault)
+            except Exception as error:  # a bug: said, and never a reason to skip the safe ramp
+                self.log.error("actuator_done_failed", error=_reason(error))
             if outputs:
                 if fault is not None and not final:
                     self._stashed_episode = (self._fault_since, self._episode_failures)
@@ -424,40 +433,60 @@ class Actuation:
         if pending is not None:
             self._done(pending, state, error)
 
-    async def halt(self) -> dict[str, float | None]:
+    def stop_mark(self) -> int:
+        """Where a stop arriving now falls among the served commands (any thread): it ends those served
+        before it, never a target sent after it."""
+        with self._lock:
+            return self._seq
+
+    async def halt(self, upto: int | None = None) -> dict[str, float | None]:
         """A client's ``stop`` (on the loop): every ramp ends after the write under way, each output holds
         the value it has, the command in flight (and one not yet taken) ends ``stopped``, and the goal is
-        forgotten (a reload or a reopen moves nothing). Returns what each axis holds then. The next served
-        command moves again as usual. Nothing in flight: nothing changes, and the answer is the same."""
+        forgotten (a reload or a reopen moves nothing). ``upto`` (:meth:`stop_mark` when the stop arrived;
+        default: now): a command served after the stop is not ended by it and moves as usual. Returns what
+        each axis holds then. Nothing in flight: nothing changes, and the answer is the same."""
+        upto = self.stop_mark() if upto is None else upto
         task = self._task
         if task is None or task.done():  # no drive loop (a reload between its stop and start, or stopped)
-            return self._halted()
+            return self._halted(upto)
         waiter: asyncio.Future[dict[str, float | None]] = asyncio.get_running_loop().create_future()
-        self._halt_waiters.append(waiter)
+        self._halt_waiters.append((waiter, upto))
         self._halt_event.set()
         self._event.set()
         return await waiter
 
-    def _halted(self) -> dict[str, float | None]:
-        """Carry out a stop (on the loop, between two writes)."""
+    def _halted(self, upto: int | None = None) -> dict[str, float | None]:
+        """Carry out the stops asked (on the loop, between two writes): every command served up to the
+        latest of them ends ``stopped``."""
         self._halt_event.clear()
+        waiters, self._halt_waiters = self._halt_waiters, []
+        last = max([u for _, u in waiters] + ([upto] if upto is not None else []), default=0)
         with self._lock:
-            pending, self._pending = self._pending, None
+            pending = self._pending
+            if pending is not None and pending.seq <= last:
+                self._pending = None
+            else:
+                pending = None  # served after the stop: it moves as usual
             superseded, self._superseded = self._superseded, []
         for goal in superseded:
             self._done(goal, "superseded")
-        moving = self._inflight is not None or pending is not None or not self._goal_on_device
-        self._end_inflight("stopped")
+        moving = False
+        if self._inflight is not None and self._inflight.seq <= last:
+            self._end_inflight("stopped")
+            moving = True
         if pending is not None:
             self._done(pending, "stopped")
-        self._goal, self._goal_on_device = None, True
-        for out in self._outputs.values():
-            out.slew.rest()
+            moving = True
+        current = self._goal
+        if current is not None and current.seq <= last:
+            moving = moving or not self._goal_on_device
+            self._goal, self._goal_on_device = None, True
+            for out in self._outputs.values():
+                out.slew.rest()
         held = self.held()
         if moving:
             self.log.info("actuator_stopped", voltage_v=self._value(held))
-        waiters, self._halt_waiters = self._halt_waiters, []
-        for waiter in waiters:
+        for waiter, _ in waiters:
             if not waiter.done():
                 waiter.set_result(held)
         return held

@@ -124,7 +124,7 @@ class Service:
                       **({"note": "port 0: zenoh picked a free port; -l tcp/HOST:PORT fixes it"}
                          if any(ep.endswith(":0") for ep in listen) else {}))
         bus = self.bus = Bus(session, self.state.config.cell, self.state.config.zenoh.prefix)
-        self.stops = StopHandler(self.actuation, bus, self.log, single=not self.state.config.multi_axis)
+        self.stops = StopHandler(self.actuation, bus, loop, self.log, single=not self.state.config.multi_axis)
         try:
             await self.start_drivers(self.build_drivers(self.state.config, None))
         except DriverSetupError as error:

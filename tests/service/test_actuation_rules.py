@@ -658,3 +658,59 @@ def test_with_no_outputs_each_command_is_reached_as_it_is_published(axes: tuple[
     assert [(i, s) for i, s, _, _ in dones.told] == [(i, "reached") for i in range(1, 21)]
     assert all(h == volts(configs, 10.0 * i) for i, _, h, _ in dones.told)
     assert held == volts(configs, 200.0)
+
+
+def test_a_stop_during_a_fault_is_answered_at_once_and_the_recovered_outputs_move_nothing(
+        axes: tuple[str, ...]) -> None:
+    configs = {a: ActuatorConfig() for a in axes}
+    outputs = devices(axes, holds=("voltage_v", 1.0))
+    sick = outputs[axes[-1]]
+
+    async def main() -> tuple[Dones, float]:
+        actuation = Actuation(Events())
+        dones = Dones(actuation)
+        await actuation.start(outputs, configs)
+        sick.fail_writes, sick.broken = 1, True  # its next write fails, and it does not open again
+        serve(actuation, configs, 200.0, "lost")  # failed, and the goal waits for the device
+        await until(lambda: actuation.write_failures >= 4, 15, "the backoff grown past a second")
+        serve(actuation, configs, 300.0, "waiting")  # served just before the fault was seen: pending
+        asked = time.monotonic()
+        held = await asyncio.wait_for(actuation.halt(), 10)
+        answered_s = time.monotonic() - asked
+        assert dones.state("waiting") == "stopped"
+        assert held[axes[-1]] is None and all(held[a] is not None for a in axes[:-1])  # a failed write: unknown
+        counts = [len(d.written) for d in outputs.values()]
+        sick.broken = False
+        await until(lambda: actuation.fault_reason is None, 20, "recovered")
+        await actuation.halt()  # (the drive loop has run since)
+        assert [len(d.written) for d in outputs.values()] == counts  # the stopped goal is not written
+        await actuation.stop()
+        return dones, answered_s
+
+    dones, answered_s = asyncio.run(main())
+    assert answered_s < 1.0, f"the stop waited {answered_s:.2f} s for the backoff"
+    assert [d[0] for d in dones.told] == ["lost", "waiting"]
+
+
+def test_a_stop_ends_the_commands_served_before_it_never_one_served_after_it(axes: tuple[str, ...]) -> None:
+    configs = {a: ActuatorConfig(max_slew_um_per_s=500.0) for a in axes}
+    outputs = devices(axes, holds=("voltage_v", 0.0))
+
+    async def main() -> tuple[Dones, dict[str, float | None]]:
+        actuation = Actuation(Events())
+        dones = Dones(actuation)
+        await actuation.start(outputs, configs)
+        serve(actuation, configs, 400.0, "before")
+        await until(lambda: all(len(d.written) >= 3 for d in outputs.values()), 5, "the ramp under way")
+        mark = actuation.stop_mark()  # the stop arrives (on Zenoh's thread) ...
+        serve(actuation, configs, 100.0, "after")  # ... then a target, answered before the loop runs the stop
+        held = await actuation.halt(mark)
+        await until(lambda: dones.state("after") is not None, 10, "the later command's done")
+        await actuation.stop()
+        return dones, held
+
+    dones, held = asyncio.run(main())
+    assert [(i, s) for i, s, _, _ in dones.told] == [("before", "stopped"), ("after", "reached")]
+    for axis, device in outputs.items():
+        assert device.written[-1][1] == volts(configs, 100.0)[axis]
+        assert held[axis] is not None and held[axis] < volts(configs, 400.0)[axis]

@@ -115,16 +115,16 @@ class ModbusCell:
                   f"max_slew_um_per_s = {RATE}\n")
         if axes == ("x",):
             write_test_model(model)
-            config.write_text(file_sensor_config(root, cell=self.cell, port=self.port, model_path=model,
-                                                 sensor_file=sensors.path, actuator=f"{output}address = 10\n",
-                                                 extra=hub))
+            text = file_sensor_config(root, cell=self.cell, port=self.port, model_path=model,
+                                      sensor_file=sensors.path, actuator=f"{output}address = 10\n", extra=hub)
         else:
             write_cell_model(model, axes)
             text = file_sensor_config(root, cell=self.cell, port=self.port, model_path=model,
                                       sensor_file=sensors.path, extra=hub).replace("[actuator]\n", "")
-            config.write_text(text + "".join(
-                f'\n[[axes]]\nname = "{a}"\nmin_um = 0.0\nmax_um = 480.0\n[axes.actuator]\n{output}'
-                f"address = {ADDRESSES[a]}\n" for a in axes))
+            text += "".join(f'\n[[axes]]\nname = "{a}"\nmin_um = 0.0\nmax_um = 480.0\n[axes.actuator]\n{output}'
+                            f"address = {ADDRESSES[a]}\n" for a in axes)
+        config.write_text(text)
+        self.config, self.config_text, self.hub = config, text, hub
         self.daemon = Daemon(["--config", str(config)], root / "daemon.log", [plugins])
         self.daemon.wait_log("serving", timeout=30)
         self.client = Client(self.port, self.cell)
@@ -157,6 +157,11 @@ class ModbusCell:
             return {"x": float(value)}
         assert isinstance(value, dict) and list(value) == list(self.axes), value
         return {a: float(v) for a, v in value.items()}
+
+    def edit_hub(self) -> None:
+        """An edit of the module's hub (its timeout): a reload restarts the drivers."""
+        self.config.write_text(self.config_text.replace(self.hub, self.hub.replace("timeout_s = 0.5",
+                                                                                   "timeout_s = 0.6")))
 
     def register_v(self, axis: str) -> float:
         return signed(self.module.registers(ADDRESSES[axis])[0]) * SCALE_V
@@ -241,15 +246,38 @@ def test_every_served_command_gets_one_done_saying_how_it_ended(cell: ModbusCell
     wanted = cell.per_axis(failing["voltage_v"])
     wait_until(lambda: all(close_to(cell.register_v(a), wanted[a]) for a in axes), 20, "the goal after the fault")
 
-    # stopped, by a put, mid-ramp (150 -> 450 um: 3 s)
+    # a reload mid-ramp (150 -> 350 um: 2 s): the command is carried over to the new drivers and ends once
     before = len(cell.landed)
-    cell.put(450.0, 24)
+    carried = cell.query(350.0, 24)
+    wait_until(lambda: len(cell.landed) >= before + 3 * len(axes), 10, "the ramp under way", interval=0.02)
+    cell.edit_hub()
+    cell.daemon.signal(signal.SIGHUP)
+    assert cell.daemon.wait_log("reload_applied", timeout=20)["drivers_restarted"] is True
+    done = watch.wait(24)
+    assert done["state"] == "reached", done
+    wanted = cell.per_axis(carried["voltage_v"])
+    slack_v = SCALE_V + RATE * VOLTS_PER_UM * 0.050  # a count, and 50 ms of stamping jitter on a loaded machine
+    for axis in axes:
+        assert close_to(cell.per_axis(done["voltage_v"])[axis], wanted[axis])
+        ramp = [(t, raw * SCALE_V) for t, address, raw in cell.landed[before:] if address == ADDRESSES[axis]]
+        assert close_to(ramp[-1][1], wanted[axis]) and len(ramp) > 10
+        for (t0, v0), (t1, v1) in itertools.pairwise(ramp):  # across the reload too: never faster than the slew
+            assert abs(v1 - v0) <= RATE * VOLTS_PER_UM * (t1 - t0) + slack_v, f"{v1 - v0:.4f} V in {t1 - t0:.4f} s"
+
+    # stopped, by a put, mid-ramp (350 -> 450 um: 1 s)
+    before = len(cell.landed)
+    cell.put(450.0, 25)
     wait_until(lambda: len(cell.landed) >= before + 3 * len(axes), 10, "the ramp under way", interval=0.02)
     watch.stop_put(json.dumps({"id": 2}))
-    done = watch.wait(24)
+    done = watch.wait(25)
     assert done["state"] == "stopped"
     held = cell.per_axis(done["voltage_v"])
     assert all(close_to(cell.register_v(a), held[a]) for a in axes)
+
+    # a stop put and a target put right after it: the stop ends what came before it, not the target
+    watch.stop_put(b"")
+    cell.put(420.0, "after")
+    assert watch.wait("after")["state"] == "reached"
 
     # a bad stop: a put is logged and ignored, a query gets a reply error
     watch.stop_put(b"{not json")
@@ -260,15 +288,15 @@ def test_every_served_command_gets_one_done_saying_how_it_ended(cell: ModbusCell
 
     # the daemon stops mid-ramp: the command in flight ends stopped before the session closes
     before = len(cell.landed)
-    cell.put(0.0, 25)
+    cell.put(0.0, 26)
     wait_until(lambda: len(cell.landed) >= before + 3 * len(axes), 10, "the ramp under way", interval=0.02)
     cell.daemon.signal(signal.SIGTERM)
-    assert watch.wait(25)["state"] == "stopped"
+    assert watch.wait(26)["state"] == "stopped"
     assert cell.daemon.proc.wait(20) == 0
 
-    for i in range(1, 26):  # exactly one done per served command
+    for i in [*range(1, 27), "after"]:  # exactly one done per served command
         assert len(watch.of(i)) == 1, (i, watch.of(i))
-    assert len(watch.dones) == 25
+    assert len(watch.dones) == 27
 
 
 def test_with_no_output_each_command_is_reached_right_after_its_publish(tmp_path: Path) -> None:
