@@ -1,8 +1,9 @@
 """``nanodrift.Client`` against real daemons (``nanodrift run`` subprocesses, real Zenoh over 127.0.0.1), and
 ``[zenoh] prefix``: a cell under its own key tree, nothing of it left under ``nanodrift/``.
 
-What needs the daemon's ``done`` and ``stop`` (a move that waits for ``reached``, a stop that ends a ramp)
-is in ``test_client_done.py``. Every wait is on an event (a reply, a sample), never a sleep.
+The daemon's ``done`` and ``stop`` at length (a move that waits for ``reached``, a stop that ends a ramp)
+are in ``test_client_done.py``; the client's waiting logic on a stand-in cell in ``test_client_fake_cell.py``.
+Every wait is on an event (a reply, a sample) or a bounded poll of one, never a bare sleep.
 """
 
 from __future__ import annotations
@@ -239,8 +240,10 @@ def test_a_prefixed_daemon_answers_under_its_prefix_and_nothing_under_nanodrift(
     try:
         with Client(endpoint(prefixed.port), cell=prefixed.cell, prefix=PREFIX) as cell:
             wait_ready(cell)
-            command = cell.move(240.0, wait=False)
+            command = cell.move(240.0, timeout_s=10.0)  # its done, under the prefix too
             assert command.q_um == pytest.approx(expected_q(240.0, TEMPS), abs=1e-9)
+            assert command.done is not None and command.done["state"] == "reached"
+            assert cell.stop()["held"] is True
             assert cell.status()["cell"] == prefixed.cell
             key = f"{PREFIX}/{prefixed.cell}/command"
             with lock:  # the command, then a telemetry sample published after it: the daemon has spoken since
