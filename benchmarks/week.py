@@ -83,6 +83,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from anywher
 
 from nanodrift.calibration.dataset import write_csv
 from nanodrift.calibration.plans import VALIDATION_POINTS_UM
+from nanodrift.client import Client
 from nanodrift.drivers.simulated.datasets import simulate_dataset
 from nanodrift.service.recorder import RECORD_COLUMNS
 
@@ -130,20 +131,16 @@ def write_config(path: Path, *, port: int, model: Path, mode: str, speed: float,
         + sensors)
 
 
-def zconf(port: int) -> zenoh.Config:
-    conf = zenoh.Config()
-    conf.insert_json5("mode", json.dumps("client"))
-    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    return conf
-
-
 class WeekClient:
-    """Sends targets, counts commands and refusals (by kind), reads ``status``."""
+    """Sends targets, counts commands and refusals (by kind), reads ``status``: a :class:`nanodrift.Client`'s
+    session and status, with its own subscribers and a ``target`` publisher. The week's targets are puts, not
+    ``Client.move``: the pacing loop sends one every period of cell time and never waits for an answer, and
+    the answers (every client's ``command`` and ``error``) are counted as they arrive."""
 
     def __init__(self, port: int, cell: str) -> None:
-        self.prefix = f"nanodrift/{cell}"
-        self.session = zenoh.open(zconf(port))
+        self.client = Client(f"tcp/127.0.0.1:{port}", cell)
+        self.session = self.client.session
+        self.prefix = self.client.keys.prefix
         self.commands = 0
         self.refusals: dict[str, int] = {}
         self.first_refusal = ""
@@ -165,11 +162,10 @@ class WeekClient:
             self.first_refusal = self.first_refusal or str(doc.get("error"))
 
     def status(self) -> dict[str, object] | None:
-        replies = list(self.session.get(f"{self.prefix}/status", timeout=2.0))
-        if len(replies) != 1 or replies[0].ok is None:
+        try:
+            return self.client.status(timeout_s=2.0)
+        except TimeoutError:
             return None
-        doc: dict[str, object] = json.loads(replies[0].ok.payload.to_bytes())
-        return doc
 
     def cell_time(self) -> float | None:
         """The newest reading's stamp in ``status`` (cell clock), once every channel is ok."""
@@ -183,7 +179,10 @@ class WeekClient:
         return max(float(s["t"]) for s in sensors.values())
 
     def close(self) -> None:
-        self.session.close()
+        for sub in self._subs:
+            sub.undeclare()
+        self.publisher.undeclare()
+        self.client.close()
 
 
 @dataclass

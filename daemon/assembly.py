@@ -89,6 +89,7 @@ def build_drivers(config: Config, context: DriverContext | None = None, *,
             actuator = plugins[kind].create_actuator(options, context)
         except Exception as error:
             raise DriverSetupError(f"actuator kind {kind!r}: {error}") from error
+        actuators = {"x": actuator}  # a one-axis cell is a cell of one axis, x
     description = "simulated cell" if config.virtual_cell else "hardware"
     return DriverSet(
         context=context,

@@ -21,7 +21,8 @@ class DriverSet:
     roles: dict[str, str]
     max_age_s: dict[str, float]
     description: str = ""
-    #: a multi-axis cell's output per axis (an axis with ``kind = "zenoh"`` has none); empty for a one-axis cell
+    #: the cell's output per axis (a one-axis cell's: ``{"x": actuator}``; an axis with ``kind = "zenoh"`` has
+    #: none): what the daemon's actuation drives. ``actuator`` is a one-axis cell's, what its procedures drive
     actuators: dict[str, Actuator] = field(default_factory=dict)
     #: a multi-axis cell's position sensor per axis
     position_axes: dict[str, str] = field(default_factory=dict)

@@ -112,11 +112,14 @@ class Slew:
 
     ``next_voltage`` is asked just before each write with the time it is asked at (any monotonic
     seconds); ``wrote`` is told once that write was sent. A move from rest covers one
-    :data:`RAMP_PERIOD_S` in its first step.
+    :data:`RAMP_PERIOD_S` in its first step, or less when the device's last write (of any move: one a
+    stop or a reload cut short) began less than that ago: between any two values a device receives, it
+    never moves faster than the rate.
     """
 
     def __init__(self) -> None:
         self._last_step_s: float | None = None  # when the previous sub-command of a ramp began
+        self._last_write_s: float | None = None  # when the last sub-command of any move began
 
     def rest(self) -> None:
         """The stage is at rest (a move ended, or nothing is known): the next move starts afresh."""
@@ -129,7 +132,11 @@ class Slew:
         if slew <= 0 or at_v is None:
             return goal_v
         since = self._last_step_s
-        interval_s = RAMP_PERIOD_S if since is None else min(max(now_s - since, 0.0), MAX_STEP_INTERVAL_S)
+        if since is None:  # from rest: one ramp period, never more time than passed since the last write
+            last = self._last_write_s
+            interval_s = RAMP_PERIOD_S if last is None else min(max(now_s - last, 0.0), RAMP_PERIOD_S)
+        else:
+            interval_s = min(max(now_s - since, 0.0), MAX_STEP_INTERVAL_S)
         max_step_v = slew * abs(limits.volts_per_um) * interval_s
         delta = goal_v - at_v
         if abs(delta) <= max_step_v:
@@ -139,6 +146,7 @@ class Slew:
     def wrote(self, began_s: float, reached_goal: bool) -> None:
         """A sub-command that began at ``began_s`` was sent; ``reached_goal``: it was the goal itself."""
         self._last_step_s = None if reached_goal else began_s
+        self._last_write_s = began_s
 
 
 def ramp_seconds(limits: MotionLimits, from_v: float, to_v: float) -> float:

@@ -19,7 +19,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import AllowInfNan, BaseModel, Field, PrivateAttr, Strict, field_validator, model_validator
 
-from nanodrift import motion
+import nanodrift.motion as motion
 from nanodrift.calibration.plans import CALIBRATION_POINTS_UM, PAPER_TIMING, StepTiming
 from nanodrift.drivers.base import ActuatorOptions, SensorConfig, StrictModel
 
@@ -29,6 +29,33 @@ DEFAULT_MODEL_PATH = DATA_DIR / "default_model.json"
 #: where a real cell's model lives by default: the unit's state directory (see the README's install steps)
 STATE_MODEL_PATH = Path("/var/lib/nanodrift/model.json")
 BUILTIN_SOURCE = "<built-in default config>"
+
+
+#: the key tree every cell's keys live under unless ``[zenoh] prefix`` says otherwise (the contract's default)
+DEFAULT_PREFIX = "nanodrift"
+#: one chunk of a key prefix: characters a Zenoh key expression takes literally (no ``*``, ``$``, ``#``, ``?``)
+_PREFIX_CHUNK = re.compile(r"[A-Za-z0-9_.\-]+")
+
+
+def prefix_problem(value: str) -> str | None:
+    """Why ``value`` is not a usable key prefix (``[zenoh] prefix``, ``--prefix``, ``Client(prefix=)``), or None.
+
+    One or more ``/``-separated chunks of letters, digits, ``_``, ``.``, ``-``: no wildcard or other
+    special character of Zenoh's key expressions, no empty chunk, no leading or trailing ``/``."""
+    expected = ('expected one or more "/"-separated chunks of letters, digits, "_", "." or "-", '
+                'e.g. "nanodrift" or "femto/lab3/stages"')
+    if not value:
+        return f"empty; {expected}"
+    if value.startswith("/") or value.endswith("/"):
+        return f"{value!r} starts or ends with '/'; {expected}"
+    for chunk in value.split("/"):
+        if not chunk:
+            return f"{value!r} has an empty chunk ('//'); {expected}"
+        if not _PREFIX_CHUNK.fullmatch(chunk):
+            bad = sorted({c for c in chunk if not _PREFIX_CHUNK.fullmatch(c)})
+            what = "a wildcard or special character" if set(bad) & set("*$#?") else "character(s)"
+            return f"{value!r} has {what} {' '.join(repr(c) for c in bad)} in chunk {chunk!r}; {expected}"
+    return None
 
 
 #: a path written as a TOML string (strict mode would take only a Path object)
@@ -43,6 +70,16 @@ class ZenohSettings(StrictModel):
     connect: list[str] = Field(default_factory=list)
     multicast_scouting: bool = Field(default=True, description="find peers by UDP multicast")
     config_file: PathText | None = Field(default=None, description="a zenoh json5 config used as the base")
+    prefix: str = Field(default=DEFAULT_PREFIX, description=(
+        "the key tree of the cell: its keys are <prefix>/<cell>/...; one or more chunks, e.g. femto/lab3/stages"))
+
+    @field_validator("prefix")
+    @classmethod
+    def _key_prefix(cls, value: str) -> str:
+        problem = prefix_problem(value)
+        if problem:
+            raise ValueError(problem)
+        return value
 
 
 class ModelSettings(StrictModel):
@@ -353,7 +390,8 @@ class Config(StrictModel):
     owns (``[simulation]``). None of these are typed here: the core knows no plugin by name.
     """
 
-    cell: str = Field(default="cell0", pattern=r"^[A-Za-z0-9_\-]+$", description="key prefix nanodrift/<cell>")
+    cell: str = Field(default="cell0", pattern=r"^[A-Za-z0-9_\-]+$",
+                      description="the cell's keys are <[zenoh] prefix>/<cell>/...")
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
     model: ModelSettings = Field(default_factory=ModelSettings)
     actuator: ActuatorConfig = Field(default_factory=ActuatorConfig)

@@ -138,3 +138,20 @@ def test_the_one_voltage_limit_check_names_the_command_and_the_limits() -> None:
             checked_voltage(Limits(), q)
         message = str(refused.value)
         assert message.startswith(f"command q {q:.4f} µm needs ") and message.endswith("outside [-2, 12] V")
+
+
+def test_a_move_from_rest_soon_after_the_last_write_covers_only_the_time_since_it() -> None:
+    """A stop (or a reload) ends a ramp and the next move starts 5 ms after the last write: its first step
+    covers those 5 ms, not a whole ramp period (between two values the device receives, never faster)."""
+    limits = Limits(max_slew_um_per_s=100.0)  # 2 V/s at 0.02 V/um
+    slew = Slew()
+    slew.next_voltage(limits, 0.0, 9.6, 0.0)
+    slew.wrote(0.0, False)
+    slew.next_voltage(limits, 0.04, 9.6, 0.02)
+    slew.wrote(0.02, False)
+    slew.rest()  # a stop
+    step = slew.next_voltage(limits, 0.08, 0.0, 0.025) - 0.08  # back down, 5 ms after the last write
+    assert math.isclose(step, -2.0 * 0.005, rel_tol=1e-9)
+    slew.wrote(0.025, False)
+    slew.rest()
+    assert math.isclose(slew.next_voltage(limits, 0.0, 9.6, 10.0), 2.0 * RAMP_PERIOD_S, rel_tol=1e-12)  # long rest

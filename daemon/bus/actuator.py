@@ -24,7 +24,7 @@ class ZenohActuator(Actuator):
 
     def __init__(self, config: Any, procedure: str = "calibration") -> None:
         self.settings = config.zenoh
-        self.keys = Keys(config.cell)
+        self.keys = Keys(config.cell, config.zenoh.prefix)
         self.procedure = procedure
         self.sent = 0
         self._session: zenoh.Session | None = None

@@ -3,11 +3,14 @@
 Bytes in, bytes out, no session: the contract can be tested (and is pinned byte for byte in
 ``tests/bus/test_payload_bytes.py``) without a network.
 
-- :func:`key_prefix` and :class:`Keys`: the key expressions under ``nanodrift/<cell>/``.
+- :func:`key_prefix` and :class:`Keys`: the key expressions under ``<prefix>/<cell>/`` (``nanodrift/<cell>/``
+  by default).
 - :func:`parse_target`: a client's payload -> :class:`Target`, or a :class:`Refusal` saying what was
   wrong. The usual target is matched by a regular expression without building a dict.
 - :class:`Command`: one answer on ``command``; :func:`encode_command` is the one encoder that turns
   it into bytes. :func:`encode_error` and :func:`encode_telemetry` write the other payloads.
+- :func:`encode_done`: how a served command ended; :func:`parse_stop` / :func:`encode_stop_reply`: a
+  client's ``stop`` and the answer to a ``stop`` query.
 """
 
 from __future__ import annotations
@@ -28,16 +31,22 @@ MAX_ID_CHARS = 200
 _ID_LIMIT = 2**63
 
 
-def key_prefix(cell: str) -> str:
-    """``nanodrift/<cell>``, under which every key of a cell lives (``cell`` ``*``: every cell's)."""
-    return f"nanodrift/{cell}"
+#: the contract's default key tree (``[zenoh] prefix``; the client's ``prefix=`` and ``--prefix``)
+DEFAULT_PREFIX = "nanodrift"
+
+
+def key_prefix(cell: str, prefix: str = DEFAULT_PREFIX) -> str:
+    """``<prefix>/<cell>`` (``nanodrift/<cell>`` by default), under which every key of a cell lives
+    (``cell`` ``*``: every cell's)."""
+    return f"{prefix}/{cell}"
 
 
 class Keys:
-    """The contract's key expressions for one cell."""
+    """The contract's key expressions for one cell, under ``<prefix>/<cell>/`` (``[zenoh] prefix``, default
+    ``nanodrift``; validated by :func:`nanodrift.settings.prefix_problem` where it comes in)."""
 
-    def __init__(self, cell: str) -> None:
-        self.prefix = key_prefix(cell)
+    def __init__(self, cell: str, prefix: str = DEFAULT_PREFIX) -> None:
+        self.prefix = key_prefix(cell, prefix)
         self.target = f"{self.prefix}/target"
         self.command = f"{self.prefix}/command"
         self.error = f"{self.prefix}/error"
@@ -45,6 +54,8 @@ class Keys:
         self.status = f"{self.prefix}/status"
         self.alive = f"{self.prefix}/alive"
         self.health = f"{self.prefix}/health"
+        self.done = f"{self.prefix}/done"
+        self.stop = f"{self.prefix}/stop"
 
     def telemetry(self, role: str, channel: str, axis: str | None = None) -> str:
         """``sensors/temperature/<channel>``, ``sensors/position``; a multi-axis cell's position sensors each
@@ -298,6 +309,65 @@ def _finite(value: Any) -> Any:
     if isinstance(value, list | tuple):
         return [_finite(v) for v in value]
     return value
+
+
+# --- how a served command ended, and a stop --------------------------------------------------------
+
+#: the states a ``done`` reports (README, Zenoh keys ``done``)
+DONE_STATES = ("reached", "superseded", "stopped", "failed")
+
+
+def encode_done(target_id: str | int | None, state: str, t: float, voltage_v: float | Mapping[str, float | None] | None,
+                error: str | None = None) -> bytes:
+    """The ``done`` payload: ``{"id", "state", "t", "voltage_v", "error"}``, every key always present;
+    ``voltage_v`` what the outputs hold (a number in a one-axis cell, ``{axis: V}`` in a cell of several,
+    null where it is unknown), ``error`` null unless the state is ``failed``."""
+    if state not in DONE_STATES:
+        raise ValueError(f"done state {state!r} is not one of {', '.join(DONE_STATES)}")
+    held = dict(voltage_v) if isinstance(voltage_v, Mapping) else voltage_v
+    return dumps({"id": target_id, "state": state, "t": t, "voltage_v": held,
+                  "error": error if state == "failed" else None})
+
+
+@dataclass(slots=True)
+class Stop:
+    """A client's ``stop``: its id (None when it has none)."""
+
+    id: str | int | None
+
+
+def parse_stop(payload: bytes, max_bytes: int = MAX_PAYLOAD_BYTES) -> Stop:
+    """Decode a ``stop``: ``{"id": string|int, optional}`` or an empty payload; other keys are ignored (a stop
+    that says more still stops). A :class:`Refusal` (kind ``bad_payload``) for anything else."""
+    if len(payload) > max_bytes or type(payload) is Oversized:
+        size = payload.size if isinstance(payload, Oversized) else len(payload)
+        raise Refusal("bad_payload", f"stop payload of {size} bytes exceeds the {max_bytes}-byte limit")
+    if not payload.strip(b" \t\n\r"):
+        return Stop(None)
+    try:
+        doc = json.loads(payload.decode("utf-8"))
+    except (UnicodeDecodeError, ValueError, RecursionError) as error:
+        reason = "not UTF-8 text" if isinstance(error, UnicodeDecodeError) else f"not valid JSON ({error})"
+        raise Refusal("bad_payload", f"stop payload is {reason}; expected {{\"id\": ...}} or nothing") from None
+    if not isinstance(doc, dict):
+        raise Refusal("bad_payload", f"stop payload must be a JSON object, got {type(doc).__name__}")
+    stop_id, problem = _id_of(doc)
+    if problem:
+        raise Refusal("bad_payload", f"stop: {problem}")
+    return Stop(stop_id)
+
+
+def encode_stop_reply(stop_id: str | int | None, voltage_v: float | Mapping[str, float | None] | None) -> bytes:
+    """A ``stop`` query's reply, once every ramp has ended: ``{"id", "voltage_v", "held": true}``, ``voltage_v``
+    what each output holds (a number in a one-axis cell, ``{axis: V}`` in a cell of several; null where
+    unknown)."""
+    held = dict(voltage_v) if isinstance(voltage_v, Mapping) else voltage_v
+    return dumps({"id": stop_id, "voltage_v": held, "held": True})
+
+
+def encode_stop_error(stop_id: str | int | None, message: str) -> bytes:
+    """A ``stop`` query's reply error (a bad payload): ``{"id", "error", "kind": "bad_payload"}``."""
+    return dumps({"id": stop_id, "error": message, "kind": "bad_payload"})
 
 
 # --- a multi-axis cell --------------------------------------------------------------------------

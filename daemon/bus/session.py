@@ -17,7 +17,7 @@ from typing import Any
 
 import zenoh
 
-from nanodrift.bus.protocol import MAX_PAYLOAD_BYTES, Keys, Oversized
+from nanodrift.bus.protocol import DEFAULT_PREFIX, MAX_PAYLOAD_BYTES, Keys, Oversized
 from nanodrift.settings import ZenohSettings
 
 # Keys is re-exported: a client opens a session and names the keys with one import
@@ -121,6 +121,8 @@ def listen_endpoints(conf: zenoh.Config) -> list[str]:
 
 OnTarget = Callable[[bytes, "zenoh.Query | None"], None]
 OnQuery = Callable[["zenoh.Query"], None]
+#: a ``stop`` (its payload; the query when it came as one), thread-safe, called on Zenoh's thread
+OnStop = Callable[[bytes, "zenoh.Query | None"], None]
 
 #: How the ``command`` and ``error`` publishers (the answers) meet a subscriber that does not read.
 #: Not BLOCK: one frozen subscriber would block every put for zenoh's ``block.wait_before_close``
@@ -136,9 +138,9 @@ ANSWER_EXPRESS = False
 class Bus:
     """The daemon's declarations on one Zenoh session."""
 
-    def __init__(self, session: zenoh.Session, cell: str) -> None:
+    def __init__(self, session: zenoh.Session, cell: str, prefix: str = DEFAULT_PREFIX) -> None:
         self.session = session
-        self.keys = Keys(cell)
+        self.keys = Keys(cell, prefix)
         self._declared: list[Any] = []
         self._telemetry: dict[str, zenoh.Publisher] = {}
         self._token: zenoh.LivelinessToken | None = None
@@ -148,12 +150,20 @@ class Bus:
         self._error_pub = session.declare_publisher(
             self.keys.error, congestion_control=ANSWER_CONGESTION, express=ANSWER_EXPRESS
         )
+        #: ``done`` (how each served command ended) meets a stalled subscriber as the answers do
+        self._done_pub = session.declare_publisher(
+            self.keys.done, congestion_control=ANSWER_CONGESTION, express=ANSWER_EXPRESS
+        )
         #: put one answer (bytes); the publishers' own methods, no wrapper on the hot path
         self.publish_command: Callable[[bytes], None] = self._command_pub.put
         self.publish_error: Callable[[bytes], None] = self._error_pub.put
+        self.publish_done: Callable[[bytes], None] = self._done_pub.put
 
-    def serve(self, loop: asyncio.AbstractEventLoop, on_target: OnTarget, on_status: OnQuery) -> None:
-        """Declare the target subscriber and the two queryables; announce liveliness last.
+    def serve(self, loop: asyncio.AbstractEventLoop, on_target: OnTarget, on_status: OnQuery,
+              on_stop: OnStop | None = None) -> None:
+        """Declare the target subscriber and the two queryables (and ``stop``'s subscriber and queryable:
+        ``on_stop`` runs on Zenoh's thread like ``on_target``, so a stop is ordered among the targets as
+        it arrived); announce liveliness last.
 
         ``on_target`` is thread-safe and runs on Zenoh's callback thread: handing each target to the
         loop costs a thread wake-up (~50 us here, as much as the whole Zenoh round trip's margin in
@@ -180,6 +190,20 @@ class Bus:
         self._declared.append(self.session.declare_subscriber(self.keys.target, target_sample))
         self._declared.append(self.session.declare_queryable(self.keys.compensate, compensate_query))
         self._declared.append(self.session.declare_queryable(self.keys.status, status_query))
+        if on_stop is not None:
+            stop = on_stop
+
+            def stop_sample(sample: zenoh.Sample) -> None:
+                payload = sample.payload
+                stop(payload.to_bytes() if len(payload) <= limit else Oversized.of(len(payload)), None)
+
+            def stop_query(query: zenoh.Query) -> None:
+                payload = query.payload
+                stop(b"" if payload is None else (payload.to_bytes() if len(payload) <= limit
+                                                  else Oversized.of(len(payload))), query)
+
+            self._declared.append(self.session.declare_subscriber(self.keys.stop, stop_sample))
+            self._declared.append(self.session.declare_queryable(self.keys.stop, stop_query))
         self._token = self.session.liveliness().declare_token(self.keys.alive)
 
     def publish_telemetry(self, role: str, channel: str, payload: bytes, axis: str | None = None) -> None:
@@ -217,7 +241,7 @@ class Bus:
     def close(self) -> None:
         """Withdraw, undeclare everything, close the session."""
         self.withdraw()
-        for entity in [*self._telemetry.values(), self._command_pub, self._error_pub]:
+        for entity in [*self._telemetry.values(), self._command_pub, self._error_pub, self._done_pub]:
             try:
                 entity.undeclare()
             except zenoh.ZError:

@@ -199,7 +199,13 @@ def check_channel_name(name: str, where: str) -> None:
 
 
 def read_csv(path: str | os.PathLike[str]) -> Dataset:
-    """Read and validate a data file; raise :class:`DataError` naming file, row and column."""
+    """Read a data file of the CSV contract (README, *Data files*) into a :class:`Dataset` (``nanodrift.read_csv``).
+
+    Columns: ``t_s`` (s, increasing), ``x_um`` (and ``y_um``, ``z_um`` in a file of several axes),
+    optionally ``q_um`` (``q_<axis>_um``); every other column not reserved is a temperature channel in °C
+    named by its header (``data.channels``), the reserved ones land in ``data.extra``. A bad file
+    (missing column, non-numeric cell, time not increasing, empty) raises :class:`DataError` naming the
+    file, the row and the column."""
     path = Path(path)
     try:
         # utf-8-sig: a spreadsheet's byte-order mark is not part of the first column's name
@@ -414,7 +420,10 @@ def _csv_chunks(columns: Mapping[str, np.ndarray], rows_per_chunk: int = 50_000)
 def write_csv(
     ds: Dataset, path: str | os.PathLike[str], extra_columns: Mapping[str, np.ndarray] | None = None
 ) -> None:
-    """Write a dataset (plus extra columns) atomically."""
+    """Write ``ds`` as a CSV of the contract (``nanodrift.write_csv``), its columns in contract order, then
+    ``extra_columns`` (name -> one value per row, e.g. ``{"q_pred_um": model.predict(ds)}``). Written
+    atomically (a temporary file renamed over ``path``); floats round-trip exactly through :func:`read_csv`.
+    Columns of different lengths are a :class:`ValueError`."""
     columns = ds.columns(extra_columns)
     lengths = {name: np.shape(values)[0] for name, values in columns.items()}
     if len(set(lengths.values())) > 1:

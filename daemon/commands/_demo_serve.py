@@ -19,10 +19,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import zenoh
-
-from nanodrift.bus.session import Keys, describe_zenoh_error, session_config
 from nanodrift.calibration.plans import PAPER_TIMING
+from nanodrift.client import Client, Refused
 from nanodrift.commands._cell import scenario_seed
 from nanodrift.errors import UserError
 
@@ -58,28 +56,27 @@ def demo_config(cell: str, listen: str, model_path: Path, scenario: str, speed: 
 
 
 class CellClient:
-    """A client session: targets through ``compensate``, positions from ``sensors/position``."""
+    """A :class:`nanodrift.Client` of the demo's cell (targets through ``compensate``, not waiting for ``done``:
+    the demo times its holds on the cell clock itself), and positions from ``sensors/position``."""
 
     def __init__(self, connect: str, cell: str, alive: Callable[[], bool] | None = None,
                  timeout_s: float = 30.0) -> None:
-        self.keys = Keys(cell)
-        conf = session_config(mode="client", connect=[connect], multicast_scouting=False)
         deadline = time.monotonic() + timeout_s
-        while True:
+        while True:  # the daemon starts in its own process: a client-mode session opens once it listens
             if alive is not None and not alive():
                 raise UserError("the demo's daemon exited before it listened")
             try:
-                self.session = zenoh.open(conf)
+                self.client = Client(connect, cell)
                 break
-            except zenoh.ZError as error:
+            except ConnectionError as error:
                 if time.monotonic() > deadline:
-                    raise UserError(f"the demo's daemon never listened on {connect}: "
-                                    f"{describe_zenoh_error(error, connect=[connect])}") from None
+                    raise UserError(f"the demo's daemon never listened: {error}") from None
                 time.sleep(0.1)
+        self.keys = self.client.keys
         self._alive = alive
         self._cond = threading.Condition()
         self.positions: list[tuple[float, float]] = []  # (cell clock t, µm)
-        self._sub = self.session.declare_subscriber(f"{self.keys.prefix}/sensors/position", self._position)
+        self._sub = self.client.session.declare_subscriber(f"{self.keys.prefix}/sensors/position", self._position)
 
     def _position(self, sample: Any) -> None:
         doc = json.loads(sample.payload.to_bytes())
@@ -89,10 +86,10 @@ class CellClient:
                 self._cond.notify_all()
 
     def status(self) -> dict[str, Any] | None:
-        for reply in self.session.get(self.keys.status, timeout=1.0):
-            if reply.ok is not None:
-                return json.loads(reply.ok.payload.to_bytes())
-        return None
+        try:
+            return self.client.status(timeout_s=1.0)
+        except TimeoutError:
+            return None
 
     def wait_ready(self, timeout: float = 30.0) -> None:
         deadline = time.monotonic() + timeout
@@ -106,11 +103,12 @@ class CellClient:
         raise UserError("the demo daemon's sensors never became ready")
 
     def compensate(self, x_um: float, target_id: int) -> tuple[bool, dict[str, Any]]:
-        payload = json.dumps({"x_um": x_um, "id": target_id})
-        for reply in self.session.get(self.keys.compensate, payload=payload, timeout=5.0):
-            result = reply.result  # a Sample, or a ReplyError
-            return isinstance(result, zenoh.Sample), json.loads(result.payload.to_bytes())
-        raise UserError(f"no answer from {self.keys.compensate}")
+        try:
+            return True, dict(self.client.move(x_um, wait=False, timeout_s=5.0, id=target_id).payload)
+        except Refused as refused:
+            return False, refused.payload
+        except TimeoutError:
+            raise UserError(f"no answer from {self.keys.compensate}") from None
 
     def latest_t(self, timeout: float) -> float:
         with self._cond:
@@ -131,7 +129,8 @@ class CellClient:
         return sum(window) / len(window)
 
     def close(self) -> None:
-        self.session.close()
+        self._sub.undeclare()
+        self.client.close()
 
 
 def log_tail(path: Path, lines: int = LOG_TAIL_LINES) -> str:

@@ -180,7 +180,7 @@ def describe_actuator(config: Config) -> str:
     a = config.actuator
     limits = f"[{a.v_min:g}, {a.v_max:g}] V"
     if a.kind == ZENOH_KIND:
-        return f"kind zenoh: an output node applies {Keys(config.cell).command}, {limits}"
+        return f"kind zenoh: an output node applies {Keys(config.cell, config.zenoh.prefix).command}, {limits}"
     keys = a.options.model_dump(exclude={"kind"}) if a.options is not None else {}
     where = ", ".join(f"{k} = {v!r}" for k, v in keys.items() if k in ("hub", "device_id", "address", "port"))
     return f"kind {a.kind}" + (f" ({where})" if where else "") + f", {limits}"

@@ -1,7 +1,8 @@
 """``nanodrift status``: every cell on the network (or one), from their ``status`` queryables.
 
-One wildcard query on ``nanodrift/*/status`` (or ``nanodrift/<cell>/status``) collects every daemon's
-reply until the timeout; the documents are printed as a compact table, or as a JSON list. With
+One wildcard query on ``<prefix>/*/status`` (or ``<prefix>/<cell>/status``; ``--prefix``, default
+``nanodrift``), :meth:`nanodrift.Client.statuses`, collects every daemon's reply until the timeout; the
+documents are printed as a compact table, or as a JSON list. With
 ``--watch S`` the query repeats every S seconds: on a terminal the table is redrawn in place, else a
 block is printed per refresh (a log file or a pipe gets every sample).
 
@@ -22,9 +23,8 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any, TextIO
 
-import zenoh
-
-from nanodrift.commands._client import add_client_flags, open_client, query_status, status_key
+from nanodrift.client import Client, status_key
+from nanodrift.commands._client import add_client_flags, open_client
 
 #: ANSI: cursor home, clear the screen (what ``watch`` does)
 CLEAR = "\x1b[H\x1b[2J"
@@ -44,7 +44,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "last interval). Exit 1 when no cell answers.", 96)
     add_client_flags(parser, endpoint_of="a daemon or router")
     parser.add_argument("--cell", default=None, metavar="C",
-                        help="only this cell (key nanodrift/C/status; default: every cell, nanodrift/*/status)")
+                        help="only this cell (key <prefix>/C/status; default: every cell, <prefix>/*/status)")
     parser.add_argument("--json", action="store_true", help="print the status documents as a JSON list")
     parser.add_argument("--watch", type=float, default=None, metavar="S",
                         help="refresh every S seconds until Ctrl-C: in place on a terminal, a block per refresh "
@@ -55,15 +55,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="seconds to collect the cells' replies")
 
 
-def collect(session: zenoh.Session, key: str, timeout_s: float, *, retry_s: float = 0.2) -> list[dict[str, Any]]:
+def collect(client: Client, cell: str | None, timeout_s: float) -> list[dict[str, Any]]:
     """Query until some cell answers or ``timeout_s`` is over (a scouting peer needs a moment to find them)."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        remaining = deadline - time.monotonic()
-        docs = query_status(session, key, max(remaining, 0.05))
-        if docs or deadline - time.monotonic() <= retry_s:
-            return docs
-        time.sleep(retry_s)
+    return client.statuses(cell, timeout_s=timeout_s)
 
 
 @dataclass
@@ -234,11 +228,11 @@ def render(docs: Sequence[dict[str, Any]], args: argparse.Namespace, previous: d
     if args.json:
         return json.dumps(list(docs))
     if not docs:
-        return NO_CELL_HINT.format(key=status_key(args.cell), timeout=args.timeout)
+        return NO_CELL_HINT.format(key=status_key(args.cell, args.prefix), timeout=args.timeout)
     return table(docs, previous)
 
 
-def watch(session: zenoh.Session, args: argparse.Namespace, out: TextIO,
+def watch(client: Client, args: argparse.Namespace, out: TextIO,
           sleep: Callable[[float], None] = time.sleep) -> int:
     """Refresh every ``args.watch`` seconds, ``args.count`` times (0: until Ctrl-C); exit 0."""
     terminal = out.isatty() and not args.json
@@ -247,7 +241,7 @@ def watch(session: zenoh.Session, args: argparse.Namespace, out: TextIO,
     try:
         while True:
             started = time.monotonic()
-            docs = collect(session, status_key(args.cell), args.timeout)
+            docs = collect(client, args.cell, args.timeout)
             text = render(docs, args, previous)
             stamp = datetime.now().astimezone().strftime("%Y-%m-%d %H:%M:%S")
             if terminal:
@@ -268,18 +262,18 @@ def watch(session: zenoh.Session, args: argparse.Namespace, out: TextIO,
 
 def main(args: argparse.Namespace) -> int:
     """One query (or ``--watch``); non-zero exit when no cell answers a single query."""
-    session = open_client(args)
+    client = open_client(args, None)
     try:
         if args.watch:
-            return watch(session, args, sys.stdout)
-        docs = collect(session, status_key(args.cell), args.timeout)
+            return watch(client, args, sys.stdout)
+        docs = collect(client, args.cell, args.timeout)
     finally:
-        session.close()
+        client.close()
     if not docs:
         if args.json:
             print("[]")
-        print(f"nanodrift status: {NO_CELL_HINT.format(key=status_key(args.cell), timeout=args.timeout)}",
-              file=sys.stderr)
+        hint = NO_CELL_HINT.format(key=status_key(args.cell, args.prefix), timeout=args.timeout)
+        print(f"nanodrift status: {hint}", file=sys.stderr)
         return 1
     print(render(docs, args, {}))
     return 0

@@ -14,13 +14,8 @@ import json
 import sys
 from typing import Any
 
-import zenoh
-
-from nanodrift.bus.protocol import Keys
-from nanodrift.commands._client import add_client_flags, open_client, query_status, status_key
-
-#: seconds to collect the cells' ``status`` replies when the target's cell did not answer
-DISCOVERY_TIMEOUT_S = 2.0
+from nanodrift.client import Client, Refused
+from nanodrift.commands._client import add_client_flags, open_client
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -28,7 +23,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "target positions (µm); a multi-axis cell: one comma-separated point per target in its axis order, "
         "e.g. 240,100 (put -- before a point that starts with -)"))
     add_client_flags(parser, endpoint_of="the daemon")
-    parser.add_argument("--cell", default="cell0", help="cell name (key prefix nanodrift/<cell>)")
+    parser.add_argument("--cell", default="cell0",
+                        help="cell name (keys <prefix>/<cell>/..., nanodrift/<cell> by default)")
     parser.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for each answer")
     parser.add_argument("--json", action="store_true", help="print JSON lines")
 
@@ -43,20 +39,13 @@ def _point(text: str) -> float | tuple[float, ...]:
 _point.__name__ = "float"  # argparse's message for a bad value stays "invalid float value: 'abc'"
 
 
-def _cell_axes(session: zenoh.Session, keys: Keys, timeout_s: float) -> tuple[str, ...] | None:
+def _cell_axes(cell: Client, timeout_s: float) -> tuple[str, ...] | None:
     """The cell's axes from its ``status`` (``("x",)`` for a one-axis cell); None when it does not answer."""
-    for reply in session.get(keys.status, timeout=timeout_s):
-        if isinstance(reply.result, zenoh.Sample):
-            doc = json.loads(reply.result.payload.to_bytes())
-            return tuple(doc["axes"]) if isinstance(doc.get("axes"), dict) else ("x",)
-    return None
-
-
-def _request(target: float | tuple[float, ...], axes: tuple[str, ...] | None, index: int) -> str:
-    if isinstance(target, tuple):
-        assert axes is not None
-        return json.dumps({**{f"{a}_um": v for a, v in zip(axes, target, strict=True)}, "id": index})
-    return json.dumps({"x_um": target, "id": index})
+    try:
+        doc = cell.status(timeout_s=timeout_s)
+    except TimeoutError:
+        return None
+    return tuple(doc["axes"]) if isinstance(doc.get("axes"), dict) else ("x",)
 
 
 def _shown(target: float | tuple[float, ...]) -> str:
@@ -105,32 +94,17 @@ def _format_command(doc: dict[str, Any]) -> str:
             f"[{'; '.join(details)}]{extra}")
 
 
-def no_answer(session: zenoh.Session, cell: str, key: str, timeout_s: float) -> str:
-    """Why nothing answered on ``key``: a cell nobody serves (naming those that answer), or no daemon at all."""
-    docs = query_status(session, status_key(None), min(timeout_s, DISCOVERY_TIMEOUT_S))
-    cells = [str(doc.get("cell")) for doc in docs]
-    if cell in cells:
-        return (f"cell {cell!r} answers status but gave no command on {key} within {timeout_s:g} s "
-                f"(a busy or stalled daemon: nanodrift status --cell {cell})")
-    if cells:
-        return (f"no daemon serves cell {cell!r} (nothing answers on {key}); the cell(s) answering on this "
-                f"network: {', '.join(cells)} (--cell {cells[0]})")
-    return (f"no daemon serves cell {cell!r}, and no cell answered on {status_key(None)} either "
-            "(is the daemon running? give its endpoint with -e tcp/HOST:PORT)")
-
-
 def main(args: argparse.Namespace) -> int:
-    """A client: each target through the ``compensate`` queryable; non-zero exit if any is refused."""
-    keys = Keys(args.cell)
-    session = open_client(args)
+    """A client: each target through :meth:`nanodrift.Client.move` (the ``compensate`` queryable, not waiting
+    for ``done``); non-zero exit if any is refused."""
+    cell = open_client(args, args.cell)
     failures = 0
-    unanswered = ""  # why the cell does not answer, asked once
     try:
         axes: tuple[str, ...] | None = None
         if any(isinstance(x, tuple) for x in args.x):
-            axes = _cell_axes(session, keys, args.timeout)
+            axes = _cell_axes(cell, args.timeout)
             if axes is None:
-                print(f"no answer from {keys.status} within {args.timeout:g} s to learn the cell's axes (is the "
+                print(f"no answer from {cell.keys.status} within {args.timeout:g} s to learn the cell's axes (is the "
                       "daemon running? -e tcp/HOST:PORT)", file=sys.stderr)
                 return 1
             wrong = [_shown(x) for x in args.x if len(x if isinstance(x, tuple) else (x,)) != len(axes)]
@@ -140,23 +114,17 @@ def main(args: argparse.Namespace) -> int:
                 return 2
             args.x = [x if isinstance(x, tuple) else (x,) for x in args.x]
         for index, x in enumerate(args.x):
-            request = _request(x, axes, index)
-            answer: dict[str, Any] | None = None
+            target: float | dict[str, float] = x if not isinstance(x, tuple) else dict(
+                zip(axes or (), x, strict=True))
             ok = False
-            for reply in session.get(keys.compensate, payload=request, timeout=args.timeout):
-                result = reply.result  # a Sample, or a ReplyError
-                raw = result.payload.to_bytes()
-                ok = isinstance(result, zenoh.Sample)
-                try:
-                    answer = json.loads(raw)
-                except ValueError:
-                    answer = {"id": index, "error": raw.decode("utf-8", "replace")}
-                break
-            if answer is None:
-                failures += 1
-                unanswered = unanswered or no_answer(session, args.cell, keys.compensate, args.timeout)
-                answer = {"id": index, "error": unanswered}
-            elif not ok:
+            try:
+                answer = dict(cell.move(target, wait=False, timeout_s=args.timeout, id=index).payload)
+                ok = True
+            except Refused as refused:
+                answer = refused.payload
+            except TimeoutError as unanswered:  # the cell does not answer: why, asked once by the client
+                answer = {"id": index, "error": str(unanswered)}
+            if not ok:
                 failures += 1
             if args.json:
                 print(json.dumps(answer))
@@ -167,5 +135,5 @@ def main(args: argparse.Namespace) -> int:
             else:
                 print(f"x {x:g} µm refused: {answer.get('error')}", file=sys.stderr)
     finally:
-        session.close()
+        cell.close()
     return 1 if failures else 0

@@ -78,7 +78,7 @@ def serving_daemons(session: zenoh.Session, key: str, wait_s: float = ALIVE_WAIT
 
 def check_not_served(config: Config, wait_s: float = ALIVE_WAIT_S) -> None:
     """:class:`PreflightError` when a daemon serves ``config.cell`` (its ``alive`` token is present)."""
-    keys = Keys(config.cell)
+    keys = Keys(config.cell, config.zenoh.prefix)
     session = _open(config)
     try:
         tokens = serving_daemons(session, keys.alive, wait_s)
@@ -94,7 +94,7 @@ async def wait_for_output(config: Config, wait_s: float | None = None) -> None:
     """:class:`PreflightError` unless a subscriber of ``nanodrift/<cell>/command`` appears within ``wait_s``
     (default :data:`OUTPUT_WAIT_S`)."""
     wait_s = OUTPUT_WAIT_S if wait_s is None else wait_s
-    key = Keys(config.cell).command
+    key = Keys(config.cell, config.zenoh.prefix).command
     session = await asyncio.to_thread(_open, config)
     try:
         publisher = session.declare_publisher(key)

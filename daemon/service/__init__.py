@@ -1,7 +1,8 @@
 """The compensation daemon: poll the sensors, answer every target, publish commands and telemetry.
 
 One unit per job: ``runner`` (lifecycle: signals, session, drivers, serve, cleanup), ``targets``
-(the hot path), ``actuation`` (latest command wins), ``sensors`` (readings in, telemetry out),
+(the hot path), ``actuation`` (latest command wins; each ends with one ``done``), ``stop`` (a client's
+``stop``), ``sensors`` (readings in, telemetry out),
 ``table`` (channel states), ``compensator`` (target -> command), ``polling`` (one task per sensor
 group), ``status``, ``supervision`` (state changes, watchdog), ``reload`` (SIGHUP), ``state``
 (what the target path and the loop share, behind one lock).

@@ -1,36 +1,67 @@
-"""The stage gets the latest command: coalesced, ramped when the jump is large, never on the answer's path.
+"""A cell's outputs get the latest command: coalesced, ramped when the jump is large, never on the answer's path.
 
-Answers hand their command over with :meth:`Actuation.offer` from Zenoh's threads; the writes run
-on the asyncio loop. A target asks for a wake of the loop only when the loop is idle: while a write
-is under way, newer commands just replace the pending one, and the loop takes the newest as soon as
-the write returns. Motion itself (where a move starts, the slew, the limits of what is sent) is
-:mod:`nanodrift.motion`'s, the one owner the procedures use too; this module owns the device's lifecycle.
+One object, :class:`Actuation`, drives every output of a cell, keyed by axis name (a one-axis cell is a
+cell of one axis, ``x``). Answers hand their command over with :meth:`Actuation.offer` from Zenoh's
+threads; the writes run on the asyncio loop, by one task for all axes, so commands never interleave on
+a shared line (a GCS controller's port, a Modbus module's connection). A target asks for a wake of the
+loop only when the loop is idle: while a write is under way, newer commands just replace the pending
+one, and the loop takes the newest as soon as the write returns. Motion itself (where a move starts,
+the slew, the limits of what is sent) is :mod:`nanodrift.motion`'s, the one owner the procedures use
+too; this module owns the devices' lifecycle.
 
-- **The goal** is the latest served command. It survives a reload that touches ``[actuator]``, a
-  device reopened after a fault, and a target answered while the drivers were being swapped: once
-  the (new) output is open, the goal is written to it (ramped from where the stage is). A goal the
-  new limits forbid is dropped (``actuator_goal_dropped``) and the stage holds where it is.
-- **Where the stage is** (:func:`nanodrift.motion.trusted_start`): a read-back is believed only inside
-  ``[v_min, v_max]`` and, once something was sent to this device, when it agrees with what was sent;
-  else it is unknown (``actuator_readback_untrusted``), never a start point. Unknown: the next
-  command is written as it is (``actuator_unramped`` says so, once).
+- **The goal** is the latest served command (every axis). It survives a reload that touches the
+  actuators, a device reopened after a fault, and a target answered while the drivers were being
+  swapped: once the (new) outputs are open, the goal is written to them (ramped from where each axis
+  is). A goal the new limits forbid on any axis is dropped whole (``actuator_goal_dropped``) and the
+  stage holds where it is.
+- **Each step** computes every axis' next voltage under its own ``max_slew_um_per_s`` and writes the
+  axes in the cell's order, so every axis of one command goes out before any axis of the next; axes
+  that reached the goal are not written again for it. A move ends when every axis holds its goal.
+- **Where each axis is** (:func:`nanodrift.motion.trusted_start`): its read-back is believed only inside
+  its ``[v_min, v_max]`` and, once something was sent to that device, when it agrees with what was
+  sent; else it is unknown (``actuator_readback_untrusted``), never a start point. Unknown: the next
+  command is written to that axis as it is (``actuator_unramped`` says so, once per start).
 - **Slew** (``max_slew_um_per_s > 0``): sub-commands every ``RAMP_PERIOD_S``, each covering the time
   since the previous one began, so a ramp takes distance / rate whatever the device's latency.
-- **What is sent** is checked: the voltage the device will receive (``Actuator.sent_voltage``: a DAC's
-  count, a controller's digits) must be inside the limits in force, or nothing is written.
+- **What is sent** is checked: the voltage each device will receive (``Actuator.sent_voltage``: a DAC's
+  count, a controller's digits) must be inside that axis' limits, for every axis of a step before any
+  axis is written, or nothing of the step is written and the cell is in fault.
 - **Faults**: a failed open, read back or write (``DeviceError``, any error, a timeout) or readback
-  mismatch puts the actuator in ``fault`` with the reason; it is closed and reopened with backoff and
-  the goal written again. Meanwhile targets are refused (``actuator_fault``). One ``actuator_failed``
-  line per episode, ``actuator_recovered`` when the device works again (a write, a reopen with nothing
-  to write, or a reload onto a device that opens).
-- **Shutdown**: :meth:`Actuation.stop` with ``final=True`` ramps to a finite ``safe_voltage_v`` within
-  ``SAFE_RAMP_BUDGET_S`` (the unit's stop timeout less a margin), retrying a transient failure, and
-  runs in a ``finally``: an exception on the way out never skips it.
+  mismatch on any axis puts the cell's output in ``fault`` with the reason (naming the axis in a cell
+  of several); every axis is closed and reopened with backoff and the goal written again. Meanwhile
+  targets are refused (``actuator_fault``). One ``actuator_failed`` line per episode,
+  ``actuator_recovered`` when the devices work again (a write, a reopen with nothing to write, or a
+  reload onto devices that open: an episode a reload interrupted is kept until then).
+- **How each served command ends** (``done_listeners``; the runner publishes ``done``), exactly once:
+  ``reached`` when every output holds it (the write of the ramp's end returned, the driver's read-back
+  included); ``superseded`` when a newer command replaced it, pending (replaced in :meth:`offer`, told
+  when the loop takes the newest) or in flight (a newer one taken mid-ramp); ``failed`` when a write,
+  read-back or open faults while it is in flight, or a reload's limits drop it (the goal is still
+  written once the outputs work again: no second ``done``); ``stopped`` by :meth:`halt` or by the
+  daemon's stop. A cell with no output device at all (every axis ``kind = "zenoh"``, or no actuator)
+  still runs the drive task with no outputs: the published command is the actuation, so each command is
+  ``reached`` as soon as the loop takes it (not paced: only commands that arrive within one loop turn of
+  each other are ``superseded``), and what a published axis holds is the latest command's voltage.
+- **A client's stop** (:meth:`halt`): the drive task ends its ramp between two writes (a write under way
+  completes), every output holds what it has, the command in flight (and a pending one) ends
+  ``stopped``, and the goal is forgotten, so a reload or a reopen moves nothing. A stop ends only the
+  commands served before it arrived (:meth:`stop_mark`, taken on Zenoh's thread): a target sent after
+  it moves. The next command moves
+  again, ramped from where each output is held; its first step covers no more than the time since the
+  output's last write (:class:`nanodrift.motion.Slew`, kept over a restart on the same device).
+- **Shutdown**: :meth:`Actuation.stop` with ``final=True`` ends the command in flight ``stopped``
+  (``failed``, with the fault's reason, when the outputs are in fault), then ramps every axis with a finite
+  ``safe_voltage_v`` to it, together, within ``SAFE_RAMP_BUDGET_S`` (the unit's stop timeout less a
+  margin), retrying a transient failure, and runs in a ``finally``: an exception on the way out never
+  skips it.
 
-One module of ~410 lines on purpose: it is one object, :class:`Actuation`, whose goal, fault and
-reopen cycle and shutdown ramp share one state (the goal, what was sent, the device open now) driven
-by one task on the loop; split, each part would reach into the others' state. The motion rules it
-applies are already :mod:`nanodrift.motion`'s.
+The shapes of a one-axis cell (its log lines' fields, its fault's text, its ``status`` actuator) are
+kept at the edges: :attr:`Actuation.single` says which shapes the lines take, :meth:`Actuation.axis_doc`
+is a one-axis cell's ``status`` actuator.
+
+One module on purpose: it is one object whose goal, fault and reopen cycle and shutdown ramp share one
+state (the goal, what was sent, the devices open now) driven by one task on the loop; split, each part
+would reach into the others' state. The motion rules it applies are already :mod:`nanodrift.motion`'s.
 """
 
 from __future__ import annotations
@@ -39,8 +70,8 @@ import asyncio
 import random
 import threading
 import time
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from typing import Any
 
 from nanodrift.config import SAFE_RAMP_BUDGET_S, ActuatorConfig
@@ -62,8 +93,8 @@ async def locate_stage(actuator: Actuator, config: ActuatorConfig, sent_v: tuple
     read = await actuator.read_back()
     read_v = None
     if read is not None:
-        field, value = read
-        read_v = value if field == "voltage_v" else config.voltage(value)
+        field_name, value = read
+        read_v = value if field_name == "voltage_v" else config.voltage(value)
     return trusted_start(config, read_v, sent_v, config.safe_voltage_v)
 
 
@@ -77,61 +108,104 @@ def checked_sent_voltage(actuator: Actuator, config: ActuatorConfig, voltage_v: 
     return sent
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(frozen=True, slots=True, eq=False)
 class Goal:
-    """A served command the stage should hold."""
+    """A command every axis should hold: q and voltage per axis, and the target's positions; ``id`` is the
+    served command's and ``served`` False for the safe stop's goal (no ``done`` is owed for it)."""
 
-    q_um: float
-    voltage_v: float
-    x_um: float | None = None
+    q_um: Mapping[str, float]
+    voltage_v: Mapping[str, float]
+    positions_um: Mapping[str, float] | None = None
+    id: str | int | None = None
+    served: bool = True
+    seq: int = 0  # the order in which commands were served (a stop ends those served before it)
 
 
-#: told (on the loop) when the stage reached a goal: the goal and the monotonic time it was sent
+#: told (on the loop) when every output holds a goal: the goal and the monotonic time
 OnReached = Callable[[Goal, float], None]
+#: told (on the loop) once per served command, how it ended: the goal, the state (reached, superseded, stopped
+#: or failed), what each axis holds now (V, None where unknown) and, when it failed, why
+OnDone = Callable[[Goal, str, dict[str, float | None], str | None], None]
+
+
+@dataclass(eq=False)
+class AxisOutput:
+    """One axis' device and what is known of it."""
+
+    axis: str
+    actuator: Actuator
+    config: ActuatorConfig
+    slew: Slew = field(default_factory=Slew)
+    at_v: float | None = None  # where the output is (ramps start there); None: unknown
+    tried_v: float | None = None  # the last voltage sent, confirmed or not
+    last_voltage_v: float | None = None  # what status shows (kept across a restart on the same device)
+    last_write_t: float | None = None  # unix time: a label for people
+    writes: int = 0
+    unramped_told: bool = False  # actuator_unramped is said once per start
+
+
+class AxisFault(Exception):
+    """A failure on one axis' device: ``text`` says what, ``axis`` where."""
+
+    def __init__(self, axis: str, text: str) -> None:
+        super().__init__(f"axis {axis}: {text}")
+        self.axis = axis
+        self.text = text
 
 
 class Actuation:
-    """The goal (latest wins), the task that gives it to the drivers' actuator, and its state."""
+    """The goal (latest wins), the task that writes it to every axis' device, and their state."""
 
-    def __init__(self, log: Any, *, safe_budget_s: float = SAFE_RAMP_BUDGET_S) -> None:
+    def __init__(self, log: Any, *, single: bool | None = None, safe_budget_s: float = SAFE_RAMP_BUDGET_S) -> None:
         self.log = log
         self.failures = RateLimitedLog(log, "actuator_failed", level="error")
         self.safe_budget_s = safe_budget_s
+        #: the one-axis cell's shapes (log fields, fault text) rather than a cell of several axes'; None: a
+        #: cell whose only output is ``x`` (decided at :meth:`start`)
+        self._single = single
+        self.single = single if single is not None else True
         self._lock = threading.Lock()  # guards the three below; never held across an await or a publish
         self._active = False
         self._pending: Goal | None = None  # served, not yet taken by the loop (kept while drivers are swapped)
         self._wake_pending = False
         self._event = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
-        self._actuator: Actuator | None = None
-        self._config: ActuatorConfig | None = None
+        self._outputs: dict[str, AxisOutput] = {}  # the devices open now, in the cell's axis order
+        self._known: dict[str, AxisOutput] = {}  # axis -> its last output (kept over a restart on the same device)
         self._goal: Goal | None = None  # the latest command taken: survives reloads and reopens
-        self._goal_on_device = True  # the goal was written in full to the device that is open now
+        self._goal_on_device = True  # the goal was written in full to the devices open now
         self.reached_listeners: list[OnReached] = []
+        # --- how each served command ends (exactly one ``done`` each) ---
+        self.done_listeners: list[OnDone] = []
+        self._superseded: list[Goal] = []  # pending commands a newer one replaced before the loop took them
+        self._inflight: Goal | None = None  # the served command the loop took and that has not ended yet
+        self._offered_v: dict[str, float] = {}  # the latest command's voltages: what a published axis holds
+        self._seq = 0  # commands served so far (under the lock)
+        #: stops asked of the drive task: each one's answer and the last command it ends (its ``seq``)
+        self._halt_waiters: list[tuple[asyncio.Future[dict[str, float | None]], int]] = []
+        self._halt_event = asyncio.Event()  # a stop was asked: ends a fault's backoff at once
         #: set while in fault (read without a lock on Zenoh's threads: one attribute, atomic)
         self.fault_reason: str | None = None
         self._fault_since = 0.0
         self._episode_failures = 0
         self._stashed_episode: tuple[float, int] | None = None  # a fault a reload stopped, until a device opens
-        # what status shows (kept across a restart on the same device: the stage keeps its voltage)
-        self.last_voltage_v: float | None = None
-        self.last_write_t: float | None = None  # unix time: a label for people
-        self.writes = 0
         self.write_failures = 0
-        self._device: str | None = None  # the description of the device the voltages below were sent to
-        self._tried_v: float | None = None  # the last voltage sent to it, confirmed or not
-        self._at_v: float | None = None  # where the stage is (the ramps start there); None: unknown
-        self._slew = Slew()
-        self._unramped_told = False  # actuator_unramped is said once per start
 
     # --- the target path (any thread) -----------------------------------------------------------
 
-    def offer(self, q_um: float, voltage_v: float, x_um: float | None = None) -> bool:
-        """Make this the command the stage gets next (any thread). True: the caller must wake the loop
+    def offer(self, q_um: Mapping[str, float], voltage_v: Mapping[str, float],
+              positions_um: Mapping[str, float] | None = None, target_id: str | int | None = None) -> bool:
+        """Make this the command every axis gets next (any thread). True: the caller must wake the loop
         (``loop.call_soon_threadsafe(actuation.wake)``); it is asked at most once per burst. While the
-        drivers are being swapped (a reload) the command waits for the new output."""
+        drivers are being swapped (a reload) the command waits for the new outputs. A pending command this
+        one replaces ends ``superseded`` (told from the loop, when it takes the newest)."""
         with self._lock:
-            self._pending = Goal(q_um, voltage_v, x_um)
+            self._seq += 1
+            goal = Goal(q_um, voltage_v, positions_um, target_id, seq=self._seq)
+            if self._pending is not None:
+                self._superseded.append(self._pending)
+            self._pending = goal
+            self._offered_v = dict(voltage_v)
             if not self._active:
                 return False
             wake = not self._wake_pending
@@ -142,57 +216,86 @@ class Actuation:
         self._event.set()
 
     def doc(self) -> dict[str, Any]:
-        """The actuator's state for ``status`` (a device is driven: ``started`` was called)."""
-        actuator = self._actuator
+        """The outputs' state for a cell of several axes' ``status``: the cell's, then per axis."""
         return {
-            "state": "fault" if self.fault_reason is not None else ("ok" if actuator is not None else "closed"),
+            "state": self._state(),
             "reason": self.fault_reason,
-            "device": actuator.description if actuator is not None else None,
-            "last_voltage_v": self.last_voltage_v,
-            "last_write_t": self.last_write_t,
-            "writes": self.writes,
+            "failures": self.write_failures,
+            "axes": {axis: {"device": out.actuator.description, "last_voltage_v": out.last_voltage_v,
+                            "last_write_t": out.last_write_t, "writes": out.writes}
+                     for axis, out in self._outputs.items()},
+        }
+
+    def axis_doc(self, axis: str = "x") -> dict[str, Any]:
+        """One axis' output for a one-axis cell's ``status`` (state, reason, device, last written voltage and
+        time, writes, failures); what was written stays shown while the device is closed."""
+        out, known = self._outputs.get(axis), self._known.get(axis)
+        return {
+            "state": self._state(),
+            "reason": self.fault_reason,
+            "device": out.actuator.description if out is not None else None,
+            "last_voltage_v": known.last_voltage_v if known is not None else None,
+            "last_write_t": known.last_write_t if known is not None else None,
+            "writes": known.writes if known is not None else 0,
             "failures": self.write_failures,
         }
 
+    def _state(self) -> str:
+        return "fault" if self.fault_reason is not None else ("ok" if self._outputs else "closed")
+
     # --- lifecycle (the loop) -------------------------------------------------------------------
 
-    async def start(self, actuator: Actuator, config: ActuatorConfig) -> None:
-        """Open ``actuator``, find where the stage is, and start writing the goal and what follows; a
-        failure to open (or to read the output back) is a fault (reopened with backoff)."""
-        self._actuator, self._config = actuator, config
+    async def start(self, actuators: Mapping[str, Actuator], configs: Mapping[str, ActuatorConfig]) -> None:
+        """Open every axis' device, find where each axis is, and start writing the goal and what follows; a
+        failure to open (or to read an output back) is a fault (reopened with backoff)."""
+        if self._single is None and actuators:
+            self.single = tuple(actuators) == ("x",)
+        outputs: dict[str, AxisOutput] = {}
+        for axis, actuator in actuators.items():
+            config = configs[axis]
+            out = AxisOutput(axis, actuator, config)
+            known = self._known.get(axis)
+            if known is not None and known.actuator.description == actuator.description:
+                # the same device: what it was sent still says where it is (another device's says nothing)
+                out.last_voltage_v, out.last_write_t, out.tried_v = known.last_voltage_v, known.last_write_t, \
+                    known.tried_v
+                out.writes = known.writes
+                out.slew = known.slew  # when it was last written bounds the first step of the next move
+            actuator.limits_v = (config.v_min, config.v_max)
+            outputs[axis] = out
+        self._outputs = outputs
+        self._known.update(outputs)
         self.fault_reason = None
-        if actuator.description != self._device:  # another device: what the old one was sent says nothing
-            self._device = actuator.description
-            self.last_voltage_v = self.last_write_t = self._tried_v = None
-        self._at_v, self._unramped_told = None, False
-        self._slew.rest()
         self._goal_on_device = self._goal is None
-        actuator.limits_v = (config.v_min, config.v_max)
-        try:
-            start = await self._open(actuator, config)
-            self.log.info("actuator_open", device=actuator.description, voltage_v=start.voltage_v,
-                          known_from=start.known_from)
-            if self._stashed_episode is not None:
-                since, failures = self._stashed_episode
-                self.log.info("actuator_recovered", device=actuator.description, via="reload",
-                              after_s=round(time.monotonic() - since, 3), failures=failures)
-        except Exception as error:
-            if self._stashed_episode is not None:
-                self._fault_since, self._episode_failures = self._stashed_episode
-                self._still_failing(actuator, f"open failed: {_reason(error)}")
-            else:
-                self._enter_fault(actuator, f"open failed: {_reason(error)}")
-        self._stashed_episode = None
+        if outputs:
+            try:
+                starts = await self._open_all(outputs)
+                self._log_open(starts)
+                if self._stashed_episode is not None:
+                    since, failures = self._stashed_episode
+                    self.log.info("actuator_recovered", **self._devices(), via="reload",
+                                  after_s=round(time.monotonic() - since, 3), failures=failures)
+            except Exception as error:
+                reason = self._fault_text(error, "open failed: ")
+                if self._stashed_episode is not None:
+                    self._fault_since, self._episode_failures = self._stashed_episode
+                    self._still_failing(reason)
+                else:
+                    self._enter_fault(reason)
+                self._end_inflight("failed", reason)  # a command a reload carried over: its outputs fault
+            self._stashed_episode = None
         with self._lock:
             self._active, self._wake_pending = True, False
-        self._task = asyncio.create_task(self._drive(actuator), name="actuator")
+        self._task = asyncio.create_task(self._drive(), name="actuator")
 
     async def stop(self, *, final: bool = False) -> None:
-        """Stop writing and close the actuator (a failure to close is logged). ``final`` (the daemon
-        stops): first ramp to a finite ``safe_voltage_v``, whatever happened before."""
+        """Stop writing and close every axis' device (a failure to close is logged). ``final`` (the daemon
+        stops): every command still in flight ends ``stopped`` (``failed``, with the reason, when the outputs
+        are in fault), then every axis ramps to its finite ``safe_voltage_v``, whatever happened before. Not
+        ``final`` (a reload): the goal and the command in flight wait for the next :meth:`start`."""
         with self._lock:
             self._active = False
-        actuator, self._actuator = self._actuator, None
+        outputs, self._outputs = self._outputs, {}
         fault, self.fault_reason = self.fault_reason, None  # a stopped actuator refuses nothing (reload to zenoh)
         try:
             task, self._task = self._task, None
@@ -205,27 +308,44 @@ class Actuation:
             if error is not None:  # the drive loop catches its own; this is a bug, not a reason to skip the safe ramp
                 self.log.error("actuator_task_failed", error=_reason(error))
         finally:
-            if actuator is not None:
+            try:
+                if self._halt_waiters:  # a client's stop the cancelled task did not carry out: done here
+                    self._halted()
+                if final:
+                    self._end_all("failed" if fault is not None else "stopped", fault)
+            except Exception as error:  # a bug: said, and never a reason to skip the safe ramp
+                self.log.error("actuator_done_failed", error=_reason(error))
+            if outputs:
                 if fault is not None and not final:
                     self._stashed_episode = (self._fault_since, self._episode_failures)
                 try:
-                    if final and self._config is not None:
-                        await self._write_safe(actuator, self._config, reopen=fault is not None or self._at_v is None)
+                    if final:
+                        await self._write_safe(outputs, reopen=fault is not None
+                                               or any(o.at_v is None for o in outputs.values()))
                 finally:
-                    try:
-                        await actuator.close()
-                    except Exception as error:
-                        self.log.warning("actuator_close_failed", error=str(error))
+                    for out in outputs.values():
+                        try:
+                            await out.actuator.close()
+                        except Exception as error:
+                            self.log.warning("actuator_close_failed", **self._axis(out), error=str(error))
 
-    async def _write_safe(self, actuator: Actuator, config: ActuatorConfig, *, reopen: bool) -> None:
-        """Ramp to ``safe_voltage_v`` within the budget, reopening and retrying after a transient failure."""
-        safe_v, safe_q = config.safe_voltage_v, config.safe_q_um
-        if safe_q is None:
-            return  # nan: leave the stage where it is
-        if not config.within_limits(safe_v):  # the config refuses this; never write it anyway
-            self.log.error("actuator_safe_refused", voltage_v=safe_v, v_min=config.v_min, v_max=config.v_max)
+    async def _write_safe(self, outputs: Mapping[str, AxisOutput], *, reopen: bool) -> None:
+        """Ramp every axis with a finite ``safe_voltage_v`` to it within the budget, reopening and retrying
+        after a transient failure."""
+        safe: dict[str, AxisOutput] = {}
+        for axis, out in outputs.items():
+            config = out.config
+            if config.safe_q_um is None:
+                continue  # nan: leave this axis where it is
+            if not config.within_limits(config.safe_voltage_v):  # the config refuses this; never write it anyway
+                self.log.error("actuator_safe_refused", **self._axis(out), voltage_v=config.safe_voltage_v,
+                               v_min=config.v_min, v_max=config.v_max)
+                continue
+            safe[axis] = out
+        if not safe:
             return
-        goal = Goal(safe_q, safe_v)
+        goal = Goal({a: o.config.safe_q_um for a, o in safe.items()},  # type: ignore[misc]
+                    {a: o.config.safe_voltage_v for a, o in safe.items()})
         deadline = time.monotonic() + self.safe_budget_s
         attempts, error_text = 0, ""
         while True:
@@ -233,59 +353,174 @@ class Actuation:
             try:
                 async with asyncio.timeout(max(0.0, deadline - time.monotonic())):
                     if reopen:
-                        await self._close_quietly(actuator)
-                        await self._open(actuator, config)
-                    await self._move_to(actuator, config, goal, follow_pending=False)
-                self.log.info("actuator_safe", voltage_v=safe_v, device=actuator.description, attempts=attempts)
+                        await self._close_quietly(safe)
+                        await self._open_all(safe)
+                    await self._move_to(goal, safe, follow_pending=False)
+                self.log.info("actuator_safe", **self._per_axis("voltage_v", goal.voltage_v, safe), attempts=attempts)
                 return
             except TimeoutError:
                 error_text = f"not reached within {self.safe_budget_s:g} s" + (f" ({error_text})" if error_text else "")
                 break
             except Exception as error:
-                error_text = _reason(error)
+                error_text = self._fault_text(error)
                 reopen = True
                 remaining = deadline - time.monotonic()
                 if remaining <= INITIAL_BACKOFF_S:
                     break
                 await asyncio.sleep(min(INITIAL_BACKOFF_S * attempts, remaining / 2))
-        self.log.error("actuator_safe_failed", voltage_v=safe_v, error=error_text, attempts=attempts,
-                       last_voltage_v=self.last_voltage_v)
+        last = {a: o.last_voltage_v for a, o in safe.items()}
+        self.log.error("actuator_safe_failed", voltage_v=self._value(goal.voltage_v), error=error_text,
+                       attempts=attempts, last_voltage_v=self._value(last))
 
     # --- writing --------------------------------------------------------------------------------
 
     def _take_pending(self) -> Goal | None:
+        """The newest served command, if one came (on the loop): it is now the command in flight, and
+        the one it replaces (and any a newer one replaced before) ends ``superseded``."""
         with self._lock:
             pending, self._pending = self._pending, None
             if pending is None:
                 self._wake_pending = False
-            return pending
+            superseded, self._superseded = self._superseded, []
+        for goal in superseded:
+            self._done(goal, "superseded")
+        if pending is not None:
+            if self._inflight is not None and self._inflight is not pending:
+                self._done(self._inflight, "superseded")
+            self._inflight = pending
+        return pending
 
     def _next_goal(self) -> Goal | None:
-        """A newer served command, else the goal when this device does not hold it yet."""
+        """A newer served command, else the goal when these devices do not hold it yet."""
         pending = self._take_pending()
         if pending is not None:
             return pending
         return self._goal if not self._goal_on_device else None
 
-    async def _drive(self, actuator: Actuator) -> None:
-        assert self._config is not None
-        config = self._config
+    # --- how commands end -----------------------------------------------------------------------
+
+    def held(self) -> dict[str, float | None]:
+        """What each axis holds now: an output's last confirmed voltage (None: unknown, e.g. mid-write), a
+        published axis' (``kind = "zenoh"``) the latest command's voltage."""
+        held: dict[str, float | None] = dict(self._offered_v)
+        for axis, out in {**self._known, **self._outputs}.items():
+            held[axis] = out.at_v if out.at_v is not None else out.last_voltage_v
+        return held
+
+    def _done(self, goal: Goal, state: str, error: str | None = None) -> None:
+        if not goal.served:
+            return
+        held = self.held()
+        for listener in self.done_listeners:
+            try:
+                listener(goal, state, held, error)
+            except Exception as failure:  # a listener's bug must not stop the outputs
+                self.log.error("done_listener_failed", error=_reason(failure))
+
+    def _end_inflight(self, state: str, error: str | None = None) -> None:
+        inflight, self._inflight = self._inflight, None
+        if inflight is not None:
+            self._done(inflight, state, error)
+
+    def _end_all(self, state: str, error: str | None) -> None:
+        """Every command owed a ``done`` ends: those superseded, the one in flight and the pending one."""
+        with self._lock:
+            pending, self._pending = self._pending, None
+            superseded, self._superseded = self._superseded, []
+        for goal in superseded:
+            self._done(goal, "superseded")
+        self._end_inflight(state, error)
+        if pending is not None:
+            self._done(pending, state, error)
+
+    def stop_mark(self) -> int:
+        """Where a stop arriving now falls among the served commands (any thread): it ends those served
+        before it, never a target sent after it."""
+        with self._lock:
+            return self._seq
+
+    async def halt(self, upto: int | None = None) -> dict[str, float | None]:
+        """A client's ``stop`` (on the loop): every ramp ends after the write under way, each output holds
+        the value it has, the command in flight (and one not yet taken) ends ``stopped``, and the goal is
+        forgotten (a reload or a reopen moves nothing). ``upto`` (:meth:`stop_mark` when the stop arrived;
+        default: now): a command served after the stop is not ended by it and moves as usual. Returns what
+        each axis holds then. Nothing in flight: nothing changes, and the answer is the same."""
+        upto = self.stop_mark() if upto is None else upto
+        task = self._task
+        if task is None or task.done():  # no drive loop (a reload between its stop and start, or stopped)
+            return self._halted(upto)
+        waiter: asyncio.Future[dict[str, float | None]] = asyncio.get_running_loop().create_future()
+        self._halt_waiters.append((waiter, upto))
+        self._halt_event.set()
+        self._event.set()
+        return await waiter
+
+    def _halted(self, upto: int | None = None) -> dict[str, float | None]:
+        """Carry out the stops asked (on the loop, between two writes): every command served up to the
+        latest of them ends ``stopped``."""
+        self._halt_event.clear()
+        waiters, self._halt_waiters = self._halt_waiters, []
+        last = max([u for _, u in waiters] + ([upto] if upto is not None else []), default=0)
+        with self._lock:
+            pending = self._pending
+            if pending is not None and pending.seq <= last:
+                self._pending = None
+            else:
+                pending = None  # served after the stop: it moves as usual
+            superseded, self._superseded = self._superseded, []
+        for goal in superseded:
+            self._done(goal, "superseded")
+        moving = False
+        if self._inflight is not None and self._inflight.seq <= last:
+            self._end_inflight("stopped")
+            moving = True
+        if pending is not None:
+            self._done(pending, "stopped")
+            moving = True
+        current = self._goal
+        if current is not None and current.seq <= last:
+            moving = moving or not self._goal_on_device
+            self._goal, self._goal_on_device = None, True
+            for out in self._outputs.values():
+                out.slew.rest()
+        held = self.held()
+        if moving:
+            self.log.info("actuator_stopped", voltage_v=self._value(held))
+        for waiter, _ in waiters:
+            if not waiter.done():
+                waiter.set_result(held)
+        return held
+
+    async def _nap(self, delay_s: float) -> None:
+        """Sleep ``delay_s``, or less when a stop is asked."""
+        try:
+            async with asyncio.timeout(delay_s):
+                await self._halt_event.wait()
+        except TimeoutError:
+            pass
+
+    async def _drive(self) -> None:
+        outputs = self._outputs  # this task's devices (a stop swaps them out before it cancels the task)
         backoff = INITIAL_BACKOFF_S
         while True:
+            if self._halt_waiters:
+                self._halted()
             if self.fault_reason is not None:
-                await asyncio.sleep(backoff * random.uniform(0.8, 1.2))
+                await self._nap(backoff * random.uniform(0.8, 1.2))
                 backoff = min(backoff * 2.0, MAX_BACKOFF_S)
+                if self._halt_waiters:
+                    continue
                 try:
-                    await self._open(actuator, config)
+                    await self._open_all(outputs)
                 except asyncio.CancelledError:
                     raise
                 except Exception as error:
-                    self._still_failing(actuator, f"reopen failed: {_reason(error)}")
-                    await self._close_quietly(actuator)
+                    self._still_failing(self._fault_text(error, "reopen failed: "))
+                    await self._close_quietly(outputs)
                     continue
                 goal = self._next_goal()
-                if goal is None:  # nothing to write: the device opens (and reads back) again
-                    self._recovered(actuator)
+                if goal is None:  # nothing to write: the devices open (and read back) again
+                    self._recovered()
                     continue
             else:
                 goal = self._next_goal()
@@ -293,124 +528,211 @@ class Actuation:
                     await self._event.wait()
                     self._event.clear()
                     continue
-            # not on the device until a write of it is confirmed: a write that fails leaves it to be
-            # written again once the device works again (the chaos suite found it lost otherwise)
+            # not on the devices until a write of it is confirmed: a write that fails leaves it to be
+            # written again once the devices work again (the chaos suite found it lost otherwise)
             self._goal, self._goal_on_device = goal, False
             try:
-                await self._move_to(actuator, config, goal, follow_pending=True)
+                await self._move_to(goal, outputs, follow_pending=True)
             except asyncio.CancelledError:
                 raise
             except Exception as error:
-                reason = _reason(error)
+                reason = self._fault_text(error)
                 if self.fault_reason is None:
-                    self._enter_fault(actuator, reason)
+                    self._enter_fault(reason)
                 else:
-                    self._still_failing(actuator, reason)
-                await self._close_quietly(actuator)
+                    self._still_failing(reason)
+                self._end_inflight("failed", reason)  # written again once the outputs work, with no second done
+                await self._close_quietly(outputs)
                 continue
             if self.fault_reason is not None:
-                self._recovered(actuator)
+                self._recovered()
             backoff = INITIAL_BACKOFF_S
             # Writes are paced at the ramp period: an isolated target is written at once, a stream is
             # coalesced to 50 writes/s (newest wins). Waking the loop for every target of a 1 kHz stream
             # halved the daemon's burst throughput and raised its answer latency (benchmarks/daemon_latency.py).
-            await asyncio.sleep(WRITE_PERIOD_S)
+            # No outputs (every axis published): nothing to pace, each command is reached as it is taken.
+            await asyncio.sleep(WRITE_PERIOD_S if outputs else 0.0)
 
-    async def _move_to(self, actuator: Actuator, config: ActuatorConfig, goal: Goal, *,
-                       follow_pending: bool) -> None:
-        """Write ``goal`` (ramped under the slew limit); with ``follow_pending`` a newer command taken
-        during the ramp becomes the goal (re-planned from where the stage is)."""
+    async def _move_to(self, goal: Goal, outputs: Mapping[str, AxisOutput], *, follow_pending: bool) -> None:
+        """Write ``goal`` to every axis (ramped per axis under its slew limit; each step writes the axes in
+        order); with ``follow_pending`` a newer command taken during the ramp becomes the goal (re-planned
+        from where each axis is)."""
+        reached: set[str] = set()
         while True:
             if follow_pending:
+                if self._halt_waiters:  # a stop: the ramp ends here, between two writes
+                    self._halted()
+                    return
                 newer = self._take_pending()
                 if newer is not None:
                     goal = self._goal = newer
-            if not config.within_limits(goal.voltage_v):  # a reload narrowed the limits under it
-                self.log.warning("actuator_goal_dropped", device=actuator.description, voltage_v=goal.voltage_v,
-                                 v_min=config.v_min, v_max=config.v_max, held_v=self._at_v,
-                                 reason="the served command is outside the limits now in force: the stage holds")
+                    reached = set()
+            refused = [a for a, o in outputs.items() if not o.config.within_limits(goal.voltage_v[a])]
+            if refused:  # a reload narrowed the limits under it: the stage holds, every axis
+                self._log_dropped(goal, outputs, refused)
                 self._goal, self._goal_on_device = None, True
+                if goal is self._inflight:
+                    self._end_inflight("failed", "the command is outside the limits now in force on axis "
+                                       f"{', '.join(refused)}: the stage holds")
                 return
-            if self._at_v is None and config.max_slew_um_per_s > 0 and not self._unramped_told:
-                self._unramped_told = True
-                self.log.warning("actuator_unramped", device=actuator.description, voltage_v=goal.voltage_v,
-                                 reason="where the stage is is unknown (no trusted read-back, nothing sent to it "
-                                 "yet, safe_voltage_v = nan): this move is not ramped")
             began_s = time.monotonic()
-            voltage = self._slew.next_voltage(config, self._at_v, goal.voltage_v, began_s)
-            reached = voltage == goal.voltage_v
-            if not reached:  # mid-ramp from a stage outside limits a reload narrowed: never send outside
-                voltage = min(max(voltage, config.v_min), config.v_max)
-            q_um = goal.q_um if reached else config.q_um_for(voltage)
-            await self._write(actuator, config, q_um, voltage, goal.x_um)
-            self._slew.wrote(began_s, reached)
-            if reached:
+            step = []  # every axis' value of this step, each checked before any axis is written
+            for axis, out in outputs.items():
+                if axis in reached:
+                    continue
+                goal_v = goal.voltage_v[axis]
+                if out.at_v is None and out.config.max_slew_um_per_s > 0 and not out.unramped_told:
+                    out.unramped_told = True
+                    self.log.warning("actuator_unramped", **self._axis(out), device=out.actuator.description,
+                                     voltage_v=goal_v, reason="where the stage is is unknown (no trusted read-back, "
+                                     "nothing sent to it yet, safe_voltage_v = nan): this move is not ramped")
+                voltage = out.slew.next_voltage(out.config, out.at_v, goal_v, began_s)
+                at_goal = voltage == goal_v
+                if not at_goal:  # mid-ramp from a stage outside limits a reload narrowed: never send outside
+                    voltage = min(max(voltage, out.config.v_min), out.config.v_max)
+                try:
+                    sent_v = checked_sent_voltage(out.actuator, out.config, voltage)
+                except ValueError as error:
+                    raise AxisFault(axis, _reason(error)) from None
+                q_um = goal.q_um[axis] if at_goal else out.config.q_um_for(voltage)
+                x_um = goal.positions_um.get(axis) if goal.positions_um is not None else None
+                step.append((out, q_um, voltage, sent_v, x_um, at_goal))
+            for out, q_um, voltage, sent_v, x_um, at_goal in step:
+                await self._write(out, q_um, voltage, sent_v, x_um)
+                out.slew.wrote(began_s, at_goal)
+                if at_goal:
+                    reached.add(out.axis)
+            if len(reached) == len(outputs):
                 self._goal_on_device = True
-                for listener in self.reached_listeners:
-                    listener(goal, time.monotonic())
+                if outputs:
+                    for listener in self.reached_listeners:
+                        listener(goal, time.monotonic())
+                if goal is self._inflight:
+                    self._end_inflight("reached")
                 return
             await asyncio.sleep(RAMP_PERIOD_S)
 
-    async def _open(self, actuator: Actuator, config: ActuatorConfig) -> StartPoint:
-        """Open the device and learn where the stage is (:func:`locate_stage`); raises like a write."""
-        self._slew.rest()
-        await self._guarded(actuator.open(), "open")
-        sent = tuple(v for v in (self.last_voltage_v, self._tried_v) if v is not None)
-        start = await self._guarded(locate_stage(actuator, config, sent), "read back")
-        if start.distrust is not None:
-            self.log.warning("actuator_readback_untrusted", device=actuator.description, reason=start.distrust,
-                             note="where the stage is is unknown: nothing is ramped from it; the next command "
-                             "is written as it is")
-        self._at_v = start.voltage_v
-        return start
-
-    async def _write(self, actuator: Actuator, config: ActuatorConfig, q_um: float, voltage_v: float,
+    async def _write(self, out: AxisOutput, q_um: float, voltage_v: float, sent_v: float,
                      x_um: float | None) -> None:
-        sent_v = checked_sent_voltage(actuator, config, voltage_v)
-        self._tried_v = sent_v
-        self._at_v = None  # until the device confirms it, the stage is between the two
-        await self._guarded(actuator.command(q_um, voltage_v, x_um=x_um), "write")
-        self._at_v = sent_v
-        self.last_voltage_v, self.last_write_t = sent_v, time.time()
-        self.writes += 1
+        out.tried_v = sent_v
+        out.at_v = None  # until the device confirms it, the stage is between the two
+        await _guarded(out.actuator.command(q_um, voltage_v, x_um=x_um), out.axis, "write")
+        out.at_v = sent_v
+        out.last_voltage_v, out.last_write_t = sent_v, time.time()
+        out.writes += 1
 
-    async def _close_quietly(self, actuator: Actuator) -> None:
-        """Close a failed device before reopening it (a failure to close is only logged)."""
-        try:
-            await self._guarded(actuator.close(), "close")
-        except asyncio.CancelledError:
-            raise
-        except Exception as error:
-            self.log.warning("actuator_close_failed", error=_reason(error))
+    async def _open_all(self, outputs: Mapping[str, AxisOutput]) -> dict[str, StartPoint]:
+        """Open every device and learn where each axis is (:func:`locate_stage`); raises like a write."""
+        starts = {}
+        for axis, out in outputs.items():
+            out.slew.rest()
+            await _guarded(out.actuator.open(), axis, "open")
+            sent = tuple(v for v in (out.last_voltage_v, out.tried_v) if v is not None)
+            start = await _guarded(locate_stage(out.actuator, out.config, sent), axis, "read back")
+            if start.distrust is not None:
+                self.log.warning("actuator_readback_untrusted", **self._axis(out), device=out.actuator.description,
+                                 reason=start.distrust, note="where the stage is is unknown: nothing is ramped from "
+                                 "it; the next command is written as it is")
+            out.at_v = start.voltage_v
+            starts[axis] = start
+        return starts
 
-    @staticmethod
-    async def _guarded(step: Any, what: str) -> Any:
-        # asyncio.timeout, not wait_for: on 3.11 wait_for can swallow a cancellation
-        try:
-            async with asyncio.timeout(WRITE_TIMEOUT_S):
-                return await step
-        except TimeoutError:
-            raise DeviceError(f"actuator {what} timed out after {WRITE_TIMEOUT_S:g} s") from None
+    async def _close_quietly(self, outputs: Mapping[str, AxisOutput]) -> None:
+        """Close failed devices before reopening them (a failure to close is only logged)."""
+        for out in outputs.values():
+            try:
+                await _guarded(out.actuator.close(), out.axis, "close")
+            except asyncio.CancelledError:
+                raise
+            except Exception as error:
+                self.log.warning("actuator_close_failed", **self._axis(out), error=self._fault_text(error))
 
     # --- state changes --------------------------------------------------------------------------
 
-    def _enter_fault(self, actuator: Actuator, reason: str) -> None:
+    def _enter_fault(self, reason: str) -> None:
         self.write_failures += 1
         self.fault_reason = reason
         self._fault_since = time.monotonic()
         self._episode_failures = 1
-        self.failures(device=actuator.description, error=reason)
+        self.failures(**self._devices(), error=reason)
 
-    def _still_failing(self, actuator: Actuator, reason: str) -> None:
+    def _still_failing(self, reason: str) -> None:
         self.write_failures += 1
         self._episode_failures += 1
         self.fault_reason = reason
 
-    def _recovered(self, actuator: Actuator) -> None:
-        self.log.info("actuator_recovered", device=actuator.description,
+    def _recovered(self) -> None:
+        self.log.info("actuator_recovered", **self._devices(),
                       after_s=round(time.monotonic() - self._fault_since, 3), failures=self._episode_failures)
         self.fault_reason = None
         self._episode_failures = 0
+
+    # --- the shapes of log lines and fault texts (a one-axis cell keeps its own) ----------------
+
+    def _fault_text(self, error: BaseException, prefix: str = "") -> str:
+        """The fault's reason: an axis' failure names the axis in a cell of several."""
+        if isinstance(error, AxisFault):
+            return prefix + (error.text if self.single else str(error))
+        return prefix + _reason(error)
+
+    def _axis(self, out: AxisOutput) -> dict[str, Any]:
+        """The ``axis`` field of a line about one axis (none in a one-axis cell)."""
+        return {} if self.single else {"axis": out.axis}
+
+    def _devices(self) -> dict[str, Any]:
+        """The ``device`` of a one-axis cell's line; nothing in a cell of several (the reason names the axis)."""
+        if not self.single:
+            return {}
+        out = next(iter(self._outputs.values()), None)
+        return {"device": out.actuator.description if out is not None else None}
+
+    def _value(self, per_axis: Mapping[str, Any]) -> Any:
+        """A per-axis value as a line shows it: the number in a one-axis cell, ``{axis: value}`` otherwise."""
+        if self.single and len(per_axis) == 1:
+            return next(iter(per_axis.values()))
+        return dict(per_axis)
+
+    def _per_axis(self, name: str, per_axis: Mapping[str, Any], outputs: Mapping[str, AxisOutput]) -> dict[str, Any]:
+        """``name=value, device=...`` in a one-axis cell, ``name={axis: value}`` otherwise."""
+        if self.single and len(outputs) == 1:
+            out = next(iter(outputs.values()))
+            return {name: per_axis[out.axis], "device": out.actuator.description}
+        return {name: dict(per_axis)}
+
+    def _log_open(self, starts: Mapping[str, StartPoint]) -> None:
+        outputs = self._outputs
+        if self.single and len(outputs) == 1:
+            out = next(iter(outputs.values()))
+            start = starts[out.axis]
+            self.log.info("actuator_open", device=out.actuator.description, voltage_v=start.voltage_v,
+                          known_from=start.known_from)
+        else:
+            self.log.info("actuator_open", axes={a: o.actuator.description for a, o in outputs.items()},
+                          voltage_v={a: s.voltage_v for a, s in starts.items()},
+                          known_from={a: s.known_from for a, s in starts.items()})
+
+    def _log_dropped(self, goal: Goal, outputs: Mapping[str, AxisOutput], refused: list[str]) -> None:
+        reason = "the served command is outside the limits now in force: the stage holds"
+        if self.single and len(outputs) == 1:
+            out = outputs[refused[0]]
+            self.log.warning("actuator_goal_dropped", device=out.actuator.description,
+                             voltage_v=goal.voltage_v[out.axis], v_min=out.config.v_min, v_max=out.config.v_max,
+                             held_v=out.at_v, reason=reason)
+        else:
+            self.log.warning("actuator_goal_dropped", axes=refused, voltage_v=dict(goal.voltage_v),
+                             held_v={a: o.at_v for a, o in outputs.items()}, reason=reason)
+
+
+async def _guarded(step: Any, axis: str, what: str) -> Any:
+    """Await a device step; its failure (a timeout included) as an :class:`AxisFault` naming the axis."""
+    # asyncio.timeout, not wait_for: on 3.11 wait_for can swallow a cancellation
+    try:
+        async with asyncio.timeout(WRITE_TIMEOUT_S):
+            return await step
+    except TimeoutError:
+        raise AxisFault(axis, f"actuator {what} timed out after {WRITE_TIMEOUT_S:g} s") from None
+    except Exception as error:
+        raise AxisFault(axis, _reason(error)) from error
 
 
 def _reason(error: BaseException) -> str:

@@ -198,9 +198,8 @@ class CellHealth:
                 unit.on_position(now, t, value_um, ok, problem)
 
     def on_reached(self, t: float, q_um: Mapping[str, float]) -> None:
-        for axis, unit in self.units.items():
-            if axis in q_um:
-                unit.on_reached(t, q_um[axis])
+        for unit in self.units.values():
+            unit.on_reached(t, q_um)  # each unit takes its own axis
 
     @property
     def state(self) -> str:

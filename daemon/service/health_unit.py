@@ -172,9 +172,12 @@ class HealthUnit:
         self._last_position_t = t
         self._feed(t, value_um, True)
 
-    def on_reached(self, t: float, q_um: float) -> None:
-        """The output reached command ``q_um`` at cell time ``t`` (on the loop: the queue is the loop's)."""
-        self._reached.append((t, q_um))
+    def on_reached(self, t: float, q_um: Mapping[str, float]) -> None:
+        """The outputs reached command ``q_um`` (per axis: this unit's axis is taken) at cell time ``t`` (on
+        the loop: the queue is the loop's)."""
+        q = q_um.get(self.axis)
+        if q is not None:
+            self._reached.append((t, q))
 
     def _feed(self, t: float, value_um: float, ok: bool) -> None:
         served = self.served

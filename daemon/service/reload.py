@@ -130,7 +130,8 @@ class Reloader:
         except ModelFileError as error:
             return self._refuse(source, [f"model.path: {error}"])
         if new.cell != old.cell or new.zenoh != old.zenoh:
-            self.log.warning("reload_needs_restart", detail="cell and [zenoh] changes apply at the next restart")
+            self.log.warning("reload_needs_restart",
+                             detail="cell and [zenoh] changes (its prefix too) apply at the next restart")
             new = new.model_copy(update={"cell": old.cell, "zenoh": old.zenoh})
             new._source = old.source if self.config_path is None else str(self.config_path)
         if new.virtual_cell != old.virtual_cell:

@@ -15,12 +15,14 @@ from __future__ import annotations
 
 import asyncio
 import signal
+import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
 import zenoh
 
+from nanodrift.bus.protocol import encode_done
 from nanodrift.bus.session import Bus, describe_zenoh_error, listen_endpoints, session_config
 from nanodrift.config import Config, missing_model_channels
 from nanodrift.drivers.base import DriverContext, DriverSetupError, MonotonicClock
@@ -28,8 +30,7 @@ from nanodrift.drivers_set import DriverSet
 from nanodrift.errors import UserError
 from nanodrift.logs import get_logger
 from nanodrift.sdnotify import Notifier
-from nanodrift.service.actuation import Actuation
-from nanodrift.service.cell_actuation import CellActuation
+from nanodrift.service.actuation import Actuation, Goal
 from nanodrift.service.cell_compensator import CellCompensator, load_cell_model_or_problem
 from nanodrift.service.cell_health import CellHealth
 from nanodrift.service.compensator import Compensator, load_model_or_problem
@@ -42,6 +43,7 @@ from nanodrift.service.reload import Reloader
 from nanodrift.service.sensors import SensorIngest
 from nanodrift.service.state import CellState
 from nanodrift.service.status import StatusHandler, status_doc, status_line
+from nanodrift.service.stop import StopHandler
 from nanodrift.service.supervision import SensorWatch, Supervisor
 from nanodrift.service.table import SensorTable
 from nanodrift.service.targets import TargetHandler
@@ -69,22 +71,21 @@ class Service:
         self.notifier = notifier or Notifier()
         self.log = get_logger("nanodrift.daemon")
         compensator: Compensator | CellCompensator
-        self.actuation: Actuation | CellActuation
         self.health: HealthUnit | CellHealth
         if config.multi_axis:  # an XY/XYZ cell: every axis from one snapshot, all axes' outputs by one task
             cell_model, problem = load_cell_model_or_problem(config.model.path, config.axis_names)
             table = SensorTable(config.sensors, config.actuator.workspace_um, config.sensor_workspaces())
             compensator = CellCompensator(cell_model, config.axis_actuators(), table, problem)
             self.health = CellHealth(config, cell_model, self.log)
-            self.actuation = CellActuation(self.log)
-            self.actuation.reached_listeners.append(self._output_reached)
         else:
             model, problem = load_model_or_problem(config.model.path)
             table = SensorTable(config.sensors, config.actuator.workspace_um)  # judges every reading
             compensator = Compensator(model, config.actuator, table, problem)
             self.health = HealthUnit(config, model, self.log)
-            self.actuation = Actuation(self.log)
-            self.actuation.reached_listeners.append(self._output_reached)
+        # every output of the cell (one axis: x), by one task; a one-axis cell's log lines keep their shape
+        self.actuation = Actuation(self.log, single=not config.multi_axis)
+        self.actuation.reached_listeners.append(self._output_reached)
+        self.actuation.done_listeners.append(self._publish_done)  # one done per served command
         self.state = CellState(config, compensator, MonotonicClock())  # the drivers' clock once they start
         self.health.attach(compensator)
         # [health] record_dir: settled targets to daily CSVs on a thread of its own (read anew after a reload)
@@ -93,6 +94,7 @@ class Service:
         self.drivers: DriverSet | None = None
         self.pollers: list[GroupPoller] = []
         self.bus: Bus | None = None
+        self.stops: StopHandler | None = None  # the ``stop`` key's handler, once the bus is up
         self.ingest = SensorIngest(self.state, self._publish_telemetry, self.log, self.health)
         self.watch = SensorWatch(self.state, self._publish_telemetry, self.log)
         self.reloader = Reloader(self.state, self.config_path, self, self.notifier, self.log,
@@ -121,7 +123,8 @@ class Service:
         self.log.info("listening", endpoints=listen, zid=str(session.info.zid()),
                       **({"note": "port 0: zenoh picked a free port; -l tcp/HOST:PORT fixes it"}
                          if any(ep.endswith(":0") for ep in listen) else {}))
-        bus = self.bus = Bus(session, self.state.config.cell)
+        bus = self.bus = Bus(session, self.state.config.cell, self.state.config.zenoh.prefix)
+        self.stops = StopHandler(self.actuation, bus, loop, self.log, single=not self.state.config.multi_axis)
         try:
             await self.start_drivers(self.build_drivers(self.state.config, None))
         except DriverSetupError as error:
@@ -177,7 +180,7 @@ class Service:
     def serve(self, loop: asyncio.AbstractEventLoop, targets: TargetHandler, status: StatusHandler) -> None:
         """Declare the handlers on the bus (a subclass may wrap them: benchmarks/daemon_latency.py)."""
         assert self.bus is not None
-        self.bus.serve(loop, targets.on_target, status.on_status)
+        self.bus.serve(loop, targets.on_target, status.on_status, self.stops.on_stop if self.stops else None)
 
     async def start_metrics(self) -> None:
         """``[metrics] listen``: Prometheus' ``/metrics`` served from this loop, read at scrape time (a
@@ -244,13 +247,11 @@ class Service:
         with self.state.lock:
             self.state.clock = drivers.context.clock
             self.health.label_clock = drivers.context.label_clock
-            self.health.awaits_reach = drivers.actuator is not None or bool(drivers.actuators)
-        if isinstance(self.actuation, CellActuation):
-            if drivers.actuators:
-                configs = self.state.config.axis_actuators()
-                await self.actuation.start(drivers.actuators, {axis: configs[axis] for axis in drivers.actuators})
-        elif drivers.actuator is not None:
-            await self.actuation.start(drivers.actuator, self.state.config.actuator)
+            self.health.awaits_reach = bool(drivers.actuators)
+        # no outputs (every axis kind = "zenoh", or no actuator): the published command is the actuation, and
+        # the actuation still runs, to say each command is reached as it is published
+        configs = self.state.config.axis_actuators()
+        await self.actuation.start(drivers.actuators, {axis: configs[axis] for axis in drivers.actuators})
         ingest = self.ingest
         self.pollers = [
             GroupPoller(g, drivers.context.clock, ingest.on_readings, ingest.on_group_failure,
@@ -274,7 +275,19 @@ class Service:
 
         No state lock: the health unit's reach queue is only touched on the loop (here and in the sensor
         ingest), and the target path must not wait for a write's bookkeeping."""
-        self.health.on_reached(self.state.clock.now(), goal.q_um)  # a multi-axis goal: q per axis
+        self.health.on_reached(self.state.clock.now(), goal.q_um)  # q per axis: each health unit takes its own
+
+    def _publish_done(self, goal: Goal, state: str, held: dict[str, float | None], error: str | None) -> None:
+        """``done`` for a served command (on the loop; the publisher drops rather than blocks, as the answers'):
+        a one-axis cell's voltage is a number, a cell of several's ``{axis: V}``."""
+        bus = self.bus
+        if bus is None:
+            return
+        voltage = held.get("x") if not self.state.config.multi_axis else held
+        try:
+            bus.publish_done(encode_done(goal.id, state, time.time(), voltage, error))
+        except zenoh.ZError as failure:
+            self.log.warning("done_not_sent", id=goal.id, state=state, error=str(failure))
 
     def _log_start(self) -> None:
         config, comp = self.state.config, self.state.compensator

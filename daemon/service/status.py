@@ -19,16 +19,17 @@ from nanodrift.bus.session import Bus
 from nanodrift.config import ZENOH_KIND, Config
 from nanodrift.drivers.base import State
 from nanodrift.service.actuation import Actuation
-from nanodrift.service.cell_actuation import CellActuation
 from nanodrift.service.cell_health import CellHealth
 from nanodrift.service.health_unit import HealthUnit
 from nanodrift.service.state import CellState
 
 
-def status_doc(state: CellState, healthy: bool, actuation: Actuation | CellActuation | None = None,
+def status_doc(state: CellState, healthy: bool, actuation: Actuation | None = None,
                health: HealthUnit | CellHealth | None = None) -> dict[str, Any]:
     """The ``status`` payload's document (README, Zenoh keys ``status``)."""
-    driven = actuation.doc() if actuation is not None else None
+    driven: dict[str, Any] | None = None
+    if actuation is not None:  # a one-axis cell shows its one output as it always did; a cell of several, per axis
+        driven = actuation.doc() if state.config.multi_axis else actuation.axis_doc("x")
     with state.lock:
         now = state.clock.now()
         comp = state.compensator
@@ -72,7 +73,7 @@ class StatusHandler:
     """``on_status`` for the bus (called on the loop)."""
 
     def __init__(self, state: CellState, bus: Bus, healthy: Callable[[], bool], log: Any,
-                 actuation: Actuation | CellActuation | None = None,
+                 actuation: Actuation | None = None,
                  health: HealthUnit | CellHealth | None = None) -> None:
         self.state = state
         self.actuation = actuation
@@ -96,7 +97,7 @@ _ACTUATOR_KEYS = ("volts_per_um", "offset_v", "v_min", "v_max", "x_min_um", "x_m
 def actuator_doc(config: Config, driven: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """The actuator in ``status``: the conversion and limits, then who drives the stage and how.
 
-    ``driven`` is :meth:`Actuation.doc` (state, reason, device, last written voltage and time,
+    ``driven`` is :meth:`Actuation.axis_doc` (state, reason, device, last written voltage and time,
     writes, failures). With ``kind = "zenoh"`` there is no device: the daemon publishes ``command``
     and an output node applies it, so the state is always ``ok`` and ``output`` says ``published``.
     """

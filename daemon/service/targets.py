@@ -49,7 +49,6 @@ from nanodrift.bus.protocol import (
 from nanodrift.bus.session import Bus
 from nanodrift.logs import RateLimitedLog
 from nanodrift.service.actuation import Actuation
-from nanodrift.service.cell_actuation import CellActuation
 from nanodrift.service.metrics import AnswerLatency
 from nanodrift.service.state import CellState
 
@@ -66,7 +65,7 @@ class TargetHandler:
     """``on_target`` for the bus: thread-safe, never blocks the loop."""
 
     def __init__(self, state: CellState, bus: Bus, loop: asyncio.AbstractEventLoop,
-                 actuation: Actuation | CellActuation, log: Any, latency: AnswerLatency | None = None) -> None:
+                 actuation: Actuation, log: Any, latency: AnswerLatency | None = None) -> None:
         self.state = state
         #: a multi-axis cell's axes (fixed for the daemon's life: a reload never changes them), else None
         self.cell_axes: tuple[str, ...] | None = state.config.axis_names if state.config.multi_axis else None
@@ -124,13 +123,14 @@ class TargetHandler:
                 if type(command) is Command:
                     data = encode_command(command)
                     bus.publish_command(data)
-                    wake_actuator = self.actuation.offer(command.q_um, command.voltage_v, command.x_um)  # type: ignore[arg-type]
+                    wake_actuator = self.actuation.offer({"x": command.q_um}, {"x": command.voltage_v},
+                                                         {"x": command.x_um}, command.id)
                 elif command is not None:
-                    actuation = self.actuation
-                    assert isinstance(command, CellCommand) and isinstance(actuation, CellActuation)
+                    assert isinstance(command, CellCommand)
                     data = encode_cell_command(command)  # published once, every axis; then handed over whole
                     bus.publish_command(data)
-                    wake_actuator = actuation.offer(command.q_um, command.voltage_v, command.positions_um)
+                    wake_actuator = self.actuation.offer(command.q_um, command.voltage_v, command.positions_um,
+                                                         command.id)
                 else:
                     assert refusal is not None
                     data = encode_error(refusal)

@@ -39,6 +39,15 @@ def test_keys_follow_the_contract() -> None:
     assert keys.telemetry("position", "interferometer") == "nanodrift/c1/sensors/position"
 
 
+def test_keys_under_a_prefix_keep_nothing_under_nanodrift() -> None:
+    keys = Keys("c1", "femto/lab3/stages")
+    assert keys.prefix == "femto/lab3/stages/c1"
+    names = [keys.target, keys.command, keys.error, keys.compensate, keys.status, keys.alive, keys.health,
+             keys.done, keys.stop, keys.telemetry("temperature", "T3"), keys.telemetry("position", "p", "y")]
+    assert all(name.startswith("femto/lab3/stages/c1/") for name in names), names
+    assert Keys("c1", "nanodrift").command == Keys("c1").command == "nanodrift/c1/command"
+
+
 def test_an_oversized_marker_is_refused_with_its_real_size() -> None:
     with pytest.raises(Refusal) as caught:
         parse_target(Oversized.of(10_000_000))

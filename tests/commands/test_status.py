@@ -215,9 +215,9 @@ def test_watch_redraws_in_place_on_a_terminal(monkeypatch: pytest.MonkeyPatch) -
         [{"cell": "c", "uptime_s": 61.0, "healthy": True, "sensors": {}, "model": None,
           "counters": {"targets": 12, "errors_total": 1}}],
     ])
-    monkeypatch.setattr(status_command, "collect", lambda session, key, timeout: next(samples))
+    monkeypatch.setattr(status_command, "collect", lambda client, cell, timeout: next(samples))
     out = Terminal()
-    args = argparse.Namespace(json=False, watch=0.01, count=2, cell=None, timeout=1.0)
+    args = argparse.Namespace(json=False, watch=0.01, count=2, cell=None, timeout=1.0, prefix="nanodrift")
     assert status_command.watch(None, args, out, sleep=lambda s: None) == 0
     screens = out.getvalue().split(status_command.CLEAR)
     assert screens[0] == "" and len(screens) == 3  # each refresh starts by clearing the screen

@@ -30,6 +30,8 @@ import zenoh
 
 from helpers.modbus_helpers import free_port  # one definition for every helper (re-exported here)
 from nanodrift.atomic import atomic_write_text
+from nanodrift.bus.protocol import DEFAULT_PREFIX, key_prefix
+from nanodrift.client import client_config as library_client_config
 from nanodrift.drivers.base import (
     Clock,
     DeviceError,
@@ -258,18 +260,16 @@ class Daemon:
 
 
 def client_config(port: int) -> zenoh.Config:
-    conf = zenoh.Config()
-    conf.insert_json5("mode", json.dumps("client"))
-    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    return conf
+    """A client-mode session towards the daemon on 127.0.0.1 (scouting off): the library's own config."""
+    return library_client_config(f"tcp/127.0.0.1:{port}")
 
 
 class Client:
-    """A client session on the daemon's cell that records every command and error published."""
+    """A client session on the daemon's cell that records every command and error published (the raw
+    answers, which many tests inspect; a lab's script uses :class:`nanodrift.Client`)."""
 
-    def __init__(self, port: int, cell: str) -> None:
-        self.prefix = f"nanodrift/{cell}"
+    def __init__(self, port: int, cell: str, prefix: str = DEFAULT_PREFIX) -> None:
+        self.prefix = key_prefix(cell, prefix)
         self.session = zenoh.open(client_config(port))
         self._cond = threading.Condition()
         self.commands: list[dict[str, Any]] = []

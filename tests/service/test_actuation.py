@@ -5,8 +5,10 @@ Real peers: ``nanodrift run`` as a process (the ``file`` sensor plugin for tempe
 ``[actuator] kind = "modbus"`` writing to pymodbus' own TCP server on 127.0.0.1, which runs on an
 asyncio loop in a thread of this process and stamps every write as it lands; ``kind = "serial_line"``
 talking GCS to a PI controller emulated on a pty; ``kind = "labout"``, a plugin defined here (not part
-of nanodrift) and registered through an entry point as a lab's package would be. Every wait polls a
-condition with a deadline.
+of nanodrift) and registered through an entry point as a lab's package would be; and a cell of several
+axes: three axes of one GCS controller on one pty, two outputs of one Modbus module. Every wait polls a
+condition with a deadline. The actuation's rules in process, on a one-axis and an XY cell, are in
+``test_actuation_rules.py``.
 """
 
 from __future__ import annotations
@@ -14,7 +16,6 @@ from __future__ import annotations
 import asyncio
 import itertools
 import json
-import math
 import os
 import re
 import subprocess
@@ -45,216 +46,16 @@ from helpers.modbus_helpers import ModbusTestDevice, ModbusTestServer
 from helpers.serial_helpers import FakeGcsController
 from pydantic import Field
 
-from nanodrift.config import ActuatorConfig
-from nanodrift.drivers.base import Actuator, ActuatorOptions, DeviceError, DriverContext
+from nanodrift.assembly import build_drivers
+from nanodrift.config import parse_config
+from nanodrift.drivers.base import Actuator, ActuatorOptions, DriverContext
+from nanodrift.logs import get_logger
 from nanodrift.motion import RAMP_PERIOD_S
 from nanodrift.service.actuation import Actuation
 
 SCALE = 0.001  # volts per count
 ADDRESS = 10
 VOLTS_PER_UM = 0.02
-
-
-# --- Actuation in process: order and coalescing --------------------------------------------------
-
-
-class RecordingActuator(Actuator):
-    """Records every write (and when it started); ``holds`` is what ``read_back`` answers (None: the device
-    cannot say); ``broken`` fails ``open``, ``unreadable`` fails ``read_back``."""
-
-    def __init__(self, write_s: float = 0.0, description: str = "recording actuator",
-                 holds: tuple[Literal["voltage_v", "q_um"], float] | None = None) -> None:
-        self.written: list[tuple[float, float, float | None]] = []
-        self.started: list[float] = []  # time.monotonic() as each write began
-        self.write_s = write_s
-        self.description = description
-        self.holds = holds
-        self.broken = self.unreadable = False
-
-    async def open(self) -> None:
-        if self.broken:
-            raise DeviceError(f"{self.description}: port gone")
-
-    async def read_back(self) -> tuple[Literal["voltage_v", "q_um"], float] | None:
-        if self.unreadable:
-            raise DeviceError(f"{self.description}: no answer to the readback")
-        return self.holds
-
-    async def command(self, q_um: float, voltage_v: float, *, x_um: float | None = None) -> None:
-        self.started.append(time.monotonic())
-        await asyncio.sleep(self.write_s)
-        self.written.append((q_um, voltage_v, x_um))
-
-    async def close(self) -> None:
-        return None
-
-
-class Silent:
-    def __getattr__(self, name: str) -> Any:
-        return lambda *a, **k: None
-
-
-class Events:
-    """A logger keeping every line as (level, event, fields)."""
-
-    def __init__(self) -> None:
-        self.lines: list[tuple[str, str, dict[str, Any]]] = []
-
-    def __getattr__(self, level: str) -> Callable[..., None]:
-        return lambda event, **fields: self.lines.append((level, event, fields))
-
-    def named(self, event: str) -> list[dict[str, Any]]:
-        return [fields for _, name, fields in self.lines if name == event]
-
-
-async def until(condition: Callable[[], Any], timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"not within {timeout:g} s: {what}")
-        await asyncio.sleep(0.005)
-
-
-def command(actuation: Actuation, config: ActuatorConfig, q_um: float) -> None:
-    """What the target path does for a served target."""
-    if actuation.offer(q_um, config.voltage(q_um)):
-        actuation.wake()
-
-
-def test_the_device_gets_served_commands_in_order_and_the_latest_always() -> None:
-    async def main() -> None:
-        actuation = Actuation(Silent())
-        device = RecordingActuator(write_s=0.005)
-        config = ActuatorConfig()
-        await actuation.start(device, config)
-        for i in range(200):
-            q = float(i)
-            if actuation.offer(q, config.voltage(q), x_um=q + 0.5):
-                actuation.wake()
-            await asyncio.sleep(0.001 if i % 20 else 0.08)  # bursts, and pauses the stage catches up in
-        deadline = time.monotonic() + 5
-        while not device.written or device.written[-1][0] != 199.0:
-            assert time.monotonic() < deadline, device.written[-5:]
-            await asyncio.sleep(0.01)
-        await actuation.stop()
-        qs = [q for q, _, _ in device.written]
-        assert qs == sorted(set(qs)), "written out of order or twice"
-        assert len(qs) < 200, "nothing was coalesced"
-        assert all(x == q + 0.5 and v == config.voltage(q) for q, v, x in device.written)
-
-    asyncio.run(main())
-
-
-SLEW = 2000.0  # um/s: a ramp step of 40 um every RAMP_PERIOD_S, so the in-process ramps take a fraction of a second
-
-
-def ramp_of(device: RecordingActuator) -> list[float]:
-    return [q for q, _, _ in device.written]
-
-
-def assert_never_faster(device: RecordingActuator, rate: float) -> None:
-    """Each write is no further from the previous one than the rate allows for the time between them."""
-    slack_s = 0.002  # the daemon times a step just before it calls the device, the device a moment later
-    for (t0, (q0, _, _)), (t1, (q1, _, _)) in itertools.pairwise(zip(device.started, device.written, strict=True)):
-        assert abs(q1 - q0) <= rate * (t1 - t0 + slack_s) + 1e-9, f"{q1 - q0:.3f} um in {t1 - t0:.4f} s"
-
-
-@pytest.mark.parametrize(("holds", "safe_v", "start_q", "known_from"), [
-    (("voltage_v", 1.0), math.nan, 50.0, "read back"),  # the output register holds 1 V: 50 um
-    (("q_um", 70.0), math.nan, 70.0, "read back"),  # a closed-loop controller answers the command
-    (None, 2.0, 100.0, "safe_voltage_v"),  # cannot say; a clean stop left it at safe_voltage_v
-    (None, math.nan, None, "unknown"),
-])
-def test_the_first_move_after_start_ramps_from_where_the_stage_is(
-        holds: tuple[Literal["voltage_v", "q_um"], float] | None, safe_v: float, start_q: float | None,
-        known_from: str) -> None:
-    log = Events()
-    config = ActuatorConfig(max_slew_um_per_s=SLEW, safe_voltage_v=safe_v)
-    device = RecordingActuator(holds=holds)
-
-    async def main() -> None:
-        actuation = Actuation(log)
-        await actuation.start(device, config)
-        command(actuation, config, 480.0)
-        await until(lambda: device.written and device.written[-1][0] == 480.0, 10, "the target written")
-        await actuation.stop()
-
-    asyncio.run(main())
-    voltage = None if start_q is None else config.voltage(start_q)
-    assert log.named("actuator_open") == [{"device": "recording actuator", "voltage_v": voltage,
-                                           "known_from": known_from}]
-    assert device.limits_v == (config.v_min, config.v_max)  # the device knows the operator's limits
-    if start_q is None:  # nothing known: the one move is written as is, and the log says so once
-        assert ramp_of(device) == [480.0]
-        [told] = log.named("actuator_unramped")
-        assert told["voltage_v"] == config.voltage(480.0) and "this move is not ramped" in told["reason"]
-        return
-    qs = ramp_of(device)
-    assert qs[0] == pytest.approx(start_q + SLEW * RAMP_PERIOD_S)  # one ramp step from where the stage was
-    assert all(0 < b - a for a, b in itertools.pairwise(qs))  # towards the target, never back
-    assert len(qs) <= math.ceil((480.0 - start_q) / (SLEW * RAMP_PERIOD_S))  # steps cover the time they took
-    assert_never_faster(device, SLEW)
-    assert not log.named("actuator_unramped")
-
-
-def test_an_edit_to_another_device_forgets_the_old_devices_voltage_and_the_same_device_remembers_it() -> None:
-    log = Events()
-    config = ActuatorConfig(max_slew_um_per_s=SLEW)
-
-    async def main() -> tuple[RecordingActuator, RecordingActuator, RecordingActuator]:
-        actuation = Actuation(log)
-        first = RecordingActuator(description="output A", holds=("voltage_v", 8.0))  # 400 um
-        await actuation.start(first, config)
-        command(actuation, config, 400.0)
-        await until(lambda: first.written, 5, "written to A")
-        await actuation.stop()  # an [actuator] edit: the daemon restarts the actuation ...
-        other = RecordingActuator(description="output B")  # ... on another output that cannot be read back
-        await actuation.start(other, config)
-        assert actuation.doc()["last_voltage_v"] is None  # A's voltage is not B's
-        command(actuation, config, 10.0)
-        await until(lambda: other.written, 5, "written to B")
-        await actuation.stop()
-        again = RecordingActuator(description="output B")  # a reload that keeps B: its last voltage is known
-        await actuation.start(again, config)
-        command(actuation, config, 130.0)
-        await until(lambda: again.written and again.written[-1][0] == 130.0, 5, "written to B again")
-        await actuation.stop()
-        return first, other, again
-
-    first, other, again = asyncio.run(main())
-    assert ramp_of(first) == [400.0]  # read back at 8 V: already there
-    assert ramp_of(other) == [10.0]  # not ramped down from A's 400 um: where B's stage is is unknown
-    assert len(log.named("actuator_unramped")) == 1
-    qs = ramp_of(again)  # ramped from the 10 um last written to B
-    assert qs[-1] == 130.0 and 10.0 < qs[0] <= 10.0 + SLEW * RAMP_PERIOD_S + 1e-9
-    assert all(0 < b - a for a, b in itertools.pairwise(qs))
-    assert_never_faster(again, SLEW)
-    assert [e["known_from"] for e in log.named("actuator_open")] == ["read back", "unknown", "last written"]
-
-
-def test_a_fault_at_start_ends_only_when_the_device_opens_and_reads_back_again() -> None:
-    log = Events()
-    config = ActuatorConfig()
-    device = RecordingActuator(holds=("voltage_v", 1.0))
-    device.broken = True
-
-    async def main() -> None:
-        actuation = Actuation(log)
-        await actuation.start(device, config)
-        assert "open failed: recording actuator: port gone" in (actuation.fault_reason or "")
-        device.broken, device.unreadable = False, True  # it opens, but does not answer
-        await until(lambda: "reopen failed" in (actuation.fault_reason or ""), 5, "a reopen attempt")
-        await until(lambda: actuation.write_failures >= 3, 10, "more reopen attempts")
-        assert "no answer to the readback" in (actuation.fault_reason or "")  # still in fault: nothing proved it works
-        device.unreadable = False
-        await until(lambda: actuation.fault_reason is None, 10, "the fault ends")
-        await actuation.stop()
-
-    asyncio.run(main())
-    assert device.written == []  # nothing was commanded: nothing was written to end the fault
-    [failed] = log.named("actuator_failed")
-    [recovered] = log.named("actuator_recovered")
-    assert failed["device"] == "recording actuator" and recovered["failures"] >= 3
 
 
 # --- a Modbus output module on a thread ----------------------------------------------------------
@@ -711,51 +512,114 @@ def test_a_labs_own_output_plugin_is_validated_by_its_own_model_and_driven_by_th
     assert cell.actuator_status()["writes"] == len(voltages)
 
 
-class RoundsOutward(RecordingActuator):
-    """A device whose representation of a voltage lands 0.05 V above it (a template that rounds up)."""
+# --- a cell of several axes: one GCS controller's line, one Modbus module's connection ------------
 
-    def sent_voltage(self, voltage_v: float) -> float:
-        return voltage_v + 0.05
+AXES = {"x": "1", "y": "2", "z": "3"}
 
 
-def test_what_the_device_would_receive_is_checked_against_the_limits_not_what_was_asked() -> None:
-    """Issue 16.8: the value after the device's own rounding must lie inside [v_min, v_max], or nothing is sent."""
-    log = Events()
-    config = ActuatorConfig(v_max=10.0)
-    device = RoundsOutward()
-
-    async def main() -> None:
-        actuation = Actuation(log)
-        await actuation.start(device, config)
-        command(actuation, config, 100.0)  # 2.0 V, sent as 2.05 V: inside
-        await until(lambda: len(device.written) == 1, 5, "the first command written")
-        command(actuation, config, 499.0)  # 9.98 V would be sent as 10.03 V: outside
-        await until(lambda: actuation.fault_reason is not None, 5, "the refusal")
-        await actuation.stop()
-
-    asyncio.run(main())
-    assert [v for _, v, _ in device.written] == [2.0]  # nothing sent for 9.98 V
-    [failed] = log.named("actuator_failed")
-    assert "would be sent as 10.030000 V, outside [-2, 10] V: nothing written" in failed["error"]
+@pytest.fixture
+def controller(tmp_path: Path) -> Iterator[FakeGcsController]:
+    fake = FakeGcsController(tmp_path / "ttyPI", axes=tuple(AXES.values()))
+    yield fake
+    fake.close()
 
 
-def test_a_reload_onto_an_output_that_opens_ends_the_fault_and_says_so() -> None:
-    """Issue 16.11: a reload that cleared an actuator fault logged no ``actuator_recovered``."""
-    log = Events()
-    config = ActuatorConfig()
+def three_axis_config(port: str, *, slew: float = 0.0) -> dict[str, object]:
+    return {
+        "cell": "xyz",
+        "axes": [{"name": axis, "min_um": 0.0, "max_um": 500.0,
+                  "actuator": {"kind": "serial_line", "port": port, "command": f"SVA {n} {{voltage_v:.4f}}\n",
+                               "readback": f"SVA? {n}\n", "timeout_s": 0.5, "safe_voltage_v": 0.0,
+                               "max_slew_um_per_s": slew}}
+                 for axis, n in AXES.items()],
+    }
 
-    async def main() -> None:
-        actuation = Actuation(log)
-        dead = RecordingActuator(description="output A")
-        dead.broken = True
-        await actuation.start(dead, config)
-        assert actuation.fault_reason is not None and len(log.named("actuator_failed")) == 1
-        await actuation.stop()  # an [actuator] edit: the daemon restarts the actuation ...
-        fixed = RecordingActuator(description="output B")  # ... on an output that opens
-        await actuation.start(fixed, config)
-        assert actuation.fault_reason is None
-        await actuation.stop()
 
-    asyncio.run(main())
-    [recovered] = log.named("actuator_recovered")
-    assert recovered["via"] == "reload" and recovered["device"] == "output B" and recovered["failures"] >= 1
+async def until(condition: Callable[[], bool], timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"not within {timeout} s: {what}")
+        await asyncio.sleep(0.005)
+
+
+def sva_lines(controller: FakeGcsController) -> list[tuple[str, float]]:
+    return [(m[1], float(m[2])) for line in list(controller.lines) if (m := re.fullmatch(r"SVA (\d) (\S+)", line))]
+
+
+def test_three_axes_share_one_line_and_each_command_is_written_whole_before_the_next(
+        controller: FakeGcsController) -> None:
+    config = parse_config(three_axis_config(controller.port))
+    drivers = build_drivers(config)
+    assert list(drivers.actuators) == ["x", "y", "z"]
+    lines = {id(a.port) for a in drivers.actuators.values()}  # type: ignore[attr-defined]
+    assert len(lines) == 1, "the three axes of one controller share one line (one lock)"
+
+    goals = [{axis: round(0.5 + 0.37 * k + i, 4) for i, axis in enumerate(AXES)} for k in range(12)]
+
+    async def scenario() -> None:
+        actuation = Actuation(get_logger("test"))
+        await actuation.start(drivers.actuators, config.axis_actuators())
+        try:
+            for goal in goals:  # a burst: newer commands replace pending ones, never half of one
+                actuation.offer({a: v / 0.02 for a, v in goal.items()}, goal)
+                if actuation._active:
+                    actuation.wake()
+                await asyncio.sleep(0.004)
+            last = goals[-1]
+            await until(lambda: all(abs(controller.voltages[AXES[a]] - v) < 1e-9 for a, v in last.items()), 5,
+                        "the last command on every axis")
+            assert actuation.fault_reason is None
+        finally:
+            await actuation.stop(final=True)
+
+    asyncio.run(scenario())
+    written = sva_lines(controller)
+    *served, safe = [written[i:i + 3] for i in range(0, len(written), 3)]
+    assert len(written) % 3 == 0 and len(served) >= 2, written
+    offered = [tuple((AXES[a], v) for a, v in goal.items()) for goal in goals]
+    for group in served:  # axis 1, 2, 3 of one command, then the next command's
+        assert tuple(group) in offered, (group, written)
+    assert tuple(served[-1]) == offered[-1]
+    assert [offered.index(tuple(g)) for g in served] == sorted(offered.index(tuple(g)) for g in served)
+    assert safe == [("1", 0.0), ("2", 0.0), ("3", 0.0)]  # the safe stop: every axis at its safe_voltage_v
+
+
+def test_a_slewed_three_axis_move_ramps_each_axis_at_its_own_rate_in_steps_of_whole_commands(
+        controller: FakeGcsController) -> None:
+    config = parse_config(three_axis_config(controller.port, slew=500.0))  # 10 V/s at 0.02 V/um
+    drivers = build_drivers(config)
+
+    async def scenario() -> float:
+        actuation = Actuation(get_logger("test"), safe_budget_s=5.0)
+        await actuation.start(drivers.actuators, config.axis_actuators())
+        began = time.monotonic()
+        try:
+            goal = {"x": 4.0, "y": 2.0, "z": 0.0}
+            actuation.offer({a: v / 0.02 for a, v in goal.items()}, goal)
+            actuation.wake()
+            await until(lambda: abs(controller.voltages["1"] - 4.0) < 1e-9, 5, "x at 4 V")
+            return time.monotonic() - began
+        finally:
+            await actuation.stop(final=False)
+
+    asyncio.run(scenario())
+    written = sva_lines(controller)
+    x_steps = [v for n, v in written if n == "1"]
+    assert len(x_steps) >= 4 and x_steps[-1] == 4.0, x_steps  # a ramp, not a jump
+    # no step covers more than 10 V/s over the longest interval one step may cover (5 ramp periods)
+    assert max(b - a for a, b in zip([0.0, *x_steps], x_steps, strict=False)) <= 10.0 * 0.1 + 1e-6, x_steps
+    axes_in_order = [n for n, _ in written]
+    assert axes_in_order[:3] == ["1", "2", "3"]  # each step writes the axes in the cell's order
+    assert [v for n, v in written if n == "2"][-1] == 2.0 and all(v == 0.0 for n, v in written if n == "3")
+
+
+def test_two_axes_of_one_modbus_module_share_one_connection_and_its_lock() -> None:
+    axes = [{"name": axis, "min_um": 0.0, "max_um": 500.0,
+             "actuator": {"kind": "modbus", "hub": "dac", "address": address, "scale": 0.001}}
+            for axis, address in (("x", 10), ("y", 11))]
+    config = parse_config({"cell": "xy", "axes": axes, "hubs": [{"name": "dac", "port": 5020}]})
+    drivers = build_drivers(config)
+    x, y = drivers.actuators["x"], drivers.actuators["y"]
+    assert x.hub is y.hub  # type: ignore[attr-defined]  # one ModbusHub: one connection, one lock
+    assert (x.config.address, y.config.address) == (10, 11)  # type: ignore[attr-defined]

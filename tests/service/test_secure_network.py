@@ -139,7 +139,7 @@ def nanodrift_target(config: Path, port: int, endpoint: str = "tcp/127.0.0.1") -
 
 ROGUE_COMMAND = {"id": "rogue", "x_um": 240.0, "q_um": 1000.0, "voltage_v": 1000.0, "temperatures_c": {},
                  "model": "rogue", "t": 0.0}
-SPOOFED_KEYS = ["command", "error", "health", "sensors/position", "sensors/temperature/T1"]
+SPOOFED_KEYS = ["command", "error", "done", "health", "sensors/position", "sensors/temperature/T1"]
 
 
 class Spoof:
@@ -237,6 +237,34 @@ def test_an_authenticated_client_gets_its_target_served(cell: SecureCell) -> Non
     [answer] = [json.loads(line) for line in result.stdout.splitlines()]
     assert answer["id"] == 0 and answer["model"] == cell.model.id
     assert answer["q_um"] == pytest.approx(expected_q(240.0, TEMPS), abs=1e-9)
+
+
+def test_an_authenticated_client_hears_done_and_can_stop(cell: SecureCell) -> None:
+    session = open_session(cell.client_config, cell.port)
+    try:
+        dones: list[dict[str, Any]] = []
+        heard = threading.Event()
+
+        def done(sample: zenoh.Sample) -> None:
+            dones.append(json.loads(sample.payload.to_bytes()))
+            heard.set()
+
+        subscriber = session.declare_subscriber(f"nanodrift/{CELL}/done", done)
+        wait_until(lambda: status_ok(session), 20, "status over an authenticated session", interval=0.05)
+        replies = list(session.get(f"nanodrift/{CELL}/compensate", payload=json.dumps({"x_um": 120.0, "id": "d"}),
+                                   timeout=5.0))
+        assert len(replies) == 1 and replies[0].ok is not None
+        command = json.loads(replies[0].ok.payload.to_bytes())
+        assert heard.wait(10), "no done through the access control"
+        assert dones == [{**dones[0], "id": "d", "state": "reached", "voltage_v": command["voltage_v"],
+                          "error": None}]
+        replies = list(session.get(f"nanodrift/{CELL}/stop", payload=json.dumps({"id": "s"}), timeout=5.0))
+        assert len(replies) == 1 and replies[0].ok is not None, replies
+        assert json.loads(replies[0].ok.payload.to_bytes()) == {"id": "s", "voltage_v": command["voltage_v"],
+                                                                "held": True}
+        subscriber.undeclare()
+    finally:
+        session.close()
 
 
 @pytest.mark.parametrize("who", ["no credentials", "wrong password"])

@@ -12,7 +12,7 @@ import json
 import logging
 import threading
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -95,9 +95,10 @@ class RecordingActuation(Actuation):
         super().__init__(log)
         self.events = events
 
-    def offer(self, q_um: float, voltage_v: float, x_um: float | None = None) -> bool:
-        self.events.append(("offer", x_um))
-        return super().offer(q_um, voltage_v, x_um)
+    def offer(self, q_um: Mapping[str, float], voltage_v: Mapping[str, float],
+              positions_um: Mapping[str, float] | None = None, target_id: str | int | None = None) -> bool:
+        self.events.append(("offer", None if positions_um is None else positions_um["x"]))
+        return super().offer(q_um, voltage_v, positions_um, target_id)
 
     def wake(self) -> None:
         self.events.append(("wake",))
@@ -206,7 +207,7 @@ def test_a_command_is_published_before_the_actuator_hears_of_it_and_the_reply_fo
     query = Query()
 
     async def body() -> None:
-        await cell.actuation.start(cell.output, cell.config.actuator)
+        await cell.actuation.start({"x": cell.output}, {"x": cell.config.actuator})
         handler = cell.handler(asyncio.get_running_loop())
         cell.events.clear()
         await asyncio.to_thread(handler.on_target, target(120.0, 7), query)  # type: ignore[arg-type]
