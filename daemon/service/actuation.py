@@ -164,7 +164,7 @@ class Actuation:
         #: cell whose only output is ``x`` (decided at :meth:`start`)
         self._single = single
         self.single = single if single is not None else True
-        self._lock = threading.Lock()  # guards the three below; never held across an await or a publish
+        self._lock = threading.Lock()  # guards what offer() touches; never held across an await or a publish
         self._active = False
         self._pending: Goal | None = None  # served, not yet taken by the loop (kept while drivers are swapped)
         self._wake_pending = False
@@ -179,7 +179,7 @@ class Actuation:
         self.done_listeners: list[OnDone] = []
         self._superseded: list[Goal] = []  # pending commands a newer one replaced before the loop took them
         self._inflight: Goal | None = None  # the served command the loop took and that has not ended yet
-        self._offered_v: dict[str, float] = {}  # the latest command's voltages: what a published axis holds
+        self._offered_v: Mapping[str, float] = {}  # the latest command's voltages: what a published axis holds
         self._seq = 0  # commands served so far (under the lock)
         #: stops asked of the drive task: each one's answer and the last command it ends (its ``seq``)
         self._halt_waiters: list[tuple[asyncio.Future[dict[str, float | None]], int]] = []
@@ -205,7 +205,7 @@ class Actuation:
             if self._pending is not None:
                 self._superseded.append(self._pending)
             self._pending = goal
-            self._offered_v = dict(voltage_v)
+            self._offered_v = voltage_v  # (read on the loop: copied there)
             if not self._active:
                 return False
             wake = not self._wake_pending
