@@ -178,6 +178,7 @@ class Actuation:
         # --- how each served command ends (exactly one ``done`` each) ---
         self.done_listeners: list[OnDone] = []
         self._superseded: list[Goal] = []  # pending commands a newer one replaced before the loop took them
+        self._drain_asked = False  # a wake was asked to tell the superseded ones while no drive loop runs
         self._inflight: Goal | None = None  # the served command the loop took and that has not ended yet
         self._offered_v: Mapping[str, float] = {}  # the latest command's voltages: what a published axis holds
         self._seq = 0  # commands served so far (under the lock)
@@ -198,7 +199,8 @@ class Actuation:
         """Make this the command every axis gets next (any thread). True: the caller must wake the loop
         (``loop.call_soon_threadsafe(actuation.wake)``); it is asked at most once per burst. While the
         drivers are being swapped (a reload) the command waits for the new outputs. A pending command this
-        one replaces ends ``superseded`` (told from the loop, when it takes the newest)."""
+        one replaces ends ``superseded``, told from the loop when it takes the newest (while the drivers are
+        swapped, at the wake this asks for, once a burst): nothing piles up."""
         with self._lock:
             self._seq += 1
             goal = Goal(q_um, voltage_v, positions_um, target_id, seq=self._seq)
@@ -206,14 +208,25 @@ class Actuation:
                 self._superseded.append(self._pending)
             self._pending = goal
             self._offered_v = voltage_v  # (read on the loop: copied there)
-            if not self._active:
-                return False
+            if not self._active:  # no drive loop (a reload): the loop still tells the superseded ones, once a burst
+                wake = bool(self._superseded) and not self._drain_asked
+                self._drain_asked = self._drain_asked or wake
+                return wake
             wake = not self._wake_pending
             self._wake_pending = True
             return wake
 
     def wake(self) -> None:
+        """(On the loop.) Take the newest command; those it superseded end now."""
+        self._drain_superseded()
         self._event.set()
+
+    def _drain_superseded(self) -> None:
+        with self._lock:
+            superseded, self._superseded = self._superseded, []
+            self._drain_asked = False
+        for goal in superseded:
+            self._done(goal, "superseded")
 
     def doc(self) -> dict[str, Any]:
         """The outputs' state for a cell of several axes' ``status``: the cell's, then per axis."""
