@@ -40,8 +40,8 @@ too; this module owns the devices' lifecycle.
   written once the outputs work again: no second ``done``); ``stopped`` by :meth:`halt` or by the
   daemon's stop. A cell with no output device at all (every axis ``kind = "zenoh"``, or no actuator)
   still runs the drive task with no outputs: the published command is the actuation, so each command is
-  ``reached`` as soon as the loop takes it (not paced: only commands that arrive within one loop turn of
-  each other are ``superseded``), and what a published axis holds is the latest command's voltage.
+  ``reached`` as soon as the loop takes it (paced as writes are, 50 a second: a command a newer one
+  replaces within that is ``superseded``), and what a published axis holds is the latest command's voltage.
 - **A client's stop** (:meth:`halt`): the drive task ends its ramp between two writes (a write under way
   completes), every output holds what it has, the command in flight (and a pending one) ends
   ``stopped``, and the goal is forgotten, so a reload or a reopen moves nothing. A stop ends only the
@@ -563,8 +563,9 @@ class Actuation:
             # Writes are paced at the ramp period: an isolated target is written at once, a stream is
             # coalesced to 50 writes/s (newest wins). Waking the loop for every target of a 1 kHz stream
             # halved the daemon's burst throughput and raised its answer latency (benchmarks/daemon_latency.py).
-            # No outputs (every axis published): nothing to pace, each command is reached as it is taken.
-            await asyncio.sleep(WRITE_PERIOD_S if outputs else 0.0)
+            # No outputs (every axis published) are paced the same: a stream still wakes the loop 50 times a
+            # second, not once per target.
+            await asyncio.sleep(WRITE_PERIOD_S)
 
     async def _move_to(self, goal: Goal, outputs: Mapping[str, AxisOutput], *, follow_pending: bool) -> None:
         """Write ``goal`` to every axis (ramped per axis under its slew limit; each step writes the axes in
