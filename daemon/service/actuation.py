@@ -40,8 +40,8 @@ too; this module owns the devices' lifecycle.
   written once the outputs work again: no second ``done``); ``stopped`` by :meth:`halt` or by the
   daemon's stop. A cell with no output device at all (every axis ``kind = "zenoh"``, or no actuator)
   still runs the drive task with no outputs: the published command is the actuation, so each command is
-  ``reached`` as soon as the loop takes it (not paced: only commands that arrive within one loop turn of
-  each other are ``superseded``), and what a published axis holds is the latest command's voltage.
+  ``reached`` as soon as the loop takes it (paced as writes are, 50 a second: a command a newer one
+  replaces within that is ``superseded``), and what a published axis holds is the latest command's voltage.
 - **A client's stop** (:meth:`halt`): the drive task ends its ramp between two writes (a write under way
   completes), every output holds what it has, the command in flight (and a pending one) ends
   ``stopped``, and the goal is forgotten, so a reload or a reopen moves nothing. A stop ends only the
@@ -164,7 +164,7 @@ class Actuation:
         #: cell whose only output is ``x`` (decided at :meth:`start`)
         self._single = single
         self.single = single if single is not None else True
-        self._lock = threading.Lock()  # guards the three below; never held across an await or a publish
+        self._lock = threading.Lock()  # guards what offer() touches; never held across an await or a publish
         self._active = False
         self._pending: Goal | None = None  # served, not yet taken by the loop (kept while drivers are swapped)
         self._wake_pending = False
@@ -178,8 +178,9 @@ class Actuation:
         # --- how each served command ends (exactly one ``done`` each) ---
         self.done_listeners: list[OnDone] = []
         self._superseded: list[Goal] = []  # pending commands a newer one replaced before the loop took them
+        self._drain_asked = False  # a wake was asked to tell the superseded ones while no drive loop runs
         self._inflight: Goal | None = None  # the served command the loop took and that has not ended yet
-        self._offered_v: dict[str, float] = {}  # the latest command's voltages: what a published axis holds
+        self._offered_v: Mapping[str, float] = {}  # the latest command's voltages: what a published axis holds
         self._seq = 0  # commands served so far (under the lock)
         #: stops asked of the drive task: each one's answer and the last command it ends (its ``seq``)
         self._halt_waiters: list[tuple[asyncio.Future[dict[str, float | None]], int]] = []
@@ -198,22 +199,34 @@ class Actuation:
         """Make this the command every axis gets next (any thread). True: the caller must wake the loop
         (``loop.call_soon_threadsafe(actuation.wake)``); it is asked at most once per burst. While the
         drivers are being swapped (a reload) the command waits for the new outputs. A pending command this
-        one replaces ends ``superseded`` (told from the loop, when it takes the newest)."""
+        one replaces ends ``superseded``, told from the loop when it takes the newest (while the drivers are
+        swapped, at the wake this asks for, once a burst): nothing piles up."""
         with self._lock:
             self._seq += 1
             goal = Goal(q_um, voltage_v, positions_um, target_id, seq=self._seq)
             if self._pending is not None:
                 self._superseded.append(self._pending)
             self._pending = goal
-            self._offered_v = dict(voltage_v)
-            if not self._active:
-                return False
+            self._offered_v = voltage_v  # (read on the loop: copied there)
+            if not self._active:  # no drive loop (a reload): the loop still tells the superseded ones, once a burst
+                wake = bool(self._superseded) and not self._drain_asked
+                self._drain_asked = self._drain_asked or wake
+                return wake
             wake = not self._wake_pending
             self._wake_pending = True
             return wake
 
     def wake(self) -> None:
+        """(On the loop.) Take the newest command; those it superseded end now."""
+        self._drain_superseded()
         self._event.set()
+
+    def _drain_superseded(self) -> None:
+        with self._lock:
+            superseded, self._superseded = self._superseded, []
+            self._drain_asked = False
+        for goal in superseded:
+            self._done(goal, "superseded")
 
     def doc(self) -> dict[str, Any]:
         """The outputs' state for a cell of several axes' ``status``: the cell's, then per axis."""
@@ -550,8 +563,9 @@ class Actuation:
             # Writes are paced at the ramp period: an isolated target is written at once, a stream is
             # coalesced to 50 writes/s (newest wins). Waking the loop for every target of a 1 kHz stream
             # halved the daemon's burst throughput and raised its answer latency (benchmarks/daemon_latency.py).
-            # No outputs (every axis published): nothing to pace, each command is reached as it is taken.
-            await asyncio.sleep(WRITE_PERIOD_S if outputs else 0.0)
+            # No outputs (every axis published) are paced the same: a stream still wakes the loop 50 times a
+            # second, not once per target.
+            await asyncio.sleep(WRITE_PERIOD_S)
 
     async def _move_to(self, goal: Goal, outputs: Mapping[str, AxisOutput], *, follow_pending: bool) -> None:
         """Write ``goal`` to every axis (ramped per axis under its slew limit; each step writes the axes in

@@ -714,3 +714,35 @@ def test_a_stop_ends_the_commands_served_before_it_never_one_served_after_it(axe
     for axis, device in outputs.items():
         assert device.written[-1][1] == volts(configs, 100.0)[axis]
         assert held[axis] is not None and held[axis] < volts(configs, 400.0)[axis]
+
+
+def test_a_flood_while_the_drivers_are_swapped_ends_each_replaced_command_before_the_outputs_are_back(
+        axes: tuple[str, ...]) -> None:
+    """Nothing piles up during a reload: the commands a newer one replaced end ``superseded`` from the loop
+    while no drive loop runs; the newest is written once the outputs are back, and ends ``reached``."""
+    configs = {a: ActuatorConfig() for a in axes}
+    outputs = devices(axes, holds=("voltage_v", 0.0))
+
+    async def main() -> tuple[Dones, int]:
+        actuation = Actuation(Events())
+        dones = Dones(actuation)
+        await actuation.start(outputs, configs)
+        await actuation.stop()  # a reload: the drivers are swapped
+        wakes = 0
+        for i in range(1, 501):
+            if actuation.offer({a: 1.0 * share(a) for a in axes}, volts(configs, 1.0), None, i):
+                wakes += 1
+                asyncio.get_running_loop().call_soon(actuation.wake)  # as the target path does
+            if i % 50 == 0:
+                await asyncio.sleep(0)  # the loop runs between bursts
+        await until(lambda: len(dones.told) == 499, 5, "every replaced command told")
+        assert all(d.written == [] for d in outputs.values())  # nothing written while the drivers are away
+        await actuation.start(outputs, configs)
+        await until(lambda: dones.state(500) is not None, 5, "the newest command's done")
+        await actuation.stop()
+        return dones, wakes
+
+    dones, wakes = asyncio.run(main())
+    assert [(i, s) for i, s, _, _ in dones.told] == [*((i, "superseded") for i in range(1, 500)), (500, "reached")]
+    assert wakes <= 10  # one wake per burst, not per target
+    assert all(d.written[-1][1] == volts(configs, 1.0)[a] for a, d in outputs.items())
