@@ -12,6 +12,8 @@
   physics works without the plugin around it;
 - the service layer (service, bus, procedure, config, logs, sdnotify, reports) never names a concrete
   plugin, nor the CLI or the assembly;
+- the procedures (``nanodrift.procedure``) never import the service (``nanodrift.service``): what they
+  share with the daemon's actuation is ``nanodrift.outputs`` and ``nanodrift.motion``;
 - only ``nanodrift.assembly`` and the CLI (``nanodrift.cli``, ``nanodrift.commands``) name concrete plugins;
 - ``nanodrift.bus`` loads without plugin discovery: nothing it imports, directly or through other modules
   (a module's parent packages included), imports ``nanodrift.drivers.registry``;
@@ -68,6 +70,10 @@ CONTRACT_KIT_THIRD_PARTY = {
     "pytest": "the kit is pytest test classes (approx, raises, skip); a lab's test suite runs under pytest",
 }
 COMMANDS_PACKAGE = "nanodrift.commands"
+#: the calibration and validation procedures, and the daemon's service: what both share lives beside them
+#: (``nanodrift.outputs``, ``nanodrift.motion``), never in the service
+PROCEDURE_ROOT = "nanodrift.procedure"
+SERVICE_ROOT = "nanodrift.service"
 #: optional heavy dependencies a function may import lazily, with the reason
 LAZY_ALLOWED = {
     "matplotlib": "figures are drawn only when a report is asked for",
@@ -219,6 +225,8 @@ def forbidden(importer: str, imported: str) -> str | None:
         return None
     if within(unit, ASSEMBLY_ROOTS):
         return None
+    if within(unit, [PROCEDURE_ROOT]) and within(target, [SERVICE_ROOT]):
+        return "the procedures drive a cell through its drivers; they never reach into the daemon's service"
     # the service layer: everything else in daemon
     if within(target, PLUGIN_ROOTS):
         return "only nanodrift.assembly and the CLI name concrete plugins"
@@ -408,6 +416,10 @@ def test_no_module_imports_by_a_string_except_through_the_cli_table() -> None:
         ("nanodrift.model.terms", "math", True),
         ("nanodrift.model", "zenoh", False),
         ("nanodrift.calibration", "nanodrift.drivers.simulated.cell", False),
+        ("nanodrift.model.model", "nanodrift.bus.protocol", False),  # the pure core: neither the bus ...
+        ("nanodrift.calibration.residuals", "nanodrift.service.health_unit", False),  # ... nor the service
+        ("nanodrift.procedure.steps", "nanodrift.service.actuation", False),  # a procedure: not the service
+        ("nanodrift.procedure.steps", "nanodrift.outputs", True),
         ("nanodrift.calibration", "matplotlib.pyplot", False),
         # (b) the core does no I/O concurrency, and takes none of the service's libraries
         ("nanodrift.model.identify", "asyncio", False),

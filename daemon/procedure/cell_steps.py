@@ -31,11 +31,11 @@ from nanodrift.calibration.plans import (
 from nanodrift.config import ActuatorConfig
 from nanodrift.drivers.base import Actuator
 from nanodrift.drivers_set import DriverSet
+from nanodrift.outputs import checked_sent_voltage
 from nanodrift.procedure.follow import FollowCheck
 from nanodrift.procedure.progress import Progress
 from nanodrift.procedure.sampler import Sampler
 from nanodrift.procedure.steps import ramp_s, stage_q_um
-from nanodrift.service.actuation import checked_sent_voltage
 
 #: (the step's targets per axis, the cell clock's now) -> the command per axis
 CellCommandFor = Callable[[dict[str, float], float], dict[str, float]]

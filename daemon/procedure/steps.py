@@ -7,7 +7,7 @@ ignores it). The same code drives the simulated cell on a virtual clock and real
 The operator's ``[actuator]`` motion keys hold here too: no ramp is faster than
 ``max_slew_um_per_s`` (a ramp is stretched instead), every sub-command's voltage is checked against
 ``[v_min, v_max]``, and a finite ``safe_voltage_v`` is where the stage is left at the end. The first
-ramp starts where the stage is, by the daemon's rule (:func:`nanodrift.service.actuation.locate_stage`:
+ramp starts where the stage is, by the daemon's rule (:func:`nanodrift.outputs.locate_stage`:
 the output read back, else a finite ``safe_voltage_v``); when that is unknown the first move is
 written at once, and the progress stream says so.
 """
@@ -21,10 +21,10 @@ from nanodrift.calibration.plans import PAPER_TIMING, PlannedStep, StepResult, S
 from nanodrift.config import ActuatorConfig
 from nanodrift.drivers.base import Actuator, Clock
 from nanodrift.drivers_set import DriverSet
+from nanodrift.outputs import checked_sent_voltage, locate_stage
 from nanodrift.procedure.follow import FollowCheck
 from nanodrift.procedure.progress import Progress
 from nanodrift.procedure.sampler import Sampler
-from nanodrift.service.actuation import checked_sent_voltage, locate_stage
 
 CommandFor = Callable[[PlannedStep, float], float]
 

@@ -77,37 +77,13 @@ from typing import Any
 from nanodrift.config import SAFE_RAMP_BUDGET_S, ActuatorConfig
 from nanodrift.drivers.base import Actuator, DeviceError
 from nanodrift.logs import RateLimitedLog
-from nanodrift.motion import RAMP_PERIOD_S, Slew, StartPoint, trusted_start
+from nanodrift.motion import RAMP_PERIOD_S, Slew, StartPoint
+from nanodrift.outputs import checked_sent_voltage, locate_stage
 
 WRITE_PERIOD_S = RAMP_PERIOD_S  # any two writes are this far apart: a stream is coalesced to 50 writes a second
 WRITE_TIMEOUT_S = 3.0  # a write that takes longer is a fault
 INITIAL_BACKOFF_S = 0.2
 MAX_BACKOFF_S = 5.0
-#: tolerance on a sent voltage against the limits: float rounding of a count times a scale, not a volt more
-SENT_SLACK_V = 1e-9
-
-
-async def locate_stage(actuator: Actuator, config: ActuatorConfig, sent_v: tuple[float, ...] = ()) -> StartPoint:
-    """Where the stage is after ``actuator.open()`` (:func:`nanodrift.motion.trusted_start` on its read-back);
-    a failed read back raises, like a failed write. The procedures use it too."""
-    read = await actuator.read_back()
-    read_v = None
-    if read is not None:
-        field_name, value = read
-        read_v = value if field_name == "voltage_v" else config.voltage(value)
-    return trusted_start(config, read_v, sent_v, config.safe_voltage_v)
-
-
-def checked_sent_voltage(actuator: Actuator, config: ActuatorConfig, voltage_v: float) -> float:
-    """The voltage the device will receive for ``voltage_v``; ValueError (write nothing) when that is
-    outside the limits in force."""
-    sent = actuator.sent_voltage(voltage_v)
-    if not config.v_min - SENT_SLACK_V <= sent <= config.v_max + SENT_SLACK_V:
-        raise ValueError(f"{actuator.description}: {voltage_v:.6f} V would be sent as {sent:.6f} V, outside "
-                         f"[{config.v_min:g}, {config.v_max:g}] V: nothing written")
-    return sent
-
-
 @dataclass(frozen=True, slots=True, eq=False)
 class Goal:
     """A command every axis should hold: q and voltage per axis, and the target's positions; ``id`` is the
