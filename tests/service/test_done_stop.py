@@ -256,7 +256,7 @@ def test_every_served_command_gets_one_done_saying_how_it_ended(cell: ModbusCell
     done = watch.wait(24)
     assert done["state"] == "reached", done
     wanted = cell.per_axis(carried["voltage_v"])
-    slack_v = SCALE_V + RATE * VOLTS_PER_UM * 0.050  # a count, and 50 ms of stamping jitter on a loaded machine
+    slack_v = SCALE_V + RATE * VOLTS_PER_UM * 0.100  # a count, and 100 ms of stamping jitter on a loaded machine
     for axis in axes:
         assert close_to(cell.per_axis(done["voltage_v"])[axis], wanted[axis])
         ramp = [(t, raw * SCALE_V) for t, address, raw in cell.landed[before:] if address == ADDRESSES[axis]]
