@@ -4,6 +4,13 @@ import os
 import sys
 from pathlib import Path
 
+from hypothesis import HealthCheck, settings
+
+# One BLAS thread in the test processes, as ``nanodrift`` itself runs (daemon/blas_threads.py): OpenBLAS's
+# threads made a small solve 100x slower on a loaded two-core machine. Imported before anything imports numpy
+# (hypothesis does not).
+from nanodrift import blas_threads  # noqa: F401
+
 # tests import their helpers as the package ``helpers`` (tests/helpers/)
 sys.path.insert(0, str(Path(__file__).parent))
 
@@ -13,14 +20,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
 sys.dont_write_bytecode = False
 
-# One BLAS thread in the test processes, as ``nanodrift`` itself runs (daemon/blas_threads.py): OpenBLAS's
-# threads made a small solve 100x slower on a loaded two-core machine. Before any test module imports numpy.
-assert "numpy" not in sys.modules, "conftest must set the BLAS threads before numpy is imported"
 # Hypothesis judges a test by its examples, not by how long a loaded machine took to run one: no deadline,
 # and no "too slow" health check (time belongs in benchmarks/). A test's own @settings still add to this.
-from hypothesis import HealthCheck, settings  # noqa: E402
-
-from nanodrift import blas_threads  # noqa: E402, F401
-
 settings.register_profile("nanodrift", deadline=None, suppress_health_check=[HealthCheck.too_slow])
 settings.load_profile("nanodrift")

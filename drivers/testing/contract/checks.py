@@ -237,72 +237,60 @@ class ActuatorContract:
         rig = self.built_rig(tmp_path)
 
         async def body() -> None:
-            await rig.start()
-            try:
-                actuator = rig.actuator()
-                assert actuator.description  # names the device in messages
-                actuator.limits_v = LIMITS_V
-                await actuator.open()
-                asked = [0.1234567, 2.5, 7.7777777, 0.0, 9.99999]
-                for volts in asked:
-                    sent = actuator.sent_voltage(volts)
-                    assert abs(sent - volts) <= rig.resolution_v / 2 + TOLERANCE_V, (
-                        f"sent_voltage({volts!r}) = {sent!r}: farther than half the device's resolution "
-                        f"({rig.resolution_v!r} V)")
-                    await assert_serves(rig, actuator, volts)
-                assert rig.written_v() == pytest.approx([actuator.sent_voltage(v) for v in asked], abs=TOLERANCE_V)
-                await actuator.close()
-                await actuator.close()  # safe twice
-            finally:
-                await rig.stop()
+            actuator = rig.actuator()
+            assert actuator.description  # names the device in messages
+            actuator.limits_v = LIMITS_V
+            await actuator.open()
+            asked = [0.1234567, 2.5, 7.7777777, 0.0, 9.99999]
+            for volts in asked:
+                sent = actuator.sent_voltage(volts)
+                assert abs(sent - volts) <= rig.resolution_v / 2 + TOLERANCE_V, (
+                    f"sent_voltage({volts!r}) = {sent!r}: farther than half the device's resolution "
+                    f"({rig.resolution_v!r} V)")
+                await assert_serves(rig, actuator, volts)
+            assert rig.written_v() == pytest.approx([actuator.sent_voltage(v) for v in asked], abs=TOLERANCE_V)
+            await actuator.close()
+            await actuator.close()  # safe twice
 
-        run(body)
+        run_on(rig, body)
 
     def test_read_back_after_a_command_is_what_was_sent(self, tmp_path: Path) -> None:
         rig = self.built_rig(tmp_path)
 
         async def body() -> None:
-            await rig.start()
-            try:
-                actuator = rig.actuator()
-                actuator.limits_v = LIMITS_V
-                await actuator.open()
-                for volts in (3.3333333, 6.25):
-                    await command(actuator, volts)
-                    back = await asyncio.wait_for(actuator.read_back(), COMMAND_BOUND_S)
-                    if rig.reads_back is None:
-                        assert back is None
-                    elif rig.reads_back == "voltage_v":
-                        assert back == ("voltage_v", pytest.approx(actuator.sent_voltage(volts), abs=TOLERANCE_V))
-                    else:
-                        assert back == ("q_um", pytest.approx(volts / GAIN_V_PER_UM, abs=TOLERANCE_V))
-                await actuator.close()
-            finally:
-                await rig.stop()
+            actuator = rig.actuator()
+            actuator.limits_v = LIMITS_V
+            await actuator.open()
+            for volts in (3.3333333, 6.25):
+                await command(actuator, volts)
+                back = await asyncio.wait_for(actuator.read_back(), COMMAND_BOUND_S)
+                if rig.reads_back is None:
+                    assert back is None
+                elif rig.reads_back == "voltage_v":
+                    assert back == ("voltage_v", pytest.approx(actuator.sent_voltage(volts), abs=TOLERANCE_V))
+                else:
+                    assert back == ("q_um", pytest.approx(volts / GAIN_V_PER_UM, abs=TOLERANCE_V))
+            await actuator.close()
 
-        run(body)
+        run_on(rig, body)
 
     def test_nothing_outside_limits_v_reaches_the_device(self, tmp_path: Path) -> None:
         rig = self.built_rig(tmp_path)
         (low, high), at_limit, expected = rig.limit_case
 
         async def body() -> None:
-            await rig.start()
-            try:
-                actuator = rig.actuator()
-                actuator.limits_v = (low, high)
-                await actuator.open()
-                assert actuator.sent_voltage(at_limit) == pytest.approx(expected, abs=TOLERANCE_V)
-                await assert_serves(rig, actuator, at_limit)
-                await assert_serves(rig, actuator, low)
-                written = rig.written_v()
-                assert len(written) == 2 and all(low <= v <= high for v in written), written
-                assert written[0] == pytest.approx(expected, abs=TOLERANCE_V)
-                await actuator.close()
-            finally:
-                await rig.stop()
+            actuator = rig.actuator()
+            actuator.limits_v = (low, high)
+            await actuator.open()
+            assert actuator.sent_voltage(at_limit) == pytest.approx(expected, abs=TOLERANCE_V)
+            await assert_serves(rig, actuator, at_limit)
+            await assert_serves(rig, actuator, low)
+            written = rig.written_v()
+            assert len(written) == 2 and all(low <= v <= high for v in written), written
+            assert written[0] == pytest.approx(expected, abs=TOLERANCE_V)
+            await actuator.close()
 
-        run(body)
+        run_on(rig, body)
 
     def test_a_value_the_device_cannot_represent_is_a_value_error_and_nothing_is_written(
             self, tmp_path: Path) -> None:
@@ -312,27 +300,23 @@ class ActuatorContract:
         limits, volts = rig.unrepresentable
 
         async def body() -> None:
-            await rig.start()
-            try:
-                actuator = rig.actuator()
-                actuator.limits_v = LIMITS_V
-                await actuator.open()
-                await assert_serves(rig, actuator, 1.5)
-                held = await rig.held_v()
-                before = rig.written_v()
-                actuator.limits_v = limits  # the device cannot put out every voltage of these
-                with pytest.raises(ValueError):
-                    await command(actuator, volts)
-                await asyncio.sleep(0.2)  # a write under way would land by now
-                assert rig.written_v() == before
-                assert await rig.held_v() == held
-                actuator.limits_v = LIMITS_V
-                await assert_serves(rig, actuator, 2.5)  # the actuator still works
-                await actuator.close()
-            finally:
-                await rig.stop()
+            actuator = rig.actuator()
+            actuator.limits_v = LIMITS_V
+            await actuator.open()
+            await assert_serves(rig, actuator, 1.5)
+            held = await rig.held_v()
+            before = rig.written_v()
+            actuator.limits_v = limits  # the device cannot put out every voltage of these
+            with pytest.raises(ValueError):
+                await command(actuator, volts)
+            await asyncio.sleep(0.2)  # a write under way would land by now
+            assert rig.written_v() == before
+            assert await rig.held_v() == held
+            actuator.limits_v = LIMITS_V
+            await assert_serves(rig, actuator, 2.5)  # the actuator still works
+            await actuator.close()
 
-        run(body)
+        run_on(rig, body)
 
     def _failing_rig(self, tmp_path: Path) -> ActuatorRig:
         rig = self.built_rig(tmp_path)
@@ -344,67 +328,55 @@ class ActuatorContract:
         rig = self._failing_rig(tmp_path)
 
         async def body() -> None:
-            await rig.start()
-            try:
-                actuator = rig.actuator()
-                actuator.limits_v = LIMITS_V
-                await actuator.open()
-                await assert_serves(rig, actuator, 1.5)
-                await rig.refuse_writes()
-                with pytest.raises(DeviceError):
-                    await command(actuator, 4.5)
-                await rig.back()
-                await assert_serves(rig, actuator, 4.5)
-                await actuator.close()
-            finally:
-                await rig.stop()
+            actuator = rig.actuator()
+            actuator.limits_v = LIMITS_V
+            await actuator.open()
+            await assert_serves(rig, actuator, 1.5)
+            await rig.refuse_writes()
+            with pytest.raises(DeviceError):
+                await command(actuator, 4.5)
+            await rig.back()
+            await assert_serves(rig, actuator, 4.5)
+            await actuator.close()
 
-        run(body)
+        run_on(rig, body)
 
     def test_a_device_that_is_gone_is_a_device_error_and_a_reopen_recovers(self, tmp_path: Path) -> None:
         rig = self._failing_rig(tmp_path)
 
         async def body() -> None:
-            await rig.start()
-            try:
-                actuator = rig.actuator()
-                actuator.limits_v = LIMITS_V
-                await actuator.open()
-                await assert_serves(rig, actuator, 1.5)
-                await rig.gone()
-                with pytest.raises(DeviceError):
-                    await command(actuator, 4.5)
-                await actuator.close()
-                await rig.back()
-                await actuator.open()
-                await assert_serves(rig, actuator, 4.5)
-                await actuator.close()
-            finally:
-                await rig.stop()
+            actuator = rig.actuator()
+            actuator.limits_v = LIMITS_V
+            await actuator.open()
+            await assert_serves(rig, actuator, 1.5)
+            await rig.gone()
+            with pytest.raises(DeviceError):
+                await command(actuator, 4.5)
+            await actuator.close()
+            await rig.back()
+            await actuator.open()
+            await assert_serves(rig, actuator, 4.5)
+            await actuator.close()
 
-        run(body)
+        run_on(rig, body)
 
     def test_close_is_safe_after_a_failed_open_and_open_retries(self, tmp_path: Path) -> None:
         rig = self._failing_rig(tmp_path)
 
         async def body() -> None:
-            await rig.start()
-            try:
-                actuator = rig.actuator()
-                actuator.limits_v = LIMITS_V
-                await rig.gone()
-                with pytest.raises(DeviceError):
-                    await asyncio.wait_for(actuator.open(), COMMAND_BOUND_S)
-                await actuator.close()
-                await actuator.close()
-                await rig.back()
-                await asyncio.wait_for(actuator.open(), COMMAND_BOUND_S)  # calling it again after a failure retries
-                await assert_serves(rig, actuator, 3.0)
-                await actuator.close()
-            finally:
-                await rig.stop()
+            actuator = rig.actuator()
+            actuator.limits_v = LIMITS_V
+            await rig.gone()
+            with pytest.raises(DeviceError):
+                await asyncio.wait_for(actuator.open(), COMMAND_BOUND_S)
+            await actuator.close()
+            await actuator.close()
+            await rig.back()
+            await asyncio.wait_for(actuator.open(), COMMAND_BOUND_S)  # calling it again after a failure retries
+            await assert_serves(rig, actuator, 3.0)
+            await actuator.close()
 
-        run(body)
+        run_on(rig, body)
 
     # -- several outputs of one plugin (DriverPlugin.create_actuators) -----------------------------
 
@@ -426,74 +398,62 @@ class ActuatorContract:
         rig = self._multi_output_rig(tmp_path)
 
         async def body() -> None:
-            await rig.start()
-            try:
-                outputs = await self._open_outputs(rig)
-                for index in range(len(outputs)):
-                    assert rig.output_written_v(index) == [], f"output {index} was written before any command"
-                for index in range(len(outputs)):
-                    await assert_output_serves(rig, outputs, index, 1.0 + index)
-                assert_one_connection(rig)
-                for index in reversed(range(len(outputs))):
-                    await assert_output_serves(rig, outputs, index, 5.25 - index)
-                for output in outputs:
-                    await output.close()
-            finally:
-                await rig.stop()
+            outputs = await self._open_outputs(rig)
+            for index in range(len(outputs)):
+                assert rig.output_written_v(index) == [], f"output {index} was written before any command"
+            for index in range(len(outputs)):
+                await assert_output_serves(rig, outputs, index, 1.0 + index)
+            assert_one_connection(rig)
+            for index in reversed(range(len(outputs))):
+                await assert_output_serves(rig, outputs, index, 5.25 - index)
+            for output in outputs:
+                await output.close()
 
-        run(body)
+        run_on(rig, body)
 
     def test_outputs_written_concurrently_never_overlap_an_exchange(self, tmp_path: Path) -> None:
         rig = self._multi_output_rig(tmp_path)
 
         async def body() -> None:
-            await rig.start()
-            try:
-                outputs = await self._open_outputs(rig)
-                asked = {index: [0.5 + index + step * 0.25 for step in range(8)] for index in range(len(outputs))}
+            outputs = await self._open_outputs(rig)
+            asked = {index: [0.5 + index + step * 0.25 for step in range(8)] for index in range(len(outputs))}
 
-                async def drive(index: int) -> None:
-                    for volts in asked[index]:
-                        await command(outputs[index], volts)
+            async def drive(index: int) -> None:
+                for volts in asked[index]:
+                    await command(outputs[index], volts)
 
-                await asyncio.gather(*(drive(index) for index in range(len(outputs))))
-                for index, output in enumerate(outputs):
-                    expected = [output.sent_voltage(v) for v in asked[index]]
-                    assert rig.output_written_v(index) == pytest.approx(expected, abs=TOLERANCE_V), index
-                assert rig.overlapping_exchanges() == [], "two outputs' exchanges overlapped on the device"
-                assert_one_connection(rig)
-                for output in outputs:
-                    await output.close()
-            finally:
-                await rig.stop()
+            await asyncio.gather(*(drive(index) for index in range(len(outputs))))
+            for index, output in enumerate(outputs):
+                expected = [output.sent_voltage(v) for v in asked[index]]
+                assert rig.output_written_v(index) == pytest.approx(expected, abs=TOLERANCE_V), index
+            assert rig.overlapping_exchanges() == [], "two outputs' exchanges overlapped on the device"
+            assert_one_connection(rig)
+            for output in outputs:
+                await output.close()
 
-        run(body)
+        run_on(rig, body)
 
     def test_closing_one_output_leaves_the_others_working(self, tmp_path: Path) -> None:
         rig = self._multi_output_rig(tmp_path)
 
         async def body() -> None:
-            await rig.start()
-            try:
-                for closed in range(len(rig.output_options())):  # each in turn: the one owning the port too
-                    outputs = await self._open_outputs(rig)
-                    for index in range(len(outputs)):
-                        await assert_output_serves(rig, outputs, index, 2.0 + index)
-                    shared = assert_one_connection(rig)
-                    await outputs[closed].close()
-                    await outputs[closed].close()  # safe twice, and still leaves the others alone
-                    for index in range(len(outputs)):
-                        if index != closed:
-                            await assert_output_serves(rig, outputs, index, 3.5 + index)
-                    assert assert_one_connection(rig) == shared, (
-                        f"closing output {closed} took the shared connection with it (the others reconnected)")
-                    for output in outputs:  # all closed, the closed one again: the device is free for the next turn
-                        await output.close()
-                    await assert_no_connection_left(rig)
-            finally:
-                await rig.stop()
+            for closed in range(len(rig.output_options())):  # each in turn: the one owning the port too
+                outputs = await self._open_outputs(rig)
+                for index in range(len(outputs)):
+                    await assert_output_serves(rig, outputs, index, 2.0 + index)
+                shared = assert_one_connection(rig)
+                await outputs[closed].close()
+                await outputs[closed].close()  # safe twice, and still leaves the others alone
+                for index in range(len(outputs)):
+                    if index != closed:
+                        await assert_output_serves(rig, outputs, index, 3.5 + index)
+                assert assert_one_connection(rig) == shared, (
+                    f"closing output {closed} took the shared connection with it (the others reconnected)")
+                for output in outputs:  # all closed, the closed one again: the device is free for the next turn
+                    await output.close()
+                await assert_no_connection_left(rig)
 
-        run(body)
+        run_on(rig, body)
 
 
 # --- sensors --------------------------------------------------------------------------------------
@@ -608,84 +568,68 @@ class SensorContract:
         rig = self.built_rig(tmp_path)
 
         async def body() -> None:
-            await rig.start()
-            try:
-                group = rig.group()
-                assert group.names == rig.names
-                assert dict(group.roles) == rig.roles
-                assert group.interval_s > 0 and group.timeout_s > 0
-                await group.open()
-                for _ in range(3):
-                    assert_all_ok(rig, await read_stamped(rig, group))
-                await group.close()
-            finally:
-                await rig.stop()
+            group = rig.group()
+            assert group.names == rig.names
+            assert dict(group.roles) == rig.roles
+            assert group.interval_s > 0 and group.timeout_s > 0
+            await group.open()
+            for _ in range(3):
+                assert_all_ok(rig, await read_stamped(rig, group))
+            await group.close()
 
-        run(body)
+        run_on(rig, body)
 
     def test_close_is_safe_twice_and_the_group_reopens(self, tmp_path: Path) -> None:
         rig = self.built_rig(tmp_path)
 
         async def body() -> None:
-            await rig.start()
-            try:
-                group = rig.group()
-                await group.open()
-                await read(group)
-                await group.close()
-                await group.close()
-                await group.open()  # the daemon reopens a closed group
-                assert_all_ok(rig, await read_stamped(rig, group))
-                await group.close()
-            finally:
-                await rig.stop()
+            group = rig.group()
+            await group.open()
+            await read(group)
+            await group.close()
+            await group.close()
+            await group.open()  # the daemon reopens a closed group
+            assert_all_ok(rig, await read_stamped(rig, group))
+            await group.close()
 
-        run(body)
+        run_on(rig, body)
 
     def test_a_channel_problem_is_a_fault_reading_and_the_others_stay_ok(self, tmp_path: Path) -> None:
         rig = self.built_rig(tmp_path)
 
         async def body() -> None:
-            await rig.start()
-            try:
-                group = rig.group()
-                await group.open()
-                assert_all_ok(rig, await read_stamped(rig, group))
-                faulted = await rig.fault_channel()
-                readings = await read_stamped(rig, group)
-                bad = readings[faulted]
-                assert bad.state is State.FAULT and math.isnan(bad.value) and bad.reason, bad
-                for name, reading in readings.items():
-                    if name != faulted:
-                        assert reading.state is State.OK and math.isfinite(reading.value), (name, reading)
-                await group.close()
-            finally:
-                await rig.stop()
+            group = rig.group()
+            await group.open()
+            assert_all_ok(rig, await read_stamped(rig, group))
+            faulted = await rig.fault_channel()
+            readings = await read_stamped(rig, group)
+            bad = readings[faulted]
+            assert bad.state is State.FAULT and math.isnan(bad.value) and bad.reason, bad
+            for name, reading in readings.items():
+                if name != faulted:
+                    assert reading.state is State.OK and math.isfinite(reading.value), (name, reading)
+            await group.close()
 
-        run(body)
+        run_on(rig, body)
 
     def test_a_device_that_is_gone_raises_device_error_and_recovers_after_reopening(self, tmp_path: Path) -> None:
         rig = self.built_rig(tmp_path)
 
         async def body() -> None:
-            await rig.start()
-            try:
-                group = rig.group()
-                await group.open()
-                assert_all_ok(rig, await read_stamped(rig, group))
-                await rig.gone()
-                for _ in range(2):  # every poll while it is gone, not only the first
-                    with pytest.raises(DeviceError):
-                        await read(group)
-                await group.close()  # what the daemon does on DeviceError: close, back off, open
-                await rig.back()
-                await group.open()
-                assert_all_ok(rig, await read_stamped(rig, group))
-                await group.close()
-            finally:
-                await rig.stop()
+            group = rig.group()
+            await group.open()
+            assert_all_ok(rig, await read_stamped(rig, group))
+            await rig.gone()
+            for _ in range(2):  # every poll while it is gone, not only the first
+                with pytest.raises(DeviceError):
+                    await read(group)
+            await group.close()  # what the daemon does on DeviceError: close, back off, open
+            await rig.back()
+            await group.open()
+            assert_all_ok(rig, await read_stamped(rig, group))
+            await group.close()
 
-        run(body)
+        run_on(rig, body)
 
     def test_close_is_safe_after_a_failed_open(self, tmp_path: Path) -> None:
         rig = self.built_rig(tmp_path)
@@ -693,22 +637,18 @@ class SensorContract:
             pytest.skip(f"{rig.kind}: the device is always there (can_fail_open = False)")
 
         async def body() -> None:
-            await rig.start()
-            try:
-                group = rig.group()
-                await rig.gone()
-                with pytest.raises(DeviceError):
-                    await asyncio.wait_for(group.open(), group.timeout_s + 5.0)
-                await group.close()
-                await group.close()
-                with pytest.raises(DeviceError):  # calling open again retries, and fails again
-                    await asyncio.wait_for(group.open(), group.timeout_s + 5.0)
-                await group.close()
-                await rig.back()
-                await group.open()
-                assert_all_ok(rig, await read_stamped(rig, group))
-                await group.close()
-            finally:
-                await rig.stop()
+            group = rig.group()
+            await rig.gone()
+            with pytest.raises(DeviceError):
+                await asyncio.wait_for(group.open(), group.timeout_s + 5.0)
+            await group.close()
+            await group.close()
+            with pytest.raises(DeviceError):  # calling open again retries, and fails again
+                await asyncio.wait_for(group.open(), group.timeout_s + 5.0)
+            await group.close()
+            await rig.back()
+            await group.open()
+            assert_all_ok(rig, await read_stamped(rig, group))
+            await group.close()
 
-        run(body)
+        run_on(rig, body)
