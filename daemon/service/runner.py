@@ -14,6 +14,7 @@ READY/STATUS/WATCHDOG/STOPPING through ``$NOTIFY_SOCKET``.
 from __future__ import annotations
 
 import asyncio
+import gc
 import signal
 import time
 from collections.abc import Callable, Mapping
@@ -147,6 +148,11 @@ class Service:
         supervising = asyncio.create_task(supervisor.run(), name="supervise")
         self.log.info("serving", cell=self.state.config.cell, keys=f"{bus.keys.prefix}/**", listen=listen,
                       model=self.state.model_id(), sensors=list(self.state.table.entries))
+        # what start-up built (imports, the model, the drivers) lives as long as the daemon: out of the
+        # collector's full passes, which otherwise scan it all and pause the loop (and the answers waiting
+        # on the GIL) for tens of ms (benchmarks/daemon_latency.py's p99)
+        gc.collect()
+        gc.freeze()
         self.notifier.ready(line())
         try:
             await self._stop.wait()
