@@ -55,6 +55,20 @@ def run(body: Callable[[], Awaitable[None]]) -> None:
     asyncio.run(asyncio.wait_for(body(), CHECK_BOUND_S))
 
 
+def run_on(rig: ActuatorRig | SensorRig, body: Callable[[], Awaitable[None]]) -> None:
+    """One check's asyncio body, as :func:`run` runs it, with the rig's emulator started before it and
+    stopped after it, whatever happened (the bound covers the start and the stop too)."""
+
+    async def with_emulator() -> None:
+        await rig.start()
+        try:
+            await body()
+        finally:
+            await rig.stop()
+
+    run(with_emulator)
+
+
 # --- actuators ------------------------------------------------------------------------------------
 
 
@@ -185,6 +199,14 @@ async def command(actuator: Actuator, voltage_v: float) -> None:
                            COMMAND_BOUND_S)
 
 
+async def opened_actuator(rig: ActuatorRig, limits_v: tuple[float, float] = LIMITS_V) -> Actuator:
+    """The rig's actuator, built the daemon's way, given ``limits_v`` and opened."""
+    actuator = rig.actuator()
+    actuator.limits_v = limits_v
+    await actuator.open()
+    return actuator
+
+
 async def assert_serves(rig: ActuatorRig, actuator: Actuator, voltage_v: float) -> None:
     """``voltage_v`` commanded: the device holds ``sent_voltage(voltage_v)``, and it was the last write."""
     sent = actuator.sent_voltage(voltage_v)
@@ -258,9 +280,7 @@ class ActuatorContract:
         rig = self.built_rig(tmp_path)
 
         async def body() -> None:
-            actuator = rig.actuator()
-            actuator.limits_v = LIMITS_V
-            await actuator.open()
+            actuator = await opened_actuator(rig)
             for volts in (3.3333333, 6.25):
                 await command(actuator, volts)
                 back = await asyncio.wait_for(actuator.read_back(), COMMAND_BOUND_S)
@@ -279,9 +299,7 @@ class ActuatorContract:
         (low, high), at_limit, expected = rig.limit_case
 
         async def body() -> None:
-            actuator = rig.actuator()
-            actuator.limits_v = (low, high)
-            await actuator.open()
+            actuator = await opened_actuator(rig, (low, high))
             assert actuator.sent_voltage(at_limit) == pytest.approx(expected, abs=TOLERANCE_V)
             await assert_serves(rig, actuator, at_limit)
             await assert_serves(rig, actuator, low)
@@ -300,9 +318,7 @@ class ActuatorContract:
         limits, volts = rig.unrepresentable
 
         async def body() -> None:
-            actuator = rig.actuator()
-            actuator.limits_v = LIMITS_V
-            await actuator.open()
+            actuator = await opened_actuator(rig)
             await assert_serves(rig, actuator, 1.5)
             held = await rig.held_v()
             before = rig.written_v()
@@ -328,9 +344,7 @@ class ActuatorContract:
         rig = self._failing_rig(tmp_path)
 
         async def body() -> None:
-            actuator = rig.actuator()
-            actuator.limits_v = LIMITS_V
-            await actuator.open()
+            actuator = await opened_actuator(rig)
             await assert_serves(rig, actuator, 1.5)
             await rig.refuse_writes()
             with pytest.raises(DeviceError):
@@ -345,9 +359,7 @@ class ActuatorContract:
         rig = self._failing_rig(tmp_path)
 
         async def body() -> None:
-            actuator = rig.actuator()
-            actuator.limits_v = LIMITS_V
-            await actuator.open()
+            actuator = await opened_actuator(rig)
             await assert_serves(rig, actuator, 1.5)
             await rig.gone()
             with pytest.raises(DeviceError):
