@@ -174,7 +174,9 @@ def test_demo_shows_what_adaptation_and_the_uncertainty_add(tmp_path: Path) -> N
     # the daemon's health agrees with what the client itself read on the interferometer after each target
     client_nm = [int(m) for m in re.findall(r"the interferometer then reads +-?[\d.]+ µm \(([+-]\d+) nm\)", out)]
     assert len(client_nm) == 5, out
-    assert abs(int(health.group(3)) - sum(client_nm) / 5) < 20, (health.group(0), client_nm)
+    # each client reading carries the interferometer's ~20 nm white noise (the health unit's window averages
+    # it away): the mean of 5 has an SD of ~9 nm, so 40 nm is 4 SD (20 nm failed 1 run in ~20: 21.2 nm)
+    assert abs(int(health.group(3)) - sum(client_nm) / 5) < 40, (health.group(0), client_nm)
     assert health.group(1) == "ok"  # so the daemon says so (RMS under alarm_rms_nm)
     degrade = next(line for line in out.splitlines() if line.startswith("Test 5 degrades"))
     assert re.search(r": \d+ nm against \d+ nm in range;", degrade), degrade  # one in-range test: "38 nm", not "38–38"
