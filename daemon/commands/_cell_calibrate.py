@@ -10,13 +10,12 @@ model file. The one-axis calibration (``nanodrift.commands.calibrate``) hands a 
 from __future__ import annotations
 
 import argparse
-import asyncio
 import sys
 from pathlib import Path
 
 from nanodrift.calibration.dataset import DataError
 from nanodrift.calibration.plans import cell_calibration_plan
-from nanodrift.commands._cell import guards, open_cell
+from nanodrift.commands._cell import guards, open_cell, run_procedure
 from nanodrift.config import Config
 from nanodrift.drivers_set import DriverSet
 from nanodrift.errors import UserError
@@ -68,7 +67,7 @@ def main(args: argparse.Namespace, config: Config, drivers: DriverSet, data: Pat
     print(f"calibration of axes {', '.join(drive.axes)} on {drivers.description}: {len(plan)} steps ({cycles} "
           f"cycles), data -> {data}" + (f", resuming after {done} recorded steps" if done else ""), file=sys.stderr)
     try:
-        asyncio.run(record_cell_calibration(drive, data, plan, timing=config.procedure.timing, resume=args.resume,
+        run_procedure(record_cell_calibration(drive, data, plan, timing=config.procedure.timing, resume=args.resume,
                                             follow=follow_checks(config, drive), ready=ready))
     except PreflightError:
         raise

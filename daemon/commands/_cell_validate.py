@@ -13,7 +13,6 @@ against the true position where the cell knows it (simulated).
 from __future__ import annotations
 
 import argparse
-import asyncio
 import json
 import math
 import sys
@@ -24,7 +23,7 @@ import numpy as np
 
 from nanodrift.calibration.iso9283 import CellTestResult, summarize_cell
 from nanodrift.calibration.plans import cell_validation_plan
-from nanodrift.commands._cell import guards, open_cell, scenario_list, scenario_seed
+from nanodrift.commands._cell import guards, open_cell, run_procedure, scenario_list, scenario_seed
 from nanodrift.commands._cell_calibrate import cell_drive, follow_checks
 from nanodrift.config import Config
 from nanodrift.drivers.simulated.config import SECTION, SimulationConfig
@@ -148,7 +147,7 @@ def _driven_run(args: argparse.Namespace, model: CellModel, scenario: str | None
     evaluator = model.evaluator()
     _, ready = guards(config, drivers, args)
     try:
-        results = asyncio.run(run_cell_steps(
+        results = run_procedure(run_cell_steps(
             drive, plan, timing=config.procedure.timing,
             command_for=(lambda targets, t: evaluator.command(targets, t)) if compensate else None,
             on_temperatures=evaluator.observe, follow=follow_checks(config, drive), ready=ready))

@@ -16,7 +16,6 @@ trust) go to stderr.
 from __future__ import annotations
 
 import argparse
-import asyncio
 import sys
 from pathlib import Path
 
@@ -24,7 +23,14 @@ from nanodrift.calibration.dataset import DataError
 from nanodrift.calibration.plans import bidirectional_plan, calibration_plan
 from nanodrift.commands import _cell_calibrate
 from nanodrift.commands._catalogues import scenario_epilog
-from nanodrift.commands._cell import add_config_flag, add_output_check_flag, add_simulation_flags, guards, open_cell
+from nanodrift.commands._cell import (
+    add_config_flag,
+    add_output_check_flag,
+    add_simulation_flags,
+    guards,
+    open_cell,
+    run_procedure,
+)
 from nanodrift.config import Config, missing_model_channels
 from nanodrift.errors import UserError
 from nanodrift.model.equation import equation, training_lines
@@ -97,7 +103,7 @@ def main(args: argparse.Namespace) -> int:
     print(f"calibration on {drivers.description}: {len(plan)} steps ({cycles} cycles), data -> {data}"
           + (f", resuming after {done} recorded steps" if done else ""), file=sys.stderr)
     try:
-        asyncio.run(record_calibration(drivers, data, limits=config.actuator, plan=plan, resume=args.resume,
+        run_procedure(record_calibration(drivers, data, limits=config.actuator, plan=plan, resume=args.resume,
                                        timing=config.procedure.timing, follow=follow, ready=ready))
     except PreflightError:
         raise  # nothing was commanded

@@ -12,7 +12,6 @@ comparing them). There each step is also scored against the true position the ce
 from __future__ import annotations
 
 import argparse
-import asyncio
 import json
 import sys
 from dataclasses import dataclass
@@ -30,6 +29,7 @@ from nanodrift.commands._cell import (
     add_simulation_flags,
     guards,
     open_cell,
+    run_procedure,
     scenario_list,
 )
 from nanodrift.config import Config, load_config
@@ -148,7 +148,7 @@ def _run_one(args: argparse.Namespace, model: Model, scenario: str | None) -> Va
     tracker = BiasTracker(args.adapt_tau_s, args.adapt_max_um) if args.adapt else None
     follow, ready = guards(config, drivers, args)
     try:
-        result = asyncio.run(run_validation(drivers, model if compensate else None, limits=config.actuator,
+        result = run_procedure(run_validation(drivers, model if compensate else None, limits=config.actuator,
                                             name=name, cycles=args.cycles, timing=config.procedure.timing,
                                             follow=follow, ready=ready, adapt=tracker))
     except ValueError as err:

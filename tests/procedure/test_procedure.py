@@ -182,3 +182,37 @@ def test_calibrate_with_an_operator_config_uses_its_sensor_names(tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text('[simulation]\nscenario = "nope"\n')
     assert main(["calibrate", "--config", str(bad), "--out", str(out), "--cycles", "1"]) == 2
+
+
+def test_ctrl_c_ends_a_procedure_even_when_the_cancellation_is_lost() -> None:
+    """Python 3.11 can lose the cancellation asyncio.run turns SIGINT into (``asyncio.wait_for``): a calibration
+    then returned as if complete and its few steps were fitted (a loaded CI run). ``run_procedure`` remembers
+    the SIGINT: the procedure ends as KeyboardInterrupt whether or not the cancellation reached it."""
+    import asyncio
+    import os
+    import signal
+
+    from nanodrift.commands._cell import run_procedure
+
+    async def swallows() -> str:
+        os.kill(os.getpid(), signal.SIGINT)
+        try:
+            await asyncio.sleep(5)
+        except asyncio.CancelledError:
+            return "returned as if complete"  # what a lost cancellation looks like to the caller
+        return "slept"
+
+    async def cancelled() -> str:
+        os.kill(os.getpid(), signal.SIGINT)
+        await asyncio.sleep(5)
+        return "slept"
+
+    async def quiet() -> int:
+        await asyncio.sleep(0)
+        return 7
+
+    for procedure in (swallows, cancelled):
+        with pytest.raises(KeyboardInterrupt):
+            run_procedure(procedure())
+    assert run_procedure(quiet()) == 7
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # nothing of ours is left behind
