@@ -274,8 +274,11 @@ def test_every_served_command_gets_one_done_saying_how_it_ended(cell: ModbusCell
     held = cell.per_axis(done["voltage_v"])
     assert all(close_to(cell.register_v(a), held[a]) for a in axes)
 
-    # a stop put and a target put right after it: the stop ends what came before it, not the target
-    watch.stop_put(b"")
+    # a target sent once a stop is served moves as usual (a stop is no latch). Sent as a query: zenoh does not
+    # order a session's puts on two keys against each other (a stop put and a target put right after it
+    # reached the daemon target first in loaded runs, and the stop then rightly ended the target)
+    ok, _ = watch.stop(b"")
+    assert ok
     cell.put(420.0, "after")
     assert watch.wait("after")["state"] == "reached"
 
