@@ -1,5 +1,12 @@
 """Logging: JSON lines for journald (stderr not a terminal), readable lines on a terminal.
 
+When stderr is the journal's own stream (systemd sets ``JOURNAL_STREAM`` to its ``device:inode``),
+each line starts with the record's syslog priority the sd-daemon(3) way (``<3>`` error, ``<4>``
+warning, ``<6>`` info, ``<7>`` debug; journald strips it: ``SyslogLevelPrefix=yes``, the default),
+so ``journalctl -p warning`` finds the warnings; what follows is the one JSON object. Anywhere else
+(a file, a pipe to ``jq``, the tests) the lines stay plain JSON: a prefix there would only break
+the parsers that read them.
+
 Every line on stderr is one log record, whoever wrote it: the daemon's structlog events and the
 standard ``logging`` of the libraries it runs on (pymodbus, asyncio, zenoh's Python side, warnings,
 uncaught exceptions in threads) all go through one handler and structlog's ``ProcessorFormatter``,
@@ -24,6 +31,7 @@ from __future__ import annotations
 import datetime as dt
 import json
 import logging
+import os
 import re
 import sys
 import threading
@@ -44,6 +52,27 @@ PYMODBUS_FRAME_DUMP = "\n>>>>> "
 #: pymodbus messages (their start) that repeat what the daemon's own failure line says: debug lines
 PYMODBUS_CONNECT_NOISE = ("Failed to connect", "Repeating....")
 _NUMBERS = re.compile(r"0x[0-9a-fA-F]+|\d+")
+#: syslog priorities (sd-daemon(3)): the lowest logging level each one covers, most severe first
+SYSLOG_PRIORITIES = ((logging.CRITICAL, 2), (logging.ERROR, 3), (logging.WARNING, 4), (logging.INFO, 6))
+SYSLOG_DEBUG = 7
+
+
+def syslog_priority(level_no: int) -> int:
+    """The syslog priority of a ``logging`` level: 2 critical, 3 error, 4 warning, 6 info, 7 debug."""
+    return next((priority for floor, priority in SYSLOG_PRIORITIES if level_no >= floor), SYSLOG_DEBUG)
+
+
+def writes_to_journal(stream: TextIO) -> bool:
+    """True when ``stream`` is the journal's stream: ``JOURNAL_STREAM`` names its device and inode.
+
+    systemd sets the variable for a service whose stdout/stderr go to journald; a child process or a
+    redirection (``2>file``) inherits the variable but not the stream, hence the comparison."""
+    device, colon, inode = os.environ.get("JOURNAL_STREAM", "").partition(":")
+    try:
+        status = os.fstat(stream.fileno())
+        return bool(colon) and (status.st_dev, status.st_ino) == (int(device), int(inode))
+    except (OSError, ValueError, AttributeError):  # no descriptor (StringIO: io.UnsupportedOperation), bad value
+        return False
 
 
 def configure_logging(
@@ -53,14 +82,19 @@ def configure_logging(
     stream: TextIO | None = None,
     window_s: float = CHATTER_WINDOW_S,
     clock: Callable[[], float] = time.monotonic,
+    journal: bool | None = None,
 ) -> None:
     """Set up structlog and ``logging`` for the daemon.
 
     ``json_lines`` None means: JSON unless stderr is a tty. ``stream`` None writes to whatever
-    ``sys.stderr`` is at the time of each line. Calling it again replaces the previous setup.
+    ``sys.stderr`` is at the time of each line. ``journal`` (each line prefixed with its syslog
+    priority) None means: when the stream is the journal's (:func:`writes_to_journal`). Calling it
+    again replaces the previous setup.
     """
     if json_lines is None:
         json_lines = not sys.stderr.isatty()
+    if journal is None:
+        journal = writes_to_journal(stream if stream is not None else sys.stderr)
     level_no = logging.getLevelNamesMapping()[level.upper()]
     renderer: Any = structlog.processors.JSONRenderer() if json_lines else structlog.dev.ConsoleRenderer(
         colors=False
@@ -78,7 +112,7 @@ def configure_logging(
         logger_factory=structlog.stdlib.LoggerFactory(),
         cache_logger_on_first_use=False,
     )
-    handler = OneLineHandler(stream, ChatterLimiter(window_s, clock))
+    handler = OneLineHandler(stream, ChatterLimiter(window_s, clock), priority_prefix=journal)
     handler.addFilter(DemoteConnectNoise(level_no))
     handler.setFormatter(
         structlog.stdlib.ProcessorFormatter(
@@ -108,7 +142,10 @@ def json_line(event: str, level: str, **fields: Any) -> str:
     is said before or after the logger runs: ``nanodrift run``'s start-up failure and usage errors,
     so that every line of its stderr parses as JSON when it is not a terminal (the journal, ``jq``)."""
     stamp = dt.datetime.now(dt.UTC).isoformat().replace("+00:00", "Z")
-    return json.dumps({"event": event, **fields, "level": level, "timestamp": stamp}, default=str)
+    line = json.dumps({"event": event, **fields, "level": level, "timestamp": stamp}, default=str)
+    if writes_to_journal(sys.stderr):
+        return f"<{syslog_priority(logging.getLevelNamesMapping()[level.upper()])}>{line}"
+    return line
 
 
 def get_logger(name: str = "nanodrift") -> Any:
@@ -199,13 +236,16 @@ class OneLineHandler(logging.Handler):
     """Writes every record as one line (JSON has no raw newlines); rate-limits libraries' chatter.
 
     structlog's own records (their ``msg`` is the event dict) are never throttled: the daemon's events
-    are written as they happen.
+    are written as they happen. With ``priority_prefix`` each line starts with ``<N>``, the record's
+    syslog priority, for journald.
     """
 
-    def __init__(self, stream: TextIO | None = None, limiter: ChatterLimiter | None = None) -> None:
+    def __init__(self, stream: TextIO | None = None, limiter: ChatterLimiter | None = None, *,
+                 priority_prefix: bool = False) -> None:
         super().__init__()
         self._stream = stream
         self.limiter = limiter or ChatterLimiter()
+        self.priority_prefix = priority_prefix
 
     @property
     def stream(self) -> TextIO:
@@ -227,7 +267,8 @@ class OneLineHandler(logging.Handler):
 
     def _write(self, record: logging.LogRecord) -> None:
         stream = self.stream
-        stream.write(self.format(record) + "\n")
+        prefix = f"<{syslog_priority(record.levelno)}>" if self.priority_prefix else ""
+        stream.write(prefix + self.format(record) + "\n")
         stream.flush()
 
     def close(self) -> None:

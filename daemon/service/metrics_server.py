@@ -1,7 +1,8 @@
 """The metrics' HTTP endpoint (``[metrics] listen``): ``/metrics`` served from the daemon's event loop, bounded.
 
 Each :class:`MetricsServer` has its own ``CollectorRegistry`` holding a
-:class:`nanodrift.service.metrics.CellCollector` (no global state: tests run several daemons in one
+:class:`nanodrift.service.metrics.CellCollector` and prometheus_client's ``ProcessCollector``
+(``process_*``: descriptors, memory, CPU; no global state: tests run several daemons in one
 process) and serves HTTP from the daemon's event loop (``asyncio.start_server``), bounded so that a
 flood of idle connections cannot take the daemon's file descriptors (with a thread per connection
 and no timeout, ~1000 idle ones would exhaust them): at most ``max_connections`` open, a request
@@ -20,7 +21,7 @@ from concurrent.futures import ThreadPoolExecutor
 from http import HTTPStatus
 from typing import Any
 
-from prometheus_client import CollectorRegistry
+from prometheus_client import CollectorRegistry, ProcessCollector
 from prometheus_client.exposition import choose_encoder
 
 from nanodrift.errors import UserError
@@ -63,6 +64,7 @@ class MetricsServer:
         self.listen = listen
         self.registry = CollectorRegistry(auto_describe=False)
         self.registry.register(CellCollector(status_doc, latency))
+        ProcessCollector(registry=self.registry)  # process_open_fds, process_max_fds, memory, CPU, start time
         self.max_connections = max_connections
         self.header_timeout_s = header_timeout_s
         self.send_timeout_s = send_timeout_s
