@@ -28,9 +28,9 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the test helpers ...
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # ... after the repo: tests/drivers is not drivers
 
-from helpers.fleet import PREFIX, Fleet, cell_name  # noqa: E402
+from helpers.fleet import PREFIX, Fleet, cell_name
 
-from nanodrift import Client  # noqa: E402
+from nanodrift import Client
 
 
 def percentile(values: list[float], q: float) -> float:

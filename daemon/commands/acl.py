@@ -134,7 +134,8 @@ def access_control(cells: list[str], groups: list[Group], prefix: str = DEFAULT_
                                [f"{prefix}/{c}/{key}" for c in group.cells for key in ("target", "stop")]))
             rules.append(_rule(own[1], "ingress", ["query"],
                                [f"{prefix}/{c}/{key}" for c in group.cells for key in ("compensate", "stop")]))
-        policies.append({"id": f"group-{group.name}", "rules": [*client_rules, *own], "subjects": [f"group-{group.name}"]})
+        policies.append({"id": f"group-{group.name}", "rules": [*client_rules, *own],
+                         "subjects": [f"group-{group.name}"]})
     for cell in cells:
         rules.append(_rule(f"{cell}-daemon-sends", "ingress", ALL_MESSAGES, [f"{prefix}/{cell}/**"]))
         subjects.append({"id": f"{cell}-daemon", "usernames": [daemon_user(cell)]})

@@ -86,7 +86,7 @@ class Fleet:
             self.router = zenoh.open(self._router_config())
             for cell in self.names:
                 self.daemons[cell] = self._start_daemon(cell)
-            for cell, daemon in self.daemons.items():
+            for daemon in self.daemons.values():
                 daemon.wait_log("serving", timeout=timeout_s)
             wait_until(lambda: self.alive_cells() == set(self.names), timeout_s, f"{self.cells} alive tokens",
                        interval=0.1)
