@@ -132,10 +132,11 @@ def test_into_the_shipped_secure_config_keeps_its_credentials_and_replaces_its_r
     assert "// written by: nanodrift acl --prefix site/hall2 --cell x1 --cell x2" in out.read_text()
 
 
-def test_printed_without_into(tmp_path: Path) -> None:
+def test_printed_without_into() -> None:
     result = run_acl("--cell", "c0", "--group", "a=alice:c0")
     assert result.returncode == 0, result.stderr
-    assert allowed(zenoh_reads(result.stdout), "alice", "ingress", "put") == {"nanodrift/c0/target", "nanodrift/c0/stop"}
+    block = zenoh_reads(result.stdout)
+    assert allowed(block, "alice", "ingress", "put") == {"nanodrift/c0/target", "nanodrift/c0/stop"}
 
 
 def test_a_refusal_writes_nothing(tmp_path: Path) -> None:
