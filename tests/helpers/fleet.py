@@ -11,8 +11,9 @@ The cells are the simulated cell run light: three temperature channels polled on
 interferometer (so no health loop), the shipped model. Measured on this 2-core machine (idle, 20 s
 of /proc/<pid>/stat): the shipped ``config/sim.toml`` daemon uses 0.6 % of a core and this one
 0.15 %; both take about 0.55 s of CPU to start (mostly imports) and 77 MB resident. The 20-cell
-fleet test uses about 15 s of CPU in all (its daemons, the router, pytest): ~8 s of wall time on two
-idle cores, 35-45 s when other jobs keep the load average at 10-15.
+fleet test uses about 15 s of CPU in all (its daemons, the router, pytest): at best ~8 s of wall on two
+idle cores (CPU / 2, not measured: the machine was never idle), 35-45 s measured with the load
+average at 10-15 from other jobs.
 """
 
 from __future__ import annotations
