@@ -29,13 +29,12 @@ from helpers.daemon_harness import (
 )
 from prometheus_client.parser import text_string_to_metric_families
 
-from nanodrift.bus.protocol import Command, Target
+from nanodrift.compensation import Command, Target
 from nanodrift.config import DEFAULT_MODEL_PATH, Config, parse_config
 from nanodrift.drivers.base import MonotonicClock, Reading, SensorConfig
 from nanodrift.model.model import Model, load_model, save_model
-from nanodrift.service.compensator import Compensator
 from nanodrift.service.health_unit import HealthUnit
-from nanodrift.service.state import CellState
+from nanodrift.service.state import CellState, serving_state
 from nanodrift.service.status import status_line
 from nanodrift.service.table import SensorTable
 
@@ -285,22 +284,22 @@ class Unit:
         self.model = write_test_model(tmp_path / "m.json")
         self.config = config
         self.table = SensorTable(config.sensors)
-        self.compensator = Compensator(self.model, config.actuator, self.table)
         self.log = _NullLog()
-        self.health = HealthUnit(config, self.model, self.log)
-        self.health.attach(self.compensator)
+        self.health = HealthUnit(config, None, self.log)
+        self.compensator = serving_state(config, self.model, self.health, table=self.table)
+        self.x = self.health.watches["x"]
 
     def command(self, t: float, x: float, target_id: object = None) -> Command:
         for name, value in TEMPS.items():
             self.table.update(name, Reading(value, t=t))
         self.compensator.observe(t, TEMPS)
-        return self.compensator.compensate(Target(target_id, x), t, 1.7e9 + t)
+        return self.compensator.compensate(Target(target_id, {"x": x}), t, 1.7e9 + t)
 
     def hold(self, t: float, x: float, position_um: float) -> None:
         """A command at ``t`` and readings every 0.5 s through its window and past it."""
         self.command(t, x)
         for k in range(1, 13):
-            self.health.on_position(t + 0.5 * k, t + 0.5 * k, position_um, True)
+            self.health.on_position(t + 0.5 * k, t + 0.5 * k, position_um, True, channel="interferometer")
 
 
 class _NullLog:
@@ -319,29 +318,29 @@ def test_the_unit_counts_only_fresh_new_ok_readings(tmp_path: Path) -> None:
     handed: list[tuple[Any, float]] = []
     health.settled_listeners.append(lambda settled, unix_s, polled: handed.append((settled, unix_s)))
     unit.hold(0.0, 100.0, 100.2)
-    assert health.monitor.n == 1 and health.document()["residual_mean_nm"] == pytest.approx(200.0)
+    assert unit.x.monitor.n == 1 and health.document()["residual_mean_nm"] == pytest.approx(200.0)
     health.flush()  # the recorder's hook: each settled target once, outside the lock, with its unix time
     assert [(s.x_um, s.samples, s.t) for s, _ in handed] == [(100.0, 5, 5.0)] and handed[0][1] > 1.7e9
     assert handed[0][0].residual_um == pytest.approx(0.2) and set(handed[0][0].temperatures) == {"T1", "T2"}
 
     unit.command(10.0, 200.0)  # a reading inside the window that is not ok (faulted or too old) voids it
-    health.on_position(13.5, 13.5, 200.2, True)
-    health.on_position(14.0, 12.0, 200.2, False)
-    health.on_position(15.5, 15.5, 200.2, True)
-    assert health.monitor.n == 1
+    health.on_position(13.5, 13.5, 200.2, True, channel="interferometer")
+    health.on_position(14.0, 12.0, 200.2, False, channel="interferometer")
+    health.on_position(15.5, 15.5, 200.2, True, channel="interferometer")
+    assert unit.x.monitor.n == 1
 
     unit.command(20.0, 300.0)  # silent through the window for longer than max_age_s (1 s): stale meanwhile
-    health.on_position(23.2, 23.2, 300.2, True)
-    health.on_position(24.8, 24.8, 300.2, True)
-    health.on_position(25.5, 25.5, 300.2, True)
-    assert health.monitor.n == 1
+    health.on_position(23.2, 23.2, 300.2, True, channel="interferometer")
+    health.on_position(24.8, 24.8, 300.2, True, channel="interferometer")
+    health.on_position(25.5, 25.5, 300.2, True, channel="interferometer")
+    assert unit.x.monitor.n == 1
 
     unit.command(30.0, 400.0)  # the same sample again is not news: one sample, not three
     for _ in range(3):
-        health.on_position(33.5, 33.5, 400.9, True)
-    health.on_position(34.5, 34.5, 400.0, True)
-    health.on_position(35.5, 35.5, 400.0, True)
-    assert health.monitor.n == 2  # 200 nm, then (400.9 + 400.0) / 2 - 400 = 450 nm
+        health.on_position(33.5, 33.5, 400.9, True, channel="interferometer")
+    health.on_position(34.5, 34.5, 400.0, True, channel="interferometer")
+    health.on_position(35.5, 35.5, 400.0, True, channel="interferometer")
+    assert unit.x.monitor.n == 2  # 200 nm, then (400.9 + 400.0) / 2 - 400 = 450 nm
     assert health.document()["residual_mean_nm"] == pytest.approx(325.0)
     health.flush()
     assert [s.x_um for s, _ in handed] == [100.0, 400.0]
@@ -349,9 +348,9 @@ def test_the_unit_counts_only_fresh_new_ok_readings(tmp_path: Path) -> None:
     for k, x in enumerate((10.0, 20.0, 30.0)):  # a burst between two readings: the last target is the one held
         unit.command(40.0 + 0.01 * k, x)
     for k in range(1, 13):
-        health.on_position(40.02 + 0.5 * k, 40.02 + 0.5 * k, 30.1, True)
+        health.on_position(40.02 + 0.5 * k, 40.02 + 0.5 * k, 30.1, True, channel="interferometer")
     health.flush()
-    assert [s.x_um for s, _ in handed][2:] == [30.0] and health.monitor.n == 3 and not health.served
+    assert [s.x_um for s, _ in handed][2:] == [30.0] and unit.x.monitor.n == 3 and not unit.x.served
 
 
 def test_a_new_model_or_new_settings_on_reload_start_afresh_and_the_same_model_carries_on(tmp_path: Path) -> None:
@@ -360,38 +359,39 @@ def test_a_new_model_or_new_settings_on_reload_start_afresh_and_the_same_model_c
     for k in range(6):
         unit.hold(20.0 * k, 100.0, 100.5)
     health = unit.health
-    assert health.state == "degraded" and health.correction_um is not None and health.correction_um < -0.1
+    correction = health.correction_um()
+    assert health.state == "degraded" and correction is not None and correction["x"] < -0.1
     health.flush()
     assert [e for e, _ in unit.log.lines] == ["health_degraded"]
 
-    same = Compensator(unit.model, config.actuator, unit.table)  # a reload that only touched the actuator
-    health.reconfigure(config, same)
-    assert health.monitor.n == 6 and same.correction_um == health.correction_um and same.served is health.served
+    # a reload that only touched the actuator: the monitor and the correction carry on into the new compensator
+    same = serving_state(config, unit.model, health, running=unit.compensator, table=unit.table)
+    assert health.watches["x"].monitor.n == 6 and health.correction_um() == correction
+    assert same.compensate(Target(1, {"x": 100.0}), 101.0, 0.0).correction_um == correction
+    assert health.watches["x"].served[-1][1].correction_um == correction  # ... and it queues its commands here
     recording = config.model_copy(update={"health": config.health.model_copy(update={"record_dir": "/tmp/r"})})
-    health.reconfigure(recording, same)  # recording is not what the monitor is made of
-    assert health.monitor.n == 6
+    serving_state(recording, unit.model, health, running=same, table=unit.table)  # recording is not the monitor's
+    assert health.watches["x"].monitor.n == 6
 
     other = write_test_model(tmp_path / "other.json", {"x^3": 0.0, "x^2": 0.0, "x": 1.0, "T1": 0.0, "T2": 0.0,
                                                        "1": 0.0})
-    fresh = Compensator(other, config.actuator, unit.table)
-    health.reconfigure(config, fresh)
-    assert (health.state, health.monitor.n, fresh.correction_um) == ("unknown", 0, 0.0)
+    fresh = serving_state(config, other, health, running=same, table=unit.table)
+    assert (health.state, health.watches["x"].monitor.n, health.correction_um()) == ("unknown", 0, {"x": 0.0})
     health.flush()
     assert [e for e, _ in unit.log.lines] == ["health_degraded", "health_recovered"]
 
     off = config.model_copy(update={"adapt": config.adapt.model_copy(update={"mode": "off"})})
-    health.reconfigure(off, fresh)
-    assert fresh.correction_um is None and health.tracker is None
-    unit.compensator = fresh
+    unit.compensator = serving_state(off, other, health, running=fresh, table=unit.table)
+    assert health.correction_um() is None and health.watches["x"].tracker is None
     assert unit.command(200.0, 100.0).correction_um is None
 
 
 def test_without_a_position_sensor_nothing_is_queued_and_the_state_is_unknown(tmp_path: Path) -> None:
     unit = Unit(tmp_path, unit_config(position=False))
-    assert unit.compensator.served is None
+    assert unit.x.position_channel is None
     command = unit.command(0.0, 100.0)
-    assert command.q_sigma_um is not None and math.isnan(command.q_sigma_um)  # the test model has no statistics
-    assert unit.health.document()["state"] == "unknown" and not unit.health.served
+    assert command.q_sigma_um is not None and math.isnan(command.q_sigma_um["x"])  # the test model has no statistics
+    assert unit.health.document()["state"] == "unknown" and not unit.x.served
 
 
 def test_the_status_line_carries_the_health_state(tmp_path: Path) -> None:
