@@ -246,7 +246,7 @@ class Compensator:
                 raise Refusal("voltage_limit", str(error) if len(self.axes) == 1 else
                               f"axis {axis}: {error}: no axis moves", target.id) from None
             q_um[axis] = q
-        sigma = {axis: ev.sigma(x, now) for axis, ev in evaluators.items()}  # before the move: as value() saw
+        sigma = {axis: evaluators[axis].sigma(x, now) for axis in self.axes}  # before the move: as value() saw
         adapted = self.monitor.sigma_adapted_um(sigma, self._wander_um) if self.monitor is not None else None
         for evaluator in evaluators.values():
             evaluator.moved(x, now)  # only a command that goes out moves the stage
