@@ -165,12 +165,14 @@ class Compensator:
         self.last_extrapolating: list[str] = []
         self._wander_um = {a: m.wander_um for a, m in models.items()}
         self._model_id = model.id if model is not None else None
-        first = next(iter(models.values()), None)
-        ranges = {} if first is None else (model.channel_ranges if isinstance(model, CellModel)
-                                           else first.training.channel_ranges)
-        self._ranges = tuple((c, *ranges[c]) for c in self.channels if c in ranges)
-        self._position_ranges = (model.position_ranges if isinstance(model, CellModel)
-                                 else {"x": first.training.x_range} if first is not None else {})
+        # the training ranges: every channel the model reads, every axis' position
+        channel_ranges: Mapping[str, tuple[float, float]] = {}
+        self._position_ranges: Mapping[str, tuple[float, float]] = {}
+        if isinstance(model, CellModel):
+            channel_ranges, self._position_ranges = model.channel_ranges, model.position_ranges
+        elif model is not None:
+            channel_ranges, self._position_ranges = model.training.channel_ranges, {"x": model.training.x_range}
+        self._ranges = tuple((c, *channel_ranges[c]) for c in self.channels if c in channel_ranges)
         # what the model's channels say, derived once per change of the readings instead of once per target
         self._version = -1
         self._fresh_until = -math.inf  # cell-clock time until which every model channel is ok
