@@ -1,9 +1,10 @@
 """The allowed import directions, enforced by parsing every module (top-level and function-level imports).
 
 - the pure core (model, calibration and its subpackages: dataset, plans, ISO 9283, residuals,
-  discovery; errors, atomic) imports the standard library, numpy, scipy and itself only, and of the
-  standard library nothing that does I/O concurrency (asyncio, socket, subprocess, threading,
-  selectors, multiprocessing, concurrent);
+  discovery; the compensation of one target; motion, errors, atomic) imports the standard library, numpy,
+  scipy and itself only, and of the standard library nothing that does I/O concurrency (asyncio, socket,
+  subprocess, threading, selectors, multiprocessing, concurrent); in particular it imports neither the
+  bus nor the service (a target is the core's, the wire format only parses and encodes it);
 - ``nanodrift.drivers.base`` / ``nanodrift.drivers.registry`` never import ``daemon``;
 - a plugin imports ``nanodrift.drivers.base``, the registry, the pure core and its own libraries, never the
   service, the procedures, the bus, the config or the CLI;
@@ -46,7 +47,10 @@ REPO = Path(__file__).resolve().parents[1]
 TOP = "nanodrift"
 DRIVERS = "nanodrift.drivers"
 FOLDERS = {TOP: "daemon", DRIVERS: "drivers"}
-CORE_ROOTS = ("nanodrift.model", "nanodrift.calibration", "nanodrift.motion", "nanodrift.errors", "nanodrift.atomic")
+CORE_ROOTS = ("nanodrift.model", "nanodrift.calibration", "nanodrift.compensation", "nanodrift.motion",
+              "nanodrift.errors", "nanodrift.atomic")
+#: the Zenoh wire format and session: the edge where payloads are parsed into the core's types and encoded
+BUS_ROOT = "nanodrift.bus"
 CORE_THIRD_PARTY = {"numpy", "scipy"}
 #: standard library the pure core may not use: it computes, it does not wait on devices or threads
 CORE_FORBIDDEN_STDLIB = {"asyncio", "socket", "subprocess", "threading", "selectors", "multiprocessing",
@@ -198,6 +202,8 @@ def forbidden(importer: str, imported: str) -> str | None:
     if within(target, [TESTING_ROOT]):
         return "nanodrift.drivers.testing is for tests: nothing of nanodrift imports the emulators"
     if within(unit, CORE_ROOTS):
+        if within(target, [BUS_ROOT, SERVICE_ROOT]):
+            return "the pure core imports neither the bus nor the service: they import it"
         if ours(imported):
             return None if within(target, CORE_ROOTS) else "the pure core imports only itself"
         if top in CORE_FORBIDDEN_STDLIB:
@@ -418,6 +424,13 @@ def test_no_module_imports_by_a_string_except_through_the_cli_table() -> None:
         ("nanodrift.calibration", "nanodrift.drivers.simulated.cell", False),
         ("nanodrift.model.model", "nanodrift.bus.protocol", False),  # the pure core: neither the bus ...
         ("nanodrift.calibration.residuals", "nanodrift.service.health_unit", False),  # ... nor the service
+        ("nanodrift.compensation", "nanodrift.bus.protocol", False),  # the compensation of a target: no wire ...
+        ("nanodrift.compensation", "nanodrift.service.table", False),  # ... no service ...
+        ("nanodrift.compensation", "zenoh", False),  # ... no zenoh ...
+        ("nanodrift.compensation", "asyncio", False),  # ... no asyncio ...
+        ("nanodrift.compensation", "nanodrift.model.cell_model", True),  # ... the model and motion are core
+        ("nanodrift.bus.protocol", "nanodrift.compensation", True),  # the bus parses into and encodes the core
+        ("nanodrift.service.targets", "nanodrift.compensation", True),
         ("nanodrift.procedure.steps", "nanodrift.service.actuation", False),  # a procedure: not the service
         ("nanodrift.procedure.steps", "nanodrift.outputs", True),
         ("nanodrift.calibration", "matplotlib.pyplot", False),

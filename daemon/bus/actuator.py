@@ -14,8 +14,9 @@ from typing import Any
 
 import zenoh
 
-from nanodrift.bus.protocol import Command, Keys, encode_command
+from nanodrift.bus.protocol import Keys, encode_command
 from nanodrift.bus.session import session_config
+from nanodrift.compensation import Command
 from nanodrift.drivers.base import Actuator, DeviceError
 
 
@@ -45,8 +46,9 @@ class ZenohActuator(Actuator):
         if self._publisher is None:
             raise DeviceError(f"zenoh actuator for {self.key} is not open")
         self.sent += 1
-        step = Command(id=f"{self.procedure}-{self.sent}", x_um=q_um if x_um is None else x_um, q_um=q_um,
-                       voltage_v=voltage_v, temperatures_c={}, model=None, t=time.time(), procedure=self.procedure)
+        step = Command(id=f"{self.procedure}-{self.sent}", positions_um={"x": q_um if x_um is None else x_um},
+                       q_um={"x": q_um}, voltage_v={"x": voltage_v}, temperatures_c={}, model=None, t=time.time(),
+                       procedure=self.procedure)
         self._publisher.put(encode_command(step))
 
     async def close(self) -> None:

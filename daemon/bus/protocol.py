@@ -5,10 +5,14 @@ Bytes in, bytes out, no session: the contract can be tested (and is pinned byte 
 
 - :func:`key_prefix` and :class:`Keys`: the key expressions under ``<prefix>/<cell>/`` (``nanodrift/<cell>/``
   by default).
-- :func:`parse_target`: a client's payload -> :class:`Target`, or a :class:`Refusal` saying what was
-  wrong. The usual target is matched by a regular expression without building a dict.
-- :class:`Command`: one answer on ``command``; :func:`encode_command` is the one encoder that turns
-  it into bytes. :func:`encode_error` and :func:`encode_telemetry` write the other payloads.
+- :func:`parse_target`: a client's payload -> :class:`nanodrift.compensation.Target`, or a
+  :class:`nanodrift.compensation.Refusal` saying what was wrong. The usual one-axis target is matched by a
+  regular expression without building a dict.
+- :func:`encode_command` turns a :class:`nanodrift.compensation.Command` into the bytes of ``command``: the
+  one-axis shape (scalar ``q_um``, ``voltage_v``...) for a cell without ``[[axes]]``, per-axis objects for
+  a cell of several. :func:`encode_error` and :func:`encode_telemetry` write the other payloads.
+
+The domain types live in the pure core (``nanodrift.compensation``): this module only parses and encodes.
 - :func:`encode_done`: how a served command ended; :func:`parse_stop` / :func:`encode_stop_reply`: a
   client's ``stop`` and the answer to a ``stop`` query.
 """
@@ -19,10 +23,11 @@ import json
 import math
 import re
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, fields
-from operator import attrgetter
+from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any
+
+from nanodrift.compensation import ONE_AXIS, Command, Refusal, Target
 
 #: targets larger than this are refused unread (a target is ~40 bytes)
 MAX_PAYLOAD_BYTES = 4096
@@ -68,24 +73,6 @@ class Keys:
 # --- a target in --------------------------------------------------------------------------------
 
 
-class Refusal(Exception):
-    """A target that gets an ``error`` instead of a ``command``; ``kind`` feeds the counters."""
-
-    __slots__ = ("id", "kind", "message")
-
-    def __init__(self, kind: str, message: str, target_id: Any = None) -> None:
-        super().__init__(message)
-        self.kind = kind
-        self.message = message
-        self.id = target_id
-
-
-@dataclass(slots=True)
-class Target:
-    id: str | int | None
-    x_um: float
-
-
 class Oversized(bytes):
     """Stands for a payload too large to copy out of Zenoh at all; ``size`` is its length."""
 
@@ -112,29 +99,37 @@ _FAST_ID_X = re.compile(
 )
 
 
-def parse_target(payload: bytes, max_bytes: int = MAX_PAYLOAD_BYTES) -> Target:
-    """Decode ``{"x_um": number, "id": string|int}``; a :class:`Refusal` for anything else."""
+def _decode(payload: bytes, max_bytes: int, expected: str, what: str = "payload") -> Any:
+    """The JSON document of a payload of at most ``max_bytes``; a :class:`Refusal` saying what was expected."""
     if len(payload) > max_bytes or type(payload) is Oversized:
         size = payload.size if isinstance(payload, Oversized) else len(payload)
-        raise Refusal("bad_payload", f"payload of {size} bytes exceeds the {max_bytes}-byte limit")
-    match = _FAST_X_ID.fullmatch(payload.lstrip(b" \t\n\r"))
-    if match is not None:
-        x_text, int_id, str_id = match.groups()
-    else:
-        match = _FAST_ID_X.fullmatch(payload.lstrip(b" \t\n\r"))
-        if match is not None:
-            x_text, int_id, str_id = match["x"], match["i"], match["s"]
-    if match is not None:
-        x = float(x_text)
-        if x - x == 0.0:  # finite (1e999 parses to inf: the full path words the refusal)
-            target_id = int(int_id) if int_id is not None else (str_id.decode() if str_id is not None else None)
-            return Target(target_id, x)
+        raise Refusal("bad_payload", f"{what} of {size} bytes exceeds the {max_bytes}-byte limit")
     try:
-        doc = json.loads(payload.decode("utf-8"))  # NaN/Infinity parse, so the id survives; x is checked below
+        return json.loads(payload.decode("utf-8"))  # NaN/Infinity parse, so the id survives; numbers are checked
     except (UnicodeDecodeError, ValueError, RecursionError) as error:
         reason = "not UTF-8 text" if isinstance(error, UnicodeDecodeError) else f"not valid JSON ({error})"
-        raise Refusal("bad_payload", f"payload is {reason}; expected {{\"x_um\": number, \"id\": ...}}") from None
-    return validate_target(doc)
+        raise Refusal("bad_payload", f"{what} is {reason}; expected {expected}") from None
+
+
+def parse_target(payload: bytes, axes: Sequence[str] | None = None, max_bytes: int = MAX_PAYLOAD_BYTES) -> Target:
+    """Decode a target: ``{"x_um": number, "id": string|int}`` for a one-axis cell (``axes`` None), or
+    ``{"x_um": .., "y_um": .., "id": ..}`` naming every one of ``axes`` exactly; a :class:`Refusal` for
+    anything else (a missing or extra axis named)."""
+    if axes is None and len(payload) <= max_bytes and type(payload) is not Oversized:
+        match = _FAST_X_ID.fullmatch(payload.lstrip(b" \t\n\r"))
+        if match is not None:
+            x_text, int_id, str_id = match.groups()
+        else:
+            match = _FAST_ID_X.fullmatch(payload.lstrip(b" \t\n\r"))
+            if match is not None:
+                x_text, int_id, str_id = match["x"], match["i"], match["s"]
+        if match is not None:
+            x = float(x_text)
+            if x - x == 0.0:  # finite (1e999 parses to inf: the full path words the refusal)
+                target_id = int(int_id) if int_id is not None else (str_id.decode() if str_id is not None else None)
+                return Target(target_id, {"x": x})
+    expected = ", ".join(f'"{a}_um": number' for a in axes or ONE_AXIS)
+    return validate_target(_decode(payload, max_bytes, f"{{{expected}, \"id\": ...}}"), axes)
 
 
 def _id_of(doc: dict[str, Any]) -> tuple[Any, str | None]:
@@ -151,65 +146,81 @@ def _id_of(doc: dict[str, Any]) -> tuple[Any, str | None]:
     return value, None
 
 
-def validate_target(doc: Any) -> Target:
-    """The full checks on a decoded document (what the fast path in :func:`parse_target` must agree with)."""
+def validate_target(doc: Any, axes: Sequence[str] | None = None) -> Target:
+    """The full checks on a decoded document (what the fast path in :func:`parse_target` must agree with).
+    A one-axis cell (``axes`` None) ignores other keys; a cell of several refuses them."""
     if not isinstance(doc, dict):
         raise Refusal("bad_payload", f"payload must be a JSON object, got {type(doc).__name__}")
     target_id, id_problem = _id_of(doc)
     if id_problem:
         raise Refusal("bad_payload", id_problem)
-    if "x_um" not in doc:
-        raise Refusal("bad_payload", "missing field 'x_um' (target position in um)", target_id)
-    x = doc["x_um"]
-    if isinstance(x, bool) or not isinstance(x, int | float):
-        raise Refusal("bad_payload", f"'x_um' must be a number, got {type(x).__name__}", target_id)
-    try:
-        x = float(x)
-    except OverflowError:
-        x = math.inf
-    if not math.isfinite(x):
-        raise Refusal("bad_payload", "'x_um' must be a finite number", target_id)
-    return Target(target_id, x)
+    if axes is None:
+        if "x_um" not in doc:
+            raise Refusal("bad_payload", "missing field 'x_um' (target position in um)", target_id)
+    else:
+        missing = [f"{a}_um" for a in axes if f"{a}_um" not in doc]
+        if missing:
+            raise Refusal("bad_payload", f"missing field {', '.join(repr(m) for m in missing)}: a target names "
+                          f"every axis of the cell ({', '.join(axes)})", target_id)
+        wanted = {f"{a}_um" for a in axes}
+        extra = [k for k in doc if k not in wanted and k != "id"]
+        if extra:
+            axis_like = [k for k in extra if re.fullmatch(r"[a-z]_um", k)]
+            what = (f"axis {', '.join(repr(k[0]) for k in axis_like)} is not an axis of this cell"
+                    if axis_like else f"unknown field {', '.join(repr(k) for k in extra)}")
+            raise Refusal("bad_payload", f"{what} (axes: {', '.join(axes)})", target_id)
+    positions: dict[str, float] = {}
+    for axis in axes or ONE_AXIS:
+        key = f"{axis}_um"
+        value = doc[key]
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise Refusal("bad_payload", f"'{key}' must be a number, got {type(value).__name__}", target_id)
+        try:
+            value = float(value)
+        except OverflowError:
+            value = math.inf
+        if not math.isfinite(value):
+            raise Refusal("bad_payload", f"'{key}' must be a finite number", target_id)
+        positions[axis] = value
+    return Target(target_id, positions)
 
 
 # --- payloads out -------------------------------------------------------------------------------
 
-
-@dataclass(slots=True, kw_only=True)
-class Command:
-    """One answer on ``command`` (and a ``compensate`` reply), built by keyword only. The fields are
-    the payload's keys, in wire order; the optional ones at the end are left out of the payload when
-    None (a procedure step has a ``procedure`` and no ``extrapolating``; the daemon's command ends with
-    ``q_sigma_um`` and, with ``[adapt] mode = "bias"``, ``correction_um`` and ``q_sigma_adapted_um``).
-    Treat it as immutable once encoded."""
-
-    id: str | int | None
-    x_um: float
-    q_um: float
-    voltage_v: float
-    temperatures_c: Mapping[str, float]
-    model: str | None
-    t: float  # unix seconds
-    extrapolating: Sequence[str] | None = None  # names outside the model's training range ("x", channels)
-    procedure: str | None = None  # the calibration or validation that sent this step
-    q_sigma_um: float | None = None  # standard uncertainty of the model's q at this target and temperatures
-    correction_um: float | None = None  # the bias tracker's correction, already inside q_um (adaptation on)
-    #: the standard uncertainty of the corrected command, what the tracker leaves (adaptation on)
-    q_sigma_adapted_um: float | None = None
-
-
-_KEYS = tuple(f.name for f in fields(Command))
-_OPTIONAL = frozenset(f.name for f in fields(Command) if f.default is None)
-_values = attrgetter(*_KEYS)
+#: a one-axis cell's command: the payload's keys in wire order (the optional ones, from ``extrapolating``
+#: on, are left out when None); each per-axis mapping of :class:`Command` is written as its ``x`` number
+_KEYS = ("id", "x_um", "q_um", "voltage_v", "temperatures_c", "model", "t", "extrapolating", "procedure",
+         "q_sigma_um", "correction_um", "q_sigma_adapted_um")
+_OPTIONAL = frozenset(_KEYS[7:])
+_PER_AXIS = ("q_um", "voltage_v", "q_sigma_um", "correction_um", "q_sigma_adapted_um")
 _encode_string = json.JSONEncoder().encode  # a str (or None) -> its JSON literal (C fast path)
 #: (temperatures, model, with a correction, the daemon's command as a %-template with the first two filled in)
 _template_cache: tuple[object, object, bool, str] = (object(), object(), False, "")
 
 
-def command_doc(command: Command) -> dict[str, Any]:
-    """``command`` as the JSON object of the contract (what :func:`encode_command` writes)."""
-    doc: dict[str, Any] = {}
-    for key, value in zip(_KEYS, _values(command), strict=True):
+def _x(values: Mapping[str, float] | None) -> float | None:
+    return values["x"] if values is not None else None
+
+
+def command_doc(command: Command, *, per_axis: bool = False) -> dict[str, Any]:
+    """``command`` as the JSON object of the contract (what :func:`encode_command` writes): a one-axis
+    cell's with numbers, or (``per_axis``) a cell of several's, ``<axis>_um`` each and per-axis objects."""
+    if per_axis:
+        doc: dict[str, Any] = {"id": command.id}
+        doc.update({f"{axis}_um": value for axis, value in command.positions_um.items()})
+        for key in ("q_um", "voltage_v", "q_sigma_um"):
+            doc[key] = dict(getattr(command, key) or {})
+        doc.update(temperatures_c=dict(command.temperatures_c), model=command.model, t=command.t,
+                   extrapolating=list(command.extrapolating or ()))
+        for key in ("correction_um", "q_sigma_adapted_um"):
+            if getattr(command, key) is not None:
+                doc[key] = dict(getattr(command, key))
+        return doc
+    doc = {}
+    for key in _KEYS:
+        value: Any = command.positions_um["x"] if key == "x_um" else getattr(command, key)
+        if key in _PER_AXIS:
+            value = _x(value)
         if value is None and key in _OPTIONAL:
             continue
         if key == "temperatures_c":
@@ -243,21 +254,26 @@ def _daemon_template(temps: Mapping[str, float], model: str | None, correction: 
     return "{" + ",".join(parts) + "}"
 
 
-def encode_command(command: Command) -> bytes:
+def encode_command(command: Command, *, per_axis: bool = False) -> bytes:
     """``command`` as compact JSON, equal to :func:`dumps` of :func:`command_doc`.
 
-    The daemon's commands (finite floats, an int/str/None id, temperatures in a read-only mapping)
+    A one-axis cell's commands (finite floats, an int/str/None id, temperatures in a read-only mapping)
     take one string format: ``json.dumps`` of a dict costs twice as much on the hot path. The
     format, with the temperatures and the model id written in, is kept while the same two objects
     come back (the compensator makes a new mapping once per sensor update, not per target).
-    Anything else (a procedure step, numpy numbers, a NaN) goes through ``json``.
+    Anything else (a procedure step, numpy numbers, a NaN, a cell of several) goes through ``json``.
     """
     global _template_cache
-    target_id, x, q, v, temps, model, t, extrapolating, procedure, sigma, correction, adapted = _values(command)
+    if per_axis:
+        return dumps(command_doc(command, per_axis=True))
+    x, q, v, sigma = command.positions_um["x"], command.q_um["x"], command.voltage_v["x"], _x(command.q_sigma_um)
+    target_id, temps, model, t, extrapolating = (command.id, command.temperatures_c, command.model, command.t,
+                                                 command.extrapolating)
+    correction, adapted = _x(command.correction_um), _x(command.q_sigma_adapted_um)
     c = 0.0 if correction is None else correction
     a = 0.0 if correction is None else adapted  # with a correction comes its σ (None: through json)
     if (type(x) is float and type(q) is float and type(v) is float and type(t) is float and type(sigma) is float
-            and type(c) is float and type(a) is float and procedure is None and extrapolating is not None
+            and type(c) is float and type(a) is float and command.procedure is None and extrapolating is not None
             and (x + q + v + t + sigma + c + a) - (x + q + v + t + sigma + c + a) == 0.0):
         if target_id is None:
             id_json = "null"
@@ -339,16 +355,9 @@ class Stop:
 def parse_stop(payload: bytes, max_bytes: int = MAX_PAYLOAD_BYTES) -> Stop:
     """Decode a ``stop``: ``{"id": string|int, optional}`` or an empty payload; other keys are ignored (a stop
     that says more still stops). A :class:`Refusal` (kind ``bad_payload``) for anything else."""
-    if len(payload) > max_bytes or type(payload) is Oversized:
-        size = payload.size if isinstance(payload, Oversized) else len(payload)
-        raise Refusal("bad_payload", f"stop payload of {size} bytes exceeds the {max_bytes}-byte limit")
-    if not payload.strip(b" \t\n\r"):
+    if len(payload) <= max_bytes and type(payload) is not Oversized and not payload.strip(b" \t\n\r"):
         return Stop(None)
-    try:
-        doc = json.loads(payload.decode("utf-8"))
-    except (UnicodeDecodeError, ValueError, RecursionError) as error:
-        reason = "not UTF-8 text" if isinstance(error, UnicodeDecodeError) else f"not valid JSON ({error})"
-        raise Refusal("bad_payload", f"stop payload is {reason}; expected {{\"id\": ...}} or nothing") from None
+    doc = _decode(payload, max_bytes, '{"id": ...} or nothing', "stop payload")
     if not isinstance(doc, dict):
         raise Refusal("bad_payload", f"stop payload must be a JSON object, got {type(doc).__name__}")
     stop_id, problem = _id_of(doc)
@@ -368,103 +377,3 @@ def encode_stop_reply(stop_id: str | int | None, voltage_v: float | Mapping[str,
 def encode_stop_error(stop_id: str | int | None, message: str) -> bytes:
     """A ``stop`` query's reply error (a bad payload): ``{"id", "error", "kind": "bad_payload"}``."""
     return dumps({"id": stop_id, "error": message, "kind": "bad_payload"})
-
-
-# --- a multi-axis cell --------------------------------------------------------------------------
-
-
-@dataclass(slots=True)
-class CellTarget:
-    """A multi-axis target: every axis of the cell, ``positions_um`` in the cell's axis order."""
-
-    id: str | int | None
-    positions_um: dict[str, float]
-
-
-def parse_cell_target(payload: bytes, axes: Sequence[str], max_bytes: int = MAX_PAYLOAD_BYTES) -> CellTarget:
-    """Decode ``{"x_um": .., "y_um": .., "id": ..}`` for a cell with ``axes``; a :class:`Refusal` naming a
-    missing or extra axis, or anything else wrong (the one-axis rules: finite numbers, the id's type)."""
-    if len(payload) > max_bytes or type(payload) is Oversized:
-        size = payload.size if isinstance(payload, Oversized) else len(payload)
-        raise Refusal("bad_payload", f"payload of {size} bytes exceeds the {max_bytes}-byte limit")
-    expected = ", ".join(f'"{a}_um": number' for a in axes)
-    try:
-        doc = json.loads(payload.decode("utf-8"))
-    except (UnicodeDecodeError, ValueError, RecursionError) as error:
-        reason = "not UTF-8 text" if isinstance(error, UnicodeDecodeError) else f"not valid JSON ({error})"
-        raise Refusal("bad_payload", f"payload is {reason}; expected {{{expected}, \"id\": ...}}") from None
-    if not isinstance(doc, dict):
-        raise Refusal("bad_payload", f"payload must be a JSON object, got {type(doc).__name__}")
-    target_id, id_problem = _id_of(doc)
-    if id_problem:
-        raise Refusal("bad_payload", id_problem)
-    missing = [f"{a}_um" for a in axes if f"{a}_um" not in doc]
-    if missing:
-        raise Refusal("bad_payload", f"missing field {', '.join(repr(m) for m in missing)}: a target names every "
-                      f"axis of the cell ({', '.join(axes)})", target_id)
-    wanted = {f"{a}_um" for a in axes}
-    extra = [k for k in doc if k not in wanted and k != "id"]
-    if extra:
-        axis_like = [k for k in extra if re.fullmatch(r"[a-z]_um", k)]
-        what = (f"axis {', '.join(repr(k[0]) for k in axis_like)} is not an axis of this cell"
-                if axis_like else f"unknown field {', '.join(repr(k) for k in extra)}")
-        raise Refusal("bad_payload", f"{what} (axes: {', '.join(axes)})", target_id)
-    positions: dict[str, float] = {}
-    for axis in axes:
-        key = f"{axis}_um"
-        value = doc[key]
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise Refusal("bad_payload", f"'{key}' must be a number, got {type(value).__name__}", target_id)
-        try:
-            value = float(value)
-        except OverflowError:
-            value = math.inf
-        if not math.isfinite(value):
-            raise Refusal("bad_payload", f"'{key}' must be a finite number", target_id)
-        positions[axis] = value
-    return CellTarget(target_id, positions)
-
-
-@dataclass(slots=True, kw_only=True)
-class CellCommand:
-    """One answer of a multi-axis cell on ``command``: every axis from one temperature snapshot. The
-    payload (:func:`encode_cell_command`) is ``{"id", "<axis>_um"..., "q_um": {axis: ..}, "voltage_v": {..},
-    "q_sigma_um": {..}, "temperatures_c", "model", "t", "extrapolating"[, "correction_um": {..},
-    "q_sigma_adapted_um": {..}]}``."""
-
-    id: str | int | None
-    positions_um: Mapping[str, float]
-    q_um: Mapping[str, float]
-    voltage_v: Mapping[str, float]
-    q_sigma_um: Mapping[str, float]
-    temperatures_c: Mapping[str, float]
-    model: str | None
-    t: float  # unix seconds
-    extrapolating: Sequence[str]  # axis names and channels outside the model's training range
-    correction_um: Mapping[str, float] | None = None  # the bias correction per axis, inside q_um (adaptation on)
-    #: per corrected axis, the standard uncertainty of its corrected command (adaptation on)
-    q_sigma_adapted_um: Mapping[str, float] | None = None
-
-
-def cell_command_doc(command: CellCommand) -> dict[str, Any]:
-    """``command`` as the JSON object of the contract, keys in wire order."""
-    doc: dict[str, Any] = {"id": command.id}
-    for axis, value in command.positions_um.items():
-        doc[f"{axis}_um"] = value
-    doc["q_um"] = dict(command.q_um)
-    doc["voltage_v"] = dict(command.voltage_v)
-    doc["q_sigma_um"] = dict(command.q_sigma_um)
-    doc["temperatures_c"] = dict(command.temperatures_c)
-    doc["model"] = command.model
-    doc["t"] = command.t
-    doc["extrapolating"] = list(command.extrapolating)
-    if command.correction_um is not None:
-        doc["correction_um"] = dict(command.correction_um)
-    if command.q_sigma_adapted_um is not None:
-        doc["q_sigma_adapted_um"] = dict(command.q_sigma_adapted_um)
-    return doc
-
-
-def encode_cell_command(command: CellCommand) -> bytes:
-    """A multi-axis ``command`` as compact JSON (``null`` for a non-finite number, as :func:`dumps`)."""
-    return dumps(cell_command_doc(command))

@@ -24,6 +24,7 @@ import zenoh
 
 from nanodrift.bus.protocol import Keys
 from nanodrift.bus.session import session_config
+from nanodrift.compensation import load_served_model
 from nanodrift.config import (
     SAFE_RAMP_BUDGET_S,
     STOP_TIMEOUT_S,
@@ -39,7 +40,6 @@ from nanodrift.drivers.base import VirtualCellPlugin
 from nanodrift.drivers.registry import UnknownDriverError, load_plugin
 from nanodrift.model.cell_model import CellModel
 from nanodrift.model.model import Model, ModelFileError
-from nanodrift.service.cell_compensator import load_served_model
 
 
 def model_problem(config: Config) -> tuple[Model | CellModel | None, str | None]:

@@ -9,14 +9,14 @@ Two edits are refused whatever else they say: one that switches between the simu
 hardware, and one that removes every sensor of a running cell (an emptied file): both need a
 restart, so a slip of the editor never changes what the stage is.
 
-``[health]`` and ``[adapt]`` apply with the swap: the health unit serves through the new compensator,
-and a new model or changed settings start its monitor and bias tracker afresh.
+The new serving state is built as at start (``nanodrift.service.state``: the same model gives the same
+reason to refuse it). ``[health]`` and ``[adapt]`` apply with the swap: the health unit serves through the
+new compensator, and an axis' new model or changed settings start its monitor and bias tracker afresh.
 """
 
 from __future__ import annotations
 
 import asyncio
-import json
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -25,27 +25,9 @@ from typing import Any, Protocol
 from nanodrift.config import BUILTIN_SOURCE, ConfigError, load_config, missing_model_channels
 from nanodrift.drivers.base import DriverContext, DriverSetupError
 from nanodrift.drivers_set import DriverSet
-from nanodrift.model.cell_model import CellModel
-from nanodrift.model.model import Model, ModelFileError
 from nanodrift.sdnotify import Notifier
-from nanodrift.service.cell_compensator import CellCompensator, load_served_model
-from nanodrift.service.cell_health import CellHealth
-from nanodrift.service.compensator import Compensator
 from nanodrift.service.health_unit import HealthUnit
-from nanodrift.service.state import CellState
-from nanodrift.service.table import SensorTable
-
-
-def same_content(old: Model | CellModel | None, new: Model | CellModel) -> bool:
-    """Whether ``new`` serves exactly what ``old`` does, so its evaluator (lag filters, direction) can be kept.
-
-    The whole file's content, not the stored id: the id leaves out fit statistics, yet a file without
-    a covariance serves ``fit.rmse_um`` as every command's sigma. A reload applies any change of
-    content; an unchanged file keeps the running filters.
-    """
-    if old is None:
-        return False
-    return json.dumps(old.to_dict(), sort_keys=True) == json.dumps(new.to_dict(), sort_keys=True)
+from nanodrift.service.state import CellState, load_serving_model, serving_state
 
 
 class DriverHost(Protocol):
@@ -71,7 +53,7 @@ class Reloader:
         *,
         status_line: Callable[[], str],
         table_replaced: Callable[[], None],
-        health: HealthUnit | CellHealth | None = None,
+        health: HealthUnit,
     ) -> None:
         self.state = state
         self.config_path = config_path
@@ -125,10 +107,9 @@ class Reloader:
             return self._refuse(source, [f"axes: the edited config has axes {', '.join(new.axis_names)}, the daemon "
                                          f"runs axes {', '.join(old.axis_names)}: a reload never adds or removes "
                                          "axes (systemctl restart nanodrift)"])
-        try:
-            model = load_served_model(new.model.path, new.axis_names)
-        except ModelFileError as error:
-            return self._refuse(source, [f"model.path: {error}"])
+        model, problem = load_serving_model(new)  # what the start would say of it
+        if model is None:
+            return self._refuse(source, [f"model.path: {problem}"])
         if new.cell != old.cell or new.zenoh != old.zenoh:
             self.log.warning("reload_needs_restart",
                              detail="cell and [zenoh] changes (its prefix too) apply at the next restart")
@@ -155,32 +136,18 @@ class Reloader:
             await self.host.stop_drivers()
             self._stopped = running  # started again if anything fails before the swap
         with state.lock:  # the swap is atomic for the target path on Zenoh's threads
-            table = state.table
-            if drivers_changed:  # [actuator] too: a position sensor's default range follows the workspace
-                table = SensorTable(new.sensors, new.actuator.workspace_um, new.sensor_workspaces())
-                table.carry_over(state.table)
-            compensator: Compensator | CellCompensator
-            if isinstance(model, CellModel):
-                compensator = CellCompensator(model, new.axis_actuators(), table)
-            else:
-                compensator = Compensator(model, new.actuator, table)
-            old_comp = state.compensator
-            if old_comp.evaluator is not None and same_content(old_comp.model, model):
-                compensator.evaluator = old_comp.evaluator  # same model: keep lag filters and direction
-            else:
-                compensator.warm()
+            # [actuator] too when the drivers change: a position sensor's default range follows the workspace
+            compensator = serving_state(new, model, self.health, running=state.compensator,
+                                        table=None if drivers_changed else state.table)
             state.compensator = compensator
             state.config = new
             self._stopped = None
-            if self.health is not None:
-                self.health.reconfigure(new, compensator)
-        if self.health is not None:
-            self.health.flush()  # a reset state is logged and published at once
+        self.health.flush()  # a reset state is logged and published at once
         if drivers_changed:
             self.table_replaced()
             await self.host.start_drivers(drivers)
         state.counters.reloads += 1
         missing = missing_model_channels(new, model.channels)
-        self.log.info("reload_applied", config=source, model=model.id, sensors=list(table.entries),
+        self.log.info("reload_applied", config=source, model=model.id, sensors=list(state.table.entries),
                       drivers_restarted=drivers_changed, missing_channels=missing or None)
         return True

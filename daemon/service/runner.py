@@ -32,9 +32,6 @@ from nanodrift.errors import UserError
 from nanodrift.logs import get_logger
 from nanodrift.sdnotify import Notifier
 from nanodrift.service.actuation import Actuation, Goal
-from nanodrift.service.cell_compensator import CellCompensator, load_cell_model_or_problem
-from nanodrift.service.cell_health import CellHealth
-from nanodrift.service.compensator import Compensator, load_model_or_problem
 from nanodrift.service.health_unit import HealthUnit
 from nanodrift.service.metrics import AnswerLatency
 from nanodrift.service.metrics_server import MetricsServer
@@ -42,11 +39,10 @@ from nanodrift.service.polling import GroupPoller, first_attempts, pollers_healt
 from nanodrift.service.recorder import Recorder
 from nanodrift.service.reload import Reloader
 from nanodrift.service.sensors import SensorIngest
-from nanodrift.service.state import CellState
+from nanodrift.service.state import CellState, load_serving_model, serving_state
 from nanodrift.service.status import StatusHandler, status_doc, status_line
 from nanodrift.service.stop import StopHandler
 from nanodrift.service.supervision import SensorWatch, Supervisor
-from nanodrift.service.table import SensorTable
 from nanodrift.service.targets import TargetHandler
 
 #: config (and a running context to keep) -> drivers: ``nanodrift.assembly.build_drivers``, handed in by
@@ -71,24 +67,14 @@ class Service:
         self.zenoh_overrides = dict(zenoh_overrides or {})
         self.notifier = notifier or Notifier()
         self.log = get_logger("nanodrift.daemon")
-        compensator: Compensator | CellCompensator
-        self.health: HealthUnit | CellHealth
-        if config.multi_axis:  # an XY/XYZ cell: every axis from one snapshot, all axes' outputs by one task
-            cell_model, problem = load_cell_model_or_problem(config.model.path, config.axis_names)
-            table = SensorTable(config.sensors, config.actuator.workspace_um, config.sensor_workspaces())
-            compensator = CellCompensator(cell_model, config.axis_actuators(), table, problem)
-            self.health = CellHealth(config, cell_model, self.log)
-        else:
-            model, problem = load_model_or_problem(config.model.path)
-            table = SensorTable(config.sensors, config.actuator.workspace_um)  # judges every reading
-            compensator = Compensator(model, config.actuator, table, problem)
-            self.health = HealthUnit(config, model, self.log)
+        self.health = HealthUnit(config, None, self.log)
+        model, problem = load_serving_model(config)  # a model that does not load: served as no_model, with why
+        compensator = serving_state(config, model, self.health, model_problem=problem)
         # every output of the cell (one axis: x), by one task; a one-axis cell's log lines keep their shape
         self.actuation = Actuation(self.log, single=not config.multi_axis)
         self.actuation.reached_listeners.append(self._output_reached)
         self.actuation.done_listeners.append(self._publish_done)  # one done per served command
         self.state = CellState(config, compensator, MonotonicClock())  # the drivers' clock once they start
-        self.health.attach(compensator)
         # [health] record_dir: settled targets to daily CSVs on a thread of its own (read anew after a reload)
         self.recorder = Recorder(lambda: self.state.config.health, self.log)
         self.health.settled_listeners.append(self.recorder.on_settled)

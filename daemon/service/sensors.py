@@ -18,7 +18,6 @@ import zenoh
 
 from nanodrift.bus.protocol import encode_telemetry
 from nanodrift.drivers.base import Reading, SensorGroup, State
-from nanodrift.service.cell_health import CellHealth
 from nanodrift.service.health_unit import HealthUnit
 from nanodrift.service.state import CellState
 
@@ -33,7 +32,7 @@ class SensorIngest:
     """The pollers' callbacks: readings, a group that failed, a group that recovered."""
 
     def __init__(self, state: CellState, publish_telemetry: PublishTelemetry, log: Any,
-                 health: HealthUnit | CellHealth | None = None) -> None:
+                 health: HealthUnit | None = None) -> None:
         self.state = state
         self.publish_telemetry = publish_telemetry
         self.log = log
@@ -84,12 +83,9 @@ class SensorIngest:
             self.state.table.mark_fault(group.names, f"device error: {reason}")
             if health is not None:
                 now = self.state.clock.now()
-                if isinstance(health, CellHealth):  # routed by channel to its axis' unit
-                    for name in group.names:
-                        health.on_position(now, now, math.nan, False, problem=f"faulted: device error: {reason}",
-                                           channel=name)
-                elif health.position_channel in group.names:  # a device that fails voids the window
-                    health.on_position(now, now, math.nan, False, problem=f"faulted: device error: {reason}")
+                for name in group.names:  # a device that fails voids its position sensor's window
+                    health.on_position(now, now, math.nan, False, problem=f"faulted: device error: {reason}",
+                                       channel=name)
                 for name in group.names:
                     if group.roles.get(name) == "temperature":
                         health.on_channel(name, now, math.nan, False)  # ... and a recorded row's validity

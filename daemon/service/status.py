@@ -16,16 +16,17 @@ import zenoh
 
 from nanodrift.bus.protocol import dumps
 from nanodrift.bus.session import Bus
+from nanodrift.compensation import Compensator
 from nanodrift.config import ZENOH_KIND, Config
 from nanodrift.drivers.base import State
+from nanodrift.model.cell_model import CellModel
 from nanodrift.service.actuation import Actuation
-from nanodrift.service.cell_health import CellHealth
 from nanodrift.service.health_unit import HealthUnit
 from nanodrift.service.state import CellState
 
 
 def status_doc(state: CellState, healthy: bool, actuation: Actuation | None = None,
-               health: HealthUnit | CellHealth | None = None) -> dict[str, Any]:
+               health: HealthUnit | None = None) -> dict[str, Any]:
     """The ``status`` payload's document (README, Zenoh keys ``status``)."""
     driven: dict[str, Any] | None = None
     if actuation is not None:  # a one-axis cell shows its one output as it always did; a cell of several, per axis
@@ -39,23 +40,44 @@ def status_doc(state: CellState, healthy: bool, actuation: Actuation | None = No
             "t": time.time(),
             "uptime_s": round(time.monotonic() - state.started_monotonic_s, 3),
             "config": config.source,
-            "model": comp.model_info(),
+            "model": model_doc(comp),
             "model_path": str(config.model.path),
             "model_problem": comp.model_problem or None,
-            "sensors": comp.table.snapshot(now),
-            "extrapolating": sorted(set(comp.extrapolating_now(now)) | set(comp.last_extrapolating)),
+            "sensors": state.table.snapshot(now),
+            "extrapolating": sorted(set(comp.extrapolating_now()) | set(comp.last_extrapolating)),
             "actuator": actuator_doc(config, driven) if not config.multi_axis else cell_actuator_doc(driven),
             "counters": state.counters.as_dict(),
             "healthy": healthy,
         }
         if config.multi_axis:
-            doc["axes"] = axes_doc(config, driven, comp.table.snapshot(now))
+            doc["axes"] = axes_doc(config, driven, state.table.snapshot(now))
         if health is not None:
             doc["health"] = health.document()
         return doc
 
 
-def status_line(state: CellState, health: HealthUnit | CellHealth | None = None) -> str:
+def model_doc(comp: Compensator) -> dict[str, Any] | None:
+    """The served model in ``status``: a one-axis model's terms and x range, a cell model's per axis."""
+    model = comp.model
+    if model is None:
+        return None
+    training = model.models[model.axes[0]].training if isinstance(model, CellModel) else model.training
+    doc: dict[str, Any] = {"id": model.id}
+    if isinstance(model, CellModel):
+        doc.update(axes=list(model.axes), terms={a: model.models[a].term_names() for a in model.axes})
+        positions: dict[str, Any] = {"positions_um": {a: list(r) for a, r in model.position_ranges.items()}}
+        channels = model.channel_ranges
+    else:
+        doc["terms"] = model.term_names()
+        positions, channels = {"x_um": list(training.x_range)}, training.channel_ranges
+    doc.update(channels=list(comp.channels), missing_channels=list(comp.missing),
+               training={**positions, "channels": {c: list(r) for c, r in channels.items()}, "rows": training.rows,
+                         "t_span_s": training.t_span_s},
+               ready=comp.ready, created=model.provenance.get("created"))  # its age in ``nanodrift status``
+    return doc
+
+
+def status_line(state: CellState, health: HealthUnit | None = None) -> str:
     """``cell c: 3/4 sensors ok, model m-..., 12 commands, 0 refused, health ok`` (systemd's STATUS=)."""
     with state.lock:
         now = state.clock.now()
@@ -74,7 +96,7 @@ class StatusHandler:
 
     def __init__(self, state: CellState, bus: Bus, healthy: Callable[[], bool], log: Any,
                  actuation: Actuation | None = None,
-                 health: HealthUnit | CellHealth | None = None) -> None:
+                 health: HealthUnit | None = None) -> None:
         self.state = state
         self.actuation = actuation
         self.health = health

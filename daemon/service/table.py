@@ -133,6 +133,32 @@ class SensorTable:
             return State.STALE, f"last reading {age:.1f} s old (max_age_s {entry.max_age_s:g})"
         return State.OK, ""
 
+    def has(self, name: str) -> bool:
+        return name in self.entries
+
+    def problem(self, name: str, now: float) -> tuple[str, str] | None:
+        """Why ``name`` is not ok at ``now`` (``("stale", reason)``, ``("fault", reason)``), None when it is."""
+        state, reason = self.state(name, now)
+        return None if state is State.OK else (state.value, reason)
+
+    def fresh_temperatures(self, channels: Sequence[str]) -> tuple[float, dict[str, float]]:
+        """The cell-clock time until which every one of ``channels`` is fresh, and their values; ``(-inf,
+        {})`` when one is not ok (or has no sensor). Derived once per table change, never per target."""
+        fresh_until = math.inf
+        temps: dict[str, float] = {}
+        for name in channels:
+            entry = self.entries.get(name)
+            if entry is None or entry.device_state is not State.OK or entry.t is None or entry.value is None:
+                return -math.inf, {}
+            fresh_until = min(fresh_until, entry.t + entry.max_age_s)
+            temps[name] = entry.value
+        return fresh_until, temps
+
+    def values(self, channels: Sequence[str]) -> dict[str, float]:
+        """The last believed value of each of ``channels`` that has one, whatever its state."""
+        return {name: entry.value for name in channels
+                if (entry := self.entries.get(name)) is not None and entry.value is not None}
+
     def snapshot(self, now: float) -> dict[str, dict[str, Any]]:
         out = {}
         for name, entry in self.entries.items():

@@ -34,19 +34,9 @@ from typing import Any
 
 import zenoh
 
-from nanodrift.bus.protocol import (
-    CellCommand,
-    CellTarget,
-    Command,
-    Refusal,
-    Target,
-    encode_cell_command,
-    encode_command,
-    encode_error,
-    parse_cell_target,
-    parse_target,
-)
+from nanodrift.bus.protocol import encode_command, encode_error, parse_target
 from nanodrift.bus.session import Bus
+from nanodrift.compensation import Command, Refusal, Target
 from nanodrift.logs import RateLimitedLog
 from nanodrift.service.actuation import Actuation
 from nanodrift.service.metrics import AnswerLatency
@@ -84,7 +74,7 @@ class TargetHandler:
         """Answer one target: compute under ``state.lock``, publish under ``answer_lock``, then reply."""
         started = time.perf_counter()
         state, bus = self.state, self.bus
-        command: Command | CellCommand | None = None
+        command: Command | None = None
         refusal: Refusal | None = None
         failure: Exception | None = None
         log_refusal = wake_actuator = False
@@ -96,17 +86,16 @@ class TargetHandler:
                         query.drop()
                     return
                 state.counters.targets += 1
-                target: Target | CellTarget | None = None
+                target: Target | None = None
                 try:
-                    target = parse_target(payload) if self.cell_axes is None else parse_cell_target(payload,
-                                                                                                     self.cell_axes)
+                    target = parse_target(payload, self.cell_axes)
                     if state.stopping:
                         raise Refusal("shutting_down", "the daemon is stopping: target not served", target.id)
                     fault = self.actuation.fault_reason
                     if fault is not None:  # before the model: a refused target must not move `dir` or lags
                         raise Refusal("actuator_fault",
                                       f"actuator fault: {fault}; the stage holds its last position", target.id)
-                    command = state.compensator.compensate(target, state.clock.now(), time.time())  # type: ignore[arg-type]
+                    command = state.compensator.compensate(target, state.clock.now(), time.time())
                     state.counters.commands += 1
                 except Refusal as refused:
                     refusal = refused
@@ -120,14 +109,8 @@ class TargetHandler:
                     if log_refusal:
                         suppressed = self.refused_log.limiter.take_suppressed()
             try:
-                if type(command) is Command:
-                    data = encode_command(command)
-                    bus.publish_command(data)
-                    wake_actuator = self.actuation.offer({"x": command.q_um}, {"x": command.voltage_v},
-                                                         {"x": command.x_um}, command.id)
-                elif command is not None:
-                    assert isinstance(command, CellCommand)
-                    data = encode_cell_command(command)  # published once, every axis; then handed over whole
+                if command is not None:
+                    data = encode_command(command, per_axis=self.cell_axes is not None)  # published once, all axes
                     bus.publish_command(data)
                     wake_actuator = self.actuation.offer(command.q_um, command.voltage_v, command.positions_um,
                                                          command.id)
@@ -172,14 +155,15 @@ class TargetHandler:
             fields["suppressed_before"] = suppressed_before
         self.log.warning("target_refused", **fields)
 
-    def _log_answer(self, command: Command | CellCommand | None, refusal: Refusal | None, elapsed_s: float) -> None:
+    def _log_answer(self, command: Command | None, refusal: Refusal | None, elapsed_s: float) -> None:
         latency_us = round(elapsed_s * 1e6, 1)
-        if isinstance(command, CellCommand):
+        if command is not None and self.cell_axes is not None:
             self.log.debug("target_answered", id=command.id, positions_um=dict(command.positions_um),
                            q_um=dict(command.q_um), voltage_v=dict(command.voltage_v), latency_us=latency_us)
         elif command is not None:
-            self.log.debug("target_answered", id=command.id, x_um=command.x_um, q_um=round(command.q_um, 6),
-                           voltage_v=round(command.voltage_v, 6), latency_us=latency_us)
+            self.log.debug("target_answered", id=command.id, x_um=command.positions_um["x"],
+                           q_um=round(command.q_um["x"], 6), voltage_v=round(command.voltage_v["x"], 6),
+                           latency_us=latency_us)
         elif refusal is not None:
             self.log.debug("target_answered", id=refusal.id, error=refusal.kind, reason=refusal.message,
                            latency_us=latency_us)

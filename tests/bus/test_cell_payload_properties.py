@@ -1,6 +1,6 @@
 """Property-based: a multi-axis cell's targets from a hostile client.
 
-``parse_cell_target`` on arbitrary bytes and on arbitrary JSON objects gives a :class:`CellTarget` with a
+``parse_target`` with the cell's axes on arbitrary bytes and on arbitrary JSON objects gives a :class:`Target` with a
 finite position for exactly the cell's axes, or a ``bad_payload`` :class:`Refusal` naming what is wrong
 (a missing axis, an axis the cell does not have, a field that is not a finite number); never another
 exception. The expected outcome is computed from what was generated, not by the code under test.
@@ -15,7 +15,8 @@ from typing import Any
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from nanodrift.bus.protocol import CellTarget, Refusal, parse_cell_target
+from nanodrift.bus.protocol import parse_target
+from nanodrift.compensation import Refusal, Target
 
 AXES = ("x", "y", "z")
 KEYS = st.sampled_from(["x_um", "y_um", "z_um", "w_um", "id", "q_um", "x", "X_um", ""])
@@ -29,7 +30,7 @@ VALUES = st.one_of(
 @given(st.binary(max_size=200))
 def test_any_bytes_give_a_target_or_a_bad_payload_refusal(payload: bytes) -> None:
     try:
-        target = parse_cell_target(payload, AXES)
+        target = parse_target(payload, AXES)
     except Refusal as refusal:
         assert refusal.kind == "bad_payload" and refusal.message
         return
@@ -53,7 +54,7 @@ def test_a_json_object_is_served_only_when_it_names_every_axis_with_a_finite_num
     payload = json.dumps(doc).encode()
     wanted = {f"{a}_um" for a in AXES}
     try:
-        target = parse_cell_target(payload, AXES)
+        target = parse_target(payload, AXES)
     except Refusal as refusal:
         assert refusal.kind == "bad_payload"
         missing = wanted - set(doc)
@@ -65,5 +66,5 @@ def test_a_json_object_is_served_only_when_it_names_every_axis_with_a_finite_num
         named = sorted(missing)[:1] or [n for k in sorted(extra) for n in (k, repr(k[:1]))] or bad
         assert any(n in refusal.message for n in named), (doc, refusal.message)
         return
-    assert isinstance(target, CellTarget) and set(doc) == wanted
+    assert isinstance(target, Target) and set(doc) == wanted
     assert target.positions_um == {a: float(doc[f"{a}_um"]) for a in AXES}

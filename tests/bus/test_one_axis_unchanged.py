@@ -1,8 +1,8 @@
 """A one-axis cell after multi-axis cells arrived: its model ids and command bytes are today's.
 
 The expected values were produced by main at 98babf5 (before the daemon learnt ``[[axes]]``), through the
-path the daemon takes now (the model read by ``load_served_model``, the command by the one-axis
-compensator and ``encode_command``).
+path the daemon takes now (the model read by ``load_served_model``, the command by the
+compensator of one axis and ``encode_command``).
 """
 
 from __future__ import annotations
@@ -14,12 +14,11 @@ from helpers.cell_helpers import write_cell_model
 from helpers.daemon_harness import write_test_model
 from helpers.floats import assert_same
 
-from nanodrift.bus.protocol import Target, encode_command
+from nanodrift.bus.protocol import encode_command
+from nanodrift.compensation import Compensator, Target, load_served_model
 from nanodrift.config import ActuatorConfig, parse_config
 from nanodrift.drivers.base import Reading, SensorConfig
 from nanodrift.model.model import Model, ModelFileError
-from nanodrift.service.cell_compensator import load_served_model
-from nanodrift.service.compensator import Compensator
 from nanodrift.service.table import SensorTable
 from nanodrift.settings import DEFAULT_MODEL_PATH
 
@@ -40,13 +39,13 @@ def test_one_axis_command_payloads_are_byte_for_byte_unchanged(tmp_path: Path) -
     table = SensorTable([SensorConfig(name=n, kind="x", max_age_s=5.0) for n in ("T1", "T2")])
     for name, value in {"T1": 21.8, "T2": 22.3}.items():
         table.update(name, Reading(value, t=10.0))
-    comp = Compensator(model, ActuatorConfig(), table)
+    comp = Compensator(model, {"x": ActuatorConfig()}, table)
     comp.observe(10.0, {"T1": 21.8, "T2": 22.3})
-    assert_same(encode_command(comp.compensate(Target(7, 240.0), now=11.0, unix_now=1700000000.25)), (
+    assert_same(encode_command(comp.compensate(Target(7, {"x": 240.0}), now=11.0, unix_now=1700000000.25)), (
         b'{"id":7,"x_um":240.0,"q_um":216.45048000000003,"voltage_v":4.329009600000001,"temperatures_c":'
         b'{"T1":21.8,"T2":22.3},"model":"m-735e979167ac","t":1700000000.25,"extrapolating":["T2"],'
         b'"q_sigma_um":null}'))
-    assert_same(encode_command(comp.compensate(Target("a", 490.0), now=11.5, unix_now=1700000000.5)), (
+    assert_same(encode_command(comp.compensate(Target("a", {"x": 490.0}), now=11.5, unix_now=1700000000.5)), (
         b'{"id":"a","x_um":490.0,"q_um":467.20198,"voltage_v":9.3440396,"temperatures_c":{"T1":21.8,"T2":22.3},'
         b'"model":"m-735e979167ac","t":1700000000.5,"extrapolating":["x","T2"],"q_sigma_um":null}'))
 

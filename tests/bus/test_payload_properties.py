@@ -26,7 +26,8 @@ from helpers.daemon_harness import Client, Daemon, free_port
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from nanodrift.bus.protocol import MAX_ID_CHARS, MAX_PAYLOAD_BYTES, Refusal, Target, parse_target
+from nanodrift.bus.protocol import MAX_ID_CHARS, MAX_PAYLOAD_BYTES, parse_target
+from nanodrift.compensation import Refusal, Target
 from nanodrift.config import DEFAULT_MODEL_PATH
 
 # --- JSON values, including what json.dumps never writes ------------------------------------------------
@@ -152,10 +153,10 @@ def check(payload: bytes, expected: Expected | None) -> Target | Refusal:
             assert expected.field in refusal.message, (expected.field, refusal.message)
             assert refusal.id == expected.target_id, (refusal.id, expected.target_id)
         return refusal
-    assert math.isfinite(target.x_um), target
+    assert list(target.positions_um) == ["x"] and math.isfinite(target.positions_um["x"]), target
     if expected is not None:
         assert not expected.field, f"accepted what should be refused naming {expected.field}: {target}"
-        assert (target.id, target.x_um) == (expected.target_id, expected.x_um), (target, expected)
+        assert (target.id, target.positions_um["x"]) == (expected.target_id, expected.x_um), (target, expected)
     return target
 
 
@@ -208,7 +209,7 @@ def _is_utf8(data: bytes) -> bool:
 def test_the_oracle_sees_the_cases_it_is_about() -> None:
     """The generators reach what they claim: a target accepted, and each kind of refusal."""
     good = target_doc(240.5, "a", {}, False)
-    assert check(to_json(good).encode(), expected_for(good, to_json(good).encode())) == Target("a", 240.5)
+    assert check(to_json(good).encode(), expected_for(good, to_json(good).encode())) == Target("a", {"x": 240.5})
     for x, words in ((Raw("NaN", "nonfinite"), "'x_um' must be a finite number"),
                      (int("9" * 400), "'x_um' must be a finite number"),
                      (Deep(50, False), "'x_um' must be a number, got list"), (MISSING, "missing field 'x_um'")):

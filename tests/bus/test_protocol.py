@@ -14,11 +14,8 @@ import pytest
 
 from nanodrift.bus.protocol import (
     MAX_PAYLOAD_BYTES,
-    Command,
     Keys,
     Oversized,
-    Refusal,
-    Target,
     command_doc,
     dumps,
     encode_command,
@@ -27,6 +24,7 @@ from nanodrift.bus.protocol import (
     parse_target,
     validate_target,
 )
+from nanodrift.compensation import Command, Refusal, Target
 
 
 def test_keys_follow_the_contract() -> None:
@@ -58,10 +56,10 @@ def test_an_oversized_marker_is_refused_with_its_real_size() -> None:
 @pytest.mark.parametrize(
     ("payload", "expected"),
     [
-        (b'{"x_um": 12.5, "id": "a"}', Target("a", 12.5)),
-        (b'{"x_um": 3}', Target(None, 3.0)),
-        (b'{"x_um": 3, "id": null, "note": "extra keys are allowed"}', Target(None, 3.0)),
-        (b'{"x_um": 0, "id": -4}', Target(-4, 0.0)),
+        (b'{"x_um": 12.5, "id": "a"}', Target("a", {"x": 12.5})),
+        (b'{"x_um": 3}', Target(None, {"x": 3.0})),
+        (b'{"x_um": 3, "id": null, "note": "extra keys are allowed"}', Target(None, {"x": 3.0})),
+        (b'{"x_um": 0, "id": -4}', Target(-4, {"x": 0.0})),
     ],
 )
 def test_good_targets_parse(payload: bytes, expected: Target) -> None:
@@ -123,9 +121,15 @@ def test_the_regex_fast_path_agrees_with_json_on_every_variant() -> None:
 
 
 def command(target_id: object = "k", **changes: object) -> Command:
+    """A one-axis cell's command; ``changes`` as the payload's keys (numbers for the per-axis values)."""
     temps = MappingProxyType({"T1": 21.8, "T2": 21.9})
-    base = Command(id=target_id, x_um=240.0, q_um=236.5, voltage_v=4.73, temperatures_c=temps, model="m-1",
-                   t=1.7e9 + 0.123456789, extrapolating=[])
+    base = Command(id=target_id, positions_um={"x": 240.0}, q_um={"x": 236.5}, voltage_v={"x": 4.73},
+                   temperatures_c=temps, model="m-1", t=1.7e9 + 0.123456789, extrapolating=[])
+    if "x_um" in changes:
+        changes["positions_um"] = {"x": changes.pop("x_um")}
+    for key in ("q_um", "voltage_v", "q_sigma_um", "correction_um", "q_sigma_adapted_um"):
+        if changes.get(key) is not None:
+            changes[key] = {"x": changes[key]}
     return replace(base, **changes)
 
 

@@ -15,17 +15,16 @@ import pytest
 from helpers.sim_helpers import Capture, trained_model
 
 from nanodrift.assembly import simulated_drivers
-from nanodrift.bus.protocol import Target
 from nanodrift.calibration import iso9283
 from nanodrift.calibration.residuals import BiasTracker
 from nanodrift.cli import main
+from nanodrift.compensation import Compensator, Target
 from nanodrift.config import parse_config
 from nanodrift.drivers.base import Reading, SensorConfig
 from nanodrift.drivers.simulated.plugin import shared_cell
 from nanodrift.logs import get_logger
 from nanodrift.model.model import Model, save_model
 from nanodrift.procedure.validation import run_validation
-from nanodrift.service.compensator import Compensator
 from nanodrift.service.health_unit import HealthUnit
 from nanodrift.service.table import SensorTable
 
@@ -80,9 +79,9 @@ def test_the_daemons_health_unit_gives_validate_adapts_corrections_sample_for_sa
     sensors.append(SensorConfig(name="interferometer", kind="x", role="position", max_age_s=60.0))
     config = config.model_copy(update={"sensors": sensors})
     table = SensorTable(config.sensors)
-    compensator = Compensator(model, config.actuator, table)
     health = HealthUnit(config, model, get_logger("test"))
-    health.attach(compensator)
+    compensator = Compensator(model, config.axis_actuators(), table, monitor=health)
+    tracker = health.watches["x"].tracker
     assert model.covariance is not None
     wander_um = model.covariance.wander_um or 0.0
 
@@ -94,15 +93,17 @@ def test_the_daemons_health_unit_gives_validate_adapts_corrections_sample_for_sa
         for channel, value in step.temperatures.items():
             table.update(channel, Reading(value, t=t_command))
         compensator.observe(t_command, step.temperatures)
-        assert compensator.evaluator is not None and health.tracker is not None
-        static_um = compensator.evaluator.sigma(step.step.target_um, t_command)  # the model's own σ here
-        left_um = health.tracker.sigma_um(static_um, wander_um)  # what the tracker leaves of it
-        command = compensator.compensate(Target(i, step.step.target_um), t_command, 1.7e9)
-        online.append(command.correction_um)
-        online_sigma.append((command.q_sigma_adapted_um, left_um, static_um))
-        assert command.q_sigma_um == static_um  # the model's own σ, as the contract has it
-        health.on_position(step.t_s - 1.0, step.t_s - 1.0, step.x_um, step.valid)  # inside the window
-        health.on_position(step.t_s + 0.5, step.t_s + 0.5, step.x_um, True)  # the next reading closes it
+        assert compensator.evaluators is not None and tracker is not None
+        static_um = compensator.evaluators["x"].sigma(step.step.target_um, t_command)  # the model's own σ here
+        left_um = tracker.sigma_um(static_um, wander_um)  # what the tracker leaves of it
+        command = compensator.compensate(Target(i, {"x": step.step.target_um}), t_command, 1.7e9)
+        assert command.correction_um is not None and command.q_sigma_adapted_um is not None
+        online.append(command.correction_um["x"])
+        online_sigma.append((command.q_sigma_adapted_um["x"], left_um, static_um))
+        assert command.q_sigma_um == {"x": static_um}  # the model's own σ, as the contract has it
+        position = "interferometer"
+        health.on_position(step.t_s - 1.0, step.t_s - 1.0, step.x_um, step.valid, channel=position)  # in the window
+        health.on_position(step.t_s + 0.5, step.t_s + 0.5, step.x_um, True, channel=position)  # the next closes it
     assert online == offline.corrections_um  # identical floats, command by command
     assert [a for a, _, _ in online_sigma] == [left for _, left, _ in online_sigma]
     assert online_sigma[0][0] == online_sigma[0][2]  # nothing learnt yet: the model's own σ
@@ -111,8 +112,8 @@ def test_the_daemons_health_unit_gives_validate_adapts_corrections_sample_for_sa
     assert sent[1:] == pytest.approx(offline.q_sigma_adapted_um[1:], rel=0.01)  # the same σ as validate --adapt gave
     assert max(sent) > 0.15  # the +0.3 µm the residuals show counts until it is taken out ...
     assert sent[-1] < 0.6 * max(sent) and sent[-1] > 0.3 + online[-1]  # ... and what is left still does
-    assert health.correction_um == offline_tracker.correction_um
-    assert health.monitor.n == sum(s.valid for s in offline.steps)
+    assert health.correction_um() == {"x": offline_tracker.correction_um}
+    assert health.watches["x"].monitor.n == sum(s.valid for s in offline.steps)
     assert online[-1] < -0.1  # it moved towards cancelling the +0.3 um
 
 

@@ -11,15 +11,15 @@ import time
 from pathlib import Path
 
 import pytest
+from helpers.cell_helpers import expected_cell_q, write_cell_model
 from helpers.daemon_harness import MODEL_TERMS, expected_q, write_test_model
 
-from nanodrift.bus.protocol import Refusal, Target
+from nanodrift.compensation import Compensator, Refusal, Target
 from nanodrift.config import ActuatorConfig
 from nanodrift.drivers.base import MonotonicClock, Reading, SensorConfig, SensorGroup, State
 from nanodrift.logs import RateLimiter
 from nanodrift.motion import VoltageLimitError
 from nanodrift.sdnotify import Notifier, watchdog_interval_s
-from nanodrift.service.compensator import Compensator
 from nanodrift.service.polling import GroupPoller, pollers_healthy
 from nanodrift.service.table import SensorTable
 
@@ -51,62 +51,88 @@ def test_sensor_states_ok_stale_fault_and_recovery() -> None:
 
 
 
+TEMPS = {"T1": 21.8, "T2": 21.9}
+#: a one-axis cell and an XY cell: the same compensator, the same tests
+CELLS = pytest.mark.parametrize("axes", [("x",), ("x", "y")], ids=["one-axis", "xy"])
+
+
+def expected(axes: tuple[str, ...], x_um: float, temps: dict[str, float]) -> dict[str, float]:
+    """Every axis' q for the target with every axis at ``x_um`` (the harness' one-axis model, or the cell's)."""
+    if axes == ("x",):
+        return {"x": expected_q(x_um, temps)}
+    return expected_cell_q(dict.fromkeys(axes, x_um), temps)
+
+
+def at(target_id: object, axes: tuple[str, ...], x_um: float) -> Target:
+    return Target(target_id, dict.fromkeys(axes, x_um))
+
+
 @pytest.fixture
-def compensator(tmp_path: Path) -> Compensator:
-    model = write_test_model(tmp_path / "m.json")
+def compensator(tmp_path: Path, axes: tuple[str, ...]) -> Compensator:
+    model = write_test_model(tmp_path / "m.json") if axes == ("x",) else write_cell_model(tmp_path / "m.json", axes)
     table = SensorTable(sensors("T1", "T2", "T3", max_age_s=5.0))
-    for name, value in {"T1": 21.8, "T2": 21.9, "T3": 30.0}.items():
+    for name, value in {**TEMPS, "T3": 30.0}.items():
         table.update(name, Reading(value, t=10.0))
-    comp = Compensator(model, ActuatorConfig(), table)
-    comp.observe(10.0, {"T1": 21.8, "T2": 21.9})
+    comp = Compensator(model, dict.fromkeys(axes, ActuatorConfig()), table)
+    comp.observe(10.0, TEMPS)
     return comp
 
 
-def test_compensation_matches_the_model_and_the_actuator_gain(compensator: Compensator) -> None:
-    command = compensator.compensate(Target("k", 200.0), now=11.0, unix_now=1234.5)
-    assert command.q_um == pytest.approx(expected_q(200.0, {"T1": 21.8, "T2": 21.9}), abs=1e-12)
-    assert command.voltage_v == pytest.approx(0.02 * command.q_um, abs=1e-15)
-    assert command.temperatures_c == {"T1": 21.8, "T2": 21.9}  # the model's channels only
+@CELLS
+def test_compensation_matches_the_model_and_the_actuator_gain(compensator: Compensator, axes: tuple[str, ...]) -> None:
+    command = compensator.compensate(at("k", axes, 200.0), now=11.0, unix_now=1234.5)
+    assert command.q_um == pytest.approx(expected(axes, 200.0, TEMPS), abs=1e-12)
+    assert command.voltage_v == pytest.approx({a: 0.02 * q for a, q in command.q_um.items()}, abs=1e-15)
+    assert compensator.model is not None
+    assert command.temperatures_c == {c: TEMPS[c] for c in compensator.model.channels}  # the model's channels only
+    assert "T3" not in command.temperatures_c
     assert command.t == 1234.5 and command.id == "k"
     assert command.model == compensator.model.id
     assert command.extrapolating == []
-    assert set(MODEL_TERMS) == set(compensator.model.term_names())
+    if axes == ("x",):
+        assert set(MODEL_TERMS) == set(compensator.model.term_names())
 
 
-def test_refusals_stale_workspace_voltage_and_no_model(compensator: Compensator, tmp_path: Path) -> None:
+@CELLS
+def test_refusals_stale_workspace_voltage_and_no_model(compensator: Compensator, axes: tuple[str, ...]) -> None:
     with pytest.raises(Refusal) as stale:
-        compensator.compensate(Target(1, 100.0), now=15.5, unix_now=0.0)
+        compensator.compensate(at(1, axes, 100.0), now=15.5, unix_now=0.0)
     assert stale.value.kind == "stale" and "T1" in stale.value.message and stale.value.id == 1
     with pytest.raises(Refusal) as outside:
-        compensator.compensate(Target(2, 500.01), now=11.0, unix_now=0.0)
-    assert outside.value.kind == "out_of_workspace"
-    tight = Compensator(compensator.model, ActuatorConfig(v_max=4.0), compensator.table)
-    tight.evaluator = compensator.evaluator
+        compensator.compensate(at(2, axes, 500.01), now=11.0, unix_now=0.0)
+    assert outside.value.kind == "out_of_workspace" and f"{axes[-1]}_um 500.01 outside" in outside.value.message
+    limits = ActuatorConfig(v_max=4.0)  # on the last axis: a cell of several refuses the whole target
+    tight = Compensator(compensator.model, {**compensator.limits, axes[-1]: limits}, compensator.readings)
+    tight.evaluators = compensator.evaluators
     with pytest.raises(Refusal) as volts:
-        tight.compensate(Target(3, 250.0), now=11.0, unix_now=0.0)
+        tight.compensate(at(3, axes, 250.0), now=11.0, unix_now=0.0)
     assert volts.value.kind == "voltage_limit" and "outside [-2, 4] V" in volts.value.message
     with pytest.raises(VoltageLimitError) as procedure:  # a procedure's step is refused in the same words
-        tight.actuator.checked_voltage(tight.evaluator.value(250.0, 11.0))
-    assert str(procedure.value) == volts.value.message
-    assert tight.compensate(Target(4, 150.0), now=11.0, unix_now=0.0).voltage_v <= 4.0
-    none = Compensator(None, ActuatorConfig(), compensator.table, model_problem="m.json: no such model file")
+        limits.checked_voltage(expected(axes, 250.0, TEMPS)[axes[-1]])
+    if axes == ("x",):
+        assert str(procedure.value) == volts.value.message
+    else:  # ... naming the axis, and that nothing moves
+        assert volts.value.message == f"axis {axes[-1]}: {procedure.value}: no axis moves"
+    assert all(v <= 4.0 for v in tight.compensate(at(4, axes, 150.0), now=11.0, unix_now=0.0).voltage_v.values())
+    none = Compensator(None, compensator.limits, compensator.readings, model_problem="m.json: no such model file")
     with pytest.raises(Refusal) as no_model:
-        none.compensate(Target(5, 1.0), now=11.0, unix_now=0.0)
+        none.compensate(at(5, axes, 1.0), now=11.0, unix_now=0.0)
     assert no_model.value.kind == "no_model" and "no such model file" in no_model.value.message
 
 
-def test_missing_channel_and_extrapolation(compensator: Compensator) -> None:
-    only_t1 = SensorTable(sensors("T1"))
-    only_t1.update("T1", Reading(21.8, t=10.0))
-    missing = Compensator(compensator.model, ActuatorConfig(), only_t1)
+@CELLS
+def test_missing_channel_and_extrapolation(compensator: Compensator, axes: tuple[str, ...]) -> None:
+    only_t3 = SensorTable(sensors("T3"))
+    only_t3.update("T3", Reading(21.8, t=10.0))
+    missing = Compensator(compensator.model, compensator.limits, only_t3)
     with pytest.raises(Refusal) as caught:
-        missing.compensate(Target(1, 1.0), now=10.0, unix_now=0.0)
-    assert caught.value.kind == "missing_channel" and "T2" in caught.value.message
-    compensator.table.update("T2", Reading(23.0, t=10.5))
-    compensator.observe(10.5, {"T2": 23.0})
-    command = compensator.compensate(Target(2, 490.0), now=11.0, unix_now=0.0)
-    assert command.extrapolating == ["x", "T2"]
-    assert compensator.extrapolating_now(11.0) == ["T2"]
+        missing.compensate(at(1, axes, 1.0), now=10.0, unix_now=0.0)
+    assert caught.value.kind == "missing_channel" and "T1" in caught.value.message
+    compensator.readings.update("T1", Reading(23.0, t=10.5))
+    compensator.observe(10.5, {"T1": 23.0})
+    command = compensator.compensate(at(2, axes, 490.0), now=11.0, unix_now=0.0)
+    assert command.extrapolating == [*axes, "T1"]
+    assert compensator.extrapolating_now() == ["T1"]
 
 
 def test_rate_limiter_lets_a_burst_through_then_counts() -> None:
@@ -184,12 +210,12 @@ def test_a_refused_target_does_not_move_the_models_motion_state(tmp_path: Path) 
     table = SensorTable(sensors("T1", "T2"))
     for name, value in {"T1": 21.8, "T2": 21.9}.items():
         table.update(name, Reading(value, t=10.0))
-    comp = Compensator(model, ActuatorConfig(v_max=4.0), table)  # 4 V ~ 200 um
+    comp = Compensator(model, {"x": ActuatorConfig(v_max=4.0)}, table)  # 4 V ~ 200 um
     comp.observe(10.0, {"T1": 21.8, "T2": 21.9})
-    comp.compensate(Target(1, 100.0), now=11.0, unix_now=0.0)
+    comp.compensate(Target(1, {"x": 100.0}), now=11.0, unix_now=0.0)
     with pytest.raises(Refusal):
-        comp.compensate(Target(2, 400.0), now=11.0, unix_now=0.0)  # never sent to the stage
-    after = comp.compensate(Target(3, 180.0), now=11.0, unix_now=0.0).q_um
+        comp.compensate(Target(2, {"x": 400.0}), now=11.0, unix_now=0.0)  # never sent to the stage
+    after = comp.compensate(Target(3, {"x": 180.0}), now=11.0, unix_now=0.0).q_um["x"]
     # 100 -> 180 is a step up from where the stage really is (down only from the refused 400)
     assert after == pytest.approx(expected_q(180.0, {"T1": 21.8, "T2": 21.9}, terms) + 0.05, abs=1e-12)
 

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from helpers.cell_helpers import write_cell_model
 from helpers.daemon_harness import (
     TEMPS,
     HealthCell,
@@ -29,13 +30,12 @@ from helpers.daemon_harness import (
 )
 from prometheus_client.parser import text_string_to_metric_families
 
-from nanodrift.bus.protocol import Command, Target
+from nanodrift.compensation import Command, Target
 from nanodrift.config import DEFAULT_MODEL_PATH, Config, parse_config
 from nanodrift.drivers.base import MonotonicClock, Reading, SensorConfig
 from nanodrift.model.model import Model, load_model, save_model
-from nanodrift.service.compensator import Compensator
 from nanodrift.service.health_unit import HealthUnit
-from nanodrift.service.state import CellState
+from nanodrift.service.state import CellState, serving_state
 from nanodrift.service.status import status_line
 from nanodrift.service.table import SensorTable
 
@@ -269,38 +269,73 @@ def test_a_faulted_or_stale_interferometer_never_feeds_the_monitor_or_the_tracke
 # --- in process: the health unit's rules ---------------------------------------------------------
 
 
-def unit_config(*, position: bool = True, adapt: dict[str, Any] | None = None, **health: Any) -> Config:
+#: a one-axis cell and an XY cell (each axis with its own interferometer): the same health unit, the same tests
+CELLS = pytest.mark.parametrize("axes", [("x",), ("x", "y")], ids=["one-axis", "xy"])
+#: each axis' position sensor
+POSITION = {"x": "interferometer", "y": "ifm_y"}
+
+
+def unit_config(axes: tuple[str, ...] = ("x",), *, position: bool = True, adapt: dict[str, Any] | None = None,
+                **health: Any) -> Config:
+    cell = [{"name": a, "actuator": {"kind": "zenoh"}} for a in axes] if len(axes) > 1 else None
     config = parse_config({"health": {"settle_s": 3.0, "window_s": 2.0, **health}, "adapt": adapt or {},
-                           "sensors": []}, source="unit.toml")
+                           "sensors": [], **({"axes": cell} if cell else {})}, source="unit.toml")
     sensors = [SensorConfig(name="T1", kind="x", max_age_s=5.0), SensorConfig(name="T2", kind="x", max_age_s=5.0)]
     if position:
-        sensors.append(SensorConfig(name="interferometer", kind="x", role="position", max_age_s=1.0))
-    return config.model_copy(update={"sensors": sensors})
+        sensors += [SensorConfig(name=POSITION[a], kind="x", role="position", max_age_s=1.0) for a in axes]
+    config = config.model_copy(update={"sensors": sensors})
+    config._sensor_axes = {POSITION[a]: a for a in axes if a != "x"}  # what [[sensors]] axis = "y" says
+    return config
 
 
 class Unit:
-    """A health unit serving through a compensator on the harness's test model."""
+    """A health unit serving through a compensator on the harness's test model (XY: a hand-made cell model)."""
 
     def __init__(self, tmp_path: Path, config: Config) -> None:
-        self.model = write_test_model(tmp_path / "m.json")
+        self.axes = config.axis_names
+        path = tmp_path / "m.json"
+        self.model = write_test_model(path) if self.axes == ("x",) else write_cell_model(path, self.axes)
         self.config = config
         self.table = SensorTable(config.sensors)
-        self.compensator = Compensator(self.model, config.actuator, self.table)
         self.log = _NullLog()
-        self.health = HealthUnit(config, self.model, self.log)
-        self.health.attach(self.compensator)
+        self.health = HealthUnit(config, None, self.log)
+        self.compensator = serving_state(config, self.model, self.health, table=self.table)
+        self.x = self.health.watches["x"]
 
     def command(self, t: float, x: float, target_id: object = None) -> Command:
+        """Every axis to ``x``."""
         for name, value in TEMPS.items():
             self.table.update(name, Reading(value, t=t))
         self.compensator.observe(t, TEMPS)
-        return self.compensator.compensate(Target(target_id, x), t, 1.7e9 + t)
+        return self.compensator.compensate(Target(target_id, dict.fromkeys(self.axes, x)), t, 1.7e9 + t)
+
+    def position(self, now: float, t: float, value_um: float, ok: bool) -> None:
+        """The same reading from every axis' position sensor."""
+        for axis in self.axes:
+            self.health.on_position(now, t, value_um, ok, channel=POSITION[axis])
 
     def hold(self, t: float, x: float, position_um: float) -> None:
         """A command at ``t`` and readings every 0.5 s through its window and past it."""
         self.command(t, x)
         for k in range(1, 13):
-            self.health.on_position(t + 0.5 * k, t + 0.5 * k, position_um, True)
+            self.position(t + 0.5 * k, t + 0.5 * k, position_um, True)
+
+    def counts(self) -> set[int]:
+        """The residuals each axis' rolling statistics hold (one value: every axis the same)."""
+        return {w.monitor.n for w in self.health.watches.values()}
+
+    def axis_doc(self) -> dict[str, Any]:
+        """The x axis' health document (a one-axis cell's whole document)."""
+        doc = self.health.document()
+        return doc if self.axes == ("x",) else doc["axes"]["x"]
+
+    def held(self, handed: list[tuple[Any, float]]) -> list[Any]:
+        """The x axis' :class:`Settled` of every recorded row (a cell of several's row holds every axis')."""
+        rows = [row for row, _ in handed]
+        if self.axes != ("x",):
+            assert all(set(row.axes) == set(self.axes) for row in rows)
+            return [row.axes["x"] for row in rows]
+        return rows
 
 
 class _NullLog:
@@ -312,86 +347,101 @@ class _NullLog:
 
     warning = info
 
+    def bind(self, **fields: Any) -> _NullLog:
+        return self
 
-def test_the_unit_counts_only_fresh_new_ok_readings(tmp_path: Path) -> None:
-    unit = Unit(tmp_path, unit_config())
+
+@CELLS
+def test_the_unit_counts_only_fresh_new_ok_readings(tmp_path: Path, axes: tuple[str, ...]) -> None:
+    unit = Unit(tmp_path, unit_config(axes))
     health = unit.health
     handed: list[tuple[Any, float]] = []
     health.settled_listeners.append(lambda settled, unix_s, polled: handed.append((settled, unix_s)))
     unit.hold(0.0, 100.0, 100.2)
-    assert health.monitor.n == 1 and health.document()["residual_mean_nm"] == pytest.approx(200.0)
+    assert unit.counts() == {1} and unit.axis_doc()["residual_mean_nm"] == pytest.approx(200.0)
     health.flush()  # the recorder's hook: each settled target once, outside the lock, with its unix time
-    assert [(s.x_um, s.samples, s.t) for s, _ in handed] == [(100.0, 5, 5.0)] and handed[0][1] > 1.7e9
-    assert handed[0][0].residual_um == pytest.approx(0.2) and set(handed[0][0].temperatures) == {"T1", "T2"}
+    assert [(s.x_um, s.samples, s.t) for s in unit.held(handed)] == [(100.0, 5, 5.0)] and handed[0][1] > 1.7e9
+    first = unit.held(handed)[0]
+    assert first.residual_um == pytest.approx(0.2) and set(first.temperatures) == set(unit.compensator.channels)
 
     unit.command(10.0, 200.0)  # a reading inside the window that is not ok (faulted or too old) voids it
-    health.on_position(13.5, 13.5, 200.2, True)
-    health.on_position(14.0, 12.0, 200.2, False)
-    health.on_position(15.5, 15.5, 200.2, True)
-    assert health.monitor.n == 1
+    unit.position(13.5, 13.5, 200.2, True)
+    unit.position(14.0, 12.0, 200.2, False)
+    unit.position(15.5, 15.5, 200.2, True)
+    assert unit.counts() == {1}
 
     unit.command(20.0, 300.0)  # silent through the window for longer than max_age_s (1 s): stale meanwhile
-    health.on_position(23.2, 23.2, 300.2, True)
-    health.on_position(24.8, 24.8, 300.2, True)
-    health.on_position(25.5, 25.5, 300.2, True)
-    assert health.monitor.n == 1
+    unit.position(23.2, 23.2, 300.2, True)
+    unit.position(24.8, 24.8, 300.2, True)
+    unit.position(25.5, 25.5, 300.2, True)
+    assert unit.counts() == {1}
 
     unit.command(30.0, 400.0)  # the same sample again is not news: one sample, not three
     for _ in range(3):
-        health.on_position(33.5, 33.5, 400.9, True)
-    health.on_position(34.5, 34.5, 400.0, True)
-    health.on_position(35.5, 35.5, 400.0, True)
-    assert health.monitor.n == 2  # 200 nm, then (400.9 + 400.0) / 2 - 400 = 450 nm
-    assert health.document()["residual_mean_nm"] == pytest.approx(325.0)
+        unit.position(33.5, 33.5, 400.9, True)
+    unit.position(34.5, 34.5, 400.0, True)
+    unit.position(35.5, 35.5, 400.0, True)
+    assert unit.counts() == {2}  # 200 nm, then (400.9 + 400.0) / 2 - 400 = 450 nm
+    assert unit.axis_doc()["residual_mean_nm"] == pytest.approx(325.0)
     health.flush()
-    assert [s.x_um for s, _ in handed] == [100.0, 400.0]
+    assert [s.x_um for s in unit.held(handed)] == [100.0, 400.0]
 
     for k, x in enumerate((10.0, 20.0, 30.0)):  # a burst between two readings: the last target is the one held
         unit.command(40.0 + 0.01 * k, x)
     for k in range(1, 13):
-        health.on_position(40.02 + 0.5 * k, 40.02 + 0.5 * k, 30.1, True)
+        unit.position(40.02 + 0.5 * k, 40.02 + 0.5 * k, 30.1, True)
     health.flush()
-    assert [s.x_um for s, _ in handed][2:] == [30.0] and health.monitor.n == 3 and not health.served
+    assert [s.x_um for s in unit.held(handed)][2:] == [30.0] and unit.counts() == {3}
+    assert not any(w.served for w in health.watches.values())
 
 
-def test_a_new_model_or_new_settings_on_reload_start_afresh_and_the_same_model_carries_on(tmp_path: Path) -> None:
-    config = unit_config(adapt={"mode": "bias", "tau_s": 60.0})
+@CELLS
+def test_a_new_model_or_new_settings_on_reload_start_afresh_and_the_same_model_carries_on(
+        tmp_path: Path, axes: tuple[str, ...]) -> None:
+    config = unit_config(axes, adapt={"mode": "bias", "tau_s": 60.0})
     unit = Unit(tmp_path, config)
     for k in range(6):
         unit.hold(20.0 * k, 100.0, 100.5)
     health = unit.health
-    assert health.state == "degraded" and health.correction_um is not None and health.correction_um < -0.1
+    correction = health.correction_um()
+    assert health.state == "degraded" and correction is not None and set(correction) == set(axes)
+    assert all(c < -0.1 for c in correction.values())
     health.flush()
-    assert [e for e, _ in unit.log.lines] == ["health_degraded"]
+    assert [e for e, _ in unit.log.lines] == ["health_degraded"] * len(axes)  # each axis says it
 
-    same = Compensator(unit.model, config.actuator, unit.table)  # a reload that only touched the actuator
-    health.reconfigure(config, same)
-    assert health.monitor.n == 6 and same.correction_um == health.correction_um and same.served is health.served
+    # a reload that only touched the actuator: the monitor and the correction carry on into the new compensator
+    same = serving_state(config, unit.model, health, running=unit.compensator, table=unit.table)
+    assert unit.counts() == {6} and health.correction_um() == correction
+    assert same.compensate(Target(1, dict.fromkeys(axes, 100.0)), 101.0, 0.0).correction_um == correction
+    assert health.watches["x"].served[-1][1].correction_um == correction  # ... and it queues its commands here
     recording = config.model_copy(update={"health": config.health.model_copy(update={"record_dir": "/tmp/r"})})
-    health.reconfigure(recording, same)  # recording is not what the monitor is made of
-    assert health.monitor.n == 6
+    serving_state(recording, unit.model, health, running=same, table=unit.table)  # recording is not the monitor's
+    assert unit.counts() == {6}
 
-    other = write_test_model(tmp_path / "other.json", {"x^3": 0.0, "x^2": 0.0, "x": 1.0, "T1": 0.0, "T2": 0.0,
-                                                       "1": 0.0})
-    fresh = Compensator(other, config.actuator, unit.table)
-    health.reconfigure(config, fresh)
-    assert (health.state, health.monitor.n, fresh.correction_um) == ("unknown", 0, 0.0)
+    if axes == ("x",):
+        other: Any = write_test_model(tmp_path / "other.json", {"x^3": 0.0, "x^2": 0.0, "x": 1.0, "T1": 0.0,
+                                                                "T2": 0.0, "1": 0.0})
+    else:
+        other = write_cell_model(tmp_path / "other.json", axes, max_um=400.0)
+    fresh = serving_state(config, other, health, running=same, table=unit.table)
+    assert (health.state, unit.counts(), health.correction_um()) == ("unknown", {0}, dict.fromkeys(axes, 0.0))
     health.flush()
-    assert [e for e, _ in unit.log.lines] == ["health_degraded", "health_recovered"]
+    assert [e for e, _ in unit.log.lines] == ["health_degraded"] * len(axes) + ["health_recovered"] * len(axes)
 
     off = config.model_copy(update={"adapt": config.adapt.model_copy(update={"mode": "off"})})
-    health.reconfigure(off, fresh)
-    assert fresh.correction_um is None and health.tracker is None
-    unit.compensator = fresh
+    unit.compensator = serving_state(off, other, health, running=fresh, table=unit.table)
+    assert health.correction_um() is None and all(w.tracker is None for w in health.watches.values())
     assert unit.command(200.0, 100.0).correction_um is None
 
 
-def test_without_a_position_sensor_nothing_is_queued_and_the_state_is_unknown(tmp_path: Path) -> None:
-    unit = Unit(tmp_path, unit_config(position=False))
-    assert unit.compensator.served is None
+@CELLS
+def test_without_a_position_sensor_nothing_is_queued_and_the_state_is_unknown(tmp_path: Path,
+                                                                               axes: tuple[str, ...]) -> None:
+    unit = Unit(tmp_path, unit_config(axes, position=False))
+    assert all(w.position_channel is None for w in unit.health.watches.values())
     command = unit.command(0.0, 100.0)
-    assert command.q_sigma_um is not None and math.isnan(command.q_sigma_um)  # the test model has no statistics
-    assert unit.health.document()["state"] == "unknown" and not unit.health.served
+    assert command.q_sigma_um is not None and all(map(math.isnan, command.q_sigma_um.values()))  # no statistics
+    assert unit.health.document()["state"] == "unknown" and not any(w.served for w in unit.health.watches.values())
 
 
 def test_the_status_line_carries_the_health_state(tmp_path: Path) -> None:

@@ -15,13 +15,13 @@ from types import MappingProxyType
 from helpers.log_capture import captured_logging, json_lines
 from helpers.modbus_helpers import ModbusTestDevice, ModbusTestServer, free_port, tcp_context
 
+from nanodrift.compensation import Compensator
 from nanodrift.config import ActuatorConfig, Config
 from nanodrift.drivers.base import DeviceError, MonotonicClock, Reading, SensorGroup, State
 from nanodrift.drivers.modbus.config import ModbusSensorConfig
 from nanodrift.drivers.modbus.group import ModbusBlockGroup
 from nanodrift.drivers.modbus.plugin import PLUGIN
 from nanodrift.logs import get_logger
-from nanodrift.service.compensator import Compensator
 from nanodrift.service.polling import GroupPoller, first_attempts
 from nanodrift.service.sensors import SensorIngest
 from nanodrift.service.state import CellState
@@ -130,7 +130,7 @@ def test_a_failure_episode_is_one_log_line_and_a_summary_at_recovery() -> None:
 
     async def body() -> None:
         table = SensorTable(list(group.block.channels))
-        state = CellState(Config(), Compensator(None, ActuatorConfig(), table), MonotonicClock())
+        state = CellState(Config(), Compensator(None, {"x": ActuatorConfig()}, table), MonotonicClock())
         ingest = SensorIngest(state, lambda role, channel, payload: None, get_logger())
         clock = RetryClock(group, hold_at=DEAD_WAITS)
         back = asyncio.Event()
@@ -178,7 +178,7 @@ def test_a_failure_episode_is_one_log_line_and_a_summary_at_recovery() -> None:
 def test_only_the_first_failure_of_an_episode_is_a_warning() -> None:
     """The ingest's rule on its own: the poller's count decides the level; every failure faults the channels."""
     group = modbus_group(free_port())
-    state = CellState(Config(), Compensator(None, ActuatorConfig(), SensorTable(list(group.block.channels))),
+    state = CellState(Config(), Compensator(None, {"x": ActuatorConfig()}, SensorTable(list(group.block.channels))),
                       MonotonicClock())
     with captured_logging("info") as stream:
         ingest = SensorIngest(state, lambda role, channel, payload: None, get_logger())

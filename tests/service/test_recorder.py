@@ -19,13 +19,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import nanodrift.calibration.dataset as dataset_module
-from nanodrift.bus.protocol import Target
 from nanodrift.calibration.dataset import CsvAppender, read_csv
 from nanodrift.calibration.residuals import Settled
+from nanodrift.compensation import Compensator, Target
 from nanodrift.config import HealthSettings, parse_config
 from nanodrift.drivers.base import Reading, SensorConfig
 from nanodrift.logs import get_logger
-from nanodrift.service.compensator import Compensator
 from nanodrift.service.health_unit import HealthUnit
 from nanodrift.service.recorder import DayRecorder, Polled, PolledChannels, Recorder, file_name
 from nanodrift.service.table import SensorTable
@@ -384,9 +383,8 @@ def test_the_health_unit_hands_every_polled_channel_over_the_window_to_the_recor
     config = config.model_copy(update={"sensors": sensors})
     model = write_test_model(tmp_path / "m.json")  # its channels: T1, T2
     table = SensorTable(config.sensors)
-    compensator = Compensator(model, config.actuator, table)
     health = HealthUnit(config, model, get_logger("nanodrift.daemon"))
-    health.attach(compensator)
+    compensator = Compensator(model, config.axis_actuators(), table, monitor=health)
     handed: list[tuple[Settled, float, Polled]] = []
     health.settled_listeners.append(lambda s, unix_s, polled: handed.append((s, unix_s, polled)))
 
@@ -394,7 +392,7 @@ def test_the_health_unit_hands_every_polled_channel_over_the_window_to_the_recor
         for name, value in TEMPS.items():
             table.update(name, Reading(value, t=t))
         compensator.observe(t, TEMPS)
-        compensator.compensate(Target(None, 100.0), t, 1.7e9 + t)
+        compensator.compensate(Target(None, {"x": 100.0}), t, 1.7e9 + t)
         for k in range(1, 13):
             now = t + 0.5 * k
             for name, value in TEMPS.items():
@@ -402,7 +400,7 @@ def test_the_health_unit_hands_every_polled_channel_over_the_window_to_the_recor
             for t_read, value, ok in t4:
                 if now - 0.5 < t_read <= now:
                     health.on_channel("T4", t_read, value, ok)
-            health.on_position(now, now, 100.1, True)
+            health.on_position(now, now, 100.1, True, channel="interferometer")
         health.flush()
 
     hold(0.0, [(3.2, 23.0, True), (4.2, 23.4, True), (6.0, 50.0, True)])  # window [3, 5]: 23.0 and 23.4
@@ -413,7 +411,7 @@ def test_the_health_unit_hands_every_polled_channel_over_the_window_to_the_recor
     assert not second.valid and second.values_c["T4"] == 50.0 and second.values_c["T1"] == TEMPS["T1"]
 
     fewer = config.model_copy(update={"sensors": [c for c in sensors if c.name != "T4"]})
-    health.reconfigure(fewer, compensator)  # a reload that stops polling T4: its rows go on without it
+    health.reconfigure(fewer, model)  # a reload that stops polling T4: its rows go on without it
     hold(40.0, [(43.5, 24.0, True)])
     assert handed[-1][2] == Polled(dict(TEMPS), True)
 

@@ -384,11 +384,10 @@ def test_an_unexpected_error_in_a_reload_is_refused_logged_counted_and_the_old_d
                 await asyncio.sleep(0.01)
             assert service.state.counters.reload_failures == 1
 
-            class Broken(reload_module.Compensator):
-                def __init__(self, *args: Any, **kwargs: Any) -> None:
-                    raise RuntimeError("swap failed")
+            def broken(*args: Any, **kwargs: Any) -> Any:
+                raise RuntimeError("swap failed")
 
-            monkeypatch.setattr(reload_module, "Compensator", Broken)  # after the running drivers stopped
+            monkeypatch.setattr(reload_module, "serving_state", broken)  # after the running drivers stopped
             assert await service.reloader.reload() is False
             assert service.state.counters.reload_failures == 2 and service.state.counters.reloads == 0
             assert service.state.config.sensors[0].interval_s == 0.05  # the old setup, still

@@ -12,11 +12,11 @@ from typing import Any
 
 import pytest
 
+from nanodrift.compensation import Compensator
 from nanodrift.config import parse_config
 from nanodrift.drivers.base import Reading, SensorConfig
 from nanodrift.logs import RateLimitedLog, RateLimiter
 from nanodrift.service import supervision
-from nanodrift.service.compensator import Compensator
 from nanodrift.service.state import CellState
 from nanodrift.service.supervision import CLOCK_STEP_S, ClockStepWatch, SensorWatch, Supervisor
 from nanodrift.service.table import SensorTable
@@ -63,7 +63,7 @@ def watched(names: tuple[str, ...] = ("T1", "T2", "T3")) -> tuple[CellState, Sen
     config = parse_config({"sensors": []})
     table = SensorTable([SensorConfig(name=name, kind="x", max_age_s=2.0) for name in names])
     clock = ManualClock(100.0)
-    return CellState(config, Compensator(None, config.actuator, table), clock), table, clock
+    return CellState(config, Compensator(None, {"x": config.actuator}, table), clock), table, clock
 
 
 def test_channels_that_change_together_are_one_line_and_an_unchanged_state_is_not_news() -> None:

@@ -15,10 +15,9 @@ from helpers.daemon_harness import TEMPS, write_test_model
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from nanodrift.bus.protocol import Refusal, Target
+from nanodrift.compensation import Compensator, Refusal, Target
 from nanodrift.config import DEFAULT_TEMPERATURE_RANGE_C, parse_config, valid_range
 from nanodrift.drivers.base import POSITION_FROZEN_AFTER_S, Reading, SensorConfig, State
-from nanodrift.service.compensator import Compensator
 from nanodrift.service.table import FUTURE_TOLERANCE_S, SensorTable
 
 
@@ -122,14 +121,14 @@ def test_a_lying_thermocouple_refuses_targets_naming_the_channel(tmp_path: Path)
     model = write_test_model(tmp_path / "m.json")
     config = parse_config({"sensors": []})
     table = SensorTable([SensorConfig(name=n, kind="x", max_age_s=5.0) for n in TEMPS])
-    compensator = Compensator(model, config.actuator, table)
+    compensator = Compensator(model, {"x": config.actuator}, table)
     for name, value in TEMPS.items():
         table.update(name, Reading(value, t=10.0), now=10.0)
     compensator.observe(10.0, TEMPS)
-    assert compensator.compensate(Target(1, 100.0), 10.1, 0.0).x_um == 100.0  # believed: served
+    assert compensator.compensate(Target(1, {"x": 100.0}), 10.1, 0.0).positions_um == {"x": 100.0}  # believed: served
     table.update("T2", Reading(-3276.8, t=10.2), now=10.2)
     with pytest.raises(Refusal) as refused:
-        compensator.compensate(Target(2, 100.0), 10.3, 0.0)
+        compensator.compensate(Target(2, {"x": 100.0}), 10.3, 0.0)
     assert refused.value.kind == "fault" and "channel T2 is fault: reading -3276.8" in refused.value.message
 
 

@@ -21,10 +21,10 @@ import zenoh
 from helpers.daemon_harness import TEMPS, expected_q, write_test_model
 
 from nanodrift.bus.protocol import Keys
+from nanodrift.compensation import Compensator
 from nanodrift.config import parse_config
 from nanodrift.drivers.base import Actuator, Reading, SensorConfig
 from nanodrift.service.actuation import Actuation
-from nanodrift.service.compensator import Compensator
 from nanodrift.service.state import CellState
 from nanodrift.service.table import SensorTable
 from nanodrift.service.targets import TargetHandler
@@ -134,7 +134,7 @@ class Cell:
         for name, value in TEMPS.items():
             self.table.update(name, Reading(value, t=NOW), now=NOW)
         loaded = write_test_model(tmp_path / "model.json") if model else None
-        self.compensator = Compensator(loaded, self.config.actuator, self.table)
+        self.compensator = Compensator(loaded, {"x": self.config.actuator}, self.table)
         self.compensator.observe(NOW, TEMPS)
         self.clock = ManualClock(NOW + 0.1)
         self.state = CellState(self.config, self.compensator, self.clock)
