@@ -35,6 +35,7 @@ HANDLERS = {
     "predict": "nanodrift.commands.predict",
     "restamp": "nanodrift.commands.restamp",
     "discover": "nanodrift.commands.discover",
+    "ioc": "nanodrift.commands.ioc",
 }
 
 #: command -> its line in ``nanodrift --help`` (and, capitalised, its ``--help`` description), in the
@@ -52,6 +53,7 @@ SUMMARIES = {
     "predict": "the command the model gives for each row",
     "restamp": "give a hand-edited model file the id of its new content",
     "discover": "find what the model misses, add it, show the gap shrink",
+    "ioc": "serve the cells over EPICS Channel Access (a motor-like set of PVs per axis)",
 }
 
 
