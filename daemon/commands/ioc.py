@@ -12,12 +12,16 @@ import argparse
 import asyncio
 import signal
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 from nanodrift.cell_view import CellView
 from nanodrift.client import Client
 from nanodrift.commands._client import add_client_flags, open_client
 from nanodrift.errors import UserError
+
+#: worker threads per served cell: a move waiting for its done, the one superseding it, a stop, a status query
+THREADS_PER_CELL = 4
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -78,8 +82,12 @@ async def _serve(epics_ioc: Any, bridges: list[Any]) -> int:
             print(f"nanodrift ioc: serving cell {bridge.cell}: {', '.join(names)} (and RBV, DMOV, STOP, STATE, VOLT, "
                   "SIGMA, MSG beside each)", file=sys.stderr, flush=True)
 
-    task = asyncio.ensure_future(epics_ioc.serve(bridges, ready))
     loop = asyncio.get_running_loop()
+    # a move waits for its done in a worker thread, and each cell's status is asked in one: threads enough for
+    # every cell's move, stop and status at once (asyncio's default pool has 6 on two cores), and bounded
+    loop.set_default_executor(ThreadPoolExecutor(max_workers=THREADS_PER_CELL * len(bridges) + 2,
+                                                 thread_name_prefix="nanodrift-ioc"))
+    task = asyncio.ensure_future(epics_ioc.serve(bridges, ready))
     for signum in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(signum, task.cancel)
     try:

@@ -112,8 +112,8 @@ def test_stop_mid_ramp_ends_the_move_stopped_and_the_output_holds_short(run_engi
     def plan() -> Any:
         yield from bps.abs_set(stage, 480.0, group="ramp")
         yield from bps.wait_for([lambda: asyncio.to_thread(answered.wait, 10.0)])  # the 4.8 s ramp has begun
-        yield from bps.stop(stage)
-        try:
+        try:  # the RunEngine throws the failed status in at the stop, or at the wait if it fails later
+            yield from bps.stop(stage)
             yield from bps.wait(group="ramp")
         except FailedStatus as error:
             ended.append(error.args[0].exception())
@@ -168,6 +168,10 @@ def test_xy_refuses_a_plain_number_and_a_refused_axis_moves_neither(run_engine: 
         run_engine(bps.mv(xy, 10.0))
     wrong = failed.value.args[0].exception()
     assert isinstance(wrong, ValueError) and "axes x, y" in str(wrong) and "mapping" in str(wrong)
+    with pytest.raises(FailedStatus) as failed:
+        run_engine(bps.mv(xy, {"x": 10.0, "z": 10.0}))
+    wrong = failed.value.args[0].exception()
+    assert isinstance(wrong, ValueError) and "no axis z" in str(wrong) and "its axes: x, y" in str(wrong)
     held = (xy_cell.last_voltage_v("x"), xy_cell.last_voltage_v("y"))
     with pytest.raises(FailedStatus) as failed:
         run_engine(bps.mv(xy.y, 700.0))  # type: ignore[attr-defined]

@@ -275,3 +275,25 @@ def test_xy_serves_each_axis_and_a_put_moves_one_holding_the_other(xy: tuple[Run
     assert abs(y_held) < 1.0
     for axis in "xy":
         assert pvs.pv(f"{axis}:VOLT").read().data[0] == pytest.approx(cell.last_voltage_v(axis), abs=1e-6)
+
+
+# --- the command line's refusals: a clear sentence, exit 2, nothing served ----------------------------------
+
+
+def run_ioc(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "nanodrift.cli", "ioc", *args], capture_output=True, text=True,
+                          timeout=60, env={**os.environ, **CA_ENV, "EPICS_CA_SERVER_PORT": str(free_port())})
+
+
+def test_ioc_says_when_nobody_listens_at_the_endpoint() -> None:
+    port = free_port()
+    result = run_ioc("-e", f"tcp/127.0.0.1:{port}")
+    assert result.returncode == 2, result.stderr
+    assert f"tcp/127.0.0.1:{port}" in result.stderr and "nobody is listening" in result.stderr
+
+
+def test_ioc_names_a_cell_that_does_not_answer_and_the_cells_that_do(one: tuple[RunningCell, CellPVs]) -> None:
+    cell, _ = one
+    result = run_ioc("-e", cell.endpoint, "--cell", "nosuchcell", "--timeout", "1")
+    assert result.returncode == 2, result.stderr
+    assert "nosuchcell did not answer status" in result.stderr and f"the cells answering: {cell.cell}" in result.stderr
