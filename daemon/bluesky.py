@@ -52,7 +52,7 @@ from ophyd_async.core import (
 from ophyd_async.core import StandardReadableFormat as Format
 
 from nanodrift.bus.protocol import DEFAULT_PREFIX
-from nanodrift.cell_view import CellView
+from nanodrift.cell_view import CellView, axis_value
 from nanodrift.client import Client, Command, Position
 
 __all__ = ["Stage", "StageAxis"]
@@ -63,14 +63,6 @@ DEFAULT_MOVE_TIMEOUT_S = 60.0
 FRESH_POSITION_TIMEOUT_S = 2.0
 
 
-def _axis_value(doc: Mapping[str, Any], key: str, axis: str) -> float:
-    """``key`` of a ``command`` payload for ``axis``: a number in a one-axis cell, a mapping in a cell of several."""
-    value = doc.get(key)
-    if isinstance(value, Mapping):
-        value = value.get(axis)
-    return float(value) if isinstance(value, int | float) else math.nan
-
-
 class _AxisReadings(StandardReadable):
     """The five readings of one axis, as soft signals whose getters read the cell's view."""
 
@@ -78,14 +70,14 @@ class _AxisReadings(StandardReadable):
 
     def _add_readings(self, stage: Stage, axis: str) -> None:
         def command_value(key: str) -> float:
-            return _axis_value(stage.view.command(), key, axis)
+            return axis_value(stage.view.command(), key, axis)
 
         with self.add_children_as_readables(Format.HINTED_UNCACHED_SIGNAL):
             self.readback, _ = soft_signal_r_and_setter(float, math.nan, units="um", precision=4,
                                                         getter=lambda: stage.readback_um(axis))
         with self.add_children_as_readables(Format.UNCACHED_SIGNAL):
             self.setpoint, _ = soft_signal_r_and_setter(float, math.nan, units="um", precision=4,
-                                                        getter=lambda: _axis_value(stage.view.command(), f"{axis}_um",
+                                                        getter=lambda: axis_value(stage.view.command(), f"{axis}_um",
                                                                                    axis))
             self.q_um, _ = soft_signal_r_and_setter(float, math.nan, units="um", precision=4,
                                                     getter=lambda: command_value("q_um"))

@@ -15,7 +15,7 @@ from __future__ import annotations
 import json
 import math
 import threading
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -23,7 +23,8 @@ import zenoh
 
 from nanodrift.client import Client, Command, Position
 
-__all__ = ["AxisInfo", "CellView", "Measured", "axes_of", "cell_state"]
+__all__ = ["AxisInfo", "CellView", "Measured", "axes_of", "axis_value", "cell_state", "measured_of", "number",
+           "setpoints_of"]
 
 #: ``listener(kind, axis, value)``: kind ``"command"`` (axis ``""``, value: the payload as a dict) or ``"position"``
 #: (value: :class:`Measured`)
@@ -53,7 +54,8 @@ def cell_state(doc: Mapping[str, Any]) -> str:
     degraded (a sensor not ok, no usable model, extrapolating); stalled (pollers not progressing)."""
     if doc.get("healthy") is False:
         return "stalled"
-    sensors = doc.get("sensors") or {}
+    sensors = doc.get("sensors")
+    sensors = sensors if isinstance(sensors, dict) else {}
     if doc.get("model") is None or doc.get("model_problem"):
         return "no-model"
     if any(isinstance(s, dict) and s.get("state") != "ok" for s in sensors.values()):
@@ -63,20 +65,62 @@ def cell_state(doc: Mapping[str, Any]) -> str:
     return "ok"
 
 
+def number(value: Any) -> float | None:
+    """A finite JSON number as a float (a bool is not one), else None: what a payload's number must be."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    value = float(value)
+    return value if math.isfinite(value) else None
+
+
+def axis_value(doc: Mapping[str, Any], key: str, axis: str) -> float:
+    """``key`` of a ``command`` payload for ``axis`` (a number in a one-axis cell, a mapping by axis in a cell
+    of several); nan when it is not a finite number."""
+    value = doc.get(key)
+    if isinstance(value, Mapping):
+        value = value.get(axis)
+    found = number(value)
+    return math.nan if found is None else found
+
+
+def setpoints_of(doc: Mapping[str, Any], axes: Iterable[str]) -> dict[str, float]:
+    """The targets a ``command`` payload names (``<axis>_um``) for ``axes``."""
+    found = {axis: number(doc.get(f"{axis}_um")) for axis in axes}
+    return {axis: value for axis, value in found.items() if value is not None}
+
+
+def measured_of(doc: Mapping[str, Any]) -> Measured | None:
+    """A ``sensors/position`` payload as a sample; None unless its state is ok and value and ``t`` are numbers."""
+    value, t = number(doc.get("value")), number(doc.get("t"))
+    if doc.get("state", "ok") != "ok" or value is None or t is None:
+        return None
+    return Measured(value, t)
+
+
 def axes_of(status: Mapping[str, Any]) -> dict[str, AxisInfo]:
-    """The axes of a cell from its ``status`` payload, in the cell's order (a one-axis cell: ``x``)."""
+    """The axes of a cell from its ``status`` payload, in the cell's order (a one-axis cell: ``x``); a
+    :class:`ValueError` when its ``axes`` describes none."""
+
+    def bound(value: Any, default: float) -> float:
+        found = number(value)
+        return default if found is None else found
+
     axes = status.get("axes")
     if isinstance(axes, dict) and axes:
-        return {str(name): AxisInfo(str(name), float(each.get("min_um", -math.inf)),
-                                    float(each.get("max_um", math.inf)), each.get("position_sensor") or None)
-                for name, each in axes.items() if isinstance(each, dict)}
+        found = {str(name): AxisInfo(str(name), bound(each.get("min_um"), -math.inf),
+                                    bound(each.get("max_um"), math.inf),
+                                    str(each["position_sensor"]) if each.get("position_sensor") else None)
+                 for name, each in axes.items() if isinstance(each, dict)}
+        if not found:
+            raise ValueError(f"the status of cell {status.get('cell')!r} has 'axes' but no axis described in it")
+        return found
     actuator = status.get("actuator")
     actuator = actuator if isinstance(actuator, dict) else {}
     sensors = status.get("sensors")
     sensors = sensors if isinstance(sensors, dict) else {}
     position = next((str(name) for name, s in sensors.items() if isinstance(s, dict) and s.get("role") == "position"),
                     None)
-    return {"x": AxisInfo("x", float(actuator.get("x_min_um", -math.inf)), float(actuator.get("x_max_um", math.inf)),
+    return {"x": AxisInfo("x", bound(actuator.get("x_min_um"), -math.inf), bound(actuator.get("x_max_um"), math.inf),
                           position)}
 
 
@@ -194,30 +238,22 @@ class CellView:
             self._apply_command(doc)
 
     def _apply_command(self, doc: Mapping[str, Any]) -> None:
-        t = doc.get("t")
-        t = float(t) if isinstance(t, int | float) else math.inf
-        found = {axis: float(doc[f"{axis}_um"]) for axis in self.axes
-                 if isinstance(doc.get(f"{axis}_um"), int | float)}
+        t = number(doc.get("t"))
+        found = setpoints_of(doc, self.axes)
         with self._lock:
-            if t < self._command_t:  # an older command delivered late: the newer one stands
+            if t is not None and t < self._command_t:  # an older command delivered late: the newer one stands
                 return
-            self._command_t = t if math.isfinite(t) else self._command_t
+            self._command_t = t if t is not None else self._command_t
             self._command = dict(doc)
             self._setpoints.update(found)
         self._tell("command", "", dict(doc))
 
     def _on_position(self, sample: zenoh.Sample) -> None:
         doc = _json(sample)
-        if doc is None or doc.get("state", "ok") != "ok":
+        measured = measured_of(doc) if doc is not None else None
+        axis = str(sample.key_expr).rsplit("/sensors/position", 1)[-1].strip("/") or "x"  # one axis: no suffix
+        if measured is None or axis not in self.axes:
             return
-        value, t = doc.get("value"), doc.get("t")
-        if not isinstance(value, int | float) or not isinstance(t, int | float):
-            return
-        tail = str(sample.key_expr).rsplit("/sensors/position", 1)[-1].strip("/")
-        axis = tail or "x"
-        if axis not in self.axes:
-            return
-        measured = Measured(float(value), float(t))
         with self._moved:
             self._positions[axis] = measured
             self._moved.notify_all()

@@ -34,7 +34,7 @@ from caproto import AlarmSeverity, AlarmStatus, ChannelType
 from caproto.asyncio.server import Context
 from caproto.server import PVGroup, pvproperty
 
-from nanodrift.cell_view import CellView, Measured, cell_state
+from nanodrift.cell_view import CellView, Measured, axis_value, cell_state
 from nanodrift.client import Client, Command, MoveEnded, Refused
 
 __all__ = ["AxisPVs", "CellBridge", "serve", "state_of"]
@@ -59,13 +59,6 @@ def _message(text: str) -> str:
     """``text`` as ``MSG`` holds it: whole UTF-8 characters and a terminating NUL within 256 bytes (C's string,
     as char waveforms carry text; never zero-length, which some CA clients drop from monitors)."""
     return text.encode("utf-8")[:MSG_MAX_BYTES - 1].decode("utf-8", "ignore") + "\0"
-
-
-def _axis_value(doc: Mapping[str, Any], key: str, axis: str) -> float:
-    value = doc.get(key)
-    if isinstance(value, Mapping):
-        value = value.get(axis)
-    return float(value) if isinstance(value, int | float) else math.nan
 
 
 class AxisPVs(PVGroup):
@@ -174,11 +167,11 @@ class CellBridge:
 
     def _show_command(self, doc: Mapping[str, Any]) -> None:
         for axis, group in self.groups.items():
-            setpoint = _axis_value(doc, f"{axis}_um", axis)
+            setpoint = axis_value(doc, f"{axis}_um", axis)
             if math.isfinite(setpoint):
                 self._post(group.SP, setpoint)
-            self._post(group.VOLT, _axis_value(doc, "voltage_v", axis))
-            self._post(group.SIGMA, _axis_value(doc, "q_sigma_um", axis))
+            self._post(group.VOLT, axis_value(doc, "voltage_v", axis))
+            self._post(group.SIGMA, axis_value(doc, "q_sigma_um", axis))
 
     # --- puts ------------------------------------------------------------------------------------
 

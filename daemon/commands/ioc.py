@@ -64,7 +64,7 @@ def main(args: argparse.Namespace) -> int:
             client: Client = open_client(args, cell)
             try:
                 view = CellView.open(client, timeout_s=args.timeout)
-            except TimeoutError as error:
+            except (TimeoutError, ValueError) as error:  # no answer; a status without a usable axis
                 client.close()
                 raise UserError(str(error)) from None
             bridges.append(epics_ioc.CellBridge(client, view, args.pv_prefix))
