@@ -157,6 +157,11 @@ def says(text: str) -> Callable[[list[Any]], bool]:
     return lambda values: bool(values) and text in values[-1]
 
 
+def severity(pv: PV) -> int:
+    """The PV's alarm severity (0 none, 1 minor, 2 major), read with its time metadata."""
+    return int(pv.read(data_type="time").metadata.severity)
+
+
 def settle_dmov(dmov: Monitor, count_before: int, what: str) -> list[Any]:
     """Wait for a 0 then a 1 after the first ``count_before`` values: one move seen from start to ``done``."""
     return dmov.wait(lambda v: 0.0 in v[count_before:] and v[-1] == 1.0, what)  # (v[-1] exists: 0.0 is in v)
@@ -228,6 +233,7 @@ def test_a_refusal_shows_in_msg_and_state_and_leaves_dmov_1(refusing: tuple[Serv
     pvs.pv("SP").write([900.0], wait=False)
     msg.wait(says("outside the workspace"), "MSG: the workspace refusal")
     assert "900" in msg.values[-1]
+    assert severity(pvs.pv("SP")) == 2  # the refused put left SP in alarm (WRITE, MAJOR) ...
     cell.sensors.write(fault={"T1": "open circuit"})
     state.wait(is_now("degraded"), "STATE degraded: T1 faulted")  # the daemon has read the fault
     pvs.pv("SP").write([100.0], wait=False)
@@ -242,6 +248,7 @@ def test_a_refusal_shows_in_msg_and_state_and_leaves_dmov_1(refusing: tuple[Serv
     pvs.pv("SP").write([100.0], wait=True, timeout=5.0)
     settle_dmov(dmov, before, "the move once T1 is back")
     assert msg.wait(is_now(""), "MSG empty after a reached move")[-1] == ""
+    assert severity(pvs.pv("SP")) == 0  # ... until a put moved
 
 
 # --- XY: a set of PVs per axis -----------------------------------------------------------------------------
