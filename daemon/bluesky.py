@@ -117,6 +117,7 @@ class Stage(_AxisReadings, Movable[Any], Stoppable):
         self._client: Client | None = None
         self._view: CellView | None = None
         self._reached: dict[str, float] = {}  # axis -> target of the last move seen reached
+        self._in_flight = 0  # moves of this device not yet ended (stop() stops only while there is one)
         super().__init__(name=name, connector=_CellConnector())
 
     # --- connecting -----------------------------------------------------------------------------------
@@ -181,7 +182,12 @@ class Stage(_AxisReadings, Movable[Any], Stoppable):
         view = self.view
         target: Position = view.request(changes)
         timeout_s = DEFAULT_MOVE_TIMEOUT_S if timeout == "CALCULATE_TIMEOUT" or timeout is None else float(timeout)
-        command = await asyncio.to_thread(self.client.move, target, timeout_s=timeout_s, on_answer=view.note_command)
+        self._in_flight += 1
+        try:
+            command = await asyncio.to_thread(self.client.move, target, timeout_s=timeout_s,
+                                              on_answer=view.note_command)
+        finally:
+            self._in_flight -= 1
         done_t = float(command.done["t"]) if command.done and isinstance(command.done.get("t"), int | float) else 0.0
         moved = command.target if isinstance(command.target, Mapping) else {"x": float(command.target)}
         self._reached.update(moved)
@@ -191,8 +197,11 @@ class Stage(_AxisReadings, Movable[Any], Stoppable):
         return command
 
     async def stop(self, success: bool = True) -> None:
-        """Every output of the cell holds where it is; the move in flight fails ``stopped``."""
-        await asyncio.to_thread(self.client.stop)
+        """While a move of this device is in flight: every output of the cell holds where it is and the move
+        fails ``stopped``. Otherwise nothing: the RunEngine calls ``stop()`` on every device it moved at the end
+        of each plan, and a move another client started since is not this plan's to stop."""
+        if self._in_flight:
+            await asyncio.to_thread(self.client.stop)
 
     def readback_um(self, axis: str) -> float:
         """The measured position where a sensor measures ``axis``, else the last reached target (nan: none yet)."""

@@ -10,6 +10,7 @@ to be stopped (a 0 -> 480 µm move ramps for 4.8 s at 100 µm/s).
 from __future__ import annotations
 
 import asyncio
+import threading
 from collections.abc import Iterator
 from typing import Any
 
@@ -17,11 +18,12 @@ import pytest
 from bluesky import RunEngine
 from bluesky import plan_stubs as bps
 from bluesky import plans as bp
+from bluesky.run_engine import call_in_bluesky_event_loop
 from bluesky.utils import FailedStatus
 from helpers.running_cell import VOLTS_PER_UM, RunningCell
 from ophyd_async.core import init_devices
 
-from nanodrift import MoveEnded, Refused
+from nanodrift import Client, MoveEnded, Refused
 from nanodrift.bluesky import Stage
 
 SLEW_UM_PER_S = 100.0
@@ -129,6 +131,34 @@ def test_stop_mid_ramp_ends_the_move_stopped_and_the_output_holds_short(run_engi
     assert one_axis.last_voltage_v() < 0.9 * target_v  # stopped on the ramp, well short of 480 µm
     run_engine(bps.mv(stage, 10.0))  # the next move moves again
     assert one_axis.last_voltage_v() < 0.05 * target_v
+
+
+def test_a_plans_end_does_not_stop_another_clients_move(run_engine: RunEngine, stage: Stage,
+                                                         one_axis: RunningCell) -> None:
+    run_engine(bps.mv(stage, 0.0))  # the RunEngine calls stage.stop() at this plan's end: nothing in flight
+    answered, subscriber = one_axis.watch_command(lambda doc: doc.get("x_um") == 300.0)
+    ended: list[Any] = []
+    with Client(one_axis.endpoint, cell=one_axis.cell) as other:
+        moving = threading.Thread(target=lambda: ended.append(_outcome(other, 300.0)))
+        moving.start()
+        try:
+            assert answered.wait(10), "the other client's 300 µm target was never answered"
+            run_engine(bp.count([stage], num=1))  # a plan that moved nothing ...
+            run_engine(bps.null())
+            call_in_bluesky_event_loop(stage.stop())  # ... and the stop a plan's end would send: no move of its own
+        finally:
+            moving.join(15)
+            subscriber.undeclare()
+    assert ended == ["reached"]  # the other client's 3 s ramp ran to its end
+
+
+def _outcome(client: Client, x_um: float) -> str:
+    try:
+        command = client.move(x_um, timeout_s=15.0)
+    except MoveEnded as error:
+        return error.state
+    assert command.done is not None
+    return str(command.done["state"])
 
 
 # --- XY: a motor per axis ---------------------------------------------------------------------------------
