@@ -77,8 +77,7 @@ class _AxisReadings(StandardReadable):
                                                         getter=lambda: stage.readback_um(axis))
         with self.add_children_as_readables(Format.UNCACHED_SIGNAL):
             self.setpoint, _ = soft_signal_r_and_setter(float, math.nan, units="um", precision=4,
-                                                        getter=lambda: axis_value(stage.view.command(), f"{axis}_um",
-                                                                                   axis))
+                                                        getter=lambda: command_value(f"{axis}_um"))
             self.q_um, _ = soft_signal_r_and_setter(float, math.nan, units="um", precision=4,
                                                     getter=lambda: command_value("q_um"))
             self.voltage_v, _ = soft_signal_r_and_setter(float, math.nan, units="V", precision=5,
