@@ -36,6 +36,7 @@ HANDLERS = {
     "restamp": "nanodrift.commands.restamp",
     "discover": "nanodrift.commands.discover",
     "acl": "nanodrift.commands.acl",
+    "ioc": "nanodrift.commands.ioc",
 }
 
 #: command -> its line in ``nanodrift --help`` (and, capitalised, its ``--help`` description), in the
@@ -54,6 +55,7 @@ SUMMARIES = {
     "restamp": "give a hand-edited model file the id of its new content",
     "discover": "find what the model misses, add it, show the gap shrink",
     "acl": "write the Zenoh access control for a list of cells and client groups",
+    "ioc": "serve the cells over EPICS Channel Access (a motor-like set of PVs per axis)",
 }
 
 

@@ -24,7 +24,7 @@ import math
 import threading
 import time
 import uuid
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
@@ -244,13 +244,15 @@ class Client:
         return f"{self._id_base}-{next(self._ids)}"
 
     def move(self, target: Position, *, wait: bool = True, timeout_s: float = 60.0,
-             id: str | int | None = None) -> Command:
+             id: str | int | None = None, on_answer: Callable[[Command], None] | None = None) -> Command:
         """Send ``target`` (µm; a mapping by axis in a cell of several axes) and return the answered
         :class:`Command` once its ``done`` says ``reached`` (``wait=False``: at once).
 
         :class:`Refused` when the daemon refuses the target; :class:`MoveEnded` on a ``done`` of
         ``stopped``, ``superseded`` or ``failed``; :class:`TimeoutError` when no answer, or no ``done``,
         comes within ``timeout_s``. ``id`` defaults to a fresh unique one (:meth:`new_id`).
+        ``on_answer`` is called (in this thread) with the answered command before the wait for its
+        ``done``: a bridge that shows "moving" (the EPICS ``DMOV``) only for a move the daemon took.
         """
         cell = self._cell()
         target_id: str | int = self.new_id() if id is None else id
@@ -261,6 +263,8 @@ class Client:
                 self._pending[target_id] = None  # before the query leaves: a fast done is kept
         try:
             command = self._compensate(cell, target, target_id, timeout_s)
+            if on_answer is not None:
+                on_answer(command)
             if not wait:
                 return command
             return self._wait_done(command, target_id, deadline, timeout_s)

@@ -88,6 +88,7 @@ LAZY_ALLOWED = {
     "nanodrift.client": "zenoh, loaded only when a script names nanodrift.Client (daemon/__init__.py)",
     "nanodrift.calibration.dataset": "numpy, loaded only when a script names nanodrift.read_csv/write_csv",
     "nanodrift.model.cell_model": "numpy and the model, loaded only when a script calls nanodrift.load_model",
+    "nanodrift.epics_ioc": "caproto, the [epics] extra: `nanodrift ioc` says how to install it when it is missing",
 }
 
 Import = tuple[str, int, bool]  # (imported module, line, inside a function)

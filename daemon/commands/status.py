@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any, TextIO
 
+from nanodrift.cell_view import cell_state
 from nanodrift.client import Client, status_key
 from nanodrift.commands._client import add_client_flags, open_client
 
@@ -116,20 +117,6 @@ def _age(iso: Any, now: datetime) -> str:
     if seconds < 2 * 86400:
         return f"{seconds / 3600:.1f} h"
     return f"{seconds / 86400:.0f} d"
-
-
-def cell_state(doc: dict[str, Any]) -> str:
-    """ok; degraded (a sensor not ok, no usable model, extrapolating); stalled (pollers not progressing)."""
-    if doc.get("healthy") is False:
-        return "stalled"
-    sensors = doc.get("sensors") or {}
-    if doc.get("model") is None or doc.get("model_problem"):
-        return "no-model"
-    if any(isinstance(s, dict) and s.get("state") != "ok" for s in sensors.values()):
-        return "degraded"
-    if doc.get("extrapolating"):
-        return "extrapolating"
-    return "ok"
 
 
 def _health(doc: dict[str, Any]) -> str:
