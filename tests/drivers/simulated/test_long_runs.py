@@ -47,7 +47,7 @@ def test_a_month_of_in_order_queries_holds_a_bounded_number_of_knots_and_the_sam
     # vectorised queries in order (a day at a time) agree exactly too, and stay bounded
     for day in range(30):
         t = np.arange(day * 86400.0, (day + 1) * 86400.0, 7.0)
-        assert np.array_equal(bounded.drift(t), reference.drift(t))
+        assert np.array_equal(bounded.drift(t)["x"], reference.drift(t)["x"])
         assert np.array_equal(bounded.thermal(t)["bracket"], reference.thermal(t)["bracket"])
     assert bounded.exogenous.knots_held <= limit
 
@@ -58,7 +58,7 @@ def test_a_query_before_the_held_knots_is_recomputed_with_identical_numbers():
     physics.exogenous.at1(MONTH_S)  # a month on: day 1 was dropped long ago
     assert physics.exogenous.first_knot > 0
     early = np.arange(3600.0, 2 * 86400.0, 11.0)
-    assert np.array_equal(physics.drift(early), reference.drift(early))
+    assert np.array_equal(physics.drift(early)["x"], reference.drift(early)["x"])
     assert physics.exogenous.at1(MONTH_S) == reference.exogenous.at1(MONTH_S)
 
 
@@ -69,7 +69,7 @@ def test_a_simulated_cell_polled_for_a_month_keeps_bounded_memory():
     for k in range(0, int(MONTH_S), 900):
         clock._now = float(k)  # the clock's own time: no scheduler needed for plain reads
         if k % 7200 == 0:
-            cell.command(float(k % 480))
+            cell.command("x", float(k % 480))
         cell.read(["T1", "T2", "T3", "T4", "interferometer"])
     assert cell.physics.exogenous.knots_held <= (Exogenous.KEEP_CHUNKS + 1) * Exogenous.CHUNK
     assert len(cell._last_ok) == 5
@@ -149,11 +149,11 @@ def test_the_truth_log_holds_each_interferometer_reading_beside_the_true_positio
 
     async def run() -> list[tuple[float, float, float]]:
         seen = []
-        cell.command(240.0)
+        cell.command("x", 240.0)
         for _ in range(50):
             await clock.sleep(60.0)
             reading = cell.read(["interferometer", "T1"])["interferometer"]
-            seen.append((reading.t, cell.true_position(), reading.value))
+            seen.append((reading.t, cell.true_positions()["x"], reading.value))
         return seen
 
     seen = asyncio.run(run())
