@@ -9,7 +9,7 @@ from scipy.signal import lfilter
 
 from nanodrift.drivers.simulated.config import SimulationConfig
 from nanodrift.drivers.simulated.effects import EFFECTS, UnknownNameError, resolve_effects
-from nanodrift.drivers.simulated.physics import CellPhysics, StageState, first_order_filter
+from nanodrift.drivers.simulated.physics import CellPhysics, CrossParams, StageState, first_order_filter
 from nanodrift.drivers.simulated.scenarios import SCENARIOS, get_scenario
 
 
@@ -51,13 +51,22 @@ def test_thermal_nodes_are_exact_lags_at_any_spacing():
             assert one[node] == pytest.approx(vec[node][i], abs=1e-12)
 
 
-def test_scalar_and_vector_positions_agree():
-    physics = CellPhysics.create("train", "creep,hysteresis,position_thermal_coupling,thermal_lag", seed=2)
-    state = physics.after_command(StageState(), 100.0, 240.0, 0.001)
-    track = {name: np.array([value]) for name, value in vars(state).items()}
+@pytest.mark.parametrize(("axes", "effects"), [("x", "creep,hysteresis,position_thermal_coupling,thermal_lag"),
+                                              ("xyz", None)])
+def test_scalar_and_vector_positions_agree(axes: str, effects: str | None) -> None:
+    """The stepped cell's path (floats) and the vectorised run's (arrays) are one computation, for one axis
+    with the hidden effects and for a stack with its cross-axis effects."""
+    physics = CellPhysics.create("train", effects, seed=2, axes=axes)
+    states = {a: physics.after_command(StageState(), 100.0, 240.0 - 90.0 * k, 0.001) for k, a in enumerate(axes)}
+    tracks = {a: {name: np.array([value]) for name, value in vars(s).items()} for a, s in states.items()}
     for t in (100.5, 130.0, 4000.0):
-        vec = physics.attained_along(np.array([t]), {"x": track})["x"]
-        assert physics.attained_now(t, {"x": state})["x"] == pytest.approx(vec[0], abs=1e-12)
+        vec = physics.attained_along(np.array([t]), tracks)
+        now = physics.attained_now(t, states)
+        for a in axes:
+            assert now[a] == pytest.approx(vec[a][0], abs=1e-12)
+    if len(axes) > 1:  # the stack's cross-axis effects are in both: x moves with y and z
+        alone = CellPhysics.create("train", seed=2, axes=axes, cross=CrossParams(0.0, 0.0, 0.0))
+        assert abs(alone.attained_now(4000.0, states)["x"] - physics.attained_now(4000.0, states)["x"]) > 0.3
 
 
 def test_noise_and_quantisation_after_the_paper():
