@@ -487,8 +487,7 @@ class CellPhysics:
 
     def attained_now(self, t: float, states: Mapping[str, StageState]) -> dict[str, float]:
         """Every axis' true position (µm in its interferometer's frame) at one time, in plain floats."""
-        rows = {a: vars(s) for a, s in states.items()}
-        return {a: float(x) for a, x in self._positions(t, self.exogenous.at1(t), rows, math.exp).items()}
+        return self._positions(t, self.exogenous.at1(t), {a: vars(s) for a, s in states.items()}, math.exp)
 
     def command_track(self, cmd_t: np.ndarray, cmd_q: np.ndarray, rng: np.random.Generator) -> dict[str, np.ndarray]:
         """One stage's state after each of a whole series of commands (sorted by time)."""
