@@ -8,9 +8,11 @@ form, so node temperatures are exact at any time, at any spacing, with no integr
 state at the knots is computed once per chunk by the exact recursion (:func:`first_order_filter`), and
 the grid is extended lazily, so a daemon can run for days.
 
-Mechanical part: the stage follows each command (closed-loop setpoint) with a few nm of landing
+Mechanical part: each axis' stage follows its command (closed-loop setpoint) with a few nm of landing
 error; the optional effects add direction memory (hysteresis) and settling (creep). The state after
-each command is an exact update, evaluated at any later time.
+each command is an exact update, evaluated at any later time. A cell of one axis is the paper's stage;
+a stack of two or three (XY, XYZ) shares the room, has its own stage per axis (:data:`AXIS_PARAMS`) and
+beam, and its stages push each other (crosstalk, non-orthogonality, coupled bending: :class:`CrossParams`).
 
 Magnitudes after the paper: drift about -1.1 µm/°C overall (Fig. 1: 0.4 µm for -0.35 °C), split
 between the stage (T1), the bracket (T2) and the air the beam crosses (T3/T4); the bracket's
