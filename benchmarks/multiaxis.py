@@ -23,18 +23,10 @@ import argparse
 import sys
 import time
 
-from nanodrift.calibration.dataset import Dataset
 from nanodrift.calibration.iso9283 import summarize_cell
-from nanodrift.calibration.plans import cell_calibration_plan
-from nanodrift.drivers.simulated.multiaxis import (
-    CellValidationRun,
-    MultiAxisPhysics,
-    cell_command,
-    independent_command,
-    run_cell_validation,
-    simulate_cell_steps,
-    steps_dataset,
-)
+from nanodrift.drivers.simulated.datasets import simulate_dataset
+from nanodrift.drivers.simulated.physics import CellPhysics
+from nanodrift.drivers.simulated.runs import CellValidationRun, cell_command, independent_command, run_cell_validation
 from nanodrift.model.identify import fit, fit_cell
 
 ANCHOR = (1400.0, 200.0)  # Tan, Clévy, Chaillet 2015: 2-DoF accuracy without / with, nm
@@ -42,25 +34,18 @@ FLOORS = {"test2": 10.0, "test5": 4.0}
 TESTS = {"test2": "in range", "test5": "out of range"}
 
 
-def calibrate(axes: str, seed: int) -> Dataset:
-    physics = MultiAxisPhysics.create(axes, "train", seed)
-    plan = cell_calibration_plan(physics.axes)
-    out = simulate_cell_steps(physics, {a: [s.target(a) for s in plan] for a in physics.axes}, [s.cycle for s in plan])
-    return steps_dataset(out, physics.axes, f"simulated {axes} train seed {seed}")
-
-
 def accuracy_nm(run: CellValidationRun, with_model: bool, against: str) -> float:
     return summarize_cell(run.name, run.targets_um, run.attained(with_model, against)).accuracy_nm
 
 
 def one_seed(axes: str, seed: int) -> list[dict[str, float | str]]:
-    data = calibrate(axes, seed)
+    data = simulate_dataset("train", axes=axes, seed=seed)
     cell = fit_cell(data).model
     singles = {a: fit(data.alone(a)).model for a in data.axes}
     rows: list[dict[str, float | str]] = []
     for test in TESTS:
         test_seed = seed * 100 + int(test[-1])  # the paper's tests draw their own room and noise (scenario_seed)
-        physics = MultiAxisPhysics.create(axes, test, test_seed)
+        physics = CellPhysics.create(test, seed=test_seed, axes=axes)
         run = run_cell_validation(physics, cell_command(cell), name=test,
                                   out_of_range=lambda p, temps: bool(cell.out_of_range(p, temps)))
         alone = run_cell_validation(physics, independent_command(singles), name=test)

@@ -26,11 +26,11 @@ from typing import Any
 import numpy as np
 
 from nanodrift.assembly import simulated_drivers
-from nanodrift.calibration.dataset import Dataset
-from nanodrift.calibration.plans import VALIDATION_POINTS_UM, calibration_plan, validation_plan
+from nanodrift.calibration.plans import VALIDATION_POINTS_UM, validation_plan
 from nanodrift.commands._cell import scenario_seed
-from nanodrift.drivers.simulated.physics import THERMOCOUPLES, CellPhysics
-from nanodrift.drivers.simulated.runs import simulate_steps
+from nanodrift.drivers.simulated.datasets import simulate_dataset
+from nanodrift.drivers.simulated.physics import CellPhysics
+from nanodrift.drivers.simulated.runs import independent_command, simulate_steps
 from nanodrift.model.equation import equation
 from nanodrift.model.identify import fit
 from nanodrift.procedure.recording import fit_recorded, record_calibration
@@ -62,25 +62,14 @@ def procedure_table(seed: int, cycles: int, validation_cycles: int,
 
 def vectorised_ratios(seed: int) -> dict[str, float]:
     """(without / with) per test, through the vectorised simulator."""
-    physics = CellPhysics.create("train", None, scenario_seed(seed, "train"))
-    plan = calibration_plan(24)
-    out = simulate_steps(physics, [s.target_um for s in plan], [s.cycle for s in plan])
-    ds = Dataset(t=out["t_s"], x=out["x_um"], q=out["q_um"], channels={c: out[c] for c in THERMOCOUPLES},
-                 extra={"cycle": out["cycle"]})
-    model = fit(ds).model
+    model = fit(simulate_dataset("train", seed=scenario_seed(seed, "train"))).model
     vplan = validation_plan(30)
     targets = np.array([s.target_um for s in vplan])
     ratios = {}
     for name in TESTS[1:]:
-        evaluator = model.evaluator()
-
-        def command(x: float, t: float, temps: dict[str, float], ev=evaluator) -> float:
-            ev.observe(t, temps)
-            return ev.command(x, t)
-
-        o = simulate_steps(CellPhysics.create(name, None, scenario_seed(seed, name)), targets, [s.cycle for s in vplan],
-                           command_for=command)
-        without = o["x_um"] - (o["q_um"] - targets)
+        o = simulate_steps(CellPhysics.create(name, None, scenario_seed(seed, name)), {"x": targets},
+                           [s.cycle for s in vplan], command_for=independent_command({"x": model}))
+        without = o["x_um"] - (o["q_x_um"] - targets)
         acc = np.mean([abs(o["x_um"][targets == p].mean() - p) for p in VALIDATION_POINTS_UM])
         acc0 = np.mean([abs(without[targets == p].mean() - p) for p in VALIDATION_POINTS_UM])
         ratios[name] = float(acc0 / acc)

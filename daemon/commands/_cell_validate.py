@@ -2,7 +2,7 @@
 
 The cell's axes come from the model file. The ISO 9283 plan (P1..P5 off the calibration levels,
 ``--cycles`` cycles, each point approached from both sides) runs on the simulated stacked stage
-(:mod:`nanodrift.drivers.simulated.multiaxis`) through the model, and once more uncompensated in the same room
+(:mod:`nanodrift.drivers.simulated.runs`) through the model, and once more uncompensated in the same room
 with the same noise; both are scored against the true position and against the interferometers.
 With ``--config`` (an XY/XYZ cell on hardware, or the simulated one of ``[simulation] axes``) the same
 plan is driven through the config's drivers (:mod:`nanodrift.procedure.cell_steps`): once uncompensated,
@@ -28,14 +28,8 @@ from nanodrift.commands._cell_calibrate import cell_drive, follow_checks
 from nanodrift.config import Config
 from nanodrift.drivers.simulated.config import SECTION, SimulationConfig
 from nanodrift.drivers.simulated.effects import UnknownNameError
-from nanodrift.drivers.simulated.multiaxis import (
-    CellValidationRun,
-    CrossParams,
-    MultiAxisPhysics,
-    cell_command,
-    cross_params,
-    run_cell_validation,
-)
+from nanodrift.drivers.simulated.physics import CellPhysics, CrossParams, cross_params
+from nanodrift.drivers.simulated.runs import CellValidationRun, cell_command, run_cell_validation
 from nanodrift.drivers.simulated.scenarios import get_scenario
 from nanodrift.drivers_set import DriverSet
 from nanodrift.errors import UserError
@@ -100,7 +94,7 @@ def _one_test(args: argparse.Namespace, model: CellModel, scenario: str,
     """One test on a fresh simulated cell: its Table I text and JSON document (and report, with --report:
     one directory per test when several are asked for)."""
     seed = scenario_seed(args.seed or 0, scenario)
-    physics = MultiAxisPhysics.create(model.axes, scenario, seed, cross)
+    physics = CellPhysics.create(scenario, seed=seed, axes=model.axes, cross=cross)
     run = run_cell_validation(physics, None if args.no_compensation else cell_command(model), cycles=args.cycles,
                               name=scenario, out_of_range=lambda p, temps: bool(model.out_of_range(p, temps)))
     truth, measured = scores(run, "truth"), scores(run, "interferometer")

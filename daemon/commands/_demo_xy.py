@@ -16,13 +16,9 @@ from pathlib import Path
 from nanodrift.calibration.dataset import write_csv
 from nanodrift.calibration.iso9283 import summarize_cell
 from nanodrift.commands._cell import scenario_seed
-from nanodrift.drivers.simulated.multiaxis import (
-    MultiAxisPhysics,
-    cell_command,
-    independent_command,
-    run_cell_validation,
-    simulate_cell_dataset,
-)
+from nanodrift.drivers.simulated.datasets import simulate_dataset
+from nanodrift.drivers.simulated.physics import CellPhysics
+from nanodrift.drivers.simulated.runs import cell_command, independent_command, run_cell_validation
 from nanodrift.model.cell_model import save_cell_model
 from nanodrift.model.identify import fit, fit_cell
 from nanodrift.reports.cell_validation import ANCHOR_2DOF_NM
@@ -32,11 +28,11 @@ AXES = ("x", "y")
 
 def two_axis_part(seed: int, cycles: int, calibration_cycles: int, keep: Path | None) -> list[str]:
     """The lines the demo prints for the XY cell (and, with ``keep``, its data and model files)."""
-    data = simulate_cell_dataset("xy", "train", cycles=calibration_cycles, seed=seed)
+    data = simulate_dataset("train", axes="xy", cycles=calibration_cycles, seed=seed)
     cell = fit_cell(data).model
     independent = {axis: fit(data.alone(axis)).model for axis in AXES}  # two one-axis cells' models
     test = "test2"
-    physics = MultiAxisPhysics.create(AXES, test, scenario_seed(seed, test))
+    physics = CellPhysics.create(test, seed=scenario_seed(seed, test), axes=AXES)
     run = run_cell_validation(physics, cell_command(cell), cycles=cycles, name=test)
     alone = run_cell_validation(physics, independent_command(independent), cycles=cycles, name=test)
     targets = run.targets_um

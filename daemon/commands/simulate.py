@@ -9,7 +9,7 @@ from nanodrift.calibration.dataset import write_csv
 from nanodrift.commands._catalogues import effects_epilog, scenario_epilog, scenario_names
 from nanodrift.drivers.simulated.datasets import simulate_dataset
 from nanodrift.drivers.simulated.effects import CROSS_AXIS_EFFECTS, EFFECTS, UnknownNameError, resolve_effects
-from nanodrift.drivers.simulated.multiaxis import CELL_AXES, simulate_cell_dataset
+from nanodrift.drivers.simulated.physics import CELL_AXES
 from nanodrift.errors import UserError
 
 
@@ -35,37 +35,19 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def main(args: argparse.Namespace) -> int:
     if args.cycles is not None and args.cycles < 1:
         raise UserError(f"--cycles must be at least 1, got {args.cycles}")
-    if args.axes:
-        return _multi_axis(args)
     try:
-        effects = resolve_effects(args.effects or None)
-        ds = simulate_dataset(args.scenario, effects, cycles=args.cycles, seed=args.seed)
+        ds = simulate_dataset(args.scenario, args.effects or None, axes=args.axes or "", cycles=args.cycles,
+                              seed=args.seed)
     except UnknownNameError as err:
-        if any(name in (args.effects or "") for name in CROSS_AXIS_EFFECTS):
-            raise UserError(f"{err} (the cross-axis effects {', '.join(CROSS_AXIS_EFFECTS)} need --axes xy or "
-                            "xyz)") from None
-        raise UserError(str(err)) from None
-    write_csv(ds, args.out)
-    cycles = ds.extra["cycle"]
-    span = (ds.t[-1] - ds.t[0]) / 3600.0
-    print(f"wrote {args.out}: {len(ds)} steps ({len(ds) // max(1, len(set(cycles.tolist())))} per cycle, "
-          f"{span:.2f} h), scenario {args.scenario}, effects {','.join(effects) or 'none'}, seed {args.seed}",
-          file=sys.stderr)
-    return 0
-
-
-def _multi_axis(args: argparse.Namespace) -> int:
-    """``--axes xy|xyz``: the stacked-stage cell (``nanodrift.drivers.simulated.multiaxis``)."""
-    try:
-        ds = simulate_cell_dataset(args.axes, args.scenario, args.effects or None, cycles=args.cycles, seed=args.seed)
-    except UnknownNameError as err:
-        one_axis = [name for name in EFFECTS if name in (args.effects or "")]
-        hint = (f" ({', '.join(one_axis)}: a one-axis effect; the multi-axis cell simulates the cross-axis effects "
-                "only)") if one_axis else ""
-        raise UserError(f"{err}{hint}") from None
+        other = [name for name in (EFFECTS if args.axes else CROSS_AXIS_EFFECTS) if name in (args.effects or "")]
+        hint = (f" ({', '.join(other)}: a one-axis effect; the multi-axis cell simulates the cross-axis effects only)"
+                if args.axes else f" (the cross-axis effects {', '.join(CROSS_AXIS_EFFECTS)} need --axes xy or xyz)")
+        raise UserError(f"{err}{hint if other else ''}") from None
     write_csv(ds, args.out)
     span = (ds.t[-1] - ds.t[0]) / 3600.0
     cycles = len(set(ds.extra["cycle"].tolist()))
-    print(f"wrote {args.out}: {len(ds)} steps of axes {','.join(ds.axes)} ({len(ds) // max(1, cycles)} per cycle, "
-          f"{span:.2f} h), scenario {args.scenario}, seed {args.seed}", file=sys.stderr)
+    what = f"of axes {','.join(ds.axes)} " if args.axes else ""
+    effects = "" if args.axes else f", effects {','.join(resolve_effects(args.effects or None)) or 'none'}"
+    print(f"wrote {args.out}: {len(ds)} steps {what}({len(ds) // max(1, cycles)} per cycle, {span:.2f} h), "
+          f"scenario {args.scenario}{effects}, seed {args.seed}", file=sys.stderr)
     return 0

@@ -1,14 +1,18 @@
-"""The simulated cell stepped through time: what the simulated sensors read and the actuator moves.
+"""The simulated cell stepped through time: what the simulated sensors read and the actuators move.
 
-One instance per daemon/procedure, shared by every simulated sensor group and the actuator (through
-``DriverContext.resources``), so a command moves the stage the interferometer then sees. Time is the
-clock's, relative to the cell's creation (scenario time 0). Faults can be injected per channel
+One instance per daemon/procedure, shared by every simulated sensor group and actuator (through
+``DriverContext.resources``), so a command moves the stage the interferometer then sees. Each axis has its
+own closed-loop setpoint and interferometer beam (``interferometer`` on a cell of one axis, else
+``interferometer_<axis>``); on a stack an axis' position depends on every axis' setpoint (crosstalk,
+non-orthogonality, coupled bending), so commanding y moves what the x beam reads. Time is the clock's,
+relative to the cell's creation (scenario time 0). Faults can be injected per channel
 for tests and demos: ``fault`` (burnout reading), ``stale`` (the device repeats an old sample),
 ``device_error`` (the link fails: :class:`~nanodrift.drivers.base.DeviceError`).
 
-``truth_log``: a CSV the cell appends each interferometer reading to with the true attained position
-(``t_s,q_um,true_x_um,measured_x_um``, one line each, line-buffered: nothing held in memory), so a
-benchmark can score what the daemon served against the truth, not only the interferometer's view.
+``truth_log``: a CSV the cell appends each interferometer reading to with the true attained position, one
+line each, line-buffered (nothing held in memory), so a benchmark can score what the daemon served against
+the truth, not only the interferometer's view: ``t_s,q_um,true_x_um,measured_x_um`` on a cell of one axis,
+``t_s,axis,q_um,true_um,measured_um`` on a stack.
 """
 
 from __future__ import annotations
@@ -25,7 +29,13 @@ from nanodrift.drivers.base import Clock, DeviceError, MonotonicClock, Reading, 
 from nanodrift.drivers.simulated.physics import POSITION_CHANNEL, THERMOCOUPLES, TRUTH_CHANNELS, CellPhysics, StageState
 
 FaultMode = Literal["fault", "stale", "device_error"]
-CHANNELS: tuple[str, ...] = (*THERMOCOUPLES, *TRUTH_CHANNELS, POSITION_CHANNEL)
+
+
+def position_channels(axes: tuple[str, ...]) -> dict[str, str]:
+    """Interferometer channel -> its axis: ``interferometer`` on a cell of one axis, ``interferometer_y`` on a stack."""
+    if len(axes) == 1:
+        return {POSITION_CHANNEL: axes[0]}
+    return {f"{POSITION_CHANNEL}_{axis}": axis for axis in axes}
 
 
 @dataclass(frozen=True)
@@ -37,39 +47,41 @@ class FaultWindow:
 
 
 class SimulatedCell:
-    TRUTH_HEADER = "t_s,q_um,true_x_um,measured_x_um\n"
-    #: what a sensor may read (``[[sensors]] channel``)
-    channels: tuple[str, ...] = CHANNELS
-
     def __init__(self, physics: CellPhysics, clock: Clock | None = None, truth_log: str | None = None) -> None:
         self.physics = physics
+        self.axes = physics.axes
         self.clock = clock or MonotonicClock()
         self.epoch = self.clock.now()
-        self.state = StageState()
+        #: each axis' stage after its last command (setpoint 0 µm on a fresh cell)
+        self.states = {axis: StageState() for axis in self.axes}
         self.faults: list[FaultWindow] = []
         self.commands = 0
         self._landing_rng = np.random.default_rng([physics.seed, 2])
         self._noise_rng = np.random.default_rng([physics.seed, 3])
         self._last_ok: dict[str, Reading] = {}
         self._offsets = dict(physics.params.offsets_c)
+        self._axis_of = position_channels(self.axes)
+        #: what a sensor may read (``[[sensors]] channel``)
+        self.channels: tuple[str, ...] = (*THERMOCOUPLES, *TRUTH_CHANNELS, *self._axis_of)
         self.truth_log = truth_log
         self._truth_file: TextIO | None = None
-        #: the true attained position behind the last interferometer reading (nan before one):
+        #: the true attained position behind each axis' last interferometer reading (nan before one):
         #: what a validation on the simulated cell is scored against besides the interferometer
-        self.last_true_position_um = math.nan
+        self.last_true_um = dict.fromkeys(self.axes, math.nan)
 
     def sim_time(self) -> float:
         return self.clock.now() - self.epoch
 
     # ----- actuator side -------------------------------------------------------------------------
-    def command(self, q_um: float) -> None:
-        """The stage's closed loop takes setpoint ``q_um`` now."""
+    def command(self, axis: str, q_um: float) -> None:
+        """``axis``' closed loop takes setpoint ``q_um`` now (the other axes hold theirs)."""
         landing = float(self._landing_rng.normal(0.0, self.physics.params.landing_sigma_um))
-        self.state = self.physics.after_command(self.state, self.sim_time(), float(q_um), landing)
+        self.states[axis] = self.physics.after_command(self.states[axis], self.sim_time(), float(q_um), landing)
         self.commands += 1
 
-    def true_position(self, t: float | None = None) -> float:
-        return self.physics.attained_now(self.sim_time() if t is None else t, self.state)
+    def true_positions(self, t: float | None = None) -> dict[str, float]:
+        """Every axis' true attained position now (or at scenario time ``t``)."""
+        return self.physics.attained_now(self.sim_time() if t is None else t, self.states)
 
     # ----- sensor side ---------------------------------------------------------------------------
     def inject_fault(self, channel: str, start_s: float, end_s: float, mode: FaultMode = "fault") -> None:
@@ -106,7 +118,7 @@ class SimulatedCell:
                 continue
             noise = float(self._noise_rng.standard_normal())
             if self.is_position(name):
-                value = self._read_position(name, t, now, noise)
+                value = self._read_position(self._axis_of[name], t, now, noise)
             else:
                 node = THERMOCOUPLES.get(name) or TRUTH_CHANNELS[name]
                 value = self.physics.measure_temperature1(thermal[node] + offsets.get(name, 0.0), noise)
@@ -118,28 +130,29 @@ class SimulatedCell:
 
     def is_position(self, channel: str) -> bool:
         """Whether ``channel`` is an interferometer (µm), not a temperature."""
-        return channel == POSITION_CHANNEL
+        return channel in self._axis_of
 
     def true_reading(self, channel: str) -> float | None:
         """The true attained position behind ``channel``'s last reading (None: a temperature channel)."""
-        return self.last_true_position_um if channel == POSITION_CHANNEL else None
+        axis = self._axis_of.get(channel)
+        return self.last_true_um[axis] if axis is not None else None
 
-    def _read_position(self, channel: str, t: float, now: float, noise: float) -> float:
-        self.last_true_position_um = true_x = self.physics.attained_now(t, self.state)
-        value = self.physics.measure_position1(t, true_x, noise)
+    def _read_position(self, axis: str, t: float, now: float, noise: float) -> float:
+        self.last_true_um[axis] = true_um = self.physics.attained_now(t, self.states)[axis]
+        value = self.physics.measure_position1(axis, t, true_um, noise)
         if self.truth_log is not None:
-            self._log_truth(now, true_x, value)
+            self._log_truth(now, axis, true_um, value)
         return value
 
-    def _log_truth(self, t: float, true_x_um: float, measured_x_um: float) -> None:
-        self._log_line(f"{t!r},{self.state.q!r},{true_x_um!r},{measured_x_um!r}\n")
-
-    def _log_line(self, line: str) -> None:
+    def _log_truth(self, t: float, axis: str, true_um: float, measured_um: float) -> None:
+        one_axis = len(self.axes) == 1  # the one-axis log keeps the columns benchmarks/week.py reads
         if self._truth_file is None:
             assert self.truth_log is not None
             path = Path(self.truth_log)
             fresh = not path.exists() or path.stat().st_size == 0
             self._truth_file = open(path, "a", buffering=1, encoding="utf-8")  # held open: a line a poll
             if fresh:
-                self._truth_file.write(self.TRUTH_HEADER)
-        self._truth_file.write(line)
+                self._truth_file.write("t_s,q_um,true_x_um,measured_x_um\n" if one_axis
+                                       else "t_s,axis,q_um,true_um,measured_um\n")
+        where = "" if one_axis else f"{axis},"
+        self._truth_file.write(f"{t!r},{where}{self.states[axis].q!r},{true_um!r},{measured_um!r}\n")

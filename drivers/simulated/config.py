@@ -23,8 +23,7 @@ from pydantic import Field, field_validator, model_validator
 
 from nanodrift.drivers.base import ActuatorOptions, SensorConfig, StrictModel
 from nanodrift.drivers.simulated.effects import resolve_effects
-from nanodrift.drivers.simulated.multiaxis import CELL_AXES, MultiAxisPhysics
-from nanodrift.drivers.simulated.physics import CellParams, CellPhysics
+from nanodrift.drivers.simulated.physics import CELL_AXES, CellParams, CellPhysics
 from nanodrift.drivers.simulated.scenarios import get_scenario
 
 #: the top-level table this plugin owns
@@ -66,7 +65,7 @@ class SimulationConfig(StrictModel):
 
     axes: str = Field(
         default="", description='"" = the paper\'s one-axis cell; "xy" or "xyz": a stacked XY/XYZ stage in the same '
-                                "room (drivers/simulated/multiaxis.py): one simulated output per axis "
+                                "room (drivers/simulated/physics.py): one simulated output per axis "
                                 "([axes.actuator] kind = \"simulated\") and one interferometer beam per axis "
                                 "(channels interferometer_x, interferometer_y[, interferometer_z])")
 
@@ -143,12 +142,9 @@ class SimulationConfig(StrictModel):
         return out
 
     def physics(self) -> CellPhysics:
-        return CellPhysics.create(self.scenario, self.effects, self.seed, CellParams().with_overrides(self.params))
-
-    def multi_axis_physics(self) -> MultiAxisPhysics:
-        """The stacked stage of ``axes`` (set) in this table's room, seed and magnitudes."""
-        return MultiAxisPhysics.create(self.axes, self.scenario, self.seed,
-                                       params=CellParams().with_overrides(self.params))
+        """The cell of this table: its room, seed, magnitudes and axes."""
+        return CellPhysics.create(self.scenario, self.effects, self.seed, CellParams().with_overrides(self.params),
+                                  axes=self.axis_names)
 
 
 class SimulatedSensorConfig(SensorConfig):

@@ -34,83 +34,80 @@ class EffectSpec:
     defaults: Mapping[str, float]
 
 
-EFFECTS: dict[str, EffectSpec] = {
-    spec.name: spec
-    for spec in (
-        EffectSpec(
-            "thermal_lag",
-            "a structure no thermocouple sees (the XYZ manual stage, ~170 mm of aluminium) lags the air "
-            "with time constant tau_s: drift += k_um_per_c * (lag(T_air, tau_s) - T_ref); tau_s 2 h is "
-            "well behind the stage's 15 min and the bracket's 40 min (a lag near those is explained by T1/T2)",
-            "lag(T4, tau_s)",
-            {"tau_s": 7200.0, "k_um_per_c": -4.0},
-        ),
-        EffectSpec(
-            "hysteresis",
-            "the attained position depends on the direction of approach: x += -h_um/2 * dir "
-            "(dir = +1 after a step up, -1 after a step down larger than deadband_um)",
-            "dir",
-            {"h_um": 0.15, "deadband_um": 0.5},
-        ),
-        EffectSpec(
-            "position_thermal_coupling",
-            "the stage gain depends on its temperature: g(q) * (1 + kappa_per_c * (T_stage - T_ref))",
-            "x*T1",
-            {"kappa_per_c": 8e-4},
-        ),
-        EffectSpec(
-            "creep",
-            "after every command step dq at t_i the stage lags its setpoint and settles: "
-            "x -= c * sum_i dq_i * exp(-(t - t_i) / tau_s)",
-            "creep(tau_s): dq_last * exp(-(t - t_step) / tau_s)",
-            {"c": 0.01, "tau_s": 15.0},
-        ),
-        EffectSpec(
-            "temperature_rate",
-            "a gradient through the cell while the air warms or cools: drift += k_um_per_c_per_s * "
-            "dT/dt, with dT/dt the rate of lag(T_air, tau_s) (exact: (T_air - lag) / tau_s)",
-            "rate of T4 (smoothed over tau_s)",
-            {"k_um_per_c_per_s": -4500.0, "tau_s": 300.0},
-        ),
-        EffectSpec(
-            "unmonitored_drift",
-            "a source no sensor sees (interferometer dead path, an unmonitored heat source): "
-            "drift += rate_um_per_h * t_h + a random walk of walk_um_per_sqrt_h (0.5 um over 24 cycles)",
-            "none applicable online (discovery names it)",
-            {"rate_um_per_h": 0.15, "walk_um_per_sqrt_h": 0.05},
-        ),
-    )
-}
+def _catalogue(*specs: EffectSpec) -> dict[str, EffectSpec]:
+    return {spec.name: spec for spec in specs}
 
 
-#: what only a multi-axis cell (``simulate --axes xy|xyz``, :mod:`nanodrift.drivers.simulated.multiaxis`) shows:
-#: the stacked
+EFFECTS: dict[str, EffectSpec] = _catalogue(
+    EffectSpec(
+        "thermal_lag",
+        "a structure no thermocouple sees (the XYZ manual stage, ~170 mm of aluminium) lags the air "
+        "with time constant tau_s: drift += k_um_per_c * (lag(T_air, tau_s) - T_ref); tau_s 2 h is "
+        "well behind the stage's 15 min and the bracket's 40 min (a lag near those is explained by T1/T2)",
+        "lag(T4, tau_s)",
+        {"tau_s": 7200.0, "k_um_per_c": -4.0},
+    ),
+    EffectSpec(
+        "hysteresis",
+        "the attained position depends on the direction of approach: x += -h_um/2 * dir "
+        "(dir = +1 after a step up, -1 after a step down larger than deadband_um)",
+        "dir",
+        {"h_um": 0.15, "deadband_um": 0.5},
+    ),
+    EffectSpec(
+        "position_thermal_coupling",
+        "the stage gain depends on its temperature: g(q) * (1 + kappa_per_c * (T_stage - T_ref))",
+        "x*T1",
+        {"kappa_per_c": 8e-4},
+    ),
+    EffectSpec(
+        "creep",
+        "after every command step dq at t_i the stage lags its setpoint and settles: "
+        "x -= c * sum_i dq_i * exp(-(t - t_i) / tau_s)",
+        "creep(tau_s): dq_last * exp(-(t - t_step) / tau_s)",
+        {"c": 0.01, "tau_s": 15.0},
+    ),
+    EffectSpec(
+        "temperature_rate",
+        "a gradient through the cell while the air warms or cools: drift += k_um_per_c_per_s * "
+        "dT/dt, with dT/dt the rate of lag(T_air, tau_s) (exact: (T_air - lag) / tau_s)",
+        "rate of T4 (smoothed over tau_s)",
+        {"k_um_per_c_per_s": -4500.0, "tau_s": 300.0},
+    ),
+    EffectSpec(
+        "unmonitored_drift",
+        "a source no sensor sees (interferometer dead path, an unmonitored heat source): "
+        "drift += rate_um_per_h * t_h + a random walk of walk_um_per_sqrt_h (0.5 um over 24 cycles)",
+        "none applicable online (discovery names it)",
+        {"rate_um_per_h": 0.15, "walk_um_per_sqrt_h": 0.05},
+    ),
+)
+
+
+#: what only a multi-axis cell (``simulate --axes xy|xyz``, ``physics.CrossParams``) shows: the stacked
 #: stages always have them (all on, at these magnitudes: the issue's XY stage); ``--effects`` there overrides a
 #: parameter, 0 switches one off. A one-axis cell has none of them, and a multi-axis cell none of the above.
-CROSS_AXIS_EFFECTS: dict[str, EffectSpec] = {
-    spec.name: spec
-    for spec in (
-        EffectSpec(
-            "crosstalk",
-            "an axis' actuator pushes the other axes by a fraction of its stroke: x += fraction * share * y "
-            "(shares of +-0.8..1 per pair)",
-            "y (another axis' position)",
-            {"fraction": 0.0025},
-        ),
-        EffectSpec(
-            "non_orthogonality",
-            "an upper stage is mounted off square to a lower one: the lower axis moves by rad * share * its travel",
-            "y (another axis' position)",
-            {"rad": 0.0018},
-        ),
-        EffectSpec(
-            "coupled_bending",
-            "with two axes extended the stack bends: x += um * share * (x / 480) * (y / 480)",
-            "x*y",
-            {"um": 0.30},
-        ),
-    )
-}
+CROSS_AXIS_EFFECTS: dict[str, EffectSpec] = _catalogue(
+    EffectSpec(
+        "crosstalk",
+        "an axis' actuator pushes the other axes by a fraction of its stroke: x += fraction * share * y "
+        "(shares of +-0.8..1 per pair)",
+        "y (another axis' position)",
+        {"fraction": 0.0025},
+    ),
+    EffectSpec(
+        "non_orthogonality",
+        "an upper stage is mounted off square to a lower one: the lower axis moves by rad * share * its travel",
+        "y (another axis' position)",
+        {"rad": 0.0018},
+    ),
+    EffectSpec(
+        "coupled_bending",
+        "with two axes extended the stack bends: x += um * share * (x / 480) * (y / 480)",
+        "x*y",
+        {"um": 0.30},
+    ),
+)
 
 
 def resolve_cross_effects(spec: str | None) -> dict[str, dict[str, float]]:

@@ -8,9 +8,11 @@ form, so node temperatures are exact at any time, at any spacing, with no integr
 state at the knots is computed once per chunk by the exact recursion (:func:`first_order_filter`), and
 the grid is extended lazily, so a daemon can run for days.
 
-Mechanical part: the stage follows each command (closed-loop setpoint) with a few nm of landing
+Mechanical part: each axis' stage follows its command (closed-loop setpoint) with a few nm of landing
 error; the optional effects add direction memory (hysteresis) and settling (creep). The state after
-each command is an exact update, evaluated at any later time.
+each command is an exact update, evaluated at any later time. A cell of one axis is the paper's stage;
+a stack of two or three (XY, XYZ) shares the room, has its own stage per axis (:data:`AXIS_PARAMS`) and
+beam, and its stages push each other (crosstalk, non-orthogonality, coupled bending: :class:`CrossParams`).
 
 Magnitudes after the paper: drift about -1.1 µm/°C overall (Fig. 1: 0.4 µm for -0.35 °C), split
 between the stage (T1), the bracket (T2) and the air the beam crosses (T3/T4); the bracket's
@@ -23,13 +25,13 @@ uncertainty, III.A: < 40 nm); thermocouples 5 mK noise and 0.01 °C quantisation
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
-from nanodrift.drivers.simulated.effects import resolve_effects
+from nanodrift.drivers.simulated.effects import resolve_cross_effects, resolve_effects
 from nanodrift.drivers.simulated.scenarios import Scenario, get_scenario
 
 #: temperature channels of the cell and the thermal node each reads (paper III.A, Fig. 5)
@@ -82,10 +84,6 @@ class CellParams:
         changes: dict[str, Any] = dict(overrides)
         return replace(self, **changes)
 
-    def geometry(self, q: Any) -> Any:
-        u = q / self.geometry_full_um
-        e1, e2, e3 = self.geometry_e_um
-        return q + u * (e1 + u * (e2 + u * e3))
 
 
 def first_order_filter(b0: float, b1: float, a1: float, x: np.ndarray, z0: float) -> np.ndarray:
@@ -263,16 +261,113 @@ class StageState:
     landing_um: float = 0.0
 
 
+@dataclass(frozen=True)
+class AxisParams:
+    """One stage of the cell: its geometric error and its thermal drift (µm, °C)."""
+
+    geometry_e_um: tuple[float, float, float]
+    k_stage_um_per_c: float
+    k_bracket_um_per_c: float
+    k_beam_um_per_c: float
+    k2_bracket_um_per_c2: float
+    full_um: float = 480.0
+
+    @classmethod
+    def of(cls, params: CellParams) -> AxisParams:
+        """The paper's stage, as ``params`` (``[simulation] params``) sets it."""
+        return cls(params.geometry_e_um, params.k_stage_um_per_c, params.k_bracket_um_per_c, params.k_beam_um_per_c,
+                   params.k2_bracket_um_per_c2, params.geometry_full_um)
+
+    def geometry(self, q: Any) -> Any:
+        """x = g(q) = q + e(q / full), e cubic: plain arithmetic, so floats and arrays both work."""
+        u = q / self.full_um
+        e1, e2, e3 = self.geometry_e_um
+        return q + u * (e1 + u * (e2 + u * e3))
+
+
+#: the stacked stages (``[simulation] axes``, ``simulate --axes``); a cell of one axis is the paper's stage
+CELL_AXES: dict[str, tuple[str, ...]] = {"xy": ("x", "y"), "xyz": ("x", "y", "z")}
+#: each stage of a stack: x drifts as the paper's stage (-1.1 µm/°C, bending half as much), y the other way, z less
+AXIS_PARAMS: dict[str, AxisParams] = {
+    "x": AxisParams((-0.25, 1.20, -0.75), -0.40, -0.50, -0.20, -0.20),
+    "y": AxisParams((0.20, -0.90, 0.60), 0.30, 0.25, 0.10, 0.12),
+    "z": AxisParams((-0.15, 0.70, -0.45), -0.25, -0.20, -0.10, -0.10),
+}
+
+
+@dataclass(frozen=True)
+class CrossParams:
+    """What the stages of a stack do to each other, scaled by three knobs (the cross-axis effects of
+    :data:`nanodrift.drivers.simulated.effects.CROSS_AXIS_EFFECTS`; 0 switches one off).
+
+    Per pair the sign and share are fixed (``CROSSTALK``, ``TILT``, ``BENDING``).
+    """
+
+    crosstalk_fraction: float = 0.0025
+    non_orthogonality_rad: float = 0.0018
+    #: displacement of the bent axis when both axes of a pair are at full stroke
+    bending_um: float = 0.30
+    full_um: float = 480.0
+
+    def crosstalk(self, to: str, frm: str) -> float:
+        """Fraction of axis ``frm``'s stroke that moves axis ``to``."""
+        return self.crosstalk_fraction * CROSSTALK.get((to, frm), 0.0)
+
+    def tilt(self, to: str, frm: str) -> float:
+        """The angle (rad) by which the upper stage ``frm`` is mounted off square to ``to``."""
+        return self.non_orthogonality_rad * TILT.get((to, frm), 0.0)
+
+    def bending(self, to: str, a: str, b: str) -> float:
+        """µm that axis ``to`` moves when both ``a`` and ``b`` are at full stroke."""
+        first, second = sorted((a, b))
+        return self.bending_um * BENDING.get((to, first, second), 0.0)
+
+
+#: (moved axis, pushing axis) -> share of the crosstalk fraction. The signs: every cross effect pushes an axis
+#: the way its own drift goes when the room warms (x and z down, y up), so a warm room (test 5) sees them add
+#: and a cool one (tests 1-4) sees x's drift partly cancel its crosstalk; the opposite choice would hide the
+#: cross effects out of range, where the model's own drift error is largest
+CROSSTALK: dict[tuple[str, str], float] = {("x", "y"): -1.0, ("y", "x"): 1.0, ("x", "z"): -0.8, ("z", "x"): -0.8,
+                                           ("y", "z"): 0.8, ("z", "y"): -1.0}
+#: (lower axis, upper stage) -> share of the non-orthogonality angle (only an upper stage tilts into a lower axis)
+TILT: dict[tuple[str, str], float] = {("x", "y"): -1.0, ("x", "z"): -0.7, ("y", "z"): 0.8}
+#: (moved axis, pair) -> share of the bending displacement
+BENDING: dict[tuple[str, str, str], float] = {("x", "x", "y"): -1.0, ("y", "x", "y"): 0.8, ("x", "x", "z"): -0.6,
+                                             ("z", "x", "z"): -0.6, ("y", "y", "z"): 0.6, ("z", "y", "z"): -0.6}
+
+
+def cross_params(spec: str | None = None) -> CrossParams:
+    """The stack's cross-axis magnitudes with ``spec`` (the ``--effects`` text over the cross-axis catalogue)."""
+    effects = resolve_cross_effects(spec)
+    return CrossParams(crosstalk_fraction=effects["crosstalk"]["fraction"],
+                       non_orthogonality_rad=effects["non_orthogonality"]["rad"],
+                       bending_um=effects["coupled_bending"]["um"])
+
+
 @dataclass
 class CellPhysics:
-    """The cell: a scenario, a set of hidden effects with parameters, a seed. Pure and vectorised."""
+    """The cell: a scenario, hidden effects with parameters, a seed, and its stages (``axes``: one, or a stack
+    of two or three in the same room, each with its own interferometer beam). Pure and vectorised.
+
+    The room (air, nodes, T1..T4) is shared; the first axis' beam wanders with the room's draws (so a cell of
+    one axis is the paper's), every other beam with its own. Per-axis state and results are dicts by axis.
+    """
 
     scenario: Scenario
     effects: dict[str, dict[str, float]] = field(default_factory=dict)
     seed: int = 0
     params: CellParams = field(default_factory=CellParams)
+    axes: tuple[str, ...] = ("x",)
+    cross: CrossParams = field(default_factory=CrossParams)
+    #: each axis' stage; empty: the paper's stage (``params``) for a cell of one axis, :data:`AXIS_PARAMS` for a stack
+    axis_params: Mapping[str, AxisParams] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        if len(set(self.axes)) != len(self.axes) or not 1 <= len(self.axes) <= 3 or set(self.axes) - set(AXIS_PARAMS):
+            raise ValueError(f"a simulated cell has 1 to 3 distinct axes of {', '.join(AXIS_PARAMS)}, got {self.axes}")
+        if not self.axis_params:
+            self.axis_params = ({self.axes[0]: AxisParams.of(self.params)} if len(self.axes) == 1
+                                else {a: AXIS_PARAMS[a] for a in self.axes})
         p = self.params
         taus = {"stage": p.tau_stage_s, "bracket": p.tau_bracket_s, "t3": p.tau_t3_s, "t4": p.tau_t4_s,
                 "beam": p.tau_beam_s}
@@ -282,6 +377,10 @@ class CellPhysics:
             taus["rate_lag"] = self.effects["temperature_rate"]["tau_s"]
         walk = self.effects.get("unmonitored_drift", {}).get("walk_um_per_sqrt_h", 0.0)
         self.exogenous = Exogenous(self.scenario, p, taus, self.seed, walk_um_per_sqrt_h=walk)
+        # a wander per beam: the first is the room's own, the others independent draws (only their wander is read)
+        self.beams = {self.axes[0]: self.exogenous}
+        for k, axis in enumerate(self.axes[1:], start=1):
+            self.beams[axis] = Exogenous(self.scenario, p, {"beam": p.tau_beam_s}, (self.seed + 1) * 1_000_003 + k)
         hyst = self.effects.get("hysteresis", {})
         self.deadband_um = hyst.get("deadband_um", 0.5)
         creep = self.effects.get("creep")
@@ -290,12 +389,13 @@ class CellPhysics:
 
     @classmethod
     def create(cls, scenario: str = "steady", effects: str | Sequence[str] | Mapping[str, Any] | None = None,
-               seed: int = 0, params: CellParams | None = None, **param_overrides: float) -> CellPhysics:
-        """By names: ``CellPhysics.create("train", "thermal_lag:tau_s=1800", seed=3)``."""
+               seed: int = 0, params: CellParams | None = None, *, axes: str | Sequence[str] = "x",
+               cross: CrossParams | None = None, **param_overrides: float) -> CellPhysics:
+        """By names: ``CellPhysics.create("train", "thermal_lag:tau_s=1800", seed=3)``, ``(..., axes="xy")``."""
         base = params or CellParams()
         if param_overrides:
             base = base.with_overrides(param_overrides)
-        return cls(get_scenario(scenario), resolve_effects(effects), seed, base)
+        return cls(get_scenario(scenario), resolve_effects(effects), seed, base, tuple(axes), cross or CrossParams())
 
     # ----- thermal -------------------------------------------------------------------------------
     def thermal(self, t: np.ndarray) -> dict[str, np.ndarray]:
@@ -312,15 +412,15 @@ class CellPhysics:
         node = THERMOCOUPLES.get(channel) or TRUTH_CHANNELS[channel]
         return thermal[node] + self.params.offset(channel)
 
-    def _drift(self, t: Any, air: Any, nodes: Mapping[str, Any], walk: Any) -> Any:
-        """Drift from the exogenous state; plain arithmetic, so floats and arrays both work."""
-        p = self.params
-        d_bracket = nodes["bracket"] - p.t_ref_c
-        drift = (p.k_stage_um_per_c * (nodes["stage"] - p.t_ref_c) + p.k_bracket_um_per_c * d_bracket
-                 + p.k2_bracket_um_per_c2 * d_bracket * d_bracket
-                 + p.k_beam_um_per_c * (nodes["beam"] - p.t_ref_c))
+    def _drift(self, axis: str, t: Any, air: Any, nodes: Mapping[str, Any], walk: Any) -> Any:
+        """``axis``' drift from the exogenous state; plain arithmetic, so floats and arrays both work."""
+        k, t_ref = self.axis_params[axis], self.params.t_ref_c
+        d_bracket = nodes["bracket"] - t_ref
+        drift = (k.k_stage_um_per_c * (nodes["stage"] - t_ref) + k.k_bracket_um_per_c * d_bracket
+                 + k.k2_bracket_um_per_c2 * d_bracket * d_bracket
+                 + k.k_beam_um_per_c * (nodes["beam"] - t_ref))
         if "thermal_lag" in self.effects:
-            drift = drift + self.effects["thermal_lag"]["k_um_per_c"] * (nodes["hidden_lag"] - p.t_ref_c)
+            drift = drift + self.effects["thermal_lag"]["k_um_per_c"] * (nodes["hidden_lag"] - t_ref)
         if "temperature_rate" in self.effects:
             e = self.effects["temperature_rate"]
             drift = drift + e["k_um_per_c_per_s"] * (air - nodes["rate_lag"]) / e["tau_s"]
@@ -328,24 +428,56 @@ class CellPhysics:
             drift = drift + self.effects["unmonitored_drift"]["rate_um_per_h"] * t / 3600.0 + walk
         return drift
 
-    def drift(self, t: np.ndarray) -> np.ndarray:
-        """Thermal and other time-only drift of the attained position, µm."""
+    def drift(self, t: np.ndarray) -> dict[str, np.ndarray]:
+        """Thermal and other time-only drift of every axis' attained position, µm."""
         t = np.atleast_1d(np.asarray(t, dtype=np.float64))
         air, nodes, _, walk = self.exogenous.at(t)
-        return self._drift(t, air, nodes, walk)
+        return {a: self._drift(a, t, air, nodes, walk) for a in self.axes}
 
-    def _static_x(self, q: Any, nodes: Mapping[str, Any], direction: Any) -> Any:
-        p = self.params
-        x = p.geometry(q)
-        if "position_thermal_coupling" in self.effects:
-            x = x * (1.0 + self.effects["position_thermal_coupling"]["kappa_per_c"] * (nodes["stage"] - p.t_ref_c))
-        if "hysteresis" in self.effects:
-            x = x - 0.5 * self.effects["hysteresis"]["h_um"] * direction
-        return x
+    def static(self, q: Mapping[str, Any], nodes: Mapping[str, Any] | None = None,
+               direction: Mapping[str, Any] | None = None) -> dict[str, Any]:
+        """Attained positions without drift for commands ``q`` per axis: each stage's own stroke (with the hidden
+        effects on it: ``nodes`` and ``direction`` are read only by those) plus what the other stages of a stack
+        push into it (crosstalk, non-orthogonality, coupled bending). Floats and arrays both work."""
+        c, t_ref = self.cross, self.params.t_ref_c
+        full2 = c.full_um * c.full_um
+        strokes = {a: self.axis_params[a].geometry(q[a]) for a in self.axes}
+        out = {}
+        for to in self.axes:
+            x = strokes[to]
+            if "position_thermal_coupling" in self.effects:
+                assert nodes is not None
+                x = x * (1.0 + self.effects["position_thermal_coupling"]["kappa_per_c"] * (nodes["stage"] - t_ref))
+            if "hysteresis" in self.effects:
+                assert direction is not None
+                x = x - 0.5 * self.effects["hysteresis"]["h_um"] * direction[to]
+            for frm in self.axes:
+                if frm != to:
+                    x = x + (c.crosstalk(to, frm) + c.tilt(to, frm)) * strokes[frm]
+            for i, a in enumerate(self.axes):
+                for b in self.axes[i + 1:]:
+                    x = x + c.bending(to, a, b) * q[a] * q[b] / full2
+            out[to] = x
+        return out
+
+    def _positions(self, t: Any, exogenous: tuple[Any, Mapping[str, Any], Any, Any],
+                   states: Mapping[str, Mapping[str, Any]], exp: Callable[[Any], Any]) -> dict[str, Any]:
+        """Every axis' true position from the exogenous state at ``t`` and each axis' command state (``t``, ``q``,
+        ``direction``, ``creep_sum``, ``landing_um``): floats with ``math.exp``, arrays with ``np.exp``."""
+        air, nodes, _, walk = exogenous
+        static = self.static({a: s["q"] for a, s in states.items()}, nodes,
+                             {a: s["direction"] for a, s in states.items()})
+        out = {}
+        for a, s in states.items():
+            x = static[a] + s["landing_um"] + self._drift(a, t, air, nodes, walk)
+            if self.creep_c:  # a command at -inf (none yet) has settled: exp(-inf) = 0
+                x = x - self.creep_c * s["creep_sum"] * exp(-(t - s["t"]) / self.creep_tau_s)
+            out[a] = x
+        return out
 
     # ----- mechanics -----------------------------------------------------------------------------
     def after_command(self, state: StageState, t: float, q: float, landing_um: float) -> StageState:
-        """Exact state update for a new setpoint ``q`` at time ``t``."""
+        """Exact state update of one stage for a new setpoint ``q`` at time ``t``."""
         dq = q - state.q
         direction = state.direction
         if abs(dq) > self.deadband_um:
@@ -355,36 +487,46 @@ class CellPhysics:
             creep_sum += state.creep_sum * math.exp(-(t - state.t) / self.creep_tau_s)
         return StageState(t=t, q=q, direction=direction, creep_sum=creep_sum, landing_um=landing_um)
 
-    def attained(self, t: np.ndarray, q: np.ndarray, direction: np.ndarray, creep_sum: np.ndarray,
-                 t_cmd: np.ndarray, landing: np.ndarray) -> np.ndarray:
-        """True stage position (µm in the interferometer's frame) given the command state per time."""
-        t = np.atleast_1d(np.asarray(t, dtype=np.float64))
-        air, nodes, _, walk = self.exogenous.at(t)
-        x = self._static_x(np.asarray(q, dtype=np.float64), nodes, direction)
-        x = x + landing + self._drift(t, air, nodes, walk)
-        if self.creep_c:
-            age = np.where(np.isfinite(t_cmd), t - t_cmd, np.inf)
-            x = x - self.creep_c * creep_sum * np.exp(-age / self.creep_tau_s)
-        return x
+    def attained_now(self, t: float, states: Mapping[str, StageState]) -> dict[str, float]:
+        """Every axis' true position (µm in its interferometer's frame) at one time, in plain floats."""
+        return self._positions(t, self.exogenous.at1(t), {a: vars(s) for a, s in states.items()}, math.exp)
 
-    def attained_now(self, t: float, state: StageState) -> float:
-        """:meth:`attained` for one time and the current stage state, in plain floats."""
-        air, nodes, _, walk = self.exogenous.at1(t)
-        x = self._static_x(state.q, nodes, state.direction) + state.landing_um + self._drift(t, air, nodes, walk)
-        if self.creep_c and math.isfinite(state.t):
-            x -= self.creep_c * state.creep_sum * math.exp(-(t - state.t) / self.creep_tau_s)
-        return float(x)
+    def command_track(self, cmd_t: np.ndarray, cmd_q: np.ndarray, rng: np.random.Generator) -> dict[str, np.ndarray]:
+        """One stage's state after each of a whole series of commands (sorted by time)."""
+        n = len(cmd_t)
+        landing = rng.normal(0.0, self.params.landing_sigma_um, n)
+        out = {k: np.empty(n) for k in ("t", "q", "direction", "creep_sum", "landing_um")}
+        state = StageState()
+        for k in range(n):
+            state = self.after_command(state, float(cmd_t[k]), float(cmd_q[k]), float(landing[k]))
+            for name, value in vars(state).items():
+                out[name][k] = value
+        return out
+
+    def attained_along(self, t: np.ndarray, tracks: Mapping[str, Mapping[str, np.ndarray]]) -> dict[str, np.ndarray]:
+        """True positions at times ``t`` under each axis' command track from :meth:`command_track`."""
+        t = np.asarray(t, dtype=np.float64)
+        rows = {}
+        for axis, track in tracks.items():
+            i = np.searchsorted(track["t"], t, side="right") - 1
+            before, j = i < 0, np.maximum(i, 0)
+            rows[axis] = {name: np.where(before, getattr(StageState, name), col[j]) for name, col in track.items()}
+        return self._positions(t, self.exogenous.at(t), rows, np.exp)
 
     # ----- sensors -------------------------------------------------------------------------------
-    def measure_position(self, t: np.ndarray, true_x: np.ndarray, noise: np.ndarray) -> np.ndarray:
-        """Interferometer readings: truth + slow wander + white noise (``noise`` ~ N(0, 1)), quantised."""
-        _, _, wander, _ = self.exogenous.at(np.atleast_1d(t))
-        p = self.params
-        raw = true_x + wander + p.interferometer_noise_um * noise
-        return np.round(raw / p.interferometer_resolution_um) * p.interferometer_resolution_um
+    def wander(self, axis: str, t: np.ndarray) -> np.ndarray:
+        """The slow wander of ``axis``' interferometer beam at times ``t``."""
+        return self.beams[axis].at(np.atleast_1d(np.asarray(t, dtype=np.float64)))[2]
 
-    def measure_position1(self, t: float, true_x: float, noise: float) -> float:
-        wander = self.exogenous.at1(t)[2]
+    def measure_position(self, axis: str, t: np.ndarray, true_x: np.ndarray, noise: np.ndarray) -> np.ndarray:
+        """``axis``' interferometer: truth + its beam's wander + white noise (``noise`` ~ N(0, 1)), quantised."""
+        p = self.params
+        raw = true_x + self.wander(axis, t) + p.interferometer_noise_um * noise
+        result: np.ndarray = np.round(raw / p.interferometer_resolution_um) * p.interferometer_resolution_um
+        return result
+
+    def measure_position1(self, axis: str, t: float, true_x: float, noise: float) -> float:
+        wander = self.beams[axis].at1(t)[2]
         p = self.params
         raw = true_x + wander + p.interferometer_noise_um * noise
         return round(raw / p.interferometer_resolution_um) * p.interferometer_resolution_um
@@ -397,28 +539,3 @@ class CellPhysics:
         """Thermocouple readings: truth + white noise (``noise`` ~ N(0, 1)), quantised to 0.01 °C."""
         p = self.params
         return np.round((truth + p.tc_noise_c * noise) / p.tc_quantum_c) * p.tc_quantum_c
-
-    def command_track(self, cmd_t: np.ndarray, cmd_q: np.ndarray, rng: np.random.Generator) -> dict[str, np.ndarray]:
-        """The stage state after each of a whole series of commands (sorted by time)."""
-        n = len(cmd_t)
-        landing = rng.normal(0.0, self.params.landing_sigma_um, n)
-        out = {k: np.empty(n) for k in ("t", "q", "direction", "creep_sum", "landing")}
-        state = StageState()
-        for k in range(n):
-            state = self.after_command(state, float(cmd_t[k]), float(cmd_q[k]), float(landing[k]))
-            out["t"][k], out["q"][k], out["direction"][k] = state.t, state.q, state.direction
-            out["creep_sum"][k], out["landing"][k] = state.creep_sum, state.landing_um
-        return out
-
-    def attained_along(self, t: np.ndarray, track: Mapping[str, np.ndarray]) -> np.ndarray:
-        """True positions at times ``t`` under a command track from :meth:`command_track`."""
-        t = np.asarray(t, dtype=np.float64)
-        i = np.searchsorted(track["t"], t, side="right") - 1
-        before = i < 0
-        j = np.maximum(i, 0)
-
-        def pick(name: str, default: float) -> np.ndarray:
-            return np.where(before, default, track[name][j])
-
-        return self.attained(t, pick("q", 0.0), pick("direction", 1.0), pick("creep_sum", 0.0),
-                             pick("t", -np.inf), pick("landing", 0.0))

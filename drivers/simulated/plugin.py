@@ -5,7 +5,7 @@ An ordinary plugin (python-can's ``virtual`` bus, pyvisa-sim), and a virtual cel
 supplies the cell's clock (scaled wall time in the daemon, a virtual clock in procedures) and, when
 the table is present without ``[[sensors]]``, the paper's four thermocouples and interferometer.
 With ``[simulation] axes = "xy"`` (or ``"xyz"``) the cell is a stacked stage
-(:class:`~nanodrift.drivers.simulated.multicell.SimulatedMultiCell`): one simulated output per axis
+(:class:`~nanodrift.drivers.simulated.cell.SimulatedCell` of those axes): one simulated output per axis
 (``[axes.actuator] kind = "simulated"``, built by :meth:`SimulatedPlugin.create_actuators`) and one
 interferometer per axis (``interferometer_x``, ``interferometer_y``, ...); without ``[[axes]]`` the
 plugin supplies them (workspace 0..480 µm), and without ``[[sensors]]`` T1..T4 and one beam per axis.
@@ -33,11 +33,9 @@ from nanodrift.drivers.base import (
     SensorGroup,
     VirtualCellPlugin,
 )
-from nanodrift.drivers.simulated.cell import SimulatedCell
+from nanodrift.drivers.simulated.cell import SimulatedCell, position_channels
 from nanodrift.drivers.simulated.clock import ScaledClock, VirtualClock
 from nanodrift.drivers.simulated.config import SECTION, SimulatedActuatorConfig, SimulatedSensorConfig, SimulationConfig
-from nanodrift.drivers.simulated.multicell import SimulatedMultiCell, position_channel
-from nanodrift.drivers.simulated.physics import POSITION_CHANNEL
 
 RESOURCE_KEY = "simulated.cell"
 PLUGIN_KIND = "simulated"
@@ -56,9 +54,7 @@ def shared_cell(context: DriverContext) -> SimulatedCell:
     if cell is None:
         settings = context.sections.get(SECTION)
         config = settings if isinstance(settings, SimulationConfig) else SimulationConfig()
-        truth_log = config.truth_log or None
-        cell = (SimulatedMultiCell(config.multi_axis_physics(), context.clock, truth_log=truth_log) if config.axes
-                else SimulatedCell(config.physics(), context.clock, truth_log=truth_log))
+        cell = SimulatedCell(config.physics(), context.clock, truth_log=config.truth_log or None)
         if isinstance(context.clock, VirtualClock):
             cell.epoch = 0.0
         elif isinstance(context.clock, ScaledClock):
@@ -94,12 +90,12 @@ class SimulatedGroup(SensorGroup):
 
 
 class SimulatedActuator(Actuator):
-    """Moves the simulated stage: the closed loop takes ``q_um`` (the voltage is informational)."""
+    """Moves one axis of the simulated stage (its closed loop takes ``q_um``; the voltage is informational)."""
 
-    description = "simulated stage"
-
-    def __init__(self, cell: SimulatedCell) -> None:
+    def __init__(self, cell: SimulatedCell, axis: str) -> None:
         self.cell = cell
+        self.axis = axis
+        self.description = "simulated stage" + (f", axis {axis}" if len(cell.axes) > 1 else "")
         self.last_voltage_v: float | None = None
 
     async def open(self) -> None:
@@ -107,37 +103,14 @@ class SimulatedActuator(Actuator):
 
     async def command(self, q_um: float, voltage_v: float, *, x_um: float | None = None) -> None:
         self.last_voltage_v = voltage_v
-        self.cell.command(q_um)
+        self.cell.command(self.axis, q_um)
 
     async def close(self) -> None:
         return None
 
     async def read_back(self) -> tuple[Literal["voltage_v", "q_um"], float] | None:
         """The setpoint the stage's closed loop holds (0 µm on a fresh cell): the first ramp starts there."""
-        return ("q_um", self.cell.state.q)
-
-
-class SimulatedAxisActuator(Actuator):
-    """Moves one axis of the simulated stacked stage (its closed loop takes ``q_um``)."""
-
-    def __init__(self, cell: SimulatedMultiCell, axis: str) -> None:
-        self.cell = cell
-        self.axis = axis
-        self.description = f"simulated stage, axis {axis}"
-        self.last_voltage_v: float | None = None
-
-    async def open(self) -> None:
-        return None
-
-    async def command(self, q_um: float, voltage_v: float, *, x_um: float | None = None) -> None:
-        self.last_voltage_v = voltage_v
-        self.cell.command_axis(self.axis, q_um)
-
-    async def close(self) -> None:
-        return None
-
-    async def read_back(self) -> tuple[Literal["voltage_v", "q_um"], float] | None:
-        return ("q_um", self.cell.q_um[self.axis])
+        return ("q_um", self.cell.states[self.axis].q)
 
 
 class SimulatedPlugin(VirtualCellPlugin):
@@ -172,32 +145,30 @@ class SimulatedPlugin(VirtualCellPlugin):
 
     def create_actuator(self, config: ActuatorOptions, context: DriverContext) -> Actuator:
         cell = shared_cell(context)
-        if isinstance(cell, SimulatedMultiCell):
+        if len(cell.axes) > 1:
             raise DriverSetupError(f"the simulated cell has axes {', '.join(cell.axes)}: one output per axis "
                                    "([[axes]] with [axes.actuator] kind = \"simulated\")")
-        return SimulatedActuator(cell)
+        return SimulatedActuator(cell, cell.axes[0])
 
     def create_actuators(self, configs: Sequence[ActuatorOptions], context: DriverContext) -> list[Actuator]:
         """One output per axis of the stacked stage, the config's axes (``context.axes``) being its axes."""
         cell = shared_cell(context)
-        if not isinstance(cell, SimulatedMultiCell):
+        if len(cell.axes) == 1:
             raise DriverSetupError(f"the config has axes {', '.join(context.axes)} but the simulated cell has one: "
                                    'set [simulation] axes = "' + "".join(context.axes) + '"')
         if sorted(context.axes) != sorted(cell.axes) or len(configs) != len(cell.axes):
             raise DriverSetupError(f"the config's axes ({', '.join(context.axes)}) are not the simulated cell's "
                                    f"([simulation] axes = \"{''.join(cell.axes)}\"): name the [[axes]] "
                                    f"{', '.join(cell.axes)}")
-        return [SimulatedAxisActuator(cell, axis) for axis in context.axes]
+        return [SimulatedActuator(cell, axis) for axis in context.axes]
 
     def default_sensors(self, section: BaseModel) -> list[SensorConfig]:
         config = section if isinstance(section, SimulationConfig) else SimulationConfig()
-        if config.axes:
-            return list(default_cell_sensor_configs(config.axis_names, speed=config.speed))
-        return list(default_sensor_configs(speed=config.speed))
+        return list(default_sensor_configs(config.axis_names, speed=config.speed))
 
     def default_sensor_axes(self, section: BaseModel) -> dict[str, str]:
         config = section if isinstance(section, SimulationConfig) else SimulationConfig()
-        return {position_channel(axis): axis for axis in config.axis_names} if config.axes else {}
+        return position_channels(config.axis_names) if config.axes else {}
 
     def default_axes(self, section: BaseModel) -> list[dict[str, Any]]:
         """``[[axes]]`` of the stacked stage: each 0..480 µm (the paper's travel) on a simulated output."""
@@ -236,9 +207,9 @@ def utc_midnight_before(unix_s: float) -> float:
     return unix_s - unix_s % 86400.0
 
 
-def default_sensor_configs(interferometer_interval_s: float = 0.1, thermocouple_interval_s: float = 0.5, *,
-                           speed: float = 1.0) -> list[SimulatedSensorConfig]:
-    """The paper's cell: T1..T4 and the interferometer (what a config with no sensors runs).
+def default_sensor_configs(axes: Sequence[str] = ("x",), interferometer_interval_s: float = 0.1,
+                           thermocouple_interval_s: float = 0.5, *, speed: float = 1.0) -> list[SimulatedSensorConfig]:
+    """The paper's cell: T1..T4 and an interferometer per axis (what a config with no sensors runs).
 
     On a fast clock the intervals and ages grow to what the daemon serves at ``speed`` (in cell seconds:
     :attr:`SimulationConfig.min_interval_s`, :attr:`SimulationConfig.min_max_age_s`): the paper's 0.5 s
@@ -250,15 +221,7 @@ def default_sensor_configs(interferometer_interval_s: float = 0.1, thermocouple_
     temps = [SimulatedSensorConfig(name=n, role="temperature", interval_s=tc_interval_s,
                                    max_age_s=max(5.0, limits.min_max_age_s, 3 * tc_interval_s))
              for n in ("T1", "T2", "T3", "T4")]
-    position = SimulatedSensorConfig(name=POSITION_CHANNEL, role="position", interval_s=position_interval_s,
-                                     max_age_s=max(1.0, limits.min_max_age_s, 3 * position_interval_s))
-    return [*temps, position]
-
-
-def default_cell_sensor_configs(axes: Sequence[str], *, speed: float = 1.0) -> list[SimulatedSensorConfig]:
-    """The stacked stage's default sensors: T1..T4 as on the one-axis cell, and one interferometer per axis
-    (``interferometer_<axis>``, timed like the one-axis interferometer)."""
-    one_axis = default_sensor_configs(speed=speed)
-    temps = [c for c in one_axis if c.role == "temperature"]
-    [beam] = [c for c in one_axis if c.role == "position"]
-    return [*temps, *(beam.model_copy(update={"name": position_channel(axis)}) for axis in axes)]
+    beams = [SimulatedSensorConfig(name=channel, role="position", interval_s=position_interval_s,
+                                   max_age_s=max(1.0, limits.min_max_age_s, 3 * position_interval_s))
+             for channel in position_channels(tuple(axes))]
+    return [*temps, *beams]

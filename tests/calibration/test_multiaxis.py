@@ -16,23 +16,18 @@ from nanodrift.calibration.plans import (
     cell_validation_plan,
     cell_validation_points,
 )
-from nanodrift.drivers.simulated.multiaxis import (
-    CrossParams,
-    MultiAxisPhysics,
-    cross_params,
-    run_cell_validation,
-    simulate_cell_steps,
-    steps_dataset,
-)
+from nanodrift.drivers.simulated.datasets import simulate_dataset
+from nanodrift.drivers.simulated.physics import CellPhysics, CrossParams, cross_params
+from nanodrift.drivers.simulated.runs import ONE_MOVE, run_cell_validation, simulate_steps
 from nanodrift.model.identify import fit, fit_cell
 
 
 def _x_moved_by_y(cross: CrossParams) -> float:
     """x's true position change when y steps 0 -> 400 µm with x held at 100 µm, in a steady room."""
-    physics = MultiAxisPhysics.create("xy", "steady", seed=4, cross=cross)
-    out = simulate_cell_steps(physics, {"x": [100.0] * 6, "y": [0.0, 400.0] * 3}, [0] * 6)
+    physics = CellPhysics.create("steady", seed=4, axes="xy", cross=cross)
+    out = simulate_steps(physics, {"x": [100.0] * 6, "y": [0.0, 400.0] * 3}, [0] * 6, schedule=ONE_MOVE)
     x = out["x_true_um"]
-    stroke = float(physics.geometry("y", np.array([400.0]))[0] - physics.geometry("y", np.array([0.0]))[0])
+    stroke = physics.axis_params["y"].geometry(400.0) - physics.axis_params["y"].geometry(0.0)
     return float(np.mean(x[1::2]) - np.mean(x[0::2])) / stroke
 
 
@@ -46,15 +41,15 @@ def test_moving_y_moves_x_by_the_set_crosstalk_and_tilt():
 
 
 def test_bending_needs_both_axes_out():
-    physics = MultiAxisPhysics.create("xy", "steady", cross=CrossParams(crosstalk_fraction=0, non_orthogonality_rad=0,
+    physics = CellPhysics.create("steady", axes="xy", cross=CrossParams(crosstalk_fraction=0, non_orthogonality_rad=0,
                                                                         bending_um=0.3))
     corners = physics.static({"x": np.array([0.0, 480.0, 0.0, 480.0]), "y": np.array([0.0, 0.0, 480.0, 480.0])})
-    own = physics.geometry("x", np.array([0.0, 480.0, 0.0, 480.0]))
+    own = physics.axis_params["x"].geometry(np.array([0.0, 480.0, 0.0, 480.0]))
     np.testing.assert_allclose(corners["x"] - own, [0.0, 0.0, 0.0, -0.3], atol=1e-12)
 
 
 def test_each_beam_wanders_on_its_own():
-    physics = MultiAxisPhysics.create("xyz", "steady", seed=2)
+    physics = CellPhysics.create("steady", seed=2, axes="xyz")
     t = np.arange(0.0, 200 * 3600.0, 60.0)
     wander = {a: physics.wander(a, t) for a in "xyz"}
     for a in "xyz":
@@ -64,7 +59,7 @@ def test_each_beam_wanders_on_its_own():
 
 
 def test_drift_differs_in_sign_between_axes():
-    physics = MultiAxisPhysics.create("xy", "test5", seed=1)  # a room well above the 22.0 °C reference
+    physics = CellPhysics.create("test5", seed=1, axes="xy")  # a room well above the 22.0 °C reference
     drift = physics.drift(np.array([3600.0]))
     assert drift["x"][0] < -0.5 and drift["y"][0] > 0.3
 
@@ -117,10 +112,7 @@ def test_pose_accuracy_and_repeatability_by_hand():
 
 
 def test_cross_terms_beat_independent_one_axis_models_by_a_wide_factor():
-    physics = MultiAxisPhysics.create("xy", "train", seed=11)
-    plan = cell_calibration_plan(physics.axes)
-    out = simulate_cell_steps(physics, {a: [s.target(a) for s in plan] for a in "xy"}, [s.cycle for s in plan])
-    data = steps_dataset(out, physics.axes, "cal")
+    data = simulate_dataset("train", axes="xy", seed=11)
     cell = fit_cell(data).model
     assert {"y", "x*y"} <= set(cell.models["x"].term_names()) and "x" in cell.models["y"].term_names()
     alone = {a: fit(Dataset(t=data.t, x=data.positions[a], q=data.commands[a], channels=data.channels,
@@ -137,7 +129,7 @@ def test_cross_terms_beat_independent_one_axis_models_by_a_wide_factor():
             ev.observe(t, temps)
         return {a: float(ev.command(targets[a], t)) for a, ev in ev_alone.items()}
 
-    room = MultiAxisPhysics.create("xy", "test2", seed=1102)
+    room = CellPhysics.create("test2", seed=1102, axes="xy")
     runs = [run_cell_validation(room, command, cycles=10) for command in (with_cell, with_alone)]
     without, cell_nm, alone_nm = (summarize_cell("t", runs[0].targets_um, runs[0].attained(False)).accuracy_nm,
                                   summarize_cell("t", runs[0].targets_um, runs[0].attained(True)).accuracy_nm,

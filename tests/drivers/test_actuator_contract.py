@@ -32,7 +32,6 @@ from nanodrift.drivers.modbus.codec import decode
 from nanodrift.drivers.registry import available, load_plugin
 from nanodrift.drivers.simulated.cell import SimulatedCell
 from nanodrift.drivers.simulated.config import SECTION, SimulationConfig
-from nanodrift.drivers.simulated.multicell import SimulatedMultiCell
 from nanodrift.drivers.simulated.plugin import RESOURCE_KEY
 from nanodrift.drivers.testing import FakeGcsController, ModbusTestDevice, ModbusTestServer, tcp_context
 from nanodrift.drivers.testing.contract import GAIN_V_PER_UM, ActuatorContract, ActuatorRig
@@ -59,15 +58,15 @@ class SimulatedRig(ActuatorRig):
         self.setpoints: list[float] = []
         command = self.cell.command
 
-        def recorded(q_um: float) -> None:  # the cell's side: what its closed loop was given
+        def recorded(axis: str, q_um: float) -> None:  # the cell's side: what its closed loop was given
             self.setpoints.append(q_um)
-            command(q_um)
+            command(axis, q_um)
 
         self.cell.command = recorded  # type: ignore[method-assign]
         return actuator
 
     async def held_v(self) -> float:
-        return self.cell.state.q * GAIN_V_PER_UM
+        return self.cell.states["x"].q * GAIN_V_PER_UM
 
     def written_v(self) -> list[float]:
         return [q * GAIN_V_PER_UM for q in self.setpoints]
@@ -80,16 +79,16 @@ class SimulatedRig(ActuatorRig):
 
     def actuators(self) -> list[Actuator]:
         outputs = super().actuators()
-        cell = self.built_context.resources.get(RESOURCE_KEY, SimulatedMultiCell)
+        cell = self.built_context.resources.get(RESOURCE_KEY, SimulatedCell)
         assert cell is not None
         self.axis_setpoints: dict[str, list[float]] = {axis: [] for axis in self.AXES}
-        command_axis = cell.command_axis
+        command = cell.command
 
         def recorded(axis: str, q_um: float) -> None:  # the stacked stage's side: each axis' closed loop
             self.axis_setpoints[axis].append(q_um)
-            command_axis(axis, q_um)
+            command(axis, q_um)
 
-        cell.command_axis = recorded  # type: ignore[method-assign]
+        cell.command = recorded  # type: ignore[method-assign]
         return outputs
 
     def output_written_v(self, index: int) -> list[float]:

@@ -76,7 +76,7 @@ class EmulatedCell:
         with self.lock:
             self.voltages.append(volts)
             if self.amplifier_connected:
-                self.cell.command(volts / VOLTS_PER_UM)
+                self.cell.command("x", volts / VOLTS_PER_UM)
 
     def position_um(self) -> float:
         with self.lock:
@@ -84,13 +84,13 @@ class EmulatedCell:
 
     def true_position_um(self) -> float:
         with self.lock:
-            return self.cell.true_position()
+            return self.cell.true_positions()["x"]
 
     def uncompensated_um(self, target_um: float) -> float:
         """Where the stage would be now had it been commanded ``target_um`` as it is (no model)."""
         with self.lock:
-            state = replace(self.cell.state, q=target_um, landing_um=0.0)
-            return self.cell.physics.attained_now(self.cell.sim_time(), state)
+            state = replace(self.cell.states["x"], q=target_um, landing_um=0.0)
+            return self.cell.physics.attained_now(self.cell.sim_time(), {"x": state})["x"]
 
     def _measure(self, function_code: int, start: int, registers: list[int]) -> None:
         if function_code != FC_READ_INPUT:

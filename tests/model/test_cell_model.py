@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from nanodrift.calibration.dataset import DataError, read_csv, write_csv
-from nanodrift.drivers.simulated.multiaxis import simulate_cell_dataset
+from nanodrift.drivers.simulated.datasets import simulate_dataset
 from nanodrift.model.cell_model import CellModel, load_any_model, save_cell_model
 from nanodrift.model.identify import fit_cell
 from nanodrift.model.model import ModelFileError
@@ -14,7 +14,7 @@ from nanodrift.model.model import ModelFileError
 
 @pytest.fixture(scope="module")
 def xy_data():
-    return simulate_cell_dataset("xy", "train", cycles=8, seed=21)
+    return simulate_dataset("train", axes="xy", cycles=8, seed=21)
 
 
 @pytest.fixture(scope="module")

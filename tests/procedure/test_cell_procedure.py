@@ -20,7 +20,7 @@ from nanodrift.calibration.dataset import read_csv
 from nanodrift.calibration.plans import StepTiming, cell_calibration_plan
 from nanodrift.cli import main as cli
 from nanodrift.config import load_config
-from nanodrift.drivers.simulated.multicell import SimulatedMultiCell
+from nanodrift.drivers.simulated.cell import SimulatedCell
 from nanodrift.drivers.simulated.plugin import RESOURCE_KEY
 from nanodrift.model.cell_model import CellModel, load_any_model
 from nanodrift.procedure.cell_recording import record_cell_calibration
@@ -83,8 +83,8 @@ def test_validate_through_the_drivers_prints_ap_2d_like_the_simulated_path(tmp_p
 def test_a_dirty_window_on_one_axis_sensor_is_measured_again(tmp_path: Path) -> None:
     config = load_config(_config(tmp_path))
     drivers = procedure_drivers(config)
-    cell = drivers.context.resources.get(RESOURCE_KEY, SimulatedMultiCell)
-    assert isinstance(cell, SimulatedMultiCell)
+    cell = drivers.context.resources.get(RESOURCE_KEY, SimulatedCell)
+    assert isinstance(cell, SimulatedCell)
     timing = StepTiming(ramp_s=4.0, hold_s=25.0, window_s=5.0)
     # the y beam is lost during the second step's averaging window (t 49..58 s): that window is dirty
     cell.inject_fault("interferometer_y", 55.0, 57.0, "fault")

@@ -47,7 +47,7 @@ def test_a_month_of_in_order_queries_holds_a_bounded_number_of_knots_and_the_sam
     # vectorised queries in order (a day at a time) agree exactly too, and stay bounded
     for day in range(30):
         t = np.arange(day * 86400.0, (day + 1) * 86400.0, 7.0)
-        assert np.array_equal(bounded.drift(t), reference.drift(t))
+        assert np.array_equal(bounded.drift(t)["x"], reference.drift(t)["x"])
         assert np.array_equal(bounded.thermal(t)["bracket"], reference.thermal(t)["bracket"])
     assert bounded.exogenous.knots_held <= limit
 
@@ -58,7 +58,7 @@ def test_a_query_before_the_held_knots_is_recomputed_with_identical_numbers():
     physics.exogenous.at1(MONTH_S)  # a month on: day 1 was dropped long ago
     assert physics.exogenous.first_knot > 0
     early = np.arange(3600.0, 2 * 86400.0, 11.0)
-    assert np.array_equal(physics.drift(early), reference.drift(early))
+    assert np.array_equal(physics.drift(early)["x"], reference.drift(early)["x"])
     assert physics.exogenous.at1(MONTH_S) == reference.exogenous.at1(MONTH_S)
 
 
@@ -69,7 +69,7 @@ def test_a_simulated_cell_polled_for_a_month_keeps_bounded_memory():
     for k in range(0, int(MONTH_S), 900):
         clock._now = float(k)  # the clock's own time: no scheduler needed for plain reads
         if k % 7200 == 0:
-            cell.command(float(k % 480))
+            cell.command("x", float(k % 480))
         cell.read(["T1", "T2", "T3", "T4", "interferometer"])
     assert cell.physics.exogenous.knots_held <= (Exogenous.KEEP_CHUNKS + 1) * Exogenous.CHUNK
     assert len(cell._last_ok) == 5
@@ -141,25 +141,31 @@ def test_default_sensors_on_a_fast_clock_are_polled_and_aged_within_what_the_dae
     assert any(w.startswith("sensors[4] (interferometer).interval_s:") for w in warnings)
 
 
-def test_the_truth_log_holds_each_interferometer_reading_beside_the_true_position(tmp_path: Path):
+@pytest.mark.parametrize(("axes", "channel", "true_column", "measured_column"), [
+    ("x", "interferometer", "true_x_um", "measured_x_um"),  # the one-axis columns benchmarks/week.py reads
+    ("xy", "interferometer_y", "true_um", "measured_um"),  # a stack's: one line per reading, with its axis
+])
+def test_the_truth_log_holds_each_interferometer_reading_beside_the_true_position(
+        tmp_path: Path, axes: str, channel: str, true_column: str, measured_column: str) -> None:
     path = tmp_path / "truth.csv"
     clock = VirtualClock(0.0)
-    cell = SimulatedCell(CellPhysics.create("week", seed=3), clock, truth_log=str(path))
+    cell = SimulatedCell(CellPhysics.create("week", seed=3, axes=axes), clock, truth_log=str(path))
     cell.epoch = 0.0
+    axis = axes[-1]
 
     async def run() -> list[tuple[float, float, float]]:
         seen = []
-        cell.command(240.0)
+        cell.command(axis, 240.0)
         for _ in range(50):
             await clock.sleep(60.0)
-            reading = cell.read(["interferometer", "T1"])["interferometer"]
-            seen.append((reading.t, cell.true_position(), reading.value))
+            reading = cell.read([channel, "T1"])[channel]
+            seen.append((reading.t, cell.true_positions()[axis], reading.value))
         return seen
 
     seen = asyncio.run(run())
     with open(path, newline="") as handle:
         rows = list(csv.DictReader(handle))
-    assert [(float(r["t_s"]), float(r["true_x_um"]), float(r["measured_x_um"])) for r in rows] == seen
-    assert {float(r["q_um"]) for r in rows} == {240.0}
+    assert [(float(r["t_s"]), float(r[true_column]), float(r[measured_column])) for r in rows] == seen
+    assert {float(r["q_um"]) for r in rows} == {240.0} and {r.get("axis", axis) for r in rows} == {axis}
     errors = np.array([m - x for _, x, m in seen])
     assert 0.0 < np.std(errors) < 0.1 and np.all(np.abs(errors) < 0.2)  # noise and wander, no drift

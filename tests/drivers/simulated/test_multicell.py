@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from nanodrift.config import ConfigError, load_config
+from nanodrift.drivers.simulated.cell import SimulatedCell
 from nanodrift.drivers.simulated.clock import VirtualClock
-from nanodrift.drivers.simulated.multiaxis import MultiAxisPhysics
-from nanodrift.drivers.simulated.multicell import SimulatedMultiCell
+from nanodrift.drivers.simulated.physics import CellPhysics
 from nanodrift.settings import DATA_DIR
 
 
@@ -47,12 +47,12 @@ def test_a_wrong_simulated_stack_is_refused_saying_why(tmp_path: Path, text: str
 
 
 def test_commanding_one_axis_moves_what_every_beam_reads_as_the_stack_physics_says() -> None:
-    physics = MultiAxisPhysics.create("xy", "steady", seed=2)
+    physics = CellPhysics.create("steady", seed=2, axes="xy")
     clock = VirtualClock(100.0)
-    cell = SimulatedMultiCell(physics, clock)
+    cell = SimulatedCell(physics, clock)
     cell.epoch = 0.0
     before = cell.true_positions()
-    cell.command_axis("y", 400.0)  # only y moves: x sees the crosstalk and the tilt of the upper stage
+    cell.command("y", 400.0)  # only y moves: x sees the crosstalk and the tilt of the upper stage
     after = cell.true_positions()
     static = physics.static({"x": np.array([0.0]), "y": np.array([400.0])})
     drift = physics.drift(np.array([100.0]))

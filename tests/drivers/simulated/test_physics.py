@@ -9,7 +9,7 @@ from scipy.signal import lfilter
 
 from nanodrift.drivers.simulated.config import SimulationConfig
 from nanodrift.drivers.simulated.effects import EFFECTS, UnknownNameError, resolve_effects
-from nanodrift.drivers.simulated.physics import CellPhysics, StageState, first_order_filter
+from nanodrift.drivers.simulated.physics import CellPhysics, CrossParams, StageState, first_order_filter
 from nanodrift.drivers.simulated.scenarios import SCENARIOS, get_scenario
 
 
@@ -17,7 +17,7 @@ def test_drift_opposes_temperature_about_1_1_um_per_degc():
     physics = CellPhysics.create("train", seed=0)
     t = np.array([0.0, 1.6 * 3600, 2.2 * 3600])
     thermal = physics.thermal(t)
-    drift = physics.drift(t)
+    drift = physics.drift(t)["x"]
     assert abs(drift[0]) < 0.03  # the interferometer was zeroed at the start of training
     d_temp = thermal["stage"][2] - thermal["stage"][0]
     assert d_temp < -0.25  # the room cooled
@@ -51,20 +51,29 @@ def test_thermal_nodes_are_exact_lags_at_any_spacing():
             assert one[node] == pytest.approx(vec[node][i], abs=1e-12)
 
 
-def test_scalar_and_vector_positions_agree():
-    physics = CellPhysics.create("train", "creep,hysteresis,position_thermal_coupling,thermal_lag", seed=2)
-    state = physics.after_command(StageState(), 100.0, 240.0, 0.001)
+@pytest.mark.parametrize(("axes", "effects"), [("x", "creep,hysteresis,position_thermal_coupling,thermal_lag"),
+                                              ("xyz", None)])
+def test_scalar_and_vector_positions_agree(axes: str, effects: str | None) -> None:
+    """The stepped cell's path (floats) and the vectorised run's (arrays) are one computation, for one axis
+    with the hidden effects and for a stack with its cross-axis effects."""
+    physics = CellPhysics.create("train", effects, seed=2, axes=axes)
+    states = {a: physics.after_command(StageState(), 100.0, 240.0 - 90.0 * k, 0.001) for k, a in enumerate(axes)}
+    tracks = {a: {name: np.array([value]) for name, value in vars(s).items()} for a, s in states.items()}
     for t in (100.5, 130.0, 4000.0):
-        vec = physics.attained(np.array([t]), np.array([state.q]), np.array([state.direction]),
-                               np.array([state.creep_sum]), np.array([state.t]), np.array([state.landing_um]))
-        assert physics.attained_now(t, state) == pytest.approx(vec[0], abs=1e-12)
+        vec = physics.attained_along(np.array([t]), tracks)
+        now = physics.attained_now(t, states)
+        for a in axes:
+            assert now[a] == pytest.approx(vec[a][0], abs=1e-12)
+    if len(axes) > 1:  # the stack's cross-axis effects are in both: x moves with y and z
+        alone = CellPhysics.create("train", seed=2, axes=axes, cross=CrossParams(0.0, 0.0, 0.0))
+        assert abs(alone.attained_now(4000.0, states)["x"] - physics.attained_now(4000.0, states)["x"]) > 0.3
 
 
 def test_noise_and_quantisation_after_the_paper():
     physics = CellPhysics.create("steady", seed=3)
     rng = np.random.default_rng(0)
     t = np.full(20000, 100.0)
-    readings = physics.measure_position(t, np.zeros_like(t), rng.normal(size=t.size))
+    readings = physics.measure_position("x", t, np.zeros_like(t), rng.normal(size=t.size))
     assert np.std(readings) == pytest.approx(0.020, rel=0.05)  # ~20 nm white per sample
     temps = physics.measure_temperature("T1", np.full(1000, 22.003), rng.normal(size=1000))
     assert np.allclose(np.round(temps * 100), temps * 100)  # 0.01 degC steps
