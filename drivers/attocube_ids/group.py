@@ -1,12 +1,18 @@
 """The axes of one attocube IDS read as a sensor group: one connection, one poll for every configured axis.
 
-Each poll asks (method names as attocube's API documents them, e.g. in its ``IDS`` python package):
+Each poll asks, with the method names and result layouts of attocube's published API (the vendor's
+``attocube-systems/IDS-APIs``: ``IDS_displacement_getMeasurementEnabled.m``, ``..._getAxisSignalQuality.m``,
+``..._getAxisDisplacement.m``, ``IDS_system_getCurrentMode.m``, ``IDS_system_getSystemError.m``; the same
+calls as its ``IDS`` python package):
 
 1. ``com.attocube.ids.displacement.getMeasurementEnabled`` -> ``[errNo, enabled]``: with the measurement
    stopped no axis has a displacement, so every channel is a fault naming the device's state
-   (``com.attocube.ids.system.getCurrentMode``: "system idle", "optics alignment running", ...);
+   (``com.attocube.ids.system.getCurrentMode`` -> ``[errNo, mode]``: "system idle", "optics alignment
+   running", ...) and, when it has one, the error that stopped it (``com.attocube.ids.system.getSystemError``
+   -> ``[errNo]``, "errors occurred while starting and running measurements");
 2. per axis, ``com.attocube.ids.displacement.getAxisSignalQuality`` (axis) -> ``[warningNo, contrast,
-   baseline]`` (contrast in permille of the interference signal during a running measurement);
+   baseline]`` (contrast in permille of the interference signal during a running measurement; the API notes
+   it is updated only when a displacement is measured, so it judges a moving stage's signal best);
 3. per axis, ``com.attocube.ids.displacement.getAxisDisplacement`` (axis) -> ``[warningNo, displacement]``
    in picometres, given in micrometres.
 
@@ -27,6 +33,7 @@ from nanodrift.drivers.base import Clock, DeviceError, Reading, SensorGroup
 
 MEASUREMENT_ENABLED = "com.attocube.ids.displacement.getMeasurementEnabled"
 CURRENT_MODE = "com.attocube.ids.system.getCurrentMode"
+SYSTEM_ERROR = "com.attocube.ids.system.getSystemError"
 SIGNAL_QUALITY = "com.attocube.ids.displacement.getAxisSignalQuality"
 DISPLACEMENT = "com.attocube.ids.displacement.getAxisDisplacement"
 ERROR_TEXT = "com.attocube.system.errorNumberToString"
@@ -91,12 +98,20 @@ class IdsGroup(SensorGroup):
         texts = [item for item in result if isinstance(item, str)]  # [errNo, mode] (API 2) or [mode]
         return texts[0] if texts else "unknown"
 
+    async def _why_stopped(self) -> str:
+        """The device's state, and the error that stopped its measurement when it reports one."""
+        why = f"mode {await self._mode()!r}"
+        error = (await self.rpc.call(SYSTEM_ERROR))[0]
+        if error != 0:
+            why += f"; system error {error}: {await self._text(error)}"
+        return why
+
     async def read(self) -> dict[str, Reading]:
         if not await self._measurement_enabled():
-            mode = await self._mode()
+            why = await self._why_stopped()
             t = self.clock.now()
             return {c.name: Reading.fault(t, f"attocube IDS {self.rpc.endpoint} axis {c.ids_axis}: measurement "
-                                             f"not running (mode {mode!r})", "um") for c in self.channels}
+                                             f"not running ({why})", "um") for c in self.channels}
         readings: dict[str, Reading] = {}
         for config in self.channels:
             readings[config.name] = await self._read_axis(config)

@@ -1,9 +1,11 @@
 """A JSON-RPC 2.0 client for the attocube IDS's TCP API: one request at a time, one line each way.
 
-The IDS answers each request object with one response object on one line (attocube's own clients,
-e.g. the ``IDS`` python package's ``ACS.Device.request`` and the MATLAB examples, write one JSON object and
-read one line back); its ``result`` is a list whose first element is an error or warning number
-(0: none). The request carries ``"api": 2`` as attocube's clients send it. Every failure of the link or
+The IDS answers each request object with one response object on one line: attocube's published API
+(``attocube-systems/IDS-APIs``: each MATLAB function ``writeline``s one request and ``readline``s one
+answer; the ``IDS`` python package's ``ACS.Device.request`` likewise) on TCP port 9090. The ``result`` is a
+list whose first element is an error or warning number (0: none; ``com.attocube.system.errorNumberToString``
+gives its text); a failed call is a JSON-RPC 2.0 ``error`` object. The request carries ``"api": 2`` as
+attocube's clients send it. Every failure of the link or
 of the answer's shape is a :class:`DeviceError` naming the device, the method and what was expected.
 """
 

@@ -3,11 +3,13 @@ nanodrift reads. Pure: no I/O.
 
 Sources (each behaviour below names where it comes from):
 
-- *ADAM 4000 Series User's Manual* (Advantech), chapter "Analog Input Module Commands":
-  ``#AA`` (Analog Data In: ``>`` then every channel's value, each a sign and five digits with a fixed
-  decimal point in engineering units, e.g. ``>+0025.23+0024.98``); the out-of-bounds table of ``#AA``
-  (a thermocouple input outside its configured range reads ``+9999`` over, ``-0000`` under, in
-  engineering units); ``$AAM`` (Read Module Name: ``!AA`` then the name, e.g. ``!014018``); ``$AA2``
+- *ADAM 4000 Series User's Manual* (Advantech), chapter 5 "Analog Input Module Commands":
+  ``#AA`` (Analog Data In, 4017/4018/4018+/4019+: ``>`` then every channel's value run together, each a
+  sign and five digits with a fixed decimal point in engineering units; the manual's example ``#21`` ->
+  ``>+7.2111+7.2567+7.3125+7.1000+7.4712+7.2555+7.1234+7.5678``); the out-of-bounds table of ``#AA``
+  (a thermocouple or RTD input outside its configured range reads ``+9999`` over, ``-0000`` under, in
+  engineering units; a value at or beyond 9999 in magnitude is taken as such a code on every module:
+  no thermocouple reads 9999 degC); ``$AAM`` (Read Module Name: ``!AA`` then the name, e.g. ``!014018``); ``$AA2``
   (Configuration Status: ``!AATTCCFF``; FF bits 0-1 the data format, 00 = engineering units, bit 6 the
   checksum); ``$AAB`` (Channel Diagnose, 4015/4018+/4019+: ``!AANN``, bit N set = channel N over range,
   under range or open wiring); ``?AA`` answers an invalid command; a wrong address or a syntax error

@@ -1,7 +1,8 @@
 """An attocube IDS3010 answering its JSON-RPC 2.0 API on TCP, 127.0.0.1, an ephemeral port (or a given one).
 
-Built from attocube's documented API (the ``IDS`` python package's ``Displacement``, ``System`` and
-``Adjustment`` classes and the JSON-RPC 2.0 specification): each request object on the connection is
+Built from attocube's published API (``attocube-systems/IDS-APIs``: the MATLAB functions' method names and
+result layouts, the same as the ``IDS`` python package's ``Displacement`` and ``System`` classes) and the
+JSON-RPC 2.0 specification: each request object on the connection is
 answered by one response line, ``{"jsonrpc": "2.0", "result": [...], "id": <the request's id>}``, the
 result starting with an error/warning number; an unknown method is JSON-RPC error -32601. Three axes,
 each a displacement in picometres, a contrast and baseline in permille and a warning number; the
@@ -49,6 +50,8 @@ class IdsEmulator:
     def __init__(self, port: int = 0, *, start: bool = True) -> None:
         self.axes = [IdsAxis(displacement_pm=123_456_789.0), IdsAxis(displacement_pm=-2_500_000.0), IdsAxis()]
         self.measurement_running = True
+        #: what getSystemError answers (the error that stopped a measurement; 0: none)
+        self.system_error = 0
         self.silent = False
         self.reply: bytes | None = None
         self.error_texts = dict(self.ERROR_TEXTS)
@@ -157,6 +160,8 @@ class IdsEmulator:
             return [0, self.measurement_running]
         if method == "com.attocube.ids.system.getCurrentMode":
             return [0, self.mode]
+        if method == "com.attocube.ids.system.getSystemError":
+            return [self.system_error]
         if method == "com.attocube.system.errorNumberToString":
             return [0, self.error_texts.get(int(params[1]), f"error {params[1]}")]
         if method in ("com.attocube.ids.displacement.getAxisSignalQuality",

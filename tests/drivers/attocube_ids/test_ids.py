@@ -71,6 +71,8 @@ def test_a_stopped_measurement_faults_every_axis_naming_it_and_the_mode(ids: Ids
     async def body() -> None:
         await group.open()
         ids.measurement_running = False
+        ids.system_error = 23
+        ids.error_texts[23] = "beam lost during initialisation"
         readings = await group.read()
         ids.measurement_running = True
         again = await group.read()
@@ -79,6 +81,7 @@ def test_a_stopped_measurement_faults_every_axis_naming_it_and_the_mode(ids: Ids
             reading = readings[name]
             assert reading.state is State.FAULT and math.isnan(reading.value)
             assert f"axis {axis}" in reading.reason and "'system idle'" in reading.reason
+            assert "system error 23: beam lost during initialisation" in reading.reason
             assert again[name].state is State.OK
 
     run(body)

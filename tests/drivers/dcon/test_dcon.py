@@ -63,6 +63,15 @@ def test_out_of_range_codes_are_problems_never_temperatures() -> None:
         parse_all_channels("?01")
 
 
+def test_the_adam_manuals_examples_parse_as_it_says() -> None:
+    # ADAM 4000 manual, #AA: "#21" -> channels 0 to 7 at +7.2111 ... +7.5678 (volts there)
+    values = parse_all_channels(">+7.2111+7.2567+7.3125+7.1000+7.4712+7.2555+7.1234+7.5678")
+    assert [v.value for v in values] == [7.2111, 7.2567, 7.3125, 7.1, 7.4712, 7.2555, 7.1234, 7.5678]
+    # $AA2: "$452" -> "!45050600": input range 05, 9600 bps (06), engineering units, no checksum
+    config = parse_configuration("!45050600", 0x45)
+    assert (config.type_code, config.baud_code, config.engineering_units, config.checksum) == (5, 6, True, False)
+
+
 def test_checksum_is_the_icp_das_example() -> None:
     # ICP DAS manuals' worked example: $012 -> B7, and the answer !01200600 -> AA
     assert frame("$012", with_checksum=True) == b"$012B7\r"
