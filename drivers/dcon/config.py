@@ -53,6 +53,7 @@ class DconSensorConfig(SensorConfig):
     """
 
     kind: Literal["dcon"] = "dcon"
+    role: Literal["temperature"] = "temperature"
     hub: str = Field(description="name of a [[hubs]] entry (type = 'serial' or 'tcp')")
     address: int = Field(ge=0, le=255, description="the module's address, sent as two hex digits (1 -> '01')")
     channel: int = Field(ge=0, le=7, description="the module's input channel")

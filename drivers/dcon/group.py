@@ -31,7 +31,8 @@ log = logging.getLogger(__name__)
 
 
 class DconModuleGroup(SensorGroup):
-    def __init__(self, channels: Sequence[DconSensorConfig], bus: DconBus, clock: Clock) -> None:
+    def __init__(self, channels: Sequence[DconSensorConfig], bus: DconBus, clock: Clock, *,
+                 modules_on_bus: int = 1) -> None:
         first = channels[0]
         self.channels = list(channels)
         self.bus = bus
@@ -42,8 +43,11 @@ class DconModuleGroup(SensorGroup):
         self.names = tuple(c.name for c in channels)
         self.roles = {c.name: c.role for c in channels}
         self.interval_s = min(c.interval_s for c in channels)
-        # one poll: #AA, and $AAB when asked, each bounded by the hub's timeout
-        self.timeout_s = max(max(c.timeout_s for c in channels), 2.5 * bus.config.timeout_s)
+        # one poll: #AA, and $AAB when asked, each bounded by the hub's timeout, possibly after as much for
+        # every other module of the bus (one request at a time): the poll's bound covers the queue
+        exchanges = 2 if self.open_detection else 1
+        self.timeout_s = max(max(c.timeout_s for c in channels),
+                             exchanges * bus.config.timeout_s * modules_on_bus + 0.5)
         self.module_name = ""
         self._opened = False
 

@@ -26,7 +26,7 @@ from nanodrift.drivers.dcon.group import DconModuleGroup
 #: key of the buses in ``DriverContext.resources``: hub name -> its one bus
 BUSES_KEY = "dcon.buses"
 #: settings every channel of one module must share (they are the module's, not the channel's)
-MODULE_SETTINGS = ("checksum", "open_detection", "unit")
+MODULE_SETTINGS = ("checksum", "open_detection")
 
 
 def _channels(configs: Sequence[SensorConfig]) -> list[DconSensorConfig]:
@@ -77,7 +77,8 @@ class DconPlugin(DriverPlugin):
                 known = ", ".join(sorted(context.hubs)) or "none defined"
                 raise DriverSetupError(f"sensor {config.name!r}: no [[hubs]] named {config.hub!r} (hubs: {known})")
             modules.setdefault(config.module, []).append(config)
-        return [DconModuleGroup(channels, shared_bus(context, hub), context.clock)
+        per_hub = {hub: sum(1 for h, _ in modules if h == hub) for hub, _ in modules}
+        return [DconModuleGroup(channels, shared_bus(context, hub), context.clock, modules_on_bus=per_hub[hub])
                 for (hub, _), channels in modules.items()]
 
 

@@ -2,8 +2,8 @@
 
 Built from the ADAM 4000 Series User's Manual and ICP DAS's checksum rule (see
 :mod:`nanodrift.drivers.dcon.protocol`): ``#AA`` answers ``>`` and every channel's value in engineering
-units (``+0025.23``), an open thermocouple reads the over-range code ``+9999``; ``$AAM`` answers the
-module name, ``$AA2`` its configuration, ``$AAB`` (when the model has it) the open/out-of-range mask;
+units (``+0025.23``), ``#AAN`` channel N alone, an open thermocouple reads the over-range code
+``+9999``; ``$AAM`` answers the module name, ``$AA2`` its configuration, ``$AAB`` (when the model has it) the open/out-of-range mask;
 ``?AA`` answers a command the module does not know; a wrong address, a bad checksum or a syntax error
 gets no answer, as on the real bus. Several modules may share the bus (one address each)::
 
@@ -55,6 +55,9 @@ class DconModule:
         aa = f"{self.address:02X}"
         if command == f"#{aa}":
             return ">" + "".join(self.value_text(c) for c in range(len(self.temperatures_c)))
+        if len(command) == 4 and command.startswith(f"#{aa}") and command[3].isdigit():  # #AAN: one channel
+            channel = int(command[3])
+            return f">{self.value_text(channel)}" if channel < len(self.temperatures_c) else f"?{aa}"
         if command == f"${aa}M":
             return f"!{aa}{self.name}"
         if command == f"${aa}2":

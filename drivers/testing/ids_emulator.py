@@ -114,6 +114,7 @@ class IdsEmulator:
             self._thread.join(timeout=2)
 
     def _serve(self, sock: socket.socket, rfile: Any) -> None:
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)  # one small answer per request, sent at once
         with self._lock:
             self._sockets.add(sock)
             self.connections += 1

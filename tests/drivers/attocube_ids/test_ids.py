@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import asyncio
+import json
 import math
 from collections.abc import Awaitable, Callable, Iterator
 from typing import Any
 
 import pytest
-from hypothesis import given
+from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
@@ -189,3 +190,29 @@ def test_one_device_axis_read_twice_is_a_config_problem() -> None:
                for n in ("a", "b")]
     [problem] = plugin.config_problems(list(enumerate(configs)), None)
     assert problem.startswith("sensors[1] (b).ids_axis:") and "already read by sensors[0] (a)" in problem
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(reply=st.one_of(st.binary(max_size=80), st.builds(
+    lambda result: json.dumps({"jsonrpc": "2.0", "result": result, "id": 2}).encode(),
+    st.lists(st.one_of(st.none(), st.booleans(), st.integers(), st.floats(), st.text(max_size=5)), max_size=4),
+)).map(lambda b: b + b"\n"))
+def test_whatever_comes_back_over_tcp_a_poll_is_readings_or_a_device_error(ids: IdsEmulator, reply: bytes) -> None:
+    group = group_of(ids, {"a": 0})
+
+    async def body() -> None:
+        ids.reply = None
+        await group.open()
+        ids.reply = reply  # every answer replaced by hostile bytes
+        try:
+            readings = await group.read()
+        except DeviceError as error:
+            assert f"127.0.0.1:{ids.port}" in str(error)
+        else:
+            reading = readings["a"]
+            assert (reading.state is State.OK) == math.isfinite(reading.value)
+            assert reading.state is State.OK or "axis 0" in reading.reason
+        finally:
+            await group.close()
+
+    run(body)

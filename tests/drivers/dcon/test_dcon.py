@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from hypothesis import given
+from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from nanodrift.drivers.base import DeviceError, DriverContext, State
@@ -305,3 +305,42 @@ def test_a_tcp_gateway_hub_reads_the_same_module_and_recovers_after_it_restarts(
         run(body)
     finally:
         gateway.stop()
+
+
+@pytest.fixture
+def pty_bus(tmp_path: Path) -> Any:
+    bus = DconBusEmulator(tmp_path / "tty", [DconModule(1, [21.0, 22.0, 23.0, 24.0])])
+    [group] = groups(bus, [{"name": "T1", "address": 1, "channel": 0}, {"name": "T3", "address": 1, "channel": 2}],
+                     timeout_s=0.1)
+    yield bus, group
+    bus.close()
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(reply=st.binary(max_size=60).map(lambda b: b + b"\r"))
+def test_whatever_the_line_carries_a_poll_is_readings_or_a_device_error(pty_bus: tuple[DconBusEmulator, Any],
+                                                                     reply: bytes) -> None:
+    bus, group = pty_bus
+
+    async def body() -> None:
+        bus.reply = None
+        await group.open()
+        bus.reply = reply  # the module's answers replaced by hostile bytes
+        try:
+            readings = await group.read()
+        except DeviceError as error:
+            assert bus.port in str(error)
+        else:  # what came parsed: every channel is a number or a fault naming its channel
+            for reading in readings.values():
+                assert (reading.state is State.OK) == math.isfinite(reading.value)
+                assert reading.state is State.OK or "channel" in reading.reason
+        finally:
+            await group.close()
+
+    run(body)
+
+
+def test_a_position_role_is_refused_for_a_thermocouple_module() -> None:
+    with pytest.raises(ValueError, match="role"):
+        DconSensorConfig.model_validate({"name": "T1", "kind": "dcon", "hub": "h", "address": 1, "channel": 0,
+                                         "role": "position"})
