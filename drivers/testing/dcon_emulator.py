@@ -3,7 +3,8 @@
 Built from the ADAM 4000 Series User's Manual and ICP DAS's checksum rule (see
 :mod:`nanodrift.drivers.dcon.protocol`): ``#AA`` answers ``>`` and every channel's value in engineering
 units (``+0025.23``), ``#AAN`` channel N alone, an open thermocouple reads the over-range code
-``+9999``; ``$AAM`` answers the module name, ``$AA2`` its configuration, ``$AAB`` (when the model has it) the open/out-of-range mask;
+``+9999``; ``$AAM`` answers the module name, ``$AA2`` its configuration, ``$AAB`` (when the model has
+it) the open/out-of-range mask;
 ``?AA`` answers a command the module does not know; a wrong address, a bad checksum or a syntax error
 gets no answer, as on the real bus. Several modules may share the bus (one address each)::
 
