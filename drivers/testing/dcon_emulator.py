@@ -23,7 +23,7 @@ import select
 import socket
 import socketserver
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -39,23 +39,28 @@ class DconModule:
     temperatures_c: list[float]
     name: str = "4018"
     open_channels: set[int] = field(default_factory=set)
+    #: channels ``$AAB`` flags besides the open ones (a module diagnosing wiring its values do not show yet)
+    diagnosed_channels: set[int] = field(default_factory=set)
     checksum: bool = False
     #: answers $AAB (ADAM-4018+, 4019+); a module without it answers ?AA
     diagnoses: bool = True
     #: $AA2's FF byte data format bits (0 = engineering units)
     data_format: int = 0
     type_code: int = 0x0F  # thermocouple type K (ADAM 4000 manual, input range table)
+    #: when set, every channel's temperature at the moment of each read, e.g. an emulated cell's thermocouples
+    follow: Callable[[], Sequence[float]] | None = None
 
-    def value_text(self, channel: int) -> str:
+    def value_text(self, channel: int, temperatures_c: Sequence[float] | None = None) -> str:
         if channel in self.open_channels:
             return "+9999"
-        return f"{self.temperatures_c[channel]:+08.2f}"
+        return f"{(temperatures_c or self.temperatures_c)[channel]:+08.2f}"
 
     def answer(self, command: str) -> str:
         """The answer (without checksum and CR) to ``command`` addressed to this module."""
         aa = f"{self.address:02X}"
         if command == f"#{aa}":
-            return ">" + "".join(self.value_text(c) for c in range(len(self.temperatures_c)))
+            now = list(self.follow()) if self.follow is not None else self.temperatures_c
+            return ">" + "".join(self.value_text(c, now) for c in range(len(now)))
         if len(command) == 4 and command.startswith(f"#{aa}") and command[3].isdigit():  # #AAN: one channel
             channel = int(command[3])
             return f">{self.value_text(channel)}" if channel < len(self.temperatures_c) else f"?{aa}"
@@ -65,7 +70,7 @@ class DconModule:
             format_byte = self.data_format | (CHECKSUM_BIT if self.checksum else 0)
             return f"!{aa}{self.type_code:02X}06{format_byte:02X}"  # baud code 06: 9600 bps
         if command == f"${aa}B" and self.diagnoses:
-            mask = sum(1 << c for c in self.open_channels)
+            mask = sum(1 << c for c in self.open_channels | self.diagnosed_channels)
             return f"!{aa}{mask:02X}"
         return f"?{aa}"
 

@@ -24,6 +24,7 @@ import json
 import socket
 import socketserver
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -39,6 +40,11 @@ class IdsAxis:
     contrast_permille: int = 850
     baseline_permille: int = 20
     warning: int = 0
+    #: when set, the displacement (pm) at the moment of each request, e.g. an emulated stage's position
+    follow: Callable[[], float] | None = None
+
+    def displacement_now_pm(self) -> float:
+        return self.follow() if self.follow is not None else self.displacement_pm
 
 
 class IdsEmulator:
@@ -171,7 +177,7 @@ class IdsEmulator:
             if method.endswith("getAxisSignalQuality"):
                 contrast = axis.contrast_permille if self.measurement_running else 0
                 return [axis.warning, contrast, axis.baseline_permille]
-            return [axis.warning, axis.displacement_pm if self.measurement_running else 0.0]
+            return [axis.warning, axis.displacement_now_pm() if self.measurement_running else 0.0]
         if method == "com.attocube.ids.displacement.getAxesDisplacement":
-            return [0, *(axis.displacement_pm for axis in self.axes)]
+            return [0, *(axis.displacement_now_pm() for axis in self.axes)]
         raise LookupError(method)
