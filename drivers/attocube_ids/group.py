@@ -133,4 +133,5 @@ class IdsGroup(SensorGroup):
         if contrast < config.min_contrast_permille:
             return Reading.fault(t, f"{where}: bad signal: contrast {contrast:g} permille, below "
                                     f"min_contrast_permille = {config.min_contrast_permille}", "um")
-        return Reading(value=displacement_pm * UM_PER_PM, t=t, unit="um")
+        sign = -1.0 if config.invert else 1.0
+        return Reading(value=sign * displacement_pm * UM_PER_PM + config.offset_um, t=t, unit="um")

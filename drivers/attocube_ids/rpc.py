@@ -28,6 +28,10 @@ def _shown(data: bytes | str) -> str:
     return repr(text if len(text) <= SHOWN_CHARS else text[:SHOWN_CHARS] + "...")
 
 
+class IdsRpcError(DeviceError):
+    """The IDS answered a call with a JSON-RPC error object: the exchange itself was sound."""
+
+
 class IdsRpc:
     """The connection to one IDS (``host``:``port``)."""
 
@@ -70,6 +74,8 @@ class IdsRpc:
             await self.connect()
             try:
                 return await self._call_locked(method, params or [])
+            except IdsRpcError:
+                raise  # a well-formed answer: the stream is in step
             except DeviceError:
                 await self.close()  # the stream may hold a late answer: never read it as the next one's
                 raise
@@ -109,7 +115,7 @@ class IdsRpc:
         if error is not None:
             code = error.get("code") if isinstance(error, dict) else None
             message = error.get("message") if isinstance(error, dict) else error
-            raise DeviceError(f"{where}: JSON-RPC error {code}: {message}")
+            raise IdsRpcError(f"{where}: JSON-RPC error {code}: {message}")
         result = answer.get("result")
         if not isinstance(result, list) or not result:
             raise DeviceError(f"{where}: answer {_shown(line)} has no result list (expected {expected})")

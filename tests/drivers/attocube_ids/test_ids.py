@@ -66,6 +66,37 @@ def test_displacement_in_pm_is_read_as_um_with_the_documented_calls(ids: IdsEmul
     run(body)
 
 
+def test_invert_and_offset_put_the_displacement_in_the_cells_frame(ids: IdsEmulator) -> None:
+    ids.axes[0].displacement_pm = -240_000_000.0  # the stage moved 240 um towards the head
+    group = group_of(ids, {"x": 0}, invert=True, offset_um=10.0)
+
+    async def body() -> None:
+        await group.open()
+        reading = (await group.read())["x"]
+        await group.close()
+        assert reading.value == pytest.approx(250.0, abs=1e-9)
+
+    run(body)
+
+
+def test_a_json_rpc_error_keeps_the_connection_a_garbled_answer_drops_it(ids: IdsEmulator) -> None:
+    group = group_of(ids, {"a": 0})
+
+    async def body() -> None:
+        await group.open()
+        with pytest.raises(DeviceError, match="JSON-RPC error -32601"):
+            await group.rpc.call("com.attocube.ids.nonsense")
+        assert group.rpc.connected and (await group.read())["a"].state is State.OK
+        ids.reply = b"garbage\n"
+        with pytest.raises(DeviceError, match="is not JSON"):
+            await group.read()
+        assert not group.rpc.connected
+        await group.close()
+        assert ids.connections == 1  # the error answer did not cost a reconnection
+
+    run(body)
+
+
 def test_a_stopped_measurement_faults_every_axis_naming_it_and_the_mode(ids: IdsEmulator) -> None:
     group = group_of(ids, {"ifm_x": 0, "ifm_y": 1})
 
