@@ -35,14 +35,18 @@ class DconBus:
         self._users = 0
 
     @property
+    def is_open(self) -> bool:
+        return self._port is not None
+
+    @property
     def description(self) -> str:
         return f"DCON hub {self.config.name!r} ({self.config.endpoint})"
 
     async def open(self) -> None:
         """Open the port unless open; :class:`DeviceError` naming it when it cannot be."""
-        self._users += 1
         async with self._lock:
             await asyncio.to_thread(self._open_blocking)
+        self._users += 1  # only a group that opened it releases it
 
     async def release(self) -> None:
         self._users = max(0, self._users - 1)

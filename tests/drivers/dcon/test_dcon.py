@@ -338,3 +338,27 @@ def test_a_position_role_is_refused_for_a_thermocouple_module() -> None:
     with pytest.raises(ValueError, match="role"):
         DconSensorConfig.model_validate({"name": "T1", "kind": "dcon", "hub": "h", "address": 1, "channel": 0,
                                          "role": "position"})
+
+
+def test_the_bus_port_closes_when_its_last_module_closes_even_after_failed_opens(tmp_path: Path) -> None:
+    bus = DconBusEmulator(tmp_path / "tty", [DconModule(1, [21.0] * 4), DconModule(2, [22.0] * 4)])
+    first, second = groups(bus, [{"name": "A", "address": 1, "channel": 0}, {"name": "B", "address": 2, "channel": 0}])
+
+    async def body() -> None:
+        bus.unplug()
+        for _ in range(2):
+            with pytest.raises(DeviceError, match="cannot open"):
+                await first.open()
+            await first.close()
+        bus.replug()
+        await first.open()
+        await second.open()
+        await first.close()
+        assert (await second.read())["B"].value == 22.0  # the other module keeps the shared port
+        await second.close()
+        assert not first.bus.is_open  # the last one out closed it
+
+    try:
+        run(body)
+    finally:
+        bus.close()
