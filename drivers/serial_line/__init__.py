@@ -1,1 +1,2 @@
-"""Line-oriented serial instruments (a laser interferometer answering ``POS?``, or streaming)."""
+"""Line-oriented serial instruments: the generic ASCII path for a device no plugin speaks for (a query and a
+regex on each answer line, or lines the device streams), and an ASCII controller as actuator."""

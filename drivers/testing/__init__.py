@@ -10,6 +10,11 @@ plugin opens a real socket or a real serial port, and the test looks at what the
 - :mod:`nanodrift.drivers.testing.pty_devices`: instruments on a pty behind a stable link, which can be
   unplugged and plugged back: :class:`FakeInterferometer` (``P <nm> nm`` lines, queried or streamed),
   :class:`FakeGcsController` (a PI controller speaking GCS), and :class:`PtyDevice` to write another;
+- :mod:`nanodrift.drivers.testing.ids_emulator`: :class:`IdsEmulator`, an attocube IDS3010 answering its
+  JSON-RPC 2.0 API on TCP 127.0.0.1 (axes in pm, signal contrast, a measurement that can be stopped);
+- :mod:`nanodrift.drivers.testing.dcon_emulator`: :class:`DconBusEmulator`, DCON thermocouple modules
+  (:class:`DconModule`, 4 or 8 channels, open thermocouples, checksums) on an RS-485 bus emulated by a pty,
+  or behind a TCP gateway (:class:`DconTcpGateway`);
 - :mod:`nanodrift.drivers.testing.protocol`: :func:`expected_protocol`, a pty device that expects an exact
   conversation (PyMeasure's ``expected_protocol``) and fails on anything else.
 
@@ -44,6 +49,8 @@ it: import it by its full name. nanodrift's contract tests (``tests/drivers/test
 nanodrift itself imports this package (``tests/test_architecture.py`` enforces it).
 """
 
+from nanodrift.drivers.testing.dcon_emulator import DconBusEmulator, DconModule, DconTcpGateway
+from nanodrift.drivers.testing.ids_emulator import IdsAxis, IdsEmulator
 from nanodrift.drivers.testing.modbus_server import (
     FC_READ_HOLDING,
     FC_READ_INPUT,
@@ -61,8 +68,13 @@ from nanodrift.drivers.testing.pty_devices import FakeGcsController, FakeInterfe
 __all__ = [
     "FC_READ_HOLDING",
     "FC_READ_INPUT",
+    "DconBusEmulator",
+    "DconModule",
+    "DconTcpGateway",
     "FakeGcsController",
     "FakeInterferometer",
+    "IdsAxis",
+    "IdsEmulator",
     "ModbusTestDevice",
     "ModbusTestServer",
     "PtyDevice",

@@ -4,6 +4,8 @@ runs it against its own plugin: a rig per plugin, a ``Test...`` subclass per rig
 - ``simulated``: the simulated cell (its injected faults stand for the device's trouble);
 - ``modbus``: two thermocouple channels on pymodbus' TCP server on 127.0.0.1 (``nanodrift.drivers.testing``);
 - ``serial_line``: an interferometer on a pty, queried with ``POS?`` (``nanodrift.drivers.testing``);
+- ``attocube_ids``: two axes of an IDS3010 emulated behind real TCP on 127.0.0.1 (JSON-RPC 2.0);
+- ``dcon``: three channels of a 4-channel DCON thermocouple module on a pty (``#AA``);
 - ``labbox``: a lab's own plugin (``tests/helpers/lab_plugin.py``), found through a real entry point.
 
 Every group is built the daemon's way: the plugin found by name through the ``nanodrift.drivers``
@@ -22,11 +24,20 @@ from helpers import lab_plugin
 from helpers.daemon_harness import SensorFile
 
 from nanodrift.drivers.base import DriverContext, Reading
+from nanodrift.drivers.dcon.config import DconHubConfig
 from nanodrift.drivers.modbus.codec import encode
 from nanodrift.drivers.registry import available
 from nanodrift.drivers.simulated.cell import SimulatedCell
 from nanodrift.drivers.simulated.plugin import RESOURCE_KEY
-from nanodrift.drivers.testing import FakeInterferometer, ModbusTestDevice, ModbusTestServer, tcp_context
+from nanodrift.drivers.testing import (
+    DconBusEmulator,
+    DconModule,
+    FakeInterferometer,
+    IdsEmulator,
+    ModbusTestDevice,
+    ModbusTestServer,
+    tcp_context,
+)
 from nanodrift.drivers.testing.contract import SensorContract, SensorRig
 
 # --- the rigs -------------------------------------------------------------------------------------
@@ -136,6 +147,80 @@ class SerialRig(SensorRig):
         self.device.replug()
 
 
+class IdsRig(SensorRig):
+    """Axes 0 and 1 of one IDS: one connection, one group."""
+
+    kind = "attocube_ids"
+    names = ("ifm_x", "ifm_y")
+    roles: ClassVar[dict[str, str]] = {"ifm_x": "position", "ifm_y": "position"}
+    units: ClassVar[dict[str, str]] = {"ifm_x": "um", "ifm_y": "um"}
+
+    def __init__(self, tmp_path: Path) -> None:
+        super().__init__(tmp_path)
+        self.device = IdsEmulator()
+
+    def sensor_configs(self) -> list[dict[str, Any]]:
+        return [{"name": name, "kind": "attocube_ids", "host": "127.0.0.1", "port": self.device.port,
+                 "ids_axis": axis, "min_contrast_permille": 300, "interval_s": 0.1, "timeout_s": 0.5}
+                for axis, name in enumerate(self.names)]
+
+    async def stop(self) -> None:
+        self.device.stop()
+
+    def check_values(self, readings: dict[str, Reading]) -> None:
+        assert readings["ifm_x"].value == pytest.approx(123.456789, abs=1e-9)  # pm -> um
+        assert readings["ifm_y"].value == pytest.approx(-2.5, abs=1e-9)
+
+    async def fault_channel(self) -> str:
+        self.device.axes[1].contrast_permille = 40  # the beam of axis 1 is lost
+        return "ifm_y"
+
+    async def gone(self) -> None:
+        self.device.stop()
+
+    async def back(self) -> None:
+        self.device.start()
+
+
+class DconRig(SensorRig):
+    """Channels 0, 1 and 3 of a 4-channel module at address 01: one #01 per poll."""
+
+    kind = "dcon"
+    names = ("T1", "T2", "T4")
+    roles: ClassVar[dict[str, str]] = dict.fromkeys(names, "temperature")
+    units: ClassVar[dict[str, str]] = dict.fromkeys(names, "degC")
+
+    def __init__(self, tmp_path: Path) -> None:
+        super().__init__(tmp_path)
+        self.device = DconBusEmulator(tmp_path / "ttyRS485", [DconModule(1, [21.5, -3.25, 22.0, 23.75])])
+
+    def sensor_configs(self) -> list[dict[str, Any]]:
+        return [{"name": name, "kind": "dcon", "hub": "rs485", "address": 1, "channel": channel,
+                 "interval_s": 0.2, "timeout_s": 1.0} for name, channel in zip(self.names, (0, 1, 3), strict=True)]
+
+    def context(self) -> DriverContext:
+        hub = DconHubConfig(name="rs485", type="serial", port=self.device.port, timeout_s=0.3)
+        return DriverContext(clock=self.clock, hubs={"rs485": hub})
+
+    async def stop(self) -> None:
+        self.device.close()
+
+    def check_values(self, readings: dict[str, Reading]) -> None:
+        assert readings["T1"].value == pytest.approx(21.5)
+        assert readings["T2"].value == pytest.approx(-3.25)
+        assert readings["T4"].value == pytest.approx(23.75)
+
+    async def fault_channel(self) -> str:
+        self.device.modules[1].open_channels.add(1)  # an open thermocouple reads +9999
+        return "T2"
+
+    async def gone(self) -> None:
+        self.device.unplug()
+
+    async def back(self) -> None:
+        self.device.replug()
+
+
 class LabRig(SensorRig):
     """A lab's own plugin: its ``file`` sensors read a JSON file."""
 
@@ -168,7 +253,7 @@ class LabRig(SensorRig):
 
 
 RIGS: dict[str, type[SensorRig]] = {"simulated": SimulatedRig, "modbus": ModbusRig, "serial_line": SerialRig,
-                                    "labbox": LabRig}
+                                    "attocube_ids": IdsRig, "dcon": DconRig, "labbox": LabRig}
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -191,6 +276,14 @@ class TestModbus(SensorContract):
 
 class TestSerialLine(SensorContract):
     rig = SerialRig
+
+
+class TestAttocubeIds(SensorContract):
+    rig = IdsRig
+
+
+class TestDcon(SensorContract):
+    rig = DconRig
 
 
 class TestLabBox(SensorContract):

@@ -1,8 +1,8 @@
 """The plugin contract kit: the checks every driver plugin must pass, as pytest test classes a lab imports.
 
-nanodrift runs its own plugins (``simulated``, ``modbus``, ``serial_line``) through exactly these classes
-(``tests/drivers/test_actuator_contract.py``, ``tests/drivers/test_sensor_contract.py``); a lab runs its
-plugin through them in its own repository. A rig says how to build the plugin's device emulator and how
+nanodrift runs its own plugins (``simulated``, ``modbus``, ``serial_line``, ``attocube_ids``, ``dcon``) through
+exactly these classes (``tests/drivers/test_actuator_contract.py``, ``tests/drivers/test_sensor_contract.py``);
+a lab runs its plugin through them in its own repository. A rig says how to build the plugin's device emulator and how
 to read what the device actually received; the contract class holds the checks::
 
     # tests/test_mybox_contract.py, in the lab's repository (its plugin installed: pip install -e .)

@@ -1,0 +1,1 @@
+"""attocube IDS displacement interferometers over their JSON-RPC 2.0 API on TCP."""
