@@ -52,7 +52,8 @@ CORE_THIRD_PARTY = {"numpy", "scipy"}
 CORE_FORBIDDEN_STDLIB = {"asyncio", "socket", "subprocess", "threading", "selectors", "multiprocessing",
                          "concurrent"}
 DRIVER_CORE_UNITS = {"nanodrift.drivers.base", "nanodrift.drivers.registry"}
-PLUGIN_ROOTS = ("nanodrift.drivers.simulated", "nanodrift.drivers.modbus", "nanodrift.drivers.serial_line")
+PLUGIN_ROOTS = ("nanodrift.drivers.simulated", "nanodrift.drivers.modbus", "nanodrift.drivers.serial_line",
+                "nanodrift.drivers.pi_gcs")
 #: the simulated cell's computation: pure core + numpy/scipy/stdlib + each other
 SIMULATOR_PURE = {f"{DRIVERS}.simulated.{name}" for name in ("physics", "scenarios", "effects", "runs", "datasets",
                                                            "clock")}

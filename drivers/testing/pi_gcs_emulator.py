@@ -69,7 +69,8 @@ class PiGcsEmulator:
     Knobs for tests: ``axes`` (identifier -> :class:`EmulatedAxis`), ``settle_s`` (a MOV is on target
     this long after it), ``fail_next`` (command word -> error code: the next such command is refused
     with it, changing nothing), ``has_voltage_limits`` (False: ``VMI?``/``VMA?`` are unknown commands,
-    as on a controller without them), ``silent`` (answers nothing), ``um_per_volt`` (open-loop
+    as on a controller without them), ``silent`` (answers nothing), ``frozen`` (SVA and MOV are accepted
+    without an error and change nothing: an amplifier off, a stage unplugged), ``um_per_volt`` (open-loop
     position per volt, for ``POS?``).
     """
 
@@ -79,10 +80,13 @@ class PiGcsEmulator:
     um_per_volt: float = 4.0
     has_voltage_limits: bool = True
     silent: bool = False
+    frozen: bool = False
     error: int = 0
     fail_next: dict[str, int] = field(default_factory=dict)
     #: every line received, in order: (connection id, line)
     lines: list[tuple[str, str]] = field(default_factory=list)
+    #: when each line of ``lines`` arrived (time.monotonic())
+    line_times: list[float] = field(default_factory=list)
     #: every SVA / MOV value that took effect: (axis, value)
     applied_sva: list[tuple[str, float]] = field(default_factory=list)
     applied_mov: list[tuple[str, float]] = field(default_factory=list)
@@ -94,6 +98,12 @@ class PiGcsEmulator:
         """Every line received (all connections), or only those whose command word is ``word``."""
         with self._lock:
             return [line for _, line in self.lines if word is None or line.split()[:1] == [word]]
+
+    def stamped(self, word: str) -> list[tuple[float, str]]:
+        """(arrival time, line) of every line whose command word is ``word``."""
+        with self._lock:
+            return [(t, line) for t, (_, line) in zip(self.line_times, self.lines, strict=True)
+                    if line.split()[:1] == [word]]
 
     def raise_error(self, code: int) -> None:
         """The controller's error register becomes ``code`` now, as if something else caused it."""
@@ -111,6 +121,7 @@ class PiGcsEmulator:
         """The answer to one received line (None: the command answers nothing), without the final LF."""
         with self._lock:
             self.lines.append((connection, line))
+            self.line_times.append(time.monotonic())
             if self.silent:
                 return None
             words = line.split()
@@ -143,6 +154,8 @@ class PiGcsEmulator:
             pairs = self._pairs(args)
             for name, value in pairs:  # all checked before any is applied, as one command
                 setters[word](self.axes[name], value, check_only=True)
+            if self.frozen and word in ("SVA", "MOV"):
+                return None  # accepted without an error, and nothing moves
             for name, value in pairs:
                 setters[word](self.axes[name], value, check_only=False)
                 if word in ("SVA", "MOV"):
