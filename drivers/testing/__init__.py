@@ -10,6 +10,9 @@ plugin opens a real socket or a real serial port, and the test looks at what the
 - :mod:`nanodrift.drivers.testing.pty_devices`: instruments on a pty behind a stable link, which can be
   unplugged and plugged back: :class:`FakeInterferometer` (``P <nm> nm`` lines, queried or streamed),
   :class:`FakeGcsController` (a PI controller speaking GCS), and :class:`PtyDevice` to write another;
+- :mod:`nanodrift.drivers.testing.pi_gcs_emulator`: :class:`PiGcsEmulator`, a PI piezo controller in GCS 2.0
+  that enforces the servo state, the travel and voltage ranges and keeps an error register, served over
+  TCP on 127.0.0.1 (:class:`PiGcsTcpServer`) or on a pty (:class:`PiGcsPtyDevice`), logging every line;
 - :mod:`nanodrift.drivers.testing.protocol`: :func:`expected_protocol`, a pty device that expects an exact
   conversation (PyMeasure's ``expected_protocol``) and fails on anything else.
 
@@ -55,16 +58,21 @@ from nanodrift.drivers.testing.modbus_server import (
     free_port,
     tcp_context,
 )
+from nanodrift.drivers.testing.pi_gcs_emulator import EmulatedAxis, PiGcsEmulator, PiGcsPtyDevice, PiGcsTcpServer
 from nanodrift.drivers.testing.protocol import ScriptedDevice, expected_protocol
 from nanodrift.drivers.testing.pty_devices import FakeGcsController, FakeInterferometer, PtyDevice
 
 __all__ = [
     "FC_READ_HOLDING",
     "FC_READ_INPUT",
+    "EmulatedAxis",
     "FakeGcsController",
     "FakeInterferometer",
     "ModbusTestDevice",
     "ModbusTestServer",
+    "PiGcsEmulator",
+    "PiGcsPtyDevice",
+    "PiGcsTcpServer",
     "PtyDevice",
     "PtyNullModem",
     "ScriptedDevice",
