@@ -32,7 +32,7 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 
 from nanodrift.config import ConfigError, parse_config
-from nanodrift.drivers.base import DeviceError, DriverContext
+from nanodrift.drivers.base import DeviceError, DriverContext, DriverSetupError
 from nanodrift.drivers.pi_gcs.actuator import PiGcsActuator, PiGcsLimitsError, rounded_inside
 from nanodrift.drivers.pi_gcs.config import PiGcsActuatorConfig
 from nanodrift.drivers.registry import load_plugin
@@ -389,3 +389,12 @@ def test_nothing_listens_means_a_device_error_naming_the_controller() -> None:
             await actuator.close()
 
         run(body)
+
+
+def test_two_cell_axes_on_one_controller_axis_are_refused() -> None:
+    plugin = load_plugin("pi_gcs")
+    assert plugin.actuator_model is not None
+    tables = [{"kind": "pi_gcs", "host": "10.0.0.2", "axis": axis} for axis in ("1", "2", "1")]
+    with pytest.raises(DriverSetupError, match=r"axes\[2\].actuator.axis: controller 10.0.0.2:50000 axis '1' is "
+                                               r"already the output of axes\[0\]"):
+        plugin.create_actuators([plugin.actuator_model.model_validate(t) for t in tables], DriverContext())
