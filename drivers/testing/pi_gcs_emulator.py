@@ -33,6 +33,7 @@ import os
 import select
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -70,7 +71,8 @@ class PiGcsEmulator:
     this long after it), ``fail_next`` (command word -> error code: the next such command is refused
     with it, changing nothing), ``has_voltage_limits`` (False: ``VMI?``/``VMA?`` are unknown commands,
     as on a controller without them), ``silent`` (answers nothing), ``frozen`` (SVA and MOV are accepted
-    without an error and change nothing: an amplifier off, a stage unplugged), ``um_per_volt`` (open-loop
+    without an error and change nothing: an amplifier off, a stage unplugged), ``on_sva`` (told each SVA
+    that takes effect: wire it to a simulated stage), ``um_per_volt`` (open-loop
     position per volt, for ``POS?``).
     """
 
@@ -90,6 +92,8 @@ class PiGcsEmulator:
     #: every SVA / MOV value that took effect: (axis, value)
     applied_sva: list[tuple[str, float]] = field(default_factory=list)
     applied_mov: list[tuple[str, float]] = field(default_factory=list)
+    #: told (axis, value) each time an SVA takes effect (on the serving thread): what an amplifier does with it
+    on_sva: Callable[[str, float], None] | None = None
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     # -- the device's side, for tests ---------------------------------------------------------------
@@ -160,6 +164,8 @@ class PiGcsEmulator:
                 setters[word](self.axes[name], value, check_only=False)
                 if word in ("SVA", "MOV"):
                     (self.applied_sva if word == "SVA" else self.applied_mov).append((name, value))
+                if word == "SVA" and self.on_sva is not None:
+                    self.on_sva(name, value)
             return None
         queries = {
             "SVO?": lambda a: str(int(a.servo)),
