@@ -30,7 +30,9 @@ What it does, and the document each behaviour comes from (PIPython 2.13.0.2, PI'
 
 from __future__ import annotations
 
+import contextlib
 import math
+from collections.abc import Iterator
 from decimal import ROUND_CEILING, ROUND_FLOOR, Decimal
 from typing import Literal
 
@@ -49,6 +51,11 @@ SHOWN_CHARS = 80
 
 class PiGcsLimitsError(DeviceError):
     """The config asks for more than the controller reports it can do: nothing is moved."""
+
+
+class GarbledAnswer(DeviceError):
+    """An answer that is not what was asked for (a stray line, a late answer): the exchange is out of step,
+    so the connection is reset before anything else is asked on it."""
 
 
 def rounded_inside(value: float, low: float | None, high: float | None, what: str) -> float:
@@ -70,7 +77,7 @@ def _value(answer: str, axis: str, query: str) -> str:
         item, sep, value = line.partition("=")
         if sep and item.strip() == axis:
             return value.strip()
-    raise DeviceError(f"no value for {axis!r} in the answer {_shown(answer)} to {query!r}")
+    raise GarbledAnswer(f"no value for {axis!r} in the answer {_shown(answer)} to {query!r}")
 
 
 def _float(answer: str, axis: str, query: str) -> float:
@@ -80,7 +87,7 @@ def _float(answer: str, axis: str, query: str) -> float:
     except ValueError:
         value = math.nan
     if not math.isfinite(value):
-        raise DeviceError(f"answer {_shown(answer)} to {query!r} carries no number for {axis!r}")
+        raise GarbledAnswer(f"answer {_shown(answer)} to {query!r} carries no number for {axis!r}")
     return value
 
 
@@ -117,7 +124,7 @@ class PiGcsActuator(Actuator):
         try:
             return int(answer.strip())
         except ValueError:
-            raise DeviceError(f"{self.description}: unexpected answer {_shown(answer)} to 'ERR?'") from None
+            raise GarbledAnswer(f"unexpected answer {_shown(answer)} to 'ERR?'") from None
 
     def _check(self, answer: str, after: str) -> None:
         """The ``ERR?`` answer read right after ``after``: :class:`DeviceError` blaming it for any error."""
@@ -151,12 +158,23 @@ class PiGcsActuator(Actuator):
 
     # -- open / close -----------------------------------------------------------------------------
 
+    @contextlib.contextmanager
+    def _in_step(self) -> Iterator[None]:
+        """A garbled answer resets the connection (the next exchange reconnects and prepares the axis again):
+        answers out of step are never taken for later requests' answers."""
+        try:
+            yield
+        except GarbledAnswer as error:
+            self.link.drop()
+            raise DeviceError(f"{self.description}: {error}; the connection is reset") from error
+
     async def open(self) -> None:
         if not self._leased:
             self.link.users += 1
             self._leased = True
         try:
-            await self._prepare()
+            with self._in_step():
+                await self._prepare()
         except BaseException:
             await self.close()
             raise
@@ -266,6 +284,10 @@ class PiGcsActuator(Actuator):
         return rounded_inside(q_um, low, high, f"{self.description}: position {q_um!r} um")
 
     async def command(self, q_um: float, voltage_v: float, *, x_um: float | None = None) -> None:
+        with self._in_step():
+            await self._command(q_um, voltage_v)
+
+    async def _command(self, q_um: float, voltage_v: float) -> None:
         axis = self.axis
         if self.config.mode == "open_loop":
             value = self.sent_voltage(voltage_v)  # ValueError before anything is written
@@ -293,14 +315,16 @@ class PiGcsActuator(Actuator):
 
     async def read_back(self) -> tuple[Literal["voltage_v", "q_um"], float] | None:
         """Open loop ``SVA?`` (the voltage set), closed loop ``MOV?`` (the target position)."""
-        await self._ready()
         query = f"SVA? {self.axis}" if self.config.mode == "open_loop" else f"MOV? {self.axis}"
-        value = _float(await self._query(query), self.axis, query)
+        with self._in_step():
+            await self._ready()
+            value = _float(await self._query(query), self.axis, query)
         return ("voltage_v", value) if self.config.mode == "open_loop" else ("q_um", value)
 
     async def on_target(self) -> bool:
         """Closed loop: whether the axis has reached its target (``ONT?``); open loop has no target: True."""
         if self.config.mode == "open_loop":
             return True
-        await self._ready()
-        return _value(await self._query(f"ONT? {self.axis}"), self.axis, "ONT?") == "1"
+        with self._in_step():
+            await self._ready()
+            return _value(await self._query(f"ONT? {self.axis}"), self.axis, "ONT?") == "1"

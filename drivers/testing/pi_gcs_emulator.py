@@ -72,7 +72,8 @@ class PiGcsEmulator:
     with it, changing nothing), ``has_voltage_limits`` (False: ``VMI?``/``VMA?`` are unknown commands,
     as on a controller without them), ``silent`` (answers nothing), ``frozen`` (SVA and MOV are accepted
     without an error and change nothing: an amplifier off, a stage unplugged), ``on_sva`` (told each SVA
-    that takes effect: wire it to a simulated stage), ``um_per_volt`` (open-loop
+    that takes effect: wire it to a simulated stage), ``stray`` (a line sent once, unasked, before the
+    next answer), ``um_per_volt`` (open-loop
     position per volt, for ``POS?``).
     """
 
@@ -83,6 +84,7 @@ class PiGcsEmulator:
     has_voltage_limits: bool = True
     silent: bool = False
     frozen: bool = False
+    stray: str | None = None
     error: int = 0
     fail_next: dict[str, int] = field(default_factory=dict)
     #: every line received, in order: (connection id, line)
@@ -137,10 +139,13 @@ class PiGcsEmulator:
                 self.error = forced
                 return None
             try:
-                return self._answer(word, args)
+                answer = self._answer(word, args)
             except _GcsFault as fault:
                 self.error = fault.code
                 return None
+            if answer is not None and self.stray is not None:  # a line nobody asked for, before this answer
+                answer, self.stray = f"{self.stray}\n{answer}", None
+            return answer
 
     def _answer(self, word: str, args: list[str]) -> str | None:
         setters = {"SVO": self._svo, "SVA": self._sva, "MOV": self._mov, "DCO": self._dco}

@@ -226,6 +226,26 @@ def test_a_command_accepted_without_moving_the_stage_is_a_fault_never_accepted()
     assert emulator.sva("1") == 2.0
 
 
+def test_a_stray_line_resets_the_connection_and_is_never_taken_for_an_answer() -> None:
+    emulator = PiGcsEmulator()
+
+    async def body() -> None:
+        async with over_tcp(emulator) as actuator:
+            actuator.limits_v = (-2.0, 12.0)
+            await actuator.open()
+            await actuator.command(100.0, 2.0)
+            emulator.stray = "1=42.000000"  # before the next answer: the answers are out of step by one
+            with pytest.raises(DeviceError, match=r"unexpected answer '1=42.000000' to 'ERR\?'.*connection is reset"):
+                await actuator.command(150.0, 3.0)
+            await actuator.command(200.0, 4.0)  # a new connection, the axis prepared again
+            assert await actuator.read_back() == ("voltage_v", 4.0)
+            await actuator.close()
+
+    run(body)
+    assert [c for c, line in emulator.lines if line == "*IDN?"] == ["tcp1", "tcp2"]  # opened twice
+    assert emulator.sva("1") == 4.0
+
+
 def test_servo_switched_on_from_outside_makes_sva_fail_with_error_79_named() -> None:
     emulator = PiGcsEmulator()
 
