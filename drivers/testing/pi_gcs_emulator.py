@@ -10,8 +10,9 @@ Where each behaviour comes from (PIPython 2.13.0.2, PI's own Python library):
   ``OVF?`` "Overflow means that the control variables are out of range (can only happen if controller
   is in closed-loop mode)"; ``VOL?`` piezo voltage per channel; ``TMN?``/``TMX?`` the travel range;
   ``VMI?``/``VMA?`` the PZT voltage soft limits per piezo channel; ``DCO?`` drift compensation mode;
-  ``ERR?`` the current error, reset once read; ``STP`` "Stop all axes abruptly ... May raise
-  GCSError(E10_PI_CNTR_STOP)"; answers ``item=value``, one line per item;
+  ``ERR?`` "Get current controller error" (``qERR``; PIPython's ``gcsmessages.py`` asks it after every
+  command and takes 0 for no error: the emulator keeps the last error and resets it once read);
+  ``STP`` "Stop all axes abruptly ... May raise GCSError(E10_PI_CNTR_STOP)"; answers ``item=value``, one line per item;
 - ``pipython/pidevice/gcsmessages.py`` (``checksize``): an answer is complete at a LF *not* preceded by
   a space; every line of a multi-line answer but the last ends with ``" \\n"``;
 - ``pipython/pidevice/gcserror.py`` (the error table): 1 parameter syntax error, 2 unknown command,
