@@ -16,6 +16,8 @@ import sys
 from collections.abc import Sequence
 from typing import Any, NoReturn
 
+import structlog
+
 from nanodrift import blas_threads  # noqa: F401  (first: before anything imports numpy)
 from nanodrift.errors import UserError
 from nanodrift.logs import json_line
@@ -133,6 +135,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     command = arguments[0] if arguments and arguments[0] in HANDLERS else None
     parser = build_parser(json_errors_for_run=json_errors, only=command or "")
     args = parser.parse_args(arguments)
+    if not structlog.is_configured():  # `run` configures its own; elsewhere stdout is the command's (--json)
+        structlog.configure(logger_factory=_stderr_logger)
     handler = _module(args.command).main
     try:
         return int(handler(args) or 0)
@@ -142,6 +146,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         _say(args.command, json_errors, "warning", "interrupted", event="run_interrupted")
         return 130
+
+
+def _stderr_logger(*_args: Any) -> structlog.PrintLogger:
+    """Log lines (a driver's: pi_gcs' servo switched, serial_line's late answers) on stderr, whichever stream
+    ``sys.stderr`` is when the line is written."""
+    return structlog.PrintLogger(sys.stderr)
 
 
 def _say(command: str, json_errors: bool, level: str, text: str, *, event: str, **fields: str) -> None:

@@ -57,7 +57,7 @@ CORE_FORBIDDEN_STDLIB = {"asyncio", "socket", "subprocess", "threading", "select
                          "concurrent"}
 DRIVER_CORE_UNITS = {"nanodrift.drivers.base", "nanodrift.drivers.registry"}
 PLUGIN_ROOTS = ("nanodrift.drivers.simulated", "nanodrift.drivers.modbus", "nanodrift.drivers.serial_line",
-                "nanodrift.drivers.attocube_ids", "nanodrift.drivers.dcon")
+                "nanodrift.drivers.attocube_ids", "nanodrift.drivers.dcon", "nanodrift.drivers.pi_gcs")
 #: the simulated cell's computation: pure core + numpy/scipy/stdlib + each other
 SIMULATOR_PURE = {f"{DRIVERS}.simulated.{name}" for name in ("physics", "scenarios", "effects", "runs", "datasets",
                                                            "clock")}

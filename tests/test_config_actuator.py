@@ -106,7 +106,7 @@ def test_the_default_kind_moves_a_simulated_stage_and_publishes_on_hardware() ->
         (HARDWARE + '[actuator]\nhub = "adam"\n', "actuator.hub: unknown key (typo?); kind = 'zenoh' takes no device"),
         ("[simulation]\n[actuator]\nkind = 'simulated'\nport = 'x'\n", "actuator.port: unknown key (typo?)"),
         (HARDWARE + "[actuator]\nkind = 'dac9000'\n", "actuator.kind: unknown actuator kind 'dac9000'; kinds: zenoh, "
-                                                     "modbus, serial_line, simulated"),
+                                                     "modbus, pi_gcs, serial_line, simulated"),
         (HARDWARE + "[actuator]\nkind = 3\n", "actuator.kind: Input should be a valid string"),
         (HARDWARE + "[actuator]\nkind = 'simulated'\n", "actuator.kind: 'simulated' cannot drive this cell: its "
                                                        "sensors are real hardware"),

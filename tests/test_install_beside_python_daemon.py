@@ -107,7 +107,7 @@ def check_both_work(env: Env, root: Path) -> None:
     found = env.probe()
     assert found["daemon"] is True, found  # the stand-in's daemon, not a folder of nanodrift's
     assert Path(str(found["daemon_file"])).is_relative_to(root), found
-    assert found["plugins"] == ["attocube_ids", "dcon", "modbus", "serial_line", "simulated"], found
+    assert found["plugins"] == ["attocube_ids", "dcon", "modbus", "pi_gcs", "serial_line", "simulated"], found
     assert "nanodrift" in env.version()
 
 

@@ -15,6 +15,9 @@ plugin opens a real socket or a real serial port, and the test looks at what the
 - :mod:`nanodrift.drivers.testing.dcon_emulator`: :class:`DconBusEmulator`, DCON thermocouple modules
   (:class:`DconModule`, 4 or 8 channels, open thermocouples, checksums) on an RS-485 bus emulated by a pty,
   or behind a TCP gateway (:class:`DconTcpGateway`);
+- :mod:`nanodrift.drivers.testing.pi_gcs_emulator`: :class:`PiGcsEmulator`, a PI piezo controller in GCS 2.0
+  that enforces the servo state, the travel and voltage ranges and keeps an error register, served over
+  TCP on 127.0.0.1 (:class:`PiGcsTcpServer`) or on a pty (:class:`PiGcsPtyDevice`), logging every line;
 - :mod:`nanodrift.drivers.testing.protocol`: :func:`expected_protocol`, a pty device that expects an exact
   conversation (PyMeasure's ``expected_protocol``) and fails on anything else.
 
@@ -62,6 +65,7 @@ from nanodrift.drivers.testing.modbus_server import (
     free_port,
     tcp_context,
 )
+from nanodrift.drivers.testing.pi_gcs_emulator import EmulatedAxis, PiGcsEmulator, PiGcsPtyDevice, PiGcsTcpServer
 from nanodrift.drivers.testing.protocol import ScriptedDevice, expected_protocol
 from nanodrift.drivers.testing.pty_devices import FakeGcsController, FakeInterferometer, PtyDevice
 
@@ -71,12 +75,16 @@ __all__ = [
     "DconBusEmulator",
     "DconModule",
     "DconTcpGateway",
+    "EmulatedAxis",
     "FakeGcsController",
     "FakeInterferometer",
     "IdsAxis",
     "IdsEmulator",
     "ModbusTestDevice",
     "ModbusTestServer",
+    "PiGcsEmulator",
+    "PiGcsPtyDevice",
+    "PiGcsTcpServer",
     "PtyDevice",
     "PtyNullModem",
     "ScriptedDevice",

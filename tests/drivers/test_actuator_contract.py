@@ -6,6 +6,8 @@ stage, exactly as a lab runs it against its own plugin: a rig per plugin, a ``Te
   TCP server on 127.0.0.1 (``nanodrift.drivers.testing``); its outputs: registers 10 and 11 on one hub;
 - ``serial_line``: a PI controller speaking GCS on a pty (``SVA 1 {voltage_v:.4f}``, ``SVA? 1``
   read back, ``ERR?``; ``nanodrift.drivers.testing``); its outputs: axes 1 and 2 on one port;
+- ``pi_gcs``: a PI controller speaking GCS 2.0 (``nanodrift.drivers.testing.pi_gcs_emulator``), open loop
+  (``SVA``), over TCP on 127.0.0.1 and on a pty; its outputs: axes 1 and 2 of one controller, one connection;
 - ``labbox``: a lab's own output (``tests/helpers/lab_plugin.py``), found through a real entry point;
   its outputs: channels 1 and 2 of one box.
 
@@ -35,6 +37,7 @@ from nanodrift.drivers.simulated.config import SECTION, SimulationConfig
 from nanodrift.drivers.simulated.plugin import RESOURCE_KEY
 from nanodrift.drivers.testing import FakeGcsController, ModbusTestDevice, ModbusTestServer, tcp_context
 from nanodrift.drivers.testing.contract import GAIN_V_PER_UM, ActuatorContract, ActuatorRig
+from nanodrift.drivers.testing.pi_gcs_emulator import EmulatedAxis, PiGcsEmulator, PiGcsPtyDevice, PiGcsTcpServer
 
 # --- the rigs -------------------------------------------------------------------------------------
 
@@ -237,6 +240,103 @@ class SerialRig(ActuatorRig):
         return found
 
 
+class PiGcsTcpRig(ActuatorRig):
+    """A PI controller (two axes, servo on at power-up as an E-727 with its stage) on TCP; the plugin switches
+    the servo off at open and writes ``SVA`` with 6 decimals; someone switching the servo back on from
+    outside makes the controller refuse ``SVA`` (error 79)."""
+
+    kind = "pi_gcs"
+    resolution_v = 1e-6
+    limit_case = ((0.0, 4.9999996), 4.9999996, 4.999999)  # ".6f" writes 5.000000: outside
+    unrepresentable = ((1.0000001, 1.0000004), 1.0000002)  # 1.000000 and 1.000001 are both outside
+    multi_output_unsupported = None
+    AXES = ("1", "2")
+
+    def __init__(self, tmp_path: Path) -> None:
+        super().__init__(tmp_path)
+        self.emulator = PiGcsEmulator(axes={axis: EmulatedAxis(servo=True) for axis in self.AXES})
+        self.server = PiGcsTcpServer(self.emulator)
+
+    def transport(self) -> dict[str, Any]:
+        return {"host": "127.0.0.1", "port": self.server.port}
+
+    def options(self) -> dict[str, Any]:
+        return {"kind": "pi_gcs", **self.transport(), "axis": "1", "timeout_s": 2.0}
+
+    async def start(self) -> None:
+        await self.server.start()
+
+    async def stop(self) -> None:
+        await self.server.stop()
+
+    async def held_v(self) -> float:
+        return self.emulator.sva("1")
+
+    def written_v(self) -> list[float]:
+        return self.output_written_v(0)
+
+    async def refuse_writes(self) -> None:
+        self.emulator.set_servo("1", True)
+
+    async def gone(self) -> None:
+        await self.server.stop()
+
+    async def back(self) -> None:
+        self.emulator.set_servo("1", False)
+        if not self.server.serving:
+            await self.server.start()
+
+    def output_options(self) -> list[dict[str, Any]]:
+        return [{**self.options(), "axis": axis} for axis in self.AXES]
+
+    def output_written_v(self, index: int) -> list[float]:
+        return [float(line.split()[2]) for line in self.emulator.received("SVA")
+                if line.split()[1] == self.AXES[index]]
+
+    def overlapping_exchanges(self) -> list[str]:
+        """Each SVA is one whole batch (ERR?, SVA, ERR?, SVA?) on the device: another axis' lines inside it
+        would show two exchanges interleaved."""
+        lines = self.emulator.received()
+        found = []
+        for i, line in enumerate(lines):
+            words = line.split()
+            if words[:1] == ["SVA"] and lines[i - 1:i + 3] != ["ERR?", line, "ERR?", f"SVA? {words[1]}"]:
+                found.append(f"{line!r} not in one whole batch: {lines[max(0, i - 1):i + 3]}")
+        return found
+
+    def connection_ids(self) -> set[str] | None:
+        return set(self.server.connections)
+
+
+class PiGcsPtyRig(PiGcsTcpRig):
+    """The same controller on a pty (its RS-232 port): gone is the adapter unplugged."""
+
+    def __init__(self, tmp_path: Path) -> None:
+        ActuatorRig.__init__(self, tmp_path)
+        self.emulator = PiGcsEmulator(axes={axis: EmulatedAxis(servo=True) for axis in self.AXES})
+        self.device = PiGcsPtyDevice(tmp_path / "ttyPI", self.emulator)
+
+    def transport(self) -> dict[str, Any]:
+        return {"transport": "serial", "port": self.device.port}
+
+    async def start(self) -> None:
+        pass
+
+    async def stop(self) -> None:
+        self.device.close()
+
+    async def gone(self) -> None:
+        self.device.unplug()
+
+    async def back(self) -> None:
+        self.emulator.set_servo("1", False)
+        if not self.device.link.exists():
+            self.device.replug()
+
+    def connection_ids(self) -> set[str] | None:
+        return None  # a pty cannot tell
+
+
 class LabRig(ActuatorRig):
     """A lab's own output box (1 mV steps, 0..10 V), its output a file of JSON lines."""
 
@@ -281,7 +381,7 @@ class LabRig(ActuatorRig):
 
 
 RIGS: dict[str, type[ActuatorRig]] = {"simulated": SimulatedRig, "modbus": ModbusRig, "serial_line": SerialRig,
-                                      "labbox": LabRig}
+                                      "pi_gcs": PiGcsTcpRig, "labbox": LabRig}
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -304,6 +404,14 @@ class TestModbus(ActuatorContract):
 
 class TestSerialLine(ActuatorContract):
     rig = SerialRig
+
+
+class TestPiGcsTcp(ActuatorContract):
+    rig = PiGcsTcpRig
+
+
+class TestPiGcsPty(ActuatorContract):
+    rig = PiGcsPtyRig
 
 
 class TestLabBox(ActuatorContract):

@@ -11,6 +11,7 @@ from helpers import lab_plugin
 
 from nanodrift.drivers.base import DriverPlugin
 from nanodrift.drivers.modbus.plugin import PLUGIN as MODBUS
+from nanodrift.drivers.pi_gcs.plugin import PLUGIN as PI_GCS
 from nanodrift.drivers.registry import GROUP, UnknownDriverError, available, load_plugin
 from nanodrift.drivers.serial_line.plugin import PLUGIN as SERIAL_LINE
 from nanodrift.drivers.simulated.plugin import PLUGIN as SIMULATED
@@ -27,13 +28,15 @@ def test_nanodrifts_own_plugins_are_found_by_name() -> None:
     assert available() == {"attocube_ids": "nanodrift.drivers.attocube_ids.plugin:PLUGIN",
                            "dcon": "nanodrift.drivers.dcon.plugin:PLUGIN",
                            "modbus": "nanodrift.drivers.modbus.plugin:PLUGIN",
+                           "pi_gcs": "nanodrift.drivers.pi_gcs.plugin:PLUGIN",
                            "serial_line": "nanodrift.drivers.serial_line.plugin:PLUGIN",
                            "simulated": "nanodrift.drivers.simulated.plugin:PLUGIN"}
     assert load_plugin("modbus") is MODBUS
     assert load_plugin("serial_line") is SERIAL_LINE
     assert load_plugin("simulated") is SIMULATED
-    assert sorted(load_plugin(kind).name for kind in available()) == ["attocube_ids", "dcon", "modbus", "serial_line",
-                                                                       "simulated"]
+    assert load_plugin("pi_gcs") is PI_GCS
+    assert sorted(load_plugin(kind).name for kind in available()) == ["attocube_ids", "dcon", "modbus", "pi_gcs",
+                                                                       "serial_line", "simulated"]
 
 
 def test_a_labs_plugin_installed_with_an_entry_point_is_found_and_forgotten_when_removed(lab: None) -> None:
@@ -42,7 +45,7 @@ def test_a_labs_plugin_installed_with_an_entry_point_is_found_and_forgotten_when
     assert plugin is lab_plugin.PLUGIN and isinstance(plugin, DriverPlugin)
     assert load_plugin("labbox") is plugin  # loaded once
     assert sorted(load_plugin(kind).name for kind in available()) == ["attocube_ids", "dcon", "labbox", "modbus",
-                                                                       "serial_line", "simulated"]
+                                                                       "pi_gcs", "serial_line", "simulated"]
 
 
 def test_after_the_lab_package_is_gone_its_kind_is_unknown(tmp_path: Path) -> None:
@@ -52,12 +55,13 @@ def test_after_the_lab_package_is_gone_its_kind_is_unknown(tmp_path: Path) -> No
     with pytest.raises(UnknownDriverError) as error:
         load_plugin("labbox")
     assert str(error.value) == ("unknown sensor kind 'labbox'; installed driver kinds: attocube_ids, dcon, modbus, "
+                                "pi_gcs, "
                                 "serial_line, simulated")
 
 
 def test_a_misspelt_kind_names_every_installed_kind() -> None:
     with pytest.raises(UnknownDriverError, match=r"unknown sensor kind 'modbsu'; installed driver kinds: "
-                                                 r"attocube_ids, dcon, modbus, serial_line, simulated$"):
+                                                 r"attocube_ids, dcon, modbus, pi_gcs, serial_line, simulated$"):
         load_plugin("modbsu")
     assert isinstance(UnknownDriverError("x"), LookupError)
 

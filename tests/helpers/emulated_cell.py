@@ -4,7 +4,8 @@
   registers 0..3 hold T1..T4 (int16, 0.01 degC) measured at each read; holding register 10 is an
   analog output (int16, 1 mV per count) wired to the amplifier: a write moves the stage;
 - an interferometer on a pty answering ``POS?\\r`` with ``P <nm> nm`` at the moment of the query;
-- optionally a PI controller on a pty (GCS ``SVA``) and a Zenoh output node applying ``command``.
+- optionally a PI controller on a pty (GCS ``SVA``: the generic ``serial_line`` path's ``FakeGcsController``, and
+  the ``pi_gcs`` plugin's emulator, servo on at power-up) and a Zenoh output node applying ``command``.
 
 The physics runs on a :class:`~nanodrift.drivers.simulated.clock.ScaledClock` (``speed`` simulated seconds per wall
 second), so a shortened calibration sees hours of room temperature. ``amplifier_connected = False``
@@ -28,6 +29,7 @@ from nanodrift.drivers.modbus.codec import decode, encode
 from nanodrift.drivers.simulated.cell import SimulatedCell
 from nanodrift.drivers.simulated.clock import ScaledClock
 from nanodrift.drivers.simulated.config import SimulationConfig
+from nanodrift.drivers.testing.pi_gcs_emulator import EmulatedAxis, PiGcsEmulator, PiGcsPtyDevice
 
 VOLTS_PER_UM = 0.02  # the amplifier's gain, as [actuator] volts_per_um says
 AO_ADDRESS = 10
@@ -63,6 +65,9 @@ class EmulatedCell:
         self.interferometer = PhysicsInterferometer(tmp_path / "ttyIFM", self)
         self.controller = FakeGcsController(tmp_path / "ttyPI")
         self.controller.on_voltage = self.apply_voltage
+        self.pi_gcs = PiGcsEmulator(axes={"1": EmulatedAxis(servo=True)},
+                                    on_sva=lambda _axis, volts: self.apply_voltage(volts))
+        self.pi_gcs_port = PiGcsPtyDevice(tmp_path / "ttyPIGCS", self.pi_gcs)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stop: asyncio.Event | None = None
         self._thread: threading.Thread | None = None
@@ -146,6 +151,7 @@ class EmulatedCell:
             self._node.close()
         self.interferometer.close()
         self.controller.close()
+        self.pi_gcs_port.close()
 
     def __enter__(self) -> EmulatedCell:
         return self.start()
@@ -163,6 +169,7 @@ class EmulatedCell:
                        f"scale = {AO_VOLTS_PER_COUNT}\nverify = true\n"),
             "serial_line": (f'kind = "serial_line"\nport = "{self.controller.port}"\nreadback = "SVA? 1\\n"\n'
                             f'error_query = "ERR?\\n"\ntimeout_s = 0.5\n'),
+            "pi_gcs": f'kind = "pi_gcs"\ntransport = "serial"\nport = "{self.pi_gcs_port.port}"\ntimeout_s = 0.5\n',
             "zenoh": 'kind = "zenoh"\n',
         }
         connect = f'connect = ["tcp/127.0.0.1:{self.node_port}"]\n' if self.node_port else ""

@@ -1,7 +1,7 @@
 """The three output paths of a procedure on (emulated) hardware, and the checks before it starts:
 a serving daemon's ``alive`` token refuses the run; with ``kind = "zenoh"`` an output node must be
-subscribed (unless ``--no-output-check``) and then applies the steps; ``kind = "serial_line"`` drives a
-PI controller over GCS through calibration and validation."""
+subscribed (unless ``--no-output-check``) and then applies the steps; ``kind = "serial_line"`` and
+``kind = "pi_gcs"`` drive a PI controller over GCS through calibration and validation."""
 
 from __future__ import annotations
 
@@ -109,6 +109,26 @@ def test_kind_serial_line_calibrates_and_validates_through_a_gcs_controller(
                      "--json"]) == 0
         result = json.loads(capsys.readouterr().out)
         assert result["backend"].startswith("hardware; stage driven by the controller")
+        assert result["points"] and all(abs(p["accuracy_nm"]) < 120.0 for p in result["points"]), result["points"]
+
+
+def test_kind_pi_gcs_switches_the_servo_off_then_calibrates_and_validates_through_the_controller(
+        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    with EmulatedCell(tmp_path) as emulated:
+        config = write_config(tmp_path / "pi.toml", emulated.config_text(actuator="pi_gcs", procedure=TWO_CYCLES))
+        assert calibrate(config, tmp_path) == 0
+        printed = capsys.readouterr()  # the plugin's log lines on stderr, never in a command's output
+        [switched] = [line for line in printed.err.splitlines() if "pi_gcs_servo_switched" in line]
+        assert "servo=off" in switched and "pi_gcs_servo_switched" not in printed.out
+        lines = emulated.pi_gcs.received()
+        first_sva = next(i for i, line in enumerate(lines) if line.startswith("SVA "))
+        assert lines.index("SVO 1 0") < first_sva  # the servo, on at power-up, is off before the stage moves
+        assert "SVA 1 9.600000" in lines and all(-1.0 <= v <= 11.0 for _, v in emulated.pi_gcs.applied_sva)
+        assert len(read_csv(tmp_path / "cal.csv")) == 34
+        assert main(["validate", "--config", str(config), "--model", str(tmp_path / "m.json"), "--cycles", "1",
+                     "--json"]) == 0
+        result = json.loads(capsys.readouterr().out)
+        assert result["backend"].startswith("hardware; stage driven by the PI controller")
         assert result["points"] and all(abs(p["accuracy_nm"]) < 120.0 for p in result["points"]), result["points"]
 
 

@@ -1,0 +1,79 @@
+"""The ``pi_gcs`` driver kind: an output only (``[actuator]`` or ``[axes.actuator]``). The axes of one
+controller (one ``host:port`` or one serial device) share one connection: one lock, each request batch
+its own answers, closed when the last axis closes."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import ClassVar, Literal
+
+from pydantic import model_validator
+
+from nanodrift.drivers.base import (
+    Actuator,
+    ActuatorOptions,
+    DriverContext,
+    DriverPlugin,
+    DriverSetupError,
+    SensorConfig,
+    SensorGroup,
+)
+from nanodrift.drivers.pi_gcs.actuator import PiGcsActuator
+from nanodrift.drivers.pi_gcs.config import PiGcsActuatorConfig
+from nanodrift.drivers.pi_gcs.link import GcsLink
+
+NOT_A_SENSOR = ("kind: pi_gcs is an output ([actuator] kind = \"pi_gcs\"), not a sensor: read the stage's position "
+                "with a position sensor (an interferometer)")
+#: key of the connections in ``DriverContext.resources``: controller address -> its link
+LINKS_KEY = "pi_gcs.links"
+
+
+class PiGcsSensorConfig(SensorConfig):
+    """``pi_gcs`` reads no sensor (the stage's position comes from an interferometer): a ``[[sensors]]``
+    entry of this kind is refused, saying so."""
+
+    kind: Literal["pi_gcs"] = "pi_gcs"
+
+    @model_validator(mode="after")
+    def _not_a_sensor(self) -> PiGcsSensorConfig:
+        raise ValueError(NOT_A_SENSOR)
+
+
+class PiGcsPlugin(DriverPlugin):
+    name = "pi_gcs"
+    config_model: ClassVar[type[SensorConfig]] = PiGcsSensorConfig
+    actuator_model = PiGcsActuatorConfig
+
+    def create(self, configs: Sequence[SensorConfig], context: DriverContext) -> list[SensorGroup]:
+        if configs:
+            raise DriverSetupError(NOT_A_SENSOR)
+        return []
+
+    def create_actuator(self, config: ActuatorOptions, context: DriverContext) -> Actuator:
+        if not isinstance(config, PiGcsActuatorConfig):
+            config = PiGcsActuatorConfig.model_validate(config.model_dump())
+        links: dict[str, GcsLink] = context.resources.setdefault(LINKS_KEY, {})
+        link = links.get(config.address)
+        if link is None:
+            link = links[config.address] = GcsLink(config)
+        elif (link.config.transport, link.config.baudrate) != (config.transport, config.baudrate):
+            raise DriverSetupError(f"actuator: controller {config.address} is reached with other settings by another "
+                                   "axis (one connection, one setting)")
+        return PiGcsActuator(config, link)
+
+    def create_actuators(self, configs: Sequence[ActuatorOptions], context: DriverContext) -> list[Actuator]:
+        """The axes of a multi-axis cell; two cell axes on one controller axis are refused (each would undo
+        the other's commands, and neither's limits would hold)."""
+        actuators = [self.create_actuator(config, context) for config in configs]
+        seen: dict[tuple[str, str], int] = {}
+        for index, actuator in enumerate(actuators):
+            assert isinstance(actuator, PiGcsActuator)
+            key = (actuator.config.address, actuator.config.axis)
+            if key in seen:
+                raise DriverSetupError(f"axes[{index}].actuator.axis: controller {key[0]} axis {key[1]!r} is already "
+                                       f"the output of axes[{seen[key]}]: one controller axis drives one cell axis")
+            seen[key] = index
+        return actuators
+
+
+PLUGIN = PiGcsPlugin()
