@@ -22,11 +22,12 @@ from typing import Any, ClassVar
 import pytest
 from helpers import lab_plugin
 from helpers.daemon_harness import SensorFile
+from pydantic import ValidationError
 
 from nanodrift.drivers.base import DriverContext, Reading
 from nanodrift.drivers.dcon.config import DconHubConfig
 from nanodrift.drivers.modbus.codec import encode
-from nanodrift.drivers.registry import available
+from nanodrift.drivers.registry import available, load_plugin
 from nanodrift.drivers.simulated.cell import SimulatedCell
 from nanodrift.drivers.simulated.plugin import RESOURCE_KEY
 from nanodrift.drivers.testing import (
@@ -290,9 +291,21 @@ class TestLabBox(SensorContract):
     rig = LabRig
 
 
+#: plugins that are an output only: their ``[[sensors]]`` entry is refused, saying so (checked below)
+OUTPUT_ONLY = {"pi_gcs"}
+
+
+def test_an_output_only_plugin_refuses_a_sensor_entry_naming_what_it_is() -> None:
+    for kind in OUTPUT_ONLY:
+        plugin = load_plugin(kind)
+        assert plugin.actuator_model is not None
+        with pytest.raises(ValidationError, match=f"{kind} is an output"):
+            plugin.config_model.model_validate({"name": "p", "kind": kind, "role": "position"})
+
+
 def test_every_installed_plugin_with_sensors_is_run_through_the_contract() -> None:
     """A new plugin in nanodrift's entry points must get a rig and a class here (the lab's is installed by
     the fixture)."""
-    assert set(available()) == set(RIGS)
+    assert set(available()) - OUTPUT_ONLY == set(RIGS)
     tested = {cls.rig.kind for cls in SensorContract.__subclasses__() if cls.__module__ == __name__}
     assert tested == set(RIGS)
