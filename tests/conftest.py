@@ -4,6 +4,7 @@ import os
 import sys
 from pathlib import Path
 
+import pytest
 from hypothesis import HealthCheck, settings
 
 # One BLAS thread in the test processes, as ``nanodrift`` itself runs (daemon/blas_threads.py): OpenBLAS's
@@ -24,3 +25,28 @@ sys.dont_write_bytecode = False
 # and no "too slow" health check (time belongs in benchmarks/). A test's own @settings still add to this.
 settings.register_profile("nanodrift", deadline=None, suppress_health_check=[HealthCheck.too_slow])
 settings.load_profile("nanodrift")
+
+#: The files that take longest (a wheel build, a demo run, README blocks, chaos machines), run first: pytest-xdist
+#: (``--dist loadfile``) hands out files in collection order, and one of these started last keeps the suite
+#: waiting on one worker while the others are idle. Only the order changes; a file's tests stay together, in order.
+LONG_FILES = (
+    "tests/test_install_beside_python_daemon.py",
+    "tests/commands/test_readme_verbatim.py",
+    "tests/commands/test_demo.py",
+    "tests/commands/test_demo_runs.py",
+    "tests/service/test_chaos.py",
+    "tests/service/test_chaos_serial.py",
+    "tests/procedure/test_cell_procedure.py",
+    "tests/service/test_hardware_edge.py",
+    "tests/calibration/test_uncertainty_truth.py",
+    "tests/service/test_secure_network.py",
+    "tests/calibration/test_discovery.py",
+)
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    def rank(item: pytest.Item) -> int:
+        path = item.nodeid.split("::")[0]
+        return LONG_FILES.index(path) if path in LONG_FILES else len(LONG_FILES)
+
+    items.sort(key=rank)  # stable: every other file keeps its place

@@ -3,6 +3,7 @@
 One shortened demo run (2 validation sweeps, 6 calibration sweeps, tests 1 and 5 given as
 ``--tests test1,test5``, kept in a folder given relative to its working directory) is shared by the
 tests of this module; each asserts one promise of issue 13, item 3.
+(The demo's adaptation step and a daemon that fails to start: tests/commands/test_demo_runs.py.)
 """
 
 from __future__ import annotations
@@ -134,52 +135,6 @@ def test_the_discovery_line_is_measured_on_a_run_with_hysteresis_hidden(demo) ->
                       line)
     assert found, line
     assert int(found.group(2)) < int(found.group(1)) / 2  # the named effect removes most of the gap
-
-
-def test_a_daemon_that_fails_is_explained_with_its_log_lines_not_a_deleted_path(tmp_path) -> None:
-    result = subprocess.run(
-        [sys.executable, "-m", "nanodrift.cli", "demo", "--cycles", "1", "--calibration-cycles", "3",
-         "--tests", "test2", "-l", "tcp/127.0.0.1:99999"],
-        capture_output=True, text=True, cwd=REPO, timeout=180,
-    )
-    assert result.returncode == 2, result.stdout + result.stderr
-    err = result.stderr
-    assert "daemon's last log lines" in err, err
-    assert re.search(r"^   \| .*error", err, re.MULTILINE | re.IGNORECASE), err  # the daemon's own words, inline
-    assert "log:" not in err  # no path to the log: the temporary folder it was in is gone
-
-
-def test_demo_shows_what_adaptation_and_the_uncertainty_add(tmp_path: Path) -> None:
-    """Issue 12: the demo's last step runs the daemon's bias tracker on the same tests and seed."""
-    result = subprocess.run(
-        # the paper's 24 calibration sweeps (as fast as 8 on the virtual clock): 8 sweeps leave a model whose
-        # in-range residual (~85 nm on the interferometer) sits at the health unit's 100 nm alarm
-        [sys.executable, "-m", "nanodrift.cli", "demo", "--tests", "test2", "test5", "--cycles", "6",
-         "--calibration-cycles", "24"],
-        capture_output=True, text=True, cwd=REPO, timeout=120,
-    )
-    assert result.returncode == 0, result.stdout + result.stderr
-    out = result.stdout
-    assert "What nanodrift adds" in out
-    adapt = re.search(r"adaptation on test5 .*?: (\d+) nm static -> (\d+) nm adaptive", out)
-    assert adapt, out
-    assert float(adapt.group(2)) < float(adapt.group(1))  # the tracker beats the static model out of range
-    assert re.search(r"within ±2σ in test2 \d+ %, test5 \d+ %", out), out
-    # the health line is the serving daemon's own measurement (its status), not a sentence about it
-    health = re.search(r"health, from the serving daemon's status: (\w+) after (\d+) settled residual\(s\).*"
-                       r"mean ([+-]\d+) nm, RMS (\d+) nm", out)
-    assert health, out
-    assert health.group(2) == "5"  # five held targets: enough to judge
-    assert abs(int(health.group(3))) < 60 and int(health.group(4)) < 60  # the calibrated model fits the cell
-    # the daemon's health agrees with what the client itself read on the interferometer after each target
-    client_nm = [int(m) for m in re.findall(r"the interferometer then reads +-?[\d.]+ µm \(([+-]\d+) nm\)", out)]
-    assert len(client_nm) == 5, out
-    # each client reading carries the interferometer's ~20 nm white noise (the health unit's window averages
-    # it away): the mean of 5 has an SD of ~9 nm, so 40 nm is 4 SD (20 nm failed 1 run in ~20: 21.2 nm)
-    assert abs(int(health.group(3)) - sum(client_nm) / 5) < 40, (health.group(0), client_nm)
-    assert health.group(1) == "ok"  # so the daemon says so (RMS under alarm_rms_nm)
-    degrade = next(line for line in out.splitlines() if line.startswith("Test 5 degrades"))
-    assert re.search(r": \d+ nm against \d+ nm in range;", degrade), degrade  # one in-range test: "38 nm", not "38–38"
 
 
 def test_kept_folder_holds_the_figures_the_output_lists(demo) -> None:

@@ -90,7 +90,8 @@ def test_a_closed_loop_template_and_its_readback_field(controller: FakeGcsContro
 
 def test_a_stage_that_does_not_take_the_voltage_is_a_fault_naming_both(controller: FakeGcsController) -> None:
     async def body() -> None:
-        actuator = actuator_for(controller.port)
+        # the fault here is the read-back, not a timeout: 2 s to write a line (0.3 s failed a loaded run)
+        actuator = actuator_for(controller.port, timeout_s=2.0)
         await actuator.open()
         await actuator.command(100.0, 2.0)
         controller.amplifier_off = True
