@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -51,9 +51,18 @@ def ramp_commands(q_from_um: float, q_to_um: float, duration_s: float,
 
 @dataclass(frozen=True)
 class PlannedStep:
+    """One step of a one-axis plan: a step of the cell's one axis, ``x``."""
+
     index: int
     cycle: int
     target_um: float
+
+    @property
+    def targets_um(self) -> tuple[tuple[str, float], ...]:
+        return (("x", self.target_um),)
+
+    def target(self, axis: str) -> float:
+        return dict(self.targets_um)[axis]
 
 
 def calibration_plan(cycles: int, points: Sequence[float] = CALIBRATION_POINTS_UM) -> list[PlannedStep]:
@@ -79,7 +88,6 @@ class StepResult:
     valid: bool
     retries: int = 0
     problem: str = ""
-    t_command_s: float = math.nan
     #: the true attained position over the same window, when the cell knows it (simulated); nan on hardware
     x_true_um: float = math.nan
 
@@ -109,6 +117,32 @@ class PlannedCellStep:
 
     def target(self, axis: str) -> float:
         return dict(self.targets_um)[axis]
+
+
+#: a step of any plan: every axis' target through ``targets_um`` / ``target(axis)``
+AnyPlannedStep = PlannedStep | PlannedCellStep
+
+
+@dataclass
+class CellStepResult:
+    """What one step of a cell's plan measured, per axis (window means; a fallback when ``valid`` is False)."""
+
+    step: AnyPlannedStep
+    t_s: float
+    q_um: dict[str, float]
+    positions_um: dict[str, float]
+    temperatures: dict[str, float]
+    valid: bool
+    retries: int = 0
+    problem: str = ""
+    #: each axis' true attained position over the window, when the cell knows it (simulated); nan on hardware
+    true_um: dict[str, float] = field(default_factory=dict)
+
+    def axis_result(self, axis: str) -> StepResult:
+        """This step as one axis' :class:`StepResult` (what ISO 9283 scoring, the follow check and reports read)."""
+        return StepResult(PlannedStep(self.step.index, self.step.cycle, self.step.target(axis)), self.t_s,
+                          self.q_um[axis], self.positions_um[axis], self.temperatures, self.valid, self.retries,
+                          self.problem, x_true_um=self.true_um.get(axis, math.nan))
 
 
 def cell_calibration_plan(axes: Sequence[str], cycles: int = 24,

@@ -119,20 +119,28 @@ def open_cell(args: argparse.Namespace, default_scenario: str, start_s: float = 
         raise UserError(f"{config.source}: {err}") from None
 
 
+#: with several axes, an axis' move shorter than this is not follow-checked: the other axes' moves push it by up
+#: to a couple of micrometres on a stacked stage (crosstalk and non-orthogonality: ~0.4 % of their travel)
+CELL_FOLLOW_MIN_MOVE_UM = 10.0
+
+
 def guards(config: Config, drivers: DriverSet, args: argparse.Namespace
-           ) -> tuple[FollowCheck | None, Callable[[], Awaitable[None]] | None]:
-    """What protects a procedure's run: the follow check (every cell), and on hardware the checks
-    before it starts. Refuses at once (:class:`~nanodrift.procedure.preflight.PreflightError`) when a
-    daemon serves the cell; returns the output check (``kind = "zenoh"``, unless ``--no-output-check``)
-    to run once the drivers are open. The simulated cell on its virtual clock is alone: no checks."""
+           ) -> tuple[dict[str, FollowCheck], Callable[[], Awaitable[None]] | None]:
+    """What protects a procedure's run: a follow check per axis on its own position sensor (every cell; none
+    when ``[procedure] follow_steps = 0``), and on hardware the checks before it starts. Refuses at once
+    (:class:`~nanodrift.procedure.preflight.PreflightError`) when a daemon serves the cell; returns the
+    output check (``kind = "zenoh"``, unless ``--no-output-check``) to run once the drivers are open. The
+    simulated cell on its virtual clock is alone: no checks."""
     settings = config.procedure
-    follow = None
-    if settings.follow_steps and drivers.position_channel is not None:
-        follow = FollowCheck(drivers.position_channel, settings.follow_tolerance, settings.follow_steps)
+    min_move_um = 1.0 if len(config.axis_names) == 1 else CELL_FOLLOW_MIN_MOVE_UM
+    follow = {axis: FollowCheck(drivers.position_axes[axis], settings.follow_tolerance, settings.follow_steps,
+                                min_move_um=min_move_um)
+              for axis in config.axis_names if settings.follow_steps and axis in drivers.position_axes}
     if config.virtual_cell:
         return follow, None
     check_not_served(config)
-    if config.actuator.kind == ZENOH_KIND and not args.no_output_check:
+    published = any(actuator.kind == ZENOH_KIND for actuator in config.axis_actuators().values())
+    if published and not args.no_output_check:
         return follow, functools.partial(wait_for_output, config)
     return follow, None
 

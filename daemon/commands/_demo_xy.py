@@ -25,7 +25,7 @@ from nanodrift.drivers.simulated.multiaxis import (
 )
 from nanodrift.model.cell_model import save_cell_model
 from nanodrift.model.identify import fit, fit_cell
-from nanodrift.reports.cell_validation import ANCHOR_2DOF_NM
+from nanodrift.reports.validation import ANCHOR_2DOF_NM
 
 AXES = ("x", "y")
 

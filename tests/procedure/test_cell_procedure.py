@@ -17,14 +17,14 @@ import pytest
 
 from nanodrift.assembly import procedure_drivers
 from nanodrift.calibration.dataset import read_csv
-from nanodrift.calibration.plans import StepTiming, cell_calibration_plan
+from nanodrift.calibration.plans import CellStepResult, StepTiming, cell_calibration_plan
 from nanodrift.cli import main as cli
 from nanodrift.config import load_config
 from nanodrift.drivers.simulated.multicell import SimulatedMultiCell
 from nanodrift.drivers.simulated.plugin import RESOURCE_KEY
 from nanodrift.model.cell_model import CellModel, load_any_model
-from nanodrift.procedure.cell_recording import record_cell_calibration
-from nanodrift.procedure.cell_steps import CellDrive, CellStepResult, run_cell_steps
+from nanodrift.procedure.recording import record_calibration
+from nanodrift.procedure.steps import run_steps
 
 
 def _config(tmp_path: Path, axes: str = "xy") -> Path:
@@ -89,8 +89,8 @@ def test_a_dirty_window_on_one_axis_sensor_is_measured_again(tmp_path: Path) -> 
     # the y beam is lost during the second step's averaging window (t 49..58 s): that window is dirty
     cell.inject_fault("interferometer_y", 55.0, 57.0, "fault")
     plan = cell_calibration_plan(("x", "y"), 1)[:3]
-    results: list[CellStepResult] = asyncio.run(run_cell_steps(CellDrive(drivers, config.axis_actuators()), plan,
-                                                               timing=timing))
+    results: list[CellStepResult] = asyncio.run(run_steps(drivers, plan, limits=config.axis_actuators(),
+                                                          timing=timing))
     assert [r.retries for r in results] == [0, 1, 0]
     assert all(r.valid for r in results)
     second = results[1]
@@ -102,13 +102,14 @@ def test_an_interrupted_calibration_resumes_from_its_file(tmp_path: Path) -> Non
     config = load_config(_config(tmp_path))
     data = tmp_path / "xy_data.csv"
     plan = cell_calibration_plan(("x", "y"), 1)
-    drive = CellDrive(procedure_drivers(config), config.axis_actuators())
-    assert asyncio.run(record_cell_calibration(drive, data, plan[:5])) == 5
+    limits = config.axis_actuators()
+    drivers = procedure_drivers(config)
+    assert asyncio.run(record_calibration(drivers, data, limits=limits, plan=plan[:5])) == 5
     with pytest.raises(FileExistsError):
-        asyncio.run(record_cell_calibration(drive, data, plan))
+        asyncio.run(record_calibration(drivers, data, limits=limits, plan=plan))
     last_t = float(read_csv(data).t[-1])
-    drive = CellDrive(procedure_drivers(config, start_s=last_t + 1.0), config.axis_actuators())
-    assert asyncio.run(record_cell_calibration(drive, data, plan, resume=True)) == len(plan) - 5
+    drivers = procedure_drivers(config, start_s=last_t + 1.0)
+    assert asyncio.run(record_calibration(drivers, data, limits=limits, plan=plan, resume=True)) == len(plan) - 5
     recorded = read_csv(data)
     assert len(recorded) == len(plan) and np.all(np.diff(recorded.t) > 0)
     assert np.array_equal(recorded.commands["y"], [s.target("y") for s in plan])
