@@ -18,7 +18,7 @@ from collections.abc import Awaitable, Callable, Coroutine
 from typing import Any, TypeVar
 
 from nanodrift.assembly import procedure_drivers
-from nanodrift.commands._catalogues import effect_names, scenario_names
+from nanodrift.commands._catalogues import effect_names, scenario_epilog, scenario_names
 from nanodrift.config import ZENOH_KIND, Config, load_config
 from nanodrift.drivers.simulated.config import SECTION, SimulationConfig
 from nanodrift.drivers.simulated.effects import UnknownNameError, resolve_effects
@@ -47,6 +47,18 @@ def scenario_seed(seed: int, scenario: str) -> int:
 def add_config_flag(parser: argparse.ArgumentParser) -> None:
     """``--config F``: the operator's cell; without it, the built-in simulated cell."""
     parser.add_argument("--config", metavar="F", help="operator config (TOML); none: the built-in simulated cell")
+
+
+def add_procedure_flags(parser: argparse.ArgumentParser, default_scenario: str, *, several: bool = False,
+                        over_config: bool = False) -> None:
+    """What every procedure on a cell takes: ``--config F``, the simulated cell's overrides
+    (:func:`add_simulation_flags`) and ``--no-output-check`` (on hardware with ``kind = "zenoh"`` a procedure
+    refuses to start with nobody applying the steps)."""
+    parser.epilog = scenario_epilog()
+    add_config_flag(parser)
+    add_simulation_flags(parser, default_scenario, several=several, over_config=over_config)
+    parser.add_argument("--no-output-check", action="store_true",
+                        help="start even when no output node is subscribed to nanodrift/<cell>/command")
 
 
 def add_simulation_flags(parser: argparse.ArgumentParser, default_scenario: str, *, several: bool = False,
@@ -78,12 +90,6 @@ def scenario_list(values: list[str] | None) -> list[str]:
     """``--scenario`` given several times or comma-separated, in order, each once (empty: none given)."""
     names = [name.strip() for value in values or [] for name in value.split(",") if name.strip()]
     return list(dict.fromkeys(names))
-
-
-def add_output_check_flag(parser: argparse.ArgumentParser) -> None:
-    """Procedures on hardware with [actuator] kind = "zenoh" refuse to start with nobody applying the steps."""
-    parser.add_argument("--no-output-check", action="store_true",
-                        help="start even when no output node is subscribed to nanodrift/<cell>/command")
 
 
 def open_cell(args: argparse.Namespace, default_scenario: str, start_s: float = 0.0, *,

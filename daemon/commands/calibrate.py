@@ -22,7 +22,6 @@ from pathlib import Path
 from nanodrift.calibration.dataset import DataError
 from nanodrift.calibration.plans import AnyPlannedStep, bidirectional_plan, calibration_plan, cell_calibration_plan
 from nanodrift.commands import _cell
-from nanodrift.commands._catalogues import scenario_epilog
 from nanodrift.config import Config, missing_model_channels
 from nanodrift.errors import UserError
 from nanodrift.model.describe import describe_cell_model
@@ -45,8 +44,7 @@ from nanodrift.procedure.serving import ServeError, check_writable, serve_model,
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.epilog = scenario_epilog()
-    _cell.add_config_flag(parser)
+    _cell.add_procedure_flags(parser, "train", over_config=True)
     parser.add_argument("--out", required=True, metavar="M.json", help="the model file to write")
     parser.add_argument("--data", metavar="D.csv", help="where the recorded steps go (default: beside --out)")
     parser.add_argument("--cycles", type=int, metavar="N",
@@ -55,8 +53,6 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--serve", action="store_true",
                         help="write the new model's path into the --config file's [model] path (atomically, the "
                              "rest of the file kept), so the daemon serves it after a reload")
-    _cell.add_simulation_flags(parser, "train", over_config=True)
-    _cell.add_output_check_flag(parser)
 
 
 def _data_path(args: argparse.Namespace) -> Path:

@@ -32,7 +32,6 @@ from nanodrift.calibration.iso9283 import CellTestResult, TestResult, summarize_
 from nanodrift.calibration.plans import CellStepResult, cell_validation_plan
 from nanodrift.calibration.residuals import BiasTracker
 from nanodrift.commands import _cell
-from nanodrift.commands._catalogues import scenario_epilog
 from nanodrift.config import Config, load_config
 from nanodrift.drivers.simulated.config import SECTION, SimulationConfig
 from nanodrift.drivers.simulated.effects import UnknownNameError
@@ -65,8 +64,7 @@ from nanodrift.reports.validation import (
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.epilog = scenario_epilog()
-    _cell.add_config_flag(parser)
+    _cell.add_procedure_flags(parser, "test2", several=True)
     parser.add_argument("--model", required=True, metavar="M.json", help="the model to validate")
     parser.add_argument("--cycles", type=int, default=30, metavar="N", help="validation sweeps (ISO 9283: 30)")
     parser.add_argument("--json", action="store_true", help="print the results as JSON instead of Table I")
@@ -80,8 +78,6 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="the tracker's time constant (default 600 s, as [adapt] tau_s)")
     parser.add_argument("--adapt-max-um", type=float, default=1.0, metavar="UM",
                         help="clamp on the correction (default 1 µm, as [adapt] max_um)")
-    _cell.add_simulation_flags(parser, "test2", several=True)
-    _cell.add_output_check_flag(parser)
 
 
 def main(args: argparse.Namespace) -> int:

@@ -127,9 +127,7 @@ def fit_cell_recorded(data_path: str | Path, model_path: str | Path) -> CellMode
     stamped into each axis' provenance, saved atomically (the multi-axis model file)."""
     ds = read_csv(data_path)
     cell = fit_cell(ds.valid_rows(), source=str(data_path)).model
-    for model in cell.models.values():
-        stamp_data(model, [(data_path, len(ds))])
-    cell.provenance = dict(cell.models[cell.axes[0]].provenance)
+    stamp_data(cell, [(data_path, len(ds))])
     save_cell_model(cell, model_path)
     return cell
 
