@@ -48,8 +48,7 @@ from nanodrift.drivers_set import DriverSet
 from nanodrift.errors import UserError
 from nanodrift.model.cell_model import CellModel, load_any_model
 from nanodrift.model.model import Model, ModelFileError
-from nanodrift.procedure.steps import run_steps
-from nanodrift.procedure.validation import run_validation
+from nanodrift.procedure.validation import run_cell_validation_steps, run_validation
 from nanodrift.reports.validation import (
     CellScores,
     cell_json,
@@ -289,7 +288,7 @@ def _one_test(args: argparse.Namespace, model: CellModel, scenario: str,
 
 
 def _driven_run(args: argparse.Namespace, model: CellModel, scenario: str | None,
-                compensate: bool) -> tuple[Config, DriverSet, list[CellStepResult]]:
+                compensate: bool) -> tuple[Config, DriverSet, list[CellStepResult], int]:
     """One run of the plan on a fresh cell (a simulated one restarts its room: both runs see the same one)."""
     config, drivers = _open(args, scenario)
     if sorted(config.axis_names) != sorted(model.axes):
@@ -297,16 +296,14 @@ def _driven_run(args: argparse.Namespace, model: CellModel, scenario: str | None
                         f"{', '.join(config.axis_names)}")
     limits = config.axis_actuators()
     plan = cell_validation_plan(config.axis_names, args.cycles, {a: lim.workspace_um for a, lim in limits.items()})
-    evaluator = model.evaluator()
     follow, ready = _cell.guards(config, drivers, args)
     try:
-        results = _cell.run_procedure(run_steps(
-            drivers, plan, limits=limits, timing=config.procedure.timing,
-            command_for=evaluator.command if compensate else None,
-            on_temperatures=evaluator.observe, follow=follow, ready=ready))
+        results, extrapolating = _cell.run_procedure(run_cell_validation_steps(
+            drivers, plan, model, compensate=compensate, limits=limits, name=scenario or "validation",
+            timing=config.procedure.timing, follow=follow, ready=ready))
     except ValueError as err:
         raise UserError(str(err)) from None
-    return config, drivers, results
+    return config, drivers, results, extrapolating
 
 
 def _driven_scores(name: str, runs: list[list[CellStepResult]], against: str) -> CellScores:
@@ -320,10 +317,11 @@ def _driven_scores(name: str, runs: list[list[CellStepResult]], against: str) ->
 
 
 def _driven_test(args: argparse.Namespace, model: CellModel, scenario: str | None) -> tuple[str, dict[str, Any]]:
-    config, drivers, without = _driven_run(args, model, scenario, compensate=False)
-    runs = [without]
+    config, drivers, without, _ = _driven_run(args, model, scenario, compensate=False)
+    runs, extrapolating = [without], 0
     if not args.no_compensation:
-        runs.append(_driven_run(args, model, scenario, compensate=True)[2])
+        _, _, compensated, extrapolating = _driven_run(args, model, scenario, compensate=True)
+        runs.append(compensated)
     section = config.section(SECTION)
     name = scenario or (section.scenario if isinstance(section, SimulationConfig) else "validation")
     measured = _driven_scores(name, runs, "interferometer")
@@ -335,11 +333,13 @@ def _driven_test(args: argparse.Namespace, model: CellModel, scenario: str | Non
                         f"through the model, on {drivers.description} ({config.source})"
                         + ("" if knows_truth else "; no true position on hardware: the TRUE columns repeat the "
                            "position sensors'") + ".")
+    if extrapolating:
+        text += f"\n[{extrapolating} steps extrapolating: outside the model's training ranges]"
     invalid = sum(not r.valid for run in runs for r in run)
     if invalid:
         text += f"\n[{invalid} steps kept with a dirty window (valid = 0) are scored as measured]"
     doc = cell_json(name, truth, measured, model=model.id, backend=f"{drivers.description} ({config.source})",
-                    cycles=args.cycles, truth_known=knows_truth)
+                    cycles=args.cycles, truth_known=knows_truth, extrapolating_steps=extrapolating)
     if args.report:
         targets = {a: np.array([r.step.target(a) for r in without]) for a in model.axes}
         attained = [{a: np.array([(r.true_um if knows_truth else r.positions_um)[a] for r in run])

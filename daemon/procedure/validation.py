@@ -14,16 +14,25 @@ truth beside the interferometer. Hardware knows no truth: the list stays empty.
 from __future__ import annotations
 
 import math
-from collections.abc import Awaitable, Callable, Mapping
+from collections.abc import Awaitable, Callable, Mapping, Sequence
 from typing import IO, Any
 
 from nanodrift.calibration.iso9283 import TestResult, summarize
-from nanodrift.calibration.plans import CellStepResult, StepResult, StepTiming, validation_plan
+from nanodrift.calibration.plans import CellStepResult, PlannedCellStep, StepResult, StepTiming, validation_plan
 from nanodrift.calibration.residuals import BiasTracker
 from nanodrift.drivers_set import DriverSet
+from nanodrift.model.cell_model import CellModel
+from nanodrift.model.model import Model
 from nanodrift.procedure.follow import FollowCheck
 from nanodrift.procedure.progress import Progress
 from nanodrift.procedure.steps import Limits, axis_limits, run_steps
+
+
+def check_channels(model: Model | CellModel, drivers: DriverSet) -> None:
+    """A model reading a channel this cell does not measure is refused before anything moves."""
+    missing = [c for c in model.channels if c not in drivers.temperature_channels]
+    if missing:
+        raise ValueError(f"the model needs channel(s) {', '.join(missing)} that this cell does not measure")
 
 
 def feed_tracker(tracker: BiasTracker, result: StepResult) -> float:
@@ -66,9 +75,7 @@ async def run_validation(
     adapted_sigmas: list[float] = []
     wander_um = model.wander_um if model is not None else 0.0
     if model is not None:
-        missing = [c for c in model.channels if c not in drivers.temperature_channels]
-        if missing:
-            raise ValueError(f"the model needs channel(s) {', '.join(missing)} that this cell does not measure")
+        check_channels(model, drivers)
 
     def observe(t: float, temps: dict[str, float]) -> None:
         latest.update(temps)
@@ -112,3 +119,37 @@ async def run_validation(
         result.measurement_sigma_um = wander_um
     return result
 
+
+async def run_cell_validation_steps(
+    drivers: DriverSet,
+    plan: Sequence[PlannedCellStep],
+    model: CellModel,
+    *,
+    compensate: bool,
+    limits: Limits,
+    name: str = "validation",
+    timing: StepTiming | None = None,
+    progress_stream: IO[str] | None = None,
+    follow: Mapping[str, FollowCheck] | None = None,
+    ready: Callable[[], Awaitable[None]] | None = None,
+) -> tuple[list[CellStepResult], int]:
+    """A multi-axis cell's ISO 9283 plan, through ``model`` when ``compensate`` (else command = target): its
+    steps, and how many commands were for a target or temperatures outside the model's training ranges."""
+    check_channels(model, drivers)
+    evaluator = model.evaluator()
+    latest: dict[str, float] = {}
+    extrapolating = 0
+
+    def observe(t: float, temps: dict[str, float]) -> None:
+        latest.update(temps)
+        evaluator.observe(t, temps)
+
+    def command_for(targets: dict[str, float], t: float) -> dict[str, float]:
+        nonlocal extrapolating
+        extrapolating += bool(model.out_of_range(targets, latest))
+        return evaluator.command(targets, t)
+
+    steps = await run_steps(drivers, plan, limits=limits, timing=timing or StepTiming(),
+                            command_for=command_for if compensate else None, on_temperatures=observe,
+                            progress=Progress(plan, name, progress_stream), follow=follow, ready=ready)
+    return steps, extrapolating

@@ -9,6 +9,7 @@ an interrupted calibration resumes from its file.
 from __future__ import annotations
 
 import asyncio
+import json
 import re
 from pathlib import Path
 
@@ -64,7 +65,9 @@ def test_validate_through_the_drivers_prints_ap_2d_like_the_simulated_path(tmp_p
     capsys.readouterr()
     assert cli(["validate", "--config", str(config), "--model", str(model), "--cycles", "2",
                 "--scenario", "test2"]) == 0
-    driven = capsys.readouterr().out
+    driven, progress = capsys.readouterr()
+    # the one-axis procedure's progress, for each of the two runs (uncompensated, then through the model)
+    assert progress.count("test2: 0/10 steps") == 2 and progress.count("test2: 10/10 steps") == 2
     assert cli(["validate", "--model", str(model), "--cycles", "2", "--scenario", "test2"]) == 0
     simulated = capsys.readouterr().out
 
@@ -74,6 +77,8 @@ def test_validate_through_the_drivers_prints_ap_2d_like_the_simulated_path(tmp_p
         return float(found[1]), float(found[2])
 
     assert "axis x" in driven and "axis y" in driven and "RP 2-D" in driven
+    # extrapolation is counted on the driven cell as on the simulated path (the same room)
+    assert ("steps extrapolating" in driven) == ("steps extrapolating" in simulated)
     (without, with_model), (sim_without, sim_with) = ap(driven), ap(simulated)
     assert with_model < without / 2  # the model compensates on the driven cell too
     # the same plan, room and noise as the vectorised path: the same figures within a few percent
@@ -123,3 +128,20 @@ def test_a_three_axis_cell_calibrates_through_its_drivers(tmp_path: Path) -> Non
     assert np.max(np.abs(data.positions["z"] - data.commands["z"])) < 3.0
     model = load_any_model(out)
     assert isinstance(model, CellModel) and model.axes == ("x", "y", "z")
+
+
+def test_validate_through_the_drivers_counts_the_steps_outside_the_training_ranges(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    config = _config(tmp_path)
+    model = tmp_path / "xy.json"
+    assert cli(["calibrate", "--config", str(config), "--cycles", "2", "--out", str(model)]) == 0
+    capsys.readouterr()
+    # the paper's test 5: a room far outside the calibration's (a hot plate near the stage)
+    assert cli(["validate", "--config", str(config), "--model", str(model), "--cycles", "1",
+                "--scenario", "test5", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["extrapolating_steps"] == 5  # every compensated step of P1..P5
+    # the calibration's own room from its start: not every step is outside (a step can be: 2 cycles span little)
+    assert cli(["validate", "--config", str(config), "--model", str(model), "--cycles", "1",
+                "--scenario", "train", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["extrapolating_steps"] < 5
