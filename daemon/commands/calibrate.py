@@ -20,7 +20,7 @@ import sys
 from pathlib import Path
 
 from nanodrift.calibration.dataset import DataError
-from nanodrift.calibration.plans import AnyPlannedStep, bidirectional_plan, calibration_plan, cell_calibration_plan
+from nanodrift.calibration.plans import PlannedStep, bidirectional_plan, calibration_plan, cell_calibration_plan
 from nanodrift.commands import _cell
 from nanodrift.config import Config, missing_model_channels
 from nanodrift.errors import UserError
@@ -128,7 +128,7 @@ def main(args: argparse.Namespace) -> int:
     return 0
 
 
-def _plan(config: Config, cycles: int) -> list[AnyPlannedStep]:
+def _plan(config: Config, cycles: int) -> list[PlannedStep]:
     """The paper's sweeps (``[procedure]`` points and trajectory) on one axis; the space-filling plan on several."""
     settings = config.procedure
     if len(config.axis_names) == 1:

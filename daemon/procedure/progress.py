@@ -17,13 +17,13 @@ import time
 from collections.abc import Callable, Sequence
 from typing import IO
 
-from nanodrift.calibration.plans import AnyPlannedStep
+from nanodrift.calibration.plans import PlannedStep
 
 
 class Progress:
     """A bar on stderr with the wall-clock time left (a line at the start and per cycle when not a TTY)."""
 
-    def __init__(self, plan: Sequence[AnyPlannedStep], label: str, stream: IO[str] | None = None, done: int = 0,
+    def __init__(self, plan: Sequence[PlannedStep], label: str, stream: IO[str] | None = None, done: int = 0,
                  wall: Callable[[], float] = time.monotonic) -> None:
         self.cycles = [s.cycle for s in plan]
         self.total, self.label = len(plan), label

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import IO
 
 from nanodrift.calibration.dataset import CsvAppender, DataError, command_column, position_column, read_csv
-from nanodrift.calibration.plans import PAPER_TIMING, AnyPlannedStep, CellStepResult, StepTiming, calibration_plan
+from nanodrift.calibration.plans import PAPER_TIMING, CellStepResult, PlannedStep, StepTiming, calibration_plan
 from nanodrift.drivers_set import DriverSet
 from nanodrift.model.cell_model import CellModel, save_cell_model
 from nanodrift.model.identify import FitResult, fit, fit_cell
@@ -53,7 +53,7 @@ async def record_calibration(
     *,
     limits: Limits | None = None,
     cycles: int = 24,
-    plan: Sequence[AnyPlannedStep] | None = None,
+    plan: Sequence[PlannedStep] | None = None,
     timing: StepTiming = PAPER_TIMING,
     resume: bool = False,
     progress_stream: IO[str] | None = None,

@@ -23,8 +23,8 @@ from collections.abc import Awaitable, Callable, Mapping, Sequence
 
 from nanodrift.calibration.plans import (
     PAPER_TIMING,
-    AnyPlannedStep,
     CellStepResult,
+    PlannedStep,
     StepTiming,
     ramp_commands,
 )
@@ -57,7 +57,7 @@ def move_s(q_from: Mapping[str, float | None], q_to: Mapping[str, float], timing
     return max(ramp_s(q_from[a], q_to[a], timing, limits[a]) for a in q_to)
 
 
-def planned_seconds(plan: Sequence[AnyPlannedStep], q_from: Mapping[str, float | None], timing: StepTiming,
+def planned_seconds(plan: Sequence[PlannedStep], q_from: Mapping[str, float | None], timing: StepTiming,
                     limits: Limits) -> list[float]:
     """Each step's planned duration on the cell's clock: its rise (stretched by the slew limits) and hold."""
     out = []
@@ -97,7 +97,7 @@ async def ramp(drivers: DriverSet, limits: Limits, q_from: Mapping[str, float | 
         await _write(actuators, limits, {a: track[k] for a, track in tracks.items()})
 
 
-async def measure_step(sampler: Sampler, limits: Limits, step: AnyPlannedStep, q_from: Mapping[str, float | None],
+async def measure_step(sampler: Sampler, limits: Limits, step: PlannedStep, q_from: Mapping[str, float | None],
                        q_to: dict[str, float], timing: StepTiming) -> CellStepResult:
     """Ramp every axis, hold, average the last window; re-measure a dirty window up to ``max_retries`` times."""
     drivers = sampler.drivers
@@ -130,7 +130,7 @@ async def measure_step(sampler: Sampler, limits: Limits, step: AnyPlannedStep, q
 
 async def run_steps(
     drivers: DriverSet,
-    plan: Sequence[AnyPlannedStep],
+    plan: Sequence[PlannedStep],
     *,
     limits: Limits | None = None,
     timing: StepTiming = PAPER_TIMING,

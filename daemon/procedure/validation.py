@@ -18,7 +18,7 @@ from collections.abc import Awaitable, Callable, Mapping, Sequence
 from typing import IO, Any
 
 from nanodrift.calibration.iso9283 import TestResult, summarize
-from nanodrift.calibration.plans import CellStepResult, PlannedCellStep, StepResult, StepTiming, validation_plan
+from nanodrift.calibration.plans import CellStepResult, PlannedStep, StepResult, StepTiming, validation_plan
 from nanodrift.calibration.residuals import BiasTracker
 from nanodrift.drivers_set import DriverSet
 from nanodrift.model.cell_model import CellModel
@@ -122,7 +122,7 @@ async def run_validation(
 
 async def run_cell_validation_steps(
     drivers: DriverSet,
-    plan: Sequence[PlannedCellStep],
+    plan: Sequence[PlannedStep],
     model: CellModel,
     *,
     compensate: bool,

@@ -77,7 +77,7 @@ def test_the_tolerance_is_a_fraction_of_the_commanded_move(gain: float, toleranc
                                                            tmp_path: Path) -> None:
     drivers, _ = wired(gain=gain)
     follow = FollowCheck("interferometer", tolerance=tolerance, steps=3)
-    plan = [PlannedStep(i, 0, x) for i, x in enumerate((0.0, 30.0, 60.0, 90.0, 120.0))]
+    plan = [PlannedStep.on_x(i, 0, x) for i, x in enumerate((0.0, 30.0, 60.0, 90.0, 120.0))]
     run = run_steps(drivers, plan, follow={"x": follow}, timing=StepTiming(hold_s=6.0, window_s=2.0))
     if follows:
         results = asyncio.run(run)
@@ -90,7 +90,7 @@ def test_the_tolerance_is_a_fraction_of_the_commanded_move(gain: float, toleranc
 def test_a_jump_is_ramped_no_faster_than_max_slew_and_ends_at_the_target() -> None:
     drivers, actuator = wired()
     limits = ActuatorConfig(max_slew_um_per_s=100.0)
-    plan = [PlannedStep(0, 0, 0.0), PlannedStep(1, 0, 480.0), PlannedStep(2, 0, 0.0)]
+    plan = [PlannedStep.on_x(0, 0, 0.0), PlannedStep.on_x(1, 0, 480.0), PlannedStep.on_x(2, 0, 0.0)]
     results = asyncio.run(run_steps(drivers, plan, limits={"x": limits}))  # the paper's 4 s ramp would be 120 um/s
     sent = actuator.sent
     rates = [abs(q1 - q0) / (t1 - t0) for (t0, q0, _), (t1, q1, _) in itertools.pairwise(sent) if t1 > t0]
@@ -132,7 +132,7 @@ def test_the_first_ramp_starts_where_the_output_reads_back_also_when_a_run_resum
 
 def test_the_paper_ramp_is_kept_when_it_is_slower_than_the_limit() -> None:
     drivers, actuator = wired()
-    plan = [PlannedStep(0, 0, 0.0), PlannedStep(1, 0, 30.0)]
+    plan = [PlannedStep.on_x(0, 0, 0.0), PlannedStep.on_x(1, 0, 30.0)]
     asyncio.run(run_steps(drivers, plan, limits={"x": ActuatorConfig(max_slew_um_per_s=100.0)}))
     moving = [(t, q) for t, q, _ in actuator.sent if 0 < q]
     # the first move (to 0 um, from where the simulated stage is: unknown, it cannot be read back) is one write
@@ -142,7 +142,7 @@ def test_the_paper_ramp_is_kept_when_it_is_slower_than_the_limit() -> None:
 def test_a_finite_safe_voltage_is_where_the_stage_is_left_even_after_a_failure(tmp_path: Path) -> None:
     limits = ActuatorConfig(safe_voltage_v=1.0, max_slew_um_per_s=50.0)
     drivers, actuator = wired()
-    plan = [PlannedStep(0, 0, 0.0), PlannedStep(1, 0, 480.0)]
+    plan = [PlannedStep.on_x(0, 0, 0.0), PlannedStep.on_x(1, 0, 480.0)]
     asyncio.run(run_steps(drivers, plan, limits={"x": limits}))
     assert actuator.sent[-1][1:] == pytest.approx((50.0, 1.0))  # 1.0 V / 0.02 V/um
     descent = [(t, q) for t, q, _ in actuator.sent if t > actuator.sent[-1][0] - 8.6]
@@ -151,7 +151,7 @@ def test_a_finite_safe_voltage_is_where_the_stage_is_left_even_after_a_failure(t
 
     stuck, stuck_actuator = wired(gain=0.0)
     with pytest.raises(StageNotFollowingError):
-        asyncio.run(run_steps(stuck, [PlannedStep(i, 0, x) for i, x in enumerate((0.0, 30.0, 60.0))],
+        asyncio.run(run_steps(stuck, [PlannedStep.on_x(i, 0, x) for i, x in enumerate((0.0, 30.0, 60.0))],
                               limits={"x": limits}, follow={"x": FollowCheck("interferometer")}))
     assert stuck_actuator.sent[-1][1] == pytest.approx(50.0)
 
@@ -204,7 +204,7 @@ def test_an_output_that_fails_to_close_hides_neither_the_run_nor_its_error() -> 
     assert drivers.actuator is not None
     actuator = Sticky(drivers.actuator, drivers.clock, gain=0.0)
     drivers.actuator, drivers.actuators = actuator, {"x": actuator}
-    plan = [PlannedStep(i, 0, x) for i, x in enumerate((0.0, 30.0))]
+    plan = [PlannedStep.on_x(i, 0, x) for i, x in enumerate((0.0, 30.0))]
     with pytest.raises(StageNotFollowingError):  # the run's own error, not the close's
         asyncio.run(run_steps(drivers, plan, follow={"x": FollowCheck("interferometer")},
                               timing=StepTiming(hold_s=6.0, window_s=2.0)))
