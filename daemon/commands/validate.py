@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from nanodrift.calibration.iso9283 import CellTestResult, TestResult, summarize_cell
+from nanodrift.calibration.iso9283 import TestResult, summarize_cell
 from nanodrift.calibration.plans import CellStepResult, cell_validation_plan
 from nanodrift.calibration.residuals import BiasTracker
 from nanodrift.commands import _cell
@@ -36,7 +36,6 @@ from nanodrift.config import Config, load_config
 from nanodrift.drivers.simulated.config import SECTION, SimulationConfig
 from nanodrift.drivers.simulated.effects import UnknownNameError
 from nanodrift.drivers.simulated.multiaxis import (
-    CellValidationRun,
     CrossParams,
     MultiAxisPhysics,
     cell_command,
@@ -224,11 +223,12 @@ def _json_default(value: Any) -> Any:
 # ----- a multi-axis model: Table I per axis, AP/RP in 2-D/3-D ------------------------------------------
 
 
-def scores(run: CellValidationRun, against: str) -> CellScores:
-    without = summarize_cell(run.name, run.targets_um, run.attained(False, against))
-    with_model = (summarize_cell(run.name, run.targets_um, run.attained(True, against))
-                  if run.compensated is not None else None)
-    return CellScores(without, with_model)
+Attained = list[dict[str, np.ndarray]]  # each axis' attained positions: without the model, then with it (if run)
+
+
+def _scores(name: str, targets_um: dict[str, np.ndarray], attained: Attained) -> CellScores:
+    with_model = summarize_cell(name, targets_um, attained[1]) if len(attained) > 1 else None
+    return CellScores(summarize_cell(name, targets_um, attained[0]), with_model)
 
 
 def _cell_tests(args: argparse.Namespace, model: CellModel, asked: list[str | None]) -> int:
@@ -245,7 +245,7 @@ def _cell_tests(args: argparse.Namespace, model: CellModel, asked: list[str | No
             cross = cross_params(args.effects or None)
         except (UnknownNameError, KeyError, ValueError) as err:
             raise UserError(f"simulated {''.join(model.axes)} cell: {err}") from None
-        tests = [_one_test(args, model, scenario or "test2", cross) for scenario in asked]
+        tests = [_simulated_test(args, model, scenario or "test2", cross) for scenario in asked]
     if args.json:
         docs = [doc for _, doc in tests]
         print(json.dumps(docs[0] if len(docs) == 1 else {"model": model.id, "tests": docs}, indent=2))
@@ -255,7 +255,7 @@ def _cell_tests(args: argparse.Namespace, model: CellModel, asked: list[str | No
 
 
 def _cell_report(args: argparse.Namespace, name: str, text: str, doc: dict[str, Any], truth: CellScores,
-                 targets_um: dict[str, np.ndarray], attained: list[dict[str, np.ndarray]]) -> None:
+                 targets_um: dict[str, np.ndarray], attained: Attained) -> None:
     """``--report``: the test's files (one directory per test when several are asked for)."""
     several = len(_cell.scenario_list(args.scenario)) > 1
     directory = Path(args.report) / name if several else Path(args.report)
@@ -264,15 +264,20 @@ def _cell_report(args: argparse.Namespace, name: str, text: str, doc: dict[str, 
     print(f"report: {', '.join(str(f) for f in files)}", file=sys.stderr)
 
 
-def _one_test(args: argparse.Namespace, model: CellModel, scenario: str,
-              cross: CrossParams) -> tuple[str, dict[str, Any]]:
+def _simulated_test(args: argparse.Namespace, model: CellModel, scenario: str,
+                    cross: CrossParams) -> tuple[str, dict[str, Any]]:
     """One test on a fresh simulated cell: its Table I text and JSON document (and report, with --report:
     one directory per test when several are asked for)."""
     seed = _cell.scenario_seed(args.seed or 0, scenario)
     physics = MultiAxisPhysics.create(model.axes, scenario, seed, cross)
     run = run_cell_validation(physics, None if args.no_compensation else cell_command(model), cycles=args.cycles,
                               name=scenario, out_of_range=lambda p, temps: bool(model.out_of_range(p, temps)))
-    truth, measured = scores(run, "truth"), scores(run, "interferometer")
+    def attained(against: str) -> Attained:
+        return [run.attained(False, against)] + ([run.attained(True, against)] if run.compensated is not None else [])
+
+    truth_um = attained("truth")
+    truth = _scores(scenario, run.targets_um, truth_um)
+    measured = _scores(scenario, run.targets_um, attained("interferometer"))
     text = cell_table(scenario, truth, measured)
     if run.extrapolating_steps:
         text += f"\n[{run.extrapolating_steps} steps extrapolating: outside the model's training ranges]"
@@ -280,10 +285,7 @@ def _one_test(args: argparse.Namespace, model: CellModel, scenario: str,
                     f"scenario {scenario}, seed {seed}", cycles=args.cycles,
                     extrapolating_steps=run.extrapolating_steps)
     if args.report:
-        attained = [run.attained(False, "truth")]
-        if run.compensated is not None:
-            attained.append(run.attained(True, "truth"))
-        _cell_report(args, scenario, text, doc, truth, run.targets_um, attained)
+        _cell_report(args, scenario, text, doc, truth, run.targets_um, truth_um)
     return text, doc
 
 
@@ -306,16 +308,6 @@ def _driven_run(args: argparse.Namespace, model: CellModel, scenario: str | None
     return config, drivers, results, extrapolating
 
 
-def _driven_scores(name: str, runs: list[list[CellStepResult]], against: str) -> CellScores:
-    def summary(results: list[CellStepResult]) -> CellTestResult:
-        axes = tuple(results[0].q_um)
-        targets = {a: np.array([r.step.target(a) for r in results]) for a in axes}
-        read = (lambda r: r.true_um) if against == "truth" else (lambda r: r.positions_um)
-        return summarize_cell(name, targets, {a: np.array([read(r)[a] for r in results]) for a in axes})
-
-    return CellScores(summary(runs[0]), summary(runs[1]) if len(runs) > 1 else None)
-
-
 def _driven_test(args: argparse.Namespace, model: CellModel, scenario: str | None) -> tuple[str, dict[str, Any]]:
     config, drivers, without, _ = _driven_run(args, model, scenario, compensate=False)
     runs, extrapolating = [without], 0
@@ -324,9 +316,13 @@ def _driven_test(args: argparse.Namespace, model: CellModel, scenario: str | Non
         runs.append(compensated)
     section = config.section(SECTION)
     name = scenario or (section.scenario if isinstance(section, SimulationConfig) else "validation")
-    measured = _driven_scores(name, runs, "interferometer")
+    targets = {a: np.array([r.step.target(a) for r in without]) for a in model.axes}
+    measured_um = [{a: np.array([r.positions_um[a] for r in run]) for a in model.axes} for run in runs]
     knows_truth = all(math.isfinite(v) for run in runs for r in run for v in r.true_um.values())
-    truth = _driven_scores(name, runs, "truth") if knows_truth else measured
+    truth_um = [{a: np.array([r.true_um[a] for r in run]) for a in model.axes} for run in runs] if knows_truth \
+        else measured_um
+    measured = _scores(name, targets, measured_um)
+    truth = _scores(name, targets, truth_um) if knows_truth else measured
     text = cell_table(name, truth, measured)
     before = "without comp.: the same plan run uncompensated (command = target) in the same room, same noise."
     text = text.replace(before, f"without comp.: the same plan run uncompensated (command = target) first, then "
@@ -341,8 +337,5 @@ def _driven_test(args: argparse.Namespace, model: CellModel, scenario: str | Non
     doc = cell_json(name, truth, measured, model=model.id, backend=f"{drivers.description} ({config.source})",
                     cycles=args.cycles, truth_known=knows_truth, extrapolating_steps=extrapolating)
     if args.report:
-        targets = {a: np.array([r.step.target(a) for r in without]) for a in model.axes}
-        attained = [{a: np.array([(r.true_um if knows_truth else r.positions_um)[a] for r in run])
-                     for a in model.axes} for run in runs]
-        _cell_report(args, name, text, doc, truth, targets, attained)
+        _cell_report(args, name, text, doc, truth, targets, truth_um)
     return text, doc
