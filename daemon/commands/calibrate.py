@@ -108,9 +108,9 @@ def main(args: argparse.Namespace) -> int:
             raise UserError(str(err)) from None
         raise
     if len(axes) > 1:
-        return _fit_cell(args, data)
+        return _fit_cell(args, data, plan)
     try:
-        result = fit_recorded(data, args.out, commanded_um=[step.target("x") for step in plan])
+        result = fit_recorded(data, args.out, plan=plan)
     except (FitError, DataError) as err:
         raise UserError(f"the recorded steps in {data} are kept, but the fit failed: {err}") from None
     model = result.model
@@ -140,10 +140,10 @@ def _plan(config: Config, cycles: int) -> list[PlannedStep]:
     return list(cell_calibration_plan(config.axis_names, cycles))
 
 
-def _fit_cell(args: argparse.Namespace, data: Path) -> int:
+def _fit_cell(args: argparse.Namespace, data: Path, plan: list[PlannedStep]) -> int:
     """Every axis' model into one multi-axis model file, described; ``--serve`` names it in the config."""
     try:
-        cell = fit_cell_recorded(data, args.out)
+        cell = fit_cell_recorded(data, args.out, plan=plan)
     except (FitError, DataError, ValueError) as err:
         raise UserError(f"the recorded steps in {data} are kept, but the fit failed: {err}") from None
     print(describe_cell_model(cell, args.out))

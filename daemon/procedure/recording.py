@@ -106,45 +106,54 @@ def resume_hint(out: str | Path, data: str | Path, recorded: int, total: int) ->
             f"Resume with: nanodrift calibrate --out {out} --data {data} --resume")
 
 
-def fit_recorded(data_path: str | Path, model_path: str | Path, *, commanded_um: Sequence[float] = ()) -> FitResult:
-    """Identify the model from the recorded steps (valid rows only), stamp the data file (its SHA-256 and
-    rows) into its provenance and save it atomically.
+def fit_recorded(data_path: str | Path, model_path: str | Path, *, plan: Sequence[PlannedStep] = ()) -> FitResult:
+    """Identify the one-axis model from the recorded steps (valid rows only), stamp the data file (its
+    SHA-256 and rows) into its provenance and save it atomically.
 
-    ``commanded_um``: the plan's targets. The model's x training range becomes the union of the measured
-    positions and these, so a commanded point (0 µm, measured at 0.1 µm) is never flagged as an
-    extrapolation (:func:`cover_commanded`). Empty: the measured range alone, as ``nanodrift fit`` gives.
+    ``plan``: the calibration's. The model's training ranges cover its targets (:func:`cover_commanded`).
+    Empty: the measured range alone, as ``nanodrift fit`` gives.
     """
     ds = read_csv(data_path)
     result = fit(ds, source=str(data_path))
-    cover_commanded(result.model, commanded_um)
+    cover_commanded(result.model, plan)
     stamp_data(result.model, [(data_path, len(ds))])
     save_model(result.model, model_path)
     return result
 
 
-def fit_cell_recorded(data_path: str | Path, model_path: str | Path) -> CellModel:
-    """Every axis' model from the recorded steps of a cell of several axes (valid rows only), the data file
-    stamped into each axis' provenance, saved atomically (the multi-axis model file)."""
+def fit_cell_recorded(data_path: str | Path, model_path: str | Path, *, plan: Sequence[PlannedStep] = ()
+                      ) -> CellModel:
+    """Every axis' model from the recorded steps of a cell of several axes (valid rows only), each covering the
+    plan's targets, the data file stamped into each axis' provenance, saved atomically (the multi-axis file)."""
     ds = read_csv(data_path)
     cell = fit_cell(ds.valid_rows(), source=str(data_path)).model
+    for model in cell.models.values():
+        cover_commanded(model, plan)
     stamp_data(cell, [(data_path, len(ds))])
     save_cell_model(cell, model_path)
     return cell
 
 
-def cover_commanded(model: Model, commanded_um: Sequence[float]) -> None:
-    """Widen the model's x training range to the commanded trajectory, and give it the id of that content.
+def cover_commanded(model: Model, plan: Sequence[PlannedStep]) -> None:
+    """Widen the model's training range of every axis' position to the plan's targets, and give it the id of
+    that content.
 
-    The x range decides which targets are flagged as extrapolating. A calibration commands 0..480 µm
+    The position ranges decide which targets are flagged as extrapolating. A calibration commands 0..480 µm
     and measures 0.1..480.4 µm: the sub-micrometre gap is the stage's noise and offset, not a part of
     the travel the model has not seen. Only a newly fitted model is widened (the range is part of
     its id): files already written keep theirs.
     """
-    if len(commanded_um) == 0:
+    if not plan:
         return
-    low, high = model.training.x_range
-    widened = (min(low, float(min(commanded_um))), max(high, float(max(commanded_um))))
-    model.training = dataclasses.replace(model.training, x_range=widened)
+
+    def widened(axis: str, measured: tuple[float, float]) -> tuple[float, float]:
+        targets = [step.target(axis) for step in plan]
+        return min(measured[0], min(targets)), max(measured[1], max(targets))
+
+    training = model.training
+    model.training = dataclasses.replace(
+        training, x_range=widened("x", training.x_range),
+        position_ranges={axis: widened(axis, r) for axis, r in training.position_ranges.items()})
     model.id = model.content_id()
 
 

@@ -50,8 +50,12 @@ def test_calibrate_drives_every_axis_along_the_plan_and_writes_a_cell_model(
         assert np.max(np.abs(data.positions[axis] - commanded)) < 3.0
     assert np.all(data.extra["valid"] == 1)
     assert np.all(np.diff(data.t) == pytest.approx(29.0))  # the paper's 4 s rise + 25 s hold per step
-    model = load_any_model(out)
+    model = load_any_model(out)  # its ids checked against its content
     assert isinstance(model, CellModel) and model.axes == ("x", "y")
+    # every axis' training range covers the commanded 0..480 µm, as a one-axis calibration's x range does:
+    # a commanded point measured 0.1 µm off is no extrapolation
+    assert all(lo <= 0.0 and hi >= 480.0 for lo, hi in model.position_ranges.values())
+    assert model.out_of_range({"x": 0.0, "y": 480.0}) == []
     y_terms = [t.term.name for t in model.models["y"].terms]
     assert "x" in y_terms  # y's command corrects x's crosstalk: a cross term only a multi-axis fit has
     assert f"model {model.id} (axes x, y)" in capsys.readouterr().out
