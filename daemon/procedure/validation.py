@@ -21,8 +21,8 @@ from nanodrift.calibration.iso9283 import TestResult, summarize
 from nanodrift.calibration.plans import CellStepResult, PlannedStep, StepResult, StepTiming, validation_plan
 from nanodrift.calibration.residuals import BiasTracker
 from nanodrift.drivers_set import DriverSet
-from nanodrift.model.cell_model import CellModel
-from nanodrift.model.model import Model
+from nanodrift.model.cell_model import CellEvaluator, CellModel
+from nanodrift.model.model import Evaluator, Model
 from nanodrift.procedure.follow import FollowCheck
 from nanodrift.procedure.progress import Progress
 from nanodrift.procedure.steps import Limits, axis_limits, run_steps
@@ -33,6 +33,12 @@ def check_channels(model: Model | CellModel, drivers: DriverSet) -> None:
     missing = [c for c in model.channels if c not in drivers.temperature_channels]
     if missing:
         raise ValueError(f"the model needs channel(s) {', '.join(missing)} that this cell does not measure")
+
+
+def check_ready(evaluator: Evaluator | CellEvaluator) -> None:
+    """No command from a model before every channel it reads has a clean sample."""
+    if not evaluator.ready:
+        raise RuntimeError("no clean temperature sample yet for every channel the model needs")
 
 
 def feed_tracker(tracker: BiasTracker, result: StepResult) -> float:
@@ -87,8 +93,7 @@ async def run_validation(
         target = targets[axis]
         if evaluator is None or model is None:  # the one is None when the other is
             return targets
-        if not evaluator.ready:
-            raise RuntimeError("no clean temperature sample yet for every channel the model needs")
+        check_ready(evaluator)
         if model.out_of_range(target, latest):
             extrapolating += 1
         correction = adapt.correction_um if adapt is not None else 0.0
@@ -146,6 +151,7 @@ async def run_cell_validation_steps(
 
     def command_for(targets: dict[str, float], t: float) -> dict[str, float]:
         nonlocal extrapolating
+        check_ready(evaluator)
         extrapolating += bool(model.out_of_range(targets, latest))
         return evaluator.command(targets, t)
 

@@ -9,6 +9,7 @@ an interrupted calibration resumes from its file.
 from __future__ import annotations
 
 import asyncio
+import io
 import json
 import re
 from pathlib import Path
@@ -16,9 +17,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import nanodrift
 from nanodrift.assembly import procedure_drivers
 from nanodrift.calibration.dataset import read_csv
-from nanodrift.calibration.plans import CellStepResult, StepTiming, cell_calibration_plan
+from nanodrift.calibration.plans import CellStepResult, StepTiming, cell_calibration_plan, cell_validation_plan
 from nanodrift.cli import main as cli
 from nanodrift.config import load_config
 from nanodrift.drivers.simulated.multicell import SimulatedMultiCell
@@ -26,6 +28,7 @@ from nanodrift.drivers.simulated.plugin import RESOURCE_KEY
 from nanodrift.model.cell_model import CellModel, load_any_model
 from nanodrift.procedure.recording import record_calibration
 from nanodrift.procedure.steps import run_steps
+from nanodrift.procedure.validation import run_cell_validation_steps
 
 
 def _config(tmp_path: Path, axes: str = "xy") -> Path:
@@ -149,3 +152,22 @@ def test_validate_through_the_drivers_counts_the_steps_outside_the_training_rang
     assert cli(["validate", "--config", str(config), "--model", str(model), "--cycles", "1",
                 "--scenario", "train", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["extrapolating_steps"] < 5
+
+
+def test_no_command_before_every_channel_the_model_reads_has_a_clean_sample(tmp_path: Path) -> None:
+    config = load_config(_config(tmp_path))
+    drivers = procedure_drivers(config)
+    cell = drivers.context.resources.get(RESOURCE_KEY, SimulatedMultiCell)
+    assert isinstance(cell, SimulatedMultiCell)
+    cell.inject_fault("T2", 0.0, 1000.0, "fault")  # burnt out from the start
+    model = load_any_model(Path(nanodrift.__file__).parent / "data" / "default_model_xy.json")
+    assert isinstance(model, CellModel) and "T2" in model.channels
+    plan = cell_validation_plan(("x", "y"), 1)
+    with pytest.raises(RuntimeError, match="no clean temperature sample yet"):
+        asyncio.run(run_cell_validation_steps(drivers, plan, model, compensate=True, limits=config.axis_actuators(),
+                                              progress_stream=io.StringIO()))
+    # uncompensated, the same plan runs: nothing asks the model
+    steps, extrapolating = asyncio.run(run_cell_validation_steps(
+        procedure_drivers(config), plan, model, compensate=False, limits=config.axis_actuators(),
+        progress_stream=io.StringIO()))
+    assert len(steps) == len(plan) and extrapolating == 0
