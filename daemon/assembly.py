@@ -138,6 +138,7 @@ def procedure_drivers(config: Config, *, start_s: float = 0.0) -> DriverSet:
     elif drivers.actuator is None:
         actuator = ZenohActuator(config)
         drivers.actuator = actuator
+        drivers.actuators = {"x": actuator}
         drivers.description = f"hardware; stage commands published on {actuator.key}"
     else:
         drivers.description = f"hardware; stage driven by the {drivers.actuator.description}"

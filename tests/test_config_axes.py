@@ -73,7 +73,7 @@ def test_a_sensor_on_an_unknown_axis_is_refused_naming_it(tmp_path: Path) -> Non
 
 
 def test_a_procedure_refuses_a_multi_axis_cell_whose_outputs_it_cannot_drive(tmp_path: Path) -> None:
-    """A multi-axis procedure drives each axis' own output (daemon/procedure/cell_steps.py): kind = "zenoh"
+    """A multi-axis procedure drives each axis' own output (daemon/procedure/steps.py): kind = "zenoh"
     axes (the daemon's published command is their actuation) are refused, naming them."""
     config = load_config(write(tmp_path, 'cell = "c"\n' + axes("x", "y")))
     with pytest.raises(DriverSetupError, match=r'axis x, y: \[axes.actuator\] kind = "zenoh" has no output'):

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -51,20 +51,35 @@ def ramp_commands(q_from_um: float, q_to_um: float, duration_s: float,
 
 @dataclass(frozen=True)
 class PlannedStep:
+    """One step of a plan: every axis' target (µm), in the cell's axis order (a one-axis cell's: ``x``)."""
+
     index: int
     cycle: int
-    target_um: float
+    targets_um: tuple[tuple[str, float], ...]
+
+    @classmethod
+    def on_x(cls, index: int, cycle: int, target_um: float) -> PlannedStep:
+        """A step of a one-axis plan."""
+        return cls(index, cycle, (("x", target_um),))
+
+    def target(self, axis: str) -> float:
+        return dict(self.targets_um)[axis]
+
+    @property
+    def target_um(self) -> float:
+        """A one-axis step's target (its axis ``x``)."""
+        return self.target("x")
 
 
 def calibration_plan(cycles: int, points: Sequence[float] = CALIBRATION_POINTS_UM) -> list[PlannedStep]:
     """Forward sweeps, as the paper measures (Fig. 7)."""
-    return [PlannedStep(i, c, x) for i, (c, x) in enumerate((c, x) for c in range(cycles) for x in points)]
+    return [PlannedStep.on_x(i, c, x) for i, (c, x) in enumerate((c, x) for c in range(cycles) for x in points)]
 
 
 def bidirectional_plan(cycles: int, points: Sequence[float] = CALIBRATION_POINTS_UM) -> list[PlannedStep]:
     """Alternate up and down sweeps: direction-dependent effects become visible."""
     order = [list(points) if c % 2 == 0 else list(points)[::-1] for c in range(cycles)]
-    return [PlannedStep(i, c, x) for i, (c, x) in enumerate((c, x) for c in range(cycles) for x in order[c])]
+    return [PlannedStep.on_x(i, c, x) for i, (c, x) in enumerate((c, x) for c in range(cycles) for x in order[c])]
 
 
 @dataclass
@@ -79,7 +94,6 @@ class StepResult:
     valid: bool
     retries: int = 0
     problem: str = ""
-    t_command_s: float = math.nan
     #: the true attained position over the same window, when the cell knows it (simulated); nan on hardware
     x_true_um: float = math.nan
 
@@ -89,7 +103,7 @@ def validation_plan(cycles: int, points: Sequence[float] = VALIDATION_POINTS_UM)
     steps: list[PlannedStep] = []
     for c in range(cycles):
         for x in (points if c % 2 == 0 else list(points)[::-1]):
-            steps.append(PlannedStep(len(steps), c, float(x)))
+            steps.append(PlannedStep.on_x(len(steps), c, float(x)))
     return steps
 
 
@@ -99,20 +113,30 @@ def validation_plan(cycles: int, points: Sequence[float] = VALIDATION_POINTS_UM)
 _DESIGN_LINES: dict[int, tuple[int, int]] = {1: (1, 5), 2: (13, 6)}
 
 
-@dataclass(frozen=True)
-class PlannedCellStep:
-    """One step of a multi-axis plan: every axis' target (µm), in the cell's axis order."""
+@dataclass
+class CellStepResult:
+    """What one step of a cell's plan measured, per axis (window means; a fallback when ``valid`` is False)."""
 
-    index: int
-    cycle: int
-    targets_um: tuple[tuple[str, float], ...]
+    step: PlannedStep
+    t_s: float
+    q_um: dict[str, float]
+    positions_um: dict[str, float]
+    temperatures: dict[str, float]
+    valid: bool
+    retries: int = 0
+    problem: str = ""
+    #: each axis' true attained position over the window, when the cell knows it (simulated); nan on hardware
+    true_um: dict[str, float] = field(default_factory=dict)
 
-    def target(self, axis: str) -> float:
-        return dict(self.targets_um)[axis]
+    def axis_result(self, axis: str) -> StepResult:
+        """This step as one axis' :class:`StepResult` (what ISO 9283 scoring, the follow check and reports read)."""
+        return StepResult(PlannedStep.on_x(self.step.index, self.step.cycle, self.step.target(axis)), self.t_s,
+                          self.q_um[axis], self.positions_um[axis], self.temperatures, self.valid, self.retries,
+                          self.problem, x_true_um=self.true_um.get(axis, math.nan))
 
 
 def cell_calibration_plan(axes: Sequence[str], cycles: int = 24,
-                          levels: Sequence[float] = CALIBRATION_POINTS_UM) -> list[PlannedCellStep]:
+                          levels: Sequence[float] = CALIBRATION_POINTS_UM) -> list[PlannedStep]:
     """A space-filling calibration of 2 or 3 axes: a Latin hypercube per cycle on the paper's 17 levels.
 
     Why this design: each cycle is the paper's forward sweep of the first axis (0, 30, ..., 480 µm,
@@ -131,14 +155,14 @@ def cell_calibration_plan(axes: Sequence[str], cycles: int = 24,
     if not 2 <= len(axes) <= 1 + len(_DESIGN_LINES):
         raise ValueError(f"a multi-axis calibration has 2 or 3 axes, got {', '.join(axes)}")
     n = len(levels)
-    steps: list[PlannedCellStep] = []
+    steps: list[PlannedStep] = []
     for c in range(cycles):
         for i in range(n):
             targets = [(axes[0], float(levels[i]))]
             for k, axis in enumerate(axes[1:], start=1):
                 slope, shift = _DESIGN_LINES[k]
                 targets.append((axis, float(levels[(slope * i + shift * c) % n])))
-            steps.append(PlannedCellStep(len(steps), c, tuple(targets)))
+            steps.append(PlannedStep(len(steps), c, tuple(targets)))
     return steps
 
 
@@ -172,12 +196,12 @@ def cell_validation_points(axes: Sequence[str], ranges_um: dict[str, tuple[float
 
 
 def cell_validation_plan(axes: Sequence[str], cycles: int = 30,
-                         ranges_um: dict[str, tuple[float, float]] | None = None) -> list[PlannedCellStep]:
+                         ranges_um: dict[str, tuple[float, float]] | None = None) -> list[PlannedStep]:
     """ISO 9283 cycles over P1..P5, alternately P1 -> P5 and P5 -> P1: every point is approached from two
     directions (along every axis), as the one-axis plan's up and down sweeps do."""
     points = cell_validation_points(axes, ranges_um)
-    steps: list[PlannedCellStep] = []
+    steps: list[PlannedStep] = []
     for c in range(cycles):
         for p in (points if c % 2 == 0 else points[::-1]):
-            steps.append(PlannedCellStep(len(steps), c, p))
+            steps.append(PlannedStep(len(steps), c, p))
     return steps

@@ -18,7 +18,7 @@ from collections.abc import Awaitable, Callable, Coroutine
 from typing import Any, TypeVar
 
 from nanodrift.assembly import procedure_drivers
-from nanodrift.commands._catalogues import effect_names, scenario_names
+from nanodrift.commands._catalogues import effect_names, scenario_epilog, scenario_names
 from nanodrift.config import ZENOH_KIND, Config, load_config
 from nanodrift.drivers.simulated.config import SECTION, SimulationConfig
 from nanodrift.drivers.simulated.effects import UnknownNameError, resolve_effects
@@ -47,6 +47,18 @@ def scenario_seed(seed: int, scenario: str) -> int:
 def add_config_flag(parser: argparse.ArgumentParser) -> None:
     """``--config F``: the operator's cell; without it, the built-in simulated cell."""
     parser.add_argument("--config", metavar="F", help="operator config (TOML); none: the built-in simulated cell")
+
+
+def add_procedure_flags(parser: argparse.ArgumentParser, default_scenario: str, *, several: bool = False,
+                        over_config: bool = False) -> None:
+    """What every procedure on a cell takes: ``--config F``, the simulated cell's overrides
+    (:func:`add_simulation_flags`) and ``--no-output-check`` (on hardware with ``kind = "zenoh"`` a procedure
+    refuses to start with nobody applying the steps)."""
+    parser.epilog = scenario_epilog()
+    add_config_flag(parser)
+    add_simulation_flags(parser, default_scenario, several=several, over_config=over_config)
+    parser.add_argument("--no-output-check", action="store_true",
+                        help="start even when no output node is subscribed to nanodrift/<cell>/command")
 
 
 def add_simulation_flags(parser: argparse.ArgumentParser, default_scenario: str, *, several: bool = False,
@@ -78,12 +90,6 @@ def scenario_list(values: list[str] | None) -> list[str]:
     """``--scenario`` given several times or comma-separated, in order, each once (empty: none given)."""
     names = [name.strip() for value in values or [] for name in value.split(",") if name.strip()]
     return list(dict.fromkeys(names))
-
-
-def add_output_check_flag(parser: argparse.ArgumentParser) -> None:
-    """Procedures on hardware with [actuator] kind = "zenoh" refuse to start with nobody applying the steps."""
-    parser.add_argument("--no-output-check", action="store_true",
-                        help="start even when no output node is subscribed to nanodrift/<cell>/command")
 
 
 def open_cell(args: argparse.Namespace, default_scenario: str, start_s: float = 0.0, *,
@@ -119,20 +125,28 @@ def open_cell(args: argparse.Namespace, default_scenario: str, start_s: float = 
         raise UserError(f"{config.source}: {err}") from None
 
 
+#: with several axes, an axis' move shorter than this is not follow-checked: the other axes' moves push it by up
+#: to a couple of micrometres on a stacked stage (crosstalk and non-orthogonality: ~0.4 % of their travel)
+CELL_FOLLOW_MIN_MOVE_UM = 10.0
+
+
 def guards(config: Config, drivers: DriverSet, args: argparse.Namespace
-           ) -> tuple[FollowCheck | None, Callable[[], Awaitable[None]] | None]:
-    """What protects a procedure's run: the follow check (every cell), and on hardware the checks
-    before it starts. Refuses at once (:class:`~nanodrift.procedure.preflight.PreflightError`) when a
-    daemon serves the cell; returns the output check (``kind = "zenoh"``, unless ``--no-output-check``)
-    to run once the drivers are open. The simulated cell on its virtual clock is alone: no checks."""
+           ) -> tuple[dict[str, FollowCheck], Callable[[], Awaitable[None]] | None]:
+    """What protects a procedure's run: a follow check per axis on its own position sensor (every cell; none
+    when ``[procedure] follow_steps = 0``), and on hardware the checks before it starts. Refuses at once
+    (:class:`~nanodrift.procedure.preflight.PreflightError`) when a daemon serves the cell; returns the
+    output check (``kind = "zenoh"``, unless ``--no-output-check``) to run once the drivers are open. The
+    simulated cell on its virtual clock is alone: no checks."""
     settings = config.procedure
-    follow = None
-    if settings.follow_steps and drivers.position_channel is not None:
-        follow = FollowCheck(drivers.position_channel, settings.follow_tolerance, settings.follow_steps)
+    min_move_um = 1.0 if len(config.axis_names) == 1 else CELL_FOLLOW_MIN_MOVE_UM
+    follow = {axis: FollowCheck(drivers.position_axes[axis], settings.follow_tolerance, settings.follow_steps,
+                                min_move_um=min_move_um)
+              for axis in config.axis_names if settings.follow_steps and axis in drivers.position_axes}
     if config.virtual_cell:
         return follow, None
     check_not_served(config)
-    if config.actuator.kind == ZENOH_KIND and not args.no_output_check:
+    published = any(actuator.kind == ZENOH_KIND for actuator in config.axis_actuators().values())
+    if published and not args.no_output_check:
         return follow, functools.partial(wait_for_output, config)
     return follow, None
 

@@ -21,7 +21,7 @@ from nanodrift.drivers.simulated.physics import CellPhysics
 from nanodrift.drivers.simulated.runs import cell_command, independent_command, run_cell_validation
 from nanodrift.model.cell_model import save_cell_model
 from nanodrift.model.identify import fit, fit_cell
-from nanodrift.reports.cell_validation import ANCHOR_2DOF_NM
+from nanodrift.reports.validation import ANCHOR_2DOF_NM
 
 AXES = ("x", "y")
 

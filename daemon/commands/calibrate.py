@@ -20,19 +20,11 @@ import sys
 from pathlib import Path
 
 from nanodrift.calibration.dataset import DataError
-from nanodrift.calibration.plans import bidirectional_plan, calibration_plan
-from nanodrift.commands import _cell_calibrate
-from nanodrift.commands._catalogues import scenario_epilog
-from nanodrift.commands._cell import (
-    add_config_flag,
-    add_output_check_flag,
-    add_simulation_flags,
-    guards,
-    open_cell,
-    run_procedure,
-)
+from nanodrift.calibration.plans import PlannedStep, bidirectional_plan, calibration_plan, cell_calibration_plan
+from nanodrift.commands import _cell
 from nanodrift.config import Config, missing_model_channels
 from nanodrift.errors import UserError
+from nanodrift.model.describe import describe_cell_model
 from nanodrift.model.equation import equation, training_lines
 from nanodrift.model.identify import FitError
 from nanodrift.model.model import Model
@@ -42,6 +34,7 @@ from nanodrift.procedure.recording import (
     NARROW_RANGE_C,
     calibration_columns,
     completed_steps,
+    fit_cell_recorded,
     fit_recorded,
     narrow_channels,
     record_calibration,
@@ -51,8 +44,7 @@ from nanodrift.procedure.serving import ServeError, check_writable, serve_model,
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.epilog = scenario_epilog()
-    add_config_flag(parser)
+    _cell.add_procedure_flags(parser, "train", over_config=True)
     parser.add_argument("--out", required=True, metavar="M.json", help="the model file to write")
     parser.add_argument("--data", metavar="D.csv", help="where the recorded steps go (default: beside --out)")
     parser.add_argument("--cycles", type=int, metavar="N",
@@ -61,8 +53,6 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--serve", action="store_true",
                         help="write the new model's path into the --config file's [model] path (atomically, the "
                              "rest of the file kept), so the daemon serves it after a reload")
-    add_simulation_flags(parser, "train", over_config=True)
-    add_output_check_flag(parser)
 
 
 def _data_path(args: argparse.Namespace) -> Path:
@@ -86,25 +76,25 @@ def main(args: argparse.Namespace) -> int:
     data = _data_path(args)
     if args.resume and not data.exists():
         raise UserError(f"--resume: {data} does not exist (nothing to continue)")
-    config, drivers = open_cell(args, "train", over_config=True)
-    if config.multi_axis:  # an XY/XYZ cell: the space-filling plan on every axis
-        return _cell_calibrate.main(args, config, drivers, data)
-    columns = calibration_columns(drivers)
+    config, drivers = _cell.open_cell(args, "train", over_config=True)
+    axes = config.axis_names
     cycles = args.cycles if args.cycles is not None else config.procedure.cycles
-    points = config.procedure.calibration_points
-    plan = (bidirectional_plan if config.procedure.trajectory == "bidirectional" else calibration_plan)(cycles, points)
+    plan = _plan(config, cycles)
+    columns = calibration_columns(drivers, axes)
     try:
         done, last_t = completed_steps(data, columns) if args.resume else (0, 0.0)
     except DataError as err:
         raise UserError(str(err)) from None
     if args.resume and config.virtual_cell and done:  # the simulated room continues where the file ends
-        config, drivers = open_cell(args, "train", start_s=last_t + 1.0, over_config=True)
-    follow, ready = guards(config, drivers, args)
-    print(f"calibration on {drivers.description}: {len(plan)} steps ({cycles} cycles), data -> {data}"
+        config, drivers = _cell.open_cell(args, "train", start_s=last_t + 1.0, over_config=True)
+    follow, ready = _cell.guards(config, drivers, args)
+    which = f" of axes {', '.join(axes)}" if len(axes) > 1 else ""
+    print(f"calibration{which} on {drivers.description}: {len(plan)} steps ({cycles} cycles), data -> {data}"
           + (f", resuming after {done} recorded steps" if done else ""), file=sys.stderr)
     try:
-        run_procedure(record_calibration(drivers, data, limits=config.actuator, plan=plan, resume=args.resume,
-                                       timing=config.procedure.timing, follow=follow, ready=ready))
+        _cell.run_procedure(record_calibration(drivers, data, limits=config.axis_actuators(), plan=plan,
+                                               resume=args.resume, timing=config.procedure.timing, follow=follow,
+                                               ready=ready))
     except PreflightError:
         raise  # nothing was commanded
     except StageNotFollowingError as err:
@@ -117,8 +107,10 @@ def main(args: argparse.Namespace) -> int:
         if isinstance(err, FileExistsError | DataError):
             raise UserError(str(err)) from None
         raise
+    if len(axes) > 1:
+        return _fit_cell(args, data, plan)
     try:
-        result = fit_recorded(data, args.out, commanded_um=[step.target_um for step in plan])
+        result = fit_recorded(data, args.out, plan=plan)
     except (FitError, DataError) as err:
         raise UserError(f"the recorded steps in {data} are kept, but the fit failed: {err}") from None
     model = result.model
@@ -129,14 +121,43 @@ def main(args: argparse.Namespace) -> int:
     for warning in narrow_warnings(data):
         print(f"nanodrift calibrate: warning: {warning}", file=sys.stderr)
     if args.serve:
-        try:
-            serve_model(Path(args.config), Path(args.out))
-        except ServeError as err:
-            raise UserError(f"the model {args.out} is written, but {err}") from None
+        _serve(args)
     print(serving_lines(args, config, model))
     for warning in sensor_warnings(config, model) if args.config else []:
         print(f"nanodrift calibrate: warning: {warning}", file=sys.stderr)
     return 0
+
+
+def _plan(config: Config, cycles: int) -> list[PlannedStep]:
+    """The paper's sweeps (``[procedure]`` points and trajectory) on one axis; the space-filling plan on several."""
+    settings = config.procedure
+    if len(config.axis_names) == 1:
+        sweeps = bidirectional_plan if settings.trajectory == "bidirectional" else calibration_plan
+        return list(sweeps(cycles, settings.calibration_points))
+    if settings.points is not None or settings.trajectory != "forward":
+        raise UserError(f"{config.source}: [procedure] points/trajectory shape a one-axis sweep; a multi-axis cell "
+                        "runs the space-filling plan on the paper's 17 levels (remove them)")
+    return list(cell_calibration_plan(config.axis_names, cycles))
+
+
+def _fit_cell(args: argparse.Namespace, data: Path, plan: list[PlannedStep]) -> int:
+    """Every axis' model into one multi-axis model file, described; ``--serve`` names it in the config."""
+    try:
+        cell = fit_cell_recorded(data, args.out, plan=plan)
+    except (FitError, DataError, ValueError) as err:
+        raise UserError(f"the recorded steps in {data} are kept, but the fit failed: {err}") from None
+    print(describe_cell_model(cell, args.out))
+    if args.serve:
+        _serve(args)
+        print(f"served by: {args.config} now serves {cell.id}; the daemon takes it at its next start or reload")
+    return 0
+
+
+def _serve(args: argparse.Namespace) -> None:
+    try:
+        serve_model(Path(args.config), Path(args.out))
+    except ServeError as err:
+        raise UserError(f"the model {args.out} is written, but {err}") from None
 
 
 def narrow_warnings(data: Path) -> list[str]:

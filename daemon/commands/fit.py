@@ -98,44 +98,30 @@ def main(args: argparse.Namespace) -> int:
         data = concat(runs, channels)
         # a channel excluded because some file lacks it is already out; one no file has is a typo (refused)
         exclude = [c for c in args.exclude if c in channels or not any(c in ds.channels for ds in runs)]
+        files = [(p, len(ds)) for p, ds in zip(paths, runs, strict=True)]
+        options: dict[str, Any] = {"order": _order(args.order), "exclude": exclude, "penter": args.penter,
+                                   "premove": args.premove, "source": ", ".join(paths), "squares": not args.no_squares}
         if data.multi_axis:
             if args.keep:
                 raise UserError("--keep is for one-axis files: a multi-axis file's axes choose their terms each")
-            return _fit_cell(args, paths, runs, data, exclude)
-        result = fit(
-            data, order=_order(args.order), exclude=exclude, penter=args.penter, premove=args.premove,
-            source=", ".join(paths), keep=_kept_terms(args.keep, channels, exclude), squares=not args.no_squares,
-        )
+            cell = fit_cell(data, **options).model
+            models = list(cell.models.values())
+        else:
+            model = fit(data, keep=_kept_terms(args.keep, channels, exclude), **options).model
+            models = [model]
     except (DataError, FitError, ValueError) as err:
         raise UserError(str(err)) from None
-    model = result.model
-    model.selection["excluded"] = list(args.exclude)
-    stamp_data(model, [(p, len(ds)) for p, ds in zip(paths, runs, strict=True)])
-    save_model(model, args.out)
-    if args.json:
-        print(json.dumps(fit_summary(model, args.out), indent=2))
+    for one in models:
+        one.selection["excluded"] = list(args.exclude)
+    if data.multi_axis:
+        stamp_data(cell, files)
+        save_cell_model(cell, args.out)
+        summary, text = cell_fit_summary(cell, args.out), describe_cell_model(cell, args.out)
     else:
-        print(describe_model(model, args.out))
-    return 0
-
-
-def _fit_cell(args: argparse.Namespace, paths: list[str], runs: Sequence[Dataset], data: Dataset,
-              exclude: list[str]) -> int:
-    """A multi-axis file: one model per axis over every axis' position (``fit_cell``), in one model file."""
-    try:
-        cell = fit_cell(data, order=_order(args.order), exclude=exclude, penter=args.penter, premove=args.premove,
-                        source=", ".join(paths), squares=not args.no_squares).model
-    except (DataError, FitError, ValueError) as err:
-        raise UserError(str(err)) from None
-    for model in cell.models.values():
-        model.selection["excluded"] = list(args.exclude)
-        stamp_data(model, [(p, len(ds)) for p, ds in zip(paths, runs, strict=True)])
-    cell.provenance = dict(cell.models[cell.axes[0]].provenance)
-    save_cell_model(cell, args.out)
-    if args.json:
-        print(json.dumps(cell_fit_summary(cell, args.out), indent=2))
-    else:
-        print(describe_cell_model(cell, args.out))
+        stamp_data(model, files)
+        save_model(model, args.out)
+        summary, text = fit_summary(model, args.out), describe_model(model, args.out)
+    print(json.dumps(summary, indent=2) if args.json else text)
     return 0
 
 

@@ -7,45 +7,57 @@ On the simulated cell ``--scenario`` may name several tests (``--scenario test2,
 repeated): each runs in turn and one report holds them all (Table I a row per test, the figures
 comparing them). There each step is also scored against the true position the cell knows
 (the simulated cell's sensor group), beside the interferometer's view.
+
+A multi-axis model (``"axes"``) is validated on a cell of its axes: without ``--config`` on the
+simulated stacked stage (:mod:`nanodrift.drivers.simulated.runs`), the ISO 9283 plan (P1..P5 off
+the calibration levels) run through the model and once more uncompensated in the same room with the
+same noise; with ``--config`` through the config's drivers (:func:`nanodrift.procedure.steps.run_steps`),
+once uncompensated, then through the model. It prints Table I per axis and AP/RP in 2-D/3-D, scored
+against the position sensors and against the true position where the cell knows it.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from nanodrift.calibration.iso9283 import TestResult
+from nanodrift.calibration.iso9283 import TestResult, summarize_cell
+from nanodrift.calibration.plans import CellStepResult, cell_validation_plan
 from nanodrift.calibration.residuals import BiasTracker
-from nanodrift.commands import _cell_validate
-from nanodrift.commands._catalogues import scenario_epilog
-from nanodrift.commands._cell import (
-    add_config_flag,
-    add_output_check_flag,
-    add_simulation_flags,
-    guards,
-    open_cell,
-    run_procedure,
-    scenario_list,
-)
+from nanodrift.commands import _cell
 from nanodrift.config import Config, load_config
 from nanodrift.drivers.simulated.config import SECTION, SimulationConfig
 from nanodrift.drivers.simulated.effects import UnknownNameError
+from nanodrift.drivers.simulated.physics import CellPhysics, CrossParams, cross_params
+from nanodrift.drivers.simulated.runs import cell_command, run_cell_validation
 from nanodrift.drivers.simulated.scenarios import get_scenario
 from nanodrift.drivers_set import DriverSet
 from nanodrift.errors import UserError
-from nanodrift.model.model import Model, ModelFileError, load_model
-from nanodrift.procedure.validation import run_validation
-from nanodrift.reports.validation import coverage_lines, provenance_text, table1, truth_table, write_report
+from nanodrift.model.cell_model import CellModel, load_any_model
+from nanodrift.model.model import Model, ModelFileError
+from nanodrift.procedure.validation import run_cell_validation_steps, run_validation
+from nanodrift.reports.validation import (
+    CellScores,
+    cell_json,
+    cell_table,
+    coverage_lines,
+    provenance_text,
+    table1,
+    truth_table,
+    write_cell_report,
+    write_report,
+)
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.epilog = scenario_epilog()
-    add_config_flag(parser)
+    _cell.add_procedure_flags(parser, "test2", several=True)
     parser.add_argument("--model", required=True, metavar="M.json", help="the model to validate")
     parser.add_argument("--cycles", type=int, default=30, metavar="N", help="validation sweeps (ISO 9283: 30)")
     parser.add_argument("--json", action="store_true", help="print the results as JSON instead of Table I")
@@ -59,27 +71,25 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="the tracker's time constant (default 600 s, as [adapt] tau_s)")
     parser.add_argument("--adapt-max-um", type=float, default=1.0, metavar="UM",
                         help="clamp on the correction (default 1 µm, as [adapt] max_um)")
-    add_simulation_flags(parser, "test2", several=True)
-    add_output_check_flag(parser)
 
 
 def main(args: argparse.Namespace) -> int:
     if args.cycles < 1:
         raise UserError(f"--cycles must be at least 1, got {args.cycles}")
-    if _cell_validate.is_cell_model_file(args.model):  # a multi-axis model: the simulated XY/XYZ cell
-        return _cell_validate.main(args)
     try:
-        model = load_model(args.model)
+        model = load_any_model(args.model)
     except (ModelFileError, OSError) as err:
         raise UserError(str(err)) from None
     compensate = not args.no_compensation
     if args.adapt:
+        if isinstance(model, CellModel):
+            raise UserError("--adapt runs the one-axis bias tracker: not available for a multi-axis model")
         if not compensate:
             raise UserError("--adapt corrects the model's commands: it cannot run with --no-compensation")
         if not (args.adapt_tau_s > 0 and args.adapt_max_um >= 0):
             raise UserError(f"--adapt-tau-s must be > 0 and --adapt-max-um >= 0, got {args.adapt_tau_s:g}, "
                             f"{args.adapt_max_um:g}")
-    scenarios = scenario_list(args.scenario)
+    scenarios = _cell.scenario_list(args.scenario)
     for scenario in scenarios:  # every name checked before the first test runs
         try:
             get_scenario(scenario)
@@ -90,6 +100,8 @@ def main(args: argparse.Namespace) -> int:
         raise UserError(f"several --scenario ({', '.join(scenarios)}) need the simulated cell; "
                         f"{given.source} drives hardware")
     asked: list[str | None] = list(scenarios) or [None]  # None: the config's (or the default) room
+    if isinstance(model, CellModel):
+        return _cell_tests(args, model, asked)
     runs = [_run_one(args, model, scenario) for scenario in asked]
     results = [run.result for run in runs]
     for run in runs:  # a miscalibrated q_sigma is said on stderr, whatever is printed
@@ -142,18 +154,23 @@ class ValidationRun:
 
 def _run_one(args: argparse.Namespace, model: Model, scenario: str | None) -> ValidationRun:
     """One test on a fresh cell (``scenario`` None: the config's room, or test2 with no config)."""
-    config, drivers = open_cell(argparse.Namespace(**{**vars(args), "scenario": scenario}), "test2")
+    config, drivers = _open(args, scenario)
     name = scenario or ("test2" if args.config is None else "validation")
     compensate = not args.no_compensation
     tracker = BiasTracker(args.adapt_tau_s, args.adapt_max_um) if args.adapt else None
-    follow, ready = guards(config, drivers, args)
+    follow, ready = _cell.guards(config, drivers, args)
     try:
-        result = run_procedure(run_validation(drivers, model if compensate else None, limits=config.actuator,
-                                            name=name, cycles=args.cycles, timing=config.procedure.timing,
-                                            follow=follow, ready=ready, adapt=tracker))
+        result = _cell.run_procedure(run_validation(
+            drivers, model if compensate else None, limits=config.axis_actuators(), name=name, cycles=args.cycles,
+            timing=config.procedure.timing, follow=follow, ready=ready, adapt=tracker))
     except ValueError as err:
         raise UserError(str(err)) from None
     return ValidationRun(result, tracker, config, drivers)
+
+
+def _open(args: argparse.Namespace, scenario: str | None) -> tuple[Config, DriverSet]:
+    """A fresh cell for one test in ``scenario`` (None: the config's room, or test2 with no config)."""
+    return _cell.open_cell(argparse.Namespace(**{**vars(args), "scenario": scenario}), "test2")
 
 
 def _cell_text(config: Config, given: Config, args: argparse.Namespace, results: list[TestResult]) -> str:
@@ -196,3 +213,124 @@ def _json_default(value: Any) -> Any:
     if isinstance(value, np.generic):
         return value.item()
     raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+# ----- a multi-axis model: Table I per axis, AP/RP in 2-D/3-D ------------------------------------------
+
+
+Attained = list[dict[str, np.ndarray]]  # each axis' attained positions: without the model, then with it (if run)
+
+
+def _scores(name: str, targets_um: dict[str, np.ndarray], attained: Attained) -> CellScores:
+    with_model = summarize_cell(name, targets_um, attained[1]) if len(attained) > 1 else None
+    return CellScores(summarize_cell(name, targets_um, attained[0]), with_model)
+
+
+def _cell_tests(args: argparse.Namespace, model: CellModel, asked: list[str | None]) -> int:
+    """Each test of a multi-axis model: through the config's drivers, or (no ``--config``) on the simulated
+    stacked stage of the model's axes."""
+    if args.config is not None:
+        tests = [_driven_test(args, model, scenario) for scenario in asked]
+    else:
+        missing = [c for c in model.channels if c not in ("T1", "T2", "T3", "T4")]
+        if missing:
+            raise UserError(f"{args.model} needs channel(s) {', '.join(missing)} that the simulated cell does not "
+                            "measure")
+        try:
+            cross = cross_params(args.effects or None)
+        except (UnknownNameError, KeyError, ValueError) as err:
+            raise UserError(f"simulated {''.join(model.axes)} cell: {err}") from None
+        tests = [_simulated_test(args, model, scenario or "test2", cross) for scenario in asked]
+    if args.json:
+        docs = [doc for _, doc in tests]
+        print(json.dumps(docs[0] if len(docs) == 1 else {"model": model.id, "tests": docs}, indent=2))
+    else:
+        print("\n\n".join(text for text, _ in tests))
+    return 0
+
+
+def _cell_report(args: argparse.Namespace, name: str, text: str, doc: dict[str, Any], truth: CellScores,
+                 targets_um: dict[str, np.ndarray], attained: Attained) -> None:
+    """``--report``: the test's files (one directory per test when several are asked for)."""
+    several = len(_cell.scenario_list(args.scenario)) > 1
+    directory = Path(args.report) / name if several else Path(args.report)
+    files = write_cell_report(directory, text, doc, truth, targets_um, attained[0],
+                              attained[1] if len(attained) > 1 else None)
+    print(f"report: {', '.join(str(f) for f in files)}", file=sys.stderr)
+
+
+def _simulated_test(args: argparse.Namespace, model: CellModel, scenario: str,
+                    cross: CrossParams) -> tuple[str, dict[str, Any]]:
+    """One test on a fresh simulated cell: its Table I text and JSON document (and report, with --report:
+    one directory per test when several are asked for)."""
+    seed = _cell.scenario_seed(args.seed or 0, scenario)
+    physics = CellPhysics.create(scenario, seed=seed, axes=model.axes, cross=cross)
+    run = run_cell_validation(physics, None if args.no_compensation else cell_command(model), cycles=args.cycles,
+                              name=scenario, out_of_range=lambda p, temps: bool(model.out_of_range(p, temps)))
+    def attained(against: str) -> Attained:
+        return [run.attained(False, against)] + ([run.attained(True, against)] if run.compensated is not None else [])
+
+    truth_um = attained("truth")
+    truth = _scores(scenario, run.targets_um, truth_um)
+    measured = _scores(scenario, run.targets_um, attained("interferometer"))
+    text = cell_table(scenario, truth, measured)
+    if run.extrapolating_steps:
+        text += f"\n[{run.extrapolating_steps} steps extrapolating: outside the model's training ranges]"
+    doc = cell_json(scenario, truth, measured, model=model.id, backend=f"simulated {''.join(model.axes)} cell, "
+                    f"scenario {scenario}, seed {seed}", cycles=args.cycles,
+                    extrapolating_steps=run.extrapolating_steps)
+    if args.report:
+        _cell_report(args, scenario, text, doc, truth, run.targets_um, truth_um)
+    return text, doc
+
+
+def _driven_run(args: argparse.Namespace, model: CellModel, scenario: str | None,
+                compensate: bool) -> tuple[Config, DriverSet, list[CellStepResult], int]:
+    """One run of the plan on a fresh cell (a simulated one restarts its room: both runs see the same one)."""
+    config, drivers = _open(args, scenario)
+    if sorted(config.axis_names) != sorted(model.axes):
+        raise UserError(f"{args.model} serves axes {', '.join(model.axes)}, {config.source} has axes "
+                        f"{', '.join(config.axis_names)}")
+    limits = config.axis_actuators()
+    plan = cell_validation_plan(config.axis_names, args.cycles, {a: lim.workspace_um for a, lim in limits.items()})
+    follow, ready = _cell.guards(config, drivers, args)
+    try:
+        results, extrapolating = _cell.run_procedure(run_cell_validation_steps(
+            drivers, plan, model, compensate=compensate, limits=limits, name=scenario or "validation",
+            timing=config.procedure.timing, follow=follow, ready=ready))
+    except ValueError as err:
+        raise UserError(str(err)) from None
+    return config, drivers, results, extrapolating
+
+
+def _driven_test(args: argparse.Namespace, model: CellModel, scenario: str | None) -> tuple[str, dict[str, Any]]:
+    config, drivers, without, _ = _driven_run(args, model, scenario, compensate=False)
+    runs, extrapolating = [without], 0
+    if not args.no_compensation:
+        _, _, compensated, extrapolating = _driven_run(args, model, scenario, compensate=True)
+        runs.append(compensated)
+    section = config.section(SECTION)
+    name = scenario or (section.scenario if isinstance(section, SimulationConfig) else "validation")
+    targets = {a: np.array([r.step.target(a) for r in without]) for a in model.axes}
+    measured_um = [{a: np.array([r.positions_um[a] for r in run]) for a in model.axes} for run in runs]
+    knows_truth = all(math.isfinite(v) for run in runs for r in run for v in r.true_um.values())
+    truth_um = [{a: np.array([r.true_um[a] for r in run]) for a in model.axes} for run in runs] if knows_truth \
+        else measured_um
+    measured = _scores(name, targets, measured_um)
+    truth = _scores(name, targets, truth_um) if knows_truth else measured
+    text = cell_table(name, truth, measured)
+    before = "without comp.: the same plan run uncompensated (command = target) in the same room, same noise."
+    text = text.replace(before, f"without comp.: the same plan run uncompensated (command = target) first, then "
+                        f"through the model, on {drivers.description} ({config.source})"
+                        + ("" if knows_truth else "; no true position on hardware: the TRUE columns repeat the "
+                           "position sensors'") + ".")
+    if extrapolating:
+        text += f"\n[{extrapolating} steps extrapolating: outside the model's training ranges]"
+    invalid = sum(not r.valid for run in runs for r in run)
+    if invalid:
+        text += f"\n[{invalid} steps kept with a dirty window (valid = 0) are scored as measured]"
+    doc = cell_json(name, truth, measured, model=model.id, backend=f"{drivers.description} ({config.source})",
+                    cycles=args.cycles, truth_known=knows_truth, extrapolating_steps=extrapolating)
+    if args.report:
+        _cell_report(args, name, text, doc, truth, targets, truth_um)
+    return text, doc

@@ -11,9 +11,13 @@ import datetime as dt
 import importlib.metadata
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from nanodrift.atomic import file_sha256
 from nanodrift.model.model import Model
+
+if TYPE_CHECKING:
+    from nanodrift.model.cell_model import CellModel
 
 
 def software() -> str:
@@ -32,9 +36,16 @@ def created_now() -> str:
     return dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
 
 
-def stamp_data(model: Model, files: Sequence[tuple[str | Path, int]]) -> None:
+def stamp_data(model: Model | CellModel, files: Sequence[tuple[str | Path, int]]) -> None:
     """Record the data files ``model`` was made from, ``(path, rows)`` each, the first the main one (a
-    calibration; recorded operation after it): ``data_file``, ``data_sha256`` and ``data_files``."""
+    calibration; recorded operation after it): ``data_file``, ``data_sha256`` and ``data_files``.
+
+    A model of several axes: in every axis' model, and the cell's provenance is the first axis'."""
+    if not isinstance(model, Model):
+        for axis_model in model.models.values():
+            stamp_data(axis_model, files)
+        model.provenance = dict(model.models[model.axes[0]].provenance)
+        return
     if not files:
         raise ValueError("a model is made from at least one data file")
     records = [{"path": str(path), "sha256": file_sha256(path), "rows": rows} for path, rows in files]

@@ -17,7 +17,7 @@ import time
 from collections.abc import Callable, Sequence
 from typing import IO
 
-from nanodrift.calibration.plans import PlannedStep, StepResult
+from nanodrift.calibration.plans import PlannedStep
 
 
 class Progress:
@@ -83,9 +83,10 @@ class Progress:
         self._bar_shown = False
         self.stream.flush()
 
-    def advance(self, result: StepResult) -> None:
+    def advance(self, valid: bool) -> None:
+        """One more step done (``valid``: its window was clean)."""
         self.done += 1
-        self.invalid += 0 if result.valid else 1
+        self.invalid += 0 if valid else 1
         if self.tty or self.done >= self.total or self.cycles[self.done] != self.cycles[self.done - 1]:  # a cycle ended
             self._show()
 

@@ -34,8 +34,6 @@ class Sampler:
     async def open(self) -> None:
         for group in self.drivers.groups:
             await group.open()
-        if self.drivers.actuator is not None:
-            await self.drivers.actuator.open()
 
     async def close(self) -> None:
         for group in self.drivers.groups:
@@ -43,11 +41,6 @@ class Sampler:
                 await group.close()
             except Exception:  # closing must not hide the error that brought us here
                 pass
-        try:
-            if self.drivers.actuator is not None:
-                await self.drivers.actuator.close()
-        except Exception:
-            pass
 
     async def poll(self, group: SensorGroup) -> None:
         now = self.drivers.clock.now()

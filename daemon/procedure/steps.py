@@ -1,168 +1,211 @@
-"""A procedure step by step: ramp the command, hold, average the window, re-measure a dirty one.
+"""A procedure step by step: ramp every axis together, hold, average the window, re-measure a dirty one.
 
-A channel that faults or goes stale inside the window is never averaged: the window is measured
-again (up to ``max_retries`` times), then the step is kept with ``valid = 0`` (identification
-ignores it). The same code drives the simulated cell on a virtual clock and real hardware.
+One code path for a cell of any number of axes (a one-axis cell is a cell of one axis, ``x``). A
+channel that faults or goes stale inside the window (any axis' position sensor included) is never
+averaged: the window is measured again (up to ``max_retries`` times), then the step is kept with
+``valid = 0`` (identification ignores it). The same code drives the simulated cell on a virtual
+clock and real hardware.
 
-The operator's ``[actuator]`` motion keys hold here too: no ramp is faster than
-``max_slew_um_per_s`` (a ramp is stretched instead), every sub-command's voltage is checked against
-``[v_min, v_max]``, and a finite ``safe_voltage_v`` is where the stage is left at the end. The first
-ramp starts where the stage is, by the daemon's rule (:func:`nanodrift.outputs.locate_stage`:
-the output read back, else a finite ``safe_voltage_v``); when that is unknown the first move is
-written at once, and the progress stream says so.
+Each axis' ``[actuator]`` / ``[axes.actuator]`` motion keys hold here too: no ramp is faster than
+``max_slew_um_per_s`` (a move is stretched instead; every axis of a move ramps over the same time, the
+slowest axis' slew sets it, so the stage moves along the straight line between two points), every
+sub-command's voltage is checked against ``[v_min, v_max]`` (every axis' sub-command of one instant
+before any is written), and a finite ``safe_voltage_v`` is where an axis is left at the end. The
+first ramp starts where the stage is, by the daemon's rule (:func:`nanodrift.outputs.locate_stage`:
+the output read back, else a finite ``safe_voltage_v``); an axis whose start is unknown is written at
+once, and the progress stream says so.
 """
 
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Awaitable, Callable, Sequence
+from collections.abc import Awaitable, Callable, Mapping, Sequence
 
-from nanodrift.calibration.plans import PAPER_TIMING, PlannedStep, StepResult, StepTiming, ramp_commands
+from nanodrift.calibration.plans import (
+    PAPER_TIMING,
+    CellStepResult,
+    PlannedStep,
+    StepTiming,
+    ramp_commands,
+)
 from nanodrift.config import ActuatorConfig
-from nanodrift.drivers.base import Actuator, Clock
+from nanodrift.drivers.base import Actuator
 from nanodrift.drivers_set import DriverSet
 from nanodrift.outputs import checked_sent_voltage, locate_stage
 from nanodrift.procedure.follow import FollowCheck
 from nanodrift.procedure.progress import Progress
 from nanodrift.procedure.sampler import Sampler
 
-CommandFor = Callable[[PlannedStep, float], float]
+#: (the step's targets per axis, the cell clock's now) -> the command per axis
+CommandFor = Callable[[dict[str, float], float], dict[str, float]]
+Limits = Mapping[str, ActuatorConfig]
+
+
+def axis_limits(drivers: DriverSet, limits: Limits | None) -> Limits:
+    """Each driven axis' limits: ``limits``, else the ``[actuator]`` defaults for every output of ``drivers``."""
+    return limits if limits is not None else {axis: ActuatorConfig() for axis in drivers.actuators}
 
 
 def ramp_s(q_from: float | None, q_to: float, timing: StepTiming, limits: ActuatorConfig) -> float:
-    """How long the move takes: ``timing.ramp_s``, stretched so it never exceeds ``max_slew_um_per_s``."""
+    """How long one axis' move takes: ``timing.ramp_s``, stretched so it never exceeds ``max_slew_um_per_s``."""
     slew = limits.max_slew_um_per_s
     return max(timing.ramp_s, abs(q_to - q_from) / slew) if slew > 0 and q_from is not None else timing.ramp_s
 
 
-def planned_seconds(plan: Sequence[PlannedStep], q_from: float | None, timing: StepTiming,
-                    limits: ActuatorConfig) -> list[float]:
-    """Each step's planned duration on the cell's clock: its rise (stretched by the slew limit) and hold."""
+def move_s(q_from: Mapping[str, float | None], q_to: Mapping[str, float], timing: StepTiming, limits: Limits) -> float:
+    """How long a move of every axis takes: the rise time, stretched by the slowest axis' slew limit."""
+    return max(ramp_s(q_from[a], q_to[a], timing, limits[a]) for a in q_to)
+
+
+def planned_seconds(plan: Sequence[PlannedStep], q_from: Mapping[str, float | None], timing: StepTiming,
+                    limits: Limits) -> list[float]:
+    """Each step's planned duration on the cell's clock: its rise (stretched by the slew limits) and hold."""
     out = []
     for step in plan:
-        out.append(ramp_s(q_from, step.target_um, timing, limits) + timing.hold_s)
-        q_from = step.target_um
+        targets = dict(step.targets_um)
+        out.append(move_s(q_from, targets, timing, limits) + timing.hold_s)
+        q_from = targets
     return out
 
 
-async def ramp(actuator: Actuator, clock: Clock, q_from: float | None, q_to: float, timing: StepTiming,
-               limits: ActuatorConfig) -> None:
-    """Sub-commands every ``ramp_interval_s`` from ``q_from`` to ``q_to``; each voltage checked before it is sent.
+async def _write(actuators: Mapping[str, Actuator], limits: Limits, q_um: Mapping[str, float]) -> None:
+    """One instant of a move: every axis' voltage checked before any is written."""
+    sent = {a: checked_sent_voltage(actuators[a], limits[a], limits[a].checked_voltage(q)) for a, q in q_um.items()}
+    for a, q in q_um.items():
+        await actuators[a].command(q, sent[a])
 
-    ``q_from`` None (where the stage is is unknown): ``q_to`` is written at once, then the rise time passes."""
-    if q_from is None:
-        await actuator.command(q_to, checked_sent_voltage(actuator, limits, limits.checked_voltage(q_to)))
+
+async def ramp(drivers: DriverSet, limits: Limits, q_from: Mapping[str, float | None], q_to: Mapping[str, float],
+               timing: StepTiming) -> None:
+    """Sub-commands every ``ramp_interval_s``, every axis of ``q_to`` along the same fraction of its move.
+
+    An axis whose start is unknown (None) is written at once; with none known, the rise time then passes."""
+    clock, actuators = drivers.clock, drivers.actuators
+    unknown = {a: q for a, q in q_to.items() if q_from[a] is None}
+    if unknown:
+        await _write(actuators, limits, unknown)
+    known = {a: start for a in q_to if (start := q_from[a]) is not None}
+    if not known:
         await clock.sleep(timing.ramp_s)
         return
-    duration = ramp_s(q_from, q_to, timing, limits)
-    _, commands = ramp_commands(q_from, q_to, duration, timing.ramp_interval_s)
-    for q in commands.tolist():
-        await clock.sleep(duration / len(commands))
-        await actuator.command(q, checked_sent_voltage(actuator, limits, limits.checked_voltage(q)))
+    duration = move_s(known, {a: q_to[a] for a in known}, timing, limits)
+    tracks = {a: ramp_commands(start, q_to[a], duration, timing.ramp_interval_s)[1].tolist()
+              for a, start in known.items()}
+    n = len(next(iter(tracks.values())))
+    for k in range(n):
+        await clock.sleep(duration / n)
+        await _write(actuators, limits, {a: track[k] for a, track in tracks.items()})
 
 
-async def measure_step(sampler: Sampler, step: PlannedStep, q_from: float | None, q_to: float,
-                       timing: StepTiming, limits: ActuatorConfig) -> StepResult:
-    """Ramp, hold, average the last window; re-measure a dirty window up to ``max_retries`` times.
-
-    Every sub-command's voltage is checked against ``limits`` before it is sent."""
-    backend = sampler.drivers
-    clock, actuator = backend.clock, backend.actuator
-    assert actuator is not None and backend.position_channel is not None
-    t_command = clock.now()
-    await ramp(actuator, clock, q_from, q_to, timing, limits)
+async def measure_step(sampler: Sampler, limits: Limits, step: PlannedStep, q_from: Mapping[str, float | None],
+                       q_to: dict[str, float], timing: StepTiming) -> CellStepResult:
+    """Ramp every axis, hold, average the last window; re-measure a dirty window up to ``max_retries`` times."""
+    drivers = sampler.drivers
+    clock = drivers.clock
+    positions = {a: drivers.position_axes[a] for a in limits}
+    await ramp(drivers, limits, q_from, q_to, timing)
     sampler.clear()
-    channels = (backend.position_channel, *backend.temperature_channels)
-    # temperatures all through the hold (stateful model terms see them); the position where it is used
-    thermal_groups = [g for g in backend.groups if backend.position_channel not in g.names]
+    channels = (*positions.values(), *drivers.temperature_channels)
+    # temperatures all through the hold (stateful model terms see them); the positions where they are used
+    thermal_groups = [g for g in drivers.groups if not set(positions.values()) & set(g.names)]
     await sampler.sample_for(timing.hold_s - timing.window_s, thermal_groups)
     await sampler.sample_for(timing.window_s)
     retries = 0
     while True:
         end = clock.now()
-        means, problem = sampler.window(channels, end - timing.window_s, end)
-        x_true = sampler.true_mean(backend.position_channel, end - timing.window_s, end)
-        if not problem:
-            return StepResult(step, end, q_to, means[backend.position_channel],
-                              {c: means[c] for c in backend.temperature_channels}, True, retries,
-                              t_command_s=t_command, x_true_um=x_true)
-        if retries >= timing.max_retries:
-            fb = sampler.fallback(channels, end - timing.window_s, end)
-            return StepResult(step, end, q_to, fb[backend.position_channel],
-                              {c: fb[c] for c in backend.temperature_channels}, False, retries, problem,
-                              t_command_s=t_command, x_true_um=x_true)
-        retries += 1
-        sampler.clear()
-        await sampler.sample_for(timing.window_s)
+        start = end - timing.window_s
+        means, problem = sampler.window(channels, start, end)
+        truth = {a: sampler.true_mean(c, start, end) for a, c in positions.items()}
+        valid = not problem
+        if not valid and retries < timing.max_retries:
+            retries += 1
+            sampler.clear()
+            await sampler.sample_for(timing.window_s)
+            continue
+        if not valid:
+            means = sampler.fallback(channels, start, end)
+        return CellStepResult(step, end, dict(q_to), {a: means[c] for a, c in positions.items()},
+                              {c: means[c] for c in drivers.temperature_channels}, valid, retries, problem, truth)
 
 
 async def run_steps(
     drivers: DriverSet,
     plan: Sequence[PlannedStep],
     *,
-    limits: ActuatorConfig | None = None,
+    limits: Limits | None = None,
     timing: StepTiming = PAPER_TIMING,
     command_for: CommandFor | None = None,
-    on_step: Callable[[StepResult], Awaitable[None] | None] | None = None,
+    on_step: Callable[[CellStepResult], Awaitable[None] | None] | None = None,
     on_temperatures: Callable[[float, dict[str, float]], None] | None = None,
     progress: Progress | None = None,
-    follow: FollowCheck | None = None,
+    follow: Mapping[str, FollowCheck] | None = None,
     ready: Callable[[], Awaitable[None]] | None = None,
-) -> list[StepResult]:
-    """Drive ``plan`` step by step; ``command_for(step, t)`` gives the command (default: the target).
+) -> list[CellStepResult]:
+    """Drive ``plan`` step by step on every axis; ``command_for(targets, t)`` gives the commands (default: the
+    targets).
 
-    ``limits``: the operator's ``[actuator]`` section (default: its defaults). ``ready``: a check that
-    must pass once the drivers are open, before the first command (an output node is listening).
-    ``follow``: each step is shown to it after it is recorded; it stops the run when the stage did
-    not move as commanded. The first ramp starts where the stage is (a resumed run too)."""
-    limits = limits or ActuatorConfig()
+    ``limits``: each axis' ``[actuator]`` section (default: its defaults for every output). ``ready``: a
+    check that must pass once the drivers are open, before the first command (an output node is
+    listening). ``follow``: one check per axis, shown each step on its own axis after it is recorded; it
+    stops the run when the stage did not move as commanded. The first ramp starts where the stage is
+    (a resumed run too)."""
+    limits = axis_limits(drivers, limits)
+    actuators = {a: drivers.actuators[a] for a in limits}
     sampler = Sampler(drivers, on_temperatures=on_temperatures)
-    results: list[StepResult] = []
-    q_prev: float | None = None
+    results: list[CellStepResult] = []
+    q_prev: dict[str, float | None] = dict.fromkeys(limits)
     commanded = False  # a run refused before its first move (no output node) leaves the stage alone
-    if drivers.actuator is not None:
-        drivers.actuator.limits_v = (limits.v_min, limits.v_max)
+    for axis, actuator in actuators.items():
+        actuator.limits_v = (limits[axis].v_min, limits[axis].v_max)
     await sampler.open()
+    opened: list[Actuator] = []
     try:
+        for actuator in actuators.values():
+            await actuator.open()
+            opened.append(actuator)
         if ready is not None:
             await ready()
-        q_prev = await stage_q_um(drivers, limits, progress)
+        for axis, actuator in actuators.items():
+            q_prev[axis] = await stage_q_um(actuator, limits[axis], progress)
         if progress is not None:
             progress.begin(planned_seconds(plan, q_prev, timing, limits))
         await sampler.poll_all()  # know the temperatures before the first command
         for step in plan:
-            q = command_for(step, drivers.clock.now()) if command_for else step.target_um
+            targets = dict(step.targets_um)
+            q = command_for(targets, drivers.clock.now()) if command_for else targets
             commanded = True
-            result = await measure_step(sampler, step, q_prev, q, timing, limits)
-            q_prev = q
+            result = await measure_step(sampler, limits, step, q_prev, q, timing)
+            q_prev = dict(q)
             results.append(result)
             if on_step is not None:
                 maybe = on_step(result)
                 if asyncio.iscoroutine(maybe):
                     await maybe
             if progress is not None:
-                progress.advance(result)
-            if follow is not None:
-                follow.observe(result)
+                progress.advance(result.valid)
+            for axis, check in (follow or {}).items():
+                check.observe(result.axis_result(axis))
     except BaseException:
         if commanded:
-            await leave_safe(drivers, q_prev, timing, limits, quiet=True)
+            await leave_safe(drivers, limits, q_prev, timing, quiet=True)
         raise
     else:
         if commanded:
-            await leave_safe(drivers, q_prev, timing, limits)
+            await leave_safe(drivers, limits, q_prev, timing)
     finally:
+        for actuator in opened:
+            try:
+                await actuator.close()
+            except Exception:  # closing must not hide the error that brought us here
+                pass
         await sampler.close()
         if progress is not None:
             progress.finish()
     return results
 
 
-async def stage_q_um(drivers: DriverSet, limits: ActuatorConfig, progress: Progress | None) -> float | None:
-    """Where the stage is before the first move (None: unknown, which ``progress`` is told)."""
-    actuator = drivers.actuator
-    if actuator is None:
-        return None
+async def stage_q_um(actuator: Actuator, limits: ActuatorConfig, progress: Progress | None) -> float | None:
+    """Where an axis is before the first move (None: unknown, which ``progress`` is told)."""
     start = await locate_stage(actuator, limits)
     if start.voltage_v is None:
         if progress is not None:
@@ -172,17 +215,17 @@ async def stage_q_um(drivers: DriverSet, limits: ActuatorConfig, progress: Progr
     return limits.q_um_for(start.voltage_v)
 
 
-async def leave_safe(drivers: DriverSet, q_from: float | None, timing: StepTiming, limits: ActuatorConfig, *,
+async def leave_safe(drivers: DriverSet, limits: Limits, q_from: Mapping[str, float | None], timing: StepTiming, *,
                      quiet: bool = False) -> None:
-    """Ramp to ``safe_voltage_v`` when it is finite (else leave the stage where it is).
+    """Ramp every axis with a finite ``safe_voltage_v`` to it (the others stay where they are).
 
     ``quiet``: the procedure already failed; its error is the one to report, not this one's.
     """
-    q_safe = limits.safe_q_um
-    if q_safe is None or drivers.actuator is None:
+    safe = {a: q for a in limits if (q := limits[a].safe_q_um) is not None}
+    if not safe:
         return
     try:
-        await ramp(drivers.actuator, drivers.clock, q_from, q_safe, timing, limits)
+        await ramp(drivers, limits, q_from, safe, timing)
     except Exception:
         if not quiet:
             raise

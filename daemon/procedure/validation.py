@@ -14,17 +14,31 @@ truth beside the interferometer. Hardware knows no truth: the list stays empty.
 from __future__ import annotations
 
 import math
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Mapping, Sequence
 from typing import IO, Any
 
 from nanodrift.calibration.iso9283 import TestResult, summarize
-from nanodrift.calibration.plans import PlannedStep, StepResult, StepTiming, validation_plan
+from nanodrift.calibration.plans import CellStepResult, PlannedStep, StepResult, StepTiming, validation_plan
 from nanodrift.calibration.residuals import BiasTracker
-from nanodrift.config import ActuatorConfig
 from nanodrift.drivers_set import DriverSet
+from nanodrift.model.cell_model import CellEvaluator, CellModel
+from nanodrift.model.model import Evaluator, Model
 from nanodrift.procedure.follow import FollowCheck
 from nanodrift.procedure.progress import Progress
-from nanodrift.procedure.steps import run_steps
+from nanodrift.procedure.steps import Limits, axis_limits, run_steps
+
+
+def check_channels(model: Model | CellModel, drivers: DriverSet) -> None:
+    """A model reading a channel this cell does not measure is refused before anything moves."""
+    missing = [c for c in model.channels if c not in drivers.temperature_channels]
+    if missing:
+        raise ValueError(f"the model needs channel(s) {', '.join(missing)} that this cell does not measure")
+
+
+def check_ready(evaluator: Evaluator | CellEvaluator) -> None:
+    """No command from a model before every channel it reads has a clean sample."""
+    if not evaluator.ready:
+        raise RuntimeError("no clean temperature sample yet for every channel the model needs")
 
 
 def feed_tracker(tracker: BiasTracker, result: StepResult) -> float:
@@ -38,12 +52,12 @@ async def run_validation(
     drivers: DriverSet,
     model: Any | None,
     *,
-    limits: ActuatorConfig | None = None,
+    limits: Limits | None = None,
     name: str = "validation",
     cycles: int = 30,
     timing: StepTiming | None = None,
     progress_stream: IO[str] | None = None,
-    follow: FollowCheck | None = None,
+    follow: Mapping[str, FollowCheck] | None = None,
     ready: Callable[[], Awaitable[None]] | None = None,
     adapt: BiasTracker | None = None,
 ) -> TestResult:
@@ -54,6 +68,8 @@ async def run_validation(
     carried and the model's ``q_sigma_um`` for it.
     """
     timing = timing or StepTiming()
+    limits = axis_limits(drivers, limits)
+    (axis,) = limits  # the one-axis model's axis
     plan = validation_plan(cycles)
     evaluator = model.evaluator() if model is not None else None
     if adapt is not None and model is None:
@@ -65,39 +81,38 @@ async def run_validation(
     adapted_sigmas: list[float] = []
     wander_um = model.wander_um if model is not None else 0.0
     if model is not None:
-        missing = [c for c in model.channels if c not in drivers.temperature_channels]
-        if missing:
-            raise ValueError(f"the model needs channel(s) {', '.join(missing)} that this cell does not measure")
+        check_channels(model, drivers)
 
     def observe(t: float, temps: dict[str, float]) -> None:
         latest.update(temps)
         if evaluator is not None:
             evaluator.observe(t, temps)
 
-    def command_for(step: PlannedStep, t: float) -> float:
+    def command_for(targets: dict[str, float], t: float) -> dict[str, float]:
         nonlocal extrapolating
+        target = targets[axis]
         if evaluator is None or model is None:  # the one is None when the other is
-            return step.target_um
-        if not evaluator.ready:
-            raise RuntimeError("no clean temperature sample yet for every channel the model needs")
-        if model.out_of_range(step.target_um, latest):
+            return targets
+        check_ready(evaluator)
+        if model.out_of_range(target, latest):
             extrapolating += 1
         correction = adapt.correction_um if adapt is not None else 0.0
         corrections.append(correction)
-        sigma = evaluator.sigma(step.target_um, t)
+        sigma = evaluator.sigma(target, t)
         sigmas.append(sigma)
         if adapt is not None:
             adapted_sigmas.append(adapt.sigma_um(sigma, wander_um))
-        return float(evaluator.command(step.target_um, t)) + correction
+        return {axis: float(evaluator.command(target, t)) + correction}
 
-    def on_step(result: StepResult) -> None:
+    def on_step(result: CellStepResult) -> None:
         if adapt is not None:
-            feed_tracker(adapt, result)
+            feed_tracker(adapt, result.axis_result(axis))
 
     progress = Progress(plan, name, progress_stream)
-    steps = await run_steps(drivers, plan, limits=limits, timing=timing, command_for=command_for,
-                            on_step=on_step, on_temperatures=observe, progress=progress, follow=follow,
-                            ready=ready)
+    cell_steps = await run_steps(drivers, plan, limits=limits, timing=timing, command_for=command_for,
+                                 on_step=on_step, on_temperatures=observe, progress=progress, follow=follow,
+                                 ready=ready)
+    steps = [s.axis_result(axis) for s in cell_steps]
     result = summarize(name, steps, model is not None, extrapolating)
     truths = [s.x_true_um for s in steps]
     result.x_true_um = truths if truths and all(math.isfinite(x) for x in truths) else []
@@ -109,3 +124,38 @@ async def run_validation(
         result.measurement_sigma_um = wander_um
     return result
 
+
+async def run_cell_validation_steps(
+    drivers: DriverSet,
+    plan: Sequence[PlannedStep],
+    model: CellModel,
+    *,
+    compensate: bool,
+    limits: Limits,
+    name: str = "validation",
+    timing: StepTiming | None = None,
+    progress_stream: IO[str] | None = None,
+    follow: Mapping[str, FollowCheck] | None = None,
+    ready: Callable[[], Awaitable[None]] | None = None,
+) -> tuple[list[CellStepResult], int]:
+    """A multi-axis cell's ISO 9283 plan, through ``model`` when ``compensate`` (else command = target): its
+    steps, and how many commands were for a target or temperatures outside the model's training ranges."""
+    check_channels(model, drivers)
+    evaluator = model.evaluator()
+    latest: dict[str, float] = {}
+    extrapolating = 0
+
+    def observe(t: float, temps: dict[str, float]) -> None:
+        latest.update(temps)
+        evaluator.observe(t, temps)
+
+    def command_for(targets: dict[str, float], t: float) -> dict[str, float]:
+        nonlocal extrapolating
+        check_ready(evaluator)
+        extrapolating += bool(model.out_of_range(targets, latest))
+        return evaluator.command(targets, t)
+
+    steps = await run_steps(drivers, plan, limits=limits, timing=timing or StepTiming(),
+                            command_for=command_for if compensate else None, on_temperatures=observe,
+                            progress=Progress(plan, name, progress_stream), follow=follow, ready=ready)
+    return steps, extrapolating

@@ -10,8 +10,9 @@ import pytest
 
 from nanodrift.calibration.plans import PAPER_TIMING, StepTiming, ramp_commands
 from nanodrift.config import ActuatorConfig
-from nanodrift.drivers.base import Actuator
+from nanodrift.drivers.base import Actuator, DriverContext
 from nanodrift.drivers.simulated.clock import VirtualClock
+from nanodrift.drivers_set import DriverSet
 from nanodrift.procedure.steps import ramp
 
 
@@ -44,7 +45,9 @@ def test_the_procedure_sends_exactly_the_planned_sub_commands(slew_um_per_s: flo
     async def body() -> list[tuple[float, float]]:
         clock = VirtualClock(start=100.0)
         actuator = Recording(clock)
-        await ramp(actuator, clock, 10.0, 40.0, timing, limits)
+        drivers = DriverSet(context=DriverContext(clock=clock), groups=[], actuator=actuator, roles={},
+                            max_age_s={}, actuators={"x": actuator})
+        await ramp(drivers, {"x": limits}, {"x": 10.0}, {"x": 40.0}, timing)
         return actuator.sent
 
     sent = asyncio.run(body())

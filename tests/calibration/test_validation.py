@@ -35,9 +35,9 @@ def test_iso9283_one_axis():
 
 
 def test_without_is_computed_from_the_same_period():
-    steps = [StepResult(PlannedStep(i, i, 80.0), float(i), q_um=79.6, x_um=80.02 + 0.01 * i,
+    steps = [StepResult(PlannedStep.on_x(i, i, 80.0), float(i), q_um=79.6, x_um=80.02 + 0.01 * i,
                         temperatures={"T1": 22.0}, valid=True) for i in range(4)]
-    steps.append(StepResult(PlannedStep(4, 4, 80.0), 5.0, 70.0, 70.0, {"T1": 22.0}, valid=False))
+    steps.append(StepResult(PlannedStep.on_x(4, 4, 80.0), 5.0, 70.0, 70.0, {"T1": 22.0}, valid=False))
     result = summarize("t", steps, compensated=True)
     (point,) = result.points
     assert point.visits == 4 and result.invalid_steps == 1  # invalid steps never count

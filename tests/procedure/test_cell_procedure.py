@@ -9,22 +9,26 @@ an interrupted calibration resumes from its file.
 from __future__ import annotations
 
 import asyncio
+import io
+import json
 import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+import nanodrift
 from nanodrift.assembly import procedure_drivers
 from nanodrift.calibration.dataset import read_csv
-from nanodrift.calibration.plans import StepTiming, cell_calibration_plan
+from nanodrift.calibration.plans import CellStepResult, StepTiming, cell_calibration_plan, cell_validation_plan
 from nanodrift.cli import main as cli
 from nanodrift.config import load_config
 from nanodrift.drivers.simulated.cell import SimulatedCell
 from nanodrift.drivers.simulated.plugin import RESOURCE_KEY
 from nanodrift.model.cell_model import CellModel, load_any_model
-from nanodrift.procedure.cell_recording import record_cell_calibration
-from nanodrift.procedure.cell_steps import CellDrive, CellStepResult, run_cell_steps
+from nanodrift.procedure.recording import record_calibration
+from nanodrift.procedure.steps import run_steps
+from nanodrift.procedure.validation import run_cell_validation_steps
 
 
 def _config(tmp_path: Path, axes: str = "xy") -> Path:
@@ -49,8 +53,12 @@ def test_calibrate_drives_every_axis_along_the_plan_and_writes_a_cell_model(
         assert np.max(np.abs(data.positions[axis] - commanded)) < 3.0
     assert np.all(data.extra["valid"] == 1)
     assert np.all(np.diff(data.t) == pytest.approx(29.0))  # the paper's 4 s rise + 25 s hold per step
-    model = load_any_model(out)
+    model = load_any_model(out)  # its ids checked against its content
     assert isinstance(model, CellModel) and model.axes == ("x", "y")
+    # every axis' training range covers the commanded 0..480 µm, as a one-axis calibration's x range does:
+    # a commanded point measured 0.1 µm off is no extrapolation
+    assert all(lo <= 0.0 and hi >= 480.0 for lo, hi in model.position_ranges.values())
+    assert model.out_of_range({"x": 0.0, "y": 480.0}) == []
     y_terms = [t.term.name for t in model.models["y"].terms]
     assert "x" in y_terms  # y's command corrects x's crosstalk: a cross term only a multi-axis fit has
     assert f"model {model.id} (axes x, y)" in capsys.readouterr().out
@@ -64,7 +72,9 @@ def test_validate_through_the_drivers_prints_ap_2d_like_the_simulated_path(tmp_p
     capsys.readouterr()
     assert cli(["validate", "--config", str(config), "--model", str(model), "--cycles", "2",
                 "--scenario", "test2"]) == 0
-    driven = capsys.readouterr().out
+    driven, progress = capsys.readouterr()
+    # the one-axis procedure's progress, for each of the two runs (uncompensated, then through the model)
+    assert progress.count("test2: 0/10 steps") == 2 and progress.count("test2: 10/10 steps") == 2
     assert cli(["validate", "--model", str(model), "--cycles", "2", "--scenario", "test2"]) == 0
     simulated = capsys.readouterr().out
 
@@ -74,6 +84,8 @@ def test_validate_through_the_drivers_prints_ap_2d_like_the_simulated_path(tmp_p
         return float(found[1]), float(found[2])
 
     assert "axis x" in driven and "axis y" in driven and "RP 2-D" in driven
+    # extrapolation is counted on the driven cell as on the simulated path (the same room)
+    assert ("steps extrapolating" in driven) == ("steps extrapolating" in simulated)
     (without, with_model), (sim_without, sim_with) = ap(driven), ap(simulated)
     assert with_model < without / 2  # the model compensates on the driven cell too
     # the same plan, room and noise as the vectorised path: the same figures within a few percent
@@ -89,8 +101,8 @@ def test_a_dirty_window_on_one_axis_sensor_is_measured_again(tmp_path: Path) -> 
     # the y beam is lost during the second step's averaging window (t 49..58 s): that window is dirty
     cell.inject_fault("interferometer_y", 55.0, 57.0, "fault")
     plan = cell_calibration_plan(("x", "y"), 1)[:3]
-    results: list[CellStepResult] = asyncio.run(run_cell_steps(CellDrive(drivers, config.axis_actuators()), plan,
-                                                               timing=timing))
+    results: list[CellStepResult] = asyncio.run(run_steps(drivers, plan, limits=config.axis_actuators(),
+                                                          timing=timing))
     assert [r.retries for r in results] == [0, 1, 0]
     assert all(r.valid for r in results)
     second = results[1]
@@ -102,13 +114,14 @@ def test_an_interrupted_calibration_resumes_from_its_file(tmp_path: Path) -> Non
     config = load_config(_config(tmp_path))
     data = tmp_path / "xy_data.csv"
     plan = cell_calibration_plan(("x", "y"), 1)
-    drive = CellDrive(procedure_drivers(config), config.axis_actuators())
-    assert asyncio.run(record_cell_calibration(drive, data, plan[:5])) == 5
+    limits = config.axis_actuators()
+    drivers = procedure_drivers(config)
+    assert asyncio.run(record_calibration(drivers, data, limits=limits, plan=plan[:5])) == 5
     with pytest.raises(FileExistsError):
-        asyncio.run(record_cell_calibration(drive, data, plan))
+        asyncio.run(record_calibration(drivers, data, limits=limits, plan=plan))
     last_t = float(read_csv(data).t[-1])
-    drive = CellDrive(procedure_drivers(config, start_s=last_t + 1.0), config.axis_actuators())
-    assert asyncio.run(record_cell_calibration(drive, data, plan, resume=True)) == len(plan) - 5
+    drivers = procedure_drivers(config, start_s=last_t + 1.0)
+    assert asyncio.run(record_calibration(drivers, data, limits=limits, plan=plan, resume=True)) == len(plan) - 5
     recorded = read_csv(data)
     assert len(recorded) == len(plan) and np.all(np.diff(recorded.t) > 0)
     assert np.array_equal(recorded.commands["y"], [s.target("y") for s in plan])
@@ -122,3 +135,39 @@ def test_a_three_axis_cell_calibrates_through_its_drivers(tmp_path: Path) -> Non
     assert np.max(np.abs(data.positions["z"] - data.commands["z"])) < 3.0
     model = load_any_model(out)
     assert isinstance(model, CellModel) and model.axes == ("x", "y", "z")
+
+
+def test_validate_through_the_drivers_counts_the_steps_outside_the_training_ranges(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    config = _config(tmp_path)
+    model = tmp_path / "xy.json"
+    assert cli(["calibrate", "--config", str(config), "--cycles", "2", "--out", str(model)]) == 0
+    capsys.readouterr()
+    # the paper's test 5: a room far outside the calibration's (a hot plate near the stage)
+    assert cli(["validate", "--config", str(config), "--model", str(model), "--cycles", "1",
+                "--scenario", "test5", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["extrapolating_steps"] == 5  # every compensated step of P1..P5
+    # the calibration's own room from its start: not every step is outside (a step can be: 2 cycles span little)
+    assert cli(["validate", "--config", str(config), "--model", str(model), "--cycles", "1",
+                "--scenario", "train", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["extrapolating_steps"] < 5
+
+
+def test_no_command_before_every_channel_the_model_reads_has_a_clean_sample(tmp_path: Path) -> None:
+    config = load_config(_config(tmp_path))
+    drivers = procedure_drivers(config)
+    cell = drivers.context.resources.get(RESOURCE_KEY, SimulatedCell)
+    assert isinstance(cell, SimulatedCell)
+    cell.inject_fault("T2", 0.0, 1000.0, "fault")  # burnt out from the start
+    model = load_any_model(Path(nanodrift.__file__).parent / "data" / "default_model_xy.json")
+    assert isinstance(model, CellModel) and "T2" in model.channels
+    plan = cell_validation_plan(("x", "y"), 1)
+    with pytest.raises(RuntimeError, match="no clean temperature sample yet"):
+        asyncio.run(run_cell_validation_steps(drivers, plan, model, compensate=True, limits=config.axis_actuators(),
+                                              progress_stream=io.StringIO()))
+    # uncompensated, the same plan runs: nothing asks the model
+    steps, extrapolating = asyncio.run(run_cell_validation_steps(
+        procedure_drivers(config), plan, model, compensate=False, limits=config.axis_actuators(),
+        progress_stream=io.StringIO()))
+    assert len(steps) == len(plan) and extrapolating == 0

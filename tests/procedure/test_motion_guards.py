@@ -53,6 +53,7 @@ def wired(gain: float = 1.0, seed: int = 1) -> tuple[DriverSet, Wired]:
     assert drivers.actuator is not None
     actuator = Wired(drivers.actuator, drivers.clock, gain)
     drivers.actuator = actuator
+    drivers.actuators = {"x": actuator}
     return drivers, actuator
 
 
@@ -61,7 +62,7 @@ def test_a_stage_that_does_not_move_stops_the_run_after_its_first_move(tmp_path:
     data = tmp_path / "cal.csv"
     with pytest.raises(StageNotFollowingError) as caught:
         asyncio.run(record_calibration(drivers, data, cycles=2, progress_stream=Capture(),
-                                       follow=FollowCheck("interferometer")))
+                                       follow={"x": FollowCheck("interferometer")}))
     message = str(caught.value)
     assert message.startswith("the stage did not follow: commanded +30 µm, the interferometer moved ")
     assert message.endswith(" µm; check the amplifier and [actuator]")
@@ -76,8 +77,8 @@ def test_the_tolerance_is_a_fraction_of_the_commanded_move(gain: float, toleranc
                                                            tmp_path: Path) -> None:
     drivers, _ = wired(gain=gain)
     follow = FollowCheck("interferometer", tolerance=tolerance, steps=3)
-    plan = [PlannedStep(i, 0, x) for i, x in enumerate((0.0, 30.0, 60.0, 90.0, 120.0))]
-    run = run_steps(drivers, plan, follow=follow, timing=StepTiming(hold_s=6.0, window_s=2.0))
+    plan = [PlannedStep.on_x(i, 0, x) for i, x in enumerate((0.0, 30.0, 60.0, 90.0, 120.0))]
+    run = run_steps(drivers, plan, follow={"x": follow}, timing=StepTiming(hold_s=6.0, window_s=2.0))
     if follows:
         results = asyncio.run(run)
         assert len(results) == 5 and follow.checked == 3 and follow.done
@@ -89,8 +90,8 @@ def test_the_tolerance_is_a_fraction_of_the_commanded_move(gain: float, toleranc
 def test_a_jump_is_ramped_no_faster_than_max_slew_and_ends_at_the_target() -> None:
     drivers, actuator = wired()
     limits = ActuatorConfig(max_slew_um_per_s=100.0)
-    plan = [PlannedStep(0, 0, 0.0), PlannedStep(1, 0, 480.0), PlannedStep(2, 0, 0.0)]
-    results = asyncio.run(run_steps(drivers, plan, limits=limits))  # the paper's 4 s ramp would be 120 um/s
+    plan = [PlannedStep.on_x(0, 0, 0.0), PlannedStep.on_x(1, 0, 480.0), PlannedStep.on_x(2, 0, 0.0)]
+    results = asyncio.run(run_steps(drivers, plan, limits={"x": limits}))  # the paper's 4 s ramp would be 120 um/s
     sent = actuator.sent
     rates = [abs(q1 - q0) / (t1 - t0) for (t0, q0, _), (t1, q1, _) in itertools.pairwise(sent) if t1 > t0]
     assert max(rates) <= 100.0 * (1 + 1e-9)
@@ -98,9 +99,9 @@ def test_a_jump_is_ramped_no_faster_than_max_slew_and_ends_at_the_target() -> No
     times_at_top = [t for t, q, _ in sent if q == 480.0]
     first_move = next(t for t, q, _ in sent if q > 0)
     assert times_at_top[0] - first_move == pytest.approx(4.8 - 4.8 / 19, abs=1e-6)  # 480 um at 100 um/s, 19 steps
-    assert sent[-1][1] == 0.0 and results[1].q_um == 480.0
+    assert sent[-1][1] == 0.0 and results[1].q_um["x"] == 480.0
     assert all(limits.v_min <= v <= limits.v_max for _, _, v in sent)
-    assert results[1].x_um == pytest.approx(480.0, abs=1.0)  # the stage got there
+    assert results[1].positions_um["x"] == pytest.approx(480.0, abs=1.0)  # the stage got there
 
 
 def test_the_first_ramp_starts_where_the_output_reads_back_also_when_a_run_resumes(tmp_path: Path) -> None:
@@ -108,16 +109,17 @@ def test_the_first_ramp_starts_where_the_output_reads_back_also_when_a_run_resum
     data = tmp_path / "cal.csv"
     plan = calibration_plan(2)  # two sweeps 0 .. 480 um
     first, _ = wired()
-    asyncio.run(record_calibration(first, data, limits=limits, plan=plan[:17], progress_stream=Capture()))
+    asyncio.run(record_calibration(first, data, limits={"x": limits}, plan=plan[:17], progress_stream=Capture()))
     last_t = float(read_csv(data).t[-1])
     # the run was stopped after its first sweep; the output still holds 480 um (9.6 V) when it resumes
     drivers = simulated_drivers("train", seed=1, start_s=last_t + 1.0)
     assert drivers.actuator is not None
     actuator = Wired(drivers.actuator, drivers.clock)
     drivers.actuator = actuator
+    drivers.actuators = {"x": actuator}
     actuator.holds = ("voltage_v", 9.6)
     stream = Capture()
-    assert asyncio.run(record_calibration(drivers, data, limits=limits, plan=plan, resume=True,
+    assert asyncio.run(record_calibration(drivers, data, limits={"x": limits}, plan=plan, resume=True,
                                           progress_stream=stream)) == 17
     descent = [q for _, q, _ in actuator.sent][:19]  # 480 -> 0 um at 100 um/s: 4.8 s, 19 steps
     assert descent[0] == pytest.approx(480.0 - 480.0 / 19) and descent[-1] == 0.0  # not a jump from 480 to 0
@@ -130,8 +132,8 @@ def test_the_first_ramp_starts_where_the_output_reads_back_also_when_a_run_resum
 
 def test_the_paper_ramp_is_kept_when_it_is_slower_than_the_limit() -> None:
     drivers, actuator = wired()
-    plan = [PlannedStep(0, 0, 0.0), PlannedStep(1, 0, 30.0)]
-    asyncio.run(run_steps(drivers, plan, limits=ActuatorConfig(max_slew_um_per_s=100.0)))
+    plan = [PlannedStep.on_x(0, 0, 0.0), PlannedStep.on_x(1, 0, 30.0)]
+    asyncio.run(run_steps(drivers, plan, limits={"x": ActuatorConfig(max_slew_um_per_s=100.0)}))
     moving = [(t, q) for t, q, _ in actuator.sent if 0 < q]
     # the first move (to 0 um, from where the simulated stage is: unknown, it cannot be read back) is one write
     assert len(actuator.sent) == 1 + 16 and moving[-1][0] - moving[0][0] == pytest.approx(4.0 - 0.25)  # 16 x 0.25 s
@@ -140,8 +142,8 @@ def test_the_paper_ramp_is_kept_when_it_is_slower_than_the_limit() -> None:
 def test_a_finite_safe_voltage_is_where_the_stage_is_left_even_after_a_failure(tmp_path: Path) -> None:
     limits = ActuatorConfig(safe_voltage_v=1.0, max_slew_um_per_s=50.0)
     drivers, actuator = wired()
-    plan = [PlannedStep(0, 0, 0.0), PlannedStep(1, 0, 480.0)]
-    asyncio.run(run_steps(drivers, plan, limits=limits))
+    plan = [PlannedStep.on_x(0, 0, 0.0), PlannedStep.on_x(1, 0, 480.0)]
+    asyncio.run(run_steps(drivers, plan, limits={"x": limits}))
     assert actuator.sent[-1][1:] == pytest.approx((50.0, 1.0))  # 1.0 V / 0.02 V/um
     descent = [(t, q) for t, q, _ in actuator.sent if t > actuator.sent[-1][0] - 8.6]
     assert descent[0][1] < 480.0 and abs(descent[-1][0] - descent[0][0]) > 8.0  # ramped: 430 um at 50 um/s
@@ -149,8 +151,8 @@ def test_a_finite_safe_voltage_is_where_the_stage_is_left_even_after_a_failure(t
 
     stuck, stuck_actuator = wired(gain=0.0)
     with pytest.raises(StageNotFollowingError):
-        asyncio.run(run_steps(stuck, [PlannedStep(i, 0, x) for i, x in enumerate((0.0, 30.0, 60.0))],
-                              limits=limits, follow=FollowCheck("interferometer")))
+        asyncio.run(run_steps(stuck, [PlannedStep.on_x(i, 0, x) for i, x in enumerate((0.0, 30.0, 60.0))],
+                              limits={"x": limits}, follow={"x": FollowCheck("interferometer")}))
     assert stuck_actuator.sent[-1][1] == pytest.approx(50.0)
 
 
@@ -187,3 +189,26 @@ def test_the_trajectory_is_the_procedure_tables_and_the_scenario_only_the_simula
     sweep = [0.0, 120.0, 240.0, 360.0, 480.0]
     assert q["table"] == sweep + sweep[::-1]
     assert q["scenario"] == sweep + sweep
+
+
+def test_an_output_that_fails_to_close_hides_neither_the_run_nor_its_error() -> None:
+    class Sticky(Wired):
+        closes = 0
+
+        async def close(self) -> None:
+            Sticky.closes += 1
+            await self.inner.close()
+            raise OSError("the output's link is gone")
+
+    drivers = simulated_drivers("train", seed=3)
+    assert drivers.actuator is not None
+    actuator = Sticky(drivers.actuator, drivers.clock, gain=0.0)
+    drivers.actuator, drivers.actuators = actuator, {"x": actuator}
+    plan = [PlannedStep.on_x(i, 0, x) for i, x in enumerate((0.0, 30.0))]
+    with pytest.raises(StageNotFollowingError):  # the run's own error, not the close's
+        asyncio.run(run_steps(drivers, plan, follow={"x": FollowCheck("interferometer")},
+                              timing=StepTiming(hold_s=6.0, window_s=2.0)))
+    assert Sticky.closes == 1
+    actuator.gain = 1.0
+    assert len(asyncio.run(run_steps(drivers, plan, timing=StepTiming(hold_s=6.0, window_s=2.0)))) == 2
+    assert Sticky.closes == 2

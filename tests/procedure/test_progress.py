@@ -5,7 +5,7 @@ import io
 
 from helpers.sim_helpers import Capture
 
-from nanodrift.calibration.plans import StepResult, StepTiming, calibration_plan
+from nanodrift.calibration.plans import StepTiming, calibration_plan
 from nanodrift.config import ActuatorConfig
 from nanodrift.procedure.progress import Progress
 from nanodrift.procedure.steps import planned_seconds
@@ -20,9 +20,9 @@ class FakeWall:
 
 
 def run(progress: Progress, plan, wall: FakeWall, seconds_per_step: float, start: int = 0) -> None:
-    for step in plan[start:]:
+    for _ in plan[start:]:
         wall.now += seconds_per_step
-        progress.advance(StepResult(step, 0.0, step.target_um, step.target_um, {}, True))
+        progress.advance(True)
 
 
 def test_time_left_is_the_measured_wall_rate():
@@ -63,10 +63,10 @@ def test_the_first_line_comes_at_the_start_with_the_plans_time_then_the_measured
     timing = StepTiming(ramp_s=1.0, hold_s=9.0)  # [procedure] rise_s = 1, hold_s = 9: 10 s a step
     wall, stream = FakeWall(), Capture()
     progress = Progress(plan, "calibration", stream, wall=wall)
-    progress.begin(planned_seconds(plan, 0.0, timing, ActuatorConfig()))
+    progress.begin(planned_seconds(plan, {"x": 0.0}, timing, {"x": ActuatorConfig()}))
     assert stream.getvalue().splitlines() == ["calibration: 0/51 steps, 0:08:30 left (planned), 0 invalid"]
     wall.now += 3.0  # the first step took 3 s of wall time for its 10 planned: a pace of 0.3
-    progress.advance(StepResult(plan[0], 0.0, 0.0, 0.0, {}, True))
+    progress.advance(True)
     assert progress.seconds_left() == 50 * 10.0 * 0.3
     run(progress, plan, wall, 3.0, start=1)
     lines = stream.getvalue().splitlines()
@@ -78,15 +78,16 @@ def test_the_plan_stretches_a_rise_the_slew_limit_slows_and_knows_nothing_of_an_
     limits = ActuatorConfig(max_slew_um_per_s=100.0)
     timing = StepTiming(ramp_s=4.0, hold_s=25.0)
     # from 0: no move (4 s rise), 480 um at 100 um/s (4.8 s), 450 um back (4.5 s)
-    assert planned_seconds(plan, 0.0, timing, limits) == [29.0, 29.8, 29.5]
-    assert planned_seconds(plan, None, timing, limits)[0] == 29.0  # unknown start: written at once, then the rise
+    assert planned_seconds(plan, {"x": 0.0}, timing, {"x": limits}) == [29.0, 29.8, 29.5]
+    # unknown start: written at once, then the rise
+    assert planned_seconds(plan, {"x": None}, timing, {"x": limits})[0] == 29.0
 
 
 def test_a_resumed_run_starts_from_the_plan_of_what_is_left():
     plan = calibration_plan(3)
     wall, stream = FakeWall(), Capture()
     progress = Progress(plan, "calibration", stream, done=17, wall=wall)
-    progress.begin(planned_seconds(plan[17:], 480.0, StepTiming(), ActuatorConfig()))
+    progress.begin(planned_seconds(plan[17:], {"x": 480.0}, StepTiming(), {"x": ActuatorConfig()}))
     assert stream.getvalue().splitlines() == ["calibration: 17/51 steps, 0:16:26 left (planned), 0 invalid"]
 
 
