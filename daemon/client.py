@@ -231,7 +231,7 @@ class Client:
                 pass
         self._subscribers.clear()
         if not self.session.is_closed():
-            self.session.close()  # type: ignore[no-untyped-call]  # zenoh's stub leaves it unannotated
+            self.session.close()
 
     @property
     def closed(self) -> bool:

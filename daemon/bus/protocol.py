@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any
 
-from nanodrift.compensation import ONE_AXIS, Command, Refusal, Target
+from nanodrift.compensation import ONE_AXIS, Command, Refusal, Target, one_axis
 
 #: targets larger than this are refused unread (a target is ~40 bytes)
 MAX_PAYLOAD_BYTES = 4096
@@ -111,11 +111,11 @@ def _decode(payload: bytes, max_bytes: int, expected: str, what: str = "payload"
         raise Refusal("bad_payload", f"{what} is {reason}; expected {expected}") from None
 
 
-def parse_target(payload: bytes, axes: Sequence[str] | None = None, max_bytes: int = MAX_PAYLOAD_BYTES) -> Target:
-    """Decode a target: ``{"x_um": number, "id": string|int}`` for a one-axis cell (``axes`` None), or
+def parse_target(payload: bytes, axes: Sequence[str] = ONE_AXIS, max_bytes: int = MAX_PAYLOAD_BYTES) -> Target:
+    """Decode a target: ``{"x_um": number, "id": string|int}`` for a one-axis cell, or
     ``{"x_um": .., "y_um": .., "id": ..}`` naming every one of ``axes`` exactly; a :class:`Refusal` for
     anything else (a missing or extra axis named)."""
-    if axes is None and len(payload) <= max_bytes and type(payload) is not Oversized:
+    if one_axis(axes) and len(payload) <= max_bytes and type(payload) is not Oversized:
         match = _FAST_X_ID.fullmatch(payload.lstrip(b" \t\n\r"))
         if match is not None:
             x_text, int_id, str_id = match.groups()
@@ -128,7 +128,7 @@ def parse_target(payload: bytes, axes: Sequence[str] | None = None, max_bytes: i
             if x - x == 0.0:  # finite (1e999 parses to inf: the full path words the refusal)
                 target_id = int(int_id) if int_id is not None else (str_id.decode() if str_id is not None else None)
                 return Target(target_id, {"x": x})
-    expected = ", ".join(f'"{a}_um": number' for a in axes or ONE_AXIS)
+    expected = ", ".join(f'"{a}_um": number' for a in axes)
     return validate_target(_decode(payload, max_bytes, f"{{{expected}, \"id\": ...}}"), axes)
 
 
@@ -146,15 +146,15 @@ def _id_of(doc: dict[str, Any]) -> tuple[Any, str | None]:
     return value, None
 
 
-def validate_target(doc: Any, axes: Sequence[str] | None = None) -> Target:
+def validate_target(doc: Any, axes: Sequence[str] = ONE_AXIS) -> Target:
     """The full checks on a decoded document (what the fast path in :func:`parse_target` must agree with).
-    A one-axis cell (``axes`` None) ignores other keys; a cell of several refuses them."""
+    A one-axis cell ignores other keys; a cell of several refuses them."""
     if not isinstance(doc, dict):
         raise Refusal("bad_payload", f"payload must be a JSON object, got {type(doc).__name__}")
     target_id, id_problem = _id_of(doc)
     if id_problem:
         raise Refusal("bad_payload", id_problem)
-    if axes is None:
+    if one_axis(axes):
         if "x_um" not in doc:
             raise Refusal("bad_payload", "missing field 'x_um' (target position in um)", target_id)
     else:
@@ -170,7 +170,7 @@ def validate_target(doc: Any, axes: Sequence[str] | None = None) -> Target:
                     if axis_like else f"unknown field {', '.join(repr(k) for k in extra)}")
             raise Refusal("bad_payload", f"{what} (axes: {', '.join(axes)})", target_id)
     positions: dict[str, float] = {}
-    for axis in axes or ONE_AXIS:
+    for axis in axes:
         key = f"{axis}_um"
         value = doc[key]
         if isinstance(value, bool) or not isinstance(value, int | float):
@@ -202,10 +202,10 @@ def _x(values: Mapping[str, float] | None) -> float | None:
     return values["x"] if values is not None else None
 
 
-def command_doc(command: Command, *, per_axis: bool = False) -> dict[str, Any]:
+def command_doc(command: Command) -> dict[str, Any]:
     """``command`` as the JSON object of the contract (what :func:`encode_command` writes): a one-axis
-    cell's with numbers, or (``per_axis``) a cell of several's, ``<axis>_um`` each and per-axis objects."""
-    if per_axis:
+    cell's with numbers, or a cell of several's, ``<axis>_um`` each and per-axis objects."""
+    if not one_axis(command.positions_um):
         doc: dict[str, Any] = {"id": command.id}
         doc.update({f"{axis}_um": value for axis, value in command.positions_um.items()})
         for key in ("q_um", "voltage_v", "q_sigma_um"):
@@ -254,7 +254,7 @@ def _daemon_template(temps: Mapping[str, float], model: str | None, correction: 
     return "{" + ",".join(parts) + "}"
 
 
-def encode_command(command: Command, *, per_axis: bool = False) -> bytes:
+def encode_command(command: Command) -> bytes:
     """``command`` as compact JSON, equal to :func:`dumps` of :func:`command_doc`.
 
     A one-axis cell's commands (finite floats, an int/str/None id, temperatures in a read-only mapping)
@@ -264,8 +264,8 @@ def encode_command(command: Command, *, per_axis: bool = False) -> bytes:
     Anything else (a procedure step, numpy numbers, a NaN, a cell of several) goes through ``json``.
     """
     global _template_cache
-    if per_axis:
-        return dumps(command_doc(command, per_axis=True))
+    if not one_axis(command.positions_um):
+        return dumps(command_doc(command))
     x, q, v, sigma = command.positions_um["x"], command.q_um["x"], command.voltage_v["x"], _x(command.q_sigma_um)
     target_id, temps, model, t, extrapolating = (command.id, command.temperatures_c, command.model, command.t,
                                                  command.extrapolating)
@@ -364,6 +364,11 @@ def parse_stop(payload: bytes, max_bytes: int = MAX_PAYLOAD_BYTES) -> Stop:
     if problem:
         raise Refusal("bad_payload", f"stop: {problem}")
     return Stop(stop_id)
+
+
+def wire_voltage(held: Mapping[str, float | None], axes: Sequence[str]) -> float | dict[str, float | None] | None:
+    """What the outputs hold as ``done`` and a stop's reply carry it: a one-axis cell's number, else ``{axis: V}``."""
+    return held.get("x") if one_axis(axes) else dict(held)
 
 
 def encode_stop_reply(stop_id: str | int | None, voltage_v: float | Mapping[str, float | None] | None) -> bytes:

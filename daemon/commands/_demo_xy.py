@@ -46,9 +46,10 @@ def two_axis_part(seed: int, cycles: int, calibration_cycles: int, keep: Path | 
     head = f"   {'':<10}{'without':>10}{'two one-axis models':>22}{'one XY model':>15}{'improvement':>13}"
     lines += [f"{test} at ISO 9283 points off the calibration levels, {cycles} cycles, against the TRUE position:",
               head]
-    for label, pick in ([(f"axis {a}", lambda r, a=a: r.axis_accuracy_nm(a)) for a in AXES]
-                        + [("AP 2-D", lambda r: r.accuracy_nm), ("RP 2-D", lambda r: r.repeatability_nm)]):
-        before, alone_nm, after = pick(without), pick(with_alone), pick(with_cell)
+    runs = (without, with_alone, with_cell)
+    for label, (before, alone_nm, after) in ([(f"axis {a}", [r.axis_accuracy_nm(a) for r in runs]) for a in AXES]
+                                             + [("AP 2-D", [r.accuracy_nm for r in runs]),
+                                                ("RP 2-D", [r.repeatability_nm for r in runs])]):
         gain = f"{before / after:.0f}×" if after > 0 and not label.startswith("RP") else ""  # RP: spread, not bias
         lines.append(f"   {label:<10}{before:>7.0f} nm{alone_nm:>19.0f} nm{after:>12.0f} nm{gain:>13}")
     a0, a1 = ANCHOR_2DOF_NM

@@ -19,7 +19,7 @@ the explicit hook the compensator is built with.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
@@ -31,6 +31,12 @@ from nanodrift.motion import MotionLimits, VoltageLimitError, checked_voltage
 
 #: the axis of a one-axis cell (a config without ``[[axes]]``)
 ONE_AXIS = ("x",)
+
+
+def one_axis(axes: Iterable[str]) -> bool:
+    """A one-axis cell's axes (a config without ``[[axes]]``; a cell of several has two at least): the one test
+    for the shapes only such a cell keeps, at the edges (scalar payloads, its log lines, its model file)."""
+    return tuple(axes) == ONE_AXIS
 _NO_TEMPERATURES: Mapping[str, float] = MappingProxyType({})
 
 
@@ -124,7 +130,7 @@ def _axes_text(axes: Sequence[str]) -> str:
 def load_served_model(path: Path, axes: Sequence[str]) -> Model | CellModel:
     """The model in ``path`` if it serves exactly the cell's ``axes`` (a one-axis cell: ``("x",)``, a
     :class:`Model` read by :func:`load_model` as always); :class:`ModelFileError` otherwise, saying both."""
-    if tuple(axes) == ONE_AXIS:
+    if one_axis(axes):
         try:
             return load_model(path)
         except ModelFileError as error:

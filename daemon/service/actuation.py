@@ -56,8 +56,8 @@ too; this module owns the devices' lifecycle.
   skips it.
 
 The shapes of a one-axis cell (its log lines' fields, its fault's text, its ``status`` actuator) are
-kept at the edges: :attr:`Actuation.single` says which shapes the lines take, :meth:`Actuation.axis_doc`
-is a one-axis cell's ``status`` actuator.
+kept at the edges: :func:`nanodrift.compensation.one_axis` of the cell's axes says which shapes the lines
+take, :meth:`Actuation.axis_doc` is a one-axis cell's ``status`` actuator.
 
 One module on purpose: it is one object whose goal, fault and reopen cycle and shutdown ramp share one
 state (the goal, what was sent, the devices open now) driven by one task on the loop; split, each part
@@ -74,6 +74,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from nanodrift.compensation import ONE_AXIS, one_axis
 from nanodrift.config import SAFE_RAMP_BUDGET_S, ActuatorConfig
 from nanodrift.drivers.base import Actuator, DeviceError
 from nanodrift.logs import RateLimitedLog
@@ -132,14 +133,11 @@ class AxisFault(Exception):
 class Actuation:
     """The goal (latest wins), the task that writes it to every axis' device, and their state."""
 
-    def __init__(self, log: Any, *, single: bool | None = None, safe_budget_s: float = SAFE_RAMP_BUDGET_S) -> None:
+    def __init__(self, log: Any, *, safe_budget_s: float = SAFE_RAMP_BUDGET_S) -> None:
         self.log = log
         self.failures = RateLimitedLog(log, "actuator_failed", level="error")
         self.safe_budget_s = safe_budget_s
-        #: the one-axis cell's shapes (log fields, fault text) rather than a cell of several axes'; None: a
-        #: cell whose only output is ``x`` (decided at :meth:`start`)
-        self._single = single
-        self.single = single if single is not None else True
+        self.axes: tuple[str, ...] = ONE_AXIS  # the cell's (set by :meth:`start`): the shapes its lines take
         self._lock = threading.Lock()  # guards what offer() touches; never held across an await or a publish
         self._active = False
         self._pending: Goal | None = None  # served, not yet taken by the loop (kept while drivers are swapped)
@@ -236,9 +234,9 @@ class Actuation:
 
     async def start(self, actuators: Mapping[str, Actuator], configs: Mapping[str, ActuatorConfig]) -> None:
         """Open every axis' device, find where each axis is, and start writing the goal and what follows; a
-        failure to open (or to read an output back) is a fault (reopened with backoff)."""
-        if self._single is None and actuators:
-            self.single = tuple(actuators) == ("x",)
+        failure to open (or to read an output back) is a fault (reopened with backoff). ``configs``: every
+        axis of the cell's, those with no device (published) too."""
+        self.axes = tuple(configs)
         outputs: dict[str, AxisOutput] = {}
         for axis, actuator in actuators.items():
             config = configs[axis]
@@ -662,36 +660,36 @@ class Actuation:
     def _fault_text(self, error: BaseException, prefix: str = "") -> str:
         """The fault's reason: an axis' failure names the axis in a cell of several."""
         if isinstance(error, AxisFault):
-            return prefix + (error.text if self.single else str(error))
+            return prefix + (error.text if one_axis(self.axes) else str(error))
         return prefix + _reason(error)
 
     def _axis(self, out: AxisOutput) -> dict[str, Any]:
         """The ``axis`` field of a line about one axis (none in a one-axis cell)."""
-        return {} if self.single else {"axis": out.axis}
+        return {} if one_axis(self.axes) else {"axis": out.axis}
 
     def _devices(self) -> dict[str, Any]:
         """The ``device`` of a one-axis cell's line; nothing in a cell of several (the reason names the axis)."""
-        if not self.single:
+        if not one_axis(self.axes):
             return {}
         out = next(iter(self._outputs.values()), None)
         return {"device": out.actuator.description if out is not None else None}
 
     def _value(self, per_axis: Mapping[str, Any]) -> Any:
         """A per-axis value as a line shows it: the number in a one-axis cell, ``{axis: value}`` otherwise."""
-        if self.single and len(per_axis) == 1:
+        if one_axis(self.axes) and len(per_axis) == 1:
             return next(iter(per_axis.values()))
         return dict(per_axis)
 
     def _per_axis(self, name: str, per_axis: Mapping[str, Any], outputs: Mapping[str, AxisOutput]) -> dict[str, Any]:
         """``name=value, device=...`` in a one-axis cell, ``name={axis: value}`` otherwise."""
-        if self.single and len(outputs) == 1:
+        if one_axis(self.axes):
             out = next(iter(outputs.values()))
             return {name: per_axis[out.axis], "device": out.actuator.description}
         return {name: dict(per_axis)}
 
     def _log_open(self, starts: Mapping[str, StartPoint]) -> None:
         outputs = self._outputs
-        if self.single and len(outputs) == 1:
+        if one_axis(self.axes):
             out = next(iter(outputs.values()))
             start = starts[out.axis]
             self.log.info("actuator_open", device=out.actuator.description, voltage_v=start.voltage_v,
@@ -703,7 +701,7 @@ class Actuation:
 
     def _log_dropped(self, goal: Goal, outputs: Mapping[str, AxisOutput], refused: list[str]) -> None:
         reason = "the served command is outside the limits now in force: the stage holds"
-        if self.single and len(outputs) == 1:
+        if one_axis(self.axes):
             out = outputs[refused[0]]
             self.log.warning("actuator_goal_dropped", device=out.actuator.description,
                              voltage_v=goal.voltage_v[out.axis], v_min=out.config.v_min, v_max=out.config.v_max,

@@ -7,8 +7,9 @@ sensor's readings go through :class:`SettleTracker` into :class:`HealthMonitor` 
 advice with :class:`RangeWatch`'s "since when outside the training range") and, with adaptation on,
 :class:`BiasTracker`, whose correction the compensator adds to that axis' later commands. A one-axis cell
 is a cell of one axis, ``x``; only the edges keep its shapes: its ``health`` document is its axis' (a
-cell of several: the worst state, with every axis' document under ``"axes"``) and its recorded row is
-a :class:`Settled` (a cell of several: one :class:`CellSettled` once every watched axis held the target).
+cell of several: the worst state, with every axis' document under ``"axes"``) and its recorded row has
+the one-axis columns (:func:`nanodrift.service.recorder.record_row`, of one :class:`CellSettled` once every
+watched axis held the target).
 
 The compensator serves through this unit as its :class:`nanodrift.compensation.Monitor` (an argument it
 is built with, never attributes set on it): it asks :meth:`HealthUnit.correction_um` and
@@ -51,7 +52,7 @@ import zenoh
 from nanodrift.bus.protocol import dumps
 from nanodrift.bus.session import Bus
 from nanodrift.calibration.residuals import BiasTracker, HealthMonitor, RangeWatch, Settled, SettleTracker
-from nanodrift.compensation import Command, axis_models
+from nanodrift.compensation import Command, axis_models, one_axis
 from nanodrift.config import Config
 from nanodrift.model.cell_model import CellModel
 from nanodrift.model.model import Model
@@ -126,11 +127,9 @@ class HealthUnit:
 
     def __init__(self, config: Config, model: Model | CellModel | None, log: Any) -> None:
         self.log = log
-        #: a one-axis cell (no ``[[axes]]``): its document and recorded rows keep the one-axis shapes
-        self.single = not config.multi_axis
-        self.axes = config.axis_names
-        #: called on the loop, outside the state lock, with every settled target (a :class:`Settled`, or a
-        #: :class:`CellSettled` in a cell of several), the unix time it settled at (a label only) and every
+        self.axes = config.axis_names  # a one-axis cell's document and recorded rows keep its own shapes
+        #: called on the loop, outside the state lock, with every settled target (a :class:`CellSettled`), the
+        #: unix time it settled at (a label only) and every
         #: polled temperature channel over its window (the recorder's ``on_settled``); must not block
         self.settled_listeners: list[Callable[[Any, float, Polled], None]] = []
         #: the daemon drives the outputs itself: a hold settles from when the outputs reached its command
@@ -153,7 +152,8 @@ class HealthUnit:
         the old model say nothing about the new one); the others carry on (recording settings included)."""
         models = axis_models(model)
         for axis in self.axes:
-            watch = AxisWatch(axis, config, models.get(axis), self.log if self.single else self.log.bind(axis=axis))
+            log = self.log if one_axis(self.axes) else self.log.bind(axis=axis)
+            watch = AxisWatch(axis, config, models.get(axis), log)
             old = self.watches.get(axis)
             if old is None or old.key != watch.key:
                 watch.announced = old.announced if old is not None else watch.announced  # a reset is logged
@@ -252,10 +252,8 @@ class HealthUnit:
         self._fresh.append((watch.axis, settled, self.label_clock(), polled))
 
     def _row(self, axis: str, settled: Settled, unix_s: float, polled: Polled) -> tuple[Any, float, Polled] | None:
-        """The recorded row of an axis' settled target: at once in a one-axis cell; in a cell of several, once
-        every watched axis held it (one :class:`CellSettled`, labelled when the last one settled)."""
-        if self.single:
-            return settled, unix_s, polled
+        """The recorded row of an axis' settled target, once every watched axis held it (one
+        :class:`CellSettled`, labelled when the last one settled)."""
         watched = [a for a, w in self.watches.items() if w.position_channel is not None]
         key = repr(settled.target_id)
         axes = self._pending.setdefault(key, {})
@@ -278,7 +276,7 @@ class HealthUnit:
     def document(self) -> dict[str, object]:
         """The ``health`` payload: a one-axis cell's is its axis' document; a cell of several's the worst
         state, every axis' correction and every axis' document under ``"axes"``."""
-        if self.single:
+        if one_axis(self.axes):
             return self.watches["x"].document()
         corrections = {a: w.tracker.correction_um for a, w in self.watches.items() if w.tracker is not None}
         return {"state": self.state, "correction_um": corrections or None,

@@ -51,6 +51,7 @@ from typing import Any, Protocol
 from nanodrift.atomic import atomic_write_text
 from nanodrift.calibration.dataset import RESERVED, CsvAppender, DataError, WriteBytes
 from nanodrift.calibration.residuals import Settled
+from nanodrift.compensation import one_axis
 from nanodrift.drivers.base import MonotonicClock
 
 #: the columns before the channels, in this order
@@ -133,47 +134,36 @@ class PolledChannels:
 
 
 class CellSettled:
-    """A multi-axis cell's settled target: every watched axis' :class:`Settled` for one command."""
+    """A cell's settled target: every watched axis' :class:`Settled` for one command."""
 
     def __init__(self, axes: Mapping[str, Settled]) -> None:
         self.axes = dict(axes)
         first = next(iter(self.axes.values()))
         self.temperatures = first.temperatures
 
-    def fixed_columns(self) -> dict[str, float]:
-        """``<axis>_um`` measured, ``q_<axis>_um``, ``target_<axis>_um``, ``residual_<axis>_um`` (the CSV contract's
-        multi-axis columns; ``target_``/``residual_`` end in ``_um``, so no reader takes them for a channel)."""
-        row: dict[str, float] = {}
-        for axis, s in self.axes.items():
-            row[f"{axis}_um"] = float(s.position_um)
-        for prefix, value in (("q", lambda s: s.q_um), ("target", lambda s: s.x_um),
-                              ("residual", lambda s: s.residual_um)):
-            for axis, s in self.axes.items():
-                row[f"{prefix}_{axis}_um"] = float(value(s))
-        return row
+
+def fixed_columns(axes: Mapping[str, Settled]) -> dict[str, float]:
+    """A one-axis cell's ``x_um``, ``q_um``, ``target_um``, ``residual_um``; a cell of several's ``<axis>_um``
+    measured, ``q_<axis>_um``, ``target_<axis>_um``, ``residual_<axis>_um`` (the CSV contract's columns;
+    ``target_``/``residual_`` end in ``_um``, so no reader takes them for a channel)."""
+    if one_axis(axes):
+        s = axes["x"]
+        return {"x_um": float(s.position_um), "q_um": float(s.q_um), "target_um": float(s.x_um),
+                "residual_um": float(s.residual_um)}
+    row = {f"{axis}_um": float(s.position_um) for axis, s in axes.items()}
+    for prefix, attribute in (("q", "q_um"), ("target", "x_um"), ("residual", "residual_um")):
+        row.update({f"{prefix}_{axis}_um": float(getattr(s, attribute)) for axis, s in axes.items()})
+    return row
 
 
 def record_row(settled: Settled | CellSettled, unix_s: float, polled: Polled | None = None) -> dict[str, float]:
     """One settled target as a row of the data contract; ``polled`` None: the command's channels, valid."""
     if polled is None:
         polled = Polled(settled.temperatures, True)
-    if isinstance(settled, CellSettled):
-        row = {"t_s": float(unix_s), **settled.fixed_columns(), "valid": 1.0 if polled.valid else 0.0}
-        for channel, value in polled.values_c.items():
-            if channel in RESERVED or channel.endswith("_um"):
-                raise DataError(f"channel {channel!r} has the name of a reserved column; it cannot be recorded")
-            row[channel] = float(value)
-        return row
-    row = {
-        "t_s": float(unix_s),
-        "x_um": float(settled.position_um),
-        "q_um": float(settled.q_um),
-        "target_um": float(settled.x_um),
-        "residual_um": float(settled.residual_um),
-        "valid": 1.0 if polled.valid else 0.0,
-    }
+    axes = settled.axes if isinstance(settled, CellSettled) else {"x": settled}
+    row = {"t_s": float(unix_s), **fixed_columns(axes), "valid": 1.0 if polled.valid else 0.0}
     for channel, value in polled.values_c.items():
-        if channel in RESERVED:
+        if channel in RESERVED or (not one_axis(axes) and channel.endswith("_um")):
             raise DataError(f"channel {channel!r} has the name of a reserved column; it cannot be recorded")
         row[channel] = float(value)
     return row

@@ -23,8 +23,9 @@ from typing import Any
 
 import zenoh
 
-from nanodrift.bus.protocol import encode_done
+from nanodrift.bus.protocol import encode_done, wire_voltage
 from nanodrift.bus.session import Bus, describe_zenoh_error, listen_endpoints, session_config
+from nanodrift.compensation import one_axis
 from nanodrift.config import Config, missing_model_channels
 from nanodrift.drivers.base import DriverContext, DriverSetupError, MonotonicClock
 from nanodrift.drivers_set import DriverSet
@@ -71,7 +72,7 @@ class Service:
         model, problem = load_serving_model(config)  # a model that does not load: served as no_model, with why
         compensator = serving_state(config, model, self.health, model_problem=problem)
         # every output of the cell (one axis: x), by one task; a one-axis cell's log lines keep their shape
-        self.actuation = Actuation(self.log, single=not config.multi_axis)
+        self.actuation = Actuation(self.log)
         self.actuation.reached_listeners.append(self._output_reached)
         self.actuation.done_listeners.append(self._publish_done)  # one done per served command
         self.state = CellState(config, compensator, MonotonicClock())  # the drivers' clock once they start
@@ -111,7 +112,7 @@ class Service:
                       **({"note": "port 0: zenoh picked a free port; -l tcp/HOST:PORT fixes it"}
                          if any(ep.endswith(":0") for ep in listen) else {}))
         bus = self.bus = Bus(session, self.state.config.cell, self.state.config.zenoh.prefix)
-        self.stops = StopHandler(self.actuation, bus, loop, self.log, single=not self.state.config.multi_axis)
+        self.stops = StopHandler(self.actuation, bus, loop, self.log, self.state.config.axis_names)
         try:
             await self.start_drivers(self.build_drivers(self.state.config, None))
         except DriverSetupError as error:
@@ -224,7 +225,7 @@ class Service:
     def _publish_telemetry(self, role: str, channel: str, payload: bytes) -> None:
         if self.bus is not None:  # none before the session is open
             config = self.state.config
-            if role == "position" and config.multi_axis:  # each axis' sensor on its own key
+            if role == "position" and not one_axis(config.axis_names):  # each axis' sensor on its own key
                 self.bus.publish_telemetry(role, channel, payload, config.sensor_axis(channel))
             else:
                 self.bus.publish_telemetry(role, channel, payload)
@@ -242,8 +243,7 @@ class Service:
             self.health.awaits_reach = bool(drivers.actuators)
         # no outputs (every axis kind = "zenoh", or no actuator): the published command is the actuation, and
         # the actuation still runs, to say each command is reached as it is published
-        configs = self.state.config.axis_actuators()
-        await self.actuation.start(drivers.actuators, {axis: configs[axis] for axis in drivers.actuators})
+        await self.actuation.start(drivers.actuators, self.state.config.axis_actuators())
         ingest = self.ingest
         self.pollers = [
             GroupPoller(g, drivers.context.clock, ingest.on_readings, ingest.on_group_failure,
@@ -270,12 +270,11 @@ class Service:
         self.health.on_reached(self.state.clock.now(), goal.q_um)  # q per axis: each health unit takes its own
 
     def _publish_done(self, goal: Goal, state: str, held: dict[str, float | None], error: str | None) -> None:
-        """``done`` for a served command (on the loop; the publisher drops rather than blocks, as the answers'):
-        a one-axis cell's voltage is a number, a cell of several's ``{axis: V}``."""
+        """``done`` for a served command (on the loop; the publisher drops rather than blocks, as the answers')."""
         bus = self.bus
         if bus is None:
             return
-        voltage = held.get("x") if not self.state.config.multi_axis else held
+        voltage = wire_voltage(held, self.state.config.axis_names)
         try:
             bus.publish_done(encode_done(goal.id, state, time.time(), voltage, error))
         except zenoh.ZError as failure:
@@ -285,7 +284,7 @@ class Service:
         config, comp = self.state.config, self.state.compensator
         model = comp.model
         missing = missing_model_channels(config, model.channels) if model else []
-        if config.multi_axis:
+        if not one_axis(config.axis_names):
             self.log.info("axes", axes={a: {"workspace_um": list(c.workspace_um), "kind": c.kind}
                                         for a, c in config.axis_actuators().items()})
         self.log.info("starting", config=config.source, cell=config.cell,

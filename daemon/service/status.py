@@ -16,7 +16,7 @@ import zenoh
 
 from nanodrift.bus.protocol import dumps
 from nanodrift.bus.session import Bus
-from nanodrift.compensation import Compensator
+from nanodrift.compensation import Compensator, one_axis
 from nanodrift.config import ZENOH_KIND, Config
 from nanodrift.drivers.base import State
 from nanodrift.model.cell_model import CellModel
@@ -30,7 +30,7 @@ def status_doc(state: CellState, healthy: bool, actuation: Actuation | None = No
     """The ``status`` payload's document (README, Zenoh keys ``status``)."""
     driven: dict[str, Any] | None = None
     if actuation is not None:  # a one-axis cell shows its one output as it always did; a cell of several, per axis
-        driven = actuation.doc() if state.config.multi_axis else actuation.axis_doc("x")
+        driven = actuation.axis_doc("x") if one_axis(state.config.axis_names) else actuation.doc()
     with state.lock:
         now = state.clock.now()
         comp = state.compensator
@@ -45,11 +45,11 @@ def status_doc(state: CellState, healthy: bool, actuation: Actuation | None = No
             "model_problem": comp.model_problem or None,
             "sensors": state.table.snapshot(now),
             "extrapolating": sorted(set(comp.extrapolating_now()) | set(comp.last_extrapolating)),
-            "actuator": actuator_doc(config, driven) if not config.multi_axis else cell_actuator_doc(driven),
+            "actuator": actuator_doc(config, driven) if one_axis(config.axis_names) else cell_actuator_doc(driven),
             "counters": state.counters.as_dict(),
             "healthy": healthy,
         }
-        if config.multi_axis:
+        if not one_axis(config.axis_names):
             doc["axes"] = axes_doc(config, driven, state.table.snapshot(now))
         if health is not None:
             doc["health"] = health.document()
@@ -61,13 +61,14 @@ def model_doc(comp: Compensator) -> dict[str, Any] | None:
     model = comp.model
     if model is None:
         return None
-    training = model.models[model.axes[0]].training if isinstance(model, CellModel) else model.training
     doc: dict[str, Any] = {"id": model.id}
-    if isinstance(model, CellModel):
+    if isinstance(model, CellModel):  # the model file's shape
+        training = model.models[model.axes[0]].training
         doc.update(axes=list(model.axes), terms={a: model.models[a].term_names() for a in model.axes})
         positions: dict[str, Any] = {"positions_um": {a: list(r) for a, r in model.position_ranges.items()}}
         channels = model.channel_ranges
     else:
+        training = model.training
         doc["terms"] = model.term_names()
         positions, channels = {"x_um": list(training.x_range)}, training.channel_ranges
     doc.update(channels=list(comp.channels), missing_channels=list(comp.missing),

@@ -21,21 +21,22 @@ from typing import Any
 
 import zenoh
 
-from nanodrift.bus.protocol import Refusal, Stop, encode_stop_error, encode_stop_reply, parse_stop
+from nanodrift.bus.protocol import Stop, encode_stop_error, encode_stop_reply, parse_stop, wire_voltage
 from nanodrift.bus.session import Bus
+from nanodrift.compensation import Refusal
 from nanodrift.service.actuation import Actuation
 
 
 class StopHandler:
     """``on_stop`` for the bus: thread-safe (Zenoh's thread), the stop itself carried out on the loop."""
 
-    def __init__(self, actuation: Actuation, bus: Bus, loop: asyncio.AbstractEventLoop, log: Any, *,
-                 single: bool) -> None:
+    def __init__(self, actuation: Actuation, bus: Bus, loop: asyncio.AbstractEventLoop, log: Any,
+                 axes: tuple[str, ...]) -> None:
         self.actuation = actuation
         self.bus = bus
         self.loop = loop
         self.log = log
-        self.single = single  # a one-axis cell answers the voltage as a number
+        self.axes = axes
         self._tasks: set[asyncio.Task[None]] = set()
 
     def on_stop(self, payload: bytes, query: zenoh.Query | None) -> None:
@@ -66,7 +67,7 @@ class StopHandler:
             if query is not None:
                 self._reply_err(query, encode_stop_error(stop.id, f"internal error: {type(error).__name__}"))
             return
-        voltage = held.get("x") if self.single else held
+        voltage = wire_voltage(held, self.axes)
         self.log.info("stop_served", id=stop.id, voltage_v=voltage, query=query is not None)
         if query is not None:
             try:

@@ -36,7 +36,7 @@ import zenoh
 
 from nanodrift.bus.protocol import encode_command, encode_error, parse_target
 from nanodrift.bus.session import Bus
-from nanodrift.compensation import Command, Refusal, Target
+from nanodrift.compensation import Command, Refusal, Target, one_axis
 from nanodrift.logs import RateLimitedLog
 from nanodrift.service.actuation import Actuation
 from nanodrift.service.metrics import AnswerLatency
@@ -57,8 +57,8 @@ class TargetHandler:
     def __init__(self, state: CellState, bus: Bus, loop: asyncio.AbstractEventLoop,
                  actuation: Actuation, log: Any, latency: AnswerLatency | None = None) -> None:
         self.state = state
-        #: a multi-axis cell's axes (fixed for the daemon's life: a reload never changes them), else None
-        self.cell_axes: tuple[str, ...] | None = state.config.axis_names if state.config.multi_axis else None
+        #: the cell's axes (fixed for the daemon's life: a reload never changes them)
+        self.cell_axes = state.config.axis_names
         self.latency = latency or AnswerLatency()
         #: checked once: at info level the hot path never builds a debug line
         self.debug = debug_enabled(log)
@@ -110,7 +110,7 @@ class TargetHandler:
                         suppressed = self.refused_log.limiter.take_suppressed()
             try:
                 if command is not None:
-                    data = encode_command(command, per_axis=self.cell_axes is not None)  # published once, all axes
+                    data = encode_command(command)  # published once, all axes
                     bus.publish_command(data)
                     wake_actuator = self.actuation.offer(command.q_um, command.voltage_v, command.positions_um,
                                                          command.id)
@@ -157,13 +157,13 @@ class TargetHandler:
 
     def _log_answer(self, command: Command | None, refusal: Refusal | None, elapsed_s: float) -> None:
         latency_us = round(elapsed_s * 1e6, 1)
-        if command is not None and self.cell_axes is not None:
-            self.log.debug("target_answered", id=command.id, positions_um=dict(command.positions_um),
-                           q_um=dict(command.q_um), voltage_v=dict(command.voltage_v), latency_us=latency_us)
-        elif command is not None:
+        if command is not None and one_axis(self.cell_axes):
             self.log.debug("target_answered", id=command.id, x_um=command.positions_um["x"],
                            q_um=round(command.q_um["x"], 6), voltage_v=round(command.voltage_v["x"], 6),
                            latency_us=latency_us)
+        elif command is not None:
+            self.log.debug("target_answered", id=command.id, positions_um=dict(command.positions_um),
+                           q_um=dict(command.q_um), voltage_v=dict(command.voltage_v), latency_us=latency_us)
         elif refusal is not None:
             self.log.debug("target_answered", id=refusal.id, error=refusal.kind, reason=refusal.message,
                            latency_us=latency_us)

@@ -61,7 +61,8 @@ def decode(registers: Sequence[int], data_type: str, swap: str = "none") -> int 
     if len(registers) != spec.registers:
         raise ValueError(f"{data_type} needs {spec.registers} register(s), got {len(registers)}")
     raw = b"".join(r.to_bytes(2, "big") for r in _swapped(registers, swap))
-    return struct.unpack(spec.struct_format, raw)[0]
+    value: int | float = struct.unpack(spec.struct_format, raw)[0]
+    return value
 
 
 def encode(value: int | float, data_type: str, swap: str = "none") -> list[int]:

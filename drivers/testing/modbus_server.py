@@ -29,7 +29,7 @@ from collections.abc import Callable, Iterable, Sequence
 from pymodbus.client.mixin import ModbusClientMixin
 from pymodbus.constants import ExcCodes
 from pymodbus.framer import FramerType
-from pymodbus.server import ModbusSerialServer, ModbusTcpServer
+from pymodbus.server import ModbusBaseServer, ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from nanodrift.drivers.base import DriverContext
@@ -44,7 +44,7 @@ def free_port() -> int:
     """A TCP port on 127.0.0.1 that nobody listens on right now (the one definition; others import it)."""
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+        return int(s.getsockname()[1])
 
 
 def _ranges(ranges: Iterable[tuple[int, int]]) -> list[SimData]:
@@ -115,7 +115,7 @@ class ModbusTestServer:
         self.devices = {d.device_id: d for d in devices}
         self.port = port or free_port()
         self.serial_port = serial_port
-        self._server: ModbusTcpServer | ModbusSerialServer | None = None
+        self._server: ModbusBaseServer | None = None
         # values survive a restart, like a module's inputs
         self._values: dict[tuple[int, int, int], list[int]] = {}
 

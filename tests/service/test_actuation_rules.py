@@ -644,9 +644,9 @@ def test_with_no_outputs_each_command_is_reached_as_it_is_published(axes: tuple[
     configs = {a: ActuatorConfig() for a in axes}
 
     async def main() -> tuple[Dones, dict[str, float | None]]:
-        actuation = Actuation(Events(), single=len(axes) == 1)
+        actuation = Actuation(Events())
         dones = Dones(actuation)
-        await actuation.start({}, {})
+        await actuation.start({}, configs)
         for i in range(1, 21):
             serve(actuation, configs, 10.0 * i, i)
             await until(lambda i=i: dones.state(i) is not None, 5, f"command {i}'s done")

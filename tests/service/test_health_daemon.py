@@ -330,12 +330,10 @@ class Unit:
         return doc if self.axes == ("x",) else doc["axes"]["x"]
 
     def held(self, handed: list[tuple[Any, float]]) -> list[Any]:
-        """The x axis' :class:`Settled` of every recorded row (a cell of several's row holds every axis')."""
+        """The x axis' :class:`Settled` of every recorded row (a row holds every axis of the cell)."""
         rows = [row for row, _ in handed]
-        if self.axes != ("x",):
-            assert all(set(row.axes) == set(self.axes) for row in rows)
-            return [row.axes["x"] for row in rows]
-        return rows
+        assert all(set(row.axes) == set(self.axes) for row in rows)
+        return [row.axes["x"] for row in rows]
 
 
 class _NullLog:

@@ -405,7 +405,7 @@ def test_the_health_unit_hands_every_polled_channel_over_the_window_to_the_recor
 
     hold(0.0, [(3.2, 23.0, True), (4.2, 23.4, True), (6.0, 50.0, True)])  # window [3, 5]: 23.0 and 23.4
     hold(20.0, [(23.5, 0.0, False)])  # T4 faulted inside the window
-    assert [s.t for s, _, _ in handed] == [5.0, 25.0]
+    assert [s.axes["x"].t for s, _, _ in handed] == [5.0, 25.0]
     first, second = handed[0][2], handed[1][2]
     assert first.valid and first.values_c == pytest.approx({**TEMPS, "T4": 23.2})
     assert not second.valid and second.values_c["T4"] == 50.0 and second.values_c["T1"] == TEMPS["T1"]
