@@ -84,7 +84,7 @@ class DconBus:
                 port.reset_input_buffer()  # nothing that came before the command may begin its answer
                 port.write(data)
                 port.flush()
-                answer = port.read_until(CR.encode(), MAX_ANSWER_BYTES)
+                answer = bytes(port.read_until(CR.encode(), MAX_ANSWER_BYTES))
             except (serial.SerialException, OSError, TypeError, termios.error) as error:  # TypeError: a closed fd
                 self._port = None
                 try:

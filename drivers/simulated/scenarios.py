@@ -45,7 +45,8 @@ class Scenario:
         span = times[i + 1] - times[i]
         frac = np.clip((t - times[i]) / span, 0.0, 1.0)
         shape = 0.5 - 0.5 * np.cos(np.pi * frac)
-        return temps[i] + (temps[i + 1] - temps[i]) * shape
+        result: np.ndarray = temps[i] + (temps[i + 1] - temps[i]) * shape
+        return result
 
 
 #: the ``week`` scenario's room (hours from Monday 00:00, °C): what a lab's air does over a week
