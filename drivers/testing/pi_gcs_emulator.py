@@ -73,7 +73,8 @@ class PiGcsEmulator:
     with it, changing nothing), ``has_voltage_limits`` (False: ``VMI?``/``VMA?`` are unknown commands,
     as on a controller without them), ``silent`` (answers nothing), ``frozen`` (SVA and MOV are accepted
     without an error and change nothing: an amplifier off, a stage unplugged), ``on_sva`` (told each SVA
-    that takes effect: wire it to a simulated stage), ``stray`` (a line sent once, unasked, before the
+    that takes effect: wire it to a simulated stage), ``on_mov`` (told each MOV that takes effect: a
+    closed-loop stage settling at the target), ``stray`` (a line sent once, unasked, before the
     next answer), ``um_per_volt`` (open-loop
     position per volt, for ``POS?``).
     """
@@ -97,6 +98,8 @@ class PiGcsEmulator:
     applied_mov: list[tuple[str, float]] = field(default_factory=list)
     #: told (axis, value) each time an SVA takes effect (on the serving thread): what an amplifier does with it
     on_sva: Callable[[str, float], None] | None = None
+    #: told (axis, value) each time a MOV takes effect: where a simulated closed-loop stage is commanded to
+    on_mov: Callable[[str, float], None] | None = None
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     # -- the device's side, for tests ---------------------------------------------------------------
@@ -172,6 +175,8 @@ class PiGcsEmulator:
                     (self.applied_sva if word == "SVA" else self.applied_mov).append((name, value))
                 if word == "SVA" and self.on_sva is not None:
                     self.on_sva(name, value)
+                if word == "MOV" and self.on_mov is not None:
+                    self.on_mov(name, value)
             return None
         queries = {
             "SVO?": lambda a: str(int(a.servo)),

@@ -58,3 +58,15 @@ def test_the_emulator_on_a_pty_answers_multi_line_queries_and_logs_every_line(tm
     finally:
         device.close()
     assert emulator.received() == ["DCO?", "*IDN?"]
+
+
+def test_the_stage_hooks_hear_only_the_sva_and_mov_that_take_effect() -> None:
+    """``on_sva``/``on_mov`` are what moves a simulated stage: a refused command must never reach it."""
+    heard: list[tuple[str, str, float]] = []
+    emulator = PiGcsEmulator(axes={"1": EmulatedAxis(servo=True), "2": EmulatedAxis(servo=False)},
+                             on_sva=lambda axis, volts: heard.append(("SVA", axis, volts)),
+                             on_mov=lambda axis, um: heard.append(("MOV", axis, um)))
+    for line in ["SVA 1 5", "MOV 2 100", "MOV 1 600", "MOV 1 120.5", "SVA 2 200", "SVA 2 7.25"]:
+        emulator.handle(line)
+    # SVA 1 (servo on), MOV 2 (servo off), MOV 1 600 (beyond TMX?) and SVA 2 200 (beyond VMA?) are refused
+    assert heard == [("MOV", "1", 120.5), ("SVA", "2", 7.25)]
