@@ -293,11 +293,14 @@ class Actuator(ABC):
 
     ``description`` names the device in messages and in ``status``. ``limits_v`` is the operator's
     ``[v_min, v_max]``, set by whoever drives the actuator before ``open``: a device that quantizes
-    (a DAC's counts) rounds a voltage near a limit towards the inside.
+    (a DAC's counts) rounds a voltage near a limit towards the inside. ``limits_q_um`` is the command
+    range those voltages mean (``[q(v_min), q(v_max)]``, set with it): a device that is sent positions
+    (a controller's ``MOV``) keeps them within it the same way.
     """
 
     description: str = "actuator"
     limits_v: tuple[float, float] | None = None
+    limits_q_um: tuple[float, float] | None = None
 
     @abstractmethod
     async def open(self) -> None: ...

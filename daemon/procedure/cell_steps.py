@@ -31,7 +31,7 @@ from nanodrift.calibration.plans import (
 from nanodrift.config import ActuatorConfig
 from nanodrift.drivers.base import Actuator
 from nanodrift.drivers_set import DriverSet
-from nanodrift.outputs import checked_sent_voltage
+from nanodrift.outputs import bind_limits, checked_sent_voltage
 from nanodrift.procedure.follow import FollowCheck
 from nanodrift.procedure.progress import Progress
 from nanodrift.procedure.sampler import Sampler
@@ -173,7 +173,7 @@ async def run_cell_steps(
     q_prev: dict[str, float | None] = dict.fromkeys(drive.axes)
     commanded = False
     for axis, actuator in drive.actuators.items():
-        actuator.limits_v = (drive.limits[axis].v_min, drive.limits[axis].v_max)
+        bind_limits(actuator, drive.limits[axis])
     await sampler.open()
     opened: list[Actuator] = []
     try:

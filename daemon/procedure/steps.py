@@ -21,7 +21,7 @@ from nanodrift.calibration.plans import PAPER_TIMING, PlannedStep, StepResult, S
 from nanodrift.config import ActuatorConfig
 from nanodrift.drivers.base import Actuator, Clock
 from nanodrift.drivers_set import DriverSet
-from nanodrift.outputs import checked_sent_voltage, locate_stage
+from nanodrift.outputs import bind_limits, checked_sent_voltage, locate_stage
 from nanodrift.procedure.follow import FollowCheck
 from nanodrift.procedure.progress import Progress
 from nanodrift.procedure.sampler import Sampler
@@ -121,7 +121,7 @@ async def run_steps(
     q_prev: float | None = None
     commanded = False  # a run refused before its first move (no output node) leaves the stage alone
     if drivers.actuator is not None:
-        drivers.actuator.limits_v = (limits.v_min, limits.v_max)
+        bind_limits(drivers.actuator, limits)
     await sampler.open()
     try:
         if ready is not None:
