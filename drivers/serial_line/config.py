@@ -9,7 +9,7 @@ from typing import Annotated, Literal
 
 from pydantic import AfterValidator, Field, FiniteFloat, field_validator, model_validator
 
-from nanodrift.drivers.base import ActuatorOptions, SensorConfig
+from nanodrift.drivers.base import ActuatorOptions, OutputClaim, SensorConfig
 from nanodrift.drivers.serial_line.template import COMMAND_FIELDS, POSITION_FIELDS, CommandTemplate
 
 #: a line that is just a number: "12345.6", "-0.25", "+1.5e3" (anchored: patterns are searched)
@@ -232,6 +232,14 @@ class SerialLineActuatorConfig(ActuatorOptions):
     @property
     def template(self) -> CommandTemplate:
         return CommandTemplate(self.command)
+
+    def claims(self) -> list[OutputClaim]:
+        """The output the command writes, told by its text without the numbers (``SVA 1 {}``): two axes on
+        one port writing the same command write one controller axis. (Commands that name one axis in two
+        ways, ``SVA 1`` and ``MOV 1``, cannot be told apart by their text: the operator's to keep apart.)"""
+        skeleton = " ".join("".join(literal + ("{}" if field is not None else "")
+                                    for literal, field in self.template.pieces).split())
+        return [OutputClaim(f"the controller on port {self.port!r}", frozenset({f"command {skeleton!r}"}))]
 
     def voltage_range_problem(self, v_min: float, v_max: float, volts_per_um: float) -> str | None:
         """A ``voltage_v`` field that cannot write two different voltages within the limits (``.0f``
