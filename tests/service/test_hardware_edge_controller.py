@@ -1,4 +1,5 @@
-"""Issue 26 items 2 and 3, end to end: what a controller behind a ``serial_line`` template receives.
+"""Issue 26 items 2, 3 and 9 (duplicate keys), end to end: what a controller behind a ``serial_line``
+template receives.
 
 ``nanodrift run`` as a process (the harness' ``file`` plugin for temperatures), a GCS controller on a
 real pty (:class:`FakeGcsController`: its ``SVA 1 <number>`` stands in for ``MOV 1 <number>``; only the
@@ -6,7 +7,8 @@ lines it receives are asserted), and a client on Zenoh over 127.0.0.1.
 
 - a ``q_um`` field is held to the command range the voltage limits mean, after its rounding;
 - an ``x_um`` field carries the ramp's position (never the raw target ahead of the slew), and a target
-  the compensation leaves outside the command range is refused, with nothing written.
+  the compensation leaves outside the command range is refused, with nothing written;
+- a target naming ``x_um`` twice is refused naming the key (``json.loads`` took the last one silently).
 """
 
 from __future__ import annotations
@@ -148,3 +150,20 @@ def test_check_config_strict_refuses_an_x_um_template(tmp_path: Path) -> None:
     assert "{x_um:.4f}" in loose.stdout + loose.stderr
     assert strict.returncode != 0
     assert "actuator.command" in strict.stderr and "{x_um:.4f}" in strict.stderr, strict.stderr
+
+
+def test_a_target_naming_a_key_twice_is_refused_naming_it_and_nothing_is_written(
+        tmp_path: Path, controller: FakeGcsController) -> None:
+    cell = TemplateCell(tmp_path, controller, offset_um=0.0, keys="")
+    try:
+        ok, error = cell.bus.query(b'{"x_um": 10, "id": 1, "x_um": 400}')  # an escape-free order the fast path skips
+        assert not ok and error["kind"] == "bad_payload", error
+        assert "names 'x_um' twice" in error["error"], error
+        ok, error = cell.bus.query(b'{"x_um": 10, "x_um": 400, "id": 2}')
+        assert not ok and "names 'x_um' twice" in error["error"], error
+        ok, answer = cell.target(20.0)  # the next good target is served: only the bad one was refused
+        assert ok, answer
+        wait_until(lambda: numbers_received(controller), 10, "the good target at the controller")
+        assert numbers_received(controller) == [pytest.approx(20.0 * VOLTS_PER_UM, abs=1e-4)]  # SVA of 0.4 V only
+    finally:
+        cell.close()
