@@ -27,6 +27,7 @@ from nanodrift.drivers.base import (
     DriverSetupError,
     MonotonicClock,
     SensorGroup,
+    shared_output_problems,
 )
 from nanodrift.drivers.registry import load_plugin, owner_of_section, virtual_cell_plugin
 from nanodrift.drivers_set import DriverSet
@@ -106,6 +107,10 @@ def build_drivers(config: Config, context: DriverContext | None = None, *,
 def _axis_actuators(config: Config, plugins: Mapping[str, DriverPlugin], context: DriverContext) -> dict[str, Actuator]:
     """Each axis' output of a multi-axis cell, built by kind (:meth:`DriverPlugin.create_actuators`: the
     axes of one module or controller share its connection)."""
+    shared = shared_output_problems([(f"axis {axis}", a.options) for axis, a in config.axis_actuators().items()
+                                     if a.options is not None])
+    if shared:  # refused when the config was read; a Config built otherwise is refused here all the same
+        raise DriverSetupError("; ".join(shared))
     by_kind: dict[str, list[str]] = {}
     for axis, actuator in config.axis_actuators().items():
         if actuator.kind != ZENOH_KIND:

@@ -1,7 +1,10 @@
 """Write files so a reader sees the old content or the new one, never half of either.
 
 Temp file in the same directory, fsync, then ``os.replace``: a crash or a full disk leaves the
-previous file in place (the rule: nothing is written non-atomically). Also the checksum that ties a
+previous file in place (the rule: nothing is written non-atomically). A path that is a symbolic link is
+written *through*: the file it names is replaced and the link stays, as ``open(path, "w")`` would do.
+Labs keep ``model.json -> models/m-2026-11.json`` and switch models by moving the link; replacing the
+link by a regular file would silently cut that, and leave the named file stale. Also the checksum that ties a
 model to the data file it was made from. Stdlib only: part of the pure core, usable everywhere.
 """
 
@@ -18,8 +21,9 @@ from typing import IO, Any
 
 @contextlib.contextmanager
 def atomic_writer(path: str | os.PathLike[str], mode: str = "w", encoding: str | None = "utf-8") -> Iterator[IO[Any]]:
-    """Yield a file object; on clean exit it replaces ``path``, on error ``path`` is untouched."""
-    target = Path(path)
+    """Yield a file object; on clean exit it replaces ``path`` (the file a symbolic link names, the link
+    kept), on error ``path`` is untouched."""
+    target = Path(os.path.realpath(path))
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
     try:

@@ -28,6 +28,14 @@ async def locate_stage(actuator: Actuator, config: ActuatorConfig, sent_v: tuple
     return trusted_start(config, read_v, sent_v, config.safe_voltage_v)
 
 
+def bind_limits(actuator: Actuator, config: ActuatorConfig) -> None:
+    """Tell the device the limits in force before it opens: the voltages, and the command range they mean
+    (a controller sent positions keeps those inside it, as a DAC keeps its counts inside the voltages)."""
+    actuator.limits_v = (config.v_min, config.v_max)
+    ends_um = (config.q_um_for(config.v_min), config.q_um_for(config.v_max))
+    actuator.limits_q_um = (min(ends_um), max(ends_um))
+
+
 def checked_sent_voltage(actuator: Actuator, config: ActuatorConfig, voltage_v: float) -> float:
     """The voltage the device will receive for ``voltage_v``; ValueError (write nothing) when that is
     outside the limits in force."""

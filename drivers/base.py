@@ -293,11 +293,14 @@ class Actuator(ABC):
 
     ``description`` names the device in messages and in ``status``. ``limits_v`` is the operator's
     ``[v_min, v_max]``, set by whoever drives the actuator before ``open``: a device that quantizes
-    (a DAC's counts) rounds a voltage near a limit towards the inside.
+    (a DAC's counts) rounds a voltage near a limit towards the inside. ``limits_q_um`` is the command
+    range those voltages mean (``[q(v_min), q(v_max)]``, set with it): a device that is sent positions
+    (a controller's ``MOV``) keeps them within it the same way.
     """
 
     description: str = "actuator"
     limits_v: tuple[float, float] | None = None
+    limits_q_um: tuple[float, float] | None = None
 
     @abstractmethod
     async def open(self) -> None: ...
@@ -345,6 +348,34 @@ def output_step_problem(step_v: float, v_min: float, v_max: float, volts_per_um:
             f"up to {step_v:.4g} V off")
 
 
+@dataclass(frozen=True)
+class OutputClaim:
+    """Outputs one actuator writes on one device: ``device`` names the device for messages and identifies it
+    (``Modbus hub 'out', unit id 1``), ``outputs`` the outputs on it (``holding register 10``). Two axes
+    claiming one output would each undo the other's commands, and neither's limits would hold."""
+
+    device: str
+    outputs: frozenset[str]
+
+
+def shared_output_problems(actuators: Sequence[tuple[str, ActuatorOptions]]) -> list[str]:
+    """Each output claimed by two actuators (``(where, options)``, e.g. ``("axes[1] (y).actuator", ...)``),
+    named with both: one output drives one axis. The one check for every plugin (:meth:`ActuatorOptions.claims`)."""
+    owners: dict[tuple[str, str], str] = {}
+    problems: list[str] = []
+    for where, options in actuators:
+        for claim in options.claims():
+            shared = sorted(output for output in claim.outputs if (claim.device, output) in owners)
+            if shared:
+                first = owners[(claim.device, shared[0])].removesuffix(".actuator")
+                verb = "is" if len(shared) == 1 else "are"
+                problems.append(f"{where}: {' and '.join(shared)} of {claim.device} {verb} already the output of "
+                                f"{first}: one output drives one axis (give each axis its own)")
+            for output in claim.outputs:
+                owners.setdefault((claim.device, output), where)
+    return problems
+
+
 class ActuatorOptions(StrictModel):
     """The ``[actuator]`` keys a plugin owns (everything but the core's gain, limits and motion keys).
 
@@ -374,6 +405,12 @@ class ActuatorOptions(StrictModel):
     def hub_name(self) -> str | None:
         """The ``[[hubs]]`` entry the actuator shares with sensors (None: none); see :meth:`SensorConfig.hub_name`."""
         return None
+
+    def claims(self) -> list[OutputClaim]:
+        """The outputs this actuator writes (:class:`OutputClaim`): two axes claiming one are refused when the
+        config is read (:func:`shared_output_problems`). The default: none (an output of its own, e.g. a
+        simulated stage's axis); a plugin whose outputs share a device declares them."""
+        return []
 
 
 class DriverSetupError(ValueError):

@@ -28,6 +28,7 @@ from types import MappingProxyType
 from typing import Any
 
 from nanodrift.compensation import ONE_AXIS, Command, Refusal, Target, one_axis
+from nanodrift.model.json_unique import DuplicateKeyError, loads_unique
 
 #: targets larger than this are refused unread (a target is ~40 bytes)
 MAX_PAYLOAD_BYTES = 4096
@@ -105,7 +106,10 @@ def _decode(payload: bytes, max_bytes: int, expected: str, what: str = "payload"
         size = payload.size if isinstance(payload, Oversized) else len(payload)
         raise Refusal("bad_payload", f"{what} of {size} bytes exceeds the {max_bytes}-byte limit")
     try:
-        return json.loads(payload.decode("utf-8"))  # NaN/Infinity parse, so the id survives; numbers are checked
+        return loads_unique(payload.decode("utf-8"))  # NaN/Infinity parse, so the id survives; numbers are checked
+    except DuplicateKeyError as error:
+        raise Refusal("bad_payload", f"{what} names {error.key!r} twice (which value is meant cannot be told); "
+                      f"expected {expected}") from None
     except (UnicodeDecodeError, ValueError, RecursionError) as error:
         reason = "not UTF-8 text" if isinstance(error, UnicodeDecodeError) else f"not valid JSON ({error})"
         raise Refusal("bad_payload", f"{what} is {reason}; expected {expected}") from None

@@ -20,7 +20,13 @@ from pydantic import BaseModel, ValidationError
 
 from nanodrift.config._checks import points_problems, valid_range_problems
 from nanodrift.config._lines import ConfigError, problems_of, sensor_where
-from nanodrift.drivers.base import ActuatorOptions, DriverPlugin, SensorConfig, VirtualCellPlugin
+from nanodrift.drivers.base import (
+    ActuatorOptions,
+    DriverPlugin,
+    SensorConfig,
+    VirtualCellPlugin,
+    shared_output_problems,
+)
 from nanodrift.drivers.registry import (
     UnknownDriverError,
     available,
@@ -163,6 +169,8 @@ def parse_config(data: Mapping[str, Any], source: str = BUILTIN_SOURCE, base_dir
         parse.problems.extend(points_problems(config.procedure, actuator))
     for where, each in actuators:
         _check_across(parse, sensors, each, where)
+    parse.problems.extend(shared_output_problems([(where, a.options) for where, a in actuators
+                                                  if a is not None and a.options is not None]))
     for axis_actuator, mine in _sensors_by_workspace(sensors, sensor_axes, axes, actuator):
         for problem in valid_range_problems(mine, axis_actuator):
             if problem not in parse.problems:

@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from nanodrift.atomic import atomic_write_text
+from nanodrift.model.json_unique import loads_unique
 from nanodrift.model.model import FORMAT, Model, ModelFileError, _read_model_text, load_model, save_model
 from nanodrift.model.series import Series
 
@@ -185,7 +186,7 @@ def load_any_model(path: str | os.PathLike[str], *, check_id: bool = True) -> Mo
     path = Path(path)
     text = _read_model_text(path)
     try:
-        doc = json.loads(text)
+        doc = loads_unique(text)
     except (ValueError, RecursionError):
         return load_model(path, check_id=check_id)  # its messages say what is wrong with the text
     if isinstance(doc, dict) and "axes" in doc:

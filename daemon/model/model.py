@@ -31,6 +31,7 @@ from typing import Any, TypeGuard
 import numpy as np
 
 from nanodrift.atomic import atomic_write_text
+from nanodrift.model.json_unique import DuplicateKeyError, loads_unique
 from nanodrift.model.segments import features, spans_s
 from nanodrift.model.series import Series
 from nanodrift.model.terms import Power, Term, TermStream, UnknownTermError, parse_term, position_key
@@ -357,9 +358,11 @@ def load_model(path: str | os.PathLike[str], *, check_id: bool = True) -> Model:
     path = Path(path)
     text = _read_model_text(path)
     try:
-        doc = json.loads(text)
+        doc = loads_unique(text)
     except json.JSONDecodeError as err:
         raise ModelFileError(f"{path}: not valid JSON (line {err.lineno}, column {err.colno}: {err.msg})") from None
+    except DuplicateKeyError as err:
+        raise ModelFileError(f"{path}: not a model file: {err}") from None
     except RecursionError:
         raise ModelFileError(
             f"{path}: not a model file: [ and {{ nested too deeply (a model file nests at most {MAX_NESTING} levels)"

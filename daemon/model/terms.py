@@ -289,15 +289,28 @@ class _LagStream(TermStream):
         return self.y
 
 
+#: the lag time constants a model may name (s): a thermal path from a tenth of a second to about twelve
+#: days. Beyond it the lagged channel is a constant over any calibration, collinear with the bias, and its
+#: coefficient is meaningless (``lag(T1, 1e300 s)`` was fitted at 3.4e16)
+LAG_TAU_RANGE_S = (0.1, 1.0e6)
+
+
 class Lag(Term):
     """``lag(T4, 2100 s)``: a channel seen through a first-order lag of time constant τ.
 
     Physics: a part of the cell whose temperature follows the measured one with a delay (thermal
     mass behind a thermal resistance), so its expansion tracks the lagged signal, not the raw one.
+    τ lies in :data:`LAG_TAU_RANGE_S`.
     """
 
     def __init__(self, channel: str, tau_s: float) -> None:
-        self.channel, self.tau_s = channel, time_constant(tau_s, "lag time constant")
+        tau_s = time_constant(tau_s, "lag time constant")
+        low, high = LAG_TAU_RANGE_S
+        if not low <= tau_s <= high:
+            raise ValueError(f"lag time constant {tau_s:g} s is outside [{low:g}, {high:g}] s (a tenth of a second "
+                             f"to {high / 86400:.1f} days): a longer lag is a constant over any calibration, the "
+                             "bias' twin, and a shorter one the channel itself")
+        self.channel, self.tau_s = channel, tau_s
         self.channels = (channel,)
 
     @property

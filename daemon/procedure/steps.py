@@ -31,7 +31,7 @@ from nanodrift.calibration.plans import (
 from nanodrift.config import ActuatorConfig
 from nanodrift.drivers.base import Actuator
 from nanodrift.drivers_set import DriverSet
-from nanodrift.outputs import checked_sent_voltage, locate_stage
+from nanodrift.outputs import bind_limits, checked_sent_voltage, locate_stage
 from nanodrift.procedure.follow import FollowCheck
 from nanodrift.procedure.progress import Progress
 from nanodrift.procedure.sampler import Sampler
@@ -156,7 +156,7 @@ async def run_steps(
     q_prev: dict[str, float | None] = dict.fromkeys(limits)
     commanded = False  # a run refused before its first move (no output node) leaves the stage alone
     for axis, actuator in actuators.items():
-        actuator.limits_v = (limits[axis].v_min, limits[axis].v_max)
+        bind_limits(actuator, limits[axis])
     await sampler.open()
     opened: list[Actuator] = []
     try:

@@ -79,7 +79,7 @@ from nanodrift.config import SAFE_RAMP_BUDGET_S, ActuatorConfig
 from nanodrift.drivers.base import Actuator, DeviceError
 from nanodrift.logs import RateLimitedLog
 from nanodrift.motion import RAMP_PERIOD_S, Slew, StartPoint
-from nanodrift.outputs import checked_sent_voltage, locate_stage
+from nanodrift.outputs import bind_limits, checked_sent_voltage, locate_stage
 
 WRITE_PERIOD_S = RAMP_PERIOD_S  # any two writes are this far apart: a stream is coalesced to 50 writes a second
 WRITE_TIMEOUT_S = 3.0  # a write that takes longer is a fault
@@ -248,7 +248,7 @@ class Actuation:
                     known.tried_v
                 out.writes = known.writes
                 out.slew = known.slew  # when it was last written bounds the first step of the next move
-            actuator.limits_v = (config.v_min, config.v_max)
+            bind_limits(actuator, config)
             outputs[axis] = out
         self._outputs = outputs
         self._known.update(outputs)
@@ -583,7 +583,9 @@ class Actuation:
                 except ValueError as error:
                     raise AxisFault(axis, _reason(error)) from None
                 q_um = goal.q_um[axis] if at_goal else out.config.q_um_for(voltage)
-                x_um = goal.positions_um.get(axis) if goal.positions_um is not None else None
+                x_goal = goal.positions_um.get(axis) if goal.positions_um is not None else None
+                # the ramp's position in the target's frame: a template's x_um moves with the ramp, never ahead
+                x_um = None if x_goal is None else x_goal + (q_um - goal.q_um[axis])
                 step.append((out, q_um, voltage, sent_v, x_um, at_goal))
             for out, q_um, voltage, sent_v, x_um, at_goal in step:
                 await self._write(out, q_um, voltage, sent_v, x_um)

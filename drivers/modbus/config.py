@@ -6,7 +6,7 @@ from typing import Annotated, Literal
 
 from pydantic import AllowInfNan, Field, FiniteFloat, field_validator, model_validator
 
-from nanodrift.drivers.base import ActuatorOptions, SensorConfig, StrictModel, output_step_problem
+from nanodrift.drivers.base import ActuatorOptions, OutputClaim, SensorConfig, StrictModel, output_step_problem
 from nanodrift.drivers.modbus.codec import DATA_TYPES, DataTypeName, SwapName, raw_for, register_count, step_v
 
 
@@ -121,6 +121,12 @@ class ModbusActuatorConfig(ActuatorOptions):
 
     def hub_name(self) -> str:
         return self.hub
+
+    def claims(self) -> list[OutputClaim]:
+        """Every holding register the value occupies (an int32 its pair) on this unit of this hub."""
+        registers = range(self.address, self.address + self.register_count)
+        return [OutputClaim(f"Modbus hub {self.hub!r}, unit id {self.device_id}",
+                            frozenset(f"holding register {r}" for r in registers))]
 
     @model_validator(mode="after")
     def _consistent(self) -> ModbusActuatorConfig:

@@ -6,7 +6,7 @@ from typing import Literal
 
 from pydantic import Field, FiniteFloat, model_validator
 
-from nanodrift.drivers.base import ActuatorOptions
+from nanodrift.drivers.base import ActuatorOptions, OutputClaim
 
 #: PI's TCP port for GCS (PIPython ``pisocket.py``: ``port=50000``)
 GCS_TCP_PORT = 50000
@@ -77,3 +77,7 @@ class PiGcsActuatorConfig(ActuatorOptions):
     def address(self) -> str:
         """Where the controller is, for messages and for sharing one connection between axes."""
         return f"{self.host}:{self.tcp_port}" if self.transport == "tcp" else str(self.port)
+
+    def claims(self) -> list[OutputClaim]:
+        """The controller's axis: two cell axes on it would each undo the other's commands."""
+        return [OutputClaim(f"the PI controller at {self.address}", frozenset({f"axis {self.axis!r}"}))]

@@ -61,19 +61,5 @@ class PiGcsPlugin(DriverPlugin):
                                    "axis (one connection, one setting)")
         return PiGcsActuator(config, link)
 
-    def create_actuators(self, configs: Sequence[ActuatorOptions], context: DriverContext) -> list[Actuator]:
-        """The axes of a multi-axis cell; two cell axes on one controller axis are refused (each would undo
-        the other's commands, and neither's limits would hold)."""
-        actuators = [self.create_actuator(config, context) for config in configs]
-        seen: dict[tuple[str, str], int] = {}
-        for index, actuator in enumerate(actuators):
-            assert isinstance(actuator, PiGcsActuator)
-            key = (actuator.config.address, actuator.config.axis)
-            if key in seen:
-                raise DriverSetupError(f"axes[{index}].actuator.axis: controller {key[0]} axis {key[1]!r} is already "
-                                       f"the output of axes[{seen[key]}]: one controller axis drives one cell axis")
-            seen[key] = index
-        return actuators
-
 
 PLUGIN = PiGcsPlugin()

@@ -10,8 +10,9 @@ The readback query also tells where the output is before the first command (:met
 What is written is what is checked: the template is rendered field by field and the numbers the
 string carries are parsed back (``template.py``). A ``voltage_v`` that the template's rounding would
 put outside ``limits_v`` is written as the nearest value inside them at the template's precision
-(``{voltage_v:.1f}`` with ``v_max = 9.17`` writes ``9.1``, never ``9.2``); ``ValueError`` when the
-template can write no value inside. The readback is compared with the number actually sent.
+(``{voltage_v:.1f}`` with ``v_max = 9.17`` writes ``9.1``, never ``9.2``), and a ``q_um`` or ``x_um``
+likewise within ``limits_q_um``; ``ValueError`` when the template can write no value inside, or an
+``x_um`` lies outside the command range. The readback is compared with the number actually sent.
 """
 
 from __future__ import annotations
@@ -58,16 +59,16 @@ class SerialLineActuator(Actuator):
         ``limits_v``; :class:`ValueError` when it cannot be)."""
         values = {"voltage_v": voltage_v, "q_um": q_um, "x_um": q_um if x_um is None else x_um}
         try:
-            return self.template.render(values, self.limits_v)
+            return self.template.render(values, self.limits_v, self.limits_q_um)
         except ValueError as error:
             raise ValueError(f"{self.description}: command {self.config.command!r}: {error}") from None
 
     def sent_voltage(self, voltage_v: float) -> float:
         """The voltage the controller reads in the line for ``voltage_v`` (a closed-loop template, which
         writes ``q_um``, carries no voltage: then ``voltage_v`` itself)."""
-        values = {"voltage_v": voltage_v, "q_um": 0.0, "x_um": 0.0}
+        values = {"voltage_v": voltage_v, "q_um": 0.0, "x_um": 0.0}  # only voltage_v is asked about here
         try:
-            _, sent = self.template.render(values, self.limits_v)
+            _, sent = self.template.render(values, self.limits_v, limits_q_um=None)
         except ValueError as error:
             raise ValueError(f"{self.description}: command {self.config.command!r}: {error}") from None
         return sent.get("voltage_v", voltage_v)

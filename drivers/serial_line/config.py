@@ -9,8 +9,8 @@ from typing import Annotated, Literal
 
 from pydantic import AfterValidator, Field, FiniteFloat, field_validator, model_validator
 
-from nanodrift.drivers.base import ActuatorOptions, SensorConfig
-from nanodrift.drivers.serial_line.template import COMMAND_FIELDS, CommandTemplate
+from nanodrift.drivers.base import ActuatorOptions, OutputClaim, SensorConfig
+from nanodrift.drivers.serial_line.template import COMMAND_FIELDS, POSITION_FIELDS, CommandTemplate
 
 #: a line that is just a number: "12345.6", "-0.25", "+1.5e3" (anchored: patterns are searched)
 DEFAULT_PATTERN = r"^\s*(?P<value>[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*$"
@@ -233,6 +233,14 @@ class SerialLineActuatorConfig(ActuatorOptions):
     def template(self) -> CommandTemplate:
         return CommandTemplate(self.command)
 
+    def claims(self) -> list[OutputClaim]:
+        """The output the command writes, told by its text without the numbers (``SVA 1 {}``): two axes on
+        one port writing the same command write one controller axis. (Commands that name one axis in two
+        ways, ``SVA 1`` and ``MOV 1``, cannot be told apart by their text: the operator's to keep apart.)"""
+        skeleton = " ".join("".join(literal + ("{}" if field is not None else "")
+                                    for literal, field in self.template.pieces).split())
+        return [OutputClaim(f"the controller on port {self.port!r}", frozenset({f"command {skeleton!r}"}))]
+
     def voltage_range_problem(self, v_min: float, v_max: float, volts_per_um: float) -> str | None:
         """A ``voltage_v`` field that cannot write two different voltages within the limits (``.0f``
         with [-0.5, 0.4] writes 0 for all of them: the stage could not move), or none at all."""
@@ -257,7 +265,25 @@ class SerialLineActuatorConfig(ActuatorOptions):
         rounded to it on the way to the stage (``{voltage_v:.2f}`` at 0.02 V/um: 500 nm steps)."""
         warnings: list[str] = []
         q_ends = [(v - offset_v) / volts_per_um for v in (v_min, v_max)]
+        q_low, q_high = min(q_ends), max(q_ends)
         for field in self.template.fields:
+            if field.name == "x_um":
+                warnings.append(f"command: {field.text} writes the client's target moved along the ramp, not the "
+                                "compensated command: a target the compensation leaves outside [q(v_min), q(v_max)] "
+                                f"= [{q_low:g}, {q_high:g}] um is refused (the axis faults, nothing written); write "
+                                f"{{q_um:{field.spec}}} for a closed-loop controller")
+                break
+        for field in self.template.fields:
+            if field.name in POSITION_FIELDS:
+                try:
+                    low, high = field.inside(q_low, q_low, q_high), field.inside(q_high, q_low, q_high)
+                except ValueError:
+                    low = high = ("", math.nan)
+                if not low[1] < high[1]:
+                    warnings.append(f"command: {field.text} cannot write two positions within [q(v_min), q(v_max)] "
+                                    f"= [{q_low:g}, {q_high:g}] um: every command would be refused or the same; "
+                                    f"e.g. {{{field.name}:{_decimals_for(RESOLUTION_UM)}f}}")
+                    continue
             if field.name == "voltage_v":
                 step = float(field.step(max(abs(v_min), abs(v_max))))
                 step_um = step / abs(volts_per_um)

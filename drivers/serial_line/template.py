@@ -12,6 +12,11 @@ returned with the text, so the readback is compared with what the device was tol
 Format specs: the float types of Python's format mini-language (``f F e E g G n %`` and none), with
 any width, sign, fill and grouping whose output still reads as the number. A conversion
 (``{voltage_v!r}``) or a nested field in a spec is refused: the sent number must follow from the spec.
+
+Every field is held to the limits in force for its unit: ``voltage_v`` to ``[v_min, v_max]``, the
+position fields ``q_um`` and ``x_um`` to the command range those voltages mean (``[q(v_min), q(v_max)]``):
+``MOV 1 {q_um:.0f}`` with q 459.552 um at a 9.19 V limit writes ``MOV 1 459``, never ``460``. A value
+already outside its range (an ``x_um`` target the compensation moved outside) is refused, never clamped.
 """
 
 from __future__ import annotations
@@ -25,6 +30,10 @@ from decimal import ROUND_CEILING, ROUND_FLOOR, Decimal
 
 #: what a field may name
 COMMAND_FIELDS = ("voltage_v", "q_um", "x_um")
+#: the fields that carry a stage position (um): held to the command range, as ``voltage_v`` to the voltage limits
+POSITION_FIELDS = ("q_um", "x_um")
+#: float rounding of a limit mapped through the gain (um or V), not a digit of any template
+LIMIT_SLACK = 1e-9
 
 _SPEC = re.compile(r"^(?:(?P<fill>.)?[<>=^])?[-+ ]?z?#?0?(?P<width>\d+)?[,_]?(?:\.(?P<precision>\d+))?"
                    r"(?P<type>[eEfFgGn%])?$", re.DOTALL)
@@ -162,12 +171,14 @@ class CommandTemplate:
     def names(self) -> list[str]:
         return [field.name for field in self.fields]
 
-    def render(self, values: Mapping[str, float],
-               limits_v: tuple[float, float] | None = None) -> tuple[str, dict[str, float]]:
+    def render(self, values: Mapping[str, float], limits_v: tuple[float, float] | None = None,
+               limits_q_um: tuple[float, float] | None = None) -> tuple[str, dict[str, float]]:
         """The text to write, and the number each field's first occurrence carries.
 
-        Every ``voltage_v`` field is kept within ``limits_v`` (rounded toward the inside at its
-        precision); :class:`ValueError` for a non-finite value or one that cannot be written inside.
+        Each field is kept within its limits (``voltage_v`` within ``limits_v``, ``q_um`` and ``x_um``
+        within ``limits_q_um``; None: not checked), rounded toward the inside at its precision;
+        :class:`ValueError` for a non-finite value, one outside its limits before formatting, or one
+        that cannot be written inside.
         """
         out: list[str] = []
         sent: dict[str, float] = {}
@@ -178,10 +189,16 @@ class CommandTemplate:
             value = values[field.name]
             if not math.isfinite(value):
                 raise ValueError(f"{field.name} = {value} is not a finite number")
-            if field.name == "voltage_v" and limits_v is not None:
-                text, number = field.inside(value, *limits_v)
-            else:
+            limits = limits_q_um if field.name in POSITION_FIELDS else limits_v
+            if limits is None:
                 text, number = field.sent(value)
+            else:
+                low, high = limits
+                slack = LIMIT_SLACK * max(1.0, abs(low), abs(high))
+                if field.name in POSITION_FIELDS and not low - slack <= value <= high + slack:
+                    raise ValueError(f"{field.name} = {value:.6g} um is outside the command range [{low:.6g}, "
+                                     f"{high:.6g}] um (the voltage limits through the gain): nothing written")
+                text, number = field.inside(value, low, high)
             out.append(text)
             sent.setdefault(field.name, number)
         return "".join(out), sent

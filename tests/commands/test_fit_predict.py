@@ -175,7 +175,9 @@ def test_keep_forces_a_term_the_stepwise_would_leave_out_and_refuses_what_it_can
     assert {"T3", "x^3"} <= set(kept.term_names()) and kept.selection["forced"] == ["T3", "x^3"]
     assert "kept whatever the stepwise says (--keep): T3, x^3" in out
     for bad, said in ((["--keep", "T9"], "--keep T9: reads channel T9"), (["--keep", "x^99"], "--keep x^99: power"),
-                      (["--keep", "T3", "--exclude", "T3"], "--keep T3: reads channel T3")):
+                      (["--keep", "T3", "--exclude", "T3"], "--keep T3: reads channel T3"),
+                      (["--keep", "lag(T1,1e300s)"], "--keep lag(T1,1e300s): lag time constant 1e+300 s is outside "
+                                                      "[0.1, 1e+06] s")):
         assert main(["fit", str(data), "--out", str(tmp_path / "no.json"), *bad]) == 2
         assert said in capsys.readouterr().err
         assert not (tmp_path / "no.json").exists()

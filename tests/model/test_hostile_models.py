@@ -157,6 +157,21 @@ def test_predict_with_a_hostile_model_says_so_without_a_traceback(tmp_path: Path
     assert not (tmp_path / "p.csv").exists()
 
 
+def test_a_model_file_naming_a_key_twice_is_refused_naming_the_key(tmp_path: Path,
+                                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    """Stamped for its last ``coef`` (what json.loads keeps), with an earlier one the eye reads first."""
+    doc = good_doc()
+    doc["terms"][0]["coef"] = 9.0
+    path = write(tmp_path / "m.json", doc)
+    text = path.read_text()
+    path.write_text(text.replace('"coef": 9.0', '"coef": 2e-08, "coef": 9.0', 1))
+    data = data_file(tmp_path / "d.csv", [0.0, 240.0, 480.0])
+    assert main(["predict", "--model", str(path), str(data), "--out", str(tmp_path / "p.csv")]) == 2
+    err = capsys.readouterr().err
+    assert f"{path}: not a model file: key 'coef' appears twice in one object" in err, err
+    assert not (tmp_path / "p.csv").exists()
+
+
 def test_predict_never_writes_a_non_finite_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     path = tmp_path / "m.json"
     save_model(Model.from_dict(good_doc(), "m"), path)

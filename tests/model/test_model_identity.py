@@ -120,6 +120,30 @@ def test_restamp_out_leaves_the_original_alone(tmp_path: Path) -> None:
     assert load_model(out).training.channel_ranges["T1"] == (21.0, 22.1)
 
 
+@pytest.mark.parametrize("in_place", [False, True], ids=["out_is_a_link", "model_is_a_link"])
+def test_restamp_writes_through_a_symlink_and_keeps_the_link(tmp_path: Path, in_place: bool) -> None:
+    """A lab's ``model.json -> models/m-nov.json``: the file the link names gets the restamped model, the link
+    stays (it used to be replaced by a regular file, the versioned file left stale)."""
+    path, original = saved(tmp_path)
+    edit(path, CONTENT_EDITS["a coefficient"])
+    versions = tmp_path / "models"
+    versions.mkdir()
+    named = versions / "m-nov.json"
+    link = tmp_path / "current.json"
+    if in_place:
+        named.write_bytes(path.read_bytes())
+        link.symlink_to(Path("models") / "m-nov.json")
+        assert main(["restamp", str(link)]) == 0
+    else:
+        named.write_text("{}")  # what --out will replace
+        link.symlink_to(Path("models") / "m-nov.json")
+        assert main(["restamp", str(path), "--out", str(link)]) == 0
+    assert link.is_symlink() and link.readlink() == Path("models") / "m-nov.json"
+    model = load_model(named)
+    assert model.id != original["id"] and model.coefs[2] == 2.0
+    assert [p.name for p in versions.iterdir()] == ["m-nov.json"]  # no temporary file left beside it
+
+
 def test_restamp_refuses_a_file_that_is_wrong_in_another_way(tmp_path: Path,
                                                              capsys: pytest.CaptureFixture[str]) -> None:
     path, _ = saved(tmp_path)

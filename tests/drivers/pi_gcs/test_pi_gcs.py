@@ -32,7 +32,7 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 
 from nanodrift.config import ConfigError, parse_config
-from nanodrift.drivers.base import DeviceError, DriverContext, DriverSetupError
+from nanodrift.drivers.base import DeviceError, DriverContext
 from nanodrift.drivers.pi_gcs.actuator import PiGcsActuator, PiGcsLimitsError, rounded_inside
 from nanodrift.drivers.pi_gcs.config import PiGcsActuatorConfig
 from nanodrift.drivers.registry import load_plugin
@@ -412,9 +412,8 @@ def test_nothing_listens_means_a_device_error_naming_the_controller() -> None:
 
 
 def test_two_cell_axes_on_one_controller_axis_are_refused() -> None:
-    plugin = load_plugin("pi_gcs")
-    assert plugin.actuator_model is not None
-    tables = [{"kind": "pi_gcs", "host": "10.0.0.2", "axis": axis} for axis in ("1", "2", "1")]
-    with pytest.raises(DriverSetupError, match=r"axes\[2\].actuator.axis: controller 10.0.0.2:50000 axis '1' is "
-                                               r"already the output of axes\[0\]"):
-        plugin.create_actuators([plugin.actuator_model.model_validate(t) for t in tables], DriverContext())
+    axes = [{"name": name, "actuator": {"kind": "pi_gcs", "host": "10.0.0.2", "axis": axis}}
+            for name, axis in (("x", "1"), ("y", "2"), ("z", "1"))]
+    with pytest.raises(ConfigError, match=r"axes\[2\] \(z\).actuator: axis '1' of the PI controller at "
+                                          r"10.0.0.2:50000 is already the output of axes\[0\] \(x\)"):
+        parse_config({"cell": "c", "axes": axes}, source="t.toml")

@@ -129,6 +129,32 @@ def test_the_number_a_template_writes_is_always_within_the_limits(
         assert abs(device - voltage) <= 10.0 ** -precision * (1 + 1e-9), (spec, voltage, text)
 
 
+#: the command range [q(v_min), q(v_max)] in um, q(v_min) < q(v_max)
+command_ranges = st.tuples(st.floats(-600.0, 600.0), st.floats(1e-2, 1200.0)).map(lambda t: (t[0], t[0] + t[1]))
+
+
+@settings(max_examples=150, deadline=None)
+@given(name=st.sampled_from(["q_um", "x_um"]), precision=st.integers(0, 6), kind=st.sampled_from("fFeEg"),
+       bounds=command_ranges, where=st.floats(-0.5, 1.5))
+def test_a_position_field_is_written_within_the_command_range_or_refused(
+        name: str, precision: int, kind: str, bounds: tuple[float, float], where: float) -> None:
+    """``MOV 1 {q_um:.0f}`` with q 459.552 at a 459.8 um edge must not write 460: a position field is held
+    to the command range after its rounding; a value outside the range before formatting is refused."""
+    low, high = bounds
+    value = low + where * (high - low)
+    template = CommandTemplate("MOV 1 {" + name + ":." + str(precision) + kind + "}\n")
+    values = {"voltage_v": 0.0, "q_um": value, "x_um": value}
+    try:
+        text, sent = template.render(values, limits_v=None, limits_q_um=(low, high))
+    except ValueError as error:
+        outside = not low - 1e-9 * max(1.0, abs(low), abs(high)) <= value <= high + 1e-9 * max(1.0, abs(high))
+        assert outside or "no value it can write lies within" in str(error), (value, low, high, str(error))
+        return
+    device = float(text.split()[2])  # as the controller reads it
+    assert low - 1e-12 * max(1.0, abs(low)) <= device <= high + 1e-12 * max(1.0, abs(high)), (low, high, text)
+    assert sent[name] == pytest.approx(device, rel=1e-12, abs=1e-12)
+
+
 @settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(precision=st.integers(0, 6), bounds=limits, where=st.floats(0.0, 1.0))
 def test_the_line_the_device_receives_is_within_the_limits(
