@@ -203,3 +203,22 @@ def test_fit_offers_a_square_over_a_warm_run_and_no_squares_keeps_eq3_linear(tmp
     assert not [n for n in linear.selection["candidates"] if n.endswith(")^2")]
     assert main(["fit", str(calibration), "--out", str(tmp_path / "cal.json")]) == 0  # 0.45 °C: none offered
     assert not [n for n in load_model(tmp_path / "cal.json").selection["candidates"] if n.endswith(")^2")]
+
+
+def test_fit_selection_hac_uses_hac_tests_and_says_so(tmp_path, capsys):
+    """``--selection hac``: the stepwise's own tests are HAC Wald tests (their p-values, in the history, are
+    larger than the paper's iid ones for the same first entries), and printout and file name the mode."""
+    data_path = tmp_path / "cal.csv"
+    write_csv(simulate_dataset("train", seed=4), data_path)
+    for mode in ("paper", "hac"):
+        assert main(["fit", str(data_path), "--out", str(tmp_path / f"{mode}.json"), "--order", "3",
+                     "--selection", mode]) == 0
+        assert f"selection: {mode}: " in capsys.readouterr().out
+    paper, hac = (load_model(tmp_path / f"{m}.json") for m in ("paper", "hac"))
+    assert paper.selection["mode"] == "paper" and hac.selection["mode"] == "hac"
+    first_paper, first_hac = paper.selection["history"][1], hac.selection["history"][1]
+    assert first_paper["term"] == first_hac["term"]  # the same first channel enters...
+    assert first_hac["p"] > 1e6 * first_paper["p"]  # ...judged far less certain under autocorrelation
+    with pytest.raises(SystemExit):
+        main(["fit", str(data_path), "--out", str(tmp_path / "x.json"), "--selection", "matlab"])
+    assert "invalid choice: 'matlab'" in capsys.readouterr().err
