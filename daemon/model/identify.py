@@ -178,7 +178,8 @@ def fit_terms(
     chosen = [i for i in range(len(pool)) if result.inmodel[i]]
     final = ols(X[:, chosen], y, run_id) if chosen else None
     # what each left-out term would get if added alone, under the same HAC covariance as the printed ones
-    if_added = result if selection == "hac" else stepwisefit(
+    # (held-out refits, never saved, skip it)
+    if_added = result if selection == "hac" or not uncertainty else stepwisefit(
         X, y, penter=0.0, premove=1.0, inmodel=result.inmodel.copy(), keep=np.ones(len(pool), dtype=bool),
         hac_lag="andrews", run_id=run_id)
     terms: list[FittedTerm] = []
