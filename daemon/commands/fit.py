@@ -17,7 +17,7 @@ from nanodrift.errors import UserError
 from nanodrift.model.cell_model import CellModel, save_cell_model
 from nanodrift.model.describe import describe_cell_model, describe_model
 from nanodrift.model.equation import equation
-from nanodrift.model.identify import FitError, fit, fit_cell
+from nanodrift.model.identify import DEFAULT_SELECTION, SELECTIONS, FitError, fit, fit_cell
 from nanodrift.model.model import Model, save_model
 from nanodrift.model.provenance import stamp_data
 from nanodrift.model.terms import MAX_POWER, Term, UnknownTermError, parse_term
@@ -41,6 +41,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="stepwise: a term enters when its p-value is below P")
     parser.add_argument("--premove", type=float, default=0.10, metavar="P",
                         help="stepwise: a term leaves when its p-value is above P (>= --penter)")
+    parser.add_argument("--selection", choices=SELECTIONS, default=DEFAULT_SELECTION,
+                        help="stepwise tests: paper (default; MATLAB stepwisefit's iid partial F-tests, as the "
+                             "paper) or hac (Wald tests under the Newey-West covariance, which allows for the "
+                             "residual's autocorrelation). Reported SEs and p-values are HAC either way")
     parser.add_argument("--json", action="store_true",
                         help="print the summary as JSON (residuals in nm, keys ending _nm)")
 
@@ -100,7 +104,8 @@ def main(args: argparse.Namespace) -> int:
         exclude = [c for c in args.exclude if c in channels or not any(c in ds.channels for ds in runs)]
         files = [(p, len(ds)) for p, ds in zip(paths, runs, strict=True)]
         options: dict[str, Any] = {"order": _order(args.order), "exclude": exclude, "penter": args.penter,
-                                   "premove": args.premove, "source": ", ".join(paths), "squares": not args.no_squares}
+                                   "premove": args.premove, "source": ", ".join(paths), "squares": not args.no_squares,
+                                   "selection": args.selection}
         if data.multi_axis:
             if args.keep:
                 raise UserError("--keep is for one-axis files: a multi-axis file's axes choose their terms each")
@@ -169,6 +174,8 @@ def fit_summary(model: Model, path: str) -> dict[str, Any]:
         "excluded": sel.get("excluded", []),
         "penter": sel.get("penter"),
         "premove": sel.get("premove"),
+        "selection": sel.get("mode", "paper"),
+        "se_method": stats.get("se_method", "iid (a model file from before HAC standard errors)"),
         "rows": stats.get("rows"),
         "residual_rms_nm": stats.get("residual_rms_nm"),
         "rmse_nm": _nm(stats.get("rmse_um")),

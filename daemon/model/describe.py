@@ -21,6 +21,9 @@ def describe_model(model: Model, path: str | None = None) -> str:
         lines.append(f"excluded channels: {', '.join(sel['excluded'])}")
     if sel.get("forced"):
         lines.append(f"kept whatever the stepwise says (--keep): {', '.join(sel['forced'])}")
+    if sel.get("mode"):
+        lines.append(f"selection: {sel['mode']}: {sel.get('test', '')}")
+    lines.append(f"SE and p: {fit_stats.get('se_method', 'iid (a model file from before HAC standard errors)')}")
     lines.append(f"{'term':>16} {'coef':>14} {'SE':>11} {'p':>9}")
     for ft in model.terms:
         lines.append(f"{ft.term.name:>16} {ft.coef:>14.6g} {ft.se:>11.3g} {ft.p:>9.2g}")

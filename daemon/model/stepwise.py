@@ -12,8 +12,14 @@ matrix of at most 11 x 10, with no pass over the n rows. Columns of R are scaled
 which is the same as standardising the data (QR commutes with column scaling), and results are
 mapped back to original units at the end.
 
-One module of ~400 lines on purpose: it is one algorithm (MATLAB's), read and checked against
+One module of ~450 lines on purpose: it is one algorithm (MATLAB's), read and checked against
 MATLAB's documentation as a whole; split, its steps would be harder to compare line by line.
+
+``hac_lag``: the same loop with every entry and removal test a Wald t-test under the Newey-West (HAC)
+covariance (:mod:`nanodrift.model.hac`) instead of the iid partial F-test. On autocorrelated residuals
+(a calibration's) the iid test calls channels significant that the data cannot separate. The
+coefficients are the same least-squares ones; only standard errors and p-values change. These tests
+need the rows (the QR factor has lost their order), so this mode keeps a centred, scaled n x p copy.
 """
 
 from __future__ import annotations
@@ -26,6 +32,8 @@ from typing import Literal, TypeVar
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import linalg, stats
+
+from nanodrift.model.hac import andrews_lag, hac_covariance, hac_meat
 
 __all__ = ["RANK_TOL", "StepwiseResult", "stepwisefit"]
 
@@ -107,6 +115,8 @@ def stepwisefit(
     inmodel: ArrayLike | Sequence[int] | None = None,
     keep: ArrayLike | Sequence[int] | None = None,
     maxiter: int | None = None,
+    hac_lag: int | Literal["andrews"] | None = None,
+    run_id: ArrayLike | None = None,
 ) -> StepwiseResult:
     """Forward/backward stepwise regression of y on the columns of X (intercept always included).
 
@@ -125,6 +135,11 @@ def stepwisefit(
         inmodel: initial model, as a bool mask of length p or a list of 0-based indices.
         keep: columns frozen in their initial state (never added nor removed); mask or indices.
         maxiter: maximum number of actions (default: unlimited). A repeated model also stops.
+        hac_lag: None (default): MATLAB's iid partial F-tests, exactly. An integer L >= 0: every test,
+            and the returned ``se``/``tstat``/``pval``, use the Newey-West covariance with lag L;
+            ``"andrews"``: L chosen at each step from the current model's residual
+            (:func:`nanodrift.model.hac.andrews_lag`).
+        run_id: with ``hac_lag``, a run number per row; rows of different runs are taken as independent.
 
     See :class:`StepwiseResult` for the outputs and the conventions on untestable columns.
     """
@@ -136,12 +151,15 @@ def stepwisefit(
     frozen = _as_mask(keep, p, "keep")
 
     R, x_mean, x_scale, constant, y_mean, y_scale = _reduce(Xa, ya)
+    rows = None if hac_lag is None else _hac_rows(Xa, ya, x_mean, x_scale, y_mean, y_scale, hac_lag, run_id)
 
     history: list[tuple[str, int, float]] = []
     seen = {state.tobytes()}
     stop_reason: StopReason = "converged"
     while True:
         fit = _evaluate(R, state, constant, n)
+        if rows is not None:
+            fit = _with_hac(fit, state, rows)
         action = _next_action(fit, state, frozen, penter_f, premove_f)
         if action is None:
             stop_reason = "converged"
@@ -383,6 +401,69 @@ def _evaluate(R: NDArray[np.float64], state: NDArray[np.bool_], constant: NDArra
         tstat[testable] = t
         pval[testable] = np.minimum(2.0 * stats.t.sf(np.abs(t), col_dof[testable]), 1.0)
     return _Fit(coef, se, tstat, pval, deficient, testable, sse, dof)
+
+
+@dataclass(frozen=True)
+class _HacRows:
+    """The standardised rows the HAC tests need (same units as R's columns)."""
+
+    Z: NDArray[np.float64]
+    yz: NDArray[np.float64]
+    lag: int | None
+    """None: Andrews' plug-in from each step's residual."""
+    run_id: NDArray[np.int64] | None
+
+
+def _hac_rows(X: NDArray[np.float64], y: NDArray[np.float64], x_mean: NDArray[np.float64],
+              x_scale: NDArray[np.float64], y_mean: float, y_scale: float, lag: int | str,
+              run_id: ArrayLike | None) -> _HacRows:
+    if lag != "andrews" and (isinstance(lag, bool) or not isinstance(lag, int | np.integer) or lag < 0):
+        raise ValueError(f"stepwisefit: hac_lag must be a non-negative integer, 'andrews' or None, got {lag!r}")
+    ids = None
+    if run_id is not None:
+        ids = np.asarray(run_id, dtype=np.int64)
+        if ids.shape != y.shape:
+            raise ValueError(f"stepwisefit: run_id has shape {ids.shape}, expected one per row {y.shape}")
+    return _HacRows((X - x_mean) / x_scale, (y - y_mean) / y_scale, None if lag == "andrews" else int(lag), ids)
+
+
+def _with_hac(fit: _Fit, state: NDArray[np.bool_], rows: _HacRows) -> _Fit:
+    """``fit`` with the testable columns' se/t/p replaced by HAC Wald tests (same coefficients).
+
+    In-model columns: the model's HAC covariance. An out-of-model column j: by Frisch-Waugh-Lovell its
+    row of (AᵀA)⁻¹Aᵀ in model + {j} is x̃ⱼᵀ/‖x̃ⱼ‖² (x̃ⱼ: x_j's residual on the model), so its HAC
+    variance needs only that vector and the residual of model + {j}: one pass over the rows each.
+    """
+    n = rows.yz.shape[0]
+    se = fit.se.copy()
+    members = np.flatnonzero(state & ~fit.deficient)
+    k = members.size
+    A = rows.Z[:, members]
+    Q = np.linalg.qr(A)[0] if k else np.zeros((n, 0))
+    resid = rows.yz - A @ fit.coef[members] if k else rows.yz.copy()
+    if fit.sse == 0.0:
+        resid[:] = 0.0
+    lag = andrews_lag(resid, rows.run_id) if rows.lag is None else rows.lag
+    if k:
+        cov = hac_covariance(A, resid, lag, n_params=k + 1, run_id=rows.run_id)
+        se[members] = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    for j in np.flatnonzero(~state & fit.testable):
+        x = rows.Z[:, j] - Q @ (Q.T @ rows.Z[:, j])
+        norm2 = float(x @ x)
+        a = x / norm2
+        e = resid - x * (float(a @ resid))
+        meat = hac_meat(a * e, lag, rows.run_id)[0, 0]
+        se[j] = math.sqrt(max(meat, 0.0) * (n / (n - k - 2) if n > k + 2 else 1.0))
+    testable = fit.testable
+    tstat, pval = fit.tstat.copy(), fit.pval.copy()
+    in_dof = fit.dof
+    col_dof = np.where(state, in_dof, in_dof - 1)
+    b_t, se_t = fit.coef[testable], se[testable]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(se_t > 0, b_t / se_t, np.where(b_t == 0, 0.0, np.copysign(np.inf, b_t)))
+    tstat[testable] = t
+    pval[testable] = np.minimum(2.0 * stats.t.sf(np.abs(t), col_dof[testable]), 1.0)
+    return _Fit(fit.coef, se, tstat, pval, fit.deficient, testable, fit.sse, fit.dof)
 
 
 def _next_action(

@@ -99,7 +99,12 @@ def test_fit_prints_the_equation_and_json_carries_the_same_in_nm(tmp_path, capsy
     assert {"residual_rms_nm", "rmse_nm", "order_holdout_rms_nm"} <= set(rms_keys)
     assert all(k.endswith("_nm") for k in rms_keys), rms_keys  # one unit per quantity: no µm duplicate
     assert doc["fit"] == {"rmse_nm": doc["rmse_nm"], "r2": model.fit["r2"], "dof": model.fit["dof"],
-                          "rows": 8 * 17, "residual_rms_nm": doc["residual_rms_nm"]}
+                          "se_method": model.fit["se_method"], "hac_lag": model.fit["hac_lag"],
+                          "iid": model.fit["iid"], "rows": 8 * 17, "residual_rms_nm": doc["residual_rms_nm"]}
+    # the SEs printed are HAC ones, and both the printout and the JSON say so
+    assert doc["se_method"] == model.fit["se_method"] and doc["se_method"].startswith("Newey-West HAC, Bartlett")
+    assert f"SE and p: {doc['se_method']}" in human
+    assert doc["selection"] == "paper" and doc["terms"][0]["se"] == model.terms[0].se
 
 
 def test_fit_json_order_scores_in_nm(tmp_path, capsys):
@@ -200,3 +205,22 @@ def test_fit_offers_a_square_over_a_warm_run_and_no_squares_keeps_eq3_linear(tmp
     assert not [n for n in linear.selection["candidates"] if n.endswith(")^2")]
     assert main(["fit", str(calibration), "--out", str(tmp_path / "cal.json")]) == 0  # 0.45 °C: none offered
     assert not [n for n in load_model(tmp_path / "cal.json").selection["candidates"] if n.endswith(")^2")]
+
+
+def test_fit_selection_hac_uses_hac_tests_and_says_so(tmp_path, capsys):
+    """``--selection hac``: the stepwise's own tests are HAC Wald tests (their p-values, in the history, are
+    larger than the paper's iid ones for the same first entries), and printout and file name the mode."""
+    data_path = tmp_path / "cal.csv"
+    write_csv(simulate_dataset("train", seed=4), data_path)
+    for mode in ("paper", "hac"):
+        assert main(["fit", str(data_path), "--out", str(tmp_path / f"{mode}.json"), "--order", "3",
+                     "--selection", mode]) == 0
+        assert f"selection: {mode}: " in capsys.readouterr().out
+    paper, hac = (load_model(tmp_path / f"{m}.json") for m in ("paper", "hac"))
+    assert paper.selection["mode"] == "paper" and hac.selection["mode"] == "hac"
+    first_paper, first_hac = paper.selection["history"][1], hac.selection["history"][1]
+    assert first_paper["term"] == first_hac["term"]  # the same first channel enters...
+    assert first_hac["p"] > 1e6 * first_paper["p"]  # ...judged far less certain under autocorrelation
+    with pytest.raises(SystemExit):
+        main(["fit", str(data_path), "--out", str(tmp_path / "x.json"), "--selection", "matlab"])
+    assert "invalid choice: 'matlab'" in capsys.readouterr().err

@@ -31,10 +31,11 @@ from nanodrift.calibration.discovery.diagnostics import (
 )
 from nanodrift.calibration.discovery.settings import DEFAULT_SETTINGS, NOT_APPLIED_ONLINE, Settings
 from nanodrift.calibration.discovery.summary import summarise
+from nanodrift.model import hac
 from nanodrift.model.identify import holdout_blocks, model_covariance, ols
 from nanodrift.model.model import FittedTerm, Model, Training
 from nanodrift.model.provenance import created_now, software
-from nanodrift.model.segments import features
+from nanodrift.model.segments import features, runs
 from nanodrift.model.stepwise import stepwisefit
 from nanodrift.model.terms import Bias, Term, UnknownTermError, parse_term
 
@@ -144,7 +145,7 @@ def _final_model(data: Dataset, given: Model, terms: list[Term], nuisance: dict[
     y = np.asarray(data.q, dtype=np.float64)
     feats = [features(t, data) for t in terms]
     cols = feats + list(nuisance.values())
-    fit = ols(np.column_stack(cols), y)
+    fit = ols(np.column_stack(cols), y, hac.run_ids(len(y), runs(data)))
     k = len(terms)
     bias = fit.intercept + sum(float(fit.coef[k + j] * v[0]) for j, v in enumerate(nuisance.values()))
     fitted = [FittedTerm(t, float(fit.coef[i]), float(fit.se[i]), float(fit.p[i])) for i, t in enumerate(terms)]
@@ -167,7 +168,8 @@ def _final_model(data: Dataset, given: Model, terms: list[Term], nuisance: dict[
     model = Model(
         terms=fitted,
         training=Training.of(data, channels),
-        fit={"rmse_um": fit.rmse, "r2": fit.r2, "dof": fit.dof, "rows": len(data),
+        fit={"rmse_um": fit.rmse, "r2": fit.r2, "dof": fit.dof, "se_method": fit.se_method, "hac_lag": fit.hac_lag,
+             "rows": len(data),
              "residual_rms_nm": _rms(residual_full) * 1000.0},
         selection=selection,
         provenance={**given.provenance, "software": software(),
