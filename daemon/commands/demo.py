@@ -372,6 +372,11 @@ def keep_figures(run: DemoRun) -> list[Path]:
     return [path for path in written if path.suffix == ".png"]
 
 
+def cell_config(cell: str) -> str:
+    """What ``validate`` needs to run the demo's cell: nothing for the ideal one (its default), else a config."""
+    return "" if cell == "ideal" else f' --config F.toml (F.toml holding [simulation] cell = "{cell}")'
+
+
 # ----- the story -----------------------------------------------------------------------------------
 def main(args: argparse.Namespace) -> int:
     tests = check_args(args)
@@ -421,11 +426,11 @@ def main(args: argparse.Namespace) -> int:
             one = tests[-1]
             flags = " --no-compensation" if one == "test1" else ""
             print(f"The same figures from the command line, e.g.: nanodrift validate --model {run.model_path} "
-                  f"--scenario {one} --seed {args.seed} --cycles {args.cycles}{flags}")
+                  f"--scenario {one} --seed {args.seed} --cycles {args.cycles}{flags}{cell_config(args.cell)}")
         else:
             print("The same figures from the command line: keep the model with --keep DIR, then "
                   "nanodrift validate --model DIR/model.json --scenario testN --seed "
-                  f"{args.seed} --cycles {args.cycles}")
+                  f"{args.seed} --cycles {args.cycles}{cell_config(args.cell)}")
 
         steps.start("Serve: the calibrated model behind the daemon, targets from a client over Zenoh")
         assert run.model_path is not None
