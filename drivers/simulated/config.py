@@ -92,6 +92,13 @@ class SimulationConfig(StrictModel):
         return value
 
     @model_validator(mode="after")
+    def _sound_params(self) -> SimulationConfig:
+        problems = CELLS[self.cell].params.with_overrides(self.params).problems()
+        if problems:
+            raise ValueError(f"params of the {self.cell} cell: " + "; ".join(problems))
+        return self
+
+    @model_validator(mode="after")
     def _multi_axis_effects(self) -> SimulationConfig:
         if self.axes and self.effects:
             raise ValueError(f"effects: the hidden effects are the one-axis cell's; the simulated {self.axes} cell has "

@@ -105,6 +105,20 @@ class CellParams:
     def offset(self, channel: str) -> float:
         return dict(self.offsets_c).get(channel, 0.0)
 
+    def problems(self) -> list[str]:
+        """What is wrong with the realistic cell's magnitudes, one ``field: what was expected`` each (none: fine)."""
+        out = [f"{name}: expected >= 0, got {getattr(self, name):g}"
+               for name in ("tc_lag_s", "bend_scale_c", "bend_lag_s", "heat_rise_c", "dead_path_um",
+                            "index_walk_ppm_per_sqrt_h") if not getattr(self, name) >= 0]
+        if self.heat_rise_c and not 0 < self.heat_on_s < self.heat_period_s:
+            out.append(f"heat_on_s: expected between 0 and heat_period_s ({self.heat_period_s:g} s), "
+                       f"got {self.heat_on_s:g}")
+        if self.heat_rise_c and not self.heat_tau_s > 0:
+            out.append(f"heat_tau_s: expected > 0, got {self.heat_tau_s:g}")
+        if self.dead_path_um and not self.refraction_comp_tau_s > 0:
+            out.append(f"refraction_comp_tau_s: expected > 0, got {self.refraction_comp_tau_s:g}")
+        return out
+
     def with_overrides(self, overrides: Mapping[str, float]) -> CellParams:
         """A copy with the magnitudes ``overrides`` names (this class's fields) replaced."""
         changes: dict[str, Any] = dict(overrides)
@@ -439,6 +453,8 @@ class CellPhysics:
             self.axis_params = ({self.axes[0]: AxisParams.of(self.params)} if len(self.axes) == 1
                                 else {a: AXIS_PARAMS[a] for a in self.axes})
         p = self.params
+        if p.problems():
+            raise ValueError("simulated cell parameters: " + "; ".join(p.problems()))
         taus = {"stage": p.tau_stage_s, "bracket": p.tau_bracket_s, "t3": p.tau_t3_s, "t4": p.tau_t4_s,
                 "beam": p.tau_beam_s}
         if "thermal_lag" in self.effects:

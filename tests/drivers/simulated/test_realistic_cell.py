@@ -70,6 +70,11 @@ def test_the_config_and_the_cli_select_the_cell(tmp_path, capsys):
     assert overridden.effects["creep"]["c"] == 0.0 and "hysteresis" in overridden.effects
     with pytest.raises(ValueError, match=r'unknown simulated cell .real.; expected "ideal" or "realistic"'):
         SimulationConfig(cell="real")
+    with pytest.raises(ValueError, match=r"params of the realistic cell: heat_on_s: expected between 0 and "
+                                         r"heat_period_s \(5400 s\), got 6000"):
+        SimulationConfig(cell="realistic", params={"heat_on_s": 6000.0})
+    with pytest.raises(ValueError, match=r"tc_lag_s: expected >= 0, got -1"):
+        CellPhysics.create(tc_lag_s=-1.0)
     stack = SimulationConfig(cell="realistic", axes="xy").physics()
     assert stack.effects == {} and stack.params == REALISTIC_PARAMS  # a stack's stages keep no path memory
 
