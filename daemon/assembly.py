@@ -170,9 +170,12 @@ def _cell_procedure_drivers(config: Config, *, start_s: float) -> DriverSet:
 
 
 def simulated_drivers(scenario: str = "train", effects: object = None, seed: int = 0, *, start_s: float = 0.0,
-                      params: Mapping[str, float] | None = None) -> DriverSet:
-    """The paper's cell, simulated, for a procedure: a virtual clock starting at scenario time ``start_s``."""
+                      params: Mapping[str, float] | None = None, cell: str = "ideal") -> DriverSet:
+    """The paper's cell, simulated, for a procedure: a virtual clock starting at scenario time ``start_s``;
+    ``cell``: ``ideal`` or ``realistic`` (``[simulation] cell``)."""
     settings: dict[str, Any] = {"scenario": scenario, "seed": seed}
+    if cell != "ideal":  # the ideal cell's config stays as it was
+        settings["cell"] = cell
     if effects:
         settings["effects"] = effects if not isinstance(effects, str) else [effects]
     if params:

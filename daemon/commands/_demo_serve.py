@@ -39,7 +39,8 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def demo_config(cell: str, listen: str, model_path: Path, scenario: str, speed: float, seed: int) -> str:
+def demo_config(cell: str, listen: str, model_path: Path, scenario: str, speed: float, seed: int,
+                simulated_cell: str = "ideal") -> str:
     """A simulated cell whose polls are spaced in simulated time so the sped-up daemon stays light."""
     sensors = "".join(
         f'[[sensors]]\nname = "{name}"\nkind = "simulated"\ninterval_s = 5.0\nmax_age_s = 30.0\n'
@@ -49,7 +50,8 @@ def demo_config(cell: str, listen: str, model_path: Path, scenario: str, speed: 
         f'cell = "{cell}"\n[zenoh]\nmode = "peer"\nlisten = ["{listen}"]\nmulticast_scouting = false\n'
         f'[model]\npath = "{model_path}"\n'
         f'[simulation]\nscenario = "{scenario}"\nspeed = {speed}\nseed = {seed}\n'
-        f"{sensors}"
+        + ("" if simulated_cell == "ideal" else f'cell = "{simulated_cell}"\n')
+        + f"{sensors}"
         '[[sensors]]\nname = "interferometer"\nrole = "position"\nkind = "simulated"\ninterval_s = 1.0\n'
         "max_age_s = 5.0\n"
     )
@@ -160,7 +162,7 @@ def serve(args: argparse.Namespace, workdir: Path, model_path: Path, kept: bool
     connect = args.connect[0] if args.connect else listen
     config = workdir / "serve.toml"
     config.write_text(demo_config(SERVE_CELL, listen, model_path.resolve(), SERVE_SCENARIO, args.speed,
-                                  scenario_seed(args.seed, SERVE_SCENARIO)))
+                                  scenario_seed(args.seed, SERVE_SCENARIO), getattr(args, "cell", "ideal")))
     shown = config if kept else Path(config.name)
     targets = " ".join(f"{x:g}" for x in SERVE_TARGETS_UM)
     print(f"   $ nanodrift run --config {shown}        # the model above; the {SERVE_SCENARIO} room at "

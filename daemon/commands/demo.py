@@ -52,6 +52,7 @@ from nanodrift.commands._demo_serve import serve
 from nanodrift.commands._demo_xy import two_axis_part
 from nanodrift.drivers.simulated.datasets import simulate_dataset
 from nanodrift.drivers.simulated.effects import resolve_effects
+from nanodrift.drivers.simulated.physics import CELLS
 from nanodrift.errors import UserError
 from nanodrift.model.equation import equation
 from nanodrift.model.identify import FitError
@@ -99,6 +100,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="simulated seconds per wall second of the served cell (the serving step)")
     parser.add_argument("--seed", type=int, default=0, metavar="N",
                         help="simulation seed: the same seed gives the same Table I as validate --seed N")
+    parser.add_argument("--cell", choices=list(CELLS), default="ideal",
+                        help="the simulated cell: ideal (default; the paper's model form) or realistic (physics no "
+                             "candidate term reproduces: drivers/simulated/README.md). The two-axis part and the "
+                             "discovery line stay on the ideal cell")
     parser.add_argument("--keep", metavar="DIR",
                         help="keep the model, data, Table I (JSON), the figures (fig9, fig11; PNG + SVG), config "
                              "and daemon log in DIR")
@@ -149,9 +154,9 @@ class DemoRun:
 
 
 # ----- 1. calibrate ------------------------------------------------------------------------------
-def calibrate(workdir: Path, cycles: int, seed: int) -> Model:
+def calibrate(workdir: Path, cycles: int, seed: int, cell: str = "ideal") -> Model:
     """The paper's calibration on the simulated cell's virtual clock, fitted as ``nanodrift calibrate`` does."""
-    drivers = simulated_drivers("train", seed=scenario_seed(seed, "train"))
+    drivers = simulated_drivers("train", seed=scenario_seed(seed, "train"), cell=cell)
     data = workdir / "calibration.csv"
     if data.exists():  # --keep DIR reused: a new demo, new data
         data.unlink()
@@ -169,10 +174,11 @@ def training_ranges(model: Model) -> str:
 
 
 # ----- 2. validate -------------------------------------------------------------------------------
-def validate(model: Model, test: str, cycles: int, seed: int, adapt: BiasTracker | None = None) -> TestResult:
+def validate(model: Model, test: str, cycles: int, seed: int, adapt: BiasTracker | None = None,
+             cell: str = "ideal") -> TestResult:
     """One of the paper's tests, exactly as ``nanodrift validate --scenario TEST --seed SEED [--adapt]`` runs it
     (scored against the true position as well, as ``validate`` does on the simulated cell)."""
-    drivers = simulated_drivers(test, seed=scenario_seed(seed, test))
+    drivers = simulated_drivers(test, seed=scenario_seed(seed, test), cell=cell)
     use = None if test == "test1" else model
     return asyncio.run(run_validation(drivers, use, name=test, cycles=cycles, progress_stream=io.StringIO(),
                                       adapt=adapt))
@@ -313,7 +319,8 @@ def what_nanodrift_adds(run: DemoRun) -> list[str]:
         static = by_name.get(test)
         if static is None:
             continue
-        adapted = validate(run.model, test, run.args.cycles, run.args.seed, adapt=BiasTracker(*tracker_defaults))
+        adapted = validate(run.model, test, run.args.cycles, run.args.seed, adapt=BiasTracker(*tracker_defaults),
+                           cell=run.args.cell)
         lines.append(f"adaptation on {test} ([adapt] mode = \"bias\", tau_s {tracker_defaults[0]:g} s): "
                      f"{static.accuracy_nm:.0f} nm static -> {adapted.accuracy_nm:.0f} nm adaptive "
                      f"({adapted.improvement:.1f}× against {static.improvement:.1f}×) as the interferometer the "
@@ -365,6 +372,11 @@ def keep_figures(run: DemoRun) -> list[Path]:
     return [path for path in written if path.suffix == ".png"]
 
 
+def cell_config(cell: str) -> str:
+    """What ``validate`` needs to run the demo's cell: nothing for the ideal one (its default), else a config."""
+    return "" if cell == "ideal" else f' --config F.toml (F.toml holding [simulation] cell = "{cell}")'
+
+
 # ----- the story -----------------------------------------------------------------------------------
 def main(args: argparse.Namespace) -> int:
     tests = check_args(args)
@@ -375,13 +387,15 @@ def main(args: argparse.Namespace) -> int:
         workdir.mkdir(parents=True, exist_ok=True)
         run = DemoRun(args, workdir, kept=bool(keep))
         steps = Steps()
-        print(f"nanodrift demo: the paper's calibration and its tests on the simulated cell (seed {args.seed})")
+        realistic = "" if args.cell == "ideal" else f"{args.cell} "
+        print(f"nanodrift demo: the paper's calibration and its tests on the simulated {realistic}cell "
+              f"(seed {args.seed})")
 
         steps.start(f"Calibrate: {args.calibration_cycles} forward sweeps of the 'train' room, 0–480 µm by 30 µm "
                     f"(~{args.calibration_cycles * 17 * PAPER_TIMING.step_s / 3600:.1f} h of simulated time on a "
                     "virtual clock), then stepwise identification")
         t0 = time.monotonic()
-        run.model = model = calibrate(workdir, args.calibration_cycles, args.seed)
+        run.model = model = calibrate(workdir, args.calibration_cycles, args.seed, args.cell)
         run.model_path = workdir / "model.json"
         print(f"   model {model.id}: {equation(model)}")
         print(f"   trained on {training_ranges(model)}; residual "
@@ -391,7 +405,7 @@ def main(args: argparse.Namespace) -> int:
                     "as `nanodrift validate` runs them")
         for test in tests:
             t0 = time.monotonic()
-            result = validate(model, test, args.cycles, args.seed)
+            result = validate(model, test, args.cycles, args.seed, cell=args.cell)
             run.results.append(result)
             print(f"   {test}: {TESTS[test]}\n          {result_line(result)} ({time.monotonic() - t0:.1f} s)",
                   flush=True)
@@ -412,11 +426,11 @@ def main(args: argparse.Namespace) -> int:
             one = tests[-1]
             flags = " --no-compensation" if one == "test1" else ""
             print(f"The same figures from the command line, e.g.: nanodrift validate --model {run.model_path} "
-                  f"--scenario {one} --seed {args.seed} --cycles {args.cycles}{flags}")
+                  f"--scenario {one} --seed {args.seed} --cycles {args.cycles}{flags}{cell_config(args.cell)}")
         else:
             print("The same figures from the command line: keep the model with --keep DIR, then "
                   "nanodrift validate --model DIR/model.json --scenario testN --seed "
-                  f"{args.seed} --cycles {args.cycles}")
+                  f"{args.seed} --cycles {args.cycles}{cell_config(args.cell)}")
 
         steps.start("Serve: the calibrated model behind the daemon, targets from a client over Zenoh")
         assert run.model_path is not None

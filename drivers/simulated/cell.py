@@ -59,7 +59,6 @@ class SimulatedCell:
         self._landing_rng = np.random.default_rng([physics.seed, 2])
         self._noise_rng = np.random.default_rng([physics.seed, 3])
         self._last_ok: dict[str, Reading] = {}
-        self._offsets = dict(physics.params.offsets_c)
         self._axis_of = position_channels(self.axes)
         #: what a sensor may read (``[[sensors]] channel``)
         self.channels: tuple[str, ...] = (*THERMOCOUPLES, *TRUTH_CHANNELS, *self._axis_of)
@@ -103,7 +102,6 @@ class SimulatedCell:
         names = list(channels)
         out: dict[str, Reading] = {}
         thermal = self.physics.thermal1(t) if any(not self.is_position(c) for c in names) else {}
-        offsets = self._offsets
         for name in names:
             window = self._fault(name, t) if self.faults else None
             if window is not None and window.mode == "device_error":
@@ -120,8 +118,7 @@ class SimulatedCell:
             if self.is_position(name):
                 value = self._read_position(self._axis_of[name], t, now, noise)
             else:
-                node = THERMOCOUPLES.get(name) or TRUTH_CHANNELS[name]
-                value = self.physics.measure_temperature1(thermal[node] + offsets.get(name, 0.0), noise)
+                value = self.physics.measure_temperature1(self.physics.sensor_truth(name, thermal), noise)
             reading = Reading(value=value, t=now, state=State.OK, unit=unit)
             if math.isfinite(value):
                 self._last_ok[name] = reading

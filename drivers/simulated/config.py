@@ -10,6 +10,7 @@ effects = ["thermal_lag", "hysteresis"]          # or a table with parameters:
 params = { interferometer_noise_um = 0.01 }      # overrides of the cell's baseline magnitudes
 truth_log = "truth.csv"       # every interferometer reading beside the true position (benchmarks/week.py)
 axes = "xy"                   # a stacked XY (or "xyz") stage: one simulated output and interferometer per axis
+cell = "realistic"            # ideal (default: the model's own form) | realistic (physics no term reproduces)
 ```
 """
 
@@ -23,7 +24,7 @@ from pydantic import Field, field_validator, model_validator
 
 from nanodrift.drivers.base import ActuatorOptions, SensorConfig, StrictModel
 from nanodrift.drivers.simulated.effects import resolve_effects
-from nanodrift.drivers.simulated.physics import CELL_AXES, CellParams, CellPhysics
+from nanodrift.drivers.simulated.physics import CELL_AXES, CELLS, CellParams, CellPhysics
 from nanodrift.drivers.simulated.scenarios import get_scenario
 
 #: the top-level table this plugin owns
@@ -69,6 +70,19 @@ class SimulationConfig(StrictModel):
                                 "([axes.actuator] kind = \"simulated\") and one interferometer beam per axis "
                                 "(channels interferometer_x, interferometer_y[, interferometer_z])")
 
+    cell: str = Field(
+        default="ideal", description='"ideal": the paper\'s model form (what a fit can represent exactly); '
+                                     '"realistic": a lab\'s cell that no candidate term reproduces (asymmetric, '
+                                     "lagging bending, an unmonitored heat source, interferometer refraction, "
+                                     "hysteresis and creep, thermocouple noise and lags: drivers/simulated/README.md)")
+
+    @field_validator("cell")
+    @classmethod
+    def _known_cell(cls, value: str) -> str:
+        if value not in CELLS:
+            raise ValueError(f"unknown simulated cell {value!r}; expected " + " or ".join(f'"{c}"' for c in CELLS))
+        return value
+
     @field_validator("axes")
     @classmethod
     def _known_axes(cls, value: str) -> str:
@@ -76,6 +90,13 @@ class SimulationConfig(StrictModel):
             raise ValueError(f'unknown simulated axes {value!r}; expected "" (one axis), '
                              + " or ".join(f'"{name}"' for name in CELL_AXES))
         return value
+
+    @model_validator(mode="after")
+    def _sound_params(self) -> SimulationConfig:
+        problems = CELLS[self.cell].params.with_overrides(self.params).problems()
+        if problems:
+            raise ValueError(f"params of the {self.cell} cell: " + "; ".join(problems))
+        return self
 
     @model_validator(mode="after")
     def _multi_axis_effects(self) -> SimulationConfig:
@@ -143,8 +164,9 @@ class SimulationConfig(StrictModel):
 
     def physics(self) -> CellPhysics:
         """The cell of this table: its room, seed, magnitudes and axes."""
-        return CellPhysics.create(self.scenario, self.effects, self.seed, CellParams().with_overrides(self.params),
-                                  axes=self.axis_names)
+        return CellPhysics.create(self.scenario, self.effects, self.seed,
+                                  CELLS[self.cell].params.with_overrides(self.params), axes=self.axis_names,
+                                  cell=self.cell)
 
 
 class SimulatedSensorConfig(SensorConfig):

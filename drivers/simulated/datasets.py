@@ -20,7 +20,7 @@ from nanodrift.calibration.plans import (
     validation_plan,
 )
 from nanodrift.drivers.simulated.effects import resolve_effects
-from nanodrift.drivers.simulated.physics import CELL_AXES, THERMOCOUPLES, CellParams, CellPhysics, cross_params
+from nanodrift.drivers.simulated.physics import CELL_AXES, THERMOCOUPLES, CellPhysics, cell_variant, cross_params
 from nanodrift.drivers.simulated.runs import ONE_MOVE, simulate_steps
 from nanodrift.drivers.simulated.scenarios import get_scenario
 
@@ -52,7 +52,7 @@ def run_plan(physics: CellPhysics, cycles: int | None = None, *,
 
 def simulate_dataset(scenario: str = "train", effects: EffectsSpec = None, *, axes: str = "",
                      cycles: int | None = None, seed: int = 0, bidirectional: bool = False, source: str | None = None,
-                     **param_overrides: float) -> Dataset:
+                     cell: str = "ideal", **param_overrides: float) -> Dataset:
     """A run of the simulated cell with ``effects`` hidden, exactly as ``nanodrift simulate`` writes it.
 
     ``axes``: "" the paper's one-axis cell (columns ``x_um``, ``q_um``); ``"xy"`` or ``"xyz"`` a stack (per axis
@@ -62,24 +62,28 @@ def simulate_dataset(scenario: str = "train", effects: EffectsSpec = None, *, ax
     :class:`nanodrift.drivers.simulated.effects.UnknownNameError`.
     ``cycles``: None for the scenario's default (24 calibration sweeps, 30 validation sweeps).
     ``bidirectional``: alternate up and down sweeps on a calibration scenario (the ``bidirectional``
-    scenario always does). ``param_overrides``: the cell's magnitudes (``CellParams`` fields).
+    scenario always does). ``cell``: ``ideal`` or ``realistic`` (``physics.CELLS``).
+    ``param_overrides``: the cell's magnitudes (``CellParams`` fields), over the cell's own.
     """
-    params = CellParams().with_overrides(param_overrides)
+    variant = cell_variant(cell)
+    params = variant.params.with_overrides(param_overrides)
     if axes:
         if effects is not None and not isinstance(effects, str):
             raise TypeError("a stack's effects are the --effects text of its cross-axis effects")
         physics = CellPhysics(get_scenario(scenario), {}, seed, params, CELL_AXES[axes], cross_params(effects or None))
     else:
-        physics = CellPhysics(get_scenario(scenario), resolve_effects(effects or None), seed, params)
+        physics = CellPhysics(get_scenario(scenario), variant.effects_with(resolve_effects(effects or None)), seed,
+                              params)
     targets, step_cycles = run_plan(physics, cycles, bidirectional=bidirectional)
     out = simulate_steps(physics, targets, step_cycles, schedule=ONE_MOVE if axes else None)
     channels = {c: out[c] for c in THERMOCOUPLES}
+    prefix = "" if cell == "ideal" else f"{cell}:"  # the ideal cell's sources stay as they were
     if axes:
         return Dataset(t=out["t_s"], x=out["x_um"], q=None, channels=channels,
                        extra={"cycle": out["cycle"], **{f"{a}_true_um": out[f"{a}_true_um"] for a in physics.axes}},
-                       source=source or f"simulated:{axes}:{scenario}:seed {seed}",
+                       source=source or f"simulated:{prefix}{axes}:{scenario}:seed {seed}",
                        positions={a: out[f"{a}_um"] for a in physics.axes},
                        commands={a: out[f"q_{a}_um"] for a in physics.axes})
     label = ",".join(physics.effects) or "none"
     return Dataset(t=out["t_s"], x=out["x_um"], q=out["q_x_um"], channels=channels, extra={"cycle": out["cycle"]},
-                   source=source or f"simulated:{scenario}:{label}:seed {seed}")
+                   source=source or f"simulated:{prefix}{scenario}:{label}:seed {seed}")
