@@ -76,7 +76,7 @@ def one_seed(seed: int, cycles: int, tau_s: float, max_um: float) -> dict[str, d
 
 def true_errors(result: TestResult) -> dict[str, Any]:
     """A run's valid steps: true error (true position - target) and the σ of its command, nm."""
-    rows = [(x_true - s.step.target_um, sigma) for s, sigma, x_true
+    rows = [(x_true - s.step.target(result.axis), sigma) for s, sigma, x_true
             in zip(result.steps, result.command_sigma_um, result.x_true_um, strict=False)
             if s.valid and np.isfinite(sigma)]
     error, sigma = (np.array(v) * 1e3 for v in zip(*rows, strict=True))

@@ -23,7 +23,7 @@ import argparse
 import sys
 import time
 
-from nanodrift.calibration.iso9283 import summarize_cell
+from nanodrift.calibration.iso9283 import summarize_runs
 from nanodrift.drivers.simulated.datasets import simulate_dataset
 from nanodrift.drivers.simulated.physics import CellPhysics
 from nanodrift.drivers.simulated.runs import CellValidationRun, cell_command, independent_command, run_cell_validation
@@ -35,7 +35,8 @@ TESTS = {"test2": "in range", "test5": "out of range"}
 
 
 def accuracy_nm(run: CellValidationRun, with_model: bool, against: str) -> float:
-    return summarize_cell(run.name, run.targets_um, run.attained(with_model, against)).accuracy_nm
+    result = summarize_runs(run.name, run.targets_um, run.attained(False, against), run.attained(True, against))
+    return result.accuracy_nm if with_model else result.accuracy_without_nm
 
 
 def one_seed(axes: str, seed: int) -> list[dict[str, float | str]]:

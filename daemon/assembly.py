@@ -63,10 +63,10 @@ def make_context(config: Config, *, virtual_start_s: float | None = None) -> Dri
 
 def build_drivers(config: Config, context: DriverContext | None = None, *,
                   virtual_start_s: float | None = None) -> DriverSet:
-    """Sensor groups and the actuator of ``config`` (from the plugin ``[actuator] kind`` names).
+    """Sensor groups and each axis' output of ``config`` (from the plugin its actuator's ``kind`` names).
 
     ``context``: reuse a running one (a reload that keeps the simulated cell keeps its state).
-    With ``kind = "zenoh"`` the actuator is None: the daemon's own ``command`` publication is what
+    An axis with ``kind = "zenoh"`` has no output object: the daemon's own ``command`` publication is what
     the lab's output node applies. Raises :class:`DriverSetupError` naming the kind when a plugin
     refuses its sensors or its actuator.
     """
@@ -80,22 +80,11 @@ def build_drivers(config: Config, context: DriverContext | None = None, *,
                 groups.extend(plugin.create(configs, context))
         except Exception as error:
             raise DriverSetupError(f"driver {kind!r}: {error}") from error
-    actuator: Actuator | None = None
-    actuators = _axis_actuators(config, plugins, context) if config.multi_axis else {}
-    kind, options = config.actuator.kind, config.actuator.options
-    if kind != ZENOH_KIND and not config.multi_axis:  # after the sensors: the actuator shares their connections
-        try:
-            if options is None:
-                raise DriverSetupError("[actuator] was not validated by its plugin (use parse_config)")
-            actuator = plugins[kind].create_actuator(options, context)
-        except Exception as error:
-            raise DriverSetupError(f"actuator kind {kind!r}: {error}") from error
-        actuators = {"x": actuator}  # a one-axis cell is a cell of one axis, x
+    actuators = _axis_actuators(config, plugins, context)  # after the sensors: they share their connections
     description = "simulated cell" if config.virtual_cell else "hardware"
     return DriverSet(
         context=context,
         groups=groups,
-        actuator=actuator,
         roles={s.name: s.role for s in config.sensors},
         max_age_s={s.name: s.max_age_s for s in config.sensors},
         description=description,
@@ -105,8 +94,8 @@ def build_drivers(config: Config, context: DriverContext | None = None, *,
 
 
 def _axis_actuators(config: Config, plugins: Mapping[str, DriverPlugin], context: DriverContext) -> dict[str, Actuator]:
-    """Each axis' output of a multi-axis cell, built by kind (:meth:`DriverPlugin.create_actuators`: the
-    axes of one module or controller share its connection)."""
+    """Each axis' output (a one-axis cell's: ``x``), built by kind (:meth:`DriverPlugin.create_actuators`: the
+    axes of one module or controller share its connection); a ``kind = "zenoh"`` axis has none."""
     shared = shared_output_problems([(f"axis {axis}", a.options) for axis, a in config.axis_actuators().items()
                                      if a.options is not None])
     if shared:  # refused when the config was read; a Config built otherwise is refused here all the same
@@ -121,51 +110,43 @@ def _axis_actuators(config: Config, plugins: Mapping[str, DriverPlugin], context
         options = [configs[a].options for a in axes]
         try:
             if any(o is None for o in options):
-                raise DriverSetupError("[axes.actuator] was not validated by its plugin (use parse_config)")
-            made = plugins[kind].create_actuators([o for o in options if o is not None], context)
+                raise DriverSetupError("the actuator section was not validated by its plugin (use parse_config)")
+            checked = [o for o in options if o is not None]
+            plugin = plugins[kind]  # a one-axis cell's [actuator] is what create_actuator builds
+            made = plugin.create_actuators(checked, context) if config.multi_axis else [
+                plugin.create_actuator(checked[0], context)]
         except Exception as error:
-            raise DriverSetupError(f"actuator kind {kind!r} (axes {', '.join(axes)}): {error}") from error
+            raise DriverSetupError(f"actuator kind {kind!r} (axis {', '.join(axes)}): {error}") from error
         built.update(zip(axes, made, strict=True))
     return {axis: built[axis] for axis in config.axis_names if axis in built}
 
 
 def procedure_drivers(config: Config, *, start_s: float = 0.0) -> DriverSet:
     """What a calibration or validation drives: the config's drivers, a virtual clock for a simulated
-    cell (scenario time ``start_s``), and with ``kind = "zenoh"`` the Zenoh actuator (each step
-    published on ``nanodrift/<cell>/command`` for the lab's output node)."""
-    if config.multi_axis:
-        return _cell_procedure_drivers(config, start_s=start_s)
-    drivers = build_drivers(config, virtual_start_s=start_s if config.virtual_cell else None)
-    if drivers.position_channel is None:
-        raise DriverSetupError("the config has no position sensor (role = \"position\"); a procedure needs one")
-    if config.virtual_cell:
-        drivers.description = "simulated cell (virtual clock)"
-    elif drivers.actuator is None:
-        actuator = ZenohActuator(config)
-        drivers.actuator = actuator
-        drivers.actuators = {"x": actuator}
-        drivers.description = f"hardware; stage commands published on {actuator.key}"
-    else:
-        drivers.description = f"hardware; stage driven by the {drivers.actuator.description}"
-    return drivers
-
-
-def _cell_procedure_drivers(config: Config, *, start_s: float) -> DriverSet:
-    """A multi-axis cell's drivers for a procedure: every axis needs its own output and position sensor (a
-    procedure drives and measures each axis; ``kind = "zenoh"`` outputs are the daemon's, not a procedure's)."""
+    cell (scenario time ``start_s``). Every axis needs its own position sensor; with ``kind = "zenoh"`` a
+    one-axis cell's steps are published on ``nanodrift/<cell>/command`` by :class:`ZenohActuator` for the
+    lab's output node, while a multi-axis procedure drives each axis' own output (the Zenoh command of
+    several axes is the daemon's)."""
     published = [axis for axis, actuator in config.axis_actuators().items() if actuator.kind == ZENOH_KIND]
-    if published:
+    if published and config.multi_axis:
         raise DriverSetupError(f"axis {', '.join(published)}: [axes.actuator] kind = \"zenoh\" has no output a "
                                "procedure can drive; a multi-axis calibration drives each axis' own output "
                                "(kind = \"modbus\", \"serial_line\", ...)")
     drivers = build_drivers(config, virtual_start_s=start_s if config.virtual_cell else None)
     unmeasured = [axis for axis in config.axis_names if axis not in drivers.position_axes]
     if unmeasured:
-        raise DriverSetupError(f"axis {', '.join(unmeasured)} has no position sensor (role = \"position\", "
-                               "axis = ...); a procedure measures every axis")
-    outputs = ", ".join(f"{axis}: {actuator.description}" for axis, actuator in drivers.actuators.items())
-    drivers.description = ("simulated cell (virtual clock)" if config.virtual_cell
-                           else f"hardware; stage driven by {outputs}")
+        raise DriverSetupError(f"axis {', '.join(unmeasured)} has no position sensor (role = \"position\" on that "
+                               "axis); a procedure measures every axis")
+    if config.virtual_cell:
+        drivers.description = "simulated cell (virtual clock)"
+    elif published:
+        zenoh = ZenohActuator(config)
+        drivers.actuators = {published[0]: zenoh}
+        drivers.description = f"hardware; stage commands published on {zenoh.key}"
+    else:
+        outputs = [f"{axis}: {actuator.description}" for axis, actuator in drivers.actuators.items()]
+        drivers.description = "hardware; stage driven by " + (
+            ", ".join(outputs) if config.multi_axis else f"the {drivers.actuators[config.axis_names[0]].description}")
     return drivers
 
 

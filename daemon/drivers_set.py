@@ -13,27 +13,22 @@ from nanodrift.drivers.base import Actuator, Clock, DriverContext, SensorGroup
 
 @dataclass
 class DriverSet:
-    """The sensor groups and the actuator of one config, with the context they share."""
+    """The sensor groups and the outputs of one config, with the context they share."""
 
     context: DriverContext
     groups: list[SensorGroup]
-    actuator: Actuator | None
     roles: dict[str, str]
     max_age_s: dict[str, float]
     description: str = ""
     #: the cell's output per axis (a one-axis cell's: ``{"x": actuator}``; an axis with ``kind = "zenoh"`` has
-    #: none): what the daemon's actuation drives. ``actuator`` is a one-axis cell's, what its procedures drive
+    #: none): what the daemon's actuation and the procedures drive
     actuators: dict[str, Actuator] = field(default_factory=dict)
-    #: a multi-axis cell's position sensor per axis
+    #: each axis' position sensor (a one-axis cell's: ``{"x": name}``)
     position_axes: dict[str, str] = field(default_factory=dict)
 
     @property
     def clock(self) -> Clock:
         return self.context.clock
-
-    @property
-    def position_channel(self) -> str | None:
-        return next((name for name, role in self.roles.items() if role == "position"), None)
 
     @property
     def temperature_channels(self) -> tuple[str, ...]:

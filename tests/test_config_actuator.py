@@ -267,13 +267,13 @@ def test_the_lab_examples_output_paths_are_valid_configs() -> None:
     modbus = parse_config(tomllib.loads(lab_with("modbus")), source="lab.toml (modbus)")
     assert modbus.actuator.kind == "modbus" and modbus.actuator.options.hub == "ao"
     assert [h.name for h in modbus.hubs] == ["adam", "ao"] and modbus.hubs[1].host == "192.168.1.21"
-    assert isinstance(build_drivers(modbus).actuator, ModbusActuator)
+    assert isinstance(build_drivers(modbus).actuators["x"], ModbusActuator)
     serial = parse_config(tomllib.loads(lab_with("serial_line")), source="lab.toml (serial_line)")
     options = serial.actuator.options
     assert isinstance(options, SerialLineActuatorConfig)
     assert (options.command, options.readback, options.error_query) == ("SVA 1 {voltage_v:.4f}\n", "SVA? 1\n",
                                                                         "ERR?\n")
-    assert isinstance(build_drivers(serial).actuator, SerialLineActuator)
+    assert isinstance(build_drivers(serial).actuators["x"], SerialLineActuator)
     shipped = parse_config(tomllib.loads(LAB.read_text()), source="lab.toml")
     assert shipped.actuator.kind == "zenoh" and shipped.procedure.timing == PAPER_TIMING
     assert shipped.procedure.calibration_points == CALIBRATION_POINTS_UM

@@ -21,15 +21,17 @@ Against the truth (a simulated cell only): ``x_true_um``, per step, is the posit
 attained over the step's window (no interferometer noise or wander). Real hardware has none: the list
 is empty and nothing is reported against it.
 
-A multi-axis cell (:func:`summarize_cell`): per point, ISO 9283's pose accuracy AP = |barycentre of the
-attained points - target| and repeatability RP = l̄ + 3 S_l (l_i = |attained_i - barycentre|) in 2-D/3-D,
-and the one-axis figures per axis (Table I per axis).
+Any number of axes, one code path (:func:`score_points`): per point, ISO 9283's pose accuracy AP =
+|barycentre of the attained points - target| and repeatability RP = l̄ + 3 S_l (l_i = |attained_i -
+barycentre|) in the cell's dimension (one axis: the figures above), and the same per axis (Table I per
+axis). A test's "without compensation" is data: the positions computed from the same run (one axis,
+:func:`summarize`) or those of a second, uncompensated run (a multi-axis cell, :func:`summarize_runs`).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -40,20 +42,29 @@ from nanodrift.calibration.plans import StepResult
 
 @dataclass
 class PointStats:
-    target_um: float
+    """One ISO 9283 point: AP and RP in the cell's dimension and per axis (nm)."""
+
+    target_um: dict[str, float]
     visits: int
     accuracy_nm: float
     repeatability_nm: float
-    accuracy_without_nm: float
-    repeatability_without_nm: float
+    axis_accuracy_nm: dict[str, float]
+    axis_repeatability_nm: dict[str, float]
 
 
 @dataclass
 class TestResult:
+    """One ISO 9283 test of a cell of any number of axes: per point with the model (``points``; empty when the
+    test ran without it) and without it (``points_without``: computed from the same run, or a second run)."""
+
     name: str
     compensated: bool
     steps: list[StepResult]
     points: list[PointStats] = field(default_factory=list)
+    points_without: list[PointStats] = field(default_factory=list)
+    axes: tuple[str, ...] = ("x",)
+    #: whether ``points_without`` is computed (x - (q' - x'), the same run) rather than measured in a second run
+    without_is_computed: bool = True
     extrapolating_steps: int = 0
     invalid_steps: int = 0
     #: per step, with the model: the bias correction its command carried (``validate --adapt``) ...
@@ -63,52 +74,64 @@ class TestResult:
     adapted: bool = False
     #: with ``--adapt``: the standard uncertainty of the corrected command (what the tracker leaves)
     q_sigma_adapted_um: list[float] = field(default_factory=list)
-    #: per step, the true attained position (a simulated cell only; empty on hardware)
-    x_true_um: list[float] = field(default_factory=list)
     #: the model's ``wander_um``: what the position sensor adds to a measured error beside q_sigma
     measurement_sigma_um: float = 0.0
 
     @property
+    def axis(self) -> str:
+        """The axis of a one-axis test (its steps' positions and commands on it)."""
+        (axis,) = self.axes
+        return axis
+
+    @property
     def accuracy_nm(self) -> float:
-        """Table I "with comp." (NaN when the test ran without the model)."""
-        return float(np.mean([p.accuracy_nm for p in self.points])) if self.compensated else float("nan")
+        """Table I "with comp.": AP, mean over the points (NaN when the test ran without the model)."""
+        return _mean_of(self.points, "accuracy_nm") if self.compensated else float("nan")
 
     @property
     def accuracy_without_nm(self) -> float:
-        return float(np.mean([p.accuracy_without_nm for p in self.points]))
+        return _mean_of(self.points_without, "accuracy_nm")
+
+    @property
+    def repeatability_nm(self) -> float:
+        return _mean_of(self.points, "repeatability_nm") if self.compensated else float("nan")
+
+    @property
+    def repeatability_without_nm(self) -> float:
+        return _mean_of(self.points_without, "repeatability_nm")
+
+    def axis_accuracy_nm(self, axis: str, *, with_model: bool = True) -> float:
+        """Table I for one axis: mean over the points of |mean attained - target| along ``axis``."""
+        points = self.points if with_model else self.points_without
+        return float(np.mean([p.axis_accuracy_nm[axis] for p in points])) if points else float("nan")
 
     @property
     def improvement(self) -> float:
         return self.accuracy_without_nm / self.accuracy_nm if self.compensated else float("nan")
 
     @property
+    def x_true_um(self) -> list[float]:
+        """Per step of a one-axis test, the true attained position (a simulated cell only; empty on hardware)."""
+        truths = [s.true_um.get(self.axis, math.nan) for s in self.steps]
+        return truths if truths and all(map(math.isfinite, truths)) else []
+
+    @property
     def has_truth(self) -> bool:
         """Whether every step knows the true attained position (a simulated cell; never on hardware)."""
-        return len(self.x_true_um) == len(self.steps) > 0 and all(map(math.isfinite, self.x_true_um))
+        return bool(self.x_true_um)
 
-    def true_points(self) -> list[PointStats]:
-        """ISO 9283 per point against the true position (as :attr:`points` against the interferometer)."""
+    def against_truth(self) -> TestResult | None:
+        """The same test scored against the true position (as this one against the interferometer); None
+        without truth."""
         if not self.has_truth:
-            return []
-        truths = [s for s in zip(self.steps, self.x_true_um, strict=True) if s[0].valid]
-        out = []
-        for target in sorted({s.step.target_um for s, _ in truths}):
-            here = [(s, x) for s, x in truths if s.step.target_um == target]
-            with_ = np.array([x for _, x in here])
-            without = np.array([x - (s.q_um - s.step.target_um) for s, x in here])
-            acc, rep = iso9283(with_, target)
-            acc0, rep0 = iso9283(without, target)
-            out.append(PointStats(target, len(here), acc * 1e3, rep * 1e3, acc0 * 1e3, rep0 * 1e3))
-        return out
+            return None
+        return summarize(self.name, self.steps, self.compensated, axis=self.axis, truth=True)
 
     def true_accuracy_nm(self) -> tuple[float, float]:
         """Table I against the true position: (without, with) compensation; with is NaN for an uncompensated
         test, both NaN without truth."""
-        points = self.true_points()
-        if not points:
-            return math.nan, math.nan
-        without = float(np.mean([p.accuracy_without_nm for p in points]))
-        return without, float(np.mean([p.accuracy_nm for p in points])) if self.compensated else math.nan
+        truth = self.against_truth()
+        return (truth.accuracy_without_nm, truth.accuracy_nm) if truth else (math.nan, math.nan)
 
     @property
     def accuracy_true_nm(self) -> float:
@@ -126,7 +149,8 @@ class TestResult:
         σ = sqrt(q_sigma² + measurement_sigma²): the measured error carries the sensor's wander besides
         the true error q_sigma is for."""
         m2 = self.measurement_sigma_um ** 2
-        inside = [abs(s.x_um - s.step.target_um) <= k * float(np.sqrt(sigma * sigma + m2))
+        a = self.axis
+        inside = [abs(s.positions_um[a] - s.step.target(a)) <= k * float(np.sqrt(sigma * sigma + m2))
                   for s, sigma in zip(self.steps, self.command_sigma_um, strict=False)
                   if s.valid and np.isfinite(sigma)]
         return float(np.mean(inside)) if inside else float("nan")
@@ -136,33 +160,35 @@ class TestResult:
         σ: :attr:`command_sigma_um`."""
         if not self.has_truth:
             return float("nan")
-        inside = [abs(x_true - s.step.target_um) <= k * sigma
+        inside = [abs(x_true - s.step.target(self.axis)) <= k * sigma
                   for s, sigma, x_true in zip(self.steps, self.command_sigma_um, self.x_true_um, strict=False)
                   if s.valid and np.isfinite(sigma)]
         return float(np.mean(inside)) if inside else float("nan")
 
     def to_dict(self) -> dict[str, Any]:
+        """Table I's document of a one-axis test (the ``validate --json`` contract)."""
         doc = self._measured_dict()
-        if self.has_truth:
-            doc["true_position"] = self._true_dict()
+        truth = self.against_truth()
+        if truth is not None:
+            doc["true_position"] = truth._point_figures(truth.accuracy_without_nm, truth.accuracy_nm)
         return doc
 
-    def _true_dict(self) -> dict[str, Any]:
-        """The same figures against the true attained position (a simulated cell only)."""
-        without, with_ = self.true_accuracy_nm()
+    def _point_figures(self, without: float, with_: float) -> dict[str, Any]:
         return {
             "without_comp_nm": _num(without),
             "with_comp_nm": _num(with_),
             "improvement_ratio": _num(without / with_) if self.compensated else None,
-            "points": [
-                {"x_um": p.target_um, "visits": p.visits,
-                 "accuracy_nm": _num(p.accuracy_nm) if self.compensated else None,
-                 "repeatability_nm": _num(p.repeatability_nm) if self.compensated else None,
-                 "accuracy_without_nm": _num(p.accuracy_without_nm),
-                 "repeatability_without_nm": _num(p.repeatability_without_nm)}
-                for p in self.true_points()
-            ],
+            "points": self._points_list(),
         }
+
+    def _points_list(self) -> list[dict[str, Any]]:
+        a, num = self.axis, _num
+        return [{"x_um": p0.target_um[a], "visits": p0.visits,
+                 "accuracy_nm": num(p.accuracy_nm) if self.compensated else None,
+                 "repeatability_nm": num(p.repeatability_nm) if self.compensated else None,
+                 "accuracy_without_nm": num(p0.accuracy_nm),
+                 "repeatability_without_nm": num(p0.repeatability_nm)}
+                for p, p0 in zip(self.points, self.points_without, strict=True)]
 
     def _measured_dict(self) -> dict[str, Any]:
         num = _num
@@ -184,15 +210,30 @@ class TestResult:
             "within_2_sigma": num(self.coverage()),
             **({"with_comp_true_nm": num(self.accuracy_true_nm), "within_2_sigma_true": num(self.coverage_true())}
                if self.has_truth and self.compensated else {}),
-            "points": [
-                {"x_um": p.target_um, "visits": p.visits,
-                 "accuracy_nm": num(p.accuracy_nm) if self.compensated else None,
-                 "repeatability_nm": num(p.repeatability_nm) if self.compensated else None,
-                 "accuracy_without_nm": num(p.accuracy_without_nm),
-                 "repeatability_without_nm": num(p.repeatability_without_nm)}
-                for p in self.points
-            ],
+            "points": self._points_list(),
         }
+
+    def scores_dict(self, *, with_model: bool) -> dict[str, Any] | None:
+        """AP/RP in the cell's dimension and per axis, per point, with or without the model (a multi-axis
+        test's document; None: the test ran without the model)."""
+        if with_model and not self.compensated:
+            return None
+        points = self.points if with_model else self.points_without
+        return {
+            "test": self.name, "axes": list(self.axes),
+            "accuracy_nm": round(_mean_of(points, "accuracy_nm"), 3),
+            "repeatability_nm": round(_mean_of(points, "repeatability_nm"), 3),
+            "axis_accuracy_nm": {a: round(self.axis_accuracy_nm(a, with_model=with_model), 3) for a in self.axes},
+            "points": [{"target_um": p.target_um, "visits": p.visits, "accuracy_nm": round(p.accuracy_nm, 3),
+                        "repeatability_nm": round(p.repeatability_nm, 3),
+                        "axis_accuracy_nm": {a: round(v, 3) for a, v in p.axis_accuracy_nm.items()},
+                        "axis_repeatability_nm": {a: round(v, 3) for a, v in p.axis_repeatability_nm.items()}}
+                       for p in points],
+        }
+
+
+def _mean_of(points: Sequence[PointStats], figure: str) -> float:
+    return float(np.mean([getattr(p, figure) for p in points])) if points else float("nan")
 
 
 def _num(v: float) -> float | None:
@@ -207,27 +248,29 @@ def iso9283(positions: np.ndarray, target: float) -> tuple[float, float]:
     return abs(mean - target), float(np.mean(dist)) + 3.0 * spread
 
 
-def x_without(step: StepResult) -> float:
-    return step.x_um - (step.q_um - step.step.target_um)
-
-
-def summarize(name: str, steps: Sequence[StepResult], compensated: bool, extrapolating: int = 0) -> TestResult:
+def summarize(name: str, steps: Sequence[StepResult], compensated: bool, extrapolating: int = 0,
+              axis: str = "x", truth: bool = False) -> TestResult:
+    """One test of ``axis`` from its valid steps: with the model as run, and without it computed from the same
+    run (x - (q' - x')); against the position sensor, or with ``truth`` the true position (simulated)."""
     valid = [s for s in steps if s.valid]
-    result = TestResult(name, compensated, list(steps), extrapolating_steps=extrapolating,
-                        invalid_steps=len(steps) - len(valid))
-    for target in sorted({s.step.target_um for s in valid}):
-        here = [s for s in valid if s.step.target_um == target]
-        with_ = np.array([s.x_um for s in here])
-        without = np.array([x_without(s) for s in here])
-        acc, rep = iso9283(with_, target)
-        acc0, rep0 = iso9283(without, target)
-        result.points.append(PointStats(target, len(here), acc * 1e3, rep * 1e3, acc0 * 1e3, rep0 * 1e3))
+    targets = {axis: np.array([s.step.target(axis) for s in valid])}
+    as_run = np.array([(s.true_um if truth else s.positions_um)[axis] for s in valid])
+    without = as_run - np.array([s.q_um[axis] - s.step.target(axis) for s in valid])
+    result = summarize_runs(name, targets, {axis: without}, {axis: as_run})
+    result.compensated, result.steps, result.without_is_computed = compensated, list(steps), compensated
+    result.extrapolating_steps, result.invalid_steps = extrapolating, len(steps) - len(valid)
     return result
 
 
+def summarize_runs(name: str, targets_um: Mapping[str, np.ndarray], without_um: Mapping[str, np.ndarray],
+                   with_um: Mapping[str, np.ndarray] | None) -> TestResult:
+    """One test of any number of axes from per-step targets and attained positions (µm, one array per axis):
+    without the model and with it (None: not run). ``without_is_computed`` is left for :func:`summarize`."""
+    return TestResult(name, with_um is not None, [], score_points(targets_um, with_um) if with_um is not None else [],
+                      score_points(targets_um, without_um), axes=tuple(targets_um), without_is_computed=False)
 
 
-# ----- multi-axis cells: ISO 9283 pose accuracy and repeatability in 2-D / 3-D -------------------------
+# ----- ISO 9283 pose accuracy and repeatability in the cell's dimension ---------------------------------
 
 def pose_accuracy(attained: np.ndarray, target: Sequence[float]) -> float:
     """ISO 9283 pose accuracy AP: distance from the barycentre of the attained points (rows) to the target."""
@@ -244,67 +287,21 @@ def pose_repeatability(attained: np.ndarray) -> float:
     return float(dist.mean()) + 3.0 * spread
 
 
-@dataclass
-class CellPointStats:
-    """One ISO 9283 point of a multi-axis test: AP and RP in 2-D/3-D and per axis (nm)."""
-
-    target_um: dict[str, float]
-    visits: int
-    accuracy_nm: float
-    repeatability_nm: float
-    axis_accuracy_nm: dict[str, float]
-    axis_repeatability_nm: dict[str, float]
-
-
-@dataclass
-class CellTestResult:
-    """The ISO 9283 figures of one multi-axis test run (with or without the model), against one reference."""
-
-    name: str
-    axes: tuple[str, ...]
-    points: list[CellPointStats]
-
-    @property
-    def accuracy_nm(self) -> float:
-        """The test's figure: AP in 2-D/3-D, mean over the points."""
-        return float(np.mean([p.accuracy_nm for p in self.points]))
-
-    @property
-    def repeatability_nm(self) -> float:
-        return float(np.mean([p.repeatability_nm for p in self.points]))
-
-    def axis_accuracy_nm(self, axis: str) -> float:
-        """Table I for one axis: mean over the points of |mean attained - target| along ``axis``."""
-        return float(np.mean([p.axis_accuracy_nm[axis] for p in self.points]))
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "test": self.name, "axes": list(self.axes),
-            "accuracy_nm": round(self.accuracy_nm, 3), "repeatability_nm": round(self.repeatability_nm, 3),
-            "axis_accuracy_nm": {a: round(self.axis_accuracy_nm(a), 3) for a in self.axes},
-            "points": [{"target_um": p.target_um, "visits": p.visits, "accuracy_nm": round(p.accuracy_nm, 3),
-                        "repeatability_nm": round(p.repeatability_nm, 3),
-                        "axis_accuracy_nm": {a: round(v, 3) for a, v in p.axis_accuracy_nm.items()},
-                        "axis_repeatability_nm": {a: round(v, 3) for a, v in p.axis_repeatability_nm.items()}}
-                       for p in self.points],
-        }
-
-
-def summarize_cell(name: str, targets_um: dict[str, np.ndarray], attained_um: dict[str, np.ndarray]
-                   ) -> CellTestResult:
-    """ISO 9283 per point (rows with the same target on every axis, in first-visit order) from per-step
-    targets and attained positions (µm, one array per axis): AP/RP in the cell's dimension and per axis, in nm."""
+def score_points(targets_um: Mapping[str, np.ndarray], attained_um: Mapping[str, np.ndarray]) -> list[PointStats]:
+    """ISO 9283 per point (steps with the same target on every axis) from per-step targets and attained
+    positions (µm, one array per axis): AP/RP in the cell's dimension and per axis, in nm. The one code path
+    of every test, one axis or several (one axis: AP = |mean - target|, RP as :func:`iso9283`)."""
     axes = tuple(targets_um)
     target = np.column_stack([np.asarray(targets_um[a], dtype=np.float64) for a in axes])
     attained = np.column_stack([np.asarray(attained_um[a], dtype=np.float64) for a in axes])
     points = []
     rows, first = np.unique(target, axis=0, return_index=True)
-    for row in rows[np.argsort(first)]:  # in the order the plan first visits them (P1..P5)
+    for row in (rows if len(axes) == 1 else rows[np.argsort(first)]):  # one axis: by position; else as visited (P1..P5)
         here = attained[np.all(target == row, axis=1)]
         per_axis = {a: iso9283(here[:, j], float(row[j])) for j, a in enumerate(axes)}
-        points.append(CellPointStats(
+        points.append(PointStats(
             target_um={a: float(row[j]) for j, a in enumerate(axes)}, visits=int(here.shape[0]),
             accuracy_nm=pose_accuracy(here, row) * 1e3, repeatability_nm=pose_repeatability(here) * 1e3,
             axis_accuracy_nm={a: v[0] * 1e3 for a, v in per_axis.items()},
             axis_repeatability_nm={a: v[1] * 1e3 for a, v in per_axis.items()}))
-    return CellTestResult(name, axes, points)
+    return points

@@ -8,7 +8,6 @@ demo all take their timing from :class:`StepTiming`, and a move's sub-commands f
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -82,22 +81,6 @@ def bidirectional_plan(cycles: int, points: Sequence[float] = CALIBRATION_POINTS
     return [PlannedStep.on_x(i, c, x) for i, (c, x) in enumerate((c, x) for c in range(cycles) for x in order[c])]
 
 
-@dataclass
-class StepResult:
-    """What one step measured: the means of its averaging window (or a fallback when ``valid`` is False)."""
-
-    step: PlannedStep
-    t_s: float
-    q_um: float
-    x_um: float
-    temperatures: dict[str, float]
-    valid: bool
-    retries: int = 0
-    problem: str = ""
-    #: the true attained position over the same window, when the cell knows it (simulated); nan on hardware
-    x_true_um: float = math.nan
-
-
 def validation_plan(cycles: int, points: Sequence[float] = VALIDATION_POINTS_UM) -> list[PlannedStep]:
     """ISO 9283: alternating up and down sweeps, so inner points are approached from both sides."""
     steps: list[PlannedStep] = []
@@ -114,8 +97,8 @@ _DESIGN_LINES: dict[int, tuple[int, int]] = {1: (1, 5), 2: (13, 6)}
 
 
 @dataclass
-class CellStepResult:
-    """What one step of a cell's plan measured, per axis (window means; a fallback when ``valid`` is False)."""
+class StepResult:
+    """What one step measured, per axis: the means of its averaging window (a fallback when ``valid`` is False)."""
 
     step: PlannedStep
     t_s: float
@@ -128,11 +111,10 @@ class CellStepResult:
     #: each axis' true attained position over the window, when the cell knows it (simulated); nan on hardware
     true_um: dict[str, float] = field(default_factory=dict)
 
-    def axis_result(self, axis: str) -> StepResult:
-        """This step as one axis' :class:`StepResult` (what ISO 9283 scoring, the follow check and reports read)."""
-        return StepResult(PlannedStep.on_x(self.step.index, self.step.cycle, self.step.target(axis)), self.t_s,
-                          self.q_um[axis], self.positions_um[axis], self.temperatures, self.valid, self.retries,
-                          self.problem, x_true_um=self.true_um.get(axis, math.nan))
+    def x_without_um(self, axis: str) -> float:
+        """Where ``axis`` would have been with the command = target: position - (command - target) (the stage's
+        closed loop follows its command with unit gain, so this is the same period without the model)."""
+        return self.positions_um[axis] - (self.q_um[axis] - self.step.target(axis))
 
 
 def cell_calibration_plan(axes: Sequence[str], cycles: int = 24,

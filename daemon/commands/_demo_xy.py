@@ -11,10 +11,11 @@ independent one-axis models (each axis' command from its own position) and the f
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 from nanodrift.calibration.dataset import write_csv
-from nanodrift.calibration.iso9283 import summarize_cell
+from nanodrift.calibration.iso9283 import TestResult, summarize_runs
 from nanodrift.commands._cell import scenario_seed
 from nanodrift.drivers.simulated.datasets import simulate_dataset
 from nanodrift.drivers.simulated.physics import CellPhysics
@@ -36,20 +37,22 @@ def two_axis_part(seed: int, cycles: int, calibration_cycles: int, keep: Path | 
     run = run_cell_validation(physics, cell_command(cell), cycles=cycles, name=test)
     alone = run_cell_validation(physics, independent_command(independent), cycles=cycles, name=test)
     targets = run.targets_um
-    without = summarize_cell(test, targets, run.attained(False, "truth"))
-    with_cell = summarize_cell(test, targets, run.attained(True, "truth"))
-    with_alone = summarize_cell(test, targets, alone.attained(True, "truth"))
-    measured = summarize_cell(test, targets, run.attained(True, "interferometer"))
+    truth = summarize_runs(test, targets, run.attained(False, "truth"), run.attained(True, "truth"))
+    alone_truth = summarize_runs(test, targets, alone.attained(False, "truth"), alone.attained(True, "truth"))
+    measured = summarize_runs(test, targets, run.attained(False, "interferometer"),
+                              run.attained(True, "interferometer"))
     lines = [f"model {cell.id}: per axis, over both positions:"]
     for axis in AXES:
         lines.append(f"   q_{axis} from {', '.join(cell.models[axis].term_names())}")
     head = f"   {'':<10}{'without':>10}{'two one-axis models':>22}{'one XY model':>15}{'improvement':>13}"
     lines += [f"{test} at ISO 9283 points off the calibration levels, {cycles} cycles, against the TRUE position:",
               head]
-    runs = (without, with_alone, with_cell)
-    for label, (before, alone_nm, after) in ([(f"axis {a}", [r.axis_accuracy_nm(a) for r in runs]) for a in AXES]
-                                             + [("AP 2-D", [r.accuracy_nm for r in runs]),
-                                                ("RP 2-D", [r.repeatability_nm for r in runs])]):
+    picks: list[tuple[str, Callable[[TestResult, bool], float]]] = [
+        *((f"axis {a}", lambda r, w, a=a: r.axis_accuracy_nm(a, with_model=w)) for a in AXES),
+        ("AP 2-D", lambda r, w: r.accuracy_nm if w else r.accuracy_without_nm),
+        ("RP 2-D", lambda r, w: r.repeatability_nm if w else r.repeatability_without_nm)]
+    for label, pick in picks:
+        before, alone_nm, after = pick(truth, False), pick(alone_truth, True), pick(truth, True)
         gain = f"{before / after:.0f}×" if after > 0 and not label.startswith("RP") else ""  # RP: spread, not bias
         lines.append(f"   {label:<10}{before:>7.0f} nm{alone_nm:>19.0f} nm{after:>12.0f} nm{gain:>13}")
     a0, a1 = ANCHOR_2DOF_NM

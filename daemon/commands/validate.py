@@ -28,8 +28,8 @@ from typing import Any
 
 import numpy as np
 
-from nanodrift.calibration.iso9283 import TestResult, summarize_cell
-from nanodrift.calibration.plans import CellStepResult, cell_validation_plan
+from nanodrift.calibration.iso9283 import TestResult, summarize_runs
+from nanodrift.calibration.plans import StepResult, cell_validation_plan
 from nanodrift.calibration.residuals import BiasTracker
 from nanodrift.commands import _cell
 from nanodrift.config import Config, load_config
@@ -44,7 +44,6 @@ from nanodrift.model.cell_model import CellModel, load_any_model
 from nanodrift.model.model import Model, ModelFileError
 from nanodrift.procedure.validation import run_cell_validation_steps, run_validation
 from nanodrift.reports.validation import (
-    CellScores,
     cell_json,
     cell_table,
     coverage_lines,
@@ -202,11 +201,9 @@ def _print_details(result: TestResult, tracker: BiasTracker | None, compensate: 
         print(line.replace("uncertainty:", f"uncertainty{which}:", 1))
     kind = "with compensation" if compensate else "without compensation"
     print(f"{gap}per point ({f'{result.name}, ' if several else ''}{kind}):")
-    for p in result.points:
-        acc, rep = (p.accuracy_nm, p.repeatability_nm) if compensate else (p.accuracy_without_nm,
-                                                                             p.repeatability_without_nm)
-        print(f"  x' = {p.target_um:5.0f} µm: accuracy {acc:7.1f} nm, repeatability {rep:7.1f} nm "
-              f"({p.visits} visits)")
+    for p in (result.points if compensate else result.points_without):
+        print(f"  x' = {p.target_um[result.axis]:5.0f} µm: accuracy {p.accuracy_nm:7.1f} nm, repeatability "
+              f"{p.repeatability_nm:7.1f} nm ({p.visits} visits)")
 
 
 def _json_default(value: Any) -> Any:
@@ -221,9 +218,8 @@ def _json_default(value: Any) -> Any:
 Attained = list[dict[str, np.ndarray]]  # each axis' attained positions: without the model, then with it (if run)
 
 
-def _scores(name: str, targets_um: dict[str, np.ndarray], attained: Attained) -> CellScores:
-    with_model = summarize_cell(name, targets_um, attained[1]) if len(attained) > 1 else None
-    return CellScores(summarize_cell(name, targets_um, attained[0]), with_model)
+def _scores(name: str, targets_um: dict[str, np.ndarray], attained: Attained) -> TestResult:
+    return summarize_runs(name, targets_um, attained[0], attained[1] if len(attained) > 1 else None)
 
 
 def _cell_tests(args: argparse.Namespace, model: CellModel, asked: list[str | None]) -> int:
@@ -249,7 +245,7 @@ def _cell_tests(args: argparse.Namespace, model: CellModel, asked: list[str | No
     return 0
 
 
-def _cell_report(args: argparse.Namespace, name: str, text: str, doc: dict[str, Any], truth: CellScores,
+def _cell_report(args: argparse.Namespace, name: str, text: str, doc: dict[str, Any], truth: TestResult,
                  targets_um: dict[str, np.ndarray], attained: Attained) -> None:
     """``--report``: the test's files (one directory per test when several are asked for)."""
     several = len(_cell.scenario_list(args.scenario)) > 1
@@ -285,7 +281,7 @@ def _simulated_test(args: argparse.Namespace, model: CellModel, scenario: str,
 
 
 def _driven_run(args: argparse.Namespace, model: CellModel, scenario: str | None,
-                compensate: bool) -> tuple[Config, DriverSet, list[CellStepResult], int]:
+                compensate: bool) -> tuple[Config, DriverSet, list[StepResult], int]:
     """One run of the plan on a fresh cell (a simulated one restarts its room: both runs see the same one)."""
     config, drivers = _open(args, scenario)
     if sorted(config.axis_names) != sorted(model.axes):

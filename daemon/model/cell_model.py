@@ -31,7 +31,7 @@ import numpy as np
 
 from nanodrift.atomic import atomic_write_text
 from nanodrift.model.json_unique import loads_unique
-from nanodrift.model.model import FORMAT, Model, ModelFileError, _read_model_text, load_model, save_model
+from nanodrift.model.model import FORMAT, Model, ModelFileError, _read_model_text, load_model, outside, save_model
 from nanodrift.model.series import Series
 
 #: letters an axis may take: not q (``q_um`` is the one-axis command column)
@@ -93,16 +93,7 @@ class CellModel:
     def out_of_range(self, positions: Mapping[str, float] | None = None,
                      temps: Mapping[str, float] | None = None) -> list[str]:
         """Axis names and channels whose value lies outside what the models were trained on."""
-        out = []
-        for axis, (lo, hi) in self.position_ranges.items():
-            if positions is not None and axis in positions and not lo <= positions[axis] <= hi:
-                out.append(axis)
-        ranges = self.channel_ranges
-        for name, value in (temps or {}).items():
-            bounds = ranges.get(name)
-            if bounds is not None and not bounds[0] <= value <= bounds[1]:
-                out.append(name)
-        return out
+        return outside(positions or {}, self.position_ranges) + outside(temps or {}, self.channel_ranges)
 
     def evaluator(self) -> CellEvaluator:
         return CellEvaluator(self)

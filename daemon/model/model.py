@@ -211,14 +211,8 @@ class Model:
 
     def out_of_range(self, x: float | None = None, temps: Mapping[str, float] | None = None) -> list[str]:
         """Names (``x`` or channels) whose value lies outside what the model was trained on."""
-        out = []
-        if x is not None and not (self.training.x_range[0] <= x <= self.training.x_range[1]):
-            out.append("x")
-        for name, value in (temps or {}).items():
-            bounds = self.training.channel_ranges.get(name)
-            if bounds is not None and not (bounds[0] <= value <= bounds[1]):
-                out.append(name)
-        return out
+        return outside({} if x is None else {"x": x}, {"x": self.training.x_range}) + outside(
+            temps or {}, self.training.channel_ranges)
 
     def evaluator(self) -> Evaluator:
         return Evaluator(self)
@@ -620,3 +614,9 @@ def _training_from_dict(raw: Any, fail: Any) -> Training:
         t_span_s=0.0 if math.isnan(t_span_s) else t_span_s,
         position_ranges={str(a): pair(r, f"{a}_um") for a, r in positions.items()},
     )
+
+
+def outside(values: Mapping[str, float], ranges: Mapping[str, tuple[float, float]]) -> list[str]:
+    """The names in ``values`` whose value lies outside its range in ``ranges`` (a name without one is not judged)."""
+    return [name for name, value in values.items()
+            if name in ranges and not ranges[name][0] <= value <= ranges[name][1]]

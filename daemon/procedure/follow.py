@@ -33,15 +33,16 @@ class FollowCheck:
     def done(self) -> bool:
         return self.checked >= self.steps
 
-    def observe(self, result: StepResult) -> None:
-        """Compare ``result`` with the previous step; :class:`StageNotFollowingError` when the stage stayed put."""
+    def observe(self, result: StepResult, axis: str) -> None:
+        """Compare ``result`` on ``axis`` with the previous step; :class:`StageNotFollowingError` when the stage
+        stayed put."""
         previous, self._previous = self._previous, (result if result.valid else None)
         if self.done or previous is None or not result.valid:
             return
-        commanded = result.q_um - previous.q_um
+        commanded = result.q_um[axis] - previous.q_um[axis]
         if abs(commanded) < self.min_move_um:
             return
-        moved = result.x_um - previous.x_um
+        moved = result.positions_um[axis] - previous.positions_um[axis]
         self.checked += 1
         if not math.isfinite(moved) or abs(moved - commanded) > self.tolerance * abs(commanded):
             raise StageNotFollowingError(

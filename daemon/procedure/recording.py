@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import IO
 
 from nanodrift.calibration.dataset import CsvAppender, DataError, command_column, position_column, read_csv
-from nanodrift.calibration.plans import PAPER_TIMING, CellStepResult, PlannedStep, StepTiming, calibration_plan
+from nanodrift.calibration.plans import PAPER_TIMING, PlannedStep, StepResult, StepTiming, calibration_plan
 from nanodrift.drivers_set import DriverSet
 from nanodrift.model.cell_model import CellModel, save_cell_model
 from nanodrift.model.identify import FitResult, fit, fit_cell
@@ -57,7 +57,7 @@ async def record_calibration(
     timing: StepTiming = PAPER_TIMING,
     resume: bool = False,
     progress_stream: IO[str] | None = None,
-    on_step: Callable[[CellStepResult], None] | None = None,
+    on_step: Callable[[StepResult], None] | None = None,
     follow: Mapping[str, FollowCheck] | None = None,
     ready: Callable[[], Awaitable[None]] | None = None,
 ) -> int:
@@ -82,7 +82,7 @@ async def record_calibration(
     progress = Progress(plan, "calibration", progress_stream, done=done)
     appender: CsvAppender | None = None  # created with the first step: a run refused before it leaves no file
 
-    def write(result: CellStepResult) -> None:
+    def write(result: StepResult) -> None:
         nonlocal appender
         if appender is None:
             appender = CsvAppender(path, columns)

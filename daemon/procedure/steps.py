@@ -23,8 +23,8 @@ from collections.abc import Awaitable, Callable, Mapping, Sequence
 
 from nanodrift.calibration.plans import (
     PAPER_TIMING,
-    CellStepResult,
     PlannedStep,
+    StepResult,
     StepTiming,
     ramp_commands,
 )
@@ -98,7 +98,7 @@ async def ramp(drivers: DriverSet, limits: Limits, q_from: Mapping[str, float | 
 
 
 async def measure_step(sampler: Sampler, limits: Limits, step: PlannedStep, q_from: Mapping[str, float | None],
-                       q_to: dict[str, float], timing: StepTiming) -> CellStepResult:
+                       q_to: dict[str, float], timing: StepTiming) -> StepResult:
     """Ramp every axis, hold, average the last window; re-measure a dirty window up to ``max_retries`` times."""
     drivers = sampler.drivers
     clock = drivers.clock
@@ -124,7 +124,7 @@ async def measure_step(sampler: Sampler, limits: Limits, step: PlannedStep, q_fr
             continue
         if not valid:
             means = sampler.fallback(channels, start, end)
-        return CellStepResult(step, end, dict(q_to), {a: means[c] for a, c in positions.items()},
+        return StepResult(step, end, dict(q_to), {a: means[c] for a, c in positions.items()},
                               {c: means[c] for c in drivers.temperature_channels}, valid, retries, problem, truth)
 
 
@@ -135,12 +135,12 @@ async def run_steps(
     limits: Limits | None = None,
     timing: StepTiming = PAPER_TIMING,
     command_for: CommandFor | None = None,
-    on_step: Callable[[CellStepResult], Awaitable[None] | None] | None = None,
+    on_step: Callable[[StepResult], Awaitable[None] | None] | None = None,
     on_temperatures: Callable[[float, dict[str, float]], None] | None = None,
     progress: Progress | None = None,
     follow: Mapping[str, FollowCheck] | None = None,
     ready: Callable[[], Awaitable[None]] | None = None,
-) -> list[CellStepResult]:
+) -> list[StepResult]:
     """Drive ``plan`` step by step on every axis; ``command_for(targets, t)`` gives the commands (default: the
     targets).
 
@@ -152,7 +152,7 @@ async def run_steps(
     limits = axis_limits(drivers, limits)
     actuators = {a: drivers.actuators[a] for a in limits}
     sampler = Sampler(drivers, on_temperatures=on_temperatures)
-    results: list[CellStepResult] = []
+    results: list[StepResult] = []
     q_prev: dict[str, float | None] = dict.fromkeys(limits)
     commanded = False  # a run refused before its first move (no output node) leaves the stage alone
     for axis, actuator in actuators.items():
@@ -184,7 +184,7 @@ async def run_steps(
             if progress is not None:
                 progress.advance(result.valid)
             for axis, check in (follow or {}).items():
-                check.observe(result.axis_result(axis))
+                check.observe(result, axis)
     except BaseException:
         if commanded:
             await leave_safe(drivers, limits, q_prev, timing, quiet=True)

@@ -6,19 +6,18 @@ step's averaged position minus its target, the measurement the daemon's monitor 
 target is held), its correction added to every following command.
 
 On a simulated cell each step also carries the position the stage truly attained, averaged over the
-same readings as the interferometer's (``StepResult.x_true_um``, from the sensor group's
+same readings as the interferometer's (``StepResult.true_um``, from the sensor group's
 ``true_values``), and the result lists them (``TestResult.x_true_um``): the test is scored against the
 truth beside the interferometer. Hardware knows no truth: the list stays empty.
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Awaitable, Callable, Mapping, Sequence
 from typing import IO, Any
 
 from nanodrift.calibration.iso9283 import TestResult, summarize
-from nanodrift.calibration.plans import CellStepResult, PlannedStep, StepResult, StepTiming, validation_plan
+from nanodrift.calibration.plans import PlannedStep, StepResult, StepTiming, validation_plan
 from nanodrift.calibration.residuals import BiasTracker
 from nanodrift.drivers_set import DriverSet
 from nanodrift.model.cell_model import CellEvaluator, CellModel
@@ -41,10 +40,10 @@ def check_ready(evaluator: Evaluator | CellEvaluator) -> None:
         raise RuntimeError("no clean temperature sample yet for every channel the model needs")
 
 
-def feed_tracker(tracker: BiasTracker, result: StepResult) -> float:
+def feed_tracker(tracker: BiasTracker, result: StepResult, axis: str) -> float:
     """One step into the tracker, as the daemon feeds a settled residual: valid steps only. The correction."""
     if result.valid:
-        tracker.update(result.t_s, result.x_um - result.step.target_um)
+        tracker.update(result.t_s, result.positions_um[axis] - result.step.target(axis))
     return tracker.correction_um
 
 
@@ -104,18 +103,15 @@ async def run_validation(
             adapted_sigmas.append(adapt.sigma_um(sigma, wander_um))
         return {axis: float(evaluator.command(target, t)) + correction}
 
-    def on_step(result: CellStepResult) -> None:
+    def on_step(result: StepResult) -> None:
         if adapt is not None:
-            feed_tracker(adapt, result.axis_result(axis))
+            feed_tracker(adapt, result, axis)
 
     progress = Progress(plan, name, progress_stream)
-    cell_steps = await run_steps(drivers, plan, limits=limits, timing=timing, command_for=command_for,
+    steps = await run_steps(drivers, plan, limits=limits, timing=timing, command_for=command_for,
                                  on_step=on_step, on_temperatures=observe, progress=progress, follow=follow,
                                  ready=ready)
-    steps = [s.axis_result(axis) for s in cell_steps]
-    result = summarize(name, steps, model is not None, extrapolating)
-    truths = [s.x_true_um for s in steps]
-    result.x_true_um = truths if truths and all(math.isfinite(x) for x in truths) else []
+    result = summarize(name, steps, model is not None, extrapolating, axis)
     if model is not None:
         result.corrections_um = corrections
         result.q_sigma_um = sigmas
@@ -137,7 +133,7 @@ async def run_cell_validation_steps(
     progress_stream: IO[str] | None = None,
     follow: Mapping[str, FollowCheck] | None = None,
     ready: Callable[[], Awaitable[None]] | None = None,
-) -> tuple[list[CellStepResult], int]:
+) -> tuple[list[StepResult], int]:
     """A multi-axis cell's ISO 9283 plan, through ``model`` when ``compensate`` (else command = target): its
     steps, and how many commands were for a target or temperatures outside the model's training ranges."""
     check_channels(model, drivers)

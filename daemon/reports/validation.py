@@ -30,14 +30,13 @@ import io
 import json
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from nanodrift.atomic import atomic_write_text, atomic_writer
-from nanodrift.calibration.iso9283 import CellTestResult, TestResult, x_without
+from nanodrift.calibration.iso9283 import TestResult
 
 if TYPE_CHECKING:
     from matplotlib.typing import RcKeyType
@@ -132,13 +131,13 @@ def coverage_lines(result: TestResult) -> tuple[list[str], str | None]:
     valid = [s for s in result.steps if s.valid]
     if result.has_truth:
         judged, what = result.coverage_true(), "true errors"
-        errors = [s.x_true_um - s.step.target_um for s in valid]
+        errors = [s.true_um[result.axis] - s.step.target(result.axis) for s in valid]
         lines.append(f"against the true position (simulated cell): accuracy {_nm(result.accuracy_true_nm)} with "
                      f"compensation (interferometer: {_nm(result.accuracy_nm)}); {judged * 100:.0f} % of the true "
                      f"errors (true position - target) within ±2 {name}")
     else:
         judged, what = measured, "measured errors"
-        errors = [s.x_um - s.step.target_um for s in valid]
+        errors = [s.positions_um[result.axis] - s.step.target(result.axis) for s in valid]
     lo, hi = COVERAGE_GOAL
     rms_nm = float(np.sqrt(np.mean(np.square(errors)))) * 1e3 if errors else math.nan
     if not math.isfinite(judged) or lo <= judged <= hi or (judged > hi and rms_nm >= 0.5 * median_nm):
@@ -166,8 +165,9 @@ def raw_csv(results: Sequence[TestResult]) -> str:
     for r in results:
         trues = r.x_true_um if r.has_truth else [math.nan] * len(r.steps)
         for s, x_true in zip(r.steps, trues, strict=True):
-            writer.writerow([r.name, repr(s.t_s), s.step.cycle, repr(s.step.target_um), repr(s.q_um), repr(s.x_um),
-                             repr(x_without(s)), int(s.valid),
+            a = r.axis
+            writer.writerow([r.name, repr(s.t_s), s.step.cycle, repr(s.step.target(a)), repr(s.q_um[a]),
+                             repr(s.positions_um[a]), repr(s.x_without_um(a)), int(s.valid),
                              *(repr(s.temperatures.get(c, math.nan)) for c in channels),
                              *([repr(x_true)] if truth else [])])
     return out.getvalue()
@@ -272,21 +272,22 @@ def _draw_drift(plt: Any, results: Sequence[TestResult], training: Training | No
                              gridspec_kw={"height_ratios": [3, 1.4] * len(results)})
     for i, r in enumerate(results):
         ax, tax = axes[2 * i, 0], axes[2 * i + 1, 0]
-        zero = [s for s in r.steps if s.step.target_um == 0.0 and s.valid]
+        a = r.axis
+        zero = [s for s in r.steps if s.step.target(a) == 0.0 and s.valid]
         hours = [s.t_s / 3600.0 for s in zero]
         ax.axhline(0.0, color="0.6", lw=0.8)
         if r.compensated:
-            ax.plot(hours, [1e3 * x_without(s) for s in zero], "o-", ms=4, color=WITHOUT_COLOR,
+            ax.plot(hours, [1e3 * s.x_without_um(a) for s in zero], "o-", ms=4, color=WITHOUT_COLOR,
                     label="drift without compensation (computed: x − (q′ − x′))")
-            ax.plot(hours, [1e3 * (s.step.target_um - s.q_um) for s in zero], "s--", ms=4, color="0.35",
+            ax.plot(hours, [1e3 * (s.step.target(a) - s.q_um[a]) for s in zero], "s--", ms=4, color="0.35",
                     label="compensation applied (x′ − q′)")
-            ax.plot(hours, [1e3 * s.x_um for s in zero], "D-", ms=4, color=WITH_COLOR,
+            ax.plot(hours, [1e3 * s.positions_um[a] for s in zero], "D-", ms=4, color=WITH_COLOR,
                     label="position with compensation (measured)")
         else:
-            ax.plot(hours, [1e3 * s.x_um for s in zero], "o-", ms=4, color=WITHOUT_COLOR,
+            ax.plot(hours, [1e3 * s.positions_um[a] for s in zero], "o-", ms=4, color=WITHOUT_COLOR,
                     label="drift (measured position, no compensation)")
         if r.has_truth:
-            true_zero = [x for s, x in zip(r.steps, r.x_true_um, strict=True) if s.step.target_um == 0.0 and s.valid]
+            true_zero = [s.true_um[a] for s in zero]
             ax.plot(hours, [1e3 * x for x in true_zero], "-", lw=1.0, color="0.15",
                     label="true position (simulated cell: no interferometer noise or wander)")
         ax.set_title(f"{r.name} ({'with' if r.compensated else 'without'} compensation): position at x′ = 0 µm")
@@ -390,7 +391,7 @@ def _draw_accuracy(plt: Any, results: Sequence[TestResult], training: Training |
     _truth_marks(ax1, results)
     ax1.set_ylabel("accuracy (nm)")
     ax1.set_title("Table I: mean accuracy per test")
-    _bars(ax_rep, results, [_mean([p.repeatability_without_nm for p in r.points]) for r in results],
+    _bars(ax_rep, results, [_mean([p.repeatability_nm for p in r.points_without]) for r in results],
           [_mean([p.repeatability_nm for p in r.points]) for r in results])
     ax_rep.set_ylabel("repeatability (nm)")
     ax_rep.set_title("mean repeatability per test (ISO 9283 RP)")
@@ -406,17 +407,17 @@ def _draw_points(ax2: Any, results: Sequence[TestResult], training: Training | N
     values: list[float] = []
     for k, r in enumerate(results):
         color = f"C{k}"
-        xs = [p.target_um for p in r.points]
-        ax2.plot(xs, [p.accuracy_without_nm for p in r.points], "o--", ms=4, color=color, alpha=0.7,
+        xs = [p.target_um[r.axis] for p in r.points_without]
+        ax2.plot(xs, [p.accuracy_nm for p in r.points_without], "o--", ms=4, color=color, alpha=0.7,
                  mfc="none", label=f"{r.name} without" + (" (computed)" if r.compensated else ""))
-        values.extend(p.accuracy_without_nm for p in r.points)
+        values.extend(p.accuracy_nm for p in r.points_without)
         if r.compensated:
             ax2.plot(xs, [p.accuracy_nm for p in r.points], "o-", ms=4, color=color, label=f"{r.name} with")
             values.extend(p.accuracy_nm for p in r.points)
     ax2.set_xlabel("test point x′ (µm)")
     ax2.set_ylabel("accuracy (nm)")
     ax2.set_title("accuracy at each test point (ISO 9283)")
-    points = sorted({p.target_um for r in results for p in r.points})
+    points = sorted({p.target_um[r.axis] for r in results for p in r.points_without})
     if points:
         ax2.set_xticks(points)
         if training is not None and (points[0] < training.x_range[0] or points[-1] > training.x_range[1]):
@@ -459,71 +460,52 @@ def save_figure(fig: Any, stem: Path) -> list[Path]:
 ANCHOR_2DOF_NM = (1400.0, 200.0)
 
 
-@dataclass
-class CellScores:
-    """One test of a multi-axis cell against one reference: without the model, and with it (None: not run)."""
-
-    without: CellTestResult
-    with_model: CellTestResult | None
-
-    @property
-    def improvement(self) -> float:
-        return self.without.accuracy_nm / self.with_model.accuracy_nm if self.with_model else math.nan
-
-
-def cell_table(name: str, truth: CellScores, measured: CellScores) -> str:
-    """Table I per axis and the ISO 9283 pose accuracy AP / repeatability RP in the cell's dimension."""
-    axes = truth.without.axes
+def cell_table(name: str, truth: TestResult, measured: TestResult) -> str:
+    """Table I per axis and the ISO 9283 pose accuracy AP / repeatability RP in the cell's dimension, against
+    the true position (``truth``) and the position sensors (``measured``): the same test scored twice."""
+    axes = truth.axes
     dim = f"{len(axes)}-D"
     head = (f"{'Test':<8}{'':<8}{'Without comp.':>15}{'With comp.':>12}{'Improvement':>13}   | "
             f"{'interferometer: without':>24}{'with':>9}")
-    lines = [f"TABLE I per axis and ISO 9283 pose accuracy AP in {dim} (mean over P1..P{len(truth.without.points)}), "
+    lines = [f"TABLE I per axis and ISO 9283 pose accuracy AP in {dim} (mean over P1..P{len(truth.points_without)}), "
              "against the TRUE position | against the interferometers", head, "-" * len(head)]
 
-    def row(label: str, t0: float, t1: float | None, m0: float, m1: float | None) -> str:
-        ratio = t0 / t1 if t1 else None
-        return (f"{name:<8}{label:<8}{_nm(t0):>15}{_nm(t1):>12}{ratio_text(ratio):>13}   | "
+    def row(label: str, t0: float, t1: float, m0: float, m1: float) -> str:
+        return (f"{name:<8}{label:<8}{_nm(t0):>15}{_nm(t1):>12}{ratio_text(t0 / t1 if t1 else None):>13}   | "
                 f"{_nm(m0):>24}{_nm(m1):>9}")
 
-    def w(scores: CellScores) -> CellTestResult | None:
-        return scores.with_model
-
     for a in axes:
-        with_t, with_m = w(truth), w(measured)
-        lines.append(row(f"axis {a}", truth.without.axis_accuracy_nm(a),
-                         with_t.axis_accuracy_nm(a) if with_t else None,
-                         measured.without.axis_accuracy_nm(a), with_m.axis_accuracy_nm(a) if with_m else None))
-    with_t, with_m = w(truth), w(measured)
-    lines.append(row(f"AP {dim}", truth.without.accuracy_nm, with_t.accuracy_nm if with_t else None,
-                     measured.without.accuracy_nm, with_m.accuracy_nm if with_m else None))
-    lines.append(row(f"RP {dim}", truth.without.repeatability_nm, with_t.repeatability_nm if with_t else None,
-                     measured.without.repeatability_nm, with_m.repeatability_nm if with_m else None))
+        lines.append(row(f"axis {a}", truth.axis_accuracy_nm(a, with_model=False), truth.axis_accuracy_nm(a),
+                         measured.axis_accuracy_nm(a, with_model=False), measured.axis_accuracy_nm(a)))
+    lines.append(row(f"AP {dim}", truth.accuracy_without_nm, truth.accuracy_nm,
+                     measured.accuracy_without_nm, measured.accuracy_nm))
+    lines.append(row(f"RP {dim}", truth.repeatability_without_nm, truth.repeatability_nm,
+                     measured.repeatability_without_nm, measured.repeatability_nm))
     lines.append("without comp.: the same plan run uncompensated (command = target) in the same room, same noise.")
     lines.append(f"AP: distance from the barycentre of the attained points to the target; RP: l̄ + 3 S_l (ISO 9283). "
                  f"Anchor (Tan, Clévy, Chaillet 2015, 2-DoF): {ANCHOR_2DOF_NM[0]:.0f} nm -> {ANCHOR_2DOF_NM[1]:.0f} nm "
                  f"({ANCHOR_2DOF_NM[0] / ANCHOR_2DOF_NM[1]:.0f}×)")
     lines.append("")
     lines.append(f"per point (against the true position): AP / RP in {dim}, without -> with")
-    for i, p0 in enumerate(truth.without.points):
+    for i, p0 in enumerate(truth.points_without):
         where = ", ".join(f"{a} = {p0.target_um[a]:g}" for a in axes)
-        p1 = with_t.points[i] if with_t else None
+        p1 = truth.points[i] if truth.compensated else None
         after = f" -> {p1.accuracy_nm:6.1f} / {p1.repeatability_nm:5.1f} nm" if p1 else ""
         lines.append(f"  ({where}) µm: {p0.accuracy_nm:7.1f} / {p0.repeatability_nm:5.1f} nm{after} "
                      f"({p0.visits} visits)")
     return "\n".join(lines)
 
 
-def cell_json(name: str, truth: CellScores, measured: CellScores, **extra: Any) -> dict[str, Any]:
-    def part(scores: CellScores) -> dict[str, Any]:
-        return {"without": scores.without.to_dict(),
-                "with": scores.with_model.to_dict() if scores.with_model else None,
+def cell_json(name: str, truth: TestResult, measured: TestResult, **extra: Any) -> dict[str, Any]:
+    def part(scores: TestResult) -> dict[str, Any]:
+        return {"without": scores.scores_dict(with_model=False), "with": scores.scores_dict(with_model=True),
                 "improvement_ratio": None if not math.isfinite(scores.improvement) else round(scores.improvement, 3)}
 
-    return {**extra, "test": name, "axes": list(truth.without.axes), "against_truth": part(truth),
+    return {**extra, "test": name, "axes": list(truth.axes), "against_truth": part(truth),
             "against_interferometer": part(measured)}
 
 
-def write_cell_report(directory: str | Path, text: str, doc: Mapping[str, Any], truth: CellScores,
+def write_cell_report(directory: str | Path, text: str, doc: Mapping[str, Any], truth: TestResult,
                       targets_um: Mapping[str, np.ndarray], attained_without: Mapping[str, np.ndarray],
                       attained_with: Mapping[str, np.ndarray] | None) -> list[Path]:
     """Write the report files (each atomically); returns their paths."""
@@ -540,11 +522,11 @@ def write_cell_report(directory: str | Path, text: str, doc: Mapping[str, Any], 
     return written
 
 
-def _cell_figure(plt: Any, truth: CellScores, targets_um: Mapping[str, np.ndarray],
+def _cell_figure(plt: Any, truth: TestResult, targets_um: Mapping[str, np.ndarray],
             attained_without: Mapping[str, np.ndarray], attained_with: Mapping[str, np.ndarray] | None) -> Any:
-    axes = truth.without.axes
+    axes = truth.axes
     a, b = axes[0], axes[1]
-    points = truth.without.points
+    points = truth.points_without
     fig, panels = plt.subplots(1, len(points) + 1, figsize=(3.0 * (len(points) + 1), 3.2))
     for ax, p in zip(panels[:-1], points, strict=True):
         here = np.all([np.asarray(targets_um[k]) == p.target_um[k] for k in axes], axis=0)
@@ -563,11 +545,11 @@ def _cell_figure(plt: Any, truth: CellScores, targets_um: Mapping[str, np.ndarra
     panels[0].legend(fontsize=7)
     bars = panels[-1]
     labels = [f"axis {k}" for k in axes] + [f"AP {len(axes)}-D"]
-    without = [truth.without.axis_accuracy_nm(k) for k in axes] + [truth.without.accuracy_nm]
+    without = [truth.axis_accuracy_nm(k, with_model=False) for k in axes] + [truth.accuracy_without_nm]
     x = np.arange(len(labels))
     bars.bar(x - 0.2, without, 0.4, color="tab:red", label="without")
-    if truth.with_model is not None:
-        with_ = [truth.with_model.axis_accuracy_nm(k) for k in axes] + [truth.with_model.accuracy_nm]
+    if truth.compensated:
+        with_ = [truth.axis_accuracy_nm(k) for k in axes] + [truth.accuracy_nm]
         bars.bar(x + 0.2, with_, 0.4, color="tab:blue", label="with")
     bars.set_xticks(x, labels, fontsize=7)
     bars.set_ylabel("accuracy vs truth (nm)")

@@ -34,7 +34,7 @@ def test_hardware_calibration_publishes_each_step_as_a_command(tmp_path):
     port = free_port()
     config = hardware_config(port)
     backend = procedure_drivers(config)
-    assert isinstance(backend.actuator, ZenohActuator)
+    assert isinstance(backend.actuators["x"], ZenohActuator)
     assert "nanodrift/lab1/command" in backend.description
     with pytest.raises(ValueError, match="outside"):
         config.actuator.checked_voltage(700.0)  # 14 V: refused before anything is published
@@ -46,23 +46,23 @@ def test_hardware_calibration_publishes_each_step_as_a_command(tmp_path):
     conf.insert_json5("scouting/multicast/enabled", "false")
 
     async def scenario() -> list[dict]:
-        await backend.actuator.open()
+        await backend.actuators["x"].open()
         listener = zenoh.open(conf)
         try:
             listener.declare_subscriber("nanodrift/lab1/command", lambda s: received.put(s.payload.to_bytes()))
             deadline = time.monotonic() + 10.0
             while received.empty():  # the first puts may precede the link; bounded
                 assert time.monotonic() < deadline, "no command reached the subscriber in 10 s"
-                await backend.actuator.command(240.0, config.actuator.checked_voltage(240.0))
+                await backend.actuators["x"].command(240.0, config.actuator.checked_voltage(240.0))
                 await asyncio.sleep(0.05)
-            await backend.actuator.command(270.0, config.actuator.checked_voltage(270.0))
+            await backend.actuators["x"].command(270.0, config.actuator.checked_voltage(270.0))
             samples = [json.loads(received.get(timeout=5.0))]
             while samples[-1]["q_um"] != 270.0:
                 samples.append(json.loads(received.get(timeout=5.0)))
             return samples
         finally:
             listener.close()
-            await backend.actuator.close()
+            await backend.actuators["x"].close()
 
     samples = asyncio.run(scenario())
     first, last = samples[0], samples[-1]

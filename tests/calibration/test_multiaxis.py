@@ -8,7 +8,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from nanodrift.calibration.dataset import Dataset
-from nanodrift.calibration.iso9283 import pose_accuracy, pose_repeatability, summarize_cell
+from nanodrift.calibration.iso9283 import pose_accuracy, pose_repeatability, summarize_runs
 from nanodrift.calibration.plans import (
     CALIBRATION_POINTS_UM,
     PAPER_TIMING,
@@ -102,13 +102,15 @@ def test_pose_accuracy_and_repeatability_by_hand():
     spread = math.sqrt(((distances - mean) ** 2).sum() / 2.0)
     assert pose_repeatability(attained) == pytest.approx(mean + 3.0 * spread)
     assert pose_repeatability(attained) == pytest.approx(2.624087, abs=1e-6)
-    result = summarize_cell("t", {"x": np.array([0.0, 0.0, 0.0, 5.0]), "y": np.array([0.0, 0.0, 0.0, 5.0])},
-                            {"x": np.array([1.0, 3.0, 2.0, 5.0]), "y": np.array([0.0, 0.0, 3.0, 4.0])})
-    assert [p.visits for p in result.points] == [3, 1]
-    assert result.points[0].accuracy_nm == pytest.approx(math.sqrt(5.0) * 1e3)
-    assert result.points[0].axis_accuracy_nm == pytest.approx({"x": 2000.0, "y": 1000.0})
-    assert result.points[1].accuracy_nm == pytest.approx(1000.0) and result.points[1].repeatability_nm == 0.0
-    assert result.accuracy_nm == pytest.approx((math.sqrt(5.0) * 1e3 + 1000.0) / 2)
+    result = summarize_runs("t", {"x": np.array([0.0, 0.0, 0.0, 5.0]), "y": np.array([0.0, 0.0, 0.0, 5.0])},
+                            {"x": np.array([1.0, 3.0, 2.0, 5.0]), "y": np.array([0.0, 0.0, 3.0, 4.0])}, None)
+    points = result.points_without
+    assert [p.visits for p in points] == [3, 1] and not result.compensated and not result.points
+    assert points[0].accuracy_nm == pytest.approx(math.sqrt(5.0) * 1e3)
+    assert points[0].axis_accuracy_nm == pytest.approx({"x": 2000.0, "y": 1000.0})
+    assert points[1].accuracy_nm == pytest.approx(1000.0) and points[1].repeatability_nm == 0.0
+    assert result.accuracy_without_nm == pytest.approx((math.sqrt(5.0) * 1e3 + 1000.0) / 2)
+    assert math.isnan(result.accuracy_nm)  # no run through the model
 
 
 def test_cross_terms_beat_independent_one_axis_models_by_a_wide_factor():
@@ -131,9 +133,8 @@ def test_cross_terms_beat_independent_one_axis_models_by_a_wide_factor():
 
     room = CellPhysics.create("test2", seed=1102, axes="xy")
     runs = [run_cell_validation(room, command, cycles=10) for command in (with_cell, with_alone)]
-    without, cell_nm, alone_nm = (summarize_cell("t", runs[0].targets_um, runs[0].attained(False)).accuracy_nm,
-                                  summarize_cell("t", runs[0].targets_um, runs[0].attained(True)).accuracy_nm,
-                                  summarize_cell("t", runs[1].targets_um, runs[1].attained(True)).accuracy_nm)
+    cell, alone = (summarize_runs("t", run.targets_um, run.attained(False), run.attained(True)) for run in runs)
+    without, cell_nm, alone_nm = cell.accuracy_without_nm, cell.accuracy_nm, alone.accuracy_nm
     assert without > 800.0
     assert alone_nm > 5.0 * cell_nm  # the benchmark's 8 seeds: 10-50x
     assert without > 10.0 * cell_nm

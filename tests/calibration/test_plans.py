@@ -45,7 +45,7 @@ def test_the_procedure_sends_exactly_the_planned_sub_commands(slew_um_per_s: flo
     async def body() -> list[tuple[float, float]]:
         clock = VirtualClock(start=100.0)
         actuator = Recording(clock)
-        drivers = DriverSet(context=DriverContext(clock=clock), groups=[], actuator=actuator, roles={},
+        drivers = DriverSet(context=DriverContext(clock=clock), groups=[], roles={},
                             max_age_s={}, actuators={"x": actuator})
         await ramp(drivers, {"x": limits}, {"x": 10.0}, {"x": 40.0}, timing)
         return actuator.sent

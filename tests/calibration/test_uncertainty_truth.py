@@ -34,7 +34,7 @@ def validate(model: Model, test: str, seed: int, cycles: int, effects: str | Non
 
 def true_inside(result: iso9283.TestResult) -> tuple[int, int, float, float]:
     """(steps whose true error lies within ±2 q_sigma, valid steps, RMS true error, median q_sigma)."""
-    pairs = [(s.x_true_um - s.step.target_um, sigma)
+    pairs = [(s.true_um["x"] - s.step.target_um, sigma)
              for s, sigma in zip(result.steps, result.command_sigma_um, strict=True) if s.valid]
     errors = np.array([e for e, _ in pairs])
     sigmas = np.array([sg for _, sg in pairs])
@@ -45,8 +45,8 @@ def true_inside(result: iso9283.TestResult) -> tuple[int, int, float, float]:
 def test_every_validation_step_on_the_simulated_cell_knows_the_true_position() -> None:
     result = validate(trained_model(0), "test2", seed=3, cycles=1)
     for step in result.steps:
-        measured_minus_true = step.x_um - step.x_true_um
-        assert np.isfinite(step.x_true_um)
+        measured_minus_true = step.positions_um["x"] - step.true_um["x"]
+        assert np.isfinite(step.true_um["x"])
         assert abs(measured_minus_true) < 0.15  # the interferometer's wander and noise, nothing more
     assert result.has_truth and np.isfinite(result.accuracy_true_nm)
 

@@ -35,14 +35,16 @@ def test_iso9283_one_axis():
 
 
 def test_without_is_computed_from_the_same_period():
-    steps = [StepResult(PlannedStep.on_x(i, i, 80.0), float(i), q_um=79.6, x_um=80.02 + 0.01 * i,
+    steps = [StepResult(PlannedStep.on_x(i, i, 80.0), float(i), q_um={"x": 79.6},
+                        positions_um={"x": 80.02 + 0.01 * i},
                         temperatures={"T1": 22.0}, valid=True) for i in range(4)]
-    steps.append(StepResult(PlannedStep.on_x(4, 4, 80.0), 5.0, 70.0, 70.0, {"T1": 22.0}, valid=False))
+    steps.append(StepResult(PlannedStep.on_x(4, 4, 80.0), 5.0, {"x": 70.0}, {"x": 70.0}, {"T1": 22.0}, valid=False))
     result = summarize("t", steps, compensated=True)
-    (point,) = result.points
-    assert point.visits == 4 and result.invalid_steps == 1  # invalid steps never count
+    (point,), (without,) = result.points, result.points_without
+    assert point.visits == without.visits == 4 and result.invalid_steps == 1  # invalid steps never count
     assert point.accuracy_nm == pytest.approx(35.0)
-    assert point.accuracy_without_nm == pytest.approx(435.0)  # x - (q' - x') = x + 0.4
+    assert without.accuracy_nm == pytest.approx(435.0)  # x - (q' - x') = x + 0.4
+    assert result.without_is_computed
     assert result.improvement == pytest.approx(435.0 / 35.0)
 
 

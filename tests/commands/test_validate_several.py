@@ -33,9 +33,9 @@ def test_the_truth_is_what_a_perfect_interferometer_reads_and_only_a_simulated_c
     drivers = simulated_drivers("test2", seed=4, params=PERFECT_INTERFEROMETER)
     result = asyncio.run(run_validation(drivers, trained_model(0), name="test2", cycles=2, progress_stream=Capture()))
     assert len(result.x_true_um) == len(result.steps) == 14 and result.has_truth
-    assert max(abs(s.x_um - x) for s, x in zip(result.steps, result.x_true_um, strict=True)) < 0.002
+    assert max(abs(s.positions_um["x"] - x) for s, x in zip(result.steps, result.x_true_um, strict=True)) < 0.002
     # hardware: steps without a true position (nan) give a result without truth, and no truth figures
-    blind = summarize("test2", [replace(s, x_true_um=math.nan) for s in result.steps], True, 0)
+    blind = summarize("test2", [replace(s, true_um={"x": math.nan}) for s in result.steps], True, 0)
     assert not blind.has_truth and "true_position" not in blind.to_dict()
 
 

@@ -52,14 +52,14 @@ def test_online_and_offline_trackers_agree_sample_for_sample() -> None:
     for step in online.steps:  # a plain tracker fed the same residuals, valid steps only
         expected.append(offline.correction_um)
         if step.valid:
-            offline.update(step.t_s, step.x_um - step.step.target_um)
+            offline.update(step.t_s, step.positions_um["x"] - step.step.target_um)
     assert online.corrections_um == expected  # identical floats, step by step
     assert expected[-1] < -0.1  # it moved towards cancelling the +0.3 um
 
     # and each correction went out with its command: the same run without adaptation commands q - c
     static = validate(model, 4, None, fault=True)
     for a, s, c in zip(online.steps, static.steps, online.corrections_um, strict=True):
-        assert a.q_um - c == pytest.approx(s.q_um, abs=1e-9)
+        assert a.q_um["x"] - c == pytest.approx(s.q_um["x"], abs=1e-9)
 
 
 def test_the_daemons_health_unit_gives_validate_adapts_corrections_sample_for_sample() -> None:
@@ -102,8 +102,9 @@ def test_the_daemons_health_unit_gives_validate_adapts_corrections_sample_for_sa
         online_sigma.append((command.q_sigma_adapted_um["x"], left_um, static_um))
         assert command.q_sigma_um == {"x": static_um}  # the model's own σ, as the contract has it
         position = "interferometer"
-        health.on_position(step.t_s - 1.0, step.t_s - 1.0, step.x_um, step.valid, channel=position)  # in the window
-        health.on_position(step.t_s + 0.5, step.t_s + 0.5, step.x_um, True, channel=position)  # the next closes it
+        x_um = step.positions_um["x"]
+        health.on_position(step.t_s - 1.0, step.t_s - 1.0, x_um, step.valid, channel=position)  # in the window
+        health.on_position(step.t_s + 0.5, step.t_s + 0.5, x_um, True, channel=position)  # the next closes it
     assert online == offline.corrections_um  # identical floats, command by command
     assert [a for a, _, _ in online_sigma] == [left for _, left, _ in online_sigma]
     assert online_sigma[0][0] == online_sigma[0][2]  # nothing learnt yet: the model's own σ

@@ -20,7 +20,7 @@ import pytest
 import nanodrift
 from nanodrift.assembly import procedure_drivers
 from nanodrift.calibration.dataset import read_csv
-from nanodrift.calibration.plans import CellStepResult, StepTiming, cell_calibration_plan, cell_validation_plan
+from nanodrift.calibration.plans import StepResult, StepTiming, cell_calibration_plan, cell_validation_plan
 from nanodrift.cli import main as cli
 from nanodrift.config import load_config
 from nanodrift.drivers.simulated.cell import SimulatedCell
@@ -101,7 +101,7 @@ def test_a_dirty_window_on_one_axis_sensor_is_measured_again(tmp_path: Path) -> 
     # the y beam is lost during the second step's averaging window (t 49..58 s): that window is dirty
     cell.inject_fault("interferometer_y", 55.0, 57.0, "fault")
     plan = cell_calibration_plan(("x", "y"), 1)[:3]
-    results: list[CellStepResult] = asyncio.run(run_steps(drivers, plan, limits=config.axis_actuators(),
+    results: list[StepResult] = asyncio.run(run_steps(drivers, plan, limits=config.axis_actuators(),
                                                           timing=timing))
     assert [r.retries for r in results] == [0, 1, 0]
     assert all(r.valid for r in results)

@@ -50,9 +50,7 @@ class Wired(Actuator):
 
 def wired(gain: float = 1.0, seed: int = 1) -> tuple[DriverSet, Wired]:
     drivers = simulated_drivers("train", seed=seed)
-    assert drivers.actuator is not None
-    actuator = Wired(drivers.actuator, drivers.clock, gain)
-    drivers.actuator = actuator
+    actuator = Wired(drivers.actuators["x"], drivers.clock, gain)
     drivers.actuators = {"x": actuator}
     return drivers, actuator
 
@@ -113,9 +111,7 @@ def test_the_first_ramp_starts_where_the_output_reads_back_also_when_a_run_resum
     last_t = float(read_csv(data).t[-1])
     # the run was stopped after its first sweep; the output still holds 480 um (9.6 V) when it resumes
     drivers = simulated_drivers("train", seed=1, start_s=last_t + 1.0)
-    assert drivers.actuator is not None
-    actuator = Wired(drivers.actuator, drivers.clock)
-    drivers.actuator = actuator
+    actuator = Wired(drivers.actuators["x"], drivers.clock)
     drivers.actuators = {"x": actuator}
     actuator.holds = ("voltage_v", 9.6)
     stream = Capture()
@@ -201,9 +197,8 @@ def test_an_output_that_fails_to_close_hides_neither_the_run_nor_its_error() -> 
             raise OSError("the output's link is gone")
 
     drivers = simulated_drivers("train", seed=3)
-    assert drivers.actuator is not None
-    actuator = Sticky(drivers.actuator, drivers.clock, gain=0.0)
-    drivers.actuator, drivers.actuators = actuator, {"x": actuator}
+    actuator = Sticky(drivers.actuators["x"], drivers.clock, gain=0.0)
+    drivers.actuators = {"x": actuator}
     plan = [PlannedStep.on_x(i, 0, x) for i, x in enumerate((0.0, 30.0))]
     with pytest.raises(StageNotFollowingError):  # the run's own error, not the close's
         asyncio.run(run_steps(drivers, plan, follow={"x": FollowCheck("interferometer")},

@@ -13,7 +13,7 @@ from helpers.sim_helpers import Capture
 
 from nanodrift.assembly import simulated_drivers
 from nanodrift.calibration.dataset import read_csv
-from nanodrift.calibration.plans import CellStepResult, calibration_plan
+from nanodrift.calibration.plans import StepResult, calibration_plan
 from nanodrift.cli import main
 from nanodrift.drivers.simulated.plugin import shared_cell
 from nanodrift.model.model import load_model
@@ -53,8 +53,8 @@ def test_progress_is_a_line_per_cycle_when_not_a_tty(tmp_path):
     assert "17/51" in lines[1] and "0:16:26 left" not in lines[1]  # wall-clock time, not the cell's 34 x 29 s
 
 
-def _run(backend, path, cycles=1, **kw) -> list[CellStepResult]:
-    results: list[CellStepResult] = []
+def _run(backend, path, cycles=1, **kw) -> list[StepResult]:
+    results: list[StepResult] = []
     asyncio.run(record_calibration(backend, path, cycles=cycles, on_step=results.append,
                                    progress_stream=Capture(), **kw))
     return results
@@ -89,7 +89,7 @@ def test_a_stale_sensor_is_never_averaged(tmp_path):
 def test_interrupt_keeps_every_step_and_resume_continues(tmp_path, capsys):
     data, out = tmp_path / "cal.csv", tmp_path / "m.json"
 
-    def stop(result: CellStepResult) -> None:
+    def stop(result: StepResult) -> None:
         if result.step.index == 9:
             raise KeyboardInterrupt
 

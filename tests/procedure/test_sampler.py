@@ -71,8 +71,8 @@ class Output(Actuator):
 def drivers(clock: VirtualClock, *groups: Group, actuator: Actuator | None = None,
             max_age_s: dict[str, float] | None = None) -> Any:
     roles = {name: role for group in groups for name, role in group.roles.items()}
-    return DriverSet(context=DriverContext(clock=clock), groups=list(groups), actuator=actuator, roles=roles,
-                     max_age_s=max_age_s or {})
+    return DriverSet(context=DriverContext(clock=clock), groups=list(groups), roles=roles,
+                     max_age_s=max_age_s or {}, actuators={"x": actuator} if actuator else {})
 
 
 def run(body: Callable[[], Awaitable[None]]) -> None:

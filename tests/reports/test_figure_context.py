@@ -29,12 +29,11 @@ def a_test(name: str, compensated: bool, error_um: float, drift_um: float, sprea
     for s in validation_plan(4):
         q = s.target_um - drift_um if compensated else s.target_um
         x = s.target_um + error_um + (spread_um if s.index % 2 else -spread_um)
-        steps.append(StepResult(PlannedStep.on_x(s.index, s.cycle, s.target_um), 29.0 * s.index, q_um=q, x_um=x,
-                                temperatures={"T1": 21.7 + 1e-4 * s.index, "T4": 21.6}, valid=True))
-    result = summarize(name, steps, compensated=compensated)
-    if truth_offset_um is not None:
-        result.x_true_um = [s.x_um - truth_offset_um for s in steps]
-    return result
+        truth = {"x": x - truth_offset_um} if truth_offset_um is not None else {}
+        steps.append(StepResult(PlannedStep.on_x(s.index, s.cycle, s.target_um), 29.0 * s.index, q_um={"x": q},
+                                positions_um={"x": x}, temperatures={"T1": 21.7 + 1e-4 * s.index, "T4": 21.6},
+                                valid=True, true_um=truth))
+    return summarize(name, steps, compensated=compensated)
 
 
 @pytest.fixture(autouse=True)
@@ -72,8 +71,8 @@ def test_fig11_draws_repeatability_bars_per_test():
     (repeatability,) = [ax for ax in fig.axes if ax.get_ylabel() == "repeatability (nm)"]
     heights = sorted(round(bar.get_height(), 6) for bar in repeatability.patches)
     expected = sorted(round(float(np.mean(values)), 6) for values in (
-        [p.repeatability_without_nm for p in results[0].points],
-        [p.repeatability_without_nm for p in results[1].points],
+        [p.repeatability_nm for p in results[0].points_without],
+        [p.repeatability_nm for p in results[1].points_without],
         [p.repeatability_nm for p in results[1].points]))
     assert heights == expected  # test1: one bar (no "with"); test2: without and with
     assert [t.get_text() for t in repeatability.get_xticklabels()] == ["test1", "test2*"]

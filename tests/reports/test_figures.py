@@ -19,7 +19,8 @@ def a_test(name: str, compensated: bool, error_um: float, drift_um: float):
     for s in validation_plan(3):
         q = s.target_um - drift_um if compensated else s.target_um
         x = s.target_um + error_um * (1 + s.target_um / 960.0)
-        steps.append(StepResult(PlannedStep.on_x(s.index, s.cycle, s.target_um), 29.0 * s.index, q_um=q, x_um=x,
+        steps.append(StepResult(PlannedStep.on_x(s.index, s.cycle, s.target_um), 29.0 * s.index, q_um={"x": q},
+                                positions_um={"x": x},
                                 temperatures={"T1": 21.7 + 1e-4 * s.index, "T4": 21.6}, valid=True))
     return summarize(name, steps, compensated=compensated)
 

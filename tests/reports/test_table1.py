@@ -11,7 +11,8 @@ def a_test(name: str, compensated: bool, error_um: float, drift_um: float):
     for i in range(8):
         target = 80.0 * (i % 2)
         q = target - drift_um if compensated else target
-        steps.append(StepResult(PlannedStep.on_x(i, i // 2, target), float(i), q_um=q, x_um=target + error_um,
+        steps.append(StepResult(PlannedStep.on_x(i, i // 2, target), float(i), q_um={"x": q},
+                                positions_um={"x": target + error_um},
                                 temperatures={"T1": 22.0}, valid=True))
     return summarize(name, steps, compensated=compensated)
 
