@@ -79,7 +79,10 @@ def main(args: argparse.Namespace) -> int:
     config, drivers = _cell.open_cell(args, "train", over_config=True)
     axes = config.axis_names
     cycles = args.cycles if args.cycles is not None else config.procedure.cycles
-    plan = _plan(config, cycles)
+    try:
+        plan = _plan(config, cycles)
+    except ValueError as error:
+        raise UserError(f"{error} (--cycles, or [procedure] cycles in the config)") from None
     columns = calibration_columns(drivers, axes)
     try:
         done, last_t = completed_steps(data, columns) if args.resume else (0, 0.0)

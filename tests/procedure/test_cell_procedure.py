@@ -171,3 +171,18 @@ def test_no_command_before_every_channel_the_model_reads_has_a_clean_sample(tmp_
         procedure_drivers(config), plan, model, compensate=False, limits=config.axis_actuators(),
         progress_stream=io.StringIO()))
     assert len(steps) == len(plan) and extrapolating == 0
+
+
+def test_a_multi_axis_calibration_of_one_cycle_is_refused_before_anything_moves(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """One cycle of the plan is its diagonal (x = y at every step): a model fitted on it cannot tell the axes
+    apart (it served ~300 µm errors at (435, 45) without a word), so the command refuses it, writing nothing."""
+    assert [s.target("x") for s in cell_calibration_plan(("x", "y"), 2)[:17]] == \
+        [s.target("y") for s in cell_calibration_plan(("x", "y"), 2)[:17]]  # why: the first cycle is the diagonal
+    out = tmp_path / "xy.json"
+    assert cli(["calibrate", "--config", str(_config(tmp_path)), "--cycles", "1", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "a calibration of 2 axes needs at least 2 cycles, got 1" in err and "[procedure] cycles" in err
+    assert not out.exists() and not (tmp_path / "xy_data.csv").exists()
+    with pytest.raises(ValueError, match="cannot tell the axes apart"):
+        cell_calibration_plan(("x", "y", "z"), 1)
