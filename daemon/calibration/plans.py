@@ -117,7 +117,8 @@ class StepResult:
         return self.positions_um[axis] - (self.q_um[axis] - self.step.target(axis))
 
 
-#: a multi-axis plan's first cycle is the diagonal (every axis at level i): a model needs a second cycle
+#: a multi-axis plan's first cycle is its diagonal (every axis at level i): a model fitted on it cannot tell
+#: the axes apart, so a calibration that fits one needs a second cycle
 MIN_CELL_CYCLES = 2
 
 
@@ -140,10 +141,6 @@ def cell_calibration_plan(axes: Sequence[str], cycles: int = 24,
     axes = tuple(axes)
     if not 2 <= len(axes) <= 1 + len(_DESIGN_LINES):
         raise ValueError(f"a multi-axis calibration has 2 or 3 axes, got {', '.join(axes)}")
-    if cycles < MIN_CELL_CYCLES:
-        raise ValueError(f"a calibration of {len(axes)} axes needs at least {MIN_CELL_CYCLES} cycles, got {cycles}: "
-                         "its first cycle moves every axis to the same level at each step, so one cycle cannot "
-                         "tell the axes apart")
     n = len(levels)
     steps: list[PlannedStep] = []
     for c in range(cycles):

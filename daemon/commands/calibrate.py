@@ -20,7 +20,13 @@ import sys
 from pathlib import Path
 
 from nanodrift.calibration.dataset import DataError
-from nanodrift.calibration.plans import PlannedStep, bidirectional_plan, calibration_plan, cell_calibration_plan
+from nanodrift.calibration.plans import (
+    MIN_CELL_CYCLES,
+    PlannedStep,
+    bidirectional_plan,
+    calibration_plan,
+    cell_calibration_plan,
+)
 from nanodrift.commands import _cell
 from nanodrift.config import Config, missing_model_channels
 from nanodrift.errors import UserError
@@ -79,10 +85,11 @@ def main(args: argparse.Namespace) -> int:
     config, drivers = _cell.open_cell(args, "train", over_config=True)
     axes = config.axis_names
     cycles = args.cycles if args.cycles is not None else config.procedure.cycles
-    try:
-        plan = _plan(config, cycles)
-    except ValueError as error:
-        raise UserError(f"{error} (--cycles, or [procedure] cycles in the config)") from None
+    if config.multi_axis and cycles < MIN_CELL_CYCLES:
+        raise UserError(f"a calibration of {len(axes)} axes needs at least {MIN_CELL_CYCLES} cycles, got {cycles} "
+                        "(--cycles, or [procedure] cycles in the config): its first cycle moves every axis to the same "
+                        "level at each step, so one cycle cannot tell the axes apart")
+    plan = _plan(config, cycles)
     columns = calibration_columns(drivers, axes)
     try:
         done, last_t = completed_steps(data, columns) if args.resume else (0, 0.0)
