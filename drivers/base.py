@@ -302,6 +302,12 @@ class Actuator(ABC):
     limits_v: tuple[float, float] | None = None
     limits_q_um: tuple[float, float] | None = None
 
+    async def on_target(self) -> bool:
+        """Whether the stage has settled on the last value written: a closed-loop controller's own
+        on-target state (GCS ``ONT?``). The daemon's ``done: reached`` waits for it, asking every ramp
+        period. Default True: a device without one can say no more than that the write returned."""
+        return True
+
     @abstractmethod
     async def open(self) -> None: ...
 

@@ -50,3 +50,15 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
         return LONG_FILES.index(path) if path in LONG_FILES else len(LONG_FILES)
 
     items.sort(key=rank)  # stable: every other file keeps its place
+
+
+@pytest.fixture(autouse=True)
+def _structlog_as_a_fresh_process_has_it() -> object:
+    """Each test starts with structlog unconfigured, as each command's process does: a test that configured
+    it in-process (the daemon's JSON lines on stdout) would otherwise send a later command's driver logs into
+    its ``--json`` output (``nanodrift.cli`` configures stderr only when nothing is configured)."""
+    import structlog
+
+    structlog.reset_defaults()
+    yield
+    structlog.reset_defaults()

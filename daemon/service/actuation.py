@@ -34,14 +34,15 @@ too; this module owns the devices' lifecycle.
   reload onto devices that open: an episode a reload interrupted is kept until then).
 - **How each served command ends** (``done_listeners``; the runner publishes ``done``), exactly once:
   ``reached`` when every output holds it (the write of the ramp's end returned, the driver's read-back
-  included); ``superseded`` when a newer command replaced it, pending (replaced in :meth:`offer`, told
-  when the loop takes the newest) or in flight (a newer one taken mid-ramp); ``failed`` when a write,
-  read-back or open faults while it is in flight, or a reload's limits drop it (the goal is still
-  written once the outputs work again: no second ``done``); ``stopped`` by :meth:`halt` or by the
-  daemon's stop. A cell with no output device at all (every axis ``kind = "zenoh"``, or no actuator)
-  still runs the drive task with no outputs: the published command is the actuation, so each command is
-  ``reached`` as soon as the loop takes it (paced as writes are, 50 a second: a command a newer one
-  replaces within that is ``superseded``), and what a published axis holds is the latest command's voltage.
+  included, and a closed-loop controller says it is on target: GCS ``ONT?``; ``failed`` when it does not
+  within :data:`ON_TARGET_BUDGET_S`); ``superseded`` when a newer command replaced it, pending (replaced in
+  :meth:`offer`, told when the loop takes the newest) or in flight (a newer one taken mid-ramp); ``failed``
+  when a write, read-back or open faults while it is in flight, or a reload's limits drop it (the goal is
+  still written once the outputs work again: no second ``done``); ``stopped`` by :meth:`halt` or by the
+  daemon's stop. A cell with no output device at all (every axis ``kind = "zenoh"``, or no actuator) still
+  runs the drive task with no outputs: the published command is the actuation, so each command is ``reached``
+  as soon as the loop takes it (paced as writes are, 50 a second: a command a newer one replaces within that
+  is ``superseded``), and what a published axis holds is the latest command's voltage.
 - **A client's stop** (:meth:`halt`): the drive task ends its ramp between two writes (a write under way
   completes), every output holds what it has, the command in flight (and a pending one) ends
   ``stopped``, and the goal is forgotten, so a reload or a reopen moves nothing. A stop ends only the
@@ -83,6 +84,8 @@ from nanodrift.outputs import bind_limits, checked_sent_voltage, locate_stage
 
 WRITE_PERIOD_S = RAMP_PERIOD_S  # any two writes are this far apart: a stream is coalesced to 50 writes a second
 WRITE_TIMEOUT_S = 3.0  # a write that takes longer is a fault
+#: a closed-loop controller not on target this long after the last write of a move: its ``done`` is ``failed``
+ON_TARGET_BUDGET_S = 2.0
 INITIAL_BACKOFF_S = 0.2
 MAX_BACKOFF_S = 5.0
 @dataclass(frozen=True, slots=True, eq=False)
@@ -593,7 +596,16 @@ class Actuation:
                 if at_goal:
                     reached.add(out.axis)
             if len(reached) == len(outputs):
+                off_target = await self._off_target(outputs, interruptible=follow_pending)
+                if off_target is None:
+                    continue  # a newer command or a stop came while a controller settled: the loop's top takes it
                 self._goal_on_device = True
+                if off_target:
+                    self.log.warning("actuator_not_on_target", axes=off_target, budget_s=ON_TARGET_BUDGET_S)
+                    if goal is self._inflight:
+                        self._end_inflight("failed", f"axis {', '.join(off_target)}: the controller did not report "
+                                           f"on target within {ON_TARGET_BUDGET_S:g} s of the last write")
+                    return
                 if outputs:
                     for listener in self.reached_listeners:
                         listener(goal, time.monotonic())
@@ -601,6 +613,24 @@ class Actuation:
                     self._end_inflight("reached")
                 return
             await asyncio.sleep(RAMP_PERIOD_S)
+
+    async def _off_target(self, outputs: Mapping[str, AxisOutput], *, interruptible: bool) -> list[str] | None:
+        """The axes whose device does not say it is on target within :data:`ON_TARGET_BUDGET_S` (a closed-loop
+        controller settling: :meth:`Actuator.on_target`; every other device is on target once written), asked
+        every ramp period; None when ``interruptible`` and a newer command or a stop came meanwhile."""
+        deadline_s = time.monotonic() + ON_TARGET_BUDGET_S
+        while True:
+            waiting = [axis for axis, out in outputs.items()
+                       if not await _guarded(out.actuator.on_target(), axis, "on-target query")]
+            if not waiting or time.monotonic() >= deadline_s:
+                return waiting
+            if interruptible and (self._halt_waiters or self._has_pending()):
+                return None
+            await asyncio.sleep(RAMP_PERIOD_S)
+
+    def _has_pending(self) -> bool:
+        with self._lock:
+            return self._pending is not None
 
     async def _write(self, out: AxisOutput, q_um: float, voltage_v: float, sent_v: float,
                      x_um: float | None) -> None:

@@ -24,7 +24,8 @@ What it does, and the document each behaviour comes from (PIPython 2.13.0.2, PI'
   value sent: a controller that took the command but did not apply it is a fault, never "accepted".
 - **numbers**: written with 6 decimals (1 uV, 1 pm); a value the rounding would put outside the limits is
   written as the nearest value inside them.
-- **done**: :meth:`on_target` asks ``ONT?`` ("Check if 'axes' have reached the target") in closed loop.
+- **done**: :meth:`on_target` asks ``ONT?`` ("Check if 'axes' have reached the target") in closed loop; the
+  daemon's ``done: reached`` waits for it (:meth:`nanodrift.drivers.base.Actuator.on_target`).
   nanodrift's ``Actuator`` protocol has no hook for it, so the daemon's ``done`` does not call it yet.
 """
 

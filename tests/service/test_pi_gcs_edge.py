@@ -8,22 +8,27 @@ client on Zenoh over 127.0.0.1. What the controller received is asserted, never 
   the read-back; between two of them it never moved faster than the slew; a target beyond v_max never
   reaches it;
 - SIGTERM ramps it to the safe voltage (its position, in closed loop) at the configured rate, and it
-  ends holding it.
+  ends holding it;
+- closed loop: a move's ``done`` says ``reached`` only once the controller answers ``ONT?`` with 1 (asked
+  after the last MOV), and ``failed``, naming the axis, when it never does within the budget.
 """
 
 from __future__ import annotations
 
 import itertools
 import signal
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 from helpers.daemon_harness import Served, wait_until
 
+from nanodrift import Client, MoveEnded
 from nanodrift.config import STOP_TIMEOUT_S
 from nanodrift.drivers.testing.pi_gcs_emulator import EmulatedAxis, PiGcsEmulator, PiGcsPtyDevice
 from nanodrift.motion import RAMP_PERIOD_S
+from nanodrift.service.actuation import ON_TARGET_BUDGET_S
 
 V_MIN, V_MAX = -2.0, 9.0
 VOLTS_PER_UM = 0.02
@@ -107,3 +112,36 @@ def test_the_controller_gets_the_servo_off_limited_slewed_commands_and_the_safe_
     assert down[-1][1] == 0.0 and held() == 0.0  # the safe voltage, held
     assert all(b <= a for (_, a), (_, b) in itertools.pairwise(down)), "the safe ramp is not monotonic"
     assert_within_slew(down)
+
+
+def closed_loop_keys(port: str) -> str:
+    return (f'kind = "pi_gcs"\ntransport = "serial"\nport = "{port}"\ntimeout_s = 0.5\nmode = "closed_loop"\n'
+            f"volts_per_um = {VOLTS_PER_UM}\nv_min = {V_MIN}\nv_max = {V_MAX}\nmax_slew_um_per_s = 0\n"
+            "safe_voltage_v = 0.0\n")
+
+
+@pytest.mark.parametrize("settle_s", [0.4, 30.0])
+def test_a_closed_loop_move_is_reached_only_once_the_controller_says_it_is_on_target(
+        tmp_path: Path, settle_s: float) -> None:
+    emulator = PiGcsEmulator(axes={"1": EmulatedAxis(servo=False)}, settle_s=settle_s)
+    device = PiGcsPtyDevice(tmp_path / "ttyPI", emulator)
+    served = Served(tmp_path, "gcsont", actuator=closed_loop_keys(device.port)).start()
+    try:
+        with Client(f"tcp/127.0.0.1:{served.port}", cell="gcsont") as client:
+            if settle_s < ON_TARGET_BUDGET_S:
+                command = client.move(150.0, timeout_s=20.0)
+                ended_s = time.monotonic()
+                [(mov_s, mov)] = [(t, line) for t, line in emulator.stamped("MOV") if line.startswith("MOV 1 ")][-1:]
+                assert float(mov.split()[2]) == pytest.approx(command.q_um, abs=1e-6)
+                asked = [t for t, _ in emulator.stamped("ONT?") if t > mov_s]
+                assert asked, "done came without asking the controller whether it is on target"
+                assert ended_s - mov_s >= settle_s  # not before the controller settled (a busy machine: later)
+            else:
+                with pytest.raises(MoveEnded) as ended:
+                    client.move(150.0, timeout_s=20.0)
+                assert ended.value.state == "failed" and "axis x" in str(ended.value), ended.value
+                assert "on target" in str(ended.value)
+                assert served.daemon.log_events("actuator_not_on_target")
+    finally:
+        served.daemon.stop()
+        device.close()
