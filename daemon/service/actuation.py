@@ -22,7 +22,9 @@ too; this module owns the devices' lifecycle.
   sent; else it is unknown (``actuator_readback_untrusted``), never a start point. Unknown: the next
   command is written to that axis as it is (``actuator_unramped`` says so, once per start).
 - **Slew** (``max_slew_um_per_s > 0``): sub-commands every ``RAMP_PERIOD_S``, each covering the time
-  since the previous one began, so a ramp takes distance / rate whatever the device's latency.
+  since the previous write returned (the device had that value by then), so between any two values a
+  device receives it never moves faster than the rate, however late the loop or the device; a device's
+  latency is not ramp time (a slow module ramps slower than the rate, never faster).
 - **What is sent** is checked: the voltage each device will receive (``Actuator.sent_voltage``: a DAC's
   count, a controller's digits) must be inside that axis' limits, for every axis of a step before any
   axis is written, or nothing of the step is written and the cell is in fault.
@@ -592,7 +594,7 @@ class Actuation:
                 step.append((out, q_um, voltage, sent_v, x_um, at_goal))
             for out, q_um, voltage, sent_v, x_um, at_goal in step:
                 await self._write(out, q_um, voltage, sent_v, x_um)
-                out.slew.wrote(began_s, at_goal)
+                out.slew.wrote(time.monotonic(), at_goal)  # returned: the device holds it from no later than now
                 if at_goal:
                     reached.add(out.axis)
             if len(reached) == len(outputs):
