@@ -18,8 +18,6 @@ gets no answer, as on the real bus. Several modules may share the bus (one addre
 
 from __future__ import annotations
 
-import os
-import select
 import socket
 import socketserver
 import threading
@@ -126,24 +124,7 @@ class DconBusEmulator(_Bus, PtyDevice):
         PtyDevice.__init__(self, link)
 
     def _serve(self, master: int, stop: threading.Event) -> None:
-        buffer = b""
-        while not stop.is_set():
-            ready, _, _ = select.select([master], [], [], 0.005)
-            if not ready:
-                continue
-            try:
-                buffer += os.read(master, 4096)
-            except OSError:  # nobody holds the port open right now
-                continue
-            while b"\r" in buffer:
-                raw, _, buffer = buffer.partition(b"\r")
-                data = self.respond(raw)
-                if data is not None:
-                    try:
-                        os.write(master, data)
-                    except OSError:
-                        pass
-            buffer = buffer[-4096:]
+        self._serve_lines(master, stop, b"\r", self.respond)
 
 
 class DconTcpGateway(_Bus):

@@ -30,8 +30,6 @@ from __future__ import annotations
 
 import asyncio
 import itertools
-import os
-import select
 import threading
 import time
 from collections.abc import Callable
@@ -345,20 +343,8 @@ class PiGcsPtyDevice(PtyDevice):
         super().__init__(link)
 
     def _serve(self, master: int, stop: threading.Event) -> None:
-        buffer = b""
-        while not stop.is_set():
-            ready, _, _ = select.select([master], [], [], 0.005)
-            if not ready:
-                continue
-            try:
-                buffer += os.read(master, 4096)
-            except OSError:  # nobody holds the port open right now
-                continue
-            while b"\n" in buffer:
-                raw, _, buffer = buffer.partition(b"\n")
-                answer = self.emulator.handle(raw.decode("latin-1").rstrip("\r"), "pty")
-                if answer is not None:
-                    try:
-                        os.write(master, answer.encode("latin-1") + b"\n")
-                    except OSError:
-                        pass
+        def answer(raw: bytes) -> bytes | None:
+            text = self.emulator.handle(raw.decode("latin-1").rstrip("\r"), "pty")
+            return None if text is None else text.encode("latin-1") + b"\n"
+
+        self._serve_lines(master, stop, b"\n", answer)

@@ -59,6 +59,31 @@ class PtyDevice:
         subclass says (the base device is a port nobody answers on, as an unpowered instrument)."""
         stop.wait()
 
+    @staticmethod
+    def _serve_lines(master: int, stop: threading.Event, end: bytes,
+                     answer: Callable[[bytes], bytes | None]) -> None:
+        """A line-oriented device's ``_serve``: each request up to ``end`` (without it) is answered with
+        ``answer(request)`` written whole (None: the device stays silent); a port nobody holds open is
+        waited out, and a run of bytes with no ``end`` keeps only its last 4 KiB (line noise)."""
+        buffer = b""
+        while not stop.is_set():
+            ready, _, _ = select.select([master], [], [], 0.005)
+            if not ready:
+                continue
+            try:
+                buffer += os.read(master, 4096)
+            except OSError:  # nobody holds the port open right now
+                continue
+            while end in buffer:
+                raw, _, buffer = buffer.partition(end)
+                data = answer(raw)
+                if data is not None:
+                    try:
+                        os.write(master, data)
+                    except OSError:
+                        pass
+            buffer = buffer[-4096:]
+
 
 class FakeInterferometer(PtyDevice):
     """Answers ``query`` with ``P <position_nm> nm`` lines, or streams them every ``period_s``."""
