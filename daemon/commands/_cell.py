@@ -93,8 +93,9 @@ def scenario_list(values: list[str] | None) -> list[str]:
 
 
 def open_cell(args: argparse.Namespace, default_scenario: str, start_s: float = 0.0, *,
-              over_config: bool = False) -> tuple[Config, DriverSet]:
-    """The config of ``--config`` (or the built-in simulated cell) and its drivers for a procedure.
+              over_config: bool = False, config: Config | None = None) -> tuple[Config, DriverSet]:
+    """The config of ``--config`` (or the built-in simulated cell, or ``config`` when given) and its drivers for
+    a procedure.
 
     ``--scenario/--effects/--seed`` override the ``[simulation]`` table when given; the seed the
     simulated cell then runs with is :func:`scenario_seed` of that seed and scenario. Without
@@ -102,7 +103,7 @@ def open_cell(args: argparse.Namespace, default_scenario: str, start_s: float = 
     ``[simulation] scenario``, unless ``over_config`` (calibrate: the config's scenario is the room the
     daemon serves in, and a calibration needs the paper's training room, whatever the daemon serves in).
     """
-    config = load_config(args.config)
+    config = config or load_config(args.config)
     updates: dict[str, Any] = {}
     scenario = args.scenario or (default_scenario if args.config is None or over_config else None)
     try:

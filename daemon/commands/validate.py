@@ -1,7 +1,7 @@
 """``nanodrift validate``: ISO 9283 accuracy and repeatability with and without the model (Table I).
 
-``--adapt`` runs the daemon's bias tracker (``[adapt] mode = "bias"``) over the test, so a lab can see
-offline what adaptation would have given.
+``--adapt`` runs the daemon's bias tracker (``[adapt] mode = "bias"``) over the test, one per axis as the
+daemon does, so a lab can see offline what adaptation would have given.
 
 On the simulated cell ``--scenario`` may name several tests (``--scenario test2,test3,test5``, or
 repeated): each runs in turn and one report holds them all (Table I a row per test, the figures
@@ -13,7 +13,9 @@ simulated stacked stage (:mod:`nanodrift.drivers.simulated.runs`), the ISO 9283 
 the calibration levels) run through the model and once more uncompensated in the same room with the
 same noise; with ``--config`` through the config's drivers (:func:`nanodrift.procedure.steps.run_steps`),
 once uncompensated, then through the model. It prints Table I per axis and AP/RP in 2-D/3-D, scored
-against the position sensors and against the true position where the cell knows it.
+against the position sensors and against the true position where the cell knows it. With ``--adapt`` and
+no ``--config`` it runs through the drivers of the built-in simulated cell of the model's axes: the trackers
+need each step's residual before the next command, which the vectorised stage does not give.
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ from nanodrift.calibration.iso9283 import TestResult, summarize_runs
 from nanodrift.calibration.plans import StepResult, cell_validation_plan
 from nanodrift.calibration.residuals import BiasTracker
 from nanodrift.commands import _cell
-from nanodrift.config import Config, load_config
+from nanodrift.config import Config, ConfigError, load_config, parse_config
 from nanodrift.drivers.simulated.config import SECTION, SimulationConfig
 from nanodrift.drivers.simulated.effects import UnknownNameError
 from nanodrift.drivers.simulated.physics import CellPhysics, CrossParams, cross_params
@@ -53,6 +55,7 @@ from nanodrift.reports.validation import (
     write_cell_report,
     write_report,
 )
+from nanodrift.settings import BUILTIN_SOURCE
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -81,8 +84,6 @@ def main(args: argparse.Namespace) -> int:
         raise UserError(str(err)) from None
     compensate = not args.no_compensation
     if args.adapt:
-        if isinstance(model, CellModel):
-            raise UserError("--adapt runs the one-axis bias tracker: not available for a multi-axis model")
         if not compensate:
             raise UserError("--adapt corrects the model's commands: it cannot run with --no-compensation")
         if not (args.adapt_tau_s > 0 and args.adapt_max_um >= 0):
@@ -167,9 +168,10 @@ def _run_one(args: argparse.Namespace, model: Model, scenario: str | None) -> Va
     return ValidationRun(result, tracker, config, drivers)
 
 
-def _open(args: argparse.Namespace, scenario: str | None) -> tuple[Config, DriverSet]:
-    """A fresh cell for one test in ``scenario`` (None: the config's room, or test2 with no config)."""
-    return _cell.open_cell(argparse.Namespace(**{**vars(args), "scenario": scenario}), "test2")
+def _open(args: argparse.Namespace, scenario: str | None, builtin: Config | None = None) -> tuple[Config, DriverSet]:
+    """A fresh cell for one test in ``scenario`` (None: the config's room, or test2 with no config); ``builtin``:
+    the built-in cell to drive instead of ``--config``'s."""
+    return _cell.open_cell(argparse.Namespace(**{**vars(args), "scenario": scenario}), "test2", config=builtin)
 
 
 def _cell_text(config: Config, given: Config, args: argparse.Namespace, results: list[TestResult]) -> str:
@@ -225,8 +227,9 @@ def _scores(name: str, targets_um: dict[str, np.ndarray], attained: Attained) ->
 def _cell_tests(args: argparse.Namespace, model: CellModel, asked: list[str | None]) -> int:
     """Each test of a multi-axis model: through the config's drivers, or (no ``--config``) on the simulated
     stacked stage of the model's axes."""
-    if args.config is not None:
-        tests = [_driven_test(args, model, scenario) for scenario in asked]
+    if args.config is not None or args.adapt:
+        builtin = None if args.config is not None else _builtin_cell(model)
+        tests = [_driven_test(args, model, scenario, builtin) for scenario in asked]
     else:
         missing = [c for c in model.channels if c not in ("T1", "T2", "T3", "T4")]
         if missing:
@@ -243,6 +246,15 @@ def _cell_tests(args: argparse.Namespace, model: CellModel, asked: list[str | No
     else:
         print("\n\n".join(text for text, _ in tests))
     return 0
+
+
+def _builtin_cell(model: CellModel) -> Config:
+    """The built-in simulated cell of the model's axes, driven as a config's cell (``--adapt``, no ``--config``)."""
+    axes = "".join(model.axes)
+    try:
+        return parse_config({"simulation": {"axes": axes, "scenario": "test2"}}, source=BUILTIN_SOURCE)
+    except ConfigError as err:
+        raise UserError(f"--adapt: no built-in simulated cell of axes {axes}: give --config ({err})") from None
 
 
 def _cell_report(args: argparse.Namespace, name: str, text: str, doc: dict[str, Any], truth: TestResult,
@@ -280,10 +292,11 @@ def _simulated_test(args: argparse.Namespace, model: CellModel, scenario: str,
     return text, doc
 
 
-def _driven_run(args: argparse.Namespace, model: CellModel, scenario: str | None,
-                compensate: bool) -> tuple[Config, DriverSet, list[StepResult], int]:
+def _driven_run(args: argparse.Namespace, model: CellModel, scenario: str | None, builtin: Config | None, *,
+                compensate: bool, adapt: dict[str, BiasTracker] | None = None
+                ) -> tuple[Config, DriverSet, list[StepResult], int]:
     """One run of the plan on a fresh cell (a simulated one restarts its room: both runs see the same one)."""
-    config, drivers = _open(args, scenario)
+    config, drivers = _open(args, scenario, builtin)
     if sorted(config.axis_names) != sorted(model.axes):
         raise UserError(f"{args.model} serves axes {', '.join(model.axes)}, {config.source} has axes "
                         f"{', '.join(config.axis_names)}")
@@ -293,17 +306,20 @@ def _driven_run(args: argparse.Namespace, model: CellModel, scenario: str | None
     try:
         results, extrapolating = _cell.run_procedure(run_cell_validation_steps(
             drivers, plan, model, compensate=compensate, limits=limits, name=scenario or "validation",
-            timing=config.procedure.timing, follow=follow, ready=ready))
+            timing=config.procedure.timing, follow=follow, ready=ready, adapt=adapt))
     except ValueError as err:
         raise UserError(str(err)) from None
     return config, drivers, results, extrapolating
 
 
-def _driven_test(args: argparse.Namespace, model: CellModel, scenario: str | None) -> tuple[str, dict[str, Any]]:
-    config, drivers, without, _ = _driven_run(args, model, scenario, compensate=False)
+def _driven_test(args: argparse.Namespace, model: CellModel, scenario: str | None,
+                 builtin: Config | None) -> tuple[str, dict[str, Any]]:
+    config, drivers, without, _ = _driven_run(args, model, scenario, builtin, compensate=False)
     runs, extrapolating = [without], 0
+    trackers = {a: BiasTracker(args.adapt_tau_s, args.adapt_max_um) for a in model.axes} if args.adapt else None
     if not args.no_compensation:
-        _, _, compensated, extrapolating = _driven_run(args, model, scenario, compensate=True)
+        _, _, compensated, extrapolating = _driven_run(args, model, scenario, builtin, compensate=True,
+                                                       adapt=trackers)
         runs.append(compensated)
     section = config.section(SECTION)
     name = scenario or (section.scenario if isinstance(section, SimulationConfig) else "validation")
@@ -327,6 +343,13 @@ def _driven_test(args: argparse.Namespace, model: CellModel, scenario: str | Non
         text += f"\n[{invalid} steps kept with a dirty window (valid = 0) are scored as measured]"
     doc = cell_json(name, truth, measured, model=model.id, backend=f"{drivers.description} ({config.source})",
                     cycles=args.cycles, truth_known=knows_truth, extrapolating_steps=extrapolating)
+    if trackers is not None:
+        text += "".join(f"\nadaptation, axis {a}: bias tracker (tau_s {t.tau_s:g} s, max {t.max_um:g} um), "
+                        f"{t.updates} settled residuals, final correction {t.correction_um * 1e3:+.0f} nm"
+                        for a, t in trackers.items())
+        doc["adapt"] = {"mode": "bias", "tau_s": args.adapt_tau_s, "max_um": args.adapt_max_um,
+                        "axes": {a: {"updates": t.updates, "final_correction_um": t.correction_um}
+                                 for a, t in trackers.items()}}
     if args.report:
         _cell_report(args, name, text, doc, truth, targets, truth_um)
     return text, doc

@@ -3,7 +3,8 @@
 With ``adapt`` (``validate --adapt``) the model's command gets the daemon's bias correction: the same
 :class:`nanodrift.calibration.residuals.BiasTracker`, fed with each valid step's settled residual (the
 step's averaged position minus its target, the measurement the daemon's monitor takes while a
-target is held), its correction added to every following command.
+target is held), its correction added to every following command. A multi-axis cell has one tracker
+per axis (:func:`run_cell_validation_steps`), as the daemon's health unit does.
 
 On a simulated cell each step also carries the position the stage truly attained, averaged over the
 same readings as the interferometer's (``StepResult.true_um``, from the sensor group's
@@ -133,9 +134,16 @@ async def run_cell_validation_steps(
     progress_stream: IO[str] | None = None,
     follow: Mapping[str, FollowCheck] | None = None,
     ready: Callable[[], Awaitable[None]] | None = None,
+    adapt: Mapping[str, BiasTracker] | None = None,
 ) -> tuple[list[StepResult], int]:
     """A multi-axis cell's ISO 9283 plan, through ``model`` when ``compensate`` (else command = target): its
-    steps, and how many commands were for a target or temperatures outside the model's training ranges."""
+    steps, and how many commands were for a target or temperatures outside the model's training ranges.
+
+    ``adapt``: a bias tracker per axis, as the daemon's health unit keeps one per axis; each adds its
+    correction to its own axis' command and is fed that axis' residual of every valid step."""
+    if adapt is not None and not compensate:
+        raise ValueError("adaptation corrects the model's commands: it needs compensate")
+    trackers = dict(adapt or {})
     check_channels(model, drivers)
     evaluator = model.evaluator()
     latest: dict[str, float] = {}
@@ -149,9 +157,15 @@ async def run_cell_validation_steps(
         nonlocal extrapolating
         check_ready(evaluator)
         extrapolating += bool(model.out_of_range(targets, latest))
-        return evaluator.command(targets, t)
+        commands = evaluator.command(targets, t)
+        return {a: q + (trackers[a].correction_um if a in trackers else 0.0) for a, q in commands.items()}
+
+    def on_step(result: StepResult) -> None:
+        for axis, tracker in trackers.items():
+            feed_tracker(tracker, result, axis)
 
     steps = await run_steps(drivers, plan, limits=limits, timing=timing or StepTiming(),
-                            command_for=command_for if compensate else None, on_temperatures=observe,
-                            progress=Progress(plan, name, progress_stream), follow=follow, ready=ready)
+                            command_for=command_for if compensate else None, on_step=on_step,
+                            on_temperatures=observe, progress=Progress(plan, name, progress_stream), follow=follow,
+                            ready=ready)
     return steps, extrapolating

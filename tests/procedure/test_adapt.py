@@ -2,7 +2,8 @@
 
 Offline is ``validate --adapt`` (:func:`nanodrift.procedure.validation.run_validation`); online is the
 daemon's health unit (``nanodrift.service.health_unit``) fed through its compensator, command by command and
-reading by reading: both must give the same corrections, float for float.
+reading by reading: both must give the same corrections, float for float. A multi-axis cell runs one
+tracker per axis (``run_cell_validation_steps``), on the simulated XY cell through its drivers.
 """
 
 from __future__ import annotations
@@ -10,12 +11,16 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import json
+from pathlib import Path
 
+import numpy as np
 import pytest
 from helpers.sim_helpers import Capture, trained_model
 
-from nanodrift.assembly import simulated_drivers
+import nanodrift
+from nanodrift.assembly import procedure_drivers, simulated_drivers
 from nanodrift.calibration import iso9283
+from nanodrift.calibration.plans import StepResult, cell_validation_plan
 from nanodrift.calibration.residuals import BiasTracker
 from nanodrift.cli import main
 from nanodrift.compensation import Compensator, Target
@@ -23,8 +28,9 @@ from nanodrift.config import parse_config
 from nanodrift.drivers.base import Reading, SensorConfig
 from nanodrift.drivers.simulated.plugin import shared_cell
 from nanodrift.logs import get_logger
+from nanodrift.model.cell_model import CellModel, load_any_model
 from nanodrift.model.model import Model, save_model
-from nanodrift.procedure.validation import run_validation
+from nanodrift.procedure.validation import run_cell_validation_steps, run_validation
 from nanodrift.service.health_unit import HealthUnit
 from nanodrift.service.table import SensorTable
 
@@ -137,3 +143,78 @@ def test_validate_adapt_on_the_command_line(tmp_path, capsys) -> None:
     assert doc["final_correction_um"] is not None and 0.0 <= doc["within_2_sigma"] <= 1.0
     assert main(["validate", "--model", str(path), "--cycles", "2", "--adapt", "--no-compensation"]) == 2
     assert "--adapt corrects the model's commands" in capsys.readouterr().err
+
+
+# ----- a multi-axis cell: one tracker per axis ---------------------------------------------------------
+
+XY_MODEL = Path(nanodrift.__file__).parent / "data" / "default_model_xy.json"  # fitted on the simulated XY cell
+
+
+def shifted_cell(bias_um: dict[str, float]) -> CellModel:
+    """The shipped XY model with each axis' bias moved by ``bias_um[axis]`` (a cell that changed)."""
+    model = load_any_model(XY_MODEL)
+    assert isinstance(model, CellModel)
+    moved = {a: dataclasses.replace(m, id="", terms=[dataclasses.replace(ft, coef=ft.coef + bias_um[a])
+                                                     if ft.term.name == "1" else ft for ft in m.terms])
+             for a, m in model.models.items()}
+    return CellModel(axes=model.axes, models=moved)
+
+
+def validate_xy(model: CellModel, cycles: int, adapt: dict[str, BiasTracker] | None) -> list[StepResult]:
+    """The ISO 9283 plan through ``model`` on the simulated XY cell's drivers, in the drifting room of test 2."""
+    config = parse_config({"simulation": {"axes": "xy", "scenario": "test2", "seed": 7}}, source="xy.toml")
+    steps, _ = asyncio.run(run_cell_validation_steps(
+        procedure_drivers(config), cell_validation_plan(("x", "y"), cycles), model, compensate=True,
+        limits=config.axis_actuators(), name="test2", progress_stream=Capture(), adapt=adapt))
+    return steps
+
+
+def axis_accuracy_nm(steps: list[StepResult]) -> dict[str, float]:
+    """Each axis' ISO 9283 accuracy (mean over P1..P5) against the true position."""
+    targets = {a: np.array([r.step.target(a) for r in steps]) for a in ("x", "y")}
+    attained = {a: np.array([r.true_um[a] for r in steps]) for a in ("x", "y")}
+    result = iso9283.summarize_runs("test2", targets, attained, None)
+    return {a: result.axis_accuracy_nm(a, with_model=False) for a in ("x", "y")}
+
+
+def test_each_axis_of_an_xy_cell_runs_its_own_tracker_and_removes_its_own_offset() -> None:
+    model = shifted_cell({"x": 0.3, "y": -0.25})
+    static = validate_xy(model, 6, None)
+    trackers = {a: BiasTracker(300.0, 1.0) for a in ("x", "y")}
+    adaptive = validate_xy(model, 6, trackers)
+    assert all(r.valid for r in adaptive)
+
+    # each axis' commands carry its own tracker's correction, fed by its own residuals only
+    for axis, tracker in trackers.items():
+        plain = BiasTracker(300.0, 1.0)
+        for a, s in zip(adaptive, static, strict=True):
+            assert a.q_um[axis] - plain.correction_um == pytest.approx(s.q_um[axis], abs=1e-9)
+            plain.update(a.t_s, a.positions_um[axis] - a.step.target(axis))
+        assert tracker.updates == len(adaptive) == 30
+        assert tracker.correction_um == plain.correction_um
+    assert trackers["x"].correction_um < -0.1 and trackers["y"].correction_um > 0.08  # towards -0.3 and +0.25
+
+    before, after = axis_accuracy_nm(static), axis_accuracy_nm(adaptive)
+    assert before["x"] > 200.0 and before["y"] > 150.0  # the offsets the model now makes
+    assert after["x"] < 0.6 * before["x"] and after["y"] < 0.6 * before["y"]
+
+
+def test_validate_adapt_on_an_xy_model_reports_each_axis_and_matches_the_static_run(capsys) -> None:
+    """The shipped XY model, right for the room, in the drifting test 2: adaptation does no harm per axis."""
+    static_args = ["validate", "--model", str(XY_MODEL), "--cycles", "3", "--scenario", "test2", "--json"]
+    assert main(static_args) == 0
+    static = json.loads(capsys.readouterr().out)
+    assert main([*static_args, "--adapt", "--adapt-tau-s", "300"]) == 0
+    adaptive = json.loads(capsys.readouterr().out)
+    adapt = adaptive["adapt"]
+    assert (adapt["mode"], adapt["tau_s"], adapt["max_um"]) == ("bias", 300.0, 1.0)
+    assert list(adapt["axes"]) == ["x", "y"]
+    for axis in ("x", "y"):
+        assert adapt["axes"][axis]["updates"] == 15  # every step of 3 cycles over P1..P5
+        assert abs(adapt["axes"][axis]["final_correction_um"]) < 0.2  # a right model: little to correct
+        with_static = static["against_truth"]["with"]["axis_accuracy_nm"][axis]
+        with_adapt = adaptive["against_truth"]["with"]["axis_accuracy_nm"][axis]
+        assert with_adapt <= 1.2 * with_static + 10.0
+        # the uncompensated run is the same room, noise and plan in both
+        assert adaptive["against_truth"]["without"]["axis_accuracy_nm"][axis] == pytest.approx(
+            static["against_truth"]["without"]["axis_accuracy_nm"][axis], rel=0.05)
