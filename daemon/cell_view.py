@@ -12,7 +12,6 @@ thread: an asyncio bridge hands the value to its loop with ``call_soon_threadsaf
 
 from __future__ import annotations
 
-import json
 import math
 import threading
 from collections.abc import Callable, Iterable, Mapping
@@ -21,7 +20,8 @@ from typing import Any
 
 import zenoh
 
-from nanodrift.client import Client, Command, Position
+from nanodrift.bus.session import undeclare_all
+from nanodrift.client import Client, Command, Position, json_object, number
 
 __all__ = ["AxisInfo", "CellView", "Measured", "axes_of", "axis_value", "cell_state", "measured_of", "number",
            "setpoints_of"]
@@ -63,14 +63,6 @@ def cell_state(doc: Mapping[str, Any]) -> str:
     if doc.get("extrapolating"):
         return "extrapolating"
     return "ok"
-
-
-def number(value: Any) -> float | None:
-    """A finite JSON number as a float (a bool is not one), else None: what a payload's number must be."""
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        return None
-    value = float(value)
-    return value if math.isfinite(value) else None
 
 
 def axis_value(doc: Mapping[str, Any], key: str, axis: str) -> float:
@@ -159,12 +151,7 @@ class CellView:
         self._listeners.append(listener)
 
     def close(self) -> None:
-        for subscriber in self._subscribers:
-            try:
-                subscriber.undeclare()
-            except zenoh.ZError:
-                pass
-        self._subscribers.clear()
+        undeclare_all(self._subscribers)
 
     # --- what is known ------------------------------------------------------------------------------
 
@@ -233,7 +220,7 @@ class CellView:
     # --- the broadcasts (Zenoh's threads) -----------------------------------------------------------
 
     def _on_command(self, sample: zenoh.Sample) -> None:
-        doc = _json(sample)
+        doc = json_object(sample.payload.to_bytes())
         if doc is not None:
             self._apply_command(doc)
 
@@ -249,7 +236,7 @@ class CellView:
         self._tell("command", "", dict(doc))
 
     def _on_position(self, sample: zenoh.Sample) -> None:
-        doc = _json(sample)
+        doc = json_object(sample.payload.to_bytes())
         measured = measured_of(doc) if doc is not None else None
         axis = str(sample.key_expr).rsplit("/sensors/position", 1)[-1].strip("/") or "x"  # one axis: no suffix
         if measured is None or axis not in self.axes:
@@ -262,11 +249,3 @@ class CellView:
     def _tell(self, kind: str, axis: str, value: Any) -> None:
         for listener in list(self._listeners):
             listener(kind, axis, value)
-
-
-def _json(sample: zenoh.Sample) -> dict[str, Any] | None:
-    try:
-        doc = json.loads(sample.payload.to_bytes())
-    except ValueError:
-        return None
-    return doc if isinstance(doc, dict) else None

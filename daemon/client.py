@@ -33,10 +33,10 @@ from typing import Any
 import zenoh
 
 from nanodrift.bus.protocol import DEFAULT_PREFIX, Keys, key_prefix
-from nanodrift.bus.session import describe_zenoh_error, session_config
+from nanodrift.bus.session import describe_zenoh_error, session_config, undeclare_all
 from nanodrift.settings import ZenohSettings, prefix_problem
 
-__all__ = ["Client", "Command", "MoveEnded", "Refused", "client_config", "status_key"]
+__all__ = ["Client", "Command", "MoveEnded", "Refused", "client_config", "json_object", "number", "status_key"]
 
 #: seconds to collect the cells' ``status`` replies when a cell did not answer (to name those that do)
 DISCOVERY_TIMEOUT_S = 2.0
@@ -103,26 +103,52 @@ class Command:
             target: Position = {axis: float(doc[f"{axis}_um"]) for axis in q if f"{axis}_um" in doc}
         else:
             target = float(doc.get("x_um", math.nan))
-        t = doc.get("t")
+        t = number(doc.get("t"))
         return cls(id=doc.get("id"), target=target, q_um=_position(q), voltage_v=_position(doc.get("voltage_v")),
-                   q_sigma_um=_sigma(doc.get("q_sigma_um")), extrapolating=list(doc.get("extrapolating") or []),
-                   model=doc.get("model"), t=float(t) if isinstance(t, int | float) else math.nan,
+                   q_sigma_um=_by_axis(doc.get("q_sigma_um")), extrapolating=list(doc.get("extrapolating") or []),
+                   model=doc.get("model"), t=math.nan if t is None else t,
                    payload=dict(doc), done=dict(done) if done is not None else None)
 
     def with_done(self, done: Mapping[str, Any]) -> Command:
         return Command.from_payload(self.payload, done)
 
 
+def json_object(raw: bytes) -> dict[str, Any] | None:
+    """A payload as a JSON object; None when it is not one (a stray payload never raises in a callback)."""
+    try:
+        doc = json.loads(raw)
+    except ValueError:
+        return None
+    return doc if isinstance(doc, dict) else None
+
+
+def number(value: Any) -> float | None:
+    """A finite JSON number as a float (a bool is not one), else None: what a payload's number must be."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    value = float(value)
+    return value if math.isfinite(value) else None
+
+
+def _by_axis(value: Any) -> float | dict[str, float] | None:
+    """A payload's value of one axis (a number) or several (a mapping by axis; nan where not a number);
+    None when it is neither."""
+    if isinstance(value, Mapping):
+        return {str(k): math.nan if (v := number(each)) is None else v for k, each in value.items()}
+    return number(value)
+
+
 def _position(value: Any) -> Position:
-    if isinstance(value, Mapping):
-        return {str(k): float(v) if isinstance(v, int | float) else math.nan for k, v in value.items()}
-    return float(value) if isinstance(value, int | float) else math.nan
+    found = _by_axis(value)
+    return math.nan if found is None else found
 
 
-def _sigma(value: Any) -> float | Mapping[str, float] | None:
-    if isinstance(value, Mapping):
-        return {str(k): float(v) if isinstance(v, int | float) else math.nan for k, v in value.items()}
-    return float(value) if isinstance(value, int | float) else None
+def _refused(raw: bytes, target_id: Any) -> Refused:
+    """A reply error as :class:`Refused`: the daemon's error object, else its text."""
+    doc = json_object(raw)
+    if doc is None:
+        return Refused("reply_error", raw.decode("utf-8", "replace"), target_id)
+    return Refused(str(doc.get("kind") or "refused"), str(doc.get("error")), doc.get("id", target_id), doc)
 
 
 def _endpoints(endpoint: Endpoints) -> list[str]:
@@ -224,12 +250,7 @@ class Client:
                 return
             self._closed = True
             self._cond.notify_all()
-        for subscriber in self._subscribers:
-            try:
-                subscriber.undeclare()
-            except zenoh.ZError:
-                pass
-        self._subscribers.clear()
+        undeclare_all(self._subscribers)
         if not self.session.is_closed():
             self.session.close()
 
@@ -292,17 +313,12 @@ class Client:
             result = reply.result  # a Sample, or a ReplyError
             raw = result.payload.to_bytes()
             self._unanswered = ""
-            try:
-                doc = json.loads(raw)
-            except ValueError:
-                doc = None
-            if isinstance(result, zenoh.Sample):
-                if not isinstance(doc, dict):
-                    raise Refused("bad_reply", f"the reply on {key} is not a JSON object: {raw[:200]!r}", target_id)
-                return Command.from_payload(doc)
-            if isinstance(doc, dict):
-                raise Refused(str(doc.get("kind") or "refused"), str(doc.get("error")), doc.get("id", target_id), doc)
-            raise Refused("reply_error", raw.decode("utf-8", "replace"), target_id)
+            if not isinstance(result, zenoh.Sample):
+                raise _refused(raw, target_id)
+            doc = json_object(raw)
+            if doc is None:
+                raise Refused("bad_reply", f"the reply on {key} is not a JSON object: {raw[:200]!r}", target_id)
+            return Command.from_payload(doc)
         self._unanswered = self._unanswered or self.no_answer(key, timeout_s)
         raise TimeoutError(self._unanswered)
 
@@ -327,14 +343,9 @@ class Client:
 
     def _on_done(self, sample: zenoh.Sample) -> None:
         """Zenoh's thread: keep a ``done`` whose id a ``move`` waits for; ignore the rest."""
-        try:
-            doc = json.loads(sample.payload.to_bytes())
-        except ValueError:
-            return
-        if not isinstance(doc, dict):
-            return
-        target_id = doc.get("id")
-        if not isinstance(target_id, str | int):
+        doc = json_object(sample.payload.to_bytes())
+        target_id = doc.get("id") if doc is not None else None
+        if doc is None or not isinstance(target_id, str | int):
             return
         with self._cond:
             if target_id in self._pending and self._pending[target_id] is None:
@@ -352,17 +363,12 @@ class Client:
         key = self.keys.stop
         payload = json.dumps({} if id is None else {"id": id})
         for reply in self.session.get(key, payload=payload, timeout=timeout_s):
-            result = reply.result
+            result = reply.result  # once: each access converts the reply anew
             raw = result.payload.to_bytes()
-            try:
-                doc = json.loads(raw)
-            except ValueError:
-                doc = {"reply": raw.decode("utf-8", "replace")}
-            if isinstance(result, zenoh.Sample):
-                return doc if isinstance(doc, dict) else {"reply": doc}
-            error = doc.get("error") if isinstance(doc, dict) else doc
-            raise Refused(str(doc.get("kind") or "refused") if isinstance(doc, dict) else "reply_error",
-                          str(error), id, doc if isinstance(doc, dict) else None)
+            if not isinstance(result, zenoh.Sample):
+                raise _refused(raw, id)
+            doc = json_object(raw)
+            return doc if doc is not None else {"reply": raw.decode("utf-8", "replace")}
         self.session.put(key, payload)
         raise TimeoutError(f"no answer on {key} within {timeout_s:g} s ({self._where}); the stop was also put")
 
@@ -373,10 +379,10 @@ class Client:
         the cell does not answer within ``timeout_s``."""
         key = status_key(self._cell(), self.prefix)
         for reply in self.session.get(key, timeout=timeout_s):
-            if isinstance(reply.result, zenoh.Sample):
-                doc = json.loads(reply.result.payload.to_bytes())
-                if isinstance(doc, dict):
-                    return doc
+            result = reply.result
+            doc = json_object(result.payload.to_bytes()) if isinstance(result, zenoh.Sample) else None
+            if doc is not None:
+                return doc
         raise TimeoutError(f"no answer on {key} within {timeout_s:g} s ({self._where}): is the daemon of cell "
                            f"{self.cell!r} running?")
 
@@ -400,13 +406,8 @@ class Client:
         for reply in self.session.get(key, target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
                                       timeout=timeout_s):
             sample = reply.ok
-            if sample is None:
-                continue
-            try:
-                doc = json.loads(sample.payload.to_bytes())
-            except ValueError:
-                continue
-            if isinstance(doc, dict):
+            doc = json_object(sample.payload.to_bytes()) if sample is not None else None
+            if sample is not None and doc is not None:
                 under = str(sample.key_expr)[len(self.prefix) + 1:]
                 cell = str(doc.get("cell") or under.split("/")[0])
                 docs[cell] = doc

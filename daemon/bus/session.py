@@ -135,6 +135,17 @@ ANSWER_CONGESTION = zenoh.CongestionControl.DROP
 ANSWER_EXPRESS = False
 
 
+def undeclare_all(entities: list[Any]) -> None:
+    """Undeclare each subscriber/publisher/queryable and empty the list; one the session already dropped
+    (a closed session raises ``ZError``) is gone anyway."""
+    for entity in entities:
+        try:
+            entity.undeclare()
+        except zenoh.ZError:
+            pass
+    entities.clear()
+
+
 class Bus:
     """The daemon's declarations on one Zenoh session."""
 
@@ -231,21 +242,12 @@ class Bus:
         if self._token is not None:
             self._token.undeclare()
             self._token = None
-        for entity in self._declared:
-            try:
-                entity.undeclare()
-            except zenoh.ZError:
-                pass
-        self._declared.clear()
+        undeclare_all(self._declared)
 
     def close(self) -> None:
         """Withdraw, undeclare everything, close the session."""
         self.withdraw()
-        for entity in [*self._telemetry.values(), self._command_pub, self._error_pub, self._done_pub]:
-            try:
-                entity.undeclare()
-            except zenoh.ZError:
-                pass
+        undeclare_all([*self._telemetry.values(), self._command_pub, self._error_pub, self._done_pub])
         self._telemetry.clear()
         if not self.session.is_closed():
             self.session.close()

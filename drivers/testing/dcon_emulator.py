@@ -19,13 +19,13 @@ gets no answer, as on the real bus. Several modules may share the bus (one addre
 from __future__ import annotations
 
 import socket
-import socketserver
 import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from nanodrift.drivers.dcon.protocol import CHECKSUM_BIT, checksum
+from nanodrift.drivers.testing.loopback import LoopbackServer
 from nanodrift.drivers.testing.pty_devices import PtyDevice
 
 
@@ -134,62 +134,28 @@ class DconTcpGateway(_Bus):
 
     def __init__(self, modules: Sequence[DconModule], port: int = 0) -> None:
         super().__init__(modules)
-        self._port = port
-        self._server: socketserver.ThreadingTCPServer | None = None
-        self._sockets: set[socket.socket] = set()
+        self._tcp = LoopbackServer(self._serve_connection, port, name="dcon-gateway")
         self.start()
 
     @property
     def port(self) -> int:
-        return self._port
+        return self._tcp.port
 
     def start(self) -> None:
-        gateway = self
-
-        class Handler(socketserver.BaseRequestHandler):
-            def handle(self) -> None:
-                gateway._serve_connection(self.request)
-
-        class Server(socketserver.ThreadingTCPServer):
-            allow_reuse_address = True
-            daemon_threads = True
-
-        self._server = Server(("127.0.0.1", self._port), Handler)
-        self._port = self._server.server_address[1]
-        threading.Thread(target=self._server.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True).start()
+        self._tcp.start()
 
     def stop(self) -> None:
-        server, self._server = self._server, None
-        if server is None:
-            return
-        server.shutdown()
-        server.server_close()
-        for sock in list(self._sockets):
-            try:
-                sock.shutdown(socket.SHUT_RDWR)
-            except OSError:
-                pass
-            sock.close()
-        self._sockets.clear()
+        self._tcp.stop()
 
     close = stop
 
     def _serve_connection(self, sock: socket.socket) -> None:
-        self._sockets.add(sock)
         buffer = b""
-        try:
-            while True:
-                data = sock.recv(4096)
-                if not data:
-                    return
-                buffer += data
-                while b"\r" in buffer:
-                    raw, _, buffer = buffer.partition(b"\r")
-                    answer = self.respond(raw)
-                    if answer is not None:
-                        sock.sendall(answer)
-                buffer = buffer[-4096:]
-        except OSError:
-            return
-        finally:
-            self._sockets.discard(sock)
+        while data := sock.recv(4096):
+            buffer += data
+            while b"\r" in buffer:
+                raw, _, buffer = buffer.partition(b"\r")
+                answer = self.respond(raw)
+                if answer is not None:
+                    sock.sendall(answer)
+            buffer = buffer[-4096:]

@@ -22,11 +22,12 @@ from __future__ import annotations
 
 import json
 import socket
-import socketserver
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, ClassVar
+
+from nanodrift.drivers.testing.loopback import LoopbackServer
 
 #: JSON-RPC 2.0 specification, section 5.1
 METHOD_NOT_FOUND = -32601
@@ -63,17 +64,14 @@ class IdsEmulator:
         self.error_texts = dict(self.ERROR_TEXTS)
         self.requests: list[tuple[str, list[Any]]] = []
         self.connections = 0
-        self._port = port
-        self._server: socketserver.ThreadingTCPServer | None = None
-        self._thread: threading.Thread | None = None
+        self._tcp = LoopbackServer(self._serve, port, name="ids-emulator")
         self._lock = threading.Lock()
-        self._sockets: set[socket.socket] = set()
         if start:
             self.start()
 
     @property
     def port(self) -> int:
-        return self._port
+        return self._tcp.port
 
     @property
     def mode(self) -> str:
@@ -86,58 +84,20 @@ class IdsEmulator:
         self.stop()
 
     def start(self) -> None:
-        emulator = self
-
-        class Handler(socketserver.StreamRequestHandler):
-            def handle(self) -> None:
-                emulator._serve(self.request, self.rfile)
-
-        class Server(socketserver.ThreadingTCPServer):
-            allow_reuse_address = True
-            daemon_threads = True
-
-        self._server = Server(("127.0.0.1", self._port), Handler)
-        self._port = self._server.server_address[1]
-        self._thread = threading.Thread(target=self._server.serve_forever, kwargs={"poll_interval": 0.05},
-                                        name="ids-emulator", daemon=True)
-        self._thread.start()
+        self._tcp.start()
 
     def stop(self) -> None:
-        server, self._server = self._server, None
-        if server is None:
-            return
-        server.shutdown()
-        server.server_close()
-        with self._lock:
-            for sock in list(self._sockets):
-                try:
-                    sock.shutdown(socket.SHUT_RDWR)
-                except OSError:
-                    pass
-                sock.close()
-            self._sockets.clear()
-        if self._thread is not None:
-            self._thread.join(timeout=2)
+        self._tcp.stop()
 
-    def _serve(self, sock: socket.socket, rfile: Any) -> None:
+    def _serve(self, sock: socket.socket) -> None:
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)  # one small answer per request, sent at once
         with self._lock:
-            self._sockets.add(sock)
             self.connections += 1
-        try:
-            while True:
-                line = rfile.readline(MAX_REQUEST_BYTES)
-                if not line:
-                    return
+        with sock.makefile("rb") as rfile:
+            while line := rfile.readline(MAX_REQUEST_BYTES):
                 answer = self.answer(line)
-                if answer is None or self.silent:
-                    continue
-                sock.sendall(self.reply if self.reply is not None else answer)
-        except OSError:
-            return
-        finally:
-            with self._lock:
-                self._sockets.discard(sock)
+                if answer is not None and not self.silent:
+                    sock.sendall(self.reply if self.reply is not None else answer)
 
     def answer(self, line: bytes) -> bytes | None:
         """The response line to one request line (None: a notification, which JSON-RPC does not answer)."""

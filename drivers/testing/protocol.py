@@ -16,7 +16,6 @@ driver under test opens a real serial port.
 from __future__ import annotations
 
 import os
-import select
 import threading
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -51,14 +50,8 @@ class ScriptedDevice(PtyDevice):
 
     def _serve(self, master: int, stop: threading.Event) -> None:
         buffer = b""
-        while not stop.is_set():
-            ready, _, _ = select.select([master], [], [], 0.005)
-            if not ready:
-                continue
-            try:
-                buffer += os.read(master, 4096)
-            except OSError:  # nobody holds the port open right now
-                continue
+        for data in self._chunks(master, stop):
+            buffer += data
             with self._lock:
                 while buffer:
                     if self.done >= len(self.exchanges):

@@ -13,7 +13,7 @@ import select
 import threading
 import time
 import tty
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 
@@ -60,26 +60,31 @@ class PtyDevice:
         stop.wait()
 
     @staticmethod
+    def _chunks(master: int, stop: threading.Event, poll_s: float = 0.005) -> Iterator[bytes]:
+        """What the driver writes, chunk by chunk, until ``stop`` is set; ``b""`` after a poll of ``poll_s``
+        with nothing (or while nobody holds the port open), so a device that also acts on time gets its turn."""
+        while not stop.is_set():
+            ready, _, _ = select.select([master], [], [], poll_s)
+            try:
+                yield os.read(master, 4096) if ready else b""
+            except OSError:  # nobody holds the port open right now
+                yield b""
+
+    @staticmethod
     def _serve_lines(master: int, stop: threading.Event, end: bytes,
                      answer: Callable[[bytes], bytes | None]) -> None:
         """A line-oriented device's ``_serve``: each request up to ``end`` (without it) is answered with
         ``answer(request)`` written whole (None: the device stays silent); a port nobody holds open is
         waited out, and a run of bytes with no ``end`` keeps only its last 4 KiB (line noise)."""
         buffer = b""
-        while not stop.is_set():
-            ready, _, _ = select.select([master], [], [], 0.005)
-            if not ready:
-                continue
-            try:
-                buffer += os.read(master, 4096)
-            except OSError:  # nobody holds the port open right now
-                continue
+        for data in PtyDevice._chunks(master, stop):
+            buffer += data
             while end in buffer:
                 raw, _, buffer = buffer.partition(end)
-                data = answer(raw)
-                if data is not None:
+                reply = answer(raw)
+                if reply is not None:
                     try:
-                        os.write(master, data)
+                        os.write(master, reply)
                     except OSError:
                         pass
             buffer = buffer[-4096:]
@@ -115,19 +120,13 @@ class FakeInterferometer(PtyDevice):
     def _serve(self, master: int, stop: threading.Event) -> None:
         buffer = b""
         next_line = time.monotonic()
-        while not stop.is_set():
-            ready, _, _ = select.select([master], [], [], 0.005)
-            if ready:
-                try:
-                    data = os.read(master, 4096)
-                except OSError:  # nobody holds the port open right now
-                    data = b""
-                with self._lock:
-                    self.received.extend(data)
-                buffer += data
-                while self.query and self.query in buffer:
-                    _, _, buffer = buffer.partition(self.query)
-                    self._send(master)
+        for data in self._chunks(master, stop):
+            with self._lock:
+                self.received.extend(data)
+            buffer += data
+            while self.query and self.query in buffer:
+                _, _, buffer = buffer.partition(self.query)
+                self._send(master)
             if self.stream and time.monotonic() >= next_line:
                 next_line += self.period_s
                 self._send(master)
@@ -210,14 +209,7 @@ class FakeGcsController(PtyDevice):
         buffer = b""
         pending: list[tuple[float, bytes]] = []  # (when, answer) in the order asked
         last_due = -float("inf")
-        while not stop.is_set():
-            ready, _, _ = select.select([master], [], [], 0.002 if pending else 0.005)
-            data = b""
-            if ready:
-                try:
-                    data = os.read(master, 4096)
-                except OSError:  # nobody holds the port open right now
-                    data = b""
+        for data in self._chunks(master, stop, poll_s=0.002):  # answers due within a couple of ms
             self.received.extend(data)
             buffer += data
             while b"\n" in buffer:
