@@ -57,6 +57,20 @@ class DeviceError(Exception):
     """The device or its connection failed; the daemon closes and reopens the group with backoff."""
 
 
+ConfigT = TypeVar("ConfigT", bound=BaseModel)
+
+
+def as_config(config: BaseModel, model: type[ConfigT]) -> ConfigT:
+    """``config`` as the plugin's own model (a caller may hand over the generic one, with the extra keys)."""
+    return config if isinstance(config, model) else model.model_validate(config.model_dump())
+
+
+def shown(text: bytes | str, max_chars: int = 80) -> str:
+    """A device's text as an error message quotes it: repr, cut at ``max_chars`` (a garbage line can be long)."""
+    text = text.decode("utf-8", "replace") if isinstance(text, bytes) else text
+    return repr(text if len(text) <= max_chars else text[:max_chars] + "...")
+
+
 class Clock(Protocol):
     """Where time comes from: monotonic real time, or a simulated one that runs faster than real time."""
 

@@ -18,6 +18,7 @@ from nanodrift.drivers.base import (
     DriverSetupError,
     SensorConfig,
     SensorGroup,
+    as_config,
 )
 
 
@@ -43,8 +44,7 @@ class IdsPlugin(DriverPlugin):
         return problems
 
     def create(self, configs: Sequence[SensorConfig], context: DriverContext) -> list[SensorGroup]:
-        channels = [c if isinstance(c, IdsSensorConfig) else IdsSensorConfig.model_validate(c.model_dump())
-                    for c in configs]
+        channels = [as_config(c, IdsSensorConfig) for c in configs]
         problems = self.config_problems(list(enumerate(channels)), None)
         if problems:
             raise DriverSetupError("attocube_ids: " + "; ".join(problems))

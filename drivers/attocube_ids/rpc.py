@@ -16,16 +16,10 @@ import contextlib
 import json
 from typing import Any
 
-from nanodrift.drivers.base import DeviceError
+from nanodrift.drivers.base import DeviceError, shown
 
 #: the longest answer line taken (a few numbers): a peer sending an endless line must not grow memory
 MAX_LINE_BYTES = 65536
-SHOWN_CHARS = 80
-
-
-def _shown(data: bytes | str) -> str:
-    text = data.decode("utf-8", "replace") if isinstance(data, bytes) else data
-    return repr(text if len(text) <= SHOWN_CHARS else text[:SHOWN_CHARS] + "...")
 
 
 class IdsRpcError(DeviceError):
@@ -95,7 +89,7 @@ class IdsRpc:
                               f"with id {request_id})") from None
         except asyncio.IncompleteReadError as error:
             raise DeviceError(f"{where}: the connection closed before the answer "
-                              f"(received {_shown(error.partial)})") from None
+                              f"(received {shown(error.partial)})") from None
         except asyncio.LimitOverrunError:
             raise DeviceError(f"{where}: an answer line longer than {MAX_LINE_BYTES} bytes") from None
         except OSError as error:
@@ -108,9 +102,9 @@ class IdsRpc:
         try:
             answer = json.loads(line)
         except (ValueError, UnicodeDecodeError):
-            raise DeviceError(f"{where}: answer {_shown(line)} is not JSON (expected {expected})") from None
+            raise DeviceError(f"{where}: answer {shown(line)} is not JSON (expected {expected})") from None
         if not isinstance(answer, dict) or answer.get("id") != request_id:
-            raise DeviceError(f"{where}: answer {_shown(line)} is not {expected}")
+            raise DeviceError(f"{where}: answer {shown(line)} is not {expected}")
         error = answer.get("error")
         if error is not None:
             code = error.get("code") if isinstance(error, dict) else None
@@ -118,5 +112,5 @@ class IdsRpc:
             raise IdsRpcError(f"{where}: JSON-RPC error {code}: {message}")
         result = answer.get("result")
         if not isinstance(result, list) or not result:
-            raise DeviceError(f"{where}: answer {_shown(line)} has no result list (expected {expected})")
+            raise DeviceError(f"{where}: answer {shown(line)} has no result list (expected {expected})")
         return result

@@ -18,6 +18,7 @@ from nanodrift.drivers.base import (
     DriverSetupError,
     SensorConfig,
     SensorGroup,
+    as_config,
 )
 from nanodrift.drivers.dcon.bus import DconBus
 from nanodrift.drivers.dcon.config import DconHubConfig, DconSensorConfig
@@ -30,8 +31,7 @@ MODULE_SETTINGS = ("checksum", "open_detection")
 
 
 def _channels(configs: Sequence[SensorConfig]) -> list[DconSensorConfig]:
-    return [c if isinstance(c, DconSensorConfig) else DconSensorConfig.model_validate(c.model_dump())
-            for c in configs]
+    return [as_config(c, DconSensorConfig) for c in configs]
 
 
 class DconPlugin(DriverPlugin):
@@ -87,8 +87,7 @@ def shared_bus(context: DriverContext, name: str) -> DconBus:
     buses: dict[str, DconBus] = context.resources.setdefault(BUSES_KEY, {})
     if name not in buses:
         hub = context.hubs[name]
-        if not isinstance(hub, DconHubConfig):
-            hub = DconHubConfig.model_validate(hub.model_dump())
+        hub = as_config(hub, DconHubConfig)
         buses[name] = DconBus(hub)
     return buses[name]
 

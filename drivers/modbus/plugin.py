@@ -14,6 +14,7 @@ from nanodrift.drivers.base import (
     DriverSetupError,
     SensorConfig,
     SensorGroup,
+    as_config,
 )
 from nanodrift.drivers.modbus.actuator import ModbusActuator
 from nanodrift.drivers.modbus.config import ModbusActuatorConfig, ModbusHubConfig, ModbusSensorConfig
@@ -31,30 +32,23 @@ class ModbusPlugin(DriverPlugin):
     actuator_model = ModbusActuatorConfig
 
     def create(self, configs: Sequence[SensorConfig], context: DriverContext) -> list[SensorGroup]:
-        channels: list[ModbusSensorConfig] = []
-        for config in configs:
-            if not isinstance(config, ModbusSensorConfig):
-                config = ModbusSensorConfig.model_validate(config.model_dump())
-            if config.hub not in context.hubs:
-                known = ", ".join(sorted(context.hubs)) or "none defined"
-                raise DriverSetupError(f"sensor {config.name!r}: no [[hubs]] named {config.hub!r} (hubs: {known})")
-            channels.append(config)
-        groups: list[SensorGroup] = []
-        for block in plan_blocks(channels):
-            groups.append(ModbusBlockGroup(block, shared_hub(context, block.hub), context.clock))
-        return groups
+        channels = [as_config(c, ModbusSensorConfig) for c in configs]
+        for config in channels:  # every channel's hub named in [[hubs]], before any group is built
+            shared_hub(context, config.hub, f"sensor {config.name!r}")
+        return [ModbusBlockGroup(block, shared_hub(context, block.hub), context.clock)
+                for block in plan_blocks(channels)]
 
     def create_actuator(self, config: ActuatorOptions, context: DriverContext) -> Actuator:
-        if not isinstance(config, ModbusActuatorConfig):
-            config = ModbusActuatorConfig.model_validate(config.model_dump())
-        if config.hub not in context.hubs:
-            known = ", ".join(sorted(context.hubs)) or "none defined"
-            raise DriverSetupError(f"actuator: no [[hubs]] named {config.hub!r} (hubs: {known})")
-        return ModbusActuator(config, shared_hub(context, config.hub))
+        config = as_config(config, ModbusActuatorConfig)
+        return ModbusActuator(config, shared_hub(context, config.hub, "actuator"))
 
 
-def shared_hub(context: DriverContext, name: str) -> ModbusHub:
-    """The one :class:`ModbusHub` of hub ``name`` in this daemon/procedure (created on first use)."""
+def shared_hub(context: DriverContext, name: str, user: str = "") -> ModbusHub:
+    """The one :class:`ModbusHub` of hub ``name`` in this daemon/procedure (created on first use); a
+    :class:`DriverSetupError` naming ``user`` when no ``[[hubs]]`` has that name."""
+    if name not in context.hubs:
+        known = ", ".join(sorted(context.hubs)) or "none defined"
+        raise DriverSetupError(f"{user}: no [[hubs]] named {name!r} (hubs: {known})")
     hubs: dict[str, ModbusHub] = context.resources.setdefault(SHARED_HUBS_KEY, {})
     if name not in hubs:
         hub = context.hubs[name]

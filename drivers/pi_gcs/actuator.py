@@ -39,7 +39,7 @@ from typing import Literal
 
 import structlog
 
-from nanodrift.drivers.base import Actuator, DeviceError
+from nanodrift.drivers.base import Actuator, DeviceError, shown
 from nanodrift.drivers.pi_gcs.config import DECIMALS, PiGcsActuatorConfig
 from nanodrift.drivers.pi_gcs.errors import UNKNOWN_COMMAND, error_text
 from nanodrift.drivers.pi_gcs.link import GcsLink
@@ -47,7 +47,6 @@ from nanodrift.drivers.pi_gcs.link import GcsLink
 log = structlog.get_logger(__name__)
 
 QUANTUM = Decimal(1).scaleb(-DECIMALS)
-SHOWN_CHARS = 80
 
 
 class PiGcsLimitsError(DeviceError):
@@ -78,7 +77,7 @@ def _value(answer: str, axis: str, query: str) -> str:
         item, sep, value = line.partition("=")
         if sep and item.strip() == axis:
             return value.strip()
-    raise GarbledAnswer(f"no value for {axis!r} in the answer {_shown(answer)} to {query!r}")
+    raise GarbledAnswer(f"no value for {axis!r} in the answer {shown(answer)} to {query!r}")
 
 
 def _float(answer: str, axis: str, query: str) -> float:
@@ -88,12 +87,8 @@ def _float(answer: str, axis: str, query: str) -> float:
     except ValueError:
         value = math.nan
     if not math.isfinite(value):
-        raise GarbledAnswer(f"answer {_shown(answer)} to {query!r} carries no number for {axis!r}")
+        raise GarbledAnswer(f"answer {shown(answer)} to {query!r} carries no number for {axis!r}")
     return value
-
-
-def _shown(text: str) -> str:
-    return repr(text if len(text) <= SHOWN_CHARS else text[:SHOWN_CHARS] + "...")
 
 
 class PiGcsActuator(Actuator):
@@ -125,7 +120,7 @@ class PiGcsActuator(Actuator):
         try:
             return int(answer.strip())
         except ValueError:
-            raise GarbledAnswer(f"unexpected answer {_shown(answer)} to 'ERR?'") from None
+            raise GarbledAnswer(f"unexpected answer {shown(answer)} to 'ERR?'") from None
 
     def _check(self, answer: str, after: str) -> None:
         """The ``ERR?`` answer read right after ``after``: :class:`DeviceError` blaming it for any error."""

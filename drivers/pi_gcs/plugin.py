@@ -17,6 +17,7 @@ from nanodrift.drivers.base import (
     DriverSetupError,
     SensorConfig,
     SensorGroup,
+    as_config,
 )
 from nanodrift.drivers.pi_gcs.actuator import PiGcsActuator
 from nanodrift.drivers.pi_gcs.config import PiGcsActuatorConfig
@@ -50,8 +51,7 @@ class PiGcsPlugin(DriverPlugin):
         return []
 
     def create_actuator(self, config: ActuatorOptions, context: DriverContext) -> Actuator:
-        if not isinstance(config, PiGcsActuatorConfig):
-            config = PiGcsActuatorConfig.model_validate(config.model_dump())
+        config = as_config(config, PiGcsActuatorConfig)
         links: dict[str, GcsLink] = context.resources.setdefault(LINKS_KEY, {})
         link = links.get(config.address)
         if link is None:

@@ -21,16 +21,12 @@ import math
 import re
 from typing import Literal
 
-from nanodrift.drivers.base import Actuator, DeviceError
+from nanodrift.drivers.base import Actuator, DeviceError, shown
 from nanodrift.drivers.serial_line.config import SerialLineActuatorConfig
 from nanodrift.drivers.serial_line.line import SerialLineGroup
 from nanodrift.drivers.serial_line.template import CommandTemplate
 
 SHOWN_CHARS = 60  # of an unexpected answer in a message
-
-
-def _shown(text: str) -> str:
-    return repr(text if len(text) <= SHOWN_CHARS else text[:SHOWN_CHARS] + "...")
 
 
 class SerialLineActuator(Actuator):
@@ -95,8 +91,8 @@ class SerialLineActuator(Actuator):
         except ValueError:
             value = None
         if value is None or not math.isfinite(value):  # never a value the answer does not carry
-            raise DeviceError(f"{self.description}: unexpected answer {_shown(answer)} to {c.readback!r} after "
-                              f"{after!r} (expected pattern {c.readback_pattern!r})")
+            raise DeviceError(f"{self.description}: unexpected answer {shown(answer, SHOWN_CHARS)} to {c.readback!r} "
+                              f"after {after!r} (expected pattern {c.readback_pattern!r})")
         return value, answer
 
     async def read_back(self) -> tuple[Literal["voltage_v", "q_um"], float] | None:
@@ -117,8 +113,10 @@ class SerialLineActuator(Actuator):
             expected = sent[c.expected_field]  # what the device was told, not what was asked
             if not abs(value - expected) <= c.readback_tolerance:
                 raise DeviceError(f"{self.description}: wrote {text!r} ({c.expected_field} {expected:.6g}), read back "
-                                  f"{value:.6g} (answer {_shown(answer)}; tolerance {c.readback_tolerance:g})")
+                                  f"{value:.6g} (answer {shown(answer, SHOWN_CHARS)}; "
+                                  f"tolerance {c.readback_tolerance:g})")
         if c.error_query:
             answer = await self._ask(c.error_query, text)
             if not self._error_ok.fullmatch(answer.strip()):
-                raise DeviceError(f"{self.description}: the controller reports error {_shown(answer)} after {text!r}")
+                raise DeviceError(f"{self.description}: the controller reports error {shown(answer, SHOWN_CHARS)} "
+                                  f"after {text!r}")

@@ -55,7 +55,7 @@ from typing import Literal
 
 import structlog
 
-from nanodrift.drivers.base import Clock, DeviceError, Reading, SensorGroup
+from nanodrift.drivers.base import Clock, DeviceError, Reading, SensorGroup, shown
 from nanodrift.drivers.serial_line.config import SerialLineSensorConfig
 from nanodrift.drivers.serial_line.reader import SerialLineReader
 
@@ -210,7 +210,7 @@ class SerialLineGroup(SensorGroup):
             self._dirty_since = asyncio.get_running_loop().time()
         if not self._episode:
             self._episode = True
-            log.warning("serial_late_answers", port=self.port, line=_shown(text),
+            log.warning("serial_late_answers", port=self.port, line=shown(text, SHOWN_CHARS),
                         why="a line nobody asked for (an answer after its request timed out?) is discarded; "
                             "requests wait for the line to go quiet")
 
@@ -377,9 +377,8 @@ class SerialLineGroup(SensorGroup):
         unit = self.config.value_unit
         match = self._pattern.search(text)  # grep-like; ^...$ in the pattern demands the whole line
         if match is None:
-            shown = text if len(text) <= SHOWN_CHARS else text[:SHOWN_CHARS] + "..."
-            return Reading.fault(
-                t, f"unexpected line from {self.port}: {shown!r} (expected pattern {self.config.pattern!r})", unit)
+            return Reading.fault(t, f"unexpected line from {self.port}: {shown(text, SHOWN_CHARS)} "
+                                    f"(expected pattern {self.config.pattern!r})", unit)
         try:
             raw = float(match.group("value"))
         except ValueError:
@@ -410,5 +409,4 @@ class SerialLineGroup(SensorGroup):
             return line[0] if line is not None else None
 
 
-def _shown(text: str) -> str:
-    return repr(text if len(text) <= SHOWN_CHARS else text[:SHOWN_CHARS] + "...")
+

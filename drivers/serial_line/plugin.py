@@ -27,6 +27,7 @@ from nanodrift.drivers.base import (
     DriverSetupError,
     SensorConfig,
     SensorGroup,
+    as_config,
 )
 from nanodrift.drivers.serial_line.actuator import SerialLineActuator
 from nanodrift.drivers.serial_line.config import SerialLineActuatorConfig, SerialLineSensorConfig
@@ -100,8 +101,7 @@ class SerialLinePlugin(DriverPlugin):
         owners: dict[str, SerialLineGroup] = {}
         context.resources.put(PORTS_KEY, owners)  # this build's ports only
         for config in configs:
-            if not isinstance(config, SerialLineSensorConfig):
-                config = SerialLineSensorConfig.model_validate(config.model_dump())
+            config = as_config(config, SerialLineSensorConfig)
             if config.port in owners:
                 raise DriverSetupError(f"sensor {config.name!r}: port {config.port!r} is already used by sensor "
                                        f"{owners[config.port].config.name!r} (one instrument per port)")
@@ -116,8 +116,7 @@ class SerialLinePlugin(DriverPlugin):
         actuators: list[Actuator] = []
         lines: dict[str, SerialLineActuator] = {}
         for config in configs:
-            if not isinstance(config, SerialLineActuatorConfig):
-                config = SerialLineActuatorConfig.model_validate(config.model_dump())
+            config = as_config(config, SerialLineActuatorConfig)
             first = lines.get(config.port)
             if first is None:
                 actuator = self.create_actuator(config, context)
@@ -136,8 +135,7 @@ class SerialLinePlugin(DriverPlugin):
         return actuators
 
     def create_actuator(self, config: ActuatorOptions, context: DriverContext) -> Actuator:
-        if not isinstance(config, SerialLineActuatorConfig):
-            config = SerialLineActuatorConfig.model_validate(config.model_dump())
+        config = as_config(config, SerialLineActuatorConfig)
         owners: dict[str, SerialLineGroup] = context.resources.get(PORTS_KEY, dict) or {}
         sensor = owners.get(config.port)
         if sensor is None:

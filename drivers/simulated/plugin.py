@@ -32,6 +32,7 @@ from nanodrift.drivers.base import (
     SensorConfig,
     SensorGroup,
     VirtualCellPlugin,
+    as_config,
 )
 from nanodrift.drivers.simulated.cell import SimulatedCell, position_channels
 from nanodrift.drivers.simulated.clock import ScaledClock, VirtualClock
@@ -122,8 +123,7 @@ class SimulatedPlugin(VirtualCellPlugin):
 
     def create(self, configs: Sequence[SensorConfig], context: DriverContext) -> list[SensorGroup]:
         cell = shared_cell(context)
-        sims = [c if isinstance(c, SimulatedSensorConfig) else SimulatedSensorConfig.model_validate(c.model_dump())
-                for c in configs]
+        sims = [as_config(c, SimulatedSensorConfig) for c in configs]
         for c in sims:
             if c.source not in cell.channels:
                 raise DriverSetupError(
