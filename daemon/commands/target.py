@@ -52,46 +52,39 @@ def _shown(target: float | tuple[float, ...]) -> str:
     return ",".join(f"{v:g}" for v in target) if isinstance(target, tuple) else f"{target:g}"
 
 
-def _format_cell_command(doc: dict[str, Any]) -> str:
-    """``x 240.0000 y 100.0000 µm -> q x … y … µm, x … y … V [model m-…; σ x 0.0185 y 0.0210 µm; T1=… °C]``."""
-    axes = list(doc["q_um"])
-    sigma = doc.get("q_sigma_um") or {}
-    correction = doc.get("correction_um")
-    details = [f"model {doc['model']}",
-               "σ " + " ".join(f"{a} {sigma[a]:.4f}" if isinstance(sigma.get(a), int | float) else f"{a} unknown"
-                               for a in axes) + " µm"]
-    if isinstance(correction, dict):
-        details.append("correction " + " ".join(f"{a} {correction[a]:+.4f}" for a in axes if a in correction) + " µm")
-    adapted = doc.get("q_sigma_adapted_um")
-    if isinstance(adapted, dict):
-        details.append("σ adapted " + " ".join(f"{a} {adapted[a]:.4f}" if isinstance(adapted.get(a), int | float)
-                                               else f"{a} unknown" for a in axes if a in adapted) + " µm")
-    temps = ", ".join(f"{k}={v:.3f} °C" for k, v in (doc.get("temperatures_c") or {}).items())
-    if temps:
-        details.append(temps)
-    extra = f" EXTRAPOLATING {','.join(doc['extrapolating'])}" if doc.get("extrapolating") else ""
-    return (" ".join(f"{a} {doc[f'{a}_um']:.4f}" for a in axes) + " µm -> q "
-            + " ".join(f"{a} {doc['q_um'][a]:.4f}" for a in axes) + " µm, "
-            + " ".join(f"{a} {doc['voltage_v'][a]:.5f}" for a in axes) + f" V [{'; '.join(details)}]{extra}")
-
-
 def _format_command(doc: dict[str, Any]) -> str:
-    """``x 240.0000 µm -> q 239.6231 µm, 4.79246 V [model m-…; σ 0.0185 µm; T1=21.800 °C, …]``
-    (with adaptation, ``correction …`` and ``σ adapted …`` after the model's σ)."""
+    """``x 240.0000 µm -> q 239.6231 µm, 4.79246 V [model m-…; σ 0.0185 µm; T1=21.800 °C, …]``; a cell of several
+    axes ``x 240.0000 y 100.0000 µm -> q x … y … µm, x … y … V [model m-…; σ x 0.0185 y 0.0210 µm; …]`` (with
+    adaptation, ``correction …`` and ``σ adapted …`` after the model's σ)."""
+    several = isinstance(doc["q_um"], dict)
+    axes = list(doc["q_um"]) if several else ["x"]
+
+    def values(value: Any, fmt: str, *, every_axis: bool = False) -> str:
+        """One axis' number, or ``x … y …`` over the axes the mapping names (or every axis); unknown: no number."""
+        def one(v: Any) -> str:
+            return format(v, fmt) if isinstance(v, int | float) else "unknown"
+
+        if not several:
+            return one(value)
+        found = value if isinstance(value, dict) else {}
+        return " ".join(f"{a} {one(found.get(a))}" for a in axes if every_axis or a in found)
+
+    def carried(value: Any) -> bool:  # the payload has it (adaptation on)
+        return isinstance(value, dict) if several else isinstance(value, int | float)
+
+    sigma = values(doc.get("q_sigma_um"), ".4f", every_axis=True)
+    details = [f"model {doc['model']}", "σ unknown" if sigma == "unknown" else f"σ {sigma} µm"]
+    if carried(doc.get("correction_um")):
+        details.append(f"correction {values(doc['correction_um'], '+.4f')} µm")
+    if carried(doc.get("q_sigma_adapted_um")):  # the corrected command's σ: what the bias tracker leaves
+        details.append(f"σ adapted {values(doc['q_sigma_adapted_um'], '.4f')} µm")
     temps = ", ".join(f"{k}={v:.3f} °C" for k, v in (doc.get("temperatures_c") or {}).items())
-    sigma = doc.get("q_sigma_um")
-    details = [f"model {doc['model']}", f"σ {sigma:.4f} µm" if isinstance(sigma, int | float) else "σ unknown"]
-    correction = doc.get("correction_um")
-    if isinstance(correction, int | float):
-        details.append(f"correction {correction:+.4f} µm")
-    adapted = doc.get("q_sigma_adapted_um")
-    if isinstance(adapted, int | float):  # the corrected command's σ: what the bias tracker leaves
-        details.append(f"σ adapted {adapted:.4f} µm")
     if temps:
         details.append(temps)
     extra = f" EXTRAPOLATING {','.join(doc['extrapolating'])}" if doc.get("extrapolating") else ""
-    return (f"x {doc['x_um']:.4f} µm -> q {doc['q_um']:.4f} µm, {doc['voltage_v']:.5f} V "
-            f"[{'; '.join(details)}]{extra}")
+    target = " ".join(f"{a} {doc[f'{a}_um']:.4f}" for a in axes)
+    return (f"{target} µm -> q {values(doc['q_um'], '.4f', every_axis=True)} µm, "
+            f"{values(doc['voltage_v'], '.5f', every_axis=True)} V [{'; '.join(details)}]{extra}")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -129,7 +122,7 @@ def main(args: argparse.Namespace) -> int:
             if args.json:
                 print(json.dumps(answer))
             elif ok:
-                print(_format_cell_command(answer) if isinstance(answer.get("q_um"), dict) else _format_command(answer))
+                print(_format_command(answer))
             elif isinstance(x, tuple):
                 print(f"{_shown(x)} µm refused: {answer.get('error')}", file=sys.stderr)
             else:

@@ -77,7 +77,7 @@ def test_a_commands_sigma_and_correction_are_printed_in_micrometres() -> None:
     cell = {"id": 0, "x_um": 1.0, "y_um": 2.0, "q_um": {"x": 1.1, "y": 2.2}, "voltage_v": {"x": 0.1, "y": 0.2},
             "q_sigma_um": {"x": 0.02, "y": None}, "temperatures_c": {}, "model": "m-2", "t": 0.0,
             "extrapolating": [], "correction_um": {"x": -0.3, "y": 0.2}, "q_sigma_adapted_um": {"x": 0.3, "y": None}}
-    assert target_command._format_cell_command(cell) == (
+    assert target_command._format_command(cell) == (
         "x 1.0000 y 2.0000 µm -> q x 1.1000 y 2.2000 µm, x 0.10000 y 0.20000 V [model m-2; σ x 0.0200 y unknown µm; "
         "correction x -0.3000 y +0.2000 µm; σ adapted x 0.3000 y unknown µm]")
 
