@@ -8,7 +8,6 @@ then reads, averaged over the end of the hold as the paper's procedure does.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import socket
 import subprocess
@@ -20,7 +19,8 @@ from pathlib import Path
 from typing import Any
 
 from nanodrift.calibration.plans import PAPER_TIMING
-from nanodrift.client import Client, Refused
+from nanodrift.cell_view import measured_of
+from nanodrift.client import Client, Refused, json_object
 from nanodrift.commands._cell import scenario_seed
 from nanodrift.errors import UserError
 
@@ -81,10 +81,10 @@ class CellClient:
         self._sub = self.client.session.declare_subscriber(f"{self.keys.prefix}/sensors/position", self._position)
 
     def _position(self, sample: Any) -> None:
-        doc = json.loads(sample.payload.to_bytes())
-        if doc.get("state") == "ok" and doc.get("value") is not None:
+        measured = measured_of(json_object(sample.payload.to_bytes()) or {})
+        if measured is not None:
             with self._cond:
-                self.positions.append((float(doc["t"]), float(doc["value"])))
+                self.positions.append((measured.t, measured.value_um))
                 self._cond.notify_all()
 
     def status(self) -> dict[str, Any] | None:
