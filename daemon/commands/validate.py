@@ -333,7 +333,8 @@ def _driven_test(args: argparse.Namespace, model: CellModel, scenario: str | Non
     text = cell_table(name, truth, measured)
     before = "without comp.: the same plan run uncompensated (command = target) in the same room, same noise."
     text = text.replace(before, f"without comp.: the same plan run uncompensated (command = target) first, then "
-                        f"through the model, on {drivers.description} ({config.source})"
+                        f"through the model{' and a bias tracker per axis' if trackers else ''}, "
+                        f"on {drivers.description} ({config.source})"
                         + ("" if knows_truth else "; no true position on hardware: the TRUE columns repeat the "
                            "position sensors'") + ".")
     if extrapolating:
