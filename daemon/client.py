@@ -363,7 +363,7 @@ class Client:
         key = self.keys.stop
         payload = json.dumps({} if id is None else {"id": id})
         for reply in self.session.get(key, payload=payload, timeout=timeout_s):
-            result = reply.result  # once: each access converts the reply anew
+            result = reply.result
             raw = result.payload.to_bytes()
             if not isinstance(result, zenoh.Sample):
                 raise _refused(raw, id)
