@@ -113,6 +113,9 @@ class AxisWatch:
         self.served: deque[tuple[float, int, Command]] = deque(maxlen=SERVED_QUEUE)
         self.reached: deque[tuple[float, float]] = deque(maxlen=SERVED_QUEUE)
         self.last_position_t: float | None = None
+        #: cell time between the last two new readings: what the poll really achieves (a sped-up simulated
+        #: clock polls far slower, in cell time, than ``interval_s``)
+        self.position_gap_s = math.nan
         #: why the position sensor's last reading was not believed ("" when it was): the advice names it
         self.position_problem = ""
         self.announced = self.monitor.state
@@ -128,12 +131,14 @@ class AxisWatch:
         if self.unfilled_logged or self.holds_unrecorded == 0:
             return
         self.unfilled_logged = True
+        gap_s = self.position_gap_s if math.isfinite(self.position_gap_s) else None
+        seen = f", the last readings {gap_s:.3g} s apart on the cell's clock" if gap_s is not None else ""
         self.log.warning(
             "hold_unrecorded", position_sensor=self.position_channel, interval_s=self.position_interval_s,
-            window_s=self.window_s,
+            reading_gap_s=gap_s, window_s=self.window_s,
             reason=(f"no reading of position sensor {self.position_channel!r} fell inside the {self.window_s:g} s "
                     f"averaging window after the stage held the target: it polls slower than [health] window_s "
-                    f"(interval_s = {self.position_interval_s:g} s); the held target gets no residual and no "
+                    f"(interval_s = {self.position_interval_s:g} s{seen}); the held target gets no residual and no "
                     "record row"),
             fix="set [health] window_s above the position sensor's interval_s, or poll it faster")
 
@@ -255,6 +260,7 @@ class HealthUnit:
             elif last is None or t > last:  # the same sample again is no news
                 if last is not None and t - last > watch.position_max_age_s:  # silent meanwhile: it went stale
                     self._feed(watch, last + watch.position_max_age_s, math.nan, False)
+                watch.position_gap_s = t - last if last is not None else math.nan
                 watch.last_position_t = t
                 self._feed(watch, t, value_um, True)
 

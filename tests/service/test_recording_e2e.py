@@ -278,5 +278,6 @@ def test_held_targets_the_position_poll_cannot_fill_are_counted_and_said_once(tm
     said = daemon.log_events("hold_unrecorded")
     assert len(said) == 1, said  # once, however many follow
     assert "interval_s = 1 s" in said[0]["reason"] and "window_s" in said[0]["reason"], said
+    assert said[0]["reading_gap_s"] == pytest.approx(1.0, abs=0.5)  # what the poll achieved, on the cell clock
     rows = sum(rows_in(p) for p in (tmp_path / "records").glob("records-*.csv"))
     assert rows == health["n"]  # every hold with a residual is a row; the others are the counted ones
