@@ -33,9 +33,10 @@ health unit's) and retention, so a step of the system clock (NTP, ``date -s``) n
   full disk or a permission error is logged once per outage (``record_failed``), rows are lost until
   writing works again (``record_resumed`` says how many, once), and the daemon keeps serving.
 
-One module of ~400 lines on purpose: one job, a settled target to a row of a day's file; the row's
-columns (:func:`record_row`), the files' rules (parts, resume, retention: :class:`DayRecorder`) and
-the writer thread (:class:`Recorder`) change together when the contract above does.
+One module of ~500 lines on purpose: one job, a settled target to a row of a day's file; the row's
+columns (:func:`record_row`), the files' rules (parts, resume, retention: :class:`DayRecorder`, which
+clock retention may believe: :class:`RetentionClock`) and the writer thread (:class:`Recorder`) change
+together when the contract above does.
 """
 
 from __future__ import annotations
