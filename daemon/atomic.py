@@ -22,12 +22,14 @@ from typing import IO, Any
 @contextlib.contextmanager
 def atomic_writer(path: str | os.PathLike[str], mode: str = "w", encoding: str | None = "utf-8") -> Iterator[IO[Any]]:
     """Yield a file object; on clean exit it replaces ``path`` (the file a symbolic link names, the link
-    kept), on error ``path`` is untouched."""
+    kept; an existing file's mode, and its owner and group where this user may set them), on error
+    ``path`` is untouched."""
     target = Path(os.path.realpath(path))
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
     try:
-        os.chmod(tmp, _mode_for(target))
+        _keep_owner(tmp, target)
+        os.chmod(tmp, _mode_for(target))  # after chown, which may clear set-id bits
         with os.fdopen(fd, mode, encoding=None if "b" in mode else encoding) as handle:
             yield handle
             handle.flush()
@@ -43,6 +45,18 @@ def atomic_writer(path: str | os.PathLike[str], mode: str = "w", encoding: str |
             os.fsync(dir_fd)
         finally:
             os.close(dir_fd)
+
+
+def _keep_owner(tmp: str, target: Path) -> None:
+    """Give the new file the replaced one's owner and group (``root:nogroup`` config edited by root stays
+    ``root:nogroup``). Only root may give a file away, and a user only to a group of theirs: otherwise
+    the new file is the writer's, as any new file."""
+    try:
+        stat = target.stat()
+    except FileNotFoundError:
+        return
+    with contextlib.suppress(PermissionError):
+        os.chown(tmp, stat.st_uid, stat.st_gid)
 
 
 def _mode_for(target: Path) -> int:

@@ -120,8 +120,8 @@ def test_the_longest_retention_works_at_runtime(tmp_path: Path) -> None:
     yesterday.write_text("t_s,x_um,q_um,target_um,residual_um\n")
     recorder = DayRecorder(records, keep_days=MAX_RECORD_KEEP_DAYS)
     noon = dt.datetime(2026, 11, 23, 12, tzinfo=dt.UTC).timestamp()
-    written = recorder.record(Settled(t=1.0, x_um=30.0, q_um=30.5, position_um=30.001, samples=10,
-                                      temperatures={"T1": 21.0}, target_id=1), noon)
+    written = recorder.record({"x": Settled(t=1.0, x_um=30.0, q_um=30.5, position_um=30.001, samples=10,
+                                            temperatures={"T1": 21.0})}, noon)
     recorder.close()
     assert written and recorder.rows_written == 1 and recorder.rows_lost == 0
     assert yesterday.exists()

@@ -7,7 +7,8 @@ from the same samples.
 - :class:`SettleTracker`: a served target the stage then holds (no newer command for ``settle_s``)
   yields one *settled residual*: the mean of the ``ok`` position readings over ``window_s`` minus
   the target. A newer command abandons the hold; a reading that is not ``ok`` inside the window
-  voids it (a stale interferometer never feeds the monitor or the tracker).
+  voids it (a stale interferometer never feeds the monitor or the tracker); a window with no reading
+  in it at all (a sensor that polls slower than ``window_s``) is counted in ``unfilled_windows``.
 - :class:`HealthMonitor`: rolling RMS and mean over the last ``history`` residuals; state
   ``unknown`` (no position sensor, or fewer than ``MIN_RESIDUALS``), ``ok``, or ``degraded`` (RMS
   above ``alarm_rms_nm``), with advice in words.
@@ -29,6 +30,12 @@ MIN_RESIDUALS = 5
 SLEW_TAUS = 1.0
 
 
+def believable_residual(residual_um: float) -> bool:
+    """A residual the statistics can take: finite, and so is its square (1e200 µm would make every later
+    RMS and σ infinite for good). Anything else is a broken reading, never a stage."""
+    return math.isfinite(residual_um * residual_um)
+
+
 @dataclass(frozen=True)
 class Settled:
     """One held target: where the stage was told to go and where the interferometer saw it."""
@@ -39,7 +46,9 @@ class Settled:
     position_um: float  # mean of the ok readings in the window
     samples: int
     temperatures: Mapping[str, float] = field(default_factory=dict)
-    target_id: object = None
+    #: the daemon's own number of the command held (every axis of one command has the same): a cell's
+    #: record row pairs its axes by it, never by the client's id (ids repeat, or are absent)
+    sequence: int | None = None
 
     @property
     def residual_um(self) -> float:
@@ -52,7 +61,7 @@ class _Hold:
     x_um: float
     q_um: float
     temperatures: Mapping[str, float]
-    target_id: object
+    sequence: int | None
     total_um: float = 0.0
     samples: int = 0
     void: bool = False
@@ -68,12 +77,14 @@ class SettleTracker:
         self.settle_s = settle_s
         self.window_s = window_s
         self._hold: _Hold | None = None
+        #: holds whose window closed with no reading inside it: the sensor polls slower than ``window_s``
+        self.unfilled_windows = 0
 
     def commanded(self, t: float, x_um: float, q_um: float, temperatures: Mapping[str, float] | None = None,
-                  target_id: object = None, *, reached: bool = True) -> None:
+                  sequence: int | None = None, *, reached: bool = True) -> None:
         """A command went out at cell time ``t``: any hold in progress is superseded. ``reached`` False:
         the output is still ramping towards it; the settle time starts at :meth:`reached`, not now."""
-        self._hold = _Hold(t, x_um, q_um, dict(temperatures or {}), target_id, reached=reached)
+        self._hold = _Hold(t, x_um, q_um, dict(temperatures or {}), sequence, reached=reached)
 
     def reached(self, t: float, q_um: float) -> None:
         """The output reached command ``q_um`` at cell time ``t``: the hold of that command settles from then."""
@@ -99,10 +110,12 @@ class SettleTracker:
                 hold.void = True
             return None
         self._hold = None  # the window is over: one residual per hold at most
+        if hold.samples == 0 and not hold.void:
+            self.unfilled_windows += 1
         if hold.void or hold.samples == 0:
             return None
         return Settled(end, hold.x_um, hold.q_um, hold.total_um / hold.samples, hold.samples, hold.temperatures,
-                       hold.target_id)
+                       hold.sequence)
 
 
 class HealthMonitor:
@@ -115,8 +128,14 @@ class HealthMonitor:
         self.has_position_sensor = has_position_sensor
         self._residuals_nm: deque[float] = deque(maxlen=history)
         self.total = 0
+        #: residuals refused as broken readings (:func:`believable_residual`)
+        self.rejected = 0
 
     def add(self, settled: Settled) -> None:
+        """One settled residual; an unbelievable one (:func:`believable_residual`) is counted in ``rejected``."""
+        if not believable_residual(settled.residual_um * 1e3):
+            self.rejected += 1
+            return
         self._residuals_nm.append(settled.residual_um * 1e3)
         self.total += 1
 
@@ -256,6 +275,7 @@ class BiasTracker:
         self.correction_um = 0.0
         self._last_t: float | None = None
         self.updates = 0
+        self.rejected = 0
         #: the share of the model's own error the correction has not taken out yet: the product of
         #: the updates' exp(-dt / tau_s) (1 before the first residual)
         self.uncorrected = 1.0
@@ -285,8 +305,10 @@ class BiasTracker:
         return math.sqrt(u2 * static_sigma_um * static_sigma_um + (1.0 - u2) * followed)
 
     def update(self, t: float, residual_um: float) -> float:
-        """Feed one settled residual (ok readings only) ending at ``t``; the new correction."""
-        if not math.isfinite(residual_um):
+        """Feed one settled residual (ok readings only) ending at ``t``; the new correction. An unbelievable
+        residual (:func:`believable_residual`) changes nothing: it is counted in ``rejected``."""
+        if not believable_residual(residual_um):
+            self.rejected += 1
             return self.correction_um
         dt = self.first_dt_s if self._last_t is None else max(0.0, t - self._last_t)
         self._last_t = t

@@ -6,7 +6,7 @@ config_file`` zenoh cannot read. Exit 0 with warnings on stderr for what the dae
 operator should know (a channel the model needs that no sensor provides, sensors the model does not
 use, a ramp to ``safe_voltage_v`` longer than a stop may take, an actuator's own warnings such as a
 command template coarser than the stage needs, a driver's warnings across entries such as a serial
-port shared without a resync query), in the errors' form
+port shared without a resync query, a position sensor polling slower than ``[health] window_s``), in the errors' form
 (``<file>:<line>: warning: sensors[2] (T3).name: ...``); ``--strict`` makes those errors too, for a
 commissioned cell where they are mistakes.
 """
@@ -152,9 +152,22 @@ def driver_warnings(config: Config) -> list[str]:
     return warnings
 
 
+def position_window_warnings(config: Config) -> list[str]:
+    """A position sensor that polls no faster than ``[health] window_s``: a held target's averaging window can
+    hold no reading (or one), so the target gets no residual and no record row (the daemon counts each in
+    ``holds_unrecorded``). Both are seconds of the cell's clock."""
+    window_s = config.health.window_s
+    return [f"sensors[{index}] ({sensor.name}).interval_s: polls every {sensor.interval_s:g} s, not faster than "
+            f"[health] window_s = {window_s:g} s: a held target whose window no reading falls into gets no residual "
+            f"and no record row (counted as holds_unrecorded); make window_s larger than {sensor.interval_s:g} s or "
+            "poll faster"
+            for index, sensor in enumerate(config.sensors)
+            if sensor.role == "position" and sensor.interval_s >= window_s]
+
+
 def config_warnings(config: Config, model: Model | CellModel | None) -> list[str]:
     """``field: message`` lines for what the daemon accepts but an operator should know."""
-    warnings = network_warnings(config)
+    warnings = network_warnings(config) + position_window_warnings(config)
     for where, one in _per_axis(config):  # a multi-axis cell: each axis' actuator as a one-axis cell's
         for warning in actuator_warnings(one) + driver_warnings(one) + safe_ramp_warnings(one):
             warning = where + warning[len("actuator"):] if warning.startswith("actuator") else warning

@@ -125,7 +125,9 @@ def _health(doc: dict[str, Any]) -> str:
         return "-"
     text = str(health.get("state") or "-")
     rms = health.get("residual_rms_nm")
-    return f"{text} {rms:.0f} nm" if isinstance(rms, int | float) else text
+    text = f"{text} {rms:.0f} nm" if isinstance(rms, int | float) else text
+    unrecorded = health.get("holds_unrecorded")  # held targets the position poll could not fill: said, not hidden
+    return f"{text} ({unrecorded} unrecorded)" if isinstance(unrecorded, int) and unrecorded > 0 else text
 
 
 def _correction(doc: dict[str, Any]) -> str:

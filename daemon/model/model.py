@@ -120,10 +120,11 @@ class Model:
         Covered: the format, every term's canonical name, coefficient and standard error (the
         prediction and its uncertainty), the training ranges of x and of every channel (they
         decide which commands are flagged as extrapolating) and, when the file has one, the
-        covariance block (it decides every command's ``q_sigma_um``; a file without one is hashed
-        without the key, so such a file keeps its id). Not covered: fit statistics, the selection
-        history and provenance, which describe how the model was made; editing those changes
-        nothing that is served.
+        covariance block (it decides every command's ``q_sigma_um``). A file without one serves
+        ``fit.rmse_um`` as every command's σ (:attr:`residual_rms_um`), so then that number is covered
+        (a file with neither is hashed without either key and keeps its id). Not covered: the other
+        fit statistics, the selection history and provenance, which describe how the model was made;
+        editing those changes nothing that is served.
         """
         content: dict[str, Any] = {
             "format": FORMAT,
@@ -136,6 +137,8 @@ class Model:
                                        for a, (lo, hi) in sorted(self.training.position_ranges.items())}
         if self.covariance is not None:
             content["covariance"] = self.covariance.content()
+        elif math.isfinite(self.residual_rms_um):  # the σ this model serves (issue 26.9: an edit kept the id)
+            content["rmse_um"] = self.residual_rms_um
         text = json.dumps(content, separators=(",", ":"), sort_keys=True, allow_nan=False)
         return "m-" + hashlib.sha256(text.encode()).hexdigest()[:12]
 

@@ -1,9 +1,10 @@
 """``calibrate --serve``: point a config's ``[model] path`` at the new model, keeping the rest of its text.
 
 Only the ``path`` line of ``[model]`` changes (added when missing, the previous one kept as a comment);
-every other line, comment and blank of the operator's file stays as it was. The new text is parsed and
-validated as the daemon would read it before it replaces the file, atomically: a config that would not
-serve the new model is never written.
+every other line, comment and blank of the operator's file stays as it was, and so do its line endings
+(CRLF stays CRLF), its mode, and its owner and group where this user may set them. The new text is parsed
+and validated as the daemon would read it before it replaces the file, atomically: a config that would
+not serve the new model is never written.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import tomllib
 from datetime import UTC, datetime
 from pathlib import Path
 
-from nanodrift.atomic import atomic_write_text
+from nanodrift.atomic import atomic_writer
 from nanodrift.config import ConfigError, parse_config
 
 #: a table header line: ``[model]``, ``[[sensors]]`` (a comment may follow)
@@ -100,7 +101,8 @@ def serve_model(config_path: Path, model_path: Path) -> bool:
     config_path = config_path.resolve()  # a symlinked config: its file is edited, the link stays a link
     check_writable(config_path)
     model_path = model_path.resolve()
-    text = config_path.read_text(encoding="utf-8")
+    with open(config_path, encoding="utf-8", newline="") as handle:  # newline="": CRLF is read as it is
+        text = handle.read()
     by_hand = f"it is unchanged: set [model] path = {toml_string(str(model_path))} by hand"
     try:
         if _served_path(text, config_path) == model_path:
@@ -114,7 +116,8 @@ def serve_model(config_path: Path, model_path: Path) -> bool:
         raise ServeError(f"--serve: could not place the model's path in {config_path} (it would still serve "
                          f"{served}); {by_hand}")
     try:
-        atomic_write_text(config_path, new_text)
+        with atomic_writer(config_path, "wb") as handle:  # bytes: the line endings are the text's own
+            handle.write(new_text.encode("utf-8"))
     except OSError as error:
         raise ServeError(f"--serve: cannot write {config_path}: {error}; {by_hand}") from None
     return True

@@ -8,8 +8,16 @@ advice with :class:`RangeWatch`'s "since when outside the training range") and, 
 :class:`BiasTracker`, whose correction the compensator adds to that axis' later commands. A one-axis cell
 is a cell of one axis, ``x``; only the edges keep its shapes: its ``health`` document is its axis' (a
 cell of several: the worst state, with every axis' document under ``"axes"``) and its recorded row has
-the one-axis columns (:func:`nanodrift.service.recorder.record_row`, of one :class:`CellSettled` once every
-watched axis held the target).
+the one-axis columns (:func:`nanodrift.service.recorder.record_row`, of every watched axis' :class:`Settled`
+once each held the same command).
+
+A row is one command the stage held: the unit numbers every command it is handed (:meth:`HealthUnit.served`)
+and pairs the axes' settled windows by that number, never by the client's id (absent, or repeated: ``nanodrift
+target`` numbers each invocation from 0), so no row mixes one command's x with another's y. A hold that cannot
+be recorded because no position reading fell inside its window (a sensor polling slower than ``window_s``)
+is counted (``holds_unrecorded`` in the health document, a metric) and logged once per axis with the reason;
+a residual too large to be a reading (:func:`nanodrift.calibration.residuals.believable_residual`) is counted
+(``residuals_rejected``) and feeds nothing.
 
 The compensator serves through this unit as its :class:`nanodrift.compensation.Monitor` (an argument it
 is built with, never attributes set on it): it asks :meth:`HealthUnit.correction_um` and
@@ -51,12 +59,19 @@ import zenoh
 
 from nanodrift.bus.protocol import dumps
 from nanodrift.bus.session import Bus
-from nanodrift.calibration.residuals import BiasTracker, HealthMonitor, RangeWatch, Settled, SettleTracker
+from nanodrift.calibration.residuals import (
+    BiasTracker,
+    HealthMonitor,
+    RangeWatch,
+    Settled,
+    SettleTracker,
+    believable_residual,
+)
 from nanodrift.compensation import Command, axis_models, one_axis
 from nanodrift.config import Config
 from nanodrift.model.cell_model import CellModel
 from nanodrift.model.model import Model
-from nanodrift.service.recorder import CellSettled, Polled, PolledChannels
+from nanodrift.service.recorder import Polled, PolledChannels
 
 #: the health document is published this often (wall clock, s) besides at every change of state
 PUBLISH_INTERVAL_S = 5.0
@@ -84,6 +99,8 @@ class AxisWatch:
                     health.alarm_rms_nm, adapt, position)
         self.position_channel: str | None = position.name if position is not None else None
         self.position_max_age_s: float = position.max_age_s if position is not None else math.inf
+        self.position_interval_s: float = position.interval_s if position is not None else math.nan
+        self.window_s = health.window_s
         self.settle = SettleTracker(health.settle_s, health.window_s)
         self.monitor = HealthMonitor(health.history, health.alarm_rms_nm, has_position_sensor=position is not None)
         ranges: dict[str, tuple[float, float]] = {}
@@ -93,12 +110,37 @@ class AxisWatch:
             ranges = {axis: position_range, **training.channel_ranges}
         self.ranges = RangeWatch(ranges)
         self.tracker = BiasTracker(adapt.tau_s, adapt.max_um) if adapt.mode == "bias" else None
-        self.served: deque[tuple[float, Command]] = deque(maxlen=SERVED_QUEUE)
+        self.served: deque[tuple[float, int, Command]] = deque(maxlen=SERVED_QUEUE)
         self.reached: deque[tuple[float, float]] = deque(maxlen=SERVED_QUEUE)
         self.last_position_t: float | None = None
+        #: cell time between the last two new readings: what the poll really achieves (a sped-up simulated
+        #: clock polls far slower, in cell time, than ``interval_s``)
+        self.position_gap_s = math.nan
         #: why the position sensor's last reading was not believed ("" when it was): the advice names it
         self.position_problem = ""
         self.announced = self.monitor.state
+        self.unfilled_logged = False
+
+    @property
+    def holds_unrecorded(self) -> int:
+        """Holds that ended with no position reading inside their window: no residual, no row."""
+        return self.settle.unfilled_windows
+
+    def log_unfilled_once(self) -> None:
+        """The first hold this axis could not record: say why, once (the count goes on in the document)."""
+        if self.unfilled_logged or self.holds_unrecorded == 0:
+            return
+        self.unfilled_logged = True
+        gap_s = self.position_gap_s if math.isfinite(self.position_gap_s) else None
+        seen = f", the last readings {gap_s:.3g} s apart on the cell's clock" if gap_s is not None else ""
+        self.log.warning(
+            "hold_unrecorded", position_sensor=self.position_channel, interval_s=self.position_interval_s,
+            reading_gap_s=gap_s, window_s=self.window_s,
+            reason=(f"no reading of position sensor {self.position_channel!r} fell inside the {self.window_s:g} s "
+                    f"averaging window after the stage held the target: it polls slower than [health] window_s "
+                    f"(interval_s = {self.position_interval_s:g} s{seen}); the held target gets no residual and no "
+                    "record row"),
+            fix="set [health] window_s above the position sensor's interval_s, or poll it faster")
 
     def document(self) -> dict[str, object]:
         """This axis' ``health`` document (README: health): state, residual statistics, correction, advice."""
@@ -106,8 +148,9 @@ class AxisWatch:
         problem = self.position_problem
         suspect = f"position sensor {self.position_channel!r} is {problem}" if problem else None
         correction = self.tracker.correction_um if self.tracker is not None else None
-        return self.monitor.document(correction_um=correction, extrapolating=[o.channel for o in outside],
-                                     outside=outside, sensor_problem=suspect)
+        doc = self.monitor.document(correction_um=correction, extrapolating=[o.channel for o in outside],
+                                    outside=outside, sensor_problem=suspect)
+        return {**doc, "holds_unrecorded": self.holds_unrecorded, "residuals_rejected": self.monitor.rejected}
 
     def log_change(self) -> None:
         state = self.monitor.state
@@ -128,7 +171,7 @@ class HealthUnit:
     def __init__(self, config: Config, model: Model | CellModel | None, log: Any) -> None:
         self.log = log
         self.axes = config.axis_names  # a one-axis cell's document and recorded rows keep its own shapes
-        #: called on the loop, outside the state lock, with every settled target (a :class:`CellSettled`), the
+        #: called on the loop, outside the state lock, with every settled target (axis -> :class:`Settled`), the
         #: unix time it settled at (a label only) and every
         #: polled temperature channel over its window (the recorder's ``on_settled``); must not block
         self.settled_listeners: list[Callable[[Any, float, Polled], None]] = []
@@ -141,7 +184,9 @@ class HealthUnit:
         self.polled = PolledChannels({}, 0.0)
         self._corrections: dict[str, float] | None = None
         self._fresh: list[tuple[str, Settled, float, Polled]] = []
-        self._pending: dict[str, dict[str, tuple[Settled, float, Polled]]] = {}  # target id -> axes settled
+        #: command sequence number -> the axes that settled it so far
+        self._pending: dict[int, dict[str, tuple[Settled, float, Polled]]] = {}
+        self._sequence = 0  # the number of the last command handed to :meth:`served`
         self._publisher: Any = None
         self.reconfigure(config, model)
         self._announced = self.state
@@ -184,10 +229,11 @@ class HealthUnit:
         return adapted or None
 
     def served(self, now: float, command: Command) -> None:
-        """A command went out at cell time ``now``: queued for each axis with a position sensor (one append)."""
+        """A command went out at cell time ``now``: numbered, and queued for each axis with a position sensor."""
+        self._sequence += 1
         for watch in self.watches.values():
             if watch.position_channel is not None:
-                watch.served.append((now, command))
+                watch.served.append((now, self._sequence, command))
 
     # --- readings (on the loop, under state.lock) ----------------------------------------------
 
@@ -214,6 +260,7 @@ class HealthUnit:
             elif last is None or t > last:  # the same sample again is no news
                 if last is not None and t - last > watch.position_max_age_s:  # silent meanwhile: it went stale
                     self._feed(watch, last + watch.position_max_age_s, math.nan, False)
+                watch.position_gap_s = t - last if last is not None else math.nan
                 watch.last_position_t = t
                 self._feed(watch, t, value_um, True)
 
@@ -230,9 +277,9 @@ class HealthUnit:
             # its end closes it; the value of a reading past the end is never used)
             self._settled(watch, watch.settle.position(served[0][0], math.nan, False))
             while served and served[0][0] <= t:  # with no reading between them, only the last can be held
-                t_command, command = served.popleft()
+                t_command, sequence, command = served.popleft()
             x_um = command.positions_um[axis]
-            watch.settle.commanded(t_command, x_um, command.q_um[axis], command.temperatures_c, command.id,
+            watch.settle.commanded(t_command, x_um, command.q_um[axis], command.temperatures_c, sequence,
                                    reached=not self.awaits_reach)
             watch.ranges.observe(t_command, {axis: x_um})
         reached = watch.reached
@@ -243,7 +290,9 @@ class HealthUnit:
     def _settled(self, watch: AxisWatch, settled: Settled | None) -> None:
         if settled is None:
             return
-        watch.monitor.add(settled)
+        watch.monitor.add(settled)  # counts an unbelievable residual as rejected
+        if not believable_residual(settled.residual_um * 1e3):
+            return  # a broken reading: no correction, no row
         if watch.tracker is not None and self._corrections is not None:
             self._corrections[watch.axis] = watch.tracker.update(settled.t, settled.residual_um)
         # the cell clock decided the window; the label clock (the wall clock, or a simulated lab's own
@@ -251,11 +300,13 @@ class HealthUnit:
         polled = self.polled.window(settled.t - watch.settle.window_s, settled.t)
         self._fresh.append((watch.axis, settled, self.label_clock(), polled))
 
-    def _row(self, axis: str, settled: Settled, unix_s: float, polled: Polled) -> tuple[Any, float, Polled] | None:
-        """The recorded row of an axis' settled target, once every watched axis held it (one
-        :class:`CellSettled`, labelled when the last one settled)."""
+    def _row(self, axis: str, settled: Settled, unix_s: float,
+             polled: Polled) -> tuple[dict[str, Settled], float, Polled] | None:
+        """The recorded row of an axis' settled command, once every watched axis held that same command
+        (paired by the daemon's sequence number; labelled when the last one settled)."""
         watched = [a for a, w in self.watches.items() if w.position_channel is not None]
-        key = repr(settled.target_id)
+        assert settled.sequence is not None  # every command the unit is handed is numbered
+        key = settled.sequence
         axes = self._pending.setdefault(key, {})
         axes[axis] = (settled, unix_s, polled)
         if len(self._pending) > MAX_PENDING_TARGETS:  # an axis that never settles must not grow this
@@ -265,7 +316,7 @@ class HealthUnit:
         del self._pending[key]
         last = max(watched, key=lambda a: axes[a][1])
         valid = all(axes[a][2].valid for a in watched)
-        return CellSettled({a: axes[a][0] for a in watched}), axes[last][1], Polled(axes[last][2].values_c, valid)
+        return {a: axes[a][0] for a in watched}, axes[last][1], Polled(axes[last][2].values_c, valid)
 
     # --- what it says ----------------------------------------------------------------------------
 
@@ -280,6 +331,8 @@ class HealthUnit:
             return self.watches["x"].document()
         corrections = {a: w.tracker.correction_um for a, w in self.watches.items() if w.tracker is not None}
         return {"state": self.state, "correction_um": corrections or None,
+                "holds_unrecorded": sum(w.holds_unrecorded for w in self.watches.values()),
+                "residuals_rejected": sum(w.monitor.rejected for w in self.watches.values()),
                 "axes": {axis: watch.document() for axis, watch in self.watches.items()}}
 
     def flush(self) -> None:
@@ -292,6 +345,7 @@ class HealthUnit:
                     listener(*row)
         for watch in self.watches.values():
             watch.log_change()  # each axis' own lines (with its axis in a cell of several)
+            watch.log_unfilled_once()
         state = self.state
         if state != self._announced:
             self._announced = state

@@ -73,6 +73,27 @@ class AnswerLatency:
         return cumulative, total
 
 
+#: the health document's counts, exported as counters (``_total``): (family name, document key, help)
+HEALTH_COUNTERS = (
+    ("nanodrift_health_holds_unrecorded", "holds_unrecorded",
+     "held targets with no position reading inside window_s (the sensor polls slower): no residual, no record row"),
+    ("nanodrift_health_residuals_rejected", "residuals_rejected",
+     "settled residuals refused as too large to be a reading (their square is not finite)"),
+)
+
+
+def _health_counters(docs: dict[str, dict[str, Any]], cell: str) -> Iterator[Any]:
+    """:data:`HEALTH_COUNTERS` of each axis' health document (``{"": doc}``: a one-axis cell, no axis label)."""
+    labelled = "" not in docs
+    for name, key, text in HEALTH_COUNTERS:
+        family = CounterMetricFamily(name, text, labels=["cell", "axis"] if labelled else ["cell"])
+        for axis, health in docs.items():
+            number = _number(health.get(key))
+            if number is not None:
+                family.add_metric([cell, axis] if labelled else [cell], number)
+        yield family
+
+
 def _number(value: Any) -> float | None:
     if isinstance(value, bool) or not isinstance(value, int | float):
         return None
@@ -176,7 +197,9 @@ class CellCollector(Collector):
             return
         if isinstance(health.get("axes"), dict):
             yield from self._axis_health(health["axes"], cell)
+            yield from _health_counters({axis: h for axis, h in health["axes"].items() if isinstance(h, dict)}, cell)
             return
+        yield from _health_counters({"": health}, cell)
         for name, key, scale, text in (
             ("nanodrift_health_residual_rms_meters", "residual_rms_nm", 1e-9, "RMS of the settled residuals"),
             ("nanodrift_health_residual_mean_meters", "residual_mean_nm", 1e-9, "mean of the settled residuals"),

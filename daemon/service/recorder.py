@@ -22,14 +22,21 @@ health unit's) and retention, so a step of the system clock (NTP, ``date -s``) n
   label steps back (``t_s`` must increase), the day continues in ``records-YYYY-MM-DD.2.csv``, ``.3``...
 - Retention: files of days more than ``keep_days`` before *today* are deleted (0 keeps all), today
   being the earlier of the daemon's clock's day and the row's: a wall clock stepped forward (a label
-  months ahead) never deletes a file the daemon's clock would keep.
+  months ahead) never deletes a file the daemon's clock would keep. Nor does a clock that was wrong
+  when the daemon started (a bad RTC before NTP synchronised; the daemon's clock starts from it): a
+  day more than :data:`CLOCK_AHEAD_MARGIN_DAYS` past the newest file found in the folder is not
+  believed (:class:`RetentionClock`, event ``record_retention_held``) until the clock is known
+  synchronised (systemd-timesyncd's :data:`TIMESYNC_FLAG`), comes back near the files, or has run on
+  for :data:`CLOCK_RELEASE_DAYS` days (a lab without time sync still expires its files);
+  meanwhile today counts as that newest file's day (the true day is that one at the earliest).
 - Recording is never on the answer's path: :class:`Recorder` queues rows for a writer thread. A
   full disk or a permission error is logged once per outage (``record_failed``), rows are lost until
   writing works again (``record_resumed`` says how many, once), and the daemon keeps serving.
 
-One module of ~400 lines on purpose: one job, a settled target to a row of a day's file; the row's
-columns (:func:`record_row`), the files' rules (parts, resume, retention: :class:`DayRecorder`) and
-the writer thread (:class:`Recorder`) change together when the contract above does.
+One module of ~500 lines on purpose: one job, a settled target to a row of a day's file; the row's
+columns (:func:`record_row`), the files' rules (parts, resume, retention: :class:`DayRecorder`, which
+clock retention may believe: :class:`RetentionClock`) and the writer thread (:class:`Recorder`) change
+together when the contract above does.
 """
 
 from __future__ import annotations
@@ -61,6 +68,12 @@ FILE_NAME = re.compile(r"^records-(?P<day>\d{4}-\d{2}-\d{2})(?:\.(?P<part>\d+))?
 QUEUE_ROWS = 10_000
 #: readings a channel keeps for the window of the next settled target (besides the time bound)
 CHANNEL_READINGS = 4096
+#: systemd-timesyncd creates this file once it has synchronised the system clock (/run is empty at boot)
+TIMESYNC_FLAG = Path("/run/systemd/timesync/synchronized")
+#: a day at most this far past the newest record file is believed without proof (a daemon off for a weekend)
+CLOCK_AHEAD_MARGIN_DAYS = 2
+#: a doubted clock that has run on this many days (with no time sync) is believed: the lab's clock is that one
+CLOCK_RELEASE_DAYS = 2
 
 
 def file_name(day: dt.date, part: int = 1) -> str:
@@ -133,15 +146,6 @@ class PolledChannels:
         return Polled(values, valid)
 
 
-class CellSettled:
-    """A cell's settled target: every watched axis' :class:`Settled` for one command."""
-
-    def __init__(self, axes: Mapping[str, Settled]) -> None:
-        self.axes = dict(axes)
-        first = next(iter(self.axes.values()))
-        self.temperatures = first.temperatures
-
-
 def fixed_columns(axes: Mapping[str, Settled]) -> dict[str, float]:
     """A one-axis cell's ``x_um``, ``q_um``, ``target_um``, ``residual_um``; a cell of several's ``<axis>_um``
     measured, ``q_<axis>_um``, ``target_<axis>_um``, ``residual_<axis>_um`` (the CSV contract's columns;
@@ -156,11 +160,13 @@ def fixed_columns(axes: Mapping[str, Settled]) -> dict[str, float]:
     return row
 
 
-def record_row(settled: Settled | CellSettled, unix_s: float, polled: Polled | None = None) -> dict[str, float]:
-    """One settled target as a row of the data contract; ``polled`` None: the command's channels, valid."""
+def record_row(axes: Mapping[str, Settled], unix_s: float, polled: Polled | None = None) -> dict[str, float]:
+    """One settled target as a row of the data contract: ``axes`` every watched axis' :class:`Settled` of
+    the same command (a one-axis cell's: ``{"x": settled}``); ``polled`` None: the command's channels, valid."""
+    if not axes:
+        raise DataError("a settled target of no axis")
     if polled is None:
-        polled = Polled(settled.temperatures, True)
-    axes = settled.axes if isinstance(settled, CellSettled) else {"x": settled}
+        polled = Polled(next(iter(axes.values())).temperatures, True)
     row = {"t_s": float(unix_s), **fixed_columns(axes), "valid": 1.0 if polled.valid else 0.0}
     for channel, value in polled.values_c.items():
         if channel in RESERVED or (not one_axis(axes) and channel.endswith("_um")):
@@ -169,16 +175,77 @@ def record_row(settled: Settled | CellSettled, unix_s: float, polled: Polled | N
     return row
 
 
+def newest_file_day(directory: Path) -> dt.date | None:
+    """The latest day of a record file in ``directory`` (None: no record file, or no folder)."""
+    days: list[dt.date] = []
+    with contextlib.suppress(OSError):
+        for entry in directory.iterdir():
+            match = FILE_NAME.match(entry.name)
+            if match:
+                with contextlib.suppress(ValueError):
+                    days.append(dt.date.fromisoformat(match["day"]))
+    return max(days, default=None)
+
+
+class RetentionClock:
+    """The day retention may count from: the clock's, once the daemon has seen it agree with its files.
+
+    A clock ahead of the newest record file found in a folder by more than :data:`CLOCK_AHEAD_MARGIN_DAYS`
+    (the daemon started on a wrong RTC, NTP not synchronised yet) is doubted: retention counts from that
+    newest day (the true day is that one at the earliest), so it deletes nothing the files' own timeline
+    would keep. The doubt ends
+    when ``synchronized()`` says the clock is synchronised, when the clock comes back within the margin
+    (NTP stepped it), or when it has run on :data:`CLOCK_RELEASE_DAYS` days past the day it was doubted
+    on. Kept by the :class:`Recorder` across reloads: files it wrote on a doubted clock never vouch for it.
+    """
+
+    def __init__(self, log: Any = None, synchronized: Callable[[], bool] = TIMESYNC_FLAG.exists) -> None:
+        self.log = log
+        self.synchronized = synchronized
+        self._agreed: dict[Path, dt.date | None] = {}  # per folder: the latest day the clock was seen to agree on
+        self._doubted_since: dt.date | None = None
+
+    def today(self, directory: Path, clock_day: dt.date) -> dt.date:
+        """The day retention in ``directory`` counts from, for a clock that says ``clock_day``."""
+        if directory not in self._agreed:
+            self._agreed[directory] = newest_file_day(directory)  # before this recorder writes any
+        agreed = self._agreed[directory]
+        margin = dt.timedelta(days=CLOCK_AHEAD_MARGIN_DAYS)
+        released = (self._doubted_since is not None
+                    and clock_day >= self._doubted_since + dt.timedelta(days=CLOCK_RELEASE_DAYS))
+        if agreed is None or clock_day <= agreed + margin or released or self.synchronized():
+            if self._doubted_since is not None and self.log is not None:
+                self.log.info("record_retention_resumed", directory=str(directory), day=clock_day.isoformat())
+            self._doubted_since = None
+            self._agreed[directory] = max(clock_day, agreed) if agreed is not None else clock_day
+            return clock_day
+        if self._doubted_since is None:
+            self._doubted_since = clock_day
+            if self.log is not None:
+                self.log.warning(
+                    "record_retention_held", directory=str(directory), clock_day=clock_day.isoformat(),
+                    newest_file_day=agreed.isoformat(),
+                    reason=(f"the clock says {clock_day.isoformat()}, {(clock_day - agreed).days} days past the newest "
+                            f"record file ({agreed.isoformat()}), and is not known synchronised ({TIMESYNC_FLAG} "
+                            "absent): no record is deleted by it"),
+                    until=(f"the clock is synchronised, comes back within {CLOCK_AHEAD_MARGIN_DAYS} days of the files, "
+                           f"or has run {CLOCK_RELEASE_DAYS} days on"))
+        return agreed  # the true day is that one at the earliest
+
+
 class DayRecorder:
     """Writes rows into the day's file; synchronous, used by one thread (see :class:`Recorder`).
 
     ``clock``: the daemon's time base, which retention decides on (default :class:`MonotonicClock`: real
     days even when a simulated cell's clock runs faster);
-    ``write``: how bytes reach the file (``os.write``; a test injects a full disk).
+    ``write``: how bytes reach the file (``os.write``; a test injects a full disk);
+    ``retention``: whether retention may believe that clock (:class:`RetentionClock`; the :class:`Recorder`
+    keeps one across reloads).
     """
 
     def __init__(self, directory: str | os.PathLike[str], keep_days: int = 90, log: Any = None, *,
-                 clock: Callable[[], float] | None = None, write: WriteBytes = os.write) -> None:
+                 clock: Callable[[], float] | None = None, write: WriteBytes = os.write,
+                 retention: RetentionClock | None = None) -> None:
         if keep_days < 0:
             raise ValueError(f"keep_days must be >= 0, got {keep_days}")
         self.directory = Path(directory)
@@ -186,6 +253,7 @@ class DayRecorder:
         self.log = log
         self.clock = clock or MonotonicClock().now
         self.write = write
+        self.retention = retention or RetentionClock(log)
         self.path: Path | None = None
         self.rows_written = 0
         self.rows_lost = 0
@@ -197,10 +265,11 @@ class DayRecorder:
         self._failure: str | None = None  # what was logged, until a row is written again
         self._lost_in_outage = 0
 
-    def record(self, settled: Settled | CellSettled, unix_s: float, polled: Polled | None = None) -> bool:
-        """Append one row; False (logged once per outage) when it could not be written. Never raises."""
+    def record(self, axes: Mapping[str, Settled], unix_s: float, polled: Polled | None = None) -> bool:
+        """Append one row (:func:`record_row`); False (logged once per outage) when it could not be written.
+        Never raises."""
         try:
-            row = record_row(settled, unix_s, polled)
+            row = record_row(axes, unix_s, polled)
             bad = [name for name, value in row.items() if not math.isfinite(value)]
             if bad:
                 raise DataError(f"not a finite number in {', '.join(bad)}")
@@ -225,6 +294,7 @@ class DayRecorder:
     def _append(self, row: dict[str, float]) -> None:
         day = utc_day(row["t_s"])
         today = min(utc_day(self.clock()), day)  # a label stepped ahead is no reason to delete anything
+        today = self.retention.today(self.directory, today)  # nor a clock that started ahead of the files
         if today != self._expired_before:
             self.directory.mkdir(parents=True, exist_ok=True)
             self._expire(today)
@@ -371,13 +441,15 @@ class Recorder:
         self.log = log
         self.writer: DayRecorder | None = None  # the writer thread's
         self.dropped = 0
+        self.retention = RetentionClock(log)
         self._target: tuple[str, int] | None = None
-        self._queue: queue.Queue[tuple[Settled | CellSettled, float, Polled | None] | _Retarget | None] = queue.Queue(
-            maxsize=max_rows)
+        self._queue: queue.Queue[tuple[Mapping[str, Settled], float, Polled | None] | _Retarget | None] = (
+            queue.Queue(maxsize=max_rows))
         self._thread: threading.Thread | None = None
 
-    def on_settled(self, settled: Settled | CellSettled, unix_s: float, polled: Polled | None = None) -> None:
-        """A ``settled_listeners`` entry: never blocks, never raises. ``unix_s`` labels the row (wall clock)."""
+    def on_settled(self, axes: Mapping[str, Settled], unix_s: float, polled: Polled | None = None) -> None:
+        """A ``settled_listeners`` entry: never blocks, never raises. ``axes``: every watched axis' settled
+        window of one command; ``unix_s`` labels the row (wall clock)."""
         config = self.settings()
         target = (config.record_dir, config.record_keep_days)
         if target != self._target:
@@ -386,7 +458,7 @@ class Recorder:
                 self._target = None  # try again at the next row
                 return
         if target[0]:
-            self._put((settled, unix_s, polled))
+            self._put((axes, unix_s, polled))
 
     def close(self, timeout_s: float = 5.0) -> None:
         """Write what is queued, then stop the thread (waiting at most ``timeout_s``)."""
@@ -400,7 +472,7 @@ class Recorder:
     def running(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
 
-    def _put(self, item: tuple[Settled | CellSettled, float, Polled | None] | _Retarget) -> bool:
+    def _put(self, item: tuple[Mapping[str, Settled], float, Polled | None] | _Retarget) -> bool:
         if self._thread is None:
             self._thread = threading.Thread(target=self._run, name="nanodrift-recorder", daemon=True)
             self._thread.start()
@@ -422,7 +494,8 @@ class Recorder:
             if isinstance(item, _Retarget):
                 if self.writer is not None:
                     self.writer.close()
-                self.writer = DayRecorder(item.directory, item.keep_days, self.log) if item.directory else None
+                self.writer = (DayRecorder(item.directory, item.keep_days, self.log, retention=self.retention)
+                               if item.directory else None)
                 if self.log is not None:
                     self.log.info("recording", record_dir=item.directory or None, keep_days=item.keep_days)
                 continue

@@ -149,3 +149,20 @@ def test_the_trackers_sigma_is_finite_and_between_its_parts(steps, tau_s: float,
         assert math.isfinite(sigma)
         assert min(static_um, followed) - 1e-9 <= sigma <= max(static_um, followed) + 1e-9
         assert tracker.residual_rms_um <= max(abs(r) for _, r in steps) + 1e-9
+
+
+def test_a_residual_whose_square_overflows_is_counted_and_changes_nothing() -> None:
+    """Issue 26.9: one residual of 1e200 µm made the tracker's RMS, and every later σ, infinite for good."""
+    tracker = BiasTracker(tau_s=10.0, max_um=1.0)
+    tracker.update(30.0, 0.2)
+    before = (tracker.correction_um, tracker.residual_rms_um, tracker.sigma_um(0.05, 0.01))
+    for lie in (1e200, -1e200, math.inf, math.nan):
+        assert tracker.update(60.0, lie) == before[0]
+    assert tracker.rejected == 4 and tracker.updates == 1
+    assert (tracker.correction_um, tracker.residual_rms_um, tracker.sigma_um(0.05, 0.01)) == before
+    tracker.update(90.0, 0.1)
+    assert math.isfinite(tracker.sigma_um(0.05, 0.01)) and tracker.updates == 2
+    monitor = HealthMonitor(history=10, alarm_rms_nm=100.0)
+    monitor.add(Settled(1.0, 100.0, 100.0, 1e200, 3))
+    monitor.add(Settled(2.0, 100.0, 100.0, 100.02, 3))
+    assert monitor.rejected == 1 and monitor.n == 1 and monitor.residual_rms_nm == pytest.approx(20.0)

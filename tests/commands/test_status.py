@@ -189,6 +189,15 @@ def test_table_shows_health_and_actuator_state_when_the_document_has_them() -> N
     assert row["HEALTH"] == "degraded 123 nm" and row["ACTUATOR"] == "modbus fault" and row["MODEL AGE"].endswith(" d")
 
 
+def test_table_says_how_many_held_targets_went_unrecorded() -> None:
+    """Issue 26.9: held targets the position poll cannot fill were dropped silently with health ok."""
+    doc = {"cell": "c", "healthy": True, "uptime_s": 60.0, "sensors": {}, "model": None, "counters": {"targets": 12},
+           "health": {"state": "ok", "residual_rms_nm": 20.0, "holds_unrecorded": 7}}
+    assert parse_table(table([doc]))["c"]["HEALTH"] == "ok 20 nm (7 unrecorded)"
+    doc["health"] = {"state": "ok", "residual_rms_nm": 20.0, "holds_unrecorded": 0}
+    assert parse_table(table([doc]))["c"]["HEALTH"] == "ok 20 nm"
+
+
 def test_refusals_show_up_as_a_rate_for_their_cell_only(network: Network) -> None:
     wait_until(lambda: all_ok(network), 60, "all three cells ok", interval=0.2)
     client = Client(network.ports["gamma"], "gamma")

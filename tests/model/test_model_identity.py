@@ -51,6 +51,8 @@ CONTENT_EDITS = {
     "the x training range": lambda d: d["training"].update(x_um=[0.0, 500.0]),
     "a channel's training range": lambda d: d["training"]["channels"].update(T1=[21.0, 22.1]),
     "a term dropped": lambda d: d.update(terms=d["terms"][:-1]),
+    # no covariance block: fit.rmse_um is every command's σ (issue 26.9: 8.98 nm edited to 0.001 nm)
+    "the served rmse of a model without covariance": lambda d: d["fit"].update(rmse_um=1e-6),
 }
 
 
@@ -69,7 +71,7 @@ def test_an_edit_that_keeps_the_id_is_refused_saying_how_to_fix_it(tmp_path: Pat
     "change",
     [
         lambda d: d["provenance"].update(note="checked by J. on Monday"),
-        lambda d: d["fit"].update(rmse_um=0.5),
+        lambda d: d["fit"].update(r2=0.5),
         lambda d: d["selection"].update(method="by hand"),
         lambda d: d["terms"][0].update(p=0.5),
         lambda d: d.update(channels=d.pop("channels")),  # key order and layout

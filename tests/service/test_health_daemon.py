@@ -197,7 +197,8 @@ def test_without_a_position_sensor_health_is_unknown_and_extrapolation_raises_th
         # no change of state to announce: the health document is still published every few seconds
         sample = wait_until(lambda: next(iter(cell.samples()), None), 12, "a periodic health sample")
         assert sample["state"] == "unknown" and set(sample) == {"state", "residual_rms_nm", "residual_mean_nm", "n",
-                                                               "correction_um", "extrapolating", "advice"}
+                                                               "correction_um", "extrapolating", "advice",
+                                                               "holds_unrecorded", "residuals_rejected"}
         assert sample["extrapolating"]  # test 5's room, named in the document too
         # the uncertainty grows outside the training range: the model's own sigma in its range is ~0.09 um
         model = load_model(DEFAULT_MODEL_PATH)
@@ -332,8 +333,8 @@ class Unit:
     def held(self, handed: list[tuple[Any, float]]) -> list[Any]:
         """The x axis' :class:`Settled` of every recorded row (a row holds every axis of the cell)."""
         rows = [row for row, _ in handed]
-        assert all(set(row.axes) == set(self.axes) for row in rows)
-        return [row.axes["x"] for row in rows]
+        assert all(set(row) == set(self.axes) for row in rows)
+        return [row["x"] for row in rows]
 
 
 class _NullLog:
@@ -411,7 +412,7 @@ def test_a_new_model_or_new_settings_on_reload_start_afresh_and_the_same_model_c
     same = serving_state(config, unit.model, health, running=unit.compensator, table=unit.table)
     assert unit.counts() == {6} and health.correction_um() == correction
     assert same.compensate(Target(1, dict.fromkeys(axes, 100.0)), 101.0, 0.0).correction_um == correction
-    assert health.watches["x"].served[-1][1].correction_um == correction  # ... and it queues its commands here
+    assert health.watches["x"].served[-1][2].correction_um == correction  # ... and it queues its commands here
     recording = config.model_copy(update={"health": config.health.model_copy(update={"record_dir": "/tmp/r"})})
     serving_state(recording, unit.model, health, running=same, table=unit.table)  # recording is not the monitor's
     assert unit.counts() == {6}

@@ -28,6 +28,7 @@ from helpers.daemon_harness import (
 )
 
 from nanodrift.calibration.dataset import Dataset, read_csv
+from nanodrift.model.model import save_model
 
 SETTLE_S, WINDOW_S = 0.1, 0.2
 
@@ -53,11 +54,16 @@ def live(sensors: SensorFile, ifm_um: float) -> Iterator[None]:
         thread.join(5)
 
 
-def start(tmp_path: Path, cell: str, ifm_keys: str, ifm_um: float) -> tuple[HealthCell, SensorFile]:
-    """T1, T2 and the position sensor ``ifm`` on one file; health on, bias adaptation on, records on."""
+def start(tmp_path: Path, cell: str, ifm_keys: str, ifm_um: float,
+          rmse_um: float | None = None) -> tuple[HealthCell, SensorFile]:
+    """T1, T2 and the position sensor ``ifm`` on one file; health on, bias adaptation on, records on;
+    ``rmse_um``: the model's σ (else it has none)."""
     plugins = install_file_plugin(tmp_path / "plugins")
     model = tmp_path / "model.json"
-    write_test_model(model)
+    made = write_test_model(model)
+    if rmse_um is not None:
+        made.fit["rmse_um"] = rmse_um
+        save_model(made, model)
     sensors = SensorFile(tmp_path / "sensors.json", {**TEMPS, "ifm": ifm_um})
     extra = (f'[health]\nsettle_s = {SETTLE_S}\nwindow_s = {WINDOW_S}\nrecord_dir = "records"\n'
              '[adapt]\nmode = "bias"\ntau_s = 1.0\nmax_um = 1.0\n'
@@ -160,5 +166,40 @@ def test_a_frozen_position_reading_goes_stale_and_the_advice_names_the_sensor(tm
             health = cell.health()
         assert health["n"] == 1 and health["residual_mean_nm"] == pytest.approx(300.0, abs=1e-3)
         assert "position sensor" not in (health["advice"] or "")
+    finally:
+        assert cell.close() == 0
+
+
+def test_a_residual_of_1e200_inside_a_widened_range_is_refused_and_the_adapted_sigma_recovers(
+        tmp_path: Path) -> None:
+    """Issue 26.9: an operator widened the interferometer's range (valid_max = 1e300) and it read 1e200 once:
+    the settled residual's square overflowed, and ``q_sigma_adapted_um`` stayed NaN for good. Now the
+    residual is refused (counted in ``residuals_rejected``), and the next good hold serves finite σ again."""
+    cell, sensors = start(tmp_path, "lie200w", "frozen_after_s = 0\nvalid_min = -1e300\nvalid_max = 1e300\n", 100.3,
+                          rmse_um=0.02)
+    try:
+        client = cell.client
+        assert client is not None
+        client.wait_ready(["T1", "T2", "ifm"])
+        cell.settle(100.0, "good")
+        sensors.set(ifm=1e200)  # inside the widened range: an ok reading
+        ok, lied = client.query({"x_um": 300.0, "id": "lied"})
+        assert ok, lied
+
+        def held() -> int:
+            health = cell.health()
+            return int(health["n"]) + int(health.get("residuals_rejected", 0))
+
+        wait_until(lambda: held() >= 2, 10, "the lied hold's window to close")
+        health = cell.health()
+        assert (health["n"], health["residuals_rejected"]) == (1, 1), health
+        assert health["residual_mean_nm"] == pytest.approx(300.0, abs=1e-6)  # the statistics never saw it
+        sensors.set(ifm=400.1)
+        cell.settle(400.0, "after")
+        ok, command = client.query({"x_um": 240.0, "id": "next"})
+        assert ok, command
+        sigma = command["q_sigma_adapted_um"]
+        assert 0.0 < sigma < 1.0, command  # finite: the 0.1-0.3 µm residuals it learnt from, not NaN
+        assert abs(command["correction_um"]) <= 1.0
     finally:
         assert cell.close() == 0

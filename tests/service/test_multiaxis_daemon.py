@@ -274,3 +274,50 @@ def test_each_axis_has_its_health_and_its_own_bias_correction(tmp_path: Path) ->
         assert second["q_um"] == pytest.approx({a: q[a] + correction[a] for a in q}, abs=1e-9)
     finally:
         cell.close()
+
+
+@pytest.mark.parametrize("target_id", [None, 7], ids=["no ids", "equal ids"])
+def test_a_record_row_is_one_command_the_stage_held_on_every_axis(tmp_path: Path, target_id: int | None) -> None:
+    """Issue 26.6: targets without ids (or with equal ids) that settle axis by axis. Command A settles on
+    x only (y's interferometer lost its beam), B on y only (x's lost it), C on both. The rows were paired
+    by the client's id, so one row held A's x and B's y: a place the stage never was, valid, which fit
+    trains on. Paired by the daemon's own command number, the file holds C's row and nothing else."""
+    records = tmp_path / "records"
+    sensor_file = tmp_path / "sensors.json"
+    positions = "".join(f'[[sensors]]\nname = "ifm_{axis}"\nkind = "file"\npath = "{sensor_file}"\n'
+                        f'role = "position"\naxis = "{axis}"\ninterval_s = 0.05\nmax_age_s = 2.0\n\n'
+                        for axis in ("x", "y"))
+    extra = positions + f'[health]\nsettle_s = 0.05\nwindow_s = 0.3\nrecord_dir = "{records}"\n'
+    cell = XYCell(tmp_path, extra, {"ifm_x": 100.0, "ifm_y": 100.0})
+
+    def move(x_um: float, y_um: float) -> dict[str, object]:
+        request: dict[str, object] = {"x_um": x_um, "y_um": y_um}
+        if target_id is not None:
+            request["id"] = target_id
+        ok, command = cell.client.query(request)
+        assert ok, command
+        return command
+
+    def settled(axis: str, n: int) -> bool:
+        return bool(cell.client.status()["health"]["axes"][axis]["n"] == n)
+
+    def rows() -> list[dict[str, str]]:
+        return [row for path in sorted(records.glob("records-*.csv")) for row in csv.DictReader(path.open())]
+
+    try:
+        cell.sensors.write(fault={"ifm_y": "beam lost"})
+        move(100.0, 100.0)  # A
+        wait_until(lambda: settled("x", 1), 10, "command A settled on x")
+        cell.sensors.write(values={**TEMPS, "ifm_x": 100.0, "ifm_y": 300.0}, fault={"ifm_x": "beam lost"})
+        move(300.0, 300.0)  # B
+        wait_until(lambda: settled("y", 1), 10, "command B settled on y")
+        cell.sensors.write(values={**TEMPS, "ifm_x": 200.0, "ifm_y": 200.0}, fault={})
+        move(200.0, 200.0)  # C
+        wait_until(lambda: settled("x", 2) and settled("y", 2), 10, "command C settled on both axes")
+        wait_until(lambda: len(rows()) >= 1, 10, "C's row")
+    finally:
+        cell.close()
+    recorded = rows()
+    assert [(float(r["target_x_um"]), float(r["target_y_um"])) for r in recorded] == [(200.0, 200.0)], recorded
+    assert float(recorded[0]["x_um"]) == pytest.approx(200.0) and float(recorded[0]["y_um"]) == pytest.approx(200.0)
+    assert float(recorded[0]["valid"]) == 1.0

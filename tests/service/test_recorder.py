@@ -26,7 +26,15 @@ from nanodrift.config import HealthSettings, parse_config
 from nanodrift.drivers.base import Reading, SensorConfig
 from nanodrift.logs import get_logger
 from nanodrift.service.health_unit import HealthUnit
-from nanodrift.service.recorder import DayRecorder, Polled, PolledChannels, Recorder, file_name
+from nanodrift.service.recorder import (
+    CLOCK_RELEASE_DAYS,
+    DayRecorder,
+    Polled,
+    PolledChannels,
+    Recorder,
+    RetentionClock,
+    file_name,
+)
 from nanodrift.service.table import SensorTable
 
 DAY = dt.date(2026, 11, 23)
@@ -34,11 +42,12 @@ NOON = dt.datetime(2026, 11, 23, 12, tzinfo=dt.UTC).timestamp()
 HEADER = "t_s,x_um,q_um,target_um,residual_um,valid,T1,T2"
 
 
-def settled(i: int, temps: dict[str, float] | None = None) -> Settled:
+def settled(i: int, temps: dict[str, float] | None = None) -> dict[str, Settled]:
+    """A one-axis cell's settled target number ``i`` (axis x)."""
     target = 30.0 * (i % 17)
-    return Settled(t=100.0 + i, x_um=target, q_um=target + 0.5, position_um=target + 0.002 * (i % 5 - 2), samples=10,
-                   temperatures=temps if temps is not None else {"T1": 21.0 + 0.01 * i, "T2": 22.0 - 0.01 * i},
-                   target_id=i)
+    return {"x": Settled(t=100.0 + i, x_um=target, q_um=target + 0.5, position_um=target + 0.002 * (i % 5 - 2),
+                         samples=10, sequence=i,
+                         temperatures=temps if temps is not None else {"T1": 21.0 + 0.01 * i, "T2": 22.0 - 0.01 * i})}
 
 
 def rows_of(path: Path) -> list[str]:
@@ -57,9 +66,9 @@ def test_rows_follow_the_data_contract(tmp_path: Path) -> None:
     assert set(data.extra) == {"target_um", "residual_um", "valid"}
     np.testing.assert_array_equal(data.extra["valid"], 1)
     np.testing.assert_allclose(data.t, NOON + 10.0 * np.arange(5))
-    np.testing.assert_allclose(data.x, [settled(i).position_um for i in range(5)])  # measured, not the target
-    np.testing.assert_allclose(data.q, [settled(i).q_um for i in range(5)])
-    np.testing.assert_allclose(data.extra["target_um"], [settled(i).x_um for i in range(5)])
+    np.testing.assert_allclose(data.x, [settled(i)["x"].position_um for i in range(5)])  # measured, not the target
+    np.testing.assert_allclose(data.q, [settled(i)["x"].q_um for i in range(5)])
+    np.testing.assert_allclose(data.extra["target_um"], [settled(i)["x"].x_um for i in range(5)])
     np.testing.assert_allclose(data.extra["residual_um"], data.x - data.extra["target_um"])
     np.testing.assert_allclose(data.channels["T1"], [21.0 + 0.01 * i for i in range(5)])
 
@@ -102,6 +111,7 @@ def test_retention_deletes_day_files_older_than_keep_days_at_rotation(tmp_path: 
         return path
 
     old, old_part, kept, edge = day_file(120), day_file(91, 2), day_file(30), day_file(90)
+    day_file(1)  # recorded yesterday: the clock agrees with the files (else see RetentionClock)
     other = tmp_path / "notes-2020-01-01.csv"
     other.write_text("not ours\n")
     assert DayRecorder(tmp_path, keep_days=90, clock=lambda: NOON).record(settled(0), NOON)
@@ -216,7 +226,7 @@ def test_any_finite_values_round_trip_through_the_reader(tmp_path_factory: pytes
     rec = DayRecorder(folder)
     for i, v in enumerate(values):
         s = Settled(t=i, x_um=v, q_um=-v, position_um=v / 3.0, samples=1, temperatures={"T1": v, "air": 20.0})
-        assert rec.record(s, NOON + i)
+        assert rec.record({"x": s}, NOON + i)
     rec.close()
     data = read_csv(folder / file_name(DAY))
     np.testing.assert_array_equal(data.channels["T1"], values)
@@ -268,6 +278,63 @@ def test_a_label_stepped_months_ahead_deletes_no_file_the_daemons_clock_keeps(tm
     assert DayRecorder(ahead, keep_days=90, clock=lambda: NOON + 120 * DAY_S).record(settled(0), NOON)
     assert kept.exists()
 
+
+
+@pytest.mark.parametrize("how", ["synchronised", "ran two days on"])
+def test_a_clock_that_started_months_ahead_of_the_files_deletes_only_once_believed(tmp_path: Path, how: str) -> None:
+    """Issue 26.7: the daemon's clock and the labels both 120 days ahead of the newest file (a wrong RTC at
+    boot): nothing recorded in the last 90 days of the files' own timeline goes, the hold is said once;
+    once the clock is known synchronised (systemd's flag), or has run on for CLOCK_RELEASE_DAYS, retention
+    counts from it again."""
+    recent = [tmp_path / file_name(DAY - dt.timedelta(days=k)) for k in range(4)]
+    stale = tmp_path / file_name(DAY - dt.timedelta(days=100))  # old by the files' own timeline: goes at once
+    for path in (*recent, stale):
+        path.write_text(HEADER + "\n")
+    now = {"s": NOON + 120 * DAY_S}
+    synced = {"flag": False}
+    with captured_logging() as stream:
+        log = get_logger("nanodrift.daemon")
+        rec = DayRecorder(tmp_path, keep_days=90, log=log, clock=lambda: now["s"],
+                          retention=RetentionClock(log, synchronized=lambda: synced["flag"]))
+        for i in range(3):
+            assert rec.record(settled(i), now["s"] + i)
+        assert all(p.exists() for p in recent) and not stale.exists()
+        held = [e for e in json_lines(stream) if e["event"] == "record_retention_held"]
+        assert len(held) == 1 and held[0]["newest_file_day"] == DAY.isoformat(), held
+        if how == "synchronised":
+            synced["flag"] = True
+            now["s"] += 60.0
+        else:
+            now["s"] += (CLOCK_RELEASE_DAYS - 1) * DAY_S
+            assert rec.record(settled(3), now["s"])
+            assert all(p.exists() for p in recent)  # one day on: still doubted
+            now["s"] += DAY_S
+        assert rec.record(settled(4), now["s"])
+        events = json_lines(stream)
+    assert not any(p.exists() for p in recent)  # 120 days old by a clock the daemon now believes
+    assert [e["event"] for e in events].count("record_retention_resumed") == 1
+
+
+def test_a_clock_ahead_that_ntp_steps_back_never_deletes_and_a_short_absence_is_believed(tmp_path: Path) -> None:
+    """The clock 120 days ahead, then NTP steps it back (the labels come back; the daemon's own clock does
+    not, retention takes the earlier day): nothing of the files' last 90 days is deleted. A daemon off for
+    a weekend (the clock within CLOCK_AHEAD_MARGIN_DAYS of the newest file) is believed at once."""
+    recent = [tmp_path / file_name(DAY - dt.timedelta(days=k)) for k in range(4)]
+    for path in recent:
+        path.write_text(HEADER + "\n")
+    rec = DayRecorder(tmp_path, keep_days=3, clock=lambda: NOON + 120 * DAY_S,
+                      retention=RetentionClock(synchronized=lambda: False))
+    assert rec.record(settled(0), NOON + 120 * DAY_S)
+    assert rec.record(settled(1), NOON + 3600.0)  # NTP corrected the wall clock: the label is today again
+    assert all(p.exists() for p in recent)
+    weekend = tmp_path / "weekend"
+    weekend.mkdir()
+    friday, older = weekend / file_name(DAY - dt.timedelta(days=2)), weekend / file_name(DAY - dt.timedelta(days=6))
+    for path in (friday, older):
+        path.write_text(HEADER + "\n")
+    monday = DayRecorder(weekend, keep_days=3, clock=lambda: NOON, retention=RetentionClock(synchronized=lambda: False))
+    assert monday.record(settled(0), NOON)
+    assert friday.exists() and not older.exists()
 
 # --- a full disk (issue 16): no partial row, one line per outage ---------------------------------------------
 
@@ -385,7 +452,7 @@ def test_the_health_unit_hands_every_polled_channel_over_the_window_to_the_recor
     table = SensorTable(config.sensors)
     health = HealthUnit(config, model, get_logger("nanodrift.daemon"))
     compensator = Compensator(model, config.axis_actuators(), table, monitor=health)
-    handed: list[tuple[Settled, float, Polled]] = []
+    handed: list[tuple[dict[str, Settled], float, Polled]] = []
     health.settled_listeners.append(lambda s, unix_s, polled: handed.append((s, unix_s, polled)))
 
     def hold(t: float, t4: list[tuple[float, float, bool]]) -> None:
@@ -405,7 +472,7 @@ def test_the_health_unit_hands_every_polled_channel_over_the_window_to_the_recor
 
     hold(0.0, [(3.2, 23.0, True), (4.2, 23.4, True), (6.0, 50.0, True)])  # window [3, 5]: 23.0 and 23.4
     hold(20.0, [(23.5, 0.0, False)])  # T4 faulted inside the window
-    assert [s.axes["x"].t for s, _, _ in handed] == [5.0, 25.0]
+    assert [s["x"].t for s, _, _ in handed] == [5.0, 25.0]
     first, second = handed[0][2], handed[1][2]
     assert first.valid and first.values_c == pytest.approx({**TEMPS, "T4": 23.2})
     assert not second.valid and second.values_c["T4"] == 50.0 and second.values_c["T1"] == TEMPS["T1"]
@@ -425,8 +492,8 @@ rec = DayRecorder(sys.argv[1])
 t0 = float(sys.argv[2])
 i = 0
 while True:
-    rec.record(Settled(t=i, x_um=240.0, q_um=240.5, position_um=240.001, samples=10,
-                       temperatures={"T1": 21.0 + 1e-4 * i, "T2": 22.0}), t0 + 0.25 * i)
+    rec.record({"x": Settled(t=i, x_um=240.0, q_um=240.5, position_um=240.001, samples=10,
+                             temperatures={"T1": 21.0 + 1e-4 * i, "T2": 22.0})}, t0 + 0.25 * i)
     i += 1
 """
 

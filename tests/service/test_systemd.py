@@ -55,6 +55,13 @@ def test_unit_runs_the_daemon_as_a_notify_service_with_its_directories_and_seria
     assert "AF_UNIX" in unit["RestrictAddressFamilies"][0]  # NOTIFY_SOCKET needs it
 
 
+def test_unit_starts_after_the_clock_is_set() -> None:
+    """Issue 26.7: a start on a clock months ahead deleted the records; the unit orders after time-sync.target."""
+    unit = unit_settings()
+    assert "time-sync.target" in unit["After"][0].split() and "time-sync.target" in unit["Wants"][0].split()
+    assert "network-online.target" in unit["After"][0].split()
+
+
 def test_the_units_stop_timeout_is_the_one_the_config_checks_the_safe_ramp_against() -> None:
     """check-config warns when the ramp to safe_voltage_v outlasts its share of TimeoutStopSec: the two
     numbers must be the same, or the warning protects against a timeout the unit does not have."""
