@@ -12,6 +12,7 @@ import statistics
 import numpy as np
 import pytest
 import statsmodels.api as sm
+from helpers.budget import examples
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -41,7 +42,7 @@ def _autocorrelated_data(seed: int, n: int = 300, p: int = 4) -> tuple[np.ndarra
 
 
 @given(seed=st.integers(0, 2**32 - 1), lag=st.integers(0, 60))
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=examples(25), deadline=None)
 def test_ols_hac_standard_errors_and_p_values_equal_statsmodels(seed, lag):
     X, y = _autocorrelated_data(seed)
     ref = _oracle(X, y, lag)
