@@ -14,6 +14,7 @@ from nanodrift import blas_threads  # noqa: F401
 
 # tests import their helpers as the package ``helpers`` (tests/helpers/)
 sys.path.insert(0, str(Path(__file__).parent))
+from helpers.budget import LONG_TESTS, examples
 
 # The suite starts a few hundred Python subprocesses (daemons, CLI commands). On a machine whose environment
 # sets PYTHONDONTWRITEBYTECODE (some images do), each of them would compile nanodrift's modules anew; let the
@@ -23,8 +24,11 @@ sys.dont_write_bytecode = False
 
 # Hypothesis judges a test by its examples, not by how long a loaded machine took to run one: no deadline,
 # and no "too slow" health check (time belongs in benchmarks/). A test's own @settings still add to this.
-settings.register_profile("nanodrift", deadline=None, suppress_health_check=[HealthCheck.too_slow])
-settings.load_profile("nanodrift")
+# "ci" (the default) draws a third of the examples hypothesis would (helpers.budget.examples, as the tests that
+# name their count do); "release" (NANODRIFT_LONG_TESTS=1) all of them.
+settings.register_profile("release", deadline=None, suppress_health_check=[HealthCheck.too_slow])
+settings.register_profile("ci", settings.get_profile("release"), max_examples=examples(settings.default.max_examples))
+settings.load_profile("release" if LONG_TESTS else "ci")
 
 #: The files that take longest (a wheel build, a demo run, README blocks, chaos machines), run first: pytest-xdist
 #: (``--dist loadfile``) hands out files in collection order, and one of these started last keeps the suite
@@ -41,6 +45,7 @@ LONG_FILES = (
     "tests/calibration/test_uncertainty_truth.py",
     "tests/service/test_secure_network.py",
     "tests/calibration/test_discovery.py",
+    "tests/calibration/test_discovery_beyond_effects.py",
 )
 
 

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from helpers.budget import examples
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -217,7 +218,7 @@ def actuator_tables(draw: st.DrawFn) -> tuple[dict[str, Any], list[str]]:
     return table, typos
 
 
-@settings(max_examples=150, deadline=None)
+@settings(max_examples=examples(150), deadline=None)
 @given(actuator_tables())
 def test_random_actuator_tables_are_taken_as_written_or_refused_naming_the_key(case: tuple[dict, list[str]]) -> None:
     table, typos = case

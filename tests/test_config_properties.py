@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from helpers.budget import examples
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -26,7 +27,7 @@ from nanodrift.drivers.base import MAX_AGE_S, MAX_INTERVAL_S, MIN_INTERVAL_S
 from nanodrift.drivers.simulated.config import MAX_SPEED
 
 SOURCE = "props.toml"
-SETTINGS = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+SETTINGS = settings(max_examples=examples(150), deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 # --- values ----------------------------------------------------------------------------------------
 

@@ -6,6 +6,7 @@ import math
 from dataclasses import dataclass
 
 import pytest
+from helpers.budget import examples
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -37,7 +38,7 @@ rates = st.floats(min_value=0.5, max_value=5000.0, allow_nan=False)
 latencies = st.lists(st.floats(min_value=0.0, max_value=0.05), min_size=1, max_size=20)
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=examples(300), deadline=None)
 @given(start_v=voltages, goal_v=voltages, rate=rates, latencies_s=latencies)
 def test_a_ramp_moves_at_the_rate_on_elapsed_time_whatever_the_device_latency(
         start_v: float, goal_v: float, rate: float, latencies_s: list[float]) -> None:

@@ -12,6 +12,7 @@ import json
 import math
 from typing import Any
 
+from helpers.budget import examples
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
@@ -26,7 +27,7 @@ VALUES = st.one_of(
 )
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=examples(300), deadline=None)
 @given(st.binary(max_size=200))
 def test_any_bytes_give_a_target_or_a_bad_payload_refusal(payload: bytes) -> None:
     try:
@@ -46,7 +47,7 @@ def _finite_number(value: Any) -> bool:
         return False
 
 
-@settings(max_examples=400, deadline=None)
+@settings(max_examples=examples(400), deadline=None)
 @given(st.dictionaries(KEYS, VALUES, max_size=6))
 @example({"x_um": None, "y_um": 0.0, "z_um": None, "X_um": 0.0, "w_um": None})  # once named only the axis-like extra
 def test_a_json_object_is_served_only_when_it_names_every_axis_with_a_finite_number(doc: dict[str, Any]) -> None:

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import pytest
+from helpers.budget import examples
 from helpers.daemon_harness import Client, Daemon, free_port
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
@@ -160,7 +161,7 @@ def check(payload: bytes, expected: Expected | None) -> Target | Refusal:
     return target
 
 
-SETTINGS = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+SETTINGS = settings(max_examples=examples(300), deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
 @SETTINGS
@@ -277,6 +278,7 @@ def test_every_target_published_over_zenoh_gets_exactly_one_answer(
     def nulls() -> int:
         return len(client.answers_for(None))
 
+    # 60 in every run (a round trip each, little CPU): the checks after it count on at least 40 sent
     @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
     @given(st.one_of(correlated.map(lambda c: ("correlated", c)), correlated.map(lambda c: ("correlated", c)),
                      uncorrelated.map(lambda u: ("raw", u))))

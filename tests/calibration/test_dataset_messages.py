@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers.budget import examples
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -115,7 +116,7 @@ def csv_texts(draw: st.DrawFn) -> str:
     return (BOM if draw(st.booleans()) else "") + text
 
 
-@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=examples(300), deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(text=csv_texts())
 def test_any_csv_is_a_dataset_or_a_message_naming_file_row_and_column(tmp_path: Path, text: str) -> None:
     path = tmp_path / "any.csv"
@@ -132,7 +133,7 @@ def test_any_csv_is_a_dataset_or_a_message_naming_file_row_and_column(tmp_path: 
     assert np.all(np.diff(data.t) > 0)
 
 
-@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=examples(40), deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(rows=st.integers(1, 14), channels=st.integers(0, 3), bom=st.booleans())
 def test_fit_on_any_small_file_fits_or_names_the_file_and_its_row_count(tmp_path: Path, rows: int, channels: int,
                                                                         bom: bool) -> None:

@@ -12,12 +12,13 @@ import re
 from pathlib import Path
 
 import pytest
+from helpers.budget import examples
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from nanodrift.calibration.dataset import DataError, Dataset, read_csv
 
-SETTINGS = settings(max_examples=150, deadline=None,
+SETTINGS = settings(max_examples=examples(150), deadline=None,
                     suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
 ROW = re.compile(r", row (\d+)")
 

@@ -6,6 +6,7 @@ import itertools
 import math
 
 import pytest
+from helpers.budget import examples
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -89,7 +90,7 @@ def test_bias_tracker_converges_to_minus_a_constant_error_and_respects_the_clamp
     assert clamped.correction_um == -0.5
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=examples(200), deadline=None)
 @given(st.lists(st.tuples(st.floats(0.1, 120.0), st.floats(-50.0, 50.0)), min_size=1, max_size=50),
        st.floats(1.0, 3600.0), st.floats(0.0, 5.0))
 def test_bias_tracker_never_jumps_or_leaves_its_clamp(steps, tau_s: float, max_um: float) -> None:
@@ -134,7 +135,7 @@ def test_a_tracker_held_at_its_clamp_keeps_a_wide_sigma() -> None:
     assert tracker.sigma_um(0.1, 0.02) == pytest.approx(1.5, rel=0.01)  # 2 µm error, 0.5 µm corrected
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=examples(200), deadline=None)
 @given(st.lists(st.tuples(st.floats(0.1, 120.0), st.floats(-50.0, 50.0)), min_size=1, max_size=50),
        st.floats(1.0, 3600.0), st.floats(0.0, 10.0), st.floats(0.0, 1.0))
 def test_the_trackers_sigma_is_finite_and_between_its_parts(steps, tau_s: float, static_um: float,

@@ -17,6 +17,7 @@ from typing import Any
 
 import pytest
 import zenoh
+from helpers.budget import examples
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -58,7 +59,7 @@ def facilities(draw: st.DrawFn) -> tuple[list[str], list[Group], str]:
     return cells, groups, prefix
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=examples(40), deadline=None)
 @given(facilities())
 def test_each_group_may_move_exactly_its_cells_and_every_client_may_watch_all(
         facility: tuple[list[str], list[Group], str]) -> None:
@@ -80,7 +81,7 @@ def test_each_group_may_move_exactly_its_cells_and_every_client_may_watch_all(
             assert allowed(block, daemon, "ingress", message) == {f"{prefix}/{cell}/**"}
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=examples(200), deadline=None)
 @given(st.text(max_size=40))
 def test_any_group_argument_is_a_group_or_a_clear_refusal(text: str) -> None:
     try:

@@ -68,6 +68,12 @@ SAFE_V = 0.0  # safe_voltage_v: where SIGTERM leaves the stage
 HUB_TIMEOUT_S = 1.0  # the module's latency stays below it (and below the daemon's 3 s write timeout)
 LIE_COUNTS = 7  # a lying module reads back this many counts more than it holds
 SLACK_V = 1e-9
+#: how long a check waits for the actuation to go quiet, a healed device's fault to clear, or status to show the
+#: device's position. A failing device pushes the daemon's reopen backoff to MAX_BACKOFF_S (5 s, +-20 %), and on
+#: a loaded machine a reopen can miss a device timeout more than once: 20 s (10 s for the position) left room for
+#: a few tries only and flaked with the cores busy; 60 s allows about ten. A green check waits only as long as
+#: the daemon takes.
+QUIET_WAIT_S = 60.0
 
 
 def _signed(raw: int) -> int:
@@ -474,7 +480,7 @@ class ChaosMachine(RuleBasedStateMachine):
         assert self.module is not None and self.client is not None and self.daemon is not None
         device = self.module.device
         window = 0.3 + 2 * device.latency_s
-        deadline = time.monotonic() + 20.0
+        deadline = time.monotonic() + QUIET_WAIT_S
         state = None
         while True:
             self.daemon.check_alive()

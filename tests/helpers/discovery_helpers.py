@@ -6,6 +6,8 @@ A calibration run comes from :func:`nanodrift.drivers.simulated.datasets.simulat
 
 from __future__ import annotations
 
+import numpy as np
+
 from nanodrift.calibration.dataset import Dataset
 from nanodrift.drivers.simulated.datasets import simulate_dataset
 from nanodrift.model.identify import fit
@@ -21,3 +23,9 @@ def cell_run(effects: str = "", seed: int = 0, cycles: int = 24, scenario: str =
 def paper_model(data: Dataset) -> Model:
     """The paper's identification (eq. 3, order chosen on held-out cycles)."""
     return fit(data, order=3).model
+
+
+def rms(data: Dataset, model: Model) -> float:
+    """The model's RMS error (µm) on a run's recorded q."""
+    assert data.q is not None
+    return float(np.sqrt(np.mean((data.q - model.predict(data)) ** 2)))

@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from helpers.budget import examples
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -23,7 +24,7 @@ DOCS = st.dictionaries(KEYS | st.text(max_size=4), JSON, max_size=8)
 STATES = {"ok", "degraded", "extrapolating", "no-model", "stalled"}
 
 
-@settings(max_examples=40)
+@settings(max_examples=examples(40))
 @given(DOCS)
 def test_a_command_payload_gives_only_finite_setpoints_of_known_axes(doc: dict[str, Any]) -> None:
     found = setpoints_of(doc, ("x", "y"))
@@ -36,7 +37,7 @@ def test_a_command_payload_gives_only_finite_setpoints_of_known_axes(doc: dict[s
         assert math.isnan(value) or math.isfinite(value)
 
 
-@settings(max_examples=40)
+@settings(max_examples=examples(40))
 @given(DOCS)
 def test_a_position_payload_is_a_sample_only_when_ok_and_numeric(doc: dict[str, Any]) -> None:
     measured = measured_of(doc)
@@ -46,7 +47,7 @@ def test_a_position_payload_is_a_sample_only_when_ok_and_numeric(doc: dict[str, 
         assert math.isfinite(measured.value_um) and math.isfinite(measured.t)
 
 
-@settings(max_examples=40)
+@settings(max_examples=examples(40))
 @given(DOCS)
 def test_a_status_payload_gives_axes_or_says_why_and_always_a_state(doc: dict[str, Any]) -> None:
     try:

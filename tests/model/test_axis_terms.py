@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers.budget import examples
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -72,7 +73,7 @@ def test_a_series_without_the_axis_is_refused_naming_it() -> None:
         features(AxisPower("y", 1), one_axis)
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=examples(60), deadline=None)
 @given(st.text(alphabet="xyzq*^()0123456789, .smuT", max_size=14))
 def test_no_text_breaks_the_parser_with_anything_but_a_clear_error(text: str) -> None:
     for axes in (("x",), XY, XYZ):

@@ -3,6 +3,7 @@
 import itertools
 
 import pytest
+from helpers.budget import examples
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -69,7 +70,7 @@ def test_digits_grow_only_as_far_as_a_nanometre_needs():
     assert feature_bound(parse_term("T3"), TRAINED) is None  # not in the training ranges
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=examples(200), deadline=None)
 @given(gain=st.floats(0.98, 1.02), t1=st.floats(-5.0, 5.0), t2=st.floats(-5.0, 5.0), bias=st.floats(-200.0, 200.0),
        cubic=st.floats(-1e-7, 1e-7), square=st.floats(-1e-4, 1e-4))
 def test_the_printed_equation_computes_the_model_within_a_nanometre_per_term(gain, t1, t2, bias, cubic, square):

@@ -8,10 +8,11 @@ from __future__ import annotations
 
 import json
 import statistics
+from types import ModuleType
 
 import numpy as np
 import pytest
-import statsmodels.api as sm
+from helpers.budget import examples
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -26,7 +27,16 @@ from nanodrift.model.terms import Channel, Power
 from nanodrift.settings import DEFAULT_MODEL_PATH
 
 
+def _statsmodels() -> ModuleType:
+    """``statsmodels.api``, imported where a test compares with it: at the top of this file every pytest-xdist
+    worker paid its 1.5 s of CPU (pandas, scipy.stats) only to collect the file, to run it on one of them."""
+    import statsmodels.api
+
+    return statsmodels.api
+
+
 def _oracle(X: np.ndarray, y: np.ndarray, lag: int):
+    sm = _statsmodels()
     return sm.OLS(y, sm.add_constant(X)).fit(
         cov_type="HAC", cov_kwds={"maxlags": lag, "kernel": "bartlett", "use_correction": True}, use_t=True)
 
@@ -41,11 +51,11 @@ def _autocorrelated_data(seed: int, n: int = 300, p: int = 4) -> tuple[np.ndarra
 
 
 @given(seed=st.integers(0, 2**32 - 1), lag=st.integers(0, 60))
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=examples(25), deadline=None)
 def test_ols_hac_standard_errors_and_p_values_equal_statsmodels(seed, lag):
     X, y = _autocorrelated_data(seed)
     ref = _oracle(X, y, lag)
-    Z = sm.add_constant(X)
+    Z = _statsmodels().add_constant(X)
     cov = hac.hac_covariance(Z, y - Z @ ref.params, lag)
     np.testing.assert_allclose(np.sqrt(np.diag(cov)), ref.bse, rtol=1e-8)
 
@@ -77,7 +87,7 @@ def test_stepwise_hac_tests_equal_statsmodels_for_kept_and_left_out_terms():
 
 def test_hac_ignores_products_across_runs():
     X, y = _autocorrelated_data(3, n=200, p=2)
-    Z = sm.add_constant(X)
+    Z = _statsmodels().add_constant(X)
     resid = y - Z @ np.linalg.lstsq(Z, y, rcond=None)[0]
     ids = np.repeat([0, 1], 100)
     together = hac.hac_meat(Z * resid[:, None], 10, ids)

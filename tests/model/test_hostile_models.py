@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from helpers.budget import examples
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -232,7 +233,7 @@ def replaced(doc: Any, where: tuple[Any, ...], value: Any) -> Any:
     return copy
 
 
-@settings(max_examples=250, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=examples(250), deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(data=st.data(), restamp=st.booleans())
 def test_any_mutated_model_file_loads_finite_or_is_refused_naming_the_file(tmp_path: Path, data: st.DataObject,
                                                                             restamp: bool) -> None:
@@ -256,7 +257,7 @@ def test_any_mutated_model_file_loads_finite_or_is_refused_naming_the_file(tmp_p
     assert all(math.isfinite(q) for q in model.predict(corners))
 
 
-@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=examples(150), deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(text=st.one_of(st.text(max_size=200), st.binary(max_size=200).map(lambda b: b.decode("latin-1")),
                       JSON.map(json.dumps)))
 def test_any_text_is_a_model_or_a_message_naming_the_file(tmp_path: Path, text: str) -> None:

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from helpers.budget import examples
 from helpers.synthetic import paper_run
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -397,7 +398,7 @@ def block_paths(node: Any, prefix: tuple[Any, ...] = ()) -> list[tuple[Any, ...]
     return out
 
 
-@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=examples(200), deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(data=st.data(), restamp=st.booleans())
 def test_any_mutated_covariance_block_loads_usable_or_is_refused_naming_the_file(
         tmp_path: Path, data: st.DataObject, restamp: bool) -> None:

@@ -7,7 +7,6 @@ import re
 import struct
 from pathlib import Path
 
-import matplotlib.pyplot as plt
 import numpy as np
 import pytest
 from helpers.discovery_helpers import cell_run, paper_model
@@ -34,12 +33,6 @@ def nothing():
     result = discover(data, paper_model(data))
     assert not result.steps, result.summary
     return result
-
-
-@pytest.fixture(autouse=True)
-def close_figures():
-    yield
-    plt.close("all")
 
 
 def texts(fig) -> list[str]:

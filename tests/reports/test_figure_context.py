@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import math
 
-import matplotlib.pyplot as plt
 import numpy as np
 import pytest
 
@@ -34,12 +33,6 @@ def a_test(name: str, compensated: bool, error_um: float, drift_um: float, sprea
                                 positions_um={"x": x}, temperatures={"T1": 21.7 + 1e-4 * s.index, "T4": 21.6},
                                 valid=True, true_um=truth))
     return summarize(name, steps, compensated=compensated)
-
-
-@pytest.fixture(autouse=True)
-def close_figures():
-    yield
-    plt.close("all")
 
 
 def test_every_figure_carries_its_provenance_footer(tmp_path):

@@ -5,7 +5,6 @@ import re
 import struct
 from pathlib import Path
 
-import matplotlib.pyplot as plt
 import pytest
 
 from nanodrift.calibration.iso9283 import summarize
@@ -38,12 +37,6 @@ def texts(fig) -> list[str]:
 def legend_entries(ax) -> list[str]:
     legend = ax.get_legend()
     return [] if legend is None else [t.get_text() for t in legend.get_texts()]
-
-
-@pytest.fixture(autouse=True)
-def close_figures():
-    yield
-    plt.close("all")
 
 
 def test_every_panel_is_titled_and_labelled_with_units():

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers.budget import examples
 from helpers.daemon_harness import TEMPS, wait_until, write_test_model
 from helpers.log_capture import captured_logging, json_lines
 from hypothesis import given, settings
@@ -218,7 +219,7 @@ def test_a_reload_sets_moves_and_clears_record_dir_in_order_with_the_rows(tmp_pa
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "b"]
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=examples(40), deadline=None)
 @given(st.lists(st.floats(min_value=-1e6, max_value=1e6, allow_nan=False), min_size=1, max_size=8))
 def test_any_finite_values_round_trip_through_the_reader(tmp_path_factory: pytest.TempPathFactory,
                                                          values: list[float]) -> None:

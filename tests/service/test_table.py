@@ -11,6 +11,7 @@ import math
 from pathlib import Path
 
 import pytest
+from helpers.budget import examples
 from helpers.daemon_harness import TEMPS, write_test_model
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -138,7 +139,7 @@ WORKSPACE_UM = (0.0, 500.0)
 LOW, HIGH = -50.0, 550.0  # the default range of that workspace
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=examples(300), deadline=None)
 @given(st.lists(st.tuples(st.floats(allow_nan=True, allow_infinity=True),
                           st.floats(min_value=-5.0, max_value=5.0)), min_size=1, max_size=30))
 def test_an_ok_position_value_is_always_finite_and_inside_the_range(readings: list[tuple[float, float]]) -> None:

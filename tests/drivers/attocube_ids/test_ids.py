@@ -9,6 +9,7 @@ from collections.abc import Awaitable, Callable, Iterator
 from typing import Any
 
 import pytest
+from helpers.budget import examples
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
@@ -223,7 +224,7 @@ def test_one_device_axis_read_twice_is_a_config_problem() -> None:
     assert problem.startswith("sensors[1] (b).ids_axis:") and "already read by sensors[0] (a)" in problem
 
 
-@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=examples(40), deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(reply=st.one_of(st.binary(max_size=80), st.builds(
     lambda result: json.dumps({"jsonrpc": "2.0", "result": result, "id": 2}).encode(),
     st.lists(st.one_of(st.none(), st.booleans(), st.integers(), st.floats(), st.text(max_size=5)), max_size=4),

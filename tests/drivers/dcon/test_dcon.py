@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from helpers.budget import examples
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -310,7 +311,7 @@ def pty_bus(tmp_path: Path) -> Any:
     bus.close()
 
 
-@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=examples(40), deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(reply=st.binary(max_size=60).map(lambda b: b + b"\r"))
 def test_whatever_the_line_carries_a_poll_is_readings_or_a_device_error(pty_bus: tuple[DconBusEmulator, Any],
                                                                      reply: bytes) -> None:

@@ -9,6 +9,7 @@ import time
 from collections.abc import Awaitable, Callable
 
 import pytest
+from helpers.budget import examples
 from helpers.modbus_helpers import ModbusTestDevice, ModbusTestServer, device_registers, tcp_context
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
@@ -277,7 +278,7 @@ def test_a_voltage_within_half_a_count_of_a_limit_takes_the_count_inside() -> No
         raw_for(1.00015, TWELVE_BIT, 0.0, "uint16", within=(1.0001, 1.0002))  # narrower than a count
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=examples(300), deadline=None)
 @given(counts=st.sampled_from([255, 1023, 4095, 32767]), full_scale=st.floats(0.5, 20.0),
        offset=st.floats(-10.0, 10.0), low=st.floats(0.0, 1.0), high=st.floats(0.0, 1.0), at=st.floats(0.0, 1.0))
 def test_what_is_written_is_inside_the_limits_and_within_a_count_of_the_voltage(

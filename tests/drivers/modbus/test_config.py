@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers.budget import examples
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
@@ -109,7 +110,7 @@ def outputs(draw: st.DrawFn) -> tuple[ModbusActuatorConfig, float, float, float]
     return config, v_min, v_max, volts_per_um
 
 
-@settings(max_examples=400, deadline=None)
+@settings(max_examples=examples(400), deadline=None)
 @given(outputs(), st.lists(st.floats(0, 1), max_size=20))
 def test_every_voltage_an_accepted_output_allows_is_written_within_one_count(
         case: tuple[ModbusActuatorConfig, float, float, float], fractions: list[float]) -> None:

@@ -26,6 +26,7 @@ from typing import Any
 
 import pytest
 import structlog
+from helpers.budget import examples
 from helpers.daemon_harness import write_test_model
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -345,7 +346,7 @@ def test_a_multi_line_answer_has_a_space_before_each_lf_but_the_last_and_is_read
 
 
 @given(st.floats(min_value=-2.0, max_value=12.0, allow_nan=False), st.floats(min_value=-2.0, max_value=12.0))
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=examples(200), deadline=None)
 def test_a_written_number_never_leaves_the_limits(value: float, other: float) -> None:
     low, high = min(value, other), max(value, other)
     try:

@@ -15,6 +15,7 @@ from decimal import Decimal
 from pathlib import Path
 
 import pytest
+from helpers.budget import examples
 from helpers.serial_helpers import FakeGcsController
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
@@ -101,7 +102,7 @@ def _decimals(text: str) -> int:
 limits = st.tuples(st.floats(-50.0, 50.0), st.floats(1e-3, 60.0)).map(lambda t: (t[0], t[0] + t[1]))
 
 
-@settings(max_examples=400, deadline=None)
+@settings(max_examples=examples(400), deadline=None)
 @given(precision=st.integers(0, 6), kind=st.sampled_from("fFeEg%"), bounds=limits,
        where=st.floats(0.0, 1.0), width=st.sampled_from(["", "+", "010", " >12"]))
 def test_the_number_a_template_writes_is_always_within_the_limits(
@@ -133,7 +134,7 @@ def test_the_number_a_template_writes_is_always_within_the_limits(
 command_ranges = st.tuples(st.floats(-600.0, 600.0), st.floats(1e-2, 1200.0)).map(lambda t: (t[0], t[0] + t[1]))
 
 
-@settings(max_examples=150, deadline=None)
+@settings(max_examples=examples(150), deadline=None)
 @given(name=st.sampled_from(["q_um", "x_um"]), precision=st.integers(0, 6), kind=st.sampled_from("fFeEg"),
        bounds=command_ranges, where=st.floats(-0.5, 1.5))
 def test_a_position_field_is_written_within_the_command_range_or_refused(
@@ -155,7 +156,7 @@ def test_a_position_field_is_written_within_the_command_range_or_refused(
     assert sent[name] == pytest.approx(device, rel=1e-12, abs=1e-12)
 
 
-@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=examples(15), deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(precision=st.integers(0, 6), bounds=limits, where=st.floats(0.0, 1.0))
 def test_the_line_the_device_receives_is_within_the_limits(
         controller: FakeGcsController, precision: int, bounds: tuple[float, float], where: float) -> None:
