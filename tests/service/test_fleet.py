@@ -1,12 +1,13 @@
-"""A facility (issue 29): 20 simulated cells behind one Zenoh router under the prefix ``site/hall2``,
+"""A facility (issue 29): simulated cells (20 with NANODRIFT_LONG_TESTS=1, as ``benchmarks/fleet.py``; 6 by
+default, each group's rule the same) behind one Zenoh router under the prefix ``site/hall2``,
 with user/password authentication and the access control ``nanodrift acl`` writes.
 
-Group ``a`` (alice) may move cell00..cell09, group ``b`` (bob) cell10..cell19, group ``watch``
+Group ``a`` (alice) may move the first half of the cells, group ``b`` (bob) the second half, group ``watch``
 (grafana) none; every one of them may read every cell. Each "cannot" is checked where it matters:
 the daemon of the cell that must not move counts no target (its status, asked by the router's own
 session), after a sentinel target of the same client to one of its own cells has been answered (the
 client's messages go through the router in order, so a target the ACL had let through would have
-arrived first). A control shows that bob does move cell15, so the refusals are the ACL's.
+arrived first). A control shows that bob does move his cell, so the refusals are the ACL's.
 """
 
 from __future__ import annotations
@@ -19,18 +20,21 @@ from pathlib import Path
 
 import pytest
 import zenoh
+from helpers.budget import LONG_TESTS
 from helpers.daemon_harness import REPO
 from helpers.fleet import PREFIX, Fleet, cell_name
 
 from nanodrift import Client
 from nanodrift.client import client_config
 
-CELLS = 20
-GROUPS = {"a": (["alice"], [cell_name(i) for i in range(10)]),
-          "b": (["bob"], [cell_name(i) for i in range(10, 20)]),
+CELLS = 20 if LONG_TESTS else 6
+GROUPS = {"a": (["alice"], [cell_name(i) for i in range(CELLS // 2)]),
+          "b": (["bob"], [cell_name(i) for i in range(CELLS // 2, CELLS)]),
           "watch": (["grafana"], [])}
 #: seconds a refused move waits for an answer that must not come
 REFUSED_WAIT_S = 1.5
+A_FIRST, A_LAST = cell_name(0), cell_name(CELLS // 2 - 1)  # alice's
+B_CELL, B_LAST = cell_name(CELLS - 2), cell_name(CELLS - 1)  # bob's
 
 
 @pytest.fixture(scope="module")
@@ -65,47 +69,47 @@ def test_status_lists_every_cell_of_the_site_within_2_s(fleet: Fleet) -> None:
 
 
 def test_a_group_moves_its_own_cells_and_not_the_other_groups(fleet: Fleet) -> None:
-    before = targets_counted(fleet, "cell15")
-    with Client(fleet.endpoint, "cell15", prefix=PREFIX, zenoh_config=fleet.user_configs["alice"]) as foreign:
+    before = targets_counted(fleet, B_CELL)
+    with Client(fleet.endpoint, B_CELL, prefix=PREFIX, zenoh_config=fleet.user_configs["alice"]) as foreign:
         with pytest.raises(TimeoutError):
             foreign.move(100.0, timeout_s=REFUSED_WAIT_S)
         with pytest.raises(TimeoutError):
             foreign.stop()  # stop is a target-like right too: only b may stop b's cells
-    with Client(fleet.endpoint, "cell03", prefix=PREFIX, zenoh_config=fleet.user_configs["alice"]) as own:
+    with Client(fleet.endpoint, A_LAST, prefix=PREFIX, zenoh_config=fleet.user_configs["alice"]) as own:
         command = own.move(120.0)  # the sentinel: alice's own cell answers
         assert command.model is not None and command.target == pytest.approx(120.0, abs=1e-9)
-    assert targets_counted(fleet, "cell15") == before  # the daemon of b's cell never saw alice's target
-    with Client(fleet.endpoint, "cell15", prefix=PREFIX, zenoh_config=fleet.user_configs["bob"]) as owner:
+    assert targets_counted(fleet, B_CELL) == before  # the daemon of b's cell never saw alice's target
+    with Client(fleet.endpoint, B_CELL, prefix=PREFIX, zenoh_config=fleet.user_configs["bob"]) as owner:
         assert owner.move(140.0).target == pytest.approx(140.0, abs=1e-9)  # control: the owner does move it
-    assert targets_counted(fleet, "cell15") == before + 1
+    assert targets_counted(fleet, B_CELL) == before + 1
 
 
 def test_a_wildcard_put_reaches_no_cell(fleet: Fleet) -> None:
     """A put on ``site/hall2/*/target`` would move every cell: no rule includes it, so no cell hears it."""
-    before = {cell: targets_counted(fleet, cell) for cell in ("cell00", "cell19")}
+    before = {cell: targets_counted(fleet, cell) for cell in (A_FIRST, B_LAST)}
     session = zenoh.open(client_config(fleet.endpoint, zenoh_config=fleet.user_configs["alice"]))
     try:
         session.put(f"{PREFIX}/*/target", json.dumps({"x_um": 50.0, "id": "everyone"}))
         session.put(f"{PREFIX}/**", json.dumps({"x_um": 50.0, "id": "everything"}))
-        replies = list(session.get(f"{PREFIX}/cell00/compensate", payload=json.dumps({"x_um": 60.0, "id": "s"}),
+        replies = list(session.get(f"{PREFIX}/{A_FIRST}/compensate", payload=json.dumps({"x_um": 60.0, "id": "s"}),
                                    timeout=10.0))  # the sentinel, same session
         assert [r.ok is not None for r in replies] == [True]
     finally:
         session.close()
-    assert targets_counted(fleet, "cell00") == before["cell00"] + 1  # the sentinel only
-    assert targets_counted(fleet, "cell19") == before["cell19"]
+    assert targets_counted(fleet, A_FIRST) == before[A_FIRST] + 1  # the sentinel only
+    assert targets_counted(fleet, B_LAST) == before[B_LAST]
 
 
 def test_a_watching_group_reads_every_cell_and_moves_none(fleet: Fleet) -> None:
-    before = targets_counted(fleet, "cell00")
-    with Client(fleet.endpoint, "cell00", prefix=PREFIX, zenoh_config=fleet.user_configs["grafana"]) as watcher:
-        assert watcher.status()["cell"] == "cell00"
+    before = targets_counted(fleet, A_FIRST)
+    with Client(fleet.endpoint, A_FIRST, prefix=PREFIX, zenoh_config=fleet.user_configs["grafana"]) as watcher:
+        assert watcher.status()["cell"] == A_FIRST
         with pytest.raises(TimeoutError):
             watcher.move(100.0, timeout_s=REFUSED_WAIT_S)
         assert len(watcher.statuses(timeout_s=2.0)) == CELLS
-    with Client(fleet.endpoint, "cell00", prefix=PREFIX, zenoh_config=fleet.user_configs["alice"]) as own:
+    with Client(fleet.endpoint, A_FIRST, prefix=PREFIX, zenoh_config=fleet.user_configs["alice"]) as own:
         own.move(110.0)  # sentinel through the router
-    assert targets_counted(fleet, "cell00") == before + 1
+    assert targets_counted(fleet, A_FIRST) == before + 1
 
 
 def test_an_unknown_user_gets_no_session(fleet: Fleet, tmp_path: Path) -> None:
