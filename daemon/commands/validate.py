@@ -44,7 +44,7 @@ from nanodrift.drivers_set import DriverSet
 from nanodrift.errors import UserError
 from nanodrift.model.cell_model import CellModel, load_any_model
 from nanodrift.model.model import Model, ModelFileError
-from nanodrift.procedure.validation import run_cell_validation_steps, run_validation
+from nanodrift.procedure.validation import check_channels, run_validation, run_validation_steps
 from nanodrift.reports.validation import (
     cell_json,
     cell_table,
@@ -304,12 +304,13 @@ def _driven_run(args: argparse.Namespace, model: CellModel, scenario: str | None
     plan = cell_validation_plan(config.axis_names, args.cycles, {a: lim.workspace_um for a, lim in limits.items()})
     follow, ready = _cell.guards(config, drivers, args)
     try:
-        results, extrapolating = _cell.run_procedure(run_cell_validation_steps(
-            drivers, plan, model, compensate=compensate, limits=limits, name=scenario or "validation",
+        check_channels(model, drivers)  # uncompensated too: refused before the first run moves anything
+        run = _cell.run_procedure(run_validation_steps(
+            drivers, plan, model if compensate else None, limits=limits, name=scenario or "validation",
             timing=config.procedure.timing, follow=follow, ready=ready, adapt=adapt))
     except ValueError as err:
         raise UserError(str(err)) from None
-    return config, drivers, results, extrapolating
+    return config, drivers, run.steps, run.extrapolating
 
 
 def _driven_test(args: argparse.Namespace, model: CellModel, scenario: str | None,

@@ -28,7 +28,7 @@ from nanodrift.drivers.simulated.plugin import RESOURCE_KEY
 from nanodrift.model.cell_model import CellModel, load_any_model
 from nanodrift.procedure.recording import record_calibration
 from nanodrift.procedure.steps import run_steps
-from nanodrift.procedure.validation import run_cell_validation_steps
+from nanodrift.procedure.validation import run_validation_steps
 
 
 def _config(tmp_path: Path, axes: str = "xy") -> Path:
@@ -164,13 +164,12 @@ def test_no_command_before_every_channel_the_model_reads_has_a_clean_sample(tmp_
     assert isinstance(model, CellModel) and "T2" in model.channels
     plan = cell_validation_plan(("x", "y"), 1)
     with pytest.raises(RuntimeError, match="no clean temperature sample yet"):
-        asyncio.run(run_cell_validation_steps(drivers, plan, model, compensate=True, limits=config.axis_actuators(),
-                                              progress_stream=io.StringIO()))
+        asyncio.run(run_validation_steps(drivers, plan, model, limits=config.axis_actuators(),
+                                         progress_stream=io.StringIO()))
     # uncompensated, the same plan runs: nothing asks the model
-    steps, extrapolating = asyncio.run(run_cell_validation_steps(
-        procedure_drivers(config), plan, model, compensate=False, limits=config.axis_actuators(),
-        progress_stream=io.StringIO()))
-    assert len(steps) == len(plan) and extrapolating == 0
+    run = asyncio.run(run_validation_steps(procedure_drivers(config), plan, None, limits=config.axis_actuators(),
+                                           progress_stream=io.StringIO()))
+    assert len(run.steps) == len(plan) and run.extrapolating == 0
 
 
 def test_a_multi_axis_calibration_of_one_cycle_is_refused_before_anything_moves(
