@@ -45,11 +45,10 @@ def check_ready(evaluator: Evaluator | CellEvaluator | _OneAxisEvaluator) -> Non
         raise RuntimeError("no clean temperature sample yet for every channel the model needs")
 
 
-def feed_tracker(tracker: BiasTracker, result: StepResult, axis: str) -> float:
-    """One step into the tracker, as the daemon feeds a settled residual: valid steps only. The correction."""
+def feed_tracker(tracker: BiasTracker, result: StepResult, axis: str) -> None:
+    """One step into the tracker, as the daemon feeds a settled residual: valid steps only."""
     if result.valid:
         tracker.update(result.t_s, result.positions_um[axis] - result.step.target(axis))
-    return tracker.correction_um
 
 
 async def run_validation(
@@ -160,21 +159,13 @@ async def run_validation_steps(
     return run
 
 
-@dataclass
 class _OneAxisCell:
     """A one-axis model seen as a cell of its one axis (targets and commands keyed by ``axis``), so that one
     procedure drives a model of one axis or several."""
 
-    model: Model
-    axis: str
-
-    @property
-    def channels(self) -> tuple[str, ...]:
-        return self.model.channels
-
-    @property
-    def models(self) -> dict[str, Model]:
-        return {self.axis: self.model}
+    def __init__(self, model: Model, axis: str) -> None:
+        self.model, self.axis = model, axis
+        self.channels, self.models = model.channels, {axis: model}
 
     def out_of_range(self, positions: Mapping[str, float], temps: Mapping[str, float]) -> list[str]:
         return self.model.out_of_range(positions[self.axis], temps)
