@@ -32,14 +32,14 @@ from nanodrift.procedure.progress import Progress
 from nanodrift.procedure.steps import Limits, axis_limits, run_steps
 
 
-def check_channels(model: Model | CellModel | _OneAxisCell, drivers: DriverSet) -> None:
+def check_channels(model: Model | CellModel, drivers: DriverSet) -> None:
     """A model reading a channel this cell does not measure is refused before anything moves."""
     missing = [c for c in model.channels if c not in drivers.temperature_channels]
     if missing:
         raise ValueError(f"the model needs channel(s) {', '.join(missing)} that this cell does not measure")
 
 
-def check_ready(evaluator: Evaluator | CellEvaluator | _OneAxisEvaluator) -> None:
+def check_ready(evaluator: CellEvaluator | _OneAxisEvaluator) -> None:
     """No command from a model before every channel it reads has a clean sample."""
     if not evaluator.ready:
         raise RuntimeError("no clean temperature sample yet for every channel the model needs")
@@ -124,8 +124,8 @@ async def run_validation_steps(
         cell: CellModel | _OneAxisCell | None = _OneAxisCell(model, axis)
     else:
         cell = model
-    if cell is not None:
-        check_channels(cell, drivers)
+    if model is not None:
+        check_channels(model, drivers)
     evaluator = None if cell is None else cell.evaluator()
     run = ValidationSteps([])
     latest: dict[str, float] = {}
