@@ -45,6 +45,13 @@ def check_ready(evaluator: CellEvaluator | _OneAxisEvaluator) -> None:
         raise RuntimeError("no clean temperature sample yet for every channel the model needs")
 
 
+def one_axis(limits: Limits) -> str:
+    """The axis of the cell a one-axis test runs on (a one-axis model's): refused on a cell of several."""
+    if len(limits) != 1:
+        raise ValueError(f"a one-axis model drives a cell of one axis, this cell has axes {', '.join(limits)}")
+    return next(iter(limits))
+
+
 def feed_tracker(tracker: BiasTracker, result: StepResult, axis: str) -> None:
     """One step into the tracker, as the daemon feeds a settled residual: valid steps only."""
     if result.valid:
@@ -72,7 +79,7 @@ async def run_validation(
     carried and the model's ``q_sigma_um`` for it.
     """
     limits = axis_limits(drivers, limits)
-    (axis,) = limits  # the one-axis model's axis
+    axis = one_axis(limits)
     run = await run_validation_steps(drivers, validation_plan(cycles), model, limits=limits, name=name, timing=timing,
                                      progress_stream=progress_stream, follow=follow, ready=ready,
                                      adapt=None if adapt is None else {axis: adapt})
@@ -120,8 +127,7 @@ async def run_validation_steps(
         raise ValueError("adaptation corrects the model's commands: it needs a model")
     trackers = dict(adapt or {})
     if isinstance(model, Model):
-        (axis,) = limits  # a one-axis model drives a cell of its one axis
-        cell: CellModel | _OneAxisCell | None = _OneAxisCell(model, axis)
+        cell: CellModel | _OneAxisCell | None = _OneAxisCell(model, one_axis(limits))
     else:
         cell = model
     if model is not None:

@@ -187,6 +187,15 @@ def test_validate_refuses_a_model_reading_a_channel_the_cell_does_not_measure_be
     assert " steps, " not in err  # no progress line: no plan started
 
 
+def test_validate_refuses_a_one_axis_model_on_a_cell_of_several_axes_naming_them(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    one_axis = Path(nanodrift.__file__).parent / "data" / "default_model.json"
+    assert cli(["validate", "--config", str(_config(tmp_path)), "--model", str(one_axis), "--cycles", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "a one-axis model drives a cell of one axis, this cell has axes x, y" in err
+    assert " steps, " not in err  # no progress line: no plan started
+
+
 def test_every_axis_command_records_its_sigma_and_its_tracker_correction(tmp_path: Path) -> None:
     """What the one-axis test always recorded per command (the model's q_sigma, the bias correction it carried,
     the σ the tracker leaves) is recorded for every axis of a cell."""
