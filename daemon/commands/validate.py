@@ -44,7 +44,7 @@ from nanodrift.drivers_set import DriverSet
 from nanodrift.errors import UserError
 from nanodrift.model.cell_model import CellModel, load_any_model
 from nanodrift.model.model import Model, ModelFileError
-from nanodrift.procedure.validation import run_cell_validation_steps, run_validation
+from nanodrift.procedure.validation import check_channels, run_validation, run_validation_steps
 from nanodrift.reports.validation import (
     cell_json,
     cell_table,
@@ -196,9 +196,7 @@ def _print_details(result: TestResult, tracker: BiasTracker | None, compensate: 
     if several:
         print()
     if tracker is not None:
-        print(f"{gap}adaptation{which}: bias tracker (tau_s {tracker.tau_s:g} s, "
-              f"max {tracker.max_um:g} um), {tracker.updates} settled residuals, final correction "
-              f"{tracker.correction_um * 1e3:+.0f} nm")
+        print(f"{gap}adaptation{which}: {_tracker_text(tracker)}")
     for line in coverage_lines(result)[0]:
         print(line.replace("uncertainty:", f"uncertainty{which}:", 1))
     kind = "with compensation" if compensate else "without compensation"
@@ -206,6 +204,12 @@ def _print_details(result: TestResult, tracker: BiasTracker | None, compensate: 
     for p in (result.points if compensate else result.points_without):
         print(f"  x' = {p.target_um[result.axis]:5.0f} µm: accuracy {p.accuracy_nm:7.1f} nm, repeatability "
               f"{p.repeatability_nm:7.1f} nm ({p.visits} visits)")
+
+
+def _tracker_text(tracker: BiasTracker) -> str:
+    """What ``--adapt`` says of a tracker after the test (the one axis', or each axis' of a cell)."""
+    return (f"bias tracker (tau_s {tracker.tau_s:g} s, max {tracker.max_um:g} um), {tracker.updates} settled "
+            f"residuals, final correction {tracker.correction_um * 1e3:+.0f} nm")
 
 
 def _json_default(value: Any) -> Any:
@@ -304,12 +308,13 @@ def _driven_run(args: argparse.Namespace, model: CellModel, scenario: str | None
     plan = cell_validation_plan(config.axis_names, args.cycles, {a: lim.workspace_um for a, lim in limits.items()})
     follow, ready = _cell.guards(config, drivers, args)
     try:
-        results, extrapolating = _cell.run_procedure(run_cell_validation_steps(
-            drivers, plan, model, compensate=compensate, limits=limits, name=scenario or "validation",
+        check_channels(model, drivers)  # uncompensated too: refused before the first run moves anything
+        run = _cell.run_procedure(run_validation_steps(
+            drivers, plan, model if compensate else None, limits=limits, name=scenario or "validation",
             timing=config.procedure.timing, follow=follow, ready=ready, adapt=adapt))
     except ValueError as err:
         raise UserError(str(err)) from None
-    return config, drivers, results, extrapolating
+    return config, drivers, run.steps, run.extrapolating
 
 
 def _driven_test(args: argparse.Namespace, model: CellModel, scenario: str | None,
@@ -345,9 +350,7 @@ def _driven_test(args: argparse.Namespace, model: CellModel, scenario: str | Non
     doc = cell_json(name, truth, measured, model=model.id, backend=f"{drivers.description} ({config.source})",
                     cycles=args.cycles, truth_known=knows_truth, extrapolating_steps=extrapolating)
     if trackers is not None:
-        text += "".join(f"\nadaptation, axis {a}: bias tracker (tau_s {t.tau_s:g} s, max {t.max_um:g} um), "
-                        f"{t.updates} settled residuals, final correction {t.correction_um * 1e3:+.0f} nm"
-                        for a, t in trackers.items())
+        text += "".join(f"\nadaptation, axis {a}: {_tracker_text(t)}" for a, t in trackers.items())
         doc["adapt"] = {"mode": "bias", "tau_s": args.adapt_tau_s, "max_um": args.adapt_max_um,
                         "axes": {a: {"updates": t.updates, "final_correction_um": t.correction_um}
                                  for a, t in trackers.items()}}

@@ -1,10 +1,13 @@
 """ISO 9283 validation on a cell: drive the validation plan through the model (or without it).
 
+One procedure (:func:`run_validation_steps`) drives a cell of any number of axes; a one-axis model is run as a
+cell of its one axis. :func:`run_validation` is the one-axis test as ``validate`` and the demo score it.
+
 With ``adapt`` (``validate --adapt``) the model's command gets the daemon's bias correction: the same
 :class:`nanodrift.calibration.residuals.BiasTracker`, fed with each valid step's settled residual (the
 step's averaged position minus its target, the measurement the daemon's monitor takes while a
-target is held), its correction added to every following command. A multi-axis cell has one tracker
-per axis (:func:`run_cell_validation_steps`), as the daemon's health unit does.
+target is held), its correction added to every following command. The cell has one tracker per
+axis (:func:`run_validation_steps`), as the daemon's health unit does.
 
 On a simulated cell each step also carries the position the stage truly attained, averaged over the
 same readings as the interferometer's (``StepResult.true_um``, from the sensor group's
@@ -15,7 +18,8 @@ truth beside the interferometer. Hardware knows no truth: the list stays empty.
 from __future__ import annotations
 
 from collections.abc import Awaitable, Callable, Mapping, Sequence
-from typing import IO, Any
+from dataclasses import dataclass, field
+from typing import IO
 
 from nanodrift.calibration.iso9283 import TestResult, summarize
 from nanodrift.calibration.plans import PlannedStep, StepResult, StepTiming, validation_plan
@@ -35,22 +39,28 @@ def check_channels(model: Model | CellModel, drivers: DriverSet) -> None:
         raise ValueError(f"the model needs channel(s) {', '.join(missing)} that this cell does not measure")
 
 
-def check_ready(evaluator: Evaluator | CellEvaluator) -> None:
+def check_ready(evaluator: CellEvaluator | _OneAxisEvaluator) -> None:
     """No command from a model before every channel it reads has a clean sample."""
     if not evaluator.ready:
         raise RuntimeError("no clean temperature sample yet for every channel the model needs")
 
 
-def feed_tracker(tracker: BiasTracker, result: StepResult, axis: str) -> float:
-    """One step into the tracker, as the daemon feeds a settled residual: valid steps only. The correction."""
+def one_axis(limits: Limits) -> str:
+    """The axis of the cell a one-axis test runs on (a one-axis model's): refused on a cell of several."""
+    if len(limits) != 1:
+        raise ValueError(f"a one-axis model drives a cell of one axis, this cell has axes {', '.join(limits)}")
+    return next(iter(limits))
+
+
+def feed_tracker(tracker: BiasTracker, result: StepResult, axis: str) -> None:
+    """One step into the tracker, as the daemon feeds a settled residual: valid steps only."""
     if result.valid:
         tracker.update(result.t_s, result.positions_um[axis] - result.step.target(axis))
-    return tracker.correction_um
 
 
 async def run_validation(
     drivers: DriverSet,
-    model: Any | None,
+    model: Model | None,
     *,
     limits: Limits | None = None,
     name: str = "validation",
@@ -61,73 +71,46 @@ async def run_validation(
     ready: Callable[[], Awaitable[None]] | None = None,
     adapt: BiasTracker | None = None,
 ) -> TestResult:
-    """One test: drive the validation plan with the model (or without when ``model`` is None).
+    """One test of a one-axis model (or none, when ``model`` is None): :func:`run_validation_steps` over the
+    one-axis plan, scored with the uncompensated position computed from the same run.
 
     ``adapt``: a bias tracker (``[adapt] mode = "bias"``) whose correction is added to the model's
     commands, fed by each valid step. The result records, per step, the correction its command
     carried and the model's ``q_sigma_um`` for it.
     """
-    timing = timing or StepTiming()
     limits = axis_limits(drivers, limits)
-    (axis,) = limits  # the one-axis model's axis
-    plan = validation_plan(cycles)
-    evaluator = model.evaluator() if model is not None else None
-    if adapt is not None and model is None:
-        raise ValueError("adaptation corrects the model's commands: it needs a model")
-    latest: dict[str, float] = {}
-    extrapolating = 0
-    corrections: list[float] = []
-    sigmas: list[float] = []
-    adapted_sigmas: list[float] = []
-    wander_um = model.wander_um if model is not None else 0.0
+    axis = one_axis(limits)
+    run = await run_validation_steps(drivers, validation_plan(cycles), model, limits=limits, name=name, timing=timing,
+                                     progress_stream=progress_stream, follow=follow, ready=ready,
+                                     adapt=None if adapt is None else {axis: adapt})
+    result = summarize(name, run.steps, model is not None, run.extrapolating, axis)
     if model is not None:
-        check_channels(model, drivers)
-
-    def observe(t: float, temps: dict[str, float]) -> None:
-        latest.update(temps)
-        if evaluator is not None:
-            evaluator.observe(t, temps)
-
-    def command_for(targets: dict[str, float], t: float) -> dict[str, float]:
-        nonlocal extrapolating
-        target = targets[axis]
-        if evaluator is None or model is None:  # the one is None when the other is
-            return targets
-        check_ready(evaluator)
-        if model.out_of_range(target, latest):
-            extrapolating += 1
-        correction = adapt.correction_um if adapt is not None else 0.0
-        corrections.append(correction)
-        sigma = evaluator.sigma(target, t)
-        sigmas.append(sigma)
-        if adapt is not None:
-            adapted_sigmas.append(adapt.sigma_um(sigma, wander_um))
-        return {axis: float(evaluator.command(target, t)) + correction}
-
-    def on_step(result: StepResult) -> None:
-        if adapt is not None:
-            feed_tracker(adapt, result, axis)
-
-    progress = Progress(plan, name, progress_stream)
-    steps = await run_steps(drivers, plan, limits=limits, timing=timing, command_for=command_for,
-                                 on_step=on_step, on_temperatures=observe, progress=progress, follow=follow,
-                                 ready=ready)
-    result = summarize(name, steps, model is not None, extrapolating, axis)
-    if model is not None:
-        result.corrections_um = corrections
-        result.q_sigma_um = sigmas
-        result.q_sigma_adapted_um = adapted_sigmas
+        result.corrections_um = [c[axis] for c in run.corrections_um]
+        result.q_sigma_um = [s[axis] for s in run.sigmas_um]
+        result.q_sigma_adapted_um = [s[axis] for s in run.adapted_sigmas_um]
         result.adapted = adapt is not None
-        result.measurement_sigma_um = wander_um
+        result.measurement_sigma_um = model.wander_um
     return result
 
 
-async def run_cell_validation_steps(
+@dataclass
+class ValidationSteps:
+    """A validation plan as it ran: its steps, how many commands were for a target or temperatures outside the
+    model's training ranges, and per command (none without a model) each axis' bias correction, the model's
+    ``q_sigma`` and, with trackers, the σ the corrected command keeps."""
+
+    steps: list[StepResult]
+    extrapolating: int = 0
+    corrections_um: list[dict[str, float]] = field(default_factory=list)
+    sigmas_um: list[dict[str, float]] = field(default_factory=list)
+    adapted_sigmas_um: list[dict[str, float]] = field(default_factory=list)
+
+
+async def run_validation_steps(
     drivers: DriverSet,
     plan: Sequence[PlannedStep],
-    model: CellModel,
+    model: Model | CellModel | None,
     *,
-    compensate: bool,
     limits: Limits,
     name: str = "validation",
     timing: StepTiming | None = None,
@@ -135,37 +118,84 @@ async def run_cell_validation_steps(
     follow: Mapping[str, FollowCheck] | None = None,
     ready: Callable[[], Awaitable[None]] | None = None,
     adapt: Mapping[str, BiasTracker] | None = None,
-) -> tuple[list[StepResult], int]:
-    """A multi-axis cell's ISO 9283 plan, through ``model`` when ``compensate`` (else command = target): its
-    steps, and how many commands were for a target or temperatures outside the model's training ranges.
+) -> ValidationSteps:
+    """The ISO 9283 ``plan`` on a cell of any number of axes, through ``model`` (None: command = target).
 
     ``adapt``: a bias tracker per axis, as the daemon's health unit keeps one per axis; each adds its
     correction to its own axis' command and is fed that axis' residual of every valid step."""
-    if adapt is not None and not compensate:
-        raise ValueError("adaptation corrects the model's commands: it needs compensate")
+    if adapt is not None and model is None:
+        raise ValueError("adaptation corrects the model's commands: it needs a model")
     trackers = dict(adapt or {})
-    check_channels(model, drivers)
-    evaluator = model.evaluator()
+    if isinstance(model, Model):
+        cell: CellModel | _OneAxisCell | None = _OneAxisCell(model, one_axis(limits))
+    else:
+        cell = model
+    if model is not None:
+        check_channels(model, drivers)
+    evaluator = None if cell is None else cell.evaluator()
+    run = ValidationSteps([])
     latest: dict[str, float] = {}
-    extrapolating = 0
 
     def observe(t: float, temps: dict[str, float]) -> None:
         latest.update(temps)
-        evaluator.observe(t, temps)
+        if evaluator is not None:
+            evaluator.observe(t, temps)
 
     def command_for(targets: dict[str, float], t: float) -> dict[str, float]:
-        nonlocal extrapolating
+        assert cell is not None and evaluator is not None  # command_for is given to run_steps only with a model
         check_ready(evaluator)
-        extrapolating += bool(model.out_of_range(targets, latest))
-        commands = evaluator.command(targets, t)
-        return {a: q + (trackers[a].correction_um if a in trackers else 0.0) for a, q in commands.items()}
+        run.extrapolating += bool(cell.out_of_range(targets, latest))
+        corrections = {a: tracker.correction_um for a, tracker in trackers.items()}
+        sigmas = evaluator.sigma(targets, t)  # before the command: motion-dependent terms see the same state
+        run.corrections_um.append({a: corrections.get(a, 0.0) for a in sigmas})
+        run.sigmas_um.append(sigmas)
+        if trackers:
+            run.adapted_sigmas_um.append({a: tracker.sigma_um(sigmas[a], cell.models[a].wander_um)
+                                          for a, tracker in trackers.items()})
+        return {a: float(q) + corrections.get(a, 0.0) for a, q in evaluator.command(targets, t).items()}
 
     def on_step(result: StepResult) -> None:
         for axis, tracker in trackers.items():
             feed_tracker(tracker, result, axis)
 
-    steps = await run_steps(drivers, plan, limits=limits, timing=timing or StepTiming(),
-                            command_for=command_for if compensate else None, on_step=on_step,
-                            on_temperatures=observe, progress=Progress(plan, name, progress_stream), follow=follow,
-                            ready=ready)
-    return steps, extrapolating
+    run.steps = await run_steps(drivers, plan, limits=limits, timing=timing or StepTiming(),
+                                command_for=None if model is None else command_for, on_step=on_step,
+                                on_temperatures=observe, progress=Progress(plan, name, progress_stream), follow=follow,
+                                ready=ready)
+    return run
+
+
+class _OneAxisCell:
+    """A one-axis model seen as a cell of its one axis (targets and commands keyed by ``axis``), so that one
+    procedure drives a model of one axis or several."""
+
+    def __init__(self, model: Model, axis: str) -> None:
+        self.model, self.axis = model, axis
+        self.channels, self.models = model.channels, {axis: model}
+
+    def out_of_range(self, positions: Mapping[str, float], temps: Mapping[str, float]) -> list[str]:
+        return self.model.out_of_range(positions[self.axis], temps)
+
+    def evaluator(self) -> _OneAxisEvaluator:
+        return _OneAxisEvaluator(self.model.evaluator(), self.axis)
+
+
+@dataclass
+class _OneAxisEvaluator:
+    """A one-axis :class:`Evaluator` seen as a :class:`CellEvaluator` of its one axis."""
+
+    evaluator: Evaluator
+    axis: str
+
+    @property
+    def ready(self) -> bool:
+        return self.evaluator.ready
+
+    def observe(self, t: float, temps: Mapping[str, float]) -> None:
+        self.evaluator.observe(t, temps)
+
+    def sigma(self, positions: Mapping[str, float], t: float) -> dict[str, float]:
+        return {self.axis: self.evaluator.sigma(positions[self.axis], t)}
+
+    def command(self, positions: Mapping[str, float], t: float) -> dict[str, float]:
+        return {self.axis: float(self.evaluator.command(positions[self.axis], t))}

@@ -3,7 +3,7 @@
 Offline is ``validate --adapt`` (:func:`nanodrift.procedure.validation.run_validation`); online is the
 daemon's health unit (``nanodrift.service.health_unit``) fed through its compensator, command by command and
 reading by reading: both must give the same corrections, float for float. A multi-axis cell runs one
-tracker per axis (``run_cell_validation_steps``), on the simulated XY cell through its drivers.
+tracker per axis (``run_validation_steps``), on the simulated XY cell through its drivers.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from nanodrift.drivers.simulated.plugin import shared_cell
 from nanodrift.logs import get_logger
 from nanodrift.model.cell_model import CellModel, load_any_model
 from nanodrift.model.model import Model, save_model
-from nanodrift.procedure.validation import run_cell_validation_steps, run_validation
+from nanodrift.procedure.validation import run_validation, run_validation_steps
 from nanodrift.service.health_unit import HealthUnit
 from nanodrift.service.table import SensorTable
 
@@ -163,10 +163,10 @@ def shifted_cell(bias_um: dict[str, float]) -> CellModel:
 def validate_xy(model: CellModel, cycles: int, adapt: dict[str, BiasTracker] | None) -> list[StepResult]:
     """The ISO 9283 plan through ``model`` on the simulated XY cell's drivers, in the drifting room of test 2."""
     config = parse_config({"simulation": {"axes": "xy", "scenario": "test2", "seed": 7}}, source="xy.toml")
-    steps, _ = asyncio.run(run_cell_validation_steps(
-        procedure_drivers(config), cell_validation_plan(("x", "y"), cycles), model, compensate=True,
+    run = asyncio.run(run_validation_steps(
+        procedure_drivers(config), cell_validation_plan(("x", "y"), cycles), model,
         limits=config.axis_actuators(), name="test2", progress_stream=Capture(), adapt=adapt))
-    return steps
+    return run.steps
 
 
 def axis_accuracy_nm(steps: list[StepResult]) -> dict[str, float]:

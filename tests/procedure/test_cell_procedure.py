@@ -21,14 +21,15 @@ import nanodrift
 from nanodrift.assembly import procedure_drivers
 from nanodrift.calibration.dataset import read_csv
 from nanodrift.calibration.plans import StepResult, StepTiming, cell_calibration_plan, cell_validation_plan
+from nanodrift.calibration.residuals import BiasTracker
 from nanodrift.cli import main as cli
 from nanodrift.config import load_config
 from nanodrift.drivers.simulated.cell import SimulatedCell
 from nanodrift.drivers.simulated.plugin import RESOURCE_KEY
-from nanodrift.model.cell_model import CellModel, load_any_model
+from nanodrift.model.cell_model import CellModel, load_any_model, save_cell_model
 from nanodrift.procedure.recording import record_calibration
 from nanodrift.procedure.steps import run_steps
-from nanodrift.procedure.validation import run_cell_validation_steps
+from nanodrift.procedure.validation import run_validation_steps
 
 
 def _config(tmp_path: Path, axes: str = "xy") -> Path:
@@ -164,13 +165,57 @@ def test_no_command_before_every_channel_the_model_reads_has_a_clean_sample(tmp_
     assert isinstance(model, CellModel) and "T2" in model.channels
     plan = cell_validation_plan(("x", "y"), 1)
     with pytest.raises(RuntimeError, match="no clean temperature sample yet"):
-        asyncio.run(run_cell_validation_steps(drivers, plan, model, compensate=True, limits=config.axis_actuators(),
-                                              progress_stream=io.StringIO()))
+        asyncio.run(run_validation_steps(drivers, plan, model, limits=config.axis_actuators(),
+                                         progress_stream=io.StringIO()))
     # uncompensated, the same plan runs: nothing asks the model
-    steps, extrapolating = asyncio.run(run_cell_validation_steps(
-        procedure_drivers(config), plan, model, compensate=False, limits=config.axis_actuators(),
-        progress_stream=io.StringIO()))
-    assert len(steps) == len(plan) and extrapolating == 0
+    run = asyncio.run(run_validation_steps(procedure_drivers(config), plan, None, limits=config.axis_actuators(),
+                                           progress_stream=io.StringIO()))
+    assert len(run.steps) == len(plan) and run.extrapolating == 0
+
+
+def test_validate_refuses_a_model_reading_a_channel_the_cell_does_not_measure_before_anything_moves(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The uncompensated run comes first and asks nothing of the model: the model's channels are checked before
+    it, not after a whole plan has run."""
+    xy = Path(nanodrift.__file__).parent / "data" / "default_model_xy.json"
+    model = CellModel.from_dict(json.loads(re.sub(r"\bT2\b", "T9", xy.read_text())), check_id=False)
+    save_cell_model(model, tmp_path / "t9.json")
+    assert cli(["validate", "--config", str(_config(tmp_path)), "--model", str(tmp_path / "t9.json"),
+                "--cycles", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "needs channel(s) T9 that this cell does not measure" in err
+    assert " steps, " not in err  # no progress line: no plan started
+
+
+def test_validate_refuses_a_one_axis_model_on_a_cell_of_several_axes_naming_them(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    one_axis = Path(nanodrift.__file__).parent / "data" / "default_model.json"
+    assert cli(["validate", "--config", str(_config(tmp_path)), "--model", str(one_axis), "--cycles", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "a one-axis model drives a cell of one axis, this cell has axes x, y" in err
+    assert " steps, " not in err  # no progress line: no plan started
+
+
+def test_every_axis_command_records_its_sigma_and_its_tracker_correction(tmp_path: Path) -> None:
+    """What the one-axis test always recorded per command (the model's q_sigma, the bias correction it carried,
+    the σ the tracker leaves) is recorded for every axis of a cell."""
+    config = load_config(_config(tmp_path))
+    model = load_any_model(Path(nanodrift.__file__).parent / "data" / "default_model_xy.json")
+    plan = cell_validation_plan(("x", "y"), 2)
+    trackers = {a: BiasTracker(600.0, 1.0) for a in ("x", "y")}
+    run = asyncio.run(run_validation_steps(procedure_drivers(config), plan, model, limits=config.axis_actuators(),
+                                           progress_stream=io.StringIO(), adapt=trackers))
+    assert len(run.sigmas_um) == len(run.corrections_um) == len(run.adapted_sigmas_um) == len(plan)
+    assert all(set(s) == {"x", "y"} and all(0.0 < v < 1.0 for v in s.values()) for s in run.sigmas_um)
+    assert run.corrections_um[0] == {"x": 0.0, "y": 0.0}  # no residual before the first step
+    assert run.adapted_sigmas_um[0] == run.sigmas_um[0]  # before the first residual: the model's own σ
+    static = asyncio.run(run_validation_steps(procedure_drivers(config), plan, model, limits=config.axis_actuators(),
+                                              progress_stream=io.StringIO()))  # the same room, no tracker
+    for axis, tracker in trackers.items():
+        assert tracker.updates == sum(r.valid for r in run.steps) and any(c[axis] for c in run.corrections_um)
+        # each command is the model's plus the correction recorded for it
+        assert [r.q_um[axis] - c[axis] for r, c in zip(run.steps, run.corrections_um, strict=True)] == \
+            pytest.approx([r.q_um[axis] for r in static.steps], abs=1e-6)
 
 
 def test_a_multi_axis_calibration_of_one_cycle_is_refused_before_anything_moves(
