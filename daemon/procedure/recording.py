@@ -106,7 +106,8 @@ def resume_hint(out: str | Path, data: str | Path, recorded: int, total: int) ->
             f"Resume with: nanodrift calibrate --out {out} --data {data} --resume")
 
 
-def fit_recorded(data_path: str | Path, model_path: str | Path, *, plan: Sequence[PlannedStep] = ()) -> FitResult:
+def fit_recorded(data_path: str | Path, model_path: str | Path, *,
+                 plan: Sequence[PlannedStep] = ()) -> FitResult[Model]:
     """Identify the one-axis model from the recorded steps (valid rows only), stamp the data file (its
     SHA-256 and rows) into its provenance and save it atomically.
 
