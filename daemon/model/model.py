@@ -23,7 +23,7 @@ import json
 import math
 import os
 import stat
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeGuard
@@ -330,6 +330,14 @@ class Evaluator:
         q = self.value(x, t)
         self.moved(x, t)
         return q
+
+
+def aim(evaluators: Iterable[Evaluator], positions: Mapping[str, float]) -> float:
+    """A cell's target (every axis' position, µm) given to every axis' evaluator: the ``x`` its ``value``,
+    ``sigma``, ``moved`` and ``command`` take next (a term named ``x`` always reads the x axis: nan without one)."""
+    for evaluator in evaluators:
+        evaluator.targets(positions)
+    return positions.get("x", math.nan)
 
 
 # --- model file ---------------------------------------------------------------------------------

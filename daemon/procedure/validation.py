@@ -20,8 +20,8 @@ from nanodrift.calibration.iso9283 import TestResult, summarize
 from nanodrift.calibration.plans import PlannedStep, StepResult, StepTiming, validation_plan
 from nanodrift.calibration.residuals import BiasTracker
 from nanodrift.drivers_set import DriverSet
-from nanodrift.model.cell_model import CellEvaluator, CellModel
-from nanodrift.model.model import Evaluator, Model
+from nanodrift.model.cell_model import CellModel
+from nanodrift.model.model import Evaluator, Model, aim
 from nanodrift.procedure.follow import FollowCheck
 from nanodrift.procedure.progress import Progress
 from nanodrift.procedure.steps import Limits, axis_limits, run_steps
@@ -34,9 +34,9 @@ def check_channels(model: Model | CellModel, drivers: DriverSet) -> None:
         raise ValueError(f"the model needs channel(s) {', '.join(missing)} that this cell does not measure")
 
 
-def check_ready(evaluator: Evaluator | CellEvaluator) -> None:
+def check_ready(*evaluators: Evaluator) -> None:
     """No command from a model before every channel it reads has a clean sample."""
-    if not evaluator.ready:
+    if not all(evaluator.ready for evaluator in evaluators):
         raise RuntimeError("no clean temperature sample yet for every channel the model needs")
 
 
@@ -137,19 +137,21 @@ async def run_cell_validation_steps(
     """A multi-axis cell's ISO 9283 plan, through ``model`` when ``compensate`` (else command = target): its
     steps, and how many commands were for a target or temperatures outside the model's training ranges."""
     check_channels(model, drivers)
-    evaluator = model.evaluator()
+    evaluators = model.evaluators()
     latest: dict[str, float] = {}
     extrapolating = 0
 
     def observe(t: float, temps: dict[str, float]) -> None:
         latest.update(temps)
-        evaluator.observe(t, temps)
+        for evaluator in evaluators.values():
+            evaluator.observe(t, temps)
 
     def command_for(targets: dict[str, float], t: float) -> dict[str, float]:
         nonlocal extrapolating
-        check_ready(evaluator)
+        check_ready(*evaluators.values())
         extrapolating += bool(model.out_of_range(targets, latest))
-        return evaluator.command(targets, t)
+        x = aim(evaluators.values(), targets)
+        return {axis: evaluator.command(x, t) for axis, evaluator in evaluators.items()}
 
     steps = await run_steps(drivers, plan, limits=limits, timing=timing or StepTiming(),
                             command_for=command_for if compensate else None, on_temperatures=observe,

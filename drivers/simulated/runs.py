@@ -135,11 +135,15 @@ class CellValidationRun:
 
 def cell_command(model: CellModel) -> CommandFor:
     """A cell model as a run's ``command_for``: every axis' command from one temperature sample and target."""
-    evaluator = model.evaluator()
+    from nanodrift.model.model import aim  # the model loads with a model, not with the plugin
+
+    evaluators = model.evaluators()
 
     def command(targets: dict[str, float], t: float, temps: dict[str, float]) -> dict[str, float]:
-        evaluator.observe(t, temps)
-        return evaluator.command(targets, t)
+        for evaluator in evaluators.values():
+            evaluator.observe(t, temps)
+        x = aim(evaluators.values(), targets)
+        return {axis: evaluator.command(x, t) for axis, evaluator in evaluators.items()}
 
     return command
 

@@ -7,6 +7,7 @@ import pytest
 
 from nanodrift.calibration.dataset import DataError, read_csv, write_csv
 from nanodrift.drivers.simulated.datasets import simulate_dataset
+from nanodrift.drivers.simulated.runs import cell_command
 from nanodrift.model.cell_model import CellModel, load_any_model, save_cell_model
 from nanodrift.model.identify import fit_cell
 from nanodrift.model.model import ModelFileError
@@ -51,11 +52,11 @@ def test_multi_axis_csv_refusals_name_row_and_column(tmp_path, text, expected):
 
 def test_stream_equals_batch(xy_data, xy_model):
     batch = xy_model.predict(xy_data)
-    evaluator = xy_model.evaluator()
+    command = cell_command(xy_model)
     worst = 0.0
     for i in range(len(xy_data)):
-        evaluator.observe(float(xy_data.t[i]), {c: float(v[i]) for c, v in xy_data.channels.items()})
-        q = evaluator.command({a: float(xy_data.positions[a][i]) for a in "xy"}, float(xy_data.t[i]))
+        q = command({a: float(xy_data.positions[a][i]) for a in "xy"}, float(xy_data.t[i]),
+                    {c: float(v[i]) for c, v in xy_data.channels.items()})
         worst = max(worst, *(abs(q[a] - batch[a][i]) for a in "xy"))
     assert worst < 1e-9
     assert np.sqrt(np.mean((batch["y"] - xy_data.commands["y"]) ** 2)) < 0.05  # it also fits: tens of nm
