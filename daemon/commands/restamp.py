@@ -29,7 +29,7 @@ def main(args: argparse.Namespace) -> int:
         raise UserError(str(err)) from None
     old, new = model.id, model.content_id()
     # a multi-axis file: every axis' model carries its own id too (the cell's id hashes their contents)
-    axes_stale = isinstance(model, CellModel) and any(m.id != m.content_id() for m in model.models.values())
+    axes_stale = any(m.id != m.content_id() for m in CellModel.of(model).models.values())
     out = args.out or args.model
     if old == new and not axes_stale and out == args.model:
         print(f"{args.model}: id {new} already matches its content; nothing written")

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any, Generic, TypedDict, TypeVar
 import numpy as np
 
 from nanodrift.model import hac
-from nanodrift.model.axis_terms import AxisPower, AxisProduct
+from nanodrift.model.axis_terms import AxisProduct
 from nanodrift.model.cell_model import CellModel
 from nanodrift.model.model import FittedTerm, Model, Training
 from nanodrift.model.provenance import created_now, software
@@ -331,21 +331,16 @@ def curvature_candidates(data: Series, exclude: Collection[str] = ()) -> list[Ch
     return squares
 
 
-def axis_position_term(axis: str, k: int = 1) -> Term:
-    """``x^k`` for the x axis (the one-axis term), ``y^k`` for another axis."""
-    return Power(k) if axis == "x" else AxisPower(axis, k)
-
-
 def cell_candidate_terms(axis: str, axes: Sequence[str], channels: Sequence[str], order: int,
                          exclude: Sequence[str] = ()) -> list[Term]:
     """Candidates for one axis of a multi-axis cell: its own powers up to ``order``, every other axis'
     position and square (crosstalk, non-orthogonality, sag), every product of two axes (coupled
     bending), and the channels. The same stepwise selection keeps what the data supports."""
-    own = [axis_position_term(axis, k) for k in range(order, 0, -1)]
+    own: list[Term] = [Power(k, axis) for k in range(order, 0, -1)]
     others: list[Term] = []
     for b in axes:
         if b != axis:
-            others += [axis_position_term(b, 1), axis_position_term(b, 2)]
+            others += [Power(1, b), Power(2, b)]
     products: list[Term] = [AxisProduct(a, b) for i, a in enumerate(axes) for b in axes[i + 1:]]
     return own + others + products + candidate_terms(channels, 1, exclude)[1:]
 

@@ -34,7 +34,7 @@ from nanodrift.atomic import atomic_write_text
 from nanodrift.model.json_unique import DuplicateKeyError, loads_unique
 from nanodrift.model.segments import features, spans_s
 from nanodrift.model.series import Series
-from nanodrift.model.terms import Power, Term, TermStream, UnknownTermError, parse_term, position_key
+from nanodrift.model.terms import Term, TermStream, UnknownTermError, is_x_power, parse_term, position_key
 from nanodrift.model.uncertainty import Covariance, SigmaStream
 
 FORMAT = "nanodrift-model/1"
@@ -256,12 +256,12 @@ class Evaluator:
     def __init__(self, model: Model) -> None:
         self.model = model
         self._streams: list[TermStream] = [ft.term.stream() for ft in model.terms]
-        degree = max((ft.term.k for ft in model.terms if isinstance(ft.term, Power)), default=0)
+        degree = max((ft.term.k for ft in model.terms if is_x_power(ft.term)), default=0)
         poly = [0.0] * (degree + 1)  # poly[k] multiplies x^k
         self._static: list[tuple[float, TermStream]] = []
         self._dynamic: list[tuple[float, TermStream]] = []
         for ft, stream in zip(model.terms, self._streams, strict=True):
-            if isinstance(ft.term, Power):
+            if is_x_power(ft.term):
                 poly[ft.term.k] += ft.coef
             elif ft.term.uses_x:
                 self._dynamic.append((ft.coef, stream))
