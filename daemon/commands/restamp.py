@@ -13,7 +13,7 @@ import argparse
 import datetime as dt
 
 from nanodrift.errors import UserError
-from nanodrift.model.cell_model import CellModel, load_any_model, save_any_model
+from nanodrift.model.cell_model import CellModel, load_any_model, save_cell_model
 from nanodrift.model.model import ModelFileError
 
 
@@ -38,7 +38,7 @@ def main(args: argparse.Namespace) -> int:
         model.provenance["restamped_from"] = old or None
         model.provenance["restamped"] = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
     try:
-        save_any_model(model, out)
+        save_cell_model(CellModel.of(model), out)
     except OSError as err:
         raise UserError(f"{out}: cannot write the model file ({err.strerror or err})") from None
     print(f"{args.model}: id {old or '(none)'} -> {model.id}" + (f", written to {out}" if out != args.model else ""))

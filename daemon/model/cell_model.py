@@ -132,15 +132,12 @@ class CellModel:
 
 
 def save_cell_model(model: CellModel, path: str | os.PathLike[str]) -> None:
-    """Write the file atomically, every axis model and the cell stamped with their content's id."""
+    """Write the file atomically, every axis model and the cell stamped with their content's id (a cell of one
+    axis: the one-axis file, byte for byte what :func:`save_model` writes)."""
     for m in model.models.values():
         m.id = m.content_id()
     model.id = model.content_id()
     atomic_write_text(path, json.dumps(model.to_dict(), indent=2, allow_nan=False) + "\n")
-
-
-def save_any_model(model: Model | CellModel, path: str | os.PathLike[str]) -> None:
-    save_cell_model(CellModel.of(model), path)
 
 
 def load_any_model(path: str | os.PathLike[str], *, check_id: bool = True) -> Model | CellModel:
