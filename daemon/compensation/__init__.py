@@ -27,7 +27,7 @@ from typing import Any, Protocol
 
 from nanodrift.model.cell_model import ONE_AXIS as ONE_AXIS  # the axis of a cell without [[axes]], for the bus
 from nanodrift.model.cell_model import CellModel, load_any_model
-from nanodrift.model.model import Evaluator, Model, ModelFileError, aim, load_model
+from nanodrift.model.model import Evaluator, Model, ModelFileError, aim
 from nanodrift.motion import MotionLimits, VoltageLimitError, checked_voltage
 
 
@@ -125,22 +125,12 @@ def _axes_text(axes: Sequence[str]) -> str:
 
 def load_served_model(path: Path, axes: Sequence[str]) -> Model | CellModel:
     """The model in ``path`` if it serves exactly the cell's ``axes`` (a one-axis cell: ``("x",)``, a
-    :class:`Model` read by :func:`load_model` as always); :class:`ModelFileError` otherwise, saying both."""
-    if one_axis(axes):
-        try:
-            return load_model(path)
-        except ModelFileError as error:
-            try:
-                other = load_any_model(path)
-            except ModelFileError:
-                raise error from None
-            if isinstance(other, CellModel):
-                raise ModelFileError(f"{path}: a multi-axis model (axes {_axes_text(other.axes)}), but this cell has "
-                                     "one axis (x): describe its axes with [[axes]] in the config, or serve a "
-                                     "one-axis model") from None
-            raise
+    :class:`Model` as always); :class:`ModelFileError` otherwise, saying both."""
     model = load_any_model(path)
     model_axes = CellModel.of(model).axes
+    if one_axis(axes) and not one_axis(model_axes):
+        raise ModelFileError(f"{path}: a multi-axis model (axes {_axes_text(model_axes)}), but this cell has one "
+                             "axis (x): describe its axes with [[axes]] in the config, or serve a one-axis model")
     if sorted(model_axes) != sorted(axes):
         raise ModelFileError(f"{path}: the model serves axes {_axes_text(model_axes)}, the cell has axes "
                              f"{_axes_text(axes)} ([[axes]] in the config): calibrate this cell's axes, or serve "
