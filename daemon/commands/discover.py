@@ -25,9 +25,8 @@ import sys
 
 from nanodrift.calibration.dataset import DataError, common_channels, concat, read_runs
 from nanodrift.calibration.discovery import CellDiscoveryResult, DiscoveryError, DiscoveryResult, discover_cell
-from nanodrift.compensation import one_axis
 from nanodrift.errors import UserError
-from nanodrift.model.cell_model import CellModel, load_any_model, save_cell_model
+from nanodrift.model.cell_model import CellModel, load_any_model, one_axis, save_cell_model
 from nanodrift.model.model import MissingChannelError, ModelFileError
 from nanodrift.model.provenance import stamp_data
 

@@ -13,10 +13,9 @@ from collections.abc import Sequence
 from typing import Any, SupportsFloat
 
 from nanodrift.calibration.dataset import DataError, Dataset, common_channels, concat, read_runs
-from nanodrift.compensation import one_axis
 from nanodrift.errors import UserError
-from nanodrift.model.cell_model import CellModel, save_cell_model
-from nanodrift.model.describe import describe_cell_model, describe_model
+from nanodrift.model.cell_model import CellModel, one_axis, save_cell_model
+from nanodrift.model.describe import describe_cell_model
 from nanodrift.model.equation import equation
 from nanodrift.model.identify import DEFAULT_SELECTION, SELECTIONS, FitError, fit, fit_cell
 from nanodrift.model.model import Model
@@ -118,17 +117,15 @@ def main(args: argparse.Namespace) -> int:
         one.selection["excluded"] = list(args.exclude)
     stamp_data(cell, files)
     save_cell_model(cell, args.out)
-    if one_axis(cell.axes):  # the one-axis model's own summary
-        (model,) = cell.models.values()
-        summary, text = fit_summary(model, args.out), describe_model(model, args.out)
-    else:
-        summary, text = cell_fit_summary(cell, args.out), describe_cell_model(cell, args.out)
-    print(json.dumps(summary, indent=2) if args.json else text)
+    print(json.dumps(cell_fit_summary(cell, args.out), indent=2) if args.json else describe_cell_model(cell, args.out))
     return 0
 
 
 def cell_fit_summary(cell: CellModel, path: str) -> dict[str, Any]:
-    """``fit --json`` of a multi-axis model: the cell's id and, per axis, what :func:`fit_summary` gives for one."""
+    """``fit --json``: the cell's id and, per axis, what :func:`fit_summary` gives for one (a cell of one axis:
+    :func:`fit_summary` of its model)."""
+    if one_axis(cell.axes):
+        return fit_summary(cell.models["x"], path)
     axes = {}
     for axis, model in cell.models.items():
         axes[axis] = fit_summary(model, path)

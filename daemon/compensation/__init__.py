@@ -19,22 +19,19 @@ the explicit hook the compensator is built with.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any, Protocol
 
-from nanodrift.model.cell_model import ONE_AXIS as ONE_AXIS  # the axis of a cell without [[axes]], for the bus
+# the axis of a cell without [[axes]] and the test for its shapes, as the bus and the service know them
+from nanodrift.model.cell_model import ONE_AXIS as ONE_AXIS
 from nanodrift.model.cell_model import CellModel, load_any_model
+from nanodrift.model.cell_model import one_axis as one_axis
 from nanodrift.model.model import Evaluator, Model, ModelFileError, aim
 from nanodrift.motion import MotionLimits, VoltageLimitError, checked_voltage
 
-
-def one_axis(axes: Iterable[str]) -> bool:
-    """A one-axis cell's axes (a config without ``[[axes]]``; a cell of several has two at least): the one test
-    for the shapes only such a cell keeps, at the edges (scalar payloads, its log lines, its model file)."""
-    return tuple(axes) == ONE_AXIS
 _NO_TEMPERATURES: Mapping[str, float] = MappingProxyType({})
 
 

@@ -23,7 +23,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -39,6 +39,12 @@ from nanodrift.model.series import Series
 AXIS_LETTERS = "abcdefghijklmnoprstuvwxyz"
 #: the axes of a cell of one axis, whose model file is the one-axis document
 ONE_AXIS = ("x",)
+
+
+def one_axis(axes: Iterable[str]) -> bool:
+    """A one-axis cell's axes (a config without ``[[axes]]``; a cell of several has two at least): the one test
+    for the shapes only such a cell keeps, at the edges (scalar payloads, its log lines, its model file)."""
+    return tuple(axes) == ONE_AXIS
 
 
 @dataclass
@@ -67,7 +73,7 @@ class CellModel:
     def content_id(self) -> str:
         """Hash of the axes and every axis model's content id (what decides every command); one axis: that
         axis model's own id (the one-axis file's)."""
-        if self.axes == ONE_AXIS:
+        if one_axis(self.axes):
             return self.models["x"].content_id()
         content = {"format": FORMAT, "axes": list(self.axes),
                    "models": {a: self.models[a].content_id() for a in self.axes}}
@@ -114,7 +120,7 @@ class CellModel:
 
     def to_dict(self) -> dict[str, Any]:
         """The model file: one axis, the one-axis document (no ``axes``); several, the layout above."""
-        if self.axes == ONE_AXIS:
+        if one_axis(self.axes):
             return self.models["x"].to_dict()
         return {
             "format": FORMAT,

@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Generic, TypedDict, TypeVar
+from typing import Any, Generic, TypedDict, TypeVar, Unpack
 
 import numpy as np
 
@@ -28,9 +28,6 @@ from nanodrift.model.series import CellSeries, Series
 from nanodrift.model.stepwise import stepwisefit
 from nanodrift.model.terms import Bias, Channel, ChannelSquare, Power, Term
 from nanodrift.model.uncertainty import Covariance, estimate
-
-if TYPE_CHECKING:
-    from typing_extensions import Unpack
 
 MAX_AUTO_ORDER = 5
 #: a channel's square is a candidate only where the data spans at least this much of it (°C). The
