@@ -17,7 +17,7 @@ from nanodrift.errors import UserError
 from nanodrift.model.cell_model import CellModel, one_axis, save_cell_model
 from nanodrift.model.describe import describe_cell_model
 from nanodrift.model.equation import equation
-from nanodrift.model.identify import DEFAULT_SELECTION, SELECTIONS, FitError, fit, fit_cell
+from nanodrift.model.identify import DEFAULT_SELECTION, SELECTIONS, FitError, fit_cell
 from nanodrift.model.model import Model
 from nanodrift.model.provenance import stamp_data
 from nanodrift.model.terms import MAX_POWER, Term, UnknownTermError, parse_term
@@ -108,9 +108,7 @@ def main(args: argparse.Namespace) -> int:
                                    "selection": args.selection}
         if data.multi_axis and args.keep:
             raise UserError("--keep is for one-axis files: a multi-axis file's axes choose their terms each")
-        result = (fit_cell(data, **options) if data.multi_axis
-                  else fit(data, keep=_kept_terms(args.keep, channels, exclude), **options))
-        cell = CellModel.of(result.model)
+        cell = fit_cell(data, keep=_kept_terms(args.keep, channels, exclude), **options).model
     except (DataError, FitError, ValueError) as err:
         raise UserError(str(err)) from None
     for one in cell.models.values():

@@ -20,7 +20,7 @@ import numpy as np
 
 from nanodrift.model import hac
 from nanodrift.model.axis_terms import AxisProduct
-from nanodrift.model.cell_model import CellModel
+from nanodrift.model.cell_model import CellModel, one_axis
 from nanodrift.model.model import FittedTerm, Model, Training
 from nanodrift.model.provenance import created_now, software
 from nanodrift.model.segments import features, runs
@@ -485,14 +485,15 @@ def _fit_axis(
     return model, OrderChoice(chosen, scores, folds)
 
 
-def fit_cell(data: CellSeries, **options: Unpack[FitOptions]) -> FitResult[CellModel]:
-    """Identification of every axis of a multi-axis run: :func:`fit` per axis over :func:`cell_candidate_terms`,
-    the geometric order chosen per axis on held-out cycles."""
+def fit_cell(data: CellSeries, *, keep: Sequence[Term] = (), **options: Unpack[FitOptions]) -> FitResult[CellModel]:
+    """Identification of every axis of a cell's run (one axis or several): :func:`fit` per axis over
+    :func:`cell_candidate_terms` (for one axis, x: :func:`fit`'s own candidates), the geometric order chosen per
+    axis on held-out cycles. ``keep``: terms every axis' model keeps whatever the stepwise says."""
     axes = data.axes
     channels = list(data.channels)
     exclude = options.get("exclude", ())
     candidate_terms(channels, 1, exclude)  # refuses an --exclude naming a channel the data lacks
-    missing = [a for a in axes if a not in data.commands]
+    missing = [] if one_axis(axes) else [a for a in axes if a not in data.commands]  # one axis: its q_um, as fit
     if missing:
         raise FitError(f"{options.get('source') or data.source}: no q_{missing[0]}_um column (the command sent to "
                        f"axis {missing[0]}) to fit")
@@ -502,5 +503,5 @@ def fit_cell(data: CellSeries, **options: Unpack[FitOptions]) -> FitResult[CellM
         def candidates(n1: int, axis: str = axis) -> list[Term]:
             return cell_candidate_terms(axis, axes, channels, n1, exclude)
 
-        models[axis], orders[axis] = _fit_axis(data.axis_view(axis), candidates=candidates, **options)
+        models[axis], orders[axis] = _fit_axis(data.axis_view(axis), candidates=candidates, keep=keep, **options)
     return FitResult(CellModel(axes, models, provenance=dict(models[axes[0]].provenance)), orders)

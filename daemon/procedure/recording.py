@@ -18,7 +18,7 @@ from nanodrift.calibration.dataset import CsvAppender, DataError, command_column
 from nanodrift.calibration.plans import PAPER_TIMING, PlannedStep, StepResult, StepTiming, calibration_plan
 from nanodrift.drivers_set import DriverSet
 from nanodrift.model.cell_model import CellModel, save_cell_model
-from nanodrift.model.identify import fit, fit_cell
+from nanodrift.model.identify import fit_cell
 from nanodrift.model.model import Model
 from nanodrift.model.provenance import stamp_data
 from nanodrift.procedure.follow import FollowCheck
@@ -115,8 +115,7 @@ def fit_recorded(data_path: str | Path, model_path: str | Path, *, plan: Sequenc
     Empty: the measured range alone, as ``nanodrift fit`` gives.
     """
     ds = read_csv(data_path)
-    result = fit_cell(ds, source=str(data_path)) if ds.multi_axis else fit(ds, source=str(data_path))
-    cell = CellModel.of(result.model)
+    cell = fit_cell(ds, source=str(data_path)).model
     for model in cell.models.values():
         cover_commanded(model, plan)
     stamp_data(cell, [(data_path, len(ds))])
