@@ -88,7 +88,7 @@ def bench_fit() -> None:
     start = time.perf_counter()
     result = fit(data)
     auto_ms = (time.perf_counter() - start) * 1e3
-    print(f"  fit --order auto (5 orders x {result.folds} held-out folds): {auto_ms:.1f} ms")
+    print(f"  fit --order auto (5 orders x {result.orders['x'].folds} held-out folds): {auto_ms:.1f} ms")
 
 
 def bench_predict(rows: int = 1_000_000) -> None:

@@ -49,7 +49,7 @@ def procedure_table(seed: int, cycles: int, validation_cycles: int,
         t0 = time.perf_counter()
         asyncio.run(record_calibration(backend, data, cycles=cycles, progress_stream=_Null()))
         cal_wall = time.perf_counter() - t0
-        model = fit_recorded(data, model_path).model
+        model = fit_recorded(data, model_path).models["x"]
     results = []
     t0 = time.perf_counter()
     for name in tests:

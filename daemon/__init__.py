@@ -42,8 +42,9 @@ def load_model(path: str | os.PathLike[str]) -> Model | CellModel:
     """The model file at ``path``: a one-axis file as a :class:`nanodrift.model.model.Model`, a file of several
     axes as a :class:`nanodrift.model.cell_model.CellModel`. Both have ``predict(data)`` (the command for
     every row of a :class:`Dataset` from :func:`read_csv`: an array, or one per axis) and ``q_sigma(data)``
-    (its standard uncertainty), and ``evaluator()`` (the daemon's sample-by-sample evaluation). A file that
-    does not follow the model format is refused with a :class:`nanodrift.model.model.ModelFileError`."""
+    (its standard uncertainty), and ``evaluator()`` / ``evaluators()`` (the daemon's sample-by-sample
+    evaluation: a :class:`nanodrift.model.model.Evaluator` per axis). A file that does not follow the model
+    format is refused with a :class:`nanodrift.model.model.ModelFileError`."""
     from nanodrift.model.cell_model import load_any_model
 
     return load_any_model(path)

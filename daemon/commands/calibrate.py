@@ -30,6 +30,7 @@ from nanodrift.calibration.plans import (
 from nanodrift.commands import _cell
 from nanodrift.config import Config, missing_model_channels
 from nanodrift.errors import UserError
+from nanodrift.model.cell_model import CellModel
 from nanodrift.model.describe import describe_cell_model
 from nanodrift.model.equation import equation, training_lines
 from nanodrift.model.identify import FitError
@@ -40,7 +41,6 @@ from nanodrift.procedure.recording import (
     NARROW_RANGE_C,
     calibration_columns,
     completed_steps,
-    fit_cell_recorded,
     fit_recorded,
     narrow_channels,
     record_calibration,
@@ -117,13 +117,13 @@ def main(args: argparse.Namespace) -> int:
         if isinstance(err, FileExistsError | DataError):
             raise UserError(str(err)) from None
         raise
-    if len(axes) > 1:
-        return _fit_cell(args, data, plan)
     try:
-        result = fit_recorded(data, args.out, plan=plan)
-    except (FitError, DataError) as err:
+        cell = fit_recorded(data, args.out, plan=plan)
+    except (FitError, DataError, ValueError) as err:
         raise UserError(f"the recorded steps in {data} are kept, but the fit failed: {err}") from None
-    model = result.model
+    if len(axes) > 1:
+        return _describe_cell(args, cell)
+    model = cell.models["x"]
     print(f"model -> {args.out} ({model.id}): {equation(model)}")
     residual = model.fit.get("residual_rms_nm", float("nan"))
     print(f"fit residual {residual:.1f} nm RMS over {model.fit.get('rows')} steps")
@@ -150,12 +150,8 @@ def _plan(config: Config, cycles: int) -> list[PlannedStep]:
     return list(cell_calibration_plan(config.axis_names, cycles))
 
 
-def _fit_cell(args: argparse.Namespace, data: Path, plan: list[PlannedStep]) -> int:
-    """Every axis' model into one multi-axis model file, described; ``--serve`` names it in the config."""
-    try:
-        cell = fit_cell_recorded(data, args.out, plan=plan)
-    except (FitError, DataError, ValueError) as err:
-        raise UserError(f"the recorded steps in {data} are kept, but the fit failed: {err}") from None
+def _describe_cell(args: argparse.Namespace, cell: CellModel) -> int:
+    """The multi-axis model file written, described; ``--serve`` names it in the config."""
     print(describe_cell_model(cell, args.out))
     if args.serve:
         _serve(args)

@@ -162,7 +162,7 @@ def calibrate(workdir: Path, cycles: int, seed: int, cell: str = "ideal") -> Mod
         data.unlink()
     asyncio.run(record_calibration(drivers, data, cycles=cycles, progress_stream=io.StringIO()))
     try:
-        return fit_recorded(data, workdir / "model.json").model
+        return fit_recorded(data, workdir / "model.json").models["x"]
     except (FitError, DataError) as err:
         raise UserError(f"the fit of {cycles} calibration sweeps failed: {err}") from None
 

@@ -23,17 +23,11 @@ import argparse
 import json
 import sys
 
-from nanodrift.calibration.dataset import DataError, Dataset, common_channels, concat, read_runs
-from nanodrift.calibration.discovery import (
-    CellDiscoveryResult,
-    DiscoveryError,
-    DiscoveryResult,
-    discover,
-    discover_cell,
-)
+from nanodrift.calibration.dataset import DataError, common_channels, concat, read_runs
+from nanodrift.calibration.discovery import CellDiscoveryResult, DiscoveryError, DiscoveryResult, discover_cell
 from nanodrift.errors import UserError
-from nanodrift.model.cell_model import CellModel, load_any_model, save_cell_model
-from nanodrift.model.model import MissingChannelError, ModelFileError, save_model
+from nanodrift.model.cell_model import CellModel, load_any_model, one_axis, save_cell_model
+from nanodrift.model.model import MissingChannelError, ModelFileError
 from nanodrift.model.provenance import stamp_data
 
 NOTHING_FOUND = "nothing found; no model written"
@@ -54,9 +48,9 @@ def main(args: argparse.Namespace) -> int:
     paths = [str(p) for p in args.data]
     try:
         runs = read_runs(paths, "to compare with")
-        model = load_any_model(args.model)
+        given = CellModel.of(load_any_model(args.model))
         for ds in runs:
-            for axis_model in (model.models.values() if isinstance(model, CellModel) else [model]):
+            for axis_model in given.models.values():
                 axis_model.check_channels(list(ds.channels), ds.source)
         channels = common_channels(runs)
         left_out = sorted({c for ds in runs for c in ds.channels} - set(channels))
@@ -64,35 +58,43 @@ def main(args: argparse.Namespace) -> int:
             print(f"nanodrift: note: channel(s) {', '.join(left_out)} not in every file, left out", file=sys.stderr)
         data = concat(runs, channels)
         fresh = read_runs([str(args.fresh)], "to measure the fresh-run gain on")[0] if args.fresh else None
-        if isinstance(model, CellModel):
-            return _main_cell(args, paths, runs, discover_cell(data, model, fresh=fresh))
-        for run in (data, fresh):
-            if run is not None and run.multi_axis:
-                raise DiscoveryError(f"{run.source} positions axes {', '.join(run.axes)}, but {args.model} is a "
-                                     "one-axis model")
-        result = discover(data, model, fresh=fresh)
+        result = discover_cell(data, given, fresh=fresh)
     except (DataError, ModelFileError, MissingChannelError, DiscoveryError) as err:
         raise UserError(str(err)) from None
     model_out: str | None = None
     if result.found:
         extended = result.model
-        stamp_data(extended, [(p, len(ds)) for p, ds in zip(paths, runs, strict=True)])
-        extended.id = extended.content_id()
-        result.final["model"] = extended.id
-        save_model(extended, args.out)
+        for axis, axis_result in result.axes.items():
+            if axis_result.found:
+                stamp_data(extended.models[axis], [(p, len(ds)) for p, ds in zip(paths, runs, strict=True)])
+        save_cell_model(extended, args.out)
         model_out = str(args.out)
+        for axis, axis_result in result.axes.items():
+            axis_result.final["model"] = extended.models[axis].id
     if args.report:
-        # matplotlib (slow to import) only when a report is asked for; not a cycle
-        from nanodrift.reports.discovery import write_report
-        from nanodrift.reports.validation import provenance_text
-
-        footer = provenance_text(model.id, model.provenance.get("data_file"), f"discovered on {', '.join(paths)}")
-        write_report(result, args.report, model_out, provenance=footer)
-    if args.json:
+        _write_reports(args.report, result, model_out, paths)
+    if one_axis(given.axes):  # a one-axis model's output keeps the one-axis shape
+        (only,) = result.axes.values()
+        print(json.dumps(only.to_dict(model_out), indent=2, allow_nan=False) if args.json
+              else describe(only, model_out))
+    elif args.json:
         print(json.dumps(result.to_dict(model_out), indent=2, allow_nan=False))
     else:
-        print(describe(result, model_out))
+        _print_cell(result, model_out)
     return 0
+
+
+def _write_reports(directory: str, result: CellDiscoveryResult, model_out: str | None, paths: list[str]) -> None:
+    """The report of every axis (a cell of several: in ``axis_<name>/``), with the given model's provenance."""
+    # matplotlib (slow to import) only when a report is asked for; not a cycle
+    from nanodrift.reports.discovery import write_report
+    from nanodrift.reports.validation import provenance_text
+
+    given = result.given
+    footer = provenance_text(given.id, given.provenance.get("data_file"), f"discovered on {', '.join(paths)}")
+    for axis, axis_result in result.axes.items():
+        where = directory if one_axis(given.axes) else f"{directory}/axis_{axis}"
+        write_report(axis_result, where, model_out, provenance=footer)
 
 
 def describe(result: DiscoveryResult, model_out: str | None) -> str:
@@ -116,26 +118,8 @@ def describe(result: DiscoveryResult, model_out: str | None) -> str:
     return "\n".join(lines)
 
 
-def _main_cell(args: argparse.Namespace, paths: list[str], runs: list[Dataset], result: CellDiscoveryResult) -> int:
-    """A multi-axis cell: every axis' discovery, one cell model written, a report directory per axis."""
-    model_out: str | None = None
-    if result.found:
-        extended = result.model
-        for axis, axis_result in result.axes.items():
-            if axis_result.found:
-                stamp_data(extended.models[axis], [(p, len(ds)) for p, ds in zip(paths, runs, strict=True)])
-        save_cell_model(extended, args.out)
-        model_out = str(args.out)
-        for axis, axis_result in result.axes.items():
-            axis_result.final["model"] = extended.models[axis].id
-    if args.report:
-        from nanodrift.reports.discovery import write_report  # matplotlib only when asked, as above
-
-        for axis, axis_result in result.axes.items():
-            write_report(axis_result, f"{args.report}/axis_{axis}", model_out)
-    if args.json:
-        print(json.dumps(result.to_dict(model_out), indent=2, allow_nan=False))
-        return 0
+def _print_cell(result: CellDiscoveryResult, model_out: str | None) -> None:
+    """A cell of several axes: every axis' discovery, then the cell model written (or the given one standing)."""
     for axis, axis_result in result.axes.items():
         print(f"== axis {axis}")
         print(describe(axis_result, model_out if axis_result.found else None))
@@ -144,4 +128,3 @@ def _main_cell(args: argparse.Namespace, paths: list[str], runs: list[Dataset], 
         print(f"{NOTHING_FOUND} (the cell model {result.given.id} stands)")
     else:
         print(f"extended cell model {result.model.id} -> {model_out}")
-    return 0

@@ -14,11 +14,11 @@ from typing import Any, SupportsFloat
 
 from nanodrift.calibration.dataset import DataError, Dataset, common_channels, concat, read_runs
 from nanodrift.errors import UserError
-from nanodrift.model.cell_model import CellModel, save_cell_model
-from nanodrift.model.describe import describe_cell_model, describe_model
+from nanodrift.model.cell_model import CellModel, one_axis, save_cell_model
+from nanodrift.model.describe import describe_cell_model
 from nanodrift.model.equation import equation
-from nanodrift.model.identify import DEFAULT_SELECTION, SELECTIONS, FitError, fit, fit_cell
-from nanodrift.model.model import Model, save_model
+from nanodrift.model.identify import DEFAULT_SELECTION, SELECTIONS, FitError, fit_cell
+from nanodrift.model.model import Model
 from nanodrift.model.provenance import stamp_data
 from nanodrift.model.terms import MAX_POWER, Term, UnknownTermError, parse_term
 
@@ -106,32 +106,24 @@ def main(args: argparse.Namespace) -> int:
         options: dict[str, Any] = {"order": _order(args.order), "exclude": exclude, "penter": args.penter,
                                    "premove": args.premove, "source": ", ".join(paths), "squares": not args.no_squares,
                                    "selection": args.selection}
-        if data.multi_axis:
-            if args.keep:
-                raise UserError("--keep is for one-axis files: a multi-axis file's axes choose their terms each")
-            cell = fit_cell(data, **options).model
-            models = list(cell.models.values())
-        else:
-            model = fit(data, keep=_kept_terms(args.keep, channels, exclude), **options).model
-            models = [model]
+        if data.multi_axis and args.keep:
+            raise UserError("--keep is for one-axis files: a multi-axis file's axes choose their terms each")
+        cell = fit_cell(data, keep=_kept_terms(args.keep, channels, exclude), **options).model
     except (DataError, FitError, ValueError) as err:
         raise UserError(str(err)) from None
-    for one in models:
+    for one in cell.models.values():
         one.selection["excluded"] = list(args.exclude)
-    if data.multi_axis:
-        stamp_data(cell, files)
-        save_cell_model(cell, args.out)
-        summary, text = cell_fit_summary(cell, args.out), describe_cell_model(cell, args.out)
-    else:
-        stamp_data(model, files)
-        save_model(model, args.out)
-        summary, text = fit_summary(model, args.out), describe_model(model, args.out)
-    print(json.dumps(summary, indent=2) if args.json else text)
+    stamp_data(cell, files)
+    save_cell_model(cell, args.out)
+    print(json.dumps(cell_fit_summary(cell, args.out), indent=2) if args.json else describe_cell_model(cell, args.out))
     return 0
 
 
 def cell_fit_summary(cell: CellModel, path: str) -> dict[str, Any]:
-    """``fit --json`` of a multi-axis model: the cell's id and, per axis, what :func:`fit_summary` gives for one."""
+    """``fit --json``: the cell's id and, per axis, what :func:`fit_summary` gives for one (a cell of one axis:
+    :func:`fit_summary` of its model)."""
+    if one_axis(cell.axes):
+        return fit_summary(cell.models["x"], path)
     axes = {}
     for axis, model in cell.models.items():
         axes[axis] = fit_summary(model, path)

@@ -13,7 +13,7 @@ import argparse
 import datetime as dt
 
 from nanodrift.errors import UserError
-from nanodrift.model.cell_model import CellModel, load_any_model, save_any_model
+from nanodrift.model.cell_model import CellModel, load_any_model, save_cell_model
 from nanodrift.model.model import ModelFileError
 
 
@@ -29,7 +29,7 @@ def main(args: argparse.Namespace) -> int:
         raise UserError(str(err)) from None
     old, new = model.id, model.content_id()
     # a multi-axis file: every axis' model carries its own id too (the cell's id hashes their contents)
-    axes_stale = isinstance(model, CellModel) and any(m.id != m.content_id() for m in model.models.values())
+    axes_stale = any(m.id != m.content_id() for m in CellModel.of(model).models.values())
     out = args.out or args.model
     if old == new and not axes_stale and out == args.model:
         print(f"{args.model}: id {new} already matches its content; nothing written")
@@ -38,7 +38,7 @@ def main(args: argparse.Namespace) -> int:
         model.provenance["restamped_from"] = old or None
         model.provenance["restamped"] = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
     try:
-        save_any_model(model, out)
+        save_cell_model(CellModel.of(model), out)
     except OSError as err:
         raise UserError(f"{out}: cannot write the model file ({err.strerror or err})") from None
     print(f"{args.model}: id {old or '(none)'} -> {model.id}" + (f", written to {out}" if out != args.model else ""))

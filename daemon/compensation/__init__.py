@@ -19,24 +19,19 @@ the explicit hook the compensator is built with.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any, Protocol
 
+# the axis of a cell without [[axes]] and the test for its shapes, as the bus and the service know them
+from nanodrift.model.cell_model import ONE_AXIS as ONE_AXIS
 from nanodrift.model.cell_model import CellModel, load_any_model
-from nanodrift.model.model import Evaluator, Model, ModelFileError, load_model
+from nanodrift.model.cell_model import one_axis as one_axis
+from nanodrift.model.model import Evaluator, Model, ModelFileError, aim
 from nanodrift.motion import MotionLimits, VoltageLimitError, checked_voltage
 
-#: the axis of a one-axis cell (a config without ``[[axes]]``)
-ONE_AXIS = ("x",)
-
-
-def one_axis(axes: Iterable[str]) -> bool:
-    """A one-axis cell's axes (a config without ``[[axes]]``; a cell of several has two at least): the one test
-    for the shapes only such a cell keeps, at the edges (scalar payloads, its log lines, its model file)."""
-    return tuple(axes) == ONE_AXIS
 _NO_TEMPERATURES: Mapping[str, float] = MappingProxyType({})
 
 
@@ -118,9 +113,7 @@ class Monitor(Protocol):
 
 def axis_models(model: Model | CellModel | None) -> dict[str, Model]:
     """Every axis' model (a one-axis model is axis ``x``'s)."""
-    if model is None:
-        return {}
-    return dict(model.models) if isinstance(model, CellModel) else {"x": model}
+    return {} if model is None else dict(CellModel.of(model).models)
 
 
 def _axes_text(axes: Sequence[str]) -> str:
@@ -129,22 +122,12 @@ def _axes_text(axes: Sequence[str]) -> str:
 
 def load_served_model(path: Path, axes: Sequence[str]) -> Model | CellModel:
     """The model in ``path`` if it serves exactly the cell's ``axes`` (a one-axis cell: ``("x",)``, a
-    :class:`Model` read by :func:`load_model` as always); :class:`ModelFileError` otherwise, saying both."""
-    if one_axis(axes):
-        try:
-            return load_model(path)
-        except ModelFileError as error:
-            try:
-                other = load_any_model(path)
-            except ModelFileError:
-                raise error from None
-            if isinstance(other, CellModel):
-                raise ModelFileError(f"{path}: a multi-axis model (axes {_axes_text(other.axes)}), but this cell has "
-                                     "one axis (x): describe its axes with [[axes]] in the config, or serve a "
-                                     "one-axis model") from None
-            raise
+    :class:`Model` as always); :class:`ModelFileError` otherwise, saying both."""
     model = load_any_model(path)
-    model_axes = model.axes if isinstance(model, CellModel) else ONE_AXIS
+    model_axes = CellModel.of(model).axes
+    if one_axis(axes) and not one_axis(model_axes):
+        raise ModelFileError(f"{path}: a multi-axis model (axes {_axes_text(model_axes)}), but this cell has one "
+                             "axis (x): describe its axes with [[axes]] in the config, or serve a one-axis model")
     if sorted(model_axes) != sorted(axes):
         raise ModelFileError(f"{path}: the model serves axes {_axes_text(model_axes)}, the cell has axes "
                              f"{_axes_text(axes)} ([[axes]] in the config): calibrate this cell's axes, or serve "
@@ -174,10 +157,9 @@ class Compensator:
         # the training ranges: every channel the model reads, every axis' position
         channel_ranges: Mapping[str, tuple[float, float]] = {}
         self._position_ranges: Mapping[str, tuple[float, float]] = {}
-        if isinstance(model, CellModel):
-            channel_ranges, self._position_ranges = model.channel_ranges, model.position_ranges
-        elif model is not None:
-            channel_ranges, self._position_ranges = model.training.channel_ranges, {"x": model.training.x_range}
+        if model is not None:
+            cell = CellModel.of(model)
+            channel_ranges, self._position_ranges = cell.channel_ranges, cell.position_ranges
         self._ranges = tuple((c, *channel_ranges[c]) for c in self.channels if c in channel_ranges)
         # what the model's channels say, derived once per change of the readings instead of once per target
         self._version = -1
@@ -240,9 +222,7 @@ class Compensator:
                     raise Refusal(problem[0], f"channel {name} is {problem[0]}: {problem[1]}", target.id)
             raise Refusal("stale", "temperatures not ready", target.id)
         positions = target.positions_um
-        x = positions.get("x", math.nan)  # a term's own position is always the x axis' (model.axis_terms)
-        for evaluator in evaluators.values():
-            evaluator.targets(positions)
+        x = aim(evaluators.values(), positions)
         correction = self.monitor.correction_um() if self.monitor is not None else None
         q_um: dict[str, float] = {}
         voltage_v: dict[str, float] = {}

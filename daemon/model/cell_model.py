@@ -1,4 +1,4 @@
-"""A multi-axis cell's model: one :class:`Model` per axis, each over every axis' position, in one file.
+"""A cell's model: one :class:`Model` per axis, each over every axis' position, in one file.
 
 An XY or XYZ stage is one cell: the command of each axis depends on where the others are
 (crosstalk, non-orthogonality, coupled bending: :mod:`nanodrift.model.axis_terms`), so each axis has
@@ -14,15 +14,16 @@ File layout (``"format": "nanodrift-model/1"`` with ``"axes"``)::
 
 A one-axis file has no ``axes`` and loads as a :class:`Model`, exactly as before
 (:func:`load_any_model` reads either). The cell's id hashes the axes and every axis model's id.
+A cell of one axis (``CellModel.of(model)``) is that file's model: its id and its document are the
+one-axis model's, so code over a cell's axes serves one axis or several the same way.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import math
 import os
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -31,11 +32,19 @@ import numpy as np
 
 from nanodrift.atomic import atomic_write_text
 from nanodrift.model.json_unique import loads_unique
-from nanodrift.model.model import FORMAT, Model, ModelFileError, _read_model_text, load_model, outside, save_model
+from nanodrift.model.model import FORMAT, Evaluator, Model, ModelFileError, _read_model_text, load_model, outside
 from nanodrift.model.series import Series
 
 #: letters an axis may take: not q (``q_um`` is the one-axis command column)
 AXIS_LETTERS = "abcdefghijklmnoprstuvwxyz"
+#: the axes of a cell of one axis, whose model file is the one-axis document
+ONE_AXIS = ("x",)
+
+
+def one_axis(axes: Iterable[str]) -> bool:
+    """A one-axis cell's axes (a config without ``[[axes]]``; a cell of several has two at least): the one test
+    for the shapes only such a cell keeps, at the edges (scalar payloads, its log lines, its model file)."""
+    return tuple(axes) == ONE_AXIS
 
 
 @dataclass
@@ -48,14 +57,24 @@ class CellModel:
     id: str = ""
 
     def __post_init__(self) -> None:
-        if len(self.axes) < 2 or tuple(self.models) != self.axes:
-            raise ValueError(f"a cell model needs a model per axis in order, got axes {self.axes} and "
+        if not self.axes or tuple(self.models) != self.axes or (len(self.axes) == 1 and self.axes != ONE_AXIS):
+            raise ValueError(f"a cell model needs a model per axis in order (one axis: x), got axes {self.axes} and "
                              f"models for {tuple(self.models)}")
         if not self.id:
             self.id = self.content_id()
 
+    @classmethod
+    def of(cls, model: Model | CellModel) -> CellModel:
+        """``model`` as a cell's: a one-axis :class:`Model` is the model of a cell of one axis, ``x``."""
+        if isinstance(model, CellModel):
+            return model
+        return cls(ONE_AXIS, {"x": model}, model.provenance, model.id)
+
     def content_id(self) -> str:
-        """Hash of the axes and every axis model's content id (what decides every command)."""
+        """Hash of the axes and every axis model's content id (what decides every command); one axis: that
+        axis model's own id (the one-axis file's)."""
+        if one_axis(self.axes):
+            return self.models["x"].content_id()
         content = {"format": FORMAT, "axes": list(self.axes),
                    "models": {a: self.models[a].content_id() for a in self.axes}}
         text = json.dumps(content, separators=(",", ":"), sort_keys=True)
@@ -95,10 +114,14 @@ class CellModel:
         """Axis names and channels whose value lies outside what the models were trained on."""
         return outside(positions or {}, self.position_ranges) + outside(temps or {}, self.channel_ranges)
 
-    def evaluator(self) -> CellEvaluator:
-        return CellEvaluator(self)
+    def evaluators(self) -> dict[str, Evaluator]:
+        """Every axis' :class:`Evaluator`; a target reaches them all through :func:`aim`."""
+        return {a: self.models[a].evaluator() for a in self.axes}
 
     def to_dict(self) -> dict[str, Any]:
+        """The model file: one axis, the one-axis document (no ``axes``); several, the layout above."""
+        if one_axis(self.axes):
+            return self.models["x"].to_dict()
         return {
             "format": FORMAT,
             "id": self.id,
@@ -114,62 +137,13 @@ class CellModel:
         return _cell_model_from_dict(doc, where, check_id=check_id)
 
 
-class CellEvaluator:
-    """Every axis' :class:`Evaluator`, fed one temperature stream and one target (all axes) at a time."""
-
-    __slots__ = ("axes", "evaluators", "model")
-
-    def __init__(self, model: CellModel) -> None:
-        self.model = model
-        self.axes = model.axes
-        self.evaluators = {a: model.models[a].evaluator() for a in model.axes}
-
-    @property
-    def ready(self) -> bool:
-        return all(ev.ready for ev in self.evaluators.values())
-
-    def observe(self, t: float, temps: Mapping[str, float]) -> None:
-        for ev in self.evaluators.values():
-            ev.observe(t, temps)
-
-    def _aim(self, positions: Mapping[str, float]) -> float:
-        for ev in self.evaluators.values():
-            ev.targets(positions)
-        return positions.get("x", math.nan)
-
-    def value(self, positions: Mapping[str, float], t: float) -> dict[str, float]:
-        """q per axis for the target ``positions`` at ``t``, changing nothing."""
-        x = self._aim(positions)
-        return {a: ev.value(x, t) for a, ev in self.evaluators.items()}
-
-    def sigma(self, positions: Mapping[str, float], t: float) -> dict[str, float]:
-        x = self._aim(positions)
-        return {a: ev.sigma(x, t) for a, ev in self.evaluators.items()}
-
-    def moved(self, positions: Mapping[str, float], t: float) -> None:
-        x = self._aim(positions)
-        for ev in self.evaluators.values():
-            ev.moved(x, t)
-
-    def command(self, positions: Mapping[str, float], t: float) -> dict[str, float]:
-        q = self.value(positions, t)
-        self.moved(positions, t)
-        return q
-
-
 def save_cell_model(model: CellModel, path: str | os.PathLike[str]) -> None:
-    """Write the file atomically, every axis model and the cell stamped with their content's id."""
+    """Write the file atomically, every axis model and the cell stamped with their content's id (a cell of one
+    axis: the one-axis file, byte for byte what :func:`save_model` writes)."""
     for m in model.models.values():
         m.id = m.content_id()
     model.id = model.content_id()
     atomic_write_text(path, json.dumps(model.to_dict(), indent=2, allow_nan=False) + "\n")
-
-
-def save_any_model(model: Model | CellModel, path: str | os.PathLike[str]) -> None:
-    if isinstance(model, CellModel):
-        save_cell_model(model, path)
-    else:
-        save_model(model, path)
 
 
 def load_any_model(path: str | os.PathLike[str], *, check_id: bool = True) -> Model | CellModel:

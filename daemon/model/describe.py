@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from nanodrift.model.cell_model import CellModel
+from nanodrift.model.cell_model import CellModel, one_axis
 from nanodrift.model.equation import equation, training_lines
 from nanodrift.model.model import Model
 
@@ -44,7 +44,10 @@ def describe_model(model: Model, path: str | None = None) -> str:
 
 
 def describe_cell_model(cell: CellModel, path: str | None = None) -> str:
-    """Per axis, the one-axis summary with that axis' command on the left (``q_x = ...``)."""
+    """Per axis, the one-axis summary with that axis' command on the left (``q_x = ...``); a cell of one axis:
+    its model's own summary."""
+    if one_axis(cell.axes):
+        return describe_model(cell.models["x"], path)
     ranges = ", ".join(f"{a} {lo:.1f}..{hi:.1f} µm" for a, (lo, hi) in cell.position_ranges.items())
     lines = [f"model {cell.id} (axes {', '.join(cell.axes)})" + (f" -> {path}" if path else ""),
              f"trained on positions {ranges}"]

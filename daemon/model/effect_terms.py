@@ -26,8 +26,11 @@ from nanodrift.model.terms import (
     Channels,
     Term,
     TermStream,
+    _Aimed,
     _ChannelStream,
     _LagStream,
+    _read_axes,
+    axis_position,
     lag_filter,
     register_term,
     time_constant,
@@ -36,31 +39,42 @@ from nanodrift.model.terms import (
 CREEP_DEADBAND_UM = 0.5
 
 
-class _CouplingStream(_ChannelStream):
-    """The channel's latest value, times the target."""
+class _CouplingStream(_Aimed, _ChannelStream):
+    """The channel's latest value, times the target's position on the axis."""
+
+    __slots__ = ("axis", "positions")
+
+    def __init__(self, channel: str, axis: str) -> None:
+        super().__init__(channel)
+        self.axis = axis
+        self.positions = {}
 
     def value(self, t: float, x: float) -> float:
-        return x * self.last
+        return self.at(self.axis, x) * self.last
 
 
 class PositionCoupling(Term):
-    """``x*T1``: position times a channel. Physics: the stage's gain depends on its temperature."""
+    """``x*T1``: position times a channel (``y*T1``: axis y's, in a cell of several axes). Physics: the stage's
+    gain depends on its temperature."""
 
     uses_x = True
 
-    def __init__(self, channel: str) -> None:
-        self.channel = channel
+    def __init__(self, channel: str, axis: str = "x") -> None:
+        self.channel, self.axis = channel, axis
         self.channels = (channel,)
+        self.axes = _read_axes(axis)
 
     @property
     def name(self) -> str:
-        return f"x*{self.channel}"
+        return f"{self.axis}*{self.channel}"
 
     def batch(self, t: np.ndarray, x: np.ndarray, channels: Channels) -> np.ndarray:
-        return np.asarray(x, dtype=np.float64) * np.asarray(channels[self.channel], dtype=np.float64)
+        result: np.ndarray = axis_position(self.axis, x, channels) * np.asarray(channels[self.channel],
+                                                                                dtype=np.float64)
+        return result
 
     def stream(self) -> TermStream:
-        return _CouplingStream(self.channel)
+        return _CouplingStream(self.channel, self.axis)
 
 
 class _RateStream(_LagStream):
@@ -104,29 +118,35 @@ class Rate(Term):
         return _RateStream(self.channel, self.tau_s)
 
 
-class _CreepStream(TermStream):
-    __slots__ = ("deadband", "last_x", "state", "t_last", "tau_s")
+class _CreepStream(_Aimed, TermStream):
+    __slots__ = ("axis", "deadband", "last_x", "positions", "state", "t_last", "tau_s")
 
-    def __init__(self, tau_s: float, deadband: float) -> None:
-        self.tau_s, self.deadband = tau_s, deadband
+    def __init__(self, tau_s: float, deadband: float, axis: str) -> None:
+        self.tau_s, self.deadband, self.axis = tau_s, deadband, axis
         self.state = 0.0
         self.t_last = math.nan
         self.last_x = math.nan
+        self.positions = {}
 
-    def value(self, t: float, x: float) -> float:
+    def _value(self, t: float, x: float) -> float:
         if math.isnan(self.last_x):
             return 0.0
         step = x - self.last_x
         dq = step if abs(step) > self.deadband else 0.0
         return self.state * math.exp(-(t - self.t_last) / self.tau_s) + dq
 
+    def value(self, t: float, x: float) -> float:
+        return self._value(t, self.at(self.axis, x))
+
     def moved(self, t: float, x: float) -> None:
-        self.state = self.value(t, x)
+        x = self.at(self.axis, x)
+        self.state = self._value(t, x)
         self.t_last, self.last_x = t, x
 
 
 class Creep(Term):
-    """``creep(15 s)``: the steps' sizes, each decaying with time constant τ since it was commanded.
+    """``creep(15 s)``: the steps' sizes, each decaying with time constant τ since it was commanded
+    (``creep(y, 15 s)``: axis y's, in a cell of several axes).
 
     Physics: a piezo stack keeps creeping after a step, by a fraction of the step that dies out.
     Batch form: with s_k = a_k s_{k-1} + dq_k (a_k = exp(-Δt_k/τ)), ``x_eff - s`` follows the lag
@@ -136,20 +156,21 @@ class Creep(Term):
 
     uses_x = True
 
-    def __init__(self, tau_s: float, deadband_um: float = CREEP_DEADBAND_UM) -> None:
+    def __init__(self, tau_s: float, deadband_um: float = CREEP_DEADBAND_UM, axis: str = "x") -> None:
         self.tau_s = time_constant(tau_s, "creep time constant")
         if not (math.isfinite(deadband_um) and deadband_um >= 0):
             raise ValueError(f"creep deadband must be a finite number >= 0 um, got {deadband_um}")
         self.deadband_um = float(deadband_um)
+        self.axis = axis
+        self.axes = _read_axes(axis)
 
     @property
     def name(self) -> str:
-        if self.deadband_um == CREEP_DEADBAND_UM:
-            return f"creep({self.tau_s:g} s)"
-        return f"creep({self.tau_s:g} s, {self.deadband_um:g} um)"
+        deadband = [] if self.deadband_um == CREEP_DEADBAND_UM else [f"{self.deadband_um:g} um"]
+        return f"creep({', '.join([*self.axes, f'{self.tau_s:g} s', *deadband])})"
 
     def batch(self, t: np.ndarray, x: np.ndarray, channels: Channels) -> np.ndarray:
-        x = np.asarray(x, dtype=np.float64)
+        x = axis_position(self.axis, x, channels)
         if x.shape[0] == 0:
             return np.empty(0)
         step = np.diff(x, prepend=x[:1])
@@ -160,7 +181,7 @@ class Creep(Term):
         return creep
 
     def stream(self) -> TermStream:
-        return _CreepStream(self.tau_s, self.deadband_um)
+        return _CreepStream(self.tau_s, self.deadband_um, self.axis)
 
 
 def _number(m: re.Match[str], group: str) -> float:

@@ -18,7 +18,6 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from nanodrift.model.axis_terms import AxisPower
 from nanodrift.model.model import FittedTerm, Model, Training
 from nanodrift.model.terms import Bias, ChannelSquare, Power, Term, position_key
 
@@ -35,12 +34,10 @@ def term_label(term: object) -> str:
     names as they are; ``""`` for the bias."""
     if isinstance(term, Bias):
         return ""
-    if isinstance(term, Power):
-        return "x" if term.k == 1 else "x" + str(term.k).translate(_SUPERSCRIPT)
+    if isinstance(term, Power):  # y³ as x³ for another axis of a cell
+        return term.axis if term.k == 1 else term.axis + str(term.k).translate(_SUPERSCRIPT)
     if isinstance(term, ChannelSquare):  # (T2 − 22.05)², the centre as exact as in the name
         return term.name.replace(" - ", f" {MINUS} ").removesuffix("^2") + "²"
-    if isinstance(term, AxisPower):  # another axis of a multi-axis cell: y³ as x³
-        return term.axis if term.k == 1 else term.axis + str(term.k).translate(_SUPERSCRIPT)
     return str(getattr(term, "name", term)).replace("*", "·")
 
 

@@ -14,13 +14,13 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Generic, TypedDict, TypeVar, Unpack
 
 import numpy as np
 
 from nanodrift.model import hac
-from nanodrift.model.axis_terms import AxisPower, AxisProduct
-from nanodrift.model.cell_model import CellModel
+from nanodrift.model.axis_terms import AxisProduct
+from nanodrift.model.cell_model import CellModel, one_axis
 from nanodrift.model.model import FittedTerm, Model, Training
 from nanodrift.model.provenance import created_now, software
 from nanodrift.model.segments import features, runs
@@ -41,13 +41,39 @@ class FitError(ValueError):
     """The data cannot support the requested fit; the message says why."""
 
 
-@dataclass
-class FitResult:
-    model: Model
+@dataclass(frozen=True)
+class OrderChoice:
+    """An axis' geometric order n1: the one chosen, the held-out RMS (um) of every order tried (empty when the
+    order was fixed) and how many held-out blocks scored them."""
+
     order: int
-    #: held-out RMS (um) of every order tried, when the order was chosen automatically
-    order_scores: dict[int, float] = field(default_factory=dict)
+    scores: dict[int, float] = field(default_factory=dict)
     folds: int = 0
+
+
+#: the model an identification gives: one axis' :class:`Model`, or a cell's :class:`CellModel`
+FittedModel = TypeVar("FittedModel", Model, CellModel)
+
+
+@dataclass
+class FitResult(Generic[FittedModel]):
+    """An identification: the model and each axis' order choice (a one-axis run's axis is ``x``)."""
+
+    model: FittedModel
+    orders: dict[str, OrderChoice]
+
+
+class FitOptions(TypedDict, total=False):
+    """The options :func:`fit` and :func:`fit_cell` share (see :func:`fit`)."""
+
+    order: int | str
+    max_order: int
+    exclude: Sequence[str]
+    penter: float
+    premove: float
+    source: str | None
+    squares: bool
+    selection: str
 
 
 #: stepwise selection modes: ``paper`` (MATLAB stepwisefit exactly: iid partial F-tests, as the paper selected)
@@ -302,21 +328,16 @@ def curvature_candidates(data: Series, exclude: Collection[str] = ()) -> list[Ch
     return squares
 
 
-def axis_position_term(axis: str, k: int = 1) -> Term:
-    """``x^k`` for the x axis (the one-axis term), ``y^k`` for another axis."""
-    return Power(k) if axis == "x" else AxisPower(axis, k)
-
-
 def cell_candidate_terms(axis: str, axes: Sequence[str], channels: Sequence[str], order: int,
                          exclude: Sequence[str] = ()) -> list[Term]:
     """Candidates for one axis of a multi-axis cell: its own powers up to ``order``, every other axis'
     position and square (crosstalk, non-orthogonality, sag), every product of two axes (coupled
     bending), and the channels. The same stepwise selection keeps what the data supports."""
-    own = [axis_position_term(axis, k) for k in range(order, 0, -1)]
+    own: list[Term] = [Power(k, axis) for k in range(order, 0, -1)]
     others: list[Term] = []
     for b in axes:
         if b != axis:
-            others += [axis_position_term(b, 1), axis_position_term(b, 2)]
+            others += [Power(1, b), Power(2, b)]
     products: list[Term] = [AxisProduct(a, b) for i, a in enumerate(axes) for b in axes[i + 1:]]
     return own + others + products + candidate_terms(channels, 1, exclude)[1:]
 
@@ -366,7 +387,15 @@ def holdout_rms(data: Series, candidates: Sequence[Term], penter: float, premove
     return float(np.sqrt(np.mean(err**2))), int(np.unique(folds).size)
 
 
-def fit(
+def fit(data: Series, *, candidates: Callable[[int], list[Term]] | None = None, keep: Sequence[Term] = (),
+        **options: Unpack[FitOptions]) -> FitResult[Model]:
+    """The paper's identification of a one-axis run: stepwise over x^1..x^n1 and the channels; n1 fixed or
+    chosen (see :func:`_fit_axis` for every option)."""
+    model, choice = _fit_axis(data, candidates=candidates, keep=keep, **options)
+    return FitResult(model, {"x": choice})
+
+
+def _fit_axis(
     data: Series,
     *,
     order: int | str = "auto",
@@ -379,8 +408,8 @@ def fit(
     keep: Sequence[Term] = (),
     squares: bool = True,
     selection: str = DEFAULT_SELECTION,
-) -> FitResult:
-    """The paper's identification: stepwise over x^1..x^n1 and the channels; n1 fixed or chosen.
+) -> tuple[Model, OrderChoice]:
+    """One axis' identification: stepwise over x^1..x^n1 and the channels; n1 fixed or chosen.
 
     ``keep``: terms in the model whatever the stepwise says (``fit --keep``: e.g. a refit with days of
     recorded operation keeping the calibration's x^2, x^3, which the records' thermal spread would hide).
@@ -453,45 +482,26 @@ def fit(
     )
     if scores:
         model.fit["holdout_rms_um"] = scores[chosen]
-    return FitResult(model=model, order=chosen, order_scores=scores, folds=folds)
+    return model, OrderChoice(chosen, scores, folds)
 
 
-@dataclass
-class CellFitResult:
-    """A multi-axis cell's identification: the cell model and each axis' fit."""
-
-    model: CellModel
-    axes: dict[str, FitResult]
-
-
-def fit_cell(
-    data: CellSeries,
-    *,
-    order: int | str = "auto",
-    max_order: int = MAX_AUTO_ORDER,
-    exclude: Sequence[str] = (),
-    penter: float = 0.05,
-    premove: float = 0.10,
-    source: str | None = None,
-    squares: bool = True,
-    selection: str = DEFAULT_SELECTION,
-) -> CellFitResult:
-    """Identification of every axis of a multi-axis run: :func:`fit` per axis over :func:`cell_candidate_terms`,
-    the geometric order chosen per axis on held-out cycles."""
+def fit_cell(data: CellSeries, *, keep: Sequence[Term] = (), **options: Unpack[FitOptions]) -> FitResult[CellModel]:
+    """Identification of every axis of a cell's run (one axis or several): :func:`fit` per axis over
+    :func:`cell_candidate_terms` (for one axis, x: :func:`fit`'s own candidates), the geometric order chosen per
+    axis on held-out cycles. ``keep``: terms every axis' model keeps whatever the stepwise says."""
     axes = data.axes
     channels = list(data.channels)
+    exclude = options.get("exclude", ())
     candidate_terms(channels, 1, exclude)  # refuses an --exclude naming a channel the data lacks
-    missing = [a for a in axes if a not in data.commands]
+    missing = [] if one_axis(axes) else [a for a in axes if a not in data.commands]  # one axis: its q_um, as fit
     if missing:
-        raise FitError(f"{source or data.source}: no q_{missing[0]}_um column (the command sent to axis {missing[0]}) "
-                       "to fit")
-    results: dict[str, FitResult] = {}
+        raise FitError(f"{options.get('source') or data.source}: no q_{missing[0]}_um column (the command sent to "
+                       f"axis {missing[0]}) to fit")
+    models: dict[str, Model] = {}
+    orders: dict[str, OrderChoice] = {}
     for axis in axes:
         def candidates(n1: int, axis: str = axis) -> list[Term]:
             return cell_candidate_terms(axis, axes, channels, n1, exclude)
 
-        results[axis] = fit(data.axis_view(axis), order=order, max_order=max_order, exclude=exclude,
-                            penter=penter, premove=premove, source=source, candidates=candidates, squares=squares,
-                            selection=selection)
-    models = {a: r.model for a, r in results.items()}
-    return CellFitResult(CellModel(axes, models, provenance=dict(models[axes[0]].provenance)), results)
+        models[axis], orders[axis] = _fit_axis(data.axis_view(axis), candidates=candidates, keep=keep, **options)
+    return FitResult(CellModel(axes, models, provenance=dict(models[axes[0]].provenance)), orders)

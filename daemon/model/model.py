@@ -23,7 +23,7 @@ import json
 import math
 import os
 import stat
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeGuard
@@ -34,7 +34,7 @@ from nanodrift.atomic import atomic_write_text
 from nanodrift.model.json_unique import DuplicateKeyError, loads_unique
 from nanodrift.model.segments import features, spans_s
 from nanodrift.model.series import Series
-from nanodrift.model.terms import Power, Term, TermStream, UnknownTermError, parse_term, position_key
+from nanodrift.model.terms import Term, TermStream, UnknownTermError, is_x_power, parse_term, position_key
 from nanodrift.model.uncertainty import Covariance, SigmaStream
 
 FORMAT = "nanodrift-model/1"
@@ -259,12 +259,12 @@ class Evaluator:
     def __init__(self, model: Model) -> None:
         self.model = model
         self._streams: list[TermStream] = [ft.term.stream() for ft in model.terms]
-        degree = max((ft.term.k for ft in model.terms if isinstance(ft.term, Power)), default=0)
+        degree = max((ft.term.k for ft in model.terms if is_x_power(ft.term)), default=0)
         poly = [0.0] * (degree + 1)  # poly[k] multiplies x^k
         self._static: list[tuple[float, TermStream]] = []
         self._dynamic: list[tuple[float, TermStream]] = []
         for ft, stream in zip(model.terms, self._streams, strict=True):
-            if isinstance(ft.term, Power):
+            if is_x_power(ft.term):
                 poly[ft.term.k] += ft.coef
             elif ft.term.uses_x:
                 self._dynamic.append((ft.coef, stream))
@@ -333,6 +333,14 @@ class Evaluator:
         q = self.value(x, t)
         self.moved(x, t)
         return q
+
+
+def aim(evaluators: Iterable[Evaluator], positions: Mapping[str, float]) -> float:
+    """A cell's target (every axis' position, µm) given to every axis' evaluator: the ``x`` its ``value``,
+    ``sigma``, ``moved`` and ``command`` take next (a term named ``x`` always reads the x axis: nan without one)."""
+    for evaluator in evaluators:
+        evaluator.targets(positions)
+    return positions.get("x", math.nan)
 
 
 # --- model file ---------------------------------------------------------------------------------

@@ -20,6 +20,7 @@ import re
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from typing import TypeGuard
 
 import numpy as np
 
@@ -88,38 +89,83 @@ class Term(ABC):
         return hash(self.name)
 
 
+# --- positions -------------------------------------------------------------------------------------
+
+
+def position_key(axis: str) -> str:
+    """Where a series' ``channels`` mapping carries an axis' position for the terms that read it."""
+    return f"{axis}_um"
+
+
+def axis_position(axis: str, x: np.ndarray | float, channels: Channels) -> np.ndarray:
+    """``axis``' position over a series: the ``x`` argument for the x axis, else ``channels[position_key(axis)]``."""
+    if axis == "x":
+        return np.asarray(x, dtype=np.float64)
+    return np.asarray(channels[position_key(axis)], dtype=np.float64)
+
+
+def _read_axes(axis: str) -> tuple[str, ...]:
+    """:attr:`Term.axes` of a term reading ``axis``' position: none for x, which comes as the ``x`` argument."""
+    return () if axis == "x" else (axis,)
+
+
+class _Aimed:
+    """Holds the target's positions (``targets``); each stream declares the ``positions`` slot."""
+
+    __slots__ = ()
+    positions: Mapping[str, float]
+
+    def targets(self, positions: Mapping[str, float]) -> None:
+        # the slot is each stream's own (two bases with slots cannot be combined), which mypy cannot see here
+        self.positions = positions  # type: ignore[misc]
+
+    def at(self, axis: str, x: float) -> float:
+        """The target's position on ``axis``: ``x`` itself for the x axis, nan before any target."""
+        return x if axis == "x" else self.positions.get(axis, math.nan)
+
+
 # --- the paper's terms (eq. 3) --------------------------------------------------------------
 
 
-class _PowerStream(TermStream):
-    __slots__ = ("k",)
+class _PowerStream(_Aimed, TermStream):
+    __slots__ = ("axis", "k", "positions")
 
-    def __init__(self, k: int) -> None:
-        self.k = k
+    def __init__(self, axis: str, k: int) -> None:
+        self.axis, self.k = axis, k
+        self.positions = {}
 
     def value(self, t: float, x: float) -> float:
-        return x**self.k
+        return float(self.at(self.axis, x) ** self.k)
 
 
 class Power(Term):
-    """``x^k``: the geometric (inverse-kinematic) polynomial of eq. 1."""
+    """``x^k``: the geometric (inverse-kinematic) polynomial of eq. 1. In a cell of several axes, ``y^k``:
+    another axis' position to a power in this axis' model (crosstalk, non-orthogonality, sag of a stacked stage)."""
 
     uses_x = True
 
-    def __init__(self, k: int) -> None:
+    def __init__(self, k: int, axis: str = "x") -> None:
         if not 1 <= k <= MAX_POWER:
-            raise ValueError(f"power of x must be between 1 and {MAX_POWER} (x .. x^{MAX_POWER}), got {k}")
-        self.k = k
+            raise ValueError(f"power of {axis} must be between 1 and {MAX_POWER} ({axis} .. {axis}^{MAX_POWER}), "
+                             f"got {k}")
+        self.k, self.axis = k, axis
+        self.axes = _read_axes(axis)
 
     @property
     def name(self) -> str:
-        return "x" if self.k == 1 else f"x^{self.k}"
+        return self.axis if self.k == 1 else f"{self.axis}^{self.k}"
 
     def batch(self, t: np.ndarray, x: np.ndarray, channels: Channels) -> np.ndarray:
-        return x**self.k
+        result: np.ndarray = axis_position(self.axis, x, channels) ** self.k
+        return result
 
     def stream(self) -> TermStream:
-        return _PowerStream(self.k)
+        return _PowerStream(self.axis, self.k)
+
+
+def is_x_power(term: Term) -> TypeGuard[Power]:
+    """A power of the target ``x`` itself: what the evaluators fold into one polynomial."""
+    return isinstance(term, Power) and term.axis == "x"
 
 
 class _ConstStream(TermStream):
@@ -324,13 +370,14 @@ class Lag(Term):
         return _LagStream(self.channel, self.tau_s)
 
 
-class _DirectionStream(TermStream):
-    __slots__ = ("deadband", "direction", "last_x")
+class _DirectionStream(_Aimed, TermStream):
+    __slots__ = ("axis", "deadband", "direction", "last_x", "positions")
 
-    def __init__(self, deadband: float) -> None:
-        self.deadband = deadband
+    def __init__(self, deadband: float, axis: str) -> None:
+        self.deadband, self.axis = deadband, axis
         self.direction = 1.0
         self.last_x = math.nan
+        self.positions = {}
 
     def _after(self, x: float) -> float:
         if not math.isnan(self.last_x):
@@ -342,32 +389,37 @@ class _DirectionStream(TermStream):
         return self.direction
 
     def value(self, t: float, x: float) -> float:
-        return self._after(x)
+        return self._after(self.at(self.axis, x))
 
     def moved(self, t: float, x: float) -> None:
+        x = self.at(self.axis, x)
         self.direction = self._after(x)
         self.last_x = x
 
 
 class Direction(Term):
     """``dir``: +1 after a step up, -1 after a step down (steps within the deadband keep it); +1 at start.
+    ``dir(y)``: the same for axis y of a cell of several axes.
 
     Physics: hysteresis of the piezo stack leaves an offset that depends on the direction of approach.
     """
 
     uses_x = True
 
-    def __init__(self, deadband_um: float = 0.5) -> None:
+    def __init__(self, deadband_um: float = 0.5, axis: str = "x") -> None:
         if not (math.isfinite(deadband_um) and deadband_um >= 0):
             raise ValueError(f"direction deadband must be a finite number >= 0 um, got {deadband_um}")
         self.deadband_um = float(deadband_um)
+        self.axis = axis
+        self.axes = _read_axes(axis)
 
     @property
     def name(self) -> str:
-        return "dir" if self.deadband_um == 0.5 else f"dir({self.deadband_um:g} um)"
+        inside = [*self.axes, *([] if self.deadband_um == 0.5 else [f"{self.deadband_um:g} um"])]
+        return f"dir({', '.join(inside)})" if inside else "dir"
 
     def batch(self, t: np.ndarray, x: np.ndarray, channels: Channels) -> np.ndarray:
-        x = np.asarray(x, dtype=np.float64)
+        x = axis_position(self.axis, x, channels)
         step = np.diff(x, prepend=x[:1])
         sign = np.where(step > self.deadband_um, 1.0, np.where(step < -self.deadband_um, -1.0, 0.0))
         sign[0] = 1.0 if sign[0] == 0 else sign[0]
@@ -376,7 +428,7 @@ class Direction(Term):
         return sign[idx]
 
     def stream(self) -> TermStream:
-        return _DirectionStream(self.deadband_um)
+        return _DirectionStream(self.deadband_um, self.axis)
 
 
 # --- names <-> terms --------------------------------------------------------------------------
@@ -400,11 +452,6 @@ def register_term(pattern: str, factory: Callable[[re.Match[str]], Term]) -> Non
     """
     regex = re.compile("^" + pattern.format(channel=_CHANNEL, number=_NUMBER) + "$")
     _KINDS.insert(len(_KINDS) - 1 if _KINDS else 0, _TermKind(regex, factory))
-
-
-def position_key(axis: str) -> str:
-    """Where a series' ``channels`` mapping carries an axis' position for the terms that read it."""
-    return f"{axis}_um"
 
 
 #: makers of the terms only a multi-axis cell has, tried first when a name is parsed for such a cell

@@ -53,7 +53,7 @@ from typing import Any, TypeGuard
 
 import numpy as np
 
-from nanodrift.model.terms import Power, Term, TermStream
+from nanodrift.model.terms import Term, TermStream, is_x_power
 
 #: the largest relative asymmetry |C_ij - C_ji| / sqrt(C_ii C_jj) a file may carry (rounding of a symmetric matrix)
 SYMMETRY_TOLERANCE = 1e-9
@@ -477,11 +477,11 @@ class SigmaStream:
     def __init__(self, terms: Sequence[Term], streams: Sequence[TermStream], covariance: Covariance) -> None:
         c = covariance.matrix
         static = [i for i, t in enumerate(terms) if not t.uses_x]
-        powers = [i for i, t in enumerate(terms) if isinstance(t, Power)]
-        others = [i for i, t in enumerate(terms) if t.uses_x and not isinstance(t, Power)]
+        powers = [i for i, t in enumerate(terms) if is_x_power(t)]
+        others = [i for i, t in enumerate(terms) if t.uses_x and not is_x_power(t)]
         self._static = [streams[i] for i in static]
         self._others = [streams[i] for i in others]
-        self._powers_k = [t.k for t in terms if isinstance(t, Power)]
+        self._powers_k = [t.k for t in terms if is_x_power(t)]
         degree = max(self._powers_k, default=0)
         pp = [0.0] * (2 * degree + 1)  # power x power: constant in time
         for a, i in enumerate(powers):

@@ -18,8 +18,8 @@ from nanodrift.calibration.dataset import CsvAppender, DataError, command_column
 from nanodrift.calibration.plans import PAPER_TIMING, PlannedStep, StepResult, StepTiming, calibration_plan
 from nanodrift.drivers_set import DriverSet
 from nanodrift.model.cell_model import CellModel, save_cell_model
-from nanodrift.model.identify import FitResult, fit, fit_cell
-from nanodrift.model.model import Model, save_model
+from nanodrift.model.identify import fit_cell
+from nanodrift.model.model import Model
 from nanodrift.model.provenance import stamp_data
 from nanodrift.procedure.follow import FollowCheck
 from nanodrift.procedure.progress import Progress
@@ -106,27 +106,16 @@ def resume_hint(out: str | Path, data: str | Path, recorded: int, total: int) ->
             f"Resume with: nanodrift calibrate --out {out} --data {data} --resume")
 
 
-def fit_recorded(data_path: str | Path, model_path: str | Path, *, plan: Sequence[PlannedStep] = ()) -> FitResult:
-    """Identify the one-axis model from the recorded steps (valid rows only), stamp the data file (its
-    SHA-256 and rows) into its provenance and save it atomically.
+def fit_recorded(data_path: str | Path, model_path: str | Path, *, plan: Sequence[PlannedStep] = ()) -> CellModel:
+    """Identify every axis' model from the recorded steps (valid rows only), each covering the plan's targets,
+    stamp the data file (its SHA-256 and rows) into its provenance and save it atomically (a cell of one axis:
+    the one-axis file).
 
-    ``plan``: the calibration's. The model's training ranges cover its targets (:func:`cover_commanded`).
+    ``plan``: the calibration's. The models' training ranges cover its targets (:func:`cover_commanded`).
     Empty: the measured range alone, as ``nanodrift fit`` gives.
     """
     ds = read_csv(data_path)
-    result = fit(ds, source=str(data_path))
-    cover_commanded(result.model, plan)
-    stamp_data(result.model, [(data_path, len(ds))])
-    save_model(result.model, model_path)
-    return result
-
-
-def fit_cell_recorded(data_path: str | Path, model_path: str | Path, *, plan: Sequence[PlannedStep] = ()
-                      ) -> CellModel:
-    """Every axis' model from the recorded steps of a cell of several axes (valid rows only), each covering the
-    plan's targets, the data file stamped into each axis' provenance, saved atomically (the multi-axis file)."""
-    ds = read_csv(data_path)
-    cell = fit_cell(ds.valid_rows(), source=str(data_path)).model
+    cell = fit_cell(ds, source=str(data_path)).model
     for model in cell.models.values():
         cover_commanded(model, plan)
     stamp_data(cell, [(data_path, len(ds))])

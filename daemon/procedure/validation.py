@@ -25,8 +25,8 @@ from nanodrift.calibration.iso9283 import TestResult, summarize
 from nanodrift.calibration.plans import PlannedStep, StepResult, StepTiming, validation_plan
 from nanodrift.calibration.residuals import BiasTracker
 from nanodrift.drivers_set import DriverSet
-from nanodrift.model.cell_model import CellEvaluator, CellModel
-from nanodrift.model.model import Evaluator, Model
+from nanodrift.model.cell_model import CellModel
+from nanodrift.model.model import Evaluator, Model, aim
 from nanodrift.procedure.follow import FollowCheck
 from nanodrift.procedure.progress import Progress
 from nanodrift.procedure.steps import Limits, axis_limits, run_steps
@@ -39,9 +39,9 @@ def check_channels(model: Model | CellModel, drivers: DriverSet) -> None:
         raise ValueError(f"the model needs channel(s) {', '.join(missing)} that this cell does not measure")
 
 
-def check_ready(evaluator: CellEvaluator | _OneAxisEvaluator) -> None:
+def check_ready(*evaluators: Evaluator) -> None:
     """No command from a model before every channel it reads has a clean sample."""
-    if not evaluator.ready:
+    if not all(evaluator.ready for evaluator in evaluators):
         raise RuntimeError("no clean temperature sample yet for every channel the model needs")
 
 
@@ -126,33 +126,35 @@ async def run_validation_steps(
     if adapt is not None and model is None:
         raise ValueError("adaptation corrects the model's commands: it needs a model")
     trackers = dict(adapt or {})
-    if isinstance(model, Model):
-        cell: CellModel | _OneAxisCell | None = _OneAxisCell(model, one_axis(limits))
-    else:
-        cell = model
+    cell = None if model is None else CellModel.of(model)
+    # the cell's axis for each of the model's: a one-axis model's x is the cell's one axis, whatever its name
+    axis_of = {} if cell is None else {"x": one_axis(limits)} if isinstance(model, Model) else {a: a for a in cell.axes}
     if model is not None:
         check_channels(model, drivers)
-    evaluator = None if cell is None else cell.evaluator()
+    evaluators = {} if cell is None else cell.evaluators()
     run = ValidationSteps([])
     latest: dict[str, float] = {}
 
     def observe(t: float, temps: dict[str, float]) -> None:
         latest.update(temps)
-        if evaluator is not None:
+        for evaluator in evaluators.values():
             evaluator.observe(t, temps)
 
     def command_for(targets: dict[str, float], t: float) -> dict[str, float]:
-        assert cell is not None and evaluator is not None  # command_for is given to run_steps only with a model
-        check_ready(evaluator)
-        run.extrapolating += bool(cell.out_of_range(targets, latest))
+        assert cell is not None  # command_for is given to run_steps only with a model
+        check_ready(*evaluators.values())
+        positions = {m: targets[a] for m, a in axis_of.items()}
+        run.extrapolating += bool(cell.out_of_range(positions, latest))
+        x = aim(evaluators.values(), positions)
+        sigmas = {axis_of[m]: e.sigma(x, t) for m, e in evaluators.items()}  # before the command: as the daemon
         corrections = {a: tracker.correction_um for a, tracker in trackers.items()}
-        sigmas = evaluator.sigma(targets, t)  # before the command: motion-dependent terms see the same state
         run.corrections_um.append({a: corrections.get(a, 0.0) for a in sigmas})
         run.sigmas_um.append(sigmas)
         if trackers:
-            run.adapted_sigmas_um.append({a: tracker.sigma_um(sigmas[a], cell.models[a].wander_um)
+            wander_um = {a: cell.models[m].wander_um for m, a in axis_of.items()}
+            run.adapted_sigmas_um.append({a: tracker.sigma_um(sigmas[a], wander_um[a])
                                           for a, tracker in trackers.items()})
-        return {a: float(q) + corrections.get(a, 0.0) for a, q in evaluator.command(targets, t).items()}
+        return {axis_of[m]: float(e.command(x, t)) + corrections.get(axis_of[m], 0.0) for m, e in evaluators.items()}
 
     def on_step(result: StepResult) -> None:
         for axis, tracker in trackers.items():
@@ -163,39 +165,3 @@ async def run_validation_steps(
                                 on_temperatures=observe, progress=Progress(plan, name, progress_stream), follow=follow,
                                 ready=ready)
     return run
-
-
-class _OneAxisCell:
-    """A one-axis model seen as a cell of its one axis (targets and commands keyed by ``axis``), so that one
-    procedure drives a model of one axis or several."""
-
-    def __init__(self, model: Model, axis: str) -> None:
-        self.model, self.axis = model, axis
-        self.channels, self.models = model.channels, {axis: model}
-
-    def out_of_range(self, positions: Mapping[str, float], temps: Mapping[str, float]) -> list[str]:
-        return self.model.out_of_range(positions[self.axis], temps)
-
-    def evaluator(self) -> _OneAxisEvaluator:
-        return _OneAxisEvaluator(self.model.evaluator(), self.axis)
-
-
-@dataclass
-class _OneAxisEvaluator:
-    """A one-axis :class:`Evaluator` seen as a :class:`CellEvaluator` of its one axis."""
-
-    evaluator: Evaluator
-    axis: str
-
-    @property
-    def ready(self) -> bool:
-        return self.evaluator.ready
-
-    def observe(self, t: float, temps: Mapping[str, float]) -> None:
-        self.evaluator.observe(t, temps)
-
-    def sigma(self, positions: Mapping[str, float], t: float) -> dict[str, float]:
-        return {self.axis: self.evaluator.sigma(positions[self.axis], t)}
-
-    def command(self, positions: Mapping[str, float], t: float) -> dict[str, float]:
-        return {self.axis: float(self.evaluator.command(positions[self.axis], t))}

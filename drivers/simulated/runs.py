@@ -17,6 +17,7 @@ import numpy as np
 
 from nanodrift.calibration.plans import PAPER_TIMING, StepTiming, cell_validation_plan, ramp_commands
 from nanodrift.drivers.simulated.physics import THERMOCOUPLES, CellPhysics
+from nanodrift.model.model import aim
 
 if TYPE_CHECKING:
     from nanodrift.model.cell_model import CellModel
@@ -135,11 +136,13 @@ class CellValidationRun:
 
 def cell_command(model: CellModel) -> CommandFor:
     """A cell model as a run's ``command_for``: every axis' command from one temperature sample and target."""
-    evaluator = model.evaluator()
+    evaluators = model.evaluators()
 
     def command(targets: dict[str, float], t: float, temps: dict[str, float]) -> dict[str, float]:
-        evaluator.observe(t, temps)
-        return evaluator.command(targets, t)
+        for evaluator in evaluators.values():
+            evaluator.observe(t, temps)
+        x = aim(evaluators.values(), targets)
+        return {axis: evaluator.command(x, t) for axis, evaluator in evaluators.items()}
 
     return command
 

@@ -61,7 +61,7 @@ def test_too_few_rows_to_choose_the_order_on_held_out_blocks_says_so(tmp_path: P
     message = str(info.value)
     assert message.startswith(f"{path}: 5 rows are too few to choose the geometric order on held-out blocks")
     assert message.endswith("or give --order N")
-    assert fit(read_csv(path), order=1, source=str(path)).order == 1  # the way out it names
+    assert fit(read_csv(path), order=1, source=str(path)).orders["x"].order == 1  # the way out it names
 
 
 def test_a_utf8_bom_is_not_part_of_the_first_column(tmp_path: Path) -> None:

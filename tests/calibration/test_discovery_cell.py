@@ -16,8 +16,8 @@ from nanodrift.calibration.discovery.catalogue import untestable
 from nanodrift.calibration.discovery.diagnostics import structure_variables
 from nanodrift.calibration.discovery.settings import DEFAULT_SETTINGS
 from nanodrift.model.cell_model import CellModel, load_any_model, save_cell_model
-from nanodrift.model.identify import axis_position_term, fit, fit_cell
-from nanodrift.model.terms import Channel
+from nanodrift.model.identify import fit, fit_cell
+from nanodrift.model.terms import Channel, Power
 from tests.helpers.synthetic import xy_run
 
 
@@ -27,7 +27,7 @@ def _independent_axes(data) -> CellModel:
     for axis in data.axes:
         view = data.axis_view(axis)
         models[axis] = fit(view, order=3, candidates=lambda n, a=axis, v=view: [
-            *(axis_position_term(a, k) for k in range(n, 0, -1)), *(Channel(c) for c in v.channels)]).model
+            *(Power(k, a) for k in range(n, 0, -1)), *(Channel(c) for c in v.channels)]).model
     return CellModel(data.axes, models)
 
 

@@ -18,7 +18,13 @@ from nanodrift.calibration.plans import (
 )
 from nanodrift.drivers.simulated.datasets import simulate_dataset
 from nanodrift.drivers.simulated.physics import CellPhysics, CrossParams, cross_params
-from nanodrift.drivers.simulated.runs import ONE_MOVE, run_cell_validation, simulate_steps
+from nanodrift.drivers.simulated.runs import (
+    ONE_MOVE,
+    cell_command,
+    independent_command,
+    run_cell_validation,
+    simulate_steps,
+)
 from nanodrift.model.identify import fit, fit_cell
 
 
@@ -119,20 +125,9 @@ def test_cross_terms_beat_independent_one_axis_models_by_a_wide_factor():
     assert {"y", "x*y"} <= set(cell.models["x"].term_names()) and "x" in cell.models["y"].term_names()
     alone = {a: fit(Dataset(t=data.t, x=data.positions[a], q=data.commands[a], channels=data.channels,
                             extra={"cycle": data.extra["cycle"]})).model for a in "xy"}
-    ev_cell = cell.evaluator()
-    ev_alone = {a: m.evaluator() for a, m in alone.items()}
-
-    def with_cell(targets, t, temps):
-        ev_cell.observe(t, temps)
-        return ev_cell.command(targets, t)
-
-    def with_alone(targets, t, temps):
-        for ev in ev_alone.values():
-            ev.observe(t, temps)
-        return {a: float(ev.command(targets[a], t)) for a, ev in ev_alone.items()}
-
     room = CellPhysics.create("test2", seed=1102, axes="xy")
-    runs = [run_cell_validation(room, command, cycles=10) for command in (with_cell, with_alone)]
+    runs = [run_cell_validation(room, command, cycles=10)
+            for command in (cell_command(cell), independent_command(alone))]
     cell, alone = (summarize_runs("t", run.targets_um, run.attained(False), run.attained(True)) for run in runs)
     without, cell_nm, alone_nm = cell.accuracy_without_nm, cell.accuracy_nm, alone.accuracy_nm
     assert without > 800.0

@@ -9,10 +9,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from nanodrift.calibration.dataset import Dataset
-from nanodrift.model.axis_terms import AxisCoupling, AxisCreep, AxisDirection, AxisPower, AxisProduct
-from nanodrift.model.effect_terms import PositionCoupling
+from nanodrift.model.axis_terms import AxisProduct
+from nanodrift.model.effect_terms import Creep, PositionCoupling
 from nanodrift.model.segments import features
-from nanodrift.model.terms import Channel, Power, UnknownTermError, parse_term
+from nanodrift.model.terms import Channel, Direction, Power, UnknownTermError, parse_term
 
 XY = ("x", "y")
 XYZ = ("x", "y", "z")
@@ -47,13 +47,14 @@ def test_every_name_round_trips_and_streams_as_it_batches(name: str) -> None:
 def test_axis_names_are_axis_terms_only_in_a_multi_axis_cell() -> None:
     # a one-axis model file may have a channel named y: its names parse exactly as before
     assert isinstance(parse_term("y"), Channel)
-    assert isinstance(parse_term("x*y"), PositionCoupling)
-    assert isinstance(parse_term("x^2"), Power)
-    assert isinstance(parse_term("y", XY), AxisPower)
+    assert isinstance(coupling := parse_term("x*y"), PositionCoupling) and coupling.axis == "x"
+    assert isinstance(power := parse_term("x^2"), Power) and power.axis == "x" and power.axes == ()
+    # the other axis' terms are the same kinds of term, on that axis
+    assert isinstance(power := parse_term("y", XY), Power) and power.axis == "y" and power.axes == ("y",)
     assert isinstance(parse_term("x*y", XY), AxisProduct)
-    assert isinstance(parse_term("y*T2", XY), AxisCoupling)
-    assert isinstance(parse_term("dir(y)", XY), AxisDirection)
-    assert isinstance(parse_term("creep(y, 5 s)", XY), AxisCreep)
+    assert isinstance(coupling := parse_term("y*T2", XY), PositionCoupling) and coupling.axes == ("y",)
+    assert isinstance(direction := parse_term("dir(y)", XY), Direction) and direction.axes == ("y",)
+    assert isinstance(creep := parse_term("creep(y, 5 s)", XY), Creep) and creep.axes == ("y",)
     # an axis the cell does not have is not an axis term: z in an XY cell stays a channel name
     assert isinstance(parse_term("z", XY), Channel)
     with pytest.raises(UnknownTermError):
@@ -62,7 +63,7 @@ def test_axis_names_are_axis_terms_only_in_a_multi_axis_cell() -> None:
 
 def test_the_other_axes_position_is_what_the_feature_reads() -> None:
     data = _xyz_run(2, n=50)
-    np.testing.assert_array_equal(features(AxisPower("y", 2), data), data.positions["y"] ** 2)
+    np.testing.assert_array_equal(features(Power(2, "y"), data), data.positions["y"] ** 2)
     np.testing.assert_array_equal(features(AxisProduct("z", "x"), data), data.positions["x"] * data.positions["z"])
     assert AxisProduct("z", "x").name == "x*z"
 
@@ -70,7 +71,7 @@ def test_the_other_axes_position_is_what_the_feature_reads() -> None:
 def test_a_series_without_the_axis_is_refused_naming_it() -> None:
     one_axis = Dataset(t=np.arange(3.0), x=np.zeros(3), q=np.zeros(3), channels={}, source="one.csv")
     with pytest.raises(KeyError, match=r"one\.csv has no position of axis 'y'"):
-        features(AxisPower("y", 1), one_axis)
+        features(Power(1, "y"), one_axis)
 
 
 @settings(max_examples=examples(60), deadline=None)

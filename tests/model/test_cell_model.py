@@ -7,9 +7,10 @@ import pytest
 
 from nanodrift.calibration.dataset import DataError, read_csv, write_csv
 from nanodrift.drivers.simulated.datasets import simulate_dataset
+from nanodrift.drivers.simulated.runs import cell_command
 from nanodrift.model.cell_model import CellModel, load_any_model, save_cell_model
-from nanodrift.model.identify import fit_cell
-from nanodrift.model.model import ModelFileError
+from nanodrift.model.identify import fit, fit_cell
+from nanodrift.model.model import Model, ModelFileError, save_model
 
 
 @pytest.fixture(scope="module")
@@ -51,11 +52,11 @@ def test_multi_axis_csv_refusals_name_row_and_column(tmp_path, text, expected):
 
 def test_stream_equals_batch(xy_data, xy_model):
     batch = xy_model.predict(xy_data)
-    evaluator = xy_model.evaluator()
+    command = cell_command(xy_model)
     worst = 0.0
     for i in range(len(xy_data)):
-        evaluator.observe(float(xy_data.t[i]), {c: float(v[i]) for c, v in xy_data.channels.items()})
-        q = evaluator.command({a: float(xy_data.positions[a][i]) for a in "xy"}, float(xy_data.t[i]))
+        q = command({a: float(xy_data.positions[a][i]) for a in "xy"}, float(xy_data.t[i]),
+                    {c: float(v[i]) for c, v in xy_data.channels.items()})
         worst = max(worst, *(abs(q[a] - batch[a][i]) for a in "xy"))
     assert worst < 1e-9
     assert np.sqrt(np.mean((batch["y"] - xy_data.commands["y"]) ** 2)) < 0.05  # it also fits: tens of nm
@@ -74,3 +75,18 @@ def test_model_file_round_trip_id_and_tamper(tmp_path, xy_data, xy_model):
     with pytest.raises(ModelFileError, match=r"models\.x: its id .* does not match its content"):
         load_any_model(path)
     assert isinstance(load_any_model(path, check_id=False), CellModel)
+
+
+def test_a_cell_of_one_axis_is_the_one_axis_model_and_file(tmp_path, xy_data, xy_model):
+    one = fit(xy_data.alone("x"), order=3).model
+    cell = CellModel.of(one)
+    assert cell.axes == ("x",) and cell.id == one.id == one.content_id()
+    assert CellModel.of(xy_model) is xy_model
+    save_model(one, tmp_path / "one.json")
+    save_cell_model(cell, tmp_path / "cell.json")
+    assert (tmp_path / "cell.json").read_bytes() == (tmp_path / "one.json").read_bytes()  # the one-axis file
+    loaded = load_any_model(tmp_path / "cell.json")
+    assert isinstance(loaded, Model) and loaded.id == one.id
+    assert cell.position_ranges == {"x": one.training.x_range}
+    with pytest.raises(ValueError, match="one axis: x"):
+        CellModel(("y",), {"y": one})

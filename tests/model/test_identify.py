@@ -37,16 +37,16 @@ def test_predict_on_fresh_rows_lands_within_the_noise():
 
 def test_auto_order_prefers_the_true_order_and_reports_each_tried():
     result = fit(paper_run(seed=5))
-    assert result.order == 3
-    assert set(result.order_scores) == {1, 2, 3, 4, 5}
-    assert result.order_scores[1] > 1.5 * result.order_scores[3]  # too low an order is much worse
-    assert result.model.selection["order_holdout_rms_um"]["3"] == result.order_scores[3]
+    assert result.orders["x"].order == 3
+    assert set(result.orders["x"].scores) == {1, 2, 3, 4, 5}
+    assert result.orders["x"].scores[1] > 1.5 * result.orders["x"].scores[3]  # too low an order is much worse
+    assert result.model.selection["order_holdout_rms_um"]["3"] == result.orders["x"].scores[3]
 
 
 def test_auto_order_is_not_fooled_by_training_error_on_a_linear_stage():
     linear = {"x": 1.0005, "T1": -0.6, "1": 20.0}
     result = fit(paper_run(seed=6, terms=linear))
-    assert result.order <= 2  # x^2.. would only fit the noise
+    assert result.orders["x"].order <= 2  # x^2.. would only fit the noise
     assert "x^3" not in result.model.term_names()
 
 

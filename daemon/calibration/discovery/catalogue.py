@@ -12,7 +12,7 @@ import numpy as np
 from nanodrift.calibration.dataset import Dataset
 from nanodrift.calibration.discovery.candidates import Candidate, Context, pinned, round_sig, search_tau
 from nanodrift.calibration.discovery.settings import Settings
-from nanodrift.model.axis_terms import AxisCoupling, AxisCreep, AxisDirection, AxisPower, AxisProduct
+from nanodrift.model.axis_terms import AxisProduct
 from nanodrift.model.effect_terms import CREEP_DEADBAND_UM, Creep, PositionCoupling, Rate
 from nanodrift.model.identify import curvature_candidates
 from nanodrift.model.segments import features, run_time_s, spans_s
@@ -35,30 +35,9 @@ EFFECTS = (
 )
 
 
-# --- the modelled axis' own terms: the one-axis terms for x, the axis' own for y or z (multi-axis cells) ----
-
-
-def own_power(axis: str, k: int) -> Term:
-    return Power(k) if axis == "x" else AxisPower(axis, k)
-
-
-def own_direction(axis: str) -> Direction:
-    return Direction() if axis == "x" else AxisDirection(axis)
-
-
-def own_coupling(axis: str, channel: str) -> Term:
-    return PositionCoupling(channel) if axis == "x" else AxisCoupling(axis, channel)
-
-
-def own_creep(axis: str, tau_s: float) -> Creep:
-    return Creep(tau_s) if axis == "x" else AxisCreep(axis, tau_s)
-
-
 def _powers(terms: Sequence[Term], axis: str = "x") -> set[int]:
     """The powers of ``axis``' own position among ``terms``."""
-    if axis == "x":
-        return {t.k for t in terms if isinstance(t, Power)}
-    return {t.k for t in terms if isinstance(t, AxisPower) and t.axis == axis}
+    return {t.k for t in terms if isinstance(t, Power) and t.axis == axis}
 
 
 def _geometric(ctx: Context) -> list[Candidate]:
@@ -69,7 +48,7 @@ def _geometric(ctx: Context) -> list[Candidate]:
     for k in range(1, max(top + 1, 3) + 1):
         if k in have or k > ctx.settings.max_power:
             continue
-        term = own_power(axis, k)
+        term = Power(k, axis)
         cand = Candidate("geometric_order", [term], [], {"order": max(top, k), "term": term.name}, 0, 1)
         out.append(ctx.judge(cand, ctx.columns([ctx.feature(term)])))
     return out
@@ -226,7 +205,7 @@ def _hysteresis(ctx: Context) -> list[Candidate]:
     at x = 0" (a geometric or creep detail, not hysteresis): the direction must be the minority on
     at least ``min_direction_share`` of the rows.
     """
-    term = own_direction(ctx.data.axis)
+    term = Direction(axis=ctx.data.axis)
     if term in ctx.terms:
         return []
     f = ctx.feature(term)
@@ -257,7 +236,7 @@ def untestable(data: Dataset, settings: Settings) -> list[dict[str, str]]:
     """
     x = np.asarray(data.own_position, dtype=np.float64)
     out = []
-    direction = features(own_direction(data.axis), data)
+    direction = features(Direction(axis=data.axis), data)
     share = _minority_direction_share(direction)
     if share < settings.min_direction_share:
         way = "up" if float(np.mean(direction > 0)) >= 0.5 else "down"
@@ -281,7 +260,7 @@ def _coupling(ctx: Context) -> list[Candidate]:
     channels = list(ctx.data.channels)
     out = []
     for c in channels:
-        term = own_coupling(ctx.data.axis, c)
+        term = PositionCoupling(c, ctx.data.axis)
         if term in ctx.terms:
             continue
         out.append(ctx.judge(Candidate("position_thermal_coupling", [term], [], {"channel": c}, 0, len(channels)),
@@ -298,10 +277,10 @@ def _creep(ctx: Context) -> list[Candidate]:
     axis = ctx.data.axis
 
     def sse(tau: float) -> float:
-        return ctx.ws.sse_with(ctx.columns([features(own_creep(axis, tau), ctx.data)]))
+        return ctx.ws.sse_with(ctx.columns([features(Creep(tau, axis=axis), ctx.data)]))
 
     tau, profile = search_tau(sse, *ctx.settings.creep_tau_s, ctx.settings)
-    term = own_creep(axis, tau)
+    term = Creep(tau, axis=axis)
     cand = Candidate("creep", [term], [], {"tau_s": tau}, 1, 1)
     cand.pinned = pinned(sse, tau, ctx.ws.n * ctx.deflate, ctx.settings)
     cand.tau_bounds = ctx.settings.creep_tau_s
@@ -345,7 +324,7 @@ def _cross_axis(ctx: Context) -> list[Candidate]:
     axis, others = data.axis, [b for b in data.axes if b != data.axis]
     out = []
     for b in others:
-        term = own_power(b, 1)
+        term = Power(1, b)
         if term not in ctx.terms:
             out.append(ctx.judge(Candidate("crosstalk", [term], [], {"axis": b}, 0, len(others)),
                                  ctx.columns([ctx.feature(term)])))

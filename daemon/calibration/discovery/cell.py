@@ -1,4 +1,4 @@
-"""Discovery on a multi-axis cell: the one-axis workflow per axis, over every axis' position.
+"""Discovery on a cell: the one-axis workflow per axis, over every axis' position (a cell of one axis: x).
 
 Each axis' model is tested against that axis' commands (``Dataset.axis_view``): its residual is
 checked against every axis' position as well as the temperatures and the motion, and the catalogue
@@ -16,11 +16,13 @@ from nanodrift.calibration.dataset import Dataset
 from nanodrift.calibration.discovery.settings import DEFAULT_SETTINGS, Settings
 from nanodrift.calibration.discovery.workflow import DiscoveryError, DiscoveryResult, discover
 from nanodrift.model.cell_model import CellModel
+from nanodrift.model.model import Model
 
 
 @dataclass
 class CellDiscoveryResult:
-    """Per axis, the one-axis result; ``model``: the cell with every axis' extended (or given) model."""
+    """A cell's discovery (one axis or several): per axis, the workflow's result; ``model``: the cell with every
+    axis' extended (or given) model."""
 
     axes: dict[str, DiscoveryResult]
     model: CellModel
@@ -41,9 +43,11 @@ class CellDiscoveryResult:
         return {"axes": axes, "final": {"model": final_id}, "model_out": model_out}
 
 
-def discover_cell(data: Dataset, model: CellModel, settings: Settings = DEFAULT_SETTINGS,
+def discover_cell(data: Dataset, given: Model | CellModel, settings: Settings = DEFAULT_SETTINGS,
                   fresh: Dataset | None = None) -> CellDiscoveryResult:
-    """:func:`discover` for every axis of ``model`` on the multi-axis run ``data`` (``fresh``: see there)."""
+    """:func:`discover` for every axis of ``given`` (a one-axis model: axis x) on the run ``data`` of the same axes
+    (``fresh``: see there)."""
+    model = CellModel.of(given)
     for run in (data, fresh):
         if run is not None and run.axes != model.axes:
             raise DiscoveryError(f"{run.source} positions axes {', '.join(run.axes)}, the model serves "

@@ -13,7 +13,6 @@ from scipy import stats
 
 from nanodrift.calibration.dataset import Dataset
 from nanodrift.calibration.discovery.settings import DEFAULT_SETTINGS, Settings
-from nanodrift.model.axis_terms import AxisDirection
 from nanodrift.model.effect_terms import CREEP_DEADBAND_UM, Rate
 from nanodrift.model.segments import features, first_rows, run_time_s
 from nanodrift.model.terms import Direction
@@ -84,7 +83,7 @@ def structure_variables(data: Dataset, settings: Settings = DEFAULT_SETTINGS) ->
             f"rate of change of {c} (°C/h, smoothed over {tau:g} s)",
             features(Rate(c, tau), data) * 3600.0,
         )
-    direction = Direction() if data.axis == "x" else AxisDirection(data.axis)
+    direction = Direction(axis=data.axis)
     out["dir"] = (f"direction of the last move{own} (+1 up, -1 down)", features(direction, data))
     first = first_rows(data)  # several runs: a run's first row follows no step
     step = np.diff(x, prepend=x[:1])
