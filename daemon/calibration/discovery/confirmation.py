@@ -18,7 +18,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
+from scipy import special
 
 from nanodrift.calibration.discovery.settings import Settings
 
@@ -127,7 +127,7 @@ def worse_than(fold_errors: FoldErrors, tau: float, block_rows: np.ndarray,
     paired t-test over them of the per-row error increase, at ``1 - tau_range_confidence``.
     """
     reference = fold_errors(tau)[1] / block_rows
-    critical = float(stats.t.ppf(settings.tau_range_confidence, max(block_rows.size - 1, 1)))
+    critical = float(special.stdtrit(max(block_rows.size - 1, 1), settings.tau_range_confidence))
 
     def worse(other: float) -> bool:
         increase = fold_errors(other)[1] / block_rows - reference

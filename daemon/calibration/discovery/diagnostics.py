@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import stats
+from scipy import special
 
 from nanodrift.calibration.dataset import Dataset
 from nanodrift.calibration.discovery.settings import DEFAULT_SETTINGS, Settings
@@ -133,9 +133,9 @@ def residual_structure(
         if df2 <= 0:
             continue
         f_stat = (ss_between / df1) / (ss_within / df2)
-        p_iid = float(stats.f.sf(f_stat, df1, df2))
+        p_iid = float(special.fdtrc(df1, df2, f_stat))
         df2_eff = max(n * deflate - groups, 2.0)
-        p = float(stats.f.sf(f_stat * deflate, df1, df2_eff))
+        p = float(special.fdtrc(df1, df2_eff, f_stat * deflate))
         sq = np.bincount(labels, weights=r * r, minlength=k)
         var = np.divide(sq, counts, out=np.zeros(k), where=keep) - means**2
         bins = []
