@@ -183,13 +183,13 @@ def fit_terms(
         # stepwise's least-squares coefficients suffice (a kept column it found collinear has none: ols'
         # minimum-norm solution below serves it)
         return _scored_model(data, [pool[i] for i in chosen], result)
-    X_chosen = X[:, chosen]
-    final = ols(X_chosen, y, run_id) if chosen else None
     # what each left-out term would get if added alone, under the same HAC covariance as the printed ones
-    # (held-out refits, never saved, skip it)
-    if_added = result if selection == "hac" else stepwisefit(
+    # (held-out refits, never saved, skip it); before the chosen columns are copied out, which it does not need
+    if_added = result if selection == "hac" or not uncertainty else stepwisefit(
         X, y, penter=0.0, premove=1.0, inmodel=result.inmodel.copy(), keep=np.ones(len(pool), dtype=bool),
         hac_lag="andrews", run_id=run_id)
+    X_chosen = X[:, chosen]
+    final = ols(X_chosen, y, run_id) if chosen else None
     terms: list[FittedTerm] = []
     for j, i in enumerate(chosen):
         assert final is not None
@@ -371,9 +371,13 @@ def _run_blocks(data: Series, max_folds: int) -> np.ndarray:
 
 
 def holdout_rms(data: Series, candidates: Sequence[Term], penter: float, premove: float,
-                always: Sequence[Term] = (), selection: str = DEFAULT_SELECTION) -> tuple[float, int]:
-    """RMS (um) of the command predicted for each held-out block by a model fitted on the others."""
-    folds = holdout_blocks(data)
+                always: Sequence[Term] = (), selection: str = DEFAULT_SELECTION,
+                folds: np.ndarray | None = None) -> tuple[float, int]:
+    """RMS (um) of the command predicted for each held-out block by a model fitted on the others.
+
+    ``folds``: :func:`holdout_blocks` of ``data``, when the caller scores several candidate sets on them.
+    """
+    folds = holdout_blocks(data) if folds is None else folds
     y = _commands(data)
     errors = []
     for k in np.unique(folds):
@@ -447,9 +451,10 @@ def fit(
     if len(data) < needed:
         raise too_few(first, "to fit", f"record at least {needed} rows")
     if order == "auto":
+        blocks = holdout_blocks(data)
         for n1 in range(1, max_order + 1):
             try:
-                scores[n1], folds = holdout_rms(data, pool(n1), penter, premove, keep, selection)
+                scores[n1], folds = holdout_rms(data, pool(n1), penter, premove, keep, selection, blocks)
             except FitError:  # the blocks left after holding one out are too short for this order
                 if n1 == 1:
                     raise too_few(1, "to choose the geometric order on held-out blocks (each fitted from the "
