@@ -135,3 +135,4 @@ def test_held_out_scores_are_those_of_full_refits() -> None:
         errors.append(q[blocks == k] - model.predict(data.select(blocks == k)))
     assert folds == np.unique(blocks).size
     assert score == pytest.approx(float(np.sqrt(np.mean(np.concatenate(errors) ** 2))), rel=1e-9)
+
