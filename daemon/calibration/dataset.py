@@ -33,6 +33,7 @@ import io
 import math
 import os
 import re
+import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -207,21 +208,32 @@ def read_csv(path: str | os.PathLike[str]) -> Dataset:
     (missing column, non-numeric cell, time not increasing, empty) raises :class:`DataError` naming the
     file, the row and the column."""
     path = Path(path)
+    header = _parse_header(path, _read_text(path, _first_line))
+    values = _parse_body(path, header)
+    return _to_dataset(path, header, values)
+
+
+def _read_text(path: Path, read: Callable[[io.TextIOBase], str]) -> str:
+    """``read(handle)`` of the file as UTF-8 text; a file that cannot be read is a :class:`DataError`."""
     try:
         # utf-8-sig: a spreadsheet's byte-order mark is not part of the first column's name
         with open(path, encoding="utf-8-sig", newline="") as handle:
-            header_line = handle.readline()
-            body = handle.read()
+            return read(handle)
     except FileNotFoundError:
         raise DataError(f"{path}: no such file") from None
     except UnicodeDecodeError as err:
         raise DataError(f"{path}: not a UTF-8 text file ({err.reason} at byte {err.start})") from None
     except OSError as err:
         raise DataError(f"{path}: cannot read ({err.strerror})") from None
-    header = _parse_header(path, header_line)
-    values = _parse_body(path, header, body)
-    del body
-    return _to_dataset(path, header, values)
+
+
+def _first_line(handle: io.TextIOBase) -> str:
+    return handle.readline()
+
+
+def _body(handle: io.TextIOBase) -> str:
+    handle.readline()
+    return handle.read()
 
 
 def _parse_header(path: Path, line: str) -> list[str]:
@@ -260,17 +272,20 @@ def _parse_header(path: Path, line: str) -> list[str]:
     return header
 
 
-def _parse_body(path: Path, header: list[str], body: str) -> np.ndarray:
-    """Fast path through numpy; on any failure a slow pass finds the exact row and column."""
+def _parse_body(path: Path, header: list[str]) -> np.ndarray:
+    """Fast path through numpy's C parser, straight from the file (a season's rows are never one string);
+    on any failure a slow pass finds the exact row and column."""
+    try:
+        with warnings.catch_warnings():  # "input contained no data": the slow pass says it with the file's name
+            warnings.simplefilter("ignore", UserWarning)
+            values = np.loadtxt(path, delimiter=",", dtype=np.float64, ndmin=2, skiprows=1, encoding="utf-8")
+        if values.shape[0] and values.shape[1] == len(header) and np.isfinite(values).all():
+            return values
+    except (ValueError, UnicodeDecodeError):
+        pass
+    body = _read_text(path, _body)
     if not body.strip():
         raise DataError(f"{path}: no data rows after the header")
-    try:
-        values = np.loadtxt(path, delimiter=",", dtype=np.float64, ndmin=2, skiprows=1, encoding="utf-8")
-        if values.shape[1] != len(header) or not np.isfinite(values).all():
-            raise ValueError
-        return values
-    except ValueError:
-        pass
     rows: list[list[float]] = []
     reader = csv.reader(io.StringIO(body))
     try:
@@ -403,18 +418,19 @@ def _csv_chunks(columns: Mapping[str, np.ndarray], rows_per_chunk: int = 50_000)
     """CSV text in chunks, so a million rows never sit in memory as one string.
 
     Floats are written ``repr``-exact (a round trip loses nothing); ``cycle`` and ``valid`` as
-    whole numbers.
+    whole numbers. A chunk is formatted a column at a time (``map`` over a list runs in C, a
+    format string per row would not) and its rows joined from those cells.
     """
     names = list(columns)
     yield ",".join(names) + "\n"
     if not names:
         return
     arrays = [np.asarray(columns[n], dtype=np.float64) for n in names]
-    row_format = ",".join("%d" if n in ("cycle", "valid") else "%r" for n in names)
     n_rows = arrays[0].shape[0]
     for start in range(0, n_rows, rows_per_chunk):
-        block = np.column_stack([a[start : start + rows_per_chunk] for a in arrays])
-        yield "\n".join(row_format % row for row in map(tuple, block.tolist())) + "\n"
+        cells = [map(str, map(int, a[start:start + rows_per_chunk].tolist())) if n in ("cycle", "valid")
+                 else map(repr, a[start:start + rows_per_chunk].tolist()) for n, a in zip(names, arrays, strict=True)]
+        yield "\n".join(map(",".join, zip(*cells, strict=True))) + "\n"
 
 
 def write_csv(

@@ -29,6 +29,8 @@ from scipy import fft, stats
 #: how the truncation lag L is chosen (stated in printouts and model files)
 LAG_RULE = ("Andrews AR(1) plug-in: L = floor(1.1447·(α·n)^(1/3)), α = 4ρ²/((1-ρ)²(1+ρ)²), "
             "ρ the residual's lag-1 autocorrelation")
+#: frequency bins multiplied at once by :func:`hac_meat` (bounds its temporaries for a season of rows)
+_BINS_PER_BLOCK = 65536
 #: |ρ| is clipped here so a residual that barely changes row to row still gives a finite lag (then capped at n - 1)
 MAX_ABS_RHO = 0.99
 
@@ -82,12 +84,21 @@ def hac_meat(scores: np.ndarray, lag: int, run_id: np.ndarray | None = None) -> 
     weights[: lag + 1] = 1.0 - np.arange(lag + 1) / (lag + 1.0)
     weights[0] = 0.5
     kernel = np.conj(fft.rfft(weights))  # Σ_l v_l e^{+2πi f l / N}
-    spectrum = fft.rfft(u, n=size, axis=0)
+    # a column at a time, and the products a block of bins at a time: a season's rows hold one spectrum
+    # and no padded or weighted copy of it
+    spectrum = np.empty((size // 2 + 1, u.shape[1]), dtype=np.complex128)
+    for j in range(u.shape[1]):
+        spectrum[:, j] = fft.rfft(u[:, j], n=size)
     share = np.full(spectrum.shape[0], 2.0)  # the rfft's bins stand for themselves and their mirror image
     share[0] = 1.0
     if size % 2 == 0:
         share[-1] = 1.0
-    half = np.real((spectrum * (share * kernel)[:, None]).T @ np.conj(spectrum)) / size
+    weight = share * kernel
+    half = np.zeros((u.shape[1], u.shape[1]))
+    for start in range(0, spectrum.shape[0], _BINS_PER_BLOCK):
+        block = spectrum[start:start + _BINS_PER_BLOCK]
+        half += np.real((block * weight[start:start + _BINS_PER_BLOCK, None]).T @ np.conj(block))
+    half /= size
     return np.asarray(half + half.T, dtype=np.float64)
 
 

@@ -23,9 +23,9 @@ from nanodrift.model.axis_terms import AxisProduct
 from nanodrift.model.cell_model import CellModel, one_axis
 from nanodrift.model.model import FittedTerm, Model, Training
 from nanodrift.model.provenance import created_now, software
-from nanodrift.model.segments import features, runs
+from nanodrift.model.segments import design_matrix, runs
 from nanodrift.model.series import CellSeries, Series
-from nanodrift.model.stepwise import stepwisefit
+from nanodrift.model.stepwise import StepwiseResult, stepwisefit
 from nanodrift.model.terms import Bias, Channel, ChannelSquare, Power, Term
 from nanodrift.model.uncertainty import Covariance, estimate
 
@@ -178,6 +178,7 @@ def fit_terms(
     extra_selection: Mapping[str, Any] | None = None,
     uncertainty: bool = True,
     selection: str = DEFAULT_SELECTION,
+    scored_only: bool = False,
 ) -> Model:
     """Select among ``candidates`` by stepwise regression (bias always in; ``always`` forced in).
 
@@ -185,6 +186,8 @@ def fit_terms(
     the Newey-West covariance. Either way the reported standard errors and p-values are HAC ones.
 
     ``uncertainty=False`` skips the covariance block (held-out refits): for models only scored, never saved.
+    ``scored_only=True`` (a held-out refit) also skips the final fit's standard errors and statistics: the
+    model has its terms and coefficients only (:func:`_scored_model`).
     """
     data = _only_valid(data)
     y = _commands(data)
@@ -195,19 +198,24 @@ def fit_terms(
             pool.append(t)
     if len(data) <= len(pool) + 1:
         raise FitError(f"{len(data)} rows are too few for {len(pool)} candidate terms plus a bias")
-    X = np.column_stack([features(t, data) for t in pool])
+    X = design_matrix(pool, data)
     keep = np.array([t in forced for t in pool])
     _check_selection(selection)
     run_id = hac.run_ids(len(y), runs(data))
     result = stepwisefit(X, y, penter=penter, premove=premove, inmodel=keep.copy(), keep=keep,
                          hac_lag="andrews" if selection == "hac" else None, run_id=run_id)
     chosen = [i for i in range(len(pool)) if result.inmodel[i]]
-    final = ols(X[:, chosen], y, run_id) if chosen else None
+    if scored_only and np.isfinite(result.coef[result.inmodel]).all():
+        # stepwise's least-squares coefficients suffice (a kept column it found collinear has none: ols'
+        # minimum-norm solution below serves it)
+        return _scored_model(data, [pool[i] for i in chosen], result)
     # what each left-out term would get if added alone, under the same HAC covariance as the printed ones
-    # (held-out refits, never saved, skip it)
+    # (held-out refits, never saved, skip it); before the chosen columns are copied out, which it does not need
     if_added = result if selection == "hac" or not uncertainty else stepwisefit(
         X, y, penter=0.0, premove=1.0, inmodel=result.inmodel.copy(), keep=np.ones(len(pool), dtype=bool),
         hac_lag="andrews", run_id=run_id)
+    X_chosen = X[:, chosen]
+    final = ols(X_chosen, y, run_id) if chosen else None
     terms: list[FittedTerm] = []
     for j, i in enumerate(chosen):
         assert final is not None
@@ -228,11 +236,10 @@ def fit_terms(
         terms.append(FittedTerm(Bias(), final.intercept, final.intercept_se, final.intercept_p))
         fit_stats = {"rmse_um": final.rmse, "r2": final.r2, "dof": final.dof, "se_method": final.se_method,
                      "hac_lag": final.hac_lag, "iid": _iid_stats([pool[i] for i in chosen], final)}
-        covariance = (model_covariance(X[:, chosen], y, final, data, [pool[i] for i in chosen])
+        covariance = (model_covariance(X_chosen, y, final, data, [pool[i] for i in chosen])
                       if uncertainty else None)
     channels = [c for c in data.channels if any(c in ft.term.channels for ft in terms)]
-    pred = sum(ft.coef * features(ft.term, data) for ft in terms)
-    resid = y - pred
+    resid = y - X_chosen @ np.array([ft.coef for ft in terms[:-1]]) - terms[-1].coef  # bias last
     fit_stats.update(rows=len(data), residual_rms_nm=float(np.sqrt(np.mean(resid**2)) * 1000.0))
     selection_record = {
         "method": "stepwise",
@@ -261,6 +268,18 @@ def fit_terms(
         provenance=provenance,
         covariance=covariance,
     )
+
+
+def _scored_model(data: Series, terms: Sequence[Term], result: StepwiseResult) -> Model:
+    """The model a held-out refit scores: the stepwise's own least-squares coefficients of ``terms``
+    (equal to :func:`ols`' to rounding), no standard errors, statistics or covariance. It is never saved,
+    and a season of rows spares :func:`ols`' passes over them 30 times per fit."""
+    fitted = [FittedTerm(t, float(c), math.nan, math.nan) for t, c in zip(terms, result.coef[result.inmodel],
+                                                                          strict=True)]
+    fitted.append(FittedTerm(Bias(), result.intercept, math.nan, math.nan))
+    channels = [c for c in data.channels if any(c in t.channels for t in terms)]
+    return Model(terms=fitted, training=Training.of(data, channels), fit={"rows": len(data)},
+                 selection={"method": "stepwise (held-out refit)"}, provenance={})
 
 
 def _check_selection(selection: str) -> None:
@@ -373,15 +392,19 @@ def _run_blocks(data: Series, max_folds: int) -> np.ndarray:
 
 
 def holdout_rms(data: Series, candidates: Sequence[Term], penter: float, premove: float,
-                always: Sequence[Term] = (), selection: str = DEFAULT_SELECTION) -> tuple[float, int]:
-    """RMS (um) of the command predicted for each held-out block by a model fitted on the others."""
-    folds = holdout_blocks(data)
+                always: Sequence[Term] = (), selection: str = DEFAULT_SELECTION,
+                folds: np.ndarray | None = None) -> tuple[float, int]:
+    """RMS (um) of the command predicted for each held-out block by a model fitted on the others.
+
+    ``folds``: :func:`holdout_blocks` of ``data``, when the caller scores several candidate sets on them.
+    """
+    folds = holdout_blocks(data) if folds is None else folds
     y = _commands(data)
     errors = []
     for k in np.unique(folds):
         train, test = data.select(folds != k), data.select(folds == k)
         model = fit_terms(train, candidates, always=always, penter=penter, premove=premove, uncertainty=False,
-                          selection=selection)
+                          selection=selection, scored_only=True)
         errors.append(y[folds == k] - model.predict(test))
     err = np.concatenate(errors)
     return float(np.sqrt(np.mean(err**2))), int(np.unique(folds).size)
@@ -457,9 +480,10 @@ def _fit_axis(
     if len(data) < needed:
         raise too_few(first, "to fit", f"record at least {needed} rows")
     if order == "auto":
+        blocks = holdout_blocks(data)
         for n1 in range(1, max_order + 1):
             try:
-                scores[n1], folds = holdout_rms(data, pool(n1), penter, premove, keep, selection)
+                scores[n1], folds = holdout_rms(data, pool(n1), penter, premove, keep, selection, blocks)
             except FitError:  # the blocks left after holding one out are too short for this order
                 if n1 == 1:
                     raise too_few(1, "to choose the geometric order on held-out blocks (each fitted from the "

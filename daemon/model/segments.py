@@ -10,7 +10,7 @@ rows of one run are contiguous); without it the series is one run and nothing ch
 from __future__ import annotations
 
 import itertools
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -58,6 +58,18 @@ def features(term: Term, data: Series) -> np.ndarray:
                    dtype=np.float64)
         for p in parts
     ])
+
+
+def design_matrix(terms: Sequence[Term], data: Series) -> np.ndarray:
+    """The :func:`features` of ``terms`` as the columns of one (rows, terms) float64 array.
+
+    Column-major and filled a column at a time: a season of rows never holds the features twice, and
+    each column is written where it lies.
+    """
+    X = np.empty((len(data), len(terms)), order="F")
+    for j, term in enumerate(terms):
+        X[:, j] = features(term, data)
+    return X
 
 
 def first_rows(data: Series) -> np.ndarray:

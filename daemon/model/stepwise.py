@@ -324,7 +324,8 @@ def _reduce(
 
 
 def _r_factor(B: NDArray[np.float64]) -> NDArray[np.float64]:
-    r = linalg.qr(B, mode="r", overwrite_a=True, check_finite=False)[0]
+    # mode "raw": the same factorisation, but scipy's mode "r" would also zero a full rows x columns copy of it
+    r = linalg.qr(B, mode="raw", overwrite_a=True, check_finite=False)[1]
     return np.asarray(r[: min(B.shape)], dtype=np.float64)
 
 

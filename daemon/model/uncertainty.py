@@ -53,6 +53,7 @@ from typing import Any, TypeGuard
 
 import numpy as np
 
+from nanodrift.model.recurrence import decayed_cumsum
 from nanodrift.model.terms import Term, TermStream, is_x_power
 
 #: the largest relative asymmetry |C_ij - C_ji| / sqrt(C_ii C_jj) a file may carry (rounding of a symmetric matrix)
@@ -334,6 +335,33 @@ def _whitened_gram(M: np.ndarray, decay: np.ndarray, share: np.ndarray) -> tuple
     return gram, logdet
 
 
+#: rows beyond which :func:`fit_noise` scores the noise models on windows of the rows (:func:`reml_rows`)
+REML_MAX_ROWS = 16384
+#: rows per window: five times the grid's longest time constant (400 row spacings)
+REML_WINDOW_ROWS = 2048
+
+
+def reml_rows(n: int, run_slices: Sequence[slice]) -> tuple[np.ndarray | None, list[slice]]:
+    """The rows :func:`fit_noise` scores on, and their runs: all of them (None) up to :data:`REML_MAX_ROWS`,
+    else REML_MAX_ROWS / REML_WINDOW_ROWS evenly spaced windows of consecutive rows, split where a run
+    ends; each piece is a run of its own (the wander restarts), numbered in the rows picked."""
+    if n <= REML_MAX_ROWS:
+        return None, list(run_slices)
+    windows = REML_MAX_ROWS // REML_WINDOW_ROWS
+    starts = np.linspace(0, n - REML_WINDOW_ROWS, windows).round().astype(np.int64)
+    picked: list[np.ndarray] = []
+    pieces: list[slice] = []
+    taken = 0
+    for start in starts.tolist():
+        for part in run_slices:
+            low, high = max(start, part.start), min(start + REML_WINDOW_ROWS, part.stop)
+            if high > low:
+                picked.append(np.arange(low, high))
+                pieces.append(slice(taken, taken + high - low))
+                taken += high - low
+    return np.concatenate(picked), pieces
+
+
 def fit_noise(A: np.ndarray, y: np.ndarray, t_s: np.ndarray, run_slices: Sequence[slice]) -> list[tuple[float, Noise]]:
     """Noise models (white plus wander) for the residual of y on A, each with its weight.
 
@@ -347,7 +375,14 @@ def fit_noise(A: np.ndarray, y: np.ndarray, t_s: np.ndarray, run_slices: Sequenc
     rather than betting on the best one. The grid spans the wander's share of the variance
     (0..99.5 %) and τ from half a row spacing to 400 of them. The weights sum to 1; models under
     0.1 % of the best one's weight are dropped.
+
+    Beyond :data:`REML_MAX_ROWS` rows (a season of records) the likelihood is that of
+    :func:`reml_rows`' evenly spaced windows, each its own run: the filter runs row by row over every
+    model of the grid, and a few thousand rows pin the noise as well as a million.
     """
+    rows, run_slices = reml_rows(y.shape[0], run_slices)
+    if rows is not None:
+        A, y, t_s = A[rows], y[rows], np.asarray(t_s)[rows]
     n = y.shape[0]
     basis, _ = np.linalg.qr(A)  # the same column space, well conditioned: REML depends on nothing else
     p = basis.shape[1]
@@ -390,36 +425,57 @@ def fit_noise(A: np.ndarray, y: np.ndarray, t_s: np.ndarray, run_slices: Sequenc
 def noise_times(M: np.ndarray, t_s: np.ndarray, run_slices: Sequence[slice], noise: Noise) -> np.ndarray:
     """Σ·M: the noise model's covariance (white + wander, independent between runs) times ``M``."""
     M = np.asarray(M, dtype=np.float64)
-    out = noise.white_um**2 * M
-    if noise.wander_um > 0 and noise.tau_s > 0:
-        a = _row_decay(t_s, run_slices, np.array([noise.tau_s]))[:, 0]
-        n = M.shape[0]
-        forward = np.empty_like(M)
-        backward = np.empty_like(M)
-        acc = np.zeros(M.shape[1])
-        for i in range(n):  # Σ_j<=i exp(-(t_i - t_j)/τ) M_j, within the run
-            acc = a[i] * acc + M[i]
-            forward[i] = acc
-        acc = np.zeros(M.shape[1])
-        for i in range(n - 1, -1, -1):  # Σ_j>=i exp(-(t_j - t_i)/τ) M_j
-            acc = M[i] + (a[i + 1] * acc if i + 1 < n else 0.0)
-            backward[i] = acc
-        out = out + noise.wander_um**2 * (forward + backward - M)
-    return out
+    columns = M.reshape(M.shape[0], -1)
+    times = _NoiseTimes(t_s, run_slices, noise)
+    out = np.empty_like(columns)
+    for j in range(columns.shape[1]):
+        out[:, j] = times(columns[:, j])
+    return out.reshape(M.shape)
+
+
+def noise_gram(M: np.ndarray, t_s: np.ndarray, run_slices: Sequence[slice], noise: Noise) -> np.ndarray:
+    """Mᵀ·Σ·M, a column of Σ·M at a time: a season's rows never hold Σ·M whole."""
+    M = np.asarray(M, dtype=np.float64)
+    times = _NoiseTimes(t_s, run_slices, noise)
+    gram = np.empty((M.shape[1], M.shape[1]))
+    for j in range(M.shape[1]):
+        gram[:, j] = M.T @ times(M[:, j])
+    return gram
+
+
+class _NoiseTimes:
+    """Σ·m for one column m. The wander's part sums exp(-|t_i - t_j|/τ)·m_j over the rows j of i's run: a
+    forward and a backward :func:`~nanodrift.model.recurrence.decayed_cumsum` (no loop over rows)."""
+
+    def __init__(self, t_s: np.ndarray, run_slices: Sequence[slice], noise: Noise) -> None:
+        self.noise = noise
+        self.wander = noise.wander_um > 0 and noise.tau_s > 0 and np.asarray(t_s).shape[0] > 0
+        if self.wander:
+            self.decay = _row_decay(t_s, run_slices, np.array([noise.tau_s]))[:, 0]  # 0 at each run's first row
+            self.backward_decay = np.concatenate(([0.0], self.decay[:0:-1]))  # the successor's factor, read backwards
+
+    def __call__(self, column: np.ndarray) -> np.ndarray:
+        out = self.noise.white_um**2 * column
+        if self.wander:
+            summed = decayed_cumsum(column, self.decay)  # Σ_j<=i exp(-(t_i - t_j)/τ) m_j, within the run
+            summed += decayed_cumsum(column[::-1], self.backward_decay)[::-1]  # + Σ_j>=i exp(-(t_j - t_i)/τ) m_j
+            summed -= column  # m_i was counted twice
+            out += self.noise.wander_um**2 * summed
+        return out
 
 
 def sandwich(A: np.ndarray, t_s: np.ndarray, run_slices: Sequence[slice], noise: Noise) -> np.ndarray:
     """The covariance of least-squares coefficients of A when the noise is ``noise``: B·AᵀΣA·B, B = (AᵀA)⁻¹."""
-    return _sandwich(A, noise_times(A, t_s, run_slices, noise))
+    return _sandwich(A.T @ A, noise_gram(A, t_s, run_slices, noise))
 
 
-def _sandwich(A: np.ndarray, sigma_a: np.ndarray) -> np.ndarray:
-    """(AᵀA)⁻¹ Aᵀ(ΣA) (AᵀA)⁻¹ given ΣA, computed on unit-norm columns (x³ and a bias differ by 10⁸)."""
-    scale = np.linalg.norm(A, axis=0)
+def _sandwich(gram: np.ndarray, meat: np.ndarray) -> np.ndarray:
+    """(AᵀA)⁻¹ (AᵀΣA) (AᵀA)⁻¹ from AᵀA and AᵀΣA, on unit-norm columns (x³ and a bias differ by 10⁸)."""
+    scale = np.sqrt(np.diag(gram))
     scale[scale == 0] = 1.0
-    As = A / scale
-    bread = np.linalg.pinv(As.T @ As)
-    cov = bread @ (As.T @ (sigma_a / scale)) @ bread / np.outer(scale, scale)
+    outer = np.outer(scale, scale)
+    bread = np.linalg.pinv(gram / outer)
+    cov = bread @ (meat / outer) @ bread / outer
     return np.asarray(0.5 * (cov + cov.T))
 
 
@@ -433,21 +489,27 @@ def estimate(X: np.ndarray, y: np.ndarray, t_s: np.ndarray, run_slices: Sequence
     curvature's κ, averaged over the noise models :func:`fit_noise` weighs (variances averaged), and
     that average noise. The noise is what neither the model's terms nor the curvature explain.
     """
-    A = np.column_stack([X, np.ones(y.shape[0])])
-    k = A.shape[1]
-    B, bounds = A, None
+    n, k = y.shape[0], X.shape[1] + 1
+    bounds = None
     if temperatures:
         mean = np.mean([np.asarray(v, dtype=np.float64) for v in temperatures.values()], axis=0)
         lo, hi = float(mean.min()), float(mean.max())
-        if hi > lo and y.shape[0] > k + 2:
-            B, bounds = np.column_stack([A, (mean - 0.5 * (lo + hi)) ** 2]), (lo, hi)
+        if hi > lo and n > k + 2:
+            bounds = (lo, hi)
+    # B = [X, 1, (T̄ - centre)²]: the model's columns A = B[:, :k] and, with a curvature part, the quadratic
+    B = np.empty((n, k + (bounds is not None)), order="F")
+    B[:, :k - 1] = X
+    B[:, k - 1] = 1.0
+    if bounds is not None:
+        B[:, k] = (mean - 0.5 * (bounds[0] + bounds[1])) ** 2
+    gram = B.T @ B
     cov = np.zeros((k, k))
     white2 = wander2 = tau = var_quad = 0.0
     for weight, noise in fit_noise(B, y, t_s, run_slices):
-        meat_b = noise_times(B, t_s, run_slices, noise)  # Σ·B once; its first k columns are Σ·A
-        cov += weight * _sandwich(A, meat_b[:, :k])  # C and κ² averaged over the weighed models
+        meat = noise_gram(B, t_s, run_slices, noise)  # BᵀΣB once; its first k rows and columns are AᵀΣA
+        cov += weight * _sandwich(gram[:k, :k], meat[:k, :k])  # C and κ² averaged over the weighed models
         if bounds is not None:
-            var_quad += weight * float(_sandwich(B, meat_b)[-1, -1])
+            var_quad += weight * float(_sandwich(gram, meat)[-1, -1])
         white2 += weight * noise.white_um**2
         wander2 += weight * noise.wander_um**2
         tau += weight * noise.tau_s

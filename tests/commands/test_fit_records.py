@@ -34,7 +34,7 @@ def record_operation(run_csv: Path, folder: Path) -> list[Path]:
         temps = {c: float(v[i]) for c, v in run.channels.items()}
         settled = Settled(t=float(run.t[i]), x_um=float(run.q[i]), q_um=float(run.q[i]), position_um=float(run.x[i]),
                           samples=10, temperatures=temps)
-        assert rec.record(settled, MORNING + float(run.t[i]))
+        assert rec.record({"x": settled}, MORNING + float(run.t[i]))
     rec.close()
     return sorted(folder.glob("*.csv"))
 

@@ -35,7 +35,7 @@ from nanodrift.model import hac
 from nanodrift.model.identify import holdout_blocks, model_covariance, ols
 from nanodrift.model.model import FittedTerm, Model, Training
 from nanodrift.model.provenance import created_now, software
-from nanodrift.model.segments import features, runs
+from nanodrift.model.segments import design_matrix, features, runs
 from nanodrift.model.stepwise import stepwisefit
 from nanodrift.model.terms import Bias, Term, UnknownTermError, parse_term
 
@@ -143,16 +143,16 @@ def _final_model(data: Dataset, given: Model, terms: list[Term], nuisance: dict[
     """
     assert data.q is not None
     y = np.asarray(data.q, dtype=np.float64)
-    feats = [features(t, data) for t in terms]
-    cols = feats + list(nuisance.values())
-    fit = ols(np.column_stack(cols), y, hac.run_ids(len(y), runs(data)))
+    X = design_matrix(terms, data)  # the terms' features, then the nuisance's: one copy of the rows
+    if nuisance:
+        X = np.column_stack([X, *nuisance.values()])
+    fit = ols(X, y, hac.run_ids(len(y), runs(data)))
     k = len(terms)
     bias = fit.intercept + sum(float(fit.coef[k + j] * v[0]) for j, v in enumerate(nuisance.values()))
     fitted = [FittedTerm(t, float(fit.coef[i]), float(fit.se[i]), float(fit.p[i])) for i, t in enumerate(terms)]
     fitted.append(FittedTerm(Bias(), bias, fit.intercept_se, fit.intercept_p))
-    covariance = model_covariance(np.column_stack(cols), y, fit, data, terms,
-                                  np.column_stack(list(nuisance.values())) if nuisance else None)
-    residual_full = y - fit.intercept - np.column_stack(cols) @ fit.coef
+    covariance = model_covariance(X, y, fit, data, terms, X[:, k:] if nuisance else None)
+    residual_full = y - fit.intercept - X @ fit.coef
     channels = [c for c in data.channels if any(c in t.channels for t in terms)]
     selection = dict(given.selection)
     selection["discovery"] = {
