@@ -99,12 +99,31 @@ def test_a_read_back_outside_the_limits_is_unknown_never_a_start_point() -> None
     assert start.voltage_v is None and start.known_from == "unknown" and "outside [-2, 12] V" in start.distrust
 
 
-def test_a_read_back_that_contradicts_what_was_sent_is_unknown() -> None:
-    """Issue 16.3: an output holding 0 V but reading back 10 V was ramped from 10 V at each reopen."""
+def test_a_read_back_that_contradicts_what_this_process_sent_starts_from_what_was_sent() -> None:
+    """Issue 16.3: an output holding 0 V but reading back 10 V was ramped from 10 V at each reopen; issue 26.4:
+    believing nothing then wrote the goal unramped. The device received nothing but what was sent: ramp from it."""
     start = trusted_start(Limits(), 10.0, (-0.45,), math.nan)
-    assert start.voltage_v is None and "but -0.4500 V was sent last" in start.distrust
+    assert start.voltage_v == -0.45 and start.known_from == "last written"
+    assert "but -0.4500 V was sent last" in start.distrust
     agrees = trusted_start(Limits(), -0.45, (-0.45,), math.nan)
     assert agrees.voltage_v == -0.45 and agrees.known_from == "read back" and agrees.distrust is None
+
+
+def test_a_read_back_that_contradicts_the_state_file_is_unproven() -> None:
+    """Issue 26.5: across a restart someone may have written the output: a claim the record does not confirm
+    moves nothing."""
+    start = trusted_start(Limits(), 10.0, (0.0, 0.0), math.nan, sent_here=False, power_up_v=0.0)
+    assert start.voltage_v is None and start.known_from == "unproven"
+    assert "but 0.0000 V was the last value written (state file)" in start.distrust
+    resumed = trusted_start(Limits(), 8.0, (7.98, 8.0), math.nan, sent_here=False, power_up_v=0.0)
+    assert resumed.voltage_v == 8.0 and resumed.known_from == "read back"
+
+
+def test_a_first_start_believes_only_the_power_up_value() -> None:
+    assert trusted_start(Limits(), 0.0005, (), math.nan, power_up_v=0.0).known_from == "power-up value"
+    lying = trusted_start(Limits(), 10.0, (), 0.0, power_up_v=0.0)
+    assert lying.voltage_v is None and lying.known_from == "unproven" and "power-up value 0 V" in lying.distrust
+    assert trusted_start(Limits(), 0.0, (), math.nan, power_up_v=math.nan).known_from == "unproven"
 
 
 def test_a_read_back_may_agree_with_the_last_confirmed_or_the_last_tried_voltage() -> None:
@@ -115,13 +134,21 @@ def test_a_read_back_may_agree_with_the_last_confirmed_or_the_last_tried_voltage
 
 @given(read=st.one_of(st.none(), st.floats(allow_nan=True, allow_infinity=True)),
        sent=st.lists(voltages, max_size=2).map(tuple),
-       safe=st.one_of(st.just(math.nan), voltages))
-def test_a_start_point_is_always_inside_the_limits_or_unknown(read: float | None, sent: tuple[float, ...],
-                                                              safe: float) -> None:
-    start = trusted_start(Limits(), read, sent, safe)
+       safe=st.one_of(st.just(math.nan), voltages),
+       sent_here=st.booleans(),
+       power_up=st.one_of(st.none(), st.just(math.nan), voltages))
+def test_a_start_point_is_always_inside_the_limits_and_never_an_unconfirmed_claim(
+        read: float | None, sent: tuple[float, ...], safe: float, sent_here: bool, power_up: float | None) -> None:
+    start = trusted_start(Limits(), read, sent, safe, sent_here=sent_here, power_up_v=power_up)
     assert start.voltage_v is None or within_limits(Limits(), start.voltage_v)
-    if read is not None and start.voltage_v is not None:
-        assert start.known_from == "read back" and (not sent or min(abs(read - v) for v in sent) <= 0.001)
+    if read is not None and start.known_from == "read back":
+        assert (not sent and power_up is None) or min(abs(read - v) for v in sent) <= 0.001
+    if read is not None and start.known_from == "last written":  # a claim not believed: what this process sent
+        assert sent_here and start.voltage_v == sent[-1]
+    if start.known_from == "power-up value":
+        assert not sent and power_up is not None and read is not None and abs(read - power_up) <= 0.001
+    if start.known_from == "unproven":
+        assert power_up is not None and not (sent and sent_here)
 
 
 @given(q=st.floats(min_value=-1e4, max_value=1e4, allow_nan=False))
