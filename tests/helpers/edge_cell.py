@@ -9,6 +9,9 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+import os
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Coroutine, Sequence
@@ -16,7 +19,9 @@ from pathlib import Path
 from typing import Any
 
 from helpers.daemon_harness import (
+    REPO,
     TEMPS,
+    TESTS,
     Client,
     Daemon,
     SensorFile,
@@ -91,6 +96,18 @@ def raw_for(voltage_v: float) -> int:
 # --- a daemon --------------------------------------------------------------------------------------
 
 
+def confirm_output(config: Path, pythonpath: Sequence[Path], *args: str) -> subprocess.CompletedProcess[str]:
+    """``nanodrift confirm-output --config <config> <args>``: an operator says where an output is."""
+    path = os.pathsep.join([*(str(p) for p in pythonpath), str(TESTS), str(REPO)])
+    return subprocess.run([sys.executable, "-m", "nanodrift.cli", "confirm-output", "--config", str(config), *args],
+                          capture_output=True, text=True, timeout=30, env={**os.environ, "PYTHONPATH": path})
+
+
+def state_dir_keys(root: Path) -> str:
+    """A ``[daemon]`` table keeping the daemon's state in ``root/state``."""
+    return f'\n[daemon]\nstate_dir = "{root / "state"}"\n'
+
+
 def write_model(path: Path, terms: dict[str, float]) -> None:
     parsed = [FittedTerm(parse_term(name), coef) for name, coef in terms.items()]
     channels = sorted({ch for ft in parsed for ch in ft.term.channels})
@@ -105,14 +122,16 @@ class Cell:
 
     def __init__(self, root: Path, *, terms: dict[str, float], actuator: str, hub_port: int | None = None,
                  channels: Sequence[str] = ("T1", "T2"), position: bool = False, extra: str = "",
-                 shift: WallShift | None = None) -> None:
+                 shift: WallShift | None = None, confirmed_v: float | None = None) -> None:
+        """``confirmed_v``: an operator confirmed the output holds it before the daemon starts (issue 26.5: a
+        read-back other than the power-up value is believed only so)."""
         self.root = root
         self.cell = f"edge{free_port()}"
         self.port = free_port()
         self.hub_port = hub_port
         self.channels = tuple(channels)
         self.position = position
-        self.extra = extra
+        self.extra = extra + (state_dir_keys(root) if confirmed_v is not None else "")
         plugins = install_file_plugin(root / "plugins")
         self.model_path = root / "model.json"
         write_model(self.model_path, terms)
@@ -121,6 +140,9 @@ class Cell:
         self.write_config(actuator)
         pythonpath = [plugins, *([WallShift.SITE_DIR] if shift is not None else [])]
         self._pythonpath = pythonpath
+        if confirmed_v is not None:
+            confirmed = confirm_output(self.config_path, pythonpath, "--voltage", repr(confirmed_v))
+            assert confirmed.returncode == 0, confirmed.stderr
         self.daemon = Daemon(["--config", str(self.config_path)], root / "daemon.log", pythonpath,
                              env=shift.env() if shift is not None else None)
         self.daemon.wait_log("serving", timeout=30)

@@ -119,9 +119,9 @@ def test_a_reload_mid_ramp_keeps_the_goal_and_a_target_answered_just_after_sighu
         tmp_path: Path, module: OutputModule, cells: list[Cell]) -> None:
     rate = 300.0  # 0 -> 480 um in 1.6 s
     start_raw = raw_for(VOLTS_PER_UM * expected_q(0.0, TEMPS))
-    module.hold(start_raw)  # the stage is at 0 um; verify = true: the daemon reads it back and ramps from it
+    module.hold(start_raw)  # the stage is at 0 um, as confirmed; verify = true: the daemon reads it back, ramps from it
     cell = Cell(tmp_path, terms=MODEL_TERMS, actuator=f"max_slew_um_per_s = {rate}\nv_max = 12.0",
-                hub_port=module.server.port)
+                hub_port=module.server.port, confirmed_v=start_raw * 0.001)
     cells.append(cell)
 
     def mid_ramp(goal_raw: int, from_raw: int) -> None:
@@ -252,7 +252,7 @@ def shutdown_cell(tmp_path: Path, module: OutputModule, cells: list[Cell], rate:
     """A daemon holding 200 um (4 V) on a register that answers each write 10 ms late; safe_voltage_v = 0."""
     module.device.write_delay_s = 0.010
     module.hold(raw_for(4.0))
-    cell = Cell(tmp_path, terms={"x": 1.0}, hub_port=module.server.port,
+    cell = Cell(tmp_path, terms={"x": 1.0}, hub_port=module.server.port, confirmed_v=4.0,
                 actuator=f"max_slew_um_per_s = {rate}\nsafe_voltage_v = 0.0")
     cells.append(cell)
     cell.target(200.0)

@@ -18,19 +18,14 @@ Every wait polls a condition with a deadline.
 from __future__ import annotations
 
 import itertools
-import os
 import signal
-import subprocess
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 from helpers.cell_helpers import write_cell_model
 from helpers.daemon_harness import (
-    REPO,
     TEMPS,
-    TESTS,
     Client,
     Daemon,
     SensorFile,
@@ -38,7 +33,7 @@ from helpers.daemon_harness import (
     install_file_plugin,
     wait_until,
 )
-from helpers.edge_cell import ADDRESS, UM_PER_COUNT, Cell, OutputModule, raw_for
+from helpers.edge_cell import ADDRESS, UM_PER_COUNT, Cell, OutputModule, confirm_output, raw_for, state_dir_keys
 from helpers.modbus_helpers import FC_READ_HOLDING
 
 from nanodrift.config import STOP_TIMEOUT_S
@@ -75,16 +70,6 @@ def assert_slewed(writes: list[tuple[float, int]], rate_um_per_s: float, *, from
     for (t0, q0), (t1, q1) in itertools.pairwise(points):
         assert abs(q1 - q0) <= rate_um_per_s * (t1 - t0 + RAMP_PERIOD_S) + slack_um, \
             f"{q1 - q0:.3f} um in {t1 - t0:.4f} s at {rate_um_per_s} um/s"
-
-
-def state_dir_keys(root: Path) -> str:
-    return f'\n[daemon]\nstate_dir = "{root / "state"}"\n'
-
-
-def confirm_output(config: Path, plugins: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    path = os.pathsep.join([str(plugins), str(TESTS), str(REPO)])
-    return subprocess.run([sys.executable, "-m", "nanodrift.cli", "confirm-output", "--config", str(config), *args],
-                          capture_output=True, text=True, timeout=30, env={**os.environ, "PYTHONPATH": path})
 
 
 # --- 4. a recovery ramps from what was written ---------------------------------------------------------
@@ -157,7 +142,7 @@ def test_a_read_back_the_state_file_contradicts_is_refused_until_an_operator_con
     assert actuator["state"] == "fault" and str(tmp_path / "state") in actuator["reason"], actuator
     assert module.written() == [] and module.register() == raw_for(10.0)  # nothing written
 
-    confirmed = confirm_output(cell.config_path, tmp_path / "plugins", "--axis", "x", "--voltage", "10.0")
+    confirmed = confirm_output(cell.config_path, [tmp_path / "plugins"], "--axis", "x", "--voltage", "10.0")
     assert confirmed.returncode == 0 and "confirmed at 10 V" in confirmed.stdout, confirmed.stderr
     wait_until(lambda: cell.bus.status()["actuator"]["state"] == "ok", 15, "the daemon believes the confirmed 10 V")
     assert module.written() == []  # believing moves nothing
@@ -171,9 +156,9 @@ def test_confirm_output_refuses_a_voltage_outside_the_limits_and_an_unknown_axis
     cell = Cell(tmp_path, terms={"x": 1.0}, hub_port=module.server.port, extra=state_dir_keys(tmp_path),
                 actuator="verify = true")
     cells.append(cell)
-    outside = confirm_output(cell.config_path, tmp_path / "plugins", "--voltage", "40")
+    outside = confirm_output(cell.config_path, [tmp_path / "plugins"], "--voltage", "40")
     assert outside.returncode == 2 and "--voltage 40: outside axis x's [v_min, v_max] = [-2, 12] V" in outside.stderr
-    unknown = confirm_output(cell.config_path, tmp_path / "plugins", "--axis", "y", "--voltage", "1")
+    unknown = confirm_output(cell.config_path, [tmp_path / "plugins"], "--axis", "y", "--voltage", "1")
     assert unknown.returncode == 2 and "--axis y: the cell's axes are x" in unknown.stderr, unknown.stderr
     assert not (tmp_path / "state" / f"output-{cell.cell}-x.json").exists()  # a refused confirmation writes nothing
 
