@@ -44,6 +44,13 @@ class OutputRecords:
     def __init__(self, directory: Path | None, cell: str) -> None:
         self.directory = directory
         self.cell = cell
+        self._last_v: dict[str, float] = {}  # what :meth:`note_written` recorded last, per axis
+
+    def note_written(self, axis: str, device: str, written_v: float) -> None:
+        """A procedure's write (calibrate, validate: one writer at a time, each write awaited): recorded, before
+        it is written, with the value written before it as the one the device confirmed."""
+        self.save(axis, device, self._last_v.get(axis), written_v)
+        self._last_v[axis] = written_v
 
     def path(self, axis: str) -> Path | None:
         return None if self.directory is None else self.directory / f"output-{self.cell}-{axis}.json"
