@@ -152,8 +152,8 @@ class Slew:
     then and gets the next one after this step is asked for, so however late the loop or the device,
     between any two values a device receives it never moves faster than the rate (a stamp taken before
     the write let a loop late by 4 ms put 56 um in 24 ms on a 2000 um/s device). A move from rest covers
-    one :data:`RAMP_PERIOD_S` in its first step, or less when the device's last write (of any move: one
-    a stop or a reload cut short) returned less than that ago.
+    one :meth:`pause_s` in its first step (:data:`RAMP_PERIOD_S` on a device never written), or less when
+    the device's last write (of any move: one a stop or a reload cut short) returned less than that ago.
     """
 
     def __init__(self) -> None:
@@ -178,9 +178,9 @@ class Slew:
         if slew <= 0 or at_v is None:
             return goal_v
         since = self._last_step_s
-        if since is None:  # from rest: one ramp period, never more time than passed since the last write
-            last = self._last_write_s
-            interval_s = RAMP_PERIOD_S if last is None else min(max(now_s - last, 0.0), RAMP_PERIOD_S)
+        if since is None:  # from rest: one pause (a ramp period, longer on a slow device), never more time than
+            last = self._last_write_s  # passed since this device's last write
+            interval_s = RAMP_PERIOD_S if last is None else min(max(now_s - last, 0.0), self.pause_s())
         else:  # a stalled loop resumes at the rate: no step covers more than a few of this device's pauses
             interval_s = min(max(now_s - since, 0.0), max(MAX_STEP_INTERVAL_S, 2.0 * self.pause_s()))
         max_step_v = slew * abs(limits.volts_per_um) * interval_s

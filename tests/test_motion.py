@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -12,6 +13,7 @@ from hypothesis import strategies as st
 from nanodrift.motion import (
     MAX_STEP_INTERVAL_S,
     RAMP_PERIOD_S,
+    SAFE_RATE_SHARE,
     Slew,
     VoltageLimitError,
     checked_voltage,
@@ -88,6 +90,31 @@ def test_a_stalled_loop_resumes_at_the_rate_not_with_a_jump() -> None:
 def test_off_or_unknown_start_is_the_goal_at_once() -> None:
     assert Slew().next_voltage(Limits(max_slew_um_per_s=0.0), 0.0, 9.6, 0.0) == 9.6
     assert Slew().next_voltage(Limits(), None, 9.6, 0.0) == 9.6
+
+
+@given(latency_s=st.floats(min_value=0.0, max_value=0.5), rate=st.floats(min_value=10.0, max_value=2000.0))
+def test_a_slow_device_ramps_at_its_share_of_the_rate_and_never_faster_between_two_values_it_received(
+        latency_s: float, rate: float) -> None:
+    """Issue 26.9: a module answering in 60 ms ramped at a quarter of the rate when every step waited one ramp
+    period; a ramp now pauses 9x the write time, so each step (the time since the previous write returned)
+    is most of each cycle. On a simulated clock: the device takes ``latency_s`` to take each value."""
+    limits = Limits(max_slew_um_per_s=rate)
+    goal_v = 12.0
+    distance_um = (goal_v - -2.0) / limits.volts_per_um
+    slew, now_s, at_v, received = Slew(), 0.0, -2.0, [(0.0, -2.0)]  # (when the device had it, V)
+    slew.wrote(0.0, reached_goal=True, took_s=latency_s)  # the stage at rest, its device as slow as ever
+    now_s += slew.pause_s()
+    while at_v != goal_v:
+        at_v = slew.next_voltage(limits, at_v, goal_v, now_s)
+        now_s += latency_s  # the device has it no later than when the write returns
+        received.append((now_s, at_v))
+        slew.wrote(now_s, at_v == goal_v, took_s=latency_s)
+        now_s += slew.pause_s()
+    for (t0, v0), (t1, v1) in itertools.pairwise(received):
+        assert v1 - v0 <= rate * limits.volts_per_um * (t1 - t0) * (1 + 1e-9), (t0, t1, v0, v1)
+    took_s = received[-1][0]
+    # the share holds over the ramp, less at most one cycle for the last, partial step
+    assert took_s <= distance_um / rate / SAFE_RATE_SHARE + slew.pause_s() + latency_s + 1e-9
 
 
 # --- where a move starts ------------------------------------------------------------------------
