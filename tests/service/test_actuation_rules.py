@@ -465,6 +465,31 @@ def test_the_stop_ramps_every_axis_to_its_safe_voltage(axes: tuple[str, ...]) ->
     assert per_axis(done, "voltage_v", axes) == {a: configs[a].safe_voltage_v for a in axes}
 
 
+def test_the_stop_takes_each_axis_to_its_safe_voltage_on_its_own_and_says_which_failed() -> None:
+    """Issue 26.8: y's module dead at the stop never holds x energised; the log names what was reached and what not."""
+    log = Events()
+    outputs = devices(("x", "y"))
+    configs = {a: ActuatorConfig(safe_voltage_v=0.0, max_slew_um_per_s=200.0) for a in ("x", "y")}
+
+    async def scenario() -> None:
+        actuation = Actuation(log, safe_budget_s=1.0)
+        await actuation.start(outputs, configs)
+        if actuation.offer({"x": 100.0, "y": 100.0}, {"x": 2.0, "y": 2.0}):
+            actuation.wake()
+        await until(lambda: all(d.written and d.written[-1][1] == 2.0 for d in outputs.values()), 5, "the goal")
+        outputs["y"].fail_writes, outputs["y"].broken = 1000, True  # y's module is gone
+        await actuation.stop(final=True)
+
+    asyncio.run(scenario())
+    x_steps = [v for _, v, _ in outputs["x"].written]
+    assert x_steps[-1] == 0.0 and outputs["y"].written[-1][1] == 2.0
+    [reached] = log.named("actuator_safe")
+    assert reached["voltage_v"] == {"x": 0.0}, reached
+    [failed] = log.named("actuator_safe_failed")
+    assert failed["voltage_v"] == {"y": 0.0} and failed["last_voltage_v"] == {"y": 2.0}, failed
+    assert "axis y" in failed["error"] and "port gone" in failed["error"], failed
+
+
 # --- how each served command ends: exactly one done each ---------------------------------------
 
 

@@ -8,7 +8,7 @@ each output module (stamping every write as it lands), a Zenoh client over 127.0
 5. after ``kill -9`` a restart believes the register only as far as the state file confirms it: 8 V resumes
    from 8 V; a claim of 10 V where 0 V was written is refused (nothing is written, ``status`` says why and what to
    do) until ``nanodrift confirm-output`` says where it is, and the move then ramps from there;
-8. SIGTERM on an XY cell whose y module is dead: x still reaches its safe voltage;
+8. SIGTERM on an XY cell whose y module is dead: x reaches its safe voltage while y still retries;
 9. a module answering each write 60 ms late: the ramp's steps cover the pause the daemon makes for it (9x the
    write time), not 0.1 s at most, and still never move faster than the slew.
 
@@ -36,7 +36,6 @@ from helpers.daemon_harness import (
 from helpers.edge_cell import ADDRESS, UM_PER_COUNT, Cell, OutputModule, confirm_output, raw_for, state_dir_keys
 from helpers.modbus_helpers import FC_READ_HOLDING
 
-from nanodrift.config import STOP_TIMEOUT_S
 from nanodrift.motion import LATENCY_PAUSES, RAMP_PERIOD_S
 
 #: the module's thread stamps writes as they land: a loaded machine delays one against the next (as in
@@ -202,13 +201,12 @@ def test_sigterm_with_a_dead_y_module_still_takes_x_to_its_safe_voltage(tmp_path
         assert x_module.register() > raw_for(5.0)
         y_module.close()  # y's module dies
         daemon.signal(signal.SIGTERM)
-        assert daemon.proc.wait(STOP_TIMEOUT_S) == 0
-        assert x_module.register() == 0, f"x left at {x_module.register() * 0.001:.3f} V (safe 0 V)"
-        [safe] = daemon.log_events("actuator_safe")
-        assert safe["voltage_v"] == {"x": 0.0}, safe
-        [failed] = daemon.log_events("actuator_safe_failed")
-        assert failed["voltage_v"] == {"y": 0.0} and "axis y" in failed["error"], failed
+        # x reaches its safe voltage (6 V at 8 V/s: under a second) while y is still retrying within its own
+        # 20 s budget: one axis never waits for another (before: x stayed at 7.84 V for good)
+        wait_until(lambda: x_module.register() == 0, 10, "x at its safe voltage, 0 V")
+        assert daemon.proc.poll() is None, "the daemon gave up on y before the test could see x alone"
         assert_slewed(x_module.written(), 400.0)
+        daemon.proc.kill()  # (y's budget is not this test's subject)
     finally:
         if client is not None:
             client.close()
