@@ -66,7 +66,7 @@ class OutputRecords:
             if not isinstance(doc, dict) or doc.get("format") != RECORD_FORMAT:
                 raise ValueError(f"not a {RECORD_FORMAT} record")
             values = [doc["confirmed_v"], doc["written_v"]]
-            if any(not isinstance(v, (int, float, type(None))) for v in values):
+            if any(isinstance(v, bool) or not isinstance(v, (int, float, type(None))) for v in values):
                 raise ValueError("confirmed_v and written_v must be numbers or null")
         except (OSError, ValueError, KeyError) as error:
             raise RecordError(f"{path}: {error}") from None

@@ -465,6 +465,41 @@ def test_the_stop_ramps_every_axis_to_its_safe_voltage(axes: tuple[str, ...]) ->
     assert per_axis(done, "voltage_v", axes) == {a: configs[a].safe_voltage_v for a in axes}
 
 
+def test_an_output_nothing_confirms_is_never_written_and_refuses_until_confirmed(
+        axes: tuple[str, ...], tmp_path: Path) -> None:
+    """Issue 26.5: a claim the state file contradicts, or a state file that cannot be read, moves nothing; a
+    confirmation (the record rewritten) ends the fault at the next retry."""
+    log = Events()
+    configs = {a: ActuatorConfig(max_slew_um_per_s=SLEW, safe_voltage_v=0.0) for a in axes}
+    outputs = devices(axes, holds=("voltage_v", 10.0))  # every output claims 10 V
+    records = on_record(tmp_path, outputs, 0.0)  # the daemon wrote 0 V last
+    sick = axes[-1]
+    unreadable = records.path(sick)
+    assert unreadable is not None
+    unreadable.write_text("{not json")  # and one state file cannot be read
+
+    async def main() -> None:
+        actuation = Actuation(log, records=records, safe_budget_s=0.5)
+        await actuation.start(outputs, configs)
+        reason = actuation.fault_reason or ""
+        assert "read back 10.0000 V, but 0.0000 V was the last value written (state file)" in reason \
+            or "the state file cannot be read" in reason, reason
+        assert "nanodrift confirm-output" in reason and str(tmp_path) in reason
+        command(actuation, configs, 100.0)  # (the target path refuses it; the goal must not move anything either)
+        await until(lambda: actuation.write_failures >= 2, 10, "a retry that still cannot prove it")
+        assert all(not d.written for d in outputs.values())
+        for axis, device in outputs.items():  # an operator confirms what each output holds
+            records.save(axis, device.description, 10.0, 10.0)
+        await until(lambda: actuation.fault_reason is None, 15, "the confirmed outputs believed")
+        await actuation.stop(final=True)
+
+    asyncio.run(main())
+    for axis, device in outputs.items():  # then the goal and the safe stop ramp from the confirmed 10 V
+        steps = [v for _, v, _ in device.written]
+        assert steps and abs(steps[0] - 10.0) <= SLEW * 0.02 * RAMP_PERIOD_S + 1e-9, (axis, steps)
+        assert_never_faster(device, SLEW)
+
+
 def test_the_stop_takes_each_axis_to_its_safe_voltage_on_its_own_and_says_which_failed() -> None:
     """Issue 26.8: y's module dead at the stop never holds x energised; the log names what was reached and what not."""
     log = Events()

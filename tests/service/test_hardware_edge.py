@@ -306,8 +306,9 @@ def test_sigterm_ramps_to_the_safe_voltage_at_the_configured_rate_and_refuses_ta
         assert q0 - q1 <= rate * (t1 - t0) + slack_um, f"{q0 - q1:.3f} um in {t1 - t0:.4f} s"
     achieved = (ramp[1][1] - ramp[-1][1]) / (ramp[-1][0] - ramp[1][0])
     # not crawling (the unit's stop timeout counts on the rate). A step covers the time since the previous write
-    # returned (the bound that holds on the device whatever the loop does), so a device answering in 10 ms ramps
-    # at about 20/(20 + 10) of the rate idle, less when a loaded machine writes late: a floor, not a speed
+    # returned (the bound that holds on the device whatever the loop does) and a ramp pauses 9x the write time,
+    # so a device answering in 10 ms ramps at about 90 % of the rate idle, less when a loaded machine writes late:
+    # a floor, not a speed
     assert achieved >= 0.3 * rate, f"{achieved:.1f} um/s with a device answering in 10 ms, configured {rate}"
     assert cell.daemon.log_events("actuator_safe")[0]["voltage_v"] == 0.0
 
