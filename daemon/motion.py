@@ -167,6 +167,13 @@ class Slew:
         each cycle (pause + write) on a slow device too: >= 90 % of the rate, in fewer, larger steps."""
         return max(RAMP_PERIOD_S, LATENCY_PAUSES * self._write_took_s)
 
+    def wait_s(self, limits: MotionLimits, at_v: float | None, goal_v: float) -> float:
+        """How long a ramp at ``at_v`` waits before its next step: one :meth:`pause_s`, or only the time the rest
+        of the way takes at the rate (the last step of a slow device's ramp does not wait a whole pause), and
+        never less than :data:`RAMP_PERIOD_S`."""
+        left_s = math.inf if at_v is None else ramp_seconds(limits, at_v, goal_v)
+        return max(RAMP_PERIOD_S, min(self.pause_s(), left_s))
+
     def rest(self) -> None:
         """The stage is at rest (a move ended, or nothing is known): the next move starts afresh."""
         self._last_step_s = None

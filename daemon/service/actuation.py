@@ -648,7 +648,8 @@ class Actuation:
                     self._end_inflight("reached")
                 return
             # a slow device waits longer between steps (each covers the pause): it keeps its rate in larger steps
-            await asyncio.sleep(max(o.slew.pause_s() for a, o in outputs.items() if a not in reached))
+            await asyncio.sleep(max(o.slew.wait_s(o.config, o.at_v, goal.voltage_v[a])
+                                    for a, o in outputs.items() if a not in reached))
 
     async def _off_target(self, outputs: Mapping[str, AxisOutput], *, interruptible: bool) -> list[str] | None:
         """The axes whose device does not say it is on target within :data:`ON_TARGET_BUDGET_S` (a closed-loop
