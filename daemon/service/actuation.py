@@ -18,13 +18,18 @@ too; this module owns the devices' lifecycle.
   axes in the cell's order, so every axis of one command goes out before any axis of the next; axes
   that reached the goal are not written again for it. A move ends when every axis holds its goal.
 - **Where each axis is** (:func:`nanodrift.motion.trusted_start`): its read-back is believed only inside
-  its ``[v_min, v_max]`` and, once something was sent to that device, when it agrees with what was
-  sent; else it is unknown (``actuator_readback_untrusted``), never a start point. Unknown: the next
-  command is written to that axis as it is (``actuator_unramped`` says so, once per start).
-- **Slew** (``max_slew_um_per_s > 0``): sub-commands every ``RAMP_PERIOD_S``, each covering the time
-  since the previous write returned (the device had that value by then), so between any two values a
-  device receives it never moves faster than the rate, however late the loop or the device; a device's
-  latency is not ramp time (a slow module ramps slower than the rate, never faster).
+  its ``[v_min, v_max]`` and when it agrees with what was written to that device: by this process (a claim
+  it contradicts, ``actuator_readback_untrusted``, starts the move from the value written), or, at a
+  start, as the state directory's record says (:mod:`nanodrift.output_record`, saved before every write),
+  or with nothing on record the output's ``power_up_voltage_v``. Anything else is unproven
+  (:class:`UnprovenOutput`): the cell is in fault, the output is never written, and the reason says how to
+  confirm it (``nanodrift confirm-output``); the reopen with backoff picks a confirmation up. A device that
+  cannot be read back and was never written: the next command is written as it is (``actuator_unramped``,
+  once per start).
+- **Slew** (``max_slew_um_per_s > 0``): each sub-command covers the time since the previous write returned
+  (the device had that value by then), so between any two values a device receives it never moves faster
+  than the rate, however late the loop or the device; the ramp waits :meth:`nanodrift.motion.Slew.wait_s`
+  between sub-commands (20 ms, or 9x a slow device's write time), so a slow module keeps ~90 % of the rate.
 - **What is sent** is checked: the voltage each device will receive (``Actuator.sent_voltage``: a DAC's
   count, a controller's digits) must be inside that axis' limits, for every axis of a step before any
   axis is written, or nothing of the step is written and the cell is in fault.
@@ -54,8 +59,9 @@ too; this module owns the devices' lifecycle.
   output's last write (:class:`nanodrift.motion.Slew`, kept over a restart on the same device).
 - **Shutdown**: :meth:`Actuation.stop` with ``final=True`` ends the command in flight ``stopped``
   (``failed``, with the fault's reason, when the outputs are in fault), then ramps every axis with a finite
-  ``safe_voltage_v`` to it, together, within ``SAFE_RAMP_BUDGET_S`` (the unit's stop timeout less a
-  margin), retrying a transient failure, and runs in a ``finally``: an exception on the way out never
+  ``safe_voltage_v`` to it, each axis in a task of its own within its own ``SAFE_RAMP_BUDGET_S`` (the unit's
+  stop timeout less a margin: a dead module never holds another axis energised; axes on one line take turns
+  on its lock), retrying a transient failure, and runs in a ``finally``: an exception on the way out never
   skips it.
 
 The shapes of a one-axis cell (its log lines' fields, its fault's text, its ``status`` actuator) are
