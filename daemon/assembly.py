@@ -31,6 +31,7 @@ from nanodrift.drivers.base import (
 )
 from nanodrift.drivers.registry import load_plugin, owner_of_section, virtual_cell_plugin
 from nanodrift.drivers_set import DriverSet
+from nanodrift.output_record import OutputRecords, state_directory
 
 
 def _plugins(config: Config) -> dict[str, DriverPlugin]:
@@ -137,6 +138,8 @@ def procedure_drivers(config: Config, *, start_s: float = 0.0) -> DriverSet:
     if unmeasured:
         raise DriverSetupError(f"axis {', '.join(unmeasured)} has no position sensor (role = \"position\" on that "
                                "axis); a procedure measures every axis")
+    if not config.virtual_cell:  # what the procedure writes to each output, where the daemon looks at its next start
+        drivers.records = OutputRecords(state_directory(config.daemon.state_dir), config.cell)
     if config.virtual_cell:
         drivers.description = "simulated cell (virtual clock)"
     elif published:

@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from nanodrift.drivers.base import Actuator, Clock, DriverContext, SensorGroup
+from nanodrift.output_record import OutputRecords
 
 
 @dataclass
@@ -25,6 +26,8 @@ class DriverSet:
     actuators: dict[str, Actuator] = field(default_factory=dict)
     #: each axis' position sensor (a one-axis cell's: ``{"x": name}``)
     position_axes: dict[str, str] = field(default_factory=dict)
+    #: where a procedure records what it writes to each output (the daemon's start believes only that)
+    records: OutputRecords | None = None
 
     @property
     def clock(self) -> Clock:

@@ -17,15 +17,19 @@ from nanodrift.motion import StartPoint, trusted_start
 SENT_SLACK_V = 1e-9
 
 
-async def locate_stage(actuator: Actuator, config: ActuatorConfig, sent_v: tuple[float, ...] = ()) -> StartPoint:
+async def locate_stage(actuator: Actuator, config: ActuatorConfig, sent_v: tuple[float, ...] = (), *,
+                       sent_here: bool = True, prove: bool = False) -> StartPoint:
     """Where the stage is after ``actuator.open()`` (:func:`nanodrift.motion.trusted_start` on its read-back);
-    a failed read back raises, like a failed write. The procedures use it too."""
+    a failed read back raises, like a failed write. ``prove`` (the daemon): a first start believes only the
+    output's ``power_up_voltage_v``, and a claim nothing confirms is ``unproven``; the procedures (which keep
+    no record) believe a read-back inside the limits."""
     read = await actuator.read_back()
     read_v = None
     if read is not None:
         field_name, value = read
         read_v = value if field_name == "voltage_v" else config.voltage(value)
-    return trusted_start(config, read_v, sent_v, config.safe_voltage_v)
+    return trusted_start(config, read_v, sent_v, config.safe_voltage_v, tolerance_v=config.read_back_tolerance_v,
+                         sent_here=sent_here, power_up_v=config.power_up_voltage_v if prove else None)
 
 
 def bind_limits(actuator: Actuator, config: ActuatorConfig) -> None:

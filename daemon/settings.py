@@ -215,6 +215,11 @@ class ActuatorConfig(StrictModel):
         f"0 = off; else larger jumps are ramped (at least {MIN_SLEW_UM_PER_S:g} um/s)"))
     safe_voltage_v: Annotated[float, AllowInfNan(True)] = Field(
         default=math.nan, description="written on shutdown when finite; nan = leave the stage where it is")
+    power_up_voltage_v: Annotated[float, AllowInfNan(True)] = Field(default=0.0, description=(
+        "what the output holds after the module powers up: on a first start (no state kept) a read-back is "
+        "believed only when it equals this; nan = never (every first start is confirmed by an operator)"))
+    read_back_tolerance_v: float = Field(default=motion.READ_BACK_TOLERANCE_V, gt=0, le=1.0, description=(
+        "a read-back this close to what the daemon last wrote (or to power_up_voltage_v) is believed"))
     #: the plugin's validated device keys (None for kind = "zenoh"); not a TOML key of its own
     _options: ActuatorOptions | None = PrivateAttr(default=None)
 
@@ -226,13 +231,13 @@ class ActuatorConfig(StrictModel):
                              "writes the same output value for seconds (or never moves, at 1e-300)")
         return value
 
-    @field_validator("safe_voltage_v")
+    @field_validator("safe_voltage_v", "power_up_voltage_v")
     @classmethod
     def _nan_or_finite(cls, value: float) -> float:
         if math.isnan(value):
             return math.nan  # the one NaN object: two configs that both say nan compare equal
         if not math.isfinite(value):
-            raise ValueError("must be a finite voltage, or nan (leave the stage where it is)")
+            raise ValueError("must be a finite voltage, or nan")
         return value
 
     @model_validator(mode="after")
@@ -382,6 +387,14 @@ class ProcedureSettings(StrictModel):
         return StepTiming(ramp_s=self.rise_s, hold_s=self.hold_s, window_s=self.average_s)
 
 
+class DaemonSettings(StrictModel):
+    """``[daemon]``: where the daemon keeps its state when systemd does not say (``$STATE_DIRECTORY`` wins)."""
+
+    state_dir: PathText | None = Field(default=None, description=(
+        "the directory of the record of what each output was last written (nanodrift.output_record); "
+        "$STATE_DIRECTORY (systemd's StateDirectory=) takes precedence; unset: every start is a first start"))
+
+
 class Config(StrictModel):
     """The whole operator config.
 
@@ -399,6 +412,7 @@ class Config(StrictModel):
     metrics: MetricsSettings = Field(default_factory=MetricsSettings)
     health: HealthSettings = Field(default_factory=HealthSettings)
     adapt: AdaptSettings = Field(default_factory=AdaptSettings)
+    daemon: DaemonSettings = Field(default_factory=DaemonSettings)
     hubs: list[Any] = Field(default_factory=list)
     sensors: list[Any] = Field(default_factory=list)
     #: ``[[axes]]`` (validated by ``nanodrift.config``): empty for a one-axis cell, whose axis is ``[actuator]``'s x

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -13,6 +14,7 @@ from hypothesis import strategies as st
 from nanodrift.motion import (
     MAX_STEP_INTERVAL_S,
     RAMP_PERIOD_S,
+    SAFE_RATE_SHARE,
     Slew,
     VoltageLimitError,
     checked_voltage,
@@ -91,6 +93,31 @@ def test_off_or_unknown_start_is_the_goal_at_once() -> None:
     assert Slew().next_voltage(Limits(), None, 9.6, 0.0) == 9.6
 
 
+@given(latency_s=st.floats(min_value=0.0, max_value=0.5), rate=st.floats(min_value=10.0, max_value=2000.0))
+def test_a_slow_device_ramps_at_its_share_of_the_rate_and_never_faster_between_two_values_it_received(
+        latency_s: float, rate: float) -> None:
+    """Issue 26.9: a module answering in 60 ms ramped at a quarter of the rate when every step waited one ramp
+    period; a ramp now pauses 9x the write time, so each step (the time since the previous write returned)
+    is most of each cycle. On a simulated clock: the device takes ``latency_s`` to take each value."""
+    limits = Limits(max_slew_um_per_s=rate)
+    goal_v = 12.0
+    distance_um = (goal_v - -2.0) / limits.volts_per_um
+    slew, now_s, at_v, received = Slew(), 0.0, -2.0, [(0.0, -2.0)]  # (when the device had it, V)
+    slew.wrote(0.0, reached_goal=True, took_s=latency_s)  # the stage at rest, its device as slow as ever
+    now_s += slew.pause_s()
+    while at_v != goal_v:
+        at_v = slew.next_voltage(limits, at_v, goal_v, now_s)
+        now_s += latency_s  # the device has it no later than when the write returns
+        received.append((now_s, at_v))
+        slew.wrote(now_s, at_v == goal_v, took_s=latency_s)
+        now_s += slew.pause_s()
+    for (t0, v0), (t1, v1) in itertools.pairwise(received):
+        assert v1 - v0 <= rate * limits.volts_per_um * (t1 - t0) * (1 + 1e-9), (t0, t1, v0, v1)
+    took_s = received[-1][0]
+    # the share holds over the ramp, less at most one cycle for the last, partial step
+    assert took_s <= distance_um / rate / SAFE_RATE_SHARE + slew.pause_s() + latency_s + 1e-9
+
+
 # --- where a move starts ------------------------------------------------------------------------
 
 
@@ -100,12 +127,31 @@ def test_a_read_back_outside_the_limits_is_unknown_never_a_start_point() -> None
     assert start.voltage_v is None and start.known_from == "unknown" and "outside [-2, 12] V" in start.distrust
 
 
-def test_a_read_back_that_contradicts_what_was_sent_is_unknown() -> None:
-    """Issue 16.3: an output holding 0 V but reading back 10 V was ramped from 10 V at each reopen."""
+def test_a_read_back_that_contradicts_what_this_process_sent_starts_from_what_was_sent() -> None:
+    """Issue 16.3: an output holding 0 V but reading back 10 V was ramped from 10 V at each reopen; issue 26.4:
+    believing nothing then wrote the goal unramped. The device received nothing but what was sent: ramp from it."""
     start = trusted_start(Limits(), 10.0, (-0.45,), math.nan)
-    assert start.voltage_v is None and "but -0.4500 V was sent last" in start.distrust
+    assert start.voltage_v == -0.45 and start.known_from == "last written"
+    assert "but -0.4500 V was sent last" in start.distrust
     agrees = trusted_start(Limits(), -0.45, (-0.45,), math.nan)
     assert agrees.voltage_v == -0.45 and agrees.known_from == "read back" and agrees.distrust is None
+
+
+def test_a_read_back_that_contradicts_the_state_file_is_unproven() -> None:
+    """Issue 26.5: across a restart someone may have written the output: a claim the record does not confirm
+    moves nothing."""
+    start = trusted_start(Limits(), 10.0, (0.0, 0.0), math.nan, sent_here=False, power_up_v=0.0)
+    assert start.voltage_v is None and start.known_from == "unproven"
+    assert "but 0.0000 V was the last value written (state file)" in start.distrust
+    resumed = trusted_start(Limits(), 8.0, (7.98, 8.0), math.nan, sent_here=False, power_up_v=0.0)
+    assert resumed.voltage_v == 8.0 and resumed.known_from == "read back"
+
+
+def test_a_first_start_believes_only_the_power_up_value() -> None:
+    assert trusted_start(Limits(), 0.0005, (), math.nan, power_up_v=0.0).known_from == "power-up value"
+    lying = trusted_start(Limits(), 10.0, (), 0.0, power_up_v=0.0)
+    assert lying.voltage_v is None and lying.known_from == "unproven" and "power-up value 0 V" in lying.distrust
+    assert trusted_start(Limits(), 0.0, (), math.nan, power_up_v=math.nan).known_from == "unproven"
 
 
 def test_a_read_back_may_agree_with_the_last_confirmed_or_the_last_tried_voltage() -> None:
@@ -116,13 +162,21 @@ def test_a_read_back_may_agree_with_the_last_confirmed_or_the_last_tried_voltage
 
 @given(read=st.one_of(st.none(), st.floats(allow_nan=True, allow_infinity=True)),
        sent=st.lists(voltages, max_size=2).map(tuple),
-       safe=st.one_of(st.just(math.nan), voltages))
-def test_a_start_point_is_always_inside_the_limits_or_unknown(read: float | None, sent: tuple[float, ...],
-                                                              safe: float) -> None:
-    start = trusted_start(Limits(), read, sent, safe)
+       safe=st.one_of(st.just(math.nan), voltages),
+       sent_here=st.booleans(),
+       power_up=st.one_of(st.none(), st.just(math.nan), voltages))
+def test_a_start_point_is_always_inside_the_limits_and_never_an_unconfirmed_claim(
+        read: float | None, sent: tuple[float, ...], safe: float, sent_here: bool, power_up: float | None) -> None:
+    start = trusted_start(Limits(), read, sent, safe, sent_here=sent_here, power_up_v=power_up)
     assert start.voltage_v is None or within_limits(Limits(), start.voltage_v)
-    if read is not None and start.voltage_v is not None:
-        assert start.known_from == "read back" and (not sent or min(abs(read - v) for v in sent) <= 0.001)
+    if read is not None and start.known_from == "read back":
+        assert (not sent and power_up is None) or min(abs(read - v) for v in sent) <= 0.001
+    if read is not None and start.known_from == "last written":  # a claim not believed: what this process sent
+        assert sent_here and start.voltage_v == sent[-1]
+    if start.known_from == "power-up value":
+        assert not sent and power_up is not None and read is not None and abs(read - power_up) <= 0.001
+    if start.known_from == "unproven":
+        assert power_up is not None and not (sent and sent_here)
 
 
 @given(q=st.floats(min_value=-1e4, max_value=1e4, allow_nan=False))

@@ -2,9 +2,10 @@
 
 Exit 2 (with ``<file>:<line>: <field>: <problem>`` lines) for everything the daemon would refuse on
 a reload: an invalid config, a model file that is missing or cannot be loaded, a ``[zenoh]
-config_file`` zenoh cannot read. Exit 0 with warnings on stderr for what the daemon accepts but an
+config_file`` zenoh cannot read, a safe stop that cannot finish within the stop budget (what it takes
+is printed for every axis that has one). Exit 0 with warnings on stderr for what the daemon accepts but an
 operator should know (a channel the model needs that no sensor provides, sensors the model does not
-use, a ramp to ``safe_voltage_v`` longer than a stop may take, an actuator's own warnings such as a
+use, an actuator's own warnings such as a
 command template coarser than the stage needs, a driver's warnings across entries such as a serial
 port shared without a resync query, a position sensor polling slower than ``[health] window_s``), in the errors' form
 (``<file>:<line>: warning: sensors[2] (T3).name: ...``); ``--strict`` makes those errors too, for a
@@ -40,6 +41,7 @@ from nanodrift.drivers.base import VirtualCellPlugin
 from nanodrift.drivers.registry import UnknownDriverError, load_plugin
 from nanodrift.model.cell_model import CellModel
 from nanodrift.model.model import Model, ModelFileError
+from nanodrift.motion import SAFE_RATE_SHARE
 
 
 def model_problem(config: Config) -> tuple[Model | CellModel | None, str | None]:
@@ -87,25 +89,38 @@ def zenoh_exposed(config: Config) -> list[str]:
             "command: see README.md, 'Securing the network' (config/zenoh-secure.json5)"]
 
 
-def safe_ramp_warnings(config: Config) -> list[str]:
-    """The ramp to ``safe_voltage_v`` at shutdown may outlast its share of the unit's stop timeout.
+def safe_stop(config: Config) -> tuple[list[str], list[str]]:
+    """(what the safe stop takes, per axis; why it cannot finish in time, per axis) for every axis with a finite
+    ``safe_voltage_v`` and a slew limit.
 
-    systemd kills the daemon :data:`STOP_TIMEOUT_S` after SIGTERM, and the ramp may use
-    :data:`SAFE_RAMP_BUDGET_S` of it (the daemon gives up then): a slower ramp leaves the stage short of
-    the safe voltage. A warning, not an error: a slow ramp is a deliberate choice for a fragile
-    stage, and the stage then stops where the ramp was, inside the limits.
+    systemd kills the daemon :data:`STOP_TIMEOUT_S` after SIGTERM and the ramp may use :data:`SAFE_RAMP_BUDGET_S`
+    of it. The longest ramp starts at the limit farthest from the safe voltage; whatever the device's latency it
+    runs at >= :data:`nanodrift.motion.SAFE_RATE_SHARE` of the rate (a ramp waits
+    :data:`nanodrift.motion.LATENCY_PAUSES` times the device's write time between steps), so that bounds its
+    duration. A stop that cannot finish is refused: the stage would be left between two voltages, energised.
     """
-    ramp = config.actuator.safe_ramp()
-    if ramp is None or ramp[0] <= SAFE_RAMP_BUDGET_S:
-        return []
-    seconds, distance_um, from_v = ramp
-    a = config.actuator
-    needed = distance_um / SAFE_RAMP_BUDGET_S
-    return [f"actuator.max_slew_um_per_s: the ramp to safe_voltage_v = {a.safe_voltage_v:g} V at a stop can take "
-            f"{seconds:.4g} s (from {from_v:g} V: {distance_um:.4g} um at {a.max_slew_um_per_s:g} um/s), more than "
-            f"the {SAFE_RAMP_BUDGET_S:g} s of the {STOP_TIMEOUT_S:g} s stop timeout it may use: the daemon gives up "
-            f"and the stage stays short of the safe voltage; allow at least {needed:.4g} um/s, or narrow "
-            "[v_min, v_max]"]
+    said: list[str] = []
+    problems: list[str] = []
+    for (where, one), axis in zip(_per_axis(config), config.axis_names, strict=True):
+        a = one.actuator
+        ramp = a.safe_ramp()
+        if ramp is None:
+            continue
+        nominal_s, distance_um, from_v = ramp
+        bound_s = nominal_s / SAFE_RATE_SHARE
+        said.append(f"  safe stop: axis {axis} to {a.safe_voltage_v:g} V in at most {bound_s:.3g} s "
+                    f"(from {from_v:g} V: {distance_um:.4g} um at {a.max_slew_um_per_s:g} um/s, at least "
+                    f"{SAFE_RATE_SHARE:.0%} of it whatever the device's latency); budget {SAFE_RAMP_BUDGET_S:g} s")
+        if bound_s > SAFE_RAMP_BUDGET_S:
+            needed = distance_um / (SAFE_RAMP_BUDGET_S * SAFE_RATE_SHARE)
+            problems.append(
+                f"{where}.max_slew_um_per_s: the ramp to safe_voltage_v = {a.safe_voltage_v:g} V at a stop can take "
+                f"{bound_s:.4g} s (from {from_v:g} V: {distance_um:.4g} um at {a.max_slew_um_per_s:g} um/s, at "
+                f"{SAFE_RATE_SHARE:.0%} of it on a slow device), more than the {SAFE_RAMP_BUDGET_S:g} s of the "
+                f"{STOP_TIMEOUT_S:g} s stop timeout it may use: the daemon would give up with the stage short of "
+                f"the safe voltage; allow at least {needed:.4g} um/s, narrow [v_min, v_max], or set "
+                "safe_voltage_v = nan (leave the stage where it is)")
+    return said, problems
 
 
 def metrics_exposed(config: Config) -> list[str]:
@@ -169,7 +184,7 @@ def config_warnings(config: Config, model: Model | CellModel | None) -> list[str
     """``field: message`` lines for what the daemon accepts but an operator should know."""
     warnings = network_warnings(config) + position_window_warnings(config)
     for where, one in _per_axis(config):  # a multi-axis cell: each axis' actuator as a one-axis cell's
-        for warning in actuator_warnings(one) + driver_warnings(one) + safe_ramp_warnings(one):
+        for warning in actuator_warnings(one) + driver_warnings(one):
             warning = where + warning[len("actuator"):] if warning.startswith("actuator") else warning
             if warning not in warnings:
                 warnings.append(warning)
@@ -245,7 +260,8 @@ def main(args: argparse.Namespace) -> int:
     config = load_config(args.file)
     model, problem = model_problem(config)
     emptied, sensorless = no_sensors(config, model)
-    problems = [p for p in (problem, zenoh_problem(config), emptied) if p]
+    stop_said, stop_problems = safe_stop(config)
+    problems = [p for p in (problem, zenoh_problem(config), emptied) if p] + stop_problems
     warnings = config_warnings(config, model) + ([sensorless] if sensorless else [])
     if args.strict:
         problems += [f"{w} (an error with --strict)" for w in warnings]
@@ -261,6 +277,8 @@ def main(args: argparse.Namespace) -> int:
             print(f"  axis {axis}: [{a.x_min_um:g}, {a.x_max_um:g}] um, actuator: {describe_actuator(one)}")
     else:
         print(f"  actuator: {describe_actuator(config)}")
+    for line_text in stop_said:
+        print(line_text)
     for warning, line in zip(warnings, file_lines(args.file, warnings), strict=True):
         print(f"{args.file}:{line}: warning: {warning}" if line else f"{args.file}: warning: {warning}",
               file=sys.stderr)

@@ -31,6 +31,7 @@ from nanodrift.calibration.plans import (
 from nanodrift.config import ActuatorConfig
 from nanodrift.drivers.base import Actuator
 from nanodrift.drivers_set import DriverSet
+from nanodrift.output_record import OutputRecords
 from nanodrift.outputs import bind_limits, checked_sent_voltage, locate_stage
 from nanodrift.procedure.follow import FollowCheck
 from nanodrift.procedure.progress import Progress
@@ -68,10 +69,14 @@ def planned_seconds(plan: Sequence[PlannedStep], q_from: Mapping[str, float | No
     return out
 
 
-async def _write(actuators: Mapping[str, Actuator], limits: Limits, q_um: Mapping[str, float]) -> None:
-    """One instant of a move: every axis' voltage checked before any is written."""
+async def _write(actuators: Mapping[str, Actuator], limits: Limits, q_um: Mapping[str, float],
+                 records: OutputRecords | None) -> None:
+    """One instant of a move: every axis' voltage checked before any is written, and recorded (when the config
+    keeps a state directory) before it is written, so the daemon's next start can believe the read-back."""
     sent = {a: checked_sent_voltage(actuators[a], limits[a], limits[a].checked_voltage(q)) for a, q in q_um.items()}
     for a, q in q_um.items():
+        if records is not None:
+            records.note_written(a, actuators[a].description, sent[a])
         await actuators[a].command(q, sent[a])
 
 
@@ -83,7 +88,7 @@ async def ramp(drivers: DriverSet, limits: Limits, q_from: Mapping[str, float | 
     clock, actuators = drivers.clock, drivers.actuators
     unknown = {a: q for a, q in q_to.items() if q_from[a] is None}
     if unknown:
-        await _write(actuators, limits, unknown)
+        await _write(actuators, limits, unknown, drivers.records)
     known = {a: start for a in q_to if (start := q_from[a]) is not None}
     if not known:
         await clock.sleep(timing.ramp_s)
@@ -94,7 +99,7 @@ async def ramp(drivers: DriverSet, limits: Limits, q_from: Mapping[str, float | 
     n = len(next(iter(tracks.values())))
     for k in range(n):
         await clock.sleep(duration / n)
-        await _write(actuators, limits, {a: track[k] for a, track in tracks.items()})
+        await _write(actuators, limits, {a: track[k] for a, track in tracks.items()}, drivers.records)
 
 
 async def measure_step(sampler: Sampler, limits: Limits, step: PlannedStep, q_from: Mapping[str, float | None],

@@ -18,13 +18,18 @@ too; this module owns the devices' lifecycle.
   axes in the cell's order, so every axis of one command goes out before any axis of the next; axes
   that reached the goal are not written again for it. A move ends when every axis holds its goal.
 - **Where each axis is** (:func:`nanodrift.motion.trusted_start`): its read-back is believed only inside
-  its ``[v_min, v_max]`` and, once something was sent to that device, when it agrees with what was
-  sent; else it is unknown (``actuator_readback_untrusted``), never a start point. Unknown: the next
-  command is written to that axis as it is (``actuator_unramped`` says so, once per start).
-- **Slew** (``max_slew_um_per_s > 0``): sub-commands every ``RAMP_PERIOD_S``, each covering the time
-  since the previous write returned (the device had that value by then), so between any two values a
-  device receives it never moves faster than the rate, however late the loop or the device; a device's
-  latency is not ramp time (a slow module ramps slower than the rate, never faster).
+  its ``[v_min, v_max]`` and when it agrees with what was written to that device: by this process (a claim
+  it contradicts, ``actuator_readback_untrusted``, starts the move from the value written), or, at a
+  start, as the state directory's record says (:mod:`nanodrift.output_record`, saved before every write),
+  or with nothing on record the output's ``power_up_voltage_v``. Anything else is unproven
+  (:class:`UnprovenOutput`): the cell is in fault, the output is never written, and the reason says how to
+  confirm it (``nanodrift confirm-output``); the reopen with backoff picks a confirmation up. A device that
+  cannot be read back and was never written: the next command is written as it is (``actuator_unramped``,
+  once per start).
+- **Slew** (``max_slew_um_per_s > 0``): each sub-command covers the time since the previous write returned
+  (the device had that value by then), so between any two values a device receives it never moves faster
+  than the rate, however late the loop or the device; the ramp waits :meth:`nanodrift.motion.Slew.wait_s`
+  between sub-commands (20 ms, or 9x a slow device's write time), so a slow module keeps ~90 % of the rate.
 - **What is sent** is checked: the voltage each device will receive (``Actuator.sent_voltage``: a DAC's
   count, a controller's digits) must be inside that axis' limits, for every axis of a step before any
   axis is written, or nothing of the step is written and the cell is in fault.
@@ -54,8 +59,9 @@ too; this module owns the devices' lifecycle.
   output's last write (:class:`nanodrift.motion.Slew`, kept over a restart on the same device).
 - **Shutdown**: :meth:`Actuation.stop` with ``final=True`` ends the command in flight ``stopped``
   (``failed``, with the fault's reason, when the outputs are in fault), then ramps every axis with a finite
-  ``safe_voltage_v`` to it, together, within ``SAFE_RAMP_BUDGET_S`` (the unit's stop timeout less a
-  margin), retrying a transient failure, and runs in a ``finally``: an exception on the way out never
+  ``safe_voltage_v`` to it, each axis in a task of its own within its own ``SAFE_RAMP_BUDGET_S`` (the unit's
+  stop timeout less a margin: a dead module never holds another axis energised; axes on one line take turns
+  on its lock), retrying a transient failure, and runs in a ``finally``: an exception on the way out never
   skips it.
 
 The shapes of a one-axis cell (its log lines' fields, its fault's text, its ``status`` actuator) are
@@ -82,6 +88,7 @@ from nanodrift.config import SAFE_RAMP_BUDGET_S, ActuatorConfig
 from nanodrift.drivers.base import Actuator, DeviceError
 from nanodrift.logs import RateLimitedLog
 from nanodrift.motion import RAMP_PERIOD_S, Slew, StartPoint
+from nanodrift.output_record import OutputRecords, RecordError
 from nanodrift.outputs import bind_limits, checked_sent_voltage, locate_stage
 
 WRITE_PERIOD_S = RAMP_PERIOD_S  # any two writes are this far apart: a stream is coalesced to 50 writes a second
@@ -135,13 +142,21 @@ class AxisFault(Exception):
         self.text = text
 
 
+class UnprovenOutput(AxisFault):
+    """An output whose read-back nothing confirms (:func:`nanodrift.motion.trusted_start`): never moved."""
+
+
 class Actuation:
     """The goal (latest wins), the task that writes it to every axis' device, and their state."""
 
-    def __init__(self, log: Any, *, safe_budget_s: float = SAFE_RAMP_BUDGET_S) -> None:
+    def __init__(self, log: Any, *, safe_budget_s: float = SAFE_RAMP_BUDGET_S,
+                 records: OutputRecords | None = None) -> None:
         self.log = log
         self.failures = RateLimitedLog(log, "actuator_failed", level="error")
+        self.record_failures = RateLimitedLog(log, "output_record_failed", level="error")
         self.safe_budget_s = safe_budget_s
+        #: what was last written to each output, kept durably before every write (how a restart proves a read-back)
+        self.records = records if records is not None else OutputRecords(None, "cell")
         self.axes: tuple[str, ...] = ONE_AXIS  # the cell's (set by :meth:`start`): the shapes its lines take
         self._lock = threading.Lock()  # guards what offer() touches; never held across an await or a publish
         self._active = False
@@ -170,6 +185,7 @@ class Actuation:
         self._episode_failures = 0
         self._stashed_episode: tuple[float, int] | None = None  # a fault a reload stopped, until a device opens
         self.write_failures = 0
+        self._unkept_told = False
 
     # --- the target path (any thread) -----------------------------------------------------------
 
@@ -257,6 +273,10 @@ class Actuation:
             outputs[axis] = out
         self._outputs = outputs
         self._known.update(outputs)
+        if outputs and self.records.directory is None and not self._unkept_told:
+            self._unkept_told = True
+            self.log.warning("output_state_not_kept", reason="no $STATE_DIRECTORY and no [daemon] state_dir: "
+                             "a restart cannot prove where an output is, so only its power-up value is believed")
         self.fault_reason = None
         self._goal_on_device = self._goal is None
         if outputs:
@@ -322,8 +342,8 @@ class Actuation:
                             self.log.warning("actuator_close_failed", **self._axis(out), error=str(error))
 
     async def _write_safe(self, outputs: Mapping[str, AxisOutput], *, reopen: bool) -> None:
-        """Ramp every axis with a finite ``safe_voltage_v`` to it within the budget, reopening and retrying
-        after a transient failure."""
+        """Ramp every axis with a finite ``safe_voltage_v`` to it, each axis on its own and within its own budget
+        (a dead module never holds another axis energised), reopening and retrying after a transient failure."""
         safe: dict[str, AxisOutput] = {}
         for axis, out in outputs.items():
             config = out.config
@@ -336,8 +356,27 @@ class Actuation:
             safe[axis] = out
         if not safe:
             return
-        goal = Goal({a: o.config.safe_q_um for a, o in safe.items()},  # type: ignore[misc]
-                    {a: o.config.safe_voltage_v for a, o in safe.items()})
+        # every axis' line shares its module's lock (a hub, a port): concurrent ramps never interleave a request
+        ends = await asyncio.gather(*(self._safe_axis(out, reopen=reopen) for out in safe.values()))
+        outcomes = list(zip(safe.values(), ends, strict=True))
+        reached = {out.axis: out for out, (text, _) in outcomes if text is None}
+        failed = {out.axis: (out, text) for out, (text, _) in outcomes if text is not None}
+        attempts = max(n for _, n in ends)
+        if reached:
+            self.log.info("actuator_safe", **self._per_axis(
+                "voltage_v", {a: o.config.safe_voltage_v for a, o in reached.items()}, reached), attempts=attempts)
+        if failed:
+            self.log.error("actuator_safe_failed",
+                           voltage_v=self._value({a: o.config.safe_voltage_v for a, (o, _) in failed.items()}),
+                           error="; ".join(text for _, text in failed.values()), attempts=attempts,
+                           last_voltage_v=self._value({a: o.last_voltage_v for a, (o, _) in failed.items()}))
+
+    async def _safe_axis(self, out: AxisOutput, *, reopen: bool) -> tuple[str | None, int]:
+        """Ramp one axis to its ``safe_voltage_v`` within :attr:`safe_budget_s`: (None, attempts) once there, else
+        (why not, attempts). An output whose read-back nothing confirms is never written, so not retried."""
+        single = {out.axis: out}
+        goal = Goal({out.axis: out.config.safe_q_um}, {out.axis: out.config.safe_voltage_v},  # type: ignore[dict-item]
+                    served=False)
         deadline = time.monotonic() + self.safe_budget_s
         attempts, error_text = 0, ""
         while True:
@@ -345,24 +384,22 @@ class Actuation:
             try:
                 async with asyncio.timeout(max(0.0, deadline - time.monotonic())):
                     if reopen:
-                        await self._close_quietly(safe)
-                        await self._open_all(safe)
-                    await self._move_to(goal, safe, follow_pending=False)
-                self.log.info("actuator_safe", **self._per_axis("voltage_v", goal.voltage_v, safe), attempts=attempts)
-                return
+                        await self._close_quietly(single)
+                        await self._open_all(single)
+                    await self._move_to(goal, single, follow_pending=False)
+                return None, attempts
             except TimeoutError:
-                error_text = f"not reached within {self.safe_budget_s:g} s" + (f" ({error_text})" if error_text else "")
-                break
+                budget = f"not reached within {self.safe_budget_s:g} s"
+                return budget + (f" ({error_text})" if error_text else ""), attempts
+            except UnprovenOutput as error:
+                return self._fault_text(error), attempts
             except Exception as error:
                 error_text = self._fault_text(error)
                 reopen = True
                 remaining = deadline - time.monotonic()
                 if remaining <= INITIAL_BACKOFF_S:
-                    break
+                    return error_text, attempts
                 await asyncio.sleep(min(INITIAL_BACKOFF_S * attempts, remaining / 2))
-        last = {a: o.last_voltage_v for a, o in safe.items()}
-        self.log.error("actuator_safe_failed", voltage_v=self._value(goal.voltage_v), error=error_text,
-                       attempts=attempts, last_voltage_v=self._value(last))
 
     # --- writing --------------------------------------------------------------------------------
 
@@ -593,8 +630,10 @@ class Actuation:
                 x_um = None if x_goal is None else x_goal + (q_um - goal.q_um[axis])
                 step.append((out, q_um, voltage, sent_v, x_um, at_goal))
             for out, q_um, voltage, sent_v, x_um, at_goal in step:
+                write_began_s = time.monotonic()
                 await self._write(out, q_um, voltage, sent_v, x_um)
-                out.slew.wrote(time.monotonic(), at_goal)  # returned: the device holds it from no later than now
+                returned_s = time.monotonic()  # the device holds it from no later than now
+                out.slew.wrote(returned_s, at_goal, took_s=returned_s - write_began_s)
                 if at_goal:
                     reached.add(out.axis)
             if len(reached) == len(outputs):
@@ -608,13 +647,15 @@ class Actuation:
                         self._end_inflight("failed", f"axis {', '.join(off_target)}: the controller did not report "
                                            f"on target within {ON_TARGET_BUDGET_S:g} s of the last write")
                     return
-                if outputs:
+                if outputs and goal.served:  # (the safe stop's goal, axis by axis, is no served command)
                     for listener in self.reached_listeners:
                         listener(goal, time.monotonic())
                 if goal is self._inflight:
                     self._end_inflight("reached")
                 return
-            await asyncio.sleep(RAMP_PERIOD_S)
+            # a slow device waits longer between steps (each covers the pause): it keeps its rate in larger steps
+            await asyncio.sleep(max(o.slew.wait_s(o.config, o.at_v, goal.voltage_v[a])
+                                    for a, o in outputs.items() if a not in reached))
 
     async def _off_target(self, outputs: Mapping[str, AxisOutput], *, interruptible: bool) -> list[str] | None:
         """The axes whose device does not say it is on target within :data:`ON_TARGET_BUDGET_S` (a closed-loop
@@ -636,6 +677,7 @@ class Actuation:
 
     async def _write(self, out: AxisOutput, q_um: float, voltage_v: float, sent_v: float,
                      x_um: float | None) -> None:
+        await self._record(out, out.at_v if out.at_v is not None else out.last_voltage_v, sent_v)
         out.tried_v = sent_v
         out.at_v = None  # until the device confirms it, the stage is between the two
         await _guarded(out.actuator.command(q_um, voltage_v, x_um=x_um), out.axis, "write")
@@ -643,21 +685,56 @@ class Actuation:
         out.last_voltage_v, out.last_write_t = sent_v, time.time()
         out.writes += 1
 
+    async def _record(self, out: AxisOutput, confirmed_v: float | None, written_v: float) -> None:
+        """Keep on disk, before the write, what the device will hold: a restart believes only that (a failure
+        to keep it is said, rate-limited, and never stops the write: the next start then refuses to guess)."""
+        if self.records.directory is None:
+            return
+        try:
+            await asyncio.to_thread(self.records.save, out.axis, out.actuator.description, confirmed_v, written_v)
+        except OSError as error:
+            self.record_failures(**self._axis(out), path=str(self.records.path(out.axis)), error=str(error))
+
     async def _open_all(self, outputs: Mapping[str, AxisOutput]) -> dict[str, StartPoint]:
-        """Open every device and learn where each axis is (:func:`locate_stage`); raises like a write."""
+        """Open every device and learn where each axis is (:func:`locate_stage`); raises like a write, and
+        :class:`UnprovenOutput` for an output whose read-back nothing confirms (it is not moved)."""
         starts = {}
         for axis, out in outputs.items():
             out.slew.rest()
             await _guarded(out.actuator.open(), axis, "open")
             sent = tuple(v for v in (out.last_voltage_v, out.tried_v) if v is not None)
-            start = await _guarded(locate_stage(out.actuator, out.config, sent), axis, "read back")
+            sent_here = bool(sent)  # written by this process, the device's only writer since
+            unreadable = None
+            if not sent_here:  # a restart: what an earlier run wrote, if the state directory kept it
+                try:
+                    sent = await asyncio.to_thread(self.records.written, axis, out.actuator.description)
+                except RecordError as error:
+                    unreadable = f"the state file cannot be read ({error})"
+            start = await _guarded(locate_stage(out.actuator, out.config, sent, sent_here=sent_here, prove=True),
+                                   axis, "read back")
+            if unreadable is not None:
+                start = StartPoint(None, "unproven", unreadable)
+            if start.known_from == "unproven":
+                raise UnprovenOutput(axis, self._unproven_text(out, start))
             if start.distrust is not None:
                 self.log.warning("actuator_readback_untrusted", **self._axis(out), device=out.actuator.description,
-                                 reason=start.distrust, note="where the stage is is unknown: nothing is ramped from "
-                                 "it; the next command is written as it is")
+                                 reason=start.distrust, known_from=start.known_from,
+                                 note="nothing is ramped from the read-back; the next move starts from "
+                                 + ("the last value written" if start.voltage_v is not None else
+                                    "nowhere known: it is written as it is"))
             out.at_v = start.voltage_v
             starts[axis] = start
         return starts
+
+    def _unproven_text(self, out: AxisOutput, start: StartPoint) -> str:
+        """What an operator reads in ``status`` and in every refusal: what disagrees, what to check, how to confirm."""
+        path = self.records.path(out.axis)
+        kept = f"state file {path}" if path is not None else \
+            "no state is kept: set [daemon] state_dir, or run under systemd's StateDirectory="
+        return (f"{start.distrust}: where the output is cannot be proven ({kept}), so it is not moved and targets "
+                f"are refused. Check what {out.actuator.description} holds (a voltmeter on the amplifier's input, "
+                f"or the stage's position), then confirm it: nanodrift confirm-output --config <the config> "
+                f"--axis {out.axis} --voltage <V>; the daemon retries on its own")
 
     async def _close_quietly(self, outputs: Mapping[str, AxisOutput]) -> None:
         """Close failed devices before reopening them (a failure to close is only logged)."""
@@ -693,6 +770,8 @@ class Actuation:
 
     def _fault_text(self, error: BaseException, prefix: str = "") -> str:
         """The fault's reason: an axis' failure names the axis in a cell of several."""
+        if isinstance(error, UnprovenOutput):
+            prefix = ""  # it opened: what it claims is the problem
         if isinstance(error, AxisFault):
             return prefix + (error.text if one_axis(self.axes) else str(error))
         return prefix + _reason(error)

@@ -31,6 +31,7 @@ from nanodrift.drivers.base import DriverContext, DriverSetupError, MonotonicClo
 from nanodrift.drivers_set import DriverSet
 from nanodrift.errors import UserError
 from nanodrift.logs import get_logger
+from nanodrift.output_record import OutputRecords, state_directory
 from nanodrift.sdnotify import Notifier
 from nanodrift.service.actuation import Actuation, Goal
 from nanodrift.service.health_unit import HealthUnit
@@ -72,7 +73,9 @@ class Service:
         model, problem = load_serving_model(config)  # a model that does not load: served as no_model, with why
         compensator = serving_state(config, model, self.health, model_problem=problem)
         # every output of the cell (one axis: x), by one task; a one-axis cell's log lines keep their shape
-        self.actuation = Actuation(self.log)
+        # what each output was last written, kept before every write: the only proof of a read-back at a restart
+        records = OutputRecords(state_directory(config.daemon.state_dir), config.cell)
+        self.actuation = Actuation(self.log, records=records)
         self.actuation.reached_listeners.append(self._output_reached)
         self.actuation.done_listeners.append(self._publish_done)  # one done per served command
         self.state = CellState(config, compensator, MonotonicClock())  # the drivers' clock once they start

@@ -27,7 +27,10 @@ FAST = "cycles = 2\nrise_s = 0.05\nhold_s = 0.25\naverage_s = 0.1\n"
 def test_calibrate_on_emulated_hardware_then_serve_targets(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     zenoh_port = free_port()
     with EmulatedCell(tmp_path, speed=1000.0) as emulated:
-        config = write_config(tmp_path / "hil.toml", emulated.config_text(zenoh_port=zenoh_port, procedure=FAST))
+        # a state directory: calibrate records what it leaves on the output, the daemon's start believes it (issue 26.5)
+        state = f'\n[daemon]\nstate_dir = "{tmp_path / "state"}"\n'
+        config = write_config(tmp_path / "hil.toml",
+                              emulated.config_text(zenoh_port=zenoh_port, procedure=FAST) + state)
         model_path, data = tmp_path / "model.json", tmp_path / "cal.csv"
         assert main(["calibrate", "--config", str(config), "--out", str(model_path), "--data", str(data)]) == 0
         err = capsys.readouterr().err

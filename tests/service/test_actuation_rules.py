@@ -14,6 +14,7 @@ import itertools
 import math
 import time
 from collections.abc import Callable, Mapping
+from pathlib import Path
 from typing import Any, Literal
 
 import pytest
@@ -22,6 +23,7 @@ from nanodrift.config import ActuatorConfig
 from nanodrift.drivers.base import Actuator, DeviceError
 from nanodrift.logs import get_logger
 from nanodrift.motion import RAMP_PERIOD_S
+from nanodrift.output_record import OutputRecords
 from nanodrift.service.actuation import Actuation
 
 #: the cells every rule runs on: a one-axis cell and an XY cell
@@ -115,6 +117,14 @@ def devices(axes: tuple[str, ...], journal: list[tuple[str, float]] | None = Non
             for a in axes}
 
 
+def on_record(directory: Path, outputs: Mapping[str, RecordingActuator], voltage_v: float) -> OutputRecords:
+    """The state an earlier run left: it wrote ``voltage_v`` to every output (the proof a read-back needs)."""
+    records = OutputRecords(directory, "cell")
+    for axis, device in outputs.items():
+        records.save(axis, device.description, voltage_v, voltage_v)
+    return records
+
+
 def per_axis(fields: Mapping[str, Any], name: str, axes: tuple[str, ...]) -> dict[str, Any]:
     """A line's per-axis value: a one-axis cell's is the number, a cell of several's ``{axis: value}``."""
     value = fields[name]
@@ -180,14 +190,16 @@ def assert_never_faster(device: RecordingActuator, rate: float) -> None:
 ])
 def test_the_first_move_after_start_ramps_from_where_the_stage_is(
         axes: tuple[str, ...], holds: tuple[Literal["voltage_v", "q_um"], float] | None, safe_v: float,
-        start_q: float | None, known_from: str) -> None:
+        start_q: float | None, known_from: str, tmp_path: Path) -> None:
     log = Events()
     configs = {a: ActuatorConfig(max_slew_um_per_s=SLEW, safe_voltage_v=safe_v) for a in axes}
     outputs = devices(axes, holds=holds)
     goal_q = 480.0  # x; y goes to its share, 240 um
+    # an earlier run wrote what the device reads back: the state file proves it
+    records = on_record(tmp_path, outputs, configs["x"].voltage(start_q)) if holds is not None else None
 
     async def main() -> None:
-        actuation = Actuation(log)
+        actuation = Actuation(log, records=records)
         await actuation.start(outputs, configs)
         command(actuation, configs, goal_q)
         await until(lambda: all(d.written and d.written[-1][0] == goal_q * share(a) for a, d in outputs.items()),
@@ -226,13 +238,13 @@ def test_the_first_move_after_start_ramps_from_where_the_stage_is(
 
 
 def test_an_edit_to_another_device_forgets_the_old_devices_voltage_and_the_same_device_remembers_it(
-        axes: tuple[str, ...]) -> None:
+        axes: tuple[str, ...], tmp_path: Path) -> None:
     log = Events()
     configs = {a: ActuatorConfig(max_slew_um_per_s=SLEW) for a in axes}
 
     async def main() -> tuple[dict[str, RecordingActuator], ...]:
-        actuation = Actuation(log)
         first = devices(axes, description="output A", holds=("voltage_v", 8.0))  # 400 um
+        actuation = Actuation(log, records=on_record(tmp_path, first, 8.0))
         await actuation.start(first, configs)
         command(actuation, configs, 400.0)  # y: 200 um, ramped down from 400
         await until(lambda: all(d.written and d.written[-1][0] == 400.0 * share(a) for a, d in first.items()), 5,
@@ -267,7 +279,8 @@ def test_an_edit_to_another_device_forgets_the_old_devices_voltage_and_the_same_
     assert opened == [{a: k for a in axes} for k in ("read back", "unknown", "last written")]
 
 
-def test_a_fault_at_start_ends_only_when_the_device_opens_and_reads_back_again(axes: tuple[str, ...]) -> None:
+def test_a_fault_at_start_ends_only_when_the_device_opens_and_reads_back_again(
+        axes: tuple[str, ...], tmp_path: Path) -> None:
     log = Events()
     configs = {a: ActuatorConfig() for a in axes}
     outputs = devices(axes, holds=("voltage_v", 1.0))
@@ -275,7 +288,7 @@ def test_a_fault_at_start_ends_only_when_the_device_opens_and_reads_back_again(a
     sick.broken = True
 
     async def main() -> None:
-        actuation = Actuation(log)
+        actuation = Actuation(log, records=on_record(tmp_path, outputs, 1.0))
         await actuation.start(outputs, configs)
         named = "" if len(axes) == 1 else f"axis {axes[-1]}: "
         assert actuation.fault_reason == f"open failed: {named}{sick.description}: port gone"
@@ -450,6 +463,66 @@ def test_the_stop_ramps_every_axis_to_its_safe_voltage(axes: tuple[str, ...]) ->
         assert len(steps) >= 3 and all(b < a for a, b in itertools.pairwise(steps))  # ramped down
     [done] = log.named("actuator_safe")
     assert per_axis(done, "voltage_v", axes) == {a: configs[a].safe_voltage_v for a in axes}
+
+
+def test_an_output_nothing_confirms_is_never_written_and_refuses_until_confirmed(
+        axes: tuple[str, ...], tmp_path: Path) -> None:
+    """Issue 26.5: a claim the state file contradicts, or a state file that cannot be read, moves nothing; a
+    confirmation (the record rewritten) ends the fault at the next retry."""
+    log = Events()
+    configs = {a: ActuatorConfig(max_slew_um_per_s=SLEW, safe_voltage_v=0.0) for a in axes}
+    outputs = devices(axes, holds=("voltage_v", 10.0))  # every output claims 10 V
+    records = on_record(tmp_path, outputs, 0.0)  # the daemon wrote 0 V last
+    sick = axes[-1]
+    unreadable = records.path(sick)
+    assert unreadable is not None
+    unreadable.write_text("{not json")  # and one state file cannot be read
+
+    async def main() -> None:
+        actuation = Actuation(log, records=records, safe_budget_s=0.5)
+        await actuation.start(outputs, configs)
+        reason = actuation.fault_reason or ""
+        assert "read back 10.0000 V, but 0.0000 V was the last value written (state file)" in reason \
+            or "the state file cannot be read" in reason, reason
+        assert "nanodrift confirm-output" in reason and str(tmp_path) in reason
+        command(actuation, configs, 100.0)  # (the target path refuses it; the goal must not move anything either)
+        await until(lambda: actuation.write_failures >= 2, 10, "a retry that still cannot prove it")
+        assert all(not d.written for d in outputs.values())
+        for axis, device in outputs.items():  # an operator confirms what each output holds
+            records.save(axis, device.description, 10.0, 10.0)
+        await until(lambda: actuation.fault_reason is None, 15, "the confirmed outputs believed")
+        await actuation.stop(final=True)
+
+    asyncio.run(main())
+    for axis, device in outputs.items():  # then the goal and the safe stop ramp from the confirmed 10 V
+        steps = [v for _, v, _ in device.written]
+        assert steps and abs(steps[0] - 10.0) <= SLEW * 0.02 * RAMP_PERIOD_S + 1e-9, (axis, steps)
+        assert_never_faster(device, SLEW)
+
+
+def test_the_stop_takes_each_axis_to_its_safe_voltage_on_its_own_and_says_which_failed() -> None:
+    """Issue 26.8: y's module dead at the stop never holds x energised; the log names what was reached and what not."""
+    log = Events()
+    outputs = devices(("x", "y"))
+    configs = {a: ActuatorConfig(safe_voltage_v=0.0, max_slew_um_per_s=200.0) for a in ("x", "y")}
+
+    async def scenario() -> None:
+        actuation = Actuation(log, safe_budget_s=1.0)
+        await actuation.start(outputs, configs)
+        if actuation.offer({"x": 100.0, "y": 100.0}, {"x": 2.0, "y": 2.0}):
+            actuation.wake()
+        await until(lambda: all(d.written and d.written[-1][1] == 2.0 for d in outputs.values()), 5, "the goal")
+        outputs["y"].fail_writes, outputs["y"].broken = 1000, True  # y's module is gone
+        await actuation.stop(final=True)
+
+    asyncio.run(scenario())
+    x_steps = [v for _, v, _ in outputs["x"].written]
+    assert x_steps[-1] == 0.0 and outputs["y"].written[-1][1] == 2.0
+    [reached] = log.named("actuator_safe")
+    assert reached["voltage_v"] == {"x": 0.0}, reached
+    [failed] = log.named("actuator_safe_failed")
+    assert failed["voltage_v"] == {"y": 0.0} and failed["last_voltage_v"] == {"y": 2.0}, failed
+    assert "axis y" in failed["error"] and "port gone" in failed["error"], failed
 
 
 # --- how each served command ends: exactly one done each ---------------------------------------
@@ -661,13 +734,13 @@ def test_with_no_outputs_each_command_is_reached_as_it_is_published(axes: tuple[
 
 
 def test_a_stop_during_a_fault_is_answered_at_once_and_the_recovered_outputs_move_nothing(
-        axes: tuple[str, ...]) -> None:
+        axes: tuple[str, ...], tmp_path: Path) -> None:
     configs = {a: ActuatorConfig() for a in axes}
     outputs = devices(axes, holds=("voltage_v", 1.0))
     sick = outputs[axes[-1]]
 
     async def main() -> tuple[Dones, float]:
-        actuation = Actuation(Events())
+        actuation = Actuation(Events(), records=on_record(tmp_path, outputs, 1.0))
         dones = Dones(actuation)
         await actuation.start(outputs, configs)
         sick.fail_writes, sick.broken = 1, True  # its next write fails, and it does not open again

@@ -9,7 +9,8 @@ A wall-clock step is made in the daemon's process only (:class:`helpers.wall_clo
 1. a wall-clock step (−600 s, +1 day, −1 day) changes no command, faults no sensor, is logged once;
 2. a reload in the middle of a ramp keeps the goal: the register ends at the served command, and a
    target answered just after the SIGHUP is written too;
-3. a read-back that lies (outside the limits) is never a ramp start, for a Modbus module and a GCS controller;
+3. a read-back that lies (outside the limits) is never a ramp start: at start nothing proves it, so the output
+   is not moved and targets are refused (issue 26.5), for a Modbus module and a GCS controller;
 5. settled residuals only after the ramp (the position sensor reads where the register puts the stage);
 6. shutdown: the safe ramp at the configured rate whatever the device latency, retried after a refused
    write, and targets during the stop window answered once, with ``shutting_down``.
@@ -19,13 +20,12 @@ Every wait polls a condition with a deadline.
 
 from __future__ import annotations
 
-import asyncio
 import itertools
 import json
 import signal
 import threading
 import time
-from collections.abc import Callable, Coroutine, Iterator, Sequence
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -33,81 +33,21 @@ import pytest
 from helpers.daemon_harness import (
     MODEL_TERMS,
     TEMPS,
-    Client,
-    Daemon,
-    SensorFile,
     expected_q,
-    file_sensor_config,
-    free_port,
-    install_file_plugin,
     wait_until,
 )
-from helpers.modbus_helpers import ModbusTestDevice, ModbusTestServer
+from helpers.edge_cell import (
+    UM_PER_COUNT,
+    VOLTS_PER_UM,
+    Cell,
+    OutputModule,
+    raw_for,
+)
 from helpers.serial_helpers import FakeGcsController
 from helpers.wall_clock import WallShift
 
 from nanodrift.config import STOP_TIMEOUT_S
-from nanodrift.model.model import FittedTerm, Model, Training, save_model
-from nanodrift.model.terms import parse_term
 from nanodrift.motion import RAMP_PERIOD_S
-
-SCALE = 0.001  # volts per count of the output register
-ADDRESS = 10
-VOLTS_PER_UM = 0.02
-UM_PER_COUNT = SCALE / VOLTS_PER_UM
-
-
-# --- the output module ---------------------------------------------------------------------------
-
-
-class OutputModule:
-    """pymodbus' TCP server on its own loop thread; ``stamps`` is every write of a register as it landed."""
-
-    def __init__(self) -> None:
-        self.device = ModbusTestDevice(1, holding_ranges=((0, 32),))
-        self.server = ModbusTestServer([self.device])
-        self.stamps: list[tuple[float, int, int]] = []  # (time.monotonic(), address, raw)
-        self.on_output: Callable[[int], None] | None = None  # told each raw value landing in ADDRESS
-        self.device.on_write = self._landed
-        self.loop = asyncio.new_event_loop()
-        self._thread = threading.Thread(target=self.loop.run_forever, name="modbus-output", daemon=True)
-        self._thread.start()
-        self.call(self.server.start())
-
-    def _landed(self, address: int, values: list[int]) -> None:
-        now = time.monotonic()
-        self.stamps.extend((now, address + i, _signed(v)) for i, v in enumerate(values))
-        if self.on_output is not None and address == ADDRESS:
-            self.on_output(_signed(values[0]))
-
-    def call(self, coro: Coroutine[Any, Any, Any]) -> Any:
-        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(10)
-
-    def register(self) -> int:
-        return _signed(self.call(self.server.get_registers(1, ADDRESS, 1))[0])
-
-    def hold(self, raw: int) -> None:
-        """Put ``raw`` in the register (what an earlier run, or someone else, left there); not a stamp."""
-        self.call(self.server.set_registers(1, ADDRESS, [raw & 0xFFFF], input_type="holding"))
-        self.stamps.clear()
-        self.device.writes.clear()
-
-    def written(self, since: int = 0) -> list[tuple[float, int]]:
-        """(time, raw) of every write of the output register, from stamp ``since`` on."""
-        return [(t, raw) for t, address, raw in self.stamps[since:] if address == ADDRESS]
-
-    def close(self) -> None:
-        self.call(self.server.stop())
-        self.loop.call_soon_threadsafe(self.loop.stop)
-        self._thread.join(5)
-
-
-def _signed(raw: int) -> int:
-    return raw - 65536 if raw >= 32768 else raw
-
-
-def raw_for(voltage_v: float) -> int:
-    return round(voltage_v / SCALE)
 
 
 @pytest.fixture
@@ -115,79 +55,6 @@ def module() -> Iterator[OutputModule]:
     out = OutputModule()
     yield out
     out.close()
-
-
-# --- a daemon --------------------------------------------------------------------------------------
-
-
-def write_model(path: Path, terms: dict[str, float]) -> None:
-    parsed = [FittedTerm(parse_term(name), coef) for name, coef in terms.items()]
-    channels = sorted({ch for ft in parsed for ch in ft.term.channels})
-    ranges = {ch: (TEMPS.get(ch, 21.8) - 1.0, TEMPS.get(ch, 21.8) + 1.0) for ch in channels}
-    save_model(Model(terms=parsed, training=Training(x_range=(0.0, 480.0), channel_ranges=ranges, rows=100,
-                                                     t_span_s=3600.0),
-                     provenance={"source": "tests/service/test_hardware_edge.py"}), path)
-
-
-class Cell:
-    """``nanodrift run`` on the ``file`` sensor plugin with an ``[actuator]`` of the test's, and a client."""
-
-    def __init__(self, root: Path, *, terms: dict[str, float], actuator: str, hub_port: int | None = None,
-                 channels: Sequence[str] = ("T1", "T2"), position: bool = False, extra: str = "",
-                 shift: WallShift | None = None) -> None:
-        self.root = root
-        self.cell = f"edge{free_port()}"
-        self.port = free_port()
-        self.hub_port = hub_port
-        self.channels = tuple(channels)
-        self.position = position
-        self.extra = extra
-        plugins = install_file_plugin(root / "plugins")
-        self.model_path = root / "model.json"
-        write_model(self.model_path, terms)
-        self.sensors = SensorFile(root / "sensors.json", {**TEMPS, **({"P": 0.0} if position else {})})
-        self.config_path = root / "nanodrift.toml"
-        self.write_config(actuator)
-        pythonpath = [plugins, *([WallShift.SITE_DIR] if shift is not None else [])]
-        self.daemon = Daemon(["--config", str(self.config_path)], root / "daemon.log", pythonpath,
-                             env=shift.env() if shift is not None else None)
-        self.daemon.wait_log("serving", timeout=30)
-        self.client: Client | None = Client(self.port, self.cell)
-        self.client.wait_alive()
-        self.client.wait_ready(self.channels + (("P",) if position else ()))
-        self._ids = itertools.count(1)
-
-    def write_config(self, actuator: str) -> None:
-        keys = f"volts_per_um = {VOLTS_PER_UM}\n{actuator}"
-        if self.hub_port is not None:
-            keys = f'kind = "modbus"\nhub = "out"\ndevice_id = 1\naddress = {ADDRESS}\nscale = {SCALE}\n{keys}'
-        extra = self.extra
-        if self.hub_port is not None:
-            extra += (f'\n[[hubs]]\nname = "out"\ntype = "tcp"\nhost = "127.0.0.1"\nport = {self.hub_port}\n'
-                      "timeout_s = 0.3\n")
-        if self.position:
-            extra += (f'\n[[sensors]]\nname = "P"\nrole = "position"\nkind = "file"\npath = "{self.sensors.path}"\n'
-                      "interval_s = 0.05\nmax_age_s = 2.0\ntimeout_s = 0.5\n")
-        self.config_path.write_text(file_sensor_config(
-            self.root, cell=self.cell, port=self.port, model_path=self.model_path, sensor_file=self.sensors.path,
-            channels=self.channels, actuator=keys, extra=extra))
-
-    @property
-    def bus(self) -> Client:
-        assert self.client is not None
-        return self.client
-
-    def target(self, x_um: float) -> dict[str, Any]:
-        """A served target's command (the test fails on a refusal)."""
-        ok, answer = self.bus.query({"x_um": x_um, "id": next(self._ids)})
-        assert ok, answer
-        return answer
-
-    def close(self) -> int:
-        if self.client is not None:
-            self.client.close()
-            self.client = None
-        return self.daemon.stop()
 
 
 @pytest.fixture
@@ -252,9 +119,9 @@ def test_a_reload_mid_ramp_keeps_the_goal_and_a_target_answered_just_after_sighu
         tmp_path: Path, module: OutputModule, cells: list[Cell]) -> None:
     rate = 300.0  # 0 -> 480 um in 1.6 s
     start_raw = raw_for(VOLTS_PER_UM * expected_q(0.0, TEMPS))
-    module.hold(start_raw)  # the stage is at 0 um; verify = true: the daemon reads it back and ramps from it
+    module.hold(start_raw)  # the stage is at 0 um, as confirmed; verify = true: the daemon reads it back, ramps from it
     cell = Cell(tmp_path, terms=MODEL_TERMS, actuator=f"max_slew_um_per_s = {rate}\nv_max = 12.0",
-                hub_port=module.server.port)
+                hub_port=module.server.port, confirmed_v=start_raw * 0.001)
     cells.append(cell)
 
     def mid_ramp(goal_raw: int, from_raw: int) -> None:
@@ -300,21 +167,27 @@ def test_a_reload_mid_ramp_keeps_the_goal_and_a_target_answered_just_after_sighu
 LYING_TERMS = {"x": 1.0, "1": -22.5}
 
 
-def test_a_modbus_output_reading_back_outside_the_limits_never_starts_a_ramp(
+def refused_as_unproven(cell: Cell, claim: str) -> dict[str, Any]:
+    """A target is refused because the output's read-back is unproven, saying what to do; status says it too."""
+    ok, answer = cell.bus.query({"x_um": 0.0, "id": 1})
+    assert not ok and answer["kind"] == "actuator_fault", answer
+    assert claim in answer["error"] and "nanodrift confirm-output" in answer["error"], answer
+    actuator = cell.bus.status()["actuator"]
+    assert actuator["state"] == "fault" and "cannot be proven" in actuator["reason"], actuator
+    return answer
+
+
+def test_a_modbus_output_reading_back_outside_the_limits_is_never_moved(
         tmp_path: Path, module: OutputModule, cells: list[Cell]) -> None:
     module.hold(raw_for(10.0))  # the register reads back 10 V; the limits are [-2, 9.5] V
     cell = Cell(tmp_path, terms=LYING_TERMS, hub_port=module.server.port,
                 actuator="v_min = -2.0\nv_max = 9.5\nmax_slew_um_per_s = 100.0\nverify = true")
     cells.append(cell)
-    command = cell.target(0.0)
-    assert command["voltage_v"] == pytest.approx(-0.45)
-    wait_until(lambda: module.register() == raw_for(-0.45), 10, "the register at -0.45 V")
-    wait_until(lambda: cell.bus.status()["actuator"]["writes"] >= 1, 5, "the write confirmed")
-    assert [raw for _, raw in module.written()] == [raw_for(-0.45)]  # every write the module received
-    assert "outside" in cell.daemon.wait_log("actuator_readback_untrusted")["reason"]
+    refused_as_unproven(cell, "read back 10.0000 V, outside [-2, 9.5] V")
+    assert module.written() == [] and module.register() == raw_for(10.0)  # the module received nothing
 
 
-def test_a_gcs_controller_reading_back_outside_the_limits_never_starts_a_ramp(
+def test_a_gcs_controller_reading_back_outside_the_limits_is_never_moved(
         tmp_path: Path, cells: list[Cell]) -> None:
     controller = FakeGcsController(tmp_path / "ttyPI")
     controller.voltage = 50.0  # SVA? 1 answers 50 V; the limits are [-2, 12] V
@@ -323,13 +196,8 @@ def test_a_gcs_controller_reading_back_outside_the_limits_never_starts_a_ramp(
                 "timeout_s = 0.3\nmax_slew_um_per_s = 100.0\n")
         cell = Cell(tmp_path, terms=LYING_TERMS, actuator=keys)
         cells.append(cell)
-        command = cell.target(0.0)
-        wait_until(lambda: controller.voltage == round(command["voltage_v"], 4), 10, "SVA of the command")
-        moves = [line for line in controller.lines if line.startswith("SVA 1 ")]
-        assert moves, controller.lines
-        assert float(moves[0].split()[2]) == pytest.approx(-0.45, abs=1e-4), controller.lines  # not v_max
-        assert all(float(m.split()[2]) == pytest.approx(-0.45, abs=1e-4) for m in moves), moves
-        assert "outside" in cell.daemon.wait_log("actuator_readback_untrusted")["reason"]
+        refused_as_unproven(cell, "read back 50.0000 V, outside [-2, 12] V")
+        assert not [line for line in controller.lines if line.startswith("SVA 1 ")], controller.lines
     finally:
         for cell in cells:
             cell.close()
@@ -384,7 +252,7 @@ def shutdown_cell(tmp_path: Path, module: OutputModule, cells: list[Cell], rate:
     """A daemon holding 200 um (4 V) on a register that answers each write 10 ms late; safe_voltage_v = 0."""
     module.device.write_delay_s = 0.010
     module.hold(raw_for(4.0))
-    cell = Cell(tmp_path, terms={"x": 1.0}, hub_port=module.server.port,
+    cell = Cell(tmp_path, terms={"x": 1.0}, hub_port=module.server.port, confirmed_v=4.0,
                 actuator=f"max_slew_um_per_s = {rate}\nsafe_voltage_v = 0.0")
     cells.append(cell)
     cell.target(200.0)
@@ -438,8 +306,9 @@ def test_sigterm_ramps_to_the_safe_voltage_at_the_configured_rate_and_refuses_ta
         assert q0 - q1 <= rate * (t1 - t0) + slack_um, f"{q0 - q1:.3f} um in {t1 - t0:.4f} s"
     achieved = (ramp[1][1] - ramp[-1][1]) / (ramp[-1][0] - ramp[1][0])
     # not crawling (the unit's stop timeout counts on the rate). A step covers the time since the previous write
-    # returned (the bound that holds on the device whatever the loop does), so a device answering in 10 ms ramps
-    # at about 20/(20 + 10) of the rate idle, less when a loaded machine writes late: a floor, not a speed
+    # returned (the bound that holds on the device whatever the loop does) and a ramp pauses 9x the write time,
+    # so a device answering in 10 ms ramps at about 90 % of the rate idle, less when a loaded machine writes late:
+    # a floor, not a speed
     assert achieved >= 0.3 * rate, f"{achieved:.1f} um/s with a device answering in 10 ms, configured {rate}"
     assert cell.daemon.log_events("actuator_safe")[0]["voltage_v"] == 0.0
 
