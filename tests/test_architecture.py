@@ -84,6 +84,7 @@ LAZY_ALLOWED = {
     "matplotlib": "figures are drawn only when a report is asked for",
     "nanodrift.reports": "they import matplotlib (half a second) only when a report is asked for",
     "scipy.signal": "a second at every command's start (it pulls in scipy.stats); only series filtering needs it",
+    "scipy.optimize": "0.3 s of CPU at every fit/calibrate start; only discovery's τ search needs it",
     # the package's PEP 562 __getattr__ (daemon/__init__.py): `import nanodrift` and `import nanodrift.model...`
     # load neither zenoh nor numpy; a lab script's `nanodrift.Client` or `nanodrift.read_csv` loads its module
     "nanodrift.client": "zenoh, loaded only when a script names nanodrift.Client (daemon/__init__.py)",

@@ -379,7 +379,7 @@ def test_a_gcs_controller_that_answers_errors_or_goes_silent_refuses_targets_and
         # a second: the controller answers from a thread of this process, which a loaded machine can hold up for
         # tenths of a second (0.3 s made a slow answer of '7' a silence: "no answer to 'ERR?'")
         keys = (f'kind = "serial_line"\nport = "{controller.port}"\nreadback = "SVA? 1\\n"\nerror_query = "ERR?\\n"\n'
-                "timeout_s = 1.0\n")
+                "timeout_s = 2.0\n")
         cell = Cell(tmp_path, None, keys=keys)
         cells.append(cell)
         # the controller's power-up value: a first start believes nothing else (issue 26.5)
@@ -393,7 +393,7 @@ def test_a_gcs_controller_that_answers_errors_or_goes_silent_refuses_targets_and
         # write meets it first, whichever the daemon asks first; either way the fault quotes the '7'
         answering_7 = ("unexpected answer '7' to 'SVA? 1\\n'", "the controller reports error '7' after 'SVA 1 ")
         for trouble, reasons in ((("answer", b"7"), answering_7),
-                                 (("silent", True), ("no answer to 'SVA? 1\\n' within 1 s",))):
+                                 (("silent", True), ("no answer to 'SVA? 1\\n' within 2 s",))):
             name, value = trouble
             setattr(controller, name, value)
             cell.target(250.0)  # served before the trouble is noticed: its write fails
@@ -539,7 +539,7 @@ def three_axis_config(port: str, *, slew: float = 0.0) -> dict[str, object]:
         "cell": "xyz",
         "axes": [{"name": axis, "min_um": 0.0, "max_um": 500.0,
                   "actuator": {"kind": "serial_line", "port": port, "command": f"SVA {n} {{voltage_v:.4f}}\n",
-                               "readback": f"SVA? {n}\n", "timeout_s": 0.5, "safe_voltage_v": 0.0,
+                               "readback": f"SVA? {n}\n", "timeout_s": 2.0, "safe_voltage_v": 0.0,
                                "max_slew_um_per_s": slew}}
                  for axis, n in AXES.items()],
     }

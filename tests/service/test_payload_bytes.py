@@ -2,6 +2,8 @@
 
 Each expected value below was produced by the code before the service was split into a package
 (commit c198473); a refactoring that changes a single byte of a status or a telemetry payload fails here.
+Fields are only ever appended (issue 26 appended the health document's ``holds_unrecorded`` and
+``residuals_rejected``).
 """
 
 from __future__ import annotations
@@ -111,6 +113,6 @@ def test_status_payload_bytes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -
         b'"device":null},'
         b'"counters":{"targets":0,"commands":0,"errors":{},"errors_total":0,"reloads":0,"reload_failures":0},'
         b'"healthy":true,"health":{"state":"unknown","residual_rms_nm":null,"residual_mean_nm":null,"n":0,'
-        b'"correction_um":null,"extrapolating":[],"advice":null}}'
+        b'"correction_um":null,"extrapolating":[],"advice":null,"holds_unrecorded":0,"residuals_rejected":0}}'
     ).replace(b"@MODEL@", model_path)
     assert dumps(status_doc(service.state, service.healthy(), health=service.health)) == expected

@@ -320,9 +320,10 @@ def model_without_covariance(path: Path, rmse_um: float) -> Model:
     return load_model(path)
 
 
-def test_a_model_whose_served_sigma_changed_under_the_same_id_is_applied(restore: Served) -> None:
+def test_a_model_whose_served_sigma_changed_is_applied_under_a_new_id(restore: Served) -> None:
     """Reload kept the old evaluator when the stored ids matched; a file without a covariance serves
-    ``fit.rmse_um`` as its sigma and the id does not cover it, so an edited RMS was never applied."""
+    ``fit.rmse_um`` as its sigma, and the id did not cover it, so an edited RMS was never applied. The id
+    covers it now (issue 26): the edited RMS is another model, served under its own id."""
     s = restore
     before = model_without_covariance(s.model_path, 0.01)
     line = hup_and_wait(s.daemon, "reload_applied", "reload_refused")
@@ -332,7 +333,7 @@ def test_a_model_whose_served_sigma_changed_under_the_same_id_is_applied(restore
     assert command["q_sigma_um"] == pytest.approx(0.01), command
 
     after = model_without_covariance(s.model_path, 0.25)
-    assert after.id == before.id
+    assert after.id != before.id
     line = hup_and_wait(s.daemon, "reload_applied", "reload_refused")
     assert line["event"] == "reload_applied" and line["model"] == after.id, line
     ok, command = s.client.query({"x_um": 470.0, "id": "sigma-2"})
