@@ -26,6 +26,8 @@ def test_a_daemon_that_fails_is_explained_with_its_log_lines_not_a_deleted_path(
     assert "daemon's last log lines" in err, err
     assert re.search(r"^   \| .*error", err, re.MULTILINE | re.IGNORECASE), err  # the daemon's own words, inline
     assert "log:" not in err  # no path to the log: the temporary folder it was in is gone
+    own_words = [line for line in (result.stdout + err).splitlines() if not line.startswith("   | ")]
+    assert not any("nanodrift-demo-" in line for line in own_words)  # nor any other path into it
 
 
 def test_demo_shows_what_adaptation_and_the_uncertainty_add(tmp_path: Path) -> None:
@@ -39,6 +41,7 @@ def test_demo_shows_what_adaptation_and_the_uncertainty_add(tmp_path: Path) -> N
     )
     assert result.returncode == 0, result.stdout + result.stderr
     out = result.stdout
+    assert "nanodrift-demo-" not in out  # no path into the demo's temporary folder (issue 27)
     assert "What nanodrift adds" in out
     adapt = re.search(r"adaptation on test5 .*?: (\d+) nm static -> (\d+) nm adaptive", out)
     assert adapt, out
