@@ -93,15 +93,16 @@ SETTLE_S, WINDOW_S = 300.0, 600.0  # a target's residual: the mean over 600 s fr
 #: the training range), beyond the default 1 um clamp
 ADAPT_MAX_UM = 2.0
 GOAL_RSS_MB = 10.0
-#: bars per command over the full days 1-6 (nm, against the truth), on the worst pair of weeks, per cell: week 2's
-#: static refit, the paper's calibration with the bias tracker, the refit with it (measured: README)
-BARS_NM: dict[str, dict[str, dict[str, float]]] = {
-    "realistic": {"static": {"RMS": 150.0, "p95": 300.0, "max": 600.0},
-                  "adaptive train": {"RMS": 150.0, "p95": 300.0, "max": 1500.0},
-                  "adaptive refit": {"RMS": 150.0, "p95": 300.0, "max": 600.0}},
-    "ideal": {"static": {"RMS": 60.0, "p95": 120.0, "max": 250.0},
-              "adaptive train": {"RMS": 150.0, "p95": 300.0, "max": 1500.0},
-              "adaptive refit": {"RMS": 60.0, "p95": 120.0, "max": 250.0}},
+#: bars per command over the full days 1-6 (nm, against the truth), on the worst pair of weeks, whatever the cell,
+#: the same for every run of week 2 (the follow-up paper's figures over days, 400 nm static and 100 nm adaptive,
+#: are printed beside as anchors).
+#: Measured on the realistic cell (README): the static refit passes (RMS 89, p95 166, max 278 nm); both adaptive
+#: runs fail (RMS 226-260 nm): the bias tracker zeroes what the interferometer reads, and the realistic
+#: interferometer's refraction walk does not average out, so the stage follows the walk.
+BARS_NM: dict[str, dict[str, float]] = {
+    "static": {"RMS": 150.0, "p95": 300.0, "max": 600.0},
+    "adaptive train": {"RMS": 150.0, "p95": 300.0, "max": 600.0},
+    "adaptive refit": {"RMS": 150.0, "p95": 300.0, "max": 600.0},
 }
 ANCHOR_STATIC_NM, ANCHOR_ADAPTIVE_NM = 400.0, 100.0
 
@@ -514,7 +515,7 @@ def main() -> int:
           "over days (no bar: the model has not seen the room's range)")
     for index, name in enumerate(("static", "adaptive train", "adaptive refit")):
         worst = [scores(w.week2[index]) for w in all_weeks]
-        bar = BARS_NM[args.cell][name]
+        bar = BARS_NM[name]
         figures = {"RMS": max(s.rms_nm for s in worst), "p95": max(s.p95_nm for s in worst),
                    "max": max(s.max_nm for s in worst)}
         anchor = ANCHOR_STATIC_NM if name == "static" else ANCHOR_ADAPTIVE_NM
