@@ -1,25 +1,30 @@
 """Two simulated weeks served by ``nanodrift run``, as a lab runs them: serve, record, refit, serve again.
 
-    nice python benchmarks/week.py [--speed 10000] [--period-s 1200] [--seed 1]
+    nice python benchmarks/week.py [--cell realistic|ideal] [--seeds 1] [--workers 2] [--speed 10000] [--seed 1]
 
 What a lab does with the paper's calibration, which saw T4 21.55-22.0 °C while a week's air spans
-20.3-23.0 °C (day/night, HVAC, the weekend setback):
+20.3-23.0 °C (day/night, HVAC, the weekend setback), on the ``realistic`` cell by default (physics no candidate
+term reproduces; ``--cell ideal``: the model's own form, where a refit with a square can be nearly exact):
 
 1. ``train``: ``nanodrift fit calibration.csv``, the calibration being 24 ``train`` cycles of the vectorised
-   simulator (``simulate_dataset``, seed 0), as ``benchmarks/adaptation.py`` calibrates.
-2. Week 1 (cell seed ``--seed``): ``train`` served statically (``[adapt] mode = "off"``), recording every
+   simulator (``simulate_dataset``, seed k for pair k), as ``benchmarks/adaptation.py`` calibrates.
+2. Week 1 (cell seed ``--seed`` + 2k): ``train`` served statically (``[adapt] mode = "off"``), recording every
    settled target with every polled channel (``[health] record_dir``). This is also the "paper's
-   calibration only" line, printed beside the follow-up paper's 400 nm static over days (no bar): the
-   bracket's bending (-0.4 µm/°C²) is invisible inside the calibration's range, and a model linear in
-   T1..T4 cannot follow it outside (the paper's test 5, for days).
+   calibration only" line, printed beside the follow-up paper's 400 nm static over days (no bar).
 3. ``refit``: ``nanodrift fit calibration.csv records/*.csv`` (week 1's seven day files, each a run of its
    own), in a subprocess as the lab runs it; its terms and training ranges are printed.
-4. Week 2 (seed ``--seed`` + 1: the same weekly pattern, new noise, fluctuations and door dips), three
-   runs: ``refit`` static (the static bar, <= 200 nm), ``train`` with the bias tracker (``mode = "bias"``:
-   the follow-up's case, the paper's method plus the tracker, which the 100 nm anchor measured) and
-   ``refit`` with the tracker (what the lab would run after refitting). The adaptive bar (<= 60 nm)
-   applies to both adaptive runs. RSS growth (< 10 MB) and the seven day files with every polled
-   channel are checked on week 2's runs.
+4. Week 2 (seed + 1: the same weekly pattern, new noise, fluctuations and door dips), three runs, ``--workers``
+   at a time (each its own daemon process): ``refit`` static, ``train`` with the bias tracker (``mode =
+   "bias"``: the follow-up's case, the paper's method plus the tracker, which its 100 nm anchor measured) and
+   ``refit`` with the tracker (what the lab would run after refitting).
+
+Scored per command, against the truth: every settled target of the full days 1-6 (not a daily mean per point)
+gives |true position - target|; its RMS, 95th percentile and maximum each have a bar (``BARS_NM``, per cell),
+applied to the worst of the ``--seeds`` pairs, so a model or tracker that fails one stretch of the week fails
+the run. The interferometer's uncertainty is < 40 nm (the paper's III.A): figures below it are the simulator's
+truth, not what a lab could verify. RSS growth (< 10 MB), the seven day files with every polled channel and
+no refused target are checked on every run. The ISO 9283 accuracy per day (truth and interferometer) is
+printed per pair as before, without a bar.
 
 Each run is a real ``python -m nanodrift.cli run`` subprocess serving the simulated cell (``[simulation]
 scenario = "week"``: ±1 °C day/night, HVAC steps, a weekend setback, door openings) on a clock ``--speed``
@@ -31,29 +36,15 @@ session on 127.0.0.1 sends the ISO 9283 points (0..480 µm by 80, up and down sw
 A "day" is the simulated lab's: the scaled clock starts at the last UTC midnight together with the
 scenario (Monday 00:00), and the recorder labels its rows with that clock, so day k of the scenario is
 the k-th record file. Day 0 starts when the daemon first serves (its start-up takes a few wall seconds:
-hours of cell time), so it is shorter than the others.
+hours of cell time), so it is shorter than the others; it holds the bias tracker's cold start (its first
+residual weighs one 30 s step, ``BiasTracker.first_dt_s``) in the weekend setback, and is printed beside.
 
-What each figure is measured against, per day, over the recorder's valid rows (one per settled target):
-- ``truth``: the stage's true attained position. The simulated cell writes every interferometer reading
-  beside the true position at that instant (``[simulation] truth_log``); each row's window is found in
-  that log as the run of readings whose mean is exactly the row's ``x_um`` (so the truth is averaged
-  over the very readings the daemon averaged);
-- ``interferometer``: the row's ``x_um`` (what the daemon, its health unit and tracker saw: the truth plus
-  the interferometer's 20 nm noise and 25 nm slow wander).
-The figure is ISO 9283 accuracy as in Table I: per point |mean error over the day's visits|, averaged over
-the 7 points. Daemon RSS is read from /proc/<pid>/status at the end of each day. Anchor: the follow-up
-paper's result over several days, 400 nm static and 100 nm adaptive.
-
-The accuracy bars are over the full days 1-6; day 0 is printed beside them: it holds the start-up and
-the bias tracker's cold start (its first residual weighs one 30 s step, ``BiasTracker.first_dt_s``), with
-Monday morning still in the weekend setback. What the refit is (seed 1, measured): over the week's 2.7 °C
-``fit`` offers each channel's square (it does only where the data spans >= 1 °C) and the stepwise keeps
-``(T2 - 21.59)^2`` at 0.399 µm/°C² (the simulated bracket bends 0.40), with x², x³ and T1, T2, T4:
-residual RMS 24 nm on its training data where the same fit linear in T1..T4 left 211 nm, dropped x², x³
-and picked a T3/T4 pair of ±7 µm/°C (worst full day of week 2 then: static 103 nm, with the tracker 68
-nm). With the square, week 2's worst full day is ~8 nm static and ~13 nm with the tracker. The runs are
-paced by the wall clock (the start-up's length, the machine's load), so two runs of one seed differ in
-their rows, and so in the linear channels the refit selects (T1..T4 are nearly collinear over a week).
+The truth: the simulated cell writes every interferometer reading beside the true position at that instant
+(``[simulation] truth_log``); each recorded row's window is found in that log as the run of readings whose
+mean is exactly the row's ``x_um`` (so the truth is averaged over the very readings the daemon averaged).
+The runs are paced by the wall clock (the start-up's length, the machine's load), so two runs of one seed
+differ in their rows, and so in the linear channels the refit selects (T1..T4 are nearly collinear over a
+week). Daemon RSS is read from /proc/<pid>/status at the end of each day.
 """
 
 from __future__ import annotations
@@ -62,6 +53,7 @@ import argparse
 import csv
 import datetime as dt
 import json
+import math
 import os
 import signal
 import socket
@@ -72,6 +64,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TypeVar
@@ -85,6 +78,7 @@ from nanodrift.calibration.dataset import write_csv
 from nanodrift.calibration.plans import VALIDATION_POINTS_UM
 from nanodrift.client import Client
 from nanodrift.drivers.simulated.datasets import simulate_dataset
+from nanodrift.drivers.simulated.physics import CELLS
 from nanodrift.service.recorder import RECORD_COLUMNS
 
 REPO = Path(__file__).resolve().parent.parent
@@ -98,7 +92,18 @@ SETTLE_S, WINDOW_S = 300.0, 600.0  # a target's residual: the mean over 600 s fr
 #: the tracker's clamp: the static model's error reaches -1.4 um at the weekend setback (1.7 degC below
 #: the training range), beyond the default 1 um clamp
 ADAPT_MAX_UM = 2.0
-GOAL_STATIC_NM, GOAL_ADAPTIVE_NM, GOAL_RSS_MB = 200.0, 60.0, 10.0
+GOAL_RSS_MB = 10.0
+#: bars per command over the full days 1-6 (nm, against the truth), on the worst pair of weeks, whatever the cell,
+#: the same for every run of week 2 (the follow-up paper's figures over days, 400 nm static and 100 nm adaptive,
+#: are printed beside as anchors).
+#: Measured on the realistic cell (README): the static refit passes (RMS 89, p95 166, max 278 nm); both adaptive
+#: runs fail (RMS 226-260 nm): the bias tracker zeroes what the interferometer reads, and the realistic
+#: interferometer's refraction walk does not average out, so the stage follows the walk.
+BARS_NM: dict[str, dict[str, float]] = {
+    "static": {"RMS": 150.0, "p95": 300.0, "max": 600.0},
+    "adaptive train": {"RMS": 150.0, "p95": 300.0, "max": 600.0},
+    "adaptive refit": {"RMS": 150.0, "p95": 300.0, "max": 600.0},
+}
 ANCHOR_STATIC_NM, ANCHOR_ADAPTIVE_NM = 400.0, 100.0
 
 
@@ -115,7 +120,8 @@ def rss_mb(pid: int) -> float:
     return float("nan")
 
 
-def write_config(path: Path, *, port: int, model: Path, mode: str, speed: float, seed: int, run_dir: Path) -> None:
+def write_config(path: Path, *, port: int, model: Path, mode: str, speed: float, seed: int, run_dir: Path,
+                 cell: str) -> None:
     sensors = "".join(
         f'[[sensors]]\nname = "{c}"\nkind = "simulated"\ninterval_s = {INTERVAL_S}\nmax_age_s = {MAX_AGE_S}\n'
         for c in CHANNELS)
@@ -127,7 +133,8 @@ def write_config(path: Path, *, port: int, model: Path, mode: str, speed: float,
         f"[health]\nsettle_s = {SETTLE_S}\nwindow_s = {WINDOW_S}\n"
         f'record_dir = "{run_dir / "records"}"\nrecord_keep_days = 0\n'
         f'[adapt]\nmode = "{mode}"\nmax_um = {ADAPT_MAX_UM}\n'
-        f'[simulation]\nscenario = "week"\nspeed = {speed}\nseed = {seed}\ntruth_log = "{run_dir / "truth.csv"}"\n'
+        f'[simulation]\nscenario = "week"\ncell = "{cell}"\nspeed = {speed}\nseed = {seed}\n'
+        f'truth_log = "{run_dir / "truth.csv"}"\n'
         + sensors)
 
 
@@ -216,13 +223,14 @@ def wait_for(predicate: Callable[[], T | None], timeout_s: float, what: str) -> 
     raise SystemExit(f"timed out after {timeout_s:g} s waiting for {what}")
 
 
-def serve_week(name: str, mode: str, model: Path, root: Path, *, speed: float, period_s: float, seed: int) -> Run:
+def serve_week(name: str, mode: str, model: Path, root: Path, *, speed: float, period_s: float, seed: int,
+               cell: str) -> Run:
     """One week of ``nanodrift run`` (``[adapt] mode``) with ``model`` on the ``week`` cell of ``seed``, scored."""
     run_dir = root / name
     run_dir.mkdir()
     port = free_port()
     config = run_dir / "week.toml"
-    write_config(config, port=port, model=model, mode=mode, speed=speed, seed=seed, run_dir=run_dir)
+    write_config(config, port=port, model=model, mode=mode, speed=speed, seed=seed, run_dir=run_dir, cell=cell)
     log = run_dir / "daemon.log"
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
     started = time.monotonic()
@@ -362,58 +370,70 @@ def indent(text: str) -> str:
 
 @dataclass
 class Scores:
-    """A run's per-day accuracy against the truth and the interferometer, and its worst full day."""
+    """A run's per-day accuracy against the truth and the interferometer, and per command over the full days."""
 
     by_day: dict[int, tuple[float, float, int]]  # day -> (truth nm, interferometer nm, rows)
-    worst_full_day_nm: float  # against the truth, over days 1-6
+    worst_full_day_nm: float  # ISO accuracy of the worst full day (1-6) against the truth
     day0_nm: float
+    #: per command over the full days 1-6, |true position - target| (nm): RMS, 95th percentile, max
+    rms_nm: float
+    p95_nm: float
+    max_nm: float
 
 
 def scores(run: Run) -> Scores:
     by_day: dict[int, tuple[float, float, int]] = {}
-    for day, rows in per_day(run).items():
+    days = per_day(run)
+    for day, rows in days.items():
         by_day[day] = (day_accuracy_nm(rows, "true_x_um"), day_accuracy_nm(rows, "x_um"), len(rows))
     full = [by_day[d][0] for d in range(1, DAYS) if d in by_day]
     worst = max(full) if len(full) == DAYS - 1 else float("inf")  # a full day without a row fails the bar
-    return Scores(by_day, worst, by_day[0][0] if 0 in by_day else float("nan"))
+    errors = np.abs([1e3 * (row["true_x_um"] - row["target_um"]) for d in range(1, DAYS) for row in days.get(d, [])])
+    if errors.size == 0 or len(full) < DAYS - 1:
+        return Scores(by_day, worst, math.nan, math.inf, math.inf, math.inf)
+    return Scores(by_day, worst, by_day[0][0] if 0 in by_day else float("nan"),
+                  float(np.sqrt(np.mean(errors ** 2))), float(np.percentile(errors, 95)), float(errors.max()))
 
 
-def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--speed", type=float, default=10_000.0, help="cell seconds per wall second")
-    parser.add_argument("--period-s", type=float, default=1200.0, help="a target every this many cell seconds")
-    parser.add_argument("--seed", type=int, default=1,
-                        help="week 1's cell seed; week 2's is seed + 1 (the calibration's: 0)")
-    args = parser.parse_args()
-    wall0 = time.perf_counter()
-    root = Path(tempfile.mkdtemp(prefix="nanodrift-week-"))
+@dataclass
+class SeedWeeks:
+    """One seed's two weeks: the calibration and week 1 (seed), the refit, week 2 (seed + 1) three ways."""
+
+    seed: int
+    week1: Run
+    week2: list[Run]
+    train_summary: str
+    refit_summary: str
+
+    @property
+    def runs(self) -> list[Run]:
+        return [self.week1, *self.week2]
+
+
+def two_weeks(root: Path, seed: int, calibration_seed: int, args: argparse.Namespace) -> SeedWeeks:
+    """Calibrate (seed ``calibration_seed``), serve week 1 statically, refit, serve week 2 three ways (the three
+    runs of week 2 ``--workers`` at a time: each is its own daemon process)."""
+    root = root / f"seed{seed}"
+    root.mkdir()
     calibration = root / "calibration.csv"
-    write_csv(simulate_dataset("train", cycles=24, seed=0), calibration)
+    write_csv(simulate_dataset("train", cycles=24, seed=calibration_seed, cell=args.cell), calibration)
     train_model, refit_model = root / "train.json", root / "refit.json"
     train_summary = nanodrift_fit([calibration], train_model)
-    serve = {"speed": args.speed, "period_s": args.period_s}
-    print(f"Two simulated weeks (scenario week) served by `nanodrift run` at speed {args.speed:g}: a target every "
-          f"{args.period_s:g} cell s (ISO 9283 points 0..480 by 80), settle {SETTLE_S:g} s + window {WINDOW_S:g} s, "
-          f"sensors every {INTERVAL_S:g} s (max_age_s {MAX_AGE_S:g}); files in {root}\n")
-    print(f"Model 'train': `nanodrift fit calibration.csv` (24 train cycles of the simulator, seed 0):\n"
-          f"{indent(train_summary)}\n")
+    serve = {"speed": args.speed, "period_s": args.period_s, "cell": args.cell}
+    week1 = serve_week("week1-static-train", "off", train_model, root, seed=seed, **serve)
+    refit_summary = nanodrift_fit([calibration, *record_files(week1)], refit_model)
+    plans = [("week2-static-refit", "off", refit_model), ("week2-adaptive-train", "bias", train_model),
+             ("week2-adaptive-refit", "bias", refit_model)]
+    with ThreadPoolExecutor(max_workers=args.workers) as pool:
+        week2 = list(pool.map(lambda plan: serve_week(*plan, root, seed=seed + 1, **serve), plans))
+    return SeedWeeks(seed, week1, week2, train_summary, refit_summary)
 
-    week1 = serve_week("week1-static-train", "off", train_model, root, seed=args.seed, **serve)
-    week1_files = record_files(week1)
-    refit_summary = nanodrift_fit([calibration, *week1_files], refit_model)
-    recorded = len(week1.rows) + week1.invalid_rows + week1.unmatched_rows
-    print(f"Model 'refit': `nanodrift fit calibration.csv <week 1's {len(week1_files)} record files>` "
-          f"(week 1: seed {args.seed}, served statically with 'train'; {recorded} "
-          f"rows recorded, {week1.invalid_rows} with valid = 0 that fit leaves out):\n{indent(refit_summary)}\n")
 
-    week2_seed = args.seed + 1
-    week2 = [serve_week("week2-static-refit", "off", refit_model, root, seed=week2_seed, **serve),
-             serve_week("week2-adaptive-train", "bias", train_model, root, seed=week2_seed, **serve),
-             serve_week("week2-adaptive-refit", "bias", refit_model, root, seed=week2_seed, **serve)]
-    runs = [week1, *week2]
-    titles = [f"wk1 static {week1.model.stem}", *(f"wk2 {'static' if r.mode == 'off' else 'adaptive'} {r.model.stem}"
-                                                   for r in week2)]
-    results = {run.name: scores(run) for run in runs}
+def print_days(weeks: SeedWeeks, results: dict[str, Scores]) -> None:
+    """The per-day table of one seed's four runs (ISO accuracy per day, truth and interferometer)."""
+    runs = weeks.runs
+    titles = [f"wk1 static {weeks.week1.model.stem}",
+              *(f"wk2 {'static' if r.mode == 'off' else 'adaptive'} {r.model.stem}" for r in weeks.week2)]
     print("ISO 9283 accuracy per day, nm (mean over the 7 points of |the day's mean error|) against the TRUE position "
           "(truth) and the interferometer (interf.); rows = settled targets scored")
     print("day  weekday " + "".join(f"| {t:^21}" for t in titles) + "| RSS MB, week 2 runs in this order")
@@ -427,14 +447,57 @@ def main() -> int:
                 cells.append(f"| {truth_nm:6.1f} {interf_nm:7.1f} {rows:4d}  ")
             else:
                 cells.append(f"| {'-':>6} {'-':>7} {0:4d}  ")
-        rss = " / ".join(f"{r.rss_mb[day]:.1f}" if day < len(r.rss_mb) else "-" for r in week2)
+        rss = " / ".join(f"{r.rss_mb[day]:.1f}" if day < len(r.rss_mb) else "-" for r in weeks.week2)
         label = f"{day}{'*' if day == 0 else ' '}"
         print(f"{label:4} {weekdays[day]:8}" + "".join(cells) + f"| {rss}")
     day0_hours = " / ".join(f"{run.day0_hours:.1f}" for run in runs)
     print(f"* day 0 from the first served target: {day0_hours} h of the day in these runs (the daemon's "
           "start-up is hours of cell time), with the bias tracker's cold start: it gives its first residual the "
           "weight of one 30 s step (BiasTracker first_dt_s), so the first targets, in the weekend setback, carry "
-          "the static error; the bars below are over the full days 1-6, day 0 beside them\n")
+          "the static error; the figures below are over the full days 1-6, day 0 beside them\n")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--speed", type=float, default=10_000.0, help="cell seconds per wall second")
+    parser.add_argument("--period-s", type=float, default=1200.0, help="a target every this many cell seconds")
+    parser.add_argument("--seed", type=int, default=1,
+                        help="week 1's cell seed; week 2's is seed + 1 (the calibration's: 0)")
+    parser.add_argument("--seeds", type=int, default=1,
+                        help="independent pairs of weeks: pair k has week 1 seed + 2k, week 2 seed + 2k + 1 and "
+                             "its calibration seed k; the bars apply to the worst pair")
+    parser.add_argument("--cell", choices=list(CELLS), default="realistic",
+                        help="realistic (default: physics no candidate term reproduces) or ideal (the model's own "
+                             "form, where a refit can be nearly exact)")
+    parser.add_argument("--workers", type=int, default=2, help="week 2's runs served at once (each its own daemon)")
+    args = parser.parse_args()
+    if args.seeds < 1 or args.workers < 1:
+        parser.error("--seeds and --workers must be at least 1")
+    wall0 = time.perf_counter()
+    root = Path(tempfile.mkdtemp(prefix="nanodrift-week-"))
+    print(f"Two simulated weeks (scenario week, the {args.cell} cell) served by `nanodrift run` at speed "
+          f"{args.speed:g}: a target every {args.period_s:g} cell s (ISO 9283 points 0..480 by 80), settle "
+          f"{SETTLE_S:g} s + window {WINDOW_S:g} s, sensors every {INTERVAL_S:g} s (max_age_s {MAX_AGE_S:g}); "
+          f"files in {root}\n")
+    all_weeks = []
+    for k in range(args.seeds):
+        weeks = two_weeks(root, args.seed + 2 * k, k, args)
+        all_weeks.append(weeks)
+        results = {run.name: scores(run) for run in weeks.runs}
+        week1 = weeks.week1
+        recorded = len(week1.rows) + week1.invalid_rows + week1.unmatched_rows
+        print(f"=== pair {k}: calibration seed {k}, week 1 seed {weeks.seed}, week 2 seed {weeks.seed + 1}")
+        print(f"Model 'train': `nanodrift fit calibration.csv` (24 train cycles of the simulator, seed {k}):\n"
+              f"{indent(weeks.train_summary)}\n")
+        print(f"Model 'refit': `nanodrift fit calibration.csv <week 1's {len(record_files(week1))} record files>` "
+              f"(week 1 served statically with 'train'; {recorded} rows recorded, {week1.invalid_rows} with "
+              f"valid = 0 that fit leaves out):\n{indent(weeks.refit_summary)}\n")
+        print_days(weeks, results)
+        for run in weeks.runs:
+            r = results[run.name]
+            print(f"      {run.name}: per command over days 1-6 against the truth RMS {r.rms_nm:.0f} nm, p95 "
+                  f"{r.p95_nm:.0f} nm, max {r.max_nm:.0f} nm; worst day's ISO accuracy {r.worst_full_day_nm:.1f} nm")
+        print()
     ok = True
 
     def check(passed: bool, text: str) -> None:
@@ -442,42 +505,49 @@ def main() -> int:
         ok &= passed
         print(f"{'PASS' if passed else 'FAIL'}  {text}")
 
-    first = results[week1.name]
-    print(f"INFO  week 1 static, the paper's calibration only ('train'): worst full day against the truth "
-          f"{first.worst_full_day_nm:.1f} nm (day 0: {first.day0_nm:.1f} nm)   anchor: the follow-up's "
-          f"{ANCHOR_STATIC_NM:g} nm static over days (no bar: the model has not seen the room's range)")
-    for run in week2:
-        result = results[run.name]
-        static = run.mode == "off"
-        goal, anchor = (GOAL_STATIC_NM, ANCHOR_STATIC_NM) if static else (GOAL_ADAPTIVE_NM, ANCHOR_ADAPTIVE_NM)
-        kind = "static" if static else "adaptive (bias tracker)"
-        check(result.worst_full_day_nm <= goal,
-              f"week 2 {kind}, model '{run.model.stem}': worst full day against the truth "
-              f"{result.worst_full_day_nm:.1f} nm <= {goal:g} nm (day 0: {result.day0_nm:.1f} nm)   anchor: the "
-              f"follow-up's {anchor:g} nm {'static' if static else 'adaptive'} over days")
-    for run in week2:
-        growth = run.rss_mb[-1] - run.rss_mb[0] if len(run.rss_mb) >= 2 else float("nan")
-        check(growth < GOAL_RSS_MB, f"{run.name}: daemon RSS growth from the end of day 0 to the end of the week "
-              f"{growth:+.1f} MB < {GOAL_RSS_MB:g} MB ({run.rss_mb[0]:.1f} -> {run.rss_mb[-1]:.1f} MB)")
-        expected = [*RECORD_COLUMNS, *CHANNELS]
-        week_days = {(dt.datetime.fromtimestamp(run.week_start, dt.UTC).date() + dt.timedelta(days=d)).isoformat()
-                     for d in range(DAYS)}
-        in_week = [(name, header) for name, header in run.files if name[len("records-"):][:10] in week_days]
-        after = [name for name, header in run.files if (name, header) not in in_week]
-        complete = [name for name, header in in_week if all(c in header for c in expected)]
-        check(len(in_week) == DAYS and len(complete) == DAYS,
-              f"{run.name}: {len(in_week)} record files for the week's {DAYS} days, {len(complete)} with every polled "
-              f"channel ({', '.join(CHANNELS)}): {', '.join(n for n, _ in in_week)}"
-              + (f" (and {', '.join(after)}: the last target, sent in the week, settled after its end: the "
-                 "client's pacing is wall-clock, 0.1 s of which is 1000 cell s)" if after else ""))
-    for run in runs:
-        refused = sum(run.refusals.values())
-        check(refused == 0 and run.commands == run.sent,
-              f"{run.name}: {run.sent} targets sent, {run.commands} commands, {refused} refused "
-              f"{run.refusals or ''} {run.first_refusal}")
-        print(f"      {run.name} (seed {run.seed}): {len(run.rows)} valid rows scored, {run.invalid_rows} invalid "
-              f"(valid = 0), {run.unmatched_rows} whose readings were not found in the truth log; "
-              f"run {run.wall_s:.0f} s wall")
+    print(f"Per command over the full days 1-6, |true position - target| (every settled target, not a daily mean), "
+          f"the worst of {args.seeds} pair(s); the interferometer's uncertainty is < 40 nm (the paper's III.A): "
+          "figures below it cannot be verified on a lab's cell")
+    week1_scores = [scores(w.week1) for w in all_weeks]
+    print(f"INFO  week 1 static, the paper's calibration only ('train'): RMS "
+          f"{max(s.rms_nm for s in week1_scores):.0f} nm, p95 {max(s.p95_nm for s in week1_scores):.0f} nm, max "
+          f"{max(s.max_nm for s in week1_scores):.0f} nm   anchor: the follow-up's {ANCHOR_STATIC_NM:g} nm static "
+          "over days (no bar: the model has not seen the room's range)")
+    for index, name in enumerate(("static", "adaptive train", "adaptive refit")):
+        worst = [scores(w.week2[index]) for w in all_weeks]
+        bar = BARS_NM[name]
+        figures = {"RMS": max(s.rms_nm for s in worst), "p95": max(s.p95_nm for s in worst),
+                   "max": max(s.max_nm for s in worst)}
+        anchor = ANCHOR_STATIC_NM if name == "static" else ANCHOR_ADAPTIVE_NM
+        check(all(figures[k] <= bar[k] for k in bar),
+              f"week 2 {name} ('{all_weeks[0].week2[index].model.stem}', "
+              f"{'[adapt] mode = bias' if 'adaptive' in name else 'static'}): "
+              + ", ".join(f"{k} {figures[k]:.0f} nm <= {bar[k]:g}" for k in bar)
+              + f"   anchor: the follow-up's {anchor:g} nm {'static' if name == 'static' else 'adaptive'} over days")
+    for weeks in all_weeks:
+        for run in weeks.week2:
+            growth = run.rss_mb[-1] - run.rss_mb[0] if len(run.rss_mb) >= 2 else float("nan")
+            check(growth < GOAL_RSS_MB, f"{run.name} (seed {run.seed}): daemon RSS growth from the end of day 0 "
+                  f"to the end of the week {growth:+.1f} MB < {GOAL_RSS_MB:g} MB ({run.rss_mb[0]:.1f} -> "
+                  f"{run.rss_mb[-1]:.1f} MB)")
+            expected = [*RECORD_COLUMNS, *CHANNELS]
+            week_days = {(dt.datetime.fromtimestamp(run.week_start, dt.UTC).date()
+                          + dt.timedelta(days=d)).isoformat() for d in range(DAYS)}
+            in_week = [(name, header) for name, header in run.files if name[len("records-"):][:10] in week_days]
+            after = [name for name, header in run.files if (name, header) not in in_week]
+            complete = [name for name, header in in_week if all(c in header for c in expected)]
+            check(len(in_week) == DAYS and len(complete) == DAYS,
+                  f"{run.name}: {len(in_week)} record files for the week's {DAYS} days, {len(complete)} with every "
+                  f"polled channel ({', '.join(CHANNELS)})"
+                  + (f" (and {', '.join(after)}: the last target, sent in the week, settled after its end: the "
+                     "client's pacing is wall-clock, 0.1 s of which is 1000 cell s)" if after else ""))
+        for run in weeks.runs:
+            refused = sum(run.refusals.values())
+            check(refused == 0 and run.commands == run.sent,
+                  f"{run.name} (seed {run.seed}): {run.sent} targets sent, {run.commands} commands, {refused} "
+                  f"refused {run.refusals or ''} {run.first_refusal}")
+            print(f"      {len(run.rows)} valid rows scored, {run.invalid_rows} invalid (valid = 0), "
+                  f"{run.unmatched_rows} whose readings were not found in the truth log; run {run.wall_s:.0f} s wall")
     print(f"\n{time.perf_counter() - wall0:.0f} s wall")
     return 0 if ok else 1
 

@@ -1,8 +1,8 @@
 """ISO 9283 statistics adapted to one axis (paper III.B-C, Table I, Fig. 9, 11).
 
-Test points 0, 80, ..., 480 µm, visited in alternating up and down sweeps so the inner points are
-approached from both sides (the end points are measured twice at each turn, the second time
-without a move); ``cycles`` sweeps (30 in the paper: 210 steps of 29 s, ~1.7 h). Each visit is a step of the
+Test points 0, 80, ..., 480 µm, visited in forward sweeps, each point always approached from the same
+side (ISO 9283 repeatability is unidirectional; from both sides RP would mix in the stage's
+hysteresis); ``cycles`` sweeps (30 in the paper: 210 steps of 29 s, ~1.7 h). Each visit is a step of the
 calibration procedure (4 s ramp, 25 s hold, mean of the last 5 s), commanded through the model
 (``q' = model(x', temperatures now)``) or, uncompensated, with ``q' = x'``.
 

@@ -82,12 +82,10 @@ def bidirectional_plan(cycles: int, points: Sequence[float] = CALIBRATION_POINTS
 
 
 def validation_plan(cycles: int, points: Sequence[float] = VALIDATION_POINTS_UM) -> list[PlannedStep]:
-    """ISO 9283: alternating up and down sweeps, so inner points are approached from both sides."""
-    steps: list[PlannedStep] = []
-    for c in range(cycles):
-        for x in (points if c % 2 == 0 else list(points)[::-1]):
-            steps.append(PlannedStep.on_x(len(steps), c, float(x)))
-    return steps
+    """ISO 9283: every cycle the same forward sweep 0 -> 480 µm, so each point is always approached from the same
+    side (ISO 9283 pose repeatability is unidirectional: approaches from both sides would add a stage's
+    hysteresis to RP). The paper's calibration sweeps forward too (III.B)."""
+    return [PlannedStep.on_x(i, c, float(x)) for i, (c, x) in enumerate((c, x) for c in range(cycles) for x in points)]
 
 
 # ----- multi-axis cells (an XY or XYZ stage) ---------------------------------------------------------
@@ -184,11 +182,7 @@ def cell_validation_points(axes: Sequence[str], ranges_um: dict[str, tuple[float
 
 def cell_validation_plan(axes: Sequence[str], cycles: int = 30,
                          ranges_um: dict[str, tuple[float, float]] | None = None) -> list[PlannedStep]:
-    """ISO 9283 cycles over P1..P5, alternately P1 -> P5 and P5 -> P1: every point is approached from two
-    directions (along every axis), as the one-axis plan's up and down sweeps do."""
+    """ISO 9283 cycles P1 -> P2 -> ... -> P5, the same order every cycle: each point is always approached from the
+    same pose (unidirectional pose repeatability, as the one-axis plan's forward sweeps)."""
     points = cell_validation_points(axes, ranges_um)
-    steps: list[PlannedStep] = []
-    for c in range(cycles):
-        for p in (points if c % 2 == 0 else points[::-1]):
-            steps.append(PlannedStep(len(steps), c, p))
-    return steps
+    return [PlannedStep(i, c, p) for i, (c, p) in enumerate((c, p) for c in range(cycles) for p in points)]

@@ -80,6 +80,8 @@ TESTS: dict[str, str] = {
     "test5": "with the model, OUTSIDE the training range (the room 0.7 °C warmer and rising)",
 }
 IN_RANGE = ("test2", "test3", "test4")
+#: test 5 "degrades" when its accuracy is more than this times the worst in-range test's (the paper's: 10x)
+DEGRADED_FACTOR = 2.0
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -100,10 +102,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="simulated seconds per wall second of the served cell (the serving step)")
     parser.add_argument("--seed", type=int, default=0, metavar="N",
                         help="simulation seed: the same seed gives the same Table I as validate --seed N")
-    parser.add_argument("--cell", choices=list(CELLS), default="ideal",
-                        help="the simulated cell: ideal (default; the paper's model form) or realistic (physics no "
-                             "candidate term reproduces: drivers/simulated/README.md). The two-axis part and the "
-                             "discovery line stay on the ideal cell")
+    parser.add_argument("--cell", choices=list(CELLS), default="realistic",
+                        help="the simulated cell: realistic (default: physics no candidate term reproduces, "
+                             "drivers/simulated/README.md) or ideal (the drift is exactly the model's form: it shows "
+                             "what the method gives when the model can be exact, an upper bound, not a lab's figure). "
+                             "The two-axis part and the discovery line stay on the ideal cell")
     parser.add_argument("--keep", metavar="DIR",
                         help="keep the model, data, Table I (JSON), the figures (fig9, fig11; PNG + SVG), config "
                              "and daemon log in DIR")
@@ -243,22 +246,56 @@ def explain(results: Sequence[TestResult], model: Model, args: argparse.Namespac
                      f"{sum(r.extrapolating_steps for r in outside)} steps extrapolate.")
     test5 = by_name.get("test5")
     if test5 is not None:
-        in_range = [by_name[t].accuracy_nm for t in IN_RANGE if t in by_name]
+        def accuracy(r: TestResult) -> float:  # the truth where the cell knows it: no interferometer wander
+            return r.accuracy_true_nm if r.has_truth else r.accuracy_nm
+
+        basis = " against the true position" if test5.has_truth else ""
+        in_range = [accuracy(by_name[t]) for t in IN_RANGE if t in by_name]
         paper_in = [PAPER_TABLE1[t][1] or math.nan for t in IN_RANGE]
         out = _exceedance(model, test5)
         where = (f"{out[0]} reached {out[1]:.2f} °C, {out[2]:.2f} °C beyond the training range "
                  f"{out[3]:.2f}–{out[4]:.2f} °C" if out else "outside the training range")
-        ours = (f"{test5.accuracy_nm:.0f} nm against {nm_span(in_range)} in range"
-                if in_range else f"{test5.accuracy_nm:.0f} nm")
-        lines.append(f"Test 5 degrades because the static model extrapolates ({where}): {ours}; the paper's "
-                     f"test 5 shows the same ({PAPER_TABLE1['test5'][1]:.0f} nm against "
-                     f"{nm_span(paper_in)} in range).")
-        paper_ratio = PAPER_TABLE1["test5"][0] / (PAPER_TABLE1["test5"][1] or math.nan)
-        if test5.improvement > paper_ratio:
-            lines.append(f"Its ratio ({test5.improvement:.1f}×) beats the paper's {paper_ratio:.1f}×: beyond the "
-                         "range the simulated cell's drift stays closer to linear in temperature than the real "
-                         "cell's did, so extrapolating costs less here.")
+        ours = (f"{accuracy(test5):.0f} nm against {nm_span(in_range)} in range{basis}"
+                if in_range else f"{accuracy(test5):.0f} nm{basis}")
+        paper = f"{PAPER_TABLE1['test5'][1]:.0f} nm against {nm_span(paper_in)} in range"
+        if not in_range or accuracy(test5) > DEGRADED_FACTOR * max(in_range):
+            lines.append(f"Test 5 degrades because the static model extrapolates ({where}): {ours}; the paper's "
+                         f"test 5 shows the same ({paper}).")
+        else:
+            lines.append(f"Test 5 extrapolates ({where}) yet stays within {DEGRADED_FACTOR:g}× of in range on this "
+                         f"seed: {ours}; the paper's test 5 degraded ({paper}).")
+    lines += seed_luck(results, args.cell, args.seed)
     return lines
+
+
+#: the command that measured :data:`SEED_SPREAD_X` (per cell); the demo computes nothing over seeds itself
+SEED_SPREAD_COMMAND = "python benchmarks/paper_table1.py --seeds 16 --cell {cell}"
+#: per cell and test, the improvement against the true position (AP without / AP with) over seeds 0..15 of
+#: :data:`SEED_SPREAD_COMMAND` (its vectorised simulator: the demo's physics, plan and fit without asyncio):
+#: (median, 5th percentile, 95th percentile), as its "seed luck" lines print them
+SEED_SPREAD_X: dict[str, dict[str, tuple[float, float, float]]] = {
+    "realistic": {"test2": (5.4, 2.0, 16.5), "test3": (6.8, 2.3, 14.3), "test4": (4.7, 2.1, 16.2),
+                  "test5": (4.1, 1.8, 24.8)},
+    "ideal": {"test2": (18.9, 9.6, 170.3), "test3": (22.5, 9.3, 78.8), "test4": (17.7, 8.7, 182.4),
+              "test5": (3.2, 2.2, 5.7)},
+}
+
+
+def seed_luck(results: Sequence[TestResult], cell: str, seed: int) -> list[str]:
+    """This seed's improvements against the truth beside their distribution over 16 seeds (precomputed)."""
+    spread = SEED_SPREAD_X.get(cell, {})
+    parts = []
+    for r in results:
+        if r.name not in spread or not r.compensated or not r.has_truth:
+            continue
+        without, with_ = r.true_accuracy_nm()
+        median, low, high = spread[r.name]
+        parts.append(f"{r.name} is {without / with_:.1f}× against the true position (over 16 seeds: median "
+                     f"{median:.1f}×, 90 % of seeds {low:.1f}–{high:.1f}×)")
+    if not parts:
+        return []
+    return [f"Seed luck: seed {seed}'s " + "; ".join(parts) + f". One seed is one draw of the room and the noise "
+            f"(`{SEED_SPREAD_COMMAND.format(cell=cell)}`)."]
 
 
 # ----- 5. what nanodrift adds ------------------------------------------------------------------------
@@ -366,15 +403,23 @@ def keep_figures(run: DemoRun) -> list[Path]:
     """fig9 and fig11 of the tests into the kept folder (the PNGs listed; each has an SVG beside it)."""
     assert run.model is not None
     tests = ", ".join(r.name for r in run.results)
-    cell = f"simulated cell: {tests}, --seed {run.args.seed}, {run.args.cycles} sweeps (nanodrift demo)"
+    cell = (f"simulated {run.args.cell} cell: {tests}, --seed {run.args.seed}, {run.args.cycles} sweeps "
+            f"(nanodrift demo --cell {run.args.cell})")
     written = write_figures(run.results, run.workdir, training=run.model.training,
                             provenance=provenance_text(run.model.id, run.model.provenance.get("data_file"), cell))
     return [path for path in written if path.suffix == ".png"]
 
 
-def cell_config(cell: str) -> str:
-    """What ``validate`` needs to run the demo's cell: nothing for the ideal one (its default), else a config."""
-    return "" if cell == "ideal" else f' --config F.toml (F.toml holding [simulation] cell = "{cell}")'
+def cell_config(cell: str, keep: Path | None) -> str:
+    """What ``validate`` needs to run the demo's cell: nothing for the ideal one (its built-in default), else a
+    config naming the cell, written into the kept folder (``keep``; None: the folder --keep would give)."""
+    if cell == "ideal":
+        return ""
+    if keep is None:
+        return f" --config DIR/{cell}.toml"
+    path = keep / f"{cell}.toml"
+    atomic_write_text(path, f'# the simulated cell of `nanodrift demo --cell {cell}`\n[simulation]\ncell = "{cell}"\n')
+    return f" --config {path}"
 
 
 # ----- the story -----------------------------------------------------------------------------------
@@ -423,14 +468,13 @@ def main(args: argparse.Namespace) -> int:
                              calibration_cycles=args.calibration_cycles), indent=2) + "\n")
             figures = keep_figures(run)
             print(f"Figures (PNG + SVG, as validate --report draws them): {', '.join(str(f) for f in figures)}")
-            one = tests[-1]
-            flags = " --no-compensation" if one == "test1" else ""
             print(f"The same figures from the command line, e.g.: nanodrift validate --model {run.model_path} "
-                  f"--scenario {one} --seed {args.seed} --cycles {args.cycles}{flags}{cell_config(args.cell)}")
+                  f"--scenario {tests[-1]} --seed {args.seed} --cycles {args.cycles}"
+                  f"{cell_config(args.cell, workdir)}")
         else:
             print("The same figures from the command line: keep the model with --keep DIR, then "
                   "nanodrift validate --model DIR/model.json --scenario testN --seed "
-                  f"{args.seed} --cycles {args.cycles}{cell_config(args.cell)}")
+                  f"{args.seed} --cycles {args.cycles}{cell_config(args.cell, None)}")
 
         steps.start("Serve: the calibrated model behind the daemon, targets from a client over Zenoh")
         assert run.model_path is not None

@@ -3,6 +3,9 @@
 ``--adapt`` runs the daemon's bias tracker (``[adapt] mode = "bias"``) over the test, one per axis as the
 daemon does, so a lab can see offline what adaptation would have given.
 
+``--scenario test1`` runs without the model whatever the flags, as the paper's test 1 (the stage as it
+is); ``--json`` prints ``{"model", "backend", "cycles", "tests": [...]}`` for one test or several.
+
 On the simulated cell ``--scenario`` may name several tests (``--scenario test2,test3,test5``, or
 repeated): each runs in turn and one report holds them all (Table I a row per test, the figures
 comparing them). There each step is also scored against the true position the cell knows
@@ -57,15 +60,21 @@ from nanodrift.reports.validation import (
 )
 from nanodrift.settings import BUILTIN_SOURCE
 
+#: the paper's test 1 is the stage without compensation (Table I: "without" only); validate runs it so
+UNCOMPENSATED_TEST = "test1"
+
 
 def configure(parser: argparse.ArgumentParser) -> None:
     _cell.add_procedure_flags(parser, "test2", several=True)
     parser.add_argument("--model", required=True, metavar="M.json", help="the model to validate")
     parser.add_argument("--cycles", type=int, default=30, metavar="N", help="validation sweeps (ISO 9283: 30)")
-    parser.add_argument("--json", action="store_true", help="print the results as JSON instead of Table I")
+    parser.add_argument("--json", action="store_true",
+                        help='print the results as JSON instead of Table I: {"model", "backend", "cycles", '
+                             '"tests": [one object per test]}, for one test or several')
     parser.add_argument("--report", metavar="DIR",
                         help="also write Table I, JSON, raw steps and figures (PNG + SVG) into DIR")
-    parser.add_argument("--no-compensation", action="store_true", help="command the targets as they are (test 1)")
+    parser.add_argument("--no-compensation", action="store_true",
+                        help="command the targets as they are (--scenario test1 always runs so: the paper's test 1)")
     parser.add_argument("--adapt", action="store_true",
                         help="correct the commands with the daemon's bias tracker ([adapt] mode = \"bias\"), fed "
                              "by each step's residual")
@@ -95,6 +104,9 @@ def main(args: argparse.Namespace) -> int:
             get_scenario(scenario)
         except UnknownNameError as err:
             raise UserError(f"--scenario: {err}") from None
+    if args.adapt and scenarios == [UNCOMPENSATED_TEST]:
+        raise UserError(f"--adapt corrects the model's commands: --scenario {UNCOMPENSATED_TEST} runs without the "
+                        "model (the paper's test 1)")
     given = load_config(args.config)  # as given, before --scenario/--seed override its [simulation]
     if len(scenarios) > 1 and not given.virtual_cell:
         raise UserError(f"several --scenario ({', '.join(scenarios)}) need the simulated cell; "
@@ -111,11 +123,8 @@ def main(args: argparse.Namespace) -> int:
     config = runs[0].config
     text = table1(results)
     truth = truth_table(results)
-    doc: dict[str, Any] = {"model": model.id, "backend": runs[0].drivers.description, "cycles": args.cycles}
-    if len(runs) == 1:  # one test: the document validate always printed
-        doc.update(runs[0].to_dict())
-    else:
-        doc["tests"] = [run.to_dict() for run in runs]
+    doc: dict[str, Any] = {"model": model.id, "backend": runs[0].drivers.description, "cycles": args.cycles,
+                           "tests": [run.to_dict() for run in runs]}  # one shape for one test or several
     if args.report:
         report_text = text + (f"\n\n{truth}" if truth else "")
         files = write_report(results, args.report, report_text, doc, training=model.training,
@@ -129,7 +138,7 @@ def main(args: argparse.Namespace) -> int:
     if truth:
         print(f"\n{truth}")
     for run in runs:
-        _print_details(run.result, run.tracker, compensate, several=len(runs) > 1)
+        _print_details(run.result, run.tracker, run.result.compensated, several=len(runs) > 1)
     return 0
 
 
@@ -156,8 +165,8 @@ def _run_one(args: argparse.Namespace, model: Model, scenario: str | None) -> Va
     """One test on a fresh cell (``scenario`` None: the config's room, or test2 with no config)."""
     config, drivers = _open(args, scenario)
     name = scenario or ("test2" if args.config is None else "validation")
-    compensate = not args.no_compensation
-    tracker = BiasTracker(args.adapt_tau_s, args.adapt_max_um) if args.adapt else None
+    compensate = not args.no_compensation and name != UNCOMPENSATED_TEST
+    tracker = BiasTracker(args.adapt_tau_s, args.adapt_max_um) if args.adapt and compensate else None
     follow, ready = _cell.guards(config, drivers, args)
     try:
         result = _cell.run_procedure(run_validation(
@@ -246,7 +255,7 @@ def _cell_tests(args: argparse.Namespace, model: CellModel, asked: list[str | No
         tests = [_simulated_test(args, model, scenario or "test2", cross) for scenario in asked]
     if args.json:
         docs = [doc for _, doc in tests]
-        print(json.dumps(docs[0] if len(docs) == 1 else {"model": model.id, "tests": docs}, indent=2))
+        print(json.dumps({"model": model.id, "tests": docs}, indent=2))
     else:
         print("\n\n".join(text for text, _ in tests))
     return 0
@@ -261,13 +270,15 @@ def _builtin_cell(model: CellModel) -> Config:
         raise UserError(f"--adapt: no built-in simulated cell of axes {axes}: give --config ({err})") from None
 
 
-def _cell_report(args: argparse.Namespace, name: str, text: str, doc: dict[str, Any], truth: TestResult,
-                 targets_um: dict[str, np.ndarray], attained: Attained) -> None:
-    """``--report``: the test's files (one directory per test when several are asked for)."""
+def _cell_report(args: argparse.Namespace, model: CellModel, name: str, text: str, doc: dict[str, Any],
+                 truth: TestResult, targets_um: dict[str, np.ndarray], attained: Attained) -> None:
+    """``--report``: the test's files (one directory per test when several are asked for), the figure's footer
+    naming the model, its data and the cell (``doc["backend"]``: the scenario and seed, or the config)."""
     several = len(_cell.scenario_list(args.scenario)) > 1
     directory = Path(args.report) / name if several else Path(args.report)
+    provenance = provenance_text(model.id, model.provenance.get("data_file"), str(doc["backend"]))
     files = write_cell_report(directory, text, doc, truth, targets_um, attained[0],
-                              attained[1] if len(attained) > 1 else None)
+                              attained[1] if len(attained) > 1 else None, provenance=provenance)
     print(f"report: {', '.join(str(f) for f in files)}", file=sys.stderr)
 
 
@@ -292,7 +303,7 @@ def _simulated_test(args: argparse.Namespace, model: CellModel, scenario: str,
                     f"scenario {scenario}, seed {seed}", cycles=args.cycles,
                     extrapolating_steps=run.extrapolating_steps)
     if args.report:
-        _cell_report(args, scenario, text, doc, truth, run.targets_um, truth_um)
+        _cell_report(args, model, scenario, text, doc, truth, run.targets_um, truth_um)
     return text, doc
 
 
@@ -355,5 +366,5 @@ def _driven_test(args: argparse.Namespace, model: CellModel, scenario: str | Non
                         "axes": {a: {"updates": t.updates, "final_correction_um": t.correction_um}
                                  for a, t in trackers.items()}}
     if args.report:
-        _cell_report(args, name, text, doc, truth, targets, truth_um)
+        _cell_report(args, model, name, text, doc, truth, targets, truth_um)
     return text, doc

@@ -488,9 +488,10 @@ def markdown(result: DiscoveryResult, figures: Sequence[str], model_out: str | N
     else:
         lines.append("- nothing found; no model written: no effect clears the bar (rule 2), so the given model "
                      "stands (a copy under a new id would be the same model)")
-    if "fresh_gain_expected" in f:
+    if "fresh_gain_expected" in f and len(result.steps) > 1:  # one step: the finding says its expectation
         before, after = f["fresh_rms_expected_um"]
-        lines.append(f"- expected on a fresh run of the same kind (rule 13): {_fmt(before, 1000)} → "
+        lines.append(f"- expected on a fresh run of the same kind (rule 13), from the given model as it is: "
+                     f"{_fmt(before, 1000)} → "
                      f"{_fmt(after, 1000)} nm, RMS × {f['fresh_gain_expected']:.2f}")
     if "fresh_gain_measured" in f:
         before, after = f["fresh_rms_measured_um"]
@@ -502,11 +503,16 @@ def markdown(result: DiscoveryResult, figures: Sequence[str], model_out: str | N
         lines += ["", "## What this run cannot show", ""]
         for blind in result.untestable:
             lines.append(f"- **{blind['effect']}**: {blind['reason']}. To test it, {blind['hint']}.")
+    tested = max(len(result.variables), 1)
     lines += ["", "## Where the residuals disagree (rule 1)", "",
-              "| variable | F | p (autocorrelation-deflated) | η² | spread of the bin means (nm) | flagged |",
+              f"F and η² are on the rows as given; p deflates the rows for the residuals' lag-1 autocorrelation "
+              f"({b['lag1_autocorr']:.2f}) and is multiplied by the {tested} variables tested (Bonferroni): a "
+              f"variable is flagged when that p is below {s.p_max:g} and η² ≥ 0.05, so a large F on strongly "
+              "autocorrelated residuals (a slow drift: few independent stretches) can stay unflagged.", "",
+              "| variable | F | p (deflated, × variables) | η² | spread of the bin means (nm) | flagged |",
               "|---|---|---|---|---|---|"]
     for d in result.disagreements:
-        lines.append(f"| {d.description} | {d.f_stat:.3g} | {d.p_value:.2g} | {d.eta2:.3f} | "
+        lines.append(f"| {d.description} | {d.f_stat:.3g} | {min(d.p_value * tested, 1.0):.2g} | {d.eta2:.3f} | "
                      f"{d.spread_um * 1000:.1f} | {'yes' if d.significant else 'no'} |")
     for i, rnd in enumerate(result.rounds, 1):
         lines += ["", f"## Round {i}: candidates", "",

@@ -3,15 +3,17 @@
 ``--report DIR`` writes:
 - ``table1.txt`` and ``validation.json``: what ``validate`` prints;
 - ``fig9_drift_at_zero.png`` / ``.svg``: per test, the drift at the zero position over time (the
-  uncompensated position, measured or computed), the compensation the model applied (x' - q') and
-  the temperatures, each channel's training range shaded (outside it the model extrapolates);
+  uncompensated position, measured or computed), the compensation the model applied (x' - q'), a
+  ±2σ band of the compensated position's expected error, and the temperatures, each channel's
+  training range shaded (outside it the model extrapolates);
 - ``fig11_accuracy.png`` / ``.svg``: accuracy and repeatability with and without compensation per
   test (bars) and accuracy per point, on a linear axis unless the values span more than a decade;
 PNGs are 150 dpi; the SVGs keep text as text. Every figure carries a footer saying where it came
 from (:func:`add_provenance`: the model id, its data file, the cell and seed).
 - ``validation_raw.csv``: one row per step: test, cycle, target, command, measured position, the
-  computed uncompensated position, validity and the temperatures; on a simulated cell a last column,
-  ``x_true_um``, the position the stage truly attained (hardware has no such column).
+  computed uncompensated position, validity and the temperatures; on a simulated cell a column
+  ``x_true_um``, the position the stage truly attained (hardware has no such column); last,
+  ``q_sigma_um``, the σ of the step's command (nan without the model).
 
 On a simulated cell every figure is also given against the true position (``TestResult.x_true_um``):
 the interferometer's view includes its noise and slow wander, the truth does not.
@@ -152,7 +154,15 @@ def results_json(results: Sequence[TestResult], **extra: Any) -> dict[str, Any]:
     return {"tests": [r.to_dict() for r in results], **extra}
 
 
+def step_sigmas_um(result: TestResult) -> list[float]:
+    """Per step, the standard uncertainty of its command (the tracker's with ``--adapt``, else the model's
+    q_sigma); nan for a test without the model or a model without σ."""
+    sigmas = list(result.command_sigma_um) if result.compensated else []
+    return sigmas if len(sigmas) == len(result.steps) else [math.nan] * len(result.steps)
+
+
 def raw_csv(results: Sequence[TestResult]) -> str:
+    """One row per step; the last column ``q_sigma_um`` is the command's σ (:func:`step_sigmas_um`)."""
     channels: list[str] = []
     for r in results:
         for s in r.steps:
@@ -161,15 +171,16 @@ def raw_csv(results: Sequence[TestResult]) -> str:
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")
     writer.writerow(["test", "t_s", "cycle", "target_um", "q_um", "x_measured_um", "x_without_um", "valid",
-                     *channels, *(["x_true_um"] if truth else [])])
+                     *channels, *(["x_true_um"] if truth else []), "q_sigma_um"])
     for r in results:
         trues = r.x_true_um if r.has_truth else [math.nan] * len(r.steps)
-        for s, x_true in zip(r.steps, trues, strict=True):
+        sigmas = step_sigmas_um(r)
+        for s, x_true, sigma in zip(r.steps, trues, sigmas, strict=True):
             a = r.axis
             writer.writerow([r.name, repr(s.t_s), s.step.cycle, repr(s.step.target(a)), repr(s.q_um[a]),
                              repr(s.positions_um[a]), repr(s.x_without_um(a)), int(s.valid),
                              *(repr(s.temperatures.get(c, math.nan)) for c in channels),
-                             *([repr(x_true)] if truth else [])])
+                             *([repr(x_true)] if truth else []), repr(sigma)])
     return out.getvalue()
 
 
@@ -283,6 +294,7 @@ def _draw_drift(plt: Any, results: Sequence[TestResult], training: Training | No
                     label="compensation applied (x′ − q′)")
             ax.plot(hours, [1e3 * s.positions_um[a] for s in zero], "D-", ms=4, color=WITH_COLOR,
                     label="position with compensation (measured)")
+            _sigma_band(ax, r, zero, hours)
         else:
             ax.plot(hours, [1e3 * s.positions_um[a] for s in zero], "o-", ms=4, color=WITHOUT_COLOR,
                     label="drift (measured position, no compensation)")
@@ -315,6 +327,19 @@ def _draw_drift(plt: Any, results: Sequence[TestResult], training: Training | No
         tax.sharex(ax)
         tax.set_xlabel("time (h)")
     return fig
+
+
+def _sigma_band(ax: Any, result: TestResult, zero: Sequence[Any], hours: Sequence[float]) -> None:
+    """±2σ about x′ = 0 for the compensated position: σ of the command (q_sigma) with the position sensor's
+    wander (the measured error carries both); nothing when the model gives no σ."""
+    by_step = dict(zip((id(s) for s in result.steps), step_sigmas_um(result), strict=True))
+    sigmas = [by_step[id(s)] for s in zero]
+    if not sigmas or not all(map(math.isfinite, sigmas)):
+        return
+    m2 = result.measurement_sigma_um ** 2
+    band = np.array([2e3 * math.sqrt(sigma * sigma + m2) for sigma in sigmas])
+    ax.fill_between(hours, -band, band, color=WITH_COLOR, alpha=0.15, lw=0, gid="sigma-band",
+                    label="±2σ expected error (q_sigma with the sensor's wander)")
 
 
 def figure_accuracy(results: Sequence[TestResult], *, provenance: str = "", training: Training | None = None
@@ -507,8 +532,8 @@ def cell_json(name: str, truth: TestResult, measured: TestResult, **extra: Any) 
 
 def write_cell_report(directory: str | Path, text: str, doc: Mapping[str, Any], truth: TestResult,
                       targets_um: Mapping[str, np.ndarray], attained_without: Mapping[str, np.ndarray],
-                      attained_with: Mapping[str, np.ndarray] | None) -> list[Path]:
-    """Write the report files (each atomically); returns their paths."""
+                      attained_with: Mapping[str, np.ndarray] | None, *, provenance: str = "") -> list[Path]:
+    """Write the report files (each atomically); returns their paths. ``provenance``: the figure's footer."""
     import matplotlib  # figures only when a report is asked for
 
     matplotlib.use("Agg")
@@ -516,9 +541,10 @@ def write_cell_report(directory: str | Path, text: str, doc: Mapping[str, Any], 
 
     out = Path(directory)
     written = _write_texts(out, {"table1_axes.txt": text + "\n", "validation.json": json.dumps(doc, indent=2) + "\n"})
-    fig = _cell_figure(plt, truth, targets_um, attained_without, attained_with)
-    written.extend(save_figure(fig, out / "fig_cell_accuracy"))
-    plt.close(fig)
+    with plt.rc_context(STYLE):  # the notebook-readable fonts of fig9 and fig11, text kept as text in the SVG
+        fig = with_footer(_cell_figure(plt, truth, targets_um, attained_without, attained_with), provenance)
+        written.extend(save_figure(fig, out / "fig_cell_accuracy"))
+        plt.close(fig)
     return written
 
 
@@ -527,7 +553,7 @@ def _cell_figure(plt: Any, truth: TestResult, targets_um: Mapping[str, np.ndarra
     axes = truth.axes
     a, b = axes[0], axes[1]
     points = truth.points_without
-    fig, panels = plt.subplots(1, len(points) + 1, figsize=(3.0 * (len(points) + 1), 3.2))
+    fig, panels = plt.subplots(1, len(points) + 1, figsize=(3.8 * (len(points) + 1), 4.2))
     for ax, p in zip(panels[:-1], points, strict=True):
         here = np.all([np.asarray(targets_um[k]) == p.target_um[k] for k in axes], axis=0)
         for attained, label, color in ((attained_without, "without", "tab:red"), (attained_with, "with", "tab:blue")):
@@ -538,11 +564,11 @@ def _cell_figure(plt: Any, truth: TestResult, targets_um: Mapping[str, np.ndarra
             ax.scatter(da, db, s=6, color=color, alpha=0.6, label=label)
             ax.plot([da.mean()], [db.mean()], marker="+", color=color, markersize=12)
         ax.plot([0], [0], marker="x", color="black")
-        ax.set_title(", ".join(f"{k}={p.target_um[k]:g}" for k in axes) + " µm", fontsize=8)
+        ax.set_title(", ".join(f"{k} = {p.target_um[k]:g}" for k in axes) + " µm")
         ax.set_xlabel(f"{a} - target (nm)")
         ax.set_ylabel(f"{b} - target (nm)")
         ax.set_aspect("equal", adjustable="datalim")
-    panels[0].legend(fontsize=7)
+    panels[0].legend()
     bars = panels[-1]
     labels = [f"axis {k}" for k in axes] + [f"AP {len(axes)}-D"]
     without = [truth.axis_accuracy_nm(k, with_model=False) for k in axes] + [truth.accuracy_without_nm]
@@ -551,9 +577,9 @@ def _cell_figure(plt: Any, truth: TestResult, targets_um: Mapping[str, np.ndarra
     if truth.compensated:
         with_ = [truth.axis_accuracy_nm(k) for k in axes] + [truth.accuracy_nm]
         bars.bar(x + 0.2, with_, 0.4, color="tab:blue", label="with")
-    bars.set_xticks(x, labels, fontsize=7)
+    bars.set_xticks(x, labels)
     bars.set_ylabel("accuracy vs truth (nm)")
-    bars.legend(fontsize=7)
+    bars.legend()
     fig.tight_layout()
     return fig
 

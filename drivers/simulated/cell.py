@@ -136,7 +136,7 @@ class SimulatedCell:
 
     def _read_position(self, axis: str, t: float, now: float, noise: float) -> float:
         self.last_true_um[axis] = true_um = self.physics.attained_now(t, self.states)[axis]
-        value = self.physics.measure_position1(axis, t, true_um, noise)
+        value = float(self.physics.measure_position1(axis, t, true_um, noise))  # the realistic cell's is numpy's
         if self.truth_log is not None:
             self._log_truth(now, axis, true_um, value)
         return value
@@ -152,4 +152,5 @@ class SimulatedCell:
                 self._truth_file.write("t_s,q_um,true_x_um,measured_x_um\n" if one_axis
                                        else "t_s,axis,q_um,true_um,measured_um\n")
         where = "" if one_axis else f"{axis},"
-        self._truth_file.write(f"{t!r},{where}{self.states[axis].q!r},{true_um!r},{measured_um!r}\n")
+        self._truth_file.write(f"{float(t)!r},{where}{float(self.states[axis].q)!r},{float(true_um)!r},"
+                               f"{float(measured_um)!r}\n")  # plain floats: np.float64's repr is not a number

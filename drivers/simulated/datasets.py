@@ -43,7 +43,7 @@ def run_plan(physics: CellPhysics, cycles: int | None = None, *,
     if len(physics.axes) > 1:
         stack = (cell_validation_plan if trajectory == "validation" else cell_calibration_plan)(physics.axes, n)
         return {a: [s.target(a) for s in stack] for a in physics.axes}, [s.cycle for s in stack]
-    if trajectory == "validation":  # already visits every point from both sides
+    if trajectory == "validation":  # ISO 9283: forward sweeps, each point approached from one side
         plan = validation_plan(n)
     else:
         plan = (bidirectional_plan if trajectory == "bidirectional" else calibration_plan)(n)

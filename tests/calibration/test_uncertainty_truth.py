@@ -117,7 +117,7 @@ def test_validate_reports_the_truth_and_warns_when_q_sigma_is_miscalibrated(
     model = trained_model(0)
     save_model(model, path)
     assert main(["validate", "--model", str(path), "--cycles", "2", "--json"]) == 0
-    doc = json.loads(capsys.readouterr().out)
+    (doc,) = json.loads(capsys.readouterr().out)["tests"]
     assert doc["with_comp_true_nm"] > 0 and 0.0 <= doc["within_2_sigma_true"] <= 1.0
     assert "coverage_warning" in doc
     # a model claiming 100x too little: the warning names it, on stderr and in the JSON
@@ -127,7 +127,7 @@ def test_validate_reports_the_truth_and_warns_when_q_sigma_is_miscalibrated(
     save_model(Model(terms=model.terms, training=model.training, fit=model.fit, covariance=tiny), path)
     assert main(["validate", "--model", str(path), "--cycles", "2", "--json"]) == 0
     out, err = capsys.readouterr()
-    doc = json.loads(out)
+    (doc,) = json.loads(out)["tests"]
     assert doc["coverage_warning"] and "understates" in doc["coverage_warning"]
     assert "warning: q_sigma is not calibrated" in err
     assert main(["validate", "--model", str(path), "--cycles", "2"]) == 0

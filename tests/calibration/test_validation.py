@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import asyncio
+import csv
+import itertools
 import json
 import subprocess
 import sys
@@ -48,10 +50,15 @@ def test_without_is_computed_from_the_same_period():
     assert result.improvement == pytest.approx(435.0 / 35.0)
 
 
-def test_plan_visits_every_point_from_both_sides():
+def test_plan_approaches_every_point_from_one_side():
+    """ISO 9283 pose repeatability is unidirectional (issue 27): every visit of a point comes from the same side."""
     plan = validation_plan(4)
-    assert [s.target_um for s in plan[:14]] == [0, 80, 160, 240, 320, 400, 480, 480, 400, 320, 240, 160, 80, 0]
+    assert [s.target_um for s in plan[:14]] == [0, 80, 160, 240, 320, 400, 480] * 2
     assert len(plan) == 28 and {s.cycle for s in plan} == {0, 1, 2, 3}
+    sides: dict[float, set[bool]] = {}
+    for before, step in itertools.pairwise(plan):
+        sides.setdefault(step.target_um, set()).add(step.target_um > before.target_um)
+    assert all(len(directions) == 1 for directions in sides.values()), sides
 
 
 def test_compensation_beats_no_compensation_in_range():
@@ -83,15 +90,35 @@ def test_validate_command_json_and_report(tmp_path, capsys):
     report = tmp_path / "rep"
     assert main(["validate", "--model", str(model_path), "--cycles", "4", "--json", "--report", str(report),
                  "--scenario", "test3", "--seed", "2"]) == 0
-    doc = json.loads(capsys.readouterr().out)
+    printed = json.loads(capsys.readouterr().out)
+    assert printed == json.loads((report / "validation.json").read_text())
+    assert set(printed) == {"model", "backend", "cycles", "tests"}  # one test: the shape of several (issue 27)
+    (doc,) = printed["tests"]
     assert doc["test"] == "test3" and doc["compensated"] and len(doc["points"]) == 7
     assert doc["with_comp_nm"] < doc["without_comp_nm"] and doc["without_is_computed"]
     for name in ("table1.txt", "validation.json", "fig9_drift_at_zero.png", "fig11_accuracy.png", "validation_raw.csv"):
         assert (report / name).stat().st_size > 0
     assert (report / "fig9_drift_at_zero.png").read_bytes()[:4] == b"\x89PNG"
-    raw = (report / "validation_raw.csv").read_text().splitlines()
-    assert raw[0].startswith("test,t_s,cycle,target_um,q_um,x_measured_um,x_without_um,valid,T1")
-    assert len(raw) == 1 + 4 * 7
+    assert 'id="sigma-band' in (report / "fig9_drift_at_zero.svg").read_text()  # ±2σ about x' = 0
+    raw = list(csv.DictReader((report / "validation_raw.csv").open()))
+    header = (report / "validation_raw.csv").read_text().splitlines()[0]
+    assert header.startswith("test,t_s,cycle,target_um,q_um,x_measured_um,x_without_um,valid,T1")
+    assert header.endswith(",x_true_um,q_sigma_um")  # appended, never renamed
+    assert len(raw) == 4 * 7
+    sigmas = [float(row["q_sigma_um"]) for row in raw]
+    assert all(0.0 < sigma < 1.0 for sigma in sigmas)  # every compensated step carries its command's σ
+
+
+def test_validate_runs_the_papers_test1_without_the_model(tmp_path, capsys):
+    """Issue 27: the paper's test 1 is the stage without compensation; validate --scenario test1 runs it so."""
+    model_path = tmp_path / "m.json"
+    save_model(trained_model(0), model_path)
+    assert main(["validate", "--model", str(model_path), "--cycles", "2", "--json", "--scenario", "test1"]) == 0
+    (doc,) = json.loads(capsys.readouterr().out)["tests"]
+    assert doc["test"] == "test1" and not doc["compensated"] and doc["with_comp_nm"] is None
+    assert doc["without_comp_nm"] > 100.0
+    assert main(["validate", "--model", str(model_path), "--cycles", "2", "--scenario", "test1", "--adapt"]) == 2
+    assert "--scenario test1 runs without the model" in capsys.readouterr().err
 
 
 def test_validate_command_refuses_bad_model_and_unknown_scenario(tmp_path, capsys):

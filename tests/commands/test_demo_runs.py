@@ -26,6 +26,8 @@ def test_a_daemon_that_fails_is_explained_with_its_log_lines_not_a_deleted_path(
     assert "daemon's last log lines" in err, err
     assert re.search(r"^   \| .*error", err, re.MULTILINE | re.IGNORECASE), err  # the daemon's own words, inline
     assert "log:" not in err  # no path to the log: the temporary folder it was in is gone
+    own_words = [line for line in (result.stdout + err).splitlines() if not line.startswith("   | ")]
+    assert not any("nanodrift-demo-" in line for line in own_words)  # nor any other path into it
 
 
 def test_demo_shows_what_adaptation_and_the_uncertainty_add(tmp_path: Path) -> None:
@@ -33,12 +35,15 @@ def test_demo_shows_what_adaptation_and_the_uncertainty_add(tmp_path: Path) -> N
     result = subprocess.run(
         # the paper's 24 calibration sweeps (as fast as 8 on the virtual clock): 8 sweeps leave a model whose
         # in-range residual (~85 nm on the interferometer) sits at the health unit's 100 nm alarm
+        # on the ideal cell: the health figures below hold for a model that fits its cell (on the realistic one,
+        # seed 0's served residuals were -213..+238 nm on the interferometer, RMS ~400 nm: not this test's point)
         [sys.executable, "-m", "nanodrift.cli", "demo", "--tests", "test2", "test5", "--cycles", "6",
-         "--calibration-cycles", "24"],
-        capture_output=True, text=True, cwd=REPO, timeout=120,
+         "--calibration-cycles", "24", "--cell", "ideal"],
+        capture_output=True, text=True, cwd=REPO, timeout=240,
     )
     assert result.returncode == 0, result.stdout + result.stderr
     out = result.stdout
+    assert "nanodrift-demo-" not in out  # no path into the demo's temporary folder (issue 27)
     assert "What nanodrift adds" in out
     adapt = re.search(r"adaptation on test5 .*?: (\d+) nm static -> (\d+) nm adaptive", out)
     assert adapt, out
@@ -57,5 +62,7 @@ def test_demo_shows_what_adaptation_and_the_uncertainty_add(tmp_path: Path) -> N
     # it away): the mean of 5 has an SD of ~9 nm, so 40 nm is 4 SD (20 nm failed 1 run in ~20: 21.2 nm)
     assert abs(int(health.group(3)) - sum(client_nm) / 5) < 40, (health.group(0), client_nm)
     assert health.group(1) == "ok"  # so the daemon says so (RMS under alarm_rms_nm)
-    degrade = next(line for line in out.splitlines() if line.startswith("Test 5 degrades"))
-    assert re.search(r": \d+ nm against \d+ nm in range;", degrade), degrade  # one in-range test: "38 nm", not "38–38"
+    test5 = next(line for line in out.splitlines() if line.startswith("Test 5 "))
+    # one in-range test: "38 nm", not "38–38"; judged against the truth where the cell knows it
+    assert re.search(r": \d+ nm against \d+ nm in range against the true position;", test5), test5
+    assert out.count("Seed luck: seed 0's test2 is ") == 1

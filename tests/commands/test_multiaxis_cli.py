@@ -1,6 +1,7 @@
 """The multi-axis commands as a user runs them, and the one-axis outputs they must leave byte for byte."""
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -81,6 +82,11 @@ def test_validate_a_multi_axis_model_on_the_simulated_cell(xy_files, tmp_path, c
     truth = doc["against_truth"]
     assert truth["improvement_ratio"] > 10 and len(truth["with"]["points"]) == 5
     assert (tmp_path / "r" / "fig_cell_accuracy.png").stat().st_size > 10_000
+    # issue 27: the XY figure says where it came from and its text is as readable as fig9's and fig11's
+    svg = (tmp_path / "r" / "fig_cell_accuracy.svg").read_text()
+    assert 'id="provenance"' in svg and doc["model"] in svg and "seed" in svg
+    sizes = [float(v) for v in re.findall(r"font-size: ([\d.]+)px", svg)]
+    assert sizes and sorted(sizes)[1] >= 9.0, sorted(set(sizes))  # only the footer is smaller
 
 
 def test_validate_a_multi_axis_model_over_several_tests_in_one_call(xy_files, tmp_path, capsys):

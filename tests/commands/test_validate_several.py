@@ -42,8 +42,8 @@ def test_the_truth_is_what_a_perfect_interferometer_reads_and_only_a_simulated_c
 def test_validate_on_the_simulated_cell_reports_accuracy_against_the_true_position(model_path, capsys) -> None:
     assert main(["validate", "--model", model_path, "--scenario", "test2", "--seed", "1", "--cycles", "2",
                  "--json"]) == 0
-    doc = json.loads(capsys.readouterr().out)
-    assert doc["test"] == "test2" and doc["with_comp_nm"] > 0  # the one-test document, as before
+    (doc,) = json.loads(capsys.readouterr().out)["tests"]  # one test: the shape of several
+    assert doc["test"] == "test2" and doc["with_comp_nm"] > 0
     truth = doc["true_position"]
     assert set(truth) == {"without_comp_nm", "with_comp_nm", "improvement_ratio", "points"}
     assert len(truth["points"]) == 7 and truth["with_comp_nm"] > 0

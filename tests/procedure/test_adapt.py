@@ -138,7 +138,7 @@ def test_validate_adapt_on_the_command_line(tmp_path, capsys) -> None:
     save_model(trained_model(0), path)
     assert main(["validate", "--model", str(path), "--cycles", "2", "--adapt", "--adapt-tau-s", "300",
                  "--json"]) == 0
-    doc = json.loads(capsys.readouterr().out)
+    (doc,) = json.loads(capsys.readouterr().out)["tests"]
     assert doc["adapt"] == {"mode": "bias", "tau_s": 300.0, "max_um": 1.0} and doc["adapted"] is True
     assert doc["final_correction_um"] is not None and 0.0 <= doc["within_2_sigma"] <= 1.0
     assert main(["validate", "--model", str(path), "--cycles", "2", "--adapt", "--no-compensation"]) == 2

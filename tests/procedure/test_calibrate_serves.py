@@ -31,7 +31,7 @@ REPO = Path(__file__).resolve().parents[2]
 SIM_TOML = REPO / "config" / "sim.toml"
 
 
-def test_calibrate_serve_makes_the_shipped_config_serve_a_model_that_passes_strict(
+def test_calibrate_serve_makes_the_shipped_config_serve_a_model_check_config_accepts(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     config = tmp_path / "nanodrift.toml"
     config.write_text(SIM_TOML.read_text())
@@ -46,8 +46,14 @@ def test_calibrate_serve_makes_the_shipped_config_serve_a_model_that_passes_stri
     added = [line for line in config.read_text().splitlines() if line not in SIM_TOML.read_text().splitlines()]
     assert added == [line for line in config.read_text().splitlines() if line.startswith(f'path = "{out}"')]
     assert len(added) == 1 and NOTE in added[0]
-    assert main(["check-config", "--strict", str(config)]) == 0
-    assert f"model: {out.resolve()} ({model.id})" in capsys.readouterr().out
+    assert main(["check-config", str(config)]) == 0
+    checked = capsys.readouterr()
+    assert f"model: {out.resolve()} ({model.id})" in checked.out
+    # the shipped file lists the paper's four thermocouples (issue 27): a channel the new model's stepwise left
+    # out is monitored only, the one kind of warning (--strict refuses it)
+    unused = {"T1", "T2", "T3", "T4"} - set(model.channels)
+    warnings = [line for line in checked.err.splitlines() if "warning" in line]
+    assert len(warnings) == len(unused) and all("is not used by model" in w for w in warnings), checked.err
     # the daemon on that config serves the new model in its room, and 0 µm is no extrapolation
     port = free_port()
     daemon = Daemon(["--config", str(config), "-l", f"tcp/127.0.0.1:{port}"], tmp_path / "daemon.log")

@@ -147,12 +147,12 @@ def test_validate_through_the_drivers_counts_the_steps_outside_the_training_rang
     # the paper's test 5: a room far outside the calibration's (a hot plate near the stage)
     assert cli(["validate", "--config", str(config), "--model", str(model), "--cycles", "1",
                 "--scenario", "test5", "--json"]) == 0
-    doc = json.loads(capsys.readouterr().out)
+    (doc,) = json.loads(capsys.readouterr().out)["tests"]
     assert doc["extrapolating_steps"] == 5  # every compensated step of P1..P5
     # the calibration's own room from its start: not every step is outside (a step can be: 2 cycles span little)
     assert cli(["validate", "--config", str(config), "--model", str(model), "--cycles", "1",
                 "--scenario", "train", "--json"]) == 0
-    assert json.loads(capsys.readouterr().out)["extrapolating_steps"] < 5
+    assert json.loads(capsys.readouterr().out)["tests"][0]["extrapolating_steps"] < 5
 
 
 def test_no_command_before_every_channel_the_model_reads_has_a_clean_sample(tmp_path: Path) -> None:

@@ -109,7 +109,8 @@ def test_kind_serial_line_calibrates_and_validates_through_a_gcs_controller(
                      "--json"]) == 0
         result = json.loads(capsys.readouterr().out)
         assert result["backend"].startswith("hardware; stage driven by the controller")
-        assert result["points"] and all(abs(p["accuracy_nm"]) < 120.0 for p in result["points"]), result["points"]
+        (test,) = result["tests"]
+        assert test["points"] and all(abs(p["accuracy_nm"]) < 120.0 for p in test["points"]), test["points"]
 
 
 def test_kind_pi_gcs_switches_the_servo_off_then_calibrates_and_validates_through_the_controller(
@@ -129,7 +130,8 @@ def test_kind_pi_gcs_switches_the_servo_off_then_calibrates_and_validates_throug
                      "--json"]) == 0
         result = json.loads(capsys.readouterr().out)
         assert result["backend"].startswith("hardware; stage driven by the PI controller")
-        assert result["points"] and all(abs(p["accuracy_nm"]) < 120.0 for p in result["points"]), result["points"]
+        (test,) = result["tests"]
+        assert test["points"] and all(abs(p["accuracy_nm"]) < 120.0 for p in test["points"]), test["points"]
 
 
 def test_the_probe_listens_nowhere_and_connects_where_the_daemon_listens() -> None:

@@ -79,8 +79,9 @@ def test_the_truth_is_written_and_drawn_only_where_it_is_known():
     header = raw_csv([measured]).splitlines()[0]
     assert "x_true_um" not in header  # hardware's columns, as before
     rows = raw_csv([measured, known]).splitlines()
-    assert rows[0].endswith(",x_true_um")
-    assert rows[1].endswith(",nan") and float(rows[-1].rsplit(",", 1)[1]) == pytest.approx(known.x_true_um[-1])
+    assert rows[0].endswith(",x_true_um,q_sigma_um")  # the σ column appended after it (issue 27)
+    assert rows[1].split(",")[-2] == "nan"
+    assert float(rows[-1].split(",")[-2]) == pytest.approx(known.x_true_um[-1])
     assert truth_table([measured]) == ""
     assert "10 nm" in truth_table([measured, known]).splitlines()[-1]
     marks = [c for c in figure_accuracy([measured, known]).axes[0].collections

@@ -28,3 +28,28 @@ def test_ratios_and_empty_cells_read_as_in_the_paper():
     assert "x (" not in text and "%" not in text
     assert "\\" not in text
     assert row1.count("—") == 4  # with comp. and improvement, ours and the paper's
+
+
+def _benchmark():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "benchmarks" / "paper_table1.py"
+    spec = importlib.util.spec_from_file_location("paper_table1", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_table_one_over_seeds_is_drawn_with_its_interval_and_footer(tmp_path):
+    """Issue 27: fig. 11 over seeds (the benchmark's): medians with their 5th-95th percentile as error bars."""
+    bench = _benchmark()
+    runs = [{"tests": {t: {"ap_without": 400.0 + seed, "ap_with": 40.0 + 2 * seed} for t in bench.TESTS}}
+            for seed in range(16)]
+    files = bench.figure_over_seeds(runs, tmp_path, "python benchmarks/paper_table1.py --seeds 16")
+    assert [f.name for f in files] == ["fig11_accuracy_over_seeds.png", "fig11_accuracy_over_seeds.svg"]
+    svg = files[1].read_text()
+    assert 'id="interval-ap_with' in svg and 'id="interval-ap_without' in svg
+    assert "python benchmarks/paper_table1.py --seeds 16" in svg and "40 nm" in svg
+    assert bench.spread([40.0 + 2 * s for s in range(16)]) == "55 [42, 68]"  # median [5th, 95th], interpolated

@@ -86,7 +86,7 @@ def test_the_shipped_sim_toml_serves_its_first_targets_inside_the_training_range
         daemon.wait_log("serving", timeout=30)
         client = Client(port, "cell0")
         try:
-            client.wait_ready(["T1", "T2", "T4", "interferometer"])  # the shipped file leaves T3 out
+            client.wait_ready(["T1", "T2", "T3", "T4", "interferometer"])  # the paper's four thermocouples
             answers = [client.query({"x_um": x, "id": i}) for i, x in enumerate((0.0, 240.0, 480.0))]
             assert all(ok for ok, _ in answers), answers
             assert [a["extrapolating"] for _, a in answers] == [[], [], []]

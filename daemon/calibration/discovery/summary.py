@@ -50,6 +50,9 @@ def summarise(disagreements: Sequence[Disagreement], steps: Sequence[Candidate],
         where = "; ".join(f"{d.description} (bins differ by {d.spread_um * 1000:.0f} nm, p = {d.p_value:.1g})"
                           for d in top)
         lines.append(f"Residuals track: {where}.")
+    elif steps:  # rule 1's binned means and rule 2's partial F-test are different tests: say which said what
+        lines.append("No single variable's binned residual means differ significantly once the residuals' "
+                     "autocorrelation is allowed for (rule 1); a candidate term still clears the bar (rule 2):")
     else:
         lines.append("Residuals show no significant structure against time, position, temperatures, "
                      "their rates, direction or steps.")
@@ -81,9 +84,11 @@ def summarise(disagreements: Sequence[Disagreement], steps: Sequence[Candidate],
             f"Overall the held-out RMS went from {baseline['holdout_rms_um'] * 1000:.1f} to "
             f"{final['holdout_rms_um'] * 1000:.1f} nm ({100 * final['holdout_gap_removed']:.0f} % removed)."
         )
-        if "fresh_gain_expected" in final:
+        if "fresh_gain_expected" in final and len(steps) > 1:  # one step has said its own expectation
             before, after = final["fresh_rms_expected_um"]
-            lines.append(f"On a fresh run of the same kind expect about {before * 1000:.1f} → {after * 1000:.1f} nm "
+            lines.append(f"From the given model as it is (its own coefficients; step 1 starts from its terms refitted "
+                         f"on this run), on a fresh run of the same kind expect about {before * 1000:.1f} → "
+                         f"{after * 1000:.1f} nm "
                          f"(RMS × {final['fresh_gain_expected']:.2f})"
                          + (f"; measured on the fresh run given: {final['fresh_rms_measured_um'][0] * 1000:.1f} → "
                             f"{final['fresh_rms_measured_um'][1] * 1000:.1f} nm (× {final['fresh_gain_measured']:.2f})"

@@ -169,3 +169,25 @@ def test_the_truth_log_holds_each_interferometer_reading_beside_the_true_positio
     assert {float(r["q_um"]) for r in rows} == {240.0} and {r.get("axis", axis) for r in rows} == {axis}
     errors = np.array([m - x for _, x, m in seen])
     assert 0.0 < np.std(errors) < 0.1 and np.all(np.abs(errors) < 0.2)  # noise and wander, no drift
+
+
+def test_the_realistic_cells_truth_log_holds_plain_numbers(tmp_path: Path) -> None:
+    """Issue 27: the realistic cell's interferometer reading was numpy's float, logged as ``np.float64(0.88)``,
+    which benchmarks/week.py (its default cell now) could not read."""
+    path = tmp_path / "truth.csv"
+    clock = VirtualClock(0.0)
+    cell = SimulatedCell(CellPhysics.create("week", seed=3, cell="realistic"), clock, truth_log=str(path))
+    cell.epoch = 0.0
+
+    async def run() -> list[float]:
+        cell.command("x", 240.0)
+        values = []
+        for _ in range(5):
+            await clock.sleep(60.0)
+            values.append(cell.read(["interferometer"])["interferometer"].value)
+        return values
+
+    values = asyncio.run(run())
+    assert all(type(v) is float for v in values)
+    logged = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+    assert logged.shape == (5, 4) and list(logged[:, 3]) == values
