@@ -203,9 +203,9 @@ def test_validate_adapt_on_an_xy_model_reports_each_axis_and_matches_the_static_
     """The shipped XY model, right for the room, in the drifting test 2: adaptation does no harm per axis."""
     static_args = ["validate", "--model", str(XY_MODEL), "--cycles", "3", "--scenario", "test2", "--json"]
     assert main(static_args) == 0
-    static = json.loads(capsys.readouterr().out)
+    [static] = json.loads(capsys.readouterr().out)["tests"]
     assert main([*static_args, "--adapt", "--adapt-tau-s", "300"]) == 0
-    adaptive = json.loads(capsys.readouterr().out)
+    [adaptive] = json.loads(capsys.readouterr().out)["tests"]
     adapt = adaptive["adapt"]
     assert (adapt["mode"], adapt["tau_s"], adapt["max_um"]) == ("bias", 300.0, 1.0)
     assert list(adapt["axes"]) == ["x", "y"]
