@@ -3,7 +3,8 @@
 Six independent calibrations of the realistic simulated cell (simulated clock), each validated in range (test2)
 and ~1.5 °C above it (test5) through the vectorised simulator; every step's TRUE error against the σ of its
 command, pooled over the calibrations (one run's steps share one calibration's offset: only the pool says
-whether σ is calibrated). The bounds are loose (six seeds), but a σ twice or half what it should be fails.
+whether σ is calibrated). The bounds are loose (six seeds), but a σ twice or half what it should be fails in
+range; out of range σ must err wide, never narrow.
 """
 
 from __future__ import annotations
@@ -54,11 +55,19 @@ def pooled() -> dict[str, tuple[np.ndarray, np.ndarray]]:
     return {test: (np.concatenate([e for e, _ in r]), np.concatenate([s for _, s in r])) for test, r in runs.items()}
 
 
-@pytest.mark.parametrize("test", ["test2", "test5"])
-def test_two_sigma_holds_most_true_errors_but_not_all_pooled_over_calibrations(pooled, test):
-    error, sigma = pooled[test]
+def _coverage_and_rms_z(error: np.ndarray, sigma: np.ndarray) -> tuple[float, float]:
     assert np.all(np.isfinite(sigma)) and np.all(sigma > 0)
     z = error / sigma
-    coverage, rms_z = float(np.mean(np.abs(z) <= 2.0)), float(np.sqrt(np.mean(z * z)))
-    assert 0.80 <= coverage <= 0.995, (test, coverage, rms_z)
-    assert 0.6 <= rms_z <= 1.6, (test, coverage, rms_z)
+    return float(np.mean(np.abs(z) <= 2.0)), float(np.sqrt(np.mean(z * z)))
+
+
+def test_in_range_two_sigma_holds_most_true_errors_but_not_all_pooled_over_calibrations(pooled):
+    coverage, rms_z = _coverage_and_rms_z(*pooled["test2"])
+    assert 0.80 <= coverage <= 0.995, (coverage, rms_z)
+    assert 0.6 <= rms_z <= 1.6, (coverage, rms_z)
+
+
+def test_out_of_range_sigma_errs_wide_never_narrow(pooled):
+    """Test 5: the curvature allowance is what one calibration cannot rule out (README), wide on this cell."""
+    coverage, rms_z = _coverage_and_rms_z(*pooled["test5"])
+    assert coverage >= 0.90 and rms_z <= 1.0, (coverage, rms_z)
