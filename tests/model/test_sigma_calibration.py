@@ -17,16 +17,14 @@ from nanodrift.commands._cell import scenario_seed
 from nanodrift.drivers.simulated.datasets import simulate_dataset
 from nanodrift.drivers.simulated.physics import CellPhysics
 from nanodrift.drivers.simulated.runs import simulate_steps
-from nanodrift.model.identify import fit_terms
+from nanodrift.model.identify import fit
 from nanodrift.model.model import Model
-from nanodrift.model.terms import Channel, Power
 
 SEEDS = range(2000, 2006)  # neither the benchmark's scored seeds (0..15) nor its tuning seeds (1000..1015)
 
 
 def _calibration(seed: int) -> Model:
-    data = simulate_dataset("train", seed=scenario_seed(seed, "train"), cell="realistic")
-    return fit_terms(data, [Power(3), Power(2), Power(1), *(Channel(c) for c in data.channels)])
+    return fit(simulate_dataset("train", seed=scenario_seed(seed, "train"), cell="realistic")).model
 
 
 def _errors_and_sigmas(model: Model, test: str, seed: int) -> tuple[np.ndarray, np.ndarray]:
