@@ -292,16 +292,19 @@ class BiasTracker:
         """``q_sigma`` of a corrected command: what the tracker leaves of the true error.
 
         The correction takes out the model's error (``static_sigma_um``, the model's own q_sigma)
-        at the rate it learns, and puts in what it followed that is not the stage: the position
-        sensor's own wander (``wander_um``, the calibration's estimate, taken whole: its time
-        constant is not kept, and a filter slower than the wander would pass less of it) and the
-        lag and scatter its residuals still show (their recent RMS, as the sensor sees them). Before
-        the first residual it is the static σ; then
+        at the rate it learns, and leaves what its residuals still show (their recent RMS, as the
+        sensor sees them: lag, scatter) or the calibration's wander (``wander_um``), whichever is
+        larger. The wander is either the sensor's own (the tracker follows it into the true error,
+        and its residuals cannot show it) or a slow misfit of the stage (the tracker takes it out,
+        and its residuals show what is left); one instrument cannot tell which, so the larger is
+        taken, not the sum, which counted the stage's misfit twice (on the realistic cell ±2σ held
+        99.6 % in range with RMS(e/σ) 0.78: ``benchmarks/coverage.py``). Before the first residual
+        it is the static σ; then
 
-            σ² = u²·static² + (1 - u²)·(wander² + residual RMS²),   u = :attr:`uncorrected`.
+            σ² = u²·static² + (1 - u²)·max(wander², residual RMS²),   u = :attr:`uncorrected`.
         """
         u2 = self.uncorrected * self.uncorrected
-        followed = wander_um * wander_um + self.residual_rms_um ** 2
+        followed = max(wander_um * wander_um, self.residual_rms_um ** 2)
         return math.sqrt(u2 * static_sigma_um * static_sigma_um + (1.0 - u2) * followed)
 
     def update(self, t: float, residual_um: float) -> float:

@@ -43,8 +43,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="stepwise: a term leaves when its p-value is above P (>= --penter)")
     parser.add_argument("--selection", choices=SELECTIONS, default=DEFAULT_SELECTION,
                         help="stepwise tests: paper (default; MATLAB stepwisefit's iid partial F-tests, as the "
-                             "paper) or hac (Wald tests under the Newey-West covariance, which allows for the "
-                             "residual's autocorrelation). Reported SEs and p-values are HAC either way")
+                             "paper), hac (Wald tests under the Newey-West covariance, which allows for the "
+                             "residual's autocorrelation) or coherent (paper's tests, then channels opposing the "
+                             "summed thermal sensitivity dropped). Reported SEs and p-values are HAC either way")
     parser.add_argument("--json", action="store_true",
                         help="print the summary as JSON (residuals in nm, keys ending _nm)")
 
@@ -168,6 +169,7 @@ def fit_summary(model: Model, path: str) -> dict[str, Any]:
         "premove": sel.get("premove"),
         "selection": sel.get("mode", "paper"),
         "se_method": stats.get("se_method", "iid (a model file from before HAC standard errors)"),
+        "thermal_sensitivity": stats.get("thermal_sensitivity"),
         "rows": stats.get("rows"),
         "residual_rms_nm": stats.get("residual_rms_nm"),
         "rmse_nm": _nm(stats.get("rmse_um")),

@@ -27,6 +27,13 @@ def describe_model(model: Model, path: str | None = None) -> str:
     lines.append(f"{'term':>16} {'coef':>14} {'SE':>11} {'p':>9}")
     for ft in model.terms:
         lines.append(f"{ft.term.name:>16} {ft.coef:>14.6g} {ft.se:>11.3g} {ft.p:>9.2g}")
+    sensitivity = fit_stats.get("thermal_sensitivity")
+    if sensitivity and sensitivity.get("channels"):
+        lines.append(f"thermal sensitivity (a common change of {', '.join(sensitivity['channels'])}): "
+                     f"{sensitivity['um_per_c']:.4g} ± {sensitivity['se_um_per_c']:.2g} µm/°C (SE); what the data "
+                     "identifies where it cannot separate the channels")
+    if sel.get("opposing_dropped"):
+        lines.append(f"dropped as opposing the summed sensitivity: {', '.join(sel['opposing_dropped'])}")
     dropped = sel.get("not_selected") or {}
     if dropped:
         lines.append("not selected: " + ", ".join(

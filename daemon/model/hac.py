@@ -24,7 +24,7 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
-from scipy import fft, stats
+from scipy import fft, special
 
 #: how the truncation lag L is chosen (stated in printouts and model files)
 LAG_RULE = ("Andrews AR(1) plug-in: L = floor(1.1447·(α·n)^(1/3)), α = 4ρ²/((1-ρ)²(1+ρ)²), "
@@ -129,5 +129,5 @@ def t_p_values(coef: np.ndarray, se: np.ndarray, dof: int) -> tuple[np.ndarray, 
     """Two-sided t-test of each coefficient against 0 with ``dof`` residual degrees of freedom."""
     with np.errstate(divide="ignore", invalid="ignore"):
         t = np.where(se > 0, coef / se, np.where(coef == 0, 0.0, np.copysign(np.inf, coef)))
-    p = np.minimum(2.0 * stats.t.sf(np.abs(t), dof), 1.0) if dof > 0 else np.ones_like(t)
+    p = np.minimum(2.0 * special.stdtr(dof, -np.abs(t)), 1.0) if dof > 0 else np.ones_like(t)
     return t, p

@@ -80,11 +80,17 @@ class FitOptions(TypedDict, total=False):
 #: and ``hac`` (entry/removal by Wald tests under the Newey-West covariance). The default is ``paper`` by
 #: measurement (benchmarks/selection_modes.py, 16 seeds, scored on fresh runs of other seeds against the
 #: simulated truth): ``hac`` was better on only 6-7 of 16 seeds in range (tests 2-4) and on 1 of 16 in test 5.
-SELECTIONS = ("hac", "paper")
+#: ``coherent``: ``paper``'s tests, then channels whose coefficient opposes the summed thermal sensitivity are
+#: dropped (weakest first) and the selection rerun without them: channels the data cannot separate are not
+#: traded against each other with large opposite-sign coefficients, which pass each thermocouple's noise into
+#: every command (benchmarks/repeatability.py).
+SELECTIONS = ("hac", "paper", "coherent")
 DEFAULT_SELECTION = "paper"
 SELECTION_TESTS = {
     "hac": "Wald t-test of each added/kept term under the Newey-West HAC covariance",
     "paper": "partial F-test, rows taken as independent (MATLAB stepwisefit, as the paper)",
+    "coherent": "partial F-test (MATLAB stepwisefit), then channels opposing the summed thermal sensitivity "
+                "dropped, weakest first, and the selection rerun",
 }
 
 
@@ -204,6 +210,13 @@ def fit_terms(
     run_id = hac.run_ids(len(y), runs(data))
     result = stepwisefit(X, y, penter=penter, premove=premove, inmodel=keep.copy(), keep=keep,
                          hac_lag="andrews" if selection == "hac" else None, run_id=run_id)
+    dropped: list[str] = []
+    while selection == "coherent" and (weakest := _opposing_channel(pool, result, keep)) is not None:
+        dropped.append(pool[weakest].name)
+        allowed = keep.copy()
+        allowed[weakest] = True  # frozen out of the model
+        result = stepwisefit(X, y, penter=penter, premove=premove, inmodel=keep & (np.arange(len(pool)) != weakest),
+                             keep=allowed, run_id=run_id)
     chosen = [i for i in range(len(pool)) if result.inmodel[i]]
     if scored_only and np.isfinite(result.coef[result.inmodel]).all():
         # stepwise's least-squares coefficients suffice (a kept column it found collinear has none: ols'
@@ -258,7 +271,11 @@ def fit_terms(
             if not result.inmodel[i]
         },
     }
+    if selection == "coherent":
+        selection_record["opposing_dropped"] = dropped
     selection_record.update(extra_selection or {})
+    if final is not None and covariance is not None:
+        fit_stats["thermal_sensitivity"] = thermal_sensitivity([pool[i] for i in chosen], final, covariance)
     provenance = {"created": created_now(), "data_file": source, "software": software()}
     return Model(
         terms=terms,
@@ -280,6 +297,31 @@ def _scored_model(data: Series, terms: Sequence[Term], result: StepwiseResult) -
     channels = [c for c in data.channels if any(c in t.channels for t in terms)]
     return Model(terms=fitted, training=Training.of(data, channels), fit={"rows": len(data)},
                  selection={"method": "stepwise (held-out refit)"}, provenance={})
+
+
+def _opposing_channel(pool: Sequence[Term], result: StepwiseResult, forced: np.ndarray) -> int | None:
+    """The selected, not forced, channel of the weakest |t| whose coefficient opposes the channels' sum; None if
+    every selected channel pulls the same way."""
+    channels = [i for i, t in enumerate(pool) if isinstance(t, Channel) and result.inmodel[i]]
+    total = float(sum(result.coef[i] for i in channels))
+    opposing = [i for i in channels if result.coef[i] * total < 0 and not forced[i]]
+    return min(opposing, key=lambda i: abs(float(result.tstat[i]))) if opposing else None
+
+
+def thermal_sensitivity(terms: Sequence[Term], final: OLS, covariance: Covariance) -> dict[str, Any]:
+    """The command's response to a common change of every selected channel (µm/°C) and its standard error.
+
+    What the data identifies even where it cannot separate the channels (they move together): the sum of
+    the channels' coefficients. Its standard error is the covariance block's (the REML noise model: white
+    plus wander, covariances between the channels included), not HAC: one run holds about one slow
+    excursion of that direction, and no Bartlett lag sees it (HAC said 4x too little over 8 calibrations
+    of the realistic cell, the block 0.5-2x: tests/model/test_thermal_sensitivity.py).
+    """
+    mask = np.array([isinstance(t, Channel) for t in terms] + [False])
+    return {"channels": [t.name for t in terms if isinstance(t, Channel)],
+            "um_per_c": float(final.coef[mask[:-1]].sum()) if mask.any() else 0.0,
+            "se_um_per_c": float(np.sqrt(max(float(mask @ covariance.matrix @ mask), 0.0))),
+            "se_method": "the covariance block's (REML: white noise plus wander)"}
 
 
 def _check_selection(selection: str) -> None:

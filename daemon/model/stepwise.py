@@ -31,7 +31,7 @@ from typing import Literal, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy import linalg, stats
+from scipy import linalg, special
 
 from nanodrift.model.hac import andrews_lag, hac_covariance, hac_meat
 
@@ -400,7 +400,7 @@ def _evaluate(R: NDArray[np.float64], state: NDArray[np.bool_], constant: NDArra
         with np.errstate(divide="ignore", invalid="ignore"):
             t = np.where(se_t > 0, b_t / se_t, np.where(b_t == 0, 0.0, np.copysign(np.inf, b_t)))
         tstat[testable] = t
-        pval[testable] = np.minimum(2.0 * stats.t.sf(np.abs(t), col_dof[testable]), 1.0)
+        pval[testable] = np.minimum(2.0 * special.stdtr(col_dof[testable], -np.abs(t)), 1.0)
     return _Fit(coef, se, tstat, pval, deficient, testable, sse, dof)
 
 
@@ -463,7 +463,7 @@ def _with_hac(fit: _Fit, state: NDArray[np.bool_], rows: _HacRows) -> _Fit:
     with np.errstate(divide="ignore", invalid="ignore"):
         t = np.where(se_t > 0, b_t / se_t, np.where(b_t == 0, 0.0, np.copysign(np.inf, b_t)))
     tstat[testable] = t
-    pval[testable] = np.minimum(2.0 * stats.t.sf(np.abs(t), col_dof[testable]), 1.0)
+    pval[testable] = np.minimum(2.0 * special.stdtr(col_dof[testable], -np.abs(t)), 1.0)
     return _Fit(fit.coef, se, tstat, pval, fit.deficient, testable, fit.sse, fit.dof)
 
 

@@ -76,10 +76,12 @@ def test_two_sigma_holds_the_true_error_out_of_range_and_on_a_discovery_extended
     assert extended.covariance is not None and extended.covariance.wander_um is not None
     i, n, rms_um, sigma_um = true_inside(validate(extended, "test2", seed=11, cycles=6, effects=effect))
     assert i / n >= 0.90 and sigma_um < 2.0 * max(rms_um, 0.010), (i, n, rms_um, sigma_um)
-    # the given model (no creep term) on the same run: its error is the creep it lacks, and its
-    # q_sigma, from a calibration whose forward sweeps hid that creep, says so by not holding it
+    # the given model (no creep term) on the same run: its error is the creep it lacks. Its q_sigma books
+    # the misfit its calibration saw (issue 27: the wander is the stage's as far as one instrument can
+    # tell), but the forward sweeps hid most of the creep: fewer steps than a calibrated σ holds, so
+    # validate's coverage warning (< 90 %) says so
     i, n, _, _ = true_inside(validate(given, "test2", seed=11, cycles=6, effects=effect))
-    assert i / n < 0.5
+    assert i / n < 0.9
 
 
 def test_adaptation_is_scored_against_the_truth_not_only_the_interferometer_it_follows() -> None:
