@@ -211,12 +211,12 @@ def fit_terms(
     result = stepwisefit(X, y, penter=penter, premove=premove, inmodel=keep.copy(), keep=keep,
                          hac_lag="andrews" if selection == "hac" else None, run_id=run_id)
     dropped: list[str] = []
+    frozen_out = np.zeros(len(pool), dtype=bool)  # every channel dropped so far stays out: the loop ends
     while selection == "coherent" and (weakest := _opposing_channel(pool, result, keep)) is not None:
         dropped.append(pool[weakest].name)
-        allowed = keep.copy()
-        allowed[weakest] = True  # frozen out of the model
-        result = stepwisefit(X, y, penter=penter, premove=premove, inmodel=keep & (np.arange(len(pool)) != weakest),
-                             keep=allowed, run_id=run_id)
+        frozen_out[weakest] = True
+        result = stepwisefit(X, y, penter=penter, premove=premove, inmodel=keep & ~frozen_out,
+                             keep=keep | frozen_out, run_id=run_id)
     chosen = [i for i in range(len(pool)) if result.inmodel[i]]
     if scored_only and np.isfinite(result.coef[result.inmodel]).all():
         # stepwise's least-squares coefficients suffice (a kept column it found collinear has none: ols'
