@@ -31,6 +31,7 @@ from hypothesis.control import currently_in_test_context
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, precondition, rule
 from pymodbus.constants import ExcCodes
 
+from helpers.cell_helpers import write_cell_model
 from helpers.daemon_harness import (
     MODEL_CHANNEL_RANGES,
     TEMPS,
@@ -68,6 +69,8 @@ SAFE_V = 0.0  # safe_voltage_v: where SIGTERM leaves the stage
 HUB_TIMEOUT_S = 1.0  # the module's latency stays below it (and below the daemon's 3 s write timeout)
 LIE_COUNTS = 7  # a lying module reads back this many counts more than it holds
 SLACK_V = 1e-9
+#: the slew check's tolerance: each of the two values is rounded to a count (half a count each), plus float noise
+SLEW_TOLERANCE_V = SCALE + 1e-9
 #: how long a check waits for the actuation to go quiet, a healed device's fault to clear, or status to show the
 #: device's position. A failing device pushes the daemon's reopen backoff to MAX_BACKOFF_S (5 s, +-20 %), and on
 #: a loaded machine a reopen can miss a device timeout more than once: 20 s (10 s for the position) left room for
@@ -85,13 +88,14 @@ def _signed(raw: int) -> int:
 
 @dataclass(frozen=True)
 class Arrival:
-    """A write request as it reached the module: when (this process' monotonic clock), where, what, and
-    whether the module took it."""
+    """A write request as it reached the module: when it arrived and when the module answered it (this
+    process' monotonic clock), where, what, and whether the module took it."""
 
     t: float
     address: int
     raw: int
     landed: bool
+    returned: float
 
     @property
     def volts(self) -> float:
@@ -99,18 +103,19 @@ class Arrival:
 
 
 class ChaosDevice(ModbusTestDevice):
-    """One Modbus device whose output register is the stage's voltage.
+    """One Modbus device whose output registers (one per axis) are the stage's voltages.
 
-    ``output`` is what the module really holds (the last write it took); ``failing`` answers every write
-    with DEVICE_FAILURE (nothing is stored), ``latency_s`` delays every answer, ``lying`` makes reads of the
+    ``outputs`` is what the module really holds per register (the last write it took); ``failing`` answers every
+    write with DEVICE_FAILURE (nothing is stored), ``latency_s`` delays every answer, ``lying`` makes reads of an
     output register answer ``LIE_COUNTS`` more than it holds.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, addresses: tuple[int, ...] = (ADDRESS,)) -> None:
         super().__init__(1, input_ranges=((0, 16),), holding_ranges=((0, 32),))
         self.lock = threading.Lock()
-        self.arrivals: list[Arrival] = []
-        self.output = 0  # the register starts at 0 counts: 0 V
+        self.arrivals: list[Arrival] = []  # in the order the module answered them
+        self.outputs = dict.fromkeys(addresses, 0)  # every register starts at 0 counts: 0 V
+        self.power_up_at = time.monotonic()  # when the registers took their power-up value
         self.failing = False
         self.lying = False
         self.latency_s = 0.0
@@ -128,28 +133,29 @@ class ChaosDevice(ModbusTestDevice):
         if set_values is None:  # a read: the daemon's read-back (at open, and after each write: verify)
             if self.latency_s:
                 await asyncio.sleep(self.latency_s)
-            if function_code == FC_READ_HOLDING and address <= ADDRESS < address + count:
+            if function_code == FC_READ_HOLDING:
                 with self.lock:
-                    raw = self.output + (LIE_COUNTS if self.lying else 0)
-                registers[ADDRESS - start] = raw & 0xFFFF  # what this read answers
+                    for register, held in self.outputs.items():
+                        if address <= register < address + count:  # what this read answers
+                            registers[register - start] = (held + (LIE_COUNTS if self.lying else 0)) & 0xFFFF
             self._touch()
             return None
         assert isinstance(set_values, list)
         values = [_signed(int(v)) for v in set_values]
         with self.lock:
             landed = not self.failing
-            arrived = time.monotonic()
-            self.arrivals.extend(Arrival(arrived, address + i, v, landed) for i, v in enumerate(values))
+        arrived = time.monotonic()
         if self.latency_s:
             await asyncio.sleep(self.latency_s)
-        if not landed:
-            self._touch()
-            return ExcCodes.DEVICE_FAILURE
         with self.lock:
-            if address <= ADDRESS < address + len(values):
-                self.output = values[ADDRESS - address]
+            if landed:
+                for i, value in enumerate(values):
+                    if address + i in self.outputs:
+                        self.outputs[address + i] = value
+            returned = time.monotonic()  # stamped before the answer leaves: never later than the daemon sees it
+            self.arrivals.extend(Arrival(arrived, address + i, v, landed, returned) for i, v in enumerate(values))
         self._touch()
-        return None
+        return None if landed else ExcCodes.DEVICE_FAILURE
 
     def quiet_for(self) -> float:
         with self.lock:
@@ -159,8 +165,8 @@ class ChaosDevice(ModbusTestDevice):
 class OutputModule:
     """pymodbus' TCP server with a :class:`ChaosDevice`, on its own loop thread."""
 
-    def __init__(self) -> None:
-        self.device = ChaosDevice()
+    def __init__(self, addresses: tuple[int, ...] = (ADDRESS,)) -> None:
+        self.device = ChaosDevice(addresses)
         self.server = ModbusTestServer([self.device])
         self.loop = asyncio.new_event_loop()
         self._thread = threading.Thread(target=self.loop.run_forever, name="chaos-modbus", daemon=True)
@@ -223,8 +229,12 @@ GAINS = (0.01, 0.02, 0.025)
 limits_strategy = st.builds(Limits, st.sampled_from(V_MINS), st.sampled_from(V_MAXES), st.sampled_from(SLEWS),
                             st.sampled_from(GAINS))
 
+MAX_AXES = 3
 valid_x = st.floats(min_value=0.0, max_value=500.0, allow_nan=False).map(lambda x: round(x, 3))
-outside_x = st.sampled_from([-50.0, -0.001, 500.5, 1.0e4])
+#: a point of up to MAX_AXES axes (a cell takes its first ones); a test may pass one float for every axis
+valid_point = st.tuples(*[valid_x] * MAX_AXES)
+#: a position outside the workspace on one axis (the others inside); a float: on the first axis
+outside_x = st.tuples(st.sampled_from([-50.0, -0.001, 500.5, 1.0e4]), st.integers(0, MAX_AXES - 1))
 MALFORMED = {  # with an id the daemon can answer to
     "x_not_a_number": '{{"id": "{id}", "x_um": "abc"}}',
     "x_missing": '{{"id": "{id}"}}',
@@ -233,7 +243,7 @@ MALFORMED = {  # with an id the daemon can answer to
 }
 ANONYMOUS = {"not_json": "x_um=12", "not_an_object": "[1, 2]", "empty": ""}  # answered with id null
 target_strategy = st.one_of(
-    st.tuples(st.just("valid"), valid_x),
+    st.tuples(st.just("valid"), valid_point),
     st.tuples(st.just("outside"), outside_x),
     st.tuples(st.just("malformed"), st.sampled_from(sorted(MALFORMED))),
     st.tuples(st.just("anonymous"), st.sampled_from(sorted(ANONYMOUS))),
@@ -242,7 +252,12 @@ BAD_EDITS = ("unknown_key", "bad_toml", "v_min_above_v_max", "safe_voltage_outsi
 
 
 class ChaosMachine(RuleBasedStateMachine):
-    """One daemon per example; see the module docstring for the rules and the invariants."""
+    """One daemon per example; see the module docstring for the rules and the invariants.
+
+    ``AXES`` are the cell's axes: one (``x``, the one-axis config of ``[actuator]``) or several (``[[axes]]``),
+    each on its own register of the one module (``ADDRESS`` + its index); every rule and check runs per axis."""
+
+    AXES: tuple[str, ...] = ("x",)
 
     def __init__(self) -> None:
         super().__init__()
@@ -261,7 +276,10 @@ class ChaosMachine(RuleBasedStateMachine):
         self.open_output()
         self.plugins = install_file_plugin(self.root / "plugins")
         self.model_path = self.root / "model.json"
-        write_test_model(self.model_path)
+        if len(self.AXES) == 1:
+            write_test_model(self.model_path)
+        else:
+            write_cell_model(self.model_path, self.AXES, max_um=500.0)
         self.temps = dict(TEMPS)
         self.faulted: set[str] = set()
         self.sensors = SensorFile(self.root / "sensors.json", self.temps)
@@ -276,6 +294,7 @@ class ChaosMachine(RuleBasedStateMachine):
         self.sent: dict[str, tuple[str, Any, set[str]]] = {}  # id -> (what, detail, kinds of error allowed)
         self.anonymous_sent = 0
         self.checked_arrivals = 0
+        self.previous_write: dict[int, Arrival] = {}  # per register: the last write it took, as checked
         self.checked_answers: set[Any] = set()
         self.sent_at: dict[str, float] = {}
         self.commands_seen = 0
@@ -312,8 +331,13 @@ class ChaosMachine(RuleBasedStateMachine):
 
     # --- the output device: hooks a machine with another output overrides ------------------------
 
+    @property
+    def registers(self) -> dict[str, int]:
+        """Each axis' output register on the module."""
+        return {axis: ADDRESS + i for i, axis in enumerate(self.AXES)}
+
     def open_output(self) -> None:
-        self.module = OutputModule()
+        self.module = OutputModule(tuple(self.registers.values()))
 
     def heal_output(self) -> None:
         """The device works properly again (before the daemon stops, so it can leave the stage safe)."""
@@ -328,24 +352,32 @@ class ChaosMachine(RuleBasedStateMachine):
     def make_client(self) -> Client:
         return Client(self.port, self.cell)
 
-    def output_toml(self, limits: Limits, v_min: float, v_max: float, safe: float, tail: str) -> tuple[str, str]:
-        """The ``[actuator]`` keys and what follows them (hubs, more sensors)."""
+    def output_toml(self, limits: Limits, v_min: float, v_max: float, safe: float,
+                    tail: str) -> tuple[str | None, str]:
+        """The ``[actuator]`` keys (None: ``[[axes]]`` instead) and what follows them (axes, hubs, more sensors)."""
         assert self.module is not None
-        actuator = (f'kind = "modbus"\nhub = "out"\ndevice_id = 1\naddress = {ADDRESS}\nscale = {SCALE}\n'
-                    f"volts_per_um = {limits.volts_per_um!r}\nv_min = {v_min!r}\nv_max = {v_max!r}\n"
-                    f"max_slew_um_per_s = {limits.max_slew_um_per_s!r}\nsafe_voltage_v = {safe!r}\n{tail}")
+        keys = {axis: (f'kind = "modbus"\nhub = "out"\ndevice_id = 1\naddress = {address}\nscale = {SCALE}\n'
+                       f"volts_per_um = {limits.volts_per_um!r}\nv_min = {v_min!r}\nv_max = {v_max!r}\n"
+                       f"max_slew_um_per_s = {limits.max_slew_um_per_s!r}\nsafe_voltage_v = {safe!r}\n{tail}")
+                for axis, address in self.registers.items()}
         hub = (f'[[hubs]]\nname = "out"\ntype = "tcp"\nhost = "127.0.0.1"\nport = {self.module.server.port}\n'
                f"timeout_s = {HUB_TIMEOUT_S}\n")
-        return actuator, hub
+        if len(self.AXES) == 1:
+            return keys[self.AXES[0]], hub
+        axes = "".join(f'\n[[axes]]\nname = "{axis}"\nmin_um = 0.0\nmax_um = 500.0\n[axes.actuator]\n{text}'
+                       for axis, text in keys.items())
+        return None, axes + "\n" + hub
 
     def check_left_safe(self) -> str:
         """After a SIGTERM (exit 0): the output holds ``safe_voltage_v``; what it holds, for the step log."""
         assert self.module is not None
-        output = self.module.device.output
-        assert output == self.limits.count_for(SAFE_V), (
-            f"after SIGTERM the register holds {output} counts ({output * SCALE:.4f} V), not safe_voltage_v "
-            f"{SAFE_V} V:\n{self.daemon_log_tail()}")
-        return f"register {output} counts"
+        with self.module.device.lock:
+            outputs = dict(self.module.device.outputs)
+        for axis, address in self.registers.items():
+            assert outputs[address] == self.limits.count_for(SAFE_V), (
+                f"after SIGTERM axis {axis}'s register {address} holds {outputs[address]} counts "
+                f"({outputs[address] * SCALE:.4f} V), not safe_voltage_v {SAFE_V} V:\n{self.daemon_log_tail()}")
+        return f"registers {outputs} counts"
 
     def teardown(self) -> None:
         try:
@@ -391,10 +423,12 @@ class ChaosMachine(RuleBasedStateMachine):
         target_id = f"t{next(self.ids)}"
         device_trouble = {"actuator_fault"} if self.mode != "ok" else set()
         if what == "valid":
-            payload = json.dumps({"x_um": detail, "id": target_id})
+            payload = json.dumps({**self.position(detail), "id": target_id})
             allowed = {"voltage_limit", *device_trouble, *({"fault"} if self.faulted else set())}
         elif what == "outside":
-            payload = json.dumps({"x_um": detail, "id": target_id})
+            value, index = detail if isinstance(detail, tuple) else (detail, 0)
+            point = {**self.position(250.0), f"{self.AXES[index % len(self.AXES)]}_um": value}
+            payload = json.dumps({**point, "id": target_id})
             allowed = {"out_of_workspace", *device_trouble}
         elif what == "malformed":
             payload = MALFORMED[detail].format(id=target_id)
@@ -407,6 +441,24 @@ class ChaosMachine(RuleBasedStateMachine):
         self.sent_at[target_id] = time.monotonic()
         self.client.put(payload)
         return target_id
+
+    def position(self, detail: float | tuple[float, ...]) -> dict[str, float]:
+        """A target's ``<axis>_um`` keys: one float for every axis, or a tuple's first values."""
+        values = detail if isinstance(detail, tuple) else (detail,) * len(self.AXES)
+        return {f"{axis}_um": value for axis, value in zip(self.AXES, values, strict=False)}
+
+    def volts_of(self, doc: dict[str, Any]) -> dict[str, float]:
+        """A command's (or log line's) ``voltage_v`` per axis: a number in a one-axis cell, an object otherwise."""
+        volts = doc["voltage_v"]
+        return dict(volts) if isinstance(volts, dict) else {self.AXES[0]: volts}
+
+    def actuators(self, timeout: float) -> dict[str, dict[str, Any]]:
+        """Each axis' ``actuator`` in ``status`` (one-axis: the top-level one)."""
+        assert self.client is not None
+        doc = self.client.status(timeout)
+        if len(self.AXES) == 1:
+            return {self.AXES[0]: doc["actuator"]}
+        return {axis: doc["axes"][axis]["actuator"] for axis in self.AXES}
 
     def answers(self) -> dict[Any, list[tuple[str, dict[str, Any]]]]:
         out: dict[Any, list[tuple[str, dict[str, Any]]]] = {}
@@ -463,7 +515,7 @@ class ChaosMachine(RuleBasedStateMachine):
                                                 f"{doc}")
             else:
                 assert what == "valid", f"target {target_id} ({what} {detail!r}) was served: {doc}"
-                assert self.limits_at_answer_allow(doc["voltage_v"]), (
+                assert all(self.limits_at_answer_allow(v) for v in self.volts_of(doc).values()), (
                     f"command {target_id} at {doc['voltage_v']} V is outside every limit in force: {doc}")
         assert len(answers.get(None, [])) == self.anonymous_sent, (
             f"{self.anonymous_sent} anonymous payloads, {len(answers.get(None, []))} answers with id null")
@@ -487,8 +539,8 @@ class ChaosMachine(RuleBasedStateMachine):
             if device.quiet_for() >= window:
                 if self.mode != "ok":
                     return
-                state = self.client.status(3.0)["actuator"]["state"]
-                if state == "ok" and device.quiet_for() >= window:
+                state = {axis: a["state"] for axis, a in self.actuators(3.0).items()}
+                if set(state.values()) == {"ok"} and device.quiet_for() >= window:
                     return
             assert time.monotonic() < deadline, (
                 f"the actuation never went quiet (module quiet for {device.quiet_for():.2f} s, actuator "
@@ -514,8 +566,8 @@ class ChaosMachine(RuleBasedStateMachine):
         ids = [self.put_target(what, detail) for what, detail in batch]
         self.say(f"send targets {list(zip(ids, batch, strict=True))}")
 
-    @rule(limits=limits_strategy, mid_motion=st.none() | valid_x)
-    def reload_valid_limits(self, limits: Limits, mid_motion: float | None) -> None:
+    @rule(limits=limits_strategy, mid_motion=st.none() | valid_point)
+    def reload_valid_limits(self, limits: Limits, mid_motion: float | tuple[float, ...] | None) -> None:
         assert self.daemon is not None
         before = len(self.log_events("reload_applied")), len(self.log_events("reload_refused"))
         self.write_config(limits)
@@ -531,11 +583,11 @@ class ChaosMachine(RuleBasedStateMachine):
         self.say(f"reload {previous.text()} -> {limits.text()} (target of {mid_motion} um just before SIGHUP), "
                  f"applied after {t1 - t0:.3f} s")
         self.wait_answered()  # the target sent just before it: answered under the old limits or the new
-        if self.last_command is not None and self.expect == "command" and not limits.allows(
-                self.last_command["voltage_v"]):
+        if self.last_command is not None and self.expect == "command" and not all(
+                limits.allows(v) for v in self.volts_of(self.last_command).values()):
             self.expect, self.dropped_at = "dropped", t1
-            self.say(f"  the last command ({self.last_command['voltage_v']:.4f} V) is outside the new limits: "
-                     "the daemon must drop it and hold")
+            self.say(f"  the last command ({self.volts_of(self.last_command)} V) is outside the new limits: "
+                     "the daemon must drop it whole and hold")
 
     @rule(bad=st.sampled_from(BAD_EDITS))
     def reload_invalid_edit(self, bad: str) -> None:
@@ -631,7 +683,8 @@ class ChaosMachine(RuleBasedStateMachine):
         held = self.check_left_safe()
         safe = self.log_events("actuator_safe")
         self.say(f"SIGTERM: exit 0 after {time.monotonic() - t0:.2f} s, {held}")
-        assert safe and safe[-1]["voltage_v"] == SAFE_V, f"no actuator_safe line:\n{self.daemon_log_tail()}"
+        assert safe and self.volts_of(safe[-1]) == dict.fromkeys(self.AXES, SAFE_V), (
+            f"no actuator_safe line for every axis:\n{self.daemon_log_tail()}")
         self.old_clients.append(self.client)
         self.client.close()
         self.client = None
@@ -658,51 +711,83 @@ class ChaosMachine(RuleBasedStateMachine):
         device = self.module.device
         # 3. every target answered exactly once
         self.wait_answered()
-        # quiet: the register stops changing and the actuation is idle
+        # quiet: the registers stop changing and the actuation is idle
         self.wait_quiet()
-        # 1. every write that reached the module was inside the limits in force when it arrived
         with device.lock:
             arrivals = device.arrivals[self.checked_arrivals:]
-            output = device.output
+            outputs = dict(device.outputs)
         self.checked_arrivals += len(arrivals)
+        by_register = {address: axis for axis, address in self.registers.items()}
         for arrival in arrivals:
-            assert arrival.address == ADDRESS, f"a write to register {arrival.address}: {arrival}"
+            assert arrival.address in by_register, f"a write to register {arrival.address}, no axis': {arrival}"
+            # 1. every write that reached the module was inside the limits in force when it arrived
             allowed = self.allowed_limits(arrival.t)
             assert any(lim.allows(arrival.volts) for lim in allowed), (
-                f"the module received {arrival.raw} counts ({arrival.volts:.4f} V), outside the limits in force "
+                f"axis {by_register[arrival.address]}'s register received {arrival.raw} counts "
+                f"({arrival.volts:.4f} V), outside the limits in force "
                 f"({' or '.join(lim.text() for lim in allowed)}):\n{self.daemon_log_tail()}")
-        # 2. once quiet, the register holds the last served command (or safe_voltage_v after a SIGTERM)
+            # 5. ... and no faster than the slew from the value before it
+            self.check_slew(by_register[arrival.address], arrival)
+        # 2. once quiet, each register holds the last served command (or safe_voltage_v after a SIGTERM)
         if currently_in_test_context():
             event(f"register checked: {self.expect if self.mode == 'ok' else 'module ' + self.mode}")
         if self.mode == "ok":
             limits = self.limits
             if self.expect == "safe":
-                want = limits.count_for(SAFE_V)
-                assert output == want, (f"no command served since start: the register holds {output} counts, "
-                                        f"not {want}:\n{self.daemon_log_tail()}")
+                want = dict.fromkeys(self.AXES, limits.count_for(SAFE_V))
+                held = {axis: outputs[address] for axis, address in self.registers.items()}
+                assert held == want, (f"no command served since start: the registers hold {held} counts, "
+                                      f"not {want}:\n{self.daemon_log_tail()}")
             elif self.expect == "command":
                 assert self.last_command is not None
-                volts = self.last_command["voltage_v"]
-                want = limits.count_for(volts)
-                assert output == want, (
-                    f"quiet: the register holds {output} counts ({output * SCALE:.4f} V), but the last command "
-                    f"{self.last_command['id']} is {volts:.6f} V ({want} counts) within {limits.text()}"
-                    f":\n{self.daemon_log_tail()}")
+                volts = self.volts_of(self.last_command)
+                want = {axis: limits.count_for(v) for axis, v in volts.items()}
+                held = {axis: outputs[address] for axis, address in self.registers.items()}
+                assert held == want, (
+                    f"quiet: the registers hold {held} counts, but the last command {self.last_command['id']} is "
+                    f"{volts} V ({want} counts) within {limits.text()}:\n{self.daemon_log_tail()}")
             else:  # dropped: the daemon says so, and nothing was written after it
                 assert self.last_command is not None and self.dropped_at is not None
-                volts = self.last_command["voltage_v"]
-                dropped = [e for e in self.log_events("actuator_goal_dropped") if math.isclose(e["voltage_v"], volts)]
-                assert dropped, (f"the last command ({volts:.6f} V) is outside {limits.text()} but no "
+                volts = self.volts_of(self.last_command)
+                dropped = [e for e in self.log_events("actuator_goal_dropped")
+                           if all(math.isclose(self.volts_of(e)[a], v) for a, v in volts.items()
+                                  if a in self.volts_of(e))]
+                assert dropped, (f"the last command ({volts} V) is outside {limits.text()} but no "
                                  f"actuator_goal_dropped line names it:\n{self.daemon_log_tail()}")
                 with device.lock:
                     late = [a for a in device.arrivals if a.t > self.dropped_at]
                 assert not late, f"the goal was dropped, yet the module received {late}:\n{self.daemon_log_tail()}"
         self.check_alive_and_limits()
 
+    def check_slew(self, axis: str, arrival: Arrival) -> None:
+        """Invariant 5: every write (a failed one too: a real module may take it) is within the slew of the value
+        the register last took: |dV| <= slew x (time from that write's answer to this write's arrival, as the
+        module stamps them) + SLEW_TOLERANCE_V, under the fastest slew in force at either end (none when one is
+        off). A write the module failed is not taken: the daemon ramps on from the value the register holds.
+        Before its first write a register holds its power-up 0 V, from when the module started."""
+        assert self.module is not None
+        previous = self.previous_write.get(arrival.address)
+        if previous is None:
+            previous = Arrival(self.module.device.power_up_at, arrival.address, 0, True,
+                               self.module.device.power_up_at)
+        if arrival.landed:
+            self.previous_write[arrival.address] = arrival
+        rates = [lim.max_slew_um_per_s * lim.volts_per_um
+                 for lim in (*self.allowed_limits(previous.returned), *self.allowed_limits(arrival.t))]
+        if min(rates) <= 0:
+            return  # the slew was off at one end: any step is allowed
+        elapsed_s = arrival.t - previous.returned
+        step_v = abs(arrival.volts - previous.volts)
+        assert step_v <= max(rates) * elapsed_s + SLEW_TOLERANCE_V, (
+            f"axis {axis}'s register was sent {arrival.volts:.4f} V ({'taken' if arrival.landed else 'failed'}) "
+            f"{elapsed_s:.4f} s after it took {previous.volts:.4f} V ({step_v:.4f} V); the slew allows "
+            f"{max(rates):g} V/s (+{SLEW_TOLERANCE_V} V):\n{self.daemon_log_tail()}")
+
     def check_alive_and_limits(self) -> None:
-        """Invariant 4: alive, answering status, with the limits the test believes are in force."""
+        """Invariant 4: alive, answering status, with the limits the test believes are in force on every axis."""
         assert self.client is not None and self.daemon is not None
         self.daemon.check_alive()
-        actuator = self.client.status(5.0)["actuator"]
-        shown = Limits(actuator["v_min"], actuator["v_max"], actuator["max_slew_um_per_s"], actuator["volts_per_um"])
-        assert shown == self.limits, f"status shows {shown.text()}, the test applied {self.limits.text()}"
+        for axis, actuator in self.actuators(5.0).items():
+            shown = Limits(actuator["v_min"], actuator["v_max"], actuator["max_slew_um_per_s"],
+                           actuator["volts_per_um"])
+            assert shown == self.limits, f"status shows {shown.text()} on {axis}, the test applied {self.limits.text()}"

@@ -39,8 +39,18 @@ from helpers.chaos import ChaosMachine, Limits, chaos_settings
 EXAMPLES = sized("NANODRIFT_CHAOS_EXAMPLES", 3, 60)
 STEPS = sized("NANODRIFT_CHAOS_STEPS", 12, 40)
 
+
+
+class XYChaosMachine(ChaosMachine):
+    """The same machine on an XY cell: each axis on its own register of the one module."""
+
+    AXES = ("x", "y")
+
+
 ChaosMachine.TestCase.settings = chaos_settings(EXAMPLES, STEPS)
+XYChaosMachine.TestCase.settings = chaos_settings(EXAMPLES, STEPS)
 TestChaos = ChaosMachine.TestCase
+TestXYChaos = XYChaosMachine.TestCase
 
 
 def test_a_command_whose_write_failed_is_written_once_the_module_works_again() -> None:
@@ -55,6 +65,21 @@ def test_a_command_whose_write_failed_is_written_once_the_module_works_again() -
         machine.send_targets([("valid", 0.0)])
         machine.check()
         machine.module_works_again()
+        machine.check()
+    finally:
+        machine.teardown()
+
+
+def test_a_reload_mid_ramp_keeps_the_slew_between_the_last_write_and_the_next() -> None:
+    """The XY machine's finding: a target just before a SIGHUP, the reload cancelling the ramp while its write
+    was in flight (the module took 0.3 V, the daemon never heard it return): the reopened output read 0.3 V back
+    and its first step covered a whole ramp period from it, 0.3 V more 5 ms later at 15 V/s. The cut-short write
+    now counts as returned when it was cut (``motion.Slew.cut_short``)."""
+    machine = XYChaosMachine()
+    try:
+        machine.start_daemon(Limits(-2.0, 2.5, 1500.0, 0.01))
+        machine.check()
+        machine.reload_valid_limits(Limits(-2.0, 8.0, 1500.0, 0.01), mid_motion=(70.841, 193.321, 299.86))
         machine.check()
     finally:
         machine.teardown()
