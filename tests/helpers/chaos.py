@@ -44,6 +44,7 @@ from helpers.daemon_harness import (
     wait_until,
     write_test_model,
 )
+from helpers.edge_cell import confirm_output
 from helpers.modbus_helpers import FC_READ_HOLDING, ModbusTestDevice, ModbusTestServer
 from helpers.wall_clock import WallShift
 
@@ -66,6 +67,7 @@ def chaos_settings(examples: int, steps: int) -> settings:
 SCALE = 0.001  # volts per count of the output register (int16)
 ADDRESS = 10
 SAFE_V = 0.0  # safe_voltage_v: where SIGTERM leaves the stage
+POWER_UP_V = 0.0  # power_up_voltage_v (the default): what a register holds before anything wrote it
 HUB_TIMEOUT_S = 1.0  # the module's latency stays below it (and below the daemon's 3 s write timeout)
 LIE_COUNTS = 7  # a lying module reads back this many counts more than it holds
 SLACK_V = 1e-9
@@ -287,6 +289,7 @@ class ChaosMachine(RuleBasedStateMachine):
         self.cell = f"chaos{free_port()}"
         self.port = free_port()
         self.config_path = self.root / "nanodrift.toml"
+        self.state_dir = self.root / "state"
         now = time.monotonic()
         self.epochs = [Epoch(now, limits, now, None)]
         self.write_config(limits)
@@ -299,7 +302,8 @@ class ChaosMachine(RuleBasedStateMachine):
         self.sent_at: dict[str, float] = {}
         self.commands_seen = 0
         self.last_command: dict[str, Any] | None = None
-        self.expect = "safe"  # "safe" | "command" | "dropped": what the register must hold once quiet
+        self.expect = "safe"  # "safe" | "command" | "dropped" | "held": what the registers hold once quiet
+        self.held: dict[str, int] = {}  # "held": the counts each axis' register held when the daemon stopped
         self.dropped_at: float | None = None
         self.mode = "ok"  # the module: "ok" | "failing" | "lying"
         self.restarts = 0
@@ -416,7 +420,12 @@ class ChaosMachine(RuleBasedStateMachine):
         actuator, hub = self.output_toml(limits, v_min, v_max, safe, tail)
         self.config_path.write_text(file_sensor_config(
             self.root, cell=self.cell, port=self.port, model_path=self.model_path, sensor_file=self.sensors.path,
-            actuator=actuator, extra=hub))
+            actuator=actuator, extra=hub + self.daemon_toml()))
+
+    def daemon_toml(self) -> str:
+        """The ``[daemon]`` table: the state directory the daemon proves its outputs by."""
+        return f'\n[daemon]\nstate_dir = "{self.state_dir}"\n'
+
 
     def put_target(self, what: str, detail: Any) -> str | None:
         assert self.client is not None
@@ -532,6 +541,7 @@ class ChaosMachine(RuleBasedStateMachine):
         assert self.module is not None and self.client is not None and self.daemon is not None
         device = self.module.device
         window = 0.3 + 2 * device.latency_s
+        self.track_commands()
         deadline = time.monotonic() + QUIET_WAIT_S
         state = None
         while True:
@@ -540,12 +550,22 @@ class ChaosMachine(RuleBasedStateMachine):
                 if self.mode != "ok":
                     return
                 state = {axis: a["state"] for axis, a in self.actuators(3.0).items()}
-                if set(state.values()) == {"ok"} and device.quiet_for() >= window:
-                    return
+                if set(state.values()) == {"ok"} and device.quiet_for() >= window and (
+                        self.holds_last_command() or time.monotonic() > deadline - 5.0):
+                    return  # (a register that never gets there: the check says what it holds)
             assert time.monotonic() < deadline, (
                 f"the actuation never went quiet (module quiet for {device.quiet_for():.2f} s, actuator "
                 f"{state}):\n{self.daemon_log_tail()}")
             time.sleep(0.05)
+
+    def holds_last_command(self) -> bool:
+        """Unless a command is to be held, True; else whether every register holds it: a command answered a
+        moment ago may not have reached the module yet (the module was quiet before it)."""
+        if self.expect != "command" or self.last_command is None or self.module is None:
+            return True
+        want = {axis: self.limits.count_for(v) for axis, v in self.volts_of(self.last_command).items()}
+        with self.module.device.lock:
+            return all(self.module.device.outputs[self.registers[axis]] == raw for axis, raw in want.items())
 
     def allowed_limits(self, t: float) -> list[Limits]:
         epoch = None
@@ -670,28 +690,86 @@ class ChaosMachine(RuleBasedStateMachine):
         self.say(f"temperature channel {channel} faults")
 
     @precondition(lambda self: self.mode == "ok")
-    @rule()
-    def sigterm_and_restart(self) -> None:
-        assert self.daemon is not None and self.client is not None
+    @rule(how=st.sampled_from(["SIGTERM", "kill -9"]), forget_state=st.booleans())
+    def stop_and_restart(self, how: str, forget_state: bool) -> None:
+        """Stop the daemon (SIGTERM: it leaves every output safe; kill -9: they hold), optionally delete its state
+        directory, and start it again: it believes a register only as its state file (or the power-up 0 V)
+        proves; a register nothing proves is refused, nothing written, until ``nanodrift confirm-output``."""
+        assert self.module is not None
+        held = self.stop_daemon(how)
+        with self.module.device.lock:
+            self.held = {axis: self.module.device.outputs[address] for axis, address in self.registers.items()}
+        unproven = {axis: raw for axis, raw in self.held.items() if abs(raw * SCALE - POWER_UP_V) > SLACK_V}
+        outside = [axis for axis, raw in self.held.items() if not self.limits.allows(raw * SCALE)]
+        if forget_state and outside:  # confirm-output refuses a voltage outside the limits: nothing could confirm
+            forget_state = False
+            self.say(f"  (state kept: {outside} hold outside the limits, which no operator could confirm)")
+        if forget_state:
+            shutil.rmtree(self.state_dir, ignore_errors=True)
+        self.say(f"{held}: {self.held} counts{', state directory deleted' if forget_state else ''}")
+        self.relaunch()
+        self.expect, self.dropped_at = "held", None
+        if forget_state and unproven:
+            self.confirm_unproven(unproven)
+
+    def stop_daemon(self, how: str) -> str:
+        """SIGTERM (exit 0, every output left at ``safe_voltage_v``) or kill -9; what happened, for the log."""
+        assert self.daemon is not None
         t0 = time.monotonic()
-        self.daemon.signal(signal.SIGTERM)
+        if how == "SIGTERM":
+            self.daemon.signal(signal.SIGTERM)
+        else:
+            self.daemon.proc.kill()
         try:
             code = self.daemon.proc.wait(25)
         except subprocess.TimeoutExpired:
             raise AssertionError(f"the daemon did not stop within 25 s:\n{self.daemon_log_tail()}") from None
+        if how != "SIGTERM":
+            return f"kill -9 after {time.monotonic() - t0:.2f} s"
         assert code == 0, f"the daemon exited with {code}:\n{self.daemon_log_tail()}"
         held = self.check_left_safe()
         safe = self.log_events("actuator_safe")
-        self.say(f"SIGTERM: exit 0 after {time.monotonic() - t0:.2f} s, {held}")
         assert safe and self.volts_of(safe[-1]) == dict.fromkeys(self.AXES, SAFE_V), (
             f"no actuator_safe line for every axis:\n{self.daemon_log_tail()}")
+        return f"SIGTERM: exit 0 after {time.monotonic() - t0:.2f} s, {held}"
+
+    def relaunch(self) -> None:
+        """A new daemon process on the same config (the old one's client keeps its answers)."""
+        assert self.client is not None
         self.old_clients.append(self.client)
         self.client.close()
         self.client = None
         self.restarts += 1
-        self.expect, self.dropped_at = "safe", None
         self.launch()
         self.say("restarted")
+
+    def confirm_unproven(self, unproven: dict[str, int]) -> None:
+        """Nothing proves what ``unproven`` axes' registers hold: a target is refused saying how to confirm, the
+        actuator is in fault, nothing is written; ``nanodrift confirm-output`` per axis makes the daemon believe
+        them, still writing nothing (the check that follows sees the registers unchanged)."""
+        assert self.client is not None and self.module is not None
+        with self.module.device.lock:
+            writes_before = len(self.module.device.arrivals)
+        target_id = self.put_target("valid", 100.0)
+        assert target_id is not None
+        self.sent[target_id] = ("valid", 100.0, {"actuator_fault"})  # refused: nothing proves where the stage is
+        self.wait_answered()
+        kind, doc = self.answers()[target_id][0]
+        assert kind == "error" and "nanodrift confirm-output" in doc["error"], (
+            f"a target while {sorted(unproven)} are unproven was answered {kind} {doc}:\n{self.daemon_log_tail()}")
+        states = {axis: a["state"] for axis, a in self.actuators(3.0).items()}
+        assert "fault" in states.values(), f"status shows {states} while {sorted(unproven)} are unproven"
+        for axis, raw in unproven.items():
+            confirmed = confirm_output(self.config_path, [self.plugins], "--axis", axis, "--voltage",
+                                       f"{raw * SCALE:.4f}")
+            assert confirmed.returncode == 0, f"confirm-output --axis {axis}: {confirmed.stderr}"
+        wait_until(lambda: set(a["state"] for a in self.actuators(3.0).values()) == {"ok"}, QUIET_WAIT_S,
+                   "the daemon believing the confirmed outputs")
+        with self.module.device.lock:
+            late = self.module.device.arrivals[writes_before:]
+        assert not late, f"unproven outputs were written: {late}:\n{self.daemon_log_tail()}"
+        self.say(f"  unproven {unproven} counts: a target refused ({doc['error'][:80]}...), nothing written; "
+                 "confirmed with nanodrift confirm-output")
 
     # --- the invariants -------------------------------------------------------------------------
 
@@ -738,6 +816,10 @@ class ChaosMachine(RuleBasedStateMachine):
                 held = {axis: outputs[address] for axis, address in self.registers.items()}
                 assert held == want, (f"no command served since start: the registers hold {held} counts, "
                                       f"not {want}:\n{self.daemon_log_tail()}")
+            elif self.expect == "held":  # restarted, no command since: nothing moved
+                held = {axis: outputs[address] for axis, address in self.registers.items()}
+                assert held == self.held, (f"restarted with no command since: the registers hold {held} counts, "
+                                           f"not the {self.held} they held:\n{self.daemon_log_tail()}")
             elif self.expect == "command":
                 assert self.last_command is not None
                 volts = self.volts_of(self.last_command)

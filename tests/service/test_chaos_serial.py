@@ -187,6 +187,14 @@ class SerialChaosMachine(ChaosMachine):
     module_latency = None
     temperatures_change = None
     temperature_channel_faults = None
+    stop_and_restart = None  # the controller's state file and kill -9 are the Modbus machine's
+
+    @precondition(lambda self: self.mode == "ok")
+    @rule()
+    def sigterm_and_restart(self) -> None:
+        self.say(self.stop_daemon("SIGTERM"))
+        self.relaunch()
+        self.expect, self.dropped_at = "safe", None
 
     # --- the output: hooks of ChaosMachine ------------------------------------------------------
 
@@ -219,6 +227,9 @@ class SerialChaosMachine(ChaosMachine):
                   "resync_query = \"*IDN?\\n\"\nresync_pattern = 'PI|Physik'\n"
                   f"timeout_s = {SENSOR_TIMEOUT_S}\ninterval_s = 0.05\nmax_age_s = 3.0\nfrozen_after_s = 0.0\n")
         return actuator, sensor
+
+    def daemon_toml(self) -> str:
+        return ""  # no state directory: a SIGTERM leaves safe_voltage_v, the power-up value the daemon believes
 
     def check_left_safe(self) -> str:
         held = self.controller.voltage
