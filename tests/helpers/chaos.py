@@ -251,6 +251,7 @@ target_strategy = st.one_of(
     st.tuples(st.just("anonymous"), st.sampled_from(sorted(ANONYMOUS))),
 )
 BAD_EDITS = ("unknown_key", "bad_toml", "v_min_above_v_max", "safe_voltage_outside")
+SHARED_REGISTER = "# two axes on one register\n"  # (a comment in the edit: the config_registers hook reads it)
 
 
 class ChaosMachine(RuleBasedStateMachine):
@@ -340,6 +341,14 @@ class ChaosMachine(RuleBasedStateMachine):
         """Each axis' output register on the module."""
         return {axis: ADDRESS + i for i, axis in enumerate(self.AXES)}
 
+    def config_registers(self, tail: str) -> dict[str, int]:
+        """The registers the config gives the axes: with ``SHARED_REGISTER`` in ``tail`` (a bad edit), the last
+        axis on the first's."""
+        registers = self.registers
+        if SHARED_REGISTER in tail:
+            registers[self.AXES[-1]] = registers[self.AXES[0]]
+        return registers
+
     def open_output(self) -> None:
         self.module = OutputModule(tuple(self.registers.values()))
 
@@ -363,7 +372,7 @@ class ChaosMachine(RuleBasedStateMachine):
         keys = {axis: (f'kind = "modbus"\nhub = "out"\ndevice_id = 1\naddress = {address}\nscale = {SCALE}\n'
                        f"volts_per_um = {limits.volts_per_um!r}\nv_min = {v_min!r}\nv_max = {v_max!r}\n"
                        f"max_slew_um_per_s = {limits.max_slew_um_per_s!r}\nsafe_voltage_v = {safe!r}\n{tail}")
-                for axis, address in self.registers.items()}
+                for axis, address in self.config_registers(tail).items()}
         hub = (f'[[hubs]]\nname = "out"\ntype = "tcp"\nhost = "127.0.0.1"\nport = {self.module.server.port}\n'
                f"timeout_s = {HUB_TIMEOUT_S}\n")
         if len(self.AXES) == 1:
@@ -417,6 +426,8 @@ class ChaosMachine(RuleBasedStateMachine):
             v_min, v_max = limits.v_max, limits.v_min
         elif bad == "safe_voltage_outside":
             safe = limits.v_max + 1.0
+        elif bad == "shared_register":
+            tail = SHARED_REGISTER
         actuator, hub = self.output_toml(limits, v_min, v_max, safe, tail)
         self.config_path.write_text(file_sensor_config(
             self.root, cell=self.cell, port=self.port, model_path=self.model_path, sensor_file=self.sensors.path,
@@ -619,6 +630,28 @@ class ChaosMachine(RuleBasedStateMachine):
         self.write_config(self.limits)  # the file is good again (a later restart reads it); no SIGHUP
         assert outcome == "reload_refused", f"the edit {bad!r} was applied:\n{self.daemon_log_tail()}"
         self.say(f"invalid reload ({bad}): refused")
+
+    @precondition(lambda self: len(self.AXES) > 1)
+    @rule()
+    def reload_two_axes_on_one_register(self) -> None:
+        """An edit putting the last axis on the first's register: refused naming both axes, nothing written."""
+        assert self.daemon is not None and self.module is not None
+        before = len(self.log_events("reload_applied")), len(self.log_events("reload_refused"))
+        self.write_config(self.limits, bad="shared_register")
+        with self.module.device.lock:
+            writes_before = len(self.module.device.arrivals)
+        self.daemon.signal(signal.SIGHUP)
+        outcome = self.wait_reload(before)
+        with self.module.device.lock:
+            written = self.module.device.arrivals[writes_before:]
+        self.write_config(self.limits)
+        assert outcome == "reload_refused", f"two axes on one register were applied:\n{self.daemon_log_tail()}"
+        problems = " ".join(self.log_events("reload_refused")[-1].get("problems", []))
+        first, last = self.AXES[0], self.AXES[-1]
+        assert f"({last})" in problems and f"({first})" in problems and "one output drives one axis" in problems, (
+            f"the refusal does not name both axes {first} and {last}: {problems}")
+        assert not written, f"the refused reload wrote {written}:\n{self.daemon_log_tail()}"
+        self.say(f"reload with {last} on {first}'s register: refused ({problems[:100]}...), nothing written")
 
     def wait_reload(self, before: tuple[int, int]) -> str:
         try:
