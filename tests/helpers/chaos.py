@@ -10,6 +10,8 @@ invariants); a machine with another output overrides the output hooks (``open_ou
 from __future__ import annotations
 
 import asyncio
+import csv
+import datetime as dt
 import itertools
 import json
 import math
@@ -47,6 +49,7 @@ from helpers.daemon_harness import (
 from helpers.edge_cell import confirm_output
 from helpers.modbus_helpers import FC_READ_HOLDING, ModbusTestDevice, ModbusTestServer
 from helpers.wall_clock import WallShift
+from nanodrift.service.recorder import TIMESYNC_FLAG, file_name
 
 #: NANODRIFT_CHAOS_SHRINK=0: report the first failing sequence as found (each shrink step starts a daemon)
 SHRINK = os.environ.get("NANODRIFT_CHAOS_SHRINK", "1") != "0"
@@ -251,6 +254,8 @@ target_strategy = st.one_of(
     st.tuples(st.just("anonymous"), st.sampled_from(sorted(ANONYMOUS))),
 )
 BAD_EDITS = ("unknown_key", "bad_toml", "v_min_above_v_max", "safe_voltage_outside")
+RECORD_DAYS = 4  # day files there before the first start
+RECORD_KEEP_DAYS = 90
 SHARED_REGISTER = "# two axes on one register\n"  # (a comment in the edit: the config_registers hook reads it)
 
 
@@ -284,8 +289,15 @@ class ChaosMachine(RuleBasedStateMachine):
         else:
             write_cell_model(self.model_path, self.AXES, max_um=500.0)
         self.temps = dict(TEMPS)
+        self.positions = {f"ifm_{axis}": 0.0 for axis in self.AXES}  # each axis' interferometer reads its target
         self.faulted: set[str] = set()
-        self.sensors = SensorFile(self.root / "sensors.json", self.temps)
+        self.sensors = SensorFile(self.root / "sensors.json", {**self.temps, **self.positions})
+        self.records = self.root / "records"
+        self.records.mkdir()
+        today = dt.datetime.now(dt.UTC).date()
+        for days_ago in range(RECORD_DAYS):  # day files of earlier days, within record_keep_days of the real today
+            (self.records / file_name(today - dt.timedelta(days=days_ago))).write_text(self.record_header())
+        self.record_files = set(self.records.iterdir())
         self.shift = WallShift(self.root / "wall_shift")
         self.cell = f"chaos{free_port()}"
         self.port = free_port()
@@ -433,9 +445,24 @@ class ChaosMachine(RuleBasedStateMachine):
             self.root, cell=self.cell, port=self.port, model_path=self.model_path, sensor_file=self.sensors.path,
             actuator=actuator, extra=hub + self.daemon_toml()))
 
+    def record_header(self) -> str:
+        """A record file's header for this cell (the CSV contract: one-axis names, or per axis)."""
+        if len(self.AXES) == 1:
+            return "t_s,x_um,q_um,target_um,residual_um,valid,T1,T2\n"
+        per_axis = [[f"{kind}{axis}_um" for axis in self.AXES] for kind in ("", "q_", "target_", "residual_")]
+        return ",".join(["t_s", *[f"{a}_um" for a in self.AXES], *per_axis[1], *per_axis[2], *per_axis[3],
+                         "valid", "T1", "T2"]) + "\n"
+
     def daemon_toml(self) -> str:
-        """The ``[daemon]`` table: the state directory the daemon proves its outputs by."""
-        return f'\n[daemon]\nstate_dir = "{self.state_dir}"\n'
+        """The ``[daemon]`` table (the state directory the daemon proves its outputs by), recording (``[health]``)
+        and each axis' interferometer (the ``file`` plugin, reading the last target sent)."""
+        positions = "".join(
+            f'\n[[sensors]]\nname = "ifm_{axis}"\nrole = "position"\nkind = "file"\npath = "{self.sensors.path}"\n'
+            f"interval_s = 0.05\nmax_age_s = 1.0\n" + (f'axis = "{axis}"\n' if len(self.AXES) > 1 else "")
+            for axis in self.AXES)
+        return (f'\n[daemon]\nstate_dir = "{self.state_dir}"\n'
+                f'[health]\nsettle_s = 0.1\nwindow_s = 0.2\nrecord_dir = "{self.records}"\n'
+                f"record_keep_days = {RECORD_KEEP_DAYS}\n{positions}")
 
 
     def put_target(self, what: str, detail: Any) -> str | None:
@@ -459,6 +486,9 @@ class ChaosMachine(RuleBasedStateMachine):
             return None
         self.sent[target_id] = (what, detail, allowed)
         self.sent_at[target_id] = time.monotonic()
+        if what == "valid":  # the stage gets there: the interferometers read the target
+            self.positions = {f"ifm_{key.removesuffix('_um')}": v for key, v in self.position(detail).items()}
+            self.sensors.set(**self.positions)
         self.client.put(payload)
         return target_id
 
@@ -709,7 +739,7 @@ class ChaosMachine(RuleBasedStateMachine):
     def temperatures_change(self, t1: float, t2: float) -> None:
         assert self.client is not None
         self.temps = {"T1": t1, "T2": t2}
-        self.sensors.write(values=dict(self.temps), fault={})
+        self.sensors.write(values={**self.temps, **self.positions}, fault={})
         self.faulted.clear()
         self.wait_channels()
         self.say(f"temperatures T1 = {t1} degC, T2 = {t2} degC (channels ok)")
@@ -744,6 +774,18 @@ class ChaosMachine(RuleBasedStateMachine):
         self.expect, self.dropped_at = "held", None
         if forget_state and unproven:
             self.confirm_unproven(unproven)
+
+    @precondition(lambda self: self.mode == "ok" and not TIMESYNC_FLAG.exists())
+    @rule(days=st.sampled_from([2, 120, 400]))
+    def restart_on_a_wrong_clock(self, days: int) -> None:
+        """The lab PC starts the daemon with its clock ``days`` ahead (a bad RTC, NTP not yet synchronised):
+        no record file may be deleted (checked after every step). (A host whose clock says it is synchronised is
+        believed: the daemon rightly deletes what that clock says has expired, so the rule is off there.)"""
+        self.say(self.stop_daemon("SIGTERM"))
+        self.shift.step(days * 86400.0)
+        self.say(f"wall clock +{days} days before the start (now {self.shift.offset_s / 86400:+g} days)")
+        self.relaunch()
+        self.expect, self.dropped_at = "safe", None
 
     def stop_daemon(self, how: str) -> str:
         """SIGTERM (exit 0, every output left at ``safe_voltage_v``) or kill -9; what happened, for the log."""
@@ -872,7 +914,27 @@ class ChaosMachine(RuleBasedStateMachine):
                 with device.lock:
                     late = [a for a in device.arrivals if a.t > self.dropped_at]
                 assert not late, f"the goal was dropped, yet the module received {late}:\n{self.daemon_log_tail()}"
+        self.check_records()
         self.check_alive_and_limits()
+
+    def check_records(self) -> None:
+        """Invariant 6: no record file was deleted, and every row's targets (every axis) are those of one command
+        the daemon answered the test with: a row never pairs one command's x with another's y."""
+        files = set(self.records.iterdir())
+        gone = sorted(p.name for p in self.record_files - files)
+        assert not gone, f"record files deleted: {gone}:\n{self.daemon_log_tail()}"
+        self.record_files |= files
+        failed = self.log_events("record_failed")
+        assert not failed, f"recording failed: {failed}"
+        columns = ["target_um"] if len(self.AXES) == 1 else [f"target_{axis}_um" for axis in self.AXES]
+        served = {tuple(round(c[f"{axis}_um"], 6) for axis in self.AXES) for c in self.commands()}
+        for path in sorted(files):
+            with path.open(newline="") as handle:
+                for number, row in enumerate(csv.DictReader(handle), start=2):
+                    targets = tuple(round(float(row[column]), 6) for column in columns)
+                    named = dict(zip(columns, targets, strict=True))
+                    assert targets in served, (f"{path.name} row {number}: targets {named} are no command's the "
+                                               f"daemon served (served: {sorted(served)})")
 
     def check_slew(self, axis: str, arrival: Arrival) -> None:
         """Invariant 5: every write (a failed one too: a real module may take it) is within the slew of the value
