@@ -124,6 +124,7 @@ class ChaosDevice(ModbusTestDevice):
         self.failing = False
         self.lying = False
         self.latency_s = 0.0
+        self.lies_left = 0  # reads of an output register still to answer wrong (a transient mismatch)
         self.last_activity = time.monotonic()  # the last request's arrival or answer
 
     def _touch(self) -> None:
@@ -142,7 +143,9 @@ class ChaosDevice(ModbusTestDevice):
                 with self.lock:
                     for register, held in self.outputs.items():
                         if address <= register < address + count:  # what this read answers
-                            registers[register - start] = (held + (LIE_COUNTS if self.lying else 0)) & 0xFFFF
+                            lie = self.lying or self.lies_left > 0
+                            registers[register - start] = (held + (LIE_COUNTS if lie else 0)) & 0xFFFF
+                            self.lies_left = max(self.lies_left - 1, 0)
             self._touch()
             return None
         assert isinstance(set_values, list)
@@ -319,6 +322,7 @@ class ChaosMachine(RuleBasedStateMachine):
         self.held: dict[str, int] = {}  # "held": the counts each axis' register held when the daemon stopped
         self.dropped_at: float | None = None
         self.mode = "ok"  # the module: "ok" | "failing" | "lying"
+        self.misreads_pending = False  # module_misreads_a_few_times: wrong answers not yet all given
         self.restarts = 0
         self.say(f"start: {limits.text()}")
         self.launch()
@@ -369,6 +373,7 @@ class ChaosMachine(RuleBasedStateMachine):
         if self.module is not None:
             self.module.device.failing = self.module.device.lying = False
             self.module.device.latency_s = 0.0
+            self.module.device.lies_left = 0
 
     def close_output(self) -> None:
         if self.module is not None:
@@ -382,7 +387,7 @@ class ChaosMachine(RuleBasedStateMachine):
         """The ``[actuator]`` keys (None: ``[[axes]]`` instead) and what follows them (axes, hubs, more sensors)."""
         assert self.module is not None
         keys = {axis: (f'kind = "modbus"\nhub = "out"\ndevice_id = 1\naddress = {address}\nscale = {SCALE}\n'
-                       f"volts_per_um = {limits.volts_per_um!r}\nv_min = {v_min!r}\nv_max = {v_max!r}\n"
+                       f"volts_per_um = {limits.volts_per_um!r}\nv_min = {v_min!r}\nv_max = {v_max!r}\nverify = true\n"
                        f"max_slew_um_per_s = {limits.max_slew_um_per_s!r}\nsafe_voltage_v = {safe!r}\n{tail}")
                 for axis, address in self.config_registers(tail).items()}
         hub = (f'[[hubs]]\nname = "out"\ntype = "tcp"\nhost = "127.0.0.1"\nport = {self.module.server.port}\n'
@@ -468,7 +473,7 @@ class ChaosMachine(RuleBasedStateMachine):
     def put_target(self, what: str, detail: Any) -> str | None:
         assert self.client is not None
         target_id = f"t{next(self.ids)}"
-        device_trouble = {"actuator_fault"} if self.mode != "ok" else set()
+        device_trouble = {"actuator_fault"} if self.mode != "ok" or self.misreads_pending else set()
         if what == "valid":
             payload = json.dumps({**self.position(detail), "id": target_id})
             allowed = {"voltage_limit", *device_trouble, *({"fault"} if self.faulted else set())}
@@ -720,6 +725,18 @@ class ChaosMachine(RuleBasedStateMachine):
         self.mode = "lying"
         self.say(f"module: reads of the output answer {LIE_COUNTS} counts more than it holds")
 
+    @precondition(lambda self: self.mode == "ok")
+    @rule(reads=st.integers(1, 3))
+    def module_misreads_a_few_times(self, reads: int) -> None:
+        """A transient read-back mismatch: the next ``reads`` reads of an output answer wrong, then it is right
+        again. The daemon (``verify = true``) retries; the recovery ramps from what the register is known to hold
+        (the slew invariant), and once quiet the register holds the command (the module counts as healthy)."""
+        assert self.module is not None
+        with self.module.device.lock:
+            self.module.device.lies_left = reads
+        self.misreads_pending = True  # until a quiet check finds them all answered: a target may meet the fault
+        self.say(f"module: the next {reads} read(s) of an output answer {LIE_COUNTS} counts more than it holds")
+
     @precondition(lambda self: self.mode != "ok")
     @rule()
     def module_works_again(self) -> None:
@@ -815,6 +832,9 @@ class ChaosMachine(RuleBasedStateMachine):
         self.client.close()
         self.client = None
         self.restarts += 1
+        if self.module is not None:  # a transient mismatch is over (a lie at the start read is another rule's)
+            with self.module.device.lock:
+                self.module.device.lies_left = 0
         self.launch()
         self.say("restarted")
 
@@ -869,6 +889,7 @@ class ChaosMachine(RuleBasedStateMachine):
         with device.lock:
             arrivals = device.arrivals[self.checked_arrivals:]
             outputs = dict(device.outputs)
+            self.misreads_pending = device.lies_left > 0
         self.checked_arrivals += len(arrivals)
         by_register = {address: axis for axis, address in self.registers.items()}
         for arrival in arrivals:

@@ -192,6 +192,7 @@ class SerialChaosMachine(ChaosMachine):
     module_starts_failing_writes = None
     module_starts_lying_on_read_back = None
     module_works_again = None
+    module_misreads_a_few_times = None
     module_latency = None
     temperatures_change = None
     temperature_channel_faults = None
