@@ -196,6 +196,13 @@ class Slew:
             return goal_v
         return at_v + math.copysign(max_step_v, delta)
 
+    def cut_short(self, at_s: float) -> None:
+        """A write that did not return (cancelled by a reload or a stop, or failed) may still have reached the
+        device: the next step counts from ``at_s`` as if it had returned then (its duration says nothing)."""
+        if self._last_step_s is not None:
+            self._last_step_s = at_s
+        self._last_write_s = at_s
+
     def wrote(self, returned_s: float, reached_goal: bool, took_s: float = 0.0) -> None:
         """A sub-command's write returned at ``returned_s`` after ``took_s``; ``reached_goal``: it was the goal."""
         self._last_step_s = None if reached_goal else returned_s

@@ -210,3 +210,13 @@ def test_a_move_from_rest_soon_after_the_last_write_covers_only_the_time_since_i
     slew.wrote(0.025, False)
     slew.rest()
     assert math.isclose(slew.next_voltage(limits, 0.0, 9.6, 10.0), 2.0 * RAMP_PERIOD_S, rel_tol=1e-12)  # long rest
+
+
+def test_a_write_cut_short_bounds_the_next_step_from_when_it_was_cut() -> None:
+    """A write a reload cancelled may have reached the device: the next move's first step covers only the time
+    since it was cut, not a whole ramp period (before: 0.3 V in 5 ms at 15 V/s on an XY module)."""
+    limits = Limits(volts_per_um=0.01, v_min=-10.0, v_max=10.0, max_slew_um_per_s=1500.0)
+    slew = Slew()
+    slew.cut_short(100.0)
+    slew.rest()
+    assert slew.next_voltage(limits, 0.3, 5.0, 100.005) == pytest.approx(0.3 + 15.0 * 0.005, abs=1e-12)

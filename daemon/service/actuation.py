@@ -631,7 +631,11 @@ class Actuation:
                 step.append((out, q_um, voltage, sent_v, x_um, at_goal))
             for out, q_um, voltage, sent_v, x_um, at_goal in step:
                 write_began_s = time.monotonic()
-                await self._write(out, q_um, voltage, sent_v, x_um)
+                try:
+                    await self._write(out, q_um, voltage, sent_v, x_um)
+                except BaseException:  # (a reload's cancellation too) the device may hold it from now
+                    out.slew.cut_short(time.monotonic())
+                    raise
                 returned_s = time.monotonic()  # the device holds it from no later than now
                 out.slew.wrote(returned_s, at_goal, took_s=returned_s - write_began_s)
                 if at_goal:

@@ -183,10 +183,12 @@ def file_sensor_config(
     channels: Sequence[str] = ("T1", "T2"),
     max_age_s: float = 2.0,
     interval_s: float = 0.05,
-    actuator: str = "",
+    actuator: str | None = "",
     extra: str = "",
     zenoh_file: Path | None = None,
 ) -> str:
+    """A cell config reading ``channels`` from the ``file`` plugin; ``actuator=None``: no ``[actuator]`` table (a
+    cell of ``[[axes]]`` in ``extra``)."""
     sensors = "".join(
         f'\n[[sensors]]\nname = "{ch}"\nkind = "file"\npath = "{sensor_file}"\ninterval_s = {interval_s}\n'
         f"max_age_s = {max_age_s}\ntimeout_s = 0.5\n"
@@ -195,7 +197,9 @@ def file_sensor_config(
     return (
         f'cell = "{cell}"\n[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{port}"]\nmulticast_scouting = false\n'
         + (f'config_file = "{zenoh_file}"\n' if zenoh_file else "")
-        + f'[model]\npath = "{model_path}"\n[actuator]\n{actuator}\n{extra}\n{sensors}'
+        + f'[model]\npath = "{model_path}"\n'
+        + ("" if actuator is None else f"[actuator]\n{actuator}\n")
+        + f"{extra}\n{sensors}"
     )
 
 

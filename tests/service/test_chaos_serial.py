@@ -1,8 +1,9 @@
 """Chaos on a shared serial port: a PI GCS controller that is both the stage's output and its position sensor.
 
 :class:`SerialChaosMachine` is :class:`helpers.chaos.ChaosMachine` (``test_chaos.py``) with another output:
-one ``nanodrift run`` per example whose ``[actuator] kind = "serial_line"`` (``SVA 1 {voltage_v:.4f}``,
-readback ``SVA? 1``, ``ERR?``) and whose position sensor (``kind = "serial_line"``, ``role = "position"``,
+one ``nanodrift run`` per example whose ``[actuator] kind = "serial_line"`` (``SVA 1 {voltage_v:.4f}
+q={q_um:F} x={x_um:F}``, each example's position format ``F`` one of ``.1f``, ``.0f``, ``.3g``; readback
+``SVA? 1``, ``ERR?``) and whose position sensor (``kind = "serial_line"``, ``role = "position"``,
 ``POS? 1``) share one pty, resynchronised after an unanswered request by ``*IDN?`` (``resync_query``,
 declared by the sensor; ``resync_pattern = 'PI|Physik'``), served by an emulated controller
 (:class:`ChaosController`, on a thread of this process) that stamps every line it receives and answers
@@ -20,7 +21,9 @@ no position could be); SIGTERM and restart.
 After every step, on the device side (the lines the controller received, parsed):
 
 1. every ``SVA`` line carries the axis and a number with 4 decimals inside the ``[v_min, v_max]`` in force
-   when it arrived (old or new within a reload's window);
+   when it arrived (old or new within a reload's window), and its position fields, as formatted, inside the
+   command range those limits mean (``[v_min, v_max] / volts_per_um``), ``q`` the line's own voltage's (a
+   ramp's sub-command carries the ramp's value, not the goal's) within one unit of its last digit;
 2. once quiet (a healthy controller: no actuator line for a moment, actuator ``ok``), the controller holds
    the last served command's voltage as the template writes it (rounded to 4 decimals, toward the inside at a
    limit), ``safe_voltage_v`` after a SIGTERM, or what it held when the daemon dropped a goal the new limits
@@ -38,7 +41,12 @@ a reload while the actuator retried a failing controller could hang for good (th
 actuator task was cancelled once and awaited without bound, and Python 3.11's ``asyncio.wait_for`` in the
 serial line could swallow that cancellation). The regression test at the end repeats the sequence.
 
-The suite runs 3 examples of up to 10 steps, and the hung-reload sequence 4 times (about 20 s). The release
+Open, not diagnosed: with the position fields in the template, the hung-reload sequence below (silent, then
+errors, a reload, healthy again) left the actuator in fault for 60 s (each reopen's ``*IDN?`` resync unanswered);
+without them it recovers. The regression tests keep the template as found (no position fields).
+
+The suite runs 3 examples of up to 10 steps, and the hung-reload sequence 4 times (about 20 s idle, 50 s on
+the loaded machine). The release
 run (~6 minutes: 40 examples of up to 30 steps, the sequence 24 times; ``helpers.budget``)::
 
     NANODRIFT_LONG_TESTS=1 python -m pytest -q -n 0 tests/service/test_chaos_serial.py
@@ -60,13 +68,13 @@ from typing import Any
 import pytest
 import zenoh
 from helpers.budget import sized
-from helpers.chaos import QUIET_WAIT_S, SAFE_V, ChaosMachine, Limits, chaos_settings
+from helpers.chaos import QUIET_WAIT_S, SAFE_V, ChaosMachine, Limits, chaos_settings, limits_strategy
 from helpers.daemon_harness import Client, wait_until
 from helpers.serial_helpers import FakeGcsController
 from hypothesis import event
 from hypothesis import strategies as st
 from hypothesis.control import currently_in_test_context
-from hypothesis.stateful import precondition, rule
+from hypothesis.stateful import initialize, precondition, rule
 
 EXAMPLES = sized("NANODRIFT_CHAOS_SERIAL_EXAMPLES", 3, 40)
 STEPS = sized("NANODRIFT_CHAOS_SERIAL_STEPS", 10, 30)
@@ -88,7 +96,9 @@ QUIET_S = 0.2  # drivers/serial_line/line.py: a dirty line must be silent min(ti
 BEYOND_S = 0.1  # how far past a timeout a late answer comes
 POSITION_RANGE = (-50.0, 550.0)  # the workspace [0, 500] um widened by 10 % (nanodrift.config.valid_range)
 ACTUATOR_WORDS = ("SVA", "SVA?", "ERR?")
-SVA_LINE = re.compile(r"SVA 1 (?P<v>-?\d+\.\d{4})")
+SVA_LINE = re.compile(r"SVA 1 (?P<v>-?\d+\.\d{4})(?: q=(?P<q>\S+) x=(?P<x>\S+))?")
+#: the formats the template gives its position fields ({q_um:...}, {x_um:...}): fixed decimals, none, significant
+POSITION_SPECS = (".1f", ".0f", ".3g")
 REJECTED = 302  # the error code a controller refusing SVA reports (GCS: "voltage out of limits")
 # answer delays per query word: (SVA?, POS?, ERR?) in seconds; "slow" stays within both timeouts
 SLOW = (0.05, 0.05, 0.05)
@@ -138,6 +148,8 @@ class ChaosController(FakeGcsController):
     def _reply(self, line: str) -> str | None:
         now = time.monotonic()
         words = line.split()
+        if words[:1] == ["SVA"]:  # the template's position fields (q=..., x=...) are the test's, not GCS
+            words = words[:3]
         with self.lock:
             self.arrivals.append((now, line))
             if words[:1] and words[0] in ACTUATOR_WORDS:
@@ -145,7 +157,7 @@ class ChaosController(FakeGcsController):
         if self.rejecting and words[:1] == ["SVA"]:
             self.error = REJECTED
             return None
-        reply = super()._reply(line)
+        reply = super()._reply(" ".join(words))
         if reply is not None and words[0] in ("POS?", "SVA?"):
             value = float(reply.partition("=")[2])
             with self.lock:
@@ -184,9 +196,32 @@ class SerialChaosMachine(ChaosMachine):
     module_starts_failing_writes = None
     module_starts_lying_on_read_back = None
     module_works_again = None
+    module_misreads_a_few_times = None
     module_latency = None
     temperatures_change = None
     temperature_channel_faults = None
+    stop_and_restart = None  # the controller's state file and kill -9 are the Modbus machine's
+    restart_on_a_wrong_clock = None  # ... and recording (no record_dir here)
+
+    @precondition(lambda self: self.mode == "ok")
+    @rule()
+    def sigterm_and_restart(self) -> None:
+        self.say(self.stop_daemon("SIGTERM"))
+        self.relaunch()
+        self.expect, self.dropped_at = "safe", None
+
+    @initialize(limits=limits_strategy, position_spec=st.sampled_from(POSITION_SPECS))
+    def start_daemon(self, limits: Limits, position_spec: str | None = None) -> None:
+        """``position_spec``: the format of the template's position fields; None: no position fields (the
+        regression tests' template, as found)."""
+        self.position_spec = position_spec
+        super().start_daemon(limits)
+        self.say(f"template: {self.command_template()}")
+
+    def command_template(self) -> str:
+        if self.position_spec is None:
+            return "SVA 1 {voltage_v:.4f}"
+        return f"SVA 1 {{voltage_v:.4f}} q={{q_um:{self.position_spec}}} x={{x_um:{self.position_spec}}}"
 
     # --- the output: hooks of ChaosMachine ------------------------------------------------------
 
@@ -210,7 +245,8 @@ class SerialChaosMachine(ChaosMachine):
     def output_toml(self, limits: Limits, v_min: float, v_max: float, safe: float, tail: str) -> tuple[str, str]:
         port = self.controller.port
         actuator = (f'kind = "serial_line"\nport = "{port}"\nbaudrate = 115200\n'
-                    'command = "SVA 1 {voltage_v:.4f}\\n"\nreadback = "SVA? 1\\n"\nerror_query = "ERR?\\n"\n'
+                    f'command = "{self.command_template()}\\n"\nreadback_field = "voltage_v"\n'
+                    'readback = "SVA? 1\\n"\nerror_query = "ERR?\\n"\n'
                     f"timeout_s = {ACTUATOR_TIMEOUT_S}\n"
                     f"volts_per_um = {limits.volts_per_um!r}\nv_min = {v_min!r}\nv_max = {v_max!r}\n"
                     f"max_slew_um_per_s = {limits.max_slew_um_per_s!r}\nsafe_voltage_v = {safe!r}\n{tail}")
@@ -219,6 +255,9 @@ class SerialChaosMachine(ChaosMachine):
                   "resync_query = \"*IDN?\\n\"\nresync_pattern = 'PI|Physik'\n"
                   f"timeout_s = {SENSOR_TIMEOUT_S}\ninterval_s = 0.05\nmax_age_s = 3.0\nfrozen_after_s = 0.0\n")
         return actuator, sensor
+
+    def daemon_toml(self) -> str:
+        return ""  # no state directory: a SIGTERM leaves safe_voltage_v, the power-up value the daemon believes
 
     def check_left_safe(self) -> str:
         held = self.controller.voltage
@@ -336,6 +375,7 @@ class SerialChaosMachine(ChaosMachine):
             assert any(lim.allows(volts) for lim in allowed), (
                 f"the controller received {line!r}, outside the limits in force "
                 f"({' or '.join(lim.text() for lim in allowed)}):\n{self.daemon_log_tail()}")
+            self.check_position_fields(line, match, allowed)
         held = controller.voltage
         if currently_in_test_context():
             event(f"controller checked: {self.expect if self.mode == 'ok' else self.mode}")
@@ -365,6 +405,25 @@ class SerialChaosMachine(ChaosMachine):
         if self.mode == "ok":
             self.check_status_position()
         self.check_alive_and_limits()  # 5
+
+    def check_position_fields(self, line: str, match: re.Match[str], allowed: list[Limits]) -> None:
+        """Every position field, as formatted, inside the command range the voltage limits in force mean
+        (``[v_min, v_max] / volts_per_um``), and ``q_um`` the line's own voltage's (the ramp's value, never the
+        goal's) under a gain the command may have been computed with (any so far: a reload carries a command
+        over), within one unit of its last digit plus the voltage's rounding."""
+        if match["q"] is None:
+            return  # a template without position fields
+        volts = float(match["v"])
+        q_um, x_um = float(match["q"]), float(match["x"])
+        q_unit_um = 10.0 ** int(Decimal(match["q"]).as_tuple().exponent)
+        inside = any(all(lim.v_min / lim.volts_per_um - 1e-9 <= value <= lim.v_max / lim.volts_per_um + 1e-9
+                         for value in (q_um, x_um)) for lim in allowed)
+        assert inside, (f"the controller received {line!r}: q or x outside the command range of the limits in force "
+                        f"({' or '.join(lim.text() for lim in allowed)}):\n{self.daemon_log_tail()}")
+        gains = {epoch.limits.volts_per_um for epoch in self.epochs}
+        assert any(abs(q_um - volts / gain) <= q_unit_um + 0.0001 / gain for gain in gains), (
+            f"the controller received {line!r}: q is not the line's voltage's at any gain so far ({sorted(gains)} "
+            f"V/um): a field carried another value than the ramp's:\n{self.daemon_log_tail()}")
 
     def check_published_positions(self) -> None:
         """Every ``ok`` position sample published is a value the controller sent as a POS? answer."""
