@@ -175,6 +175,19 @@ def record_row(axes: Mapping[str, Settled], unix_s: float, polled: Polled | None
     return row
 
 
+#: in a records folder: the latest day the daemon saw its clock agree with the files (ISO date). A file written
+#: on a doubted clock is dated by that clock, so at the next start the newest file cannot vouch for it: this can.
+AGREED_DAY_FILE = ".retention-agreed-day"
+
+
+def agreed_day(directory: Path) -> dt.date | None:
+    """The day kept in ``directory``'s :data:`AGREED_DAY_FILE`, else its newest record file's day."""
+    try:
+        return dt.date.fromisoformat((directory / AGREED_DAY_FILE).read_text().strip())
+    except (OSError, ValueError):
+        return newest_file_day(directory)
+
+
 def newest_file_day(directory: Path) -> dt.date | None:
     """The latest day of a record file in ``directory`` (None: no record file, or no folder)."""
     days: list[dt.date] = []
@@ -196,7 +209,8 @@ class RetentionClock:
     would keep. The doubt ends
     when ``synchronized()`` says the clock is synchronised, when the clock comes back within the margin
     (NTP stepped it), or when it has run on :data:`CLOCK_RELEASE_DAYS` days past the day it was doubted
-    on. Kept by the :class:`Recorder` across reloads: files it wrote on a doubted clock never vouch for it.
+    on. Kept by the :class:`Recorder` across reloads, and the agreed day across restarts
+    (:data:`AGREED_DAY_FILE`): files written on a doubted clock never vouch for it.
     """
 
     def __init__(self, log: Any = None, synchronized: Callable[[], bool] = TIMESYNC_FLAG.exists) -> None:
@@ -204,11 +218,12 @@ class RetentionClock:
         self.synchronized = synchronized
         self._agreed: dict[Path, dt.date | None] = {}  # per folder: the latest day the clock was seen to agree on
         self._doubted_since: dt.date | None = None
+        self._kept: dict[Path, dt.date] = {}  # per folder: the agreed day this process wrote to AGREED_DAY_FILE
 
     def today(self, directory: Path, clock_day: dt.date) -> dt.date:
         """The day retention in ``directory`` counts from, for a clock that says ``clock_day``."""
         if directory not in self._agreed:
-            self._agreed[directory] = newest_file_day(directory)  # before this recorder writes any
+            self._agreed[directory] = agreed_day(directory)  # before this recorder writes any
         agreed = self._agreed[directory]
         margin = dt.timedelta(days=CLOCK_AHEAD_MARGIN_DAYS)
         released = (self._doubted_since is not None
@@ -217,7 +232,9 @@ class RetentionClock:
             if self._doubted_since is not None and self.log is not None:
                 self.log.info("record_retention_resumed", directory=str(directory), day=clock_day.isoformat())
             self._doubted_since = None
-            self._agreed[directory] = max(clock_day, agreed) if agreed is not None else clock_day
+            now_agreed = max(clock_day, agreed) if agreed is not None else clock_day
+            self._agreed[directory] = now_agreed
+            self._keep(directory, now_agreed)
             return clock_day
         if self._doubted_since is None:
             self._doubted_since = clock_day
@@ -230,7 +247,15 @@ class RetentionClock:
                             "absent): no record is deleted by it"),
                     until=(f"the clock is synchronised, comes back within {CLOCK_AHEAD_MARGIN_DAYS} days of the files, "
                            f"or has run {CLOCK_RELEASE_DAYS} days on"))
+        self._keep(directory, agreed)  # the files written on this clock will not vouch for it at the next start
         return agreed  # the true day is that one at the earliest
+
+    def _keep(self, directory: Path, day: dt.date) -> None:
+        """``day`` into ``directory``'s :data:`AGREED_DAY_FILE`, once per change."""
+        if self._kept.get(directory) != day:
+            with contextlib.suppress(OSError):  # no folder yet, or a full disk: the files' days then stand in
+                atomic_write_text(directory / AGREED_DAY_FILE, day.isoformat() + "\n")
+                self._kept[directory] = day
 
 
 class DayRecorder:

@@ -54,7 +54,6 @@ from __future__ import annotations
 
 import datetime as dt
 
-import pytest
 from helpers.budget import sized
 from helpers.chaos import ChaosMachine, Limits, chaos_settings
 from helpers.daemon_harness import wait_until
@@ -116,15 +115,12 @@ def test_a_reload_mid_ramp_keeps_the_slew_between_the_last_write_and_the_next() 
         machine.teardown()
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "open recorder bug (service/recorder.py, RetentionClock): a day file written on a doubted clock vouches for "
-    "that clock at the next start, so a second start on the same wrong clock deletes the true days' files; "
-    "reported to the integrator, outside this branch's area"))
 def test_a_second_start_on_the_same_wrong_clock_deletes_no_record() -> None:
     """The machine's finding (issue 26.7's promise: nothing a restart with a wrong clock does deletes a day file):
     the daemon starts 120 days ahead and records a held target (into the future day's file); it restarts, the
     clock still wrong: that file is now the newest, the clock agrees with it, and at the next row the four true
-    day files, 120 days older, are deleted as expired."""
+    day files, 120 days older, were deleted as expired. The agreed day is now kept in the records folder
+    (``.retention-agreed-day``), so the second start doubts the clock as the first did."""
     machine = ChaosMachine()
     try:
         machine.start_daemon(Limits(-2.0, 12.0, 0.0, 0.02))

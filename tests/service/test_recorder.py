@@ -28,6 +28,7 @@ from nanodrift.drivers.base import Reading, SensorConfig
 from nanodrift.logs import get_logger
 from nanodrift.service.health_unit import HealthUnit
 from nanodrift.service.recorder import (
+    AGREED_DAY_FILE,
     CLOCK_RELEASE_DAYS,
     DayRecorder,
     Polled,
@@ -102,7 +103,8 @@ def test_a_new_day_starts_a_new_file_with_its_header_and_no_temp_file_left(tmp_p
     first, second = tmp_path / "records-2026-11-23.csv", tmp_path / "records-2026-11-24.csv"
     assert len(read_csv(first)) == 1 and len(read_csv(second)) == 2
     assert second.read_text().splitlines()[0] == HEADER
-    assert sorted(p.name for p in tmp_path.iterdir()) == [first.name, second.name]  # no .tmp left behind
+    left = sorted(p.name for p in tmp_path.iterdir() if p.name != AGREED_DAY_FILE)
+    assert left == [first.name, second.name]  # no .tmp left behind
 
 
 def test_retention_deletes_day_files_older_than_keep_days_at_rotation(tmp_path: Path) -> None:
@@ -163,7 +165,7 @@ def test_a_restart_resumes_the_day_file_and_drops_a_row_cut_short(tmp_path: Path
     assert again.path == path
     data = read_csv(path)
     np.testing.assert_allclose(data.t, NOON + np.arange(4))
-    assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name != AGREED_DAY_FILE) == [path.name]
 
 
 def test_write_errors_are_logged_once_never_raised_and_recording_resumes(tmp_path: Path) -> None:
@@ -517,7 +519,7 @@ def test_kill_9_mid_recording_leaves_a_readable_file_that_the_next_start_resumes
     rec = DayRecorder(folder)  # the next start, the same day
     assert rec.record(settled(0), NOON + 0.25 * n + 10.0)
     assert rec.path == path
-    assert sorted(p.name for p in folder.iterdir()) == [path.name]
+    assert sorted(p.name for p in folder.iterdir() if p.name != AGREED_DAY_FILE) == [path.name]
     after = read_csv(path)
     assert len(after) == n + 1 and after.t[-1] == NOON + 0.25 * n + 10.0
 
