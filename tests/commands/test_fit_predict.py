@@ -100,7 +100,8 @@ def test_fit_prints_the_equation_and_json_carries_the_same_in_nm(tmp_path, capsy
     assert all(k.endswith("_nm") for k in rms_keys), rms_keys  # one unit per quantity: no µm duplicate
     assert doc["fit"] == {"rmse_nm": doc["rmse_nm"], "r2": model.fit["r2"], "dof": model.fit["dof"],
                           "se_method": model.fit["se_method"], "hac_lag": model.fit["hac_lag"],
-                          "iid": model.fit["iid"], "rows": 8 * 17, "residual_rms_nm": doc["residual_rms_nm"]}
+                          "iid": model.fit["iid"], "rows": 8 * 17, "residual_rms_nm": doc["residual_rms_nm"],
+                          "thermal_sensitivity": model.fit["thermal_sensitivity"]}
     # the SEs printed are HAC ones, and both the printout and the JSON say so
     assert doc["se_method"] == model.fit["se_method"] and doc["se_method"].startswith("Newey-West HAC, Bartlett")
     assert f"SE and p: {doc['se_method']}" in human
