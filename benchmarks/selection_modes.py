@@ -27,13 +27,13 @@ from nanodrift.model.terms import Channel
 TESTS = ("test2", "test3", "test4", "test5")
 
 
-def fresh_rms_nm(model: Model, seed: int) -> dict[str, float]:
+def fresh_rms_nm(model: Model, seed: int, cell: str = "ideal") -> dict[str, float]:
     """Per-command RMS of true position - target (nm) on each test scenario of a seed the model never saw."""
     plan = validation_plan(30)
     targets = np.array([s.target_um for s in plan])
     out = {}
     for name in TESTS:
-        o = simulate_steps(CellPhysics.create(name, None, seed), {"x": targets}, [s.cycle for s in plan],
+        o = simulate_steps(CellPhysics.create(name, None, seed, cell=cell), {"x": targets}, [s.cycle for s in plan],
                            command_for=independent_command({"x": model}))
         out[name] = float(np.sqrt(np.mean((o["x_true_um"] - targets) ** 2)) * 1000.0)
     return out
@@ -42,14 +42,16 @@ def fresh_rms_nm(model: Model, seed: int) -> dict[str, float]:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seeds", type=int, default=10)
+    parser.add_argument("--cell", choices=("ideal", "realistic"), default="ideal",
+                        help="the simulated cell fitted and scored (ideal: the paper's model form)")
     args = parser.parse_args()
     scores: dict[str, list[dict[str, float]]] = {m: [] for m in SELECTIONS}
     thermal: dict[str, list[tuple[float, float, int]]] = {m: [] for m in SELECTIONS}
     for seed in range(args.seeds):
-        data = simulate_dataset("train", seed=seed)
+        data = simulate_dataset("train", seed=seed, cell=args.cell)
         for mode in SELECTIONS:
             model = fit(data, selection=mode).model
-            scores[mode].append(fresh_rms_nm(model, 1000 + seed))
+            scores[mode].append(fresh_rms_nm(model, 1000 + seed, args.cell))
             # the summed thermal coefficient (the response to a common change) and its HAC SE, covariances included
             thermal_mask = np.array([isinstance(ft.term, Channel) for ft in model.terms])
             final = ols(model.features(data)[:, :-1], np.asarray(data.q))
