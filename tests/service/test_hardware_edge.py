@@ -25,7 +25,6 @@ import json
 import signal
 import threading
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -48,21 +47,6 @@ from helpers.wall_clock import WallShift
 
 from nanodrift.config import STOP_TIMEOUT_S
 from nanodrift.motion import RAMP_PERIOD_S
-
-
-@pytest.fixture
-def module() -> Iterator[OutputModule]:
-    out = OutputModule()
-    yield out
-    out.close()
-
-
-@pytest.fixture
-def cells() -> Iterator[list[Cell]]:
-    made: list[Cell] = []
-    yield made
-    for cell in made:
-        cell.close()
 
 
 def holds_for(module: OutputModule, raw: int, seconds: float) -> None:

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import itertools
 import signal
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -41,21 +40,6 @@ from nanodrift.motion import LATENCY_PAUSES, RAMP_PERIOD_S
 #: the module's thread stamps writes as they land: a loaded machine delays one against the next (as in
 #: test_hardware_edge.py's slew checks), plus one count of rounding
 STAMP_SLACK_S = 0.100
-
-
-@pytest.fixture
-def module() -> Iterator[OutputModule]:
-    out = OutputModule()
-    yield out
-    out.close()
-
-
-@pytest.fixture
-def cells() -> Iterator[list[Cell]]:
-    made: list[Cell] = []
-    yield made
-    for cell in made:
-        cell.close()
 
 
 def assert_slewed(writes: list[tuple[float, int]], rate_um_per_s: float, *, from_raw: int | None = None) -> None:
