@@ -27,6 +27,7 @@ import argparse
 import json
 import math
 import sys
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -49,6 +50,7 @@ from nanodrift.model.cell_model import CellModel, load_any_model
 from nanodrift.model.model import Model, ModelFileError
 from nanodrift.procedure.validation import check_channels, run_validation, run_validation_steps
 from nanodrift.reports.validation import (
+    SAME_ROOM_NOTE,
     cell_json,
     cell_table,
     coverage_lines,
@@ -270,41 +272,49 @@ def _builtin_cell(model: CellModel) -> Config:
         raise UserError(f"--adapt: no built-in simulated cell of axes {axes}: give --config ({err})") from None
 
 
-def _cell_report(args: argparse.Namespace, model: CellModel, name: str, text: str, doc: dict[str, Any],
-                 truth: TestResult, targets_um: dict[str, np.ndarray], attained: Attained) -> None:
-    """``--report``: the test's files (one directory per test when several are asked for), the figure's footer
-    naming the model, its data and the cell (``doc["backend"]``: the scenario and seed, or the config)."""
-    several = len(_cell.scenario_list(args.scenario)) > 1
-    directory = Path(args.report) / name if several else Path(args.report)
-    provenance = provenance_text(model.id, model.provenance.get("data_file"), str(doc["backend"]))
-    files = write_cell_report(directory, text, doc, truth, targets_um, attained[0],
-                              attained[1] if len(attained) > 1 else None, provenance=provenance)
-    print(f"report: {', '.join(str(f) for f in files)}", file=sys.stderr)
+def _cell_test(args: argparse.Namespace, model: CellModel, name: str, targets_um: dict[str, np.ndarray],
+               measured_um: Attained, truth_um: Attained | None, *, backend: str, extrapolating: int,
+               without_note: str | None = None, notes: Sequence[str] = (), adapt: dict[str, Any] | None = None,
+               **extra: Any) -> tuple[str, dict[str, Any]]:
+    """One test of a cell scored against its position sensors and (``truth_um``) the true position: its Table I
+    text and JSON document, and with ``--report`` its files (one directory per test when several are asked for)."""
+    measured = _scores(name, targets_um, measured_um)
+    truth = measured if truth_um is None else _scores(name, targets_um, truth_um)
+    text = cell_table(name, truth, measured)
+    if without_note is not None:
+        text = text.replace(SAME_ROOM_NOTE, without_note)
+    if extrapolating:
+        text += f"\n[{extrapolating} steps extrapolating: outside the model's training ranges]"
+    text += "".join(f"\n{note}" for note in notes)
+    doc = cell_json(name, truth, measured, model=model.id, backend=backend, cycles=args.cycles, **extra,
+                    extrapolating_steps=extrapolating)
+    if adapt is not None:
+        doc["adapt"] = adapt
+    if args.report:
+        several = len(_cell.scenario_list(args.scenario)) > 1
+        directory = Path(args.report) / name if several else Path(args.report)
+        provenance = provenance_text(model.id, model.provenance.get("data_file"), backend)
+        attained = measured_um if truth_um is None else truth_um
+        files = write_cell_report(directory, text, doc, truth, targets_um, attained[0],
+                                  attained[1] if len(attained) > 1 else None, provenance=provenance)
+        print(f"report: {', '.join(str(f) for f in files)}", file=sys.stderr)
+    return text, doc
 
 
 def _simulated_test(args: argparse.Namespace, model: CellModel, scenario: str,
                     cross: CrossParams) -> tuple[str, dict[str, Any]]:
-    """One test on a fresh simulated cell: its Table I text and JSON document (and report, with --report:
-    one directory per test when several are asked for)."""
+    """One test on a fresh simulated cell (the vectorised stack), its uncompensated run in the same room."""
     seed = _cell.scenario_seed(args.seed or 0, scenario)
     physics = CellPhysics.create(scenario, seed=seed, axes=model.axes, cross=cross)
     run = run_cell_validation(physics, None if args.no_compensation else cell_command(model), cycles=args.cycles,
                               name=scenario, out_of_range=lambda p, temps: bool(model.out_of_range(p, temps)))
+
     def attained(against: str) -> Attained:
         return [run.attained(False, against)] + ([run.attained(True, against)] if run.compensated is not None else [])
 
-    truth_um = attained("truth")
-    truth = _scores(scenario, run.targets_um, truth_um)
-    measured = _scores(scenario, run.targets_um, attained("interferometer"))
-    text = cell_table(scenario, truth, measured)
-    if run.extrapolating_steps:
-        text += f"\n[{run.extrapolating_steps} steps extrapolating: outside the model's training ranges]"
-    doc = cell_json(scenario, truth, measured, model=model.id, backend=f"simulated {''.join(model.axes)} cell, "
-                    f"scenario {scenario}, seed {seed}", cycles=args.cycles,
-                    extrapolating_steps=run.extrapolating_steps)
-    if args.report:
-        _cell_report(args, model, scenario, text, doc, truth, run.targets_um, truth_um)
-    return text, doc
+    return _cell_test(args, model, scenario, run.targets_um, attained("interferometer"), attained("truth"),
+                      backend=f"simulated {''.join(model.axes)} cell, scenario {scenario}, seed {seed}",
+                      extrapolating=run.extrapolating_steps)
 
 
 def _driven_run(args: argparse.Namespace, model: CellModel, scenario: str | None, builtin: Config | None, *,
@@ -343,28 +353,19 @@ def _driven_test(args: argparse.Namespace, model: CellModel, scenario: str | Non
     measured_um = [{a: np.array([r.positions_um[a] for r in run]) for a in model.axes} for run in runs]
     knows_truth = all(math.isfinite(v) for run in runs for r in run for v in r.true_um.values())
     truth_um = [{a: np.array([r.true_um[a] for r in run]) for a in model.axes} for run in runs] if knows_truth \
-        else measured_um
-    measured = _scores(name, targets, measured_um)
-    truth = _scores(name, targets, truth_um) if knows_truth else measured
-    text = cell_table(name, truth, measured)
-    before = "without comp.: the same plan run uncompensated (command = target) in the same room, same noise."
-    text = text.replace(before, f"without comp.: the same plan run uncompensated (command = target) first, then "
-                        f"through the model{' and a bias tracker per axis' if trackers else ''}, "
-                        f"on {drivers.description} ({config.source})"
-                        + ("" if knows_truth else "; no true position on hardware: the TRUE columns repeat the "
-                           "position sensors'") + ".")
-    if extrapolating:
-        text += f"\n[{extrapolating} steps extrapolating: outside the model's training ranges]"
+        else None
+    without_note = (f"without comp.: the same plan run uncompensated (command = target) first, then through the "
+                    f"model{' and a bias tracker per axis' if trackers else ''}, on {drivers.description} "
+                    f"({config.source})" + ("" if knows_truth else "; no true position on hardware: the TRUE columns "
+                                             "repeat the position sensors'") + ".")
     invalid = sum(not r.valid for run in runs for r in run)
-    if invalid:
-        text += f"\n[{invalid} steps kept with a dirty window (valid = 0) are scored as measured]"
-    doc = cell_json(name, truth, measured, model=model.id, backend=f"{drivers.description} ({config.source})",
-                    cycles=args.cycles, truth_known=knows_truth, extrapolating_steps=extrapolating)
+    notes = [f"[{invalid} steps kept with a dirty window (valid = 0) are scored as measured]"] if invalid else []
+    adapt = None
     if trackers is not None:
-        text += "".join(f"\nadaptation, axis {a}: {_tracker_text(t)}" for a, t in trackers.items())
-        doc["adapt"] = {"mode": "bias", "tau_s": args.adapt_tau_s, "max_um": args.adapt_max_um,
-                        "axes": {a: {"updates": t.updates, "final_correction_um": t.correction_um}
-                                 for a, t in trackers.items()}}
-    if args.report:
-        _cell_report(args, model, name, text, doc, truth, targets, truth_um)
-    return text, doc
+        notes += [f"adaptation, axis {a}: {_tracker_text(t)}" for a, t in trackers.items()]
+        adapt = {"mode": "bias", "tau_s": args.adapt_tau_s, "max_um": args.adapt_max_um,
+                          "axes": {a: {"updates": t.updates, "final_correction_um": t.correction_um}
+                 for a, t in trackers.items()}}
+    return _cell_test(args, model, name, targets, measured_um, truth_um, extrapolating=extrapolating,
+                      backend=f"{drivers.description} ({config.source})", without_note=without_note, notes=notes,
+                      adapt=adapt, truth_known=knows_truth)

@@ -483,6 +483,8 @@ def save_figure(fig: Any, stem: Path) -> list[Path]:
 
 #: Tan, Clévy, Chaillet (Micromachines 2015): a 2-DoF stage's 2-D accuracy without / with compensation, nm
 ANCHOR_2DOF_NM = (1400.0, 200.0)
+#: what :func:`cell_table` says of its "without" columns (a driven cell's validate says how it ran instead)
+SAME_ROOM_NOTE = "without comp.: the same plan run uncompensated (command = target) in the same room, same noise."
 
 
 def cell_table(name: str, truth: TestResult, measured: TestResult) -> str:
@@ -506,7 +508,7 @@ def cell_table(name: str, truth: TestResult, measured: TestResult) -> str:
                      measured.accuracy_without_nm, measured.accuracy_nm))
     lines.append(row(f"RP {dim}", truth.repeatability_without_nm, truth.repeatability_nm,
                      measured.repeatability_without_nm, measured.repeatability_nm))
-    lines.append("without comp.: the same plan run uncompensated (command = target) in the same room, same noise.")
+    lines.append(SAME_ROOM_NOTE)
     lines.append(f"AP: distance from the barycentre of the attained points to the target; RP: l̄ + 3 S_l (ISO 9283). "
                  f"Anchor (Tan, Clévy, Chaillet 2015, 2-DoF): {ANCHOR_2DOF_NM[0]:.0f} nm -> {ANCHOR_2DOF_NM[1]:.0f} nm "
                  f"({ANCHOR_2DOF_NM[0] / ANCHOR_2DOF_NM[1]:.0f}×)")
