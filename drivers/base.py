@@ -226,6 +226,13 @@ class SharedResources:
         """Store ``value`` under ``key``, replacing what was there."""
         self._objects[key] = value
 
+    def per_name(self, key: str, name: str, make: Callable[[], _T]) -> _T:
+        """The object ``name`` among those under ``key`` (one connection per hub or controller), made on first use."""
+        made: dict[str, _T] = self.setdefault(key, {})
+        if name not in made:
+            made[name] = make()
+        return made[name]
+
 
 @dataclass
 class DriverContext:
@@ -246,6 +253,13 @@ class DriverContext:
     #: the cell's axes in the config's order (``("x",)``: a one-axis cell); :meth:`DriverPlugin.create_actuators`
     #: gets one options table per axis of its kind in this order
     axes: tuple[str, ...] = ("x",)
+
+    def hub(self, name: str, user: str) -> BaseModel:
+        """The ``[[hubs]]`` entry ``name``; a :class:`DriverSetupError` naming ``user`` when there is none."""
+        if name not in self.hubs:
+            known = ", ".join(sorted(self.hubs)) or "none defined"
+            raise DriverSetupError(f"{user}: no [[hubs]] named {name!r} (hubs: {known})")
+        return self.hubs[name]
 
 
 class SensorGroup(ABC):

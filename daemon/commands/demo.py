@@ -62,7 +62,6 @@ from nanodrift.procedure.validation import run_validation
 from nanodrift.reports.validation import (
     PAPER_TABLE1,
     provenance_text,
-    results_json,
     table1,
     truth_table,
     write_figures,
@@ -464,8 +463,8 @@ def main(args: argparse.Namespace) -> int:
             print(line)
         if keep:
             atomic_write_text(workdir / "table1.json", json.dumps(
-                results_json(run.results, model=model.id, seed=args.seed, cycles=args.cycles,
-                             calibration_cycles=args.calibration_cycles), indent=2) + "\n")
+                {"tests": [r.to_dict() for r in run.results], "model": model.id, "seed": args.seed,
+                 "cycles": args.cycles, "calibration_cycles": args.calibration_cycles}, indent=2) + "\n")
             figures = keep_figures(run)
             print(f"Figures (PNG + SVG, as validate --report draws them): {', '.join(str(f) for f in figures)}")
             print(f"The same figures from the command line, e.g.: nanodrift validate --model {run.model_path} "

@@ -66,17 +66,24 @@ def ratio_text(ratio: float | None) -> str:
     return EMPTY if ratio is None or not math.isfinite(ratio) else f"{ratio:.1f}×"
 
 
+#: Table I's columns, against the interferometer (:func:`table1`) and against the truth (:func:`truth_table`)
+TABLE1_HEAD = f"{'Test':<10}{'Without comp.':>15}{'With comp.':>12}{'Improvement':>13}"
+
+
+def _table1_row(r: TestResult, without_nm: float, with_nm: float, ratio: float | None) -> str:
+    star = "*" if r.compensated else " "  # "without" computed from the compensated run, not measured
+    return f"{r.name:<10}{_nm(without_nm) + star:>15}{_nm(with_nm):>12}{ratio_text(ratio):>13}"
+
+
 def table1(results: Sequence[TestResult], paper: Mapping[str, tuple[float, float | None]] | None = None) -> str:
     """Table I: accuracy (mean over the test points) without and with compensation."""
-    head = f"{'Test':<10}{'Without comp.':>15}{'With comp.':>12}{'Improvement':>13}"
+    head = TABLE1_HEAD
     if paper:
         head += f"   | paper: {'without':>8}{'with':>8}{'ratio':>7}"
     lines = ["TABLE I  accuracy with and without compensation (mean of |mean attained - target| over the points)",
              head, "-" * len(head)]
     for r in results:
-        star = "*" if r.compensated else " "
-        ratio = r.improvement
-        line = f"{r.name:<10}{_nm(r.accuracy_without_nm) + star:>15}{_nm(r.accuracy_nm):>12}{ratio_text(ratio):>13}"
+        line = _table1_row(r, r.accuracy_without_nm, r.accuracy_nm, r.improvement)
         if paper and r.name in paper:
             p0, p1 = paper[r.name]
             line += f"   |        {p0:>6.0f}{(f'{p1:.0f}' if p1 else EMPTY):>8}{ratio_text(p0 / p1 if p1 else None):>7}"
@@ -94,14 +101,11 @@ def truth_table(results: Sequence[TestResult]) -> str:
     known = [r for r in results if r.has_truth]
     if not known:
         return ""
-    head = f"{'Test':<10}{'Without comp.':>15}{'With comp.':>12}{'Improvement':>13}"
     lines = ["Against the TRUE position (simulated cell only): Table I without the interferometer's noise and wander",
-             head, "-" * len(head)]
+             TABLE1_HEAD, "-" * len(TABLE1_HEAD)]
     for r in known:
         without, with_ = r.true_accuracy_nm()
-        star = "*" if r.compensated else " "
-        ratio = without / with_ if r.compensated else None
-        lines.append(f"{r.name:<10}{_nm(without) + star:>15}{_nm(with_):>12}{ratio_text(ratio):>13}")
+        lines.append(_table1_row(r, without, with_, without / with_ if r.compensated else None))
     return "\n".join(lines)
 
 
@@ -148,10 +152,6 @@ def coverage_lines(result: TestResult) -> tuple[list[str], str | None]:
             else f"overstates the error (RMS error {rms_nm:.0f} nm against a median {name} of {median_nm:.0f} nm)")
     return lines, (f"{name} is not calibrated on this run: {judged * 100:.0f} % of the {what} within ±2 {name} "
                    f"(expected {lo * 100:.0f}-{hi * 100:.0f} % over {len(valid)} steps); it {side}")
-
-
-def results_json(results: Sequence[TestResult], **extra: Any) -> dict[str, Any]:
-    return {"tests": [r.to_dict() for r in results], **extra}
 
 
 def step_sigmas_um(result: TestResult) -> list[float]:

@@ -73,9 +73,7 @@ class DconPlugin(DriverPlugin):
             raise DriverSetupError("dcon: " + "; ".join(problems))
         modules: dict[tuple[str, int], list[DconSensorConfig]] = {}
         for config in _channels(configs):
-            if config.hub not in context.hubs:
-                known = ", ".join(sorted(context.hubs)) or "none defined"
-                raise DriverSetupError(f"sensor {config.name!r}: no [[hubs]] named {config.hub!r} (hubs: {known})")
+            context.hub(config.hub, f"sensor {config.name!r}")
             modules.setdefault(config.module, []).append(config)
         per_hub = {hub: sum(1 for h, _ in modules if h == hub) for hub, _ in modules}
         return [DconModuleGroup(channels, shared_bus(context, hub), context.clock, modules_on_bus=per_hub[hub])
@@ -84,12 +82,7 @@ class DconPlugin(DriverPlugin):
 
 def shared_bus(context: DriverContext, name: str) -> DconBus:
     """The one :class:`DconBus` of hub ``name`` in this daemon or procedure (created on first use)."""
-    buses: dict[str, DconBus] = context.resources.setdefault(BUSES_KEY, {})
-    if name not in buses:
-        hub = context.hubs[name]
-        hub = as_config(hub, DconHubConfig)
-        buses[name] = DconBus(hub)
-    return buses[name]
+    return context.resources.per_name(BUSES_KEY, name, lambda: DconBus(as_config(context.hubs[name], DconHubConfig)))
 
 
 PLUGIN = DconPlugin()

@@ -11,7 +11,6 @@ from nanodrift.drivers.base import (
     ActuatorOptions,
     DriverContext,
     DriverPlugin,
-    DriverSetupError,
     SensorConfig,
     SensorGroup,
     as_config,
@@ -46,15 +45,8 @@ class ModbusPlugin(DriverPlugin):
 def shared_hub(context: DriverContext, name: str, user: str = "") -> ModbusHub:
     """The one :class:`ModbusHub` of hub ``name`` in this daemon/procedure (created on first use); a
     :class:`DriverSetupError` naming ``user`` when no ``[[hubs]]`` has that name."""
-    if name not in context.hubs:
-        known = ", ".join(sorted(context.hubs)) or "none defined"
-        raise DriverSetupError(f"{user}: no [[hubs]] named {name!r} (hubs: {known})")
-    hubs: dict[str, ModbusHub] = context.resources.setdefault(SHARED_HUBS_KEY, {})
-    if name not in hubs:
-        hub = context.hubs[name]
-        assert isinstance(hub, ModbusHubConfig)
-        hubs[name] = ModbusHub(hub)
-    return hubs[name]
+    hub = as_config(context.hub(name, user), ModbusHubConfig)
+    return context.resources.per_name(SHARED_HUBS_KEY, name, lambda: ModbusHub(hub))
 
 
 PLUGIN = ModbusPlugin()

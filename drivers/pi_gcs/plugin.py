@@ -52,11 +52,8 @@ class PiGcsPlugin(DriverPlugin):
 
     def create_actuator(self, config: ActuatorOptions, context: DriverContext) -> Actuator:
         config = as_config(config, PiGcsActuatorConfig)
-        links: dict[str, GcsLink] = context.resources.setdefault(LINKS_KEY, {})
-        link = links.get(config.address)
-        if link is None:
-            link = links[config.address] = GcsLink(config)
-        elif (link.config.transport, link.config.baudrate) != (config.transport, config.baudrate):
+        link = context.resources.per_name(LINKS_KEY, config.address, lambda: GcsLink(config))
+        if (link.config.transport, link.config.baudrate) != (config.transport, config.baudrate):
             raise DriverSetupError(f"actuator: controller {config.address} is reached with other settings by another "
                                    "axis (one connection, one setting)")
         return PiGcsActuator(config, link)
