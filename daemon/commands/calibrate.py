@@ -30,11 +30,10 @@ from nanodrift.calibration.plans import (
 from nanodrift.commands import _cell
 from nanodrift.config import Config, missing_model_channels
 from nanodrift.errors import UserError
-from nanodrift.model.cell_model import CellModel
+from nanodrift.model.cell_model import CellModel, one_axis
 from nanodrift.model.describe import describe_cell_model
 from nanodrift.model.equation import equation, training_lines
 from nanodrift.model.identify import FitError
-from nanodrift.model.model import Model
 from nanodrift.procedure.follow import StageNotFollowingError
 from nanodrift.procedure.preflight import PreflightError
 from nanodrift.procedure.recording import (
@@ -121,19 +120,20 @@ def main(args: argparse.Namespace) -> int:
         cell = fit_recorded(data, args.out, plan=plan)
     except (FitError, DataError, ValueError) as err:
         raise UserError(f"the recorded steps in {data} are kept, but the fit failed: {err}") from None
-    if len(axes) > 1:
-        return _describe_cell(args, cell)
-    model = cell.models["x"]
-    print(f"model -> {args.out} ({model.id}): {equation(model)}")
-    residual = model.fit.get("residual_rms_nm", float("nan"))
-    print(f"fit residual {residual:.1f} nm RMS over {model.fit.get('rows')} steps")
-    print("\n".join(training_lines(model)))
+    if one_axis(axes):
+        model = cell.models["x"]
+        print(f"model -> {args.out} ({model.id}): {equation(model)}")
+        residual = model.fit.get("residual_rms_nm", float("nan"))
+        print(f"fit residual {residual:.1f} nm RMS over {model.fit.get('rows')} steps")
+        print("\n".join(training_lines(model)))
+    else:
+        print(describe_cell_model(cell, args.out))
     for warning in narrow_warnings(data):
         print(f"nanodrift calibrate: warning: {warning}", file=sys.stderr)
     if args.serve:
         _serve(args)
-    print(serving_lines(args, config, model))
-    for warning in sensor_warnings(config, model) if args.config else []:
+    print(serving_lines(args, config, cell))
+    for warning in sensor_warnings(config, cell) if args.config else []:
         print(f"nanodrift calibrate: warning: {warning}", file=sys.stderr)
     return 0
 
@@ -148,15 +148,6 @@ def _plan(config: Config, cycles: int) -> list[PlannedStep]:
         raise UserError(f"{config.source}: [procedure] points/trajectory shape a one-axis sweep; a multi-axis cell "
                         "runs the space-filling plan on the paper's 17 levels (remove them)")
     return list(cell_calibration_plan(config.axis_names, cycles))
-
-
-def _describe_cell(args: argparse.Namespace, cell: CellModel) -> int:
-    """The multi-axis model file written, described; ``--serve`` names it in the config."""
-    print(describe_cell_model(cell, args.out))
-    if args.serve:
-        _serve(args)
-        print(f"served by: {args.config} now serves {cell.id}; the daemon takes it at its next start or reload")
-    return 0
 
 
 def _serve(args: argparse.Namespace) -> None:
@@ -178,7 +169,7 @@ def narrow_warnings(data: Path) -> list[str]:
         "simulated cell: --scenario train, the default)"]
 
 
-def serving_lines(args: argparse.Namespace, config: Config, model: Model) -> str:
+def serving_lines(args: argparse.Namespace, config: Config, model: CellModel) -> str:
     """Which config serves the new model, and how to make it (or a reload) do so."""
     out = Path(args.out).resolve()
     path_line = f"[model] path = {toml_string(str(out))}"
@@ -195,7 +186,7 @@ def serving_lines(args: argparse.Namespace, config: Config, model: Model) -> str
             f"calibrate with --serve, or set {path_line} in {args.config}; {reload}")
 
 
-def sensor_warnings(config: Config, model: Model) -> list[str]:
+def sensor_warnings(config: Config, model: CellModel) -> list[str]:
     """What ``check-config --strict`` will refuse about the new model and the config's sensors."""
     warnings = []
     missing = missing_model_channels(config, model.channels)
