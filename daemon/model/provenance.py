@@ -20,15 +20,20 @@ if TYPE_CHECKING:
     from nanodrift.model.cell_model import CellModel
 
 
+def version() -> str:
+    """The installed distribution's version (also ``nanodrift_build_info``'s)."""
+    try:
+        return importlib.metadata.version("nanodrift")
+    except importlib.metadata.PackageNotFoundError:  # a source tree that was never installed
+        return "0+unknown"
+
+
 def software() -> str:
     """What a model file records as the software that fitted it: ``"nanodrift <version>"``.
 
     Provenance only: never part of the model's id (the same terms and coefficients are the same model).
     """
-    try:
-        return f"nanodrift {importlib.metadata.version('nanodrift')}"
-    except importlib.metadata.PackageNotFoundError:  # a source tree that was never installed
-        return "nanodrift 0+unknown"
+    return f"nanodrift {version()}"
 
 
 def created_now() -> str:

@@ -16,7 +16,6 @@ ending ``_total``; every series carries the ``cell`` label.
 from __future__ import annotations
 
 import bisect
-import importlib.metadata
 import math
 import threading
 from collections.abc import Callable, Iterator
@@ -24,6 +23,8 @@ from typing import Any
 
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily
 from prometheus_client.registry import Collector
+
+from nanodrift.model.provenance import version
 
 #: answer latency buckets (seconds): the daemon answers in tens to hundreds of µs on a loaded machine
 LATENCY_BUCKETS_S = (25e-6, 50e-6, 100e-6, 200e-6, 500e-6, 1e-3, 2e-3, 5e-3, 10e-3, 50e-3, 0.25, 1.0)
@@ -36,14 +37,6 @@ HEALTH_STATES = ("unknown", "ok", "degraded")
 #: state): ``nanodrift_errors_total`` has a series from 0 for each, so ``rate()`` works from the first error
 ERROR_KINDS = ("out_of_workspace", "no_model", "missing_channel", "stale", "fault", "voltage_limit",
                "actuator_fault", "bad_payload", "shutting_down", "internal")
-
-
-def build_version() -> str:
-    """The installed distribution's version (``nanodrift --version``), for ``nanodrift_build_info``."""
-    try:
-        return importlib.metadata.version("nanodrift")
-    except importlib.metadata.PackageNotFoundError:  # run from a source tree that was never installed
-        return "0+unknown"
 
 
 class AnswerLatency:
@@ -106,7 +99,7 @@ class CellCollector(Collector):
     def __init__(self, status_doc: Callable[[], dict[str, Any]], latency: AnswerLatency) -> None:
         self.status_doc = status_doc
         self.latency = latency
-        self.version = build_version()
+        self.version = version()
 
     def collect(self) -> Iterator[Any]:
         doc = self.status_doc()

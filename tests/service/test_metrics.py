@@ -49,7 +49,8 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from nanodrift.config import ConfigError, parse_config
 from nanodrift.drivers.base import State
-from nanodrift.service.metrics import ERROR_KINDS, LATENCY_BUCKETS_S, AnswerLatency, build_version
+from nanodrift.model.provenance import version
+from nanodrift.service.metrics import ERROR_KINDS, LATENCY_BUCKETS_S, AnswerLatency
 from nanodrift.service.metrics_server import INDEX_TEXT, MetricsServer
 
 Samples = dict[tuple[str, tuple[tuple[str, str], ...]], float]
@@ -116,7 +117,7 @@ def test_every_error_kind_has_a_series_from_zero_and_the_build_is_labelled(meter
     c = metered.cell
     assert {kind: value(samples, "nanodrift_errors_total", cell=c, kind=kind) for kind in ERROR_KINDS} == dict.fromkeys(
         ERROR_KINDS, 0.0)
-    assert value(samples, "nanodrift_build_info", cell=c, version=build_version()) == 1.0
+    assert value(samples, "nanodrift_build_info", cell=c, version=version()) == 1.0
 
 
 def test_the_error_kinds_are_every_kind_the_daemon_refuses_with() -> None:
