@@ -30,7 +30,7 @@ import numpy as np
 from nanodrift.atomic import atomic_write_text
 from nanodrift.calibration.discovery import Candidate, DiscoveryResult
 from nanodrift.calibration.discovery.settings import Settings
-from nanodrift.reports.validation import STYLE, WITH_COLOR, WITHOUT_COLOR, save_figure, with_footer
+from nanodrift.reports.validation import STYLE, WITH_COLOR, WITHOUT_COLOR, pyplot, save_figure, with_footer
 
 #: where the method is written out in full (the report's Method section points there)
 METHOD_DOC = "daemon/calibration/discovery/METHOD.md"
@@ -72,17 +72,6 @@ MINUS = "−"
 
 
 # ----- variables in words ------------------------------------------------------------------------------
-def _pyplot() -> Any:
-    """matplotlib's pyplot (Agg), imported when a figure is drawn, as in reports/validation.py: what imports this
-    module for its words (METHOD_DOC, markdown) does not pay for matplotlib."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
 def _identity(values: np.ndarray) -> np.ndarray:
     return values
 
@@ -141,7 +130,7 @@ def _series(result: DiscoveryResult) -> list[tuple[np.ndarray, str, str]]:
 
 def _opaque_legend(ax: Any, result: DiscoveryResult) -> None:
     """The legend below the axes (never on the data), its scatter entries solid and large enough to see."""
-    plt = _pyplot()
+    plt = pyplot()
     title = (f"nothing found; refitting the given terms on this run changes no residual by more than {SAME_NM:g} nm"
              if _refit_changes_nothing(result) else None)
     handles, labels = ax.get_legend_handles_labels()
@@ -157,7 +146,7 @@ def _opaque_legend(ax: Any, result: DiscoveryResult) -> None:
 
 def figure_residuals(result: DiscoveryResult, variable: str) -> Any:
     """The residuals before and after against ``variable``: scatter + binned means, or points per value."""
-    plt = _pyplot()
+    plt = pyplot()
     with plt.rc_context(STYLE):
         words, label, transform = describe_variable(variable, result.settings)
         values = transform(np.asarray(result.variables[variable][1], dtype=np.float64))
@@ -260,7 +249,7 @@ def _step_label(step: Candidate) -> str:
 
 def figure_gap(result: DiscoveryResult) -> Any:
     """The RMS on held-out blocks and on all rows: the given model refitted, then after each step."""
-    plt = _pyplot()
+    plt = pyplot()
     with plt.rc_context(STYLE):
         labels = ["given model\n(refitted)"] + [_step_label(s) for s in result.steps]
         held = [result.baseline["holdout_rms_um"]] + [s.holdout_rms_after_um for s in result.steps]
@@ -543,7 +532,7 @@ def write_report(result: DiscoveryResult, directory: str | Path, model_out: str 
     """Write the figures (PNG + SVG) and ``report.md`` into ``directory``; returns the files written.
 
     ``provenance``: each figure's footer (the model and the data files it was run on)."""
-    plt = _pyplot()
+    plt = pyplot()
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []

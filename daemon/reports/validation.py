@@ -195,6 +195,17 @@ STYLE: dict[RcKeyType, Any] = {
     "svg.fonttype": "none",
 }
 PNG_DPI = 150
+
+
+def pyplot() -> Any:
+    """matplotlib's pyplot on the Agg backend, imported only when a figure is drawn (half a second): what imports
+    the reports for their words and tables does not pay for it."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
 WITHOUT_COLOR, WITH_COLOR = "#4c72b0", "#dd8452"
 
 
@@ -221,11 +232,7 @@ def _write_texts(out: Path, texts: Mapping[str, str]) -> list[Path]:
 def write_figures(results: Sequence[TestResult], directory: str | Path, *, provenance: str = "",
                   training: Training | None = None) -> list[Path]:
     """fig9 and fig11 as PNG and SVG into ``directory`` (each atomically); returns their paths."""
-    import matplotlib  # figures only when a report is asked for
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
@@ -269,8 +276,7 @@ def with_footer(fig: Any, provenance: str) -> Any:
 def figure_drift(results: Sequence[TestResult], *, provenance: str = "", training: Training | None = None) -> Any:
     """After the paper's Fig. 9 and 10: per test, the drift at x' = 0 over time, and the temperatures
     with each channel's training range shaded (a test outside it is a model extrapolating)."""
-    import matplotlib.pyplot as plt  # figures only when a report is asked for
-
+    plt = pyplot()
     with plt.rc_context(STYLE):
         fig = _draw_drift(plt, results, training)
         add_provenance(fig, provenance)
@@ -348,8 +354,7 @@ def figure_accuracy(results: Sequence[TestResult], *, provenance: str = "", trai
 
     ``axes[0]`` is Table I, ``axes[1]`` the per-point accuracy, ``axes[2]`` the repeatability (drawn
     between them)."""
-    import matplotlib.pyplot as plt  # figures only when a report is asked for
-
+    plt = pyplot()
     with plt.rc_context(STYLE):
         fig = _draw_accuracy(plt, results, training)
         compensated = any(r.compensated for r in results)
@@ -536,11 +541,7 @@ def write_cell_report(directory: str | Path, text: str, doc: Mapping[str, Any], 
                       targets_um: Mapping[str, np.ndarray], attained_without: Mapping[str, np.ndarray],
                       attained_with: Mapping[str, np.ndarray] | None, *, provenance: str = "") -> list[Path]:
     """Write the report files (each atomically); returns their paths. ``provenance``: the figure's footer."""
-    import matplotlib  # figures only when a report is asked for
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     out = Path(directory)
     written = _write_texts(out, {"table1_axes.txt": text + "\n", "validation.json": json.dumps(doc, indent=2) + "\n"})
     with plt.rc_context(STYLE):  # the notebook-readable fonts of fig9 and fig11, text kept as text in the SVG
