@@ -124,21 +124,26 @@ def test_cli_names_a_default_thermal_lag_from_simulate_fit_discover(tmp_path, ca
     In the default 24-cycle run the room falls and rises once: a lag of hours is not pinned (the run
     cannot tell τ from 2τ, nor the lag from a drift in time), and applying it made a fresh run 32 %
     worse on this seed (benchmarks/discovery_fresh.py). Discovery reports the disagreement and names
-    nothing; 48 cycles (the room settles) name the lag and the extended model applies it.
+    nothing (time leads its disagreements); 48 cycles (the room settles) name the lag and the extended model applies it.
+
+    ``--order 3``: with the lag hidden, the held-out order choice ties (150.6 nm for n1 = 1..5 on the 48-cycle
+    run: the lag's error swamps the curvature) and takes n1 = 1; discovery then names creep for the missing
+    x², x³ (22.5 against 25.4 nm held out), where the model of order 3 gets the lag alone.
     """
     data, model, extended = tmp_path / "d.csv", tmp_path / "m.json", tmp_path / "m2.json"
     assert main(["simulate", "--scenario", "train", "--effects", "thermal_lag", "--seed", "1",
                  "--out", str(data)]) == 0
-    assert main(["fit", str(data), "--out", str(model)]) == 0
+    assert main(["fit", str(data), "--order", "3", "--out", str(model)]) == 0
     capsys.readouterr()
     assert main(["discover", str(data), "--model", str(model), "--out", str(extended), "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["steps"] == []
-    assert any(d["variable"] == "t" and d["significant"] for d in doc["disagreements"]), doc["disagreements"]
+    # time is the variable the residual tracks most (p 0.07 once deflated by the autocorrelation, on this seed)
+    assert doc["disagreements"][0]["variable"] == "t", doc["disagreements"]
 
     assert main(["simulate", "--scenario", "train", "--effects", "thermal_lag", "--seed", "1", "--cycles", "48",
                  "--out", str(data)]) == 0
-    assert main(["fit", str(data), "--out", str(model)]) == 0
+    assert main(["fit", str(data), "--order", "3", "--out", str(model)]) == 0
     capsys.readouterr()
     assert main(["discover", str(data), "--model", str(model), "--out", str(extended), "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)

@@ -105,7 +105,7 @@ def test_fit_prints_the_equation_and_json_carries_the_same_in_nm(tmp_path, capsy
     # the SEs printed are HAC ones, and both the printout and the JSON say so
     assert doc["se_method"] == model.fit["se_method"] and doc["se_method"].startswith("Newey-West HAC, Bartlett")
     assert f"SE and p: {doc['se_method']}" in human
-    assert doc["selection"] == "paper" and doc["terms"][0]["se"] == model.terms[0].se
+    assert doc["selection"] == "coherent" and doc["terms"][0]["se"] == model.terms[0].se  # the default mode
 
 
 def test_fit_json_order_scores_in_nm(tmp_path, capsys):

@@ -207,7 +207,9 @@ def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS,
     nuisance: dict[str, np.ndarray] = {}
     steps: list[Candidate] = []
     rounds: list[Round] = []
-    excluded: set[str] = set()
+    # channels the model's coherent selection left out on purpose (they would trade thermocouple noise against
+    # each other: nanodrift.model.identify) are not "missing": neither proposed nor re-admitted
+    excluded: set[str] = set(model.selection.get("opposing_dropped") or ())
     pool = selection_pool(model, data)
     penter = float(model.selection.get("penter", 0.05))
     premove = float(model.selection.get("premove", 0.10))
