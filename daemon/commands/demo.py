@@ -273,10 +273,10 @@ SEED_SPREAD_COMMAND = "python benchmarks/paper_table1.py --seeds 16 --cell {cell
 #: :data:`SEED_SPREAD_COMMAND` (its vectorised simulator: the demo's physics, plan and fit without asyncio):
 #: (median, 5th percentile, 95th percentile), as its "seed luck" lines print them
 SEED_SPREAD_X: dict[str, dict[str, tuple[float, float, float]]] = {
-    "realistic": {"test2": (5.4, 2.0, 16.5), "test3": (6.8, 2.3, 14.3), "test4": (4.7, 2.1, 16.2),
-                  "test5": (4.1, 1.8, 24.8)},
-    "ideal": {"test2": (18.9, 9.6, 170.3), "test3": (22.5, 9.3, 78.8), "test4": (17.7, 8.7, 182.4),
-              "test5": (3.2, 2.2, 5.7)},
+    "realistic": {"test2": (8.2, 3.2, 13.4), "test3": (10.1, 3.4, 15.3), "test4": (8.0, 3.3, 15.0),
+                  "test5": (3.4, 2.3, 6.6)},
+    "ideal": {"test2": (39.4, 11.9, 299.5), "test3": (30.4, 15.3, 464.7), "test4": (31.9, 12.3, 255.1),
+              "test5": (2.8, 2.3, 4.2)},
 }
 
 
