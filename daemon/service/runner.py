@@ -14,6 +14,7 @@ READY/STATUS/WATCHDOG/STOPPING through ``$NOTIFY_SOCKET``.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import gc
 import signal
 import time
@@ -50,6 +51,9 @@ from nanodrift.service.targets import TargetHandler
 #: config (and a running context to keep) -> drivers: ``nanodrift.assembly.build_drivers``, handed in by
 #: ``nanodrift run`` so that the service names no plugin
 BuildDrivers = Callable[[Config, DriverContext | None], DriverSet]
+#: at an output's open, how long a position sensor's first poll is awaited before it is judged (under the
+#: actuation's 3 s bound on any device step); a sensor slower than this proves the read-back at a reopen
+POSITION_FIRST_READ_S = 2.0
 
 
 class Service:
@@ -75,7 +79,7 @@ class Service:
         # every output of the cell (one axis: x), by one task; a one-axis cell's log lines keep their shape
         # what each output was last written, kept before every write: the only proof of a read-back at a restart
         records = OutputRecords(state_directory(config.daemon.state_dir), config.cell)
-        self.actuation = Actuation(self.log, records=records)
+        self.actuation = Actuation(self.log, records=records, position_witness=self._position_reading)
         self.actuation.reached_listeners.append(self._output_reached)
         self.actuation.done_listeners.append(self._publish_done)  # one done per served command
         self.state = CellState(config, compensator, MonotonicClock())  # the drivers' clock once they start
@@ -244,17 +248,17 @@ class Service:
             self.state.clock = drivers.context.clock
             self.health.label_clock = drivers.context.label_clock
             self.health.awaits_reach = bool(drivers.actuators)
-        # no outputs (every axis kind = "zenoh", or no actuator): the published command is the actuation, and
-        # the actuation still runs, to say each command is reached as it is published
-        await self.actuation.start(drivers.actuators, self.state.config.axis_actuators())
         ingest = self.ingest
         self.pollers = [
             GroupPoller(g, drivers.context.clock, ingest.on_readings, ingest.on_group_failure,
                         ingest.on_group_recovered)
             for g in drivers.groups
         ]
-        for poller in self.pollers:
+        for poller in self.pollers:  # first: a position sensor's reading may prove where an output is
             poller.start()
+        # no outputs (every axis kind = "zenoh", or no actuator): the published command is the actuation, and
+        # the actuation still runs, to say each command is reached as it is published
+        await self.actuation.start(drivers.actuators, self.state.config.axis_actuators())
 
     async def stop_drivers(self, *, final: bool = False) -> None:
         """Stop polling and the actuator; ``final`` (the daemon stops, not a reload): the actuator
@@ -264,6 +268,27 @@ class Service:
             self.pollers = []
         finally:
             await self.actuation.stop(final=final)
+
+    async def _position_reading(self, axis: str) -> tuple[str, float] | str:
+        """What may prove a read-back nothing on record confirms: the axis' position sensor and its reading when
+        it is ok (fresh, believed; its first poll awaited up to :data:`POSITION_FIRST_READ_S`), else why not."""
+        sensor = self.state.config.position_sensors().get(axis)
+        if sensor is None:
+            return f"no position sensor measures axis {axis}"
+        poller = next((p for p in self.pollers if sensor.name in p.group.names), None)
+        if poller is not None and not poller.first_attempt.is_set():
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(POSITION_FIRST_READ_S):
+                    await poller.first_attempt.wait()
+        with self.state.lock:
+            table = self.state.table
+            problem = table.problem(sensor.name, self.state.clock.now())
+            entry = table.entries.get(sensor.name)
+            value = entry.value if entry is not None else None
+        if problem is not None or value is None:
+            state, reason = problem or ("stale", "no reading yet")
+            return f"its position sensor {sensor.name} is {state} ({reason})"
+        return sensor.name, value
 
     def _output_reached(self, goal: Any, _monotonic_s: float) -> None:
         """The output holds a served command: the health unit's settle time starts now (cell clock).
