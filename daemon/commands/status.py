@@ -174,9 +174,11 @@ def axis_lines(doc: dict[str, Any]) -> list[str]:
         health = doc.get("health")
         axis_health = health.get("axes", {}).get(axis) if isinstance(health, dict) else None
         shown = f", health {_health({'health': axis_health})}" if isinstance(axis_health, dict) else ""
+        proved_by = actuator.get("proved_by")
         out.append(f"  {doc.get('cell', '?')} axis {axis}: [{_number(each.get('min_um')):g}, "
-                   f"{_number(each.get('max_um')):g}] µm, {_actuator({'actuator': actuator})}"
-                   + (f" at {volts:.5f} V" if isinstance(volts, int | float) else "") + sensor + shown)
+                   f"{_number(each.get('max_um')):g}] µm, {_actuator({'actuator': actuator}, proof=False)}"
+                   + (f" at {volts:.5f} V" if isinstance(volts, int | float) else "")
+                   + (f" (proved: {proved_by})" if isinstance(proved_by, str) else "") + sensor + shown)
     return out
 
 

@@ -198,7 +198,7 @@ def test_table_shows_how_the_daemon_proved_where_the_output_was_at_its_start() -
                                                             "last_voltage_v": 8.0}} for axis in ("x", "y")}}
     text = table([xy])
     assert parse_table(text)["c"]["ACTUATOR"] == "x:modbus:ok y:modbus:ok"  # each axis' proof on its own line
-    assert "  c axis y: [0, 480] µm, modbus ok (proved: state) at 8.00000 V" in text, text
+    assert "  c axis y: [0, 480] µm, modbus ok at 8.00000 V (proved: state)" in text, text
 
 
 def test_table_says_how_many_held_targets_went_unrecorded() -> None:
