@@ -233,18 +233,26 @@ def test_confirm_output_refuses_a_voltage_outside_the_limits_and_an_unknown_axis
 # --- 8. a safe stop per axis ------------------------------------------------------------------------------
 
 
-def xy_on_two_modules(root: Path, x_port: int, y_port: int, zenoh_port: int, cell: str) -> Path:
+def xy_on_two_modules(root: Path, x_port: int, y_port: int, zenoh_port: int, cell: str,
+                      positions_um: dict[str, float] | None = None) -> Path:
+    """An XY cell, each axis on its own module; ``positions_um``: each axis' position sensor (``P<axis>``) reads
+    it, and proves a read-back within :data:`PROOF_TOLERANCE_UM`."""
     model = root / "model.json"
     write_cell_model(model, ("x", "y"))
-    readings = SensorFile(root / "sensors.json", dict(TEMPS)).path
+    positions = {f"P{axis}": um for axis, um in (positions_um or {}).items()}
+    readings = SensorFile(root / "sensors.json", {**TEMPS, **positions}).path
+    proof = f"position_proof_tolerance_um = {PROOF_TOLERANCE_UM}\n" if positions_um else ""
     axes = "".join(
         f'[[axes]]\nname = "{axis}"\nmin_um = 0.0\nmax_um = 480.0\n[axes.actuator]\nkind = "modbus"\nhub = "{hub}"\n'
         f"address = {ADDRESS}\nscale = 0.001\nvolts_per_um = 0.02\nmax_slew_um_per_s = 400.0\nsafe_voltage_v = 0.0\n"
-        for axis, hub in (("x", "mx"), ("y", "my")))
+        + proof for axis, hub in (("x", "mx"), ("y", "my")))
     hubs = "".join(f'[[hubs]]\nname = "{hub}"\nhost = "127.0.0.1"\nport = {port}\ntimeout_s = 0.3\n'
                    for hub, port in (("mx", x_port), ("my", y_port)))
     sensors = "".join(f'[[sensors]]\nname = "{ch}"\nkind = "file"\npath = "{readings}"\ninterval_s = 0.05\n'
                       "max_age_s = 2.0\ntimeout_s = 0.5\n" for ch in TEMPS)
+    sensors += "".join(f'[[sensors]]\nname = "{ch}"\nrole = "position"\naxis = "{ch[1]}"\nkind = "file"\n'
+                       f'path = "{readings}"\ninterval_s = 0.05\nmax_age_s = 2.0\ntimeout_s = 0.5\n'
+                       for ch in positions)
     config = root / "xy.toml"
     config.write_text(f'cell = "{cell}"\n[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{zenoh_port}"]\n'
                       f'multicast_scouting = false\n[model]\npath = "{model}"\n{axes}{hubs}{sensors}')
@@ -280,6 +288,40 @@ def test_sigterm_with_a_dead_y_module_still_takes_x_to_its_safe_voltage(tmp_path
             client.close()
         daemon.stop()
         x_module.close()
+
+
+def test_an_xy_cell_proves_each_axis_by_its_own_way_and_resumes_y_from_where_its_own_sensor_puts_it(
+        tmp_path: Path) -> None:
+    """No state file: x's module holds its power-up 0 V; y's holds 6 V, which y's own sensor (300 µm) proves, while
+    x's sensor reads 0 µm: each axis is proved by its own witness, and y's first writes start from 6 V."""
+    x_module, y_module = OutputModule(), OutputModule()
+    y_module.hold(raw_for(6.0))
+    zenoh_port, cell = free_port(), f"xy{free_port()}"
+    config = xy_on_two_modules(tmp_path, x_module.server.port, y_module.server.port, zenoh_port, cell,
+                               positions_um={"x": 0.0, "y": 300.0})
+    daemon = Daemon(["--config", str(config)], tmp_path / "daemon.log", [install_file_plugin(tmp_path / "plugins")])
+    client: Client | None = None
+    try:
+        daemon.wait_log("serving", timeout=30)
+        client = Client(zenoh_port, cell)
+        client.wait_alive()
+        client.wait_ready((*TEMPS, "Px", "Py"))
+        proved = {line["axis"]: line for line in daemon.log_events("output_proved")}
+        assert proved["x"]["by"] == "power_up" and proved["y"]["by"] == "position_sensor", proved
+        assert proved["y"]["sensor"] == "Py" and proved["y"]["implied_um"] == pytest.approx(300.0), proved
+        axes = client.status()["axes"]
+        assert [axes[a]["actuator"]["proved_by"] for a in ("x", "y")] == ["power_up", "position_sensor"], axes
+        ok, answer = client.query({"x_um": 20.0, "y_um": 320.0, "id": 1})  # y: 6 V -> 6.4 V
+        assert ok, answer
+        wait_until(lambda: y_module.register() == raw_for(answer["voltage_v"]["y"]), 10, "y at its goal")
+        assert_slewed(y_module.written(), 400.0, from_raw=raw_for(6.0))  # no jump through 0 V
+        assert all(raw >= raw_for(6.0) for _, raw in y_module.written()), y_module.written()
+    finally:
+        if client is not None:
+            client.close()
+        daemon.stop()
+        x_module.close()
+        y_module.close()
 
 
 # --- 9. ramps keep their rate on slow devices ---------------------------------------------------------------
