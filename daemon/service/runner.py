@@ -128,8 +128,7 @@ class Service:
             await self.stop_metrics()
             return 1
         # ready once every device has been read (or has failed) once: at most an open and a read each
-        await first_attempts(self.pollers, min(10.0, 0.5 + 2 * max((p.group.timeout_s for p in self.pollers),
-                                                                     default=0.0)))
+        await first_attempts(self.pollers, self.first_attempts_limit_s())
         targets = TargetHandler(self.state, bus, loop, self.actuation, self.log, latency=self.latency)
         with self.state.lock:
             self.state.serving = True
@@ -256,9 +255,16 @@ class Service:
         ]
         for poller in self.pollers:  # first: a position sensor's reading may prove where an output is
             poller.start()
+        # the outputs open once every device has been read (or has failed) once: a line a sensor and an output
+        # share is never opened by both at once, and a position sensor's first reading is there to prove with
+        await first_attempts(self.pollers, self.first_attempts_limit_s())
         # no outputs (every axis kind = "zenoh", or no actuator): the published command is the actuation, and
         # the actuation still runs, to say each command is reached as it is published
         await self.actuation.start(drivers.actuators, self.state.config.axis_actuators())
+
+    def first_attempts_limit_s(self) -> float:
+        """How long the sensors' first reads are awaited: at most an open and a read each."""
+        return min(10.0, 0.5 + 2 * max((p.group.timeout_s for p in self.pollers), default=0.0))
 
     async def stop_drivers(self, *, final: bool = False) -> None:
         """Stop polling and the actuator; ``final`` (the daemon stops, not a reload): the actuator
