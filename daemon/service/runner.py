@@ -14,7 +14,6 @@ READY/STATUS/WATCHDOG/STOPPING through ``$NOTIFY_SOCKET``.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import gc
 import signal
 import time
@@ -51,9 +50,6 @@ from nanodrift.service.targets import TargetHandler
 #: config (and a running context to keep) -> drivers: ``nanodrift.assembly.build_drivers``, handed in by
 #: ``nanodrift run`` so that the service names no plugin
 BuildDrivers = Callable[[Config, DriverContext | None], DriverSet]
-#: at an output's open, how long a position sensor's first poll is awaited before it is judged (under the
-#: actuation's 3 s bound on any device step); a sensor slower than this proves the read-back at a reopen
-POSITION_FIRST_READ_S = 2.0
 
 
 class Service:
@@ -277,15 +273,11 @@ class Service:
 
     async def _position_reading(self, axis: str) -> tuple[str, float] | str:
         """What may prove a read-back nothing on record confirms: the axis' position sensor and its reading when
-        it is ok (fresh, believed; its first poll awaited up to :data:`POSITION_FIRST_READ_S`), else why not."""
+        it is ok (fresh, believed), else why not. The outputs open after the sensors' first reads
+        (:meth:`start_drivers`); a sensor slower than that proves the read-back at a reopen."""
         sensor = self.state.config.position_sensors().get(axis)
         if sensor is None:
             return f"no position sensor measures axis {axis}"
-        poller = next((p for p in self.pollers if sensor.name in p.group.names), None)
-        if poller is not None and not poller.first_attempt.is_set():
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(POSITION_FIRST_READ_S):
-                    await poller.first_attempt.wait()
         with self.state.lock:
             table = self.state.table
             problem = table.problem(sensor.name, self.state.clock.now())
