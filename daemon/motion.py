@@ -11,7 +11,8 @@ what is safe:
   believed: inside the limits and agreeing with what was last written to that device (by this process,
   or, across a restart, as the durable record of ``nanodrift.output_record`` says), or on a first start
   with the output's power-up value. A claim this process can contradict starts the move from what it
-  wrote; one nothing confirms is *unproven*: the stage is never ramped from (or towards) a lie.
+  wrote; one nothing confirms is *unproven*: the stage is never ramped from (or towards) a lie, unless
+  the axis' position sensor measures where that voltage puts the stage (:func:`position_disagreement`).
 - **Slew** (:class:`Slew`): ``max_slew_um_per_s`` is a rate in µm per second of elapsed time. Each
   sub-command of a ramp covers the time since the previous write returned (the device had that value by
   then), so between any two values a device receives it never moves faster than the rate. A ramp waits
@@ -92,6 +93,8 @@ class StartPoint:
     voltage_v: float | None
     known_from: str  # "read back" | "power-up value" | "last written" | "safe_voltage_v" | "unknown" | "unproven"
     distrust: str | None = None
+    #: an unproven claim inside the limits, which another witness (a position sensor) may still prove
+    claimed_v: float | None = None
 
 
 def trusted_start(limits: MotionLimits, read_back_v: float | None, sent_v: tuple[float, ...],
@@ -139,8 +142,24 @@ def trusted_start(limits: MotionLimits, read_back_v: float | None, sent_v: tuple
     if sent_v and sent_here and math.isfinite(sent_v[-1]):
         return StartPoint(sent_v[-1], "last written", problem)
     if power_up_v is not None:
-        return StartPoint(None, "unproven", problem)
+        claimed = read_back_v if math.isfinite(read_back_v) and within_limits(limits, read_back_v) else None
+        return StartPoint(None, "unproven", problem, claimed)
     return StartPoint(None, "unknown", problem)
+
+
+def position_disagreement(limits: MotionLimits, read_back_v: float, measured_um: float,
+                          tolerance_um: float) -> str | None:
+    """Why a position sensor's reading does not prove ``read_back_v`` (None: it does).
+
+    The voltage implies the command ``q = (V - offset_v) / volts_per_um``; the stage holding it sits where the
+    model's correction (thermal terms, nonlinearity, bias: ``q - x``) and the sensor's own uncertainty allow,
+    which the operator states as ``tolerance_um``. Nothing is believed with no finite, positive tolerance."""
+    implied_um = q_um_for(limits, read_back_v)
+    gap_um = abs(measured_um - implied_um)
+    if math.isfinite(gap_um) and gap_um <= tolerance_um:
+        return None
+    return (f"read back {read_back_v:.4f} V means q {implied_um:.3f} µm, but the position sensor measures "
+            f"{measured_um:.3f} µm ({gap_um:.3f} µm apart; position_proof_tolerance_um = {tolerance_um:g} µm)")
 
 
 class Slew:

@@ -58,9 +58,14 @@ class OutputRecords:
     def written(self, axis: str, device: str) -> tuple[float, ...]:
         """The voltages ``device`` may hold by what was last written to it (the last confirmed, then the one
         being written); empty when nothing is on record for this axis and device. RecordError: unreadable."""
+        return self.read(axis, device)[0]
+
+    def read(self, axis: str, device: str) -> tuple[tuple[float, ...], str]:
+        """:meth:`written`, and who wrote the record: ``"daemon"`` (a write of the daemon's or a procedure's) or
+        ``"operator"`` (``nanodrift confirm-output``)."""
         path = self.path(axis)
         if path is None or not path.exists():
-            return ()
+            return (), "daemon"
         try:
             doc = json.loads(path.read_text(encoding="utf-8"))
             if not isinstance(doc, dict) or doc.get("format") != RECORD_FORMAT:
@@ -71,15 +76,18 @@ class OutputRecords:
         except (OSError, ValueError, KeyError) as error:
             raise RecordError(f"{path}: {error}") from None
         if doc.get("device") != device:
-            return ()  # another device's record says nothing of this one
-        return tuple(float(v) for v in values if v is not None and math.isfinite(v))
+            return (), "daemon"  # another device's record says nothing of this one
+        by = "operator" if doc.get("by") == "operator" else "daemon"
+        return tuple(float(v) for v in values if v is not None and math.isfinite(v)), by
 
-    def save(self, axis: str, device: str, confirmed_v: float | None, written_v: float) -> None:
-        """Record, before it is written, that ``device`` gets ``written_v`` and held ``confirmed_v`` (fsynced)."""
+    def save(self, axis: str, device: str, confirmed_v: float | None, written_v: float, *,
+             by: str = "daemon") -> None:
+        """Record, before it is written, that ``device`` gets ``written_v`` and held ``confirmed_v`` (fsynced);
+        ``by`` "operator": an operator measured it (``nanodrift confirm-output``), nothing was written."""
         path = self.path(axis)
         if path is None:
             return
         doc = {"format": RECORD_FORMAT, "cell": self.cell, "axis": axis, "device": device,
-               "confirmed_v": confirmed_v, "written_v": written_v, "t": time.time()}
+               "confirmed_v": confirmed_v, "written_v": written_v, "by": by, "t": time.time()}
         with atomic_writer(path) as handle:
             json.dump(doc, handle)

@@ -220,6 +220,10 @@ class ActuatorConfig(StrictModel):
         "believed only when it equals this; nan = never (every first start is confirmed by an operator)"))
     read_back_tolerance_v: float = Field(default=motion.READ_BACK_TOLERANCE_V, gt=0, le=1.0, description=(
         "a read-back this close to what the daemon last wrote (or to power_up_voltage_v) is believed"))
+    position_proof_tolerance_um: Annotated[float, AllowInfNan(True)] = Field(default=math.nan, description=(
+        "at start, a read-back nothing on record confirms is believed when the axis' position sensor, fresh, reads "
+        "within this of the command the voltage means ((V - offset_v) / volts_per_um): the model's largest "
+        "correction |q - x| plus the sensor's uncertainty, as the operator states them; nan = never"))
     #: the plugin's validated device keys (None for kind = "zenoh"); not a TOML key of its own
     _options: ActuatorOptions | None = PrivateAttr(default=None)
 
@@ -229,6 +233,15 @@ class ActuatorConfig(StrictModel):
         if 0 < value < MIN_SLEW_UM_PER_S:
             raise ValueError(f"must be 0 (off) or at least {MIN_SLEW_UM_PER_S:g} um/s, got {value:g}: a slower ramp "
                              "writes the same output value for seconds (or never moves, at 1e-300)")
+        return value
+
+    @field_validator("position_proof_tolerance_um")
+    @classmethod
+    def _nan_or_positive(cls, value: float) -> float:
+        if math.isnan(value):
+            return math.nan
+        if not 0 < value < math.inf:
+            raise ValueError("must be a positive, finite distance in um, or nan (a position sensor proves nothing)")
         return value
 
     @field_validator("safe_voltage_v", "power_up_voltage_v")

@@ -131,6 +131,10 @@ def test_the_default_kind_moves_a_simulated_stage_and_publishes_on_hardware() ->
          "actuator.max_slew_um_per_s: Value error, must be 0 (off) or at least 0.01 um/s"),
         (HARDWARE + MODBUS.replace("nan", "inf"), "actuator.safe_voltage_v: Value error, must be a finite voltage"),
         (HARDWARE + MODBUS.replace("nan", "20.0"), "safe_voltage_v (20) must be inside [v_min, v_max] = [-2, 12]"),
+        (HARDWARE + MODBUS + "position_proof_tolerance_um = 0.0\n",
+         "actuator.position_proof_tolerance_um: Value error, must be a positive, finite distance in um, or nan"),
+        (HARDWARE + MODBUS + "position_proof_tolerance_um = inf\n",
+         "actuator.position_proof_tolerance_um: Value error, must be a positive, finite distance in um, or nan"),
         (HARDWARE + MODBUS + "v_max = nan\n", "actuator.v_max: Input should be a finite number"),
         (HARDWARE + MODBUS.replace("max_slew_um_per_s = 0.0", "max_slew_um_per_s = -1.0"),
          "actuator.max_slew_um_per_s: Input should be greater than or equal to 0"),
@@ -174,8 +178,14 @@ def test_procedure_defaults_are_the_papers_and_a_faster_schedule_is_one_table() 
 
 def test_two_configs_that_say_nan_are_equal(tmp_path: Path) -> None:
     path = tmp_path / "a.toml"
-    path.write_text(HARDWARE + MODBUS)
+    path.write_text(HARDWARE + MODBUS + "position_proof_tolerance_um = nan\n")
     assert load_config(path).actuator == load_config(path).actuator  # a reload sees no change
+
+
+def test_a_position_sensor_proves_nothing_until_the_operator_states_its_tolerance() -> None:
+    assert math.isnan(parsed(HARDWARE + MODBUS).actuator.position_proof_tolerance_um)
+    stated = parsed(HARDWARE + MODBUS + "position_proof_tolerance_um = 5.0\n").actuator
+    assert stated.position_proof_tolerance_um == 5.0
 
 
 # --- random [actuator] tables --------------------------------------------------------------------

@@ -105,6 +105,7 @@ MODEL = table({"path": choice(["model.json", "/var/lib/nanodrift/model.json", ".
 ACTUATOR = table({
     "volts_per_um": number(st.floats(0.001, 0.1)), "offset_v": number(finite), "v_min": number(finite),
     "v_max": number(finite), "x_min_um": number(finite), "x_max_um": number(finite),
+    "position_proof_tolerance_um": number(st.floats(0.001, 100.0)),
 }, ["volts_per_umm", "vmax", "kind_"])
 SIMULATION = table({
     "scenario": choice(["train", "steady", "room", "test2", "daily", "nope"]),
@@ -233,8 +234,12 @@ def check_outcome(data: Any, parse: Any, text: bool = False) -> None:
     if simulation is not None:
         assert 0 < simulation.speed <= MAX_SPEED, simulation  # type: ignore[attr-defined]
     actuator = config.actuator
-    finite_keys = {k: v for k, v in actuator.model_dump().items() if isinstance(v, float) and k != "safe_voltage_v"}
-    assert all(math.isfinite(v) for v in finite_keys.values()), actuator  # safe_voltage_v: nan = leave the stage
+    # nan says something in these: leave the stage; every first start is confirmed; a position sensor proves nothing
+    nan_means = {"safe_voltage_v", "power_up_voltage_v", "position_proof_tolerance_um"}
+    finite_keys = {k: v for k, v in actuator.model_dump().items() if isinstance(v, float) and k not in nan_means}
+    assert all(math.isfinite(v) for v in finite_keys.values()), actuator
+    tolerance_um = actuator.position_proof_tolerance_um
+    assert math.isnan(tolerance_um) or 0 < tolerance_um < math.inf, actuator
     assert actuator.v_min < actuator.v_max and actuator.x_min_um < actuator.x_max_um and actuator.volts_per_um != 0
 
 

@@ -18,6 +18,7 @@ from nanodrift.motion import (
     Slew,
     VoltageLimitError,
     checked_voltage,
+    position_disagreement,
     q_um_for,
     ramp_seconds,
     trusted_start,
@@ -177,6 +178,38 @@ def test_a_start_point_is_always_inside_the_limits_and_never_an_unconfirmed_clai
         assert not sent and power_up is not None and read is not None and abs(read - power_up) <= 0.001
     if start.known_from == "unproven":
         assert power_up is not None and not (sent and sent_here)
+
+
+def test_an_unproven_claim_inside_the_limits_is_kept_for_a_position_sensor_and_one_outside_never() -> None:
+    claimed = trusted_start(Limits(), 8.0, (), math.nan, sent_here=False, power_up_v=0.0)
+    assert claimed.known_from == "unproven" and claimed.voltage_v is None and claimed.claimed_v == 8.0
+    outside = trusted_start(Limits(), 40.0, (), math.nan, sent_here=False, power_up_v=0.0)
+    assert outside.known_from == "unproven" and outside.claimed_v is None
+    assert trusted_start(Limits(), math.nan, (), math.nan, power_up_v=0.0).claimed_v is None
+
+
+@settings(max_examples=examples(300))
+@given(read=voltages, measured=st.floats(allow_nan=True, allow_infinity=True),
+       tolerance=st.floats(min_value=1e-3, max_value=1e3, allow_nan=False),
+       offset=st.floats(min_value=-1.0, max_value=1.0), gain=st.sampled_from([0.02, -0.02, 0.0105]))
+def test_a_position_reading_proves_a_read_back_exactly_within_the_stated_tolerance(
+        read: float, measured: float, tolerance: float, offset: float, gain: float) -> None:
+    """The reading comes from a device: any float, NaN and infinities too; only a finite one within the tolerance
+    of the command the voltage means proves it."""
+    limits = Limits(volts_per_um=gain, offset_v=offset)
+    problem = position_disagreement(limits, read, measured, tolerance)
+    gap_um = abs(measured - q_um_for(limits, read))
+    assert (problem is None) == (math.isfinite(gap_um) and gap_um <= tolerance)
+    if problem is not None:
+        assert f"read back {read:.4f} V" in problem and f"position_proof_tolerance_um = {tolerance:g}" in problem
+
+
+def test_a_position_reading_names_what_the_voltage_means_and_how_far_it_is() -> None:
+    assert position_disagreement(Limits(), 8.0, 401.5, 5.0) is None
+    assert position_disagreement(Limits(), 8.0, 100.0, 5.0) == (
+        "read back 8.0000 V means q 400.000 µm, but the position sensor measures 100.000 µm (300.000 µm apart; "
+        "position_proof_tolerance_um = 5 µm)")
+    assert position_disagreement(Limits(), 8.0, 400.0, math.nan) is not None  # no tolerance stated: nothing proved
 
 
 @given(q=st.floats(min_value=-1e4, max_value=1e4, allow_nan=False))

@@ -27,6 +27,14 @@ def test_a_record_round_trips_and_names_only_its_own_device(tmp_path: Path) -> N
     assert doc["format"] == RECORD_FORMAT and doc["cell"] == "cell0" and doc["axis"] == "x"
 
 
+def test_a_record_says_whether_an_operator_confirmed_it_or_the_daemon_wrote_it(tmp_path: Path) -> None:
+    records = OutputRecords(tmp_path, "cell0")
+    records.save("x", "dac", 8.0, 8.0, by="operator")  # nanodrift confirm-output
+    assert records.read("x", "dac") == ((8.0, 8.0), "operator")
+    records.save("x", "dac", 8.0, 8.4)  # the daemon's next write: its own record from now on
+    assert records.read("x", "dac") == ((8.0, 8.4), "daemon")
+
+
 def test_a_procedures_writes_keep_the_previous_value_as_the_confirmed_one(tmp_path: Path) -> None:
     records = OutputRecords(tmp_path, "c")
     records.note_written("x", "dac", 1.0)

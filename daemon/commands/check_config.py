@@ -3,7 +3,8 @@
 Exit 2 (with ``<file>:<line>: <field>: <problem>`` lines) for everything the daemon would refuse on
 a reload: an invalid config, a model file that is missing or cannot be loaded, a ``[zenoh]
 config_file`` zenoh cannot read, a safe stop that cannot finish within the stop budget (what it takes
-is printed for every axis that has one). Exit 0 with warnings on stderr for what the daemon accepts but an
+is printed for every axis that has one, and so is how far a position sensor's proof of a read-back may be
+from where the stage is). Exit 0 with warnings on stderr for what the daemon accepts but an
 operator should know (a channel the model needs that no sensor provides, sensors the model does not
 use, an actuator's own warnings such as a
 command template coarser than the stage needs, a driver's warnings across entries such as a serial
@@ -16,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import ipaddress
+import math
 import re
 import sys
 from collections.abc import Sequence
@@ -180,9 +182,43 @@ def position_window_warnings(config: Config) -> list[str]:
             if sensor.role == "position" and sensor.interval_s >= window_s]
 
 
+def position_proofs(config: Config) -> tuple[list[str], list[str]]:
+    """(what each axis' position proof may believe, warnings) for every axis stating
+    ``position_proof_tolerance_um``: a read-back nothing on record confirms is believed when the axis' position
+    sensor reads within it of the command the voltage means, so the stage may really be that far from the value
+    believed, and a first move may jump that much. A tolerance with nothing to prove with, or one so wide a
+    sensor proves almost any read-back, is said."""
+    said: list[str] = []
+    warnings: list[str] = []
+    sensors = config.position_sensors()
+    for (where, one), axis in zip(_per_axis(config), config.axis_names, strict=True):
+        a = one.actuator
+        tolerance_um = a.position_proof_tolerance_um
+        if math.isnan(tolerance_um):
+            continue
+        key = f"{where}.position_proof_tolerance_um"
+        sensor = sensors.get(axis)
+        if a.kind == ZENOH_KIND:
+            warnings.append(f"{key}: kind zenoh reads no output back: there is nothing for a position sensor to prove")
+            continue
+        if sensor is None:
+            warnings.append(f"{key}: no position sensor measures axis {axis} (role = \"position\", axis = "
+                            f"\"{axis}\"): a read-back nothing on record confirms stays refused")
+            continue
+        said.append(f"  position proof: axis {axis} by {sensor.name}: a read-back nothing on record confirms is "
+                    f"believed within {tolerance_um:g} um ({tolerance_um * abs(a.volts_per_um):.4g} V) of its "
+                    "reading: the most a first move may jump")
+        span_um = a.x_max_um - a.x_min_um
+        if tolerance_um >= span_um / 2:
+            warnings.append(f"{key}: {tolerance_um:g} um is half the axis' workspace ({span_um:g} um) or more: a "
+                            "position sensor would prove almost any read-back; state the model's largest correction "
+                            "|q - x| plus the sensor's uncertainty")
+    return said, warnings
+
+
 def config_warnings(config: Config, model: Model | CellModel | None) -> list[str]:
     """``field: message`` lines for what the daemon accepts but an operator should know."""
-    warnings = network_warnings(config) + position_window_warnings(config)
+    warnings = network_warnings(config) + position_window_warnings(config) + position_proofs(config)[1]
     for where, one in _per_axis(config):  # a multi-axis cell: each axis' actuator as a one-axis cell's
         for warning in actuator_warnings(one) + driver_warnings(one):
             warning = where + warning[len("actuator"):] if warning.startswith("actuator") else warning
@@ -277,7 +313,7 @@ def main(args: argparse.Namespace) -> int:
             print(f"  axis {axis}: [{a.x_min_um:g}, {a.x_max_um:g}] um, actuator: {describe_actuator(one)}")
     else:
         print(f"  actuator: {describe_actuator(config)}")
-    for line_text in stop_said:
+    for line_text in stop_said + position_proofs(config)[0]:
         print(line_text)
     for warning, line in zip(warnings, file_lines(args.file, warnings), strict=True):
         print(f"{args.file}:{line}: warning: {warning}" if line else f"{args.file}: warning: {warning}",

@@ -46,7 +46,7 @@ def main(args: argparse.Namespace) -> int:
         raise UserError(f"axis {args.axis} has no output device (kind = {actuator.kind!r}): nothing to confirm")
     records = OutputRecords(Path(directory), config.cell)
     try:
-        records.save(args.axis, device.description, args.voltage, args.voltage)
+        records.save(args.axis, device.description, args.voltage, args.voltage, by="operator")
     except OSError as error:
         raise UserError(f"{records.path(args.axis)}: cannot write the state file ({error})") from None
     print(f"axis {args.axis} ({device.description}) confirmed at {args.voltage:g} V: {records.path(args.axis)}; "

@@ -137,17 +137,20 @@ def _correction(doc: dict[str, Any]) -> str:
     return f"{correction * 1000.0:+.0f} nm" if isinstance(correction, int | float) else "-"
 
 
-def _actuator(doc: dict[str, Any]) -> str:
+def _actuator(doc: dict[str, Any], *, proof: bool = True) -> str:
+    """``kind state``, and how the daemon proved where the output was at its start (``proof``)."""
     axes = doc.get("axes")
-    if isinstance(axes, dict) and axes:  # a multi-axis cell: each axis' output
-        return " ".join(f"{axis}:{_actuator({'actuator': each.get('actuator')})}".replace(" ", ":", 1)
+    if isinstance(axes, dict) and axes:  # a multi-axis cell: each axis' output (its proof on its axis line)
+        return " ".join(f"{axis}:{_actuator({'actuator': each.get('actuator')}, proof=False)}".replace(" ", ":", 1)
                         for axis, each in axes.items() if isinstance(each, dict))
     actuator = doc.get("actuator")
     if not isinstance(actuator, dict):
         return "-"
     kind = str(actuator.get("kind") or "-")
     state = actuator.get("state")
-    return f"{kind} {state}" if state else kind
+    proved_by = actuator.get("proved_by")
+    shown = f"{kind} {state}" if state else kind
+    return shown + (f" (proved: {proved_by})" if proof and isinstance(proved_by, str) else "")
 
 
 def axis_lines(doc: dict[str, Any]) -> list[str]:
@@ -171,9 +174,11 @@ def axis_lines(doc: dict[str, Any]) -> list[str]:
         health = doc.get("health")
         axis_health = health.get("axes", {}).get(axis) if isinstance(health, dict) else None
         shown = f", health {_health({'health': axis_health})}" if isinstance(axis_health, dict) else ""
+        proved_by = actuator.get("proved_by")
         out.append(f"  {doc.get('cell', '?')} axis {axis}: [{_number(each.get('min_um')):g}, "
-                   f"{_number(each.get('max_um')):g}] µm, {_actuator({'actuator': actuator})}"
-                   + (f" at {volts:.5f} V" if isinstance(volts, int | float) else "") + sensor + shown)
+                   f"{_number(each.get('max_um')):g}] µm, {_actuator({'actuator': actuator}, proof=False)}"
+                   + (f" at {volts:.5f} V" if isinstance(volts, int | float) else "")
+                   + (f" (proved: {proved_by})" if isinstance(proved_by, str) else "") + sensor + shown)
     return out
 
 

@@ -21,7 +21,9 @@ too; this module owns the devices' lifecycle.
   its ``[v_min, v_max]`` and when it agrees with what was written to that device: by this process (a claim
   it contradicts, ``actuator_readback_untrusted``, starts the move from the value written), or, at a
   start, as the state directory's record says (:mod:`nanodrift.output_record`, saved before every write),
-  or with nothing on record the output's ``power_up_voltage_v``. Anything else is unproven
+  or with nothing on record the output's ``power_up_voltage_v``, or (no record, or one it contradicts) as the
+  axis' position sensor measures (:attr:`Actuation.position_witness`, within ``position_proof_tolerance_um``);
+  each start says which in ``output_proved`` and ``status``' ``proved_by``. Anything else is unproven
   (:class:`UnprovenOutput`): the cell is in fault, the output is never written, and the reason says how to
   confirm it (``nanodrift confirm-output``); the reopen with backoff picks a confirmation up. A device that
   cannot be read back and was never written: the next command is written as it is (``actuator_unramped``,
@@ -76,10 +78,11 @@ would reach into the others' state. The motion rules it applies are already :mod
 from __future__ import annotations
 
 import asyncio
+import math
 import random
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -87,7 +90,7 @@ from nanodrift.compensation import ONE_AXIS, one_axis
 from nanodrift.config import SAFE_RAMP_BUDGET_S, ActuatorConfig
 from nanodrift.drivers.base import Actuator, DeviceError
 from nanodrift.logs import RateLimitedLog
-from nanodrift.motion import RAMP_PERIOD_S, Slew, StartPoint
+from nanodrift.motion import RAMP_PERIOD_S, Slew, StartPoint, position_disagreement
 from nanodrift.output_record import OutputRecords, RecordError
 from nanodrift.outputs import bind_limits, checked_sent_voltage, locate_stage
 
@@ -110,6 +113,11 @@ class Goal:
     seq: int = 0  # the order in which commands were served (a stop ends those served before it)
 
 
+#: asked (on the loop) for an axis' position sensor's fresh reading: (sensor, measured µm), or why there is none
+PositionWitness = Callable[[str], Awaitable[tuple[str, float] | str]]
+#: how each way of proving a read-back at a start is named (``output_proved``'s ``by``, ``status``' ``proved_by``)
+PROOF_NAMES = {"read back": "state", "power-up value": "power_up", "position sensor": "position_sensor"}
+
 #: told (on the loop) when every output holds a goal: the goal and the monotonic time
 OnReached = Callable[[Goal, float], None]
 #: told (on the loop) once per served command, how it ended: the goal, the state (reached, superseded, stopped
@@ -131,6 +139,8 @@ class AxisOutput:
     last_write_t: float | None = None  # unix time: a label for people
     writes: int = 0
     unramped_told: bool = False  # actuator_unramped is said once per start
+    #: how the read-back was proved when the daemon started on it: state, operator, power_up, position_sensor
+    proved_by: str | None = None
 
 
 class AxisFault(Exception):
@@ -150,13 +160,15 @@ class Actuation:
     """The goal (latest wins), the task that writes it to every axis' device, and their state."""
 
     def __init__(self, log: Any, *, safe_budget_s: float = SAFE_RAMP_BUDGET_S,
-                 records: OutputRecords | None = None) -> None:
+                 records: OutputRecords | None = None, position_witness: PositionWitness | None = None) -> None:
         self.log = log
         self.failures = RateLimitedLog(log, "actuator_failed", level="error")
         self.record_failures = RateLimitedLog(log, "output_record_failed", level="error")
         self.safe_budget_s = safe_budget_s
         #: what was last written to each output, kept durably before every write (how a restart proves a read-back)
         self.records = records if records is not None else OutputRecords(None, "cell")
+        #: a position sensor's reading: what proves a read-back nothing on record confirms (None: nothing does)
+        self.position_witness = position_witness
         self.axes: tuple[str, ...] = ONE_AXIS  # the cell's (set by :meth:`start`): the shapes its lines take
         self._lock = threading.Lock()  # guards what offer() touches; never held across an await or a publish
         self._active = False
@@ -230,7 +242,7 @@ class Actuation:
             "reason": self.fault_reason,
             "failures": self.write_failures,
             "axes": {axis: {"device": out.actuator.description, "last_voltage_v": out.last_voltage_v,
-                            "last_write_t": out.last_write_t, "writes": out.writes}
+                            "last_write_t": out.last_write_t, "writes": out.writes, "proved_by": out.proved_by}
                      for axis, out in self._outputs.items()},
         }
 
@@ -246,6 +258,7 @@ class Actuation:
             "last_write_t": known.last_write_t if known is not None else None,
             "writes": known.writes if known is not None else 0,
             "failures": self.write_failures,
+            "proved_by": known.proved_by if known is not None else None,
         }
 
     def _state(self) -> str:
@@ -267,7 +280,7 @@ class Actuation:
                 # the same device: what it was sent still says where it is (another device's says nothing)
                 out.last_voltage_v, out.last_write_t, out.tried_v = known.last_voltage_v, known.last_write_t, \
                     known.tried_v
-                out.writes = known.writes
+                out.writes, out.proved_by = known.writes, known.proved_by
                 out.slew = known.slew  # when it was last written bounds the first step of the next move
             bind_limits(actuator, config)
             outputs[axis] = out
@@ -708,16 +721,21 @@ class Actuation:
             await _guarded(out.actuator.open(), axis, "open")
             sent = tuple(v for v in (out.last_voltage_v, out.tried_v) if v is not None)
             sent_here = bool(sent)  # written by this process, the device's only writer since
-            unreadable = None
+            unreadable, recorded_by = None, "daemon"
+            evidence: dict[str, Any] = {}
             if not sent_here:  # a restart: what an earlier run wrote, if the state directory kept it
                 try:
-                    sent = await asyncio.to_thread(self.records.written, axis, out.actuator.description)
+                    sent, recorded_by = await asyncio.to_thread(self.records.read, axis, out.actuator.description)
                 except RecordError as error:
                     unreadable = f"the state file cannot be read ({error})"
             start = await _guarded(locate_stage(out.actuator, out.config, sent, sent_here=sent_here, prove=True),
                                    axis, "read back")
             if unreadable is not None:
                 start = StartPoint(None, "unproven", unreadable)
+            elif start.known_from == "unproven" and start.claimed_v is not None:
+                start, evidence = await self._prove_by_position(out, start.claimed_v, start.distrust or "")
+            if not sent_here:
+                self._proved(out, start, recorded_by, evidence)
             if start.known_from == "unproven":
                 raise UnprovenOutput(axis, self._unproven_text(out, start))
             if start.distrust is not None:
@@ -729,6 +747,37 @@ class Actuation:
             out.at_v = start.voltage_v
             starts[axis] = start
         return starts
+
+    async def _prove_by_position(self, out: AxisOutput, claimed_v: float,
+                                 distrust: str) -> tuple[StartPoint, dict[str, Any]]:
+        """A read-back nothing on record confirms, proved by the axis' position sensor (fresh, within
+        ``position_proof_tolerance_um`` of the command the voltage means), else still unproven, saying why;
+        with the evidence ``output_proved`` states."""
+        tolerance_um = out.config.position_proof_tolerance_um
+        if math.isnan(tolerance_um) or self.position_witness is None:
+            return StartPoint(None, "unproven", distrust, claimed_v), {}
+        witness = await _guarded(self.position_witness(out.axis), out.axis, "position sensor's reading")
+        if isinstance(witness, str):
+            text = f"{distrust}; not proved by a position sensor: {witness}"
+            return StartPoint(None, "unproven", text, claimed_v), {}
+        sensor, measured_um = witness
+        problem = position_disagreement(out.config, claimed_v, measured_um, tolerance_um)
+        if problem is not None:
+            return StartPoint(None, "unproven", f"{distrust}; {problem} (sensor {sensor})", claimed_v), {}
+        evidence = {"sensor": sensor, "measured_um": measured_um, "tolerance_um": tolerance_um,
+                    "implied_um": round(out.config.q_um_for(claimed_v), 6), "unconfirmed": distrust}
+        return StartPoint(claimed_v, "position sensor"), evidence
+
+    def _proved(self, out: AxisOutput, start: StartPoint, recorded_by: str, evidence: Mapping[str, Any]) -> None:
+        """Say how a start (no value written by this process yet) proved the read-back it believes: one
+        ``output_proved`` line (with the position sensor's evidence), and ``status``' ``proved_by``."""
+        by = PROOF_NAMES.get(start.known_from)
+        if by == "state" and recorded_by == "operator":
+            by = "operator"
+        out.proved_by = by
+        if by is not None:
+            self.log.info("output_proved", axis=out.axis, by=by, voltage_v=start.voltage_v,
+                          device=out.actuator.description, **evidence)
 
     def _unproven_text(self, out: AxisOutput, start: StartPoint) -> str:
         """What an operator reads in ``status`` and in every refusal: what disagrees, what to check, how to confirm."""

@@ -75,7 +75,7 @@ class Service:
         # every output of the cell (one axis: x), by one task; a one-axis cell's log lines keep their shape
         # what each output was last written, kept before every write: the only proof of a read-back at a restart
         records = OutputRecords(state_directory(config.daemon.state_dir), config.cell)
-        self.actuation = Actuation(self.log, records=records)
+        self.actuation = Actuation(self.log, records=records, position_witness=self._position_reading)
         self.actuation.reached_listeners.append(self._output_reached)
         self.actuation.done_listeners.append(self._publish_done)  # one done per served command
         self.state = CellState(config, compensator, MonotonicClock())  # the drivers' clock once they start
@@ -124,8 +124,7 @@ class Service:
             await self.stop_metrics()
             return 1
         # ready once every device has been read (or has failed) once: at most an open and a read each
-        await first_attempts(self.pollers, min(10.0, 0.5 + 2 * max((p.group.timeout_s for p in self.pollers),
-                                                                     default=0.0)))
+        await first_attempts(self.pollers, self.first_attempts_limit_s())
         targets = TargetHandler(self.state, bus, loop, self.actuation, self.log, latency=self.latency)
         with self.state.lock:
             self.state.serving = True
@@ -244,17 +243,24 @@ class Service:
             self.state.clock = drivers.context.clock
             self.health.label_clock = drivers.context.label_clock
             self.health.awaits_reach = bool(drivers.actuators)
-        # no outputs (every axis kind = "zenoh", or no actuator): the published command is the actuation, and
-        # the actuation still runs, to say each command is reached as it is published
-        await self.actuation.start(drivers.actuators, self.state.config.axis_actuators())
         ingest = self.ingest
         self.pollers = [
             GroupPoller(g, drivers.context.clock, ingest.on_readings, ingest.on_group_failure,
                         ingest.on_group_recovered)
             for g in drivers.groups
         ]
-        for poller in self.pollers:
+        for poller in self.pollers:  # first: a position sensor's reading may prove where an output is
             poller.start()
+        # the outputs open once every device has been read (or has failed) once: a line a sensor and an output
+        # share is never opened by both at once, and a position sensor's first reading is there to prove with
+        await first_attempts(self.pollers, self.first_attempts_limit_s())
+        # no outputs (every axis kind = "zenoh", or no actuator): the published command is the actuation, and
+        # the actuation still runs, to say each command is reached as it is published
+        await self.actuation.start(drivers.actuators, self.state.config.axis_actuators())
+
+    def first_attempts_limit_s(self) -> float:
+        """How long the sensors' first reads are awaited: at most an open and a read each."""
+        return min(10.0, 0.5 + 2 * max((p.group.timeout_s for p in self.pollers), default=0.0))
 
     async def stop_drivers(self, *, final: bool = False) -> None:
         """Stop polling and the actuator; ``final`` (the daemon stops, not a reload): the actuator
@@ -264,6 +270,23 @@ class Service:
             self.pollers = []
         finally:
             await self.actuation.stop(final=final)
+
+    async def _position_reading(self, axis: str) -> tuple[str, float] | str:
+        """What may prove a read-back nothing on record confirms: the axis' position sensor and its reading when
+        it is ok (fresh, believed), else why not. The outputs open after the sensors' first reads
+        (:meth:`start_drivers`); a sensor slower than that proves the read-back at a reopen."""
+        sensor = self.state.config.position_sensors().get(axis)
+        if sensor is None:
+            return f"no position sensor measures axis {axis}"
+        with self.state.lock:
+            table = self.state.table
+            problem = table.problem(sensor.name, self.state.clock.now())
+            entry = table.entries.get(sensor.name)
+            value = entry.value if entry is not None else None
+        if problem is not None or value is None:
+            state, reason = problem or ("stale", "no reading yet")
+            return f"its position sensor {sensor.name} is {state} ({reason})"
+        return sensor.name, value
 
     def _output_reached(self, goal: Any, _monotonic_s: float) -> None:
         """The output holds a served command: the health unit's settle time starts now (cell clock).

@@ -268,3 +268,32 @@ def test_a_streaming_sensor_on_the_controllers_port_is_an_error(tmp_path: Path, 
     assert code == 2
     assert (f"{path}:{line_of(path, 'port')}: actuator.port: sensors[2] (stage) streams lines on '/dev/ttyUSB0': "
             "its lines cannot be told from the answers") in err, err
+
+
+def proof_config(tmp_path: Path, tolerance_um: float, *, position: bool) -> Path:
+    """A simulated cell stating ``position_proof_tolerance_um``, with or without a position sensor."""
+    write_test_model(tmp_path / "model.json")
+    sensors = ("T1", "T2", "interferometer") if position else ("T1", "T2")
+    path = config(tmp_path, "model.json", sensors=sensors,
+                  extra=f"[actuator]\nposition_proof_tolerance_um = {tolerance_um}\n")
+    if position:
+        path.write_text(path.read_text().replace('name = "interferometer"\n',
+                                                 'name = "interferometer"\nrole = "position"\n'))
+    return path
+
+
+def test_a_position_proof_states_the_largest_jump_it_may_allow_and_warns_without_a_sensor_or_when_too_wide(
+        tmp_path: Path, capsys) -> None:
+    code, out, err = check(capsys, str(proof_config(tmp_path, 5.0, position=True)), "--strict")
+    assert (code, err) == (0, ""), err
+    assert ("position proof: axis x by interferometer: a read-back nothing on record confirms is believed within "
+            "5 um (0.1 V) of its reading: the most a first move may jump") in out, out
+    path = proof_config(tmp_path, 5.0, position=False)
+    code, out, err = check(capsys, str(path))
+    assert code == 0 and "position proof" not in out, out
+    assert (f"{path}:4: warning: actuator.position_proof_tolerance_um: no position sensor measures axis x (role = "
+            '"position", axis = "x"): a read-back nothing on record confirms stays refused') in err, err
+    wide = proof_config(tmp_path, 300.0, position=True)
+    code, _, err = check(capsys, str(wide), "--strict")
+    assert code == 2 and ("actuator.position_proof_tolerance_um: 300 um is half the axis' workspace (500 um) or more: "
+                          "a position sensor would prove almost any read-back") in err, err

@@ -189,6 +189,18 @@ def test_table_shows_health_and_actuator_state_when_the_document_has_them() -> N
     assert row["HEALTH"] == "degraded 123 nm" and row["ACTUATOR"] == "modbus fault" and row["MODEL AGE"].endswith(" d")
 
 
+def test_table_shows_how_the_daemon_proved_where_the_output_was_at_its_start() -> None:
+    doc = {"cell": "c", "healthy": True, "uptime_s": 60.0, "sensors": {}, "model": None, "counters": {"targets": 0},
+           "actuator": {"kind": "modbus", "state": "ok", "proved_by": "position_sensor"}}
+    assert parse_table(table([doc]))["c"]["ACTUATOR"] == "modbus ok (proved: position_sensor)"
+    xy = {**doc, "actuator": {"kind": "axes", "state": "ok"}, "axes": {
+        axis: {"min_um": 0.0, "max_um": 480.0, "actuator": {"kind": "modbus", "state": "ok", "proved_by": "state",
+                                                            "last_voltage_v": 8.0}} for axis in ("x", "y")}}
+    text = table([xy])
+    assert parse_table(text)["c"]["ACTUATOR"] == "x:modbus:ok y:modbus:ok"  # each axis' proof on its own line
+    assert "  c axis y: [0, 480] µm, modbus ok at 8.00000 V (proved: state)" in text, text
+
+
 def test_table_says_how_many_held_targets_went_unrecorded() -> None:
     """Issue 26.9: held targets the position poll cannot fill were dropped silently with health ok."""
     doc = {"cell": "c", "healthy": True, "uptime_s": 60.0, "sensors": {}, "model": None, "counters": {"targets": 12},

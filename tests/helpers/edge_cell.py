@@ -166,8 +166,9 @@ class Cell:
             self.root, cell=self.cell, port=self.port, model_path=self.model_path, sensor_file=self.sensors.path,
             channels=self.channels, actuator=keys, extra=extra))
 
-    def restart_after_kill(self) -> None:
-        """``kill -9`` the daemon (no safe stop, nothing flushed) and start it again on the same config and cell."""
+    def restart_after_kill(self, *, ready: Sequence[str] | None = None) -> None:
+        """``kill -9`` the daemon (no safe stop, nothing flushed) and start it again on the same config and cell;
+        ``ready``: the channels to wait for (default: every channel the cell reads)."""
         if self.client is not None:
             self.client.close()
             self.client = None
@@ -179,7 +180,7 @@ class Cell:
         self.daemon.wait_log("serving", timeout=30)
         self.client = Client(self.port, self.cell)
         self.client.wait_alive()
-        self.client.wait_ready(self.channels + (("P",) if self.position else ()))
+        self.client.wait_ready(self.channels + (("P",) if self.position else ()) if ready is None else ready)
 
     @property
     def bus(self) -> Client:

@@ -819,3 +819,52 @@ def test_a_flood_while_the_drivers_are_swapped_ends_each_replaced_command_before
     assert [(i, s) for i, s, _, _ in dones.told] == [*((i, "superseded") for i in range(1, 500)), (500, "reached")]
     assert wakes <= 10  # one wake per burst, not per target
     assert all(d.written[-1][1] == volts(configs, 1.0)[a] for a, d in outputs.items())
+
+
+def test_a_position_sensor_proves_a_read_back_only_with_a_stated_tolerance_and_never_an_unreadable_record(
+        axes: tuple[str, ...], tmp_path: Path) -> None:
+    """No state file, every output claims 8 V (400 µm), every axis' sensor reads 401 µm: nothing is proved
+    without ``position_proof_tolerance_um`` (the sensor is not even asked), each axis is proved by its own sensor
+    with 5 µm, and a state file that cannot be read is never overruled by a sensor."""
+    asked: list[str] = []
+
+    async def witness(axis: str) -> tuple[str, float]:
+        asked.append(axis)
+        return f"P{axis}", 401.0
+
+    def configs(tolerance_um: float) -> dict[str, ActuatorConfig]:
+        return {a: ActuatorConfig(max_slew_um_per_s=SLEW, position_proof_tolerance_um=tolerance_um) for a in axes}
+
+    async def started(tolerance_um: float, records: OutputRecords) -> tuple[Actuation, Events,
+                                                                             dict[str, RecordingActuator]]:
+        log, outputs = Events(), devices(axes, holds=("voltage_v", 8.0))
+        actuation = Actuation(log, records=records, position_witness=witness)
+        await actuation.start(outputs, configs(tolerance_um))
+        return actuation, log, outputs
+
+    async def main() -> None:
+        unstated, _, outputs = await started(math.nan, OutputRecords(tmp_path / "a", "cell"))
+        assert "on a first start" in (unstated.fault_reason or "") and asked == []
+        await unstated.stop()
+        assert all(not d.written for d in outputs.values())
+
+        proved, log, outputs = await started(5.0, OutputRecords(tmp_path / "b", "cell"))
+        assert proved.fault_reason is None and asked == list(axes), proved.fault_reason
+        lines = {line["axis"]: line for line in log.named("output_proved")}
+        assert {a: (lines[a]["by"], lines[a]["sensor"]) for a in axes} == {a: ("position_sensor", f"P{a}")
+                                                                           for a in axes}
+        assert all(lines[a]["measured_um"] == 401.0 and lines[a]["tolerance_um"] == 5.0 for a in axes), lines
+        await proved.stop()
+        assert all(not d.written for d in outputs.values())  # believing moves nothing
+
+        asked.clear()
+        records = OutputRecords(tmp_path / "c", "cell")
+        (tmp_path / "c").mkdir()
+        unreadable = records.path(axes[-1])
+        assert unreadable is not None
+        unreadable.write_text("{not json")
+        refused, _, _ = await started(5.0, records)
+        assert "the state file cannot be read" in (refused.fault_reason or "") and axes[-1] not in asked
+        await refused.stop()
+
+    asyncio.run(main())

@@ -7,7 +7,9 @@ each output module (stamping every write as it lands), a Zenoh client over 127.0
    ramping from what the daemon wrote: the register never moves faster than the slew;
 5. after ``kill -9`` a restart believes the register only as far as the state file confirms it: 8 V resumes
    from 8 V; a claim of 10 V where 0 V was written is refused (nothing is written, ``status`` says why and what to
-   do) until ``nanodrift confirm-output`` says where it is, and the move then ramps from there;
+   do) until ``nanodrift confirm-output`` says where it is, and the move then ramps from there; without the state
+   file, the axis' position sensor proves 8 V when it reads where 8 V puts the stage, and a reading far from it
+   or a stale one proves nothing;
 8. SIGTERM on an XY cell whose y module is dead: x reaches its safe voltage while y still retries;
 9. a module answering each write 60 ms late: the ramp's steps cover the pause the daemon makes for it (9x the
    write time), not 0.1 s at most, and still never move faster than the slew.
@@ -98,6 +100,8 @@ def test_a_restart_after_kill_9_resumes_from_the_8_v_the_state_file_proves_witho
     cell.restart_after_kill()
     opened = cell.daemon.wait_log("actuator_open")
     assert opened["known_from"] == "read back" and opened["voltage_v"] == pytest.approx(8.0), opened
+    assert cell.daemon.wait_log("output_proved")["by"] == "state"
+    assert cell.bus.status()["actuator"]["proved_by"] == "state"
     since = len(module.stamps)
     cell.target(420.0)  # 8.4 V
     wait_until(lambda: module.register() == raw_for(8.4), 10, "the register at 8.4 V")
@@ -129,9 +133,89 @@ def test_a_read_back_the_state_file_contradicts_is_refused_until_an_operator_con
     assert confirmed.returncode == 0 and "confirmed at 10 V" in confirmed.stdout, confirmed.stderr
     wait_until(lambda: cell.bus.status()["actuator"]["state"] == "ok", 15, "the daemon believes the confirmed 10 V")
     assert module.written() == []  # believing moves nothing
+    proved = cell.daemon.wait_log("output_proved")
+    assert proved["by"] == "operator" and proved["voltage_v"] == pytest.approx(10.0), proved
     cell.target(480.0)  # 9.6 V, ramped down from the confirmed 10 V
     wait_until(lambda: module.register() == raw_for(9.6), 10, "the register at 9.6 V")
     assert_slewed(module.written(), rate, from_raw=raw_for(10.0))
+
+
+#: the stated tolerance of a position sensor's proof: the model's worst correction (none: q = x) and the sensor's
+#: uncertainty
+PROOF_TOLERANCE_UM = 5.0
+
+
+def restarted_at_8_v_without_the_state_file(root: Path, module: OutputModule, cells: list[Cell], rate: float, *,
+                                            sensor_um: float, sensor_age_s: float = 0.0) -> tuple[Cell, int]:
+    """A cell with a position sensor that left its output at 8 V, killed; its state file lost, its sensor reading
+    ``sensor_um`` (``sensor_age_s`` old), started again: the cell and the module's stamp count at the restart."""
+    cell = Cell(root, terms={"x": 1.0}, hub_port=module.server.port, extra=state_dir_keys(root), position=True,
+                actuator=f"max_slew_um_per_s = {rate}\nverify = true\n"
+                         f"position_proof_tolerance_um = {PROOF_TOLERANCE_UM}")
+    cells.append(cell)
+    cell.target(400.0)  # 8 V
+    wait_until(lambda: module.register() == raw_for(8.0), 10, "the register at 8 V")
+    wait_until(lambda: cell.bus.status()["actuator"]["last_voltage_v"] == pytest.approx(8.0), 5, "8 V confirmed")
+    cell.daemon.proc.kill()
+    cell.daemon.proc.wait(10)
+    (root / "state" / f"output-{cell.cell}-x.json").unlink()
+    cell.sensors.write(values={**cell.sensors.doc["values"], "P": sensor_um}, age={"P": sensor_age_s})
+    since = len(module.stamps)
+    fresh = sensor_age_s == 0.0
+    cell.restart_after_kill(ready=cell.channels + (("P",) if fresh else ()))
+    return cell, since
+
+
+def test_without_the_state_file_a_position_sensor_reading_where_8_v_puts_the_stage_resumes_from_8_v(
+        tmp_path: Path, module: OutputModule, cells: list[Cell]) -> None:
+    rate = 400.0
+    cell, since = restarted_at_8_v_without_the_state_file(tmp_path, module, cells, rate, sensor_um=401.5)
+    opened = cell.daemon.wait_log("actuator_open")
+    assert opened["known_from"] == "position sensor" and opened["voltage_v"] == pytest.approx(8.0), opened
+    proved = cell.daemon.wait_log("output_proved")
+    assert proved["by"] == "position_sensor" and proved["sensor"] == "P", proved
+    assert proved["measured_um"] == pytest.approx(401.5) and proved["implied_um"] == pytest.approx(400.0), proved
+    assert proved["tolerance_um"] == PROOF_TOLERANCE_UM and "on a first start" in proved["unconfirmed"], proved
+    actuator = cell.bus.status()["actuator"]
+    assert actuator["state"] == "ok" and actuator["proved_by"] == "position_sensor", actuator
+    assert module.written(since) == []  # believing moves nothing
+    cell.target(420.0)  # 8.4 V
+    wait_until(lambda: module.register() == raw_for(8.4), 10, "the register at 8.4 V")
+    writes = module.written(since)
+    assert all(raw >= raw_for(8.0) for _, raw in writes), writes  # no jump back to 0 V, or anywhere below 8 V
+    assert_slewed(writes, rate, from_raw=raw_for(8.0))  # the first write within the slew of 8 V
+
+
+def test_without_the_state_file_a_position_sensor_reading_far_from_8_v_proves_nothing_and_nothing_is_written(
+        tmp_path: Path, module: OutputModule, cells: list[Cell]) -> None:
+    cell, since = restarted_at_8_v_without_the_state_file(tmp_path, module, cells, 400.0, sensor_um=100.0)
+    ok, answer = cell.bus.query({"x_um": 420.0, "id": 7})
+    assert not ok and answer["kind"] == "actuator_fault", answer
+    assert ("read back 8.0000 V means q 400.000 µm, but the position sensor measures 100.000 µm (300.000 µm apart; "
+            f"position_proof_tolerance_um = {PROOF_TOLERANCE_UM:g} µm) (sensor P)") in answer["error"], answer
+    assert "nanodrift confirm-output --config <the config> --axis x --voltage" in answer["error"], answer
+    # the daemon retries the proof on its own: still refused after more attempts, and nothing is ever written
+    wait_until(lambda: cell.bus.status()["actuator"]["failures"] >= 3, 15, "three attempts to prove the output")
+    actuator = cell.bus.status()["actuator"]
+    assert actuator["state"] == "fault" and actuator["proved_by"] is None, actuator
+    assert module.written(since) == [] and module.register() == raw_for(8.0)
+    assert cell.daemon.log_events("output_proved") == []
+
+
+def test_a_stale_position_reading_proves_nothing_until_a_fresh_one_agrees(
+        tmp_path: Path, module: OutputModule, cells: list[Cell]) -> None:
+    cell, since = restarted_at_8_v_without_the_state_file(tmp_path, module, cells, 400.0, sensor_um=400.0,
+                                                          sensor_age_s=30.0)
+    ok, answer = cell.bus.query({"x_um": 420.0, "id": 7})
+    assert not ok and answer["kind"] == "actuator_fault", answer
+    assert "not proved by a position sensor: its position sensor P is stale (last reading" in answer["error"], answer
+    assert module.written(since) == [] and cell.daemon.log_events("output_proved") == []
+    # the sensor reads again, fresh (a new value: the same one since the stale stamp would be frozen): the daemon's
+    # retry proves 8 V
+    cell.sensors.write(values={**cell.sensors.doc["values"], "P": 400.3}, age={"P": 0.0})
+    wait_until(lambda: cell.bus.status()["actuator"]["state"] == "ok", 15, "8 V proved by a fresh reading")
+    assert cell.daemon.wait_log("output_proved")["by"] == "position_sensor"
+    assert module.written(since) == [] and module.register() == raw_for(8.0)
 
 
 def test_confirm_output_refuses_a_voltage_outside_the_limits_and_an_unknown_axis(
@@ -149,18 +233,26 @@ def test_confirm_output_refuses_a_voltage_outside_the_limits_and_an_unknown_axis
 # --- 8. a safe stop per axis ------------------------------------------------------------------------------
 
 
-def xy_on_two_modules(root: Path, x_port: int, y_port: int, zenoh_port: int, cell: str) -> Path:
+def xy_on_two_modules(root: Path, x_port: int, y_port: int, zenoh_port: int, cell: str,
+                      positions_um: dict[str, float] | None = None) -> Path:
+    """An XY cell, each axis on its own module; ``positions_um``: each axis' position sensor (``P<axis>``) reads
+    it, and proves a read-back within :data:`PROOF_TOLERANCE_UM`."""
     model = root / "model.json"
     write_cell_model(model, ("x", "y"))
-    readings = SensorFile(root / "sensors.json", dict(TEMPS)).path
+    positions = {f"P{axis}": um for axis, um in (positions_um or {}).items()}
+    readings = SensorFile(root / "sensors.json", {**TEMPS, **positions}).path
+    proof = f"position_proof_tolerance_um = {PROOF_TOLERANCE_UM}\n" if positions_um else ""
     axes = "".join(
         f'[[axes]]\nname = "{axis}"\nmin_um = 0.0\nmax_um = 480.0\n[axes.actuator]\nkind = "modbus"\nhub = "{hub}"\n'
         f"address = {ADDRESS}\nscale = 0.001\nvolts_per_um = 0.02\nmax_slew_um_per_s = 400.0\nsafe_voltage_v = 0.0\n"
-        for axis, hub in (("x", "mx"), ("y", "my")))
+        + proof for axis, hub in (("x", "mx"), ("y", "my")))
     hubs = "".join(f'[[hubs]]\nname = "{hub}"\nhost = "127.0.0.1"\nport = {port}\ntimeout_s = 0.3\n'
                    for hub, port in (("mx", x_port), ("my", y_port)))
     sensors = "".join(f'[[sensors]]\nname = "{ch}"\nkind = "file"\npath = "{readings}"\ninterval_s = 0.05\n'
                       "max_age_s = 2.0\ntimeout_s = 0.5\n" for ch in TEMPS)
+    sensors += "".join(f'[[sensors]]\nname = "{ch}"\nrole = "position"\naxis = "{ch[1]}"\nkind = "file"\n'
+                       f'path = "{readings}"\ninterval_s = 0.05\nmax_age_s = 2.0\ntimeout_s = 0.5\n'
+                       for ch in positions)
     config = root / "xy.toml"
     config.write_text(f'cell = "{cell}"\n[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{zenoh_port}"]\n'
                       f'multicast_scouting = false\n[model]\npath = "{model}"\n{axes}{hubs}{sensors}')
@@ -196,6 +288,40 @@ def test_sigterm_with_a_dead_y_module_still_takes_x_to_its_safe_voltage(tmp_path
             client.close()
         daemon.stop()
         x_module.close()
+
+
+def test_an_xy_cell_proves_each_axis_by_its_own_way_and_resumes_y_from_where_its_own_sensor_puts_it(
+        tmp_path: Path) -> None:
+    """No state file: x's module holds its power-up 0 V; y's holds 6 V, which y's own sensor (300 µm) proves, while
+    x's sensor reads 0 µm: each axis is proved by its own witness, and y's first writes start from 6 V."""
+    x_module, y_module = OutputModule(), OutputModule()
+    y_module.hold(raw_for(6.0))
+    zenoh_port, cell = free_port(), f"xy{free_port()}"
+    config = xy_on_two_modules(tmp_path, x_module.server.port, y_module.server.port, zenoh_port, cell,
+                               positions_um={"x": 0.0, "y": 300.0})
+    daemon = Daemon(["--config", str(config)], tmp_path / "daemon.log", [install_file_plugin(tmp_path / "plugins")])
+    client: Client | None = None
+    try:
+        daemon.wait_log("serving", timeout=30)
+        client = Client(zenoh_port, cell)
+        client.wait_alive()
+        client.wait_ready((*TEMPS, "Px", "Py"))
+        proved = {line["axis"]: line for line in daemon.log_events("output_proved")}
+        assert proved["x"]["by"] == "power_up" and proved["y"]["by"] == "position_sensor", proved
+        assert proved["y"]["sensor"] == "Py" and proved["y"]["implied_um"] == pytest.approx(300.0), proved
+        axes = client.status()["axes"]
+        assert [axes[a]["actuator"]["proved_by"] for a in ("x", "y")] == ["power_up", "position_sensor"], axes
+        ok, answer = client.query({"x_um": 20.0, "y_um": 320.0, "id": 1})  # y: 6 V -> 6.4 V
+        assert ok, answer
+        wait_until(lambda: y_module.register() == raw_for(answer["voltage_v"]["y"]), 10, "y at its goal")
+        assert_slewed(y_module.written(), 400.0, from_raw=raw_for(6.0))  # no jump through 0 V
+        assert all(raw >= raw_for(6.0) for _, raw in y_module.written()), y_module.written()
+    finally:
+        if client is not None:
+            client.close()
+        daemon.stop()
+        x_module.close()
+        y_module.close()
 
 
 # --- 9. ramps keep their rate on slow devices ---------------------------------------------------------------
