@@ -4,7 +4,7 @@ axis and on XY (a motor per axis); a refused move fails the plan's status with t
 mid-ramp ends the move ``stopped`` and the output holds short of the target.
 
 Every wait is on an event (a ``done``, a published command, a status); the slew makes the ramp long enough
-to be stopped (a 0 -> 480 µm move ramps for 4.8 s at 100 µm/s).
+to be stopped (a 0 -> 480 µm move ramps for 1.9 s at 250 µm/s).
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from ophyd_async.core import init_devices
 from nanodrift import Client, MoveEnded, Refused
 from nanodrift.bluesky import Stage
 
-SLEW_UM_PER_S = 100.0
+SLEW_UM_PER_S = 250.0
 #: how far the measured position may lie from a compensated target: the simulated interferometer's
 #: noise (tens of nm) and the model's residual on the simulated cell (~0.1 µm)
 MEASURED_TOLERANCE_UM = 0.5
@@ -113,7 +113,7 @@ def test_stop_mid_ramp_ends_the_move_stopped_and_the_output_holds_short(run_engi
 
     def plan() -> Any:
         yield from bps.abs_set(stage, 480.0, group="ramp")
-        yield from bps.wait_for([lambda: asyncio.to_thread(answered.wait, 10.0)])  # the 4.8 s ramp has begun
+        yield from bps.wait_for([lambda: asyncio.to_thread(answered.wait, 10.0)])  # the 1.9 s ramp has begun
         try:  # the RunEngine throws the failed status in at the stop, or at the wait if it fails later
             yield from bps.stop(stage)
             yield from bps.wait(group="ramp")
@@ -136,20 +136,20 @@ def test_stop_mid_ramp_ends_the_move_stopped_and_the_output_holds_short(run_engi
 def test_a_plans_end_does_not_stop_another_clients_move(run_engine: RunEngine, stage: Stage,
                                                          one_axis: RunningCell) -> None:
     run_engine(bps.mv(stage, 0.0))  # the RunEngine calls stage.stop() at this plan's end: nothing in flight
-    answered, subscriber = one_axis.watch_command(lambda doc: doc.get("x_um") == 300.0)
+    answered, subscriber = one_axis.watch_command(lambda doc: doc.get("x_um") == 480.0)
     ended: list[Any] = []
     with Client(one_axis.endpoint, cell=one_axis.cell) as other:
-        moving = threading.Thread(target=lambda: ended.append(_outcome(other, 300.0)))
+        moving = threading.Thread(target=lambda: ended.append(_outcome(other, 480.0)))
         moving.start()
         try:
-            assert answered.wait(10), "the other client's 300 µm target was never answered"
+            assert answered.wait(10), "the other client's 480 µm target was never answered"
             run_engine(bp.count([stage], num=1))  # a plan that moved nothing ...
             run_engine(bps.null())
             call_in_bluesky_event_loop(stage.stop())  # ... and the stop a plan's end would send: no move of its own
         finally:
             moving.join(15)
             subscriber.undeclare()
-    assert ended == ["reached"]  # the other client's 3 s ramp ran to its end
+    assert ended == ["reached"]  # the other client's 1.9 s ramp ran to its end
 
 
 def _outcome(client: Client, x_um: float) -> str:

@@ -18,7 +18,7 @@ from nanodrift.cli import main
 from nanodrift.config import ZenohSettings
 from nanodrift.procedure import preflight
 
-ONE_CYCLE = "cycles = 1\nrise_s = 0.05\nhold_s = 0.25\naverage_s = 0.1\n"
+ONE_CYCLE = "cycles = 1\nrise_s = 0.05\nhold_s = 0.12\naverage_s = 0.06\n"
 TWO_CYCLES = ONE_CYCLE.replace("cycles = 1", "cycles = 2")
 
 
