@@ -21,10 +21,16 @@ class ScriptedCell:
     """One axis' Zenoh side, scripted by the test on a real session over loopback: ``status`` answers (a
     cell whose state is ok); ``compensate`` is held unanswered while :attr:`answering` is clear (a stalled
     daemon), else answered with a command and no ``done`` ever follows (a lost ``done``); ``stop`` answers
-    and publishes the ``done`` ``stopped`` of every move it answered."""
+    and publishes the ``done`` ``stopped`` of every move it answered.
 
-    def __init__(self, cell: str) -> None:
+    ``interferometer``: ``status`` lists a position sensor on the axis; ``first_position_um``: the one sample
+    it publishes, only once a subscriber listens (a Zenoh matching listener), so a client sees it only after
+    it has subscribed; None: the sensor never publishes (a faulted one)."""
+
+    def __init__(self, cell: str, *, interferometer: bool = False, first_position_um: float | None = None) -> None:
         self.cell = cell
+        self.interferometer = interferometer
+        self.first_position_um = first_position_um
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.keys = Keys(cell)
         self.answering = threading.Event()
@@ -40,9 +46,17 @@ class ScriptedCell:
         self._entities = [self.session.declare_queryable(self.keys.status, self._status),
                           self.session.declare_queryable(self.keys.compensate, self._compensate),
                           self.session.declare_queryable(self.keys.stop, self._stop)]
+        if first_position_um is not None:
+            self._position = self.session.declare_publisher(self.keys.telemetry("position", "interferometer"))
+            self._entities += [self._position, self._position.declare_matching_listener(self._on_matching)]
+
+    def _on_matching(self, status: zenoh.MatchingStatus) -> None:
+        if status.matching:
+            self._position.put(json.dumps({"value": self.first_position_um, "t": time.time(), "state": "ok"}))
 
     def _status(self, query: zenoh.Query) -> None:
-        query.reply(self.keys.status, json.dumps({"cell": self.cell, "model": "m1", "sensors": {},
+        sensors = {"interferometer": {"role": "position", "state": "ok"}} if self.interferometer else {}
+        query.reply(self.keys.status, json.dumps({"cell": self.cell, "model": "m1", "sensors": sensors,
                                                    "actuator": {"x_min_um": 0.0, "x_max_um": 480.0}}))
 
     def _compensate(self, query: zenoh.Query) -> None:
@@ -66,7 +80,7 @@ class ScriptedCell:
         self._answered.clear()
 
     def close(self) -> None:
-        for entity in self._entities:
+        for entity in reversed(self._entities):
             entity.undeclare()
         self._held.clear()
         self.session.close()

@@ -294,7 +294,7 @@ def test_xy_serves_each_axis_and_a_put_moves_one_holding_the_other(xy: tuple[Run
     y_dmov, y_sp = pvs.monitor("y:DMOV"), pvs.monitor("y:SP")
     before = len(x_dmov.wait(bool, "x:DMOV's first value"))
     # y is held where it is measured (no command yet): the bridge must have seen a y sample, else the put is
-    # refused ("no setpoint known"); on a loaded machine the first may come after the bridge serves
+    # refused ("no setpoint known"); it serves once it has (CellView.open), or after 2 s without one
     y_rbv.wait(lambda v: any(math.isfinite(value) for value in v), "y:RBV: a first y position at the bridge")
     pvs.put("x:SP", 100.0)
     settle_dmov(x_dmov, before, "x's move to 100 µm")
