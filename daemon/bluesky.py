@@ -15,10 +15,12 @@ RE(bp.scan([stage], stage, 0, 480, 5))     # or stage.x in an XY cell: one motor
 
 Why it is built this way:
 
-- Moving is :class:`nanodrift.Client`'s ``move`` (the ``compensate`` query, then the ``done`` event), run
-  in a worker thread, so ``set`` completes on ``done`` ``reached`` and fails with the client's own
-  exceptions (:class:`~nanodrift.Refused`, :class:`~nanodrift.MoveEnded`): nothing polls telemetry.
-  ``stop()`` is the client's ``stop``; it ends the ``move`` waiting in the other thread (``stopped``).
+- Moving is the ``compensate`` query (in a worker thread of the device's own, bounded by the answer
+  timeout), then the ``done`` event awaited on the loop (:class:`nanodrift.async_moves.AsyncMoves`), so
+  ``set`` completes on ``done`` ``reached`` and fails with the client's own exceptions
+  (:class:`~nanodrift.Refused`, :class:`~nanodrift.MoveEnded`): nothing polls telemetry, and no thread
+  waits for a ``done``. ``stop()`` is the client's ``stop`` on a worker no move occupies (never queued behind
+  moves, on asyncio's default executor or elsewhere); its ``done`` ``stopped`` ends the move.
 - Readings are ophyd-async soft signals whose *getter* reads what the client last saw (the cell's latest
   ``command``, the latest position sample): a read costs no query, and a value another client caused
   (``nanodrift target``, the EPICS bridge) shows too.
@@ -51,6 +53,7 @@ from ophyd_async.core import (
 )
 from ophyd_async.core import StandardReadableFormat as Format
 
+from nanodrift.async_moves import ANSWER_TIMEOUT_S, AsyncMoves
 from nanodrift.bus.protocol import DEFAULT_PREFIX
 from nanodrift.cell_view import CellView, axis_value
 from nanodrift.client import Client, Command, Position
@@ -115,6 +118,7 @@ class Stage(_AxisReadings, Movable[Any], Stoppable):
         self.zenoh_config = zenoh_config
         self._client: Client | None = None
         self._view: CellView | None = None
+        self._moves: AsyncMoves | None = None
         self._reached: dict[str, float] = {}  # axis -> target of the last move seen reached
         self._in_flight = 0  # moves of this device not yet ended (stop() stops only while there is one)
         super().__init__(name=name, connector=_CellConnector())
@@ -125,7 +129,7 @@ class Stage(_AxisReadings, Movable[Any], Stoppable):
         """Open the client and the view of the cell, and make one motor per axis (or this one's signals)."""
         if self._view is not None:
             return
-        self._client, view = await asyncio.to_thread(self._open_view, timeout)
+        self._client, view, self._moves = await asyncio.to_thread(self._open_view, timeout)
         self._view = view
         if view.multi_axis:
             with self.add_children_as_readables():
@@ -135,16 +139,19 @@ class Stage(_AxisReadings, Movable[Any], Stoppable):
             self._add_readings(self, "x")
         self.set_name(self.name)
 
-    def _open_view(self, timeout: float) -> tuple[Client, CellView]:
+    def _open_view(self, timeout: float) -> tuple[Client, CellView, AsyncMoves]:
         client = Client(self.endpoint, self.cell, zenoh_config=self.zenoh_config, prefix=self.prefix)
         try:
-            return client, CellView.open(client, timeout_s=timeout)
+            view = CellView.open(client, timeout_s=timeout)
+            return client, view, AsyncMoves(client, axes=len(view.axes))
         except BaseException:
             client.close()
             raise
 
     def close(self) -> None:
         """End the Zenoh session (a move still waiting raises)."""
+        if self._moves is not None:
+            self._moves.close()
         if self._view is not None:
             self._view.close()
         if self._client is not None:
@@ -161,6 +168,12 @@ class Stage(_AxisReadings, Movable[Any], Stoppable):
         self.view  # noqa: B018  (the same "not connected" error)
         assert self._client is not None
         return self._client
+
+    @property
+    def moves(self) -> AsyncMoves:
+        self.view  # noqa: B018  (the same "not connected" error)
+        assert self._moves is not None
+        return self._moves
 
     # --- moving ---------------------------------------------------------------------------------------
 
@@ -181,10 +194,12 @@ class Stage(_AxisReadings, Movable[Any], Stoppable):
         view = self.view
         target: Position = view.request(changes)
         timeout_s = DEFAULT_MOVE_TIMEOUT_S if timeout == "CALCULATE_TIMEOUT" or timeout is None else float(timeout)
+        deadline = asyncio.get_running_loop().time() + timeout_s
         self._in_flight += 1
         try:
-            command = await asyncio.to_thread(self.client.move, target, timeout_s=timeout_s,
-                                              on_answer=view.note_command)
+            moving = await self.moves.move(target, answer_timeout_s=min(timeout_s, ANSWER_TIMEOUT_S))
+            view.note_command(moving.command)  # the latest setpoints, before the command's broadcast arrives
+            command = await moving.ended(max(deadline - asyncio.get_running_loop().time(), 0.0))
         finally:
             self._in_flight -= 1
         done_t = float(command.done["t"]) if command.done and isinstance(command.done.get("t"), int | float) else 0.0
@@ -200,7 +215,7 @@ class Stage(_AxisReadings, Movable[Any], Stoppable):
         fails ``stopped``. Otherwise nothing: the RunEngine calls ``stop()`` on every device it moved at the end
         of each plan, and a move another client started since is not this plan's to stop."""
         if self._in_flight:
-            await asyncio.to_thread(self.client.stop)
+            await self.moves.stop()
 
     def readback_um(self, axis: str) -> float:
         """The measured position where a sensor measures ``axis``, else the last reached target (nan: none yet)."""

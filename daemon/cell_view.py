@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -25,6 +26,9 @@ from nanodrift.client import Client, Command, Position, json_object, number
 
 __all__ = ["AxisInfo", "CellView", "Measured", "axes_of", "axis_value", "cell_state", "measured_of", "number",
            "setpoints_of"]
+
+#: the longest :meth:`CellView.open` waits for the first position samples (the interferometers read every 0.1 s)
+FIRST_POSITION_TIMEOUT_S = 2.0
 
 #: ``listener(kind, axis, value)``: kind ``"command"`` (axis ``""``, value: the payload as a dict) or ``"position"``
 #: (value: :class:`Measured`)
@@ -144,8 +148,16 @@ class CellView:
     @classmethod
     def open(cls, client: Client, *, timeout_s: float = 5.0) -> CellView:
         """The view of ``client``'s cell, its axes read from one ``status`` query (:class:`TimeoutError` when
-        the cell does not answer)."""
-        return cls(client, client.status(timeout_s=timeout_s))
+        the cell does not answer), once each measured axis has its first position sample (at most
+        ``FIRST_POSITION_TIMEOUT_S`` later): a move of one axis holds the others where they are measured, and
+        a bridge that served before its first sample would refuse that move ("no setpoint known"). A faulted
+        sensor only delays this."""
+        view = cls(client, client.status(timeout_s=timeout_s))
+        deadline = time.monotonic() + min(timeout_s, FIRST_POSITION_TIMEOUT_S)
+        for axis, info in view.axes.items():
+            if info.position_sensor:
+                view.wait_position(axis, -math.inf, max(deadline - time.monotonic(), 0.0))
+        return view
 
     def add_listener(self, listener: Listener) -> None:
         self._listeners.append(listener)

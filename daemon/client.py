@@ -36,7 +36,8 @@ from nanodrift.bus.protocol import DEFAULT_PREFIX, Keys, key_prefix
 from nanodrift.bus.session import describe_zenoh_error, session_config, undeclare_all
 from nanodrift.settings import ZenohSettings, prefix_problem
 
-__all__ = ["Client", "Command", "MoveEnded", "Refused", "client_config", "json_object", "number", "status_key"]
+__all__ = ["Client", "Command", "MoveEnded", "Refused", "client_config", "json_object", "number", "outcome",
+           "status_key"]
 
 #: seconds to collect the cells' ``status`` replies when a cell did not answer (to name those that do)
 DISCOVERY_TIMEOUT_S = 2.0
@@ -113,6 +114,18 @@ class Command:
         return Command.from_payload(self.payload, done)
 
 
+def outcome(command: Command, done: Mapping[str, Any]) -> Command:
+    """The move of ``command`` ended by ``done``: the command with its done when ``reached``, else
+    :class:`MoveEnded` (``stopped``, ``superseded``, ``failed``). Shared by :meth:`Client.move` and the
+    asyncio bridges, which await the ``done`` on their loop (:mod:`nanodrift.async_moves`)."""
+    ended = command.with_done(done)
+    state = str(done.get("state"))
+    if state == "reached":
+        return ended
+    error = done.get("error")
+    raise MoveEnded(state, str(error) if error is not None else None, ended)
+
+
 def json_object(raw: bytes) -> dict[str, Any] | None:
     """A payload as a JSON object; None when it is not one (a stray payload never raises in a callback)."""
     try:
@@ -141,6 +154,11 @@ def _by_axis(value: Any) -> float | dict[str, float] | None:
 def _position(value: Any) -> Position:
     found = _by_axis(value)
     return math.nan if found is None else found
+
+
+#: the reply error zenoh itself delivers when a query's timeout ran out before the queryable that took it
+#: answered (a stalled daemon); a daemon's own refusals are JSON objects, never this
+QUERY_TIMED_OUT = b"Timeout"
 
 
 def _refused(raw: bytes, target_id: Any) -> Refused:
@@ -312,6 +330,8 @@ class Client:
         for reply in self.session.get(key, payload=self._request(target, target_id), timeout=timeout_s):
             result = reply.result  # a Sample, or a ReplyError
             raw = result.payload.to_bytes()
+            if not isinstance(result, zenoh.Sample) and raw == QUERY_TIMED_OUT:
+                break  # taken and not answered in time: no answer, not a refusal
             self._unanswered = ""
             if not isinstance(result, zenoh.Sample):
                 raise _refused(raw, target_id)
@@ -334,12 +354,7 @@ class Client:
                     raise TimeoutError(f"no done for move {target_id!r} on {self.keys.prefix}/done within "
                                        f"{timeout_s:g} s (the command was answered; the output may still be ramping)")
                 self._cond.wait(remaining)
-        state = str(done.get("state"))
-        ended = command.with_done(done)
-        if state == "reached":
-            return ended
-        error = done.get("error")
-        raise MoveEnded(state, str(error) if error is not None else None, ended)
+        return outcome(command, done)
 
     def _on_done(self, sample: zenoh.Sample) -> None:
         """Zenoh's thread: keep a ``done`` whose id a ``move`` waits for; ignore the rest."""
@@ -365,6 +380,8 @@ class Client:
         for reply in self.session.get(key, payload=payload, timeout=timeout_s):
             result = reply.result
             raw = result.payload.to_bytes()
+            if not isinstance(result, zenoh.Sample) and raw == QUERY_TIMED_OUT:
+                break  # taken and not answered in time: put the stop too
             if not isinstance(result, zenoh.Sample):
                 raise _refused(raw, id)
             doc = json_object(raw)

@@ -3,8 +3,9 @@
 PVs (``<P>`` the ``--pv-prefix``; a cell of several axes: ``<P><cell>:<axis>:...``):
 
 - ``<P><cell>:SP`` (ao, µm): a put moves. The cell's other axes keep their last setpoints (the cell's
-  latest command, whoever sent it). A refused put fails (the CA put gets an error), leaves ``DMOV`` 1 and
-  says why in ``MSG``.
+  latest command, whoever sent it). A refused put, or one the daemon does not answer within the answer
+  timeout (``--answer-timeout``, 10 s), fails (``ECA_PUTFAIL``, ``SP`` in WRITE/MAJOR alarm), leaves
+  ``DMOV`` 1 and says why in ``MSG``.
 - ``:RBV`` (ai, µm): the measured position where a position sensor measures the axis, else the target of
   the last reached or stopped move; ``:DMOV``: 1 when no move of this axis is in flight, 0 from an
   answered put to ``SP`` until its ``done``; ``:STOP``: a put of 1 sends ``stop``;
@@ -34,8 +35,9 @@ from caproto import AlarmSeverity, AlarmStatus, ChannelType
 from caproto.asyncio.server import Context
 from caproto.server import PVGroup, pvproperty
 
+from nanodrift.async_moves import ANSWER_TIMEOUT_S, AsyncMoves, Moving
 from nanodrift.cell_view import CellView, Measured, axis_value, cell_state
-from nanodrift.client import Client, Command, MoveEnded, Refused
+from nanodrift.client import Client, MoveEnded, Refused
 
 __all__ = ["AxisPVs", "CellBridge", "serve", "state_of"]
 
@@ -95,12 +97,15 @@ class AxisPVs(PVGroup):
 
 
 class CellBridge:
-    """One cell's PVs and what moves them: a put to ``SP`` is a :meth:`nanodrift.Client.move` in a worker
-    thread, a put to ``STOP`` a :meth:`~nanodrift.Client.stop`; the broadcasts and ``status`` fill the rest."""
+    """One cell's PVs and what moves them: a put to ``SP`` is a move (:class:`~nanodrift.async_moves.AsyncMoves`:
+    no thread waits for its ``done``), a put to ``STOP`` a stop on a worker no move occupies; the broadcasts and
+    ``status`` fill the rest. ``answer_timeout_s``: how long a put waits for the daemon's answer before it fails."""
 
-    def __init__(self, client: Client, view: CellView, pv_prefix: str) -> None:
+    def __init__(self, client: Client, view: CellView, pv_prefix: str, *,
+                 answer_timeout_s: float = ANSWER_TIMEOUT_S) -> None:
         self.client = client
         self.view = view
+        self.moves = AsyncMoves(client, axes=len(view.axes), answer_timeout_s=answer_timeout_s)
         self.cell = view.cell
         base = f"{pv_prefix}{self.cell}:"
         self.groups = {axis: AxisPVs(f"{base}{axis}:" if view.multi_axis else base, bridge=self, axis=axis)
@@ -139,7 +144,7 @@ class CellBridge:
     async def _poll_status(self) -> None:
         while True:
             try:
-                state = state_of(await asyncio.to_thread(self.client.status, timeout_s=2.0))
+                state = state_of(await self.moves.status(timeout_s=2.0))
             except (TimeoutError, ValueError):
                 state = "offline"
             for group in self.groups.values():
@@ -176,47 +181,31 @@ class CellBridge:
     # --- puts ------------------------------------------------------------------------------------
 
     async def put_setpoint(self, axis: str, value: float) -> None:
-        """Move ``axis`` to ``value``; returns once the daemon answered (``DMOV`` 0), raises on a refusal."""
+        """Move ``axis`` to ``value``; returns once the daemon answered (``DMOV`` 0). Raises (the put fails,
+        ``SP`` in alarm, ``MSG`` says why) on a refusal, or when no answer comes within the answer timeout."""
         group = self.groups[axis]
         try:
-            target = self.view.request({axis: value})
-        except ValueError as error:
+            moving = await self.moves.move(self.view.request({axis: value}))
+        except (ValueError, Refused, TimeoutError, ConnectionError, RuntimeError) as error:  # nothing moves
             self._post(group.MSG, _message(str(error)))
-            raise
-        loop = asyncio.get_running_loop()
-        answered: asyncio.Future[Command] = loop.create_future()
-
-        def answer(command: Command) -> None:
-            if not answered.done():
-                answered.set_result(command)
-
-        def on_answer(command: Command) -> None:  # the move's thread
-            self.view.note_command(command)
-            loop.call_soon_threadsafe(answer, command)
-
-        move = asyncio.ensure_future(asyncio.to_thread(self.client.move, target, timeout_s=MOVE_TIMEOUT_S,
-                                                       on_answer=on_answer))
-        await asyncio.wait({answered, move}, return_when=asyncio.FIRST_COMPLETED)
-        if not answered.done():  # refused, not answered, or the session closed: nothing moves
-            failure = move.exception() or RuntimeError("the move ended without an answer")
-            self._post(group.MSG, _message(str(failure)))
             self._refresh.set()  # a refusal for a stale sensor or a faulted output shows in STATE now
-            raise failure
+            raise
+        self.view.note_command(moving.command)  # the latest setpoints, before the command's broadcast arrives
         # a refused put left SP in caproto's alarm (WRITE, MAJOR); a put that moves clears it
         await group.SP.alarm.write(status=AlarmStatus.NO_ALARM, severity=AlarmSeverity.NO_ALARM)
         token = next(self._tokens)
-        for moving in {axis, *self._moving}:  # axes still heading to their setpoints go on in this move
-            self._moving[moving] = token
+        for other in {axis, *self._moving}:  # axes still heading to their setpoints go on in this move
+            self._moving[other] = token
         self._post(group.DMOV, 0)
-        follower = asyncio.ensure_future(self._follow(move, token, answered.result()))
+        follower = asyncio.ensure_future(self._follow(moving, token))
         self._followers.add(follower)  # held until it ends (the loop keeps only weak references to tasks)
         follower.add_done_callback(self._followers.discard)
 
-    async def _follow(self, move: asyncio.Future[Command], token: int, command: Command) -> None:
+    async def _follow(self, moving: Moving, token: int) -> None:
         """The end of one move: ``DMOV`` 1 and ``MSG`` on the axes still in it (a newer move took the others)."""
         text, ended = "", "reached"
         try:
-            await move
+            await moving.ended(MOVE_TIMEOUT_S)
         except MoveEnded as error:
             text, ended = str(error), error.state
         except (Refused, TimeoutError, ConnectionError, RuntimeError) as error:
@@ -226,7 +215,7 @@ class CellBridge:
             del self._moving[axis]
             group = self.groups[axis]
             if ended in ("reached", "stopped") and not self.view.axes[axis].position_sensor:
-                target = command.target
+                target = moving.command.target
                 self._post(group.RBV, target[axis] if isinstance(target, Mapping) else target)
             self._post(group.MSG, _message(text))
             self._post(group.DMOV, 1)
@@ -234,12 +223,13 @@ class CellBridge:
     async def stop(self, axis: str) -> None:
         """``stop`` the cell (every output holds where it is); raises when the daemon does not answer."""
         try:
-            await asyncio.to_thread(self.client.stop)
+            await self.moves.stop()
         except (Refused, TimeoutError) as error:
             self._post(self.groups[axis].MSG, _message(str(error)))
             raise
 
     def close(self) -> None:
+        self.moves.close()
         self.view.close()
         self.client.close()
 

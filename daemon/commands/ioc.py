@@ -12,16 +12,13 @@ import argparse
 import asyncio
 import signal
 import sys
-from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
+from nanodrift.async_moves import ANSWER_TIMEOUT_S
 from nanodrift.cell_view import CellView
 from nanodrift.client import Client
 from nanodrift.commands._client import add_client_flags, open_client
 from nanodrift.errors import UserError
-
-#: worker threads per served cell: a move waiting for its done, the one superseding it, a stop, a status query
-THREADS_PER_CELL = 4
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -32,6 +29,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="PV names <P><cell>:SP, ... (a cell of several axes: <P><cell>:<axis>:SP)")
     parser.add_argument("--timeout", type=float, default=2.0, metavar="S",
                         help="seconds to wait for the cells' status at start")
+    parser.add_argument("--answer-timeout", type=float, default=ANSWER_TIMEOUT_S, metavar="S",
+                        help="seconds a put to SP waits for the daemon's answer; none: the put fails, SP in alarm "
+                             f"(default {ANSWER_TIMEOUT_S:g})")
 
 
 def _cells(args: argparse.Namespace) -> list[str]:
@@ -58,6 +58,8 @@ def main(args: argparse.Namespace) -> int:
         import nanodrift.epics_ioc as epics_ioc
     except ImportError as error:
         raise UserError(f"nanodrift ioc needs caproto ({error}): pip install 'nanodrift[epics]'") from None
+    if not args.answer_timeout > 0:  # (also refuses nan)
+        raise UserError(f"--answer-timeout must be a positive number of seconds, got {args.answer_timeout:g}")
     bridges: list[Any] = []
     try:
         for cell in _cells(args):
@@ -67,7 +69,7 @@ def main(args: argparse.Namespace) -> int:
             except (TimeoutError, ValueError) as error:  # no answer; a status without a usable axis
                 client.close()
                 raise UserError(str(error)) from None
-            bridges.append(epics_ioc.CellBridge(client, view, args.pv_prefix))
+            bridges.append(epics_ioc.CellBridge(client, view, args.pv_prefix, answer_timeout_s=args.answer_timeout))
         return asyncio.run(_serve(epics_ioc, bridges))
     finally:
         for bridge in bridges:
@@ -83,10 +85,6 @@ async def _serve(epics_ioc: Any, bridges: list[Any]) -> int:
                   "SIGMA, MSG beside each)", file=sys.stderr, flush=True)
 
     loop = asyncio.get_running_loop()
-    # a move waits for its done in a worker thread, and each cell's status is asked in one: threads enough for
-    # every cell's move, stop and status at once (asyncio's default pool has 6 on two cores), and bounded
-    loop.set_default_executor(ThreadPoolExecutor(max_workers=THREADS_PER_CELL * len(bridges) + 2,
-                                                 thread_name_prefix="nanodrift-ioc"))
     task = asyncio.ensure_future(epics_ioc.serve(bridges, ready))
     for signum in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(signum, task.cancel)

@@ -35,8 +35,11 @@ class FakeCell:
         self.lock = threading.Condition()
         self.in_flight: Any = None
         self.targets: list[dict[str, Any]] = []
-        #: what to do with a target: "reached_first" (done before the reply), "reached", "hold" (no done), "refuse"
+        #: what to do with a target: "reached_first" (done before the reply), "reached", "hold" (no done), "refuse",
+        #: "stall" (take the query and never answer it: a stalled daemon; zenoh ends it as a "Timeout" reply error)
         self.behaviour = "reached"
+        self.stall_stop = False  # take stop queries and never answer them
+        self.held: list[zenoh.Query] = []
         self._entities = [self.session.declare_queryable(f"{self.base}/compensate", self._compensate),
                           self.session.declare_queryable(f"{self.base}/stop", self._stop)]
 
@@ -51,6 +54,9 @@ class FakeCell:
             self.targets.append(doc)
             previous, self.in_flight = self.in_flight, target_id
             self.lock.notify_all()
+        if self.behaviour == "stall":
+            self.held.append(query)
+            return
         if self.behaviour == "refuse":
             query.reply_err(json.dumps({"id": target_id, "error": "no", "kind": "bad_payload"}))
             query.drop()
@@ -68,6 +74,9 @@ class FakeCell:
             self.done(target_id, "reached")
 
     def _stop(self, query: zenoh.Query) -> None:
+        if self.stall_stop:
+            self.held.append(query)
+            return
         with self.lock:
             stopped, self.in_flight = self.in_flight, None
         if stopped is not None:
@@ -82,6 +91,7 @@ class FakeCell:
     def close(self) -> None:
         for entity in self._entities:
             entity.undeclare()
+        self.held.clear()
         self.session.close()
 
 
@@ -194,3 +204,22 @@ def test_stop_without_an_answer_puts_it_and_times_out() -> None:
     finally:
         subscriber.undeclare()
         fake.close()
+
+
+def test_a_query_taken_and_never_answered_is_a_timeout_not_a_refusal(fake: FakeCell) -> None:
+    """Zenoh ends such a query with a reply error "Timeout": no answer, which the client must not report as the
+    daemon refusing the target (an EPICS put would say "refused: Timeout"), and after which a stop is also put."""
+    fake.behaviour, fake.stall_stop = "stall", True
+    heard = threading.Event()
+    subscriber = fake.session.declare_subscriber(f"{fake.base}/stop", lambda sample: heard.set())
+    try:
+        with connect(fake) as cell:
+            with pytest.raises(TimeoutError) as ended:
+                cell.move(5.0, timeout_s=0.5)
+            assert not isinstance(ended.value, Refused)
+            assert len(fake.held) == 1  # the query did reach the cell
+            with pytest.raises(TimeoutError, match="the stop was also put"):
+                cell.stop(timeout_s=0.5)
+        assert heard.wait(5)
+    finally:
+        subscriber.undeclare()

@@ -10,6 +10,7 @@ to be stopped (a 0 -> 480 µm move ramps for 1.9 s at 250 µm/s).
 from __future__ import annotations
 
 import asyncio
+import os
 import threading
 from collections.abc import Iterator
 from typing import Any
@@ -21,6 +22,7 @@ from bluesky import plans as bp
 from bluesky.run_engine import call_in_bluesky_event_loop
 from bluesky.utils import FailedStatus
 from helpers.running_cell import VOLTS_PER_UM, RunningCell
+from helpers.scripted_cell import ScriptedCell
 from ophyd_async.core import init_devices
 
 from nanodrift import Client, MoveEnded, Refused
@@ -150,6 +152,42 @@ def test_a_plans_end_does_not_stop_another_clients_move(run_engine: RunEngine, s
             moving.join(15)
             subscriber.undeclare()
     assert ended == ["reached"]  # the other client's 1.9 s ramp ran to its end
+
+
+def test_stop_is_not_queued_behind_moves_that_wait_for_their_done(run_engine: RunEngine) -> None:
+    """More moves in flight than asyncio's default executor has threads (``min(32, cpus + 4)``), on a cell that
+    answers them and never says ``done``: the ``stop`` still reaches the cell, and its ``done``s end them all."""
+    cell = ScriptedCell("bsscript")
+    cell.answering.set()
+    moves = min(32, (os.cpu_count() or 1) + 4) + 2
+    try:
+        with init_devices():
+            stage = Stage(cell.endpoint, cell.cell, name="scripted")
+        loop = run_engine.loop
+
+        async def start() -> list[Any]:
+            return [stage.set(100.0 + i, timeout=60.0) for i in range(moves)]
+
+        statuses = asyncio.run_coroutine_threadsafe(start(), loop).result(10)
+        for _ in range(moves):
+            assert cell.asked.acquire(timeout=20), "the cell received every move"  # each answered, none done
+        asyncio.run_coroutine_threadsafe(stage.stop(), loop).result(20)
+        assert cell.stops == ["{}"]
+        for status in statuses:
+            asyncio.run_coroutine_threadsafe(asyncio.wait_for(_settled(status), 20), loop).result(30)
+            ended = status.exception()
+            assert isinstance(ended, MoveEnded) and ended.state == "stopped", ended
+        stage.close()
+    finally:
+        cell.close()
+
+
+async def _settled(status: Any) -> None:
+    """Wait for an ophyd-async status to end, whichever way."""
+    try:
+        await status
+    except Exception:
+        pass
 
 
 def _outcome(client: Client, x_um: float) -> str:
