@@ -24,10 +24,11 @@ from nanodrift.calibration.residuals import Settled
 from nanodrift.config import MAX_RECORD_KEEP_DAYS, MIN_SLEW_UM_PER_S, ActuatorConfig, ConfigError, load_config
 from nanodrift.drivers.base import MAX_AGE_S, MAX_INTERVAL_S, MIN_INTERVAL_S
 from nanodrift.drivers.simulated.config import MAX_SPEED
-from nanodrift.model.model import FittedTerm, Model, Training, save_model
+from nanodrift.model.model import FittedTerm, Model, Training, load_model, save_model
 from nanodrift.model.terms import parse_term
 from nanodrift.motion import RAMP_PERIOD_S, Slew
 from nanodrift.service.recorder import DayRecorder, file_name
+from nanodrift.settings import DEFAULT_MODEL_PATH
 
 SIM_SENSOR = '[[sensors]]\nname = "T1"\nkind = "simulated"\n'
 MODBUS = ('[[hubs]]\nname = "adam"\nhost = "127.0.0.1"\n'
@@ -194,14 +195,18 @@ def test_check_config_warns_about_a_sensorless_file_a_daemon_may_run(tmp_path: P
     assert strict.returncode == 2 and "sensors: the config lists no sensors" in strict.stderr, strict.stderr
 
 
-def test_the_shipped_sim_toml_lists_the_papers_four_thermocouples_and_strict_names_only_the_unused_t3() -> None:
-    """Issue 27: the paper monitors T1..T4; the shipped model uses T1, T2, T4, so T3 is the one warning."""
+def test_the_shipped_sim_toml_lists_the_papers_four_thermocouples_and_strict_names_only_the_unused_ones() -> None:
+    """Issue 27: the paper monitors T1..T4; check-config warns once for each one the shipped model leaves out."""
+    unused = sorted({"T1", "T2", "T3", "T4"} - set(load_model(DEFAULT_MODEL_PATH).channels))
+    assert unused, "the shipped model uses every thermocouple: the test proves nothing"
     result = run_cli("check-config", str(REPO / "config" / "sim.toml"))
     assert result.returncode == 0, result.stderr
     warnings = [line for line in result.stderr.splitlines() if "warning" in line]
-    assert len(warnings) == 1 and "sensor 'T3' is not used by model" in warnings[0], result.stderr
+    assert len(warnings) == len(unused), result.stderr
+    for channel, line in zip(unused, warnings, strict=True):
+        assert f"sensor '{channel}' is not used by model" in line, result.stderr
     strict = run_cli("check-config", "--strict", str(REPO / "config" / "sim.toml"))
-    assert strict.returncode == 2 and "sensor 'T3' is not used by model" in strict.stderr, strict.stderr
+    assert strict.returncode == 2 and f"sensor '{unused[0]}' is not used by model" in strict.stderr, strict.stderr
     model = json.loads((REPO / "daemon" / "data" / "default_model.json").read_text())
     configured = load_config(REPO / "config" / "sim.toml")
     temperatures = [s.name for s in configured.sensors if s.role == "temperature"]

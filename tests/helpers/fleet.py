@@ -40,7 +40,7 @@ def cell_name(index: int) -> str:
 def light_cell_config(cell: str, router_port: int, prefix: str, zenoh_file: Path | None) -> str:
     """A simulated cell, client of the router, with three temperature channels polled once a second."""
     sensors = "".join(f'\n[[sensors]]\nname = "{channel}"\nkind = "simulated"\ninterval_s = 1.0\nmax_age_s = 5.0\n'
-                      for channel in ("T1", "T2", "T4"))
+                      for channel in ("T1", "T2", "T3", "T4"))  # all four: whichever the shipped model uses
     zenoh_lines = f'config_file = "{zenoh_file}"\n' if zenoh_file is not None else ""
     return (f'cell = "{cell}"\n[zenoh]\nmode = "client"\nconnect = ["tcp/127.0.0.1:{router_port}"]\n'
             f'multicast_scouting = false\nprefix = "{prefix}"\n{zenoh_lines}'

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import statistics
+from pathlib import Path
 from types import ModuleType
 
 import numpy as np
@@ -24,7 +25,6 @@ from nanodrift.model.model import Model, load_model, save_model
 from nanodrift.model.segments import features
 from nanodrift.model.stepwise import stepwisefit
 from nanodrift.model.terms import Channel, Power
-from nanodrift.settings import DEFAULT_MODEL_PATH
 
 
 def _statsmodels() -> ModuleType:
@@ -129,7 +129,8 @@ def test_seed_to_seed_spread_of_a_coefficient_matches_the_standard_error_printed
 def test_a_model_file_from_before_hac_loads_keeps_its_id_and_says_its_ses_are_iid():
     """The model file is extended, not renamed: an old file (no ``se_method``) loads with its id, and the
     printout does not pass its textbook SEs off as HAC ones."""
-    path = DEFAULT_MODEL_PATH  # the shipped model, fitted before HAC standard errors
+    path = Path(__file__).parent / "data" / "default_model_before_hac.json"  # the model shipped until the default
+    # selection became coherent, fitted before HAC standard errors
     assert "se_method" not in json.loads(path.read_text())["fit"]
     model = load_model(path)  # checks its id against its content
     assert model.id == json.loads(path.read_text())["id"]

@@ -18,7 +18,7 @@ from helpers.daemon_harness import Client, Daemon, free_port, wait_until
 from nanodrift.config import DEFAULT_MODEL_PATH
 from nanodrift.drivers.simulated.config import MAX_SPEED
 
-CHANNELS = ("T1", "T2", "T4")  # the shipped model's
+CHANNELS = ("T1", "T2", "T3", "T4")  # every thermocouple: whichever the shipped model uses
 
 
 def test_sigterm_stops_a_daemon_running_the_simulated_cell_at_the_maximum_speed(tmp_path: Path) -> None:
