@@ -36,6 +36,9 @@ AO_ADDRESS = 10
 AO_VOLTS_PER_COUNT = 0.001
 TC_DEGC_PER_COUNT = 0.01
 THERMOCOUPLES = ("T1", "T2", "T3", "T4")
+#: a controller emulated by a thread of the pytest process answers late on a loaded machine (0.5 s was seen
+#: to expire at a load of 9): the bound only says how long a dead controller takes to be called dead
+CONTROLLER_TIMEOUT_S = 2.0
 
 
 class PhysicsInterferometer(FakeInterferometer):
@@ -168,8 +171,9 @@ class EmulatedCell:
             "modbus": (f'kind = "modbus"\nhub = "module"\naddress = {AO_ADDRESS}\ndata_type = "int16"\n'
                        f"scale = {AO_VOLTS_PER_COUNT}\nverify = true\n"),
             "serial_line": (f'kind = "serial_line"\nport = "{self.controller.port}"\nreadback = "SVA? 1\\n"\n'
-                            f'error_query = "ERR?\\n"\ntimeout_s = 0.5\n'),
-            "pi_gcs": f'kind = "pi_gcs"\ntransport = "serial"\nport = "{self.pi_gcs_port.port}"\ntimeout_s = 0.5\n',
+                            f'error_query = "ERR?\\n"\ntimeout_s = {CONTROLLER_TIMEOUT_S}\n'),
+            "pi_gcs": (f'kind = "pi_gcs"\ntransport = "serial"\nport = "{self.pi_gcs_port.port}"\n'
+                       f"timeout_s = {CONTROLLER_TIMEOUT_S}\n"),
             "zenoh": 'kind = "zenoh"\n',
         }
         connect = f'connect = ["tcp/127.0.0.1:{self.node_port}"]\n' if self.node_port else ""

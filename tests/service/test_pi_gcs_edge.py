@@ -32,7 +32,7 @@ from nanodrift.service.actuation import ON_TARGET_BUDGET_S
 
 V_MIN, V_MAX = -2.0, 9.0
 VOLTS_PER_UM = 0.02
-RATE_UM_PER_S = 300.0  # 150 um ramp up (and the safe ramp down) in 0.5 s: 25 steps each
+RATE_UM_PER_S = 100.0  # 150 um ramp up (and the safe ramp down) in 1.5 s: a loaded machine still writes several steps
 RATE_V_PER_S = RATE_UM_PER_S * VOLTS_PER_UM
 
 
@@ -106,7 +106,9 @@ def test_the_controller_gets_the_servo_off_limited_slewed_commands_and_the_safe_
             assert lines[i - 1:i - 1 + batch] == ["ERR?", line, "ERR?", *readback], lines[i - 1:i - 1 + batch]
     peak = next(i for i, (_, v) in enumerate(written) if v == pytest.approx(goal_v, abs=1e-9))
     up = written[:peak + 1]
-    assert len(up) > 5 and all(a < b for (_, a), (_, b) in itertools.pairwise(up)), up  # a ramp, not a jump
+    # a ramp, not a jump: intermediate values, each step within the slew of the time it took (a loaded machine
+    # writes fewer, longer steps)
+    assert len(up) >= 4 and all(a < b for (_, a), (_, b) in itertools.pairwise(up)), up
     assert_within_slew(up)
     down = written[peak:]
     assert down[-1][1] == 0.0 and held() == 0.0  # the safe voltage, held
