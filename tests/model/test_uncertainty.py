@@ -25,8 +25,11 @@ from nanodrift.model.terms import parse_term
 from nanodrift.model.uncertainty import (
     Covariance,
     Curvature,
+    Noise,
     ar1_inflation,
     estimate,
+    within_run_share,
+    within_runs,
 )
 
 REPO = Path(__file__).resolve().parents[2]
@@ -167,6 +170,26 @@ def test_s_holds_the_white_part_and_the_wander_which_is_also_kept_apart() -> Non
     white = math.sqrt(max(s * s - wander * wander, 0.0))
     assert 0.003 < white < 0.008  # the white part: s² = white² + wander²
     assert s > model.fit["rmse_um"]  # the in-sample RMS hides the part of the wander the fit absorbed
+
+
+def test_the_wander_kept_is_what_varies_within_the_runs() -> None:
+    """The share is 1 minus each run's mean correlation of its rows (brute force over every pair), averaged
+    over the runs by their rows: a wander as slow as the run mostly moves the run's mean, which the bias
+    absorbs (the offset C carries), and only what varies within a run is kept as w."""
+    t = np.concatenate([np.arange(300) * 30.0, 20_000.0 + np.arange(100) * 60.0])  # two runs, unequal
+    runs = [slice(0, 300), slice(300, 400)]
+    for tau_s in (10.0, 1200.0, 12_000.0):
+        expected = 0.0
+        for part in runs:
+            times = t[part]
+            correlation = np.exp(-np.abs(times[:, None] - times[None, :]) / tau_s)
+            expected += (part.stop - part.start) * (1.0 - correlation.mean())
+        assert within_run_share(t, runs, tau_s) == pytest.approx(expected / t.size, rel=1e-9)
+    assert within_run_share(t, runs, 10.0) > 0.99  # a fast wander varies within a run whole
+    assert within_run_share(t, runs, 12_000.0) < 0.5  # one as slow as the runs mostly moves their means
+    noise = within_runs(Noise(0.005, 0.1, 12_000.0), t, runs)
+    assert noise.white_um == 0.005 and noise.tau_s == 12_000.0
+    assert noise.wander_um == pytest.approx(0.1 * math.sqrt(within_run_share(t, runs, 12_000.0)), rel=1e-12)
 
 
 # --- q_sigma, batch and streaming -------------------------------------------------------------
