@@ -33,3 +33,10 @@ def test_the_unit_of_the_last_printed_digit() -> None:
     assert last_digit_unit("6.004e-09") == pytest.approx(1e-12)
     assert last_digit_unit("22.063") == pytest.approx(1e-3)
     assert last_digit_unit("51") == 1.0
+
+
+def test_an_identifier_is_a_word_not_a_number() -> None:
+    """A model id such as m-05e578fbc20d holds "-05e578", which read as a number overflowed the comparison."""
+    assert differences("model m-05e578fbc20d -> m.json", "model m-05e578fbc20d -> m.json", rounded=True) == []
+    assert differences("model m-05e578fbc20d", "model m-05e578fbc20e")  # another id is another model
+    assert differences("T1 1.0", "T2 1.0")

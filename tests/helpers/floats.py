@@ -13,8 +13,9 @@ import math
 import re
 from collections.abc import Iterator
 
-#: a JSON string (taken whole, digits inside included), or a number
-_TOKEN = re.compile(r'("(?:[^"\\]|\\.)*")|([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)')
+#: a JSON string (taken whole, digits inside included), a word (an identifier such as ``m-05e578fbc20d`` or
+#: ``T1``, taken whole: its digits are no number), or a number
+_TOKEN = re.compile(r'("(?:[^"\\]|\\.)*")|([A-Za-z_][\w-]*)|([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)')
 
 #: relative tolerance on a number printed in full (``repr``): far above rounding, far below a real change
 REL_TOL = 1e-9
@@ -23,12 +24,17 @@ ABS_TOL = 1e-12
 
 
 def _parts(text: str) -> Iterator[tuple[str, str]]:
-    """("text" | "string" | "number", the characters), in order, covering all of ``text``."""
+    """("text" | "string" | "word" | "number", the characters), in order, covering all of ``text``."""
     end = 0
     for match in _TOKEN.finditer(text):
         if match.start() > end:
             yield "text", text[end:match.start()]
-        yield ("string", match[1]) if match[1] is not None else ("number", match[2])
+        if match[1] is not None:
+            yield "string", match[1]
+        elif match[2] is not None:
+            yield "word", match[2]
+        else:
+            yield "number", match[3]
         end = match.end()
     if end < len(text):
         yield "text", text[end:]
