@@ -50,6 +50,7 @@ import asyncio
 import contextlib
 import math
 import re
+import threading
 from functools import partial
 from typing import Literal
 
@@ -72,6 +73,13 @@ QUIET_S = 0.2  # a dirty line is clean again once nothing arrived for min(timeou
 def quiet_for(timeout_s: float) -> float:
     """How long a dirty line must stay silent before a request with this timeout is sent."""
     return min(timeout_s, QUIET_S)
+
+
+def _close_abandoned(opening: asyncio.Future[SerialLineReader]) -> None:
+    """Close a port whose open ended after its caller gave up on it (a thread: closing blocks ~0.1 s)."""
+    if opening.cancelled() or opening.exception() is not None:
+        return
+    threading.Thread(target=opening.result().close, name="serial-close-abandoned", daemon=True).start()
 
 
 class LineBusyError(DeviceError):
@@ -149,18 +157,25 @@ class SerialLineGroup(SensorGroup):
                     "write_timeout": c.timeout_s}
         loop = asyncio.get_running_loop()
         self._generation += 1
+        # the thread opens the port whatever happens here: shielded, so that an open this call gives up on (its
+        # timeout, a reload's cancellation) is closed when it ends instead of reading the port for ever beside
+        # the next one (two readers steal each other's bytes: "readiness to read but returned no data", and
+        # answers lost for good; found by the serial chaos suite)
+        opening = asyncio.ensure_future(asyncio.to_thread(
+            SerialLineReader.open, c.port, settings, loop=loop, terminator=self._terminator,
+            on_line=partial(self._on_line, self._generation), on_error=partial(self._on_error, self._generation)))
         try:
             # asyncio.timeout, not wait_for: on 3.11 wait_for can swallow a cancellation, and a daemon
             # stopping or reloading then waits for ever on the task that swallowed it (found by the chaos suite)
             async with asyncio.timeout(c.timeout_s):
-                self._reader = await asyncio.to_thread(
-                    SerialLineReader.open, c.port, settings, loop=loop, terminator=self._terminator,
-                    on_line=partial(self._on_line, self._generation),
-                    on_error=partial(self._on_error, self._generation))
-        except TimeoutError:
-            raise DeviceError(f"cannot open {c.port}: no answer from the OS within {c.timeout_s:g} s") from None
-        except Exception as error:  # SerialException, OSError, ValueError for a malformed URL
-            raise DeviceError(f"cannot open {c.port}: {error}") from error
+                self._reader = await asyncio.shield(opening)
+        except BaseException as error:
+            opening.add_done_callback(_close_abandoned)
+            if isinstance(error, TimeoutError):
+                raise DeviceError(f"cannot open {c.port}: no answer from the OS within {c.timeout_s:g} s") from None
+            if isinstance(error, Exception):  # SerialException, OSError, ValueError for a malformed URL
+                raise DeviceError(f"cannot open {c.port}: {error}") from error
+            raise  # cancelled
         if self.port in _UNSETTLED_PORTS:  # a line closed before this one left a request unanswered
             _UNSETTLED_PORTS.discard(self.port)
             self._dirty, self._dirty_since = True, loop.time()
