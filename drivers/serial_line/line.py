@@ -28,10 +28,11 @@ A line with a *resynchronisation query* (``resync_query``/``resync_pattern``, e.
 instead of waiting for quiet, and discards every line until one in which ``resync_pattern`` is found.
 A controller answers in the order it was asked, so whatever came before that answer is the past,
 however late. No such line within ``timeout_s`` is a fault for that request, with nothing sent, and
-the line stays dirty. The resync queries that went unanswered are counted: an answer to one of them
-that comes later (a line the pattern is found in) is discarded, never taken for another request's
-answer. A write that expects no answer (an actuator's ``SVA``) goes out on a dirty line without the
-resync: it takes no answer, and the controller works through it in order.
+the line stays dirty. The resync queries that went unanswered are counted (and the count passed on
+to the line a reload opens next on the port): an answer to one of them that comes later (a line the
+pattern is found in) is discarded, never taken for another request's answer. A write that expects
+no answer (an actuator's ``SVA``) goes out on a dirty line without the resync: it takes no answer,
+and the controller works through it in order.
 
 What goes wrong, and how it is reported:
 
@@ -61,9 +62,11 @@ from nanodrift.drivers.serial_line.config import SerialLineSensorConfig
 from nanodrift.drivers.serial_line.reader import SerialLineReader
 
 log = structlog.get_logger(__name__)
-#: ports closed while a request on them was left unanswered (the line dirty): the device may still
-#: answer it, so whoever opens the port next (a reload builds a new line for it) resynchronises first
-_UNSETTLED_PORTS: set[str] = set()
+#: ports closed while a request on them was left unanswered (the line dirty), each with the resync queries
+#: sent on it whose answers are still due: the device may still answer them, so whoever opens the port next (a
+#: reload builds a new line for it) resynchronises first and skips those answers (else the first of them is
+#: taken for its own resync query's, and its own for the next request's answer)
+_UNSETTLED_PORTS: dict[str, int] = {}
 
 SHOWN_CHARS = 60  # of a garbage line in a fault reason
 GRACE_S = 0.25  # callers' limit beyond timeout_s, so the driver's own verdict ("no line ...") comes first
@@ -177,12 +180,12 @@ class SerialLineGroup(SensorGroup):
                 raise DeviceError(f"cannot open {c.port}: {error}") from error
             raise  # cancelled
         if self.port in _UNSETTLED_PORTS:  # a line closed before this one left a request unanswered
-            _UNSETTLED_PORTS.discard(self.port)
+            self._resyncs_pending = _UNSETTLED_PORTS.pop(self.port)
             self._dirty, self._dirty_since = True, loop.time()
 
     async def close(self) -> None:
-        if self._dirty or self._outstanding:
-            _UNSETTLED_PORTS.add(self.port)
+        if self._dirty or self._outstanding or self._resyncs_pending:
+            _UNSETTLED_PORTS[self.port] = self._resyncs_pending
         reader, self._reader = self._reader, None
         self._generation += 1
         self._error = None

@@ -44,6 +44,10 @@ answered after ``timeout_s``) left its reader thread reading the pty beside the 
 other's bytes ("device reports readiness to read but returned no data", ``*IDN?`` answers lost), and the actuator
 stayed in fault after the controller answered again (``drivers/serial_line/line.py`` now closes such a port when
 its open ends). The regression test at the end repeats the sequence, with and without position fields.
+A release run found: a resync ``*IDN?`` unanswered (the controller late beyond both timeouts), then a reload; the
+new line's own ``*IDN?`` took the old one's answer, its own answer came as the actuator's ``SVA?`` answer, and that
+``SVA?`` answer (``1=-0.2353``) was published as the position, ok. The line a reload opens now inherits the resync
+answers still due on the port (``tests/drivers/serial_line/test_shared_line.py`` replays it).
 
 The suite runs 3 examples of up to 10 steps, and the hung-reload sequence 4 times (about 20 s idle, 50 s on
 the loaded machine). The release
