@@ -408,6 +408,15 @@ class SerialLineGroup(SensorGroup):
 
     # -- an actuator on this port -----------------------------------------------------------------
 
+    def distrust_answer(self) -> None:
+        """The caller does not believe the answer it got (garbled, or a value the device cannot hold): it may
+        have been a stray line, with the real answer still to come, so the next request makes the line clean
+        first (found by the serial chaos suite: a stray ``1=-777.0000`` taken for an ``SVA?`` answer, whose
+        real answer then came as the next ``POS?`` answer and was published as the position). Call it before
+        the next ``await``: the port's lock is free, and a waiting request must find the line dirty."""
+        if self.solicited:
+            self._dirty, self._dirty_since = True, asyncio.get_running_loop().time()
+
     async def exchange(self, data: bytes, *, answer: bool, timeout_s: float) -> str | None:
         """Write ``data`` and, with ``answer``, return the line that answers it (None: silence for ``timeout_s``).
 

@@ -242,6 +242,49 @@ def test_a_resync_answer_still_due_when_a_reload_opens_the_next_line_is_never_an
     run(body())
 
 
+class StrayBeforeReadback(FakeGcsController):
+    """A controller whose line carries a stray answer-shaped line just after each ``SVA?`` it receives (noise
+    on the line, another program on the port), before its own late answer."""
+
+    STRAY = b"1=-777.0000\n"  # no voltage the limits allow, no position in the valid range
+
+    def _reply(self, line: str) -> str | None:
+        if line.startswith("SVA?"):
+            self.inject(self.STRAY)
+        return super()._reply(line)
+
+
+@pytest.mark.parametrize("when", ["opening", "commanding"])
+def test_a_stray_line_taken_for_the_readback_never_shifts_the_real_answer_onto_the_position(
+        tmp_path: Path, when: str) -> None:
+    """The serial chaos release run's finding: a stray ``1=-777.0000`` came just after the actuator's ``SVA?``
+    and was taken for its answer (untrusted: outside the limits); the real answer came after it, as the first
+    line after the sensor's next ``POS?``, and was published as the position, ok. An answer the actuator does
+    not believe leaves the line dirty: the next request resynchronises first."""
+    controller = StrayBeforeReadback(tmp_path / "ttyPI")
+
+    async def body() -> None:
+        group, actuator = shared(controller.port, resync_on="sensor")
+        await group.open()
+        controller.voltage = 2.0
+        controller.late_s = {"SVA?": 0.25}  # the real answer: after the stray, within the actuator's 0.3 s
+        if when == "opening":
+            assert await actuator.read_back() == ("voltage_v", -777.0)  # (the daemon's actuator_readback_untrusted)
+        else:
+            with pytest.raises(DeviceError, match=r"read back -777"):
+                await actuator.command(250.0, 2.5)
+        readings = [(await group.read())["stage"] for _ in range(3)]
+        await group.close()
+        want = controller.voltage * 100.0  # the position of the voltage held
+        assert [(r.state, r.value) for r in readings] == [(State.OK, pytest.approx(want))] * 3, readings
+        assert group.resyncs == 1  # the first POS? waited for the resync, the next ones found the line clean
+
+    try:
+        run(body())
+    finally:
+        controller.close()
+
+
 def test_a_controller_that_does_not_answer_the_resync_query_fails_the_request_and_stays_dirty(
         controller: FakeGcsController) -> None:
     async def body() -> None:
