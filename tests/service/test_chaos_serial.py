@@ -47,7 +47,17 @@ its open ends). The regression test at the end repeats the sequence, with and wi
 A release run found: a resync ``*IDN?`` unanswered (the controller late beyond both timeouts), then a reload; the
 new line's own ``*IDN?`` took the old one's answer, its own answer came as the actuator's ``SVA?`` answer, and that
 ``SVA?`` answer (``1=-0.2353``) was published as the position, ok. The line a reload opens now inherits the resync
-answers still due on the port (``tests/drivers/serial_line/test_shared_line.py`` replays it).
+answers still due on the port (``tests/drivers/serial_line/test_shared_line.py`` replays it). And a stray
+answer-shaped line taken for the ``SVA?`` answer shifted the real answer onto the next ``POS?``: an answer the
+actuator does not believe now leaves the line dirty (``SerialLineGroup.distrust_answer``).
+
+Open (diagnosed, not fixed): with position fields in the template, a command served under one gain, the controller
+failing, then a reload to another gain (``0.01 -> 0.025 V/um``, ``[-0.25, 5] V``): the goal carried over keeps its
+``q_um`` (-23.53 um) while its voltage (-0.2353 V) is inside the new limits, so it is not dropped; the template
+refuses the ``q_um`` outside the new command range ([-10, 200] um, "nothing written") and the actuator stays in fault,
+retried every 5 s, once the controller answers again ("the actuation never went quiet"). The daemon
+(``service/actuation.py``, ``_move_to``) must drop such a goal whole as it drops one whose voltage the limits forbid
+(every field a template carries, checked before any axis is written), and the machine's model expect it.
 
 The suite runs 3 examples of up to 10 steps, and the hung-reload sequence 4 times (about 20 s idle, 50 s on
 the loaded machine). The release
