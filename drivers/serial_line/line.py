@@ -114,6 +114,7 @@ class SerialLineGroup(SensorGroup):
         self._generation = 0  # one per opened port: late callbacks of a closed port are ignored
         self._arrived = asyncio.Event()
         self._lock = asyncio.Lock()  # one request/answer at a time on the port (a query, an actuator's command)
+        self._opening = asyncio.Lock()  # one open at a time: one reader on the port
         # a request waits for its answer ("answer": the next line is it; "resync": the next line the resync
         # pattern is found in)
         self._outstanding: Literal["answer", "resync"] | None = None
@@ -152,8 +153,14 @@ class SerialLineGroup(SensorGroup):
     # -- the port ---------------------------------------------------------------------------------
 
     async def open(self) -> None:
-        if self._reader is not None and self._error is None:
-            return
+        # the sensor's poll and the actuator (at a reload, after a fault) reopen the port on their own: two opens
+        # at once would start two readers, the first left reading beside the second (found by the chaos suite)
+        async with self._opening:
+            if self._reader is not None and self._error is None:
+                return
+            await self._open_port()
+
+    async def _open_port(self) -> None:
         await self.close()
         c = self.config
         settings = {"baudrate": c.baudrate, "bytesize": c.bytesize, "parity": c.parity, "stopbits": c.stopbits,

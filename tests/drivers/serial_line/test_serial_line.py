@@ -234,6 +234,30 @@ def test_an_open_given_up_on_closes_its_port_once_it_ends(device: FakeInterferom
     run(body())
 
 
+def test_two_opens_at_once_open_the_port_once(device: FakeInterferometer, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The sensor's poll and the actuator reopen a shared port on their own (after a reload, a fault): at once,
+    each opened it and the first reader was left reading beside the second, stealing its answers for good."""
+    real_open = SerialLineReader.open
+    opened: list[SerialLineReader] = []
+
+    def counting_open(cls: type[SerialLineReader], url: str, settings: dict[str, object],
+                      **kwargs: object) -> SerialLineReader:
+        opened.append(real_open(url, settings, **kwargs))
+        return opened[-1]
+
+    monkeypatch.setattr(SerialLineReader, "open", classmethod(counting_open))
+
+    async def body() -> None:
+        group = group_for(device.port)
+        await asyncio.gather(group.open(), group.open(), group.read())
+        readings = [(await group.read())["interferometer"] for _ in range(10)]
+        await group.close()
+        assert len(opened) == 1, f"the port was opened {len(opened)} times"
+        assert [r.state for r in readings] == [State.OK] * 10
+
+    run(body())
+
+
 def test_cr_only_device_with_eol_cr(tmp_path: Path) -> None:
     fake = FakeInterferometer(tmp_path / "ttyCR", eol=b"\r")
 
