@@ -161,7 +161,7 @@ class SerialLineGroup(SensorGroup):
             await self._open_port()
 
     async def _open_port(self) -> None:
-        await self.close()
+        await self._close_reader()
         c = self.config
         settings = {"baudrate": c.baudrate, "bytesize": c.bytesize, "parity": c.parity, "stopbits": c.stopbits,
                     "write_timeout": c.timeout_s}
@@ -191,6 +191,12 @@ class SerialLineGroup(SensorGroup):
             self._dirty, self._dirty_since = True, loop.time()
 
     async def close(self) -> None:
+        # after an open in flight (a reload closes the line while a poll or the actuator reopens it): else that
+        # open ends after the close, and the closed line keeps a reader on the port beside the next line's
+        async with self._opening:
+            await self._close_reader()
+
+    async def _close_reader(self) -> None:
         if self._dirty or self._outstanding or self._resyncs_pending:
             _UNSETTLED_PORTS[self.port] = self._resyncs_pending
         reader, self._reader = self._reader, None

@@ -49,7 +49,9 @@ new line's own ``*IDN?`` took the old one's answer, its own answer came as the a
 ``SVA?`` answer (``1=-0.2353``) was published as the position, ok. The line a reload opens now inherits the resync
 answers still due on the port (``tests/drivers/serial_line/test_shared_line.py`` replays it). And a stray
 answer-shaped line taken for the ``SVA?`` answer shifted the real answer onto the next ``POS?``: an answer the
-actuator does not believe now leaves the line dirty (``SerialLineGroup.distrust_answer``).
+actuator does not believe now leaves the line dirty (``SerialLineGroup.distrust_answer``). And the sensor's poll and
+the actuator reopening the shared port at once (after a reload under a garbling controller) started two readers:
+the actuator stayed in fault after the controller answered again, every ``*IDN?`` answer stolen; one open at a time.
 
 Open (diagnosed, not fixed): with position fields in the template, a command served under one gain, the controller
 failing, then a reload to another gain (``0.01 -> 0.025 V/um``, ``[-0.25, 5] V``): the goal carried over keeps its

@@ -258,6 +258,35 @@ def test_two_opens_at_once_open_the_port_once(device: FakeInterferometer, monkey
     run(body())
 
 
+def test_a_close_during_an_open_leaves_no_reader_on_the_port(device: FakeInterferometer,
+                                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    """A reload closes the line while a poll (or the actuator) reopens it: the open must not end after the close
+    with the closed line holding a reader beside the next line's."""
+    real_open = SerialLineReader.open
+    entered, release = threading.Event(), threading.Event()
+    opened: list[SerialLineReader] = []
+
+    def gated_open(cls: type[SerialLineReader], url: str, settings: dict[str, object],
+                   **kwargs: object) -> SerialLineReader:
+        entered.set()
+        release.wait(10)
+        opened.append(real_open(url, settings, **kwargs))
+        return opened[-1]
+
+    monkeypatch.setattr(SerialLineReader, "open", classmethod(gated_open))
+
+    async def body() -> None:
+        group = group_for(device.port)
+        opening = asyncio.create_task(group.open())
+        assert await asyncio.to_thread(entered.wait, 10)
+        closing = asyncio.create_task(group.close())
+        release.set()
+        await asyncio.gather(opening, closing)
+        assert len(opened) == 1 and not opened[0].port.is_open, "the closed line kept a reader on the port"
+
+    run(body())
+
+
 def test_cr_only_device_with_eol_cr(tmp_path: Path) -> None:
     fake = FakeInterferometer(tmp_path / "ttyCR", eol=b"\r")
 
