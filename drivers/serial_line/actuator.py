@@ -91,6 +91,7 @@ class SerialLineActuator(Actuator):
         except ValueError:
             value = None
         if value is None or not math.isfinite(value):  # never a value the answer does not carry
+            self.port.distrust_answer()
             raise DeviceError(f"{self.description}: unexpected answer {shown(answer, SHOWN_CHARS)} to {c.readback!r} "
                               f"after {after!r} (expected pattern {c.readback_pattern!r})")
         return value, answer
@@ -102,6 +103,9 @@ class SerialLineActuator(Actuator):
         if not self.config.readback or field == "x_um":
             return None
         value, _ = await self._read("opening the port")
+        limits = self.limits_v if field == "voltage_v" else self.limits_q_um
+        if limits is not None and not limits[0] <= value <= limits[1]:
+            self.port.distrust_answer()  # (the daemon does not believe it either: actuator_readback_untrusted)
         return ("voltage_v" if field == "voltage_v" else "q_um"), value
 
     async def command(self, q_um: float, voltage_v: float, *, x_um: float | None = None) -> None:
@@ -112,6 +116,7 @@ class SerialLineActuator(Actuator):
             value, answer = await self._read(text)
             expected = sent[c.expected_field]  # what the device was told, not what was asked
             if not abs(value - expected) <= c.readback_tolerance:
+                self.port.distrust_answer()
                 raise DeviceError(f"{self.description}: wrote {text!r} ({c.expected_field} {expected:.6g}), read back "
                                   f"{value:.6g} (answer {shown(answer, SHOWN_CHARS)}; "
                                   f"tolerance {c.readback_tolerance:g})")

@@ -28,10 +28,11 @@ A line with a *resynchronisation query* (``resync_query``/``resync_pattern``, e.
 instead of waiting for quiet, and discards every line until one in which ``resync_pattern`` is found.
 A controller answers in the order it was asked, so whatever came before that answer is the past,
 however late. No such line within ``timeout_s`` is a fault for that request, with nothing sent, and
-the line stays dirty. The resync queries that went unanswered are counted: an answer to one of them
-that comes later (a line the pattern is found in) is discarded, never taken for another request's
-answer. A write that expects no answer (an actuator's ``SVA``) goes out on a dirty line without the
-resync: it takes no answer, and the controller works through it in order.
+the line stays dirty. The resync queries that went unanswered are counted (and the count passed on
+to the line a reload opens next on the port): an answer to one of them that comes later (a line the
+pattern is found in) is discarded, never taken for another request's answer. A write that expects
+no answer (an actuator's ``SVA``) goes out on a dirty line without the resync: it takes no answer,
+and the controller works through it in order.
 
 What goes wrong, and how it is reported:
 
@@ -50,6 +51,7 @@ import asyncio
 import contextlib
 import math
 import re
+import threading
 from functools import partial
 from typing import Literal
 
@@ -60,9 +62,11 @@ from nanodrift.drivers.serial_line.config import SerialLineSensorConfig
 from nanodrift.drivers.serial_line.reader import SerialLineReader
 
 log = structlog.get_logger(__name__)
-#: ports closed while a request on them was left unanswered (the line dirty): the device may still
-#: answer it, so whoever opens the port next (a reload builds a new line for it) resynchronises first
-_UNSETTLED_PORTS: set[str] = set()
+#: ports closed while a request on them was left unanswered (the line dirty), each with the resync queries
+#: sent on it whose answers are still due: the device may still answer them, so whoever opens the port next (a
+#: reload builds a new line for it) resynchronises first and skips those answers (else the first of them is
+#: taken for its own resync query's, and its own for the next request's answer)
+_UNSETTLED_PORTS: dict[str, int] = {}
 
 SHOWN_CHARS = 60  # of a garbage line in a fault reason
 GRACE_S = 0.25  # callers' limit beyond timeout_s, so the driver's own verdict ("no line ...") comes first
@@ -72,6 +76,13 @@ QUIET_S = 0.2  # a dirty line is clean again once nothing arrived for min(timeou
 def quiet_for(timeout_s: float) -> float:
     """How long a dirty line must stay silent before a request with this timeout is sent."""
     return min(timeout_s, QUIET_S)
+
+
+def _close_abandoned(opening: asyncio.Future[SerialLineReader]) -> None:
+    """Close a port whose open ended after its caller gave up on it (a thread: closing blocks ~0.1 s)."""
+    if opening.cancelled() or opening.exception() is not None:
+        return
+    threading.Thread(target=opening.result().close, name="serial-close-abandoned", daemon=True).start()
 
 
 class LineBusyError(DeviceError):
@@ -103,6 +114,7 @@ class SerialLineGroup(SensorGroup):
         self._generation = 0  # one per opened port: late callbacks of a closed port are ignored
         self._arrived = asyncio.Event()
         self._lock = asyncio.Lock()  # one request/answer at a time on the port (a query, an actuator's command)
+        self._opening = asyncio.Lock()  # one open at a time: one reader on the port
         # a request waits for its answer ("answer": the next line is it; "resync": the next line the resync
         # pattern is found in)
         self._outstanding: Literal["answer", "resync"] | None = None
@@ -141,33 +153,52 @@ class SerialLineGroup(SensorGroup):
     # -- the port ---------------------------------------------------------------------------------
 
     async def open(self) -> None:
-        if self._reader is not None and self._error is None:
-            return
-        await self.close()
+        # the sensor's poll and the actuator (at a reload, after a fault) reopen the port on their own: two opens
+        # at once would start two readers, the first left reading beside the second (found by the chaos suite)
+        async with self._opening:
+            if self._reader is not None and self._error is None:
+                return
+            await self._open_port()
+
+    async def _open_port(self) -> None:
+        await self._close_reader()
         c = self.config
         settings = {"baudrate": c.baudrate, "bytesize": c.bytesize, "parity": c.parity, "stopbits": c.stopbits,
                     "write_timeout": c.timeout_s}
         loop = asyncio.get_running_loop()
         self._generation += 1
+        # the thread opens the port whatever happens here: shielded, so that an open this call gives up on (its
+        # timeout, a reload's cancellation) is closed when it ends instead of reading the port for ever beside
+        # the next one (two readers steal each other's bytes: "readiness to read but returned no data", and
+        # answers lost for good; found by the serial chaos suite)
+        opening = asyncio.ensure_future(asyncio.to_thread(
+            SerialLineReader.open, c.port, settings, loop=loop, terminator=self._terminator,
+            on_line=partial(self._on_line, self._generation), on_error=partial(self._on_error, self._generation)))
         try:
             # asyncio.timeout, not wait_for: on 3.11 wait_for can swallow a cancellation, and a daemon
             # stopping or reloading then waits for ever on the task that swallowed it (found by the chaos suite)
             async with asyncio.timeout(c.timeout_s):
-                self._reader = await asyncio.to_thread(
-                    SerialLineReader.open, c.port, settings, loop=loop, terminator=self._terminator,
-                    on_line=partial(self._on_line, self._generation),
-                    on_error=partial(self._on_error, self._generation))
-        except TimeoutError:
-            raise DeviceError(f"cannot open {c.port}: no answer from the OS within {c.timeout_s:g} s") from None
-        except Exception as error:  # SerialException, OSError, ValueError for a malformed URL
-            raise DeviceError(f"cannot open {c.port}: {error}") from error
+                self._reader = await asyncio.shield(opening)
+        except BaseException as error:
+            opening.add_done_callback(_close_abandoned)
+            if isinstance(error, TimeoutError):
+                raise DeviceError(f"cannot open {c.port}: no answer from the OS within {c.timeout_s:g} s") from None
+            if isinstance(error, Exception):  # SerialException, OSError, ValueError for a malformed URL
+                raise DeviceError(f"cannot open {c.port}: {error}") from error
+            raise  # cancelled
         if self.port in _UNSETTLED_PORTS:  # a line closed before this one left a request unanswered
-            _UNSETTLED_PORTS.discard(self.port)
+            self._resyncs_pending = _UNSETTLED_PORTS.pop(self.port)
             self._dirty, self._dirty_since = True, loop.time()
 
     async def close(self) -> None:
-        if self._dirty or self._outstanding:
-            _UNSETTLED_PORTS.add(self.port)
+        # after an open in flight (a reload closes the line while a poll or the actuator reopens it): else that
+        # open ends after the close, and the closed line keeps a reader on the port beside the next line's
+        async with self._opening:
+            await self._close_reader()
+
+    async def _close_reader(self) -> None:
+        if self._dirty or self._outstanding or self._resyncs_pending:
+            _UNSETTLED_PORTS[self.port] = self._resyncs_pending
         reader, self._reader = self._reader, None
         self._generation += 1
         self._error = None
@@ -389,6 +420,15 @@ class SerialLineGroup(SensorGroup):
         return Reading(value=raw * self.config.scale + self.config.offset, t=t, unit=unit)
 
     # -- an actuator on this port -----------------------------------------------------------------
+
+    def distrust_answer(self) -> None:
+        """The caller does not believe the answer it got (garbled, or a value the device cannot hold): it may
+        have been a stray line, with the real answer still to come, so the next request makes the line clean
+        first (found by the serial chaos suite: a stray ``1=-777.0000`` taken for an ``SVA?`` answer, whose
+        real answer then came as the next ``POS?`` answer and was published as the position). Call it before
+        the next ``await``: the port's lock is free, and a waiting request must find the line dirty."""
+        if self.solicited:
+            self._dirty, self._dirty_since = True, asyncio.get_running_loop().time()
 
     async def exchange(self, data: bytes, *, answer: bool, timeout_s: float) -> str | None:
         """Write ``data`` and, with ``answer``, return the line that answers it (None: silence for ``timeout_s``).

@@ -51,6 +51,8 @@ from helpers.modbus_helpers import FC_READ_HOLDING, ModbusTestDevice, ModbusTest
 from helpers.wall_clock import WallShift
 from nanodrift.service.recorder import TIMESYNC_FLAG, file_name
 
+#: read once: a precondition must not read the host (the file could appear mid-run)
+HOST_CLOCK_SYNCHRONISED = TIMESYNC_FLAG.exists()
 #: NANODRIFT_CHAOS_SHRINK=0: report the first failing sequence as found (each shrink step starts a daemon)
 SHRINK = os.environ.get("NANODRIFT_CHAOS_SHRINK", "1") != "0"
 
@@ -772,13 +774,15 @@ class ChaosMachine(RuleBasedStateMachine):
         self.wait_channels()
         self.say(f"temperature channel {channel} faults")
 
-    @precondition(lambda self: self.mode == "ok" and self.clock_near_true() and self.registers_within_limits())
+    @precondition(lambda self: self.mode == "ok" and self.clock_near_true())
     @rule(how=st.sampled_from(["SIGTERM", "kill -9"]), forget_state=st.booleans())
     def stop_and_restart(self, how: str, forget_state: bool) -> None:
         """Stop the daemon (SIGTERM: it leaves every output safe; kill -9: they hold), optionally delete its state
         directory, and start it again: it believes a register only as its state file (or the power-up 0 V)
         proves; a register nothing proves is refused, nothing written, until ``nanodrift confirm-output``."""
         assert self.module is not None
+        if self.restart_skipped(f"{how} and restart"):
+            return
         held = self.stop_daemon(how)
         with self.module.device.lock:
             self.held = {axis: self.module.device.outputs[address] for axis, address in self.registers.items()}
@@ -799,6 +803,20 @@ class ChaosMachine(RuleBasedStateMachine):
         with self.module.device.lock:
             return all(self.limits.allows(self.module.device.outputs[a] * SCALE) for a in self.registers.values())
 
+    def restart_skipped(self, what: str) -> bool:
+        """Whether a restart rule must do nothing: a register holds a value outside the limits in force.
+
+        Read on the device, so here in the rule's body and never in a precondition: whether a reload's cut ramp
+        left a register outside the new limits depends on timing, and a precondition that reads it makes
+        hypothesis draw differently when it replays the same steps (``FlakyStrategyDefinition``, "a flaky
+        precondition", met by the XY release run). Preconditions read only what the test did."""
+        if self.registers_within_limits():
+            return False
+        self.say(f"{what}: skipped, a register holds a value outside {self.limits.text()} (a goal a reload dropped)")
+        if currently_in_test_context():
+            event("restart skipped: a register outside the limits")
+        return True
+
     def clock_near_true(self) -> bool:
         """The daemon's clock is less than :data:`RESTART_CLOCK_OFF_DAYS` off. A restart on a clock still that far
         ahead after rows were written on it deletes records (an open recorder bug, see
@@ -812,13 +830,14 @@ class ChaosMachine(RuleBasedStateMachine):
         self.shift.step(-self.shift.offset_s)
         self.say("wall clock set right (NTP synchronised)")
 
-    @precondition(lambda self: self.mode == "ok" and not TIMESYNC_FLAG.exists() and self.clock_near_true()
-                  and self.registers_within_limits())
+    @precondition(lambda self: self.mode == "ok" and not HOST_CLOCK_SYNCHRONISED and self.clock_near_true())
     @rule(days=st.sampled_from([2, 120, 400]))
     def restart_on_a_wrong_clock(self, days: int) -> None:
         """The lab PC starts the daemon with its clock ``days`` ahead (a bad RTC, NTP not yet synchronised):
         no record file may be deleted (checked after every step). (A host whose clock says it is synchronised is
         believed: the daemon rightly deletes what that clock says has expired, so the rule is off there.)"""
+        if self.restart_skipped(f"restart {days} days ahead"):
+            return
         self.say(self.stop_daemon("SIGTERM"))
         self.shift.step(days * 86400.0)
         self.say(f"wall clock +{days} days before the start (now {self.shift.offset_s / 86400:+g} days)")

@@ -14,8 +14,10 @@ on one register), wall-clock steps (±600 s, ±1 day) and NTP setting it right, 
 transient read-back mismatches (``verify = true``), temperature changes and channel faults, SIGTERM or kill -9
 and restart with or without the state directory (a register nothing proves is then refused until
 ``nanodrift confirm-output``, which the rule runs), and a restart on a clock 2, 120 or 400 days ahead.
-Restarts wait for every register inside the limits and the clock within 30 days of true (see
-``helpers.chaos.ChaosMachine.clock_near_true`` and the xfail test at the end: an open recorder bug).
+Restarts wait for the clock within 30 days of true (``helpers.chaos.ChaosMachine.clock_near_true``), and a restart
+rule does nothing while a register holds a value outside the limits (a goal a reload dropped). That is read on the
+device, in the rule's body: a precondition reads only what the test did, or hypothesis draws other steps when it
+replays a sequence (the XY release run's ``FlakyStrategyDefinition``, "a flaky precondition").
 
 After every step, on the device and file side (what each register received, decoded to volts):
 
@@ -41,6 +43,8 @@ The release run, with every other long test at its release size (``helpers.budge
     NANODRIFT_LONG_TESTS=1 python -m pytest -q -n 0 tests/service/test_chaos.py
 
 (60 examples of up to 40 steps per machine; ``NANODRIFT_CHAOS_EXAMPLES`` and ``NANODRIFT_CHAOS_STEPS`` set them.)
+Measured on the loaded two-core machine (load average 5-11), ``-k XY`` and ``-k "not XY"`` run apart: XY 1151 s of
+wall (228 s of CPU), the one-axis machine and the regression tests 693 s (158 s of CPU); both passed.
 
 ``NANODRIFT_CHAOS_SHRINK=0`` reports the first failing sequence unshrunk (each shrink step starts a daemon).
 

@@ -4,6 +4,7 @@ a vanished device and its recovery, the exact query bytes, and a loop that never
 from __future__ import annotations
 
 import asyncio
+import threading
 import time
 from collections.abc import Awaitable, Iterator
 from pathlib import Path
@@ -17,6 +18,7 @@ from nanodrift.drivers.base import DeviceError, DriverContext, State
 from nanodrift.drivers.serial_line.config import SerialLineSensorConfig
 from nanodrift.drivers.serial_line.line import SerialLineGroup
 from nanodrift.drivers.serial_line.plugin import PLUGIN
+from nanodrift.drivers.serial_line.reader import SerialLineReader
 
 PATTERN = r"P (?P<value>[-+0-9.]+) nm"
 
@@ -178,6 +180,109 @@ def test_vanished_device_raises_then_recovers_after_reopen(device: FakeInterfero
                 await asyncio.sleep(0.05)
         assert reading.value == pytest.approx(42.0)
         await group.close()
+
+    run(body())
+
+
+@pytest.mark.parametrize("given_up_by", ["a cancellation", "its timeout"])
+def test_an_open_given_up_on_closes_its_port_once_it_ends(device: FakeInterferometer, monkeypatch: pytest.MonkeyPatch,
+                                                          given_up_by: str) -> None:
+    """A reload cancels an open in flight, or the OS answers it after ``timeout_s``: the thread still opens the
+    port. That reader must be closed, not left reading beside the next one (two readers steal each other's bytes:
+    "readiness to read but returned no data" and lost answers; the serial chaos suite's hung reload)."""
+    real_open, real_close = SerialLineReader.open, SerialLineReader.close
+    entered, release, closed = threading.Event(), threading.Event(), threading.Event()
+    late: list[SerialLineReader] = []
+
+    def gated_open(cls: type[SerialLineReader], url: str, settings: dict[str, object],
+                   **kwargs: object) -> SerialLineReader:
+        if late:  # only the first open is held up
+            return real_open(url, settings, **kwargs)
+        entered.set()
+        release.wait(10)
+        reader = real_open(url, settings, **kwargs)
+        late.append(reader)
+        return reader
+
+    def noting_close(self: SerialLineReader) -> None:
+        real_close(self)
+        if late and self is late[0]:
+            closed.set()
+
+    monkeypatch.setattr(SerialLineReader, "open", classmethod(gated_open))
+    monkeypatch.setattr(SerialLineReader, "close", noting_close)
+
+    async def body() -> None:
+        group = group_for(device.port)
+        opening = asyncio.create_task(group.open())
+        assert await asyncio.to_thread(entered.wait, 10)
+        if given_up_by == "a cancellation":
+            opening.cancel()
+            with pytest.raises(asyncio.CancelledError):
+                await opening
+        else:
+            with pytest.raises(DeviceError, match=f"cannot open {device.port}: no answer from the OS within 0.3 s"):
+                await opening
+        release.set()
+        assert await asyncio.to_thread(closed.wait, 10), "the open given up on left its reader on the port"
+        assert not late[0].port.is_open
+        readings = [(await group.read())["interferometer"] for _ in range(20)]  # read() opens the port anew
+        await group.close()
+        assert [r.state for r in readings] == [State.OK] * 20
+        assert bytes(device.received) == b"POS?\r" * 20  # every query reached the device, each answer was read
+
+    run(body())
+
+
+def test_two_opens_at_once_open_the_port_once(device: FakeInterferometer, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The sensor's poll and the actuator reopen a shared port on their own (after a reload, a fault): at once,
+    each opened it and the first reader was left reading beside the second, stealing its answers for good."""
+    real_open = SerialLineReader.open
+    opened: list[SerialLineReader] = []
+
+    def counting_open(cls: type[SerialLineReader], url: str, settings: dict[str, object],
+                      **kwargs: object) -> SerialLineReader:
+        opened.append(real_open(url, settings, **kwargs))
+        return opened[-1]
+
+    monkeypatch.setattr(SerialLineReader, "open", classmethod(counting_open))
+
+    async def body() -> None:
+        group = group_for(device.port)
+        await asyncio.gather(group.open(), group.open(), group.read())
+        readings = [(await group.read())["interferometer"] for _ in range(10)]
+        await group.close()
+        assert len(opened) == 1, f"the port was opened {len(opened)} times"
+        assert [r.state for r in readings] == [State.OK] * 10
+
+    run(body())
+
+
+def test_a_close_during_an_open_leaves_no_reader_on_the_port(device: FakeInterferometer,
+                                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    """A reload closes the line while a poll (or the actuator) reopens it: the open must not end after the close
+    with the closed line holding a reader beside the next line's."""
+    real_open = SerialLineReader.open
+    entered, release = threading.Event(), threading.Event()
+    opened: list[SerialLineReader] = []
+
+    def gated_open(cls: type[SerialLineReader], url: str, settings: dict[str, object],
+                   **kwargs: object) -> SerialLineReader:
+        entered.set()
+        release.wait(10)
+        opened.append(real_open(url, settings, **kwargs))
+        return opened[-1]
+
+    monkeypatch.setattr(SerialLineReader, "open", classmethod(gated_open))
+
+    async def body() -> None:
+        group = group_for(device.port)
+        opening = asyncio.create_task(group.open())
+        assert await asyncio.to_thread(entered.wait, 10)
+        closing = asyncio.create_task(group.close())
+        release.set()
+        await asyncio.gather(opening, closing)
+        assert len(opened) == 1 and not opened[0].port.is_open, "the closed line kept a reader on the port"
 
     run(body())
 

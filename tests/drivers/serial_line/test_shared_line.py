@@ -210,6 +210,81 @@ def test_a_resync_answer_that_comes_late_is_a_fault_then_never_an_answer(control
     run(body())
 
 
+def test_a_resync_answer_still_due_when_a_reload_opens_the_next_line_is_never_an_answer(
+        controller: FakeGcsController) -> None:
+    """The serial chaos release run's finding: a resync query went unanswered, a reload built a new line for the
+    port, whose own resync query took the old one's answer; its own answer then came as the actuator's SVA?
+    answer ("unexpected answer '(c)2015 Physik...' to 'SVA? 1'"), and that SVA? answer as the next position
+    (published ok). The new line inherits the count of resync answers still due on the port."""
+    async def body() -> None:
+        group, actuator = shared(controller.port, sensor_timeout_s=0.3, resync_on="sensor")
+        await group.open()
+        controller.voltage = 5.53
+        controller.late_s, controller.spacing_s = {"SVA?": 0.5, "*IDN?": 0.5}, 0.05
+        with pytest.raises(DeviceError, match=r"no answer to 'SVA\? 1\\n'"):
+            await actuator.command(276.5, 5.53)
+        first = (await group.read())["stage"]  # *IDN? unanswered within 0.3 s: a fault, the answer still due
+        assert first.state is State.FAULT and "resync query" in first.reason, first
+        await actuator.close()  # the reload stops the drivers ...
+        await group.close()
+        controller.late_s = {}
+        group2, actuator2 = shared(controller.port, sensor_timeout_s=0.3, resync_on="sensor")  # ... builds new ones
+        await group2.open()
+        readings = [(await group2.read())["stage"]]
+        await until(lambda: len([a for _, a in controller.sent if a == controller.IDN]) == 2, 5.0,
+                    "both *IDN? answered")
+        readings.append((await group2.read())["stage"])
+        await actuator2.close()
+        await group2.close()
+        assert [(r.state, r.value) for r in readings] == [(State.OK, pytest.approx(553.0))] * 2, readings
+        assert group2.resyncs == 1  # the old *IDN?'s answer synced the line; the new one's was skipped
+
+    run(body())
+
+
+class StrayBeforeReadback(FakeGcsController):
+    """A controller whose line carries a stray answer-shaped line just after each ``SVA?`` it receives (noise
+    on the line, another program on the port), before its own late answer."""
+
+    STRAY = b"1=-777.0000\n"  # no voltage the limits allow, no position in the valid range
+
+    def _reply(self, line: str) -> str | None:
+        if line.startswith("SVA?"):
+            self.inject(self.STRAY)
+        return super()._reply(line)
+
+
+@pytest.mark.parametrize("when", ["opening", "commanding"])
+def test_a_stray_line_taken_for_the_readback_never_shifts_the_real_answer_onto_the_position(
+        tmp_path: Path, when: str) -> None:
+    """The serial chaos release run's finding: a stray ``1=-777.0000`` came just after the actuator's ``SVA?``
+    and was taken for its answer (untrusted: outside the limits); the real answer came after it, as the first
+    line after the sensor's next ``POS?``, and was published as the position, ok. An answer the actuator does
+    not believe leaves the line dirty: the next request resynchronises first."""
+    controller = StrayBeforeReadback(tmp_path / "ttyPI")
+
+    async def body() -> None:
+        group, actuator = shared(controller.port, resync_on="sensor")
+        await group.open()
+        controller.voltage = 2.0
+        controller.late_s = {"SVA?": 0.25}  # the real answer: after the stray, within the actuator's 0.3 s
+        if when == "opening":
+            assert await actuator.read_back() == ("voltage_v", -777.0)  # (the daemon's actuator_readback_untrusted)
+        else:
+            with pytest.raises(DeviceError, match=r"read back -777"):
+                await actuator.command(250.0, 2.5)
+        readings = [(await group.read())["stage"] for _ in range(3)]
+        await group.close()
+        want = controller.voltage * 100.0  # the position of the voltage held
+        assert [(r.state, r.value) for r in readings] == [(State.OK, pytest.approx(want))] * 3, readings
+        assert group.resyncs == 1  # the first POS? waited for the resync, the next ones found the line clean
+
+    try:
+        run(body())
+    finally:
+        controller.close()
+
+
 def test_a_controller_that_does_not_answer_the_resync_query_fails_the_request_and_stays_dirty(
         controller: FakeGcsController) -> None:
     async def body() -> None:
