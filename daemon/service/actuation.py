@@ -610,8 +610,12 @@ class Actuation:
                 if newer is not None:
                     goal = self._goal = newer
                     reached = set()
-            refused = [a for a, o in outputs.items() if not o.config.within_limits(goal.voltage_v[a])]
-            if refused:  # a reload narrowed the limits under it: the stage holds, every axis
+            # a reload narrowed the limits under it, or changed the gain so that its command (what a controller
+            # sent positions gets) now means a voltage outside them: the stage holds, every axis
+            refused = [a for a, o in outputs.items()
+                       if not (o.config.within_limits(goal.voltage_v[a]) and o.config.within_limits(
+                           o.config.voltage(goal.q_um[a])))]
+            if refused:
                 self._log_dropped(goal, outputs, refused)
                 self._goal, self._goal_on_device = None, True
                 if goal is self._inflight:

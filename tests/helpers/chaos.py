@@ -512,6 +512,11 @@ class ChaosMachine(RuleBasedStateMachine):
         volts = doc["voltage_v"]
         return dict(volts) if isinstance(volts, dict) else {self.AXES[0]: volts}
 
+    def q_of(self, doc: dict[str, Any]) -> dict[str, float]:
+        """A command's ``q_um`` per axis, as :meth:`volts_of`."""
+        q = doc["q_um"]
+        return dict(q) if isinstance(q, dict) else {self.AXES[0]: q}
+
     def actuators(self, timeout: float) -> dict[str, dict[str, Any]]:
         """Each axis' ``actuator`` in ``status`` (one-axis: the top-level one)."""
         assert self.client is not None
@@ -655,10 +660,13 @@ class ChaosMachine(RuleBasedStateMachine):
                  f"applied after {t1 - t0:.3f} s")
         self.wait_answered()  # the target sent just before it: answered under the old limits or the new
         if self.last_command is not None and self.expect == "command" and not all(
-                limits.allows(v) for v in self.volts_of(self.last_command).values()):
+                limits.allows(v) and limits.allows(q * limits.volts_per_um)
+                for v, q in zip(self.volts_of(self.last_command).values(),
+                                self.q_of(self.last_command).values(), strict=True)):
             self.expect, self.dropped_at = "dropped", t1
-            self.say(f"  the last command ({self.volts_of(self.last_command)} V) is outside the new limits: "
-                     "the daemon must drop it whole and hold")
+            self.say(f"  the last command ({self.volts_of(self.last_command)} V, {self.q_of(self.last_command)} um) "
+                     "is outside the new limits (or its command is, at the new gain): the daemon must drop it whole "
+                     "and hold")
 
     @rule(bad=st.sampled_from(BAD_EDITS))
     def reload_invalid_edit(self, bad: str) -> None:

@@ -10,6 +10,7 @@ keep their shape (``device``, no axis named); a cell of several names the axis.
 from __future__ import annotations
 
 import asyncio
+import io
 import itertools
 import math
 import time
@@ -18,6 +19,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import pytest
+from helpers.log_capture import captured_logging, json_lines
 
 from nanodrift.config import ActuatorConfig
 from nanodrift.drivers.base import Actuator, DeviceError
@@ -369,6 +371,40 @@ def test_the_goal_is_carried_over_a_reload_to_the_new_outputs(axes: tuple[str, .
 
     asyncio.run(scenario())
     assert all(not d.written or d.written[-1][0] == 50.0 * share(a) for a, d in first.items())
+
+
+def test_a_goal_whose_command_a_gain_change_puts_outside_the_limits_is_dropped_not_retried(
+        axes: tuple[str, ...]) -> None:
+    """The serial chaos machine's finding: a goal carried over a reload that raised the gain kept its voltage
+    inside the new limits, but its command (what a controller sent positions receives) meant a voltage outside
+    them; the template refused it at every retry and the axis stayed in fault for good. Now it is dropped whole,
+    as a goal whose voltage the new limits forbid: nothing written, the stage holds, no fault."""
+    journal: list[tuple[str, float]] = []
+    first = devices(axes, journal, description="old")
+    second = devices(axes, journal, description="new")
+    before = {a: ActuatorConfig(volts_per_um=0.01, v_min=-1.0, v_max=10.0) for a in axes}
+    after = {a: ActuatorConfig(volts_per_um=0.025, v_min=-0.25, v_max=5.0) for a in axes}
+    q_um = -20.0  # -0.2 V at 0.01 V/um (inside both), but -0.5 V at 0.025 V/um (outside the new limits)
+
+    async def scenario(stream: io.StringIO) -> None:
+        actuation = Actuation(get_logger("test"))
+        await actuation.start(first, before)
+        await actuation.stop()  # a reload: the drivers are stopped ...
+        command(actuation, before, q_um)  # ... a target is served under the old gain ...
+        await actuation.start(second, after)  # ... and the new outputs, at the new gain, get the goal
+        await until(lambda: "actuator_goal_dropped" in stream.getvalue(), 5, "the carried goal dropped")
+        assert actuation.fault_reason is None and not journal
+        command(actuation, after, 40.0)  # the next target: served at once (1 V)
+        want = [(second[a].description, after[a].voltage(40.0 * share(a))) for a in axes]
+        await until(lambda: journal[-len(axes):] == want, 5, "the next goal on the new outputs")
+        await actuation.stop()
+
+    with captured_logging() as stream:
+        asyncio.run(scenario(stream))
+    dropped = [e for e in json_lines(stream) if e["event"] == "actuator_goal_dropped"]
+    assert len(dropped) == 1, stream.getvalue()
+    assert all(volts > -0.25 for _, volts in journal), journal  # the carried goal never reached a device
+    assert [v for d, v in journal if d.startswith("new")] == [after[a].voltage(40.0 * share(a)) for a in axes]
 
 
 class RoundsOutward(RecordingActuator):
