@@ -314,6 +314,9 @@ class Actuator(ABC):
       ``("q_um", q)``, so that the first move after a start is ramped from where the stage is;
       None when the device cannot say (the default). :class:`DeviceError` as for ``command``.
 
+    - ``check_command`` (optional, pure): ``ValueError`` when ``command`` would refuse these values (a
+      template field outside its limits), so that a goal the device can never take is dropped before
+      anything is written or recorded. The default takes every command.
     - ``sent_voltage`` (optional, pure): the voltage the device would actually receive for
       ``voltage_v`` once quantized or formatted (a DAC's count, a template's digits). The caller checks
       *that* against the limits before ``command``, and counts it as where the stage is after. The
@@ -346,6 +349,9 @@ class Actuator(ABC):
     async def close(self) -> None: ...
 
     async def read_back(self) -> tuple[Literal["voltage_v", "q_um"], float] | None:
+        return None
+
+    def check_command(self, q_um: float, voltage_v: float, *, x_um: float | None = None) -> None:
         return None
 
     def sent_voltage(self, voltage_v: float) -> float:

@@ -612,9 +612,7 @@ class Actuation:
                     reached = set()
             # a reload narrowed the limits under it, or changed the gain so that its command (what a controller
             # sent positions gets) now means a voltage outside them: the stage holds, every axis
-            refused = [a for a, o in outputs.items()
-                       if not (o.config.within_limits(goal.voltage_v[a]) and o.config.within_limits(
-                           o.config.voltage(goal.q_um[a])))]
+            refused = [a for a, o in outputs.items() if not self._takes(o, goal)]
             if refused:
                 self._log_dropped(goal, outputs, refused)
                 self._goal, self._goal_on_device = None, True
@@ -868,6 +866,20 @@ class Actuation:
             self.log.info("actuator_open", axes={a: o.actuator.description for a, o in outputs.items()},
                           voltage_v={a: s.voltage_v for a, s in starts.items()},
                           known_from={a: s.known_from for a, s in starts.items()})
+
+    @staticmethod
+    def _takes(out: AxisOutput, goal: Goal) -> bool:
+        """Whether ``out`` can be sent ``goal`` under the config in force: its voltage, its command at the gain
+        now in force, and every field the device's command carries (a template's ``x_um``) within the limits."""
+        axis, config = out.axis, out.config
+        if not (config.within_limits(goal.voltage_v[axis]) and config.within_limits(config.voltage(goal.q_um[axis]))):
+            return False
+        try:
+            out.actuator.check_command(goal.q_um[axis], goal.voltage_v[axis], x_um=(
+                goal.positions_um.get(axis) if goal.positions_um is not None else None))
+        except ValueError:
+            return False
+        return True
 
     def _log_dropped(self, goal: Goal, outputs: Mapping[str, AxisOutput], refused: list[str]) -> None:
         reason = "the served command is outside the limits now in force: the stage holds"

@@ -59,6 +59,10 @@ class SerialLineActuator(Actuator):
         except ValueError as error:
             raise ValueError(f"{self.description}: command {self.config.command!r}: {error}") from None
 
+    def check_command(self, q_um: float, voltage_v: float, *, x_um: float | None = None) -> None:
+        """:class:`ValueError` when the template cannot carry these values within their limits."""
+        self.render(q_um, voltage_v, x_um)
+
     def sent_voltage(self, voltage_v: float) -> float:
         """The voltage the controller reads in the line for ``voltage_v`` (a closed-loop template, which
         writes ``q_um``, carries no voltage: then ``voltage_v`` itself)."""

@@ -661,9 +661,7 @@ class ChaosMachine(RuleBasedStateMachine):
         self.wait_answered()  # the target sent just before it: answered under the old limits or the new
         if self.last_command is None:
             return
-        allowed = all(limits.allows(v) and limits.allows(q * limits.volts_per_um)
-                      for v, q in zip(self.volts_of(self.last_command).values(),
-                                      self.q_of(self.last_command).values(), strict=True))
+        allowed = self.command_allowed(limits, self.last_command)
         if self.expect == "command" and not allowed:
             self.expect, self.dropped_at = "dropped", t1
             self.say(f"  the last command ({self.volts_of(self.last_command)} V, {self.q_of(self.last_command)} um) "
@@ -675,6 +673,12 @@ class ChaosMachine(RuleBasedStateMachine):
             self.expect, self.dropped_at = "command", None
             self.say("  the goal a narrower reload forbade was never dropped (the output was down) and the new limits "
                      "allow it: the daemon carries it over")
+
+    def command_allowed(self, limits: Limits, command: dict[str, Any]) -> bool:
+        """Whether the daemon may still send ``command`` under ``limits``: its voltages, and its commands at the
+        gain in force (what a controller sent positions would get)."""
+        return all(limits.allows(v) and limits.allows(q * limits.volts_per_um)
+                   for v, q in zip(self.volts_of(command).values(), self.q_of(command).values(), strict=True))
 
     def drop_logged(self) -> bool:
         """Whether an ``actuator_goal_dropped`` line names the last command's voltages."""

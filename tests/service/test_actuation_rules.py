@@ -407,6 +407,45 @@ def test_a_goal_whose_command_a_gain_change_puts_outside_the_limits_is_dropped_n
     assert [v for d, v in journal if d.startswith("new")] == [after[a].voltage(40.0 * share(a)) for a in axes]
 
 
+class TakesPositionsUpTo(RecordingActuator):
+    """A device whose command carries the target position and refuses one beyond ``bound_um`` (a template's
+    ``x_um`` field kept within the command range): ValueError, nothing written."""
+
+    bound_um = 300.0
+
+    def check_command(self, q_um: float, voltage_v: float, *, x_um: float | None = None) -> None:
+        if x_um is not None and x_um > self.bound_um:
+            raise ValueError(f"{self.description}: x_um = {x_um} um is outside the command range")
+
+    async def command(self, q_um: float, voltage_v: float, *, x_um: float | None = None) -> None:
+        self.check_command(q_um, voltage_v, x_um=x_um)
+        await super().command(q_um, voltage_v, x_um=x_um)
+
+
+def test_a_goal_a_field_of_the_devices_command_cannot_carry_is_dropped_before_anything_is_written(
+        axes: tuple[str, ...]) -> None:
+    """The serial chaos machine's second finding: a target position beyond what the template's ``x_um`` field may
+    carry made every write raise ValueError (after the state record had been written): the axis stayed in fault,
+    its read-back never matching the record again. Now the goal is dropped whole before anything is recorded."""
+    journal: list[tuple[str, float]] = []
+    outputs = {a: TakesPositionsUpTo(description=f"bounded {a}", journal=journal) for a in axes}
+    configs = {a: ActuatorConfig() for a in axes}
+
+    async def scenario(stream: io.StringIO) -> None:
+        actuation = Actuation(get_logger("test"))
+        await actuation.start(outputs, configs)
+        command(actuation, configs, 310.0, x_um=320.0)  # x beyond 300 um on x (y's share, 0.5, is inside)
+        await until(lambda: "actuator_goal_dropped" in stream.getvalue(), 5, "the goal dropped")
+        assert actuation.fault_reason is None and not journal, journal
+        command(actuation, configs, 100.0, x_um=110.0)
+        want = [(outputs[a].description, configs[a].voltage(100.0 * share(a))) for a in axes]
+        await until(lambda: journal[-len(axes):] == want, 5, "the next goal written")
+        await actuation.stop()
+
+    with captured_logging() as stream:
+        asyncio.run(scenario(stream))
+
+
 class RoundsOutward(RecordingActuator):
     """A device whose representation of a voltage lands 0.05 V above it (a template that rounds up)."""
 

@@ -53,13 +53,12 @@ actuator does not believe now leaves the line dirty (``SerialLineGroup.distrust_
 the actuator reopening the shared port at once (after a reload under a garbling controller) started two readers:
 the actuator stayed in fault after the controller answered again, every ``*IDN?`` answer stolen; one open at a time.
 
-Open (diagnosed, not fixed): with position fields in the template, a command served under one gain, the controller
-failing, then a reload to another gain (``0.01 -> 0.025 V/um``, ``[-0.25, 5] V``): the goal carried over keeps its
-``q_um`` (-23.53 um) while its voltage (-0.2353 V) is inside the new limits, so it is not dropped; the template
-refuses the ``q_um`` outside the new command range ([-10, 200] um, "nothing written") and the actuator stays in fault,
-retried every 5 s, once the controller answers again ("the actuation never went quiet"). The daemon
-(``service/actuation.py``, ``_move_to``) must drop such a goal whole as it drops one whose voltage the limits forbid
-(every field a template carries, checked before any axis is written), and the machine's model expect it.
+Fixed: with position fields in the template, a goal carried over a reload to another gain (``0.01 -> 0.025 V/um``,
+``[-0.25, 5] V``) kept its voltage inside the new limits while its ``q_um`` (or its ``x_um``) was outside the new
+command range; the template refused it at every retry and the actuator stayed in fault for good. The daemon now drops
+such a goal whole before anything is recorded or written (``Actuation._takes``: the voltage, the command at the gain
+in force, and every field the device's command carries via ``Actuator.check_command``), and the model expects it
+(``command_allowed``).
 
 Open (not diagnosed): a reload while the controller answers every query with ``ERROR 5`` (the actuator's open fails
 on the ``*IDN?`` resync), stray bytes, then the controller healthy again: in about one release run in two the
@@ -239,6 +238,11 @@ class SerialChaosMachine(ChaosMachine):
         self.position_spec = position_spec
         super().start_daemon(limits)
         self.say(f"template: {self.command_template()}")
+
+    def command_allowed(self, limits: Limits, command: dict[str, Any]) -> bool:
+        """... and, with position fields in the template, the target position its ``x_um`` field carries."""
+        return super().command_allowed(limits, command) and (
+            self.position_spec is None or limits.allows(command["x_um"] * limits.volts_per_um))
 
     def command_template(self) -> str:
         if self.position_spec is None:
