@@ -36,8 +36,9 @@ AO_ADDRESS = 10
 AO_VOLTS_PER_COUNT = 0.001
 TC_DEGC_PER_COUNT = 0.01
 THERMOCOUPLES = ("T1", "T2", "T3", "T4")
-#: a controller emulated by a thread of the pytest process answers late on a loaded machine (0.5 s was seen
-#: to expire at a load of 9): the bound only says how long a dead controller takes to be called dead
+#: a controller or module emulated by a thread of the pytest process answers late on a loaded machine (0.5 s was
+#: seen to expire at a load of 9, and a module's connect): it only bounds how long a dead device takes to be
+#: called dead
 CONTROLLER_TIMEOUT_S = 2.0
 
 
@@ -190,7 +191,7 @@ class EmulatedCell:
                 f"{actuators[actuator]}{extra_actuator}"
                 f"[procedure]\n{procedure}"
                 f'[[hubs]]\nname = "module"\ntype = "tcp"\nhost = "127.0.0.1"\nport = {self.modbus.port}\n'
-                f"timeout_s = 0.5\n{sensors}")
+                f"timeout_s = {CONTROLLER_TIMEOUT_S}\n{sensors}")
 
 
 def write_config(path: Path, text: str) -> Path:
