@@ -553,6 +553,9 @@ class ChaosMachine(RuleBasedStateMachine):
             self.commands_seen = len(commands)
             self.last_command = commands[-1]
             self.expect, self.dropped_at = "command", None
+            if not self.command_allowed(self.limits, self.last_command):  # served, but a field the device's
+                # command carries is outside the limits (a template's x_um): dropped whole, nothing written
+                self.expect, self.dropped_at = "dropped", time.monotonic()
 
     def wait_answered(self) -> None:
         """Invariant 3: every target sent so far has exactly one answer, of a kind its step allows."""
