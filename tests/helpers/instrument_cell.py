@@ -28,6 +28,9 @@ from nanodrift.drivers.simulated.config import SimulationConfig
 from nanodrift.drivers.testing import DconBusEmulator, DconModule, DconTcpGateway, IdsEmulator
 from nanodrift.drivers.testing.pi_gcs_emulator import EmulatedAxis, PiGcsEmulator, PiGcsPtyDevice, PiGcsTcpServer
 
+#: the emulated PI controller answers from a thread of the pytest process, late on a loaded machine (0.5 s was
+#: seen to expire beside a serial run): it only bounds how long a dead controller takes to be called dead
+CONTROLLER_TIMEOUT_S = 2.0
 SPEED = 3000.0
 VOLTS_PER_UM = 0.02  # the amplifier's gain (open loop) and [actuator] volts_per_um
 V_MIN, V_MAX = -1.0, 11.0  # [actuator] limits, inside the emulated piezo channel's VMI?/VMA? (-30, 130)
@@ -171,7 +174,8 @@ class InstrumentCell:
         else:
             assert self.pi_pty is not None
             where = f'transport = "serial"\nport = "{self.pi_pty.port}"\n'
-        return (f'kind = "pi_gcs"\n{where}axis = "{c.pi_axes[axis]}"\nmode = "{c.mode}"\ntimeout_s = 0.5\n'
+        return (f'kind = "pi_gcs"\n{where}axis = "{c.pi_axes[axis]}"\nmode = "{c.mode}"\n'
+                f"timeout_s = {CONTROLLER_TIMEOUT_S}\n"
                 f"volts_per_um = {VOLTS_PER_UM}\nv_min = {V_MIN}\nv_max = {V_MAX}\n"
                 f"max_slew_um_per_s = {SLEW_UM_PER_S}\nsafe_voltage_v = 0.0\n")
 
