@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 from collections.abc import Iterator
+from typing import Any
 
 import pytest
-from helpers.edge_cell import Cell, OutputModule
+from helpers.edge_cell import OutputModule
 
 
 @pytest.fixture
@@ -17,9 +18,9 @@ def module() -> Iterator[OutputModule]:
 
 
 @pytest.fixture
-def cells() -> Iterator[list[Cell]]:
-    """The daemons a test starts, each closed after it (a file with a Cell of its own defines its own)."""
-    made: list[Cell] = []
+def cells() -> Iterator[list[Any]]:
+    """The daemons a test starts (any cell harness with ``close()``), each closed after it."""
+    made: list[Any] = []
     yield made
     for cell in made:
         cell.close()

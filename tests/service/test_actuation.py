@@ -173,14 +173,6 @@ class Cell:
         return self.daemon.stop()
 
 
-@pytest.fixture
-def cells() -> Iterator[list[Cell]]:
-    made: list[Cell] = []
-    yield made
-    for cell in made:
-        cell.close()
-
-
 def test_the_register_holds_each_command_a_dead_module_refuses_targets_and_recovery_serves_again(
         tmp_path: Path, module: OutputModule, cells: list[Cell]) -> None:
     cell = Cell(tmp_path, module.server.port)

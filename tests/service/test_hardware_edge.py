@@ -218,7 +218,7 @@ def test_settled_residuals_are_taken_only_after_the_ramp_has_reached_the_command
         seen_mid_ramp += 1
         time.sleep(0.02)  # a poll period (not a wait for anything): status queries back to back cost both CPUs
     reached = next(t for t, raw in module.written() if raw == goal_raw)
-    assert reached - sent >= 80.0 / rate - 0.3 and seen_mid_ramp > 5
+    assert reached - sent >= 80.0 / rate - 0.3 and seen_mid_ramp >= 2  # checked mid-ramp (a loaded machine polls less)
 
     def first_residual() -> dict[str, Any] | None:
         health = cell.bus.status()["health"]
