@@ -164,6 +164,7 @@ class ChaosController(FakeGcsController):
         self.sva_answers: set[float] = set()  # ... and its SVA? answers
         self.rejecting = False
         self.last_actuator_line = time.monotonic()
+        self.healed_at = -1e9  # when the controller last started answering again
         super().__init__(link, position_per_volt=1.0 / STAGE_V_PER_UM)
 
     def _reply(self, line: str) -> str | None:
@@ -189,7 +190,15 @@ class ChaosController(FakeGcsController):
         with self.lock:
             return time.monotonic() - self.last_actuator_line
 
+    def unanswered_request_possible(self) -> bool:
+        """The daemon's last actuator request reached the controller before it answered again: its answer may
+        never come, and the daemon learns that only when its timeout expires (until then it says ``ok``)."""
+        with self.lock:
+            return self.last_actuator_line < self.healed_at
+
     def heal(self) -> None:
+        with self.lock:
+            self.healed_at = time.monotonic()
         self.silent = self.rejecting = False
         self.answer = None
         self.late_s = {}
@@ -303,6 +312,8 @@ class SerialChaosMachine(ChaosMachine):
         assert self.client is not None and self.daemon is not None
         controller = self.controller
         window = 0.4 + max(controller.late_s.values(), default=0.0)
+        if controller.unanswered_request_possible():  # quiet and "ok" mean nothing until the timeout expires
+            window = max(window, ACTUATOR_TIMEOUT_S + QUIET_S + BEYOND_S)
         deadline = time.monotonic() + QUIET_WAIT_S
         state = None
         def quiet_for() -> float:
@@ -525,6 +536,24 @@ def test_a_reload_while_the_actuator_retries_a_failing_controller_ends(half: int
     finally:
         machine.teardown()
 
+
+
+def test_a_command_served_while_the_controller_was_silent_reaches_it_once_it_answers() -> None:
+    """A release run's finding, in the harness: two commands served while the controller is silent (it takes the
+    first SVA and swallows the read-back query); once it answers again the daemon learns of the lost answer only
+    when its timeout expires, so "quiet" after a heal must outlast that timeout (else the check read the
+    controller while the newer command still waited behind the unanswered query)."""
+    machine = SerialChaosMachine()
+    try:
+        machine.start_daemon(Limits(-2.0, 12.0, 0.0, 0.01), position_spec=".1f")
+        machine.check()
+        machine.controller_goes_silent()
+        machine.send_targets([("valid", 412.916), ("valid", 239.336)])
+        machine.check()
+        machine.controller_works_again()
+        machine.check()
+    finally:
+        machine.teardown()
 
 
 def test_a_command_served_while_a_slow_poll_holds_the_line_reaches_the_controller() -> None:
