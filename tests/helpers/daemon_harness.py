@@ -26,6 +26,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+import pytest
 import zenoh
 
 from helpers.modbus_helpers import free_port  # one definition for every helper (re-exported here)
@@ -261,6 +262,18 @@ class Daemon:
                 self.proc.wait(5)
         self._log_file.close()
         return self.proc.returncode
+
+
+def run_cli(capsys: pytest.CaptureFixture[str], *args: str) -> subprocess.CompletedProcess[str]:
+    """``nanodrift <args>`` run by the console script's own ``main`` in this process: its exit code, stdout and
+    stderr. A client command (``target``, ``status``) needs no process of its own, and a Python start-up costs
+    half a second of CPU (tests/conftest.py resets structlog per test, as a fresh process has it)."""
+    from nanodrift.cli import main  # the command line's imports, only where a test runs a command
+
+    capsys.readouterr()  # what the test printed before is not the command's
+    code = main(list(args))
+    out, err = capsys.readouterr()
+    return subprocess.CompletedProcess(["nanodrift", *args], code, out, err)
 
 
 def client_config(port: int) -> zenoh.Config:

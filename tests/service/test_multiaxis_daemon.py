@@ -13,7 +13,6 @@ import json
 import re
 import signal
 import subprocess
-import sys
 import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
@@ -21,13 +20,13 @@ from pathlib import Path
 import pytest
 from helpers.cell_helpers import ThreadedModbus, expected_cell_q, write_cell_model
 from helpers.daemon_harness import (
-    REPO,
     TEMPS,
     Client,
     Daemon,
     SensorFile,
     free_port,
     install_file_plugin,
+    run_cli,
     wait_until,
     write_test_model,
 )
@@ -86,14 +85,25 @@ class XYCell:
         self.module.stop()
 
 
+@pytest.fixture(scope="module")
+def serving(tmp_path_factory: pytest.TempPathFactory) -> Iterator[XYCell]:
+    """One daemon for the tests that only send targets and read (no reload, no edit): each judges what changed
+    since it began (commands, writes, counters), so their order does not matter."""
+    served = XYCell(tmp_path_factory.mktemp("xy"))
+    yield served
+    served.close()
+
+
 @pytest.fixture
 def cell(tmp_path: Path) -> Iterator[XYCell]:
+    """A daemon of the test's own, for a test that edits its config."""
     served = XYCell(tmp_path)
     yield served
     served.close()
 
 
-def test_a_two_axis_target_is_one_command_and_both_registers_hold_its_voltages(cell: XYCell) -> None:
+def test_a_two_axis_target_is_one_command_and_both_registers_hold_its_voltages(serving: XYCell) -> None:
+    cell = serving
     ok, command = cell.client.query({"x_um": 240, "y_um": 100, "id": 7})
     assert ok, command
     q = expected_cell_q({"x": 240.0, "y": 100.0}, TEMPS)
@@ -127,7 +137,10 @@ def test_a_two_axis_target_is_one_command_and_both_registers_hold_its_voltages(c
     assert volts is not None and float(volts[1]) == pytest.approx(command["voltage_v"]["y"], abs=SCALE_V)
 
 
-def test_a_partial_or_out_of_workspace_target_is_refused_whole_and_no_register_is_written(cell: XYCell) -> None:
+def test_a_partial_or_out_of_workspace_target_is_refused_whole_and_no_register_is_written(serving: XYCell) -> None:
+    cell = serving
+    errors_before = cell.client.status()["counters"]["errors"]
+    published_before = len(cell.client.commands)
     ok, first = cell.client.query({"x_um": 100, "y_um": 50, "id": 1})
     assert ok, first
     cell.wait_registers(first["voltage_v"])
@@ -144,40 +157,42 @@ def test_a_partial_or_out_of_workspace_target_is_refused_whole_and_no_register_i
     # a later target is served: the refusals above were answered and passed; nothing reached the module
     ok, after = cell.client.query({"x_um": 100, "y_um": 50, "id": 5})
     assert ok, after
-    published_ids = [c["id"] for c in cell.client.commands]
+    published_ids = [c["id"] for c in cell.client.commands[published_before:]]
     assert 2 not in published_ids and 3 not in published_ids and 4 not in published_ids
     writes = {a: cell.module.written(address)[writes_before[a]:] for a, address in ADDRESSES.items()}
     expected = {a: [round(first["voltage_v"][a] / SCALE_V)] for a in ADDRESSES}
     assert all(w == [expected[a]] * len(w) for a, w in writes.items()), writes  # only command 5's (same) values
-    assert json.loads(json.dumps(cell.client.status()["counters"]["errors"])) == {"bad_payload": 2,
-                                                                                  "out_of_workspace": 1}
+    errors = cell.client.status()["counters"]["errors"]
+    added = {kind: n - errors_before.get(kind, 0) for kind, n in errors.items() if n != errors_before.get(kind, 0)}
+    assert added == {"bad_payload": 2, "out_of_workspace": 1}, (errors_before, errors)
 
 
-def cli(cell: XYCell, *args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "nanodrift.cli", *args, "-e", f"tcp/127.0.0.1:{cell.port}",
-                           "--cell", "xy"], capture_output=True, text=True, cwd=REPO, timeout=60)
+def cli(capsys: pytest.CaptureFixture[str], cell: XYCell, *args: str) -> subprocess.CompletedProcess[str]:
+    return run_cli(capsys, *args, "-e", f"tcp/127.0.0.1:{cell.port}", "--cell", "xy")
 
 
-def test_the_cli_sends_one_point_per_target_in_the_cells_axis_order_and_status_shows_each_axis(cell: XYCell) -> None:
-    result = cli(cell, "target", "240,100", "0,0", "--json")
+def test_the_cli_sends_one_point_per_target_in_the_cells_axis_order_and_status_shows_each_axis(
+        serving: XYCell, capsys: pytest.CaptureFixture[str]) -> None:
+    cell = serving
+    result = cli(capsys, cell, "target", "240,100", "0,0", "--json")
     assert result.returncode == 0, result.stderr
     answers = [json.loads(line) for line in result.stdout.splitlines()]
     assert [(a["x_um"], a["y_um"]) for a in answers] == [(240.0, 100.0), (0.0, 0.0)]
     assert answers[0]["q_um"] == pytest.approx(expected_cell_q({"x": 240.0, "y": 100.0}, TEMPS), abs=1e-9)
 
-    result = cli(cell, "target", "100,50", "300,450")
+    result = cli(capsys, cell, "target", "100,50", "300,450")
     assert result.returncode == 1
     assert result.stdout.startswith("x 100.0000 y 50.0000 µm -> q x ") and cell.model.id in result.stdout
     # σ per axis (this hand-made model has no covariance nor residual RMS: unknown) and °C, as one axis shows them
     assert re.search(r"σ x (\d+\.\d{4}|unknown) y (\d+\.\d{4}|unknown) µm; T1=21\.800 °C", result.stdout), result.stdout
     assert "300,450 µm refused: y_um 450 outside axis y's workspace [0, 400] µm" in result.stderr, result.stderr
-    result = cli(cell, "target", "100")  # one number in an XY cell: refused by the daemon, naming y
+    result = cli(capsys, cell, "target", "100")  # one number in an XY cell: refused by the daemon, naming y
     assert result.returncode == 1 and "'y_um'" in result.stderr, result.stderr
-    result = cli(cell, "target", "1,2,3")
+    result = cli(capsys, cell, "target", "1,2,3")
     assert result.returncode == 2 and "cell xy has axes x, y" in result.stderr, result.stderr
 
     cell.wait_registers({"x": 0.02 * expected_cell_q({"x": 100.0, "y": 50.0}, TEMPS)["x"]})
-    result = cli(cell, "status")
+    result = cli(capsys, cell, "status")
     assert result.returncode == 0, result.stderr
     assert "x:modbus:ok y:modbus:ok" in result.stdout, result.stdout
     assert "xy axis y: [0, 400] µm, modbus ok at " in result.stdout, result.stdout
@@ -216,7 +231,8 @@ def test_a_reload_keeps_the_axes_and_carries_the_goal_to_the_reopened_outputs(ce
     assert ok and after["q_um"] == pytest.approx(command["q_um"], abs=1e-9)
 
 
-def test_each_axis_has_its_health_and_its_own_bias_correction(tmp_path: Path) -> None:
+def test_each_axis_has_its_health_and_its_own_bias_correction(tmp_path: Path,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
     sensor_file = tmp_path / "sensors.json"
     positions = "".join(f'[[sensors]]\nname = "ifm_{axis}"\nkind = "file"\npath = "{sensor_file}"\n'
                         f'role = "position"\naxis = "{axis}"\ninterval_s = 0.05\nmax_age_s = 2.0\n\n'
@@ -266,7 +282,7 @@ def test_each_axis_has_its_health_and_its_own_bias_correction(tmp_path: Path) ->
         assert float(recorded[0]["residual_y_um"]) == pytest.approx(-0.2, abs=1e-9)
         data = read_csv(next((tmp_path / "records").glob("records-*.csv")))  # fit reads it back
         assert data.axes == ("x", "y") and list(data.channels) == ["T1", "T2"]
-        shown = cli(cell, "status")
+        shown = cli(capsys, cell, "status")
         assert "axis y: [0, 400] µm, modbus ok at " in shown.stdout, shown.stdout
         assert ", position ifm_y ok 49.800 µm, health unknown -200 nm" not in shown.stdout  # rms, not the mean
         assert re.search(r"position ifm_y ok 49\.800 µm, health unknown 200 nm", shown.stdout), shown.stdout
