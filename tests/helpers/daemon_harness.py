@@ -15,6 +15,8 @@ Every wait is bounded and polls a condition; nothing sleeps and hopes.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import io
 import json
 import os
 import signal
@@ -26,7 +28,6 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-import pytest
 import zenoh
 
 from helpers.modbus_helpers import free_port  # one definition for every helper (re-exported here)
@@ -264,16 +265,32 @@ class Daemon:
         return self.proc.returncode
 
 
-def run_cli(capsys: pytest.CaptureFixture[str], *args: str) -> subprocess.CompletedProcess[str]:
+def run_cli(*args: str, pythonpath: Sequence[Path] = ()) -> subprocess.CompletedProcess[str]:
     """``nanodrift <args>`` run by the console script's own ``main`` in this process: its exit code, stdout and
-    stderr. A client command (``target``, ``status``) needs no process of its own, and a Python start-up costs
-    half a second of CPU (tests/conftest.py resets structlog per test, as a fresh process has it)."""
+    stderr. A command that only talks to a daemon or writes a file needs no process of its own, and a Python
+    start-up costs half a second of CPU. ``pythonpath``: directories of driver plugins the command's config names
+    (``*.dist-info`` entry points, as :func:`install_file_plugin` writes), on the path for the call only.
+    (tests/conftest.py resets structlog per test, as a fresh process has it.)"""
     from nanodrift.cli import main  # the command line's imports, only where a test runs a command
+    from nanodrift.drivers import registry
 
-    capsys.readouterr()  # what the test printed before is not the command's
-    code = main(list(args))
-    out, err = capsys.readouterr()
-    return subprocess.CompletedProcess(["nanodrift", *args], code, out, err)
+    paths = [str(p) for p in pythonpath]
+    sys.path[:0] = paths
+    registry.available.cache_clear()
+    registry.load_plugin.cache_clear()
+    out, err = io.StringIO(), io.StringIO()
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                code = main(list(args))
+            except SystemExit as exit_:  # argparse refusing the arguments, as the console script exits
+                code = exit_.code if isinstance(exit_.code, int) else 2
+    finally:
+        for path in paths:
+            sys.path.remove(path)
+        registry.available.cache_clear()
+        registry.load_plugin.cache_clear()
+    return subprocess.CompletedProcess(["nanodrift", *args], code, out.getvalue(), err.getvalue())
 
 
 def client_config(port: int) -> zenoh.Config:

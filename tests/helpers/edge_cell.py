@@ -9,9 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import itertools
-import os
 import subprocess
-import sys
 import threading
 import time
 from collections.abc import Callable, Coroutine, Sequence
@@ -19,15 +17,14 @@ from pathlib import Path
 from typing import Any
 
 from helpers.daemon_harness import (
-    REPO,
     TEMPS,
-    TESTS,
     Client,
     Daemon,
     SensorFile,
     file_sensor_config,
     free_port,
     install_file_plugin,
+    run_cli,
 )
 from helpers.modbus_helpers import ModbusTestDevice, ModbusTestServer
 from helpers.wall_clock import WallShift
@@ -97,10 +94,9 @@ def raw_for(voltage_v: float) -> int:
 
 
 def confirm_output(config: Path, pythonpath: Sequence[Path], *args: str) -> subprocess.CompletedProcess[str]:
-    """``nanodrift confirm-output --config <config> <args>``: an operator says where an output is."""
-    path = os.pathsep.join([*(str(p) for p in pythonpath), str(TESTS), str(REPO)])
-    return subprocess.run([sys.executable, "-m", "nanodrift.cli", "confirm-output", "--config", str(config), *args],
-                          capture_output=True, text=True, timeout=30, env={**os.environ, "PYTHONPATH": path})
+    """``nanodrift confirm-output --config <config> <args>``: an operator says where an output is (in this process,
+    with the config's driver plugins in ``pythonpath``; it writes a state file and opens no device)."""
+    return run_cli("confirm-output", "--config", str(config), *args, pythonpath=pythonpath)
 
 
 def state_dir_keys(root: Path) -> str:

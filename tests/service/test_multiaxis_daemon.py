@@ -167,32 +167,32 @@ def test_a_partial_or_out_of_workspace_target_is_refused_whole_and_no_register_i
     assert added == {"bad_payload": 2, "out_of_workspace": 1}, (errors_before, errors)
 
 
-def cli(capsys: pytest.CaptureFixture[str], cell: XYCell, *args: str) -> subprocess.CompletedProcess[str]:
-    return run_cli(capsys, *args, "-e", f"tcp/127.0.0.1:{cell.port}", "--cell", "xy")
+def cli(cell: XYCell, *args: str) -> subprocess.CompletedProcess[str]:
+    return run_cli(*args, "-e", f"tcp/127.0.0.1:{cell.port}", "--cell", "xy")
 
 
 def test_the_cli_sends_one_point_per_target_in_the_cells_axis_order_and_status_shows_each_axis(
-        serving: XYCell, capsys: pytest.CaptureFixture[str]) -> None:
+        serving: XYCell) -> None:
     cell = serving
-    result = cli(capsys, cell, "target", "240,100", "0,0", "--json")
+    result = cli(cell, "target", "240,100", "0,0", "--json")
     assert result.returncode == 0, result.stderr
     answers = [json.loads(line) for line in result.stdout.splitlines()]
     assert [(a["x_um"], a["y_um"]) for a in answers] == [(240.0, 100.0), (0.0, 0.0)]
     assert answers[0]["q_um"] == pytest.approx(expected_cell_q({"x": 240.0, "y": 100.0}, TEMPS), abs=1e-9)
 
-    result = cli(capsys, cell, "target", "100,50", "300,450")
+    result = cli(cell, "target", "100,50", "300,450")
     assert result.returncode == 1
     assert result.stdout.startswith("x 100.0000 y 50.0000 µm -> q x ") and cell.model.id in result.stdout
     # σ per axis (this hand-made model has no covariance nor residual RMS: unknown) and °C, as one axis shows them
     assert re.search(r"σ x (\d+\.\d{4}|unknown) y (\d+\.\d{4}|unknown) µm; T1=21\.800 °C", result.stdout), result.stdout
     assert "300,450 µm refused: y_um 450 outside axis y's workspace [0, 400] µm" in result.stderr, result.stderr
-    result = cli(capsys, cell, "target", "100")  # one number in an XY cell: refused by the daemon, naming y
+    result = cli(cell, "target", "100")  # one number in an XY cell: refused by the daemon, naming y
     assert result.returncode == 1 and "'y_um'" in result.stderr, result.stderr
-    result = cli(capsys, cell, "target", "1,2,3")
+    result = cli(cell, "target", "1,2,3")
     assert result.returncode == 2 and "cell xy has axes x, y" in result.stderr, result.stderr
 
     cell.wait_registers({"x": 0.02 * expected_cell_q({"x": 100.0, "y": 50.0}, TEMPS)["x"]})
-    result = cli(capsys, cell, "status")
+    result = cli(cell, "status")
     assert result.returncode == 0, result.stderr
     assert "x:modbus:ok y:modbus:ok" in result.stdout, result.stdout
     assert "xy axis y: [0, 400] µm, modbus ok at " in result.stdout, result.stdout
@@ -231,8 +231,7 @@ def test_a_reload_keeps_the_axes_and_carries_the_goal_to_the_reopened_outputs(ce
     assert ok and after["q_um"] == pytest.approx(command["q_um"], abs=1e-9)
 
 
-def test_each_axis_has_its_health_and_its_own_bias_correction(tmp_path: Path,
-                                                              capsys: pytest.CaptureFixture[str]) -> None:
+def test_each_axis_has_its_health_and_its_own_bias_correction(tmp_path: Path) -> None:
     sensor_file = tmp_path / "sensors.json"
     positions = "".join(f'[[sensors]]\nname = "ifm_{axis}"\nkind = "file"\npath = "{sensor_file}"\n'
                         f'role = "position"\naxis = "{axis}"\ninterval_s = 0.05\nmax_age_s = 2.0\n\n'
@@ -282,7 +281,7 @@ def test_each_axis_has_its_health_and_its_own_bias_correction(tmp_path: Path,
         assert float(recorded[0]["residual_y_um"]) == pytest.approx(-0.2, abs=1e-9)
         data = read_csv(next((tmp_path / "records").glob("records-*.csv")))  # fit reads it back
         assert data.axes == ("x", "y") and list(data.channels) == ["T1", "T2"]
-        shown = cli(capsys, cell, "status")
+        shown = cli(cell, "status")
         assert "axis y: [0, 400] µm, modbus ok at " in shown.stdout, shown.stdout
         assert ", position ifm_y ok 49.800 µm, health unknown -200 nm" not in shown.stdout  # rms, not the mean
         assert re.search(r"position ifm_y ok 49\.800 µm, health unknown 200 nm", shown.stdout), shown.stdout

@@ -254,8 +254,7 @@ def still_simulated(client: Client, target_id: str) -> None:
     assert ok and command["id"] == target_id, command
 
 
-def test_a_deeply_nested_config_on_sighup_is_refused_logged_and_counted(tmp_path: Path,
-                                                                        capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_deeply_nested_config_on_sighup_is_refused_logged_and_counted(tmp_path: Path) -> None:
     with sim_daemon(tmp_path, "deepcfg") as (daemon, client, config):
         config.write_text("x = " + NESTED)
         line = hup_and_wait(daemon, "reload_refused", "reload_applied")
@@ -263,7 +262,7 @@ def test_a_deeply_nested_config_on_sighup_is_refused_logged_and_counted(tmp_path
         assert line["config"] == str(config) and line["problems"] == [TOO_DEEP], line
         assert client.status()["counters"]["reload_failures"] == 1
         still_simulated(client, "after-deep-config")
-        check = run_cli(capsys, "check-config", str(config))
+        check = run_cli("check-config", str(config))
         assert check.returncode == 2 and f"error: {config}: {TOO_DEEP}" in check.stderr, check.stderr
     stderr = daemon.log_path.read_text(errors="replace")
     assert "Traceback" not in stderr and "Task exception was never retrieved" not in stderr
@@ -288,8 +287,7 @@ def test_a_reload_from_the_simulated_cell_to_modbus_is_refused_restart_needed(tm
         still_simulated(client, "after-modbus")
 
 
-def test_check_config_and_the_reload_agree_on_a_sensorless_file(restore: Served,
-                                                                capsys: pytest.CaptureFixture[str]) -> None:
+def test_check_config_and_the_reload_agree_on_a_sensorless_file(restore: Served) -> None:
     """The file an emptied install leaves (its model still there): both refuse it, for the same reason."""
     s = restore
     failures = s.client.status()["counters"]["reload_failures"]
@@ -299,7 +297,7 @@ def test_check_config_and_the_reload_agree_on_a_sensorless_file(restore: Served,
     assert line["event"] == "reload_refused", line
     assert line["problems"][0].startswith("sensors: the edited config lists no sensors"), line["problems"]
     assert s.client.status()["counters"]["reload_failures"] == failures + 1
-    check = run_cli(capsys, "check-config", str(s.config_path))
+    check = run_cli("check-config", str(s.config_path))
     assert check.returncode == 2, check
     assert f"{s.config_path}: sensors: the config lists no sensors (an emptied file?)" in check.stderr, check.stderr
     assert "refuses it on reload" in check.stderr

@@ -129,10 +129,9 @@ def status_ok(session: zenoh.Session) -> bool:
     return False
 
 
-def nanodrift_target(capsys: pytest.CaptureFixture[str], config: Path, port: int,
-                     endpoint: str = "tcp/127.0.0.1") -> subprocess.CompletedProcess[str]:
+def nanodrift_target(config: Path, port: int, endpoint: str = "tcp/127.0.0.1") -> subprocess.CompletedProcess[str]:
     """``nanodrift target 240`` as a lab's client runs it, with its zenoh config file."""
-    return run_cli(capsys, "target", "240", "--cell", CELL, "--json", "--timeout", "3", "--zenoh-config", str(config),
+    return run_cli("target", "240", "--cell", CELL, "--json", "--timeout", "3", "--zenoh-config", str(config),
                    "-e", f"{endpoint}:{port}")
 
 
@@ -230,8 +229,8 @@ def spoof(cell: SecureCell) -> Iterator[Spoof]:
     s.close()
 
 
-def test_an_authenticated_client_gets_its_target_served(cell: SecureCell, capsys: pytest.CaptureFixture[str]) -> None:
-    result = nanodrift_target(capsys, cell.client_config, cell.port)
+def test_an_authenticated_client_gets_its_target_served(cell: SecureCell) -> None:
+    result = nanodrift_target(cell.client_config, cell.port)
     assert result.returncode == 0, result.stderr
     [answer] = [json.loads(line) for line in result.stdout.splitlines()]
     assert answer["id"] == 0 and answer["model"] == cell.model.id
@@ -267,11 +266,10 @@ def test_an_authenticated_client_hears_done_and_can_stop(cell: SecureCell) -> No
 
 
 @pytest.mark.parametrize("who", ["no credentials", "wrong password"])
-def test_a_client_without_credentials_or_with_a_wrong_password_gets_no_answer(
-        cell: SecureCell, who: str, capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_client_without_credentials_or_with_a_wrong_password_gets_no_answer(cell: SecureCell, who: str) -> None:
     config = (client_file(cell.root, "anonymous.json5", credentials=False) if who == "no credentials"
               else client_file(cell.root, "wrong.json5", password="not-the-password"))
-    result = nanodrift_target(capsys, config, cell.port)
+    result = nanodrift_target(config, cell.port)
     assert result.returncode != 0
     assert "q_um" not in result.stdout and "cannot open a zenoh session" in result.stderr
     # a peer opens without its connection and then waits in vain: no reply, no token, no telemetry
@@ -288,7 +286,7 @@ def test_a_client_without_credentials_or_with_a_wrong_password_gets_no_answer(
     finally:
         outsider.close()
     # the daemon was serving all along
-    assert nanodrift_target(capsys, cell.client_config, cell.port).returncode == 0
+    assert nanodrift_target(cell.client_config, cell.port).returncode == 0
 
 
 def test_an_authenticated_client_cannot_put_on_the_daemons_keys(spoof: Spoof) -> None:
@@ -310,14 +308,13 @@ def test_an_authenticated_client_cannot_put_on_the_daemons_keys(spoof: Spoof) ->
     assert f"nanodrift/{CELL}/target" not in keys  # nor does a client receive other clients' targets
 
 
-def test_an_authenticated_client_cannot_answer_compensate(cell: SecureCell, spoof: Spoof,
-                                                          capsys: pytest.CaptureFixture[str]) -> None:
+def test_an_authenticated_client_cannot_answer_compensate(cell: SecureCell, spoof: Spoof) -> None:
     spoof.answer_compensate()
     spoof.sentinel("after-declare")  # the rogue's declarations reached the daemon's instance first
     replies = spoof.compensate_replies()
     assert [r.get("rogue", False) for r in replies] == [False]
     assert replies[0]["model"] == cell.model.id
-    result = nanodrift_target(capsys, cell.client_config, cell.port)
+    result = nanodrift_target(cell.client_config, cell.port)
     assert result.returncode == 0, result.stderr
     [answer] = [json.loads(line) for line in result.stdout.splitlines()]
     assert "rogue" not in answer and answer["model"] == cell.model.id
@@ -356,7 +353,7 @@ def readme_tls_steps() -> tuple[list[str], str, str]:
 
 
 @pytest.mark.skipif(shutil.which("openssl") is None, reason="the README's TLS recipe needs the openssl command")
-def test_tls_with_client_certificates_as_the_readme_says(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_tls_with_client_certificates_as_the_readme_says(tmp_path: Path) -> None:
     commands, daemon_link, client_link = readme_tls_steps()
     certs = tmp_path / "tls"
     certs.mkdir()
@@ -371,14 +368,14 @@ def test_tls_with_client_certificates_as_the_readme_says(tmp_path: Path, capsys:
     cell = SecureCell(tmp_path / "daemon", scheme="tls", transport=daemon_link, client_transport=client_link)
     try:
         client = cell.client_config
-        served = nanodrift_target(capsys, client, cell.port, "tls/localhost")
+        served = nanodrift_target(client, cell.port, "tls/localhost")
         assert served.returncode == 0, served.stderr
         assert json.loads(served.stdout)["model"] == cell.model.id
         # the right password without a client certificate, or in clear text: no session
         no_cert = client_file(tmp_path, "no-cert.json5",
                               transport=client_link.replace("enable_mtls: true", "enable_mtls: false"))
         for config, endpoint in ((no_cert, "tls/localhost"), (client, "tcp/127.0.0.1")):
-            refused = nanodrift_target(capsys, config, cell.port, endpoint)
+            refused = nanodrift_target(config, cell.port, endpoint)
             assert refused.returncode != 0 and "cannot open a zenoh session" in refused.stderr
     finally:
         assert cell.close() == 0
