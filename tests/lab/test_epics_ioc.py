@@ -29,7 +29,7 @@ from typing import Any
 import pytest
 from caproto import CaprotoTimeoutError, ChannelType
 from caproto.threading.client import PV, Context
-from helpers.daemon_harness import REPO, TESTS, Served, free_port, wait_until
+from helpers.daemon_harness import REPO, TESTS, Served, free_port, run_cli, wait_until
 from helpers.running_cell import VOLTS_PER_UM, RunningCell
 from helpers.scripted_cell import ScriptedCell
 
@@ -380,8 +380,8 @@ def test_ioc_refuses_an_answer_timeout_that_is_not_positive() -> None:
 
 
 def run_ioc(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "nanodrift.cli", "ioc", *args], capture_output=True, text=True,
-                          timeout=60, env={**os.environ, **CA_ENV, "EPICS_CA_SERVER_PORT": str(free_port())})
+    """``nanodrift ioc`` refusing its arguments or its endpoint: in this process (it exits before serving any PV)."""
+    return run_cli("ioc", *args)
 
 
 def test_ioc_says_when_nobody_listens_at_the_endpoint() -> None:
