@@ -8,6 +8,8 @@
 - :class:`Daemon`: ``python -m nanodrift.cli run --config F`` with stderr (JSON log lines) in a file.
 - :class:`Client`: a client-mode Zenoh session (multicast scouting off) that collects ``command``
   and ``error`` samples and sends targets by put or by query.
+- :func:`run_cli`: a command that serves nothing (``target``, ``status``, ``check-config``,
+  ``confirm-output``) run in the test's process: the daemon is the process a test needs, not its clients.
 
 Every wait is bounded and polls a condition; nothing sleeps and hopes.
 """

@@ -16,10 +16,8 @@ from __future__ import annotations
 import asyncio
 import itertools
 import json
-import os
 import re
 import subprocess
-import sys
 import threading
 import time
 from collections.abc import Callable, Coroutine, Iterator, Sequence
@@ -28,9 +26,7 @@ from typing import Any, Literal
 
 import pytest
 from helpers.daemon_harness import (
-    REPO,
     TEMPS,
-    TESTS,
     Client,
     Daemon,
     FilePlugin,
@@ -39,6 +35,7 @@ from helpers.daemon_harness import (
     file_sensor_config,
     free_port,
     install_file_plugin,
+    run_cli,
     wait_until,
     write_test_model,
 )
@@ -484,10 +481,8 @@ def test_a_labs_own_output_plugin_is_validated_by_its_own_model_and_driven_by_th
         config = tmp_path / "check.toml"
         config.write_text(file_sensor_config(tmp_path, cell="lab", port=free_port(), model_path=tmp_path / "m.json",
                                              sensor_file=tmp_path / "s.json", actuator=keys))
-        env = {**os.environ, "PYTHONPATH": os.pathsep.join(
-            [str(p) for p in (*pythonpath, install_file_plugin(tmp_path / "plugins"), TESTS, REPO)])}
-        return subprocess.run([sys.executable, "-m", "nanodrift.cli", "check-config", str(config)],
-                              capture_output=True, text=True, env=env, cwd=str(REPO), timeout=60)
+        return run_cli("check-config", str(config),
+                       pythonpath=[*pythonpath, install_file_plugin(tmp_path / "plugins")])
 
     refused = check(f'kind = "labout"\npath = "{box}"\nchanel = 2\nchannel = 9\n{limits}')
     assert refused.returncode != 0
