@@ -35,6 +35,9 @@ SCALE = 0.001  # volts per count of the output register
 ADDRESS = 10
 VOLTS_PER_UM = 0.02
 UM_PER_COUNT = SCALE / VOLTS_PER_UM
+#: the output module answers from a thread of the pytest process, late on a loaded machine: the hub's timeout only
+#: bounds how long a dead module takes to be called dead, which no test here times
+MODULE_TIMEOUT_S = 2.0
 
 
 # --- the output module ---------------------------------------------------------------------------
@@ -154,7 +157,7 @@ class Cell:
         extra = self.extra
         if self.hub_port is not None:
             extra += (f'\n[[hubs]]\nname = "out"\ntype = "tcp"\nhost = "127.0.0.1"\nport = {self.hub_port}\n'
-                      "timeout_s = 0.3\n")
+                      f"timeout_s = {MODULE_TIMEOUT_S}\n")
         if self.position:
             extra += (f'\n[[sensors]]\nname = "P"\nrole = "position"\nkind = "file"\npath = "{self.sensors.path}"\n'
                       "interval_s = 0.05\nmax_age_s = 2.0\ntimeout_s = 0.5\n")

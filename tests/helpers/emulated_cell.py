@@ -36,9 +36,9 @@ AO_ADDRESS = 10
 AO_VOLTS_PER_COUNT = 0.001
 TC_DEGC_PER_COUNT = 0.01
 THERMOCOUPLES = ("T1", "T2", "T3", "T4")
-#: a controller or module emulated by a thread of the pytest process answers late on a loaded machine (0.5 s was
-#: seen to expire at a load of 9, and a module's connect): it only bounds how long a dead device takes to be
-#: called dead
+#: a controller, module or interferometer emulated by a thread of the pytest process answers late on a loaded
+#: machine (0.5 s was seen to expire at a load of 9, and a module's connect): it only bounds how long a dead device
+#: takes to be called dead
 CONTROLLER_TIMEOUT_S = 2.0
 
 
@@ -184,7 +184,8 @@ class EmulatedCell:
             for index, name in enumerate(THERMOCOUPLES))
         sensors += (f'[[sensors]]\nname = "interferometer"\nrole = "position"\nkind = "serial_line"\n'
                     f'port = "{self.interferometer.port}"\nbaudrate = 115200\nquery = "POS?\\r"\n'
-                    f"pattern = 'P (?P<value>[-+0-9.]+) nm'\nscale = 0.001\ninterval_s = 0.02\ntimeout_s = 0.3\n")
+                    f"pattern = 'P (?P<value>[-+0-9.]+) nm'\nscale = 0.001\ninterval_s = 0.02\n"
+                    f"timeout_s = {CONTROLLER_TIMEOUT_S}\n")
         return (f'cell = "{cell}"\n[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{zenoh_port}"]\n{connect}'
                 f"multicast_scouting = false\n"
                 f"[actuator]\nvolts_per_um = {VOLTS_PER_UM}\nv_min = -1.0\nv_max = 11.0\n"

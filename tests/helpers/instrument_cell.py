@@ -28,8 +28,9 @@ from nanodrift.drivers.simulated.config import SimulationConfig
 from nanodrift.drivers.testing import DconBusEmulator, DconModule, DconTcpGateway, IdsEmulator
 from nanodrift.drivers.testing.pi_gcs_emulator import EmulatedAxis, PiGcsEmulator, PiGcsPtyDevice, PiGcsTcpServer
 
-#: the emulated PI controller answers from a thread of the pytest process, late on a loaded machine (0.5 s was
-#: seen to expire beside a serial run): it only bounds how long a dead controller takes to be called dead
+#: the emulated PI controller, IDS and DCON module answer from threads of the pytest process, late on a loaded
+#: machine (0.5 s was seen to expire beside a serial run): it only bounds how long a dead device takes to be called
+#: dead
 CONTROLLER_TIMEOUT_S = 2.0
 SPEED = 3000.0
 VOLTS_PER_UM = 0.02  # the amplifier's gain (open loop) and [actuator] volts_per_um
@@ -198,9 +199,9 @@ class InstrumentCell:
             f'[[sensors]]\nname = "{c.position_sensors[axis]}"\nrole = "position"\n'
             + (f'axis = "{axis}"\n' if len(c.axes) > 1 else "")
             + f'kind = "attocube_ids"\nhost = "127.0.0.1"\nport = {self.ids.port}\nids_axis = {ids_axis}\n'
-              "interval_s = 0.02\nmax_age_s = 1.0\ntimeout_s = 0.3\n"
+              f"interval_s = 0.02\nmax_age_s = 1.0\ntimeout_s = {CONTROLLER_TIMEOUT_S}\n"
             for axis, ids_axis in c.ids_axes.items())
         return (f'cell = "{cell}"\n[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{zenoh_port}"]\n'
                 f'multicast_scouting = false\n[model]\npath = "{model}"\n'
                 f"[procedure]\ncycles = {calibration_cycles(c.axes)}\n{STEP_TIMING}"
-                f"{outputs}{hub}timeout_s = 0.3\n{sensors}")
+                f"{outputs}{hub}timeout_s = {CONTROLLER_TIMEOUT_S}\n{sensors}")
