@@ -9,8 +9,13 @@ Scored against the simulator's TRUE position (not the interferometer): per valid
 target. Pooled over all seeds' steps (one run's steps share one calibration's offset, so only the pool over
 calibrations says whether σ is calibrated, issue 27): the share of |e| <= 2σ and RMS(e/σ).
 Goals: coverage 90-98 %, RMS(e/σ) 0.8-1.25, in and out of range, static and adaptive. Exits 1 if any
-misses. The noise model (daemon/model/uncertainty.py) was tuned on seeds 1000-1015; the default scored
-seeds are 0..N-1 (disjoint). Both are printed.
+misses. Out of range the coverage is judged over RUNS, not steps: there a run's e/σ is nearly one value
+(its cell's bending times g: within a run e/σ spreads 0.1, between runs 1), so N calibrations are N
+samples, and a σ that is exactly calibrated (e/σ one N(0, 1) value per run) would meet "90-98 % of the
+steps" on 16 runs with probability 0.36 only. The rule there: RMS(e/σ) 0.8-1.25 and the runs beyond 2σ
+(median step) within the 95 % binomial interval of the 4.55 % a calibrated σ leaves beyond 2σ.
+The noise model (daemon/model/uncertainty.py) was tuned on seeds 1000-1015; the default scored seeds
+are 0..N-1 (disjoint). Both are printed.
 
 ``--cells single`` (the default): every seed calibrates and validates the ONE realistic cell, so test 5's
 true errors carry that cell's own bending on every seed, which one calibration cannot see: σ must cover
@@ -33,6 +38,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy import stats
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from anywhere, never tests/drivers
 
@@ -53,6 +59,13 @@ MODES = ("static", "adaptive")
 TUNING_SEEDS = range(1000, 1016)
 GOAL_COVERAGE = (0.90, 0.98)
 GOAL_RMS_Z = (0.80, 1.25)
+#: the tests judged over runs (a run is one sample there: see the module docstring)
+JUDGED_BY_RUN = {"test5"}
+#: the share of a calibrated σ's samples beyond 2σ, P(|N(0, 1)| > 2)
+BEYOND_2SIGMA = float(2.0 * stats.norm.sf(2.0))
+#: seeds per table: 16 steps-judged (the issue's minimum); 48 for the population, whose out-of-range rows are judged
+#: over runs (RMS(e/σ) of 16 calibrated samples misses 0.8-1.25 with probability 0.22, of 48 with 0.03)
+DEFAULT_SEEDS = {"single": 16, "population": 48}
 #: the daemon's default tracker ([adapt] tau_s, max_um)
 TRACKER_TAU_S, TRACKER_MAX_UM = 600.0, 1.0
 #: the one realistic cell's bracket bending, µm/°C² (the population's mean)
@@ -108,6 +121,15 @@ def score(errors: list[np.ndarray], sigmas: list[np.ndarray]) -> dict[str, Any]:
                                for err, sig in zip(errors, sigmas, strict=True))}
 
 
+def judge(test: str, s: dict[str, Any], runs: int) -> tuple[bool, str]:
+    """Whether a row meets its goal, and the rule it was judged by (module docstring)."""
+    rms_ok = GOAL_RMS_Z[0] <= s["rms_z"] <= GOAL_RMS_Z[1]
+    if test in JUDGED_BY_RUN:
+        lo, hi = (int(v) for v in stats.binom.interval(0.95, runs, BEYOND_2SIGMA))
+        return rms_ok and lo <= s["runs_beyond"] <= hi, f"runs >2σ in {lo}..{hi}"
+    return rms_ok and GOAL_COVERAGE[0] <= s["coverage"] <= GOAL_COVERAGE[1], "steps"
+
+
 def table(runs: list[Run], seeds: list[int], saved: dict[str, np.ndarray], key: str) -> bool:
     """Print one pooled table (test x mode); True if every row meets the goals. Steps go into ``saved``."""
     head = (f"{'test':<7}{'range':<14}{'mode':<10}{'steps':>6}{'±2σ coverage':>14}{'RMS(e/σ)':>10}"
@@ -120,13 +142,12 @@ def table(runs: list[Run], seeds: list[int], saved: dict[str, np.ndarray], key: 
             errors = [r[test, mode][0] for r in runs]
             sigmas = [r[test, mode][1] for r in runs]
             s = score(errors, sigmas)
-            good = (GOAL_COVERAGE[0] <= s["coverage"] <= GOAL_COVERAGE[1]
-                    and GOAL_RMS_Z[0] <= s["rms_z"] <= GOAL_RMS_Z[1])
+            good, rule = judge(test, s, len(errors))
             ok &= good
             print(f"{test:<7}{where:<14}{mode:<10}{s['steps']:>6}{100 * s['coverage']:>13.1f}%{s['rms_z']:>10.2f}"
                   f"{s['rms_e_nm']:>10.0f}{s['sigma_nm']:>13.0f}{s['offset_sd_nm']:>22.0f}"
                   f"{str(s['runs_beyond']) + '/' + str(len(errors)):>10}  "
-                  f"{'ok' if good else 'OUTSIDE'}")
+                  f"{'ok' if good else 'OUTSIDE'} ({rule})")
             for seed, err, sig in zip(seeds, errors, sigmas, strict=True):
                 saved[f"{key}_{test}_{mode}_{seed}_e"], saved[f"{key}_{test}_{mode}_{seed}_s"] = err, sig
     return ok
@@ -134,7 +155,8 @@ def table(runs: list[Run], seeds: list[int], saved: dict[str, np.ndarray], key: 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seeds", type=int, default=16, help="independent calibrations (>= 16 for the goals)")
+    parser.add_argument("--seeds", type=int, help="independent calibrations (default: 16; 48 with --cells "
+                                                  "population, whose out-of-range rows are judged over runs)")
     parser.add_argument("--first-seed", type=int, default=0, help="scored seeds: first-seed .. first-seed+seeds-1")
     parser.add_argument("--jobs", type=int, default=2, help="parallel processes")
     parser.add_argument("--cycles", type=int, default=30, help="validation cycles per test (ISO 9283: 30)")
@@ -149,7 +171,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.bending_sd is not None and not (np.isfinite(args.bending_sd) and args.bending_sd >= 0):
         parser.error(f"--bending-sd: expected a finite number >= 0 (µm/°C²), got {args.bending_sd:g}")
-    seeds = list(range(args.first_seed, args.first_seed + args.seeds))
+    count = args.seeds if args.seeds is not None else DEFAULT_SEEDS[args.cells]
+    seeds = list(range(args.first_seed, args.first_seed + count))
     tuned = set(TUNING_SEEDS) & set(seeds)
     population = args.cells == "population"
     start = time.perf_counter()
@@ -170,8 +193,9 @@ def main(argv: list[str] | None = None) -> int:
           + (f" (WARNING: {len(tuned)} scored seeds were tuning seeds)" if tuned else " (disjoint)"))
     print("scored against the TRUE position; pooled over all seeds' valid steps; "
           f"adaptive: bias tracker tau_s {TRACKER_TAU_S:g} s, max {TRACKER_MAX_UM:g} µm")
-    print(f"goals: ±2σ coverage {GOAL_COVERAGE[0]:.0%}-{GOAL_COVERAGE[1]:.0%}, RMS(e/σ) "
-          f"{GOAL_RMS_Z[0]:g}-{GOAL_RMS_Z[1]:g}\n")
+    print(f"goals: ±2σ coverage {GOAL_COVERAGE[0]:.0%}-{GOAL_COVERAGE[1]:.0%} of the steps, RMS(e/σ) "
+          f"{GOAL_RMS_Z[0]:g}-{GOAL_RMS_Z[1]:g}; out of range over runs (one sample per calibration): RMS(e/σ) "
+          f"and the runs beyond 2σ within the 95 % binomial interval of {BEYOND_2SIGMA:.2%}\n")
     saved: dict[str, np.ndarray] = {}
     print(f"ONE cell: every seed the realistic cell itself ({BENDING_FIELD} "
           f"{OWN_K2:g} µm/°C²)" + (" (beside; not judged)" if population else ""))
