@@ -36,6 +36,7 @@ Every rule has a self-test below that feeds it a violation: an empty list of vio
 from __future__ import annotations
 
 import ast
+import functools
 import sys
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -182,8 +183,10 @@ def handler_table(tree: ast.Module) -> list[tuple[str, int]]:
     return found
 
 
-def imports(module: str, path: Path) -> Iterator[Import]:
-    yield from imports_in(module, path.read_text(), is_package=path.name == "__init__.py", filename=str(path))
+@functools.cache
+def imports(module: str, path: Path) -> tuple[Import, ...]:
+    """``module``'s imports, parsed once per run: the checks below each walk every module's imports."""
+    return tuple(imports_in(module, path.read_text(), is_package=path.name == "__init__.py", filename=str(path)))
 
 
 def forbidden(importer: str, imported: str) -> str | None:
