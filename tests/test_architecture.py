@@ -36,6 +36,7 @@ Every rule has a self-test below that feeds it a violation: an empty list of vio
 from __future__ import annotations
 
 import ast
+import functools
 import sys
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -137,10 +138,9 @@ def unit_of(module: str) -> str:
     return ".".join(parts[:-1])
 
 
-def imports_in(module: str, source: str, *, is_package: bool = False, filename: str = "<source>") -> Iterator[Import]:
-    """Every import statement of ``source`` (the text of ``module``), plus the modules its ``HANDLERS``
+def imports_in(module: str, tree: ast.Module, *, is_package: bool = False) -> Iterator[Import]:
+    """Every import statement of ``tree`` (the parsed text of ``module``), plus the modules its ``HANDLERS``
     table names (imported by string at run time)."""
-    tree = ast.parse(source, filename=filename)
 
     def visit(node: ast.AST, in_function: bool) -> Iterator[Import]:
         for child in ast.iter_child_nodes(node):
@@ -182,8 +182,15 @@ def handler_table(tree: ast.Module) -> list[tuple[str, int]]:
     return found
 
 
-def imports(module: str, path: Path) -> Iterator[Import]:
-    yield from imports_in(module, path.read_text(), is_package=path.name == "__init__.py", filename=str(path))
+@functools.cache
+def parsed(path: Path) -> ast.Module:
+    """A module's syntax tree, parsed once per run: the checks below each walk every module."""
+    return ast.parse(path.read_text(), filename=str(path))
+
+
+@functools.cache
+def imports(module: str, path: Path) -> tuple[Import, ...]:
+    return tuple(imports_in(module, parsed(path), is_package=path.name == "__init__.py"))
 
 
 def forbidden(importer: str, imported: str) -> str | None:
@@ -309,11 +316,11 @@ def import_chain(start: str, goal: str, graph: dict[str, set[str]]) -> list[str]
     return None
 
 
-def string_imports(source: str) -> list[str]:
+def string_imports(tree: ast.Module) -> list[str]:
     """Calls that import a module named at run time (``importlib.import_module``, ``__import__``), except
     the CLI's dispatch through its ``HANDLERS`` table (whose values the checks above read)."""
     found = []
-    for node in ast.walk(ast.parse(source)):
+    for node in ast.walk(tree):
         if not isinstance(node, ast.Call):
             continue
         func = node.func
@@ -411,7 +418,7 @@ def test_the_cli_dispatches_to_command_modules_only_and_they_count_as_imports() 
 
 
 def test_no_module_imports_by_a_string_except_through_the_cli_table() -> None:
-    found = [f"{path.relative_to(REPO)}: {call}" for _, path in MODULES for call in string_imports(path.read_text())]
+    found = [f"{path.relative_to(REPO)}: {call}" for _, path in MODULES for call in string_imports(parsed(path))]
     assert not found, "imports by a string are invisible to these checks:\n" + "\n".join(found)
 
 
@@ -554,7 +561,7 @@ def test_the_discovery_check_follows_imports_and_parent_packages() -> None:
 def test_the_handler_table_is_read_and_checked() -> None:
     source = ('HANDLERS = {\n    "run": "nanodrift.commands.run",\n    "sneak": "nanodrift.drivers.simulated.cell",\n'
               '    "core": "nanodrift.service.runner",\n}\n')
-    found = [(imported, line) for imported, line, _ in imports_in("nanodrift.cli", source)]
+    found = [(imported, line) for imported, line, _ in imports_in("nanodrift.cli", ast.parse(source))]
     assert found == [("nanodrift.commands.run", 2), ("nanodrift.drivers.simulated.cell", 3),
                      ("nanodrift.service.runner", 4)]
     assert handler_problems(source) == [
@@ -573,14 +580,14 @@ def test_a_command_importing_a_command_is_caught() -> None:
               "from nanodrift.commands._cell import open_cell\n"
               "import nanodrift.commands.status\n")
     for importer in ("nanodrift.commands.discover", "nanodrift.commands._client"):  # a command, and a helper
-        edges = [(importer, imported, line) for imported, line, _ in imports_in(importer, source)]
+        edges = [(importer, imported, line) for imported, line, _ in imports_in(importer, ast.parse(source))]
         assert command_import_problems(edges) == [
             f"{importer}:{line} imports {command}: a command is imported by nanodrift.cli only (shared code goes "
             "into a helper, nanodrift.commands._name, or below the CLI)"
             for line, command in ((1, "nanodrift.commands.fit"), (2, "nanodrift.commands.target"),
                                   (4, "nanodrift.commands.status"))]
     cli = [("nanodrift.cli", imported, line) for imported, line, _ in
-           imports_in("nanodrift.cli", 'HANDLERS = {"fit": "nanodrift.commands.fit"}\n')]
+           imports_in("nanodrift.cli", ast.parse('HANDLERS = {"fit": "nanodrift.commands.fit"}\n'))]
     assert cli and command_import_problems(cli) == []
 
 
@@ -589,5 +596,5 @@ def test_a_string_import_outside_the_table_is_caught() -> None:
               "a = importlib.import_module(HANDLERS[name]).main\n"
               "b = importlib.import_module('nanodrift.drivers.simulated.cell')\n"
               "c = __import__(name)\n")
-    assert string_imports(source) == [
+    assert string_imports(ast.parse(source)) == [
         "line 3: importlib.import_module('nanodrift.drivers.simulated.cell')", "line 4: __import__(name)"]

@@ -7,9 +7,9 @@ beside nanodrift in a fresh virtual environment, in both orders and with nanodri
 ``import daemon`` is the stand-in's, ``import nanodrift`` ours, the ``nanodrift`` command runs, and
 uninstalling the stand-in leaves every file nanodrift installed.
 
-The fresh environments get nanodrift's dependencies (and setuptools, for the editable build) by a ``.pth``
-line naming the test environment's site-packages: nothing is downloaded, and the environment's own
-site-packages, where the two distributions go, comes first on ``sys.path``.
+The fresh environments get nanodrift's dependencies (and setuptools, for the editable build, and pip, which
+runs in them) by a ``.pth`` line naming the test environment's site-packages: nothing is downloaded, and the
+environment's own site-packages, where the two distributions go, comes first on ``sys.path``.
 """
 
 from __future__ import annotations
@@ -46,8 +46,8 @@ print(json.dumps({"daemon": getattr(daemon, "STANDIN", False), "daemon_file": da
 """
 
 
-def pip(*args: str) -> None:
-    result = subprocess.run([sys.executable, "-m", "pip", "--disable-pip-version-check", "-q", *args],
+def pip(*args: str, python: Path = Path(sys.executable)) -> None:
+    result = subprocess.run([str(python), "-m", "pip", "--disable-pip-version-check", "-q", *args],
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stdout + result.stderr
 
@@ -65,7 +65,8 @@ def wheels(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 
 
 class Env:
-    """A fresh virtual environment (no pip of its own: the test environment's pip installs into it)."""
+    """A fresh virtual environment (no pip of its own: the test environment's pip, run by its python, installs into
+    it)."""
 
     def __init__(self, root: Path) -> None:
         venv.create(root, with_pip=False)
@@ -80,12 +81,14 @@ class Env:
         assert result.returncode == 0, result.stderr
         return result.stdout
 
+    # pip runs in the environment itself (the test environment's pip, through the .pth line): what
+    # `pip --python` does too, after a first start of pip in the test environment that would cost each call ~0.2 s
     def install(self, *args: str) -> None:
         # --no-compile: no bytecode of every module up front (a third of an install's CPU); what runs compiles its own
-        pip("--python", str(self.python), "install", "--no-deps", "--no-index", "--no-compile", *args)
+        pip("install", "--no-deps", "--no-index", "--no-compile", *args, python=self.python)
 
     def uninstall(self, name: str) -> None:
-        pip("--python", str(self.python), "uninstall", "-y", name)
+        pip("uninstall", "-y", name, python=self.python)
 
     def probe(self) -> dict[str, object]:
         return json.loads(self.run(PROBE))

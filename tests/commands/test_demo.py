@@ -9,11 +9,11 @@ tests of this module; each asserts one promise of issue 13, item 3.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib.util
+import io
 import json
 import re
-import subprocess
-import sys
 from pathlib import Path
 from types import ModuleType
 
@@ -30,13 +30,17 @@ SHORT = ["--cycles", "2", "--calibration-cycles", "6", "--tests", "test1,test5",
 
 
 @pytest.fixture(scope="module")
-def demo(tmp_path_factory: pytest.TempPathFactory) -> tuple[subprocess.CompletedProcess[str], Path]:
-    """``--keep kept`` relative to the demo's working directory (the daemon it starts runs elsewhere)."""
+def demo(tmp_path_factory: pytest.TempPathFactory) -> tuple[str, Path]:
+    """What the demo printed on stdout, and its ``--keep kept`` folder, relative to the demo's working directory
+    (the daemon it starts runs elsewhere). Run in this process, as ``nanodrift demo`` runs it (``cli.main``): a
+    subprocess would import numpy, scipy and matplotlib again, two of the demo's ten seconds of CPU."""
     cwd = tmp_path_factory.mktemp("demo")
-    result = subprocess.run([sys.executable, "-m", "nanodrift.cli", "demo", *SHORT, "--keep", "kept"],
-                            capture_output=True, text=True, cwd=cwd, timeout=180)
-    assert result.returncode == 0, result.stdout + result.stderr
-    return result, (cwd / "kept").resolve()
+    out, err = io.StringIO(), io.StringIO()
+    with pytest.MonkeyPatch.context() as patch, contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        patch.chdir(cwd)
+        code = main(["demo", *SHORT, "--keep", "kept"])
+    assert code == 0, out.getvalue() + err.getvalue()
+    return out.getvalue(), (cwd / "kept").resolve()
 
 
 def _benchmark() -> ModuleType:
@@ -48,7 +52,7 @@ def _benchmark() -> ModuleType:
 
 
 def test_steps_are_numbered_in_order_and_each_test_says_what_it_is(demo) -> None:
-    out = demo[0].stdout
+    out = demo[0]
     assert re.findall(r"^(\d+)\. ", out, re.MULTILINE) == ["1", "2", "3", "4", "5"], out
     assert "test1: without compensation" in out
     assert "test5: with the model, OUTSIDE the training range" in out
@@ -56,7 +60,7 @@ def test_steps_are_numbered_in_order_and_each_test_says_what_it_is(demo) -> None
 
 
 def test_table_one_is_beside_the_papers_with_the_differences_explained(demo) -> None:
-    out = demo[0].stdout
+    out = demo[0]
     assert re.search(r"^test1\s+\d+ nm\s+—\s+—\s+\|\s+546\b", out, re.MULTILINE), out
     assert re.search(r"^test5\s+\d+ nm\*\s+\d+ nm\s+[\d.]+×\s+\|\s+2225\s+646\s+3\.4×", out, re.MULTILINE), out
     differences = next(line for line in out.splitlines() if line.startswith("Differences from the paper"))
@@ -69,7 +73,7 @@ def test_table_one_is_beside_the_papers_with_the_differences_explained(demo) -> 
 
 def test_the_demo_says_what_is_seed_luck_with_the_benchmarks_distribution(demo) -> None:
     """Issue 27: one seed's ratio beside the distribution over 16 seeds, with the command that measured it."""
-    out = demo[0].stdout
+    out = demo[0]
     truth_row = re.search(r"^test5\s+(\d+) nm\*\s+(\d+) nm\s+([\d.]+)×$", out.split("Against the TRUE position")[1],
                           re.MULTILINE)
     assert truth_row, out
@@ -104,8 +108,7 @@ def test_the_seeding_rule() -> None:
 
 
 def test_serving_sends_targets_through_the_daemon_and_keeps_its_log(demo) -> None:
-    result, keep = demo
-    out = result.stdout
+    out, keep = demo
     assert f"$ nanodrift run --config {keep / 'serve.toml'}" in out
     endpoint = re.search(r"\$ nanodrift target 0 240 480 360 120 -e (tcp/127\.0\.0\.1:\d+) --cell demo", out)
     assert endpoint, out
@@ -142,8 +145,8 @@ def test_a_span_of_one_figure_is_printed_once() -> None:
 
 
 def test_the_discovery_line_is_measured_on_a_run_with_hysteresis_hidden(demo) -> None:
-    line = next((line for line in demo[0].stdout.splitlines() if line.strip().startswith("discovery:")), None)
-    assert line is not None, demo[0].stdout
+    line = next((line for line in demo[0].splitlines() if line.strip().startswith("discovery:")), None)
+    assert line is not None, demo[0]
     assert "--effects hysteresis" in line and "--seed 3" in line
     found = re.search(r"it names hysteresis \(term dir, p = [\d.e+-]+\).*held-out RMS falls from (\d+) to (\d+) nm",
                       line)
@@ -153,9 +156,9 @@ def test_the_discovery_line_is_measured_on_a_run_with_hysteresis_hidden(demo) ->
 
 def test_kept_folder_holds_the_figures_the_output_lists(demo) -> None:
     """Issue 19: ``--keep`` keeps fig9 and fig11 (PNG + SVG), each saying which model and seed made it."""
-    result, keep = demo
-    listed = re.search(r"^Figures \(PNG \+ SVG, as validate --report draws them\): (.+)$", result.stdout, re.MULTILINE)
-    assert listed, result.stdout
+    out, keep = demo
+    listed = re.search(r"^Figures \(PNG \+ SVG, as validate --report draws them\): (.+)$", out, re.MULTILINE)
+    assert listed, out
     pngs = [Path(p) for p in listed.group(1).split(", ")]
     assert pngs == [keep / "fig9_drift_at_zero.png", keep / "fig11_accuracy.png"]
     model_id = load_model(keep / "model.json").id
@@ -167,7 +170,7 @@ def test_kept_folder_holds_the_figures_the_output_lists(demo) -> None:
 
 def test_the_demo_scores_against_the_truth_and_says_what_adaptation_needs(demo) -> None:
     """Issue 19, item 2: accuracy against the true position beside the interferometer's; the tracker's cost."""
-    out = demo[0].stdout
+    out = demo[0]
     test5 = re.search(r"^   test5: .*\n\s+accuracy (\d+) nm with the model.*\(interferometer\); against the true "
                       r"position (\d+) nm with, (\d+) nm without", out, re.MULTILINE)
     assert test5, out
@@ -192,7 +195,7 @@ def test_demo_help_lists_only_what_the_demo_takes(capsys) -> None:
 
 
 def test_the_demo_calibrates_and_validates_an_xy_cell_beside_two_one_axis_models(demo) -> None:
-    out, kept = demo[0].stdout, demo[1]
+    out, kept = demo[0], demo[1]
     assert "two axes: an XY stage calibrated and validated as one cell" in out
     row = re.search(r"AP 2-D\s+(\d+) nm\s+(\d+) nm\s+(\d+) nm\s+(\d+)×", out)
     assert row, out

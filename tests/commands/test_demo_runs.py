@@ -2,47 +2,41 @@
 adaptation step on the paper's 24 calibration sweeps, and a daemon that fails to start.
 
 In a file of their own so that pytest-xdist (``--dist loadfile``) runs them beside test_demo.py's module
-fixture instead of after it: each is a whole demo run of its own.
+fixture instead of after it: each is a whole demo run of its own, in this process as ``nanodrift demo`` runs it
+(``cli.main``; a subprocess would import numpy, scipy and matplotlib again).
 """
 
 from __future__ import annotations
 
 import re
-import subprocess
-import sys
-from pathlib import Path
 
-from helpers.daemon_harness import REPO
+from nanodrift.cli import main
 
 
-def test_a_daemon_that_fails_is_explained_with_its_log_lines_not_a_deleted_path(tmp_path) -> None:
-    result = subprocess.run(
-        [sys.executable, "-m", "nanodrift.cli", "demo", "--cycles", "1", "--calibration-cycles", "3",
-         "--tests", "test2", "-l", "tcp/127.0.0.1:99999"],
-        capture_output=True, text=True, cwd=REPO, timeout=180,
-    )
-    assert result.returncode == 2, result.stdout + result.stderr
-    err = result.stderr
+def test_a_daemon_that_fails_is_explained_with_its_log_lines_not_a_deleted_path(capsys) -> None:
+    # the smallest run that reaches the serving step (one sweep each): what is asserted is how its daemon's failure
+    # is told, not the model
+    code = main(["demo", "--cycles", "1", "--calibration-cycles", "1", "--tests", "test2", "-l", "tcp/127.0.0.1:99999"])
+    result = capsys.readouterr()
+    assert code == 2, result.out + result.err
+    err = result.err
     assert "daemon's last log lines" in err, err
     assert re.search(r"^   \| .*error", err, re.MULTILINE | re.IGNORECASE), err  # the daemon's own words, inline
     assert "log:" not in err  # no path to the log: the temporary folder it was in is gone
-    own_words = [line for line in (result.stdout + err).splitlines() if not line.startswith("   | ")]
+    own_words = [line for line in (result.out + err).splitlines() if not line.startswith("   | ")]
     assert not any("nanodrift-demo-" in line for line in own_words)  # nor any other path into it
 
 
-def test_demo_shows_what_adaptation_and_the_uncertainty_add(tmp_path: Path) -> None:
+def test_demo_shows_what_adaptation_and_the_uncertainty_add(capsys) -> None:
     """Issue 12: the demo's last step runs the daemon's bias tracker on the same tests and seed."""
-    result = subprocess.run(
-        # the paper's 24 calibration sweeps (as fast as 8 on the virtual clock): 8 sweeps leave a model whose
-        # in-range residual (~85 nm on the interferometer) sits at the health unit's 100 nm alarm
-        # on the ideal cell: the health figures below hold for a model that fits its cell (on the realistic one,
-        # seed 0's served residuals were -213..+238 nm on the interferometer, RMS ~400 nm: not this test's point)
-        [sys.executable, "-m", "nanodrift.cli", "demo", "--tests", "test2", "test5", "--cycles", "6",
-         "--calibration-cycles", "24", "--cell", "ideal"],
-        capture_output=True, text=True, cwd=REPO, timeout=240,
-    )
-    assert result.returncode == 0, result.stdout + result.stderr
-    out = result.stdout
+    # the paper's 24 calibration sweeps (as fast as 8 on the virtual clock): 8 sweeps leave a model whose
+    # in-range residual (~85 nm on the interferometer) sits at the health unit's 100 nm alarm
+    # on the ideal cell: the health figures below hold for a model that fits its cell (on the realistic one,
+    # seed 0's served residuals were -213..+238 nm on the interferometer, RMS ~400 nm: not this test's point)
+    code = main(["demo", "--tests", "test2", "test5", "--cycles", "6", "--calibration-cycles", "24", "--cell", "ideal"])
+    result = capsys.readouterr()
+    assert code == 0, result.out + result.err
+    out = result.out
     assert "nanodrift-demo-" not in out  # no path into the demo's temporary folder (issue 27)
     assert "What nanodrift adds" in out
     adapt = re.search(r"adaptation on test5 .*?: (\d+) nm static -> (\d+) nm adaptive", out)

@@ -1,10 +1,11 @@
 """The multi-axis commands as a user runs them, and the one-axis outputs they must leave byte for byte."""
 
+import contextlib
+import io
 import json
 import re
-import subprocess
-import sys
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import pytest
@@ -15,13 +16,26 @@ from nanodrift.cli import main
 from nanodrift.model.cell_model import CellModel, load_any_model
 
 
-def _run(*args, cwd):
-    return subprocess.run([sys.executable, "-m", "nanodrift.cli", *args], capture_output=True, text=True, cwd=cwd)
+class Ran(NamedTuple):
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+def _run(*args: str, cwd: Path) -> Ran:
+    """``nanodrift ARGS`` run in ``cwd``, in this process (``cli.main``, what the console script runs; the installed
+    script runs these commands in tests/commands/test_readme_verbatim.py): a subprocess would import numpy and
+    scipy again, most of a ``fit``'s CPU."""
+    out, err = io.StringIO(), io.StringIO()
+    with pytest.MonkeyPatch.context() as patch, contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        patch.chdir(cwd)
+        code = main(list(args))
+    return Ran(code, out.getvalue(), err.getvalue())
 
 
 @pytest.fixture(scope="module")
 def xy_files(tmp_path_factory):
-    """A simulated XY calibration and its model, made through the command line (subprocess)."""
+    """A simulated XY calibration and its model, made through the command line."""
     tmp = tmp_path_factory.mktemp("xy")
     sim = _run("simulate", "--scenario", "train", "--axes", "xy", "--seed", "2", "--out", "cal.csv",
                cwd=tmp)

@@ -8,6 +8,7 @@ wildcard query. Every wait polls a condition under a deadline.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import io
 import json
 import os
@@ -15,7 +16,7 @@ import subprocess
 import sys
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import pytest
 from helpers.daemon_harness import (
@@ -32,10 +33,17 @@ from helpers.daemon_harness import (
     write_test_model,
 )
 
+from nanodrift.cli import main
 from nanodrift.commands import status as status_command
 from nanodrift.commands.status import COLUMNS, rates, table
 
 CELLS = ("alpha", "beta", "gamma")
+
+
+class Ran(NamedTuple):
+    returncode: int
+    stdout: str
+    stderr: str
 
 
 class Network:
@@ -64,7 +72,17 @@ class Network:
             daemon.wait_log("serving", timeout=30)
         self.endpoint = hub
 
-    def status(self, *args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
+    def status(self, *args: str) -> Ran:
+        """``nanodrift status ARGS`` in this process (``cli.main``, what the console script runs): the waits poll it
+        many times, and a subprocess would cost each poll half a second of CPU. What the whole process writes on
+        stderr is checked through :meth:`status_process`."""
+        out, err = io.StringIO(), io.StringIO()
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            code = main(["status", *args])
+        return Ran(code, out.getvalue(), err.getvalue())
+
+    def status_process(self, *args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
+        """``nanodrift status ARGS`` in a process of its own: every line it writes on stderr, zenoh's included."""
         env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(TESTS), str(REPO)]))
         return subprocess.run([sys.executable, "-m", "nanodrift.cli", "status", *args], capture_output=True,
                               text=True, timeout=timeout, env=env, cwd=str(self.root))
@@ -155,7 +173,7 @@ def test_watch_prints_a_block_per_refresh_off_a_terminal(network: Network) -> No
 
 
 def test_no_cell_answers_exits_non_zero_with_a_hint(network: Network) -> None:
-    result = network.status("-e", network.endpoint, "--cell", "nosuchcell", "--timeout", "0.5")
+    result = network.status_process("-e", network.endpoint, "--cell", "nosuchcell", "--timeout", "0.5")
     assert result.returncode == 1
     assert result.stderr.count("\n") == 1 and "no cell answered on nanodrift/nosuchcell/status" in result.stderr
     assert "-e tcp/HOST:PORT" in result.stderr
