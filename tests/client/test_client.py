@@ -8,8 +8,6 @@ Every wait is on an event (a reply, a sample) or a bounded poll of one, never a 
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import signal
 import subprocess
@@ -17,7 +15,7 @@ import sys
 import threading
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import pytest
 import zenoh
@@ -32,13 +30,13 @@ from helpers.daemon_harness import (
     file_sensor_config,
     free_port,
     install_file_plugin,
+    run_cli,
     wait_until,
     write_test_model,
 )
 
 import nanodrift
 from nanodrift import Client, Command, MoveEnded, Refused
-from nanodrift.cli import main
 from nanodrift.config import ConfigError, load_config
 
 PREFIX = "femto/lab3/stages"
@@ -268,22 +266,9 @@ def test_a_prefixed_daemon_answers_under_its_prefix_and_nothing_under_nanodrift(
         session.close()
 
 
-class Ran(NamedTuple):
-    returncode: int
-    stdout: str
-    stderr: str
-
-
-def cli(*args: str) -> Ran:
-    """``nanodrift ARGS`` in this process (``cli.main``, what the console script runs; a subprocess would cost each
-    call half a second of CPU), with argparse's exit on a usage error as its exit code."""
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            code = main(list(args))
-        except SystemExit as usage_error:
-            code = int(usage_error.code or 0)
-    return Ran(code, out.getvalue(), err.getvalue())
+def cli(*args: str) -> subprocess.CompletedProcess[str]:
+    """``nanodrift ARGS`` in this process (a subprocess would cost each call half a second of CPU)."""
+    return run_cli(*args)
 
 
 def test_target_and_status_take_prefix(prefixed: PrefixedCell) -> None:

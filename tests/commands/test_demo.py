@@ -9,16 +9,14 @@ tests of this module; each asserts one promise of issue 13, item 3.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import importlib.util
-import io
 import json
 import re
 from pathlib import Path
 from types import ModuleType
 
 import pytest
-from helpers.daemon_harness import REPO
+from helpers.daemon_harness import REPO, run_cli
 
 from nanodrift.cli import main
 from nanodrift.commands._cell import scenario_seed
@@ -35,12 +33,9 @@ def demo(tmp_path_factory: pytest.TempPathFactory) -> tuple[str, Path]:
     (the daemon it starts runs elsewhere). Run in this process, as ``nanodrift demo`` runs it (``cli.main``): a
     subprocess would import numpy, scipy and matplotlib again, two of the demo's ten seconds of CPU."""
     cwd = tmp_path_factory.mktemp("demo")
-    out, err = io.StringIO(), io.StringIO()
-    with pytest.MonkeyPatch.context() as patch, contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        patch.chdir(cwd)
-        code = main(["demo", *SHORT, "--keep", "kept"])
-    assert code == 0, out.getvalue() + err.getvalue()
-    return out.getvalue(), (cwd / "kept").resolve()
+    ran = run_cli("demo", *SHORT, "--keep", "kept", cwd=cwd)
+    assert ran.returncode == 0, ran.stdout + ran.stderr
+    return ran.stdout, (cwd / "kept").resolve()
 
 
 def _benchmark() -> ModuleType:

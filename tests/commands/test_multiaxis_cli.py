@@ -1,14 +1,13 @@
 """The multi-axis commands as a user runs them, and the one-axis outputs they must leave byte for byte."""
 
-import contextlib
-import io
 import json
 import re
+import subprocess
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 import pytest
+from helpers.daemon_harness import run_cli
 from helpers.floats import assert_same
 
 from nanodrift.calibration.dataset import read_csv
@@ -16,21 +15,11 @@ from nanodrift.cli import main
 from nanodrift.model.cell_model import CellModel, load_any_model
 
 
-class Ran(NamedTuple):
-    returncode: int
-    stdout: str
-    stderr: str
-
-
-def _run(*args: str, cwd: Path) -> Ran:
-    """``nanodrift ARGS`` run in ``cwd``, in this process (``cli.main``, what the console script runs; the installed
-    script runs these commands in tests/commands/test_readme_verbatim.py): a subprocess would import numpy and
-    scipy again, most of a ``fit``'s CPU."""
-    out, err = io.StringIO(), io.StringIO()
-    with pytest.MonkeyPatch.context() as patch, contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        patch.chdir(cwd)
-        code = main(list(args))
-    return Ran(code, out.getvalue(), err.getvalue())
+def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    """``nanodrift ARGS`` run in ``cwd``, in this process (the installed script runs these commands in
+    tests/commands/test_readme_verbatim.py): a subprocess would import numpy and scipy again, most of a ``fit``'s
+    CPU."""
+    return run_cli(*args, cwd=cwd)
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,6 @@ wildcard query. Every wait polls a condition under a deadline.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import io
 import json
 import os
@@ -16,7 +15,7 @@ import subprocess
 import sys
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import pytest
 from helpers.daemon_harness import (
@@ -29,21 +28,15 @@ from helpers.daemon_harness import (
     file_sensor_config,
     free_port,
     install_file_plugin,
+    run_cli,
     wait_until,
     write_test_model,
 )
 
-from nanodrift.cli import main
 from nanodrift.commands import status as status_command
 from nanodrift.commands.status import COLUMNS, rates, table
 
 CELLS = ("alpha", "beta", "gamma")
-
-
-class Ran(NamedTuple):
-    returncode: int
-    stdout: str
-    stderr: str
 
 
 class Network:
@@ -72,14 +65,11 @@ class Network:
             daemon.wait_log("serving", timeout=30)
         self.endpoint = hub
 
-    def status(self, *args: str) -> Ran:
-        """``nanodrift status ARGS`` in this process (``cli.main``, what the console script runs): the waits poll it
-        many times, and a subprocess would cost each poll half a second of CPU. What the whole process writes on
-        stderr is checked through :meth:`status_process`."""
-        out, err = io.StringIO(), io.StringIO()
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            code = main(["status", *args])
-        return Ran(code, out.getvalue(), err.getvalue())
+    def status(self, *args: str) -> subprocess.CompletedProcess[str]:
+        """``nanodrift status ARGS`` in this process: the waits poll it many times, and a subprocess would cost each
+        poll half a second of CPU. What the whole process writes on stderr is checked through
+        :meth:`status_process`."""
+        return run_cli("status", *args)
 
     def status_process(self, *args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
         """``nanodrift status ARGS`` in a process of its own: every line it writes on stderr, zenoh's included."""

@@ -267,11 +267,12 @@ class Daemon:
         return self.proc.returncode
 
 
-def run_cli(*args: str, pythonpath: Sequence[Path] = ()) -> subprocess.CompletedProcess[str]:
+def run_cli(*args: str, pythonpath: Sequence[Path] = (), cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
     """``nanodrift <args>`` run by the console script's own ``main`` in this process: its exit code, stdout and
     stderr. A command that only talks to a daemon or writes a file needs no process of its own, and a Python
     start-up costs half a second of CPU. ``pythonpath``: directories of driver plugins the command's config names
     (``*.dist-info`` entry points, as :func:`install_file_plugin` writes), on the path for the call only.
+    ``cwd``: the working directory for the call (relative paths in ``args``).
     (tests/conftest.py resets structlog per test, as a fresh process has it.)"""
     from nanodrift.cli import main  # the command line's imports, only where a test runs a command
     from nanodrift.drivers import registry
@@ -282,7 +283,7 @@ def run_cli(*args: str, pythonpath: Sequence[Path] = ()) -> subprocess.Completed
     registry.load_plugin.cache_clear()
     out, err = io.StringIO(), io.StringIO()
     try:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), contextlib.chdir(cwd or Path.cwd()):
             try:
                 code = main(list(args))
             except SystemExit as exit_:  # argparse refusing the arguments, as the console script exits
