@@ -6,25 +6,17 @@ so that the benchmark can fail either way; in range the issue's step rule (90-98
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
 from types import ModuleType
 
 import numpy as np
 import pytest
+from helpers.benchmark_module import load_benchmark
 from scipy import stats
 
 
 @pytest.fixture(scope="module")
 def coverage() -> ModuleType:
-    path = Path(__file__).resolve().parents[2] / "benchmarks" / "coverage.py"
-    spec = importlib.util.spec_from_file_location("coverage_benchmark", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("coverage")
 
 
 def runs_of(run_z: np.ndarray, within_sd: float = 0.1, steps: int = 210) -> tuple[list[np.ndarray], list[np.ndarray]]:

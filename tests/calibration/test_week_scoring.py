@@ -10,14 +10,13 @@ to its clamp. Pure arithmetic on rows: no daemon, no clock.
 from __future__ import annotations
 
 import datetime as dt
-import importlib.util
 import math
-import sys
 from pathlib import Path
 from types import ModuleType
 
 import numpy as np
 import pytest
+from helpers.benchmark_module import load_benchmark
 
 WEEK_START = dt.datetime(2026, 11, 30, tzinfo=dt.UTC).timestamp()  # a Monday 00:00 UTC
 STEP_S = 1200.0
@@ -26,13 +25,7 @@ WALK_END_UM = 0.2  # the interferometer's own error at the end of the week
 
 @pytest.fixture(scope="module")
 def week() -> ModuleType:
-    path = Path(__file__).resolve().parents[2] / "benchmarks" / "week.py"
-    spec = importlib.util.spec_from_file_location("week_benchmark", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("week")
 
 
 def static_error_um(t_s: float) -> float:

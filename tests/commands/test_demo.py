@@ -9,14 +9,14 @@ tests of this module; each asserts one promise of issue 13, item 3.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import re
 from pathlib import Path
 from types import ModuleType
 
 import pytest
-from helpers.daemon_harness import REPO, run_cli
+from helpers.benchmark_module import load_benchmark
+from helpers.daemon_harness import run_cli
 
 from nanodrift.cli import main
 from nanodrift.commands._cell import scenario_seed
@@ -39,11 +39,7 @@ def demo(tmp_path_factory: pytest.TempPathFactory) -> tuple[str, Path]:
 
 
 def _benchmark() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("paper_table1", REPO / "benchmarks" / "paper_table1.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("paper_table1")
 
 
 def test_steps_are_numbered_in_order_and_each_test_says_what_it_is(demo) -> None:

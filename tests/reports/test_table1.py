@@ -1,5 +1,7 @@
 """Table I as people write it: ratios as "4.0×", empty cells as "—" (issue 13, item 6)."""
 
+from helpers.benchmark_module import load_benchmark
+
 from nanodrift.calibration.iso9283 import summarize
 from nanodrift.calibration.plans import PlannedStep, StepResult
 from nanodrift.reports.validation import PAPER_TABLE1, table1
@@ -31,15 +33,7 @@ def test_ratios_and_empty_cells_read_as_in_the_paper():
 
 
 def _benchmark():
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[2] / "benchmarks" / "paper_table1.py"
-    spec = importlib.util.spec_from_file_location("paper_table1", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("paper_table1")
 
 
 def test_table_one_over_seeds_is_drawn_with_its_interval_and_footer(tmp_path):
