@@ -11,7 +11,6 @@ from types import ModuleType
 import numpy as np
 import pytest
 from helpers.benchmark_module import load_benchmark
-from scipy import stats
 
 
 @pytest.fixture(scope="module")
@@ -28,6 +27,7 @@ def runs_of(run_z: np.ndarray, within_sd: float = 0.1, steps: int = 210) -> tupl
 
 def calibrated(runs: int) -> np.ndarray:
     """``runs`` values spread as N(0, 1) is (its quantiles), signs alternating: a σ exactly calibrated over runs."""
+    from scipy import stats  # here, not at collection: every worker collects every file
     z = stats.norm.ppf((np.arange(runs) + 0.5) / runs)
     return z * np.where(np.arange(runs) % 2 == 0, 1.0, -1.0)
 
