@@ -1,4 +1,4 @@
-"""Is σ calibrated over calibrations? ``python benchmarks/coverage.py [--seeds 16] [--cells single|population]``
+"""Is σ calibrated over calibrations? ``python benchmarks/coverage.py [--seeds N] [--cells population|single]``
 
 Per seed s (one independent calibration): 24 ``train`` cycles of the REALISTIC simulated cell (vectorised
 simulator) fitted by ``fit``; then ``test2`` (in the training range) and ``test5`` (~1.5 °C above it) through
@@ -17,13 +17,14 @@ steps" on 16 runs with probability 0.36 only. The rule there: RMS(e/σ) 0.8-1.25
 The noise model (daemon/model/uncertainty.py) was tuned on seeds 1000-1015; the default scored seeds
 are 0..N-1 (disjoint). Both are printed.
 
-``--cells single`` (the default): every seed calibrates and validates the ONE realistic cell, so test 5's
-true errors carry that cell's own bending on every seed, which one calibration cannot see: σ must cover
-every bending it cannot exclude and so errs wide there. ``--cells population`` judges σ over the cells one
-calibration cannot tell apart: per scored seed s a realistic cell whose bracket bending k2 is drawn from
-N(-0.40, sd²) (``nanodrift.drivers.simulated.population``, numpy default_rng(s)), sd = the median curvature
-allowance κ of the tuning seeds' calibrations (or ``--bending-sd``); that seed's training data, test 2 and
-test 5 all come from its cell. It prints the single-cell table beside and exits 1 if the POPULATION misses.
+``--cells single``: every seed calibrates and validates the ONE realistic cell, so test 5's true errors
+carry that cell's own bending on every seed, which one calibration cannot see: σ must cover every
+bending it cannot exclude and so errs wide there. ``--cells population`` (the default, 48 seeds) judges
+σ over the cells one calibration cannot tell apart: per scored seed s a realistic cell whose bracket
+bending k2 is drawn from N(-0.40, sd²) (``nanodrift.drivers.simulated.population``, numpy
+default_rng(s)), sd = the median curvature allowance κ of the tuning seeds' calibrations (or
+``--bending-sd``); that seed's training data, test 2 and test 5 all come from its cell. It prints the
+single-cell table beside and exits 1 if the POPULATION misses.
 """
 
 from __future__ import annotations
@@ -160,7 +161,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--first-seed", type=int, default=0, help="scored seeds: first-seed .. first-seed+seeds-1")
     parser.add_argument("--jobs", type=int, default=2, help="parallel processes")
     parser.add_argument("--cycles", type=int, default=30, help="validation cycles per test (ISO 9283: 30)")
-    parser.add_argument("--cells", choices=("single", "population"), default="single",
+    parser.add_argument("--cells", choices=("single", "population"), default="population",
                         help="single: every seed the one realistic cell; population: per seed a cell whose bending "
                              "is drawn (prints the single-cell table beside; exits 1 if the population misses)")
     parser.add_argument("--bending-sd", type=float,
