@@ -19,6 +19,7 @@ from pathlib import Path
 
 import pytest
 from helpers.daemon_harness import REPO, write_test_model
+from helpers.daemon_harness import run_cli as harness_run_cli
 
 from nanodrift.calibration.residuals import Settled
 from nanodrift.config import MAX_RECORD_KEEP_DAYS, MIN_SLEW_UM_PER_S, ActuatorConfig, ConfigError, load_config
@@ -144,8 +145,14 @@ def test_the_slowest_slew_still_moves_the_stage() -> None:
     assert steps[-1] == goal_v
 
 
-def run_cli(*args: str, cwd: Path = REPO) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "nanodrift.cli", *args], capture_output=True, text=True, cwd=cwd,
+def run_cli(*args: str) -> subprocess.CompletedProcess[str]:
+    """``nanodrift ARGS`` in this process (the console script's ``main``; a process each costs half a second)."""
+    return harness_run_cli(*args, cwd=REPO)
+
+
+def run_cli_process(*args: str) -> subprocess.CompletedProcess[str]:
+    """``nanodrift ARGS`` in a process of its own: an input built to exhaust the parser's recursion stays there."""
+    return subprocess.run([sys.executable, "-m", "nanodrift.cli", *args], capture_output=True, text=True, cwd=REPO,
                           timeout=60)
 
 
@@ -156,7 +163,7 @@ def run_cli(*args: str, cwd: Path = REPO) -> subprocess.CompletedProcess[str]:
 def test_check_config_on_a_deeply_nested_toml_exits_2_naming_the_file(tmp_path: Path, nesting: str) -> None:
     deep = tmp_path / "deep.toml"
     deep.write_text(f"x = {nesting}\n")
-    result = run_cli("check-config", str(deep))
+    result = run_cli_process("check-config", str(deep))
     assert result.returncode == 2, result.stderr
     assert result.stderr.strip() == f"nanodrift check-config: error: {deep}: not valid TOML: nested too deeply " \
                                     "(a nanodrift config nests a few levels of [ and {, not hundreds)", result.stderr

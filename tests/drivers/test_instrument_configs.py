@@ -7,7 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from helpers.daemon_harness import write_test_model
+from helpers.daemon_harness import run_cli, write_test_model
 
 from nanodrift.assembly import build_drivers
 from nanodrift.config import load_config
@@ -21,8 +21,7 @@ def test_check_config_accepts_it_once_calibrated(tmp_path: Path) -> None:
     write_test_model(tmp_path / "model.json")
     calibrated = tmp_path / "nanodrift.toml"
     calibrated.write_text(CONFIG.read_text().replace('"/var/lib/nanodrift/model.json"', f'"{tmp_path / "model.json"}"'))
-    result = subprocess.run([sys.executable, "-m", "nanodrift.cli", "check-config", str(calibrated)],
-                            capture_output=True, text=True, timeout=60)
+    result = run_cli("check-config", str(calibrated))
     assert result.returncode == 0, result.stderr
     assert "5 sensor(s)" in result.stdout
 
@@ -38,8 +37,7 @@ def test_it_builds_one_exchange_per_module_and_one_connection_per_interferometer
 def test_a_misspelt_key_is_refused_naming_the_sensor_and_key(tmp_path: Path) -> None:
     broken = tmp_path / "nanodrift.toml"
     broken.write_text(CONFIG.read_text().replace("ids_axis = 0", "ids_axis = 4"))
-    result = subprocess.run([sys.executable, "-m", "nanodrift.cli", "check-config", str(broken)],
-                            capture_output=True, text=True, timeout=60)
+    result = run_cli("check-config", str(broken))
     assert result.returncode == 2
     assert "sensors[4] (interferometer).ids_axis" in result.stderr
 
