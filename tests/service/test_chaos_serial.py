@@ -60,11 +60,16 @@ such a goal whole before anything is recorded or written (``Actuation._takes``: 
 in force, and every field the device's command carries via ``Actuator.check_command``), and the model expects it
 (``command_allowed``).
 
-Open (not diagnosed): a reload while the controller answers every query with ``ERROR 5`` (the actuator's open fails
-on the ``*IDN?`` resync), stray bytes, then the controller healthy again: in about one release run in two the
-actuator stays in fault, each reopen's ``*IDN?`` unanswered within 0.5 s with no line received at all, as if
-another reader took the answers (a close racing an open, and two opens at once, are fixed and did not end it);
-it did not reproduce replayed step by step outside hypothesis.
+A harness error, found by a release run: two commands served while the controller is silent (it takes the first
+``SVA`` and swallows the ``SVA?`` after it); once it answers again the daemon learns of the lost answer only when its
+timeout expires, and until then it rightly says ``ok``, so "quiet" read the controller too early. After a heal,
+"quiet" now outlasts the actuator's timeout (``ChaosController.unanswered_request_possible``; the regression test
+``test_a_command_served_while_the_controller_was_silent_reaches_it_once_it_answers``).
+
+Not seen since the serial-line fixes (in four release runs, the last two green in a row): a reload while the
+controller answers every query with ``ERROR 5``, stray bytes, then the controller healthy again, left the actuator in
+fault in about one release run in two, each reopen's ``*IDN?`` unanswered within 0.5 s with no line received at all.
+It did not reproduce replayed step by step outside hypothesis; if it returns, this is where to look.
 
 The suite runs 3 examples of up to 10 steps, and the hung-reload sequence 4 times (about 20 s idle, 50 s on
 the loaded machine). The release
