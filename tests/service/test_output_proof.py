@@ -19,8 +19,10 @@ Every wait polls a condition with a deadline.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import signal
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -259,34 +261,44 @@ def xy_on_two_modules(root: Path, x_port: int, y_port: int, zenoh_port: int, cel
     return config
 
 
-def test_sigterm_with_a_dead_y_module_still_takes_x_to_its_safe_voltage(tmp_path: Path) -> None:
-    x_module, y_module = OutputModule(), OutputModule()
-    zenoh_port, cell = free_port(), f"xy{free_port()}"
-    config = xy_on_two_modules(tmp_path, x_module.server.port, y_module.server.port, zenoh_port, cell)
-    daemon = Daemon(["--config", str(config)], tmp_path / "daemon.log", [install_file_plugin(tmp_path / "plugins")])
+@contextlib.contextmanager
+def serving_xy(root: Path, config: Path, zenoh_port: int, cell: str,
+               channels: tuple[str, ...]) -> Iterator[tuple[Daemon, Client]]:
+    """The daemon of ``config`` serving, and a client that has seen ``channels`` ready; both ended on the way out."""
+    daemon = Daemon(["--config", str(config)], root / "daemon.log", [install_file_plugin(root / "plugins")])
     client: Client | None = None
     try:
         daemon.wait_log("serving", timeout=30)
         client = Client(zenoh_port, cell)
         client.wait_alive()
-        client.wait_ready(tuple(TEMPS))
-        ok, answer = client.query({"x_um": 300.0, "y_um": 300.0, "id": 1})
-        assert ok, answer
-        wait_until(lambda: client is not None and client.status()["axes"]["y"]["actuator"]["writes"] >= 1
-                   and x_module.register() == raw_for(answer["voltage_v"]["x"]), 10, "both axes written")
-        assert x_module.register() > raw_for(5.0)
-        y_module.close()  # y's module dies
-        daemon.signal(signal.SIGTERM)
-        # x reaches its safe voltage (6 V at 8 V/s: under a second) while y is still retrying within its own
-        # 20 s budget: one axis never waits for another (before: x stayed at 7.84 V for good)
-        wait_until(lambda: x_module.register() == 0, 10, "x at its safe voltage, 0 V")
-        assert daemon.proc.poll() is None, "the daemon gave up on y before the test could see x alone"
-        assert_slewed(x_module.written(), 400.0)
-        daemon.proc.kill()  # (y's budget is not this test's subject)
+        client.wait_ready(channels)
+        yield daemon, client
     finally:
         if client is not None:
             client.close()
         daemon.stop()
+
+
+def test_sigterm_with_a_dead_y_module_still_takes_x_to_its_safe_voltage(tmp_path: Path) -> None:
+    x_module, y_module = OutputModule(), OutputModule()
+    zenoh_port, cell = free_port(), f"xy{free_port()}"
+    config = xy_on_two_modules(tmp_path, x_module.server.port, y_module.server.port, zenoh_port, cell)
+    try:
+        with serving_xy(tmp_path, config, zenoh_port, cell, tuple(TEMPS)) as (daemon, client):
+            ok, answer = client.query({"x_um": 300.0, "y_um": 300.0, "id": 1})
+            assert ok, answer
+            wait_until(lambda: client.status()["axes"]["y"]["actuator"]["writes"] >= 1
+                       and x_module.register() == raw_for(answer["voltage_v"]["x"]), 10, "both axes written")
+            assert x_module.register() > raw_for(5.0)
+            y_module.close()  # y's module dies
+            daemon.signal(signal.SIGTERM)
+            # x reaches its safe voltage (6 V at 8 V/s: under a second) while y is still retrying within its own
+            # 20 s budget: one axis never waits for another (before: x stayed at 7.84 V for good)
+            wait_until(lambda: x_module.register() == 0, 10, "x at its safe voltage, 0 V")
+            assert daemon.proc.poll() is None, "the daemon gave up on y before the test could see x alone"
+            assert_slewed(x_module.written(), 400.0)
+            daemon.proc.kill()  # (y's budget is not this test's subject)
+    finally:
         x_module.close()
 
 
@@ -299,27 +311,19 @@ def test_an_xy_cell_proves_each_axis_by_its_own_way_and_resumes_y_from_where_its
     zenoh_port, cell = free_port(), f"xy{free_port()}"
     config = xy_on_two_modules(tmp_path, x_module.server.port, y_module.server.port, zenoh_port, cell,
                                positions_um={"x": 0.0, "y": 300.0})
-    daemon = Daemon(["--config", str(config)], tmp_path / "daemon.log", [install_file_plugin(tmp_path / "plugins")])
-    client: Client | None = None
     try:
-        daemon.wait_log("serving", timeout=30)
-        client = Client(zenoh_port, cell)
-        client.wait_alive()
-        client.wait_ready((*TEMPS, "Px", "Py"))
-        proved = {line["axis"]: line for line in daemon.log_events("output_proved")}
-        assert proved["x"]["by"] == "power_up" and proved["y"]["by"] == "position_sensor", proved
-        assert proved["y"]["sensor"] == "Py" and proved["y"]["implied_um"] == pytest.approx(300.0), proved
-        axes = client.status()["axes"]
-        assert [axes[a]["actuator"]["proved_by"] for a in ("x", "y")] == ["power_up", "position_sensor"], axes
-        ok, answer = client.query({"x_um": 20.0, "y_um": 320.0, "id": 1})  # y: 6 V -> 6.4 V
-        assert ok, answer
-        wait_until(lambda: y_module.register() == raw_for(answer["voltage_v"]["y"]), 10, "y at its goal")
-        assert_slewed(y_module.written(), 400.0, from_raw=raw_for(6.0))  # no jump through 0 V
-        assert all(raw >= raw_for(6.0) for _, raw in y_module.written()), y_module.written()
+        with serving_xy(tmp_path, config, zenoh_port, cell, (*TEMPS, "Px", "Py")) as (daemon, client):
+            proved = {line["axis"]: line for line in daemon.log_events("output_proved")}
+            assert proved["x"]["by"] == "power_up" and proved["y"]["by"] == "position_sensor", proved
+            assert proved["y"]["sensor"] == "Py" and proved["y"]["implied_um"] == pytest.approx(300.0), proved
+            axes = client.status()["axes"]
+            assert [axes[a]["actuator"]["proved_by"] for a in ("x", "y")] == ["power_up", "position_sensor"], axes
+            ok, answer = client.query({"x_um": 20.0, "y_um": 320.0, "id": 1})  # y: 6 V -> 6.4 V
+            assert ok, answer
+            wait_until(lambda: y_module.register() == raw_for(answer["voltage_v"]["y"]), 10, "y at its goal")
+            assert_slewed(y_module.written(), 400.0, from_raw=raw_for(6.0))  # no jump through 0 V
+            assert all(raw >= raw_for(6.0) for _, raw in y_module.written()), y_module.written()
     finally:
-        if client is not None:
-            client.close()
-        daemon.stop()
         x_module.close()
         y_module.close()
 

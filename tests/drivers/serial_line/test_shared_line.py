@@ -26,7 +26,7 @@ from helpers.serial_helpers import FakeGcsController
 
 from nanodrift.cli import main
 from nanodrift.config import ConfigError, parse_config
-from nanodrift.drivers.base import DeviceError, DriverContext, State
+from nanodrift.drivers.base import DeviceError, DriverContext, Reading, State
 from nanodrift.drivers.serial_line.actuator import SerialLineActuator
 from nanodrift.drivers.serial_line.config import SerialLineActuatorConfig, SerialLineSensorConfig
 from nanodrift.drivers.serial_line.line import SerialLineGroup
@@ -184,16 +184,25 @@ def test_a_late_answer_is_never_taken_by_the_line_a_reload_opens_next(controller
     run(body())
 
 
+async def a_late_sva_then_a_late_resync(
+        controller: FakeGcsController) -> tuple[SerialLineGroup, SerialLineActuator, Reading]:
+    """A shared line whose controller answers SVA? and *IDN? after the 0.3 s timeouts: the command fails, and the
+    sensor's next read (its resync query unanswered in time) is a fault. Returns the group, the actuator and that
+    reading."""
+    group, actuator = shared(controller.port, sensor_timeout_s=0.3, resync_on="sensor")
+    await group.open()
+    controller.voltage = 5.53
+    controller.late_s, controller.spacing_s = {"SVA?": 0.5, "*IDN?": 0.5}, 0.05
+    with pytest.raises(DeviceError, match=r"no answer to 'SVA\? 1\\n'"):
+        await actuator.command(276.5, 5.53)
+    first = (await group.read())["stage"]
+    assert first.state is State.FAULT, first
+    return group, actuator, first
+
+
 def test_a_resync_answer_that_comes_late_is_a_fault_then_never_an_answer(controller: FakeGcsController) -> None:
     async def body() -> None:
-        group, actuator = shared(controller.port, sensor_timeout_s=0.3, resync_on="sensor")
-        await group.open()
-        controller.voltage = 5.53
-        controller.late_s, controller.spacing_s = {"SVA?": 0.5, "*IDN?": 0.5}, 0.05
-        with pytest.raises(DeviceError, match=r"no answer to 'SVA\? 1\\n'"):
-            await actuator.command(276.5, 5.53)
-        first = (await group.read())["stage"]  # *IDN? unanswered within 0.3 s: a fault, POS? never sent
-        assert first.state is State.FAULT, first
+        group, _, first = await a_late_sva_then_a_late_resync(controller)  # POS? never sent
         assert first.reason.startswith(f"{controller.port}: no answer matching resync_pattern 'PI|Physik' to the "
                                        "resync query '*IDN?\\n' within 0.3 s"), first.reason
         assert "POS? 1" not in controller.lines[-2:]
@@ -217,14 +226,8 @@ def test_a_resync_answer_still_due_when_a_reload_opens_the_next_line_is_never_an
     answer ("unexpected answer '(c)2015 Physik...' to 'SVA? 1'"), and that SVA? answer as the next position
     (published ok). The new line inherits the count of resync answers still due on the port."""
     async def body() -> None:
-        group, actuator = shared(controller.port, sensor_timeout_s=0.3, resync_on="sensor")
-        await group.open()
-        controller.voltage = 5.53
-        controller.late_s, controller.spacing_s = {"SVA?": 0.5, "*IDN?": 0.5}, 0.05
-        with pytest.raises(DeviceError, match=r"no answer to 'SVA\? 1\\n'"):
-            await actuator.command(276.5, 5.53)
-        first = (await group.read())["stage"]  # *IDN? unanswered within 0.3 s: a fault, the answer still due
-        assert first.state is State.FAULT and "resync query" in first.reason, first
+        group, actuator, first = await a_late_sva_then_a_late_resync(controller)  # the resync answer still due
+        assert "resync query" in first.reason, first
         await actuator.close()  # the reload stops the drivers ...
         await group.close()
         controller.late_s = {}
