@@ -179,6 +179,7 @@ class Slew:
         self._last_step_s: float | None = None  # when the previous sub-command of a ramp returned
         self._last_write_s: float | None = None  # when the last sub-command of any move returned
         self._write_took_s = 0.0  # how long the device took to take the last sub-command
+        self._cut_short = False  # the last sub-command did not return: it may reach the device later still
 
     def pause_s(self) -> float:
         """How long a ramp waits between two sub-commands: :data:`RAMP_PERIOD_S`, or :data:`LATENCY_PAUSES`
@@ -221,12 +222,21 @@ class Slew:
         if self._last_step_s is not None:
             self._last_step_s = at_s
         self._last_write_s = at_s
+        self._cut_short = True
+
+    def reopened(self, at_s: float) -> None:
+        """The device was opened again (a reload, a reopen after a fault) and read back at ``at_s``: a write cut
+        short on the old connection may have reached the device as late as that (its bytes were on their way when
+        it was cut: a reload's first step 0.3 ms later than the cut crossed 15 V/s), so it counts from ``at_s``."""
+        if self._cut_short:
+            self._last_write_s = at_s
 
     def wrote(self, returned_s: float, reached_goal: bool, took_s: float = 0.0) -> None:
         """A sub-command's write returned at ``returned_s`` after ``took_s``; ``reached_goal``: it was the goal."""
         self._last_step_s = None if reached_goal else returned_s
         self._last_write_s = returned_s
         self._write_took_s = max(took_s, 0.0)
+        self._cut_short = False
 
 
 def ramp_seconds(limits: MotionLimits, from_v: float, to_v: float) -> float:

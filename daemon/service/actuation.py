@@ -29,7 +29,8 @@ too; this module owns the devices' lifecycle.
   cannot be read back and was never written: the next command is written as it is (``actuator_unramped``,
   once per start).
 - **Slew** (``max_slew_um_per_s > 0``): each sub-command covers the time since the previous write returned
-  (the device had that value by then), so between any two values a device receives it never moves faster
+  (the device had that value by then; a write cut short by a reload or a stop, from when the device was opened
+  and read back again, as its bytes may land that late; a step under one count is not sent but waited for), so between any two values a device receives it never moves faster
   than the rate, however late the loop or the device; the ramp waits :meth:`nanodrift.motion.Slew.wait_s`
   between sub-commands (20 ms, or 9x a slow device's write time), so a slow module keeps ~90 % of the rate.
 - **What is sent** is checked: the voltage each device will receive (``Actuator.sent_voltage``: a DAC's
@@ -639,6 +640,8 @@ class Actuation:
                     sent_v = checked_sent_voltage(out.actuator, out.config, voltage)
                 except ValueError as error:
                     raise AxisFault(axis, _reason(error)) from None
+                if not at_goal and sent_v == out.at_v:  # the step is under one count (too soon after a reopen
+                    continue  # that followed a cut-short write): the device would get what it holds; wait a pause
                 q_um = goal.q_um[axis] if at_goal else out.config.q_um_for(voltage)
                 x_goal = goal.positions_um.get(axis) if goal.positions_um is not None else None
                 # the ramp's position in the target's frame: a template's x_um moves with the ramp, never ahead
@@ -732,6 +735,7 @@ class Actuation:
                     unreadable = f"the state file cannot be read ({error})"
             start = await _guarded(locate_stage(out.actuator, out.config, sent, sent_here=sent_here, prove=True),
                                    axis, "read back")
+            out.slew.reopened(time.monotonic())
             if unreadable is not None:
                 start = StartPoint(None, "unproven", unreadable)
             elif start.known_from == "unproven" and start.claimed_v is not None:

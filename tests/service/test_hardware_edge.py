@@ -280,7 +280,7 @@ def test_sigterm_ramps_to_the_safe_voltage_at_the_configured_rate_and_refuses_ta
 
     ramp = [(t, raw * UM_PER_COUNT) for t, raw in module.written(since)]
     assert ramp[-1][1] == 0.0 and len(ramp) > 5, ramp  # a ramp (~100 steps idle; fewer on a loaded machine)
-    assert all(b < a for (_, a), (_, b) in itertools.pairwise(ramp)), "the safe ramp is not monotonic"
+    assert all(b < a for (_, a), (_, b) in itertools.pairwise(ramp)), f"the safe ramp is not monotonic {ramp}"
     # ramp[0]: the last write before the stop (200 um) or the ramp's first step; a move from rest covers one
     # ramp period in its first step, on top of the time between the two
     # a count, and 100 ms of stamping jitter: the module's thread stamps arrivals, and a loaded machine delays one
