@@ -30,9 +30,10 @@ too; this module owns the devices' lifecycle.
   once per start).
 - **Slew** (``max_slew_um_per_s > 0``): each sub-command covers the time since the previous write returned
   (the device had that value by then; a write cut short by a reload or a stop, from when the device was opened
-  and read back again, as its bytes may land that late; a step under one count is not sent but waited for), so between any two values a device receives it never moves faster
-  than the rate, however late the loop or the device; the ramp waits :meth:`nanodrift.motion.Slew.wait_s`
-  between sub-commands (20 ms, or 9x a slow device's write time), so a slow module keeps ~90 % of the rate.
+  and read back again, as its bytes may land that late; a step under one count is not sent but waited for),
+  so between any two values a device receives it never moves faster than the rate, however late the loop or
+  the device; the ramp waits :meth:`nanodrift.motion.Slew.wait_s` between sub-commands (20 ms, or 9x a slow
+  device's write time), so a slow module keeps ~90 % of the rate.
 - **What is sent** is checked: the voltage each device will receive (``Actuator.sent_voltage``: a DAC's
   count, a controller's digits) must be inside that axis' limits, for every axis of a step before any
   axis is written, or nothing of the step is written and the cell is in fault.
