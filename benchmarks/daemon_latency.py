@@ -25,7 +25,6 @@ import functools
 import json
 import logging
 import os
-import socket
 import subprocess
 import sys
 import tempfile
@@ -38,6 +37,7 @@ import zenoh
 
 from nanodrift.assembly import build_drivers
 from nanodrift.config import load_config
+from nanodrift.drivers.local_port import free_port
 from nanodrift.logs import configure_logging
 from nanodrift.service import Service
 from nanodrift.service.status import StatusHandler
@@ -46,12 +46,6 @@ from nanodrift.service.targets import TargetHandler
 REPO = Path(__file__).resolve().parent.parent
 ECHO_IN, ECHO_OUT = "bench/echo/target", "bench/echo/command"
 ROUND = 100  # paced targets per alternating round
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def zconf(mode: str, *, listen: str | None = None, connect: str | None = None) -> zenoh.Config:

@@ -12,23 +12,17 @@ from __future__ import annotations
 import argparse
 import asyncio
 import multiprocessing
-import socket
 import statistics
 import time
 from multiprocessing.synchronize import Event
 
 from nanodrift.drivers.base import DriverContext, SensorGroup
+from nanodrift.drivers.local_port import free_port
 from nanodrift.drivers.modbus.config import ModbusHubConfig, ModbusSensorConfig
 from nanodrift.drivers.modbus.group import ModbusBlockGroup, plan_blocks
 from nanodrift.drivers.modbus.hub import ModbusHub
 
 CHANNELS = 8
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def serve(port: int, ready: Event) -> None:

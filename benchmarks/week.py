@@ -75,7 +75,6 @@ import json
 import math
 import os
 import signal
-import socket
 import statistics
 import subprocess
 import sys
@@ -97,6 +96,7 @@ from nanodrift.calibration.dataset import write_csv
 from nanodrift.calibration.plans import VALIDATION_POINTS_UM
 from nanodrift.calibration.residuals import BiasTracker
 from nanodrift.client import Client
+from nanodrift.drivers.local_port import free_port
 from nanodrift.drivers.simulated.datasets import simulate_dataset
 from nanodrift.drivers.simulated.physics import CELLS
 from nanodrift.service.recorder import RECORD_COLUMNS
@@ -128,12 +128,6 @@ BARS_NM: dict[str, dict[str, float]] = {
     "adaptive refit": {"RMS": 200.0, "p95": 400.0, "max": 1000.0},
 }
 ANCHOR_STATIC_NM, ANCHOR_ADAPTIVE_NM = 400.0, 100.0
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def rss_mb(pid: int) -> float:

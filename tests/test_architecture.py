@@ -56,7 +56,7 @@ CORE_THIRD_PARTY = {"numpy", "scipy"}
 #: standard library the pure core may not use: it computes, it does not wait on devices or threads
 CORE_FORBIDDEN_STDLIB = {"asyncio", "socket", "subprocess", "threading", "selectors", "multiprocessing",
                          "concurrent"}
-DRIVER_CORE_UNITS = {"nanodrift.drivers.base", "nanodrift.drivers.registry"}
+DRIVER_CORE_UNITS = {"nanodrift.drivers.base", "nanodrift.drivers.registry", "nanodrift.drivers.local_port"}
 PLUGIN_ROOTS = ("nanodrift.drivers.simulated", "nanodrift.drivers.modbus", "nanodrift.drivers.serial_line",
                 "nanodrift.drivers.attocube_ids", "nanodrift.drivers.dcon", "nanodrift.drivers.pi_gcs")
 #: the simulated cell's computation: pure core + numpy/scipy/stdlib + each other

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import socket
 import subprocess
 import sys
 import threading
@@ -22,6 +21,7 @@ from nanodrift.calibration.plans import PAPER_TIMING
 from nanodrift.cell_view import measured_of
 from nanodrift.client import Client, Refused, json_object
 from nanodrift.commands._cell import scenario_seed
+from nanodrift.drivers.local_port import free_port
 from nanodrift.errors import UserError
 
 HOLD_S = PAPER_TIMING.hold_s  # paper III.B: each step is held 25 s, the last 5 s averaged
@@ -31,12 +31,6 @@ SERVE_SCENARIO = "test2"
 SERVE_TARGETS_UM = (0.0, 240.0, 480.0, 360.0, 120.0)  # five held targets: enough for the health unit to judge
 SERVE_CELL = "demo"
 LOG_TAIL_LINES = 20
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def demo_config(cell: str, listen: str, model_path: Path, scenario: str, speed: float, seed: int,
@@ -158,7 +152,7 @@ def serve(args: argparse.Namespace, workdir: Path, model_path: Path, kept: bool
     Returns the answers (each with the position the interferometer then read) and the endpoint."""
     served: list[dict[str, Any]] = []
     workdir = workdir.resolve()  # the daemon runs with cwd=workdir: a relative --config would miss it
-    listen = args.listen[0] if args.listen else f"tcp/127.0.0.1:{_free_port()}"
+    listen = args.listen[0] if args.listen else f"tcp/127.0.0.1:{free_port()}"
     connect = args.connect[0] if args.connect else listen
     config = workdir / "serve.toml"
     config.write_text(demo_config(SERVE_CELL, listen, model_path.resolve(), SERVE_SCENARIO, args.speed,

@@ -52,6 +52,7 @@ it: import it by its full name. nanodrift's contract tests (``tests/drivers/test
 nanodrift itself imports this package (``tests/test_architecture.py`` enforces it).
 """
 
+from nanodrift.drivers.local_port import free_port
 from nanodrift.drivers.testing.dcon_emulator import DconBusEmulator, DconModule, DconTcpGateway
 from nanodrift.drivers.testing.ids_emulator import IdsAxis, IdsEmulator
 from nanodrift.drivers.testing.modbus_server import (
@@ -62,7 +63,6 @@ from nanodrift.drivers.testing.modbus_server import (
     PtyNullModem,
     crc16_modbus,
     device_registers,
-    free_port,
     tcp_context,
 )
 from nanodrift.drivers.testing.pi_gcs_emulator import EmulatedAxis, PiGcsEmulator, PiGcsPtyDevice, PiGcsTcpServer

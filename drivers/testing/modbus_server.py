@@ -21,7 +21,6 @@ import asyncio
 import os
 import select
 import signal
-import socket
 import threading
 import tty
 from collections.abc import Callable, Iterable, Sequence
@@ -33,18 +32,12 @@ from pymodbus.server import ModbusBaseServer, ModbusSerialServer, ModbusTcpServe
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from nanodrift.drivers.base import DriverContext
+from nanodrift.drivers.local_port import free_port as free_port  # re-exported: the emulators' users pick ports with it
 from nanodrift.drivers.modbus.codec import encode
 from nanodrift.drivers.modbus.config import ModbusHubConfig
 
 FC_READ_HOLDING = 3
 FC_READ_INPUT = 4
-
-
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that nobody listens on right now (the one definition; others import it)."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _ranges(ranges: Iterable[tuple[int, int]]) -> list[SimData]:
