@@ -6,12 +6,15 @@ from __future__ import annotations
 
 import math
 import re
+import subprocess
+import sys
 import tomllib
 from pathlib import Path
 from typing import Any
 
 import pytest
 from helpers.budget import examples
+from helpers.daemon_harness import REPO
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -98,6 +101,18 @@ def test_the_default_kind_moves_a_simulated_stage_and_publishes_on_hardware() ->
     assert parsed("").actuator.kind == "zenoh"  # monitoring only: nothing to move, nothing simulated
     assert parsed("[actuator]\nvolts_per_um = 0.01\n").actuator.kind == "zenoh"
 
+
+
+def test_a_simulated_cell_loads_no_hardware_plugin() -> None:
+    """Its [actuator] defaults to the cell's own plugin without loading every installed one to find it: each
+    hardware plugin cost a daemon start (the suite starts hundreds) its imports, 0.16 s of CPU together."""
+    script = ("import sys; from nanodrift.config import load_config; from nanodrift.assembly import build_drivers\n"
+              "config = load_config('config/sim.toml'); build_drivers(config)\n"
+              "print(config.actuator.kind, *sorted(m for m in sys.modules if m.startswith('nanodrift.drivers.')))")
+    shown = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=REPO, check=True).stdout
+    kind, *modules = shown.split()
+    assert kind == "simulated"
+    assert not [m for m in modules if m.split(".")[2] in {"modbus", "pi_gcs", "serial_line", "dcon", "attocube_ids"}]
 
 @pytest.mark.parametrize(
     ("text", "expected"),

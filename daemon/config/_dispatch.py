@@ -139,10 +139,14 @@ def parse_config(data: Mapping[str, Any], source: str = BUILTIN_SOURCE, base_dir
     sensor_axes: dict[str, str] = {}
     sensors = _parse_sensors(parse, raw_sensors, sections, owners, sensor_axes)
     in_use = [*(s.kind for _, s in sensors), *owners.values()]  # each loaded above
-    virtual_cell = virtual_cell_plugin(in_use, lambda kind: parse.plugin(kind, "sensors")) is not None
+    in_cell = virtual_cell_plugin(in_use, lambda kind: parse.plugin(kind, "sensors"))
+    virtual_cell = in_cell is not None
+    # the kind a simulated cell's [actuator] defaults to: the cell's own plugin when it moves the stage (no
+    # other plugin is loaded: a daemon starts faster), else any installed virtual cell that can
+    virtual_kind = None if in_cell is None else in_cell[0] if _moves_the_stage(in_cell[1]) else _virtual_kind()
     axes: list[AxisConfig] = []
     if raw_axes is None:
-        actuator = _parse_actuator(parse, raw_actuator, virtual_cell)
+        actuator = _parse_actuator(parse, raw_actuator, virtual_kind)
         actuators = [("actuator", actuator)] if actuator is not None else []
     else:
         if has_actuator and implied_axes:
@@ -155,7 +159,7 @@ def parse_config(data: Mapping[str, Any], source: str = BUILTIN_SOURCE, base_dir
             parse.problems.append(
                 "actuator: a cell with [[axes]] has one actuator per axis: move the keys of [actuator]"
                 + (f" ({keys})" if keys else "") + " into each axis' [axes.actuator] and remove [actuator]")
-        axes = _parse_axes(parse, raw_axes, virtual_cell)
+        axes = _parse_axes(parse, raw_axes, virtual_kind)
         actuators = [(f"{_axis_where(i, a.name)}.actuator", a.actuator) for i, a in enumerate(axes)]
         actuator = next((a.actuator for a in axes if a.name == "x"), None)
     axis_names = [a.name for a in axes]
@@ -253,19 +257,22 @@ def _moves_the_stage(plugin: DriverPlugin | None) -> bool:
     return plugin is not None and plugin.actuator_model is not None
 
 
-def _parse_actuator(parse: _Parse, raw: Any, virtual_cell: bool, where: str = "actuator") -> ActuatorConfig | None:
+def _parse_actuator(parse: _Parse, raw: Any, virtual_kind: str | None,
+                    where: str = "actuator") -> ActuatorConfig | None:
     """``[actuator]``: the core keys by :class:`ActuatorConfig`, the rest by the kind's plugin.
 
     The default kind is the virtual cell's own plugin for a simulated cell (its stage must move),
     else ``zenoh``. A simulated stage is never driven by a hardware output, nor the reverse.
+    ``virtual_kind``: the simulated cell's plugin that moves its stage, None for a real cell.
     """
+    virtual_cell = virtual_kind is not None
     if not isinstance(raw, Mapping):
         parse.problems.append(f"{where}: expected a table")
         return None
     core = {k: v for k, v in raw.items() if k in ActuatorConfig.model_fields}
     rest = {k: v for k, v in raw.items() if k not in ActuatorConfig.model_fields}
     if "kind" not in core:
-        core["kind"] = _virtual_kind() if virtual_cell else ZENOH_KIND
+        core["kind"] = virtual_kind or ZENOH_KIND
     kind = core["kind"]
     actuator = parse.validate(ActuatorConfig, core, where)
     if not isinstance(kind, str):
@@ -314,7 +321,7 @@ def _axis_where(index: int, name: Any) -> str:
 _WORKSPACE_KEYS = {"x_min_um": "min_um", "x_max_um": "max_um"}
 
 
-def _parse_axes(parse: _Parse, raw_axes: Any, virtual_cell: bool) -> list[AxisConfig]:
+def _parse_axes(parse: _Parse, raw_axes: Any, virtual_kind: str | None) -> list[AxisConfig]:
     """``[[axes]]``: each axis' name and workspace, and its ``[axes.actuator]`` validated as an ``[actuator]``
     (the workspace is the axis'). Names are unique; an x axis is required (the CSV contract's positions)."""
     if not isinstance(raw_axes, list) or not raw_axes:
@@ -338,7 +345,7 @@ def _parse_axes(parse: _Parse, raw_axes: Any, virtual_cell: bool) -> list[AxisCo
             raw_actuator = {k: v for k, v in raw_actuator.items() if k not in _WORKSPACE_KEYS}
             if keys is not None:
                 raw_actuator = {**raw_actuator, "x_min_um": keys.min_um, "x_max_um": keys.max_um}
-        actuator = _parse_actuator(parse, raw_actuator, virtual_cell, f"{where}.actuator")
+        actuator = _parse_actuator(parse, raw_actuator, virtual_kind, f"{where}.actuator")
         if keys is None:
             continue
         if keys.name in seen:
