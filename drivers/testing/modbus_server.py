@@ -7,7 +7,8 @@
 - :class:`ModbusTestServer`: pymodbus' TCP server (or RTU on a serial port) for those devices,
   stoppable and restartable on the same port (the values survive, like a module's inputs);
 - :class:`PtyNullModem`: two ptys back to back, for RTU over a "serial cable";
-- :func:`free_port`, :func:`tcp_context`, :func:`device_registers`, :func:`crc16_modbus`.
+- :func:`tcp_context`, :func:`device_registers`, :func:`crc16_modbus`; :func:`free_port` (from
+  :mod:`nanodrift.drivers.local_port`: a port below the kernel's ephemeral range, which no outgoing connection takes).
 
 Also runnable as a separate process (a test kills and restarts it)::
 
