@@ -8,7 +8,14 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from helpers.emulated_cell import AO_ADDRESS, AO_VOLTS_PER_COUNT, THERMOCOUPLES, VOLTS_PER_UM, EmulatedCell
+from helpers.emulated_cell import (
+    AO_ADDRESS,
+    AO_VOLTS_PER_COUNT,
+    CONTROLLER_TIMEOUT_S,
+    THERMOCOUPLES,
+    VOLTS_PER_UM,
+    EmulatedCell,
+)
 
 from nanodrift.calibration.dataset import read_csv
 from nanodrift.cli import main
@@ -22,14 +29,16 @@ def config_text(emulated: EmulatedCell, rs485: str, ids_port: int) -> str:
     sensors = "".join(f'[[sensors]]\nname = "{name}"\nkind = "dcon"\nhub = "rs485"\naddress = 5\nchannel = {c}\n'
                       "interval_s = 0.05\n" for c, name in enumerate(THERMOCOUPLES))
     sensors += ('[[sensors]]\nname = "interferometer"\nrole = "position"\nkind = "attocube_ids"\n'
-                f'host = "127.0.0.1"\nport = {ids_port}\nids_axis = 2\ninterval_s = 0.02\ntimeout_s = 0.3\n')
+                f'host = "127.0.0.1"\nport = {ids_port}\nids_axis = 2\ninterval_s = 0.02\n'
+                f"timeout_s = {CONTROLLER_TIMEOUT_S}\n")
     return ('cell = "instruments"\n[zenoh]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:0"]\nmulticast_scouting = false\n'
             f"[actuator]\nvolts_per_um = {VOLTS_PER_UM}\nv_min = -1.0\nv_max = 11.0\n"
             f'kind = "modbus"\nhub = "module"\naddress = {AO_ADDRESS}\ndata_type = "int16"\n'
             f"scale = {AO_VOLTS_PER_COUNT}\nverify = true\n"
             f"[procedure]\n{FAST}"
             f'[[hubs]]\nname = "module"\ntype = "tcp"\nhost = "127.0.0.1"\nport = {emulated.modbus.port}\n'
-            f'timeout_s = 0.5\n[[hubs]]\nname = "rs485"\ntype = "serial"\nport = "{rs485}"\ntimeout_s = 0.3\n'
+            f'timeout_s = {CONTROLLER_TIMEOUT_S}\n[[hubs]]\nname = "rs485"\ntype = "serial"\nport = "{rs485}"\n'
+            f"timeout_s = {CONTROLLER_TIMEOUT_S}\n"
             f"{sensors}")
 
 
@@ -65,4 +74,6 @@ def test_calibrate_reads_the_dcon_module_and_the_ids(tmp_path: Path, capsys: pyt
     model = load_model(model_path)
     coefs = {ft.term.name: ft.coef for ft in model.terms}
     assert coefs.get("x") == pytest.approx(1.0, abs=0.01)  # the stage's gain, identified through the IDS (pm -> um)
-    assert model.fit["residual_rms_nm"] < 60.0
+    # ~25 nm idle; the physics runs at 1000x wall time, so a loaded machine's late poll adds tens of simulated
+    # seconds of drift (a broken fit is hundreds of nm)
+    assert model.fit["residual_rms_nm"] < 80.0
