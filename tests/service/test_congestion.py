@@ -27,8 +27,10 @@ FLOOD = 20_000  # targets put while the subscriber is frozen: megabytes of comma
 PIPE_COMMANDS = 1_000  # about what the small buffers hold before the pipe is full
 MISSED_PIPES = 2  # missing pipe-fulls proves it was full (how many more depends on the machine's pace: 3995 seen)
 MIN_ROUNDS = 20
-ANSWER_LIMIT_S = 2.0  # well under zenoh's 5 s block-before-close, the stall a blocking publisher would show
-QUERY_TIMEOUT_S = 4.0
+#: under zenoh's 5 s block-before-close, the stall a blocking publisher shows: at most 0.014 s in two runs beside two
+#: chaos runs, and 3.9 s once in a serial run beside a loaded CI run (eight busy processes on two cores)
+ANSWER_LIMIT_S = 4.5
+QUERY_TIMEOUT_S = ANSWER_LIMIT_S
 FRESH_S = 1.0  # sensors polled every 0.05 s: a reading older than this means polling stopped
 
 
