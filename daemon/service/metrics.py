@@ -7,7 +7,9 @@ depend on how they are measured. The one thing measured on the target path is th
 :class:`AnswerLatency` counts it into fixed buckets (a bisect and two additions under an
 uncontended lock), and the collector exposes the counts as a histogram.
 
-The HTTP endpoint that serves them is :mod:`nanodrift.service.metrics_server`'s.
+The HTTP endpoint that serves them is :mod:`nanodrift.service.metrics_server`'s. :class:`AnswerLatency` lives in
+:mod:`nanodrift.service.latency` (imported here too): the target path counts latencies whether or not metrics are
+served, and a daemon with ``[metrics] listen = ""`` never imports prometheus_client (nor this module).
 
 Names follow Prometheus' conventions: ``nanodrift_`` prefix, base units (seconds, metres), counters
 ending ``_total``; every series carries the ``cell`` label.
@@ -15,9 +17,7 @@ ending ``_total``; every series carries the ``cell`` label.
 
 from __future__ import annotations
 
-import bisect
 import math
-import threading
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -25,9 +25,9 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Histo
 from prometheus_client.registry import Collector
 
 from nanodrift.model.provenance import version
+from nanodrift.service.latency import LATENCY_BUCKETS_S as LATENCY_BUCKETS_S  # re-exported: the metrics' names
+from nanodrift.service.latency import AnswerLatency as AnswerLatency
 
-#: answer latency buckets (seconds): the daemon answers in tens to hundreds of µs on a loaded machine
-LATENCY_BUCKETS_S = (25e-6, 50e-6, 100e-6, 200e-6, 500e-6, 1e-3, 2e-3, 5e-3, 10e-3, 50e-3, 0.25, 1.0)
 #: every value of ``nanodrift_sensor_state`` / ``nanodrift_actuator_state``'s ``state`` label (a state set)
 SENSOR_STATES = ("ok", "stale", "fault")
 ACTUATOR_STATES = ("ok", "fault", "closed")
@@ -37,33 +37,6 @@ HEALTH_STATES = ("unknown", "ok", "degraded")
 #: state): ``nanodrift_errors_total`` has a series from 0 for each, so ``rate()`` works from the first error
 ERROR_KINDS = ("out_of_workspace", "no_model", "missing_channel", "stale", "fault", "voltage_limit",
                "actuator_fault", "bad_payload", "shutting_down", "internal")
-
-
-class AnswerLatency:
-    """Answer latencies counted into :data:`LATENCY_BUCKETS_S` (non-cumulative; the last slot is +Inf)."""
-
-    __slots__ = ("_counts", "_lock", "_sum_s")
-
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._counts = [0] * (len(LATENCY_BUCKETS_S) + 1)
-        self._sum_s = 0.0
-
-    def observe(self, seconds: float) -> None:
-        index = bisect.bisect_left(LATENCY_BUCKETS_S, seconds)  # the first bucket with le >= seconds
-        with self._lock:
-            self._counts[index] += 1
-            self._sum_s += seconds
-
-    def snapshot(self) -> tuple[list[int], float]:
-        """Cumulative counts per bucket (ending with +Inf, the total) and the sum."""
-        with self._lock:
-            counts, total = list(self._counts), self._sum_s
-        cumulative, running = [], 0
-        for count in counts:
-            running += count
-            cumulative.append(running)
-        return cumulative, total
 
 
 #: the health document's counts, exported as counters (``_total``): (family name, document key, help)

@@ -25,7 +25,8 @@ from prometheus_client import CollectorRegistry, ProcessCollector
 from prometheus_client.exposition import choose_encoder
 
 from nanodrift.errors import UserError
-from nanodrift.service.metrics import AnswerLatency, CellCollector
+from nanodrift.service.latency import AnswerLatency
+from nanodrift.service.metrics import CellCollector
 
 
 def split_listen(listen: str) -> tuple[str, int]:

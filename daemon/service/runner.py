@@ -19,7 +19,7 @@ import signal
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import zenoh
 
@@ -35,8 +35,7 @@ from nanodrift.output_record import OutputRecords, state_directory
 from nanodrift.sdnotify import Notifier
 from nanodrift.service.actuation import Actuation, Goal
 from nanodrift.service.health_unit import HealthUnit
-from nanodrift.service.metrics import AnswerLatency
-from nanodrift.service.metrics_server import MetricsServer
+from nanodrift.service.latency import AnswerLatency
 from nanodrift.service.polling import GroupPoller, first_attempts, pollers_healthy
 from nanodrift.service.recorder import Recorder
 from nanodrift.service.reload import Reloader
@@ -46,6 +45,9 @@ from nanodrift.service.status import StatusHandler, status_doc, status_line
 from nanodrift.service.stop import StopHandler
 from nanodrift.service.supervision import SensorWatch, Supervisor
 from nanodrift.service.targets import TargetHandler
+
+if TYPE_CHECKING:  # imported by start_metrics, only when [metrics] listen is set: prometheus_client, http, email
+    from nanodrift.service.metrics_server import MetricsServer
 
 #: config (and a running context to keep) -> drivers: ``nanodrift.assembly.build_drivers``, handed in by
 #: ``nanodrift run`` so that the service names no plugin
@@ -183,6 +185,13 @@ class Service:
         listen = self.state.config.metrics.listen
         if not listen:
             return
+        try:  # here, not at the top: a daemon without metrics never loads prometheus_client (~40 ms of imports)
+            from nanodrift.service.metrics_server import MetricsServer
+        except ImportError as error:  # a broken install fails here, at start, never once serving
+            sentence = (f"[metrics] listen = {listen!r}: cannot serve metrics: {error} "
+                        "(prometheus_client is a dependency of nanodrift: reinstall it)")
+            self.log.error("metrics_failed", error=sentence)
+            raise UserError(sentence) from None
         server = MetricsServer(listen, lambda: status_doc(self.state, self.healthy(), self.actuation, self.health),
                                self.latency)
         try:

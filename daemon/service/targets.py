@@ -20,7 +20,7 @@ answer's path (the actuator, the log) is handed to the loop with ``call_soon_thr
 once per burst. At ``--log-level debug`` (checked once, when the handler is made) every answer is
 handed to the loop too and logged there (``target_answered``: id, x, q, V, latency in µs); at info
 that costs nothing. The answer latency (arrival to publish) is counted into the metrics' histogram
-buckets under the answer lock (:class:`nanodrift.service.metrics.AnswerLatency`).
+buckets under the answer lock (:class:`nanodrift.service.latency.AnswerLatency`).
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ from nanodrift.bus.session import Bus
 from nanodrift.compensation import Command, Refusal, Target, one_axis
 from nanodrift.logs import RateLimitedLog
 from nanodrift.service.actuation import Actuation
-from nanodrift.service.metrics import AnswerLatency
+from nanodrift.service.latency import AnswerLatency
 from nanodrift.service.state import CellState
 
 

@@ -541,3 +541,44 @@ def test_a_metrics_host_that_is_no_address_or_host_name_is_refused(host: str) ->
                                     "prometheus-target.lab:1", "a" * 63 + ".lab:9464"])
 def test_addresses_and_host_names_are_accepted(listen: str) -> None:
     assert parse_config({"metrics": {"listen": listen}}).metrics.listen == listen
+
+
+#: what a daemon of the simulated cell imports and does before it serves, up to its metrics (in a fresh process)
+START_METRICS = """
+import asyncio, sys
+{before}
+from nanodrift.cli import build_parser
+build_parser(only="run")  # imports nanodrift.commands.run: every module a daemon imports before it starts
+from nanodrift.assembly import build_drivers
+from nanodrift.config import parse_config
+from nanodrift.errors import UserError
+from nanodrift.service import Service
+config = parse_config({{"simulation": {{}}, "metrics": {{"listen": {listen!r}}}}})
+service = Service(config, build_drivers=build_drivers)
+try:
+    asyncio.run(service.start_metrics())
+    asyncio.run(service.stop_metrics())
+except UserError as error:
+    print("UserError:", error)
+print(sorted(m for m in sys.modules if m.split(".")[0] == "prometheus_client" or m.startswith("http.server")
+             or m.startswith("nanodrift.service.metrics")))
+"""
+
+
+def start_metrics(listen: str, before: str = "") -> list[str]:
+    code = START_METRICS.format(before=before, listen=listen)
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    return done.stdout.strip().splitlines()
+
+
+def test_a_daemon_without_metrics_never_imports_prometheus_client() -> None:
+    assert start_metrics("") == ["[]"]  # metrics off: ~40 ms less of every daemon's start
+
+
+def test_a_daemon_with_metrics_but_no_prometheus_client_fails_at_start_with_one_sentence() -> None:
+    lines = start_metrics(f"127.0.0.1:{free_port()}", before="sys.modules['prometheus_client'] = None")
+    refused = [line for line in lines if line.startswith("UserError: ")]  # the CLI's run_failed line says it
+    assert len(refused) == 1, lines
+    assert refused[0].startswith("UserError: [metrics] listen = '127.0.0.1:"), lines
+    assert "cannot serve metrics" in refused[0] and "prometheus_client" in refused[0], lines
