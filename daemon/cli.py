@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import importlib.metadata
 import sys
 from collections.abc import Sequence
 from typing import Any, NoReturn
@@ -65,10 +64,21 @@ SUMMARIES = {
 
 def version() -> str:
     """The installed distribution's version (what ``--version`` prints and model files record)."""
+    import importlib.metadata  # here: only --version reads it (~5 ms of metadata, and the module for a client)
+
     try:
         return importlib.metadata.version("nanodrift")
     except importlib.metadata.PackageNotFoundError:  # run from a source tree that was never installed
         return "0+unknown"
+
+
+class _VersionAction(argparse._VersionAction):
+    """``--version``: the version is read when the option is given, not each time the parser is built."""
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any,
+                 option_string: str | None = None) -> None:
+        self.version = f"nanodrift {version()}"
+        super().__call__(parser, namespace, values, option_string)
 
 
 class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
@@ -114,7 +124,7 @@ def build_parser(*, json_errors_for_run: bool = False, only: str | None = None) 
         formatter_class=_HelpFormatter,
     )
     parser.json_errors = json_errors_for_run  # "unrecognized arguments" of run are reported up here
-    parser.add_argument("--version", action="version", version=f"nanodrift {version()}",
+    parser.add_argument("--version", action=_VersionAction,
                         help="print the version and exit")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser)
     for name, summary in SUMMARIES.items():

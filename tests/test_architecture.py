@@ -92,6 +92,7 @@ LAZY_ALLOWED = {
     "nanodrift.calibration.dataset": "numpy, loaded only when a script names nanodrift.read_csv/write_csv",
     "nanodrift.model.cell_model": "numpy and the model, loaded only when a script calls nanodrift.load_model",
     "nanodrift.epics_ioc": "caproto, the [epics] extra: `nanodrift ioc` says how to install it when it is missing",
+    "importlib.metadata": "the CLI reads its version only for --version (every command's parser has the option)",
     "nanodrift.service.metrics_server": "prometheus_client (with http, email, urllib: ~40 ms of a daemon's start), "
                                         "only when [metrics] listen is set; a missing one fails the start",
 }

@@ -116,6 +116,17 @@ def test_version(capsys):
     assert capsys.readouterr().out.strip() == f"nanodrift {importlib.metadata.version('nanodrift')}"
 
 
+def test_the_version_is_read_only_when_asked_for(monkeypatch):
+    """Reading the distribution's metadata costs every command ~5 ms of CPU: only ``--version`` pays it."""
+
+    def no_version() -> str:
+        raise AssertionError("the version was read to build the parser")
+
+    monkeypatch.setattr("nanodrift.cli.version", no_version)
+    build_parser()
+    build_parser(only="run")
+
+
 def test_the_offline_tools_never_import_zenoh():
     run = subprocess.run([sys.executable, "-X", "importtime", "-m", "nanodrift.cli", "fit", "--help"],
                          capture_output=True, text=True, check=True)
