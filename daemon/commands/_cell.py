@@ -19,6 +19,7 @@ from typing import Any, TypeVar
 
 from nanodrift.assembly import procedure_drivers
 from nanodrift.commands._catalogues import effect_names, scenario_epilog, scenario_names
+from nanodrift.commands._config_flag import add_config_flag
 from nanodrift.config import ZENOH_KIND, Config, load_config
 from nanodrift.drivers.simulated.config import SECTION, SimulationConfig
 from nanodrift.drivers.simulated.effects import UnknownNameError, resolve_effects
@@ -42,11 +43,6 @@ def scenario_seed(seed: int, scenario: str) -> int:
     """
     match = _PAPER_TEST.fullmatch(scenario)
     return seed * 100 + int(match["n"]) if match else seed
-
-
-def add_config_flag(parser: argparse.ArgumentParser) -> None:
-    """``--config F``: the operator's cell; without it, the built-in simulated cell."""
-    parser.add_argument("--config", metavar="F", help="operator config (TOML); none: the built-in simulated cell")
 
 
 def add_procedure_flags(parser: argparse.ArgumentParser, default_scenario: str, *, several: bool = False,

@@ -11,7 +11,7 @@ import argparse
 from typing import Any
 
 from nanodrift.assembly import build_drivers
-from nanodrift.commands._cell import add_config_flag
+from nanodrift.commands._config_flag import add_config_flag
 from nanodrift.config import load_config
 from nanodrift.logs import configure_logging
 from nanodrift.service import run_service
