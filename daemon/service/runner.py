@@ -141,7 +141,8 @@ class Service:
                       model=self.state.model_id(), sensors=list(self.state.table.entries))
         # what start-up built (imports, the model, the drivers) lives as long as the daemon: out of the
         # collector's full passes, which otherwise scan it all and pause the loop (and the answers waiting
-        # on the GIL) for tens of ms (benchmarks/daemon_latency.py's p99)
+        # on the GIL) for tens of ms (benchmarks/daemon_latency.py's p99). `nanodrift run` froze its imports already
+        # (nanodrift.cli), so this pass scans only what was built since: the model, the drivers, the session
         gc.collect()
         gc.freeze()
         self.notifier.ready(line())
