@@ -52,7 +52,11 @@ def owner_of_section(name: str, kinds: Iterable[str] = (), load: Loader = load_p
     with ``load``.
     """
     first = list(kinds)
-    for kind in [*first, *(k for k in available() if k not in first)]:
+    for kind in first:  # before the entry points are listed: a config's own kind owns its table (~4 ms a listing)
+        plugin = load(kind)
+        if plugin is not None and plugin.section == name:
+            return kind
+    for kind in (k for k in available() if k not in first):
         plugin = load(kind)
         if plugin is not None and plugin.section == name:
             return kind
