@@ -66,7 +66,7 @@ SUMMARIES = {
 
 def version() -> str:
     """The installed distribution's version (what ``--version`` prints and model files record)."""
-    import importlib.metadata  # here: only --version reads it (~5 ms of metadata, and the module for a client)
+    import importlib.metadata  # here: only --version reads the distribution's METADATA (~5 ms of CPU)
 
     try:
         return importlib.metadata.version("nanodrift")

@@ -61,11 +61,13 @@ def test_the_read_check_sees_getattr():
 
 
 def test_only_the_command_that_runs_is_imported():
-    """``nanodrift --help`` imports no command module, ``nanodrift fit --help`` only fit's."""
+    """``nanodrift --help`` imports no command module, ``nanodrift fit --help`` only fit's; ``nanodrift run`` only
+    its --config flag's helper, not the procedures' (``_cell``: preflight, follow checks, catalogues)."""
     code = ("import sys\nfrom nanodrift.cli import main\n"
             "try:\n    main(sys.argv[1:])\nexcept SystemExit:\n    pass\n"
             "print(sorted(m for m in sys.modules if m.startswith('nanodrift.commands.')))")
-    for argv, expected in (([], "[]"), (["fit"], "['nanodrift.commands.fit']")):
+    for argv, expected in (([], "[]"), (["fit"], "['nanodrift.commands.fit']"),
+                           (["run"], "['nanodrift.commands._config_flag', 'nanodrift.commands.run']")):
         run = subprocess.run([sys.executable, "-c", code, *argv, "--help"], capture_output=True, text=True, check=True)
         assert run.stdout.strip().splitlines()[-1] == expected
 
