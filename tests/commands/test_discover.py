@@ -18,11 +18,24 @@ HINTS = ("nanodrift simulate --scenario bidirectional",
          'nanodrift calibrate` with `[procedure] trajectory = "bidirectional"` on the stage')
 
 
+#: the files :func:`recorded` wrote for each (effects, seed, bidirectional), as bytes: a run simulated and fitted
+#: once per module, and its files written afresh into each test's own directory (tests edit theirs)
+_RECORDED: dict[tuple[str, int, bool], tuple[bytes, bytes]] = {}
+
+
 def recorded(tmp_path: Path, effects: str, seed: int, bidirectional: bool = False) -> tuple[Path, Path]:
+    csv, model = tmp_path / "d.csv", tmp_path / "m.json"
+    key = (effects, seed, bidirectional)
+    if key in _RECORDED:
+        csv.write_bytes(_RECORDED[key][0])
+        model.write_bytes(_RECORDED[key][1])
+        return csv, model
     data = cell_run(effects, seed=seed, bidirectional=bidirectional)
-    write_csv(data, tmp_path / "d.csv")
-    save_model(paper_model(data), tmp_path / "m.json")
-    return tmp_path / "d.csv", tmp_path / "m.json"
+    write_csv(data, csv)
+    save_model(paper_model(data), model)
+    assert str(tmp_path) not in csv.read_text() + model.read_text()  # nothing of this test's own in them
+    _RECORDED[key] = (csv.read_bytes(), model.read_bytes())
+    return csv, model
 
 
 def test_nothing_found_writes_no_model_and_says_so(tmp_path, capsys) -> None:

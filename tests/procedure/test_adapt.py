@@ -49,9 +49,18 @@ def validate(model: Model, cycles: int, adapt: BiasTracker | None, fault: bool =
                                       adapt=adapt))
 
 
-def test_online_and_offline_trackers_agree_sample_for_sample() -> None:
+@pytest.fixture(scope="module")
+def adapted_with_a_fault() -> tuple[Model, iso9283.TestResult, BiasTracker]:
+    """The shifted model's ``validate --adapt`` run of 4 cycles with an invalid step, and its tracker: run once for
+    the two tests that check it step by step (they only read the result and the tracker's correction)."""
     model = shifted(trained_model(0), 0.3)
-    online = validate(model, 4, BiasTracker(300.0, 1.0), fault=True)
+    tracker = BiasTracker(300.0, 1.0)
+    return model, validate(model, 4, tracker, fault=True), tracker
+
+
+def test_online_and_offline_trackers_agree_sample_for_sample(
+        adapted_with_a_fault: tuple[Model, iso9283.TestResult, BiasTracker]) -> None:
+    model, online, _ = adapted_with_a_fault
     assert not all(s.valid for s in online.steps), "the fault should leave an invalid step"
     offline = BiasTracker(300.0, 1.0)
     expected = []
@@ -68,13 +77,12 @@ def test_online_and_offline_trackers_agree_sample_for_sample() -> None:
         assert a.q_um["x"] - c == pytest.approx(s.q_um["x"], abs=1e-9)
 
 
-def test_the_daemons_health_unit_gives_validate_adapts_corrections_sample_for_sample() -> None:
+def test_the_daemons_health_unit_gives_validate_adapts_corrections_sample_for_sample(
+        adapted_with_a_fault: tuple[Model, iso9283.TestResult, BiasTracker]) -> None:
     """The residuals of a ``validate --adapt`` run (one invalid step included), served by the daemon's
     own pieces: each command's ``correction_um`` equals the correction ``validate`` gave that step, and
     its ``q_sigma_um`` the σ the tracker left there (issue 19)."""
-    model = shifted(trained_model(0), 0.3)
-    offline_tracker = BiasTracker(300.0, 1.0)
-    offline = validate(model, 4, offline_tracker, fault=True)
+    model, offline, offline_tracker = adapted_with_a_fault
     assert not all(s.valid for s in offline.steps)
 
     config = parse_config({"health": {"settle_s": 3.0, "window_s": 2.0},

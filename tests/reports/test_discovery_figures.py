@@ -35,6 +35,21 @@ def nothing():
     return result
 
 
+@pytest.fixture(scope="module")
+def drawn():
+    """``figure_residuals(result, variable)`` drawn once per module for the tests that only read a figure (its
+    labels, legend, points and lines); a test that renders one (``canvas.draw``) draws its own."""
+    figures: dict[tuple[int, str], tuple[object, object]] = {}
+
+    def draw(result, variable: str):
+        key = (id(result), variable)
+        if key not in figures:
+            figures[key] = (result, figure_residuals(result, variable))  # the result kept: its id stays its own
+        return figures[key][1]
+
+    return draw
+
+
 def texts(fig) -> list[str]:
     out = []
     for ax in fig.axes:
@@ -54,8 +69,8 @@ def png_dpi(path: Path) -> float:
     return per_metre * 0.0254
 
 
-def test_a_binary_variable_is_drawn_as_points_per_value_not_a_line(hysteresis) -> None:
-    ax = figure_residuals(hysteresis, "dir").axes[0]
+def test_a_binary_variable_is_drawn_as_points_per_value_not_a_line(hysteresis, drawn) -> None:
+    ax = drawn(hysteresis, "dir").axes[0]
     assert [t.get_text() for t in ax.get_xticklabels()] == ["down", "up"]
     for line in ax.get_lines():
         xs, ys = line.get_xdata(), line.get_ydata()
@@ -63,9 +78,9 @@ def test_a_binary_variable_is_drawn_as_points_per_value_not_a_line(hysteresis) -
         assert not joins_values or set(ys) == {0.0}, "a line joins 'down' and 'up'"  # only the zero line
 
 
-def test_scatter_points_are_in_the_legend_and_visible_there(hysteresis) -> None:
+def test_scatter_points_are_in_the_legend_and_visible_there(hysteresis, drawn) -> None:
     for variable in ("dir", "t"):
-        legend = figure_residuals(hysteresis, variable).axes[0].get_legend()
+        legend = drawn(hysteresis, variable).axes[0].get_legend()
         entries = [t.get_text() for t in legend.get_texts()]
         assert "given model: each row" in entries and "extended model: each row" in entries, entries
         for text, handle in zip(entries, legend.legend_handles, strict=True):
@@ -80,8 +95,8 @@ def test_scatter_points_are_in_the_legend_and_visible_there(hysteresis) -> None:
     ("x", "Residuals against position", "(µm)"),
     ("t", "Residuals against time", "(h)"),
 ])
-def test_titles_are_words_and_units_are_micrometres_and_degrees(hysteresis, variable, title, unit) -> None:
-    fig = figure_residuals(hysteresis, variable)
+def test_titles_are_words_and_units_are_micrometres_and_degrees(hysteresis, drawn, variable, title, unit) -> None:
+    fig = drawn(hysteresis, variable)
     ax = fig.axes[0]
     assert ax.get_title() == title
     assert unit in ax.get_xlabel()
@@ -90,8 +105,8 @@ def test_titles_are_words_and_units_are_micrometres_and_degrees(hysteresis, vari
     assert not re.search(r"\bum\b|degC", joined)
 
 
-def test_a_forward_only_last_step_is_three_levels_not_a_blurred_scatter(nothing) -> None:
-    ax = figure_residuals(nothing, "last_step").axes[0]
+def test_a_forward_only_last_step_is_three_levels_not_a_blurred_scatter(nothing, drawn) -> None:
+    ax = drawn(nothing, "last_step").axes[0]
     assert [t.get_text() for t in ax.get_xticklabels()] == ["−480", "0", "30"]
 
 
@@ -137,11 +152,11 @@ def test_nothing_found_is_reported_with_what_the_run_cannot_show(nothing, tmp_pa
 
 
 
-def test_time_and_temperatures_are_drawn_as_continuous_axes_on_a_real_report(nothing) -> None:
+def test_time_and_temperatures_are_drawn_as_continuous_axes_on_a_real_report(nothing, drawn) -> None:
     """A forward-only calibration (408 rows over 3.3 h): every row at its own time, binned means across the run."""
     hours = nothing.variables["t"][1] / 3600.0
     for variable, span in (("t", (hours.min(), hours.max())), ("T1", None), ("rate(T1)", None)):
-        ax = figure_residuals(nothing, variable).axes[0]
+        ax = drawn(nothing, variable).axes[0]
         xs = np.concatenate([c.get_offsets()[:, 0] for c in ax.collections if len(c.get_offsets())])
         values = nothing.variables[variable][1] / (3600.0 if variable == "t" else 1.0)
         assert np.unique(values).size > 100
@@ -163,9 +178,9 @@ def _numeric(text: str) -> bool:
     return True
 
 
-def test_a_value_with_one_row_shows_that_row_beside_its_mean(nothing) -> None:
+def test_a_value_with_one_row_shows_that_row_beside_its_mean(nothing, drawn) -> None:
     """Forward-only "last step": 0 µm is one row (the first); its point must not hide under the mean marker."""
-    ax = figure_residuals(nothing, "last_step").axes[0]
+    ax = drawn(nothing, "last_step").axes[0]
     zero = [t.get_text() for t in ax.get_xticklabels()].index("0")
     points = np.concatenate([c.get_offsets() for c in ax.collections if len(c.get_offsets())])
     here = points[np.abs(points[:, 0] - zero) < 0.5]
@@ -185,27 +200,27 @@ def test_the_legend_sits_below_the_data(nothing, hysteresis, variable) -> None:
         assert legend.y1 <= frame.y0, "the legend overlaps the plotted data"
 
 
-def test_nothing_found_shows_the_given_model_never_hidden_under_its_refit(nothing) -> None:
+def test_nothing_found_shows_the_given_model_never_hidden_under_its_refit(nothing, drawn) -> None:
     """The same terms refitted on the same run change nothing: one series, said so, not two stacked."""
-    legend = figure_residuals(nothing, "t").axes[0].get_legend()
+    legend = drawn(nothing, "t").axes[0].get_legend()
     entries = [t.get_text() for t in legend.get_texts()]
     assert entries == ["given model: each row", "given model: binned mean"], entries
     assert "changes no residual by more than 0.1 nm" in legend.get_title().get_text()
 
 
-def test_a_given_model_from_another_run_is_drawn_over_its_refit() -> None:
+def test_a_given_model_from_another_run_is_drawn_over_its_refit(drawn) -> None:
     """Nothing found with a model fitted elsewhere: both series, the given model's drawn last and on top."""
     data = cell_run("", seed=0, cycles=12)
     result = discover(data, paper_model(cell_run("", seed=7, cycles=12)))
     assert not result.found, result.summary
     assert np.max(np.abs(result.residual_before - result.residual_after)) * 1000 > 0.1
     for variable in ("t", "last_step"):
-        entries = [t.get_text() for t in figure_residuals(result, variable).axes[0].get_legend().get_texts()]
+        entries = [t.get_text() for t in drawn(result, variable).axes[0].get_legend().get_texts()]
         assert {"given model: each row", "the given terms refitted on this run: each row"} <= set(entries)
-    lines = {line.get_label(): line for line in figure_residuals(result, "t").axes[0].get_lines()}
+    lines = {line.get_label(): line for line in drawn(result, "t").axes[0].get_lines()}
     given, refit = lines["given model: binned mean"], lines["the given terms refitted on this run: binned mean"]
     assert given.get_zorder() > refit.get_zorder()  # drawn over the refit's line
     assert given.get_linestyle() != refit.get_linestyle() and given.get_markerfacecolor() == "white"
-    ax = figure_residuals(result, "last_step").axes[0]
+    ax = drawn(result, "last_step").axes[0]
     means = [line.get_xdata() for line in ax.get_lines() if line.get_marker() == "D"]
     assert len(means) == 2 and np.all(np.abs(means[0] - means[1]) > 0.2)  # side by side, never stacked

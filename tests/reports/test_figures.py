@@ -39,26 +39,31 @@ def legend_entries(ax) -> list[str]:
     return [] if legend is None else [t.get_text() for t in legend.get_texts()]
 
 
-def test_every_panel_is_titled_and_labelled_with_units():
+@pytest.fixture(scope="module")
+def figures():
+    """Fig. 11 (accuracy) and fig. 9 (drift) of one uncompensated and one compensated test, drawn once for the
+    tests that only read them (titles, labels, legends): laying a figure out takes half a second."""
     results = [a_test("test1", False, 0.3, 0.0), a_test("test2", True, 0.05, 0.3)]
-    for fig in (figure_accuracy(results), figure_drift(results)):
+    return figure_accuracy(results), figure_drift(results)
+
+
+def test_every_panel_is_titled_and_labelled_with_units(figures):
+    for fig in figures:
         for ax in fig.axes:
             assert ax.get_title(), "an untitled panel"
             assert ax.get_ylabel()
         assert not re.search(r"\bum\b", " ".join(texts(fig)))  # µm, never "um"
-    drift = figure_drift(results)
+    accuracy, drift = figures
     value_axes = [ax for ax in drift.axes if "(nm)" in ax.get_ylabel()]
     temperature_axes = [ax for ax in drift.axes if ax.get_ylabel() == "temperature (°C)"]
     assert len(value_axes) == len(temperature_axes) == 2
     assert all(ax.get_ylabel().startswith("drift") for ax in value_axes)  # a quantity, not just "nm"
     assert all(ax.get_xlabel() == "time (h)" for ax in temperature_axes)
-    accuracy = figure_accuracy(results)
     assert accuracy.axes[1].get_xlabel() == "test point x′ (µm)"
 
 
-def test_legends_are_readable_and_never_empty():
-    results = [a_test("test1", False, 0.3, 0.0), a_test("test2", True, 0.05, 0.3)]
-    for fig in (figure_accuracy(results), figure_drift(results)):
+def test_legends_are_readable_and_never_empty(figures):
+    for fig in figures:
         for ax in fig.axes:
             legend = ax.get_legend()
             if legend is not None:
