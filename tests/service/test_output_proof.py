@@ -149,23 +149,21 @@ PROOF_TOLERANCE_UM = 5.0
 
 def restarted_at_8_v_without_the_state_file(root: Path, module: OutputModule, cells: list[Cell], rate: float, *,
                                             sensor_um: float, sensor_age_s: float = 0.0) -> tuple[Cell, int]:
-    """A cell with a position sensor that left its output at 8 V, killed; its state file lost, its sensor reading
-    ``sensor_um`` (``sensor_age_s`` old), started again: the cell and the module's stamp count at the restart."""
+    """A cell with a position sensor whose output an earlier run left at 8 V and whose state file is lost (the
+    module holds 8 V; the state directory has no record of the axis), its sensor reading ``sensor_um``
+    (``sensor_age_s`` old), started: the cell and the module's stamp count at its start.
+
+    The earlier run is not a daemon of its own: a run killed at 8 V leaves exactly the register at 8 V, and its
+    state file, which this scenario deletes; what the daemon starting here reads (the register, no record, the
+    sensor) is the same, and its start (the proof, the first writes) is a fresh daemon's, as it was."""
+    module.hold(raw_for(8.0))  # what the killed run left in the register (the stamps start afresh: none yet)
     cell = Cell(root, terms={"x": 1.0}, hub_port=module.server.port, extra=state_dir_keys(root), position=True,
                 actuator=f"max_slew_um_per_s = {rate}\nverify = true\n"
-                         f"position_proof_tolerance_um = {PROOF_TOLERANCE_UM}")
+                         f"position_proof_tolerance_um = {PROOF_TOLERANCE_UM}",
+                sensor_values={"P": sensor_um}, sensor_age={"P": sensor_age_s},
+                ready=("P",) if sensor_age_s == 0.0 else ())
     cells.append(cell)
-    cell.target(400.0)  # 8 V
-    wait_until(lambda: module.register() == raw_for(8.0), 10, "the register at 8 V")
-    wait_until(lambda: cell.bus.status()["actuator"]["last_voltage_v"] == pytest.approx(8.0), 5, "8 V confirmed")
-    cell.daemon.proc.kill()
-    cell.daemon.proc.wait(10)
-    (root / "state" / f"output-{cell.cell}-x.json").unlink()
-    cell.sensors.write(values={**cell.sensors.doc["values"], "P": sensor_um}, age={"P": sensor_age_s})
-    since = len(module.stamps)
-    fresh = sensor_age_s == 0.0
-    cell.restart_after_kill(ready=cell.channels + (("P",) if fresh else ()))
-    return cell, since
+    return cell, 0
 
 
 def test_without_the_state_file_a_position_sensor_reading_where_8_v_puts_the_stage_resumes_from_8_v(
@@ -222,8 +220,10 @@ def test_a_stale_position_reading_proves_nothing_until_a_fresh_one_agrees(
 
 def test_confirm_output_refuses_a_voltage_outside_the_limits_and_an_unknown_axis(
         tmp_path: Path, module: OutputModule, cells: list[Cell]) -> None:
+    # confirm-output reads the config and writes a state file; it never talks to a daemon (nor opens the device):
+    # the cell's config and files, no daemon started
     cell = Cell(tmp_path, terms={"x": 1.0}, hub_port=module.server.port, extra=state_dir_keys(tmp_path),
-                actuator="verify = true")
+                actuator="verify = true", start=False)
     cells.append(cell)
     outside = confirm_output(cell.config_path, [tmp_path / "plugins"], "--voltage", "40")
     assert outside.returncode == 2 and "--voltage 40: outside axis x's [v_min, v_max] = [-2, 12] V" in outside.stderr
