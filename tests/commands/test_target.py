@@ -56,11 +56,7 @@ def test_target_readable_output_and_refusals_exit_non_zero(served: Served) -> No
 
 
 def test_target_without_a_daemon_says_so(tmp_path: Path) -> None:
-    result = subprocess.run(
-        [sys.executable, "-m", "nanodrift.cli", "target", "1", "--cell", "nobody", "--timeout", "0.5", "-e",
-         f"tcp/127.0.0.1:{1}"],
-        capture_output=True, text=True, cwd=REPO, timeout=60,
-    )
+    result = run_cli("target", "1", "--cell", "nobody", "--timeout", "0.5", "-e", f"tcp/127.0.0.1:{1}")
     assert result.returncode != 0
     assert "cannot open a zenoh session" in result.stderr or "no answer" in result.stderr
 
