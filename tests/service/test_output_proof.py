@@ -133,7 +133,9 @@ def test_a_read_back_the_state_file_contradicts_is_refused_until_an_operator_con
 
     confirmed = confirm_output(cell.config_path, [tmp_path / "plugins"], "--axis", "x", "--voltage", "10.0")
     assert confirmed.returncode == 0 and "confirmed at 10 V" in confirmed.stdout, confirmed.stderr
-    wait_until(lambda: cell.bus.status()["actuator"]["state"] == "ok", 15, "the daemon believes the confirmed 10 V")
+    # the daemon's own retry (seconds apart) believes it: a status query every 50 ms, not every 10 ms, sees it
+    wait_until(lambda: cell.bus.status()["actuator"]["state"] == "ok", 15, "the daemon believes the confirmed 10 V",
+               interval=0.05)
     assert module.written() == []  # believing moves nothing
     proved = cell.daemon.wait_log("output_proved")
     assert proved["by"] == "operator" and proved["voltage_v"] == pytest.approx(10.0), proved
@@ -161,7 +163,7 @@ def restarted_at_8_v_without_the_state_file(root: Path, module: OutputModule, ce
                 actuator=f"max_slew_um_per_s = {rate}\nverify = true\n"
                          f"position_proof_tolerance_um = {PROOF_TOLERANCE_UM}",
                 sensor_values={"P": sensor_um}, sensor_age={"P": sensor_age_s},
-                ready=("P",) if sensor_age_s == 0.0 else ())
+                ready=("T1", "T2", *(("P",) if sensor_age_s == 0.0 else ())))  # a stale P is never ok
     cells.append(cell)
     return cell, 0
 
@@ -195,7 +197,8 @@ def test_without_the_state_file_a_position_sensor_reading_far_from_8_v_proves_no
             f"position_proof_tolerance_um = {PROOF_TOLERANCE_UM:g} µm) (sensor P)") in answer["error"], answer
     assert "nanodrift confirm-output --config <the config> --axis x --voltage" in answer["error"], answer
     # the daemon retries the proof on its own: still refused after more attempts, and nothing is ever written
-    wait_until(lambda: cell.bus.status()["actuator"]["failures"] >= 3, 15, "three attempts to prove the output")
+    wait_until(lambda: cell.bus.status()["actuator"]["failures"] >= 3, 15, "three attempts to prove the output",
+               interval=0.05)  # attempts seconds apart: a status query every 50 ms, not every 10 ms
     actuator = cell.bus.status()["actuator"]
     assert actuator["state"] == "fault" and actuator["proved_by"] is None, actuator
     assert module.written(since) == [] and module.register() == raw_for(8.0)
@@ -213,7 +216,8 @@ def test_a_stale_position_reading_proves_nothing_until_a_fresh_one_agrees(
     # the sensor reads again, fresh (a new value: the same one since the stale stamp would be frozen): the daemon's
     # retry proves 8 V
     cell.sensors.write(values={**cell.sensors.doc["values"], "P": 400.3}, age={"P": 0.0})
-    wait_until(lambda: cell.bus.status()["actuator"]["state"] == "ok", 15, "8 V proved by a fresh reading")
+    wait_until(lambda: cell.bus.status()["actuator"]["state"] == "ok", 15, "8 V proved by a fresh reading",
+               interval=0.05)  # the daemon's retry: a status query every 50 ms, not every 10 ms
     assert cell.daemon.wait_log("output_proved")["by"] == "position_sensor"
     assert module.written(since) == [] and module.register() == raw_for(8.0)
 
