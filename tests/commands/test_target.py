@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from helpers.daemon_harness import REPO, TEMPS, Served, expected_q
+from helpers.daemon_harness import REPO, TEMPS, Served, expected_q, run_cli
 
 from nanodrift.commands import target as target_command
 
@@ -22,6 +22,14 @@ def served(tmp_path_factory: pytest.TempPathFactory):
 
 
 def target(served: Served, *args: str) -> subprocess.CompletedProcess[str]:
+    """``nanodrift target ARGS`` towards the served cell, run by the console script's own ``main`` in this process:
+    what it prints on stdout (and Python's stderr). A process of its own costs half a second of CPU; the tests
+    that judge everything the process writes on stderr (zenoh's lines included) use :func:`target_process`."""
+    return run_cli("target", *args, "-e", f"tcp/127.0.0.1:{served.port}", "--cell", served.cell)
+
+
+def target_process(served: Served, *args: str) -> subprocess.CompletedProcess[str]:
+    """``nanodrift target ARGS`` in a process of its own: every line it writes on stderr."""
     return subprocess.run(
         [sys.executable, "-m", "nanodrift.cli", "target", *args, "-e", f"tcp/127.0.0.1:{served.port}",
          "--cell", served.cell],
@@ -40,7 +48,7 @@ def test_target_prints_commands_as_json_lines(served: Served) -> None:
 
 
 def test_target_readable_output_and_refusals_exit_non_zero(served: Served) -> None:
-    result = target(served, "100", "750")
+    result = target_process(served, "100", "750")
     assert result.returncode == 1
     assert "x 100.0000 µm -> q" in result.stdout and " µm, " in result.stdout and served.model.id in result.stdout
     assert "x 750 µm refused: x_um 750 outside the workspace [0, 500] µm" in result.stderr, result.stderr
@@ -48,11 +56,7 @@ def test_target_readable_output_and_refusals_exit_non_zero(served: Served) -> No
 
 
 def test_target_without_a_daemon_says_so(tmp_path: Path) -> None:
-    result = subprocess.run(
-        [sys.executable, "-m", "nanodrift.cli", "target", "1", "--cell", "nobody", "--timeout", "0.5", "-e",
-         f"tcp/127.0.0.1:{1}"],
-        capture_output=True, text=True, cwd=REPO, timeout=60,
-    )
+    result = run_cli("target", "1", "--cell", "nobody", "--timeout", "0.5", "-e", f"tcp/127.0.0.1:{1}")
     assert result.returncode != 0
     assert "cannot open a zenoh session" in result.stderr or "no answer" in result.stderr
 

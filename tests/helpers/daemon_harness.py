@@ -16,7 +16,6 @@ Every wait is bounded and polls a condition; nothing sleeps and hopes.
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import io
 import json
@@ -32,20 +31,14 @@ from typing import Any
 
 import zenoh
 
+from helpers.file_plugin import PLUGIN as PLUGIN  # the file plugin, re-exported (see below)
+from helpers.file_plugin import FileGroup as FileGroup
+from helpers.file_plugin import FilePlugin as FilePlugin
+from helpers.file_plugin import FileSensorConfig as FileSensorConfig
 from helpers.modbus_helpers import free_port  # one definition for every helper (re-exported here)
 from nanodrift.atomic import atomic_write_text
 from nanodrift.bus.protocol import DEFAULT_PREFIX, key_prefix
 from nanodrift.client import client_config as library_client_config
-from nanodrift.drivers.base import (
-    Clock,
-    DeviceError,
-    DriverContext,
-    DriverPlugin,
-    MonotonicClock,
-    Reading,
-    SensorConfig,
-    SensorGroup,
-)
 from nanodrift.model.model import FittedTerm, Model, Training, save_model
 from nanodrift.model.terms import parse_term
 
@@ -55,72 +48,16 @@ TESTS = Path(__file__).resolve().parents[1]
 
 # --- the test-only driver plugin -----------------------------------------------------------------
 
-
-class FileSensorConfig(SensorConfig):
-    path: str
-
-
-class FileGroup(SensorGroup):
-    def __init__(self, configs: Sequence[FileSensorConfig], clock: Clock) -> None:
-        self.names = tuple(c.name for c in configs)
-        self.roles = {c.name: c.role for c in configs}
-        self.interval_s = min(c.interval_s for c in configs)
-        self.timeout_s = min(c.timeout_s for c in configs)
-        self.path = Path(configs[0].path)
-        self.clock = clock
-
-    async def open(self) -> None:
-        if not self.path.exists():
-            raise DeviceError(f"{self.path}: no such file")
-
-    async def read(self) -> dict[str, Reading]:
-        try:
-            doc = json.loads(self.path.read_text())
-        except (OSError, ValueError) as error:
-            raise DeviceError(f"{self.path}: {error}") from None
-        if doc.get("error"):
-            raise DeviceError(str(doc["error"]))
-        if doc.get("hang"):
-            await asyncio.sleep(3600)
-        now = self.clock.now()
-        out = {}
-        for name in self.names:
-            unit = "degC" if self.roles[name] == "temperature" else "um"
-            fault = (doc.get("fault") or {}).get(name)
-            if fault:
-                out[name] = Reading.fault(now, str(fault), unit)
-            elif name in (doc.get("values") or {}):
-                age = float((doc.get("age") or {}).get(name, 0.0))
-                out[name] = Reading(float(doc["values"][name]), now - age, unit=unit)
-            else:
-                out[name] = Reading.fault(now, "no value in file", unit)
-        return out
-
-    async def close(self) -> None:
-        return None
-
-
-class FilePlugin(DriverPlugin):
-    name = "file"
-    config_model = FileSensorConfig
-
-    def create(self, configs: Sequence[SensorConfig], context: DriverContext) -> list[SensorGroup]:
-        by_path: dict[str, list[FileSensorConfig]] = {}
-        for c in configs:
-            assert isinstance(c, FileSensorConfig)
-            by_path.setdefault(c.path, []).append(c)
-        return [FileGroup(group, context.clock or MonotonicClock()) for group in by_path.values()]
-
-
-PLUGIN = FilePlugin()
+# FileSensorConfig, FileGroup, FilePlugin and PLUGIN (imported above) live in helpers.file_plugin, the one module
+# a daemon imports for them: this one's imports would cost each daemon's start a tenth of a second of CPU
 
 
 def install_file_plugin(directory: Path) -> Path:
-    """A dist-info declaring ``file = helpers.daemon_harness:PLUGIN`` in ``nanodrift.drivers``; returns the dir."""
+    """A dist-info declaring ``file = helpers.file_plugin:PLUGIN`` in ``nanodrift.drivers``; returns the dir."""
     info = directory / "nanodrift_test_drivers-0.0.dist-info"
     info.mkdir(parents=True, exist_ok=True)
     (info / "METADATA").write_text("Metadata-Version: 2.1\nName: nanodrift-test-drivers\nVersion: 0.0\n")
-    (info / "entry_points.txt").write_text("[nanodrift.drivers]\nfile = helpers.daemon_harness:PLUGIN\n")
+    (info / "entry_points.txt").write_text("[nanodrift.drivers]\nfile = helpers.file_plugin:PLUGIN\n")
     return directory
 
 

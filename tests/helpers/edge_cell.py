@@ -121,9 +121,14 @@ class Cell:
 
     def __init__(self, root: Path, *, terms: dict[str, float], actuator: str, hub_port: int | None = None,
                  channels: Sequence[str] = ("T1", "T2"), position: bool = False, extra: str = "",
-                 shift: WallShift | None = None, confirmed_v: float | None = None) -> None:
+                 shift: WallShift | None = None, confirmed_v: float | None = None,
+                 sensor_values: dict[str, float] | None = None, sensor_age: dict[str, float] | None = None,
+                 ready: Sequence[str] | None = None, start: bool = True) -> None:
         """``confirmed_v``: an operator confirmed the output holds it before the daemon starts (issue 26.5: a
-        read-back other than the power-up value is believed only so)."""
+        read-back other than the power-up value is believed only so). ``sensor_values``, ``sensor_age``: what
+        the sensor file says at the start beyond the temperatures (values; each channel's age in seconds);
+        ``ready``: the channels to wait for (default: every channel the cell reads); ``start`` False: the config
+        and files only, no daemon (``daemon`` and ``client`` None)."""
         self.root = root
         self.cell = f"edge{free_port()}"
         self.port = free_port()
@@ -134,7 +139,10 @@ class Cell:
         plugins = install_file_plugin(root / "plugins")
         self.model_path = root / "model.json"
         write_model(self.model_path, terms)
-        self.sensors = SensorFile(root / "sensors.json", {**TEMPS, **({"P": 0.0} if position else {})})
+        self.sensors = SensorFile(root / "sensors.json",
+                                  {**TEMPS, **({"P": 0.0} if position else {}), **(sensor_values or {})})
+        if sensor_age:
+            self.sensors.write(age=dict(sensor_age))
         self.config_path = root / "nanodrift.toml"
         self.write_config(actuator)
         pythonpath = [plugins, *([WallShift.SITE_DIR] if shift is not None else [])]
@@ -142,13 +150,17 @@ class Cell:
         if confirmed_v is not None:
             confirmed = confirm_output(self.config_path, pythonpath, "--voltage", repr(confirmed_v))
             assert confirmed.returncode == 0, confirmed.stderr
+        self._ids = itertools.count(1)
+        self.client: Client | None = None
+        if not start:
+            self.daemon = None  # type: ignore[assignment]  # (a config-only cell: no test of it reads one)
+            return
         self.daemon = Daemon(["--config", str(self.config_path)], root / "daemon.log", pythonpath,
                              env=shift.env() if shift is not None else None)
         self.daemon.wait_log("serving", timeout=30)
-        self.client: Client | None = Client(self.port, self.cell)
+        self.client = Client(self.port, self.cell)
         self.client.wait_alive()
-        self.client.wait_ready(self.channels + (("P",) if position else ()))
-        self._ids = itertools.count(1)
+        self.client.wait_ready(self.channels + (("P",) if position else ()) if ready is None else ready)
 
     def write_config(self, actuator: str) -> None:
         keys = f"volts_per_um = {VOLTS_PER_UM}\n{actuator}"
@@ -196,4 +208,4 @@ class Cell:
         if self.client is not None:
             self.client.close()
             self.client = None
-        return self.daemon.stop()
+        return 0 if self.daemon is None else self.daemon.stop()

@@ -20,13 +20,12 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import zenoh
 
-from helpers.daemon_harness import REPO, Daemon, free_port, wait_until
+from helpers.daemon_harness import REPO, Daemon, free_port, run_cli, wait_until
 
 CONFIG = REPO / "config"
 PREFIX = "site/hall2"
@@ -118,13 +117,13 @@ class Fleet:
         assert text.count(SHIPPED_DICTIONARY) == 1
         base.write_text(text.replace(SHIPPED_DICTIONARY, str(dictionary)))
         router_file = self.root / "router.json5"
-        args = [sys.executable, "-m", "nanodrift.cli", "acl", "--prefix", self.prefix, "--into", str(base),
-                "--out", str(router_file), *(a for c in self.names for a in ("--cell", c))]
+        args = ["acl", "--prefix", self.prefix, "--into", str(base), "--out", str(router_file),
+                *(a for c in self.names for a in ("--cell", c))]
         for name, (members, cells) in self.groups.items():
             args += ["--group", f"{name}={','.join(members)}:{','.join(cells)}"]
             for user in members:
                 self.user_configs[user] = credentials_config(self.root / f"{user}.json5", user, password_of(user))
-        result = subprocess.run(args, capture_output=True, text=True, cwd=REPO, timeout=60)
+        result = run_cli(*args, cwd=REPO)  # it writes a file: no process of its own needed
         assert result.returncode == 0, result.stderr
         return router_file
 

@@ -20,7 +20,7 @@ from typing import Literal
 
 from pydantic import Field
 
-from helpers.daemon_harness import FilePlugin
+from helpers.file_plugin import FilePlugin  # (not the harness: daemons import this module)
 from nanodrift.drivers import registry
 from nanodrift.drivers.base import Actuator, ActuatorOptions, DeviceError, DriverContext
 

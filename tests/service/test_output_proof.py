@@ -133,7 +133,9 @@ def test_a_read_back_the_state_file_contradicts_is_refused_until_an_operator_con
 
     confirmed = confirm_output(cell.config_path, [tmp_path / "plugins"], "--axis", "x", "--voltage", "10.0")
     assert confirmed.returncode == 0 and "confirmed at 10 V" in confirmed.stdout, confirmed.stderr
-    wait_until(lambda: cell.bus.status()["actuator"]["state"] == "ok", 15, "the daemon believes the confirmed 10 V")
+    # the daemon's own retry (seconds apart) believes it: a status query every 50 ms, not every 10 ms, sees it
+    wait_until(lambda: cell.bus.status()["actuator"]["state"] == "ok", 15, "the daemon believes the confirmed 10 V",
+               interval=0.05)
     assert module.written() == []  # believing moves nothing
     proved = cell.daemon.wait_log("output_proved")
     assert proved["by"] == "operator" and proved["voltage_v"] == pytest.approx(10.0), proved
@@ -149,23 +151,21 @@ PROOF_TOLERANCE_UM = 5.0
 
 def restarted_at_8_v_without_the_state_file(root: Path, module: OutputModule, cells: list[Cell], rate: float, *,
                                             sensor_um: float, sensor_age_s: float = 0.0) -> tuple[Cell, int]:
-    """A cell with a position sensor that left its output at 8 V, killed; its state file lost, its sensor reading
-    ``sensor_um`` (``sensor_age_s`` old), started again: the cell and the module's stamp count at the restart."""
+    """A cell with a position sensor whose output an earlier run left at 8 V and whose state file is lost (the
+    module holds 8 V; the state directory has no record of the axis), its sensor reading ``sensor_um``
+    (``sensor_age_s`` old), started: the cell and the module's stamp count at its start.
+
+    The earlier run is not a daemon of its own: a run killed at 8 V leaves exactly the register at 8 V, and its
+    state file, which this scenario deletes; what the daemon starting here reads (the register, no record, the
+    sensor) is the same, and its start (the proof, the first writes) is a fresh daemon's, as it was."""
+    module.hold(raw_for(8.0))  # what the killed run left in the register (the stamps start afresh: none yet)
     cell = Cell(root, terms={"x": 1.0}, hub_port=module.server.port, extra=state_dir_keys(root), position=True,
                 actuator=f"max_slew_um_per_s = {rate}\nverify = true\n"
-                         f"position_proof_tolerance_um = {PROOF_TOLERANCE_UM}")
+                         f"position_proof_tolerance_um = {PROOF_TOLERANCE_UM}",
+                sensor_values={"P": sensor_um}, sensor_age={"P": sensor_age_s},
+                ready=("T1", "T2", *(("P",) if sensor_age_s == 0.0 else ())))  # a stale P is never ok
     cells.append(cell)
-    cell.target(400.0)  # 8 V
-    wait_until(lambda: module.register() == raw_for(8.0), 10, "the register at 8 V")
-    wait_until(lambda: cell.bus.status()["actuator"]["last_voltage_v"] == pytest.approx(8.0), 5, "8 V confirmed")
-    cell.daemon.proc.kill()
-    cell.daemon.proc.wait(10)
-    (root / "state" / f"output-{cell.cell}-x.json").unlink()
-    cell.sensors.write(values={**cell.sensors.doc["values"], "P": sensor_um}, age={"P": sensor_age_s})
-    since = len(module.stamps)
-    fresh = sensor_age_s == 0.0
-    cell.restart_after_kill(ready=cell.channels + (("P",) if fresh else ()))
-    return cell, since
+    return cell, 0
 
 
 def test_without_the_state_file_a_position_sensor_reading_where_8_v_puts_the_stage_resumes_from_8_v(
@@ -197,7 +197,8 @@ def test_without_the_state_file_a_position_sensor_reading_far_from_8_v_proves_no
             f"position_proof_tolerance_um = {PROOF_TOLERANCE_UM:g} µm) (sensor P)") in answer["error"], answer
     assert "nanodrift confirm-output --config <the config> --axis x --voltage" in answer["error"], answer
     # the daemon retries the proof on its own: still refused after more attempts, and nothing is ever written
-    wait_until(lambda: cell.bus.status()["actuator"]["failures"] >= 3, 15, "three attempts to prove the output")
+    wait_until(lambda: cell.bus.status()["actuator"]["failures"] >= 3, 15, "three attempts to prove the output",
+               interval=0.05)  # attempts seconds apart: a status query every 50 ms, not every 10 ms
     actuator = cell.bus.status()["actuator"]
     assert actuator["state"] == "fault" and actuator["proved_by"] is None, actuator
     assert module.written(since) == [] and module.register() == raw_for(8.0)
@@ -215,15 +216,18 @@ def test_a_stale_position_reading_proves_nothing_until_a_fresh_one_agrees(
     # the sensor reads again, fresh (a new value: the same one since the stale stamp would be frozen): the daemon's
     # retry proves 8 V
     cell.sensors.write(values={**cell.sensors.doc["values"], "P": 400.3}, age={"P": 0.0})
-    wait_until(lambda: cell.bus.status()["actuator"]["state"] == "ok", 15, "8 V proved by a fresh reading")
+    wait_until(lambda: cell.bus.status()["actuator"]["state"] == "ok", 15, "8 V proved by a fresh reading",
+               interval=0.05)  # the daemon's retry: a status query every 50 ms, not every 10 ms
     assert cell.daemon.wait_log("output_proved")["by"] == "position_sensor"
     assert module.written(since) == [] and module.register() == raw_for(8.0)
 
 
 def test_confirm_output_refuses_a_voltage_outside_the_limits_and_an_unknown_axis(
         tmp_path: Path, module: OutputModule, cells: list[Cell]) -> None:
+    # confirm-output reads the config and writes a state file; it never talks to a daemon (nor opens the device):
+    # the cell's config and files, no daemon started
     cell = Cell(tmp_path, terms={"x": 1.0}, hub_port=module.server.port, extra=state_dir_keys(tmp_path),
-                actuator="verify = true")
+                actuator="verify = true", start=False)
     cells.append(cell)
     outside = confirm_output(cell.config_path, [tmp_path / "plugins"], "--voltage", "40")
     assert outside.returncode == 2 and "--voltage 40: outside axis x's [v_min, v_max] = [-2, 12] V" in outside.stderr
