@@ -13,7 +13,7 @@ from nanodrift.drivers.base import DeviceError, Reading, SensorGroup, State
 from nanodrift.drivers_set import DriverSet
 
 
-@dataclass
+@dataclass(slots=True)
 class _Sample:
     t: float  # when polled (backend clock)
     reading: Reading
@@ -30,6 +30,11 @@ class Sampler:
     #: per channel, (when polled, true value) from groups that know the truth (a simulated cell); else empty
     truth: dict[str, list[tuple[float, float]]] = field(default_factory=dict)
     _broken: set[int] = field(default_factory=set)
+    #: the drivers' temperature channels, asked once (a poll asks for each reading)
+    _temperature_channels: frozenset[str] = field(init=False)
+
+    def __post_init__(self) -> None:
+        self._temperature_channels = frozenset(self.drivers.temperature_channels)
 
     async def open(self) -> None:
         for group in self.drivers.groups:
@@ -57,14 +62,18 @@ class Sampler:
             reason = f"device error: {err}" if str(err) else f"device error: {type(err).__name__}"
             readings = {name: Reading.fault(now, reason) for name in group.names}
         else:
-            for name, value in group.true_values().items():
-                self.truth.setdefault(name, []).append((now, value))
+            truth = group.true_values()
+            if truth:
+                for name, value in truth.items():
+                    self.truth.setdefault(name, []).append((now, value))
+        temperature_channels = self._temperature_channels
+        samples, latest = self.samples, self.latest
         temps: dict[str, float] = {}
         for name, reading in readings.items():
-            self.samples.setdefault(name, []).append(_Sample(now, reading))
+            samples.setdefault(name, []).append(_Sample(now, reading))
             if reading.state is State.OK and math.isfinite(reading.value):
-                self.latest[name] = reading
-                if name in self.drivers.temperature_channels:
+                latest[name] = reading
+                if name in temperature_channels:
                     temps[name] = reading.value
         if temps and self.on_temperatures is not None:
             self.on_temperatures(now, temps)
