@@ -138,22 +138,23 @@ class Sampler:
         clock = self.drivers.clock
         start = clock.now()
         end = start + duration_s
-        groups = list(self.drivers.groups if groups is None else groups)
-        if not groups:
+        # each group once (a group named twice is still polled once a period), with its next poll's time
+        polled = list({id(g): g for g in (self.drivers.groups if groups is None else groups)}.values())
+        if not polled:
             await clock.sleep(duration_s)
             return
-        due = {id(g): start for g in groups}
+        due = [start] * len(polled)
         while True:
-            t_next = min(due.values())
+            t_next = min(due)
             if t_next > end + 1e-9:
                 break
             wait = t_next - clock.now()
             if wait > 0:
                 await clock.sleep(wait)
-            for group in groups:
-                if due[id(group)] <= t_next + 1e-9:
+            for k, group in enumerate(polled):
+                if due[k] <= t_next + 1e-9:
                     await self.poll(group)
-                    due[id(group)] += group.interval_s
+                    due[k] += group.interval_s
         if end - clock.now() > 0:
             await clock.sleep(end - clock.now())
 

@@ -32,6 +32,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -103,7 +104,12 @@ class CellParams:
     index_walk_ppm_per_sqrt_h: float = 0.0
 
     def offset(self, channel: str) -> float:
-        return dict(self.offsets_c).get(channel, 0.0)
+        return self._offsets.get(channel, 0.0)
+
+    @cached_property
+    def _offsets(self) -> dict[str, float]:
+        """``offsets_c`` as a dict, made once (a stepped cell asks it per reading)."""
+        return dict(self.offsets_c)
 
     def problems(self) -> list[str]:
         """What is wrong with the realistic cell's magnitudes, one ``field: what was expected`` each (none: fine)."""

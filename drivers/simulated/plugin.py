@@ -70,6 +70,7 @@ class SimulatedGroup(SensorGroup):
         self.names = tuple(c.name for c in configs)
         self.roles = {c.name: c.role for c in configs}
         self._sources = {c.name: c.source for c in configs}
+        self._channels = tuple(dict.fromkeys(self._sources.values()))  # stable order: same noise per seed
         #: the channels whose truth the cell knows (its interferometers), by name
         self._positions = {name: source for name, source in self._sources.items() if cell.is_position(source)}
         self.interval_s = min(c.interval_s for c in configs)
@@ -80,7 +81,7 @@ class SimulatedGroup(SensorGroup):
         self.is_open = True
 
     async def read(self) -> dict[str, Reading]:
-        by_source = self.cell.read(dict.fromkeys(self._sources.values()))  # stable order: same noise per seed
+        by_source = self.cell.read(self._channels)
         return {name: by_source[source] for name, source in self._sources.items()}
 
     async def close(self) -> None:
