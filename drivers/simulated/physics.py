@@ -206,8 +206,7 @@ class Exogenous:
         self.dt = params.knot_dt_s
         #: :meth:`at1`'s last answer (a beam's reading asks for the room and its wander at one instant) and the
         #: knot interval it read, in plain floats (the stepped drivers stay in one interval for many samples)
-        self._at1_t = math.nan
-        self._at1_answer: tuple[float, dict[str, float], float, float] = (math.nan, {}, math.nan, math.nan)
+        self._at1_last: tuple[float, tuple[float, dict[str, float], float, float]] = (math.nan, (0.0, {}, 0.0, 0.0))
         self._at1_interval: _Interval | None = None
         a = np.exp(-self.dt / self.taus)
         r = (self.taus / self.dt) * (1.0 - a)
@@ -327,8 +326,8 @@ class Exogenous:
     def at1(self, t: float) -> tuple[float, dict[str, float], float, float]:
         """:meth:`at` for one time, in plain floats (the stepped drivers call this per sample): the same float
         operations, on the knot interval's values taken out of the arrays once (many samples fall in one)."""
-        if t == self._at1_t:
-            air, nodes, wander, walk = self._at1_answer
+        last_t, (air, nodes, wander, walk) = self._at1_last
+        if t == last_t:
             return air, dict(nodes), wander, walk
         tc = max(t, self.t0)
         knot = int((tc - self.t0) // self.dt)
@@ -339,9 +338,10 @@ class Exogenous:
         air = interval.air + interval.slope * h
         nodes = {name: air - s_tau + c * math.exp(-h / tau) for name, tau, s_tau, c in interval.nodes}
         frac = h / self.dt
-        answer = (air, nodes, interval.wander + interval.wander_rise * frac, interval.walk + interval.walk_rise * frac)
-        self._at1_t, self._at1_answer = t, answer
-        return air, dict(nodes), answer[2], answer[3]
+        wander = interval.wander + interval.wander_rise * frac
+        walk = interval.walk + interval.walk_rise * frac
+        self._at1_last = (t, (air, nodes, wander, walk))
+        return air, dict(nodes), wander, walk
 
     def _interval1(self, t: float, tc: float) -> _Interval:
         """The knot interval :meth:`at1` reads at ``t`` (``tc``: ``t`` no earlier than the grid's start)."""
