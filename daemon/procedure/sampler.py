@@ -4,16 +4,68 @@ from __future__ import annotations
 
 import asyncio
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Awaitable, Callable, Generator, Sequence
 from dataclasses import dataclass, field
+from typing import Any, TypeVar
 
 import numpy as np
 
 from nanodrift.drivers.base import DeviceError, Reading, SensorGroup, State
 from nanodrift.drivers_set import DriverSet
 
+T = TypeVar("T")
 
-@dataclass
+
+async def within(awaitable: Awaitable[T], timeout_s: float) -> T:
+    """``await awaitable``, cut at ``timeout_s`` (``TimeoutError``) as under ``asyncio.timeout``.
+
+    The timer is set only once the awaitable waits: one that returns at its first step (a simulated
+    group's read, a cached answer) never waits, so no timeout can cut it, and it costs no timer. The
+    deadline counts from the call, as ``asyncio.timeout`` around the ``await`` would.
+    """
+    deadline = asyncio.get_running_loop().time() + timeout_s
+    steps = awaitable.__await__()
+    try:
+        waiting = steps.send(None)
+    except StopIteration as done:
+        result: T = done.value
+        return result
+    async with asyncio.timeout_at(deadline):
+        return await _Resumed(steps, waiting)
+
+
+class _Resumed(Awaitable[T]):
+    """The rest of an awaitable whose first step was taken by hand (it yielded ``waiting``): awaiting this
+    continues it as the ``await`` would have (PEP 380's ``yield from``: what is sent or thrown in is passed on,
+    so a cancellation reaches it where it waits)."""
+
+    def __init__(self, steps: Generator[Any, Any, T], waiting: Any) -> None:
+        self._steps = steps
+        self._waiting = waiting
+
+    def __await__(self) -> Generator[Any, Any, T]:
+        steps, waiting = self._steps, self._waiting
+        while True:
+            try:
+                sent = yield waiting
+            except GeneratorExit:
+                steps.close()
+                raise
+            except BaseException as exc:
+                try:
+                    waiting = steps.throw(exc)
+                except StopIteration as done:
+                    result: T = done.value
+                    return result
+            else:
+                try:
+                    waiting = steps.send(sent)
+                except StopIteration as done:
+                    result = done.value
+                    return result
+
+
+@dataclass(slots=True)
 class _Sample:
     t: float  # when polled (backend clock)
     reading: Reading
@@ -30,6 +82,11 @@ class Sampler:
     #: per channel, (when polled, true value) from groups that know the truth (a simulated cell); else empty
     truth: dict[str, list[tuple[float, float]]] = field(default_factory=dict)
     _broken: set[int] = field(default_factory=set)
+    #: the drivers' temperature channels, asked once (a poll asks for each reading)
+    _temperature_channels: frozenset[str] = field(init=False)
+
+    def __post_init__(self) -> None:
+        self._temperature_channels = frozenset(self.drivers.temperature_channels)
 
     async def open(self) -> None:
         for group in self.drivers.groups:
@@ -50,21 +107,24 @@ class Sampler:
                 await group.close()
                 await group.open()
                 self._broken.discard(key)
-            async with asyncio.timeout(group.timeout_s):
-                readings = await group.read()
+            readings = await within(group.read(), group.timeout_s)
         except (DeviceError, TimeoutError, OSError) as err:
             self._broken.add(key)
             reason = f"device error: {err}" if str(err) else f"device error: {type(err).__name__}"
             readings = {name: Reading.fault(now, reason) for name in group.names}
         else:
-            for name, value in group.true_values().items():
-                self.truth.setdefault(name, []).append((now, value))
+            truth = group.true_values()
+            if truth:
+                for name, value in truth.items():
+                    self.truth.setdefault(name, []).append((now, value))
+        temperature_channels = self._temperature_channels
+        samples, latest = self.samples, self.latest
         temps: dict[str, float] = {}
         for name, reading in readings.items():
-            self.samples.setdefault(name, []).append(_Sample(now, reading))
+            samples.setdefault(name, []).append(_Sample(now, reading))
             if reading.state is State.OK and math.isfinite(reading.value):
-                self.latest[name] = reading
-                if name in self.drivers.temperature_channels:
+                latest[name] = reading
+                if name in temperature_channels:
                     temps[name] = reading.value
         if temps and self.on_temperatures is not None:
             self.on_temperatures(now, temps)
@@ -78,22 +138,23 @@ class Sampler:
         clock = self.drivers.clock
         start = clock.now()
         end = start + duration_s
-        groups = list(self.drivers.groups if groups is None else groups)
-        if not groups:
+        # each group once (a group named twice is still polled once a period), with its next poll's time
+        polled = list({id(g): g for g in (self.drivers.groups if groups is None else groups)}.values())
+        if not polled:
             await clock.sleep(duration_s)
             return
-        due = {id(g): start for g in groups}
+        due = [start] * len(polled)
         while True:
-            t_next = min(due.values())
+            t_next = min(due)
             if t_next > end + 1e-9:
                 break
             wait = t_next - clock.now()
             if wait > 0:
                 await clock.sleep(wait)
-            for group in groups:
-                if due[id(group)] <= t_next + 1e-9:
+            for k, group in enumerate(polled):
+                if due[k] <= t_next + 1e-9:
                     await self.poll(group)
-                    due[id(group)] += group.interval_s
+                    due[k] += group.interval_s
         if end - clock.now() > 0:
             await clock.sleep(end - clock.now())
 

@@ -101,27 +101,31 @@ class SimulatedCell:
         now = self.clock.now()
         names = list(channels)
         out: dict[str, Reading] = {}
-        thermal = self.physics.thermal1(t) if any(not self.is_position(c) for c in names) else {}
+        axis_of, physics, faults, last_ok = self._axis_of, self.physics, self.faults, self._last_ok
+        normal = self._noise_rng.standard_normal
+        thermal = physics.thermal1(t) if any(name not in axis_of for name in names) else {}
         for name in names:
-            window = self._fault(name, t) if self.faults else None
-            if window is not None and window.mode == "device_error":
-                raise DeviceError(f"simulated {name}: link failure (injected)")
-            unit = "um" if self.is_position(name) else "degC"
-            if window is not None and window.mode == "fault":
-                out[name] = Reading.fault(now, "open thermocouple (injected)" if unit == "degC" else
-                                          "beam lost (injected)", unit=unit)
-                continue
-            if window is not None and window.mode == "stale" and name in self._last_ok:
-                out[name] = self._last_ok[name]
-                continue
-            noise = float(self._noise_rng.standard_normal())
-            if self.is_position(name):
-                value = self._read_position(self._axis_of[name], t, now, noise)
+            axis = axis_of.get(name)
+            unit = "degC" if axis is None else "um"
+            window = self._fault(name, t) if faults else None
+            if window is not None:
+                if window.mode == "device_error":
+                    raise DeviceError(f"simulated {name}: link failure (injected)")
+                if window.mode == "fault":
+                    out[name] = Reading.fault(now, "open thermocouple (injected)" if unit == "degC" else
+                                              "beam lost (injected)", unit=unit)
+                    continue
+                if window.mode == "stale" and name in last_ok:
+                    out[name] = last_ok[name]
+                    continue
+            noise = float(normal())
+            if axis is not None:
+                value = self._read_position(axis, t, now, noise)
             else:
-                value = self.physics.measure_temperature1(self.physics.sensor_truth(name, thermal), noise)
-            reading = Reading(value=value, t=now, state=State.OK, unit=unit)
+                value = physics.measure_temperature1(physics.sensor_truth(name, thermal), noise)
+            reading = Reading(value, now, State.OK, "", unit)
             if math.isfinite(value):
-                self._last_ok[name] = reading
+                last_ok[name] = reading
             out[name] = reading
         return out
 

@@ -32,7 +32,8 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any
+from functools import cached_property
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -103,7 +104,12 @@ class CellParams:
     index_walk_ppm_per_sqrt_h: float = 0.0
 
     def offset(self, channel: str) -> float:
-        return dict(self.offsets_c).get(channel, 0.0)
+        return self._offsets.get(channel, 0.0)
+
+    @cached_property
+    def _offsets(self) -> dict[str, float]:
+        """``offsets_c`` as a dict, made once (a stepped cell asks it per reading)."""
+        return dict(self.offsets_c)
 
     def problems(self) -> list[str]:
         """What is wrong with the realistic cell's magnitudes, one ``field: what was expected`` each (none: fine)."""
@@ -198,6 +204,10 @@ class Exogenous:
         self.index_sigma = params.index_walk_ppm_per_sqrt_h * math.sqrt(params.knot_dt_s / 3600.0)
         self.t0 = scenario.start_h * 3600.0
         self.dt = params.knot_dt_s
+        #: :meth:`at1`'s last answer (a beam's reading asks for the room and its wander at one instant) and the
+        #: knot interval it read, in plain floats (the stepped drivers stay in one interval for many samples)
+        self._at1_last: tuple[float, tuple[float, dict[str, float], float, float]] = (math.nan, (0.0, {}, 0.0, 0.0))
+        self._at1_interval: _Interval | None = None
         a = np.exp(-self.dt / self.taus)
         r = (self.taus / self.dt) * (1.0 - a)
         self._a, self._b_now, self._b_prev = a, 1.0 - r, r - a
@@ -314,24 +324,58 @@ class Exogenous:
         return result
 
     def at1(self, t: float) -> tuple[float, dict[str, float], float, float]:
-        """:meth:`at` for one time, in plain floats (the stepped drivers call this per sample)."""
-        self.ensure(t)
+        """:meth:`at` for one time, in plain floats (the stepped drivers call this per sample): the same float
+        operations, on the knot interval's values taken out of the arrays once (many samples fall in one)."""
+        last_t, (air, nodes, wander, walk) = self._at1_last
+        if t == last_t:
+            return air, dict(nodes), wander, walk
         tc = max(t, self.t0)
-        i = min(int((tc - self.t0) // self.dt) - self.first_knot, self.t.size - 2)
-        h = tc - float(self.t[i])
+        knot = int((tc - self.t0) // self.dt)
+        interval = self._at1_interval
+        if interval is None or interval.knot != knot:
+            interval = self._at1_interval = self._interval1(t, tc)
+        h = tc - interval.t
+        air = interval.air + interval.slope * h
+        nodes = {name: air - s_tau + c * math.exp(-h / tau) for name, tau, s_tau, c in interval.nodes}
+        frac = h / self.dt
+        wander = interval.wander + interval.wander_rise * frac
+        walk = interval.walk + interval.walk_rise * frac
+        self._at1_last = (t, (air, nodes, wander, walk))
+        return air, dict(nodes), wander, walk
+
+    def _interval1(self, t: float, tc: float) -> _Interval:
+        """The knot interval :meth:`at1` reads at ``t`` (``tc``: ``t`` no earlier than the grid's start)."""
+        self.ensure(t)
+        raw = int((tc - self.t0) // self.dt) - self.first_knot
+        i = min(raw, self.t.size - 2)
         u0, u1 = float(self.air[i]), float(self.air[i + 1])
         slope = (u1 - u0) / self.dt
-        air = u0 + slope * h
         row = self.nodes[i].tolist()
-        nodes = {}
+        nodes = []
         for j, name in enumerate(self.node_names):
             tau = float(self.taus[j])
             s_tau = slope * tau
-            nodes[name] = air - s_tau + (row[j] - u0 + s_tau) * math.exp(-h / tau)
-        frac = h / self.dt
+            nodes.append((name, tau, s_tau, row[j] - u0 + s_tau))
         w0, w1 = float(self.wander[i]), float(self.wander[i + 1])
         k0, k1 = float(self.walk[i]), float(self.walk[i + 1])
-        return air, nodes, w0 + (w1 - w0) * frac, k0 + (k1 - k0) * frac
+        # an interval clamped at the grid's end (``i < raw``) is never reused: knot -1 matches no time
+        return _Interval(i + self.first_knot if i == raw else -1, float(self.t[i]), u0, slope, tuple(nodes),
+                         w0, w1 - w0, k0, k1 - k0)
+
+
+class _Interval(NamedTuple):
+    """One knot interval of an :class:`Exogenous` grid in plain floats, as :meth:`Exogenous.at1` reads it."""
+
+    knot: int  # the global index of its first knot (-1: not to be reused)
+    t: float  # its first knot's time
+    air: float  # the air there, and its slope over the interval
+    slope: float
+    #: per node (name, tau, slope·tau, node − air + slope·tau at the first knot)
+    nodes: tuple[tuple[str, float, float, float], ...]
+    wander: float  # the wander and the walk at the first knot, and their rises to the next
+    wander_rise: float
+    walk: float
+    walk_rise: float
 
 
 @dataclass

@@ -70,6 +70,9 @@ class SimulatedGroup(SensorGroup):
         self.names = tuple(c.name for c in configs)
         self.roles = {c.name: c.role for c in configs}
         self._sources = {c.name: c.source for c in configs}
+        self._channels = tuple(dict.fromkeys(self._sources.values()))  # stable order: same noise per seed
+        #: the channels whose truth the cell knows (its interferometers), by name
+        self._positions = {name: source for name, source in self._sources.items() if cell.is_position(source)}
         self.interval_s = min(c.interval_s for c in configs)
         self.timeout_s = max(c.timeout_s for c in configs)
         self.is_open = False
@@ -78,7 +81,7 @@ class SimulatedGroup(SensorGroup):
         self.is_open = True
 
     async def read(self) -> dict[str, Reading]:
-        by_source = self.cell.read(dict.fromkeys(self._sources.values()))  # stable order: same noise per seed
+        by_source = self.cell.read(self._channels)
         return {name: by_source[source] for name, source in self._sources.items()}
 
     async def close(self) -> None:
@@ -86,7 +89,7 @@ class SimulatedGroup(SensorGroup):
 
     def true_values(self) -> dict[str, float]:
         """The true attained position behind this group's last interferometer reading (temperatures: none)."""
-        truth = {name: self.cell.true_reading(source) for name, source in self._sources.items()}
+        truth = {name: self.cell.true_reading(source) for name, source in self._positions.items()}
         return {name: value for name, value in truth.items() if value is not None}
 
 

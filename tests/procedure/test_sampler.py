@@ -177,3 +177,75 @@ def test_a_hold_without_groups_just_waits() -> None:
         assert math.isfinite(clock.now())
 
     run(body)
+
+
+def test_within_returns_a_read_that_never_waits_without_a_timer_and_cuts_one_that_hangs() -> None:
+    """``within`` is ``asyncio.timeout`` around an ``await`` whose timer is set only when the read waits."""
+    within = sampler_module.within
+    log: list[str] = []
+
+    async def at_once() -> str:
+        return "now"
+
+    async def after_waits(n: int) -> str:
+        for _ in range(n):
+            await asyncio.sleep(0)
+        await asyncio.sleep(0.01)
+        return "later"
+
+    async def failing(wait: bool) -> str:
+        if wait:
+            await asyncio.sleep(0)
+        raise DeviceError("gone")
+
+    async def hanging() -> str:
+        try:
+            await asyncio.Event().wait()
+        except asyncio.CancelledError:
+            log.append("hang cancelled")
+            raise
+        finally:
+            log.append("hang ended")
+        return "never"
+
+    async def body() -> None:
+        loop = asyncio.get_running_loop()
+        timers = len(loop._scheduled)  # type: ignore[attr-defined]
+        assert await within(at_once(), 1.0) == "now"
+        assert len(loop._scheduled) == timers  # type: ignore[attr-defined]  # no timer was set
+        assert await within(after_waits(3), 1.0) == "later"
+        for wait in (False, True):
+            with pytest.raises(DeviceError, match="gone"):
+                await within(failing(wait), 1.0)
+        done = loop.create_future()
+        loop.call_later(0.01, done.set_result, "future")
+        assert await within(done, 1.0) == "future"
+        start = loop.time()
+        with pytest.raises(TimeoutError):
+            await within(hanging(), 0.05)
+        assert 0.05 <= loop.time() - start < 1.0
+        assert log == ["hang cancelled", "hang ended"]  # the read saw the cut where it waited
+
+    run(body)
+
+
+def test_within_passes_a_cancellation_on_to_the_read_as_a_cancellation() -> None:
+    within = sampler_module.within
+    seen: list[str] = []
+
+    async def hanging() -> None:
+        try:
+            await asyncio.Event().wait()
+        except asyncio.CancelledError:
+            seen.append("cancelled")
+            raise
+
+    async def body() -> None:
+        task = asyncio.ensure_future(within(hanging(), 10.0))
+        await asyncio.sleep(0.01)
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+        assert seen == ["cancelled"]
+
+    run(body)

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import asyncio
+import os
+import signal
 import time
 
 import pytest
@@ -50,6 +52,40 @@ def test_virtual_clock_survives_cancelled_sleepers():
         return clock.now()
 
     assert asyncio.run(main()) == 21.0
+
+
+def test_a_lone_sleeper_jumps_at_once_but_what_is_ready_or_due_runs_first_and_signals_get_in():
+    """A lone sleeper skips the advancer's rounds; a callback ready or a timer due still runs at the time it was
+    scheduled in, and the loop still hears a signal (Ctrl-C) while one task sleeps on and on."""
+    clock = VirtualClock()
+    seen: list[tuple[str, float]] = []
+
+    async def main() -> int:
+        loop = asyncio.get_running_loop()
+        for _ in range(100):
+            await clock.sleep(0.5)
+        assert clock.now() == 50.0
+        assert clock._advancer is None  # the scheduler was never needed
+        loop.call_soon(lambda: seen.append(("ready", clock.now())))
+        await clock.sleep(1.0)
+        loop.call_later(0.0, lambda: seen.append(("due", clock.now())))
+        await clock.sleep(1.0)
+        assert seen == [("ready", 50.0), ("due", 51.0)] and clock.now() == 52.0
+        task = asyncio.current_task()
+        assert task is not None
+        loop.add_signal_handler(signal.SIGUSR1, task.cancel)
+        os.kill(os.getpid(), signal.SIGUSR1)
+        sleeps = 0
+        try:
+            while True:
+                await clock.sleep(1.0)
+                sleeps += 1
+        except asyncio.CancelledError:
+            return sleeps
+        finally:
+            loop.remove_signal_handler(signal.SIGUSR1)
+
+    assert asyncio.run(main()) <= VirtualClock.YIELD_EVERY
 
 
 def _context(**simulation) -> DriverContext:
