@@ -4,65 +4,13 @@ from __future__ import annotations
 
 import asyncio
 import math
-from collections.abc import Awaitable, Callable, Generator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, TypeVar
 
 import numpy as np
 
 from nanodrift.drivers.base import DeviceError, Reading, SensorGroup, State
 from nanodrift.drivers_set import DriverSet
-
-T = TypeVar("T")
-
-
-async def within(awaitable: Awaitable[T], timeout_s: float) -> T:
-    """``await awaitable``, cut at ``timeout_s`` (``TimeoutError``) as under ``asyncio.timeout``.
-
-    The timer is set only once the awaitable waits: one that returns at its first step (a simulated
-    group's read, a cached answer) never waits, so no timeout can cut it, and it costs no timer. The
-    deadline counts from the call, as ``asyncio.timeout`` around the ``await`` would.
-    """
-    deadline = asyncio.get_running_loop().time() + timeout_s
-    steps = awaitable.__await__()
-    try:
-        waiting = steps.send(None)
-    except StopIteration as done:
-        result: T = done.value
-        return result
-    async with asyncio.timeout_at(deadline):
-        return await _Resumed(steps, waiting)
-
-
-class _Resumed(Awaitable[T]):
-    """The rest of an awaitable whose first step was taken by hand (it yielded ``waiting``): awaiting this
-    continues it as the ``await`` would have (PEP 380's ``yield from``: what is sent or thrown in is passed on,
-    so a cancellation reaches it where it waits)."""
-
-    def __init__(self, steps: Generator[Any, Any, T], waiting: Any) -> None:
-        self._steps = steps
-        self._waiting = waiting
-
-    def __await__(self) -> Generator[Any, Any, T]:
-        steps, waiting = self._steps, self._waiting
-        while True:
-            try:
-                sent = yield waiting
-            except GeneratorExit:
-                steps.close()
-                raise
-            except BaseException as exc:
-                try:
-                    waiting = steps.throw(exc)
-                except StopIteration as done:
-                    result: T = done.value
-                    return result
-            else:
-                try:
-                    waiting = steps.send(sent)
-                except StopIteration as done:
-                    result = done.value
-                    return result
 
 
 @dataclass(slots=True)
@@ -107,7 +55,8 @@ class Sampler:
                 await group.close()
                 await group.open()
                 self._broken.discard(key)
-            readings = await within(group.read(), group.timeout_s)
+            async with asyncio.timeout(group.timeout_s):
+                readings = await group.read()
         except (DeviceError, TimeoutError, OSError) as err:
             self._broken.add(key)
             reason = f"device error: {err}" if str(err) else f"device error: {type(err).__name__}"
