@@ -245,9 +245,17 @@ class Bus:
         undeclare_all(self._declared)
 
     def close(self) -> None:
-        """Withdraw, undeclare everything, close the session."""
+        """Withdraw, undeclare the telemetry, close the session.
+
+        The answer publishers (``command``, ``error``, ``done``) are closed with the session, not undeclared
+        one by one: a target that arrived before the withdrawal may still be publishing its answer on Zenoh's
+        thread, and undeclaring a publisher during its ``put`` raises ``RuntimeError: Already borrowed``
+        (zenoh-python's object is borrowed by the put), which ended a stopping daemon with a traceback and
+        exit code 1 under a stream of targets. Closing the session under a ``put`` is safe: that put and any
+        later one raise ``ZError``, which the target path handles (``answer_not_sent``).
+        """
         self.withdraw()
-        undeclare_all([*self._telemetry.values(), self._command_pub, self._error_pub, self._done_pub])
+        undeclare_all(list(self._telemetry.values()))  # published from the loop only, like this call
         self._telemetry.clear()
         if not self.session.is_closed():
             self.session.close()
