@@ -47,7 +47,8 @@ too; this module owns the devices' lifecycle.
   ``reached`` when every output holds it (the write of the ramp's end returned, the driver's read-back
   included, and a closed-loop controller says it is on target: GCS ``ONT?``; ``failed`` when it does not
   within :data:`ON_TARGET_BUDGET_S`); ``superseded`` when a newer command replaced it, pending (replaced in
-  :meth:`offer`, told when the loop takes the newest) or in flight (a newer one taken mid-ramp); ``failed``
+  :meth:`offer`, told by the target path after its answer, :meth:`tell_superseded`) or in flight (a newer
+  one taken mid-ramp); ``failed``
   when a write, read-back or open faults while it is in flight, or a reload's limits drop it (the goal is
   still written once the outputs work again: no second ``done``); ``stopped`` by :meth:`halt` or by the
   daemon's stop. A cell with no output device at all (every axis ``kind = "zenoh"``, or no actuator) still
@@ -122,8 +123,9 @@ PROOF_NAMES = {"read back": "state", "power-up value": "power_up", "position sen
 
 #: told (on the loop) when every output holds a goal: the goal and the monotonic time
 OnReached = Callable[[Goal, float], None]
-#: told (on the loop) once per served command, how it ended: the goal, the state (reached, superseded, stopped
-#: or failed), what each axis holds now (V, None where unknown) and, when it failed, why
+#: told once per served command (on the loop; a pending one replaced, on the target's thread), how it ended: the
+#: goal, the state (reached, superseded, stopped or failed), what each axis holds now (V, None where unknown)
+#: and, when it failed, why
 OnDone = Callable[[Goal, str, dict[str, float | None], str | None], None]
 
 
@@ -208,8 +210,8 @@ class Actuation:
         """Make this the command every axis gets next (any thread). True: the caller must wake the loop
         (``loop.call_soon_threadsafe(actuation.wake)``); it is asked at most once per burst. While the
         drivers are being swapped (a reload) the command waits for the new outputs. A pending command this
-        one replaces ends ``superseded``, told from the loop when it takes the newest (while the drivers are
-        swapped, at the wake this asks for, once a burst): nothing piles up."""
+        one replaces ends ``superseded`` at the caller's :meth:`tell_superseded`, else when the loop takes the newest
+        (while the drivers are swapped, at the wake this asks for, once a burst): nothing piles up."""
         with self._lock:
             self._seq += 1
             goal = Goal(q_um, voltage_v, positions_um, target_id, seq=self._seq)
@@ -227,10 +229,14 @@ class Actuation:
 
     def wake(self) -> None:
         """(On the loop.) Take the newest command; those it superseded end now."""
-        self._drain_superseded()
+        self.tell_superseded()
         self._event.set()
 
-    def _drain_superseded(self) -> None:
+    def tell_superseded(self) -> None:
+        """(Any thread.) The commands a newer one replaced before the loop took them end ``superseded`` now. The
+        target path calls it after its answer, so each target tells the one it replaced: at 1 kHz the loop would
+        otherwise tell ~20 at each of its wakes, holding the GIL while targets wait (benchmarks/daemon_latency.py's
+        p99)."""
         with self._lock:
             superseded, self._superseded = self._superseded, []
             self._drain_asked = False

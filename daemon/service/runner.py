@@ -306,7 +306,8 @@ class Service:
         self.health.on_reached(self.state.clock.now(), goal.q_um)  # q per axis: each health unit takes its own
 
     def _publish_done(self, goal: Goal, state: str, held: dict[str, float | None], error: str | None) -> None:
-        """``done`` for a served command (on the loop; the publisher drops rather than blocks, as the answers')."""
+        """``done`` for a served command (on the loop, or a target's thread for the one it replaced; the publisher
+        drops rather than blocks, as the answers')."""
         bus = self.bus
         if bus is None:
             return

@@ -134,6 +134,8 @@ class TargetHandler:
                     bus.reply_err(query, data)
             except zenoh.ZError as error:
                 self.loop.call_soon_threadsafe(self._log_bus_failure, error)
+        if command is not None:  # after the answer is out: the command this one replaced ends superseded
+            self.actuation.tell_superseded()
         # after the answer is out, and at most once per burst: wake the loop
         if wake_actuator:
             self.loop.call_soon_threadsafe(self.actuation.wake)

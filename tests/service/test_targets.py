@@ -226,6 +226,26 @@ def test_a_command_is_published_before_the_actuator_hears_of_it_and_the_reply_fo
     assert query.dropped == 0
 
 
+def test_the_command_a_target_replaces_ends_superseded_on_the_target_thread_after_its_answer(
+        tmp_path: Path) -> None:
+    """Each target tells the command it replaced: the loop, which never runs here, would otherwise tell a burst of
+    them at its next wake (at 1 kHz, ~20 at each of its 50 wakes a second, holding the GIL while targets wait)."""
+    cell = Cell(tmp_path)
+    handler = cell.handler(asyncio.new_event_loop())
+    told: list[tuple[Any, str, str]] = []
+    cell.actuation._active = True  # a drive loop runs (it is never woken here)
+    cell.actuation.done_listeners.append(
+        lambda goal, state, held, error: told.append((goal.id, state, threading.current_thread().name)))
+    cell.events.clear()
+    for i in range(1, 6):
+        handler.on_target(target(100.0 + i, i), None)
+        if i > 1:  # the one it replaced ended before this target's handler returned, after its command went out
+            assert told[-1] == (i - 1, "superseded", threading.current_thread().name), told
+            assert [e[0] for e in cell.events][-2:] == ["command", "offer"], cell.events
+    assert [t[0] for t in told] == [1, 2, 3, 4]  # one each; the newest is still pending, owed its done
+    handler.loop.close()
+
+
 @pytest.mark.parametrize(
     ("kind", "payload", "setup"),
     [
