@@ -39,27 +39,6 @@ ERROR_KINDS = ("out_of_workspace", "no_model", "missing_channel", "stale", "faul
                "actuator_fault", "bad_payload", "shutting_down", "internal")
 
 
-#: the health document's counts, exported as counters (``_total``): (family name, document key, help)
-HEALTH_COUNTERS = (
-    ("nanodrift_health_holds_unrecorded", "holds_unrecorded",
-     "held targets with no position reading inside window_s (the sensor polls slower): no residual, no record row"),
-    ("nanodrift_health_residuals_rejected", "residuals_rejected",
-     "settled residuals refused as too large to be a reading (their square is not finite)"),
-)
-
-
-def _health_counters(docs: dict[str, dict[str, Any]], cell: str) -> Iterator[Any]:
-    """:data:`HEALTH_COUNTERS` of each axis' health document (``{"": doc}``: a one-axis cell, no axis label)."""
-    labelled = "" not in docs
-    for name, key, text in HEALTH_COUNTERS:
-        family = CounterMetricFamily(name, text, labels=["cell", "axis"] if labelled else ["cell"])
-        for axis, health in docs.items():
-            number = _number(health.get(key))
-            if number is not None:
-                family.add_metric([cell, axis] if labelled else [cell], number)
-        yield family
-
-
 def _number(value: Any) -> float | None:
     if isinstance(value, bool) or not isinstance(value, int | float):
         return None
@@ -158,99 +137,75 @@ class CellCollector(Collector):
         yield from (healthy, uptime, model, extrapolating)
 
     def _health(self, doc: dict[str, Any], cell: str) -> Iterator[Any]:
+        """The health document's families; a multi-axis cell's (every axis' document under ``"axes"``) with an
+        ``axis`` label. A one-axis cell leaves out a gauge it has no value for."""
         health = doc.get("health")
         if not isinstance(health, dict):
             return
-        if isinstance(health.get("axes"), dict):
-            yield from self._axis_health(health["axes"], cell)
-            yield from _health_counters({axis: h for axis, h in health["axes"].items() if isinstance(h, dict)}, cell)
-            return
-        yield from _health_counters({"": health}, cell)
-        for name, key, scale, text in (
+        multi = isinstance(health.get("axes"), dict)
+        docs = {a: h for a, h in health["axes"].items() if isinstance(h, dict)} if multi else {"": health}
+        labels = ["cell", "axis"] if multi else ["cell"]
+        gauges = [(GaugeMetricFamily(name, text, labels=labels), key, scale) for name, key, scale, text in (
             ("nanodrift_health_residual_rms_meters", "residual_rms_nm", 1e-9, "RMS of the settled residuals"),
             ("nanodrift_health_residual_mean_meters", "residual_mean_nm", 1e-9, "mean of the settled residuals"),
             ("nanodrift_health_correction_meters", "correction_um", 1e-6, "the adaptive correction applied"),
-        ):
-            number = _number(health.get(key))
-            if number is not None:
-                family = GaugeMetricFamily(name, text, labels=["cell"])
-                family.add_metric([cell], number * scale)
-                yield family
-        count = _number(health.get("n"))
-        if count is not None:
-            residuals = GaugeMetricFamily("nanodrift_health_residuals", "settled residuals in the rolling statistics",
-                                          labels=["cell"])
-            residuals.add_metric([cell], count)
-            yield residuals
-        if health.get("state") is not None:
-            current = str(health["state"])
-            state = GaugeMetricFamily("nanodrift_health_state",
-                                      "1 for the health state the daemon is in (unknown, ok, degraded)",
-                                      labels=["cell", "state"])
-            for name in dict.fromkeys((*HEALTH_STATES, current)):
-                state.add_metric([cell, name], 1.0 if name == current else 0.0)
-            yield state
-
-    def _actuator(self, doc: dict[str, Any], cell: str) -> Iterator[Any]:
-        if isinstance(doc.get("axes"), dict):
-            yield from self._axis_actuators(doc["axes"], cell)
-            return
-        actuator = doc.get("actuator")
-        if not isinstance(actuator, dict) or actuator.get("state") is None:
-            return
-        kind, current = str(actuator.get("kind", "")), str(actuator["state"])
-        family = GaugeMetricFamily("nanodrift_actuator_state", "1 for the state the actuator is in (ok, fault, closed)",
-                                   labels=["cell", "kind", "state"])
-        for state in dict.fromkeys((*ACTUATOR_STATES, current)):
-            family.add_metric([cell, kind, state], 1.0 if state == current else 0.0)
-        ok = GaugeMetricFamily("nanodrift_actuator_ok", "1 unless the actuator is in fault", labels=["cell", "kind"])
-        ok.add_metric([cell, kind], 0.0 if current == "fault" else 1.0)
-        yield from (family, ok)
-
-    def _axis_health(self, axes: dict[str, Any], cell: str) -> Iterator[Any]:
-        """A multi-axis cell's health: the one-axis families with an ``axis`` label."""
-        families = {key: GaugeMetricFamily(name, text, labels=["cell", "axis"]) for name, key, text in (
-            ("nanodrift_health_residual_rms_meters", "residual_rms_nm", "RMS of the settled residuals"),
-            ("nanodrift_health_residual_mean_meters", "residual_mean_nm", "mean of the settled residuals"),
-            ("nanodrift_health_correction_meters", "correction_um", "the adaptive correction applied"),
-            ("nanodrift_health_residuals", "n", "settled residuals in the rolling statistics"))}
-        scale = {"residual_rms_nm": 1e-9, "residual_mean_nm": 1e-9, "correction_um": 1e-6, "n": 1.0}
+            ("nanodrift_health_residuals", "n", 1.0, "settled residuals in the rolling statistics"))]
         state = GaugeMetricFamily("nanodrift_health_state",
                                   "1 for the health state the daemon is in (unknown, ok, degraded)",
-                                  labels=["cell", "axis", "state"])
-        for axis, health in axes.items():
-            if not isinstance(health, dict):
-                continue
-            for key, family in families.items():
-                number = _number(health.get(key))
+                                  labels=[*labels, "state"])
+        #: the health document's counts, exported as counters (``_total``)
+        counters = [(CounterMetricFamily(name, text, labels=labels), key) for name, key, text in (
+            ("nanodrift_health_holds_unrecorded", "holds_unrecorded", "held targets with no position reading "
+             "inside window_s (the sensor polls slower): no residual, no record row"),
+            ("nanodrift_health_residuals_rejected", "residuals_rejected",
+             "settled residuals refused as too large to be a reading (their square is not finite)"))]
+        for axis, each in docs.items():
+            where = [cell, axis] if multi else [cell]
+            for family, key, scale in gauges:
+                number = _number(each.get(key))
                 if number is not None:
-                    family.add_metric([cell, axis], number * scale[key])
-            if health.get("state") is not None:
-                current = str(health["state"])
+                    family.add_metric(where, number * scale)
+            if each.get("state") is not None:
+                current = str(each["state"])
                 for name in dict.fromkeys((*HEALTH_STATES, current)):
-                    state.add_metric([cell, axis, name], 1.0 if name == current else 0.0)
-        yield from (*families.values(), state)
+                    state.add_metric([*where, name], 1.0 if name == current else 0.0)
+            for counter, key in counters:
+                number = _number(each.get(key))
+                if number is not None:
+                    counter.add_metric(where, number)
+        if multi:
+            yield from (*(g for g, _, _ in gauges), state, *(c for c, _ in counters))
+        else:
+            yield from (c for c, _ in counters)
+            yield from (f for f in (*(g for g, _, _ in gauges), state) if f.samples)
 
-    def _axis_actuators(self, axes: dict[str, Any], cell: str) -> Iterator[Any]:
-        """A multi-axis cell's outputs: the one-axis families with an ``axis`` label, and each output's voltage."""
+    def _actuator(self, doc: dict[str, Any], cell: str) -> Iterator[Any]:
+        """The actuator's state; a multi-axis cell's outputs with an ``axis`` label, and each output's voltage."""
+        axes = doc.get("axes")
+        multi = isinstance(axes, dict)
+        actuators = ({axis: each.get("actuator") if isinstance(each, dict) else None for axis, each in axes.items()}
+                     if isinstance(axes, dict) else {"": doc.get("actuator")})
+        labels = ["cell", "axis"] if multi else ["cell"]
         family = GaugeMetricFamily("nanodrift_actuator_state", "1 for the state the actuator is in (ok, fault, closed)",
-                                   labels=["cell", "axis", "kind", "state"])
-        ok = GaugeMetricFamily("nanodrift_actuator_ok", "1 unless the actuator is in fault",
-                               labels=["cell", "axis", "kind"])
+                                   labels=[*labels, "kind", "state"])
+        ok = GaugeMetricFamily("nanodrift_actuator_ok", "1 unless the actuator is in fault", labels=[*labels, "kind"])
         volts = GaugeMetricFamily("nanodrift_actuator_voltage_volts", "the last voltage written to each axis' output",
                                   labels=["cell", "axis"])
-        for axis, each in axes.items():
-            actuator = each.get("actuator") if isinstance(each, dict) else None
+        for axis, actuator in actuators.items():
             if not isinstance(actuator, dict) or actuator.get("state") is None:
                 continue
+            where = [cell, axis] if multi else [cell]
             kind, current = str(actuator.get("kind", "")), str(actuator["state"])
             for state in dict.fromkeys((*ACTUATOR_STATES, current)):
-                family.add_metric([cell, axis, kind, state], 1.0 if state == current else 0.0)
-            ok.add_metric([cell, axis, kind], 0.0 if current == "fault" else 1.0)
+                family.add_metric([*where, kind, state], 1.0 if state == current else 0.0)
+            ok.add_metric([*where, kind], 0.0 if current == "fault" else 1.0)
             last = _number(actuator.get("last_voltage_v"))
-            if last is not None:
-                volts.add_metric([cell, axis], last)
-        yield from (family, ok, volts)
+            if multi and last is not None:
+                volts.add_metric(where, last)
+        if multi:
+            yield from (family, ok, volts)
+        elif family.samples:
+            yield from (family, ok)
 
 
 def _axes_of_positions(doc: dict[str, Any]) -> dict[str, str] | None:
