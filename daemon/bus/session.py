@@ -40,22 +40,19 @@ def session_config(
     settings = settings or ZenohSettings()
     conf = zenoh.Config.from_file(str(settings.config_file)) if settings.config_file else zenoh.Config()
     fields = settings.model_fields_set
-    if settings.config_file is None or "mode" in fields:
-        conf.insert_json5("mode", json.dumps(settings.mode))
-    if settings.listen:
-        conf.insert_json5("listen/endpoints", json.dumps(list(settings.listen)))
-    if settings.connect:
-        conf.insert_json5("connect/endpoints", json.dumps(list(settings.connect)))
-    if settings.config_file is None or "multicast_scouting" in fields:
-        conf.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
-    if mode:
-        conf.insert_json5("mode", json.dumps(mode))
-    if listen:
-        conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
-    if connect:
-        conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
-    if multicast_scouting is not None:
-        conf.insert_json5("scouting/multicast/enabled", json.dumps(multicast_scouting))
+    own = settings.config_file is None  # no file: the section's defaults are the config
+    for key, value, given in (
+        ("mode", settings.mode, own or "mode" in fields),
+        ("listen/endpoints", list(settings.listen), bool(settings.listen)),
+        ("connect/endpoints", list(settings.connect), bool(settings.connect)),
+        ("scouting/multicast/enabled", settings.multicast_scouting, own or "multicast_scouting" in fields),
+        ("mode", mode, bool(mode)),
+        ("listen/endpoints", list(listen or ()), bool(listen)),
+        ("connect/endpoints", list(connect or ()), bool(connect)),
+        ("scouting/multicast/enabled", multicast_scouting, multicast_scouting is not None),
+    ):
+        if given:
+            conf.insert_json5(key, json.dumps(value))
     return conf
 
 

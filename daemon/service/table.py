@@ -67,7 +67,6 @@ class SensorTable:
     def __init__(self, sensors: Sequence[SensorConfig], workspace_um: tuple[float, float] | None = None,
                  sensor_workspaces: Mapping[str, tuple[float, float]] | None = None) -> None:
         """``sensor_workspaces``: a multi-axis cell's position sensors, each judged on its own axis' workspace."""
-        self.workspace_um = workspace_um
         own = sensor_workspaces or {}
         self.entries: dict[str, ChannelEntry] = {
             s.name: ChannelEntry(s.name, s.role, UNITS.get(s.role, ""), s.max_age_s,
@@ -174,9 +173,6 @@ class SensorTable:
                 "reason": reason,
             }
         return out
-
-    def position_channel(self) -> str | None:
-        return next((e.name for e in self.entries.values() if e.role == "position"), None)
 
     def carry_over(self, previous: SensorTable) -> None:
         """Keep the last reading of every channel ``previous`` had with the same role (a reload), judged
