@@ -19,6 +19,7 @@ from __future__ import annotations
 import asyncio
 import time
 from collections.abc import Callable
+from dataclasses import KW_ONLY, dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -42,29 +43,19 @@ class DriverHost(Protocol):
     async def start_drivers(self, drivers: DriverSet) -> None: ...
 
 
+@dataclass(eq=False)
 class Reloader:
-    def __init__(
-        self,
-        state: CellState,
-        config_path: Path | None,
-        host: DriverHost,
-        notifier: Notifier,
-        log: Any,
-        *,
-        status_line: Callable[[], str],
-        table_replaced: Callable[[], None],
-        health: HealthUnit,
-    ) -> None:
-        self.state = state
-        self.config_path = config_path
-        self.host = host
-        self.notifier = notifier
-        self.log = log
-        self.status_line = status_line
-        self.table_replaced = table_replaced
-        self.health = health
-        self._lock = asyncio.Lock()
-        self._stopped: DriverSet | None = None  # the drivers a reload in progress stopped
+    state: CellState
+    config_path: Path | None
+    host: DriverHost
+    notifier: Notifier
+    log: Any
+    _: KW_ONLY
+    status_line: Callable[[], str]
+    table_replaced: Callable[[], None]
+    health: HealthUnit
+    _lock: asyncio.Lock = field(default_factory=asyncio.Lock, init=False)
+    _stopped: DriverSet | None = field(default=None, init=False)  # the drivers a reload in progress stopped
 
     async def reload(self) -> bool:
         """One reload at a time; systemd is told RELOADING, then READY whatever the outcome."""

@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import time
 from collections.abc import Callable
+from dataclasses import KW_ONLY, dataclass, field
 from typing import Any
 
 from nanodrift.bus.protocol import encode_telemetry
@@ -27,14 +28,14 @@ STATUS_INTERVAL_S = 5.0
 SUPPRESSED_SUMMARY_S = 2.0  # how often "N refused targets not logged" is written during a flood
 
 
+@dataclass(eq=False)
 class SensorWatch:
     """Remembers each channel's last state and reports the changes."""
 
-    def __init__(self, state: CellState, publish_telemetry: PublishTelemetry, log: Any) -> None:
-        self.state = state
-        self.publish_telemetry = publish_telemetry
-        self.log = log
-        self._states: dict[str, str] = {}
+    state: CellState
+    publish_telemetry: PublishTelemetry
+    log: Any
+    _states: dict[str, str] = field(default_factory=dict, init=False)
 
     def forget(self) -> None:
         """The table was replaced (a reload): every channel's state is news again."""
@@ -93,28 +94,21 @@ class ClockStepWatch:
         return step_s
 
 
+@dataclass(eq=False)
 class Supervisor:
     """The periodic task; ``healthy`` says whether the pollers make progress."""
 
-    def __init__(
-        self,
-        watch: SensorWatch,
-        notifier: Notifier,
-        log: Any,
-        *,
-        healthy: Callable[[], bool],
-        status_line: Callable[[], str],
-        refusals_suppressed: Callable[[], int],
-        actuator_failures: RateLimitedLog,
-    ) -> None:
-        self.watch = watch
-        self.notifier = notifier
-        self.log = log
-        self.healthy = healthy
-        self.status_line = status_line
-        self.refusals_suppressed = refusals_suppressed
-        self.actuator_failures = actuator_failures
-        self.clock_watch = ClockStepWatch(log)
+    watch: SensorWatch
+    notifier: Notifier
+    log: Any
+    _: KW_ONLY
+    healthy: Callable[[], bool]
+    status_line: Callable[[], str]
+    refusals_suppressed: Callable[[], int]
+    actuator_failures: RateLimitedLog
+
+    def __post_init__(self) -> None:
+        self.clock_watch = ClockStepWatch(self.log)
 
     async def run(self) -> None:
         watchdog = watchdog_interval_s()
