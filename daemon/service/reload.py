@@ -66,14 +66,17 @@ class Reloader:
                 return await self._reload()
             except Exception as error:  # never lost in a dead task: refused, logged with the reason, counted
                 await self._restart_stopped()
-                return self._refuse(self.source(), [f"internal error: {type(error).__name__}: {error}"],
-                                    exc_info=True)
+                return self.refuse_internal(error)
             finally:
                 self.notifier.ready(self.status_line())
 
     def source(self) -> str:
         """What the daemon's config came from, as its log lines name it: the file, or the built-in default."""
         return str(self.config_path) if self.config_path else BUILTIN_SOURCE
+
+    def refuse_internal(self, error: BaseException) -> bool:
+        """A failure no check foresaw (a bug): refused like any bad edit, with its traceback."""
+        return self._refuse(self.source(), [f"internal error: {type(error).__name__}: {error}"], exc_info=error)
 
     def _refuse(self, source: str, problems: list[str], **details: Any) -> bool:
         self.state.counters.reload_failures += 1

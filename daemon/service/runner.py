@@ -66,7 +66,7 @@ class Service:
         notifier: Notifier | None = None,
         build_drivers: BuildDrivers,
     ) -> None:
-        self._build_drivers = build_drivers
+        self.build_drivers = build_drivers  # also called by the Reloader
         self.config_path = Path(config_path) if config_path is not None else None
         self.zenoh_overrides = dict(zenoh_overrides or {})
         self.notifier = notifier or Notifier()
@@ -219,9 +219,7 @@ class Service:
             self._tasks.discard(task)
             error = None if task.cancelled() else task.exception()
             if error is not None:
-                self.state.counters.reload_failures += 1
-                self.log.error("reload_refused", config=self.reloader.source(),
-                               problems=[f"internal error: {type(error).__name__}: {error}"], exc_info=error)
+                self.reloader.refuse_internal(error)
 
         task = asyncio.get_running_loop().create_task(self.reloader.reload(), name="reload")
         self._tasks.add(task)
@@ -243,9 +241,6 @@ class Service:
                 self.bus.publish_telemetry(role, channel, payload)
 
     # --- the drivers (also called by the Reloader) ------------------------------------------------
-
-    def build_drivers(self, config: Config, context: DriverContext | None) -> DriverSet:
-        return self._build_drivers(config, context)
 
     async def start_drivers(self, drivers: DriverSet) -> None:
         self.drivers = drivers
