@@ -166,9 +166,9 @@ def parse_config(data: Mapping[str, Any], source: str = BUILTIN_SOURCE, base_dir
     if raw_axes is not None and isinstance(raw_axes, list):  # an axis refused for its actuator is still an axis
         axis_names = [r["name"] for r in raw_axes if isinstance(r, Mapping) and isinstance(r.get("name"), str)]
     _sensor_axis_problems(parse, sensors, sensor_axes, axis_names)
-    hub_users = [(where, a.options.hub_name(), a.kind) for where, a in actuators if a.options is not None]
-    hubs = _parse_hubs(parse, raw_hubs, sensors,
-                       actuators=[(where, hub, kind) for where, hub, kind in hub_users if hub is not None])
+    hubs = _parse_hubs(parse, raw_hubs, sensors, actuators=[
+        (where, hub, a.kind) for where, a in actuators
+        if a.options is not None and (hub := a.options.hub_name()) is not None])
     if config is not None and actuator is not None:
         parse.problems.extend(points_problems(config.procedure, actuator))
     for where, each in actuators:
@@ -448,18 +448,10 @@ def _parse_hubs(parse: _Parse, raw_hubs: Any, sensors: Sequence[tuple[int, Senso
     names = [h.get("name") if isinstance(h, Mapping) else None for h in raw_hubs]
     for twice in sorted({n for n in names if isinstance(n, str) and names.count(n) > 1}):
         parse.problems.append(f"hubs: name {twice!r} is used twice")
-    users: dict[str, list[str]] = {}
-    for index, sensor in sensors:
-        hub = sensor.hub_name()
-        if hub is None:
-            continue
-        if hub not in names:
-            known = ", ".join(n for n in names if isinstance(n, str)) or "none defined"
-            parse.problems.append(f"{sensor_where(index, sensor)}.hub: no [[hubs]] named {hub!r} (hubs: {known})")
-        users.setdefault(hub, [])
-        if sensor.kind not in users[hub]:
-            users[hub].append(sensor.kind)
-    for where, hub, kind in actuators:
+    users: dict[str, list[str]] = {}  # hub -> the kinds using it, in the order they name it
+    sensor_users = [(sensor_where(index, sensor), hub, sensor.kind) for index, sensor in sensors
+                    if (hub := sensor.hub_name()) is not None]
+    for where, hub, kind in [*sensor_users, *actuators]:
         if hub not in names:
             known = ", ".join(n for n in names if isinstance(n, str)) or "none defined"
             parse.problems.append(f"{where}.hub: no [[hubs]] named {hub!r} (hubs: {known})")
