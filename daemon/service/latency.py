@@ -7,6 +7,7 @@ loads) only when ``[metrics] listen`` is set: the runner imports :mod:`nanodrift
 from __future__ import annotations
 
 import bisect
+import itertools
 import threading
 
 #: answer latency buckets (seconds): the daemon answers in tens to hundreds of µs on a loaded machine
@@ -33,8 +34,4 @@ class AnswerLatency:
         """Cumulative counts per bucket (ending with +Inf, the total) and the sum."""
         with self._lock:
             counts, total = list(self._counts), self._sum_s
-        cumulative, running = [], 0
-        for count in counts:
-            running += count
-            cumulative.append(running)
-        return cumulative, total
+        return list(itertools.accumulate(counts)), total

@@ -17,7 +17,7 @@ import zenoh
 from nanodrift.bus.protocol import dumps
 from nanodrift.bus.session import Bus
 from nanodrift.compensation import Compensator, one_axis
-from nanodrift.config import ZENOH_KIND, Config
+from nanodrift.config import ZENOH_KIND, ActuatorConfig, Config
 from nanodrift.drivers.base import State
 from nanodrift.model.cell_model import CellModel
 from nanodrift.service.actuation import Actuation
@@ -45,7 +45,8 @@ def status_doc(state: CellState, healthy: bool, actuation: Actuation | None = No
             "model_problem": comp.model_problem or None,
             "sensors": state.table.snapshot(now),
             "extrapolating": sorted(set(comp.extrapolating_now()) | set(comp.last_extrapolating)),
-            "actuator": actuator_doc(config, driven) if one_axis(config.axis_names) else cell_actuator_doc(driven),
+            "actuator": (actuator_doc(config.actuator, driven) if one_axis(config.axis_names)
+                         else cell_actuator_doc(driven)),
             "counters": state.counters.as_dict(),
             "healthy": healthy,
         }
@@ -117,18 +118,16 @@ class StatusHandler:
 _ACTUATOR_KEYS = ("volts_per_um", "offset_v", "v_min", "v_max", "x_min_um", "x_max_um")
 
 
-def actuator_doc(config: Config, driven: Mapping[str, Any] | None = None) -> dict[str, Any]:
+def actuator_doc(actuator: ActuatorConfig, driven: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """The actuator in ``status``: the conversion and limits, then who drives the stage and how.
 
     ``driven`` is :meth:`Actuation.axis_doc` (state, reason, device, last written voltage and time,
     writes, failures). With ``kind = "zenoh"`` there is no device: the daemon publishes ``command``
     and an output node applies it, so the state is always ``ok`` and ``output`` says ``published``.
     """
-    actuator = config.actuator
     doc: dict[str, Any] = {key: getattr(actuator, key) for key in _ACTUATOR_KEYS}
-    doc["kind"] = actuator.kind
-    doc["max_slew_um_per_s"] = actuator.max_slew_um_per_s
-    doc["safe_voltage_v"] = actuator.safe_voltage_v if math.isfinite(actuator.safe_voltage_v) else None
+    doc.update(kind=actuator.kind, max_slew_um_per_s=actuator.max_slew_um_per_s,
+               safe_voltage_v=actuator.safe_voltage_v if math.isfinite(actuator.safe_voltage_v) else None)
     if actuator.kind == ZENOH_KIND:
         doc.update(state="ok", reason=None, output="published", device=None)
     elif driven is not None:
@@ -153,9 +152,8 @@ def axes_doc(config: Config, driven: Mapping[str, Any] | None, sensors: Mapping[
     positions = {config.sensor_axis(s.name): s.name for s in config.sensors if s.role == "position"}
     out: dict[str, Any] = {}
     for axis, actuator in config.axis_actuators().items():
-        one = config.model_copy(update={"actuator": actuator, "axes": []})
         device = devices.get(axis)
-        doc = actuator_doc(one, None)
+        doc = actuator_doc(actuator)
         if device is not None:
             doc.update(state=driven["state"] if driven else "ok", reason=driven["reason"] if driven else None,
                        output="device", **device)
