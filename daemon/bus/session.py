@@ -152,20 +152,14 @@ class Bus:
         self._declared: list[Any] = []
         self._telemetry: dict[str, zenoh.Publisher] = {}
         self._token: zenoh.LivelinessToken | None = None
-        self._command_pub = session.declare_publisher(
-            self.keys.command, congestion_control=ANSWER_CONGESTION, express=ANSWER_EXPRESS
-        )
-        self._error_pub = session.declare_publisher(
-            self.keys.error, congestion_control=ANSWER_CONGESTION, express=ANSWER_EXPRESS
-        )
-        #: ``done`` (how each served command ended) meets a stalled subscriber as the answers do
-        self._done_pub = session.declare_publisher(
-            self.keys.done, congestion_control=ANSWER_CONGESTION, express=ANSWER_EXPRESS
-        )
+        # ``done`` (how each served command ended) meets a stalled subscriber as the answers do
+        command, error, done = (session.declare_publisher(key, congestion_control=ANSWER_CONGESTION,
+                                                          express=ANSWER_EXPRESS)
+                                for key in (self.keys.command, self.keys.error, self.keys.done))
         #: put one answer (bytes); the publishers' own methods, no wrapper on the hot path
-        self.publish_command: Callable[[bytes], None] = self._command_pub.put
-        self.publish_error: Callable[[bytes], None] = self._error_pub.put
-        self.publish_done: Callable[[bytes], None] = self._done_pub.put
+        self.publish_command: Callable[[bytes], None] = command.put
+        self.publish_error: Callable[[bytes], None] = error.put
+        self.publish_done: Callable[[bytes], None] = done.put
 
     def serve(self, loop: asyncio.AbstractEventLoop, on_target: OnTarget, on_status: OnQuery,
               on_stop: OnStop | None = None) -> None:
