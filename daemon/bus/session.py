@@ -9,6 +9,7 @@ more than the latency budget allows. What the keys and payloads are is ``nanodri
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import re
 import socket
@@ -136,10 +137,8 @@ def undeclare_all(entities: list[Any]) -> None:
     """Undeclare each subscriber/publisher/queryable and empty the list; one the session already dropped
     (a closed session raises ``ZError``) is gone anyway."""
     for entity in entities:
-        try:
+        with contextlib.suppress(zenoh.ZError):
             entity.undeclare()
-        except zenoh.ZError:
-            pass
     entities.clear()
 
 

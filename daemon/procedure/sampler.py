@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -42,10 +43,8 @@ class Sampler:
 
     async def close(self) -> None:
         for group in self.drivers.groups:
-            try:
+            with contextlib.suppress(Exception):  # closing must not hide the error that brought us here
                 await group.close()
-            except Exception:  # closing must not hide the error that brought us here
-                pass
 
     async def poll(self, group: SensorGroup) -> None:
         now = self.drivers.clock.now()

@@ -19,6 +19,7 @@ once, and the progress stream says so.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 from collections.abc import Awaitable, Callable, Mapping, Sequence
 
 from nanodrift.calibration.plans import (
@@ -199,10 +200,8 @@ async def run_steps(
             await leave_safe(drivers, limits, q_prev, timing)
     finally:
         for actuator in opened:
-            try:
+            with contextlib.suppress(Exception):  # closing must not hide the error that brought us here
                 await actuator.close()
-            except Exception:  # closing must not hide the error that brought us here
-                pass
         await sampler.close()
         if progress is not None:
             progress.finish()

@@ -81,6 +81,7 @@ would reach into the others' state. The motion rules it applies are already :mod
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
 import random
 import threading
@@ -543,11 +544,9 @@ class Actuation:
 
     async def _nap(self, delay_s: float) -> None:
         """Sleep ``delay_s``, or less when a stop is asked."""
-        try:
+        with contextlib.suppress(TimeoutError):
             async with asyncio.timeout(delay_s):
                 await self._halt_event.wait()
-        except TimeoutError:
-            pass
 
     async def _drive(self) -> None:
         outputs = self._outputs  # this task's devices (a stop swaps them out before it cancels the task)

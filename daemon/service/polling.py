@@ -12,6 +12,7 @@ making progress.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import random
 import time
 from collections.abc import Awaitable, Callable, Iterable
@@ -73,11 +74,9 @@ class GroupPoller:
         await self._close()
 
     async def _close(self) -> None:
-        try:
+        with contextlib.suppress(Exception):  # closing a broken device must not stop the reopen cycle
             async with asyncio.timeout(max(1.0, self.group.timeout_s)):
                 await self.group.close()
-        except Exception:  # closing a broken device must not stop the reopen cycle
-            pass
 
     async def _guard(self, step: Awaitable[Any], what: str) -> Any:
         # asyncio.timeout, not wait_for: on 3.11 wait_for can swallow a cancellation (stop() hangs)
