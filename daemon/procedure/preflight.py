@@ -71,17 +71,13 @@ def _open(config: Config) -> zenoh.Session:
         raise PreflightError(f"cannot join the zenoh network of [zenoh] to check the cell: {error}") from None
 
 
-def serving_daemons(session: zenoh.Session, key: str, wait_s: float = ALIVE_WAIT_S) -> list[str]:
-    """The liveliness tokens present on ``key``."""
-    return [str(reply.ok.key_expr) for reply in session.liveliness().get(key, timeout=wait_s) if reply.ok is not None]
-
-
 def check_not_served(config: Config, wait_s: float = ALIVE_WAIT_S) -> None:
     """:class:`PreflightError` when a daemon serves ``config.cell`` (its ``alive`` token is present)."""
     keys = Keys(config.cell, config.zenoh.prefix)
     session = _open(config)
-    try:
-        tokens = serving_daemons(session, keys.alive, wait_s)
+    try:  # the liveliness tokens present on the cell's key
+        tokens = [str(reply.ok.key_expr) for reply in session.liveliness().get(keys.alive, timeout=wait_s)
+                  if reply.ok is not None]
     finally:
         session.close()
     if tokens:

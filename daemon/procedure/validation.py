@@ -26,7 +26,7 @@ from nanodrift.calibration.plans import PlannedStep, StepResult, StepTiming, val
 from nanodrift.calibration.residuals import BiasTracker
 from nanodrift.drivers_set import DriverSet
 from nanodrift.model.cell_model import CellModel
-from nanodrift.model.model import Evaluator, Model, aim
+from nanodrift.model.model import Model, aim
 from nanodrift.procedure.follow import FollowCheck
 from nanodrift.procedure.progress import Progress
 from nanodrift.procedure.steps import Limits, axis_limits, run_steps
@@ -39,23 +39,11 @@ def check_channels(model: Model | CellModel, drivers: DriverSet) -> None:
         raise ValueError(f"the model needs channel(s) {', '.join(missing)} that this cell does not measure")
 
 
-def check_ready(*evaluators: Evaluator) -> None:
-    """No command from a model before every channel it reads has a clean sample."""
-    if not all(evaluator.ready for evaluator in evaluators):
-        raise RuntimeError("no clean temperature sample yet for every channel the model needs")
-
-
 def one_axis(limits: Limits) -> str:
     """The axis of the cell a one-axis test runs on (a one-axis model's): refused on a cell of several."""
     if len(limits) != 1:
         raise ValueError(f"a one-axis model drives a cell of one axis, this cell has axes {', '.join(limits)}")
     return next(iter(limits))
-
-
-def feed_tracker(tracker: BiasTracker, result: StepResult, axis: str) -> None:
-    """One step into the tracker, as the daemon feeds a settled residual: valid steps only."""
-    if result.valid:
-        tracker.update(result.t_s, result.positions_um[axis] - result.step.target(axis))
 
 
 async def run_validation(
@@ -142,7 +130,8 @@ async def run_validation_steps(
 
     def command_for(targets: dict[str, float], t: float) -> dict[str, float]:
         assert cell is not None  # command_for is given to run_steps only with a model
-        check_ready(*evaluators.values())
+        if not all(evaluator.ready for evaluator in evaluators.values()):  # no command before a clean sample
+            raise RuntimeError("no clean temperature sample yet for every channel the model needs")
         positions = {m: targets[a] for m, a in axis_of.items()}
         run.extrapolating += bool(cell.out_of_range(positions, latest))
         x = aim(evaluators.values(), positions)
@@ -156,9 +145,10 @@ async def run_validation_steps(
                                           for a, tracker in trackers.items()})
         return {axis_of[m]: float(e.command(x, t)) + corrections.get(axis_of[m], 0.0) for m, e in evaluators.items()}
 
-    def on_step(result: StepResult) -> None:
+    def on_step(result: StepResult) -> None:  # as the daemon feeds a settled residual: valid steps only
         for axis, tracker in trackers.items():
-            feed_tracker(tracker, result, axis)
+            if result.valid:
+                tracker.update(result.t_s, result.positions_um[axis] - result.step.target(axis))
 
     run.steps = await run_steps(drivers, plan, limits=limits, timing=timing or StepTiming(),
                                 command_for=None if model is None else command_for, on_step=on_step,
