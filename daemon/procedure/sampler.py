@@ -77,10 +77,6 @@ class Sampler:
         if temps and self.on_temperatures is not None:
             self.on_temperatures(now, temps)
 
-    async def poll_all(self) -> None:
-        for group in self.drivers.groups:
-            await self.poll(group)
-
     async def sample_for(self, duration_s: float, groups: Sequence[SensorGroup] | None = None) -> None:
         """Poll ``groups`` (default: all) each at its interval for ``duration_s`` of backend time."""
         clock = self.drivers.clock

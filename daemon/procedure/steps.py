@@ -175,7 +175,8 @@ async def run_steps(
             q_prev[axis] = await stage_q_um(actuator, limits[axis], progress)
         if progress is not None:
             progress.begin(planned_seconds(plan, q_prev, timing, limits))
-        await sampler.poll_all()  # know the temperatures before the first command
+        for group in drivers.groups:  # know the temperatures before the first command
+            await sampler.poll(group)
         for step in plan:
             targets = dict(step.targets_um)
             q = command_for(targets, drivers.clock.now()) if command_for else targets

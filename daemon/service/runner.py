@@ -99,7 +99,7 @@ class Service:
 
     async def run(self) -> int:
         loop = asyncio.get_running_loop()
-        for sig, handler in ((signal.SIGTERM, self.request_stop), (signal.SIGINT, self.request_stop),
+        for sig, handler in ((signal.SIGTERM, self._stop.set), (signal.SIGINT, self._stop.set),
                              (signal.SIGHUP, self.request_reload)):
             loop.add_signal_handler(sig, handler)
         self._log_start()
@@ -207,9 +207,6 @@ class Service:
         metrics, self.metrics = self.metrics, None
         if metrics is not None:
             await metrics.stop()
-
-    def request_stop(self) -> None:
-        self._stop.set()
 
     def request_reload(self) -> None:
         """SIGHUP. The Reloader refuses (logs, counts) every failure it meets; what still escapes it is
