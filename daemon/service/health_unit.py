@@ -19,10 +19,6 @@ is counted (``holds_unrecorded`` in the health document, a metric) and logged on
 a residual too large to be a reading (:func:`nanodrift.calibration.residuals.believable_residual`) is counted
 (``residuals_rejected``) and feeds nothing.
 
-The compensator serves through this unit as its :class:`nanodrift.compensation.Monitor` (an argument it
-is built with, never attributes set on it): it asks :meth:`HealthUnit.correction_um` and
-:meth:`HealthUnit.sigma_adapted_um`, and hands every command that goes out to :meth:`HealthUnit.served`.
-
 Threads. The target path (Zenoh's threads, under ``state.lock``) only appends ``(cell time, command)``
 to each watched axis' bounded queue: the answer never waits for the monitor. Everything else runs on
 the asyncio loop: the sensor ingest feeds position and temperature readings under ``state.lock`` (a few
@@ -215,7 +211,7 @@ class HealthUnit:
         if max_age_s != self.polled.max_age_s or keep_s != self.polled.keep_s:
             self.polled = PolledChannels(max_age_s, keep_s)
 
-    # --- the compensator's hook (Zenoh's threads, under state.lock) ------------------------------
+    # --- the compensator's hook, its Monitor: an argument it is built with (Zenoh's threads, under state.lock)
 
     def correction_um(self) -> Mapping[str, float] | None:
         """Each axis' bias correction (None: adaptation off)."""

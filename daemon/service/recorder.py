@@ -4,10 +4,9 @@ The files follow the data contract, so ``nanodrift fit cal.csv records/*.csv`` e
 calibration with what the cell did in service. A row is one settled target: ``t_s`` (unix s),
 ``x_um`` the position the interferometer measured (mean over the window), ``q_um`` the command sent,
 the reserved ``target_um``, ``residual_um`` (measured - target) and ``valid``, then every polled
-temperature channel (not only the model's: a later refit may want one it left out), each the mean
-of its ok readings over the same window (:class:`PolledChannels`). A channel that was not ok there
-(faulted, or no fresh reading) keeps the row with ``valid = 0`` and its last ok value (else 0), as
-an invalid calibration step is kept: never a NaN.
+temperature channel (not only the model's: a later refit may want one it left out) over the same window
+(:class:`PolledChannels`); a channel not ok there makes the row ``valid = 0``, as an invalid calibration step
+is kept: never a NaN.
 
 The wall clock only labels: ``t_s`` and the day in the file name (on a simulated cell whose clock runs
 faster, that clock labels instead, ``DriverContext.label_clock``: a simulated day is a day file). What
@@ -23,12 +22,8 @@ health unit's) and retention, so a step of the system clock (NTP, ``date -s``) n
 - Retention: files of days more than ``keep_days`` before *today* are deleted (0 keeps all), today
   being the earlier of the daemon's clock's day and the row's: a wall clock stepped forward (a label
   months ahead) never deletes a file the daemon's clock would keep. Nor does a clock that was wrong
-  when the daemon started (a bad RTC before NTP synchronised; the daemon's clock starts from it): a
-  day more than :data:`CLOCK_AHEAD_MARGIN_DAYS` past the newest file found in the folder is not
-  believed (:class:`RetentionClock`, event ``record_retention_held``) until the clock is known
-  synchronised (systemd-timesyncd's :data:`TIMESYNC_FLAG`), comes back near the files, or has run on
-  for :data:`CLOCK_RELEASE_DAYS` days (a lab without time sync still expires its files);
-  meanwhile today counts as that newest file's day (the true day is that one at the earliest).
+  when the daemon started (a bad RTC before NTP synchronised; the daemon's clock starts from it):
+  :class:`RetentionClock` (event ``record_retention_held``).
 - Recording is never on the answer's path: :class:`Recorder` queues rows for a writer thread. A
   full disk or a permission error is logged once per outage (``record_failed``), rows are lost until
   writing works again (``record_resumed`` says how many, once), and the daemon keeps serving.
@@ -206,10 +201,10 @@ class RetentionClock:
     A clock ahead of the newest record file found in a folder by more than :data:`CLOCK_AHEAD_MARGIN_DAYS`
     (the daemon started on a wrong RTC, NTP not synchronised yet) is doubted: retention counts from that
     newest day (the true day is that one at the earliest), so it deletes nothing the files' own timeline
-    would keep. The doubt ends
-    when ``synchronized()`` says the clock is synchronised, when the clock comes back within the margin
-    (NTP stepped it), or when it has run on :data:`CLOCK_RELEASE_DAYS` days past the day it was doubted
-    on. Kept by the :class:`Recorder` across reloads, and the agreed day across restarts
+    would keep. The doubt ends when ``synchronized()`` says the clock is synchronised (systemd-timesyncd's
+    :data:`TIMESYNC_FLAG`), when the clock comes back within the margin (NTP stepped it), or when it has run
+    on :data:`CLOCK_RELEASE_DAYS` days past the day it was doubted on (a lab without time sync still expires
+    its files). Kept by the :class:`Recorder` across reloads, and the agreed day across restarts
     (:data:`AGREED_DAY_FILE`): files written on a doubted clock never vouch for it.
     """
 
