@@ -25,15 +25,11 @@ class ZenohActuator(Actuator):
 
     def __init__(self, config: Any, procedure: str = "calibration") -> None:
         self.settings = config.zenoh
-        self.keys = Keys(config.cell, config.zenoh.prefix)
+        self.key = Keys(config.cell, config.zenoh.prefix).command
         self.procedure = procedure
         self.sent = 0
         self._session: zenoh.Session | None = None
         self._publisher: zenoh.Publisher | None = None
-
-    @property
-    def key(self) -> str:
-        return self.keys.command
 
     async def open(self) -> None:
         try:
