@@ -70,10 +70,9 @@ def with_model_path(text: str, model_path: Path, note: str) -> str:
             indent = found["indent"]
             previous = lines[index].rstrip("\r\n").strip()
             lines[index] = f"{indent}{value}{newline}"
-            if not lines[index - 1].lstrip().startswith(f"# before {NOTE}"):  # one such comment, not a pile
-                lines.insert(index, f"{indent}# before {note}: {previous}{newline}")
-            else:
-                lines[index - 1] = f"{indent}# before {note}: {previous}{newline}"
+            # one such comment, not a pile: an earlier one is replaced
+            kept = index - 1 if lines[index - 1].lstrip().startswith(f"# before {NOTE}") else index
+            lines[kept:index] = [f"{indent}# before {note}: {previous}{newline}"]
             return "".join(lines)
     paragraph_end = start + 1
     while paragraph_end < end and lines[paragraph_end].strip():

@@ -86,8 +86,7 @@ class AxisWatch:
 
     def __init__(self, axis: str, config: Config, model: Model | None, log: Any) -> None:
         health, adapt = config.health, config.adapt
-        position = next((s for s in config.sensors if s.role == "position" and config.sensor_axis(s.name) == axis),
-                        None)
+        position = config.position_sensors().get(axis)
         self.axis = axis
         self.log = log
         #: what it is made of: a change (a new model of this axis, other settings or sensor) starts it afresh
