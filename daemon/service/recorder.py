@@ -45,7 +45,7 @@ import re
 import statistics
 import threading
 from collections import deque
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -187,12 +187,17 @@ def newest_file_day(directory: Path) -> dt.date | None:
     """The latest day of a record file in ``directory`` (None: no record file, or no folder)."""
     days: list[dt.date] = []
     with contextlib.suppress(OSError):
-        for entry in directory.iterdir():
-            match = FILE_NAME.match(entry.name)
-            if match:
-                with contextlib.suppress(ValueError):
-                    days.append(dt.date.fromisoformat(match["day"]))
+        for _, match in _record_files(directory):
+            with contextlib.suppress(ValueError):
+                days.append(dt.date.fromisoformat(match["day"]))
     return max(days, default=None)
+
+
+def _record_files(directory: Path) -> Iterator[tuple[Path, re.Match[str]]]:
+    """Each record file in ``directory`` (named as :data:`FILE_NAME` says) and its name's day and part."""
+    for entry in directory.iterdir():
+        if match := FILE_NAME.match(entry.name):
+            yield entry, match
 
 
 class RetentionClock:
@@ -319,26 +324,23 @@ class DayRecorder:
             self.directory.mkdir(parents=True, exist_ok=True)
             self._expire(today)
             self._expired_before = today
-        channels = [c for c in row if c not in RECORD_COLUMNS]
         fixed: Sequence[str] = RECORD_COLUMNS
         if "q_um" not in row:  # a multi-axis cell's row: its positions, commands, targets, residuals
             fixed = [c for c in row if c in RESERVED or c.endswith("_um")]
-            channels = [c for c in row if c not in fixed]
         same_columns = set(row) == set(self._columns)
         if self._appender is None or day != self._day or not same_columns or row["t_s"] <= self._last_t:
-            self._open(day, channels, row["t_s"], fixed)
+            self._open(day, [*fixed, *(c for c in row if c not in fixed)], row["t_s"])
         assert self._appender is not None
         self._appender.append(row)
         self._last_t = row["t_s"]
 
-    def _open(self, day: dt.date, channels: Sequence[str], t_s: float,
-              fixed: Sequence[str] = RECORD_COLUMNS) -> None:
-        """The day's last file if it has these columns and a row at ``t_s`` comes after its rows; else a new one."""
+    def _open(self, day: dt.date, wanted: list[str], t_s: float) -> None:
+        """The day's last file if it has the ``wanted`` columns (the fixed ones, then the channels) and a row at
+        ``t_s`` comes after its rows; else a new one."""
         self.close()
         self.directory.mkdir(parents=True, exist_ok=True)
-        parts = self._parts(day)
-        wanted = [*fixed, *channels]
-        last = parts[-1] if parts else 0
+        last = max((int(m["part"] or 1) for _, m in _record_files(self.directory) if m["day"] == day.isoformat()),
+                   default=0)
         if last:
             path = self.directory / file_name(day, last)
             header = _header(path)
@@ -360,23 +362,12 @@ class DayRecorder:
             self._event("info", "record_file", path=str(path), how=how,
                         **({"dropped_partial_row": True} if appender.dropped_partial_row else {}))
 
-    def _parts(self, day: dt.date) -> list[int]:
-        parts = []
-        for entry in self.directory.iterdir():
-            match = FILE_NAME.match(entry.name)
-            if match and match["day"] == day.isoformat():
-                parts.append(int(match["part"] or 1))
-        return sorted(parts)
-
     def _expire(self, today: dt.date) -> None:
         """Delete files of days more than ``keep_days`` before ``today`` (0: keep all)."""
         if self.keep_days == 0:
             return
         oldest = today - dt.timedelta(days=self.keep_days)
-        for entry in self.directory.iterdir():
-            match = FILE_NAME.match(entry.name)
-            if not match:
-                continue
+        for entry, match in _record_files(self.directory):
             try:
                 if dt.date.fromisoformat(match["day"]) < oldest:
                     entry.unlink()
