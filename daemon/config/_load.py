@@ -28,13 +28,11 @@ def load_config(path: str | Path | None) -> Config:
         raise ConfigError(str(file), [f"cannot read: {error}"]) from None
     try:  # a hostile file ('x = ' + '[' * 100000) must be a message, never a traceback or a dead reload
         data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as error:
-        raise ConfigError(str(file), [f"not valid TOML: {error}"]) from None
     except RecursionError:
         raise ConfigError(str(file), [TOO_DEEP]) from None
     except MemoryError:
         raise ConfigError(str(file), ["not valid TOML: too large to parse"]) from None
-    except ValueError as error:  # tomllib's other refusals (an out-of-range date, ...)
+    except ValueError as error:  # TOMLDecodeError and tomllib's other refusals (an out-of-range date, ...)
         raise ConfigError(str(file), [f"not valid TOML: {error}"]) from None
     try:
         return parse_config(data, source=str(file), base_dir=file.resolve().parent)
