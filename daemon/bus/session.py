@@ -174,37 +174,28 @@ class Bus:
         call = loop.call_soon_threadsafe
         limit = MAX_PAYLOAD_BYTES  # larger payloads are refused without being copied
 
-        def target_sample(sample: zenoh.Sample) -> None:
-            payload = sample.payload
-            on_target(payload.to_bytes() if len(payload) <= limit else Oversized.of(len(payload)), None)
+        def samples_to(handle: OnTarget) -> Callable[[zenoh.Sample], None]:  # a put of a target or a stop
+            def on_sample(sample: zenoh.Sample) -> None:
+                payload = sample.payload
+                handle(payload.to_bytes() if len(payload) <= limit else Oversized.of(len(payload)), None)
+            return on_sample
 
-        def compensate_query(query: zenoh.Query) -> None:
-            payload = query.payload
-            if payload is None:
-                on_target(b"", query)
-            else:
-                on_target(payload.to_bytes() if len(payload) <= limit else Oversized.of(len(payload)), query)
+        def queries_to(handle: OnTarget) -> Callable[[zenoh.Query], None]:  # a query: ``compensate``, ``stop``
+            def on_query(query: zenoh.Query) -> None:
+                payload = query.payload
+                handle(b"" if payload is None else (payload.to_bytes() if len(payload) <= limit
+                                                    else Oversized.of(len(payload))), query)
+            return on_query
 
         def status_query(query: zenoh.Query) -> None:
             call(on_status, query)
 
-        self._declared.append(self.session.declare_subscriber(self.keys.target, target_sample))
-        self._declared.append(self.session.declare_queryable(self.keys.compensate, compensate_query))
+        self._declared.append(self.session.declare_subscriber(self.keys.target, samples_to(on_target)))
+        self._declared.append(self.session.declare_queryable(self.keys.compensate, queries_to(on_target)))
         self._declared.append(self.session.declare_queryable(self.keys.status, status_query))
         if on_stop is not None:
-            stop = on_stop
-
-            def stop_sample(sample: zenoh.Sample) -> None:
-                payload = sample.payload
-                stop(payload.to_bytes() if len(payload) <= limit else Oversized.of(len(payload)), None)
-
-            def stop_query(query: zenoh.Query) -> None:
-                payload = query.payload
-                stop(b"" if payload is None else (payload.to_bytes() if len(payload) <= limit
-                                                  else Oversized.of(len(payload))), query)
-
-            self._declared.append(self.session.declare_subscriber(self.keys.stop, stop_sample))
-            self._declared.append(self.session.declare_queryable(self.keys.stop, stop_query))
+            self._declared.append(self.session.declare_subscriber(self.keys.stop, samples_to(on_stop)))
+            self._declared.append(self.session.declare_queryable(self.keys.stop, queries_to(on_stop)))
         self._token = self.session.liveliness().declare_token(self.keys.alive)
 
     def publish_telemetry(self, role: str, channel: str, payload: bytes, axis: str | None = None) -> None:
