@@ -1,20 +1,9 @@
 """The Zenoh wire format in one place: keys, a target in, every payload out (README, Zenoh keys).
 
 Bytes in, bytes out, no session: the contract can be tested (and is pinned byte for byte in
-``tests/bus/test_payload_bytes.py``) without a network.
-
-- :func:`key_prefix` and :class:`Keys`: the key expressions under ``<prefix>/<cell>/`` (``nanodrift/<cell>/``
-  by default).
-- :func:`parse_target`: a client's payload -> :class:`nanodrift.compensation.Target`, or a
-  :class:`nanodrift.compensation.Refusal` saying what was wrong. The usual one-axis target is matched by a
-  regular expression without building a dict.
-- :func:`encode_command` turns a :class:`nanodrift.compensation.Command` into the bytes of ``command``: the
-  one-axis shape (scalar ``q_um``, ``voltage_v``...) for a cell without ``[[axes]]``, per-axis objects for
-  a cell of several. :func:`encode_error` and :func:`encode_telemetry` write the other payloads.
-
-The domain types live in the pure core (``nanodrift.compensation``): this module only parses and encodes.
-- :func:`encode_done`: how a served command ended; :func:`parse_stop` / :func:`encode_stop_reply`: a
-  client's ``stop`` and the answer to a ``stop`` query.
+``tests/bus/test_payload_bytes.py``) without a network. The domain types (:class:`nanodrift.compensation.Target`,
+``Command``, ``Refusal``) live in the pure core: this module only parses and encodes them, a cell without
+``[[axes]]`` in the one-axis shapes (scalar ``q_um``, ``voltage_v``...), a cell of several per axis.
 """
 
 from __future__ import annotations

@@ -2,8 +2,10 @@
 
 Zenoh runs callbacks on its own threads. The status query is handed to the asyncio loop with
 ``loop.call_soon_threadsafe``; targets are answered right on Zenoh's thread by the service's
-thread-safe ``on_target`` (see ``nanodrift.service.targets``), because the hand-off alone would cost
-more than the latency budget allows. What the keys and payloads are is ``nanodrift.bus.protocol``'s.
+thread-safe ``on_target`` (see ``nanodrift.service.targets``), because the hand-off alone (a thread
+wake-up, ~50 us here: as much as the whole Zenoh round trip's margin in benchmarks/daemon_latency.py, whose
+``--targets-on-loop`` measures that variant) would cost more than the latency budget allows. What the keys
+and payloads are is ``nanodrift.bus.protocol``'s.
 """
 
 from __future__ import annotations
@@ -164,13 +166,7 @@ class Bus:
               on_stop: OnStop | None = None) -> None:
         """Declare the target subscriber and the two queryables (and ``stop``'s subscriber and queryable:
         ``on_stop`` runs on Zenoh's thread like ``on_target``, so a stop is ordered among the targets as
-        it arrived); announce liveliness last.
-
-        ``on_target`` is thread-safe and runs on Zenoh's callback thread: handing each target to the
-        loop costs a thread wake-up (~50 us here, as much as the whole Zenoh round trip's margin in
-        benchmarks/daemon_latency.py, whose ``--targets-on-loop`` measures that variant).
-        ``on_status`` always runs on the loop.
-        """
+        it arrived); announce liveliness last. ``on_status`` always runs on the loop."""
         call = loop.call_soon_threadsafe
         limit = MAX_PAYLOAD_BYTES  # larger payloads are refused without being copied
 
