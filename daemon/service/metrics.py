@@ -7,9 +7,8 @@ depend on how they are measured. The one thing measured on the target path is th
 :class:`AnswerLatency` counts it into fixed buckets (a bisect and two additions under an
 uncontended lock), and the collector exposes the counts as a histogram.
 
-The HTTP endpoint that serves them is :mod:`nanodrift.service.metrics_server`'s. :class:`AnswerLatency` lives in
-:mod:`nanodrift.service.latency` (imported here too): the target path counts latencies whether or not metrics are
-served, and a daemon with ``[metrics] listen = ""`` never imports prometheus_client (nor this module).
+The HTTP endpoint that serves them is :mod:`nanodrift.service.metrics_server`'s; :class:`AnswerLatency` is
+:mod:`nanodrift.service.latency`'s (why: there).
 
 Names follow Prometheus' conventions: ``nanodrift_`` prefix, base units (seconds, metres), counters
 ending ``_total``; every series carries the ``cell`` label.
