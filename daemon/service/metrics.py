@@ -97,7 +97,10 @@ class CellCollector(Collector):
         age, and the state as a state set (one series per state, 1 for the current one)."""
         temperature = GaugeMetricFamily("nanodrift_temperature_celsius", "each temperature channel's last reading",
                                         labels=["cell", "channel"])
-        axes = _axes_of_positions(doc)  # a multi-axis cell: each position channel's axis as a label
+        axes: dict[str, str] | None = None  # a multi-axis cell: each position channel's axis as a label
+        if isinstance(doc.get("axes"), dict):
+            axes = {str(each["position_sensor"]): axis for axis, each in doc["axes"].items()
+                    if isinstance(each, dict) and each.get("position_sensor")}
         position = GaugeMetricFamily("nanodrift_position_meters", "each position channel's last reading",
                                      labels=["cell", "channel", "axis"] if axes is not None else ["cell", "channel"])
         age = GaugeMetricFamily("nanodrift_sensor_age_seconds", "age of each channel's last reading",
@@ -205,12 +208,3 @@ class CellCollector(Collector):
             yield from (family, ok, volts)
         elif family.samples:
             yield from (family, ok)
-
-
-def _axes_of_positions(doc: dict[str, Any]) -> dict[str, str] | None:
-    """position channel -> its axis in a multi-axis cell's status (None: a one-axis cell)."""
-    axes = doc.get("axes")
-    if not isinstance(axes, dict):
-        return None
-    return {str(each["position_sensor"]): axis for axis, each in axes.items()
-            if isinstance(each, dict) and each.get("position_sensor")}
