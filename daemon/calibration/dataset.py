@@ -332,23 +332,15 @@ def _to_dataset(path: Path, header: list[str], values: np.ndarray) -> Dataset:
             i = int(np.flatnonzero(cols[name] != np.round(cols[name]))[0])
             raise DataError(f"{path}, row {i + 2}, column {name}: expected a whole number, got {cols[name][i]:g}")
     axes = [m["axis"] for name in header if (m := AXIS_COLUMN.match(name))]
-    if len(axes) > 1:
-        positions = {a: cols[position_column(a)] for a in axes}
-        commands = {a: cols[command_column(a)] for a in axes if command_column(a) in cols}
-        taken = {"t_s", *map(position_column, axes), *map(command_column, axes)}
-        return Dataset(
-            t=t, x=cols["x_um"], q=None,
-            channels={n: cols[n] for n in header if not is_reserved(n)},
-            extra={n: cols[n] for n in header if is_reserved(n) and n not in taken},
-            source=str(path), positions=positions, commands=commands,
-        )
+    multi = len(axes) > 1
+    taken = {"t_s", *map(position_column, axes), *map(command_column, axes)} if multi else {"t_s", "x_um", "q_um"}
     return Dataset(
-        t=t,
-        x=cols["x_um"],
-        q=cols.get("q_um"),
+        t=t, x=cols["x_um"], q=None if multi else cols.get("q_um"),
         channels={n: cols[n] for n in header if not is_reserved(n)},
-        extra={n: cols[n] for n in header if is_reserved(n) and n not in ("t_s", "x_um", "q_um")},
+        extra={n: cols[n] for n in header if is_reserved(n) and n not in taken},
         source=str(path),
+        positions={a: cols[position_column(a)] for a in axes} if multi else {},
+        commands={a: cols[command_column(a)] for a in axes if command_column(a) in cols} if multi else {},
     )
 
 

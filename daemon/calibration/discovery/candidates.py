@@ -11,7 +11,7 @@ import numpy as np
 from scipy import special
 
 from nanodrift.calibration.dataset import Dataset
-from nanodrift.calibration.discovery.confirmation import FreshGain, TauRange
+from nanodrift.calibration.discovery.confirmation import FreshGain, TauRange, round_sig
 from nanodrift.calibration.discovery.diagnostics import ar1_deflation, json_float
 from nanodrift.calibration.discovery.settings import NOT_APPLIED_ONLINE, Settings
 from nanodrift.calibration.discovery.workspace import Workspace, standardise
@@ -36,7 +36,6 @@ class Candidate:
     holdout_rms_after_um: float = math.nan
     clears: bool = False
     blocks_improved: float = math.nan  # share of held-out blocks the candidate predicts better
-    p_blocks: float = math.nan  # one-sided t-test over blocks that the held-out error falls
     p_iid: float = math.nan  # the same F-test taking rows as independent (what stepwisefit reports)
     trend_like: bool = False  # indistinguishable from a drift in time over this run
     pinned: bool = True  # its searched parameter is determined by the run (see pinned())
@@ -119,10 +118,6 @@ class Candidate:
         return out
 
 
-def round_sig(value: float, digits: int = 3) -> float:
-    return float(f"{value:.{digits}g}")
-
-
 def search_tau(objective: Callable[[float], float], lo: float, hi: float, settings: Settings
                 ) -> tuple[float, list[tuple[float, float]]]:
     """Log grid then bounded minimisation on log τ; returns (best τ, profile of (τ, value))."""
@@ -187,14 +182,6 @@ class Context:
         sse1, held_blocks1, k1 = self.ws.evaluate(F, drop)
         held1 = float(held_blocks1.sum())
         cand.blocks_improved = float(np.mean(held_blocks1 < self.held_blocks0))
-        sizes = np.array([b - a for a, b in self.ws.bounds], dtype=np.float64)
-        gain = (self.held_blocks0 - held_blocks1) / sizes  # per-row MSE reduction in each block
-        spread = float(np.std(gain, ddof=1)) if gain.size > 1 else 0.0
-        if spread > 0:
-            t_blocks = float(np.mean(gain)) / (spread / math.sqrt(gain.size))
-            cand.p_blocks = float(special.stdtr(gain.size - 1, -t_blocks))  # Student's t upper tail
-        else:
-            cand.p_blocks = 0.0 if float(np.mean(gain)) > 0 else 1.0
         cand.rms_before_um = math.sqrt(self.sse0 / n)
         cand.rms_after_um = math.sqrt(sse1 / n)
         cand.holdout_rms_before_um = math.sqrt(self.held0 / n)

@@ -10,7 +10,8 @@ from typing import Any
 import numpy as np
 
 from nanodrift.calibration.dataset import Dataset
-from nanodrift.calibration.discovery.candidates import Candidate, Context, pinned, round_sig, search_tau
+from nanodrift.calibration.discovery.candidates import Candidate, Context, pinned, search_tau
+from nanodrift.calibration.discovery.confirmation import round_sig
 from nanodrift.calibration.discovery.settings import Settings
 from nanodrift.model.axis_terms import AxisProduct
 from nanodrift.model.effect_terms import CREEP_DEADBAND_UM, Creep, PositionCoupling, Rate

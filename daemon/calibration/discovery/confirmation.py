@@ -47,6 +47,10 @@ class FreshGain:
         return self.rms_after_um / self.rms_before_um if self.rms_before_um > 0 else 1.0
 
 
+def round_sig(value: float, digits: int = 3) -> float:
+    return float(f"{value:.{digits}g}")
+
+
 def hidden_by_fit_um2(in_sample_um: float, held_out_um: float) -> float:
     """ω: the MSE a fit hides of its own run (held-out MSE - in-sample MSE; 0 when held-out is better by chance)."""
     return max(held_out_um**2 - in_sample_um**2, 0.0)
@@ -148,7 +152,7 @@ def tau_range(worse: Callable[[float], bool], tau: float, bounds: tuple[float, f
     """
     lo, pinned_lo = _edge(worse, tau, bounds[0])
     hi, pinned_hi = _edge(worse, tau, bounds[1])
-    return TauRange(_round3(lo), _round3(hi), pinned_lo, pinned_hi)
+    return TauRange(round_sig(lo), round_sig(hi), pinned_lo, pinned_hi)
 
 
 def _edge(worse: Callable[[float], bool], tau: float, bound: float) -> tuple[float, bool]:
@@ -175,7 +179,3 @@ def _edge(worse: Callable[[float], bool], tau: float, bound: float) -> tuple[flo
         else:
             inside = mid
     return inside, True
-
-
-def _round3(value: float) -> float:
-    return float(f"{value:.3g}")
