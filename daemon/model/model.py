@@ -361,9 +361,14 @@ def load_model(path: str | os.PathLike[str], *, check_id: bool = True) -> Model:
     ``check_id=False`` skips only the id check (``nanodrift restamp``): everything else is checked.
     """
     path = Path(path)
+    return _model_from_dict(read_model_doc(path), str(path), check_id=check_id)
+
+
+def read_model_doc(path: Path) -> Any:
+    """The JSON document of a model file (one axis or several); :class:`ModelFileError` if it is not one."""
     text = _read_model_text(path)
     try:
-        doc = loads_unique(text)
+        return loads_unique(text)
     except json.JSONDecodeError as err:
         raise ModelFileError(f"{path}: not valid JSON (line {err.lineno}, column {err.colno}: {err.msg})") from None
     except DuplicateKeyError as err:
@@ -374,7 +379,6 @@ def load_model(path: str | os.PathLike[str], *, check_id: bool = True) -> Model:
         ) from None
     except ValueError as err:  # e.g. an integer of more than 4300 digits
         raise ModelFileError(f"{path}: not valid JSON ({err})") from None
-    return _model_from_dict(doc, str(path), check_id=check_id)
 
 
 def _file_kind(mode: int) -> str:
@@ -395,13 +399,7 @@ def _read_model_text(path: Path) -> str:
     either, and at most one byte more than the bound is ever read.
     """
     try:
-        info = os.stat(path)
-    except FileNotFoundError:
-        raise ModelFileError(f"{path}: no such model file") from None
-    except OSError as err:
-        raise ModelFileError(f"{path}: cannot read the model file ({err})") from None
-    _check_regular(path, info)
-    try:
+        _check_regular(path, os.stat(path))
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
     except FileNotFoundError:
         raise ModelFileError(f"{path}: no such model file") from None
