@@ -21,7 +21,7 @@ import numpy as np
 from nanodrift.model import hac
 from nanodrift.model.axis_terms import AxisProduct
 from nanodrift.model.cell_model import CellModel, one_axis
-from nanodrift.model.model import FittedTerm, Model, Training
+from nanodrift.model.model import FittedTerm, Model, Training, json_float
 from nanodrift.model.provenance import created_now, software
 from nanodrift.model.segments import design_matrix, runs
 from nanodrift.model.series import CellSeries, Series
@@ -171,10 +171,6 @@ def _commands(data: Series) -> np.ndarray:
     return np.asarray(data.q, dtype=np.float64)
 
 
-def _only_valid(data: Series) -> Series:
-    return data.valid_rows()
-
-
 def fit_terms(
     data: Series,
     candidates: Sequence[Term],
@@ -197,7 +193,7 @@ def fit_terms(
     ``scored_only=True`` (a held-out refit) also skips the final fit's standard errors and statistics: the
     model has its terms and coefficients only (:func:`_scored_model`).
     """
-    data = _only_valid(data)
+    data = data.valid_rows()
     y = _commands(data)
     pool = [t for t in candidates if not isinstance(t, Bias)]
     forced = [t for t in always if not isinstance(t, Bias)]
@@ -268,7 +264,7 @@ def fit_terms(
             {"action": action, "term": pool[col].name, "p": float(p)} for action, col, p in result.history
         ],
         "not_selected": {
-            pool[i].name: {"coef_if_added": _finite(if_added.coef[i]), "p_if_added": _finite(if_added.pval[i])}
+            pool[i].name: {"coef_if_added": json_float(if_added.coef[i]), "p_if_added": json_float(if_added.pval[i])}
             for i in range(len(pool))
             if not result.inmodel[i]
         },
@@ -342,7 +338,7 @@ def _check_selection(selection: str) -> None:
 def _iid_stats(terms: Sequence[Term], final: OLS) -> dict[str, dict[str, float | None]]:
     """The textbook (iid) standard error and p-value of each term, bias last: kept for comparison only."""
     names = [t.name for t in terms] + [Bias().name]
-    return {name: {"se": _finite(final.se_iid[i]), "p": _finite(final.p_iid[i])} for i, name in enumerate(names)}
+    return {name: {"se": json_float(final.se_iid[i]), "p": json_float(final.p_iid[i])} for i, name in enumerate(names)}
 
 
 def model_covariance(X: np.ndarray, y: np.ndarray, final: OLS, data: Series, terms: Sequence[Term],
@@ -367,14 +363,6 @@ def model_covariance(X: np.ndarray, y: np.ndarray, final: OLS, data: Series, ter
         J[k, k:k + m] = nuisance[0]
     J[k, k + m] = 1.0
     return Covariance(J @ cov @ J.T, s, curvature, noise.wander_um)
-
-
-def _rows(n: int) -> str:
-    return "1 row" if n == 1 else f"{n} rows"
-
-
-def _finite(v: float) -> float | None:
-    return float(v) if math.isfinite(v) else None
 
 
 def candidate_terms(channels: Sequence[str], order: int, exclude: Sequence[str] = ()) -> list[Term]:
@@ -501,7 +489,7 @@ def _fit_axis(
         raise FitError(f"penter ({penter}) must not exceed premove ({premove})")
     where = source or data.source
     given = len(data)
-    data = _only_valid(data)
+    data = data.valid_rows()
     _commands(data)
     channels = list(data.channels)
     scores: dict[int, float] = {}
@@ -521,8 +509,8 @@ def _fit_axis(
         if curved:
             kinds += f", squares of {', '.join(t.channel for t in curved)}"
         return FitError(
-            f"{where}: {_rows(n)}{left_out} {'is' if n == 1 else 'are'} too few {purpose} {terms} candidate "
-            f"term{'s' if terms != 1 else ''} ({kinds}) plus a bias: {advice}"
+            f"{where}: {'1 row' if n == 1 else f'{n} rows'}{left_out} {'is' if n == 1 else 'are'} too few {purpose} "
+            f"{terms} candidate term{'s' if terms != 1 else ''} ({kinds}) plus a bias: {advice}"
         )
 
     first = 1 if order == "auto" else int(order)

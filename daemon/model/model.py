@@ -128,7 +128,7 @@ class Model:
         """
         content: dict[str, Any] = {
             "format": FORMAT,
-            "terms": [[ft.term.name, float(ft.coef), _num(ft.se)] for ft in self.terms],
+            "terms": [[ft.term.name, float(ft.coef), json_float(ft.se)] for ft in self.terms],
             "x_um": [float(v) for v in self.training.x_range],
             "channels": {c: [float(lo), float(hi)] for c, (lo, hi) in sorted(self.training.channel_ranges.items())},
         }
@@ -226,7 +226,8 @@ class Model:
         return {
             "format": FORMAT,
             "id": self.id,
-            "terms": [{"term": ft.term.name, "coef": ft.coef, "se": _num(ft.se), "p": _num(ft.p)} for ft in self.terms],
+            "terms": [{"term": ft.term.name, "coef": ft.coef, "se": json_float(ft.se), "p": json_float(ft.p)}
+                      for ft in self.terms],
             "channels": list(self.channels),
             "training": self.training.ranges_dict(),
             "fit": self.fit,
@@ -241,7 +242,8 @@ class Model:
         return _model_from_dict(doc, where, check_id=check_id, axes=axes)
 
 
-def _num(value: float) -> float | None:
+def json_float(value: float | None) -> float | None:
+    """The value for a JSON document: NaN and infinities (not JSON) become null."""
     return None if value is None or not math.isfinite(value) else float(value)
 
 

@@ -491,12 +491,8 @@ def _power(m: re.Match[str]) -> Term:
 # order matters: the catch-all channel rule stays last (register_term inserts before it)
 _KINDS.append(_TermKind(re.compile(r"^1$"), lambda m: Bias()))
 _KINDS.append(_TermKind(re.compile(r"^x(?:\^(?P<k>[1-9]\d*))?$"), _power))
-_KINDS.append(_TermKind(re.compile(r"^dir$"), lambda m: Direction()))
-_KINDS.append(
-    _TermKind(
-        re.compile(rf"^dir\((?P<db>{_NUMBER}) um\)$"), lambda m: Direction(float(m.group("db")))
-    )
-)
+_KINDS.append(_TermKind(re.compile(rf"^dir(?:\((?P<db>{_NUMBER}) um\))?$"),
+                        lambda m: Direction(float(m.group("db"))) if m.group("db") else Direction()))
 _KINDS.append(
     _TermKind(
         re.compile(rf"^lag\(\s*(?P<ch>{_CHANNEL})\s*,\s*(?P<tau>{_NUMBER})\s*s\s*\)$"),

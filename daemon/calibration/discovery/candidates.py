@@ -12,9 +12,10 @@ from scipy import special
 
 from nanodrift.calibration.dataset import Dataset
 from nanodrift.calibration.discovery.confirmation import FreshGain, TauRange, round_sig
-from nanodrift.calibration.discovery.diagnostics import ar1_deflation, json_float
+from nanodrift.calibration.discovery.diagnostics import ar1_deflation
 from nanodrift.calibration.discovery.settings import NOT_APPLIED_ONLINE, Settings
 from nanodrift.calibration.discovery.workspace import Workspace, standardise
+from nanodrift.model.model import json_float
 from nanodrift.model.segments import features
 from nanodrift.model.terms import Term
 

@@ -14,6 +14,7 @@ from scipy import special
 from nanodrift.calibration.dataset import Dataset
 from nanodrift.calibration.discovery.settings import DEFAULT_SETTINGS, Settings
 from nanodrift.model.effect_terms import CREEP_DEADBAND_UM, Rate
+from nanodrift.model.model import json_float
 from nanodrift.model.segments import features, first_rows, run_time_s
 from nanodrift.model.terms import Direction
 
@@ -56,11 +57,6 @@ class Disagreement:
             "eta2": json_float(self.eta2), "spread_um": json_float(self.spread_um),
             "significant": self.significant, "bins": self.bins,
         }
-
-
-def json_float(v: float) -> float | None:
-    """The value for a JSON document: NaN and infinities (not JSON) become null."""
-    return float(v) if v is not None and math.isfinite(v) else None
 
 
 def structure_variables(data: Dataset, settings: Settings = DEFAULT_SETTINGS) -> dict[str, tuple[str, np.ndarray]]:
