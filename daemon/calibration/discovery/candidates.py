@@ -40,7 +40,6 @@ class Candidate:
     p_iid: float = math.nan  # the same F-test taking rows as independent (what stepwisefit reports)
     trend_like: bool = False  # indistinguishable from a drift in time over this run
     pinned: bool = True  # its searched parameter is determined by the run (see pinned())
-    profile: list[tuple[float, float]] = field(default_factory=list, repr=False)  # (param, training RMS)
     #: per block, (training SSE of the fit on the other blocks, held-out SSE of the block) as a function of the
     #: searched time constant, and its search range: kept (for the round only) so that the τ range and the
     #: τ chosen without each block are computed for the candidate that is named, and only for it
@@ -70,11 +69,6 @@ class Candidate:
     def holdout_gain(self) -> float:
         b, a = self.holdout_rms_before_um, self.holdout_rms_after_um
         return (b - a) / b if b > 0 else 0.0
-
-    @property
-    def label(self) -> str:
-        parts = [t.name for t in self.add] + [f"-{t.name}" for t in self.remove] + list(self.nuisance)
-        return f"{self.effect} [{', '.join(parts)}]"
 
     def rank_key(self, settings: Settings) -> float:
         return self.holdout_rms_after_um * (1.0 + settings.search_penalty * self.searched)
@@ -119,12 +113,10 @@ class Candidate:
         return out
 
 
-def search_tau(objective: Callable[[float], float], lo: float, hi: float, settings: Settings
-                ) -> tuple[float, list[tuple[float, float]]]:
-    """Log grid then bounded minimisation on log τ; returns (best τ, profile of (τ, value))."""
+def search_tau(objective: Callable[[float], float], lo: float, hi: float, settings: Settings) -> float:
+    """Log grid then bounded minimisation on log τ; returns the best τ (3 significant digits)."""
     grid = np.geomspace(lo, hi, settings.grid_points)
-    profile = [(float(tau), objective(float(tau))) for tau in grid]
-    values = np.array([v for _, v in profile])
+    values = np.array([objective(float(tau)) for tau in grid])
     i = int(np.argmin(values))
     a, b = math.log(grid[max(i - 1, 0)]), math.log(grid[min(i + 1, grid.size - 1)])
     best_tau, best = float(grid[i]), float(values[i])
@@ -138,10 +130,7 @@ def search_tau(objective: Callable[[float], float], lo: float, hi: float, settin
         )
         if float(res.fun) < best:
             best_tau, best = math.exp(float(res.x)), float(res.fun)
-    rounded = round_sig(best_tau)
-    profile.append((rounded, objective(rounded)))
-    profile.sort()
-    return rounded, profile
+    return round_sig(best_tau)
 
 
 def pinned(objective: Callable[[float], float], tau: float, n_eff: float, settings: Settings) -> bool:

@@ -120,7 +120,7 @@ def _thermal_response(ctx: Context) -> list[Candidate]:
             return ctx.ws.sse_with(ctx.columns(feats))
 
         tau_max = min(s.lag_tau_s[1], max(max(spans_s(ctx.data)), 2 * s.lag_tau_s[0]))
-        tau, profile = search_tau(sse, s.lag_tau_s[0], tau_max, s)
+        tau = search_tau(sse, s.lag_tau_s[0], tau_max, s)
         extra = [] if c in have else [Channel(c)]
         behind_reference = round_sig(tau + ctx.delays.get(c, 0.0))
         if tau <= s.rate_tau_max_s:
@@ -133,7 +133,6 @@ def _thermal_response(ctx: Context) -> list[Candidate]:
             continue
         feats = [*base, ctx.feature(term)]
         cand = Candidate(effect, [*extra, term], [], params, 1, len(channels))
-        cand.profile = [(p, math.sqrt(v / ctx.ws.n)) for p, v in profile]
         cand.trend_like = tau >= 0.9 * tau_max  # as long as the run: a trend, not an identified lag
         cand.pinned = pinned(sse, tau, ctx.ws.n * ctx.deflate, s)
         cand.tau_bounds = (s.lag_tau_s[0], tau_max)
@@ -280,13 +279,12 @@ def _creep(ctx: Context) -> list[Candidate]:
     def sse(tau: float) -> float:
         return ctx.ws.sse_with(ctx.columns([features(Creep(tau, axis=axis), ctx.data)]))
 
-    tau, profile = search_tau(sse, *ctx.settings.creep_tau_s, ctx.settings)
+    tau = search_tau(sse, *ctx.settings.creep_tau_s, ctx.settings)
     term = Creep(tau, axis=axis)
     cand = Candidate("creep", [term], [], {"tau_s": tau}, 1, 1)
     cand.pinned = pinned(sse, tau, ctx.ws.n * ctx.deflate, ctx.settings)
     cand.tau_bounds = ctx.settings.creep_tau_s
     cand.fold_errors = partial(_fold_errors_creep, ctx)
-    cand.profile = [(p, math.sqrt(v / ctx.ws.n)) for p, v in profile]
     return [ctx.judge(cand, ctx.columns([ctx.feature(term)]))]
 
 
