@@ -167,6 +167,10 @@ class Context:
     def columns(self, feats: Sequence[np.ndarray]) -> np.ndarray:
         return standardise(np.column_stack(feats))
 
+    def judge_term(self, effect: str, term: Term, params: dict[str, Any], alternatives: int) -> Candidate:
+        """The candidate that adds ``term`` alone (no parameter searched), judged."""
+        return self.judge(Candidate(effect, [term], [], params, 0, alternatives), self.columns([self.feature(term)]))
+
     def judge(self, cand: Candidate, F: np.ndarray | None, drop: Sequence[int] = ()) -> Candidate:
         n = self.ws.n
         sse1, held_blocks1, k1 = self.ws.evaluate(F, drop)

@@ -50,8 +50,7 @@ def _geometric(ctx: Context) -> list[Candidate]:
         if k in have or k > ctx.settings.max_power:
             continue
         term = Power(k, axis)
-        cand = Candidate("geometric_order", [term], [], {"order": max(top, k), "term": term.name}, 0, 1)
-        out.append(ctx.judge(cand, ctx.columns([ctx.feature(term)])))
+        out.append(ctx.judge_term("geometric_order", term, {"order": max(top, k), "term": term.name}, 1))
     return out
 
 
@@ -177,11 +176,7 @@ def _missing_channel(ctx: Context) -> list[Candidate]:
     """A monitored channel the model left out (stepwise can drop one when another effect masks it)."""
     have = {t.name for t in ctx.terms}
     missing = [c for c in ctx.data.channels if c not in have and c not in ctx.excluded]
-    return [
-        ctx.judge(Candidate("missing_channel", [Channel(c)], [], {"channel": c}, 0, len(missing)),
-                  ctx.columns([ctx.feature(Channel(c))]))
-        for c in missing
-    ]
+    return [ctx.judge_term("missing_channel", Channel(c), {"channel": c}, len(missing)) for c in missing]
 
 
 def _thermal_curvature(ctx: Context) -> list[Candidate]:
@@ -190,12 +185,8 @@ def _thermal_curvature(ctx: Context) -> list[Candidate]:
     if any(isinstance(t, ChannelSquare) for t in ctx.terms):
         return []
     squares = curvature_candidates(ctx.data, ctx.excluded)
-    return [
-        ctx.judge(Candidate("thermal_curvature", [term], [], {"channel": term.channel, "centre_c": term.centre_c},
-                            0, len(squares)),
-                  ctx.columns([ctx.feature(term)]))
-        for term in squares
-    ]
+    return [ctx.judge_term("thermal_curvature", t, {"channel": t.channel, "centre_c": t.centre_c}, len(squares))
+            for t in squares]
 
 
 def _hysteresis(ctx: Context) -> list[Candidate]:
@@ -263,8 +254,7 @@ def _coupling(ctx: Context) -> list[Candidate]:
         term = PositionCoupling(c, ctx.data.axis)
         if term in ctx.terms:
             continue
-        out.append(ctx.judge(Candidate("position_thermal_coupling", [term], [], {"channel": c}, 0, len(channels)),
-                             ctx.columns([ctx.feature(term)])))
+        out.append(ctx.judge_term("position_thermal_coupling", term, {"channel": c}, len(channels)))
     return out
 
 
@@ -325,12 +315,10 @@ def _cross_axis(ctx: Context) -> list[Candidate]:
     for b in others:
         term = Power(1, b)
         if term not in ctx.terms:
-            out.append(ctx.judge(Candidate("crosstalk", [term], [], {"axis": b}, 0, len(others)),
-                                 ctx.columns([ctx.feature(term)])))
+            out.append(ctx.judge_term("crosstalk", term, {"axis": b}, len(others)))
         product = AxisProduct(axis, b)
         if product not in ctx.terms:
-            out.append(ctx.judge(Candidate("coupled_bending", [product], [], {"axes": product.name}, 0, len(others)),
-                                 ctx.columns([ctx.feature(product)])))
+            out.append(ctx.judge_term("coupled_bending", product, {"axes": product.name}, len(others)))
     return out
 
 
