@@ -240,14 +240,6 @@ def _num(v: float) -> float | None:
     return None if not np.isfinite(v) else round(float(v), 3)
 
 
-def iso9283(positions: np.ndarray, target: float) -> tuple[float, float]:
-    """(accuracy, repeatability) in the units of ``positions`` for one point (1-D ISO 9283)."""
-    mean = float(np.mean(positions))
-    dist = np.abs(positions - mean)
-    spread = float(np.std(dist, ddof=1)) if positions.size > 1 else 0.0
-    return abs(mean - target), float(np.mean(dist)) + 3.0 * spread
-
-
 def summarize(name: str, steps: Sequence[StepResult], compensated: bool, extrapolating: int = 0,
               axis: str = "x", truth: bool = False) -> TestResult:
     """One test of ``axis`` from its valid steps: with the model as run, and without it computed from the same
@@ -290,7 +282,7 @@ def pose_repeatability(attained: np.ndarray) -> float:
 def score_points(targets_um: Mapping[str, np.ndarray], attained_um: Mapping[str, np.ndarray]) -> list[PointStats]:
     """ISO 9283 per point (steps with the same target on every axis) from per-step targets and attained
     positions (µm, one array per axis): AP/RP in the cell's dimension and per axis, in nm. The one code path
-    of every test, one axis or several (one axis: AP = |mean - target|, RP as :func:`iso9283`)."""
+    of every test, one axis or several (one axis: AP = |mean - target|, RP = l̄ + 3 S_l with l_i = |x_i - mean|)."""
     axes = tuple(targets_um)
     target = np.column_stack([np.asarray(targets_um[a], dtype=np.float64) for a in axes])
     attained = np.column_stack([np.asarray(attained_um[a], dtype=np.float64) for a in axes])
@@ -298,7 +290,8 @@ def score_points(targets_um: Mapping[str, np.ndarray], attained_um: Mapping[str,
     rows, first = np.unique(target, axis=0, return_index=True)
     for row in (rows if len(axes) == 1 else rows[np.argsort(first)]):  # one axis: by position; else as visited (P1..P5)
         here = attained[np.all(target == row, axis=1)]
-        per_axis = {a: iso9283(here[:, j], float(row[j])) for j, a in enumerate(axes)}
+        per_axis = {a: (pose_accuracy(here[:, [j]], row[j:j + 1]), pose_repeatability(here[:, [j]]))
+                    for j, a in enumerate(axes)}
         points.append(PointStats(
             target_um={a: float(row[j]) for j, a in enumerate(axes)}, visits=int(here.shape[0]),
             accuracy_nm=pose_accuracy(here, row) * 1e3, repeatability_nm=pose_repeatability(here) * 1e3,

@@ -82,11 +82,7 @@ class CellModel:
     @property
     def channels(self) -> tuple[str, ...]:
         """Every temperature channel some axis' model reads, in first-use order."""
-        seen: dict[str, None] = {}
-        for a in self.axes:
-            for c in self.models[a].channels:
-                seen[c] = None
-        return tuple(seen)
+        return tuple(dict.fromkeys(c for a in self.axes for c in self.models[a].channels))
 
     @property
     def position_ranges(self) -> dict[str, tuple[float, float]]:
@@ -96,10 +92,7 @@ class CellModel:
 
     @property
     def channel_ranges(self) -> dict[str, tuple[float, float]]:
-        out: dict[str, tuple[float, float]] = {}
-        for a in self.axes:
-            out.update(self.models[a].training.channel_ranges)
-        return out
+        return {c: r for a in self.axes for c, r in self.models[a].training.channel_ranges.items()}
 
     def predict(self, data: Series) -> dict[str, np.ndarray]:
         """The command per axis for every row (``data``: a multi-axis series)."""

@@ -144,11 +144,7 @@ class Model:
 
     @property
     def channels(self) -> tuple[str, ...]:
-        seen: dict[str, None] = {}
-        for ft in self.terms:
-            for c in ft.term.channels:
-                seen[c] = None
-        return tuple(seen)
+        return tuple(dict.fromkeys(c for ft in self.terms for c in ft.term.channels))
 
     @property
     def coefs(self) -> np.ndarray:
