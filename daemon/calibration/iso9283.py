@@ -167,32 +167,8 @@ class TestResult:
 
     def to_dict(self) -> dict[str, Any]:
         """Table I's document of a one-axis test (the ``validate --json`` contract)."""
-        doc = self._measured_dict()
-        truth = self.against_truth()
-        if truth is not None:
-            doc["true_position"] = truth._point_figures(truth.accuracy_without_nm, truth.accuracy_nm)
-        return doc
-
-    def _point_figures(self, without: float, with_: float) -> dict[str, Any]:
-        return {
-            "without_comp_nm": _num(without),
-            "with_comp_nm": _num(with_),
-            "improvement_ratio": _num(without / with_) if self.compensated else None,
-            "points": self._points_list(),
-        }
-
-    def _points_list(self) -> list[dict[str, Any]]:
-        a, num = self.axis, _num
-        return [{"x_um": p0.target_um[a], "visits": p0.visits,
-                 "accuracy_nm": num(p.accuracy_nm) if self.compensated else None,
-                 "repeatability_nm": num(p.repeatability_nm) if self.compensated else None,
-                 "accuracy_without_nm": num(p0.accuracy_nm),
-                 "repeatability_without_nm": num(p0.repeatability_nm)}
-                for p, p0 in zip(self.points, self.points_without, strict=True)]
-
-    def _measured_dict(self) -> dict[str, Any]:
         num = _num
-        return {
+        doc = {
             "test": self.name,
             "compensated": self.compensated,
             "without_comp_nm": num(self.accuracy_without_nm),
@@ -212,6 +188,22 @@ class TestResult:
                if self.has_truth and self.compensated else {}),
             "points": self._points_list(),
         }
+        truth = self.against_truth()
+        if truth is not None:
+            doc["true_position"] = {"without_comp_nm": num(truth.accuracy_without_nm),
+                                    "with_comp_nm": num(truth.accuracy_nm),
+                                    "improvement_ratio": num(truth.improvement) if truth.compensated else None,
+                                    "points": truth._points_list()}
+        return doc
+
+    def _points_list(self) -> list[dict[str, Any]]:
+        a, num = self.axis, _num
+        return [{"x_um": p0.target_um[a], "visits": p0.visits,
+                 "accuracy_nm": num(p.accuracy_nm) if self.compensated else None,
+                 "repeatability_nm": num(p.repeatability_nm) if self.compensated else None,
+                 "accuracy_without_nm": num(p0.accuracy_nm),
+                 "repeatability_without_nm": num(p0.repeatability_nm)}
+                for p, p0 in zip(self.points, self.points_without, strict=True)]
 
     def scores_dict(self, *, with_model: bool) -> dict[str, Any] | None:
         """AP/RP in the cell's dimension and per axis, per point, with or without the model (a multi-axis

@@ -72,13 +72,9 @@ MINUS = "−"
 
 
 # ----- variables in words ------------------------------------------------------------------------------
-def _identity(values: np.ndarray) -> np.ndarray:
-    return values
-
-
 def describe_variable(name: str, settings: Settings) -> tuple[str, str, Callable[[np.ndarray], np.ndarray]]:
     """(words for a title, axis label with its unit, transform of the stored values to that unit)."""
-    same = _identity
+    same = np.asarray
     if name == "t":
         return "time", "time since the start of the run (h)", lambda v: v / 3600.0
     if name == "x":
@@ -280,16 +276,8 @@ def _step_variable(step: Candidate) -> str:
 
 def figure_variables(result: DiscoveryResult, limit: int = 4) -> list[str]:
     """Variables to plot: those the steps point at, then the most significant disagreements."""
-    names: list[str] = []
-    for step in result.steps:
-        names.append(_step_variable(step))
-    names += [d.variable for d in result.disagreements if d.significant]
-    names.append("t")
-    seen: list[str] = []
-    for n in names:
-        if n in result.variables and n not in seen:
-            seen.append(n)
-    return seen[:limit]
+    names = [_step_variable(s) for s in result.steps] + [d.variable for d in result.disagreements if d.significant]
+    return [n for n in dict.fromkeys([*names, "t"]) if n in result.variables][:limit]
 
 
 def file_stem(variable: str) -> str:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from functools import partial
 from typing import Any
 
@@ -36,14 +36,9 @@ EFFECTS = (
 )
 
 
-def _powers(terms: Sequence[Term], axis: str = "x") -> set[int]:
-    """The powers of ``axis``' own position among ``terms``."""
-    return {t.k for t in terms if isinstance(t, Power) and t.axis == axis}
-
-
 def _geometric(ctx: Context) -> list[Candidate]:
     axis = ctx.data.axis
-    have = _powers(ctx.terms, axis)
+    have = {t.k for t in ctx.terms if isinstance(t, Power) and t.axis == axis}  # the axis' own powers
     top = max(have, default=0)
     out = []
     for k in range(1, max(top + 1, 3) + 1):
