@@ -227,10 +227,8 @@ def fit_terms(
         hac_lag="andrews", run_id=run_id)
     X_chosen = X[:, chosen]
     final = ols(X_chosen, y, run_id) if chosen else None
-    terms: list[FittedTerm] = []
-    for j, i in enumerate(chosen):
-        assert final is not None
-        terms.append(FittedTerm(pool[i], float(final.coef[j]), float(final.se[j]), float(final.p[j])))
+    terms = [] if final is None else [FittedTerm(pool[i], float(final.coef[j]), float(final.se[j]), float(final.p[j]))
+                                      for j, i in enumerate(chosen)]
     if final is None:
         mean = float(y.mean())
         resid = y - mean
@@ -393,10 +391,7 @@ def cell_candidate_terms(axis: str, axes: Sequence[str], channels: Sequence[str]
     position and square (crosstalk, non-orthogonality, sag), every product of two axes (coupled
     bending), and the channels. The same stepwise selection keeps what the data supports."""
     own: list[Term] = [Power(k, axis) for k in range(order, 0, -1)]
-    others: list[Term] = []
-    for b in axes:
-        if b != axis:
-            others += [Power(1, b), Power(2, b)]
+    others: list[Term] = [Power(k, b) for b in axes if b != axis for k in (1, 2)]
     products: list[Term] = [AxisProduct(a, b) for i, a in enumerate(axes) for b in axes[i + 1:]]
     return own + others + products + candidate_terms(channels, 1, exclude)[1:]
 

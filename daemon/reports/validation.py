@@ -163,10 +163,7 @@ def step_sigmas_um(result: TestResult) -> list[float]:
 
 def raw_csv(results: Sequence[TestResult]) -> str:
     """One row per step; the last column ``q_sigma_um`` is the command's σ (:func:`step_sigmas_um`)."""
-    channels: list[str] = []
-    for r in results:
-        for s in r.steps:
-            channels.extend(c for c in s.temperatures if c not in channels)
+    channels = list(dict.fromkeys(c for r in results for s in r.steps for c in s.temperatures))
     truth = any(r.has_truth for r in results)  # a simulated cell: the column hardware cannot have
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")

@@ -40,13 +40,8 @@ def _geometric(ctx: Context) -> list[Candidate]:
     axis = ctx.data.axis
     have = {t.k for t in ctx.terms if isinstance(t, Power) and t.axis == axis}  # the axis' own powers
     top = max(have, default=0)
-    out = []
-    for k in range(1, max(top + 1, 3) + 1):
-        if k in have or k > ctx.settings.max_power:
-            continue
-        term = Power(k, axis)
-        out.append(ctx.judge_term("geometric_order", term, {"order": max(top, k), "term": term.name}, 1))
-    return out
+    powers = [Power(k, axis) for k in range(1, max(top + 1, 3) + 1) if k not in have and k <= ctx.settings.max_power]
+    return [ctx.judge_term("geometric_order", t, {"order": max(top, t.k), "term": t.name}, 1) for t in powers]
 
 
 def _liveliest_window(data: Dataset, rows: int) -> slice:
@@ -243,14 +238,9 @@ def untestable(data: Dataset, settings: Settings) -> list[dict[str, str]]:
 
 
 def _coupling(ctx: Context) -> list[Candidate]:
-    channels = list(ctx.data.channels)
-    out = []
-    for c in channels:
-        term = PositionCoupling(c, ctx.data.axis)
-        if term in ctx.terms:
-            continue
-        out.append(ctx.judge_term("position_thermal_coupling", term, {"channel": c}, len(channels)))
-    return out
+    terms = [PositionCoupling(c, ctx.data.axis) for c in ctx.data.channels]
+    return [ctx.judge_term("position_thermal_coupling", t, {"channel": t.channel}, len(terms))
+            for t in terms if t not in ctx.terms]
 
 
 def _creep(ctx: Context) -> list[Candidate]:
@@ -282,15 +272,11 @@ def _drift(ctx: Context) -> list[Candidate]:
 
 
 def _exclusion(ctx: Context) -> list[Candidate]:
-    channel_terms = [i for i, t in enumerate(ctx.terms) if isinstance(t, Channel)]
-    if len(channel_terms) < 2:
+    channels = [(i, t) for i, t in enumerate(ctx.terms) if isinstance(t, Channel)]
+    if len(channels) < 2:
         return []
-    out = []
-    for i in channel_terms:
-        term = ctx.terms[i]
-        cand = Candidate("sensor_exclusion", [], [term], {"channel": term.name}, 0, len(channel_terms))
-        out.append(ctx.judge(cand, None, drop=[i]))
-    return out
+    return [ctx.judge(Candidate("sensor_exclusion", [], [t], {"channel": t.name}, 0, len(channels)), None, drop=[i])
+            for i, t in channels]
 
 
 def _cross_axis(ctx: Context) -> list[Candidate]:
