@@ -208,32 +208,25 @@ def read_csv(path: str | os.PathLike[str]) -> Dataset:
     (missing column, non-numeric cell, time not increasing, empty) raises :class:`DataError` naming the
     file, the row and the column."""
     path = Path(path)
-    header = _parse_header(path, _read_text(path, _first_line))
+    header = _parse_header(path, _read_text(path))
     values = _parse_body(path, header)
     return _to_dataset(path, header, values)
 
 
-def _read_text(path: Path, read: Callable[[io.TextIOBase], str]) -> str:
-    """``read(handle)`` of the file as UTF-8 text; a file that cannot be read is a :class:`DataError`."""
+def _read_text(path: Path, *, body: bool = False) -> str:
+    """The file's first line (with ``body``: all after it) as UTF-8 text; a file that cannot be read is a
+    :class:`DataError`."""
     try:
         # utf-8-sig: a spreadsheet's byte-order mark is not part of the first column's name
         with open(path, encoding="utf-8-sig", newline="") as handle:
-            return read(handle)
+            first = handle.readline()
+            return handle.read() if body else first
     except FileNotFoundError:
         raise DataError(f"{path}: no such file") from None
     except UnicodeDecodeError as err:
         raise DataError(f"{path}: not a UTF-8 text file ({err.reason} at byte {err.start})") from None
     except OSError as err:
         raise DataError(f"{path}: cannot read ({err.strerror})") from None
-
-
-def _first_line(handle: io.TextIOBase) -> str:
-    return handle.readline()
-
-
-def _body(handle: io.TextIOBase) -> str:
-    handle.readline()
-    return handle.read()
 
 
 def _parse_header(path: Path, line: str) -> list[str]:
@@ -283,7 +276,7 @@ def _parse_body(path: Path, header: list[str]) -> np.ndarray:
             return values
     except (ValueError, UnicodeDecodeError):
         pass
-    body = _read_text(path, _body)
+    body = _read_text(path, body=True)
     if not body.strip():
         raise DataError(f"{path}: no data rows after the header")
     rows: list[list[float]] = []

@@ -63,8 +63,6 @@ class TestResult:
     points: list[PointStats] = field(default_factory=list)
     points_without: list[PointStats] = field(default_factory=list)
     axes: tuple[str, ...] = ("x",)
-    #: whether ``points_without`` is computed (x - (q' - x'), the same run) rather than measured in a second run
-    without_is_computed: bool = True
     extrapolating_steps: int = 0
     invalid_steps: int = 0
     #: per step, with the model: the bias correction its command carried (``validate --adapt``) ...
@@ -168,7 +166,7 @@ class TestResult:
     def to_dict(self) -> dict[str, Any]:
         """Table I's document of a one-axis test (the ``validate --json`` contract)."""
         num = _num
-        doc = {
+        doc: dict[str, Any] = {
             "test": self.name,
             "compensated": self.compensated,
             "without_comp_nm": num(self.accuracy_without_nm),
@@ -241,7 +239,7 @@ def summarize(name: str, steps: Sequence[StepResult], compensated: bool, extrapo
     as_run = np.array([(s.true_um if truth else s.positions_um)[axis] for s in valid])
     without = as_run - np.array([s.q_um[axis] - s.step.target(axis) for s in valid])
     result = summarize_runs(name, targets, {axis: without}, {axis: as_run})
-    result.compensated, result.steps, result.without_is_computed = compensated, list(steps), compensated
+    result.compensated, result.steps = compensated, list(steps)
     result.extrapolating_steps, result.invalid_steps = extrapolating, len(steps) - len(valid)
     return result
 
@@ -249,9 +247,9 @@ def summarize(name: str, steps: Sequence[StepResult], compensated: bool, extrapo
 def summarize_runs(name: str, targets_um: Mapping[str, np.ndarray], without_um: Mapping[str, np.ndarray],
                    with_um: Mapping[str, np.ndarray] | None) -> TestResult:
     """One test of any number of axes from per-step targets and attained positions (µm, one array per axis):
-    without the model and with it (None: not run). ``without_is_computed`` is left for :func:`summarize`."""
+    without the model and with it (None: not run)."""
     return TestResult(name, with_um is not None, [], score_points(targets_um, with_um) if with_um is not None else [],
-                      score_points(targets_um, without_um), axes=tuple(targets_um), without_is_computed=False)
+                      score_points(targets_um, without_um), axes=tuple(targets_um))
 
 
 # ----- ISO 9283 pose accuracy and repeatability in the cell's dimension ---------------------------------

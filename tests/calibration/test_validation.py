@@ -46,7 +46,6 @@ def test_without_is_computed_from_the_same_period():
     assert point.visits == without.visits == 4 and result.invalid_steps == 1  # invalid steps never count
     assert point.accuracy_nm == pytest.approx(35.0)
     assert without.accuracy_nm == pytest.approx(435.0)  # x - (q' - x') = x + 0.4
-    assert result.without_is_computed
     assert result.improvement == pytest.approx(435.0 / 35.0)
 
 
