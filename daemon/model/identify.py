@@ -186,8 +186,7 @@ def fit_terms(
 ) -> Model:
     """Select among ``candidates`` by stepwise regression (bias always in; ``always`` forced in).
 
-    ``selection``: ``"paper"`` tests entries and removals with MATLAB's iid partial F-tests, ``"hac"`` under
-    the Newey-West covariance. Either way the reported standard errors and p-values are HAC ones.
+    ``selection``: one of :data:`SELECTIONS`; either way the reported standard errors and p-values are HAC ones.
 
     ``uncertainty=False`` skips the covariance block (held-out refits): for models only scored, never saved.
     ``scored_only=True`` (a held-out refit) also skips the final fit's standard errors and statistics: the
@@ -216,10 +215,11 @@ def fit_terms(
         result = stepwisefit(X, y, penter=penter, premove=premove, inmodel=keep & ~frozen_out,
                              keep=keep | frozen_out, run_id=run_id)
     chosen = [i for i in range(len(pool)) if result.inmodel[i]]
+    chosen_terms = [pool[i] for i in chosen]
     if scored_only and np.isfinite(result.coef[result.inmodel]).all():
         # stepwise's least-squares coefficients suffice (a kept column it found collinear has none: ols'
         # minimum-norm solution below serves it)
-        return _scored_model(data, [pool[i] for i in chosen], result)
+        return _scored_model(data, chosen_terms, result)
     # what each left-out term would get if added alone, under the same HAC covariance as the printed ones
     # (held-out refits, never saved, skip it); before the chosen columns are copied out, which it does not need
     if_added = result if selection == "hac" or not uncertainty else stepwisefit(
@@ -227,26 +227,25 @@ def fit_terms(
         hac_lag="andrews", run_id=run_id)
     X_chosen = X[:, chosen]
     final = ols(X_chosen, y, run_id) if chosen else None
-    terms = [] if final is None else [FittedTerm(pool[i], float(final.coef[j]), float(final.se[j]), float(final.p[j]))
-                                      for j, i in enumerate(chosen)]
     if final is None:
         mean = float(y.mean())
         resid = y - mean
         rmse = float(math.sqrt(resid @ resid / max(len(y) - 1, 1)))
         lag = hac.andrews_lag(resid, run_id)
         mean_se = math.sqrt(hac.hac_covariance(np.ones((len(y), 1)), resid, lag, run_id=run_id)[0, 0])
-        terms.append(FittedTerm(Bias(), mean, mean_se, math.nan))
+        terms = [FittedTerm(Bias(), mean, mean_se, math.nan)]
         fit_stats = {"rmse_um": rmse, "r2": 0.0, "dof": len(y) - 1, "se_method": hac.describe(lag), "hac_lag": lag}
         covariance = None
         if uncertainty:
             cov, s, _, noise = estimate(np.empty((len(y), 0)), y, np.asarray(data.t, dtype=np.float64), runs(data), {})
             covariance = Covariance(cov, s, wander_um=noise.wander_um)
     else:
+        terms = [FittedTerm(t, float(final.coef[j]), float(final.se[j]), float(final.p[j]))
+                 for j, t in enumerate(chosen_terms)]
         terms.append(FittedTerm(Bias(), final.intercept, final.intercept_se, final.intercept_p))
         fit_stats = {"rmse_um": final.rmse, "r2": final.r2, "dof": final.dof, "se_method": final.se_method,
-                     "hac_lag": final.hac_lag, "iid": _iid_stats([pool[i] for i in chosen], final)}
-        covariance = (model_covariance(X_chosen, y, final, data, [pool[i] for i in chosen])
-                      if uncertainty else None)
+                     "hac_lag": final.hac_lag, "iid": _iid_stats(chosen_terms, final)}
+        covariance = model_covariance(X_chosen, y, final, data, chosen_terms) if uncertainty else None
     channels = [c for c in data.channels if any(c in ft.term.channels for ft in terms)]
     resid = y - X_chosen @ np.array([ft.coef for ft in terms[:-1]]) - terms[-1].coef  # bias last
     fit_stats.update(rows=len(data), residual_rms_nm=float(np.sqrt(np.mean(resid**2)) * 1000.0))
@@ -271,14 +270,13 @@ def fit_terms(
         selection_record["opposing_dropped"] = dropped
     selection_record.update(extra_selection or {})
     if final is not None and covariance is not None:
-        fit_stats["thermal_sensitivity"] = thermal_sensitivity([pool[i] for i in chosen], final, covariance)
-    provenance = {"created": created_now(), "data_file": source, "software": software()}
+        fit_stats["thermal_sensitivity"] = thermal_sensitivity(chosen_terms, final, covariance)
     return Model(
         terms=terms,
         training=Training.of(data, channels),
         fit=fit_stats,
         selection=selection_record,
-        provenance=provenance,
+        provenance={"created": created_now(), "data_file": source, "software": software()},
         covariance=covariance,
     )
 
@@ -476,8 +474,6 @@ def _fit_axis(
     not excluded; a multi-axis cell's axis passes :func:`cell_candidate_terms`). The squares of the
     channels the data spans widely enough (:func:`curvature_candidates`) are added to either, unless
     ``squares`` is False (eq. 3 as the paper wrote it, linear in temperature over any range).
-
-    ``selection``: ``"paper"`` (default: MATLAB's iid tests) or ``"hac"``; see :func:`fit_terms`.
     """
     _check_selection(selection)
     if penter > premove:

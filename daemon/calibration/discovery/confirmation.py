@@ -114,9 +114,7 @@ def nested_held_out(fold_errors: FoldErrors, tau: float, bounds: tuple[float, fl
     lo, hi = bounds
     fine = [tau * 1.15**k for k in range(-8, 9)]
     grid = sorted({*np.geomspace(lo, hi, 12).tolist(), *(t for t in fine if lo <= t <= hi)})
-    errors = [fold_errors(t) for t in grid]
-    train = np.array([e[0] for e in errors])
-    held = np.array([e[1] for e in errors])
+    train, held = (np.array(e) for e in zip(*(fold_errors(t) for t in grid), strict=True))  # (τ, block) each
     pick = np.argmin(train, axis=0)
     chosen: np.ndarray = held[pick, np.arange(held.shape[1])]
     return chosen
