@@ -135,15 +135,15 @@ def coverage_lines(result: TestResult) -> tuple[list[str], str | None]:
     lines = [f"uncertainty: {measured * 100:.0f} % of the steps' measured errors (position - target) lie within "
              f"±2 {name} (median {name} {median_nm:.0f} nm{wander}); a calibrated {name} keeps 90-98 %"]
     valid = [s for s in result.steps if s.valid]
+    a = result.axis
+    errors = [(s.true_um if result.has_truth else s.positions_um)[a] - s.step.target(a) for s in valid]
     if result.has_truth:
         judged, what = result.coverage_true(), "true errors"
-        errors = [s.true_um[result.axis] - s.step.target(result.axis) for s in valid]
         lines.append(f"against the true position (simulated cell): accuracy {_nm(result.accuracy_true_nm)} with "
                      f"compensation (interferometer: {_nm(result.accuracy_nm)}); {judged * 100:.0f} % of the true "
                      f"errors (true position - target) within ±2 {name}")
     else:
         judged, what = measured, "measured errors"
-        errors = [s.positions_um[result.axis] - s.step.target(result.axis) for s in valid]
     lo, hi = COVERAGE_GOAL
     rms_nm = float(np.sqrt(np.mean(np.square(errors)))) * 1e3 if errors else math.nan
     if not math.isfinite(judged) or lo <= judged <= hi or (judged > hi and rms_nm >= 0.5 * median_nm):
