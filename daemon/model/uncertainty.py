@@ -499,12 +499,8 @@ def within_run_share(t_s: np.ndarray, run_slices: Sequence[slice], tau_s: float)
 
 
 def within_runs(noise: Noise, t_s: np.ndarray, run_slices: Sequence[slice]) -> Noise:
-    """``noise`` with the wander's variance cut to what the calibration's runs show varying within them.
-
-    REML never sees a run's mean (the bias absorbs it): the wander's variance beyond it is the OU
-    form's extrapolation, largest where τ is as long as the run, where the likelihood hardly tells τ
-    apart. Taken whole it booked every calibration an offset twice the one 16 calibrations show
-    (README, σ over calibrations); the within-run variance is what the data measured."""
+    """``noise`` with the wander's variance cut to what the calibration's runs show varying within them: what the
+    data measured (why: the module docstring; README, σ over calibrations)."""
     if noise.wander_um <= 0 or noise.tau_s <= 0:
         return noise
     share = within_run_share(t_s, run_slices, noise.tau_s)

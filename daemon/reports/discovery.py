@@ -280,10 +280,6 @@ def figure_variables(result: DiscoveryResult, limit: int = 4) -> list[str]:
     return [n for n in dict.fromkeys([*names, "t"]) if n in result.variables][:limit]
 
 
-def file_stem(variable: str) -> str:
-    return f"residuals_vs_{variable.replace('(', '_').replace(')', '')}"
-
-
 # ----- report.md ---------------------------------------------------------------------------------------
 def _fmt(v: float | None, scale: float = 1.0, digits: str = ".1f") -> str:
     return "–" if v is None or not math.isfinite(v) else format(v * scale, digits)
@@ -524,18 +520,16 @@ def write_report(result: DiscoveryResult, directory: str | Path, model_out: str 
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
-    figures: list[str] = []
     drawings: list[tuple[str, Callable[[], Any]]] = [
-        (file_stem(v), partial(figure_residuals, result, v)) for v in figure_variables(result)
-    ]
-    drawings.append(("gap", lambda: figure_gap(result)))
+        (f"residuals_vs_{v.replace('(', '_').replace(')', '')}", partial(figure_residuals, result, v))
+        for v in figure_variables(result)]
+    drawings.append(("gap", partial(figure_gap, result)))
     for stem, draw in drawings:
         fig = with_footer(draw(), provenance)
         try:
             written += save_figure(fig, out / stem)
         finally:
             plt.close(fig)
-        figures.append(f"{stem}.png")
-    atomic_write_text(out / "report.md", markdown(result, figures, model_out))
+    atomic_write_text(out / "report.md", markdown(result, [f"{stem}.png" for stem, _ in drawings], model_out))
     written.append(out / "report.md")
     return written
