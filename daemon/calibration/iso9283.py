@@ -141,27 +141,23 @@ class TestResult:
         """The σ of what each step commanded: the tracker's with ``--adapt``, else the model's q_sigma."""
         return self.q_sigma_adapted_um if self.adapted and self.q_sigma_adapted_um else self.q_sigma_um
 
-    def coverage(self, k: float = 2.0) -> float:
-        """Share of valid steps whose measured error (position - target) lies within ±k σ (nan without sigmas).
-
-        σ = sqrt(q_sigma² + measurement_sigma²): the measured error carries the sensor's wander besides
-        the true error q_sigma is for."""
+    def coverage(self, k: float = 2.0, *, truth: bool = False) -> float:
+        """Share of valid steps whose measured error (position - target; with ``truth`` the TRUE position, nan
+        without it) lies within ±k σ (nan without sigmas). σ: :attr:`command_sigma_um`, for a measured error
+        sqrt(q_sigma² + measurement_sigma²): it carries the sensor's wander besides the true error q_sigma is for."""
+        if truth and not self.has_truth:
+            return float("nan")
         m2 = self.measurement_sigma_um ** 2
         a = self.axis
-        inside = [abs(s.positions_um[a] - s.step.target(a)) <= k * float(np.sqrt(sigma * sigma + m2))
+        inside = [abs((s.true_um if truth else s.positions_um)[a] - s.step.target(a))
+                  <= k * (sigma if truth else float(np.sqrt(sigma * sigma + m2)))
                   for s, sigma in zip(self.steps, self.command_sigma_um, strict=False)
                   if s.valid and np.isfinite(sigma)]
         return float(np.mean(inside)) if inside else float("nan")
 
     def coverage_true(self, k: float = 2.0) -> float:
-        """Share of valid steps whose TRUE error (true position - target) lies within ±k σ (nan: no truth);
-        σ: :attr:`command_sigma_um`."""
-        if not self.has_truth:
-            return float("nan")
-        inside = [abs(x_true - s.step.target(self.axis)) <= k * sigma
-                  for s, sigma, x_true in zip(self.steps, self.command_sigma_um, self.x_true_um, strict=False)
-                  if s.valid and np.isfinite(sigma)]
-        return float(np.mean(inside)) if inside else float("nan")
+        """:meth:`coverage` of the TRUE errors (true position - target)."""
+        return self.coverage(k, truth=True)
 
     def to_dict(self) -> dict[str, Any]:
         """Table I's document of a one-axis test (the ``validate --json`` contract)."""
