@@ -35,7 +35,7 @@ import os
 import re
 import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -125,8 +125,7 @@ class Dataset:
             raise KeyError(f"{self.source} has no axis {axis!r} (axes: {', '.join(self.axes)})")
         if not self.multi_axis:
             return self
-        return Dataset(self.t, self.x, self.commands.get(axis), self.channels, self.extra,
-                       f"{self.source} (axis {axis})", self.segment, self.positions, self.commands, axis)
+        return replace(self, q=self.commands.get(axis), source=f"{self.source} (axis {axis})", axis=axis)
 
     @property
     def channel_names(self) -> tuple[str, ...]:
@@ -369,8 +368,7 @@ def concat(datasets: Sequence[Dataset], channels: Sequence[str] | None = None) -
         ds = datasets[0]
         if list(ds.channels) == wanted:
             return ds
-        return Dataset(ds.t, ds.x, ds.q, {c: ds.channels[c] for c in wanted}, ds.extra, ds.source, ds.segment,
-                       ds.positions, ds.commands, ds.axis)
+        return replace(ds, channels={c: ds.channels[c] for c in wanted})
     commands = [d.q for d in datasets if d.q is not None]
     extra: dict[str, np.ndarray] = {}
     names = [n for n in datasets[0].extra if all(n in d.extra for d in datasets[1:])]

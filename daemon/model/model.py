@@ -74,12 +74,11 @@ class Training:
 
     @classmethod
     def of(cls, data: Series, channels: Sequence[str]) -> Training:
-        t = np.asarray(data.t)
         positions = getattr(data, "positions", None) or {}
         return cls(
             x_range=(float(np.min(data.x)), float(np.max(data.x))),
             channel_ranges={c: (float(np.min(data.channels[c])), float(np.max(data.channels[c]))) for c in channels},
-            rows=int(t.shape[0]),
+            rows=len(data),
             t_span_s=float(sum(spans_s(data))),  # several runs: the time they cover, not the gaps between
             position_ranges={a: (float(np.min(v)), float(np.max(v))) for a, v in positions.items() if a != "x"},
         )

@@ -477,10 +477,8 @@ def parse_term(name: str, axes: tuple[str, ...] = ("x",)) -> Term:
             if made is not None:
                 return made
     for kind in _KINDS:
-        match = kind.pattern.match(text)
-        if match:
-            term = kind.factory(match)
-            return term
+        if match := kind.pattern.match(text):
+            return kind.factory(match)
     raise UnknownTermError(f"unknown term {name!r}")
 
 

@@ -266,11 +266,10 @@ def figure_gap(result: DiscoveryResult) -> Any:
 
 
 def _step_variable(step: Candidate) -> str:
-    if step.effect == "thermal_curvature":  # the bending shows against its channel's temperature
+    if step.effect in ("thermal_curvature", "thermal_lag"):  # the bending and a lag show against the temperature
         return str(step.params["channel"])
-    if step.effect in ("thermal_lag", "temperature_rate"):
-        channel = step.params["channel"]
-        return f"rate({channel})" if step.effect == "temperature_rate" else channel
+    if step.effect == "temperature_rate":
+        return f"rate({step.params['channel']})"
     return EFFECT_VARIABLE.get(step.effect, "t")
 
 
