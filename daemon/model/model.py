@@ -189,8 +189,7 @@ class Model:
     @property
     def wander_um(self) -> float:
         """The position sensor's slow wander the calibration saw (``covariance.wander_um``; 0 without it)."""
-        covariance = self.covariance
-        return (covariance.wander_um or 0.0) if covariance is not None else 0.0
+        return (self.covariance.wander_um or 0.0) if self.covariance is not None else 0.0
 
     def q_sigma(self, data: Series) -> np.ndarray:
         """Standard uncertainty (µm) of the command :meth:`predict` gives for every row.

@@ -393,20 +393,15 @@ def _bars(ax: Any, results: Sequence[TestResult], without: Sequence[float], with
 
 def _truth_marks(ax: Any, results: Sequence[TestResult]) -> None:
     """On the Table I bars: where each bar would stand against the true position (a simulated cell only)."""
-    xs: list[float] = []
-    ys: list[float] = []
+    marks: list[tuple[float, float]] = []  # (bar position, accuracy against the truth)
     shift = _bar_shift(results)
     for i, r in enumerate(results):
-        if not r.has_truth:
-            continue
-        without, with_ = r.true_accuracy_nm()
-        xs.append(i - shift if r.compensated else i)
-        ys.append(without)
-        if r.compensated:
-            xs.append(i + shift)
-            ys.append(with_)
-    if xs:
-        ax.scatter(xs, ys, marker="D", s=22, color="0.1", zorder=3, label="against the true position")
+        if r.has_truth:
+            without, with_ = r.true_accuracy_nm()
+            marks += [(i - shift, without), (i + shift, with_)] if r.compensated else [(i, without)]
+    if marks:
+        ax.scatter([x for x, _ in marks], [y for _, y in marks], marker="D", s=22, color="0.1", zorder=3,
+                   label="against the true position")
         ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.08), ncol=2, frameon=False)
 
 
