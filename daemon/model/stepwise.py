@@ -160,8 +160,7 @@ def stepwisefit(
         if rows is not None:
             fit = _with_hac(fit, state, rows)
         action = _next_action(fit, state, frozen, penter_f, premove_f)
-        if action is None:
-            stop_reason = "converged"
+        if action is None:  # stop_reason stays "converged"
             break
         if len(history) >= max_steps:
             stop_reason = "maxiter"
