@@ -35,7 +35,7 @@ import os
 import re
 import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -125,8 +125,7 @@ class Dataset:
             raise KeyError(f"{self.source} has no axis {axis!r} (axes: {', '.join(self.axes)})")
         if not self.multi_axis:
             return self
-        return Dataset(self.t, self.x, self.commands.get(axis), self.channels, self.extra,
-                       f"{self.source} (axis {axis})", self.segment, self.positions, self.commands, axis)
+        return replace(self, q=self.commands.get(axis), source=f"{self.source} (axis {axis})", axis=axis)
 
     @property
     def channel_names(self) -> tuple[str, ...]:
@@ -208,32 +207,25 @@ def read_csv(path: str | os.PathLike[str]) -> Dataset:
     (missing column, non-numeric cell, time not increasing, empty) raises :class:`DataError` naming the
     file, the row and the column."""
     path = Path(path)
-    header = _parse_header(path, _read_text(path, _first_line))
+    header = _parse_header(path, _read_text(path))
     values = _parse_body(path, header)
     return _to_dataset(path, header, values)
 
 
-def _read_text(path: Path, read: Callable[[io.TextIOBase], str]) -> str:
-    """``read(handle)`` of the file as UTF-8 text; a file that cannot be read is a :class:`DataError`."""
+def _read_text(path: Path, *, body: bool = False) -> str:
+    """The file's first line (with ``body``: all after it) as UTF-8 text; a file that cannot be read is a
+    :class:`DataError`."""
     try:
         # utf-8-sig: a spreadsheet's byte-order mark is not part of the first column's name
         with open(path, encoding="utf-8-sig", newline="") as handle:
-            return read(handle)
+            first = handle.readline()
+            return handle.read() if body else first
     except FileNotFoundError:
         raise DataError(f"{path}: no such file") from None
     except UnicodeDecodeError as err:
         raise DataError(f"{path}: not a UTF-8 text file ({err.reason} at byte {err.start})") from None
     except OSError as err:
         raise DataError(f"{path}: cannot read ({err.strerror})") from None
-
-
-def _first_line(handle: io.TextIOBase) -> str:
-    return handle.readline()
-
-
-def _body(handle: io.TextIOBase) -> str:
-    handle.readline()
-    return handle.read()
 
 
 def _parse_header(path: Path, line: str) -> list[str]:
@@ -283,7 +275,7 @@ def _parse_body(path: Path, header: list[str]) -> np.ndarray:
             return values
     except (ValueError, UnicodeDecodeError):
         pass
-    body = _read_text(path, _body)
+    body = _read_text(path, body=True)
     if not body.strip():
         raise DataError(f"{path}: no data rows after the header")
     rows: list[list[float]] = []
@@ -332,23 +324,15 @@ def _to_dataset(path: Path, header: list[str], values: np.ndarray) -> Dataset:
             i = int(np.flatnonzero(cols[name] != np.round(cols[name]))[0])
             raise DataError(f"{path}, row {i + 2}, column {name}: expected a whole number, got {cols[name][i]:g}")
     axes = [m["axis"] for name in header if (m := AXIS_COLUMN.match(name))]
-    if len(axes) > 1:
-        positions = {a: cols[position_column(a)] for a in axes}
-        commands = {a: cols[command_column(a)] for a in axes if command_column(a) in cols}
-        taken = {"t_s", *map(position_column, axes), *map(command_column, axes)}
-        return Dataset(
-            t=t, x=cols["x_um"], q=None,
-            channels={n: cols[n] for n in header if not is_reserved(n)},
-            extra={n: cols[n] for n in header if is_reserved(n) and n not in taken},
-            source=str(path), positions=positions, commands=commands,
-        )
+    multi = len(axes) > 1
+    taken = {"t_s", *map(position_column, axes), *map(command_column, axes)} if multi else {"t_s", "x_um", "q_um"}
     return Dataset(
-        t=t,
-        x=cols["x_um"],
-        q=cols.get("q_um"),
+        t=t, x=cols["x_um"], q=None if multi else cols.get("q_um"),
         channels={n: cols[n] for n in header if not is_reserved(n)},
-        extra={n: cols[n] for n in header if is_reserved(n) and n not in ("t_s", "x_um", "q_um")},
+        extra={n: cols[n] for n in header if is_reserved(n) and n not in taken},
         source=str(path),
+        positions={a: cols[position_column(a)] for a in axes} if multi else {},
+        commands={a: cols[command_column(a)] for a in axes if command_column(a) in cols} if multi else {},
     )
 
 
@@ -384,8 +368,7 @@ def concat(datasets: Sequence[Dataset], channels: Sequence[str] | None = None) -
         ds = datasets[0]
         if list(ds.channels) == wanted:
             return ds
-        return Dataset(ds.t, ds.x, ds.q, {c: ds.channels[c] for c in wanted}, ds.extra, ds.source, ds.segment,
-                       ds.positions, ds.commands, ds.axis)
+        return replace(ds, channels={c: ds.channels[c] for c in wanted})
     commands = [d.q for d in datasets if d.q is not None]
     extra: dict[str, np.ndarray] = {}
     names = [n for n in datasets[0].extra if all(n in d.extra for d in datasets[1:])]

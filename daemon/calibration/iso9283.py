@@ -63,8 +63,6 @@ class TestResult:
     points: list[PointStats] = field(default_factory=list)
     points_without: list[PointStats] = field(default_factory=list)
     axes: tuple[str, ...] = ("x",)
-    #: whether ``points_without`` is computed (x - (q' - x'), the same run) rather than measured in a second run
-    without_is_computed: bool = True
     extrapolating_steps: int = 0
     invalid_steps: int = 0
     #: per step, with the model: the bias correction its command carried (``validate --adapt``) ...
@@ -143,56 +141,28 @@ class TestResult:
         """The σ of what each step commanded: the tracker's with ``--adapt``, else the model's q_sigma."""
         return self.q_sigma_adapted_um if self.adapted and self.q_sigma_adapted_um else self.q_sigma_um
 
-    def coverage(self, k: float = 2.0) -> float:
-        """Share of valid steps whose measured error (position - target) lies within ±k σ (nan without sigmas).
-
-        σ = sqrt(q_sigma² + measurement_sigma²): the measured error carries the sensor's wander besides
-        the true error q_sigma is for."""
+    def coverage(self, k: float = 2.0, *, truth: bool = False) -> float:
+        """Share of valid steps whose measured error (position - target; with ``truth`` the TRUE position, nan
+        without it) lies within ±k σ (nan without sigmas). σ: :attr:`command_sigma_um`, for a measured error
+        sqrt(q_sigma² + measurement_sigma²): it carries the sensor's wander besides the true error q_sigma is for."""
+        if truth and not self.has_truth:
+            return float("nan")
         m2 = self.measurement_sigma_um ** 2
         a = self.axis
-        inside = [abs(s.positions_um[a] - s.step.target(a)) <= k * float(np.sqrt(sigma * sigma + m2))
+        inside = [abs((s.true_um if truth else s.positions_um)[a] - s.step.target(a))
+                  <= k * (sigma if truth else float(np.sqrt(sigma * sigma + m2)))
                   for s, sigma in zip(self.steps, self.command_sigma_um, strict=False)
                   if s.valid and np.isfinite(sigma)]
         return float(np.mean(inside)) if inside else float("nan")
 
     def coverage_true(self, k: float = 2.0) -> float:
-        """Share of valid steps whose TRUE error (true position - target) lies within ±k σ (nan: no truth);
-        σ: :attr:`command_sigma_um`."""
-        if not self.has_truth:
-            return float("nan")
-        inside = [abs(x_true - s.step.target(self.axis)) <= k * sigma
-                  for s, sigma, x_true in zip(self.steps, self.command_sigma_um, self.x_true_um, strict=False)
-                  if s.valid and np.isfinite(sigma)]
-        return float(np.mean(inside)) if inside else float("nan")
+        """:meth:`coverage` of the TRUE errors (true position - target)."""
+        return self.coverage(k, truth=True)
 
     def to_dict(self) -> dict[str, Any]:
         """Table I's document of a one-axis test (the ``validate --json`` contract)."""
-        doc = self._measured_dict()
-        truth = self.against_truth()
-        if truth is not None:
-            doc["true_position"] = truth._point_figures(truth.accuracy_without_nm, truth.accuracy_nm)
-        return doc
-
-    def _point_figures(self, without: float, with_: float) -> dict[str, Any]:
-        return {
-            "without_comp_nm": _num(without),
-            "with_comp_nm": _num(with_),
-            "improvement_ratio": _num(without / with_) if self.compensated else None,
-            "points": self._points_list(),
-        }
-
-    def _points_list(self) -> list[dict[str, Any]]:
-        a, num = self.axis, _num
-        return [{"x_um": p0.target_um[a], "visits": p0.visits,
-                 "accuracy_nm": num(p.accuracy_nm) if self.compensated else None,
-                 "repeatability_nm": num(p.repeatability_nm) if self.compensated else None,
-                 "accuracy_without_nm": num(p0.accuracy_nm),
-                 "repeatability_without_nm": num(p0.repeatability_nm)}
-                for p, p0 in zip(self.points, self.points_without, strict=True)]
-
-    def _measured_dict(self) -> dict[str, Any]:
         num = _num
-        return {
+        doc: dict[str, Any] = {
             "test": self.name,
             "compensated": self.compensated,
             "without_comp_nm": num(self.accuracy_without_nm),
@@ -212,6 +182,22 @@ class TestResult:
                if self.has_truth and self.compensated else {}),
             "points": self._points_list(),
         }
+        truth = self.against_truth()
+        if truth is not None:
+            doc["true_position"] = {"without_comp_nm": num(truth.accuracy_without_nm),
+                                    "with_comp_nm": num(truth.accuracy_nm),
+                                    "improvement_ratio": num(truth.improvement) if truth.compensated else None,
+                                    "points": truth._points_list()}
+        return doc
+
+    def _points_list(self) -> list[dict[str, Any]]:
+        a, num = self.axis, _num
+        return [{"x_um": p0.target_um[a], "visits": p0.visits,
+                 "accuracy_nm": num(p.accuracy_nm) if self.compensated else None,
+                 "repeatability_nm": num(p.repeatability_nm) if self.compensated else None,
+                 "accuracy_without_nm": num(p0.accuracy_nm),
+                 "repeatability_without_nm": num(p0.repeatability_nm)}
+                for p, p0 in zip(self.points, self.points_without, strict=True)]
 
     def scores_dict(self, *, with_model: bool) -> dict[str, Any] | None:
         """AP/RP in the cell's dimension and per axis, per point, with or without the model (a multi-axis
@@ -240,14 +226,6 @@ def _num(v: float) -> float | None:
     return None if not np.isfinite(v) else round(float(v), 3)
 
 
-def iso9283(positions: np.ndarray, target: float) -> tuple[float, float]:
-    """(accuracy, repeatability) in the units of ``positions`` for one point (1-D ISO 9283)."""
-    mean = float(np.mean(positions))
-    dist = np.abs(positions - mean)
-    spread = float(np.std(dist, ddof=1)) if positions.size > 1 else 0.0
-    return abs(mean - target), float(np.mean(dist)) + 3.0 * spread
-
-
 def summarize(name: str, steps: Sequence[StepResult], compensated: bool, extrapolating: int = 0,
               axis: str = "x", truth: bool = False) -> TestResult:
     """One test of ``axis`` from its valid steps: with the model as run, and without it computed from the same
@@ -257,7 +235,7 @@ def summarize(name: str, steps: Sequence[StepResult], compensated: bool, extrapo
     as_run = np.array([(s.true_um if truth else s.positions_um)[axis] for s in valid])
     without = as_run - np.array([s.q_um[axis] - s.step.target(axis) for s in valid])
     result = summarize_runs(name, targets, {axis: without}, {axis: as_run})
-    result.compensated, result.steps, result.without_is_computed = compensated, list(steps), compensated
+    result.compensated, result.steps = compensated, list(steps)
     result.extrapolating_steps, result.invalid_steps = extrapolating, len(steps) - len(valid)
     return result
 
@@ -265,9 +243,9 @@ def summarize(name: str, steps: Sequence[StepResult], compensated: bool, extrapo
 def summarize_runs(name: str, targets_um: Mapping[str, np.ndarray], without_um: Mapping[str, np.ndarray],
                    with_um: Mapping[str, np.ndarray] | None) -> TestResult:
     """One test of any number of axes from per-step targets and attained positions (µm, one array per axis):
-    without the model and with it (None: not run). ``without_is_computed`` is left for :func:`summarize`."""
+    without the model and with it (None: not run)."""
     return TestResult(name, with_um is not None, [], score_points(targets_um, with_um) if with_um is not None else [],
-                      score_points(targets_um, without_um), axes=tuple(targets_um), without_is_computed=False)
+                      score_points(targets_um, without_um), axes=tuple(targets_um))
 
 
 # ----- ISO 9283 pose accuracy and repeatability in the cell's dimension ---------------------------------
@@ -290,7 +268,7 @@ def pose_repeatability(attained: np.ndarray) -> float:
 def score_points(targets_um: Mapping[str, np.ndarray], attained_um: Mapping[str, np.ndarray]) -> list[PointStats]:
     """ISO 9283 per point (steps with the same target on every axis) from per-step targets and attained
     positions (µm, one array per axis): AP/RP in the cell's dimension and per axis, in nm. The one code path
-    of every test, one axis or several (one axis: AP = |mean - target|, RP as :func:`iso9283`)."""
+    of every test, one axis or several (one axis: AP = |mean - target|, RP = l̄ + 3 S_l with l_i = |x_i - mean|)."""
     axes = tuple(targets_um)
     target = np.column_stack([np.asarray(targets_um[a], dtype=np.float64) for a in axes])
     attained = np.column_stack([np.asarray(attained_um[a], dtype=np.float64) for a in axes])
@@ -298,7 +276,8 @@ def score_points(targets_um: Mapping[str, np.ndarray], attained_um: Mapping[str,
     rows, first = np.unique(target, axis=0, return_index=True)
     for row in (rows if len(axes) == 1 else rows[np.argsort(first)]):  # one axis: by position; else as visited (P1..P5)
         here = attained[np.all(target == row, axis=1)]
-        per_axis = {a: iso9283(here[:, j], float(row[j])) for j, a in enumerate(axes)}
+        per_axis = {a: (pose_accuracy(here[:, [j]], row[j:j + 1]), pose_repeatability(here[:, [j]]))
+                    for j, a in enumerate(axes)}
         points.append(PointStats(
             target_um={a: float(row[j]) for j, a in enumerate(axes)}, visits=int(here.shape[0]),
             accuracy_nm=pose_accuracy(here, row) * 1e3, repeatability_nm=pose_repeatability(here) * 1e3,

@@ -170,14 +170,10 @@ def cell_validation_points(axes: Sequence[str], ranges_um: dict[str, tuple[float
     axes = tuple(axes)
     if len(axes) not in CELL_VALIDATION_FRACTIONS:
         raise ValueError(f"ISO 9283 points are defined for 2 or 3 axes, got {', '.join(axes)}")
-    out = []
-    for fractions in CELL_VALIDATION_FRACTIONS[len(axes)]:
-        point = []
-        for axis, f in zip(axes, fractions, strict=True):
-            lo, hi = (ranges_um or {}).get(axis, (0.0, 480.0))
-            point.append((axis, round(lo + f * (hi - lo), 3)))
-        out.append(tuple(point))
-    return out
+    ranges = {axis: (ranges_um or {}).get(axis, (0.0, 480.0)) for axis in axes}
+    return [tuple((axis, round(ranges[axis][0] + f * (ranges[axis][1] - ranges[axis][0]), 3))
+                  for axis, f in zip(axes, fractions, strict=True))
+            for fractions in CELL_VALIDATION_FRACTIONS[len(axes)]]
 
 
 def cell_validation_plan(axes: Sequence[str], cycles: int = 30,

@@ -245,12 +245,8 @@ class RangeWatch:
                 self._since.setdefault(channel, t)
 
     def outside(self) -> list[OutsideRange]:
-        out = []
-        for channel, since in self._since.items():
-            t, value = self._latest[channel]
-            low, high = self.ranges[channel]
-            out.append(OutsideRange(channel, value, low, high, since, t))
-        return out
+        return [OutsideRange(channel, self._latest[channel][1], *self.ranges[channel], since, self._latest[channel][0])
+                for channel, since in self._since.items()]
 
 
 class BiasTracker:

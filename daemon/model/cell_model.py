@@ -31,8 +31,7 @@ from typing import Any
 import numpy as np
 
 from nanodrift.atomic import atomic_write_text
-from nanodrift.model.json_unique import loads_unique
-from nanodrift.model.model import FORMAT, Evaluator, Model, ModelFileError, _read_model_text, load_model, outside
+from nanodrift.model.model import FORMAT, Evaluator, Model, ModelFileError, outside, read_model_doc
 from nanodrift.model.series import Series
 
 #: letters an axis may take: not q (``q_um`` is the one-axis command column)
@@ -83,11 +82,7 @@ class CellModel:
     @property
     def channels(self) -> tuple[str, ...]:
         """Every temperature channel some axis' model reads, in first-use order."""
-        seen: dict[str, None] = {}
-        for a in self.axes:
-            for c in self.models[a].channels:
-                seen[c] = None
-        return tuple(seen)
+        return tuple(dict.fromkeys(c for a in self.axes for c in self.models[a].channels))
 
     @property
     def position_ranges(self) -> dict[str, tuple[float, float]]:
@@ -97,10 +92,7 @@ class CellModel:
 
     @property
     def channel_ranges(self) -> dict[str, tuple[float, float]]:
-        out: dict[str, tuple[float, float]] = {}
-        for a in self.axes:
-            out.update(self.models[a].training.channel_ranges)
-        return out
+        return {c: r for a in self.axes for c, r in self.models[a].training.channel_ranges.items()}
 
     def predict(self, data: Series) -> dict[str, np.ndarray]:
         """The command per axis for every row (``data``: a multi-axis series)."""
@@ -149,11 +141,7 @@ def save_cell_model(model: CellModel, path: str | os.PathLike[str]) -> None:
 def load_any_model(path: str | os.PathLike[str], *, check_id: bool = True) -> Model | CellModel:
     """A one-axis model file as a :class:`Model`, a multi-axis one (``"axes"``) as a :class:`CellModel`."""
     path = Path(path)
-    text = _read_model_text(path)
-    try:
-        doc = loads_unique(text)
-    except (ValueError, RecursionError):
-        return load_model(path, check_id=check_id)  # its messages say what is wrong with the text
+    doc = read_model_doc(path)
     if isinstance(doc, dict) and "axes" in doc:
         return _cell_model_from_dict(doc, str(path), check_id=check_id)
     return Model.from_dict(doc, str(path), check_id=check_id)
@@ -162,6 +150,10 @@ def load_any_model(path: str | os.PathLike[str], *, check_id: bool = True) -> Mo
 def _cell_model_from_dict(doc: Any, where: str, *, check_id: bool = True) -> CellModel:
     def fail(msg: str) -> ModelFileError:
         return ModelFileError(f"{where}: {msg}")
+
+    def stale(what: str, claimed: Any, actual: str) -> ModelFileError:
+        return fail(f"{what}its id {claimed!r} does not match its content ({actual!r}): the file was changed after "
+                    f"it was made; if deliberately, re-stamp it: `nanodrift restamp {where}`")
 
     if not isinstance(doc, dict):
         raise fail("expected a JSON object")
@@ -179,10 +171,8 @@ def _cell_model_from_dict(doc: Any, where: str, *, check_id: bool = True) -> Cel
     models = {a: Model.from_dict(raw_models[a], f"{where}: models.{a}", check_id=False, axes=cell_axes)
               for a in cell_axes}
     for a, m in models.items():
-        claimed_axis = raw_models[a].get("id")
-        if check_id and claimed_axis != m.content_id():
-            raise fail(f"models.{a}: its id {claimed_axis!r} does not match its content ({m.content_id()!r}): the file "
-                       f"was changed after it was made; if deliberately, re-stamp it: `nanodrift restamp {where}`")
+        if check_id and raw_models[a].get("id") != m.content_id():
+            raise stale(f"models.{a}: ", raw_models[a].get("id"), m.content_id())
     for a, m in models.items():
         missing = [b for b in cell_axes if b != "x" and b not in m.training.position_ranges]
         if missing:
@@ -195,9 +185,6 @@ def _cell_model_from_dict(doc: Any, where: str, *, check_id: bool = True) -> Cel
     if claimed is not None and not isinstance(claimed, str):
         raise fail(f"'id' must be a string, got {claimed!r}")
     model = CellModel(cell_axes, models, dict(provenance), claimed or "")
-    if check_id:
-        actual = model.content_id()
-        if claimed != actual:
-            raise fail(f"its id {claimed!r} does not match its content ({actual!r}): the file was changed after "
-                       f"it was made; if deliberately, re-stamp it: `nanodrift restamp {where}`")
+    if check_id and claimed != model.content_id():
+        raise stale("", claimed, model.content_id())
     return model

@@ -17,7 +17,6 @@ same result; ``lag(T4, 2100 s)`` and ``dir`` already live in :mod:`nanodrift.mod
 from __future__ import annotations
 
 import math
-import re
 from collections.abc import Mapping
 
 import numpy as np
@@ -184,17 +183,12 @@ class Creep(Term):
         return _CreepStream(self.tau_s, self.deadband_um, self.axis)
 
 
-def _number(m: re.Match[str], group: str) -> float:
-    return float(m.group(group))
-
-
 register_term(r"x\s*\*\s*(?P<ch>{channel})", lambda m: PositionCoupling(m.group("ch")))
 register_term(
     r"rate\(\s*(?P<ch>{channel})\s*,\s*(?P<tau>{number})\s*s\s*\)",
-    lambda m: Rate(m.group("ch"), _number(m, "tau")),
+    lambda m: Rate(m.group("ch"), float(m.group("tau"))),
 )
-register_term(r"creep\(\s*(?P<tau>{number})\s*s\s*\)", lambda m: Creep(_number(m, "tau")))
 register_term(
-    r"creep\(\s*(?P<tau>{number})\s*s\s*,\s*(?P<db>{number})\s*um\s*\)",
-    lambda m: Creep(_number(m, "tau"), _number(m, "db")),
+    r"creep\(\s*(?P<tau>{number})\s*s\s*(?:,\s*(?P<db>{number})\s*um\s*)?\)",
+    lambda m: Creep(float(m.group("tau")), float(m.group("db")) if m.group("db") else CREEP_DEADBAND_UM),
 )

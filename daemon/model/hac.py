@@ -11,8 +11,9 @@ data cannot separate. The heteroskedasticity-and-autocorrelation-consistent sand
 ``cov_type="HAC"`` with ``kernel="bartlett"``, ``use_correction=True``. Rows of different runs (several
 data files fitted together) are independent: their cross products are left out of S.
 
-The lag L follows :data:`LAG_RULE` (Andrews 1991's AR(1) plug-in for the Bartlett kernel), stated in
-every printout and model file that uses it. Why not Newey & West's fixed floor(4(n/100)^(2/9)): on the
+The lag L follows Andrews (1991)'s AR(1) plug-in for the Bartlett kernel, L = floor(1.1447·(α·n)^(1/3)),
+α = 4ρ²/((1-ρ)²(1+ρ)²), ρ the residual's lag-1 autocorrelation (:func:`andrews_lag`), stated in every
+printout and model file that uses it. Why not Newey & West's fixed floor(4(n/100)^(2/9)): on the
 simulated cell's 408-row calibration it gives L = 5 while the residual's lag-1 autocorrelation is
 0.92-0.97 (the interferometer's wander lasts tens of steps), and over 12 seeds the spread of T1's
 coefficient was 2.8x the standard error it printed; with the plug-in (L = 43-79) 1.2x.
@@ -26,9 +27,6 @@ from collections.abc import Sequence
 import numpy as np
 from scipy import fft, special
 
-#: how the truncation lag L is chosen (stated in printouts and model files)
-LAG_RULE = ("Andrews AR(1) plug-in: L = floor(1.1447·(α·n)^(1/3)), α = 4ρ²/((1-ρ)²(1+ρ)²), "
-            "ρ the residual's lag-1 autocorrelation")
 #: frequency bins multiplied at once by :func:`hac_meat` (bounds its temporaries for a season of rows)
 _BINS_PER_BLOCK = 65536
 #: |ρ| is clipped here so a residual that barely changes row to row still gives a finite lag (then capped at n - 1)
@@ -125,9 +123,10 @@ def run_ids(n_rows: int, run_slices: Sequence[slice]) -> np.ndarray | None:
     return ids
 
 
-def t_p_values(coef: np.ndarray, se: np.ndarray, dof: int) -> tuple[np.ndarray, np.ndarray]:
-    """Two-sided t-test of each coefficient against 0 with ``dof`` residual degrees of freedom."""
+def t_p_values(coef: np.ndarray, se: np.ndarray, dof: int | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two-sided t-test of each coefficient against 0 with ``dof`` (> 0; one for all, or per coefficient)
+    residual degrees of freedom."""
     with np.errstate(divide="ignore", invalid="ignore"):
         t = np.where(se > 0, coef / se, np.where(coef == 0, 0.0, np.copysign(np.inf, coef)))
-    p = np.minimum(2.0 * special.stdtr(dof, -np.abs(t)), 1.0) if dof > 0 else np.ones_like(t)
+    p = np.minimum(2.0 * special.stdtr(dof, -np.abs(t)), 1.0)
     return t, p

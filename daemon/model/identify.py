@@ -21,7 +21,7 @@ import numpy as np
 from nanodrift.model import hac
 from nanodrift.model.axis_terms import AxisProduct
 from nanodrift.model.cell_model import CellModel, one_axis
-from nanodrift.model.model import FittedTerm, Model, Training
+from nanodrift.model.model import FittedTerm, Model, Training, json_float
 from nanodrift.model.provenance import created_now, software
 from nanodrift.model.segments import design_matrix, runs
 from nanodrift.model.series import CellSeries, Series
@@ -171,10 +171,6 @@ def _commands(data: Series) -> np.ndarray:
     return np.asarray(data.q, dtype=np.float64)
 
 
-def _only_valid(data: Series) -> Series:
-    return data.valid_rows()
-
-
 def fit_terms(
     data: Series,
     candidates: Sequence[Term],
@@ -190,14 +186,13 @@ def fit_terms(
 ) -> Model:
     """Select among ``candidates`` by stepwise regression (bias always in; ``always`` forced in).
 
-    ``selection``: ``"paper"`` tests entries and removals with MATLAB's iid partial F-tests, ``"hac"`` under
-    the Newey-West covariance. Either way the reported standard errors and p-values are HAC ones.
+    ``selection``: one of :data:`SELECTIONS`; either way the reported standard errors and p-values are HAC ones.
 
     ``uncertainty=False`` skips the covariance block (held-out refits): for models only scored, never saved.
     ``scored_only=True`` (a held-out refit) also skips the final fit's standard errors and statistics: the
     model has its terms and coefficients only (:func:`_scored_model`).
     """
-    data = _only_valid(data)
+    data = data.valid_rows()
     y = _commands(data)
     pool = [t for t in candidates if not isinstance(t, Bias)]
     forced = [t for t in always if not isinstance(t, Bias)]
@@ -220,10 +215,11 @@ def fit_terms(
         result = stepwisefit(X, y, penter=penter, premove=premove, inmodel=keep & ~frozen_out,
                              keep=keep | frozen_out, run_id=run_id)
     chosen = [i for i in range(len(pool)) if result.inmodel[i]]
+    chosen_terms = [pool[i] for i in chosen]
     if scored_only and np.isfinite(result.coef[result.inmodel]).all():
         # stepwise's least-squares coefficients suffice (a kept column it found collinear has none: ols'
         # minimum-norm solution below serves it)
-        return _scored_model(data, [pool[i] for i in chosen], result)
+        return _scored_model(data, chosen_terms, result)
     # what each left-out term would get if added alone, under the same HAC covariance as the printed ones
     # (held-out refits, never saved, skip it); before the chosen columns are copied out, which it does not need
     if_added = result if selection == "hac" or not uncertainty else stepwisefit(
@@ -231,28 +227,25 @@ def fit_terms(
         hac_lag="andrews", run_id=run_id)
     X_chosen = X[:, chosen]
     final = ols(X_chosen, y, run_id) if chosen else None
-    terms: list[FittedTerm] = []
-    for j, i in enumerate(chosen):
-        assert final is not None
-        terms.append(FittedTerm(pool[i], float(final.coef[j]), float(final.se[j]), float(final.p[j])))
     if final is None:
         mean = float(y.mean())
         resid = y - mean
         rmse = float(math.sqrt(resid @ resid / max(len(y) - 1, 1)))
         lag = hac.andrews_lag(resid, run_id)
         mean_se = math.sqrt(hac.hac_covariance(np.ones((len(y), 1)), resid, lag, run_id=run_id)[0, 0])
-        terms.append(FittedTerm(Bias(), mean, mean_se, math.nan))
+        terms = [FittedTerm(Bias(), mean, mean_se, math.nan)]
         fit_stats = {"rmse_um": rmse, "r2": 0.0, "dof": len(y) - 1, "se_method": hac.describe(lag), "hac_lag": lag}
         covariance = None
         if uncertainty:
             cov, s, _, noise = estimate(np.empty((len(y), 0)), y, np.asarray(data.t, dtype=np.float64), runs(data), {})
             covariance = Covariance(cov, s, wander_um=noise.wander_um)
     else:
+        terms = [FittedTerm(t, float(final.coef[j]), float(final.se[j]), float(final.p[j]))
+                 for j, t in enumerate(chosen_terms)]
         terms.append(FittedTerm(Bias(), final.intercept, final.intercept_se, final.intercept_p))
         fit_stats = {"rmse_um": final.rmse, "r2": final.r2, "dof": final.dof, "se_method": final.se_method,
-                     "hac_lag": final.hac_lag, "iid": _iid_stats([pool[i] for i in chosen], final)}
-        covariance = (model_covariance(X_chosen, y, final, data, [pool[i] for i in chosen])
-                      if uncertainty else None)
+                     "hac_lag": final.hac_lag, "iid": _iid_stats(chosen_terms, final)}
+        covariance = model_covariance(X_chosen, y, final, data, chosen_terms) if uncertainty else None
     channels = [c for c in data.channels if any(c in ft.term.channels for ft in terms)]
     resid = y - X_chosen @ np.array([ft.coef for ft in terms[:-1]]) - terms[-1].coef  # bias last
     fit_stats.update(rows=len(data), residual_rms_nm=float(np.sqrt(np.mean(resid**2)) * 1000.0))
@@ -268,7 +261,7 @@ def fit_terms(
             {"action": action, "term": pool[col].name, "p": float(p)} for action, col, p in result.history
         ],
         "not_selected": {
-            pool[i].name: {"coef_if_added": _finite(if_added.coef[i]), "p_if_added": _finite(if_added.pval[i])}
+            pool[i].name: {"coef_if_added": json_float(if_added.coef[i]), "p_if_added": json_float(if_added.pval[i])}
             for i in range(len(pool))
             if not result.inmodel[i]
         },
@@ -277,14 +270,13 @@ def fit_terms(
         selection_record["opposing_dropped"] = dropped
     selection_record.update(extra_selection or {})
     if final is not None and covariance is not None:
-        fit_stats["thermal_sensitivity"] = thermal_sensitivity([pool[i] for i in chosen], final, covariance)
-    provenance = {"created": created_now(), "data_file": source, "software": software()}
+        fit_stats["thermal_sensitivity"] = thermal_sensitivity(chosen_terms, final, covariance)
     return Model(
         terms=terms,
         training=Training.of(data, channels),
         fit=fit_stats,
         selection=selection_record,
-        provenance=provenance,
+        provenance={"created": created_now(), "data_file": source, "software": software()},
         covariance=covariance,
     )
 
@@ -342,7 +334,7 @@ def _check_selection(selection: str) -> None:
 def _iid_stats(terms: Sequence[Term], final: OLS) -> dict[str, dict[str, float | None]]:
     """The textbook (iid) standard error and p-value of each term, bias last: kept for comparison only."""
     names = [t.name for t in terms] + [Bias().name]
-    return {name: {"se": _finite(final.se_iid[i]), "p": _finite(final.p_iid[i])} for i, name in enumerate(names)}
+    return {name: {"se": json_float(final.se_iid[i]), "p": json_float(final.p_iid[i])} for i, name in enumerate(names)}
 
 
 def model_covariance(X: np.ndarray, y: np.ndarray, final: OLS, data: Series, terms: Sequence[Term],
@@ -367,14 +359,6 @@ def model_covariance(X: np.ndarray, y: np.ndarray, final: OLS, data: Series, ter
         J[k, k:k + m] = nuisance[0]
     J[k, k + m] = 1.0
     return Covariance(J @ cov @ J.T, s, curvature, noise.wander_um)
-
-
-def _rows(n: int) -> str:
-    return "1 row" if n == 1 else f"{n} rows"
-
-
-def _finite(v: float) -> float | None:
-    return float(v) if math.isfinite(v) else None
 
 
 def candidate_terms(channels: Sequence[str], order: int, exclude: Sequence[str] = ()) -> list[Term]:
@@ -405,10 +389,7 @@ def cell_candidate_terms(axis: str, axes: Sequence[str], channels: Sequence[str]
     position and square (crosstalk, non-orthogonality, sag), every product of two axes (coupled
     bending), and the channels. The same stepwise selection keeps what the data supports."""
     own: list[Term] = [Power(k, axis) for k in range(order, 0, -1)]
-    others: list[Term] = []
-    for b in axes:
-        if b != axis:
-            others += [Power(1, b), Power(2, b)]
+    others: list[Term] = [Power(k, b) for b in axes if b != axis for k in (1, 2)]
     products: list[Term] = [AxisProduct(a, b) for i, a in enumerate(axes) for b in axes[i + 1:]]
     return own + others + products + candidate_terms(channels, 1, exclude)[1:]
 
@@ -493,15 +474,13 @@ def _fit_axis(
     not excluded; a multi-axis cell's axis passes :func:`cell_candidate_terms`). The squares of the
     channels the data spans widely enough (:func:`curvature_candidates`) are added to either, unless
     ``squares`` is False (eq. 3 as the paper wrote it, linear in temperature over any range).
-
-    ``selection``: ``"paper"`` (default: MATLAB's iid tests) or ``"hac"``; see :func:`fit_terms`.
     """
     _check_selection(selection)
     if penter > premove:
         raise FitError(f"penter ({penter}) must not exceed premove ({premove})")
     where = source or data.source
     given = len(data)
-    data = _only_valid(data)
+    data = data.valid_rows()
     _commands(data)
     channels = list(data.channels)
     scores: dict[int, float] = {}
@@ -521,8 +500,8 @@ def _fit_axis(
         if curved:
             kinds += f", squares of {', '.join(t.channel for t in curved)}"
         return FitError(
-            f"{where}: {_rows(n)}{left_out} {'is' if n == 1 else 'are'} too few {purpose} {terms} candidate "
-            f"term{'s' if terms != 1 else ''} ({kinds}) plus a bias: {advice}"
+            f"{where}: {'1 row' if n == 1 else f'{n} rows'}{left_out} {'is' if n == 1 else 'are'} too few {purpose} "
+            f"{terms} candidate term{'s' if terms != 1 else ''} ({kinds}) plus a bias: {advice}"
         )
 
     first = 1 if order == "auto" else int(order)

@@ -74,12 +74,11 @@ class Training:
 
     @classmethod
     def of(cls, data: Series, channels: Sequence[str]) -> Training:
-        t = np.asarray(data.t)
         positions = getattr(data, "positions", None) or {}
         return cls(
             x_range=(float(np.min(data.x)), float(np.max(data.x))),
             channel_ranges={c: (float(np.min(data.channels[c])), float(np.max(data.channels[c]))) for c in channels},
-            rows=int(t.shape[0]),
+            rows=len(data),
             t_span_s=float(sum(spans_s(data))),  # several runs: the time they cover, not the gaps between
             position_ranges={a: (float(np.min(v)), float(np.max(v))) for a, v in positions.items() if a != "x"},
         )
@@ -128,7 +127,7 @@ class Model:
         """
         content: dict[str, Any] = {
             "format": FORMAT,
-            "terms": [[ft.term.name, float(ft.coef), _num(ft.se)] for ft in self.terms],
+            "terms": [[ft.term.name, float(ft.coef), json_float(ft.se)] for ft in self.terms],
             "x_um": [float(v) for v in self.training.x_range],
             "channels": {c: [float(lo), float(hi)] for c, (lo, hi) in sorted(self.training.channel_ranges.items())},
         }
@@ -144,11 +143,7 @@ class Model:
 
     @property
     def channels(self) -> tuple[str, ...]:
-        seen: dict[str, None] = {}
-        for ft in self.terms:
-            for c in ft.term.channels:
-                seen[c] = None
-        return tuple(seen)
+        return tuple(dict.fromkeys(c for ft in self.terms for c in ft.term.channels))
 
     @property
     def coefs(self) -> np.ndarray:
@@ -194,8 +189,7 @@ class Model:
     @property
     def wander_um(self) -> float:
         """The position sensor's slow wander the calibration saw (``covariance.wander_um``; 0 without it)."""
-        covariance = self.covariance
-        return (covariance.wander_um or 0.0) if covariance is not None else 0.0
+        return (self.covariance.wander_um or 0.0) if self.covariance is not None else 0.0
 
     def q_sigma(self, data: Series) -> np.ndarray:
         """Standard uncertainty (µm) of the command :meth:`predict` gives for every row.
@@ -226,7 +220,8 @@ class Model:
         return {
             "format": FORMAT,
             "id": self.id,
-            "terms": [{"term": ft.term.name, "coef": ft.coef, "se": _num(ft.se), "p": _num(ft.p)} for ft in self.terms],
+            "terms": [{"term": ft.term.name, "coef": ft.coef, "se": json_float(ft.se), "p": json_float(ft.p)}
+                      for ft in self.terms],
             "channels": list(self.channels),
             "training": self.training.ranges_dict(),
             "fit": self.fit,
@@ -241,7 +236,8 @@ class Model:
         return _model_from_dict(doc, where, check_id=check_id, axes=axes)
 
 
-def _num(value: float) -> float | None:
+def json_float(value: float | None) -> float | None:
+    """The value for a JSON document: NaN and infinities (not JSON) become null."""
     return None if value is None or not math.isfinite(value) else float(value)
 
 
@@ -361,9 +357,14 @@ def load_model(path: str | os.PathLike[str], *, check_id: bool = True) -> Model:
     ``check_id=False`` skips only the id check (``nanodrift restamp``): everything else is checked.
     """
     path = Path(path)
+    return _model_from_dict(read_model_doc(path), str(path), check_id=check_id)
+
+
+def read_model_doc(path: Path) -> Any:
+    """The JSON document of a model file (one axis or several); :class:`ModelFileError` if it is not one."""
     text = _read_model_text(path)
     try:
-        doc = loads_unique(text)
+        return loads_unique(text)
     except json.JSONDecodeError as err:
         raise ModelFileError(f"{path}: not valid JSON (line {err.lineno}, column {err.colno}: {err.msg})") from None
     except DuplicateKeyError as err:
@@ -374,16 +375,12 @@ def load_model(path: str | os.PathLike[str], *, check_id: bool = True) -> Model:
         ) from None
     except ValueError as err:  # e.g. an integer of more than 4300 digits
         raise ModelFileError(f"{path}: not valid JSON ({err})") from None
-    return _model_from_dict(doc, str(path), check_id=check_id)
 
 
 def _file_kind(mode: int) -> str:
-    for test, name in ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
-                       (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
-                       (stat.S_ISSOCK, "a socket")):
-        if test(mode):
-            return name
-    return "not a regular file"
+    kinds = ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
+             (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
+    return next((name for test, name in kinds if test(mode)), "not a regular file")
 
 
 def _read_model_text(path: Path) -> str:
@@ -395,13 +392,7 @@ def _read_model_text(path: Path) -> str:
     either, and at most one byte more than the bound is ever read.
     """
     try:
-        info = os.stat(path)
-    except FileNotFoundError:
-        raise ModelFileError(f"{path}: no such model file") from None
-    except OSError as err:
-        raise ModelFileError(f"{path}: cannot read the model file ({err})") from None
-    _check_regular(path, info)
-    try:
+        _check_regular(path, os.stat(path))
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
     except FileNotFoundError:
         raise ModelFileError(f"{path}: no such model file") from None

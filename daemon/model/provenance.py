@@ -54,6 +54,4 @@ def stamp_data(model: Model | CellModel, files: Sequence[tuple[str | Path, int]]
     if not files:
         raise ValueError("a model is made from at least one data file")
     records = [{"path": str(path), "sha256": file_sha256(path), "rows": rows} for path, rows in files]
-    model.provenance["data_file"] = records[0]["path"]
-    model.provenance["data_sha256"] = records[0]["sha256"]
-    model.provenance["data_files"] = records
+    model.provenance.update(data_file=records[0]["path"], data_sha256=records[0]["sha256"], data_files=records)

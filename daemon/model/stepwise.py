@@ -31,9 +31,9 @@ from typing import Literal, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy import linalg, special
+from scipy import linalg
 
-from nanodrift.model.hac import andrews_lag, hac_covariance, hac_meat
+from nanodrift.model.hac import andrews_lag, hac_covariance, hac_meat, t_p_values
 
 __all__ = ["RANK_TOL", "StepwiseResult", "stepwisefit"]
 
@@ -83,7 +83,6 @@ class StepwiseResult:
     sse: float
     dof: int
     """n - 1 - (number of estimable in-model columns)."""
-    n_obs: int
     n_steps: int
     history: list[tuple[str, int, float]]
     """(``"add"`` | ``"remove"``, 0-based column, p-value that triggered the action), in order."""
@@ -161,8 +160,7 @@ def stepwisefit(
         if rows is not None:
             fit = _with_hac(fit, state, rows)
         action = _next_action(fit, state, frozen, penter_f, premove_f)
-        if action is None:
-            stop_reason = "converged"
+        if action is None:  # stop_reason stays "converged"
             break
         if len(history) >= max_steps:
             stop_reason = "maxiter"
@@ -197,7 +195,6 @@ def stepwisefit(
         rmse=rmse,
         sse=sse,
         dof=fit.dof,
-        n_obs=n,
         n_steps=len(history),
         history=history,
         stop_reason=stop_reason,
@@ -252,11 +249,9 @@ def _validate_thresholds(penter: float, premove: float) -> tuple[float, float]:
 def _validate_maxiter(maxiter: int | None) -> float:
     if maxiter is None:
         return math.inf
-    if isinstance(maxiter, bool):
-        raise ValueError(f"stepwisefit: maxiter must be a non-negative integer or None, got {maxiter!r}")
     if isinstance(maxiter, float) and math.isinf(maxiter) and maxiter > 0:
         return math.inf
-    if not isinstance(maxiter, int | np.integer) or maxiter < 0:
+    if isinstance(maxiter, bool) or not isinstance(maxiter, int | np.integer) or maxiter < 0:
         raise ValueError(f"stepwisefit: maxiter must be a non-negative integer or None, got {maxiter!r}")
     return float(maxiter)
 
@@ -396,11 +391,7 @@ def _evaluate(R: NDArray[np.float64], state: NDArray[np.bool_], constant: NDArra
     tstat = np.full(p, np.nan)
     pval = np.ones(p)
     if testable.any():
-        b_t, se_t = coef[testable], se[testable]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = np.where(se_t > 0, b_t / se_t, np.where(b_t == 0, 0.0, np.copysign(np.inf, b_t)))
-        tstat[testable] = t
-        pval[testable] = np.minimum(2.0 * special.stdtr(col_dof[testable], -np.abs(t)), 1.0)
+        tstat[testable], pval[testable] = t_p_values(coef[testable], se[testable], col_dof[testable])
     return _Fit(coef, se, tstat, pval, deficient, testable, sse, dof)
 
 
@@ -457,13 +448,8 @@ def _with_hac(fit: _Fit, state: NDArray[np.bool_], rows: _HacRows) -> _Fit:
         se[j] = math.sqrt(max(meat, 0.0) * (n / (n - k - 2) if n > k + 2 else 1.0))
     testable = fit.testable
     tstat, pval = fit.tstat.copy(), fit.pval.copy()
-    in_dof = fit.dof
-    col_dof = np.where(state, in_dof, in_dof - 1)
-    b_t, se_t = fit.coef[testable], se[testable]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.where(se_t > 0, b_t / se_t, np.where(b_t == 0, 0.0, np.copysign(np.inf, b_t)))
-    tstat[testable] = t
-    pval[testable] = np.minimum(2.0 * special.stdtr(col_dof[testable], -np.abs(t)), 1.0)
+    col_dof = np.where(state, fit.dof, fit.dof - 1)
+    tstat[testable], pval[testable] = t_p_values(fit.coef[testable], se[testable], col_dof[testable])
     return _Fit(fit.coef, se, tstat, pval, fit.deficient, testable, fit.sse, fit.dof)
 
 

@@ -477,26 +477,16 @@ def parse_term(name: str, axes: tuple[str, ...] = ("x",)) -> Term:
             if made is not None:
                 return made
     for kind in _KINDS:
-        match = kind.pattern.match(text)
-        if match:
-            term = kind.factory(match)
-            return term
+        if match := kind.pattern.match(text):
+            return kind.factory(match)
     raise UnknownTermError(f"unknown term {name!r}")
-
-
-def _power(m: re.Match[str]) -> Term:
-    return Power(int(m.group("k") or 1))
 
 
 # order matters: the catch-all channel rule stays last (register_term inserts before it)
 _KINDS.append(_TermKind(re.compile(r"^1$"), lambda m: Bias()))
-_KINDS.append(_TermKind(re.compile(r"^x(?:\^(?P<k>[1-9]\d*))?$"), _power))
-_KINDS.append(_TermKind(re.compile(r"^dir$"), lambda m: Direction()))
-_KINDS.append(
-    _TermKind(
-        re.compile(rf"^dir\((?P<db>{_NUMBER}) um\)$"), lambda m: Direction(float(m.group("db")))
-    )
-)
+_KINDS.append(_TermKind(re.compile(r"^x(?:\^(?P<k>[1-9]\d*))?$"), lambda m: Power(int(m.group("k") or 1))))
+_KINDS.append(_TermKind(re.compile(rf"^dir(?:\((?P<db>{_NUMBER}) um\))?$"),
+                        lambda m: Direction(float(m.group("db"))) if m.group("db") else Direction()))
 _KINDS.append(
     _TermKind(
         re.compile(rf"^lag\(\s*(?P<ch>{_CHANNEL})\s*,\s*(?P<tau>{_NUMBER})\s*s\s*\)$"),

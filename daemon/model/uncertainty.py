@@ -83,10 +83,6 @@ from nanodrift.model.terms import Term, TermStream, is_x_power
 SYMMETRY_TOLERANCE = 1e-9
 #: the most negative eigenvalue allowed of the correlation matrix (rounding of a positive semi-definite one)
 PSD_TOLERANCE = 1e-8
-#: ρ is capped here: a residual that is a pure trend would otherwise inflate C without bound
-MAX_RHO = 0.99
-#: held-out blocks for s last about this long (whole cycles), between 3 and 6 blocks
-UNCERTAINTY_BLOCK_S = 3600.0
 
 Fail = Callable[[str], Exception]
 
@@ -252,45 +248,6 @@ def _kind(value: Any) -> str:
 # --- estimation from the final fit ------------------------------------------------------------
 
 
-def ar1_inflation(residual: np.ndarray) -> float:
-    """(1 + ρ)/(1 - ρ) for a positively autocorrelated residual (ρ its lag-1 autocorrelation), else 1.
-
-    Right for a pure AR(1) residual; a residual that is white noise plus a slow wander has a small
-    lag-1 ρ but a large long-run variance, which :func:`fit_noise` models instead.
-    """
-    r = np.asarray(residual, dtype=np.float64)
-    if r.size < 3:
-        return 1.0
-    r = r - r.mean()
-    denom = float(r @ r)
-    rho = float(r[:-1] @ r[1:]) / denom if denom > 0 else 0.0
-    rho = min(max(rho, 0.0), MAX_RHO)
-    return (1.0 + rho) / (1.0 - rho)
-
-
-def uncertainty_blocks(t_span_s: float) -> int:
-    """How many held-out blocks :func:`heldout_rms` uses: about an hour each, at least 3, at most 6."""
-    if not math.isfinite(t_span_s):
-        return 3
-    return min(6, max(3, int(t_span_s // UNCERTAINTY_BLOCK_S)))
-
-
-def heldout_rms(X: np.ndarray, y: np.ndarray, folds: np.ndarray) -> float:
-    """RMS of each block of rows predicted by a least-squares fit (with intercept) of the other blocks."""
-    A = np.column_stack([np.ones(y.shape[0]), X])
-    errors = []
-    for k in np.unique(folds):
-        test = folds == k
-        if int((~test).sum()) <= A.shape[1]:
-            return math.nan
-        coef, *_ = np.linalg.lstsq(A[~test], y[~test], rcond=None)
-        errors.append(y[test] - A[test] @ coef)
-    if len(errors) < 2:
-        return math.nan
-    e = np.concatenate(errors)
-    return float(np.sqrt(np.mean(e * e)))
-
-
 @dataclass(frozen=True)
 class Noise:
     """The calibration residual as white noise plus a wander (Ornstein-Uhlenbeck: a continuous AR(1)).
@@ -445,17 +402,6 @@ def fit_noise(A: np.ndarray, y: np.ndarray, t_s: np.ndarray, run_slices: Sequenc
             for k in keep]
 
 
-def noise_times(M: np.ndarray, t_s: np.ndarray, run_slices: Sequence[slice], noise: Noise) -> np.ndarray:
-    """Σ·M: the noise model's covariance (white + wander, independent between runs) times ``M``."""
-    M = np.asarray(M, dtype=np.float64)
-    columns = M.reshape(M.shape[0], -1)
-    times = _NoiseTimes(t_s, run_slices, noise)
-    out = np.empty_like(columns)
-    for j in range(columns.shape[1]):
-        out[:, j] = times(columns[:, j])
-    return out.reshape(M.shape)
-
-
 def noise_gram(M: np.ndarray, t_s: np.ndarray, run_slices: Sequence[slice], noise: Noise) -> np.ndarray:
     """Mᵀ·Σ·M, a column of Σ·M at a time: a season's rows never hold Σ·M whole."""
     M = np.asarray(M, dtype=np.float64)
@@ -485,11 +431,6 @@ class _NoiseTimes:
             summed -= column  # m_i was counted twice
             out += self.noise.wander_um**2 * summed
         return out
-
-
-def sandwich(A: np.ndarray, t_s: np.ndarray, run_slices: Sequence[slice], noise: Noise) -> np.ndarray:
-    """The covariance of least-squares coefficients of A when the noise is ``noise``: B·AᵀΣA·B, B = (AᵀA)⁻¹."""
-    return _sandwich(A.T @ A, noise_gram(A, t_s, run_slices, noise))
 
 
 def _sandwich(gram: np.ndarray, meat: np.ndarray) -> np.ndarray:
@@ -558,12 +499,8 @@ def within_run_share(t_s: np.ndarray, run_slices: Sequence[slice], tau_s: float)
 
 
 def within_runs(noise: Noise, t_s: np.ndarray, run_slices: Sequence[slice]) -> Noise:
-    """``noise`` with the wander's variance cut to what the calibration's runs show varying within them.
-
-    REML never sees a run's mean (the bias absorbs it): the wander's variance beyond it is the OU
-    form's extrapolation, largest where τ is as long as the run, where the likelihood hardly tells τ
-    apart. Taken whole it booked every calibration an offset twice the one 16 calibrations show
-    (README, σ over calibrations); the within-run variance is what the data measured."""
+    """``noise`` with the wander's variance cut to what the calibration's runs show varying within them: what the
+    data measured (why: the module docstring; README, σ over calibrations)."""
     if noise.wander_um <= 0 or noise.tau_s <= 0:
         return noise
     share = within_run_share(t_s, run_slices, noise.tau_s)

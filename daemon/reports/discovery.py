@@ -72,13 +72,9 @@ MINUS = "−"
 
 
 # ----- variables in words ------------------------------------------------------------------------------
-def _identity(values: np.ndarray) -> np.ndarray:
-    return values
-
-
 def describe_variable(name: str, settings: Settings) -> tuple[str, str, Callable[[np.ndarray], np.ndarray]]:
     """(words for a title, axis label with its unit, transform of the stored values to that unit)."""
-    same = _identity
+    same = np.asarray
     if name == "t":
         return "time", "time since the start of the run (h)", lambda v: v / 3600.0
     if name == "x":
@@ -270,30 +266,17 @@ def figure_gap(result: DiscoveryResult) -> Any:
 
 
 def _step_variable(step: Candidate) -> str:
-    if step.effect == "thermal_curvature":  # the bending shows against its channel's temperature
+    if step.effect in ("thermal_curvature", "thermal_lag"):  # the bending and a lag show against the temperature
         return str(step.params["channel"])
-    if step.effect in ("thermal_lag", "temperature_rate"):
-        channel = step.params["channel"]
-        return f"rate({channel})" if step.effect == "temperature_rate" else channel
+    if step.effect == "temperature_rate":
+        return f"rate({step.params['channel']})"
     return EFFECT_VARIABLE.get(step.effect, "t")
 
 
 def figure_variables(result: DiscoveryResult, limit: int = 4) -> list[str]:
     """Variables to plot: those the steps point at, then the most significant disagreements."""
-    names: list[str] = []
-    for step in result.steps:
-        names.append(_step_variable(step))
-    names += [d.variable for d in result.disagreements if d.significant]
-    names.append("t")
-    seen: list[str] = []
-    for n in names:
-        if n in result.variables and n not in seen:
-            seen.append(n)
-    return seen[:limit]
-
-
-def file_stem(variable: str) -> str:
-    return f"residuals_vs_{variable.replace('(', '_').replace(')', '')}"
+    names = [_step_variable(s) for s in result.steps] + [d.variable for d in result.disagreements if d.significant]
+    return [n for n in dict.fromkeys([*names, "t"]) if n in result.variables][:limit]
 
 
 # ----- report.md ---------------------------------------------------------------------------------------
@@ -536,18 +519,16 @@ def write_report(result: DiscoveryResult, directory: str | Path, model_out: str 
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
-    figures: list[str] = []
     drawings: list[tuple[str, Callable[[], Any]]] = [
-        (file_stem(v), partial(figure_residuals, result, v)) for v in figure_variables(result)
-    ]
-    drawings.append(("gap", lambda: figure_gap(result)))
+        (f"residuals_vs_{v.replace('(', '_').replace(')', '')}", partial(figure_residuals, result, v))
+        for v in figure_variables(result)]
+    drawings.append(("gap", partial(figure_gap, result)))
     for stem, draw in drawings:
         fig = with_footer(draw(), provenance)
         try:
             written += save_figure(fig, out / stem)
         finally:
             plt.close(fig)
-        figures.append(f"{stem}.png")
-    atomic_write_text(out / "report.md", markdown(result, figures, model_out))
+    atomic_write_text(out / "report.md", markdown(result, [f"{stem}.png" for stem, _ in drawings], model_out))
     written.append(out / "report.md")
     return written

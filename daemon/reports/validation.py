@@ -135,15 +135,15 @@ def coverage_lines(result: TestResult) -> tuple[list[str], str | None]:
     lines = [f"uncertainty: {measured * 100:.0f} % of the steps' measured errors (position - target) lie within "
              f"±2 {name} (median {name} {median_nm:.0f} nm{wander}); a calibrated {name} keeps 90-98 %"]
     valid = [s for s in result.steps if s.valid]
+    a = result.axis
+    errors = [(s.true_um if result.has_truth else s.positions_um)[a] - s.step.target(a) for s in valid]
     if result.has_truth:
         judged, what = result.coverage_true(), "true errors"
-        errors = [s.true_um[result.axis] - s.step.target(result.axis) for s in valid]
         lines.append(f"against the true position (simulated cell): accuracy {_nm(result.accuracy_true_nm)} with "
                      f"compensation (interferometer: {_nm(result.accuracy_nm)}); {judged * 100:.0f} % of the true "
                      f"errors (true position - target) within ±2 {name}")
     else:
         judged, what = measured, "measured errors"
-        errors = [s.positions_um[result.axis] - s.step.target(result.axis) for s in valid]
     lo, hi = COVERAGE_GOAL
     rms_nm = float(np.sqrt(np.mean(np.square(errors)))) * 1e3 if errors else math.nan
     if not math.isfinite(judged) or lo <= judged <= hi or (judged > hi and rms_nm >= 0.5 * median_nm):
@@ -163,10 +163,7 @@ def step_sigmas_um(result: TestResult) -> list[float]:
 
 def raw_csv(results: Sequence[TestResult]) -> str:
     """One row per step; the last column ``q_sigma_um`` is the command's σ (:func:`step_sigmas_um`)."""
-    channels: list[str] = []
-    for r in results:
-        for s in r.steps:
-            channels.extend(c for c in s.temperatures if c not in channels)
+    channels = list(dict.fromkeys(c for r in results for s in r.steps for c in s.temperatures))
     truth = any(r.has_truth for r in results)  # a simulated cell: the column hardware cannot have
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")
@@ -396,20 +393,15 @@ def _bars(ax: Any, results: Sequence[TestResult], without: Sequence[float], with
 
 def _truth_marks(ax: Any, results: Sequence[TestResult]) -> None:
     """On the Table I bars: where each bar would stand against the true position (a simulated cell only)."""
-    xs: list[float] = []
-    ys: list[float] = []
+    marks: list[tuple[float, float]] = []  # (bar position, accuracy against the truth)
     shift = _bar_shift(results)
     for i, r in enumerate(results):
-        if not r.has_truth:
-            continue
-        without, with_ = r.true_accuracy_nm()
-        xs.append(i - shift if r.compensated else i)
-        ys.append(without)
-        if r.compensated:
-            xs.append(i + shift)
-            ys.append(with_)
-    if xs:
-        ax.scatter(xs, ys, marker="D", s=22, color="0.1", zorder=3, label="against the true position")
+        if r.has_truth:
+            without, with_ = r.true_accuracy_nm()
+            marks += [(i - shift, without), (i + shift, with_)] if r.compensated else [(i, without)]
+    if marks:
+        ax.scatter([x for x, _ in marks], [y for _, y in marks], marker="D", s=22, color="0.1", zorder=3,
+                   label="against the true position")
         ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.08), ncol=2, frameon=False)
 
 

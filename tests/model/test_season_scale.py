@@ -24,7 +24,6 @@ from nanodrift.model.uncertainty import (
     Noise,
     fit_noise,
     noise_gram,
-    noise_times,
     reml_rows,
 )
 
@@ -84,7 +83,6 @@ def test_sigma_times_m_equals_the_written_out_covariance_on_irregular_times_and_
     M = np.column_stack([np.ones(700), rng.normal(size=700), t / 1e3])
     noise = Noise(white_um=0.02, wander_um=0.03, tau_s=600.0)
     expected = looped_noise_times(M, t, runs, noise)
-    assert noise_times(M, t, runs, noise) == pytest.approx(expected, rel=1e-9, abs=1e-15)
     assert noise_gram(M, t, runs, noise) == pytest.approx(M.T @ expected, rel=1e-9)
 
 

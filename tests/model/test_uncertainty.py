@@ -26,7 +26,6 @@ from nanodrift.model.uncertainty import (
     Covariance,
     Curvature,
     Noise,
-    ar1_inflation,
     estimate,
     within_run_share,
     within_runs,
@@ -135,13 +134,6 @@ def test_autocorrelated_noise_inflates_the_covariance_as_much_as_it_should() -> 
     empirical, claimed, naive = _spread_of_predictions(ar1)
     assert naive / empirical < 0.6, (naive, empirical)  # what the fix is for
     assert 0.6 < claimed / empirical < 1.7, (claimed, empirical)
-
-
-def test_ar1_inflation() -> None:
-    rng = np.random.default_rng(3)
-    assert ar1_inflation(rng.normal(size=5000)) == pytest.approx(1.0, abs=0.1)
-    assert ar1_inflation(np.sin(np.arange(5000) / 30.0)) > 100  # a slow wave: few independent rows
-    assert ar1_inflation((-1.0) ** np.arange(100)) == 1.0  # negative ρ never shrinks C
 
 
 def _white_plus_wander(rng: np.random.Generator, n: int, white_um: float, wander_um: float,

@@ -11,10 +11,11 @@ import numpy as np
 from scipy import special
 
 from nanodrift.calibration.dataset import Dataset
-from nanodrift.calibration.discovery.confirmation import FreshGain, TauRange
-from nanodrift.calibration.discovery.diagnostics import ar1_deflation, json_float
+from nanodrift.calibration.discovery.confirmation import FreshGain, TauRange, round_sig
+from nanodrift.calibration.discovery.diagnostics import ar1_deflation
 from nanodrift.calibration.discovery.settings import NOT_APPLIED_ONLINE, Settings
 from nanodrift.calibration.discovery.workspace import Workspace, standardise
+from nanodrift.model.model import json_float
 from nanodrift.model.segments import features
 from nanodrift.model.terms import Term
 
@@ -36,11 +37,9 @@ class Candidate:
     holdout_rms_after_um: float = math.nan
     clears: bool = False
     blocks_improved: float = math.nan  # share of held-out blocks the candidate predicts better
-    p_blocks: float = math.nan  # one-sided t-test over blocks that the held-out error falls
     p_iid: float = math.nan  # the same F-test taking rows as independent (what stepwisefit reports)
     trend_like: bool = False  # indistinguishable from a drift in time over this run
     pinned: bool = True  # its searched parameter is determined by the run (see pinned())
-    profile: list[tuple[float, float]] = field(default_factory=list, repr=False)  # (param, training RMS)
     #: per block, (training SSE of the fit on the other blocks, held-out SSE of the block) as a function of the
     #: searched time constant, and its search range: kept (for the round only) so that the τ range and the
     #: τ chosen without each block are computed for the candidate that is named, and only for it
@@ -70,11 +69,6 @@ class Candidate:
     def holdout_gain(self) -> float:
         b, a = self.holdout_rms_before_um, self.holdout_rms_after_um
         return (b - a) / b if b > 0 else 0.0
-
-    @property
-    def label(self) -> str:
-        parts = [t.name for t in self.add] + [f"-{t.name}" for t in self.remove] + list(self.nuisance)
-        return f"{self.effect} [{', '.join(parts)}]"
 
     def rank_key(self, settings: Settings) -> float:
         return self.holdout_rms_after_um * (1.0 + settings.search_penalty * self.searched)
@@ -119,16 +113,10 @@ class Candidate:
         return out
 
 
-def round_sig(value: float, digits: int = 3) -> float:
-    return float(f"{value:.{digits}g}")
-
-
-def search_tau(objective: Callable[[float], float], lo: float, hi: float, settings: Settings
-                ) -> tuple[float, list[tuple[float, float]]]:
-    """Log grid then bounded minimisation on log τ; returns (best τ, profile of (τ, value))."""
+def search_tau(objective: Callable[[float], float], lo: float, hi: float, settings: Settings) -> float:
+    """Log grid then bounded minimisation on log τ; returns the best τ (3 significant digits)."""
     grid = np.geomspace(lo, hi, settings.grid_points)
-    profile = [(float(tau), objective(float(tau))) for tau in grid]
-    values = np.array([v for _, v in profile])
+    values = np.array([objective(float(tau)) for tau in grid])
     i = int(np.argmin(values))
     a, b = math.log(grid[max(i - 1, 0)]), math.log(grid[min(i + 1, grid.size - 1)])
     best_tau, best = float(grid[i]), float(values[i])
@@ -142,10 +130,7 @@ def search_tau(objective: Callable[[float], float], lo: float, hi: float, settin
         )
         if float(res.fun) < best:
             best_tau, best = math.exp(float(res.x)), float(res.fun)
-    rounded = round_sig(best_tau)
-    profile.append((rounded, objective(rounded)))
-    profile.sort()
-    return rounded, profile
+    return round_sig(best_tau)
 
 
 def pinned(objective: Callable[[float], float], tau: float, n_eff: float, settings: Settings) -> bool:
@@ -182,19 +167,15 @@ class Context:
     def columns(self, feats: Sequence[np.ndarray]) -> np.ndarray:
         return standardise(np.column_stack(feats))
 
+    def judge_term(self, effect: str, term: Term, params: dict[str, Any], alternatives: int) -> Candidate:
+        """The candidate that adds ``term`` alone (no parameter searched), judged."""
+        return self.judge(Candidate(effect, [term], [], params, 0, alternatives), self.columns([self.feature(term)]))
+
     def judge(self, cand: Candidate, F: np.ndarray | None, drop: Sequence[int] = ()) -> Candidate:
         n = self.ws.n
         sse1, held_blocks1, k1 = self.ws.evaluate(F, drop)
         held1 = float(held_blocks1.sum())
         cand.blocks_improved = float(np.mean(held_blocks1 < self.held_blocks0))
-        sizes = np.array([b - a for a, b in self.ws.bounds], dtype=np.float64)
-        gain = (self.held_blocks0 - held_blocks1) / sizes  # per-row MSE reduction in each block
-        spread = float(np.std(gain, ddof=1)) if gain.size > 1 else 0.0
-        if spread > 0:
-            t_blocks = float(np.mean(gain)) / (spread / math.sqrt(gain.size))
-            cand.p_blocks = float(special.stdtr(gain.size - 1, -t_blocks))  # Student's t upper tail
-        else:
-            cand.p_blocks = 0.0 if float(np.mean(gain)) > 0 else 1.0
         cand.rms_before_um = math.sqrt(self.sse0 / n)
         cand.rms_after_um = math.sqrt(sse1 / n)
         cand.holdout_rms_before_um = math.sqrt(self.held0 / n)

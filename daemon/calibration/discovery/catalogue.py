@@ -3,14 +3,15 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from functools import partial
 from typing import Any
 
 import numpy as np
 
 from nanodrift.calibration.dataset import Dataset
-from nanodrift.calibration.discovery.candidates import Candidate, Context, pinned, round_sig, search_tau
+from nanodrift.calibration.discovery.candidates import Candidate, Context, pinned, search_tau
+from nanodrift.calibration.discovery.confirmation import round_sig
 from nanodrift.calibration.discovery.settings import Settings
 from nanodrift.model.axis_terms import AxisProduct
 from nanodrift.model.effect_terms import CREEP_DEADBAND_UM, Creep, PositionCoupling, Rate
@@ -35,23 +36,12 @@ EFFECTS = (
 )
 
 
-def _powers(terms: Sequence[Term], axis: str = "x") -> set[int]:
-    """The powers of ``axis``' own position among ``terms``."""
-    return {t.k for t in terms if isinstance(t, Power) and t.axis == axis}
-
-
 def _geometric(ctx: Context) -> list[Candidate]:
     axis = ctx.data.axis
-    have = _powers(ctx.terms, axis)
+    have = {t.k for t in ctx.terms if isinstance(t, Power) and t.axis == axis}  # the axis' own powers
     top = max(have, default=0)
-    out = []
-    for k in range(1, max(top + 1, 3) + 1):
-        if k in have or k > ctx.settings.max_power:
-            continue
-        term = Power(k, axis)
-        cand = Candidate("geometric_order", [term], [], {"order": max(top, k), "term": term.name}, 0, 1)
-        out.append(ctx.judge(cand, ctx.columns([ctx.feature(term)])))
-    return out
+    powers = [Power(k, axis) for k in range(1, max(top + 1, 3) + 1) if k not in have and k <= ctx.settings.max_power]
+    return [ctx.judge_term("geometric_order", t, {"order": max(top, t.k), "term": t.name}, 1) for t in powers]
 
 
 def _liveliest_window(data: Dataset, rows: int) -> slice:
@@ -119,7 +109,7 @@ def _thermal_response(ctx: Context) -> list[Candidate]:
             return ctx.ws.sse_with(ctx.columns(feats))
 
         tau_max = min(s.lag_tau_s[1], max(max(spans_s(ctx.data)), 2 * s.lag_tau_s[0]))
-        tau, profile = search_tau(sse, s.lag_tau_s[0], tau_max, s)
+        tau = search_tau(sse, s.lag_tau_s[0], tau_max, s)
         extra = [] if c in have else [Channel(c)]
         behind_reference = round_sig(tau + ctx.delays.get(c, 0.0))
         if tau <= s.rate_tau_max_s:
@@ -132,7 +122,6 @@ def _thermal_response(ctx: Context) -> list[Candidate]:
             continue
         feats = [*base, ctx.feature(term)]
         cand = Candidate(effect, [*extra, term], [], params, 1, len(channels))
-        cand.profile = [(p, math.sqrt(v / ctx.ws.n)) for p, v in profile]
         cand.trend_like = tau >= 0.9 * tau_max  # as long as the run: a trend, not an identified lag
         cand.pinned = pinned(sse, tau, ctx.ws.n * ctx.deflate, s)
         cand.tau_bounds = (s.lag_tau_s[0], tau_max)
@@ -177,11 +166,7 @@ def _missing_channel(ctx: Context) -> list[Candidate]:
     """A monitored channel the model left out (stepwise can drop one when another effect masks it)."""
     have = {t.name for t in ctx.terms}
     missing = [c for c in ctx.data.channels if c not in have and c not in ctx.excluded]
-    return [
-        ctx.judge(Candidate("missing_channel", [Channel(c)], [], {"channel": c}, 0, len(missing)),
-                  ctx.columns([ctx.feature(Channel(c))]))
-        for c in missing
-    ]
+    return [ctx.judge_term("missing_channel", Channel(c), {"channel": c}, len(missing)) for c in missing]
 
 
 def _thermal_curvature(ctx: Context) -> list[Candidate]:
@@ -190,12 +175,8 @@ def _thermal_curvature(ctx: Context) -> list[Candidate]:
     if any(isinstance(t, ChannelSquare) for t in ctx.terms):
         return []
     squares = curvature_candidates(ctx.data, ctx.excluded)
-    return [
-        ctx.judge(Candidate("thermal_curvature", [term], [], {"channel": term.channel, "centre_c": term.centre_c},
-                            0, len(squares)),
-                  ctx.columns([ctx.feature(term)]))
-        for term in squares
-    ]
+    return [ctx.judge_term("thermal_curvature", t, {"channel": t.channel, "centre_c": t.centre_c}, len(squares))
+            for t in squares]
 
 
 def _hysteresis(ctx: Context) -> list[Candidate]:
@@ -257,15 +238,9 @@ def untestable(data: Dataset, settings: Settings) -> list[dict[str, str]]:
 
 
 def _coupling(ctx: Context) -> list[Candidate]:
-    channels = list(ctx.data.channels)
-    out = []
-    for c in channels:
-        term = PositionCoupling(c, ctx.data.axis)
-        if term in ctx.terms:
-            continue
-        out.append(ctx.judge(Candidate("position_thermal_coupling", [term], [], {"channel": c}, 0, len(channels)),
-                             ctx.columns([ctx.feature(term)])))
-    return out
+    terms = [PositionCoupling(c, ctx.data.axis) for c in ctx.data.channels]
+    return [ctx.judge_term("position_thermal_coupling", t, {"channel": t.channel}, len(terms))
+            for t in terms if t not in ctx.terms]
 
 
 def _creep(ctx: Context) -> list[Candidate]:
@@ -279,13 +254,12 @@ def _creep(ctx: Context) -> list[Candidate]:
     def sse(tau: float) -> float:
         return ctx.ws.sse_with(ctx.columns([features(Creep(tau, axis=axis), ctx.data)]))
 
-    tau, profile = search_tau(sse, *ctx.settings.creep_tau_s, ctx.settings)
+    tau = search_tau(sse, *ctx.settings.creep_tau_s, ctx.settings)
     term = Creep(tau, axis=axis)
     cand = Candidate("creep", [term], [], {"tau_s": tau}, 1, 1)
     cand.pinned = pinned(sse, tau, ctx.ws.n * ctx.deflate, ctx.settings)
     cand.tau_bounds = ctx.settings.creep_tau_s
     cand.fold_errors = partial(_fold_errors_creep, ctx)
-    cand.profile = [(p, math.sqrt(v / ctx.ws.n)) for p, v in profile]
     return [ctx.judge(cand, ctx.columns([ctx.feature(term)]))]
 
 
@@ -298,15 +272,11 @@ def _drift(ctx: Context) -> list[Candidate]:
 
 
 def _exclusion(ctx: Context) -> list[Candidate]:
-    channel_terms = [i for i, t in enumerate(ctx.terms) if isinstance(t, Channel)]
-    if len(channel_terms) < 2:
+    channels = [(i, t) for i, t in enumerate(ctx.terms) if isinstance(t, Channel)]
+    if len(channels) < 2:
         return []
-    out = []
-    for i in channel_terms:
-        term = ctx.terms[i]
-        cand = Candidate("sensor_exclusion", [], [term], {"channel": term.name}, 0, len(channel_terms))
-        out.append(ctx.judge(cand, None, drop=[i]))
-    return out
+    return [ctx.judge(Candidate("sensor_exclusion", [], [t], {"channel": t.name}, 0, len(channels)), None, drop=[i])
+            for i, t in channels]
 
 
 def _cross_axis(ctx: Context) -> list[Candidate]:
@@ -326,12 +296,10 @@ def _cross_axis(ctx: Context) -> list[Candidate]:
     for b in others:
         term = Power(1, b)
         if term not in ctx.terms:
-            out.append(ctx.judge(Candidate("crosstalk", [term], [], {"axis": b}, 0, len(others)),
-                                 ctx.columns([ctx.feature(term)])))
+            out.append(ctx.judge_term("crosstalk", term, {"axis": b}, len(others)))
         product = AxisProduct(axis, b)
         if product not in ctx.terms:
-            out.append(ctx.judge(Candidate("coupled_bending", [product], [], {"axes": product.name}, 0, len(others)),
-                                 ctx.columns([ctx.feature(product)])))
+            out.append(ctx.judge_term("coupled_bending", product, {"axes": product.name}, len(others)))
     return out
 
 

@@ -34,11 +34,7 @@ class CellDiscoveryResult:
 
     def to_dict(self, model_out: str | None = None) -> dict[str, Any]:
         """``{"axes": {axis: the one-axis document}, "final": {"model": id}, "model_out"}``."""
-        axes = {}
-        for axis, result in self.axes.items():
-            doc = result.to_dict(None)
-            doc.pop("model_out")
-            axes[axis] = doc
+        axes = {axis: {k: v for k, v in r.to_dict(None).items() if k != "model_out"} for axis, r in self.axes.items()}
         final_id = self.model.id if self.found else self.given.id
         return {"axes": axes, "final": {"model": final_id}, "model_out": model_out}
 

@@ -47,6 +47,10 @@ class FreshGain:
         return self.rms_after_um / self.rms_before_um if self.rms_before_um > 0 else 1.0
 
 
+def round_sig(value: float, digits: int = 3) -> float:
+    return float(f"{value:.{digits}g}")
+
+
 def hidden_by_fit_um2(in_sample_um: float, held_out_um: float) -> float:
     """ω: the MSE a fit hides of its own run (held-out MSE - in-sample MSE; 0 when held-out is better by chance)."""
     return max(held_out_um**2 - in_sample_um**2, 0.0)
@@ -110,9 +114,7 @@ def nested_held_out(fold_errors: FoldErrors, tau: float, bounds: tuple[float, fl
     lo, hi = bounds
     fine = [tau * 1.15**k for k in range(-8, 9)]
     grid = sorted({*np.geomspace(lo, hi, 12).tolist(), *(t for t in fine if lo <= t <= hi)})
-    errors = [fold_errors(t) for t in grid]
-    train = np.array([e[0] for e in errors])
-    held = np.array([e[1] for e in errors])
+    train, held = (np.array(e) for e in zip(*(fold_errors(t) for t in grid), strict=True))  # (τ, block) each
     pick = np.argmin(train, axis=0)
     chosen: np.ndarray = held[pick, np.arange(held.shape[1])]
     return chosen
@@ -148,7 +150,7 @@ def tau_range(worse: Callable[[float], bool], tau: float, bounds: tuple[float, f
     """
     lo, pinned_lo = _edge(worse, tau, bounds[0])
     hi, pinned_hi = _edge(worse, tau, bounds[1])
-    return TauRange(_round3(lo), _round3(hi), pinned_lo, pinned_hi)
+    return TauRange(round_sig(lo), round_sig(hi), pinned_lo, pinned_hi)
 
 
 def _edge(worse: Callable[[float], bool], tau: float, bound: float) -> tuple[float, bool]:
@@ -175,7 +177,3 @@ def _edge(worse: Callable[[float], bool], tau: float, bound: float) -> tuple[flo
         else:
             inside = mid
     return inside, True
-
-
-def _round3(value: float) -> float:
-    return float(f"{value:.3g}")

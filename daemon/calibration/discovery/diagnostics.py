@@ -14,6 +14,7 @@ from scipy import special
 from nanodrift.calibration.dataset import Dataset
 from nanodrift.calibration.discovery.settings import DEFAULT_SETTINGS, Settings
 from nanodrift.model.effect_terms import CREEP_DEADBAND_UM, Rate
+from nanodrift.model.model import json_float
 from nanodrift.model.segments import features, first_rows, run_time_s
 from nanodrift.model.terms import Direction
 
@@ -58,11 +59,6 @@ class Disagreement:
         }
 
 
-def json_float(v: float) -> float | None:
-    """The value for a JSON document: NaN and infinities (not JSON) become null."""
-    return float(v) if v is not None and math.isfinite(v) else None
-
-
 def structure_variables(data: Dataset, settings: Settings = DEFAULT_SETTINGS) -> dict[str, tuple[str, np.ndarray]]:
     """The variables residuals are checked against: name -> (description, value per row)."""
     t, x = np.asarray(data.t, dtype=np.float64), np.asarray(data.x, dtype=np.float64)
@@ -75,14 +71,10 @@ def structure_variables(data: Dataset, settings: Settings = DEFAULT_SETTINGS) ->
             out[axis] = (f"position {axis} (µm)", np.asarray(position, dtype=np.float64))
     x = np.asarray(data.own_position, dtype=np.float64)  # the motion below is the modelled axis'
     own = "" if data.axis == "x" else f" of axis {data.axis}"
-    for c, v in data.channels.items():
-        out[c] = (f"temperature {c} (°C)", np.asarray(v, dtype=np.float64))
+    out.update({c: (f"temperature {c} (°C)", np.asarray(v, dtype=np.float64)) for c, v in data.channels.items()})
     tau = settings.rate_probe_tau_s
-    for c in data.channels:
-        out[f"rate({c})"] = (
-            f"rate of change of {c} (°C/h, smoothed over {tau:g} s)",
-            features(Rate(c, tau), data) * 3600.0,
-        )
+    out.update({f"rate({c})": (f"rate of change of {c} (°C/h, smoothed over {tau:g} s)",
+                               features(Rate(c, tau), data) * 3600.0) for c in data.channels})
     direction = Direction(axis=data.axis)
     out["dir"] = (f"direction of the last move{own} (+1 up, -1 down)", features(direction, data))
     first = first_rows(data)  # several runs: a run's first row follows no step

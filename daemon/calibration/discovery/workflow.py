@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from nanodrift.calibration.dataset import Dataset
-from nanodrift.calibration.discovery.candidates import Candidate, Context, round_sig
+from nanodrift.calibration.discovery.candidates import Candidate, Context
 from nanodrift.calibration.discovery.catalogue import PROPOSERS, channel_delays, drift_alike, told_apart, untestable
 from nanodrift.calibration.discovery.confirmation import (
     MEASURED_METHOD,
@@ -19,6 +19,7 @@ from nanodrift.calibration.discovery.confirmation import (
     expected_fresh,
     hidden_by_fit_um2,
     nested_held_out,
+    round_sig,
     tau_range,
     worse_than,
 )
@@ -235,8 +236,8 @@ def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS,
         if chosen is None:
             break
         if chosen.effect == "unmonitored_drift":
-            coef = _nuisance_coef(ctx, chosen.nuisance)
-            chosen.params = {"rate_um_per_h": round_sig(-coef["t"], 3)}
+            rate = float(_extra_coefs(ctx, [*ctx.nuisance.values(), chosen.nuisance["t"]])[-1])
+            chosen.params = {"rate_um_per_h": round_sig(-rate, 3)}
         if chosen.effect == "thermal_lag":
             chosen.params.update(drift_alike(ctx, chosen))
         if searched_errors is not None and chosen.tau_bounds is not None:
@@ -299,12 +300,10 @@ def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS,
                            variables, summary, blind, settings)
 
 
-def _nuisance_coef(ctx: Context, nuisance: Mapping[str, np.ndarray]) -> dict[str, float]:
-    """Coefficients (original units) of nuisance columns added to the working model."""
-    cols = [features(t, ctx.data) for t in ctx.terms] + list(ctx.nuisance.values())
-    extra = list(nuisance.values())
-    fit = ols(np.column_stack(cols + extra), np.asarray(ctx.data.q, dtype=np.float64))
-    return {name: float(fit.coef[len(cols) + j]) for j, name in enumerate(nuisance)}
+def _extra_coefs(ctx: Context, extra: Sequence[np.ndarray]) -> np.ndarray:
+    """Coefficients (original units) of the columns ``extra`` fitted beside the working terms."""
+    cols = [ctx.feature(t) for t in ctx.terms] + list(extra)
+    return ols(np.column_stack(cols), np.asarray(ctx.data.q, dtype=np.float64)).coef[len(ctx.terms):]
 
 
 def _checked_fresh(fresh: Dataset, model: Model) -> Dataset:
@@ -321,10 +320,8 @@ def _drift_column(ctx: Context) -> np.ndarray:
     """What the working fit attributes to its nuisance columns (a drift no sensor sees), µm per row; 0 at t = 0."""
     if not ctx.nuisance:
         return np.zeros(ctx.ws.n)
-    cols = [features(t, ctx.data) for t in ctx.terms] + list(ctx.nuisance.values())
-    fit = ols(np.column_stack(cols), np.asarray(ctx.data.q, dtype=np.float64))
-    k = len(ctx.terms)
-    return sum((fit.coef[k + j] * v for j, v in enumerate(ctx.nuisance.values())), np.zeros(ctx.ws.n))
+    coef = _extra_coefs(ctx, list(ctx.nuisance.values()))
+    return sum((coef[j] * v for j, v in enumerate(ctx.nuisance.values())), np.zeros(ctx.ws.n))
 
 
 def _expected(before_fixed: np.ndarray, before: np.ndarray, params_before: int, after: Context,

@@ -102,22 +102,21 @@ class Workspace:
 
     def evaluate(self, F: np.ndarray | None, drop: Sequence[int] = ()) -> tuple[float, np.ndarray, int]:
         """(training SSE, held-out SSE per block, regressors incl. intercept)."""
-        G, S = self._augmented(F, drop)
-        total = G.sum(axis=0)
+        total, S, _, held = self._by_block(F, drop)
         target = total.shape[0] - 1
         beta = self._solve(total, S, target)
         sse = float(total[target, target] - beta @ total[S, target])
-        held = np.empty(len(self.bounds))
-        for bi in range(len(self.bounds)):
-            train = total - G[bi]
-            b = self._solve(train, S, target)
-            g = G[bi]
-            held[bi] = max(float(g[target, target] - 2.0 * b @ g[S, target] + b @ g[np.ix_(S, S)] @ b), 0.0)
         return max(sse, 0.0), held, len(S)
 
     def fold_errors(self, F: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """Per block: (training SSE of the fit on the other blocks, over those blocks; held-out SSE of the block)."""
-        G, S = self._augmented(F, ())
+        _, _, train_sse, held = self._by_block(F, ())
+        return train_sse, held
+
+    def _by_block(self, F: np.ndarray | None, drop: Sequence[int]
+                  ) -> tuple[np.ndarray, list[int], np.ndarray, np.ndarray]:
+        """The Gram over all rows, the regressors, and per block :meth:`fold_errors`' two SSEs."""
+        G, S = self._augmented(F, drop)
         total = G.sum(axis=0)
         target = total.shape[0] - 1
         train_sse, held = np.empty(len(self.bounds)), np.empty(len(self.bounds))
@@ -127,7 +126,7 @@ class Workspace:
             train_sse[bi] = max(float(train[target, target] - b @ train[S, target]), 0.0)
             g = G[bi]
             held[bi] = max(float(g[target, target] - 2.0 * b @ g[S, target] + b @ g[np.ix_(S, S)] @ b), 0.0)
-        return train_sse, held
+        return total, S, train_sse, held
 
     def residual_with(self, F: np.ndarray | None, drop: Sequence[int] = ()) -> np.ndarray:
         G, S = self._augmented(F, drop)
