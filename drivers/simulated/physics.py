@@ -169,6 +169,13 @@ def first_order_filter(b0: float, b1: float, a1: float, x: np.ndarray, z0: float
     return out
 
 
+def _walk(held: np.ndarray, steps: np.ndarray, chunk: int) -> np.ndarray:
+    """A random walk by ``steps`` on from the last ``held`` value (0 on an empty grid; chunk 0's first step is 0)."""
+    if chunk == 0:
+        steps[0] = 0.0
+    return (float(held[-1]) if held.size else 0.0) + np.cumsum(steps)
+
+
 def _ou_step(prev: float, n: int, dt: float, tau: float, sigma: float, rng: np.random.Generator) -> np.ndarray:
     """``n`` further samples of an Ornstein-Uhlenbeck process (stationary std ``sigma``), exact."""
     a = math.exp(-dt / tau)
@@ -192,6 +199,8 @@ class Exogenous:
     CHUNK = 720
     #: chunks held at most (each CHUNK knots): two days at the default 30 s knots
     KEEP_CHUNKS = 8
+    #: the per-knot series (``nodes``: a column per node), extended and dropped together
+    SERIES = ("t", "air", "wander", "walk", "index_ppm", "nodes")
 
     def __init__(self, scenario: Scenario, params: CellParams, node_taus: Mapping[str, float], seed: int,
                  walk_um_per_sqrt_h: float = 0.0) -> None:
@@ -249,10 +258,8 @@ class Exogenous:
         if drop <= 0:
             return
         cut = drop * self.CHUNK
-        self.t, self.air = self.t[cut:].copy(), self.air[cut:].copy()
-        self.wander, self.walk = self.wander[cut:].copy(), self.walk[cut:].copy()
-        self.index_ppm = self.index_ppm[cut:].copy()
-        self.nodes = self.nodes[cut:].copy()
+        for name in self.SERIES:
+            setattr(self, name, getattr(self, name)[cut:].copy())
         self.first_knot += cut
 
     def _extend(self) -> None:
@@ -266,16 +273,10 @@ class Exogenous:
         air = self.scenario.air(t) + fluct
         prev_wander = float(self.wander[-1]) if self.wander.size else rng.normal(0.0, p.interferometer_wander_um)
         wander = _ou_step(prev_wander, n, self.dt, p.interferometer_wander_tau_s, p.interferometer_wander_um, rng)
-        steps = rng.normal(0.0, self.walk_sigma, n) if self.walk_sigma > 0 else np.zeros(n)
-        if k == 0:
-            steps[0] = 0.0
-        walk = (float(self.walk[-1]) if self.walk.size else 0.0) + np.cumsum(steps)
-        index_steps = np.zeros(n)
-        if self.index_sigma > 0:  # its own stream: the ideal cell's draws stay the same
-            index_steps = np.random.default_rng([self.seed, 4, k]).normal(0.0, self.index_sigma, n)
-            if k == 0:
-                index_steps[0] = 0.0
-        index_ppm = (float(self.index_ppm[-1]) if self.index_ppm.size else 0.0) + np.cumsum(index_steps)
+        walk = _walk(self.walk, rng.normal(0.0, self.walk_sigma, n) if self.walk_sigma > 0 else np.zeros(n), k)
+        index_steps = (np.random.default_rng([self.seed, 4, k]).normal(0.0, self.index_sigma, n)  # its own stream:
+                       if self.index_sigma > 0 else np.zeros(n))  # the ideal cell's draws stay the same
+        index_ppm = _walk(self.index_ppm, index_steps, k)
         nodes = np.empty((n, len(self.node_names)))
         for j in range(len(self.node_names)):
             if self.nodes.shape[0]:
@@ -283,12 +284,8 @@ class Exogenous:
             else:  # equilibrium with the first knot's air
                 zi = air[0] * (1.0 - self._b_now[j])
             nodes[:, j] = first_order_filter(self._b_now[j], self._b_prev[j], -self._a[j], air, zi)
-        self.t = np.concatenate((self.t, t))
-        self.air = np.concatenate((self.air, air))
-        self.wander = np.concatenate((self.wander, wander))
-        self.walk = np.concatenate((self.walk, walk))
-        self.index_ppm = np.concatenate((self.index_ppm, index_ppm))
-        self.nodes = np.concatenate((self.nodes, nodes))
+        for name, new in zip(self.SERIES, (t, air, wander, walk, index_ppm, nodes), strict=True):
+            setattr(self, name, np.concatenate((getattr(self, name), new)))
         self._chunks += 1
 
     def at(self, t: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray, np.ndarray]:
