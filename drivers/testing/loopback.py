@@ -7,6 +7,7 @@ with a device powered off); ``start()`` listens again on the same port.
 
 from __future__ import annotations
 
+import contextlib
 import socket
 import socketserver
 import threading
@@ -51,10 +52,8 @@ class LoopbackServer:
         server.server_close()
         with self._lock:
             for sock in list(self._sockets):
-                try:
+                with contextlib.suppress(OSError):
                     sock.shutdown(socket.SHUT_RDWR)
-                except OSError:
-                    pass
                 sock.close()
             self._sockets.clear()
         if self._thread is not None:

@@ -8,6 +8,7 @@ opens ``device.port`` (the link) like any serial port.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import select
 import threading
@@ -83,10 +84,8 @@ class PtyDevice:
                 raw, _, buffer = buffer.partition(end)
                 reply = answer(raw)
                 if reply is not None:
-                    try:
+                    with contextlib.suppress(OSError):
                         os.write(master, reply)
-                    except OSError:
-                        pass
             buffer = buffer[-4096:]
 
 
