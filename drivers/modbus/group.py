@@ -40,10 +40,6 @@ class Block:
     count: int
     channels: tuple[ModbusSensorConfig, ...]
 
-    @property
-    def has_gaps(self) -> bool:
-        return len(contiguous_runs(self)) > 1
-
 
 def _block(channels: Sequence[ModbusSensorConfig]) -> Block:
     first = channels[0]
@@ -132,8 +128,8 @@ class ModbusBlockGroup(SensorGroup):
                     request.input_type, request.device_id, request.start, request.count
                 )
             except ModbusExceptionError as error:
-                if error.code == ILLEGAL_DATA_ADDRESS and request.has_gaps:
-                    runs = contiguous_runs(request)
+                runs = contiguous_runs(request)
+                if error.code == ILLEGAL_DATA_ADDRESS and len(runs) > 1:
                     log.info("modbus request split: the device refuses unmapped registers",
                              hub=request.hub, device_id=request.device_id, start=request.start,
                              count=request.count, requests=len(runs))

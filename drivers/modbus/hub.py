@@ -228,11 +228,6 @@ class ModbusHub:
             )
         return list(registers)
 
-    def _lost_link(self) -> None:
-        # the next call reconnects (a module that rebooted is back at once); when that call comes is
-        # the caller's back-off
-        self._drop()
-
     def _after_silence(self) -> None:
         # A silent TCP peer is a dead socket: drop it so the next read reconnects. On an RS-485 bus
         # one silent device says nothing about the others: keep the port open.
@@ -270,7 +265,7 @@ class ModbusHub:
         try:
             call = asyncio.ensure_future(request())
         except ModbusException as error:  # pymodbus refuses at once when the link just went away
-            self._lost_link()
+            self._drop()  # the next call reconnects (a rebooted module is back at once), after the caller's back-off
             raise DeviceError(f"modbus hub {self.name!r}: {self.endpoint}: {error} ({verb} {where})") from error
         lost = asyncio.ensure_future(self._lost.wait())
         try:
@@ -292,7 +287,7 @@ class ModbusHub:
             raise DeviceError(f"modbus hub {self.name!r} ({self.endpoint}): {detail} from {where} "
                               f"within {self.request_budget_s:g} s") from failure
         if lost in done:
-            self._lost_link()
+            self._drop()
             raise DeviceError(f"modbus hub {self.name!r}: connection to {self.endpoint} lost while {verb} {where}")
         self._after_silence()
         raise DeviceError(f"modbus hub {self.name!r} ({self.endpoint}): no response from {where}")

@@ -50,14 +50,9 @@ LIMITS_V = (0.0, 10.0)
 TOLERANCE_V = 1e-9
 
 
-def run(body: Callable[[], Awaitable[None]]) -> None:
-    """One check's asyncio body, on a fresh event loop, bounded by :data:`CHECK_BOUND_S`."""
-    asyncio.run(asyncio.wait_for(body(), CHECK_BOUND_S))
-
-
 def run_on(rig: ActuatorRig | SensorRig, body: Callable[[], Awaitable[None]]) -> None:
-    """One check's asyncio body, as :func:`run` runs it, with the rig's emulator started before it and
-    stopped after it, whatever happened (the bound covers the start and the stop too)."""
+    """One check's asyncio body, on a fresh event loop, with the rig's emulator started before it and stopped
+    after it, whatever happened, all bounded by :data:`CHECK_BOUND_S`."""
 
     async def with_emulator() -> None:
         await rig.start()
@@ -66,7 +61,7 @@ def run_on(rig: ActuatorRig | SensorRig, body: Callable[[], Awaitable[None]]) ->
         finally:
             await rig.stop()
 
-    run(with_emulator)
+    asyncio.run(asyncio.wait_for(with_emulator(), CHECK_BOUND_S))
 
 
 # --- actuators ------------------------------------------------------------------------------------
