@@ -96,12 +96,10 @@ class IdsGroup(SensorGroup):
             return "(no text from the device)"
         return _first_text(result, "(no text from the device)")
 
-    async def _mode(self) -> str:
-        return _first_text(await self.rpc.call(CURRENT_MODE), "unknown")  # [errNo, mode] (API 2) or [mode]
-
     async def _why_stopped(self) -> str:
         """The device's state, and the error that stopped its measurement when it reports one."""
-        why = f"mode {await self._mode()!r}"
+        mode = _first_text(await self.rpc.call(CURRENT_MODE), "unknown")  # [errNo, mode] (API 2) or [mode]
+        why = f"mode {mode!r}"
         error = (await self.rpc.call(SYSTEM_ERROR))[0]
         if error != 0:
             why += f"; system error {error}: {await self._text(error)}"

@@ -76,11 +76,6 @@ def plan_blocks(
     return blocks
 
 
-def contiguous_runs(block: Block) -> list[Block]:
-    """``block`` split where unused registers separate its channels (no gap bridged)."""
-    return plan_blocks(block.channels, max_gap=0)
-
-
 class ModbusBlockGroup(SensorGroup):
     """The channels of one :class:`Block`, polled together.
 
@@ -128,7 +123,7 @@ class ModbusBlockGroup(SensorGroup):
                     request.input_type, request.device_id, request.start, request.count
                 )
             except ModbusExceptionError as error:
-                runs = contiguous_runs(request)
+                runs = plan_blocks(request.channels, max_gap=0)  # split where unused registers separate them
                 if error.code == ILLEGAL_DATA_ADDRESS and len(runs) > 1:
                     log.info("modbus request split: the device refuses unmapped registers",
                              hub=request.hub, device_id=request.device_id, start=request.start,

@@ -238,13 +238,9 @@ class Exogenous:
     def knots_held(self) -> int:
         return int(self.t.size)
 
-    def _knot(self, t: float) -> int:
-        """Global index of the knot at or before ``t`` (times before the grid: knot 0)."""
-        return max(0, int((t - self.t0) // self.dt))
-
     def ensure(self, t_max: float, t_min: float | None = None) -> None:
         """Hold every knot needed to evaluate times in ``[t_min, t_max]`` (``t_min`` None: ``t_max``)."""
-        low = self._knot(t_max if t_min is None else min(t_min, t_max))
+        low = max(0, int(((t_max if t_min is None else min(t_min, t_max)) - self.t0) // self.dt))  # its first knot
         if low < self.first_knot:  # before the oldest held chunk: regenerate from the start
             self._restart()
         while self.t.size < 2 or self.t[-1] < t_max + self.dt:

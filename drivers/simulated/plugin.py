@@ -194,7 +194,8 @@ class SimulatedPlugin(VirtualCellPlugin):
             return MonotonicClock()
         # the simulated lab's clock starts at the last UTC midnight, with the scenario: its day k is the
         # scenario's day k and the recorder's k-th day file (the ``week`` scenario's Monday is day 0)
-        return ScaledClock(speed, start=utc_midnight_before(time.time()))
+        now = time.time()
+        return ScaledClock(speed, start=now - now % 86400.0)
 
     def label_clock(self, clock: Clock) -> Callable[[], float]:
         """A scaled clock labels its own records: it reads unix seconds from the last UTC midnight on, ``speed``
@@ -203,11 +204,6 @@ class SimulatedPlugin(VirtualCellPlugin):
 
 
 PLUGIN = SimulatedPlugin()
-
-
-def utc_midnight_before(unix_s: float) -> float:
-    """The UTC midnight at or before ``unix_s``."""
-    return unix_s - unix_s % 86400.0
 
 
 def default_sensor_configs(axes: Sequence[str] = ("x",), interferometer_interval_s: float = 0.1,

@@ -181,7 +181,7 @@ class PiGcsEmulator:
             "SVA?": lambda a: f"{a.sva_v:.6f}",
             "MOV?": lambda a: f"{a.target_um:.6f}",
             "POS?": lambda a: f"{self._position_um(a):.6f}",
-            "ONT?": lambda a: str(int(self._on_target(a))),
+            "ONT?": lambda a: str(int(a.servo and time.monotonic() - a.moved_at >= self.settle_s)),
             "OVF?": lambda a: str(int(a.overflow)),
             "TMN?": lambda a: f"{a.travel_um[0]:.6f}",
             "TMX?": lambda a: f"{a.travel_um[1]:.6f}",
@@ -250,9 +250,6 @@ class PiGcsEmulator:
             raise _GcsFault(PARAM_SYNTAX)
         if not check_only:
             axis.drift_compensation = bool(value)
-
-    def _on_target(self, axis: EmulatedAxis) -> bool:
-        return axis.servo and time.monotonic() - axis.moved_at >= self.settle_s
 
     def _position_um(self, axis: EmulatedAxis) -> float:
         return axis.target_um if axis.servo else axis.sva_v * self.um_per_volt
