@@ -158,18 +158,14 @@ class ModbusHub:
             if not connected:
                 lost.set()
 
+        common: dict[str, Any] = {"timeout": c.timeout_s, "retries": c.retries, "reconnect_delay": 0,
+                                  "name": f"hub {c.name}", "trace_connect": on_connection_change}
         client: AsyncModbusTcpClient | AsyncModbusSerialClient
         if c.type == "tcp":
-            client = AsyncModbusTcpClient(
-                c.host, port=int(c.port), timeout=c.timeout_s, retries=c.retries, reconnect_delay=0,
-                name=f"hub {c.name}", trace_connect=on_connection_change,
-            )
+            client = AsyncModbusTcpClient(c.host, port=int(c.port), **common)
         else:
-            client = AsyncModbusSerialClient(
-                str(c.port), framer=FramerType.RTU, baudrate=c.baudrate, bytesize=c.bytesize, parity=c.parity,
-                stopbits=c.stopbits, timeout=c.timeout_s, retries=c.retries, reconnect_delay=0,
-                name=f"hub {c.name}", trace_connect=on_connection_change,
-            )
+            client = AsyncModbusSerialClient(str(c.port), framer=FramerType.RTU, baudrate=c.baudrate,
+                                             bytesize=c.bytesize, parity=c.parity, stopbits=c.stopbits, **common)
         for response in (CheckedRegisters, CheckedInputRegisters):  # this client's decoder only
             client.register(response)
         return client

@@ -12,6 +12,7 @@ import socket
 import socketserver
 import threading
 from collections.abc import Callable
+from typing import Self
 
 
 class LoopbackServer:
@@ -69,3 +70,29 @@ class LoopbackServer:
         finally:
             with self._lock:
                 self._sockets.discard(sock)
+
+
+class LoopbackDevice:
+    """An emulator served by its :class:`LoopbackServer` ``_tcp``: its ``port``, ``start``, ``stop`` (also
+    ``close``), and a ``with`` block that stops it."""
+
+    _tcp: LoopbackServer
+
+    @property
+    def port(self) -> int:
+        return self._tcp.port
+
+    def start(self) -> None:
+        self._tcp.start()
+
+    def stop(self) -> None:
+        self._tcp.stop()
+
+    def close(self) -> None:
+        self.stop()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()

@@ -52,8 +52,7 @@ class PtyDevice:
         os.close(self._slave)
         self.link.unlink(missing_ok=True)
 
-    def close(self) -> None:
-        self.unplug()
+    close = unplug
 
     def _serve(self, master: int, stop: threading.Event) -> None:
         """What the device does with the bytes it gets, on its own thread until ``stop`` is set: a
