@@ -97,7 +97,6 @@ class SerialLinePlugin(DriverPlugin):
         return []
 
     def create(self, configs: Sequence[SensorConfig], context: DriverContext) -> list[SensorGroup]:
-        groups: list[SensorGroup] = []
         owners: dict[str, SerialLineGroup] = {}
         context.resources.put(PORTS_KEY, owners)  # this build's ports only
         for config in configs:
@@ -105,10 +104,8 @@ class SerialLinePlugin(DriverPlugin):
             if config.port in owners:
                 raise DriverSetupError(f"sensor {config.name!r}: port {config.port!r} is already used by sensor "
                                        f"{owners[config.port].config.name!r} (one instrument per port)")
-            group = SerialLineGroup(config, context.clock)
-            owners[config.port] = group
-            groups.append(group)
-        return groups
+            owners[config.port] = SerialLineGroup(config, context.clock)
+        return list(owners.values())
 
     def create_actuators(self, configs: Sequence[ActuatorOptions], context: DriverContext) -> list[Actuator]:
         """Several axes of one controller (a multi-axis GCS controller): the axes on one port share one

@@ -70,11 +70,9 @@ class PiGcsEmulator:
     this long after it), ``fail_next`` (command word -> error code: the next such command is refused
     with it, changing nothing), ``has_voltage_limits`` (False: ``VMI?``/``VMA?`` are unknown commands,
     as on a controller without them), ``silent`` (answers nothing), ``frozen`` (SVA and MOV are accepted
-    without an error and change nothing: an amplifier off, a stage unplugged), ``on_sva`` (told each SVA
-    that takes effect: wire it to a simulated stage), ``on_mov`` (told each MOV that takes effect: a
-    closed-loop stage settling at the target), ``stray`` (a line sent once, unasked, before the
-    next answer), ``um_per_volt`` (open-loop
-    position per volt, for ``POS?``).
+    without an error and change nothing: an amplifier off, a stage unplugged), ``on_sva``/``on_mov`` (below),
+    ``stray`` (a line sent once, unasked, before the next answer), ``um_per_volt`` (open-loop position per
+    volt, for ``POS?``).
     """
 
     axes: dict[str, EmulatedAxis] = field(default_factory=lambda: {"1": EmulatedAxis()})
