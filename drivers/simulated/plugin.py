@@ -126,8 +126,9 @@ class SimulatedPlugin(VirtualCellPlugin):
 
     def create(self, configs: Sequence[SensorConfig], context: DriverContext) -> list[SensorGroup]:
         cell = shared_cell(context)
-        sims = [as_config(c, SimulatedSensorConfig) for c in configs]
-        for c in sims:
+        groups: list[SensorGroup] = []
+        temps: dict[tuple[float, float], list[SimulatedSensorConfig]] = {}
+        for c in (as_config(c, SimulatedSensorConfig) for c in configs):
             if c.source not in cell.channels:
                 raise DriverSetupError(
                     f"sensor {c.name}: no simulated channel {c.source!r}; set channel to one of "
@@ -136,9 +137,6 @@ class SimulatedPlugin(VirtualCellPlugin):
                 expected = "position" if cell.is_position(c.source) else "temperature"
                 raise DriverSetupError(
                     f"sensor {c.name}: simulated channel {c.source} has role {expected}, not {c.role}")
-        groups: list[SensorGroup] = []
-        temps: dict[tuple[float, float], list[SimulatedSensorConfig]] = {}
-        for c in sims:
             if c.role == "position":
                 groups.append(SimulatedGroup(cell, [c]))
             else:
