@@ -721,7 +721,6 @@ class CellVariant:
     params: CellParams
     #: effects always on (a one-axis cell's; a stack keeps no memory of the path, so it has none of them)
     effects: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
-    why: str = ""
 
     def effects_with(self, chosen: Mapping[str, dict[str, float]], n_axes: int = 1) -> dict[str, dict[str, float]]:
         """This cell's own effects (one axis only) with ``chosen`` on top (its parameters win)."""
@@ -746,15 +745,12 @@ REALISTIC_PARAMS = CellParams(
 #: the named cells: ``ideal`` (the model's own form: what it proves is that the fit recovers a cell it can
 #: represent) and ``realistic`` (what a lab's cell does that no candidate term reproduces)
 CELLS: dict[str, CellVariant] = {
-    "ideal": CellVariant("ideal", CellParams(), {},
-                         "the paper's model form: linear in T1..T4 plus a square of the bracket's temperature"),
+    "ideal": CellVariant("ideal", CellParams()),  # the paper's model form: linear in T1..T4 plus the bracket's square
     "realistic": CellVariant(
         "realistic", REALISTIC_PARAMS,
         # closed loop (the paper's stage: PID on its capacitive sensor): what its loop leaves of the piezo's
         # 10-15 % hysteresis and ~1 %/decade creep is its sensor's: 0.02 % of the stroke, 0.2 % of a step settling
-        {"hysteresis": {"h_um": 0.10, "deadband_um": 0.5}, "creep": {"c": 0.002, "tau_s": 15.0}},
-        "asymmetric, lagging bracket bending; an unmonitored heat source; interferometer refraction that "
-        "does not average out; closed-loop hysteresis and creep; thermocouple noise and lags"),
+        {"hysteresis": {"h_um": 0.10, "deadband_um": 0.5}, "creep": {"c": 0.002, "tau_s": 15.0}}),
 }
 
 
