@@ -52,10 +52,6 @@ class ModbusExceptionError(Exception):
 
     def __init__(self, code: int, device_id: int, input_type: str, address: int, count: int) -> None:
         self.code = code
-        self.device_id = device_id
-        self.input_type = input_type
-        self.address = address
-        self.count = count
         name = EXCEPTION_NAMES.get(code, "unknown exception code")
         where = f"{REGISTER_KIND_NAMES[input_type]} {address}"
         if count > 1:
