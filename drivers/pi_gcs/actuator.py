@@ -141,11 +141,9 @@ class PiGcsActuator(Actuator):
     async def _optional(self, query: str) -> tuple[str | None, int]:
         """A query the controller may not know: (its answer, 0) or (None, the error code it set)."""
         *found, err = await self._ask([query, "ERR?"], None)
-        code = self._code(err)
         if not found:  # no answer to the query: it set an error
-            return None, code
-        if code:
-            raise DeviceError(f"{self.description}: {error_text(code)} (after {query!r})")
+            return None, self._code(err)
+        self._check(err, query)
         return found[0], 0
 
     # -- open / close -----------------------------------------------------------------------------
