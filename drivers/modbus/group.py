@@ -133,11 +133,10 @@ class ModbusBlockGroup(SensorGroup):
                 t = self.clock.now()
                 for c in request.channels:
                     readings[c.name] = Reading.fault(t, str(error), c.value_unit)
-                index += 1
-                continue
-            t = self.clock.now()
-            for c in request.channels:
-                readings[c.name] = channel_reading(c, registers[c.address - request.start :], t)
+            else:
+                t = self.clock.now()
+                for c in request.channels:
+                    readings[c.name] = channel_reading(c, registers[c.address - request.start :], t)
             index += 1
         return readings
 

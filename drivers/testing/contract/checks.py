@@ -254,10 +254,8 @@ class ActuatorContract:
         rig = self.built_rig(tmp_path)
 
         async def body() -> None:
-            actuator = rig.actuator()
+            actuator = await opened_actuator(rig)
             assert actuator.description  # names the device in messages
-            actuator.limits_v = LIMITS_V
-            await actuator.open()
             asked = [0.1234567, 2.5, 7.7777777, 0.0, 9.99999]
             for volts in asked:
                 sent = actuator.sent_voltage(volts)
