@@ -393,12 +393,6 @@ class AxisParams:
     k2_bracket_um_per_c2: float
     full_um: float = 480.0
 
-    @classmethod
-    def of(cls, params: CellParams) -> AxisParams:
-        """The paper's stage, as ``params`` (``[simulation] params``) sets it."""
-        return cls(params.geometry_e_um, params.k_stage_um_per_c, params.k_bracket_um_per_c, params.k_beam_um_per_c,
-                   params.k2_bracket_um_per_c2, params.geometry_full_um)
-
     def geometry(self, q: Any) -> Any:
         """x = g(q) = q + e(q / full), e cubic: plain arithmetic, so floats and arrays both work."""
         u = q / self.full_um
@@ -486,10 +480,11 @@ class CellPhysics:
     def __post_init__(self) -> None:
         if len(set(self.axes)) != len(self.axes) or not 1 <= len(self.axes) <= 3 or set(self.axes) - set(AXIS_PARAMS):
             raise ValueError(f"a simulated cell has 1 to 3 distinct axes of {', '.join(AXIS_PARAMS)}, got {self.axes}")
-        if not self.axis_params:
-            self.axis_params = ({self.axes[0]: AxisParams.of(self.params)} if len(self.axes) == 1
-                                else {a: AXIS_PARAMS[a] for a in self.axes})
         p = self.params
+        if not self.axis_params:  # one axis: the paper's stage, as ``params`` (``[simulation] params``) sets it
+            paper = AxisParams(p.geometry_e_um, p.k_stage_um_per_c, p.k_bracket_um_per_c, p.k_beam_um_per_c,
+                               p.k2_bracket_um_per_c2, p.geometry_full_um)
+            self.axis_params = {self.axes[0]: paper} if len(self.axes) == 1 else {a: AXIS_PARAMS[a] for a in self.axes}
         if p.problems():
             raise ValueError("simulated cell parameters: " + "; ".join(p.problems()))
         taus = {"stage": p.tau_stage_s, "bracket": p.tau_bracket_s, "t3": p.tau_t3_s, "t4": p.tau_t4_s,
