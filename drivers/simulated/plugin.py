@@ -75,17 +75,16 @@ class SimulatedGroup(SensorGroup):
         self._positions = {name: source for name, source in self._sources.items() if cell.is_position(source)}
         self.interval_s = min(c.interval_s for c in configs)
         self.timeout_s = max(c.timeout_s for c in configs)
-        self.is_open = False
 
     async def open(self) -> None:
-        self.is_open = True
+        return None
 
     async def read(self) -> dict[str, Reading]:
         by_source = self.cell.read(self._channels)
         return {name: by_source[source] for name, source in self._sources.items()}
 
     async def close(self) -> None:
-        self.is_open = False
+        return None
 
     def true_values(self) -> dict[str, float]:
         """The true attained position behind this group's last interferometer reading (temperatures: none)."""
@@ -100,13 +99,11 @@ class SimulatedActuator(Actuator):
         self.cell = cell
         self.axis = axis
         self.description = "simulated stage" + (f", axis {axis}" if len(cell.axes) > 1 else "")
-        self.last_voltage_v: float | None = None
 
     async def open(self) -> None:
         return None
 
     async def command(self, q_um: float, voltage_v: float, *, x_um: float | None = None) -> None:
-        self.last_voltage_v = voltage_v
         self.cell.command(self.axis, q_um)
 
     async def close(self) -> None:
