@@ -288,7 +288,7 @@ class SerialLineGroup(SensorGroup):
         ``timeout_s`` for the line that answers it (None: silence); ``until`` (loop time) caps the whole.
         The lock is held."""
         loop = asyncio.get_running_loop()
-        if self._reader is None:  # closed while this request waited for the lock
+        if self._reader is None:  # closed (while this request waited for the lock, or vanished): reopen it
             await self.open()
         was_dirty = self._dirty and self.solicited
         if was_dirty and self._resync_query is not None:
@@ -440,9 +440,7 @@ class SerialLineGroup(SensorGroup):
         (:class:`LineBusyError`; nothing was written).
         """
         async with self._lock:
-            await self._raise_if_vanished()
-            if self._reader is None:
-                await self.open()
+            await self._raise_if_vanished()  # then the request (re)opens a closed port
             line = await self._request(data, repr(data.decode("latin-1")), answer=answer, timeout_s=timeout_s)
             if answer and line is None:
                 await self._raise_if_vanished()
