@@ -250,7 +250,7 @@ class PiGcsActuator(Actuator):
         """Prepared on the connection the next exchange uses (a lost connection is prepared again)."""
         if not self._leased:
             raise DeviceError(f"{self.description}: not open")
-        if self._prepared_for is None or not self.link.connected or self._prepared_for != self.link.generation:
+        if not self.link.connected or self._prepared_for != self.link.generation:
             await self._prepare()
 
     # -- commands ---------------------------------------------------------------------------------
