@@ -52,6 +52,10 @@ def _fields(result: list[Any], count: int, where: str, shape: str) -> list[Any]:
     return result
 
 
+def _first_text(result: list[Any], default: str) -> str:
+    return next((item for item in result if isinstance(item, str)), default)
+
+
 class IdsGroup(SensorGroup):
     def __init__(self, channels: Sequence[IdsSensorConfig], clock: Clock) -> None:
         first = channels[0]
@@ -90,17 +94,12 @@ class IdsGroup(SensorGroup):
             result = await self.rpc.call(ERROR_TEXT, [0, number])
         except DeviceError:
             return "(no text from the device)"
-        texts = [item for item in result if isinstance(item, str)]
-        return texts[0] if texts else "(no text from the device)"
-
-    async def _mode(self) -> str:
-        result = await self.rpc.call(CURRENT_MODE)
-        texts = [item for item in result if isinstance(item, str)]  # [errNo, mode] (API 2) or [mode]
-        return texts[0] if texts else "unknown"
+        return _first_text(result, "(no text from the device)")
 
     async def _why_stopped(self) -> str:
         """The device's state, and the error that stopped its measurement when it reports one."""
-        why = f"mode {await self._mode()!r}"
+        mode = _first_text(await self.rpc.call(CURRENT_MODE), "unknown")  # [errNo, mode] (API 2) or [mode]
+        why = f"mode {mode!r}"
         error = (await self.rpc.call(SYSTEM_ERROR))[0]
         if error != 0:
             why += f"; system error {error}: {await self._text(error)}"

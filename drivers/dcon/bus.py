@@ -11,6 +11,7 @@ by its caller (a cancelled poll) finishes in its thread before the next one may 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import termios
 import threading
 
@@ -70,10 +71,8 @@ class DconBus:
         with self._port_lock:
             port, self._port = self._port, None
             if port is not None:
-                try:
+                with contextlib.suppress(Exception):  # the port may be dead already: closing is what matters
                     port.close()
-                except Exception:  # the port may be dead already: closing is what matters
-                    pass
 
     def _exchange_blocking(self, data: bytes, shown: str, expected: str) -> bytes:
         with self._port_lock:
@@ -87,10 +86,8 @@ class DconBus:
                 answer = bytes(port.read_until(CR.encode(), MAX_ANSWER_BYTES))
             except (serial.SerialException, OSError, TypeError, termios.error) as error:  # TypeError: a closed fd
                 self._port = None
-                try:
+                with contextlib.suppress(Exception):
                     port.close()
-                except Exception:
-                    pass
                 raise DeviceError(f"{self.description}: the port failed asking {shown!r} ({expected}): "
                                   f"{error}") from error
         if not answer.endswith(CR.encode()):

@@ -30,10 +30,6 @@ BUSES_KEY = "dcon.buses"
 MODULE_SETTINGS = ("checksum", "open_detection")
 
 
-def _channels(configs: Sequence[SensorConfig]) -> list[DconSensorConfig]:
-    return [as_config(c, DconSensorConfig) for c in configs]
-
-
 class DconPlugin(DriverPlugin):
     name = "dcon"
     config_model: ClassVar[type[SensorConfig]] = DconSensorConfig
@@ -72,7 +68,7 @@ class DconPlugin(DriverPlugin):
         if problems:
             raise DriverSetupError("dcon: " + "; ".join(problems))
         modules: dict[tuple[str, int], list[DconSensorConfig]] = {}
-        for config in _channels(configs):
+        for config in (as_config(c, DconSensorConfig) for c in configs):
             context.hub(config.hub, f"sensor {config.name!r}")
             modules.setdefault(config.module, []).append(config)
         per_hub = {hub: sum(1 for h, _ in modules if h == hub) for hub, _ in modules}

@@ -10,6 +10,15 @@ from nanodrift.drivers.base import ActuatorOptions, OutputClaim, SensorConfig, S
 from nanodrift.drivers.modbus.codec import DATA_TYPES, DataTypeName, SwapName, raw_for, register_count, step_v
 
 
+def _check_layout(data_type: str, swap: str, address: int) -> None:
+    """A ``ValueError`` when ``swap`` or ``address`` cannot take ``data_type``."""
+    spec = DATA_TYPES[data_type]
+    if swap in ("word", "word_byte") and spec.registers < 2:
+        raise ValueError(f"swap = {swap!r} reorders registers and needs a 32-bit data_type, not {data_type}")
+    if address + spec.registers - 1 > 65535:
+        raise ValueError(f"address {address} + {spec.registers} register(s) runs past 65535")
+
+
 class ModbusHubConfig(StrictModel):
     """A ``[[hubs]]`` entry: a connection shared by several channels (Home Assistant modbus naming); strict: no
     ``"502"`` for 502."""
@@ -69,13 +78,8 @@ class ModbusSensorConfig(SensorConfig):
 
     @model_validator(mode="after")
     def _consistent(self) -> ModbusSensorConfig:
+        _check_layout(self.data_type, self.swap, self.address)
         spec = DATA_TYPES[self.data_type]
-        if self.swap in ("word", "word_byte") and spec.registers < 2:
-            raise ValueError(
-                f"swap = {self.swap!r} reorders registers and needs a 32-bit data_type, not {self.data_type}"
-            )
-        if self.address + spec.registers - 1 > 65535:
-            raise ValueError(f"address {self.address} + {spec.registers} register(s) runs past 65535")
         if self.nan_value is not None:
             if not spec.is_float and isinstance(self.nan_value, float) and not self.nan_value.is_integer():
                 raise ValueError(f"nan_value {self.nan_value} must be an integer for {self.data_type}")
@@ -130,14 +134,9 @@ class ModbusActuatorConfig(ActuatorOptions):
 
     @model_validator(mode="after")
     def _consistent(self) -> ModbusActuatorConfig:
-        spec = DATA_TYPES[self.data_type]
         if self.scale == 0:
             raise ValueError("scale (volts per count) must not be 0")
-        if self.swap in ("word", "word_byte") and spec.registers < 2:
-            raise ValueError(
-                f"swap = {self.swap!r} reorders registers and needs a 32-bit data_type, not {self.data_type}")
-        if self.address + spec.registers - 1 > 65535:
-            raise ValueError(f"address {self.address} + {spec.registers} register(s) runs past 65535")
+        _check_layout(self.data_type, self.swap, self.address)
         return self
 
     @property

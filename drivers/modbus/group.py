@@ -40,10 +40,6 @@ class Block:
     count: int
     channels: tuple[ModbusSensorConfig, ...]
 
-    @property
-    def has_gaps(self) -> bool:
-        return len(contiguous_runs(self)) > 1
-
 
 def _block(channels: Sequence[ModbusSensorConfig]) -> Block:
     first = channels[0]
@@ -78,11 +74,6 @@ def plan_blocks(
         if current:
             blocks.append(_block(current))
     return blocks
-
-
-def contiguous_runs(block: Block) -> list[Block]:
-    """``block`` split where unused registers separate its channels (no gap bridged)."""
-    return plan_blocks(block.channels, max_gap=0)
 
 
 class ModbusBlockGroup(SensorGroup):
@@ -132,8 +123,8 @@ class ModbusBlockGroup(SensorGroup):
                     request.input_type, request.device_id, request.start, request.count
                 )
             except ModbusExceptionError as error:
-                if error.code == ILLEGAL_DATA_ADDRESS and request.has_gaps:
-                    runs = contiguous_runs(request)
+                runs = plan_blocks(request.channels, max_gap=0)  # split where unused registers separate them
+                if error.code == ILLEGAL_DATA_ADDRESS and len(runs) > 1:
                     log.info("modbus request split: the device refuses unmapped registers",
                              hub=request.hub, device_id=request.device_id, start=request.start,
                              count=request.count, requests=len(runs))
@@ -142,11 +133,10 @@ class ModbusBlockGroup(SensorGroup):
                 t = self.clock.now()
                 for c in request.channels:
                     readings[c.name] = Reading.fault(t, str(error), c.value_unit)
-                index += 1
-                continue
-            t = self.clock.now()
-            for c in request.channels:
-                readings[c.name] = channel_reading(c, registers[c.address - request.start :], t)
+            else:
+                t = self.clock.now()
+                for c in request.channels:
+                    readings[c.name] = channel_reading(c, registers[c.address - request.start :], t)
             index += 1
         return readings
 

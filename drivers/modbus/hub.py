@@ -46,16 +46,14 @@ EXCEPTION_NAMES: dict[int, str] = {
 
 REGISTER_KIND_NAMES = {"input": "input register", "holding": "holding register"}
 
+Client = AsyncModbusTcpClient | AsyncModbusSerialClient
+
 
 class ModbusExceptionError(Exception):
     """The device answered, with a Modbus exception code instead of data."""
 
     def __init__(self, code: int, device_id: int, input_type: str, address: int, count: int) -> None:
         self.code = code
-        self.device_id = device_id
-        self.input_type = input_type
-        self.address = address
-        self.count = count
         name = EXCEPTION_NAMES.get(code, "unknown exception code")
         where = f"{REGISTER_KIND_NAMES[input_type]} {address}"
         if count > 1:
@@ -102,7 +100,7 @@ class ModbusHub:
         #: connections tried: a caller that queued for the lock while an attempt failed takes that failure as
         #: its own answer instead of trying again (:meth:`_connect_locked`)
         self.connect_attempts = 0
-        self._client: AsyncModbusTcpClient | AsyncModbusSerialClient | None = None
+        self._client: Client | None = None
         self._lost = asyncio.Event()
         self._lock = asyncio.Lock()
         self._users = 0
@@ -150,7 +148,7 @@ class ModbusHub:
 
     # -- connection -------------------------------------------------------------------------------
 
-    def _new_client(self, lost: asyncio.Event) -> AsyncModbusTcpClient | AsyncModbusSerialClient:
+    def _new_client(self, lost: asyncio.Event) -> Client:
         """A fresh client whose disconnect sets ``lost`` (so a late callback of an old one cannot)."""
         c = self.config
 
@@ -158,18 +156,14 @@ class ModbusHub:
             if not connected:
                 lost.set()
 
-        client: AsyncModbusTcpClient | AsyncModbusSerialClient
+        common: dict[str, Any] = {"timeout": c.timeout_s, "retries": c.retries, "reconnect_delay": 0,
+                                  "name": f"hub {c.name}", "trace_connect": on_connection_change}
+        client: Client
         if c.type == "tcp":
-            client = AsyncModbusTcpClient(
-                c.host, port=int(c.port), timeout=c.timeout_s, retries=c.retries, reconnect_delay=0,
-                name=f"hub {c.name}", trace_connect=on_connection_change,
-            )
+            client = AsyncModbusTcpClient(c.host, port=int(c.port), **common)
         else:
-            client = AsyncModbusSerialClient(
-                str(c.port), framer=FramerType.RTU, baudrate=c.baudrate, bytesize=c.bytesize, parity=c.parity,
-                stopbits=c.stopbits, timeout=c.timeout_s, retries=c.retries, reconnect_delay=0,
-                name=f"hub {c.name}", trace_connect=on_connection_change,
-            )
+            client = AsyncModbusSerialClient(str(c.port), framer=FramerType.RTU, baudrate=c.baudrate,
+                                             bytesize=c.bytesize, parity=c.parity, stopbits=c.stopbits, **common)
         for response in (CheckedRegisters, CheckedInputRegisters):  # this client's decoder only
             client.register(response)
         return client
@@ -201,20 +195,13 @@ class ModbusHub:
 
     async def read_registers(self, input_type: str, device_id: int, address: int, count: int) -> list[int]:
         """``count`` registers from ``address`` of ``device_id``; one request, serialised on the hub."""
-        seen = self.connect_attempts
-        async with self._lock:
-            await self._connect_locked(seen)
-            assert self._client is not None
-            registers = await self._request_locked(self._client, input_type, device_id, address, count)
-        return registers
-
-    async def _request_locked(
-        self, client: AsyncModbusTcpClient | AsyncModbusSerialClient, input_type: str, device_id: int,
-        address: int, count: int,
-    ) -> list[int]:
         where = f"device {device_id} {REGISTER_KIND_NAMES[input_type]} {address} (count {count})"
-        read = client.read_input_registers if input_type == "input" else client.read_holding_registers
-        response = await self._answer_locked(lambda: read(address, count=count, device_id=device_id), "reading", where)
+
+        def read(client: Client) -> Awaitable[Any]:
+            request = client.read_input_registers if input_type == "input" else client.read_holding_registers
+            return request(address, count=count, device_id=device_id)
+
+        response = await self._exchange(read, "reading", where)
         if response.isError():
             raise ModbusExceptionError(int(response.exception_code), device_id, input_type, address, count)
         registers: Sequence[int] = response.registers
@@ -227,11 +214,6 @@ class ModbusHub:
                 f"and it carries {data_bytes} data bytes ({len(registers)} registers)"
             )
         return list(registers)
-
-    def _lost_link(self) -> None:
-        # the next call reconnects (a module that rebooted is back at once); when that call comes is
-        # the caller's back-off
-        self._drop()
 
     def _after_silence(self) -> None:
         # A silent TCP peer is a dead socket: drop it so the next read reconnects. On an RS-485 bus
@@ -250,52 +232,53 @@ class ModbusHub:
         values = [int(r) & 0xFFFF for r in registers]
         fc = 6 if len(values) == 1 else 16
         where = f"device {device_id} holding register {address}" + (f" (count {len(values)})" if fc == 16 else "")
+
+        def write(client: Client) -> Awaitable[Any]:
+            if fc == 6:
+                return client.write_register(address, values[0], device_id=device_id)
+            return client.write_registers(address, values, device_id=device_id)
+
+        response = await self._exchange(write, "writing", where)
+        if response.isError():
+            raise ModbusExceptionError(int(response.exception_code), device_id, "holding", address, len(values))
+
+    async def _exchange(self, request: Callable[[Client], Awaitable[Any]], verb: str, where: str) -> Any:
+        """The response to ``request(client)`` (``verb`` "reading"/"writing" ``where``) on the hub's lock,
+        connecting first when the link is down; :class:`DeviceError` on a refusal, silence or a lost link."""
         seen = self.connect_attempts
         async with self._lock:
             await self._connect_locked(seen)
             client = self._client
             assert client is not None
-            if fc == 6:
-                response = await self._answer_locked(
-                    lambda: client.write_register(address, values[0], device_id=device_id), "writing", where)
-            else:
-                response = await self._answer_locked(
-                    lambda: client.write_registers(address, values, device_id=device_id), "writing", where)
-        if response.isError():
-            raise ModbusExceptionError(int(response.exception_code), device_id, "holding", address, len(values))
-
-    async def _answer_locked(self, request: Callable[[], Awaitable[Any]], verb: str, where: str) -> Any:
-        """The response to ``request()`` (``verb`` "reading"/"writing" ``where``), or :class:`DeviceError`
-        on a refusal, silence or a lost link (the hub's lock held)."""
-        try:
-            call = asyncio.ensure_future(request())
-        except ModbusException as error:  # pymodbus refuses at once when the link just went away
-            self._lost_link()
-            raise DeviceError(f"modbus hub {self.name!r}: {self.endpoint}: {error} ({verb} {where})") from error
-        lost = asyncio.ensure_future(self._lost.wait())
-        try:
-            done, _ = await asyncio.wait(
-                {call, lost}, timeout=self.request_budget_s + 0.5, return_when=asyncio.FIRST_COMPLETED
-            )
-        except asyncio.CancelledError:
-            self._after_silence()  # the caller gave up mid-transaction: where the link stands is unknown
-            raise
-        finally:
-            lost.cancel()
-            call.cancel()
-        if call in done and call.exception() is None:
-            return call.result()
-        if call in done:
+            try:
+                call = asyncio.ensure_future(request(client))
+            except ModbusException as error:  # pymodbus refuses at once when the link just went away: the next
+                self._drop()  # call reconnects (a rebooted module is back at once), after the caller's back-off
+                raise DeviceError(f"modbus hub {self.name!r}: {self.endpoint}: {error} ({verb} {where})") from error
+            lost = asyncio.ensure_future(self._lost.wait())
+            try:
+                done, _ = await asyncio.wait(
+                    {call, lost}, timeout=self.request_budget_s + 0.5, return_when=asyncio.FIRST_COMPLETED
+                )
+            except asyncio.CancelledError:
+                self._after_silence()  # the caller gave up mid-transaction: where the link stands is unknown
+                raise
+            finally:
+                lost.cancel()
+                call.cancel()
+            if call in done and call.exception() is None:
+                return call.result()
+            if call in done:
+                self._after_silence()
+                failure = call.exception()
+                detail = "no response" if isinstance(failure, ModbusException) else repr(failure)
+                raise DeviceError(f"modbus hub {self.name!r} ({self.endpoint}): {detail} from {where} "
+                                  f"within {self.request_budget_s:g} s") from failure
+            if lost in done:
+                self._drop()
+                raise DeviceError(f"modbus hub {self.name!r}: connection to {self.endpoint} lost while {verb} {where}")
             self._after_silence()
-            failure = call.exception()
-            detail = "no response" if isinstance(failure, ModbusException) else repr(failure)
-            raise DeviceError(f"modbus hub {self.name!r} ({self.endpoint}): {detail} from {where} "
-                              f"within {self.request_budget_s:g} s") from failure
-        if lost in done:
-            self._lost_link()
-            raise DeviceError(f"modbus hub {self.name!r}: connection to {self.endpoint} lost while {verb} {where}")
-        self._after_silence()
-        raise DeviceError(f"modbus hub {self.name!r} ({self.endpoint}): no response from {where}")
+            raise DeviceError(f"modbus hub {self.name!r} ({self.endpoint}): no response from {where}")
 
 
 class HubLease:

@@ -26,7 +26,6 @@ What it does, and the document each behaviour comes from (PIPython 2.13.0.2, PI'
   written as the nearest value inside them.
 - **done**: :meth:`on_target` asks ``ONT?`` ("Check if 'axes' have reached the target") in closed loop; the
   daemon's ``done: reached`` waits for it (:meth:`nanodrift.drivers.base.Actuator.on_target`).
-  nanodrift's ``Actuator`` protocol has no hook for it, so the daemon's ``done`` does not call it yet.
 """
 
 from __future__ import annotations
@@ -110,7 +109,7 @@ class PiGcsActuator(Actuator):
 
     # -- talking ----------------------------------------------------------------------------------
 
-    async def _ask(self, lines: list[str], answers: int) -> list[str]:
+    async def _ask(self, lines: list[str], answers: int | None) -> list[str]:
         try:
             return await self.link.ask(lines, answers)
         except DeviceError as error:
@@ -141,15 +140,10 @@ class PiGcsActuator(Actuator):
 
     async def _optional(self, query: str) -> tuple[str | None, int]:
         """A query the controller may not know: (its answer, 0) or (None, the error code it set)."""
-        try:
-            *found, err = await self.link.ask_until_error([query])
-        except DeviceError as error:
-            raise DeviceError(f"{self.description}: {error}") from error
-        code = self._code(err)
+        *found, err = await self._ask([query, "ERR?"], None)
         if not found:  # no answer to the query: it set an error
-            return None, code
-        if code:
-            raise DeviceError(f"{self.description}: {error_text(code)} (after {query!r})")
+            return None, self._code(err)
+        self._check(err, query)
         return found[0], 0
 
     # -- open / close -----------------------------------------------------------------------------
@@ -256,7 +250,7 @@ class PiGcsActuator(Actuator):
         """Prepared on the connection the next exchange uses (a lost connection is prepared again)."""
         if not self._leased:
             raise DeviceError(f"{self.description}: not open")
-        if self._prepared_for is None or not self.link.connected or self._prepared_for != self.link.generation:
+        if not self.link.connected or self._prepared_for != self.link.generation:
             await self._prepare()
 
     # -- commands ---------------------------------------------------------------------------------

@@ -124,21 +124,15 @@ class GcsLink:
             return "\n".join(lines)
         raise ConnectionError(f"an answer of more than {MAX_ANSWER_LINES} lines")
 
-    async def ask(self, lines: list[str], answers: int) -> list[str]:
+    async def ask(self, lines: list[str], answers: int | None) -> list[str]:
         """Write ``lines`` (each a GCS command without LF) at once, then read ``answers`` answers in order.
 
-        :class:`DeviceError` when the controller cannot be reached, closes the connection, or stays silent
-        for ``timeout_s``; the connection is then dropped (answers may still be under way).
+        ``answers`` None (``lines`` ending with ``ERR?``): the answers up to ``ERR?``'s (a bare number: every
+        query here answers ``item=value``), the last of the list; for queries the controller may not know (an
+        unknown one answers nothing and sets error 2). :class:`DeviceError` when the controller cannot be
+        reached, closes the connection, or stays silent for ``timeout_s``; the connection is then dropped
+        (answers may still be under way).
         """
-        return await self._exchange(lines, answers)
-
-    async def ask_until_error(self, lines: list[str]) -> list[str]:
-        """Write ``lines`` and ``ERR?``, then read answers up to ``ERR?``'s (a bare number: every query here
-        answers ``item=value``), which is the last of the list. For queries the controller may not know: an
-        unknown one answers nothing and sets error 2."""
-        return await self._exchange([*lines, "ERR?"], None)
-
-    async def _exchange(self, lines: list[str], answers: int | None) -> list[str]:
         async with self._lock:
             await self.connect()
             request = "".join(f"{line}\n" for line in lines)

@@ -53,9 +53,12 @@ class SerialLineActuator(Actuator):
     def render(self, q_um: float, voltage_v: float, x_um: float | None = None) -> tuple[str, dict[str, float]]:
         """What one command writes, and the number each field carries in it (``voltage_v`` kept within
         ``limits_v``; :class:`ValueError` when it cannot be)."""
-        values = {"voltage_v": voltage_v, "q_um": q_um, "x_um": q_um if x_um is None else x_um}
+        return self._render({"voltage_v": voltage_v, "q_um": q_um, "x_um": q_um if x_um is None else x_um},
+                            self.limits_q_um)
+
+    def _render(self, values: dict[str, float], q_limits: tuple[float, float] | None) -> tuple[str, dict[str, float]]:
         try:
-            return self.template.render(values, self.limits_v, self.limits_q_um)
+            return self.template.render(values, self.limits_v, q_limits)
         except ValueError as error:
             raise ValueError(f"{self.description}: command {self.config.command!r}: {error}") from None
 
@@ -66,16 +69,8 @@ class SerialLineActuator(Actuator):
     def sent_voltage(self, voltage_v: float) -> float:
         """The voltage the controller reads in the line for ``voltage_v`` (a closed-loop template, which
         writes ``q_um``, carries no voltage: then ``voltage_v`` itself)."""
-        values = {"voltage_v": voltage_v, "q_um": 0.0, "x_um": 0.0}  # only voltage_v is asked about here
-        try:
-            _, sent = self.template.render(values, self.limits_v, limits_q_um=None)
-        except ValueError as error:
-            raise ValueError(f"{self.description}: command {self.config.command!r}: {error}") from None
+        _, sent = self._render({"voltage_v": voltage_v, "q_um": 0.0, "x_um": 0.0}, None)  # only voltage_v asked about
         return sent.get("voltage_v", voltage_v)
-
-    def text(self, q_um: float, voltage_v: float, x_um: float | None = None) -> str:
-        """What one command writes."""
-        return self.render(q_um, voltage_v, x_um)[0]
 
     async def _ask(self, query: str, after: str) -> str:
         answer = await self.port.exchange(query.encode("latin-1"), answer=True, timeout_s=self.config.timeout_s)

@@ -10,7 +10,7 @@ from typing import Annotated, Literal
 from pydantic import AfterValidator, Field, FiniteFloat, field_validator, model_validator
 
 from nanodrift.drivers.base import ActuatorOptions, OutputClaim, SensorConfig
-from nanodrift.drivers.serial_line.template import COMMAND_FIELDS, POSITION_FIELDS, CommandTemplate
+from nanodrift.drivers.serial_line.template import POSITION_FIELDS, CommandTemplate
 
 #: a line that is just a number: "12345.6", "-0.25", "+1.5e3" (anchored: patterns are searched)
 DEFAULT_PATTERN = r"^\s*(?P<value>[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*$"
@@ -25,24 +25,19 @@ def _one_of(value: float, allowed: tuple[float, ...]) -> float:
     return value
 
 
-
-def value_pattern(pattern: str, example: str) -> str:
-    """``pattern`` if it compiles and has the named group ``value`` the driver reads; else why not."""
-    try:
-        compiled = re.compile(pattern)
-    except re.error as error:
-        raise ValueError(f"not a valid regular expression: {error}") from None
-    if "value" not in compiled.groupindex:
-        raise ValueError(f"needs a named group 'value', e.g. {example}")
-    return pattern
-
-
 def any_pattern(pattern: str) -> str:
     """``pattern`` if it compiles; else why not."""
     try:
         re.compile(pattern)
     except re.error as error:
         raise ValueError(f"not a valid regular expression: {error}") from None
+    return pattern
+
+
+def value_pattern(pattern: str, example: str) -> str:
+    """``pattern`` if it compiles and has the named group ``value`` the driver reads; else why not."""
+    if "value" not in re.compile(any_pattern(pattern)).groupindex:
+        raise ValueError(f"needs a named group 'value', e.g. {example}")
     return pattern
 
 
@@ -53,14 +48,13 @@ RESYNC_PATTERN_HELP = ("regex searched in the resync query's answer (e.g. 'PI|Ph
                        "answer to any other request on the port")
 
 
-def resync_problem(query: str, pattern: str) -> str | None:
-    """Why a resync query and pattern do not go together (both or neither), or None."""
+def check_resync(query: str, pattern: str) -> None:
+    """A ``ValueError`` when a resync query and pattern do not go together (both or neither)."""
     if bool(query) != bool(pattern):
         missing = "resync_pattern" if query else "resync_query"
-        return (f"{missing}: resync_query and resync_pattern go together: the query is sent, and its answer "
-                "is the first line the pattern is found in (e.g. resync_query = \"*IDN?\\n\", "
-                "resync_pattern = 'PI|Physik')")
-    return None
+        raise ValueError(f"{missing}: resync_query and resync_pattern go together: the query is sent, and its "
+                         "answer is the first line the pattern is found in (e.g. resync_query = \"*IDN?\\n\", "
+                         "resync_pattern = 'PI|Physik')")
 
 
 class SerialLineSensorConfig(SensorConfig):
@@ -109,9 +103,7 @@ class SerialLineSensorConfig(SensorConfig):
 
     @model_validator(mode="after")
     def _resync(self) -> SerialLineSensorConfig:
-        problem = resync_problem(self.resync_query, self.resync_pattern)
-        if problem is not None:
-            raise ValueError(problem)
+        check_resync(self.resync_query, self.resync_pattern)
         if self.resync_query and self.streaming:
             raise ValueError("resync_query: a sensor that streams (query = \"\") asks nothing, so nothing on its "
                              "line can go unanswered; give it a query, or drop resync_query and resync_pattern")
@@ -185,11 +177,7 @@ class SerialLineActuatorConfig(ActuatorOptions):
     @field_validator("command")
     @classmethod
     def _template(cls, template: str) -> str:
-        CommandTemplate(template)  # ValueError naming the field it cannot take
-        try:
-            template.format(**dict.fromkeys(COMMAND_FIELDS, 1.0))
-        except (ValueError, IndexError) as error:
-            raise ValueError(f"cannot format a number with it: {error}") from None
+        CommandTemplate(template)  # ValueError naming the field it cannot take (it formats each one, probing)
         return template
 
     @field_validator("readback_pattern")
@@ -204,9 +192,7 @@ class SerialLineActuatorConfig(ActuatorOptions):
 
     @model_validator(mode="after")
     def _readback_field(self) -> SerialLineActuatorConfig:
-        problem = resync_problem(self.resync_query, self.resync_pattern)
-        if problem is not None:
-            raise ValueError(problem)
+        check_resync(self.resync_query, self.resync_pattern)
         if self.readback and self.readback_field is None:
             names = set(template_fields(self.command))
             if len(names) != 1:

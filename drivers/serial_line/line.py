@@ -283,12 +283,12 @@ class SerialLineGroup(SensorGroup):
         return {c.name: self.parse(*line)}
 
     async def _request(self, data: bytes, what: str, *, answer: bool, timeout_s: float,
-                       until: float | None = None) -> tuple[str, float] | None:
+                       until: float = math.inf) -> tuple[str, float] | None:
         """Make a dirty line clean (the resync query, else a quiet wait), send ``data`` and (``answer``) wait
         ``timeout_s`` for the line that answers it (None: silence); ``until`` (loop time) caps the whole.
         The lock is held."""
         loop = asyncio.get_running_loop()
-        if self._reader is None:  # closed while this request waited for the lock
+        if self._reader is None:  # closed (while this request waited for the lock, or vanished): reopen it
             await self.open()
         was_dirty = self._dirty and self.solicited
         if was_dirty and self._resync_query is not None:
@@ -296,22 +296,22 @@ class SerialLineGroup(SensorGroup):
                 await self._resynchronise(timeout_s, until)
         elif was_dirty:
             quiet_s = quiet_for(timeout_s)
-            budget_s = timeout_s + quiet_s if until is None else min(timeout_s + quiet_s, until - loop.time())
+            budget_s = min(timeout_s + quiet_s, until - loop.time())
             await self._quiet(budget_s, quiet_s)
         late_before = self.late_answers
-        deadline = loop.time() + timeout_s if until is None else min(loop.time() + timeout_s, until)
+        deadline = min(loop.time() + timeout_s, until)
         line = await self._send(data, what, "answer" if answer else None, timeout_s, deadline)
         if line is not None and not was_dirty and self.late_answers == late_before:
             self._episode = False  # a whole request without a late answer: the episode is over
         return line
 
-    async def _resynchronise(self, timeout_s: float, until: float | None) -> None:
+    async def _resynchronise(self, timeout_s: float, until: float) -> None:
         """Send the resync query and discard every line up to its answer (:meth:`_on_line`); the line is
         clean then. :class:`LineBusyError` (nothing else sent; the line stays dirty) when no answer comes
         within ``timeout_s`` (or by ``until``)."""
         assert self._resync_query is not None and self._resync_pattern is not None
         loop = asyncio.get_running_loop()
-        deadline = loop.time() + timeout_s if until is None else min(loop.time() + timeout_s, until)
+        deadline = min(loop.time() + timeout_s, until)
         discarded = self.late_answers
         query = self._resync_query.decode("latin-1")
         line = await self._send(self._resync_query, f"resync query {query!r}", "resync", timeout_s, deadline)
@@ -440,9 +440,7 @@ class SerialLineGroup(SensorGroup):
         (:class:`LineBusyError`; nothing was written).
         """
         async with self._lock:
-            await self._raise_if_vanished()
-            if self._reader is None:
-                await self.open()
+            await self._raise_if_vanished()  # then the request (re)opens a closed port
             line = await self._request(data, repr(data.decode("latin-1")), answer=answer, timeout_s=timeout_s)
             if answer and line is None:
                 await self._raise_if_vanished()

@@ -67,7 +67,7 @@ class SerialLinePlugin(DriverPlugin):
                     problems.append(f"actuator.{key}: port {actuator.port!r} is read by {where} with {key} = "
                                     f"{getattr(sensor, key)!r}, the actuator says {getattr(actuator, key)!r} (one "
                                     "port, one setting)")
-            if sensor.streaming and (actuator.readback or actuator.error_query):
+            if sensor.streaming and actuator.asks:
                 problems.append(_streaming_problem("actuator.port: ", where, actuator.port))
             if sensor.resync is not None and actuator.resync is not None and sensor.resync != actuator.resync:
                 problems.append(f"actuator.resync_query: port {actuator.port!r} is resynchronised by {where} with "
@@ -97,7 +97,6 @@ class SerialLinePlugin(DriverPlugin):
         return []
 
     def create(self, configs: Sequence[SensorConfig], context: DriverContext) -> list[SensorGroup]:
-        groups: list[SensorGroup] = []
         owners: dict[str, SerialLineGroup] = {}
         context.resources.put(PORTS_KEY, owners)  # this build's ports only
         for config in configs:
@@ -105,10 +104,8 @@ class SerialLinePlugin(DriverPlugin):
             if config.port in owners:
                 raise DriverSetupError(f"sensor {config.name!r}: port {config.port!r} is already used by sensor "
                                        f"{owners[config.port].config.name!r} (one instrument per port)")
-            group = SerialLineGroup(config, context.clock)
-            owners[config.port] = group
-            groups.append(group)
-        return groups
+            owners[config.port] = SerialLineGroup(config, context.clock)
+        return list(owners.values())
 
     def create_actuators(self, configs: Sequence[ActuatorOptions], context: DriverContext) -> list[Actuator]:
         """Several axes of one controller (a multi-axis GCS controller): the axes on one port share one
@@ -152,7 +149,7 @@ class SerialLinePlugin(DriverPlugin):
                     f"actuator: port {config.port!r} is read by sensor {name!r} with {key} = "
                     f"{getattr(sensor.config, key)!r}, the actuator says {getattr(config, key)!r} (one port, one "
                     "setting)")
-        if sensor.config.streaming and (config.readback or config.error_query):
+        if sensor.config.streaming and config.asks:
             raise DriverSetupError(_streaming_problem("actuator: ", f"sensor {name!r}", config.port))
         if config.resync is not None:
             if sensor.resync is not None and sensor.resync != config.resync:

@@ -168,9 +168,6 @@ class CommandTemplate:
     def fields(self) -> list[TemplateField]:
         return [field for _, field in self.pieces if field is not None]
 
-    def names(self) -> list[str]:
-        return [field.name for field in self.fields]
-
     def render(self, values: Mapping[str, float], limits_v: tuple[float, float] | None = None,
                limits_q_um: tuple[float, float] | None = None) -> tuple[str, dict[str, float]]:
         """The text to write, and the number each field's first occurrence carries.

@@ -90,10 +90,7 @@ class SimulatedCell:
         self.faults.append(FaultWindow(channel, start_s, end_s, mode))
 
     def _fault(self, channel: str, t: float) -> FaultWindow | None:
-        for window in self.faults:
-            if window.channel == channel and window.start_s <= t < window.end_s:
-                return window
-        return None
+        return next((w for w in self.faults if w.channel == channel and w.start_s <= t < w.end_s), None)
 
     def read(self, channels: Iterable[str]) -> dict[str, Reading]:
         """One poll of ``channels`` now, with noise; honours injected faults."""

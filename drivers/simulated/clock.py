@@ -84,11 +84,6 @@ class VirtualClock:
         await future
 
     @staticmethod
-    def _others_runnable(loop: asyncio.AbstractEventLoop) -> bool:
-        ready: Any = getattr(loop, "_ready", None)
-        return bool(ready) if ready is not None else False
-
-    @staticmethod
     def _loop_idle(loop: asyncio.AbstractEventLoop) -> bool:
         """Whether nothing but the caller could run now: no callback ready, no timer due (False when this loop
         does not show its queues: then every sleep goes through the scheduler)."""
@@ -102,7 +97,7 @@ class VirtualClock:
         idle_rounds = 0
         while self._heap:
             await asyncio.sleep(0)
-            if self._others_runnable(loop):
+            if getattr(loop, "_ready", None):  # other callbacks are runnable
                 idle_rounds = 0
                 continue
             if idle_rounds < 1:  # one more round: callbacks scheduled by the last wake-ups settle

@@ -43,10 +43,8 @@ def run_plan(physics: CellPhysics, cycles: int | None = None, *,
     if len(physics.axes) > 1:
         stack = (cell_validation_plan if trajectory == "validation" else cell_calibration_plan)(physics.axes, n)
         return {a: [s.target(a) for s in stack] for a in physics.axes}, [s.cycle for s in stack]
-    if trajectory == "validation":  # ISO 9283: forward sweeps, each point approached from one side
-        plan = validation_plan(n)
-    else:
-        plan = (bidirectional_plan if trajectory == "bidirectional" else calibration_plan)(n)
+    # validation: ISO 9283, forward sweeps, each point approached from one side
+    plan = {"validation": validation_plan, "bidirectional": bidirectional_plan}.get(trajectory, calibration_plan)(n)
     return {physics.axes[0]: [s.target_um for s in plan]}, [s.cycle for s in plan]
 
 

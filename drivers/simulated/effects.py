@@ -119,10 +119,6 @@ def resolve_cross_effects(spec: str | None) -> dict[str, dict[str, float]]:
     return out
 
 
-def _unknown(kind: str, name: str, valid: Sequence[str]) -> UnknownNameError:
-    return UnknownNameError(f"unknown {kind} {name!r}; valid {kind}s: {', '.join(valid)}")
-
-
 def resolve_effects(spec: str | Sequence[str] | Mapping[str, Any] | None) -> dict[str, dict[str, float]]:
     """Effect name -> full parameter dict (defaults overridden), from any of the accepted forms.
 
@@ -135,17 +131,14 @@ def resolve_effects(spec: str | Sequence[str] | Mapping[str, Any] | None) -> dic
     if isinstance(spec, str):
         return _parse_cli(spec)
     if isinstance(spec, Mapping):
-        out: dict[str, dict[str, float]] = {}
-        for name, params in spec.items():
-            out[name] = _with_defaults(name, dict(params or {}))
-        return out
+        return {name: _with_defaults(name, dict(params or {})) for name, params in spec.items()}
     merged: dict[str, dict[str, float]] = {}
     for item in spec:
         merged.update(_parse_cli(str(item)))
     return merged
 
 
-def _parse_cli(text: str, catalogue: Mapping[str, EffectSpec] | None = None) -> dict[str, dict[str, float]]:
+def _parse_cli(text: str, catalogue: Mapping[str, EffectSpec] = EFFECTS) -> dict[str, dict[str, float]]:
     """``thermal_lag:tau_s=1800,k_um_per_c=-0.5,hysteresis``: a bare ``p=v`` continues the previous effect."""
     out: dict[str, dict[str, float]] = {}
     current: str | None = None
@@ -162,7 +155,7 @@ def _parse_cli(text: str, catalogue: Mapping[str, EffectSpec] | None = None) -> 
             params = [token]
         else:
             current, params = token, []
-        _check_effect(current, catalogue)
+        _spec(current, catalogue)
         overrides = out.setdefault(current, {})
         for p in params:
             key, sep, value = p.partition("=")
@@ -177,16 +170,15 @@ def _parse_cli(text: str, catalogue: Mapping[str, EffectSpec] | None = None) -> 
     return {name: _with_defaults(name, params, catalogue) for name, params in out.items()}
 
 
-def _check_effect(name: str, catalogue: Mapping[str, EffectSpec] | None = None) -> None:
-    known = EFFECTS if catalogue is None else catalogue
-    if name not in known:
-        raise _unknown("effect", name, list(known))
+def _spec(name: str, catalogue: Mapping[str, EffectSpec]) -> EffectSpec:
+    if name not in catalogue:
+        raise UnknownNameError(f"unknown effect {name!r}; valid effects: {', '.join(catalogue)}")
+    return catalogue[name]
 
 
 def _with_defaults(name: str, overrides: Mapping[str, Any],
-                   catalogue: Mapping[str, EffectSpec] | None = None) -> dict[str, float]:
-    _check_effect(name, catalogue)
-    defaults = (EFFECTS if catalogue is None else catalogue)[name].defaults
+                   catalogue: Mapping[str, EffectSpec] = EFFECTS) -> dict[str, float]:
+    defaults = _spec(name, catalogue).defaults
     params = dict(defaults)
     for key, value in overrides.items():
         if key not in defaults:

@@ -169,6 +169,13 @@ def first_order_filter(b0: float, b1: float, a1: float, x: np.ndarray, z0: float
     return out
 
 
+def _walk(held: np.ndarray, steps: np.ndarray, chunk: int) -> np.ndarray:
+    """A random walk by ``steps`` on from the last ``held`` value (0 on an empty grid; chunk 0's first step is 0)."""
+    if chunk == 0:
+        steps[0] = 0.0
+    return (float(held[-1]) if held.size else 0.0) + np.cumsum(steps)
+
+
 def _ou_step(prev: float, n: int, dt: float, tau: float, sigma: float, rng: np.random.Generator) -> np.ndarray:
     """``n`` further samples of an Ornstein-Uhlenbeck process (stationary std ``sigma``), exact."""
     a = math.exp(-dt / tau)
@@ -192,6 +199,8 @@ class Exogenous:
     CHUNK = 720
     #: chunks held at most (each CHUNK knots): two days at the default 30 s knots
     KEEP_CHUNKS = 8
+    #: the per-knot series (``nodes``: a column per node), extended and dropped together
+    SERIES = ("t", "air", "wander", "walk", "index_ppm", "nodes")
 
     def __init__(self, scenario: Scenario, params: CellParams, node_taus: Mapping[str, float], seed: int,
                  walk_um_per_sqrt_h: float = 0.0) -> None:
@@ -229,13 +238,9 @@ class Exogenous:
     def knots_held(self) -> int:
         return int(self.t.size)
 
-    def _knot(self, t: float) -> int:
-        """Global index of the knot at or before ``t`` (times before the grid: knot 0)."""
-        return max(0, int((t - self.t0) // self.dt))
-
     def ensure(self, t_max: float, t_min: float | None = None) -> None:
         """Hold every knot needed to evaluate times in ``[t_min, t_max]`` (``t_min`` None: ``t_max``)."""
-        low = self._knot(t_max if t_min is None else min(t_min, t_max))
+        low = max(0, int(((t_max if t_min is None else min(t_min, t_max)) - self.t0) // self.dt))  # its first knot
         if low < self.first_knot:  # before the oldest held chunk: regenerate from the start
             self._restart()
         while self.t.size < 2 or self.t[-1] < t_max + self.dt:
@@ -249,10 +254,8 @@ class Exogenous:
         if drop <= 0:
             return
         cut = drop * self.CHUNK
-        self.t, self.air = self.t[cut:].copy(), self.air[cut:].copy()
-        self.wander, self.walk = self.wander[cut:].copy(), self.walk[cut:].copy()
-        self.index_ppm = self.index_ppm[cut:].copy()
-        self.nodes = self.nodes[cut:].copy()
+        for name in self.SERIES:
+            setattr(self, name, getattr(self, name)[cut:].copy())
         self.first_knot += cut
 
     def _extend(self) -> None:
@@ -266,16 +269,10 @@ class Exogenous:
         air = self.scenario.air(t) + fluct
         prev_wander = float(self.wander[-1]) if self.wander.size else rng.normal(0.0, p.interferometer_wander_um)
         wander = _ou_step(prev_wander, n, self.dt, p.interferometer_wander_tau_s, p.interferometer_wander_um, rng)
-        steps = rng.normal(0.0, self.walk_sigma, n) if self.walk_sigma > 0 else np.zeros(n)
-        if k == 0:
-            steps[0] = 0.0
-        walk = (float(self.walk[-1]) if self.walk.size else 0.0) + np.cumsum(steps)
-        index_steps = np.zeros(n)
-        if self.index_sigma > 0:  # its own stream: the ideal cell's draws stay the same
-            index_steps = np.random.default_rng([self.seed, 4, k]).normal(0.0, self.index_sigma, n)
-            if k == 0:
-                index_steps[0] = 0.0
-        index_ppm = (float(self.index_ppm[-1]) if self.index_ppm.size else 0.0) + np.cumsum(index_steps)
+        walk = _walk(self.walk, rng.normal(0.0, self.walk_sigma, n) if self.walk_sigma > 0 else np.zeros(n), k)
+        index_steps = (np.random.default_rng([self.seed, 4, k]).normal(0.0, self.index_sigma, n)  # its own stream:
+                       if self.index_sigma > 0 else np.zeros(n))  # the ideal cell's draws stay the same
+        index_ppm = _walk(self.index_ppm, index_steps, k)
         nodes = np.empty((n, len(self.node_names)))
         for j in range(len(self.node_names)):
             if self.nodes.shape[0]:
@@ -283,12 +280,8 @@ class Exogenous:
             else:  # equilibrium with the first knot's air
                 zi = air[0] * (1.0 - self._b_now[j])
             nodes[:, j] = first_order_filter(self._b_now[j], self._b_prev[j], -self._a[j], air, zi)
-        self.t = np.concatenate((self.t, t))
-        self.air = np.concatenate((self.air, air))
-        self.wander = np.concatenate((self.wander, wander))
-        self.walk = np.concatenate((self.walk, walk))
-        self.index_ppm = np.concatenate((self.index_ppm, index_ppm))
-        self.nodes = np.concatenate((self.nodes, nodes))
+        for name, new in zip(self.SERIES, (t, air, wander, walk, index_ppm, nodes), strict=True):
+            setattr(self, name, np.concatenate((getattr(self, name), new)))
         self._chunks += 1
 
     def at(self, t: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray, np.ndarray]:
@@ -400,12 +393,6 @@ class AxisParams:
     k2_bracket_um_per_c2: float
     full_um: float = 480.0
 
-    @classmethod
-    def of(cls, params: CellParams) -> AxisParams:
-        """The paper's stage, as ``params`` (``[simulation] params``) sets it."""
-        return cls(params.geometry_e_um, params.k_stage_um_per_c, params.k_bracket_um_per_c, params.k_beam_um_per_c,
-                   params.k2_bracket_um_per_c2, params.geometry_full_um)
-
     def geometry(self, q: Any) -> Any:
         """x = g(q) = q + e(q / full), e cubic: plain arithmetic, so floats and arrays both work."""
         u = q / self.full_um
@@ -493,10 +480,11 @@ class CellPhysics:
     def __post_init__(self) -> None:
         if len(set(self.axes)) != len(self.axes) or not 1 <= len(self.axes) <= 3 or set(self.axes) - set(AXIS_PARAMS):
             raise ValueError(f"a simulated cell has 1 to 3 distinct axes of {', '.join(AXIS_PARAMS)}, got {self.axes}")
-        if not self.axis_params:
-            self.axis_params = ({self.axes[0]: AxisParams.of(self.params)} if len(self.axes) == 1
-                                else {a: AXIS_PARAMS[a] for a in self.axes})
         p = self.params
+        if not self.axis_params:  # one axis: the paper's stage, as ``params`` (``[simulation] params``) sets it
+            paper = AxisParams(p.geometry_e_um, p.k_stage_um_per_c, p.k_bracket_um_per_c, p.k_beam_um_per_c,
+                               p.k2_bracket_um_per_c2, p.geometry_full_um)
+            self.axis_params = {self.axes[0]: paper} if len(self.axes) == 1 else {a: AXIS_PARAMS[a] for a in self.axes}
         if p.problems():
             raise ValueError("simulated cell parameters: " + "; ".join(p.problems()))
         taus = {"stage": p.tau_stage_s, "bracket": p.tau_bracket_s, "t3": p.tau_t3_s, "t4": p.tau_t4_s,
@@ -728,7 +716,6 @@ class CellVariant:
     params: CellParams
     #: effects always on (a one-axis cell's; a stack keeps no memory of the path, so it has none of them)
     effects: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
-    why: str = ""
 
     def effects_with(self, chosen: Mapping[str, dict[str, float]], n_axes: int = 1) -> dict[str, dict[str, float]]:
         """This cell's own effects (one axis only) with ``chosen`` on top (its parameters win)."""
@@ -753,15 +740,12 @@ REALISTIC_PARAMS = CellParams(
 #: the named cells: ``ideal`` (the model's own form: what it proves is that the fit recovers a cell it can
 #: represent) and ``realistic`` (what a lab's cell does that no candidate term reproduces)
 CELLS: dict[str, CellVariant] = {
-    "ideal": CellVariant("ideal", CellParams(), {},
-                         "the paper's model form: linear in T1..T4 plus a square of the bracket's temperature"),
+    "ideal": CellVariant("ideal", CellParams()),  # the paper's model form: linear in T1..T4 plus the bracket's square
     "realistic": CellVariant(
         "realistic", REALISTIC_PARAMS,
         # closed loop (the paper's stage: PID on its capacitive sensor): what its loop leaves of the piezo's
         # 10-15 % hysteresis and ~1 %/decade creep is its sensor's: 0.02 % of the stroke, 0.2 % of a step settling
-        {"hysteresis": {"h_um": 0.10, "deadband_um": 0.5}, "creep": {"c": 0.002, "tau_s": 15.0}},
-        "asymmetric, lagging bracket bending; an unmonitored heat source; interferometer refraction that "
-        "does not average out; closed-loop hysteresis and creep; thermocouple noise and lags"),
+        {"hysteresis": {"h_um": 0.10, "deadband_um": 0.5}, "creep": {"c": 0.002, "tau_s": 15.0}}),
 }
 
 

@@ -75,17 +75,16 @@ class SimulatedGroup(SensorGroup):
         self._positions = {name: source for name, source in self._sources.items() if cell.is_position(source)}
         self.interval_s = min(c.interval_s for c in configs)
         self.timeout_s = max(c.timeout_s for c in configs)
-        self.is_open = False
 
     async def open(self) -> None:
-        self.is_open = True
+        return None
 
     async def read(self) -> dict[str, Reading]:
         by_source = self.cell.read(self._channels)
         return {name: by_source[source] for name, source in self._sources.items()}
 
     async def close(self) -> None:
-        self.is_open = False
+        return None
 
     def true_values(self) -> dict[str, float]:
         """The true attained position behind this group's last interferometer reading (temperatures: none)."""
@@ -100,13 +99,11 @@ class SimulatedActuator(Actuator):
         self.cell = cell
         self.axis = axis
         self.description = "simulated stage" + (f", axis {axis}" if len(cell.axes) > 1 else "")
-        self.last_voltage_v: float | None = None
 
     async def open(self) -> None:
         return None
 
     async def command(self, q_um: float, voltage_v: float, *, x_um: float | None = None) -> None:
-        self.last_voltage_v = voltage_v
         self.cell.command(self.axis, q_um)
 
     async def close(self) -> None:
@@ -126,8 +123,9 @@ class SimulatedPlugin(VirtualCellPlugin):
 
     def create(self, configs: Sequence[SensorConfig], context: DriverContext) -> list[SensorGroup]:
         cell = shared_cell(context)
-        sims = [as_config(c, SimulatedSensorConfig) for c in configs]
-        for c in sims:
+        groups: list[SensorGroup] = []
+        temps: dict[tuple[float, float], list[SimulatedSensorConfig]] = {}
+        for c in (as_config(c, SimulatedSensorConfig) for c in configs):
             if c.source not in cell.channels:
                 raise DriverSetupError(
                     f"sensor {c.name}: no simulated channel {c.source!r}; set channel to one of "
@@ -136,9 +134,6 @@ class SimulatedPlugin(VirtualCellPlugin):
                 expected = "position" if cell.is_position(c.source) else "temperature"
                 raise DriverSetupError(
                     f"sensor {c.name}: simulated channel {c.source} has role {expected}, not {c.role}")
-        groups: list[SensorGroup] = []
-        temps: dict[tuple[float, float], list[SimulatedSensorConfig]] = {}
-        for c in sims:
             if c.role == "position":
                 groups.append(SimulatedGroup(cell, [c]))
             else:
@@ -194,7 +189,8 @@ class SimulatedPlugin(VirtualCellPlugin):
             return MonotonicClock()
         # the simulated lab's clock starts at the last UTC midnight, with the scenario: its day k is the
         # scenario's day k and the recorder's k-th day file (the ``week`` scenario's Monday is day 0)
-        return ScaledClock(speed, start=utc_midnight_before(time.time()))
+        now = time.time()
+        return ScaledClock(speed, start=now - now % 86400.0)
 
     def label_clock(self, clock: Clock) -> Callable[[], float]:
         """A scaled clock labels its own records: it reads unix seconds from the last UTC midnight on, ``speed``
@@ -203,11 +199,6 @@ class SimulatedPlugin(VirtualCellPlugin):
 
 
 PLUGIN = SimulatedPlugin()
-
-
-def utc_midnight_before(unix_s: float) -> float:
-    """The UTC midnight at or before ``unix_s``."""
-    return unix_s - unix_s % 86400.0
 
 
 def default_sensor_configs(axes: Sequence[str] = ("x",), interferometer_interval_s: float = 0.1,

@@ -28,7 +28,6 @@ class Scenario:
     description: str
     waypoints_h: tuple[tuple[float, float], ...]
     trajectory: Trajectory = "calibration"
-    compensated: bool = True  # for validation scenarios: whether the paper ran the model (test 1: no)
 
     @property
     def start_h(self) -> float:
@@ -113,7 +112,6 @@ SCENARIOS: dict[str, Scenario] = {
             "validation without compensation, in the training range, slowly cooling",
             ((-2.0, 21.76), (0.0, 21.70), (0.9, 21.63), (1.8, 21.66)),
             trajectory="validation",
-            compensated=False,
         ),
         Scenario(
             "test2",

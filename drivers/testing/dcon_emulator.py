@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from nanodrift.drivers.dcon.protocol import CHECKSUM_BIT, checksum
-from nanodrift.drivers.testing.loopback import LoopbackServer
+from nanodrift.drivers.testing.loopback import LoopbackDevice, LoopbackServer
 from nanodrift.drivers.testing.pty_devices import PtyDevice
 
 
@@ -127,7 +127,7 @@ class DconBusEmulator(_Bus, PtyDevice):
         self._serve_lines(master, stop, b"\r", self.respond)
 
 
-class DconTcpGateway(_Bus):
+class DconTcpGateway(_Bus, LoopbackDevice):
     """The same bus behind a serial-to-Ethernet gateway: raw TCP on 127.0.0.1 (an ephemeral port), the
     bytes passed through as they are. ``stop()`` closes it (and every connection), ``start()`` serves again
     on the same port."""
@@ -136,18 +136,6 @@ class DconTcpGateway(_Bus):
         super().__init__(modules)
         self._tcp = LoopbackServer(self._serve_connection, port, name="dcon-gateway")
         self.start()
-
-    @property
-    def port(self) -> int:
-        return self._tcp.port
-
-    def start(self) -> None:
-        self._tcp.start()
-
-    def stop(self) -> None:
-        self._tcp.stop()
-
-    close = stop
 
     def _serve_connection(self, sock: socket.socket) -> None:
         buffer = b""

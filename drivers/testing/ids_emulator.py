@@ -27,7 +27,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from nanodrift.drivers.testing.loopback import LoopbackServer
+from nanodrift.drivers.testing.loopback import LoopbackDevice, LoopbackServer
 
 #: JSON-RPC 2.0 specification, section 5.1
 METHOD_NOT_FOUND = -32601
@@ -48,7 +48,7 @@ class IdsAxis:
         return self.follow() if self.follow is not None else self.displacement_pm
 
 
-class IdsEmulator:
+class IdsEmulator(LoopbackDevice):
     """See the module docstring. Thread-based, so a synchronous test and an asyncio one use it alike."""
 
     #: texts for ``com.attocube.system.errorNumberToString`` (a test adds what it needs)
@@ -70,24 +70,8 @@ class IdsEmulator:
             self.start()
 
     @property
-    def port(self) -> int:
-        return self._tcp.port
-
-    @property
     def mode(self) -> str:
         return "measurement running" if self.measurement_running else "system idle"
-
-    def __enter__(self) -> IdsEmulator:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
-
-    def start(self) -> None:
-        self._tcp.start()
-
-    def stop(self) -> None:
-        self._tcp.stop()
 
     def _serve(self, sock: socket.socket) -> None:
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)  # one small answer per request, sent at once

@@ -7,10 +7,12 @@ with a device powered off); ``start()`` listens again on the same port.
 
 from __future__ import annotations
 
+import contextlib
 import socket
 import socketserver
 import threading
 from collections.abc import Callable
+from typing import Self
 
 
 class LoopbackServer:
@@ -51,10 +53,8 @@ class LoopbackServer:
         server.server_close()
         with self._lock:
             for sock in list(self._sockets):
-                try:
+                with contextlib.suppress(OSError):
                     sock.shutdown(socket.SHUT_RDWR)
-                except OSError:
-                    pass
                 sock.close()
             self._sockets.clear()
         if self._thread is not None:
@@ -70,3 +70,29 @@ class LoopbackServer:
         finally:
             with self._lock:
                 self._sockets.discard(sock)
+
+
+class LoopbackDevice:
+    """An emulator served by its :class:`LoopbackServer` ``_tcp``: its ``port``, ``start``, ``stop`` (also
+    ``close``), and a ``with`` block that stops it."""
+
+    _tcp: LoopbackServer
+
+    @property
+    def port(self) -> int:
+        return self._tcp.port
+
+    def start(self) -> None:
+        self._tcp.start()
+
+    def stop(self) -> None:
+        self._tcp.stop()
+
+    def close(self) -> None:
+        self.stop()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()

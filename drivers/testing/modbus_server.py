@@ -34,7 +34,7 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 
 from nanodrift.drivers.base import DriverContext
 from nanodrift.drivers.local_port import free_port as free_port  # re-exported: the emulators' users pick ports with it
-from nanodrift.drivers.modbus.codec import encode
+from nanodrift.drivers.modbus.codec import DATA_TYPES, encode
 from nanodrift.drivers.modbus.config import ModbusHubConfig
 
 FC_READ_HOLDING = 3
@@ -155,9 +155,7 @@ class ModbusTestServer:
         await self.stop()
 
 
-_PYMODBUS_TYPES = {"int16": ModbusClientMixin.DATATYPE.INT16, "uint16": ModbusClientMixin.DATATYPE.UINT16,
-                   "int32": ModbusClientMixin.DATATYPE.INT32, "uint32": ModbusClientMixin.DATATYPE.UINT32,
-                   "float32": ModbusClientMixin.DATATYPE.FLOAT32}
+_PYMODBUS_TYPES = {name: ModbusClientMixin.DATATYPE[name.upper()] for name in DATA_TYPES}
 
 
 def device_registers(value: float, data_type: str, swap: str = "none") -> list[int]:

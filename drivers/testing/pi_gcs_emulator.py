@@ -70,11 +70,9 @@ class PiGcsEmulator:
     this long after it), ``fail_next`` (command word -> error code: the next such command is refused
     with it, changing nothing), ``has_voltage_limits`` (False: ``VMI?``/``VMA?`` are unknown commands,
     as on a controller without them), ``silent`` (answers nothing), ``frozen`` (SVA and MOV are accepted
-    without an error and change nothing: an amplifier off, a stage unplugged), ``on_sva`` (told each SVA
-    that takes effect: wire it to a simulated stage), ``on_mov`` (told each MOV that takes effect: a
-    closed-loop stage settling at the target), ``stray`` (a line sent once, unasked, before the
-    next answer), ``um_per_volt`` (open-loop
-    position per volt, for ``POS?``).
+    without an error and change nothing: an amplifier off, a stage unplugged), ``on_sva``/``on_mov`` (below),
+    ``stray`` (a line sent once, unasked, before the next answer), ``um_per_volt`` (open-loop position per
+    volt, for ``POS?``).
     """
 
     axes: dict[str, EmulatedAxis] = field(default_factory=lambda: {"1": EmulatedAxis()})
@@ -181,7 +179,7 @@ class PiGcsEmulator:
             "SVA?": lambda a: f"{a.sva_v:.6f}",
             "MOV?": lambda a: f"{a.target_um:.6f}",
             "POS?": lambda a: f"{self._position_um(a):.6f}",
-            "ONT?": lambda a: str(int(self._on_target(a))),
+            "ONT?": lambda a: str(int(a.servo and time.monotonic() - a.moved_at >= self.settle_s)),
             "OVF?": lambda a: str(int(a.overflow)),
             "TMN?": lambda a: f"{a.travel_um[0]:.6f}",
             "TMX?": lambda a: f"{a.travel_um[1]:.6f}",
@@ -250,9 +248,6 @@ class PiGcsEmulator:
             raise _GcsFault(PARAM_SYNTAX)
         if not check_only:
             axis.drift_compensation = bool(value)
-
-    def _on_target(self, axis: EmulatedAxis) -> bool:
-        return axis.servo and time.monotonic() - axis.moved_at >= self.settle_s
 
     def _position_um(self, axis: EmulatedAxis) -> float:
         return axis.target_um if axis.servo else axis.sva_v * self.um_per_volt

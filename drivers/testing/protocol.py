@@ -53,22 +53,16 @@ class ScriptedDevice(PtyDevice):
         for data in self._chunks(master, stop):
             buffer += data
             with self._lock:
-                while buffer:
-                    if self.done >= len(self.exchanges):
-                        self.unexpected += buffer
-                        buffer = b""
-                        break
+                while buffer and self.done < len(self.exchanges) and buffer.startswith(self.exchanges[self.done][0]):
                     request, answer = self.exchanges[self.done]
-                    if buffer.startswith(request):
-                        buffer = buffer[len(request):]
-                        self.done += 1
-                        if answer:
-                            os.write(master, answer)
-                    elif request.startswith(buffer):
-                        break  # the rest of the request is on its way
-                    else:
-                        self.unexpected += buffer
-                        buffer = b""
+                    buffer = buffer[len(request):]
+                    self.done += 1
+                    if answer:
+                        os.write(master, answer)
+                # what is left is the start of the next request (the rest is on its way), or unexpected
+                if buffer and not (self.done < len(self.exchanges) and self.exchanges[self.done][0].startswith(buffer)):
+                    self.unexpected += buffer
+                    buffer = b""
 
 
 @contextmanager

@@ -8,6 +8,7 @@ opens ``device.port`` (the link) like any serial port.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import select
 import threading
@@ -51,8 +52,7 @@ class PtyDevice:
         os.close(self._slave)
         self.link.unlink(missing_ok=True)
 
-    def close(self) -> None:
-        self.unplug()
+    close = unplug
 
     def _serve(self, master: int, stop: threading.Event) -> None:
         """What the device does with the bytes it gets, on its own thread until ``stop`` is set: a
@@ -83,10 +83,8 @@ class PtyDevice:
                 raw, _, buffer = buffer.partition(end)
                 reply = answer(raw)
                 if reply is not None:
-                    try:
+                    with contextlib.suppress(OSError):
                         os.write(master, reply)
-                    except OSError:
-                        pass
             buffer = buffer[-4096:]
 
 

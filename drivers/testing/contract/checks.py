@@ -50,14 +50,9 @@ LIMITS_V = (0.0, 10.0)
 TOLERANCE_V = 1e-9
 
 
-def run(body: Callable[[], Awaitable[None]]) -> None:
-    """One check's asyncio body, on a fresh event loop, bounded by :data:`CHECK_BOUND_S`."""
-    asyncio.run(asyncio.wait_for(body(), CHECK_BOUND_S))
-
-
 def run_on(rig: ActuatorRig | SensorRig, body: Callable[[], Awaitable[None]]) -> None:
-    """One check's asyncio body, as :func:`run` runs it, with the rig's emulator started before it and
-    stopped after it, whatever happened (the bound covers the start and the stop too)."""
+    """One check's asyncio body, on a fresh event loop, with the rig's emulator started before it and stopped
+    after it, whatever happened, all bounded by :data:`CHECK_BOUND_S`."""
 
     async def with_emulator() -> None:
         await rig.start()
@@ -66,7 +61,7 @@ def run_on(rig: ActuatorRig | SensorRig, body: Callable[[], Awaitable[None]]) ->
         finally:
             await rig.stop()
 
-    run(with_emulator)
+    asyncio.run(asyncio.wait_for(with_emulator(), CHECK_BOUND_S))
 
 
 # --- actuators ------------------------------------------------------------------------------------
@@ -259,10 +254,8 @@ class ActuatorContract:
         rig = self.built_rig(tmp_path)
 
         async def body() -> None:
-            actuator = rig.actuator()
+            actuator = await opened_actuator(rig)
             assert actuator.description  # names the device in messages
-            actuator.limits_v = LIMITS_V
-            await actuator.open()
             asked = [0.1234567, 2.5, 7.7777777, 0.0, 9.99999]
             for volts in asked:
                 sent = actuator.sent_voltage(volts)
