@@ -13,6 +13,7 @@ own (registered before the query leaves, so a ``done`` that overtakes the answer
 from __future__ import annotations
 
 import asyncio
+import functools
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -82,14 +83,12 @@ class AsyncMoves:
         with self._lock:
             self._awaited[move_id] = _Awaited(loop, done)  # before the query leaves: a fast done is kept
         try:
-            command = await loop.run_in_executor(self._queries, self._ask, target, move_id, answer_timeout_s)
+            command = await loop.run_in_executor(self._queries, functools.partial(
+                self.client.move, target, wait=False, id=move_id, timeout_s=answer_timeout_s))
         except BaseException:
             self.forget(move_id)
             raise
         return Moving(command, self, move_id, done)
-
-    def _ask(self, target: Position, move_id: str, answer_timeout_s: float) -> Command:
-        return self.client.move(target, wait=False, id=move_id, timeout_s=answer_timeout_s)
 
     async def stop(self, timeout_s: float = 5.0) -> dict[str, Any]:
         """:meth:`nanodrift.Client.stop` on a worker no move occupies."""

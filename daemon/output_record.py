@@ -55,14 +55,11 @@ class OutputRecords:
     def path(self, axis: str) -> Path | None:
         return None if self.directory is None else self.directory / f"output-{self.cell}-{axis}.json"
 
-    def written(self, axis: str, device: str) -> tuple[float, ...]:
-        """The voltages ``device`` may hold by what was last written to it (the last confirmed, then the one
-        being written); empty when nothing is on record for this axis and device. RecordError: unreadable."""
-        return self.read(axis, device)[0]
-
     def read(self, axis: str, device: str) -> tuple[tuple[float, ...], str]:
-        """:meth:`written`, and who wrote the record: ``"daemon"`` (a write of the daemon's or a procedure's) or
-        ``"operator"`` (``nanodrift confirm-output``)."""
+        """The voltages ``device`` may hold by what was last written to it (the last confirmed, then the one
+        being written; empty when nothing is on record for this axis and device), and who wrote the record:
+        ``"daemon"`` (a write of the daemon's or a procedure's) or ``"operator"`` (``nanodrift confirm-output``).
+        RecordError: unreadable."""
         path = self.path(axis)
         if path is None or not path.exists():
             return (), "daemon"

@@ -47,23 +47,15 @@ def scenario_seed(seed: int, scenario: str) -> int:
 
 def add_procedure_flags(parser: argparse.ArgumentParser, default_scenario: str, *, several: bool = False,
                         over_config: bool = False) -> None:
-    """What every procedure on a cell takes: ``--config F``, the simulated cell's overrides
-    (:func:`add_simulation_flags`) and ``--no-output-check`` (on hardware with ``kind = "zenoh"`` a procedure
-    refuses to start with nobody applying the steps)."""
-    parser.epilog = scenario_epilog()
-    add_config_flag(parser)
-    add_simulation_flags(parser, default_scenario, several=several, over_config=over_config)
-    parser.add_argument("--no-output-check", action="store_true",
-                        help="start even when no output node is subscribed to nanodrift/<cell>/command")
-
-
-def add_simulation_flags(parser: argparse.ArgumentParser, default_scenario: str, *, several: bool = False,
-                         over_config: bool = False) -> None:
-    """For the simulated cell (no --config, or a config with simulated sensors): override [simulation].
+    """What every procedure on a cell takes: ``--config F``, ``--no-output-check`` (on hardware with
+    ``kind = "zenoh"`` a procedure refuses to start with nobody applying the steps) and, for the simulated cell
+    (no --config, or a config with simulated sensors), ``--scenario/--effects/--seed`` over [simulation].
 
     ``several``: ``--scenario`` may name several rooms, comma-separated or repeated (a list, read with
     :func:`scenario_list`), each run in turn. ``over_config``: ``default_scenario`` applies with a config
     too (see :func:`open_cell`)."""
+    parser.epilog = scenario_epilog()
+    add_config_flag(parser)
     default = (f"{default_scenario}, whatever the config's [simulation] scenario (the room the daemon serves in)"
                if over_config else f"{default_scenario} with no --config, else the config's [simulation] scenario")
     if several:
@@ -80,6 +72,8 @@ def add_simulation_flags(parser: argparse.ArgumentParser, default_scenario: str,
     parser.add_argument("--seed", type=int, metavar="N",
                         help="simulation seed (default: 0, or the config's); the paper's test N runs with "
                              "seed*100+N, as in demo")
+    parser.add_argument("--no-output-check", action="store_true",
+                        help="start even when no output node is subscribed to nanodrift/<cell>/command")
 
 
 def scenario_list(values: list[str] | None) -> list[str]:

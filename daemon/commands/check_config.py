@@ -74,13 +74,9 @@ def zenoh_problem(config: Config) -> str | None:
 _LOCAL_ENDPOINT = re.compile(r"^(?:[a-z]+/(?:127\.\d+\.\d+\.\d+|localhost|\[::1\]):\d+|unixsock-stream/.*)$")
 
 
-def network_warnings(config: Config) -> list[str]:
-    """An open listener: zenoh's without its authentication and access control (README, "Securing the
-    network"), or the metrics page, which has no authentication at all."""
-    return zenoh_exposed(config) + metrics_exposed(config)
-
-
 def zenoh_exposed(config: Config) -> list[str]:
+    """zenoh listening beyond this computer without its authentication and access control (README, "Securing the
+    network")."""
     if config.zenoh.config_file is not None:
         return []
     exposed = [e for e in config.zenoh.listen if not _LOCAL_ENDPOINT.match(e.split("#", 1)[0])]
@@ -126,7 +122,8 @@ def safe_stop(config: Config) -> tuple[list[str], list[str]]:
 
 
 def metrics_exposed(config: Config) -> list[str]:
-    """``[metrics] listen`` on anything but loopback (0.0.0.0, ::, a lab address, a host name)."""
+    """``[metrics] listen`` on anything but loopback (0.0.0.0, ::, a lab address, a host name): the metrics page
+    has no authentication at all."""
     host = config.metrics.host
     if not host or host == "localhost":
         return []
@@ -218,7 +215,8 @@ def position_proofs(config: Config) -> tuple[list[str], list[str]]:
 
 def config_warnings(config: Config, model: Model | CellModel | None) -> list[str]:
     """``field: message`` lines for what the daemon accepts but an operator should know."""
-    warnings = network_warnings(config) + position_window_warnings(config) + position_proofs(config)[1]
+    warnings = (zenoh_exposed(config) + metrics_exposed(config) + position_window_warnings(config)
+                + position_proofs(config)[1])
     for where, one in _per_axis(config):  # a multi-axis cell: each axis' actuator as a one-axis cell's
         for warning in actuator_warnings(one) + driver_warnings(one):
             warning = where + warning[len("actuator"):] if warning.startswith("actuator") else warning
