@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import io
+import itertools
 import json
 import math
 import tempfile
@@ -130,17 +131,6 @@ def check_args(args: argparse.Namespace) -> list[str]:
     return [t for t in TESTS if t in asked]
 
 
-class Steps:
-    """Numbered steps, numbered as they are printed (1, 2, 3, ...)."""
-
-    def __init__(self) -> None:
-        self.n = 0
-
-    def start(self, title: str) -> None:
-        self.n += 1
-        print(f"\n{self.n}. {title}", flush=True)
-
-
 @dataclass
 class DemoRun:
     """What the demo has done so far (what :func:`what_nanodrift_adds` can build on)."""
@@ -160,8 +150,7 @@ def calibrate(workdir: Path, cycles: int, seed: int, cell: str = "ideal") -> Mod
     """The paper's calibration on the simulated cell's virtual clock, fitted as ``nanodrift calibrate`` does."""
     drivers = simulated_drivers("train", seed=scenario_seed(seed, "train"), cell=cell)
     data = workdir / "calibration.csv"
-    if data.exists():  # --keep DIR reused: a new demo, new data
-        data.unlink()
+    data.unlink(missing_ok=True)  # --keep DIR reused: a new demo, new data
     asyncio.run(record_calibration(drivers, data, cycles=cycles, progress_stream=io.StringIO()))
     try:
         return fit_recorded(data, workdir / "model.json").models["x"]
@@ -430,12 +419,16 @@ def main(args: argparse.Namespace) -> int:
         workdir = (Path(keep) if keep else Path(tmp)).resolve()  # the daemon runs with cwd=workdir
         workdir.mkdir(parents=True, exist_ok=True)
         run = DemoRun(args, workdir, kept=bool(keep))
-        steps = Steps()
+        numbers = itertools.count(1)
+
+        def step(title: str) -> None:  # numbered as they are printed
+            print(f"\n{next(numbers)}. {title}", flush=True)
+
         realistic = "" if args.cell == "ideal" else f"{args.cell} "
         print(f"nanodrift demo: the paper's calibration and its tests on the simulated {realistic}cell "
               f"(seed {args.seed})")
 
-        steps.start(f"Calibrate: {args.calibration_cycles} forward sweeps of the 'train' room, 0–480 µm by 30 µm "
+        step(f"Calibrate: {args.calibration_cycles} forward sweeps of the 'train' room, 0–480 µm by 30 µm "
                     f"(~{args.calibration_cycles * 17 * PAPER_TIMING.step_s / 3600:.1f} h of simulated time on a "
                     "virtual clock), then stepwise identification")
         t0 = time.monotonic()
@@ -445,7 +438,7 @@ def main(args: argparse.Namespace) -> int:
         print(f"   trained on {training_ranges(model)}; residual "
               f"{model.fit.get('residual_rms_nm', math.nan):.1f} nm RMS ({time.monotonic() - t0:.1f} s)")
 
-        steps.start(f"Validate: the paper's tests, ISO 9283 over {args.cycles} sweeps of 0–480 µm by 80 µm each, "
+        step(f"Validate: the paper's tests, ISO 9283 over {args.cycles} sweeps of 0–480 µm by 80 µm each, "
                     "as `nanodrift validate` runs them")
         for test in tests:
             t0 = time.monotonic()
@@ -454,7 +447,7 @@ def main(args: argparse.Namespace) -> int:
             print(f"   {test}: {TESTS[test]}\n          {result_line(result)} ({time.monotonic() - t0:.1f} s)",
                   flush=True)
 
-        steps.start("Table I, beside the paper's")
+        step("Table I, beside the paper's")
         print(table1(run.results, paper=PAPER_TABLE1))
         truth = truth_table(run.results)
         if truth:
@@ -475,12 +468,12 @@ def main(args: argparse.Namespace) -> int:
                   "nanodrift validate --model DIR/model.json --scenario testN --seed "
                   f"{args.seed} --cycles {args.cycles}{cell_config(args.cell, None)}")
 
-        steps.start("Serve: the calibrated model behind the daemon, targets from a client over Zenoh")
+        step("Serve: the calibrated model behind the daemon, targets from a client over Zenoh")
         assert run.model_path is not None
         run.served, run.endpoint = serve(args, workdir, run.model_path, run.kept)
 
         extra = what_nanodrift_adds(run)
-        steps.start("What nanodrift adds")
+        step("What nanodrift adds")
         for line in extra:
             print(f"   {line}")
         t0 = time.monotonic()
