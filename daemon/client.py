@@ -1,14 +1,5 @@
 """``nanodrift.Client``: the client a lab script, a notebook, Bluesky, the EPICS bridge and the CLI's own
-``target`` and ``status`` use to move a cell and read it (README, *Python API*).
-
-```python
-from nanodrift import Client, Refused, MoveEnded
-with Client("tcp/127.0.0.1:7447", cell="cell0") as cell:
-    cmd = cell.move(240.0)             # a cell of several axes: cell.move({"x": 240.0, "y": 100.0})
-    cell.stop()
-    cell.status()
-for status in Client.cells("tcp/127.0.0.1:7447"): ...
-```
+``target`` and ``status`` use to move a cell and read it (README, *Python API*, shows it in use).
 
 Synchronous and thread-safe: every method may be called from any thread; the Zenoh callbacks (the
 ``done`` subscriber) only fill a table under one condition variable, which the waiting ``move`` reads.

@@ -1,11 +1,7 @@
-"""The command-line side of ``target`` and ``status``: their shared options, and the :class:`nanodrift.Client`
-they open from them.
-
-:func:`add_client_flags` declares ``-e/--connect``, ``--mode``, ``--zenoh-config`` and ``--prefix``;
-:func:`open_client` reads them (and nothing else) into a :class:`nanodrift.client.Client`. What a client
-does (the session's config, the queries, the explanation of a cell that does not answer) is the
-library's (:mod:`nanodrift.client`), which a lab's script uses the same way; here are only argparse and
-the one-sentence :class:`UserError`.
+"""The command-line side of ``target``, ``status`` and ``ioc``: their shared options (:func:`add_client_flags`),
+and the :class:`nanodrift.Client` they open from them (:func:`open_client`). What a client does is the library's
+(:mod:`nanodrift.client`), which a lab's script uses the same way; here are only argparse and the one-sentence
+:class:`UserError`.
 """
 
 from __future__ import annotations

@@ -145,11 +145,9 @@ def answer_line(answer: dict[str, Any], measured_um: float) -> str:
             f"{flag}")
 
 
-def serve(args: argparse.Namespace, workdir: Path, model_path: Path, kept: bool
-          ) -> tuple[list[dict[str, Any]], str]:
-    """``nanodrift run`` on the calibrated model in its own process, and a client sending targets.
-
-    Returns the answers (each with the position the interferometer then read) and the endpoint."""
+def serve(args: argparse.Namespace, workdir: Path, model_path: Path, kept: bool) -> list[dict[str, Any]]:
+    """``nanodrift run`` on the calibrated model in its own process, and a client sending targets: the answers,
+    each with the position the interferometer then read."""
     served: list[dict[str, Any]] = []
     workdir = workdir.resolve()  # the daemon runs with cwd=workdir: a relative --config would miss it
     listen = args.listen[0] if args.listen else f"tcp/127.0.0.1:{free_port()}"
@@ -181,7 +179,7 @@ def serve(args: argparse.Namespace, workdir: Path, model_path: Path, kept: bool
             # the daemon's own health unit, as `nanodrift status` reads it, after this held target
             served.append({**answer, "measured_um": measured, "health": (client.status() or {}).get("health")})
             print(answer_line(answer, measured), flush=True)
-        return served, connect
+        return served
     except UserError as error:
         _stop(daemon)
         where = (f"the daemon's log: {log_path}" if kept

@@ -131,7 +131,10 @@ def main(args: argparse.Namespace) -> int:
     for warning in narrow_warnings(data):
         print(f"nanodrift calibrate: warning: {warning}", file=sys.stderr)
     if args.serve:
-        _serve(args)
+        try:
+            serve_model(Path(args.config), Path(args.out))
+        except ServeError as err:
+            raise UserError(f"the model {args.out} is written, but {err}") from None
     print(serving_lines(args, config, cell))
     for warning in sensor_warnings(config, cell) if args.config else []:
         print(f"nanodrift calibrate: warning: {warning}", file=sys.stderr)
@@ -148,13 +151,6 @@ def _plan(config: Config, cycles: int) -> list[PlannedStep]:
         raise UserError(f"{config.source}: [procedure] points/trajectory shape a one-axis sweep; a multi-axis cell "
                         "runs the space-filling plan on the paper's 17 levels (remove them)")
     return list(cell_calibration_plan(config.axis_names, cycles))
-
-
-def _serve(args: argparse.Namespace) -> None:
-    try:
-        serve_model(Path(args.config), Path(args.out))
-    except ServeError as err:
-        raise UserError(f"the model {args.out} is written, but {err}") from None
 
 
 def narrow_warnings(data: Path) -> list[str]:

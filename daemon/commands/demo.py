@@ -137,11 +137,8 @@ class DemoRun:
 
     args: argparse.Namespace
     workdir: Path
-    kept: bool
     model: Model | None = None
-    model_path: Path | None = None
     results: list[TestResult] = field(default_factory=list)
-    endpoint: str | None = None
     served: list[dict[str, Any]] = field(default_factory=list)
 
 
@@ -418,7 +415,7 @@ def main(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory(prefix="nanodrift-demo-") as tmp:
         workdir = (Path(keep) if keep else Path(tmp)).resolve()  # the daemon runs with cwd=workdir
         workdir.mkdir(parents=True, exist_ok=True)
-        run = DemoRun(args, workdir, kept=bool(keep))
+        run = DemoRun(args, workdir)
         numbers = itertools.count(1)
 
         def step(title: str) -> None:  # numbered as they are printed
@@ -433,7 +430,6 @@ def main(args: argparse.Namespace) -> int:
                     "virtual clock), then stepwise identification")
         t0 = time.monotonic()
         run.model = model = calibrate(workdir, args.calibration_cycles, args.seed, args.cell)
-        run.model_path = workdir / "model.json"
         print(f"   model {model.id}: {equation(model)}")
         print(f"   trained on {training_ranges(model)}; residual "
               f"{model.fit.get('residual_rms_nm', math.nan):.1f} nm RMS ({time.monotonic() - t0:.1f} s)")
@@ -460,7 +456,7 @@ def main(args: argparse.Namespace) -> int:
                  "cycles": args.cycles, "calibration_cycles": args.calibration_cycles}, indent=2) + "\n")
             figures = keep_figures(run)
             print(f"Figures (PNG + SVG, as validate --report draws them): {', '.join(str(f) for f in figures)}")
-            print(f"The same figures from the command line, e.g.: nanodrift validate --model {run.model_path} "
+            print(f"The same figures from the command line, e.g.: nanodrift validate --model {workdir / 'model.json'} "
                   f"--scenario {tests[-1]} --seed {args.seed} --cycles {args.cycles}"
                   f"{cell_config(args.cell, workdir)}")
         else:
@@ -469,8 +465,7 @@ def main(args: argparse.Namespace) -> int:
                   f"{args.seed} --cycles {args.cycles}{cell_config(args.cell, None)}")
 
         step("Serve: the calibrated model behind the daemon, targets from a client over Zenoh")
-        assert run.model_path is not None
-        run.served, run.endpoint = serve(args, workdir, run.model_path, run.kept)
+        run.served = serve(args, workdir, workdir / "model.json", bool(keep))
 
         extra = what_nanodrift_adds(run)
         step("What nanodrift adds")

@@ -123,13 +123,12 @@ def main(args: argparse.Namespace) -> int:
         if warning:
             print(f"warning: {warning}" + (f" ({run.result.name})" if len(runs) > 1 else ""), file=sys.stderr)
     config = runs[0].config
-    text = table1(results)
     truth = truth_table(results)
+    text = table1(results) + (f"\n\n{truth}" if truth else "")
     doc: dict[str, Any] = {"model": model.id, "backend": runs[0].drivers.description, "cycles": args.cycles,
                            "tests": [run.to_dict() for run in runs]}  # one shape for one test or several
     if args.report:
-        report_text = text + (f"\n\n{truth}" if truth else "")
-        files = write_report(results, args.report, report_text, doc, training=model.training,
+        files = write_report(results, args.report, text, doc, training=model.training,
                              provenance=provenance_text(model.id, model.provenance.get("data_file"),
                                                         _cell_text(config, given, args, results)))
         print(f"report: {', '.join(str(f) for f in files)}", file=sys.stderr)
@@ -137,10 +136,8 @@ def main(args: argparse.Namespace) -> int:
         print(json.dumps(doc, indent=2, default=_json_default))
         return 0
     print(text)
-    if truth:
-        print(f"\n{truth}")
     for run in runs:
-        _print_details(run.result, run.tracker, run.result.compensated, several=len(runs) > 1)
+        _print_details(run.result, run.tracker, several=len(runs) > 1)
     return 0
 
 
@@ -198,7 +195,7 @@ def _cell_text(config: Config, given: Config, args: argparse.Namespace, results:
     return f"cell of {config.source}"
 
 
-def _print_details(result: TestResult, tracker: BiasTracker | None, compensate: bool, *, several: bool) -> None:
+def _print_details(result: TestResult, tracker: BiasTracker | None, *, several: bool) -> None:
     """What follows Table I for one test: the tracker, the uncertainty's coverage, the figures per point.
 
     Several tests: one block per test, each after a blank line and naming its test."""
@@ -210,9 +207,9 @@ def _print_details(result: TestResult, tracker: BiasTracker | None, compensate: 
         print(f"{gap}adaptation{which}: {_tracker_text(tracker)}")
     for line in coverage_lines(result)[0]:
         print(line.replace("uncertainty:", f"uncertainty{which}:", 1))
-    kind = "with compensation" if compensate else "without compensation"
+    kind = "with compensation" if result.compensated else "without compensation"
     print(f"{gap}per point ({f'{result.name}, ' if several else ''}{kind}):")
-    for p in (result.points if compensate else result.points_without):
+    for p in (result.points if result.compensated else result.points_without):
         print(f"  x' = {p.target_um[result.axis]:5.0f} µm: accuracy {p.accuracy_nm:7.1f} nm, repeatability "
               f"{p.repeatability_nm:7.1f} nm ({p.visits} visits)")
 
