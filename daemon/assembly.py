@@ -36,7 +36,7 @@ from nanodrift.output_record import OutputRecords, state_directory
 
 def _plugins(config: Config) -> dict[str, DriverPlugin]:
     """Every plugin the config involves: its sensors' kinds, its actuator's and the owners of its sections."""
-    plugins = {kind: load_plugin(kind) for kind in config.kinds()}
+    plugins = {kind: load_plugin(kind) for kind in dict.fromkeys(s.kind for s in config.sensors)}
     for actuator in config.axis_actuators().values():
         if actuator.kind != ZENOH_KIND:
             plugins.setdefault(actuator.kind, load_plugin(actuator.kind))

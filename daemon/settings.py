@@ -490,10 +490,3 @@ class Config(StrictModel):
         copy._sections = {**self._sections, name: value}
         return copy
 
-    def kinds(self) -> list[str]:
-        """Driver kinds in use, in first-appearance order."""
-        return list(dict.fromkeys(s.kind for s in self.sensors))
-
-    def sensor(self, name: str) -> SensorConfig | None:
-        return next((s for s in self.sensors if s.name == name), None)
-

@@ -25,7 +25,7 @@ from nanodrift.drivers.simulated.config import SECTION, SimulationConfig
 from nanodrift.drivers.simulated.effects import UnknownNameError, resolve_effects
 from nanodrift.drivers.simulated.scenarios import get_scenario
 from nanodrift.drivers_set import DriverSet
-from nanodrift.errors import UserError
+from nanodrift.errors import UserError, user_errors
 from nanodrift.procedure.follow import FollowCheck
 from nanodrift.procedure.preflight import check_not_served, wait_for_output
 
@@ -96,14 +96,12 @@ def open_cell(args: argparse.Namespace, default_scenario: str, start_s: float = 
     config = config or load_config(args.config)
     updates: dict[str, Any] = {}
     scenario = args.scenario or (default_scenario if args.config is None or over_config else None)
-    try:
+    with user_errors(UnknownNameError):
         if scenario:
             get_scenario(scenario)
             updates["scenario"] = scenario
         if args.effects:
             updates["effects"] = resolve_effects(args.effects)
-    except UnknownNameError as err:
-        raise UserError(str(err)) from None
     if args.seed is not None:
         updates["seed"] = args.seed
     section = config.section(SECTION)

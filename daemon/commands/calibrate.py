@@ -29,7 +29,7 @@ from nanodrift.calibration.plans import (
 )
 from nanodrift.commands import _cell
 from nanodrift.config import Config, missing_model_channels
-from nanodrift.errors import UserError
+from nanodrift.errors import UserError, user_errors
 from nanodrift.model.cell_model import CellModel, one_axis
 from nanodrift.model.describe import describe_cell_model
 from nanodrift.model.equation import equation, training_lines
@@ -74,10 +74,8 @@ def main(args: argparse.Namespace) -> int:
         raise UserError("--serve needs --config F: the config whose [model] path is to name the new model "
                         "(the built-in simulated cell has no file)")
     if args.serve:
-        try:
+        with user_errors(ServeError):
             check_writable(Path(args.config))  # refused now, not after hours of calibration
-        except ServeError as err:
-            raise UserError(str(err)) from None
     data = _data_path(args)
     if args.resume and not data.exists():
         raise UserError(f"--resume: {data} does not exist (nothing to continue)")
@@ -90,10 +88,8 @@ def main(args: argparse.Namespace) -> int:
                         "level at each step, so one cycle cannot tell the axes apart")
     plan = _plan(config, cycles)
     columns = calibration_columns(drivers, axes)
-    try:
+    with user_errors(DataError):
         done, last_t = completed_steps(data, columns) if args.resume else (0, 0.0)
-    except DataError as err:
-        raise UserError(str(err)) from None
     if args.resume and config.virtual_cell and done:  # the simulated room continues where the file ends
         config, drivers = _cell.open_cell(args, "train", start_s=last_t + 1.0, over_config=True)
     follow, ready = _cell.guards(config, drivers, args)

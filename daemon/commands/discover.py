@@ -25,7 +25,7 @@ import sys
 
 from nanodrift.calibration.dataset import DataError, common_channels, concat, read_runs
 from nanodrift.calibration.discovery import CellDiscoveryResult, DiscoveryError, DiscoveryResult, discover_cell
-from nanodrift.errors import UserError
+from nanodrift.errors import user_errors
 from nanodrift.model.cell_model import CellModel, load_any_model, one_axis, save_cell_model
 from nanodrift.model.model import MissingChannelError, ModelFileError
 from nanodrift.model.provenance import stamp_data
@@ -46,7 +46,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     paths = [str(p) for p in args.data]
-    try:
+    with user_errors(DataError, ModelFileError, MissingChannelError, DiscoveryError):
         runs = read_runs(paths, "to compare with")
         given = CellModel.of(load_any_model(args.model))
         for ds in runs:
@@ -59,8 +59,6 @@ def main(args: argparse.Namespace) -> int:
         data = concat(runs, channels)
         fresh = read_runs([str(args.fresh)], "to measure the fresh-run gain on")[0] if args.fresh else None
         result = discover_cell(data, given, fresh=fresh)
-    except (DataError, ModelFileError, MissingChannelError, DiscoveryError) as err:
-        raise UserError(str(err)) from None
     model_out: str | None = None
     if result.found:
         extended = result.model

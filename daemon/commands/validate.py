@@ -45,7 +45,7 @@ from nanodrift.drivers.simulated.physics import CellPhysics, CrossParams, cross_
 from nanodrift.drivers.simulated.runs import cell_command, run_cell_validation
 from nanodrift.drivers.simulated.scenarios import get_scenario
 from nanodrift.drivers_set import DriverSet
-from nanodrift.errors import UserError
+from nanodrift.errors import UserError, user_errors
 from nanodrift.model.cell_model import CellModel, load_any_model
 from nanodrift.model.model import Model, ModelFileError
 from nanodrift.procedure.validation import check_channels, run_validation, run_validation_steps
@@ -89,10 +89,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def main(args: argparse.Namespace) -> int:
     if args.cycles < 1:
         raise UserError(f"--cycles must be at least 1, got {args.cycles}")
-    try:
+    with user_errors(ModelFileError, OSError):
         model = load_any_model(args.model)
-    except (ModelFileError, OSError) as err:
-        raise UserError(str(err)) from None
     compensate = not args.no_compensation
     if args.adapt:
         if not compensate:
@@ -167,12 +165,10 @@ def _run_one(args: argparse.Namespace, model: Model, scenario: str | None) -> Va
     compensate = not args.no_compensation and name != UNCOMPENSATED_TEST
     tracker = BiasTracker(args.adapt_tau_s, args.adapt_max_um) if args.adapt and compensate else None
     follow, ready = _cell.guards(config, drivers, args)
-    try:
+    with user_errors(ValueError):
         result = _cell.run_procedure(run_validation(
             drivers, model if compensate else None, limits=config.axis_actuators(), name=name, cycles=args.cycles,
             timing=config.procedure.timing, follow=follow, ready=ready, adapt=tracker))
-    except ValueError as err:
-        raise UserError(str(err)) from None
     return ValidationRun(result, tracker, config, drivers)
 
 
@@ -325,13 +321,11 @@ def _driven_run(args: argparse.Namespace, model: CellModel, scenario: str | None
     limits = config.axis_actuators()
     plan = cell_validation_plan(config.axis_names, args.cycles, {a: lim.workspace_um for a, lim in limits.items()})
     follow, ready = _cell.guards(config, drivers, args)
-    try:
+    with user_errors(ValueError):
         check_channels(model, drivers)  # uncompensated too: refused before the first run moves anything
         run = _cell.run_procedure(run_validation_steps(
             drivers, plan, model if compensate else None, limits=limits, name=scenario or "validation",
             timing=config.procedure.timing, follow=follow, ready=ready, adapt=adapt))
-    except ValueError as err:
-        raise UserError(str(err)) from None
     return config, drivers, run.steps, run.extrapolating
 
 
