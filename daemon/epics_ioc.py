@@ -127,13 +127,10 @@ class CellBridge:
         """Apply updates and keep ``STATE`` fresh until cancelled."""
         self._loop = asyncio.get_running_loop()
         self.view.add_listener(self._from_zenoh)
-        command = self.view.command()
-        if command:
+        if command := self.view.command():
             self._show_command(command)
         for axis in self.view.axes:
-            measured = self.view.position(axis)
-            if measured is not None:
-                self._post(self.groups[axis].RBV, measured.value_um)
+            self._on_broadcast("position", axis, self.view.position(axis))  # None (no sample yet): nothing
         await asyncio.gather(self._apply_updates(), self._poll_status())
 
     async def _apply_updates(self) -> None:

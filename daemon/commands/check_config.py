@@ -1,16 +1,10 @@
 """``nanodrift check-config F [--strict]``: validate an operator config before reloading it.
 
 Exit 2 (with ``<file>:<line>: <field>: <problem>`` lines) for everything the daemon would refuse on
-a reload: an invalid config, a model file that is missing or cannot be loaded, a ``[zenoh]
-config_file`` zenoh cannot read, a safe stop that cannot finish within the stop budget (what it takes
-is printed for every axis that has one, and so is how far a position sensor's proof of a read-back may be
-from where the stage is). Exit 0 with warnings on stderr for what the daemon accepts but an
-operator should know (a channel the model needs that no sensor provides, sensors the model does not
-use, an actuator's own warnings such as a
-command template coarser than the stage needs, a driver's warnings across entries such as a serial
-port shared without a resync query, a position sensor polling slower than ``[health] window_s``), in the errors' form
-(``<file>:<line>: warning: sensors[2] (T3).name: ...``); ``--strict`` makes those errors too, for a
-commissioned cell where they are mistakes.
+a reload (:func:`model_problem`, :func:`zenoh_problem`, :func:`no_sensors`, :func:`safe_stop`). Exit 0 with
+warnings on stderr for what the daemon accepts but an operator should know (:func:`config_warnings`), in the
+errors' form (``<file>:<line>: warning: sensors[2] (T3).name: ...``); ``--strict`` makes those errors too,
+for a commissioned cell where they are mistakes.
 """
 
 from __future__ import annotations

@@ -1,14 +1,9 @@
 """``nanodrift status``: every cell on the network (or one), from their ``status`` queryables.
 
-One wildcard query on ``<prefix>/*/status`` (or ``<prefix>/<cell>/status``; ``--prefix``, default
-``nanodrift``), :meth:`nanodrift.Client.statuses`, collects every daemon's reply until the timeout; the
-documents are printed as a compact table, or as a JSON list. With
-``--watch S`` the query repeats every S seconds: on a terminal the table is redrawn in place, else a
-block is printed per refresh (a log file or a pipe gets every sample).
-
-Rates (targets and refusals per minute) come from two samples of a cell's counters when there are
-two (``--watch``), else from the counters and ``uptime_s`` (the average since the daemon started).
-Health and actuator state are shown when the status document carries them (older daemons do not).
+One wildcard query on ``<prefix>/*/status`` (or ``<prefix>/<cell>/status``), :meth:`nanodrift.Client.statuses`,
+collects every daemon's reply until the timeout, printed as a compact table or a JSON list. ``--watch S``
+repeats it: a log file or a pipe gets a block per refresh, every sample. Health and actuator state are shown
+when the status document carries them (older daemons do not).
 """
 
 from __future__ import annotations

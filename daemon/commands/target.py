@@ -123,10 +123,9 @@ def main(args: argparse.Namespace) -> int:
                 print(json.dumps(answer))
             elif ok:
                 print(_format_command(answer))
-            elif isinstance(x, tuple):
-                print(f"{_shown(x)} µm refused: {answer.get('error')}", file=sys.stderr)
-            else:
-                print(f"x {x:g} µm refused: {answer.get('error')}", file=sys.stderr)
+            else:  # a one-axis target is named by its axis, a point by its values
+                print(f"{'' if isinstance(x, tuple) else 'x '}{_shown(x)} µm refused: {answer.get('error')}",
+                      file=sys.stderr)
     finally:
         cell.close()
     return 1 if failures else 0
