@@ -51,11 +51,6 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="seconds to collect the cells' replies")
 
 
-def collect(client: Client, cell: str | None, timeout_s: float) -> list[dict[str, Any]]:
-    """Query until some cell answers or ``timeout_s`` is over (a scouting peer needs a moment to find them)."""
-    return client.statuses(cell, timeout_s=timeout_s)
-
-
 @dataclass
 class Rates:
     """Targets and refusals per minute of one cell; ``since`` says over what."""
@@ -230,7 +225,7 @@ def watch(client: Client, args: argparse.Namespace, out: TextIO,
     try:
         while True:
             started = time.monotonic()
-            docs = collect(client, args.cell, args.timeout)
+            docs = client.statuses(args.cell, timeout_s=args.timeout)
             text = render(docs, args, previous)
             stamp = datetime.now().astimezone().strftime("%Y-%m-%d %H:%M:%S")
             if terminal:
@@ -255,7 +250,7 @@ def main(args: argparse.Namespace) -> int:
     try:
         if args.watch:
             return watch(client, args, sys.stdout)
-        docs = collect(client, args.cell, args.timeout)
+        docs = client.statuses(args.cell, timeout_s=args.timeout)
     finally:
         client.close()
     if not docs:
