@@ -1,8 +1,6 @@
-"""``nanodrift demo``, its serving step: the daemon on the calibrated model and a client over Zenoh.
-
-``nanodrift run`` in its own process on 127.0.0.1 (the simulated room sped up), targets through the
-``compensate`` queryable as ``nanodrift target`` sends them, and the position the interferometer
-then reads, averaged over the end of the hold as the paper's procedure does.
+"""``nanodrift demo``, its serving step (step 4 of :mod:`nanodrift.commands.demo`): the daemon on the calibrated
+model and a client over Zenoh; the position the interferometer reads after each target is averaged over the
+end of the hold, as the paper's procedure does.
 """
 
 from __future__ import annotations

@@ -354,13 +354,12 @@ def what_nanodrift_adds(run: DemoRun) -> list[str]:
     lines.append(discovery_line(run.model, run.args.seed))
     covered = [r for r in run.results if r.compensated and r.q_sigma_um]
     if covered:
-        shares = ", ".join(f"{r.name} {(r.coverage_true() if r.has_truth else r.coverage()) * 100:.0f} %"
-                           for r in covered)
+        held = [r.coverage_true() if r.has_truth else r.coverage() for r in covered]
+        shares = ", ".join(f"{r.name} {share * 100:.0f} %" for r, share in zip(covered, held, strict=True))
         lines.append(f"uncertainty: every command carries q_sigma_um; the {'true ' if covered[0].has_truth else ''}"
                      f"error lay within ±2σ in {shares} of the steps (it grows outside the training range; a "
                      "calibrated σ keeps 90-98 %)")
-        shares_judged = [(r.coverage_true() if r.has_truth else r.coverage()) for r in covered]
-        if any(not 0.90 <= share <= 0.98 for share in shares_judged):
+        if any(not 0.90 <= share <= 0.98 for share in held):
             lines.append("   not calibrated on this seed: most of a run's error is one offset its steps share (the "
                          "calibration's coefficients are off the same way for all of them), so a run is inside ±2σ "
                          "almost whole or not at all; σ is set to err wide (benchmarks/adaptation.py: 8 seeds)")
