@@ -26,6 +26,7 @@ published before the 1 of the same move, and a value from Zenoh's threads reache
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import itertools
 import math
 from collections.abc import Callable, Mapping, Sequence
@@ -146,10 +147,8 @@ class CellBridge:
                 state = "offline"
             for group in self.groups.values():
                 self._post(group.STATE, state)
-            try:
+            with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._refresh.wait(), STATUS_PERIOD_S)
-            except TimeoutError:
-                pass
             self._refresh.clear()
 
     def _post(self, pv: Any, value: Any) -> None:
