@@ -31,12 +31,6 @@ ANSWER_TIMEOUT_S = 10.0
 
 
 @dataclass
-class _Awaited:
-    loop: asyncio.AbstractEventLoop
-    future: asyncio.Future[dict[str, Any]]
-
-
-@dataclass
 class Moving:
     """A move the daemon answered: its :class:`~nanodrift.client.Command`, and :meth:`ended` to await its ``done``."""
 
@@ -65,7 +59,7 @@ class AsyncMoves:
         self.client = client
         self.answer_timeout_s = answer_timeout_s
         self._lock = threading.Lock()
-        self._awaited: dict[str, _Awaited] = {}  # move id -> the future its done resolves
+        self._awaited: dict[str, asyncio.Future[dict[str, Any]]] = {}  # move id -> the future its done resolves
         # a query per axis at once, and one more (an axis' next put while its last still waits for the answer)
         self._queries = ThreadPoolExecutor(max_workers=axes + 1, thread_name_prefix=f"{client.cell}-move")
         self._stops = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"{client.cell}-stop")
@@ -81,7 +75,7 @@ class AsyncMoves:
         move_id = self.client.new_id()
         done: asyncio.Future[dict[str, Any]] = loop.create_future()
         with self._lock:
-            self._awaited[move_id] = _Awaited(loop, done)  # before the query leaves: a fast done is kept
+            self._awaited[move_id] = done  # before the query leaves: a fast done is kept
         try:
             command = await loop.run_in_executor(self._queries, functools.partial(
                 self.client.move, target, wait=False, id=move_id, timeout_s=answer_timeout_s))
@@ -113,7 +107,7 @@ class AsyncMoves:
         with self._lock:
             awaited = self._awaited.pop(move_id, None)
         if awaited is not None:
-            awaited.loop.call_soon_threadsafe(_resolve, awaited.future, doc)
+            awaited.get_loop().call_soon_threadsafe(_resolve, awaited, doc)
 
     def close(self) -> None:
         """Undeclare the subscriber; a move still awaiting its ``done`` fails (RuntimeError)."""
@@ -121,9 +115,9 @@ class AsyncMoves:
         with self._lock:
             awaited, self._awaited = list(self._awaited.values()), {}
         for each in awaited:
-            if not each.loop.is_closed():
-                each.loop.call_soon_threadsafe(_fail, each.future, RuntimeError(f"the client of cell "
-                                                                                 f"{self.client.cell!r} is closed"))
+            if not each.get_loop().is_closed():
+                each.get_loop().call_soon_threadsafe(_fail, each, RuntimeError(f"the client of cell "
+                                                                                f"{self.client.cell!r} is closed"))
         for pool in (self._queries, self._stops, self._statuses):
             pool.shutdown(wait=False, cancel_futures=True)
 
