@@ -349,7 +349,7 @@ def what_nanodrift_adds(run: DemoRun) -> list[str]:
                      f"tracker follows sees it, {static.accuracy_true_nm:.0f} nm -> {adapted.accuracy_true_nm:.0f} nm "
                      f"against the true position; the correction ended at "
                      f"{adapted.corrections_um[-1] * 1000:+.0f} nm" + adapted_sigma_words(static, adapted))
-    if any(line.startswith("adaptation on") for line in lines):
+    if lines:  # an adaptation line (the only lines so far)
         lines.append(ADAPTATION_NEEDS)
     lines.append(discovery_line(run.model, run.args.seed))
     covered = [r for r in run.results if r.compensated and r.q_sigma_um]

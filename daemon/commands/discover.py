@@ -106,7 +106,6 @@ def describe(result: DiscoveryResult, model_out: str | None) -> str:
                 f"{s.holdout_rms_after_um * 1000:>6.1f} nm {expected:>11}  {', '.join(t.name for t in s.add) or '-'}"
                 + (f" (removed {', '.join(t.name for t in s.remove)})" if s.remove else "")
             )
-    if result.steps:
         lines.append("(fresh run x: the RMS ratio after / before expected on a fresh run of the same kind; "
                      "held-out blocks of this run flatter it)")
     if model_out is None:

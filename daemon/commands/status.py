@@ -109,8 +109,7 @@ def _age(iso: Any, now: datetime) -> str:
     return f"{seconds / 86400:.0f} d"
 
 
-def _health(doc: dict[str, Any]) -> str:
-    health = doc.get("health")
+def _health(health: Any) -> str:
     if not isinstance(health, dict):
         return "-"
     text = str(health.get("state") or "-")
@@ -163,7 +162,7 @@ def axis_lines(doc: dict[str, Any]) -> list[str]:
                       + (f" {value:.3f} µm" if isinstance(value, int | float) else ""))
         health = doc.get("health")
         axis_health = health.get("axes", {}).get(axis) if isinstance(health, dict) else None
-        shown = f", health {_health({'health': axis_health})}" if isinstance(axis_health, dict) else ""
+        shown = f", health {_health(axis_health)}" if isinstance(axis_health, dict) else ""
         proved_by = actuator.get("proved_by")
         out.append(f"  {doc.get('cell', '?')} axis {axis}: [{_number(each.get('min_um')):g}, "
                    f"{_number(each.get('max_um')):g}] µm, {_actuator({'actuator': actuator}, proof=False)}"
@@ -187,7 +186,7 @@ def row(doc: dict[str, Any], previous: dict[str, Any] | None, now: datetime) -> 
         f"{ok}/{len(sensors)}",
         str(model.get("id")) if model else "none",
         _age(model.get("created"), now) if model else "-",
-        _health(doc),
+        _health(doc.get("health")),
         _correction(doc),
         _actuator(doc),
         _rate(r.targets_per_min),
