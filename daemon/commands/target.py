@@ -109,16 +109,13 @@ def main(args: argparse.Namespace) -> int:
         for index, x in enumerate(args.x):
             target: float | dict[str, float] = x if not isinstance(x, tuple) else dict(
                 zip(axes or (), x, strict=True))
-            ok = False
             try:
-                answer = dict(cell.move(target, wait=False, timeout_s=args.timeout, id=index).payload)
-                ok = True
+                answer, ok = dict(cell.move(target, wait=False, timeout_s=args.timeout, id=index).payload), True
             except Refused as refused:
-                answer = refused.payload
+                answer, ok = refused.payload, False
             except TimeoutError as unanswered:  # the cell does not answer: why, asked once by the client
-                answer = {"id": index, "error": str(unanswered)}
-            if not ok:
-                failures += 1
+                answer, ok = {"id": index, "error": str(unanswered)}, False
+            failures += not ok
             if args.json:
                 print(json.dumps(answer))
             elif ok:
