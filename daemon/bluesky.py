@@ -1,17 +1,5 @@
 """``nanodrift.bluesky.Stage``: a compensated cell as an ophyd-async device for Bluesky plans
-(extra ``nanodrift[bluesky]``).
-
-```python
-from bluesky import RunEngine, plans as bp, plan_stubs as bps
-from ophyd_async.core import init_devices
-from nanodrift.bluesky import Stage
-
-RE = RunEngine()
-with init_devices():
-    stage = Stage("tcp/127.0.0.1:7447", "cell0", name="stage")
-RE(bps.mv(stage, 240))                     # a cell of several axes: bps.mv(stage, {"x": 240, "y": 100})
-RE(bp.scan([stage], stage, 0, 480, 5))     # or stage.x in an XY cell: one motor per axis
-```
+(extra ``nanodrift[bluesky]``; README, *Bluesky and EPICS*, shows it in a plan).
 
 Why it is built this way:
 
