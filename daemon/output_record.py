@@ -29,9 +29,7 @@ def state_directory(configured: Path | None) -> Path | None:
     """Where the daemon keeps its state: ``$STATE_DIRECTORY`` when systemd set it, else ``[daemon] state_dir``
     (None: nowhere, and every start is a first start)."""
     from_systemd = os.environ.get(STATE_DIRECTORY_ENV, "").split(":")[0]
-    if from_systemd:
-        return Path(from_systemd)
-    return configured
+    return Path(from_systemd) if from_systemd else configured
 
 
 class RecordError(ValueError):

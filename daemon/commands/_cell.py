@@ -58,14 +58,10 @@ def add_procedure_flags(parser: argparse.ArgumentParser, default_scenario: str, 
     add_config_flag(parser)
     default = (f"{default_scenario}, whatever the config's [simulation] scenario (the room the daemon serves in)"
                if over_config else f"{default_scenario} with no --config, else the config's [simulation] scenario")
-    if several:
-        parser.add_argument("--scenario", metavar="S", action="append",
-                            help=f"simulated room history, one of {scenario_names()}; several, comma-separated "
-                                 "or repeated (--scenario test2,test3 or --scenario test2 --scenario test3), "
-                                 f"are run in turn into one report (default: {default})")
-    else:
-        parser.add_argument("--scenario", metavar="S",
-                            help=f"simulated room history, one of {scenario_names()} (default: {default})")
+    each = ("; several, comma-separated or repeated (--scenario test2,test3 or --scenario test2 --scenario test3), "
+            "are run in turn into one report") if several else ""
+    parser.add_argument("--scenario", metavar="S", action="append" if several else "store",
+                        help=f"simulated room history, one of {scenario_names()}{each} (default: {default})")
     parser.add_argument("--effects", metavar="a,b",
                         help=f"hidden effects of the simulated cell, from {effect_names()} "
                              "(default: none, or the config's)")
