@@ -35,7 +35,6 @@ import math
 import tempfile
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -129,17 +128,6 @@ def check_args(args: argparse.Namespace) -> list[str]:
     if not asked:
         raise UserError(f"--tests: no test named; valid tests: {', '.join(TESTS)}")
     return [t for t in TESTS if t in asked]
-
-
-@dataclass
-class DemoRun:
-    """What the demo has done so far (what :func:`what_nanodrift_adds` can build on)."""
-
-    args: argparse.Namespace
-    workdir: Path
-    model: Model | None = None
-    results: list[TestResult] = field(default_factory=list)
-    served: list[dict[str, Any]] = field(default_factory=list)
 
 
 # ----- 1. calibrate ------------------------------------------------------------------------------
@@ -322,7 +310,8 @@ def adapted_sigma_words(static: TestResult, adapted: TestResult) -> str:
             f"{'true ' if adapted.has_truth else ''}errors within ±2σ")
 
 
-def what_nanodrift_adds(run: DemoRun) -> list[str]:
+def what_nanodrift_adds(args: argparse.Namespace, model: Model, results: Sequence[TestResult],
+                        served: Sequence[dict[str, Any]]) -> list[str]:
     """What the service adds beyond the paper's static model, shown on the same tests and seed.
 
     - discovery (:func:`discovery_line`): the calibrated model, run by ``discover`` on a short
@@ -333,16 +322,14 @@ def what_nanodrift_adds(run: DemoRun) -> list[str]:
     - the health monitor: the serving daemon's own ``health`` (settled residuals of the serve step's
       targets), read from its ``status`` after the last held target.
     """
-    assert run.model is not None
     tracker_defaults = (600.0, 1.0)  # [adapt] tau_s, max_um
     lines: list[str] = []
-    by_name = {r.name: r for r in run.results}
+    by_name = {r.name: r for r in results}
     for test in ("test5", "test2"):
         static = by_name.get(test)
         if static is None:
             continue
-        adapted = validate(run.model, test, run.args.cycles, run.args.seed, adapt=BiasTracker(*tracker_defaults),
-                           cell=run.args.cell)
+        adapted = validate(model, test, args.cycles, args.seed, adapt=BiasTracker(*tracker_defaults), cell=args.cell)
         lines.append(f"adaptation on {test} ([adapt] mode = \"bias\", tau_s {tracker_defaults[0]:g} s): "
                      f"{static.accuracy_nm:.0f} nm static -> {adapted.accuracy_nm:.0f} nm adaptive "
                      f"({adapted.improvement:.1f}× against {static.improvement:.1f}×) as the interferometer the "
@@ -351,8 +338,8 @@ def what_nanodrift_adds(run: DemoRun) -> list[str]:
                      f"{adapted.corrections_um[-1] * 1000:+.0f} nm" + adapted_sigma_words(static, adapted))
     if lines:  # an adaptation line (the only lines so far)
         lines.append(ADAPTATION_NEEDS)
-    lines.append(discovery_line(run.model, run.args.seed))
-    covered = [r for r in run.results if r.compensated and r.q_sigma_um]
+    lines.append(discovery_line(model, args.seed))
+    covered = [r for r in results if r.compensated and r.q_sigma_um]
     if covered:
         held = [r.coverage_true() if r.has_truth else r.coverage() for r in covered]
         shares = ", ".join(f"{r.name} {share * 100:.0f} %" for r, share in zip(covered, held, strict=True))
@@ -363,7 +350,7 @@ def what_nanodrift_adds(run: DemoRun) -> list[str]:
             lines.append("   not calibrated on this seed: most of a run's error is one offset its steps share (the "
                          "calibration's coefficients are off the same way for all of them), so a run is inside ±2σ "
                          "almost whole or not at all; σ is set to err wide (benchmarks/adaptation.py: 8 seeds)")
-    health = next((a["health"] for a in reversed(run.served) if isinstance(a.get("health"), dict)), None)
+    health = next((a["health"] for a in reversed(served) if isinstance(a.get("health"), dict)), None)
     if health is not None:
         lines.append(health_line(health))
     return lines
@@ -383,14 +370,13 @@ def health_line(health: dict[str, Any]) -> str:
     return line
 
 
-def keep_figures(run: DemoRun) -> list[Path]:
+def keep_figures(args: argparse.Namespace, workdir: Path, model: Model, results: Sequence[TestResult]) -> list[Path]:
     """fig9 and fig11 of the tests into the kept folder (the PNGs listed; each has an SVG beside it)."""
-    assert run.model is not None
-    tests = ", ".join(r.name for r in run.results)
-    cell = (f"simulated {run.args.cell} cell: {tests}, --seed {run.args.seed}, {run.args.cycles} sweeps "
-            f"(nanodrift demo --cell {run.args.cell})")
-    written = write_figures(run.results, run.workdir, training=run.model.training,
-                            provenance=provenance_text(run.model.id, run.model.provenance.get("data_file"), cell))
+    tests = ", ".join(r.name for r in results)
+    cell = (f"simulated {args.cell} cell: {tests}, --seed {args.seed}, {args.cycles} sweeps "
+            f"(nanodrift demo --cell {args.cell})")
+    written = write_figures(results, workdir, training=model.training,
+                            provenance=provenance_text(model.id, model.provenance.get("data_file"), cell))
     return [path for path in written if path.suffix == ".png"]
 
 
@@ -414,7 +400,7 @@ def main(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory(prefix="nanodrift-demo-") as tmp:
         workdir = (Path(keep) if keep else Path(tmp)).resolve()  # the daemon runs with cwd=workdir
         workdir.mkdir(parents=True, exist_ok=True)
-        run = DemoRun(args, workdir)
+        results: list[TestResult] = []
         numbers = itertools.count(1)
 
         def step(title: str) -> None:  # numbered as they are printed
@@ -428,7 +414,7 @@ def main(args: argparse.Namespace) -> int:
                     f"(~{args.calibration_cycles * 17 * PAPER_TIMING.step_s / 3600:.1f} h of simulated time on a "
                     "virtual clock), then stepwise identification")
         t0 = time.monotonic()
-        run.model = model = calibrate(workdir, args.calibration_cycles, args.seed, args.cell)
+        model = calibrate(workdir, args.calibration_cycles, args.seed, args.cell)
         print(f"   model {model.id}: {equation(model)}")
         print(f"   trained on {training_ranges(model)}; residual "
               f"{model.fit.get('residual_rms_nm', math.nan):.1f} nm RMS ({time.monotonic() - t0:.1f} s)")
@@ -438,22 +424,22 @@ def main(args: argparse.Namespace) -> int:
         for test in tests:
             t0 = time.monotonic()
             result = validate(model, test, args.cycles, args.seed, cell=args.cell)
-            run.results.append(result)
+            results.append(result)
             print(f"   {test}: {TESTS[test]}\n          {result_line(result)} ({time.monotonic() - t0:.1f} s)",
                   flush=True)
 
         step("Table I, beside the paper's")
-        print(table1(run.results, paper=PAPER_TABLE1))
-        truth = truth_table(run.results)
+        print(table1(results, paper=PAPER_TABLE1))
+        truth = truth_table(results)
         if truth:
             print(f"\n{truth}\n")
-        for line in explain(run.results, model, args):
+        for line in explain(results, model, args):
             print(line)
         if keep:
             atomic_write_text(workdir / "table1.json", json.dumps(
-                {"tests": [r.to_dict() for r in run.results], "model": model.id, "seed": args.seed,
+                {"tests": [r.to_dict() for r in results], "model": model.id, "seed": args.seed,
                  "cycles": args.cycles, "calibration_cycles": args.calibration_cycles}, indent=2) + "\n")
-            figures = keep_figures(run)
+            figures = keep_figures(args, workdir, model, results)
             print(f"Figures (PNG + SVG, as validate --report draws them): {', '.join(str(f) for f in figures)}")
             print(f"The same figures from the command line, e.g.: nanodrift validate --model {workdir / 'model.json'} "
                   f"--scenario {tests[-1]} --seed {args.seed} --cycles {args.cycles}"
@@ -464,9 +450,9 @@ def main(args: argparse.Namespace) -> int:
                   f"{args.seed} --cycles {args.cycles}{cell_config(args.cell, None)}")
 
         step("Serve: the calibrated model behind the daemon, targets from a client over Zenoh")
-        run.served = serve(args, workdir, workdir / "model.json", bool(keep))
+        served = serve(args, workdir, workdir / "model.json", bool(keep))
 
-        extra = what_nanodrift_adds(run)
+        extra = what_nanodrift_adds(args, model, results, served)
         step("What nanodrift adds")
         for line in extra:
             print(f"   {line}")
