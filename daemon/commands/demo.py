@@ -312,16 +312,10 @@ def adapted_sigma_words(static: TestResult, adapted: TestResult) -> str:
 
 def what_nanodrift_adds(args: argparse.Namespace, model: Model, results: Sequence[TestResult],
                         served: Sequence[dict[str, Any]]) -> list[str]:
-    """What the service adds beyond the paper's static model, shown on the same tests and seed.
-
-    - discovery (:func:`discovery_line`): the calibrated model, run by ``discover`` on a short
-      up-and-down run of a cell with hysteresis hidden (the paper's forward sweeps cannot show it);
-    - adaptation (``[adapt] mode = "bias"``, ``validate --adapt``): the bias tracker the daemon runs,
-      fed by the interferometer's settled residuals, on the out-of-range test and one in range;
-    - the per-command uncertainty ``q_sigma_um``: how often the true error lay within ±2σ;
-    - the health monitor: the serving daemon's own ``health`` (settled residuals of the serve step's
-      targets), read from its ``status`` after the last held target.
-    """
+    """What the service adds beyond the paper's static model, shown on the same tests and seed: adaptation
+    (``validate --adapt``'s bias tracker on the out-of-range test and one in range), discovery
+    (:func:`discovery_line`), the per-command uncertainty (how often the true error lay within ±2σ) and the
+    serving daemon's ``health`` (:func:`health_line`)."""
     tracker_defaults = (600.0, 1.0)  # [adapt] tau_s, max_um
     lines: list[str] = []
     by_name = {r.name: r for r in results}

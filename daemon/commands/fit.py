@@ -123,10 +123,8 @@ def cell_fit_summary(cell: CellModel, path: str) -> dict[str, Any]:
     :func:`fit_summary` of its model)."""
     if one_axis(cell.axes):
         return fit_summary(cell.models["x"], path)
-    axes = {}
-    for axis, model in cell.models.items():
-        axes[axis] = fit_summary(model, path)
-        axes[axis]["equation"] = equation(model, lhs=f"q_{axis}")
+    axes = {axis: {**fit_summary(model, path), "equation": equation(model, lhs=f"q_{axis}")}  # the key keeps its place
+            for axis, model in cell.models.items()}
     return {"model": cell.id, "model_out": str(path), "axes": axes}
 
 
