@@ -161,9 +161,8 @@ def driver_warnings(config: Config) -> list[str]:
 
 
 def position_window_warnings(config: Config) -> list[str]:
-    """A position sensor that polls no faster than ``[health] window_s``: a held target's averaging window can
-    hold no reading (or one), so the target gets no residual and no record row (the daemon counts each in
-    ``holds_unrecorded``). Both are seconds of the cell's clock."""
+    """A position sensor that polls no faster than ``[health] window_s`` (both seconds of the cell's clock); the
+    warning says what a held target then misses."""
     window_s = config.health.window_s
     return [f"sensors[{index}] ({sensor.name}).interval_s: polls every {sensor.interval_s:g} s, not faster than "
             f"[health] window_s = {window_s:g} s: a held target whose window no reading falls into gets no residual "
@@ -175,10 +174,8 @@ def position_window_warnings(config: Config) -> list[str]:
 
 def position_proofs(config: Config) -> tuple[list[str], list[str]]:
     """(what each axis' position proof may believe, warnings) for every axis stating
-    ``position_proof_tolerance_um``: a read-back nothing on record confirms is believed when the axis' position
-    sensor reads within it of the command the voltage means, so the stage may really be that far from the value
-    believed, and a first move may jump that much. A tolerance with nothing to prove with, or one so wide a
-    sensor proves almost any read-back, is said."""
+    ``position_proof_tolerance_um``: the lines say how far a first move may jump, the warnings a tolerance with
+    nothing to prove with or so wide a sensor proves almost any read-back."""
     said: list[str] = []
     warnings: list[str] = []
     sensors = config.position_sensors()

@@ -5,8 +5,7 @@
 2. validate: the paper's five tests (test 1 without compensation, tests 2-4 inside the training
    range, test 5 outside it), each over the paper's 30 sweeps through the procedure ``nanodrift
    validate`` runs (:func:`nanodrift.procedure.validation.run_validation` on the simulated cell's
-   virtual clock), seeded by :func:`nanodrift.commands._cell.scenario_seed` as ``validate`` and
-   ``benchmarks/paper_table1.py`` are: the same seed gives the same figures through all three;
+   virtual clock), seeded by :func:`nanodrift.commands._cell.scenario_seed` (same seed, same figures);
 3. Table I beside the paper's, with a line on each difference (seed, sweeps, the simulated room) and
    on why the static model's test 5 degrades (it extrapolates);
 4. serve: ``nanodrift run`` on the calibrated model in its own process on 127.0.0.1 (the room
