@@ -7,14 +7,8 @@ file (:mod:`nanodrift.model.segments`); every file must hold the model's channel
 only some files have are left out. The extended model's provenance lists every file's SHA-256.
 
 When nothing clears the bar no model is written (an "extended" model with the given terms would only
-be a new id for the same model): "nothing found; no model written", exit 0, ``"steps": []`` and
-``"model_out": null`` in ``--json``. Effects the run's trajectory cannot show (hysteresis in
-forward-only sweeps) are named with the run that would show them, found or not.
-
-Each named step says what a fresh run of the same kind should show (``fresh_gain_expected``: RMS
-after / before) and, for a searched time constant, the range the run supports (``tau_range_s``);
-``--fresh F.csv``, a run discovery never saw, also measures each step's gain on it
-(``fresh_gain_measured``).
+be a new id for the same model). What is printed then, and the fresh-run figures of each named step,
+are the README's (*Finding what the model misses*).
 """
 
 from __future__ import annotations
