@@ -36,7 +36,7 @@ from nanodrift.output_record import OutputRecords, state_directory
 
 def _plugins(config: Config) -> dict[str, DriverPlugin]:
     """Every plugin the config involves: its sensors' kinds, its actuator's and the owners of its sections."""
-    plugins = {kind: load_plugin(kind) for kind in config.kinds()}
+    plugins = {kind: load_plugin(kind) for kind in dict.fromkeys(s.kind for s in config.sensors)}
     for actuator in config.axis_actuators().values():
         if actuator.kind != ZENOH_KIND:
             plugins.setdefault(actuator.kind, load_plugin(actuator.kind))
@@ -97,16 +97,16 @@ def build_drivers(config: Config, context: DriverContext | None = None, *,
 def _axis_actuators(config: Config, plugins: Mapping[str, DriverPlugin], context: DriverContext) -> dict[str, Actuator]:
     """Each axis' output (a one-axis cell's: ``x``), built by kind (:meth:`DriverPlugin.create_actuators`: the
     axes of one module or controller share its connection); a ``kind = "zenoh"`` axis has none."""
-    shared = shared_output_problems([(f"axis {axis}", a.options) for axis, a in config.axis_actuators().items()
+    configs = config.axis_actuators()
+    shared = shared_output_problems([(f"axis {axis}", a.options) for axis, a in configs.items()
                                      if a.options is not None])
     if shared:  # refused when the config was read; a Config built otherwise is refused here all the same
         raise DriverSetupError("; ".join(shared))
     by_kind: dict[str, list[str]] = {}
-    for axis, actuator in config.axis_actuators().items():
+    for axis, actuator in configs.items():
         if actuator.kind != ZENOH_KIND:
             by_kind.setdefault(actuator.kind, []).append(axis)
     built: dict[str, Actuator] = {}
-    configs = config.axis_actuators()
     for kind, axes in by_kind.items():
         options = [configs[a].options for a in axes]
         try:
@@ -138,11 +138,12 @@ def procedure_drivers(config: Config, *, start_s: float = 0.0) -> DriverSet:
     if unmeasured:
         raise DriverSetupError(f"axis {', '.join(unmeasured)} has no position sensor (role = \"position\" on that "
                                "axis); a procedure measures every axis")
-    if not config.virtual_cell:  # what the procedure writes to each output, where the daemon looks at its next start
-        drivers.records = OutputRecords(state_directory(config.daemon.state_dir), config.cell)
     if config.virtual_cell:
         drivers.description = "simulated cell (virtual clock)"
-    elif published:
+        return drivers
+    # what the procedure writes to each output, where the daemon looks at its next start
+    drivers.records = OutputRecords(state_directory(config.daemon.state_dir), config.cell)
+    if published:
         zenoh = ZenohActuator(config)
         drivers.actuators = {published[0]: zenoh}
         drivers.description = f"hardware; stage commands published on {zenoh.key}"

@@ -13,6 +13,7 @@ own (registered before the query leaves, so a ``done`` that overtakes the answer
 from __future__ import annotations
 
 import asyncio
+import functools
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -27,12 +28,6 @@ __all__ = ["ANSWER_TIMEOUT_S", "AsyncMoves", "Moving"]
 
 #: how long a move waits for the daemon's answer (the command or a refusal) before it fails
 ANSWER_TIMEOUT_S = 10.0
-
-
-@dataclass
-class _Awaited:
-    loop: asyncio.AbstractEventLoop
-    future: asyncio.Future[dict[str, Any]]
 
 
 @dataclass
@@ -64,7 +59,7 @@ class AsyncMoves:
         self.client = client
         self.answer_timeout_s = answer_timeout_s
         self._lock = threading.Lock()
-        self._awaited: dict[str, _Awaited] = {}  # move id -> the future its done resolves
+        self._awaited: dict[str, asyncio.Future[dict[str, Any]]] = {}  # move id -> the future its done resolves
         # a query per axis at once, and one more (an axis' next put while its last still waits for the answer)
         self._queries = ThreadPoolExecutor(max_workers=axes + 1, thread_name_prefix=f"{client.cell}-move")
         self._stops = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"{client.cell}-stop")
@@ -80,16 +75,14 @@ class AsyncMoves:
         move_id = self.client.new_id()
         done: asyncio.Future[dict[str, Any]] = loop.create_future()
         with self._lock:
-            self._awaited[move_id] = _Awaited(loop, done)  # before the query leaves: a fast done is kept
+            self._awaited[move_id] = done  # before the query leaves: a fast done is kept
         try:
-            command = await loop.run_in_executor(self._queries, self._ask, target, move_id, answer_timeout_s)
+            command = await loop.run_in_executor(self._queries, functools.partial(
+                self.client.move, target, wait=False, id=move_id, timeout_s=answer_timeout_s))
         except BaseException:
             self.forget(move_id)
             raise
         return Moving(command, self, move_id, done)
-
-    def _ask(self, target: Position, move_id: str, answer_timeout_s: float) -> Command:
-        return self.client.move(target, wait=False, id=move_id, timeout_s=answer_timeout_s)
 
     async def stop(self, timeout_s: float = 5.0) -> dict[str, Any]:
         """:meth:`nanodrift.Client.stop` on a worker no move occupies."""
@@ -114,7 +107,7 @@ class AsyncMoves:
         with self._lock:
             awaited = self._awaited.pop(move_id, None)
         if awaited is not None:
-            awaited.loop.call_soon_threadsafe(_resolve, awaited.future, doc)
+            awaited.get_loop().call_soon_threadsafe(_resolve, awaited, doc)
 
     def close(self) -> None:
         """Undeclare the subscriber; a move still awaiting its ``done`` fails (RuntimeError)."""
@@ -122,9 +115,9 @@ class AsyncMoves:
         with self._lock:
             awaited, self._awaited = list(self._awaited.values()), {}
         for each in awaited:
-            if not each.loop.is_closed():
-                each.loop.call_soon_threadsafe(_fail, each.future, RuntimeError(f"the client of cell "
-                                                                                 f"{self.client.cell!r} is closed"))
+            if not each.get_loop().is_closed():
+                each.get_loop().call_soon_threadsafe(_fail, each, RuntimeError(f"the client of cell "
+                                                                                f"{self.client.cell!r} is closed"))
         for pool in (self._queries, self._stops, self._statuses):
             pool.shutdown(wait=False, cancel_futures=True)
 

@@ -79,9 +79,6 @@ def atomic_write_text(path: str | os.PathLike[str], text: str) -> None:
 
 
 def file_sha256(path: str | os.PathLike[str]) -> str:
-    """Hex SHA-256 of a file's bytes, read in 1 MiB blocks (a recorded run can be large)."""
-    digest = hashlib.sha256()
+    """Hex SHA-256 of a file's bytes, read in blocks (a recorded run can be large)."""
     with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
+        return hashlib.file_digest(handle, "sha256").hexdigest()

@@ -1,17 +1,5 @@
 """``nanodrift.bluesky.Stage``: a compensated cell as an ophyd-async device for Bluesky plans
-(extra ``nanodrift[bluesky]``).
-
-```python
-from bluesky import RunEngine, plans as bp, plan_stubs as bps
-from ophyd_async.core import init_devices
-from nanodrift.bluesky import Stage
-
-RE = RunEngine()
-with init_devices():
-    stage = Stage("tcp/127.0.0.1:7447", "cell0", name="stage")
-RE(bps.mv(stage, 240))                     # a cell of several axes: bps.mv(stage, {"x": 240, "y": 100})
-RE(bp.scan([stage], stage, 0, 480, 5))     # or stage.x in an XY cell: one motor per axis
-```
+(extra ``nanodrift[bluesky]``; README, *Bluesky and EPICS*, shows it in a plan).
 
 Why it is built this way:
 
@@ -38,7 +26,7 @@ from __future__ import annotations
 
 import asyncio
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -72,21 +60,19 @@ class _AxisReadings(StandardReadable):
     readback: SignalR[float]
 
     def _add_readings(self, stage: Stage, axis: str) -> None:
-        def command_value(key: str) -> float:
-            return axis_value(stage.view.command(), key, axis)
+        def reading(getter: Callable[[], float], units: str = "um", precision: int = 4) -> SignalR[float]:
+            return soft_signal_r_and_setter(float, math.nan, units=units, precision=precision, getter=getter)[0]
+
+        def command_value(key: str) -> Callable[[], float]:
+            return lambda: axis_value(stage.view.command(), key, axis)
 
         with self.add_children_as_readables(Format.HINTED_UNCACHED_SIGNAL):
-            self.readback, _ = soft_signal_r_and_setter(float, math.nan, units="um", precision=4,
-                                                        getter=lambda: stage.readback_um(axis))
+            self.readback = reading(lambda: stage.readback_um(axis))
         with self.add_children_as_readables(Format.UNCACHED_SIGNAL):
-            self.setpoint, _ = soft_signal_r_and_setter(float, math.nan, units="um", precision=4,
-                                                        getter=lambda: command_value(f"{axis}_um"))
-            self.q_um, _ = soft_signal_r_and_setter(float, math.nan, units="um", precision=4,
-                                                    getter=lambda: command_value("q_um"))
-            self.voltage_v, _ = soft_signal_r_and_setter(float, math.nan, units="V", precision=5,
-                                                         getter=lambda: command_value("voltage_v"))
-            self.q_sigma_um, _ = soft_signal_r_and_setter(float, math.nan, units="um", precision=4,
-                                                          getter=lambda: command_value("q_sigma_um"))
+            self.setpoint = reading(command_value(f"{axis}_um"))
+            self.q_um = reading(command_value("q_um"))
+            self.voltage_v = reading(command_value("voltage_v"), "V", 5)
+            self.q_sigma_um = reading(command_value("q_sigma_um"))
 
     def set_name(self, name: str, *, child_name_separator: str | None = None) -> None:
         super().set_name(name, child_name_separator=child_name_separator)

@@ -128,7 +128,6 @@ class CellView:
     """
 
     def __init__(self, client: Client, status: Mapping[str, Any]) -> None:
-        self.client = client
         self.cell = str(client.cell)
         self.axes = axes_of(status)
         self.multi_axis = isinstance(status.get("axes"), dict) and bool(status.get("axes"))

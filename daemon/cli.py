@@ -89,9 +89,7 @@ class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
     def _get_help_string(self, action: argparse.Action) -> str:
         text = action.help or ""
         default = action.default
-        if "(default" in text or default is None or default is argparse.SUPPRESS or isinstance(default, bool):
-            return text
-        if default in ([], ""):
+        if "(default" in text or default in (None, argparse.SUPPRESS, [], "") or isinstance(default, bool):
             return text
         if not action.option_strings and action.nargs not in (argparse.OPTIONAL, argparse.ZERO_OR_MORE):
             return text

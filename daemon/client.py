@@ -1,14 +1,5 @@
 """``nanodrift.Client``: the client a lab script, a notebook, Bluesky, the EPICS bridge and the CLI's own
-``target`` and ``status`` use to move a cell and read it (README, *Python API*).
-
-```python
-from nanodrift import Client, Refused, MoveEnded
-with Client("tcp/127.0.0.1:7447", cell="cell0") as cell:
-    cmd = cell.move(240.0)             # a cell of several axes: cell.move({"x": 240.0, "y": 100.0})
-    cell.stop()
-    cell.status()
-for status in Client.cells("tcp/127.0.0.1:7447"): ...
-```
+``target`` and ``status`` use to move a cell and read it (README, *Python API*, shows it in use).
 
 Synchronous and thread-safe: every method may be called from any thread; the Zenoh callbacks (the
 ``done`` subscriber) only fill a table under one condition variable, which the waiting ``move`` reads.
@@ -34,15 +25,13 @@ import zenoh
 
 from nanodrift.bus.protocol import DEFAULT_PREFIX, Keys, key_prefix
 from nanodrift.bus.session import describe_zenoh_error, session_config, undeclare_all
-from nanodrift.settings import ZenohSettings, prefix_problem
+from nanodrift.settings import ZenohSettings, checked_prefix
 
 __all__ = ["Client", "Command", "MoveEnded", "Refused", "client_config", "json_object", "number", "outcome",
            "status_key"]
 
 #: seconds to collect the cells' ``status`` replies when a cell did not answer (to name those that do)
 DISCOVERY_TIMEOUT_S = 2.0
-#: the ``done`` states that end a move without reaching it (``reached`` is the one that returns)
-END_STATES = ("superseded", "stopped", "failed")
 Position = float | Mapping[str, float]
 Endpoints = str | Sequence[str] | None
 
@@ -203,13 +192,6 @@ def status_key(cell: str | None, prefix: str = DEFAULT_PREFIX) -> str:
     return f"{key_prefix(cell or '*', prefix)}/status"
 
 
-def _check_prefix(prefix: str) -> str:
-    problem = prefix_problem(prefix)
-    if problem:
-        raise ValueError(f"prefix: {problem}")
-    return prefix
-
-
 class Client:
     """One cell of the network (``cell``), or the network's cells (``cell=None``: :meth:`statuses` only).
 
@@ -232,7 +214,7 @@ class Client:
                  label: str = "zenoh_config") -> None:
         self.endpoints = _endpoints(endpoint)
         self.cell = cell
-        self.prefix = _check_prefix(prefix)
+        self.prefix = checked_prefix(prefix, label="prefix: ")
         self.keys = Keys(cell or "*", prefix)
         self._where = ", ".join(self.endpoints) or (str(zenoh_config) if zenoh_config else "scouting")
         conf = client_config(self.endpoints, zenoh_config=zenoh_config, mode=mode, label=label)
@@ -301,7 +283,7 @@ class Client:
                 self._check_open()
                 self._pending[target_id] = None  # before the query leaves: a fast done is kept
         try:
-            command = self._compensate(cell, target, target_id, timeout_s)
+            command = self._ask(cell, target, target_id, timeout_s)
             if on_answer is not None:
                 on_answer(command)
             if not wait:
@@ -317,29 +299,26 @@ class Client:
             return json.dumps({**{f"{axis}_um": float(v) for axis, v in target.items()}, "id": target_id})
         return json.dumps({"x_um": float(target), "id": target_id})
 
-    def _compensate(self, cell: str, target: Position, target_id: str | int, timeout_s: float) -> Command:
+    def _ask(self, cell: str, target: Position, target_id: str | int, timeout_s: float) -> Command:
+        key = self.keys.compensate
         try:
-            return self._ask(target, target_id, timeout_s)
+            for reply in self.session.get(key, payload=self._request(target, target_id), timeout=timeout_s):
+                result = reply.result  # a Sample, or a ReplyError
+                raw = result.payload.to_bytes()
+                if not isinstance(result, zenoh.Sample) and raw == QUERY_TIMED_OUT:
+                    break  # taken and not answered in time: no answer, not a refusal
+                self._unanswered = ""
+                if not isinstance(result, zenoh.Sample):
+                    raise _refused(raw, target_id)
+                doc = json_object(raw)
+                if doc is None:
+                    raise Refused("bad_reply", f"the reply on {key} is not a JSON object: {raw[:200]!r}", target_id)
+                return Command.from_payload(doc)
+            self._unanswered = self._unanswered or self.no_answer(key, timeout_s)
         except zenoh.ZError as error:  # the session closed under the query (close() from another thread)
             self._check_open()
             raise ConnectionError(f"the query of cell {cell!r} failed ({self._where}): "
                                   f"{describe_zenoh_error(error, connect=self.endpoints)}") from None
-
-    def _ask(self, target: Position, target_id: str | int, timeout_s: float) -> Command:
-        key = self.keys.compensate
-        for reply in self.session.get(key, payload=self._request(target, target_id), timeout=timeout_s):
-            result = reply.result  # a Sample, or a ReplyError
-            raw = result.payload.to_bytes()
-            if not isinstance(result, zenoh.Sample) and raw == QUERY_TIMED_OUT:
-                break  # taken and not answered in time: no answer, not a refusal
-            self._unanswered = ""
-            if not isinstance(result, zenoh.Sample):
-                raise _refused(raw, target_id)
-            doc = json_object(raw)
-            if doc is None:
-                raise Refused("bad_reply", f"the reply on {key} is not a JSON object: {raw[:200]!r}", target_id)
-            return Command.from_payload(doc)
-        self._unanswered = self._unanswered or self.no_answer(key, timeout_s)
         raise TimeoutError(self._unanswered)
 
     def _wait_done(self, command: Command, target_id: str | int, deadline: float, timeout_s: float) -> Command:

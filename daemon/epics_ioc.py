@@ -1,18 +1,10 @@
 """The EPICS Channel Access bridge of ``nanodrift ioc``: each axis of a cell as a motor-like set of PVs.
 
-PVs (``<P>`` the ``--pv-prefix``; a cell of several axes: ``<P><cell>:<axis>:...``):
-
-- ``<P><cell>:SP`` (ao, µm): a put moves. The cell's other axes keep their last setpoints (the cell's
-  latest command, whoever sent it). A refused put, or one the daemon does not answer within the answer
-  timeout (``--answer-timeout``, 10 s), fails (``ECA_PUTFAIL``, ``SP`` in WRITE/MAJOR alarm), leaves
-  ``DMOV`` 1 and says why in ``MSG``.
-- ``:RBV`` (ai, µm): the measured position where a position sensor measures the axis, else the target of
-  the last reached or stopped move; ``:DMOV``: 1 when no move of this axis is in flight, 0 from an
-  answered put to ``SP`` until its ``done``; ``:STOP``: a put of 1 sends ``stop``;
-- ``:STATE`` (string): the cell's status state (ok, degraded, extrapolating, no-model, stalled, fault;
-  ``offline`` while the cell does not answer ``status``), refreshed every ``STATUS_PERIOD_S`` and at
-  once after a refusal; ``:VOLT`` (ai, V) and ``:SIGMA`` (ai, µm) of the latest command; ``:MSG`` (char
-  waveform, up to 256 bytes): the last refusal's or failure's text, empty after a reached move.
+PVs (``<P>`` the ``--pv-prefix``; a cell of several axes: ``<P><cell>:<axis>:...``): ``SP``, ``RBV``,
+``DMOV``, ``STOP``, ``STATE``, ``VOLT``, ``SIGMA``, ``MSG``, as :class:`AxisPVs` declares them and the
+README's table (*Bluesky and EPICS*) documents them: a put to ``SP`` moves the axis (the others at their
+last setpoints); one refused, or not answered within ``--answer-timeout``, fails (``ECA_PUTFAIL``,
+``SP`` in WRITE/MAJOR alarm), leaves ``DMOV`` 1 and says why in ``MSG``.
 
 Why caproto: it is pure Python (pip-installable, an asyncio server), so the bridge installs with
 ``pip install 'nanodrift[epics]'`` on any machine that runs nanodrift and runs in CI. pythonSoftIOC
@@ -26,6 +18,7 @@ published before the 1 of the same move, and a value from Zenoh's threads reache
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import itertools
 import math
 from collections.abc import Callable, Mapping, Sequence
@@ -127,13 +120,10 @@ class CellBridge:
         """Apply updates and keep ``STATE`` fresh until cancelled."""
         self._loop = asyncio.get_running_loop()
         self.view.add_listener(self._from_zenoh)
-        command = self.view.command()
-        if command:
+        if command := self.view.command():
             self._show_command(command)
         for axis in self.view.axes:
-            measured = self.view.position(axis)
-            if measured is not None:
-                self._post(self.groups[axis].RBV, measured.value_um)
+            self._on_broadcast("position", axis, self.view.position(axis))  # None (no sample yet): nothing
         await asyncio.gather(self._apply_updates(), self._poll_status())
 
     async def _apply_updates(self) -> None:
@@ -149,10 +139,8 @@ class CellBridge:
                 state = "offline"
             for group in self.groups.values():
                 self._post(group.STATE, state)
-            try:
+            with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._refresh.wait(), STATUS_PERIOD_S)
-            except TimeoutError:
-                pass
             self._refresh.clear()
 
     def _post(self, pv: Any, value: Any) -> None:

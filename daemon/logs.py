@@ -113,7 +113,7 @@ def configure_logging(
         cache_logger_on_first_use=False,
     )
     handler = OneLineHandler(stream, ChatterLimiter(window_s, clock), priority_prefix=journal)
-    handler.addFilter(DemoteConnectNoise(level_no))
+    handler.addFilter(_demote_connect_noise(level_no))
     handler.setFormatter(
         structlog.stdlib.ProcessorFormatter(
             foreign_pre_chain=[*stamped, _library_fields],
@@ -190,15 +190,11 @@ class ChatterLimiter:
         self._clock = clock
         self._windows: dict[tuple[str, int, str], _Window] = {}
 
-    @staticmethod
-    def _key(record: logging.LogRecord) -> tuple[str, int, str]:
-        first_line = record.getMessage().split("\n", 1)[0]
-        return record.name, record.levelno, _NUMBERS.sub("#", first_line)[:300]
-
     def admit(self, record: logging.LogRecord) -> bool:
         if self.window_s <= 0:
             return True
-        key = self._key(record)
+        first_line = record.getMessage().split("\n", 1)[0]
+        key = record.name, record.levelno, _NUMBERS.sub("#", first_line)[:300]
         window = self._windows.get(key)
         now = self._clock()
         if window is not None and now < window.ends:
@@ -247,10 +243,6 @@ class OneLineHandler(logging.Handler):
         self.limiter = limiter or ChatterLimiter()
         self.priority_prefix = priority_prefix
 
-    @property
-    def stream(self) -> TextIO:
-        return self._stream if self._stream is not None else sys.stderr
-
     def emit(self, record: logging.LogRecord) -> None:
         try:
             for summary in self.limiter.due():
@@ -266,7 +258,7 @@ class OneLineHandler(logging.Handler):
             self.handleError(record)
 
     def _write(self, record: logging.LogRecord) -> None:
-        stream = self.stream
+        stream = self._stream if self._stream is not None else sys.stderr
         prefix = f"<{syslog_priority(record.levelno)}>" if self.priority_prefix else ""
         stream.write(prefix + self.format(record) + "\n")
         stream.flush()
@@ -285,20 +277,19 @@ class OneLineHandler(logging.Handler):
         super().close()
 
 
-class DemoteConnectNoise(logging.Filter):
-    """pymodbus' per-attempt connection lines become debug lines: dropped unless the daemon logs debug."""
+def _demote_connect_noise(level_no: int) -> Callable[[logging.LogRecord], bool]:
+    """A handler filter: pymodbus' per-attempt connection lines become debug lines, dropped unless the daemon
+    logs debug (``level_no``)."""
 
-    def __init__(self, level_no: int) -> None:
-        super().__init__()
-        self.level_no = level_no
-
-    def filter(self, record: logging.LogRecord) -> bool:
+    def keep(record: logging.LogRecord) -> bool:
         if (record.name.startswith("pymodbus") and record.levelno > logging.DEBUG and isinstance(record.msg, str)
                 and record.getMessage().startswith(PYMODBUS_CONNECT_NOISE)):
-            if self.level_no > logging.DEBUG:
+            if level_no > logging.DEBUG:
                 return False
             record.levelno, record.levelname = logging.DEBUG, "DEBUG"
         return True
+
+    return keep
 
 
 def _cut_frame_dump(record: logging.LogRecord) -> None:

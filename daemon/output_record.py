@@ -29,9 +29,7 @@ def state_directory(configured: Path | None) -> Path | None:
     """Where the daemon keeps its state: ``$STATE_DIRECTORY`` when systemd set it, else ``[daemon] state_dir``
     (None: nowhere, and every start is a first start)."""
     from_systemd = os.environ.get(STATE_DIRECTORY_ENV, "").split(":")[0]
-    if from_systemd:
-        return Path(from_systemd)
-    return configured
+    return Path(from_systemd) if from_systemd else configured
 
 
 class RecordError(ValueError):
@@ -55,14 +53,11 @@ class OutputRecords:
     def path(self, axis: str) -> Path | None:
         return None if self.directory is None else self.directory / f"output-{self.cell}-{axis}.json"
 
-    def written(self, axis: str, device: str) -> tuple[float, ...]:
-        """The voltages ``device`` may hold by what was last written to it (the last confirmed, then the one
-        being written); empty when nothing is on record for this axis and device. RecordError: unreadable."""
-        return self.read(axis, device)[0]
-
     def read(self, axis: str, device: str) -> tuple[tuple[float, ...], str]:
-        """:meth:`written`, and who wrote the record: ``"daemon"`` (a write of the daemon's or a procedure's) or
-        ``"operator"`` (``nanodrift confirm-output``)."""
+        """The voltages ``device`` may hold by what was last written to it (the last confirmed, then the one
+        being written; empty when nothing is on record for this axis and device), and who wrote the record:
+        ``"daemon"`` (a write of the daemon's or a procedure's) or ``"operator"`` (``nanodrift confirm-output``).
+        RecordError: unreadable."""
         path = self.path(axis)
         if path is None or not path.exists():
             return (), "daemon"

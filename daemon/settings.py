@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 from pydantic import AllowInfNan, BaseModel, Field, PrivateAttr, Strict, field_validator, model_validator
+from pydantic.functional_validators import AfterValidator
 
 import nanodrift.motion as motion
 from nanodrift.calibration.plans import CALIBRATION_POINTS_UM, PAPER_TIMING, StepTiming
@@ -58,6 +59,14 @@ def prefix_problem(value: str) -> str | None:
     return None
 
 
+def checked_prefix(value: str, *, label: str = "", error: type[Exception] = ValueError) -> str:
+    """``value`` when it is a usable key prefix, else ``error`` saying why (after ``label``)."""
+    problem = prefix_problem(value)
+    if problem:
+        raise error(f"{label}{problem}")
+    return value
+
+
 #: a path written as a TOML string (strict mode would take only a Path object)
 PathText = Annotated[Path, Strict(False)]
 
@@ -70,16 +79,8 @@ class ZenohSettings(StrictModel):
     connect: list[str] = Field(default_factory=list)
     multicast_scouting: bool = Field(default=True, description="find peers by UDP multicast")
     config_file: PathText | None = Field(default=None, description="a zenoh json5 config used as the base")
-    prefix: str = Field(default=DEFAULT_PREFIX, description=(
+    prefix: Annotated[str, AfterValidator(checked_prefix)] = Field(default=DEFAULT_PREFIX, description=(
         "the key tree of the cell: its keys are <prefix>/<cell>/...; one or more chunks, e.g. femto/lab3/stages"))
-
-    @field_validator("prefix")
-    @classmethod
-    def _key_prefix(cls, value: str) -> str:
-        problem = prefix_problem(value)
-        if problem:
-            raise ValueError(problem)
-        return value
 
 
 class ModelSettings(StrictModel):
@@ -119,20 +120,17 @@ class MetricsSettings(StrictModel):
 
     @classmethod
     def _valid_host(cls, host: str) -> bool:
-        if host.startswith("["):
-            try:
-                ipaddress.IPv6Address(host[1:-1])
-            except ValueError:
-                return False
-            return True
         labels = host.split(".")
-        if all(label.isdigit() for label in labels):  # looks like IPv4: must be one
-            try:
+        try:
+            if host.startswith("["):
+                ipaddress.IPv6Address(host[1:-1])
+            elif all(label.isdigit() for label in labels):  # looks like IPv4: must be one
                 ipaddress.IPv4Address(host)
-            except ValueError:
-                return False
-            return True
-        return len(host) <= 253 and all(_HOST_LABEL.fullmatch(label) for label in labels)
+            else:
+                return len(host) <= 253 and all(_HOST_LABEL.fullmatch(label) for label in labels)
+        except ValueError:
+            return False
+        return True
 
     @property
     def host(self) -> str:
@@ -491,11 +489,4 @@ class Config(StrictModel):
         copy = self.model_copy()
         copy._sections = {**self._sections, name: value}
         return copy
-
-    def kinds(self) -> list[str]:
-        """Driver kinds in use, in first-appearance order."""
-        return list(dict.fromkeys(s.kind for s in self.sensors))
-
-    def sensor(self, name: str) -> SensorConfig | None:
-        return next((s for s in self.sensors if s.name == name), None)
 

@@ -71,7 +71,7 @@ def test_full_config_is_read_with_relative_paths_resolved(tmp_path: Path) -> Non
     assert simulation.scenario == "steady" and simulation.speed == 30.0 and config.virtual_cell
     assert [s.name for s in config.sensors] == ["T1", "T2", "interferometer"]
     assert all(isinstance(s, SimulatedSensorConfig) for s in config.sensors)  # the plugin's own model
-    assert config.sensor("T2").max_age_s == 3.0
+    assert next(s for s in config.sensors if s.name == "T2").max_age_s == 3.0
     assert config.source == str(path)
 
 

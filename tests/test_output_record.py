@@ -20,9 +20,9 @@ from nanodrift.output_record import RECORD_FORMAT, OutputRecords, RecordError, s
 def test_a_record_round_trips_and_names_only_its_own_device(tmp_path: Path) -> None:
     records = OutputRecords(tmp_path, "cell0")
     records.save("x", "module A register 10", 7.98, 8.0)
-    assert records.written("x", "module A register 10") == (7.98, 8.0)
-    assert records.written("x", "module B register 10") == ()  # another device's record says nothing of this one
-    assert records.written("y", "module A register 10") == ()  # nothing kept for y
+    assert records.read("x", "module A register 10")[0] == (7.98, 8.0)
+    assert records.read("x", "module B register 10")[0] == ()  # another device's record says nothing of this one
+    assert records.read("y", "module A register 10")[0] == ()  # nothing kept for y
     doc = json.loads((tmp_path / "output-cell0-x.json").read_text())
     assert doc["format"] == RECORD_FORMAT and doc["cell"] == "cell0" and doc["axis"] == "x"
 
@@ -38,21 +38,21 @@ def test_a_record_says_whether_an_operator_confirmed_it_or_the_daemon_wrote_it(t
 def test_a_procedures_writes_keep_the_previous_value_as_the_confirmed_one(tmp_path: Path) -> None:
     records = OutputRecords(tmp_path, "c")
     records.note_written("x", "dac", 1.0)
-    assert records.written("x", "dac") == (1.0,)  # nothing confirmed before the first write
+    assert records.read("x", "dac")[0] == (1.0,)  # nothing confirmed before the first write
     records.note_written("x", "dac", 1.5)
-    assert records.written("x", "dac") == (1.0, 1.5)  # a kill mid-write leaves the device at one of the two
+    assert records.read("x", "dac")[0] == (1.0, 1.5)  # a kill mid-write leaves the device at one of the two
 
 
 def test_a_number_that_is_no_voltage_is_refused_naming_the_file(tmp_path: Path) -> None:
     path = tmp_path / "output-c-x.json"
     path.write_text(json.dumps({"format": RECORD_FORMAT, "device": "dac", "confirmed_v": None, "written_v": True}))
     with pytest.raises(RecordError, match=r"output-c-x\.json: confirmed_v and written_v must be numbers or null"):
-        OutputRecords(tmp_path, "c").written("x", "dac")
+        OutputRecords(tmp_path, "c").read("x", "dac")[0]
 
 
 def test_no_state_directory_keeps_nothing_and_systemd_s_wins(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     OutputRecords(None, "c").save("x", "dac", 1.0, 1.0)  # nowhere to keep it: nothing happens
-    assert OutputRecords(None, "c").written("x", "dac") == ()
+    assert OutputRecords(None, "c").read("x", "dac")[0] == ()
     monkeypatch.delenv("STATE_DIRECTORY", raising=False)
     assert state_directory(tmp_path / "configured") == tmp_path / "configured"
     monkeypatch.setenv("STATE_DIRECTORY", f"{tmp_path / 'unit'}:{tmp_path / 'other'}")
@@ -74,7 +74,7 @@ def test_any_file_content_is_a_record_of_finite_voltages_or_an_error_naming_the_
     path = tmp_path / "output-c-x.json"
     path.write_bytes(content)
     try:
-        voltages = OutputRecords(tmp_path, "c").written("x", "dac")
+        voltages = OutputRecords(tmp_path, "c").read("x", "dac")[0]
     except RecordError as error:
         assert str(path) in str(error)
         return

@@ -25,7 +25,7 @@ from nanodrift.drivers.simulated.config import SECTION, SimulationConfig
 from nanodrift.drivers.simulated.effects import UnknownNameError, resolve_effects
 from nanodrift.drivers.simulated.scenarios import get_scenario
 from nanodrift.drivers_set import DriverSet
-from nanodrift.errors import UserError
+from nanodrift.errors import UserError, user_errors
 from nanodrift.procedure.follow import FollowCheck
 from nanodrift.procedure.preflight import check_not_served, wait_for_output
 
@@ -47,39 +47,29 @@ def scenario_seed(seed: int, scenario: str) -> int:
 
 def add_procedure_flags(parser: argparse.ArgumentParser, default_scenario: str, *, several: bool = False,
                         over_config: bool = False) -> None:
-    """What every procedure on a cell takes: ``--config F``, the simulated cell's overrides
-    (:func:`add_simulation_flags`) and ``--no-output-check`` (on hardware with ``kind = "zenoh"`` a procedure
-    refuses to start with nobody applying the steps)."""
-    parser.epilog = scenario_epilog()
-    add_config_flag(parser)
-    add_simulation_flags(parser, default_scenario, several=several, over_config=over_config)
-    parser.add_argument("--no-output-check", action="store_true",
-                        help="start even when no output node is subscribed to nanodrift/<cell>/command")
-
-
-def add_simulation_flags(parser: argparse.ArgumentParser, default_scenario: str, *, several: bool = False,
-                         over_config: bool = False) -> None:
-    """For the simulated cell (no --config, or a config with simulated sensors): override [simulation].
+    """What every procedure on a cell takes: ``--config F``, ``--no-output-check`` (on hardware with
+    ``kind = "zenoh"`` a procedure refuses to start with nobody applying the steps) and, for the simulated cell
+    (no --config, or a config with simulated sensors), ``--scenario/--effects/--seed`` over [simulation].
 
     ``several``: ``--scenario`` may name several rooms, comma-separated or repeated (a list, read with
     :func:`scenario_list`), each run in turn. ``over_config``: ``default_scenario`` applies with a config
     too (see :func:`open_cell`)."""
+    parser.epilog = scenario_epilog()
+    add_config_flag(parser)
     default = (f"{default_scenario}, whatever the config's [simulation] scenario (the room the daemon serves in)"
                if over_config else f"{default_scenario} with no --config, else the config's [simulation] scenario")
-    if several:
-        parser.add_argument("--scenario", metavar="S", action="append",
-                            help=f"simulated room history, one of {scenario_names()}; several, comma-separated "
-                                 "or repeated (--scenario test2,test3 or --scenario test2 --scenario test3), "
-                                 f"are run in turn into one report (default: {default})")
-    else:
-        parser.add_argument("--scenario", metavar="S",
-                            help=f"simulated room history, one of {scenario_names()} (default: {default})")
+    each = ("; several, comma-separated or repeated (--scenario test2,test3 or --scenario test2 --scenario test3), "
+            "are run in turn into one report") if several else ""
+    parser.add_argument("--scenario", metavar="S", action="append" if several else "store",
+                        help=f"simulated room history, one of {scenario_names()}{each} (default: {default})")
     parser.add_argument("--effects", metavar="a,b",
                         help=f"hidden effects of the simulated cell, from {effect_names()} "
                              "(default: none, or the config's)")
     parser.add_argument("--seed", type=int, metavar="N",
                         help="simulation seed (default: 0, or the config's); the paper's test N runs with "
                              "seed*100+N, as in demo")
+    parser.add_argument("--no-output-check", action="store_true",
+                        help="start even when no output node is subscribed to nanodrift/<cell>/command")
 
 
 def scenario_list(values: list[str] | None) -> list[str]:
@@ -102,14 +92,12 @@ def open_cell(args: argparse.Namespace, default_scenario: str, start_s: float = 
     config = config or load_config(args.config)
     updates: dict[str, Any] = {}
     scenario = args.scenario or (default_scenario if args.config is None or over_config else None)
-    try:
+    with user_errors(UnknownNameError):
         if scenario:
             get_scenario(scenario)
             updates["scenario"] = scenario
         if args.effects:
             updates["effects"] = resolve_effects(args.effects)
-    except UnknownNameError as err:
-        raise UserError(str(err)) from None
     if args.seed is not None:
         updates["seed"] = args.seed
     section = config.section(SECTION)

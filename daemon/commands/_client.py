@@ -1,29 +1,18 @@
-"""The command-line side of ``target`` and ``status``: their shared options, and the :class:`nanodrift.Client`
-they open from them.
-
-:func:`add_client_flags` declares ``-e/--connect``, ``--mode``, ``--zenoh-config`` and ``--prefix``;
-:func:`open_client` reads them (and nothing else) into a :class:`nanodrift.client.Client`. What a client
-does (the session's config, the queries, the explanation of a cell that does not answer) is the
-library's (:mod:`nanodrift.client`), which a lab's script uses the same way; here are only argparse and
-the one-sentence :class:`UserError`.
+"""The command-line side of ``target``, ``status`` and ``ioc``: their shared options (:func:`add_client_flags`),
+and the :class:`nanodrift.Client` they open from them (:func:`open_client`). What a client does is the library's
+(:mod:`nanodrift.client`), which a lab's script uses the same way; here are only argparse and the one-sentence
+:class:`UserError`.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 
 from nanodrift.bus.protocol import DEFAULT_PREFIX
 from nanodrift.client import Client
 from nanodrift.errors import UserError
-from nanodrift.settings import prefix_problem
-
-
-def key_prefix_arg(text: str) -> str:
-    """``--prefix P``: a usable key prefix, else argparse's error naming the option."""
-    problem = prefix_problem(text)
-    if problem:
-        raise argparse.ArgumentTypeError(problem)
-    return text
+from nanodrift.settings import checked_prefix
 
 
 def add_client_flags(parser: argparse.ArgumentParser, *, endpoint_of: str) -> None:
@@ -34,7 +23,8 @@ def add_client_flags(parser: argparse.ArgumentParser, *, endpoint_of: str) -> No
                         help="zenoh session mode (default: client with -e, else peer)")
     parser.add_argument("--zenoh-config", metavar="F",
                         help="a zenoh json5 config (credentials, TLS), e.g. config/zenoh-client.example.json5")
-    parser.add_argument("--prefix", type=key_prefix_arg, default=DEFAULT_PREFIX, metavar="P",
+    parser.add_argument("--prefix", type=functools.partial(checked_prefix, error=argparse.ArgumentTypeError),
+                        default=DEFAULT_PREFIX, metavar="P",
                         help="the daemons' [zenoh] prefix: keys <P>/<cell>/... (default: nanodrift)")
 
 

@@ -1,8 +1,6 @@
-"""``nanodrift demo``, its serving step: the daemon on the calibrated model and a client over Zenoh.
-
-``nanodrift run`` in its own process on 127.0.0.1 (the simulated room sped up), targets through the
-``compensate`` queryable as ``nanodrift target`` sends them, and the position the interferometer
-then reads, averaged over the end of the hold as the paper's procedure does.
+"""``nanodrift demo``, its serving step (step 4 of :mod:`nanodrift.commands.demo`): the daemon on the calibrated
+model and a client over Zenoh; the position the interferometer reads after each target is averaged over the
+end of the hold, as the paper's procedure does.
 """
 
 from __future__ import annotations
@@ -145,11 +143,9 @@ def answer_line(answer: dict[str, Any], measured_um: float) -> str:
             f"{flag}")
 
 
-def serve(args: argparse.Namespace, workdir: Path, model_path: Path, kept: bool
-          ) -> tuple[list[dict[str, Any]], str]:
-    """``nanodrift run`` on the calibrated model in its own process, and a client sending targets.
-
-    Returns the answers (each with the position the interferometer then read) and the endpoint."""
+def serve(args: argparse.Namespace, workdir: Path, model_path: Path, kept: bool) -> list[dict[str, Any]]:
+    """``nanodrift run`` on the calibrated model in its own process, and a client sending targets: the answers,
+    each with the position the interferometer then read."""
     served: list[dict[str, Any]] = []
     workdir = workdir.resolve()  # the daemon runs with cwd=workdir: a relative --config would miss it
     listen = args.listen[0] if args.listen else f"tcp/127.0.0.1:{free_port()}"
@@ -181,7 +177,7 @@ def serve(args: argparse.Namespace, workdir: Path, model_path: Path, kept: bool
             # the daemon's own health unit, as `nanodrift status` reads it, after this held target
             served.append({**answer, "measured_um": measured, "health": (client.status() or {}).get("health")})
             print(answer_line(answer, measured), flush=True)
-        return served, connect
+        return served
     except UserError as error:
         _stop(daemon)
         where = (f"the daemon's log: {log_path}" if kept

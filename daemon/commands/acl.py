@@ -32,7 +32,7 @@ from typing import Any
 
 from nanodrift.atomic import atomic_write_text
 from nanodrift.errors import UserError
-from nanodrift.settings import DEFAULT_PREFIX, prefix_problem
+from nanodrift.settings import DEFAULT_PREFIX, checked_prefix
 
 #: a cell or group name (the config's ``cell`` pattern) and a Zenoh user name (no separators of this syntax)
 NAME = re.compile(r"[A-Za-z0-9_\-]+")
@@ -79,9 +79,7 @@ def parse_group(text: str) -> Group:
 
 def check(cells: list[str], groups: list[Group], prefix: str) -> None:
     """Every name once, every group's cell a listed cell, no user in two groups: else a UserError naming it."""
-    problem = prefix_problem(prefix)
-    if problem:
-        raise UserError(f"--prefix: {problem}")
+    checked_prefix(prefix, label="--prefix: ", error=UserError)
     if not cells:
         raise UserError("--cell: name at least one cell (--cell cell0 --cell cell1 ...)")
     for cell in cells:

@@ -29,7 +29,7 @@ from nanodrift.calibration.plans import (
 )
 from nanodrift.commands import _cell
 from nanodrift.config import Config, missing_model_channels
-from nanodrift.errors import UserError
+from nanodrift.errors import UserError, user_errors
 from nanodrift.model.cell_model import CellModel, one_axis
 from nanodrift.model.describe import describe_cell_model
 from nanodrift.model.equation import equation, training_lines
@@ -74,10 +74,8 @@ def main(args: argparse.Namespace) -> int:
         raise UserError("--serve needs --config F: the config whose [model] path is to name the new model "
                         "(the built-in simulated cell has no file)")
     if args.serve:
-        try:
+        with user_errors(ServeError):
             check_writable(Path(args.config))  # refused now, not after hours of calibration
-        except ServeError as err:
-            raise UserError(str(err)) from None
     data = _data_path(args)
     if args.resume and not data.exists():
         raise UserError(f"--resume: {data} does not exist (nothing to continue)")
@@ -90,10 +88,8 @@ def main(args: argparse.Namespace) -> int:
                         "level at each step, so one cycle cannot tell the axes apart")
     plan = _plan(config, cycles)
     columns = calibration_columns(drivers, axes)
-    try:
+    with user_errors(DataError):
         done, last_t = completed_steps(data, columns) if args.resume else (0, 0.0)
-    except DataError as err:
-        raise UserError(str(err)) from None
     if args.resume and config.virtual_cell and done:  # the simulated room continues where the file ends
         config, drivers = _cell.open_cell(args, "train", start_s=last_t + 1.0, over_config=True)
     follow, ready = _cell.guards(config, drivers, args)
@@ -131,7 +127,10 @@ def main(args: argparse.Namespace) -> int:
     for warning in narrow_warnings(data):
         print(f"nanodrift calibrate: warning: {warning}", file=sys.stderr)
     if args.serve:
-        _serve(args)
+        try:
+            serve_model(Path(args.config), Path(args.out))
+        except ServeError as err:
+            raise UserError(f"the model {args.out} is written, but {err}") from None
     print(serving_lines(args, config, cell))
     for warning in sensor_warnings(config, cell) if args.config else []:
         print(f"nanodrift calibrate: warning: {warning}", file=sys.stderr)
@@ -148,13 +147,6 @@ def _plan(config: Config, cycles: int) -> list[PlannedStep]:
         raise UserError(f"{config.source}: [procedure] points/trajectory shape a one-axis sweep; a multi-axis cell "
                         "runs the space-filling plan on the paper's 17 levels (remove them)")
     return list(cell_calibration_plan(config.axis_names, cycles))
-
-
-def _serve(args: argparse.Namespace) -> None:
-    try:
-        serve_model(Path(args.config), Path(args.out))
-    except ServeError as err:
-        raise UserError(f"the model {args.out} is written, but {err}") from None
 
 
 def narrow_warnings(data: Path) -> list[str]:

@@ -1,16 +1,10 @@
 """``nanodrift check-config F [--strict]``: validate an operator config before reloading it.
 
 Exit 2 (with ``<file>:<line>: <field>: <problem>`` lines) for everything the daemon would refuse on
-a reload: an invalid config, a model file that is missing or cannot be loaded, a ``[zenoh]
-config_file`` zenoh cannot read, a safe stop that cannot finish within the stop budget (what it takes
-is printed for every axis that has one, and so is how far a position sensor's proof of a read-back may be
-from where the stage is). Exit 0 with warnings on stderr for what the daemon accepts but an
-operator should know (a channel the model needs that no sensor provides, sensors the model does not
-use, an actuator's own warnings such as a
-command template coarser than the stage needs, a driver's warnings across entries such as a serial
-port shared without a resync query, a position sensor polling slower than ``[health] window_s``), in the errors' form
-(``<file>:<line>: warning: sensors[2] (T3).name: ...``); ``--strict`` makes those errors too, for a
-commissioned cell where they are mistakes.
+a reload (:func:`model_problem`, :func:`zenoh_problem`, :func:`no_sensors`, :func:`safe_stop`). Exit 0 with
+warnings on stderr for what the daemon accepts but an operator should know (:func:`config_warnings`), in the
+errors' form (``<file>:<line>: warning: sensors[2] (T3).name: ...``); ``--strict`` makes those errors too,
+for a commissioned cell where they are mistakes.
 """
 
 from __future__ import annotations
@@ -74,13 +68,9 @@ def zenoh_problem(config: Config) -> str | None:
 _LOCAL_ENDPOINT = re.compile(r"^(?:[a-z]+/(?:127\.\d+\.\d+\.\d+|localhost|\[::1\]):\d+|unixsock-stream/.*)$")
 
 
-def network_warnings(config: Config) -> list[str]:
-    """An open listener: zenoh's without its authentication and access control (README, "Securing the
-    network"), or the metrics page, which has no authentication at all."""
-    return zenoh_exposed(config) + metrics_exposed(config)
-
-
 def zenoh_exposed(config: Config) -> list[str]:
+    """zenoh listening beyond this computer without its authentication and access control (README, "Securing the
+    network")."""
     if config.zenoh.config_file is not None:
         return []
     exposed = [e for e in config.zenoh.listen if not _LOCAL_ENDPOINT.match(e.split("#", 1)[0])]
@@ -126,7 +116,8 @@ def safe_stop(config: Config) -> tuple[list[str], list[str]]:
 
 
 def metrics_exposed(config: Config) -> list[str]:
-    """``[metrics] listen`` on anything but loopback (0.0.0.0, ::, a lab address, a host name)."""
+    """``[metrics] listen`` on anything but loopback (0.0.0.0, ::, a lab address, a host name): the metrics page
+    has no authentication at all."""
     host = config.metrics.host
     if not host or host == "localhost":
         return []
@@ -170,9 +161,8 @@ def driver_warnings(config: Config) -> list[str]:
 
 
 def position_window_warnings(config: Config) -> list[str]:
-    """A position sensor that polls no faster than ``[health] window_s``: a held target's averaging window can
-    hold no reading (or one), so the target gets no residual and no record row (the daemon counts each in
-    ``holds_unrecorded``). Both are seconds of the cell's clock."""
+    """A position sensor that polls no faster than ``[health] window_s`` (both seconds of the cell's clock); the
+    warning says what a held target then misses."""
     window_s = config.health.window_s
     return [f"sensors[{index}] ({sensor.name}).interval_s: polls every {sensor.interval_s:g} s, not faster than "
             f"[health] window_s = {window_s:g} s: a held target whose window no reading falls into gets no residual "
@@ -184,10 +174,8 @@ def position_window_warnings(config: Config) -> list[str]:
 
 def position_proofs(config: Config) -> tuple[list[str], list[str]]:
     """(what each axis' position proof may believe, warnings) for every axis stating
-    ``position_proof_tolerance_um``: a read-back nothing on record confirms is believed when the axis' position
-    sensor reads within it of the command the voltage means, so the stage may really be that far from the value
-    believed, and a first move may jump that much. A tolerance with nothing to prove with, or one so wide a
-    sensor proves almost any read-back, is said."""
+    ``position_proof_tolerance_um``: the lines say how far a first move may jump, the warnings a tolerance with
+    nothing to prove with or so wide a sensor proves almost any read-back."""
     said: list[str] = []
     warnings: list[str] = []
     sensors = config.position_sensors()
@@ -218,7 +206,8 @@ def position_proofs(config: Config) -> tuple[list[str], list[str]]:
 
 def config_warnings(config: Config, model: Model | CellModel | None) -> list[str]:
     """``field: message`` lines for what the daemon accepts but an operator should know."""
-    warnings = network_warnings(config) + position_window_warnings(config) + position_proofs(config)[1]
+    warnings = (zenoh_exposed(config) + metrics_exposed(config) + position_window_warnings(config)
+                + position_proofs(config)[1])
     for where, one in _per_axis(config):  # a multi-axis cell: each axis' actuator as a one-axis cell's
         for warning in actuator_warnings(one) + driver_warnings(one):
             warning = where + warning[len("actuator"):] if warning.startswith("actuator") else warning

@@ -5,8 +5,7 @@
 2. validate: the paper's five tests (test 1 without compensation, tests 2-4 inside the training
    range, test 5 outside it), each over the paper's 30 sweeps through the procedure ``nanodrift
    validate`` runs (:func:`nanodrift.procedure.validation.run_validation` on the simulated cell's
-   virtual clock), seeded by :func:`nanodrift.commands._cell.scenario_seed` as ``validate`` and
-   ``benchmarks/paper_table1.py`` are: the same seed gives the same figures through all three;
+   virtual clock), seeded by :func:`nanodrift.commands._cell.scenario_seed` (same seed, same figures);
 3. Table I beside the paper's, with a line on each difference (seed, sweeps, the simulated room) and
    on why the static model's test 5 degrades (it extrapolates);
 4. serve: ``nanodrift run`` on the calibrated model in its own process on 127.0.0.1 (the room
@@ -29,12 +28,12 @@ from __future__ import annotations
 import argparse
 import asyncio
 import io
+import itertools
 import json
 import math
 import tempfile
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -130,38 +129,12 @@ def check_args(args: argparse.Namespace) -> list[str]:
     return [t for t in TESTS if t in asked]
 
 
-class Steps:
-    """Numbered steps, numbered as they are printed (1, 2, 3, ...)."""
-
-    def __init__(self) -> None:
-        self.n = 0
-
-    def start(self, title: str) -> None:
-        self.n += 1
-        print(f"\n{self.n}. {title}", flush=True)
-
-
-@dataclass
-class DemoRun:
-    """What the demo has done so far (what :func:`what_nanodrift_adds` can build on)."""
-
-    args: argparse.Namespace
-    workdir: Path
-    kept: bool
-    model: Model | None = None
-    model_path: Path | None = None
-    results: list[TestResult] = field(default_factory=list)
-    endpoint: str | None = None
-    served: list[dict[str, Any]] = field(default_factory=list)
-
-
 # ----- 1. calibrate ------------------------------------------------------------------------------
 def calibrate(workdir: Path, cycles: int, seed: int, cell: str = "ideal") -> Model:
     """The paper's calibration on the simulated cell's virtual clock, fitted as ``nanodrift calibrate`` does."""
     drivers = simulated_drivers("train", seed=scenario_seed(seed, "train"), cell=cell)
     data = workdir / "calibration.csv"
-    if data.exists():  # --keep DIR reused: a new demo, new data
-        data.unlink()
+    data.unlink(missing_ok=True)  # --keep DIR reused: a new demo, new data
     asyncio.run(record_calibration(drivers, data, cycles=cycles, progress_stream=io.StringIO()))
     try:
         return fit_recorded(data, workdir / "model.json").models["x"]
@@ -336,49 +309,41 @@ def adapted_sigma_words(static: TestResult, adapted: TestResult) -> str:
             f"{'true ' if adapted.has_truth else ''}errors within ±2σ")
 
 
-def what_nanodrift_adds(run: DemoRun) -> list[str]:
-    """What the service adds beyond the paper's static model, shown on the same tests and seed.
-
-    - discovery (:func:`discovery_line`): the calibrated model, run by ``discover`` on a short
-      up-and-down run of a cell with hysteresis hidden (the paper's forward sweeps cannot show it);
-    - adaptation (``[adapt] mode = "bias"``, ``validate --adapt``): the bias tracker the daemon runs,
-      fed by the interferometer's settled residuals, on the out-of-range test and one in range;
-    - the per-command uncertainty ``q_sigma_um``: how often the true error lay within ±2σ;
-    - the health monitor: the serving daemon's own ``health`` (settled residuals of the serve step's
-      targets), read from its ``status`` after the last held target.
-    """
-    assert run.model is not None
+def what_nanodrift_adds(args: argparse.Namespace, model: Model, results: Sequence[TestResult],
+                        served: Sequence[dict[str, Any]]) -> list[str]:
+    """What the service adds beyond the paper's static model, shown on the same tests and seed: adaptation
+    (``validate --adapt``'s bias tracker on the out-of-range test and one in range), discovery
+    (:func:`discovery_line`), the per-command uncertainty (how often the true error lay within ±2σ) and the
+    serving daemon's ``health`` (:func:`health_line`)."""
     tracker_defaults = (600.0, 1.0)  # [adapt] tau_s, max_um
     lines: list[str] = []
-    by_name = {r.name: r for r in run.results}
+    by_name = {r.name: r for r in results}
     for test in ("test5", "test2"):
         static = by_name.get(test)
         if static is None:
             continue
-        adapted = validate(run.model, test, run.args.cycles, run.args.seed, adapt=BiasTracker(*tracker_defaults),
-                           cell=run.args.cell)
+        adapted = validate(model, test, args.cycles, args.seed, adapt=BiasTracker(*tracker_defaults), cell=args.cell)
         lines.append(f"adaptation on {test} ([adapt] mode = \"bias\", tau_s {tracker_defaults[0]:g} s): "
                      f"{static.accuracy_nm:.0f} nm static -> {adapted.accuracy_nm:.0f} nm adaptive "
                      f"({adapted.improvement:.1f}× against {static.improvement:.1f}×) as the interferometer the "
                      f"tracker follows sees it, {static.accuracy_true_nm:.0f} nm -> {adapted.accuracy_true_nm:.0f} nm "
                      f"against the true position; the correction ended at "
                      f"{adapted.corrections_um[-1] * 1000:+.0f} nm" + adapted_sigma_words(static, adapted))
-    if any(line.startswith("adaptation on") for line in lines):
+    if lines:  # an adaptation line (the only lines so far)
         lines.append(ADAPTATION_NEEDS)
-    lines.append(discovery_line(run.model, run.args.seed))
-    covered = [r for r in run.results if r.compensated and r.q_sigma_um]
+    lines.append(discovery_line(model, args.seed))
+    covered = [r for r in results if r.compensated and r.q_sigma_um]
     if covered:
-        shares = ", ".join(f"{r.name} {(r.coverage_true() if r.has_truth else r.coverage()) * 100:.0f} %"
-                           for r in covered)
+        held = [r.coverage_true() if r.has_truth else r.coverage() for r in covered]
+        shares = ", ".join(f"{r.name} {share * 100:.0f} %" for r, share in zip(covered, held, strict=True))
         lines.append(f"uncertainty: every command carries q_sigma_um; the {'true ' if covered[0].has_truth else ''}"
                      f"error lay within ±2σ in {shares} of the steps (it grows outside the training range; a "
                      "calibrated σ keeps 90-98 %)")
-        shares_judged = [(r.coverage_true() if r.has_truth else r.coverage()) for r in covered]
-        if any(not 0.90 <= share <= 0.98 for share in shares_judged):
+        if any(not 0.90 <= share <= 0.98 for share in held):
             lines.append("   not calibrated on this seed: most of a run's error is one offset its steps share (the "
                          "calibration's coefficients are off the same way for all of them), so a run is inside ±2σ "
                          "almost whole or not at all; σ is set to err wide (benchmarks/adaptation.py: 8 seeds)")
-    health = next((a["health"] for a in reversed(run.served) if isinstance(a.get("health"), dict)), None)
+    health = next((a["health"] for a in reversed(served) if isinstance(a.get("health"), dict)), None)
     if health is not None:
         lines.append(health_line(health))
     return lines
@@ -398,14 +363,13 @@ def health_line(health: dict[str, Any]) -> str:
     return line
 
 
-def keep_figures(run: DemoRun) -> list[Path]:
+def keep_figures(args: argparse.Namespace, workdir: Path, model: Model, results: Sequence[TestResult]) -> list[Path]:
     """fig9 and fig11 of the tests into the kept folder (the PNGs listed; each has an SVG beside it)."""
-    assert run.model is not None
-    tests = ", ".join(r.name for r in run.results)
-    cell = (f"simulated {run.args.cell} cell: {tests}, --seed {run.args.seed}, {run.args.cycles} sweeps "
-            f"(nanodrift demo --cell {run.args.cell})")
-    written = write_figures(run.results, run.workdir, training=run.model.training,
-                            provenance=provenance_text(run.model.id, run.model.provenance.get("data_file"), cell))
+    tests = ", ".join(r.name for r in results)
+    cell = (f"simulated {args.cell} cell: {tests}, --seed {args.seed}, {args.cycles} sweeps "
+            f"(nanodrift demo --cell {args.cell})")
+    written = write_figures(results, workdir, training=model.training,
+                            provenance=provenance_text(model.id, model.provenance.get("data_file"), cell))
     return [path for path in written if path.suffix == ".png"]
 
 
@@ -429,45 +393,48 @@ def main(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory(prefix="nanodrift-demo-") as tmp:
         workdir = (Path(keep) if keep else Path(tmp)).resolve()  # the daemon runs with cwd=workdir
         workdir.mkdir(parents=True, exist_ok=True)
-        run = DemoRun(args, workdir, kept=bool(keep))
-        steps = Steps()
+        results: list[TestResult] = []
+        numbers = itertools.count(1)
+
+        def step(title: str) -> None:  # numbered as they are printed
+            print(f"\n{next(numbers)}. {title}", flush=True)
+
         realistic = "" if args.cell == "ideal" else f"{args.cell} "
         print(f"nanodrift demo: the paper's calibration and its tests on the simulated {realistic}cell "
               f"(seed {args.seed})")
 
-        steps.start(f"Calibrate: {args.calibration_cycles} forward sweeps of the 'train' room, 0–480 µm by 30 µm "
+        step(f"Calibrate: {args.calibration_cycles} forward sweeps of the 'train' room, 0–480 µm by 30 µm "
                     f"(~{args.calibration_cycles * 17 * PAPER_TIMING.step_s / 3600:.1f} h of simulated time on a "
                     "virtual clock), then stepwise identification")
         t0 = time.monotonic()
-        run.model = model = calibrate(workdir, args.calibration_cycles, args.seed, args.cell)
-        run.model_path = workdir / "model.json"
+        model = calibrate(workdir, args.calibration_cycles, args.seed, args.cell)
         print(f"   model {model.id}: {equation(model)}")
         print(f"   trained on {training_ranges(model)}; residual "
               f"{model.fit.get('residual_rms_nm', math.nan):.1f} nm RMS ({time.monotonic() - t0:.1f} s)")
 
-        steps.start(f"Validate: the paper's tests, ISO 9283 over {args.cycles} sweeps of 0–480 µm by 80 µm each, "
+        step(f"Validate: the paper's tests, ISO 9283 over {args.cycles} sweeps of 0–480 µm by 80 µm each, "
                     "as `nanodrift validate` runs them")
         for test in tests:
             t0 = time.monotonic()
             result = validate(model, test, args.cycles, args.seed, cell=args.cell)
-            run.results.append(result)
+            results.append(result)
             print(f"   {test}: {TESTS[test]}\n          {result_line(result)} ({time.monotonic() - t0:.1f} s)",
                   flush=True)
 
-        steps.start("Table I, beside the paper's")
-        print(table1(run.results, paper=PAPER_TABLE1))
-        truth = truth_table(run.results)
+        step("Table I, beside the paper's")
+        print(table1(results, paper=PAPER_TABLE1))
+        truth = truth_table(results)
         if truth:
             print(f"\n{truth}\n")
-        for line in explain(run.results, model, args):
+        for line in explain(results, model, args):
             print(line)
         if keep:
             atomic_write_text(workdir / "table1.json", json.dumps(
-                {"tests": [r.to_dict() for r in run.results], "model": model.id, "seed": args.seed,
+                {"tests": [r.to_dict() for r in results], "model": model.id, "seed": args.seed,
                  "cycles": args.cycles, "calibration_cycles": args.calibration_cycles}, indent=2) + "\n")
-            figures = keep_figures(run)
+            figures = keep_figures(args, workdir, model, results)
             print(f"Figures (PNG + SVG, as validate --report draws them): {', '.join(str(f) for f in figures)}")
-            print(f"The same figures from the command line, e.g.: nanodrift validate --model {run.model_path} "
+            print(f"The same figures from the command line, e.g.: nanodrift validate --model {workdir / 'model.json'} "
                   f"--scenario {tests[-1]} --seed {args.seed} --cycles {args.cycles}"
                   f"{cell_config(args.cell, workdir)}")
         else:
@@ -475,12 +442,11 @@ def main(args: argparse.Namespace) -> int:
                   "nanodrift validate --model DIR/model.json --scenario testN --seed "
                   f"{args.seed} --cycles {args.cycles}{cell_config(args.cell, None)}")
 
-        steps.start("Serve: the calibrated model behind the daemon, targets from a client over Zenoh")
-        assert run.model_path is not None
-        run.served, run.endpoint = serve(args, workdir, run.model_path, run.kept)
+        step("Serve: the calibrated model behind the daemon, targets from a client over Zenoh")
+        served = serve(args, workdir, workdir / "model.json", bool(keep))
 
-        extra = what_nanodrift_adds(run)
-        steps.start("What nanodrift adds")
+        extra = what_nanodrift_adds(args, model, results, served)
+        step("What nanodrift adds")
         for line in extra:
             print(f"   {line}")
         t0 = time.monotonic()

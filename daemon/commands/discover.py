@@ -7,14 +7,8 @@ file (:mod:`nanodrift.model.segments`); every file must hold the model's channel
 only some files have are left out. The extended model's provenance lists every file's SHA-256.
 
 When nothing clears the bar no model is written (an "extended" model with the given terms would only
-be a new id for the same model): "nothing found; no model written", exit 0, ``"steps": []`` and
-``"model_out": null`` in ``--json``. Effects the run's trajectory cannot show (hysteresis in
-forward-only sweeps) are named with the run that would show them, found or not.
-
-Each named step says what a fresh run of the same kind should show (``fresh_gain_expected``: RMS
-after / before) and, for a searched time constant, the range the run supports (``tau_range_s``);
-``--fresh F.csv``, a run discovery never saw, also measures each step's gain on it
-(``fresh_gain_measured``).
+be a new id for the same model). What is printed then, and the fresh-run figures of each named step,
+are the README's (*Finding what the model misses*).
 """
 
 from __future__ import annotations
@@ -25,7 +19,7 @@ import sys
 
 from nanodrift.calibration.dataset import DataError, common_channels, concat, read_runs
 from nanodrift.calibration.discovery import CellDiscoveryResult, DiscoveryError, DiscoveryResult, discover_cell
-from nanodrift.errors import UserError
+from nanodrift.errors import user_errors
 from nanodrift.model.cell_model import CellModel, load_any_model, one_axis, save_cell_model
 from nanodrift.model.model import MissingChannelError, ModelFileError
 from nanodrift.model.provenance import stamp_data
@@ -46,7 +40,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     paths = [str(p) for p in args.data]
-    try:
+    with user_errors(DataError, ModelFileError, MissingChannelError, DiscoveryError):
         runs = read_runs(paths, "to compare with")
         given = CellModel.of(load_any_model(args.model))
         for ds in runs:
@@ -59,8 +53,6 @@ def main(args: argparse.Namespace) -> int:
         data = concat(runs, channels)
         fresh = read_runs([str(args.fresh)], "to measure the fresh-run gain on")[0] if args.fresh else None
         result = discover_cell(data, given, fresh=fresh)
-    except (DataError, ModelFileError, MissingChannelError, DiscoveryError) as err:
-        raise UserError(str(err)) from None
     model_out: str | None = None
     if result.found:
         extended = result.model
@@ -108,7 +100,6 @@ def describe(result: DiscoveryResult, model_out: str | None) -> str:
                 f"{s.holdout_rms_after_um * 1000:>6.1f} nm {expected:>11}  {', '.join(t.name for t in s.add) or '-'}"
                 + (f" (removed {', '.join(t.name for t in s.remove)})" if s.remove else "")
             )
-    if result.steps:
         lines.append("(fresh run x: the RMS ratio after / before expected on a fresh run of the same kind; "
                      "held-out blocks of this run flatter it)")
     if model_out is None:

@@ -13,7 +13,7 @@ from collections.abc import Sequence
 from typing import Any, SupportsFloat
 
 from nanodrift.calibration.dataset import DataError, Dataset, common_channels, concat, read_runs
-from nanodrift.errors import UserError
+from nanodrift.errors import UserError, user_errors
 from nanodrift.model.cell_model import CellModel, one_axis, save_cell_model
 from nanodrift.model.describe import describe_cell_model
 from nanodrift.model.equation import equation
@@ -96,7 +96,7 @@ def check_fit_channels(runs: Sequence[Dataset], exclude: Sequence[str]) -> None:
 
 def main(args: argparse.Namespace) -> int:
     paths = [str(p) for p in args.data]
-    try:
+    with user_errors(DataError, FitError, ValueError):
         runs = read_runs(paths)
         check_fit_channels(runs, args.exclude)
         channels = common_channels(runs)
@@ -110,8 +110,6 @@ def main(args: argparse.Namespace) -> int:
         if data.multi_axis and args.keep:
             raise UserError("--keep is for one-axis files: a multi-axis file's axes choose their terms each")
         cell = fit_cell(data, keep=_kept_terms(args.keep, channels, exclude), **options).model
-    except (DataError, FitError, ValueError) as err:
-        raise UserError(str(err)) from None
     for one in cell.models.values():
         one.selection["excluded"] = list(args.exclude)
     stamp_data(cell, files)
@@ -125,10 +123,8 @@ def cell_fit_summary(cell: CellModel, path: str) -> dict[str, Any]:
     :func:`fit_summary` of its model)."""
     if one_axis(cell.axes):
         return fit_summary(cell.models["x"], path)
-    axes = {}
-    for axis, model in cell.models.items():
-        axes[axis] = fit_summary(model, path)
-        axes[axis]["equation"] = equation(model, lhs=f"q_{axis}")
+    axes = {axis: {**fit_summary(model, path), "equation": equation(model, lhs=f"q_{axis}")}  # the key keeps its place
+            for axis, model in cell.models.items()}
     return {"model": cell.id, "model_out": str(path), "axes": axes}
 
 

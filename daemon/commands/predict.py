@@ -15,7 +15,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from nanodrift.calibration.dataset import DataError, Dataset, read_csv, write_csv
-from nanodrift.errors import UserError
+from nanodrift.errors import UserError, user_errors
 from nanodrift.model.cell_model import CellModel, load_any_model, one_axis
 from nanodrift.model.model import MissingChannelError, ModelFileError
 
@@ -37,7 +37,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    try:
+    with user_errors(DataError, ModelFileError, MissingChannelError):
         given = load_any_model(args.model)
         data = read_csv(args.data)
         model = CellModel.of(given)
@@ -50,8 +50,6 @@ def main(args: argparse.Namespace) -> int:
                             f"axes {', '.join(model.axes)}")
         q_pred = model.predict(data)
         q_sigma = model.q_sigma(data)
-    except (DataError, ModelFileError, MissingChannelError) as err:
-        raise UserError(str(err)) from None
     one = one_axis(model.axes)
     # a hand-made file with neither a covariance block nor fit.rmse_um gives no σ: no q_sigma column then
     sigma_known = all(model.models[a].covariance is not None or bool(np.isfinite(q_sigma[a]).all())

@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 
-from nanodrift.errors import UserError
+from nanodrift.errors import UserError, user_errors
 from nanodrift.model.cell_model import CellModel, load_any_model, save_cell_model
 from nanodrift.model.model import ModelFileError
 
@@ -23,10 +23,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    try:
+    with user_errors(ModelFileError):
         model = load_any_model(args.model, check_id=False)
-    except ModelFileError as err:
-        raise UserError(str(err)) from None
     old, new = model.id, model.content_id()
     # a multi-axis file: every axis' model carries its own id too (the cell's id hashes their contents)
     axes_stale = any(m.id != m.content_id() for m in CellModel.of(model).models.values())

@@ -1,14 +1,9 @@
 """``nanodrift status``: every cell on the network (or one), from their ``status`` queryables.
 
-One wildcard query on ``<prefix>/*/status`` (or ``<prefix>/<cell>/status``; ``--prefix``, default
-``nanodrift``), :meth:`nanodrift.Client.statuses`, collects every daemon's reply until the timeout; the
-documents are printed as a compact table, or as a JSON list. With
-``--watch S`` the query repeats every S seconds: on a terminal the table is redrawn in place, else a
-block is printed per refresh (a log file or a pipe gets every sample).
-
-Rates (targets and refusals per minute) come from two samples of a cell's counters when there are
-two (``--watch``), else from the counters and ``uptime_s`` (the average since the daemon started).
-Health and actuator state are shown when the status document carries them (older daemons do not).
+One wildcard query on ``<prefix>/*/status`` (or ``<prefix>/<cell>/status``), :meth:`nanodrift.Client.statuses`,
+collects every daemon's reply until the timeout, printed as a compact table or a JSON list. ``--watch S``
+repeats it: a log file or a pipe gets a block per refresh, every sample. Health and actuator state are shown
+when the status document carries them (older daemons do not).
 """
 
 from __future__ import annotations
@@ -54,11 +49,6 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="with --watch: stop after N refreshes (default: until Ctrl-C)")
     parser.add_argument("--timeout", type=float, default=2.0, metavar="S",
                         help="seconds to collect the cells' replies")
-
-
-def collect(client: Client, cell: str | None, timeout_s: float) -> list[dict[str, Any]]:
-    """Query until some cell answers or ``timeout_s`` is over (a scouting peer needs a moment to find them)."""
-    return client.statuses(cell, timeout_s=timeout_s)
 
 
 @dataclass
@@ -119,8 +109,7 @@ def _age(iso: Any, now: datetime) -> str:
     return f"{seconds / 86400:.0f} d"
 
 
-def _health(doc: dict[str, Any]) -> str:
-    health = doc.get("health")
+def _health(health: Any) -> str:
     if not isinstance(health, dict):
         return "-"
     text = str(health.get("state") or "-")
@@ -173,7 +162,7 @@ def axis_lines(doc: dict[str, Any]) -> list[str]:
                       + (f" {value:.3f} µm" if isinstance(value, int | float) else ""))
         health = doc.get("health")
         axis_health = health.get("axes", {}).get(axis) if isinstance(health, dict) else None
-        shown = f", health {_health({'health': axis_health})}" if isinstance(axis_health, dict) else ""
+        shown = f", health {_health(axis_health)}" if isinstance(axis_health, dict) else ""
         proved_by = actuator.get("proved_by")
         out.append(f"  {doc.get('cell', '?')} axis {axis}: [{_number(each.get('min_um')):g}, "
                    f"{_number(each.get('max_um')):g}] µm, {_actuator({'actuator': actuator}, proof=False)}"
@@ -197,7 +186,7 @@ def row(doc: dict[str, Any], previous: dict[str, Any] | None, now: datetime) -> 
         f"{ok}/{len(sensors)}",
         str(model.get("id")) if model else "none",
         _age(model.get("created"), now) if model else "-",
-        _health(doc),
+        _health(doc.get("health")),
         _correction(doc),
         _actuator(doc),
         _rate(r.targets_per_min),
@@ -235,7 +224,7 @@ def watch(client: Client, args: argparse.Namespace, out: TextIO,
     try:
         while True:
             started = time.monotonic()
-            docs = collect(client, args.cell, args.timeout)
+            docs = client.statuses(args.cell, timeout_s=args.timeout)
             text = render(docs, args, previous)
             stamp = datetime.now().astimezone().strftime("%Y-%m-%d %H:%M:%S")
             if terminal:
@@ -260,7 +249,7 @@ def main(args: argparse.Namespace) -> int:
     try:
         if args.watch:
             return watch(client, args, sys.stdout)
-        docs = collect(client, args.cell, args.timeout)
+        docs = client.statuses(args.cell, timeout_s=args.timeout)
     finally:
         client.close()
     if not docs:

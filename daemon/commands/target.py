@@ -109,24 +109,20 @@ def main(args: argparse.Namespace) -> int:
         for index, x in enumerate(args.x):
             target: float | dict[str, float] = x if not isinstance(x, tuple) else dict(
                 zip(axes or (), x, strict=True))
-            ok = False
             try:
-                answer = dict(cell.move(target, wait=False, timeout_s=args.timeout, id=index).payload)
-                ok = True
+                answer, ok = dict(cell.move(target, wait=False, timeout_s=args.timeout, id=index).payload), True
             except Refused as refused:
-                answer = refused.payload
+                answer, ok = refused.payload, False
             except TimeoutError as unanswered:  # the cell does not answer: why, asked once by the client
-                answer = {"id": index, "error": str(unanswered)}
-            if not ok:
-                failures += 1
+                answer, ok = {"id": index, "error": str(unanswered)}, False
+            failures += not ok
             if args.json:
                 print(json.dumps(answer))
             elif ok:
                 print(_format_command(answer))
-            elif isinstance(x, tuple):
-                print(f"{_shown(x)} µm refused: {answer.get('error')}", file=sys.stderr)
-            else:
-                print(f"x {x:g} µm refused: {answer.get('error')}", file=sys.stderr)
+            else:  # a one-axis target is named by its axis, a point by its values
+                print(f"{'' if isinstance(x, tuple) else 'x '}{_shown(x)} µm refused: {answer.get('error')}",
+                      file=sys.stderr)
     finally:
         cell.close()
     return 1 if failures else 0

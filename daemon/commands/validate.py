@@ -45,7 +45,7 @@ from nanodrift.drivers.simulated.physics import CellPhysics, CrossParams, cross_
 from nanodrift.drivers.simulated.runs import cell_command, run_cell_validation
 from nanodrift.drivers.simulated.scenarios import get_scenario
 from nanodrift.drivers_set import DriverSet
-from nanodrift.errors import UserError
+from nanodrift.errors import UserError, user_errors
 from nanodrift.model.cell_model import CellModel, load_any_model
 from nanodrift.model.model import Model, ModelFileError
 from nanodrift.procedure.validation import check_channels, run_validation, run_validation_steps
@@ -89,10 +89,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def main(args: argparse.Namespace) -> int:
     if args.cycles < 1:
         raise UserError(f"--cycles must be at least 1, got {args.cycles}")
-    try:
+    with user_errors(ModelFileError, OSError):
         model = load_any_model(args.model)
-    except (ModelFileError, OSError) as err:
-        raise UserError(str(err)) from None
     compensate = not args.no_compensation
     if args.adapt:
         if not compensate:
@@ -123,13 +121,12 @@ def main(args: argparse.Namespace) -> int:
         if warning:
             print(f"warning: {warning}" + (f" ({run.result.name})" if len(runs) > 1 else ""), file=sys.stderr)
     config = runs[0].config
-    text = table1(results)
     truth = truth_table(results)
+    text = table1(results) + (f"\n\n{truth}" if truth else "")
     doc: dict[str, Any] = {"model": model.id, "backend": runs[0].drivers.description, "cycles": args.cycles,
                            "tests": [run.to_dict() for run in runs]}  # one shape for one test or several
     if args.report:
-        report_text = text + (f"\n\n{truth}" if truth else "")
-        files = write_report(results, args.report, report_text, doc, training=model.training,
+        files = write_report(results, args.report, text, doc, training=model.training,
                              provenance=provenance_text(model.id, model.provenance.get("data_file"),
                                                         _cell_text(config, given, args, results)))
         print(f"report: {', '.join(str(f) for f in files)}", file=sys.stderr)
@@ -137,10 +134,8 @@ def main(args: argparse.Namespace) -> int:
         print(json.dumps(doc, indent=2, default=_json_default))
         return 0
     print(text)
-    if truth:
-        print(f"\n{truth}")
     for run in runs:
-        _print_details(run.result, run.tracker, run.result.compensated, several=len(runs) > 1)
+        _print_details(run.result, run.tracker, several=len(runs) > 1)
     return 0
 
 
@@ -170,12 +165,10 @@ def _run_one(args: argparse.Namespace, model: Model, scenario: str | None) -> Va
     compensate = not args.no_compensation and name != UNCOMPENSATED_TEST
     tracker = BiasTracker(args.adapt_tau_s, args.adapt_max_um) if args.adapt and compensate else None
     follow, ready = _cell.guards(config, drivers, args)
-    try:
+    with user_errors(ValueError):
         result = _cell.run_procedure(run_validation(
             drivers, model if compensate else None, limits=config.axis_actuators(), name=name, cycles=args.cycles,
             timing=config.procedure.timing, follow=follow, ready=ready, adapt=tracker))
-    except ValueError as err:
-        raise UserError(str(err)) from None
     return ValidationRun(result, tracker, config, drivers)
 
 
@@ -198,7 +191,7 @@ def _cell_text(config: Config, given: Config, args: argparse.Namespace, results:
     return f"cell of {config.source}"
 
 
-def _print_details(result: TestResult, tracker: BiasTracker | None, compensate: bool, *, several: bool) -> None:
+def _print_details(result: TestResult, tracker: BiasTracker | None, *, several: bool) -> None:
     """What follows Table I for one test: the tracker, the uncertainty's coverage, the figures per point.
 
     Several tests: one block per test, each after a blank line and naming its test."""
@@ -210,9 +203,9 @@ def _print_details(result: TestResult, tracker: BiasTracker | None, compensate: 
         print(f"{gap}adaptation{which}: {_tracker_text(tracker)}")
     for line in coverage_lines(result)[0]:
         print(line.replace("uncertainty:", f"uncertainty{which}:", 1))
-    kind = "with compensation" if compensate else "without compensation"
+    kind = "with compensation" if result.compensated else "without compensation"
     print(f"{gap}per point ({f'{result.name}, ' if several else ''}{kind}):")
-    for p in (result.points if compensate else result.points_without):
+    for p in (result.points if result.compensated else result.points_without):
         print(f"  x' = {p.target_um[result.axis]:5.0f} µm: accuracy {p.accuracy_nm:7.1f} nm, repeatability "
               f"{p.repeatability_nm:7.1f} nm ({p.visits} visits)")
 
@@ -328,13 +321,11 @@ def _driven_run(args: argparse.Namespace, model: CellModel, scenario: str | None
     limits = config.axis_actuators()
     plan = cell_validation_plan(config.axis_names, args.cycles, {a: lim.workspace_um for a, lim in limits.items()})
     follow, ready = _cell.guards(config, drivers, args)
-    try:
+    with user_errors(ValueError):
         check_channels(model, drivers)  # uncompensated too: refused before the first run moves anything
         run = _cell.run_procedure(run_validation_steps(
             drivers, plan, model if compensate else None, limits=limits, name=scenario or "validation",
             timing=config.procedure.timing, follow=follow, ready=ready, adapt=adapt))
-    except ValueError as err:
-        raise UserError(str(err)) from None
     return config, drivers, run.steps, run.extrapolating
 
 

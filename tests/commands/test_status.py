@@ -13,6 +13,7 @@ import json
 import os
 import subprocess
 import sys
+import types
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -237,17 +238,17 @@ class Terminal(io.StringIO):
         return True
 
 
-def test_watch_redraws_in_place_on_a_terminal(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_watch_redraws_in_place_on_a_terminal() -> None:
     samples = iter([
         [{"cell": "c", "uptime_s": 60.0, "healthy": True, "sensors": {}, "model": None,
           "counters": {"targets": 10, "errors_total": 0}}],
         [{"cell": "c", "uptime_s": 61.0, "healthy": True, "sensors": {}, "model": None,
           "counters": {"targets": 12, "errors_total": 1}}],
     ])
-    monkeypatch.setattr(status_command, "collect", lambda client, cell, timeout: next(samples))
+    network = types.SimpleNamespace(statuses=lambda cell, timeout_s: next(samples))
     out = Terminal()
     args = argparse.Namespace(json=False, watch=0.01, count=2, cell=None, timeout=1.0, prefix="nanodrift")
-    assert status_command.watch(None, args, out, sleep=lambda s: None) == 0
+    assert status_command.watch(network, args, out, sleep=lambda s: None) == 0
     screens = out.getvalue().split(status_command.CLEAR)
     assert screens[0] == "" and len(screens) == 3  # each refresh starts by clearing the screen
     second = parse_table(screens[2].split("\n", 1)[1])["c"]
