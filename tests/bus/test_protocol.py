@@ -8,9 +8,13 @@ import math
 from collections.abc import Callable
 from dataclasses import replace
 from types import MappingProxyType
+from typing import Any
 
 import numpy as np
 import pytest
+from helpers.budget import examples
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from nanodrift.bus.protocol import (
     MAX_PAYLOAD_BYTES,
@@ -198,3 +202,28 @@ def test_error_and_telemetry_payloads() -> None:
 
 def test_dumps_turns_non_finite_floats_into_null() -> None:
     assert json.loads(dumps({"value": math.nan, "t": 1.0})) == {"value": None, "t": 1.0}
+
+
+# --- dumps: every payload's JSON ---------------------------------------------------------------------------------
+
+_JSON_LEAVES = st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=8)
+_JSON_VALUES = st.recursive(_JSON_LEAVES, lambda inner: st.lists(inner, max_size=4)
+                            | st.dictionaries(st.text(max_size=6), inner, max_size=4), max_leaves=12)
+
+
+def _nulled(value: Any) -> Any:
+    """What the bus promises of a value: every non-finite float is null (computed here, not by the code)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _nulled(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_nulled(v) for v in value]
+    return value
+
+
+@settings(max_examples=examples(300), deadline=None)
+@given(st.dictionaries(st.text(max_size=6), _JSON_VALUES, max_size=5))
+def test_dumps_writes_compact_json_with_every_non_finite_float_as_null(doc: dict[str, Any]) -> None:
+    """The shared encoder (made once for the hot path) writes what ``json.dumps`` with the same options writes."""
+    assert dumps(doc) == json.dumps(_nulled(doc), separators=(",", ":"), allow_nan=False).encode()
