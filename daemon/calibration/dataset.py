@@ -270,7 +270,9 @@ def _parse_body(path: Path, header: list[str]) -> np.ndarray:
     try:
         with warnings.catch_warnings():  # "input contained no data": the slow pass says it with the file's name
             warnings.simplefilter("ignore", UserWarning)
-            values = np.loadtxt(path, delimiter=",", dtype=np.float64, ndmin=2, skiprows=1, encoding="utf-8")
+            # comments=None: numpy would drop a row from a "#" on (a cell "#" or "1#2"), which the slow pass refuses
+            values = np.loadtxt(path, delimiter=",", dtype=np.float64, ndmin=2, skiprows=1, encoding="utf-8",
+                                comments=None)
         if values.shape[0] and values.shape[1] == len(header) and np.isfinite(values).all():
             return values
     except (ValueError, UnicodeDecodeError):

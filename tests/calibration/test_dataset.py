@@ -50,6 +50,9 @@ def test_request_file_without_q_and_reserved_columns(tmp_path):
         ("t_s,x_um,x\n0,0,20\n", ["row 1", "'x' is not usable"]),
         ("t_s,x_um,T 1\n0,0,20\n", ["row 1", "'T 1' is not usable"]),
         ("t_s,x_um,T1,cycle\n0,0,20,0.5\n", ["row 2", "column cycle", "whole number"]),
+        # numpy's parser would take "#" for a comment: the row dropped, or the cell cut to its number
+        ("t_s,x_um,T1\n#,0,20\n2,0,20\n", ["row 2", "column t_s", "'#' is not a number"]),
+        ("t_s,x_um,T1\n0,0,20\n1,0,20#c\n", ["row 3", "column T1", "'20#c' is not a number"]),
     ],
 )
 def test_malformed_files_are_refused_with_row_and_column(tmp_path, text, fragments):
