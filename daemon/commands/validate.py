@@ -28,7 +28,6 @@ import json
 import math
 import sys
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -41,7 +40,7 @@ from nanodrift.commands import _cell
 from nanodrift.config import Config, ConfigError, load_config, parse_config
 from nanodrift.drivers.simulated.config import SECTION, SimulationConfig
 from nanodrift.drivers.simulated.effects import UnknownNameError
-from nanodrift.drivers.simulated.physics import CellPhysics, CrossParams, cross_params
+from nanodrift.drivers.simulated.physics import CellPhysics, cross_params
 from nanodrift.drivers.simulated.runs import cell_command, run_cell_validation
 from nanodrift.drivers.simulated.scenarios import get_scenario
 from nanodrift.drivers_set import DriverSet
@@ -112,54 +111,40 @@ def main(args: argparse.Namespace) -> int:
         raise UserError(f"several --scenario ({', '.join(scenarios)}) need the simulated cell; "
                         f"{given.source} drives hardware")
     asked: list[str | None] = list(scenarios) or [None]  # None: the config's (or the default) room
-    if isinstance(model, CellModel):
-        return _cell_tests(args, model, asked)
+    if isinstance(model, CellModel):  # each test through the config's drivers, or on the simulated stacked stage
+        test = _driven_test if args.config is not None or args.adapt else _simulated_test
+        tests = [test(args, model, scenario) for scenario in asked]
+        print(json.dumps({"model": model.id, "tests": [doc for _, doc in tests]}, indent=2) if args.json
+              else "\n\n".join(text for text, _ in tests))
+        return 0
     runs = [_run_one(args, model, scenario) for scenario in asked]
-    results = [run.result for run in runs]
-    for run in runs:  # a miscalibrated q_sigma is said on stderr, whatever is printed
-        warning = coverage_lines(run.result)[1]
+    results = [result for result, _, _ in runs]
+    for result in results:  # a miscalibrated q_sigma is said on stderr, whatever is printed
+        warning = coverage_lines(result)[1]
         if warning:
-            print(f"warning: {warning}" + (f" ({run.result.name})" if len(runs) > 1 else ""), file=sys.stderr)
-    config = runs[0].config
+            print(f"warning: {warning}" + (f" ({result.name})" if len(runs) > 1 else ""), file=sys.stderr)
     truth = truth_table(results)
     text = table1(results) + (f"\n\n{truth}" if truth else "")
-    doc: dict[str, Any] = {"model": model.id, "backend": runs[0].drivers.description, "cycles": args.cycles,
-                           "tests": [run.to_dict() for run in runs]}  # one shape for one test or several
+    doc: dict[str, Any] = {"model": model.id, "backend": runs[0][2], "cycles": args.cycles,
+                           "tests": [_test_doc(args, result, tracker) for result, tracker, _ in runs]}
     if args.report:
         files = write_report(results, args.report, text, doc, training=model.training,
                              provenance=provenance_text(model.id, model.provenance.get("data_file"),
-                                                        _cell_text(config, given, args, results)))
+                                                        _cell_text(given, args, results)))
         print(f"report: {', '.join(str(f) for f in files)}", file=sys.stderr)
     if args.json:
         print(json.dumps(doc, indent=2, default=_json_default))
         return 0
     print(text)
-    for run in runs:
-        _print_details(run.result, run.tracker, several=len(runs) > 1)
+    for result, tracker, _ in runs:
+        _print_details(result, tracker, several=len(runs) > 1)
     return 0
 
 
-@dataclass
-class ValidationRun:
-    """One test as it ran: its result, its tracker (``--adapt``), the config and drivers of its cell."""
-
-    result: TestResult
-    tracker: BiasTracker | None
-    config: Config
-    drivers: DriverSet
-
-    def to_dict(self) -> dict[str, Any]:
-        doc = self.result.to_dict()
-        coverage_text, coverage_warning = coverage_lines(self.result)
-        if coverage_text:
-            doc["coverage_warning"] = coverage_warning
-        if self.tracker is not None:
-            doc["adapt"] = {"mode": "bias", "tau_s": self.tracker.tau_s, "max_um": self.tracker.max_um}
-        return doc
-
-
-def _run_one(args: argparse.Namespace, model: Model, scenario: str | None) -> ValidationRun:
-    """One test on a fresh cell (``scenario`` None: the config's room, or test2 with no config)."""
+def _run_one(args: argparse.Namespace, model: Model, scenario: str | None
+             ) -> tuple[TestResult, BiasTracker | None, str]:
+    """One test on a fresh cell (``scenario`` None: the config's room, or test2 with no config): its result, its
+    tracker (``--adapt``) and the cell's drivers, described."""
     config, drivers = _open(args, scenario)
     name = scenario or ("test2" if args.config is None else "validation")
     compensate = not args.no_compensation and name != UNCOMPENSATED_TEST
@@ -169,7 +154,22 @@ def _run_one(args: argparse.Namespace, model: Model, scenario: str | None) -> Va
         result = _cell.run_procedure(run_validation(
             drivers, model if compensate else None, limits=config.axis_actuators(), name=name, cycles=args.cycles,
             timing=config.procedure.timing, follow=follow, ready=ready, adapt=tracker))
-    return ValidationRun(result, tracker, config, drivers)
+    return result, tracker, drivers.description
+
+
+def _test_doc(args: argparse.Namespace, result: TestResult, tracker: BiasTracker | None) -> dict[str, Any]:
+    doc = result.to_dict()
+    coverage_text, coverage_warning = coverage_lines(result)
+    if coverage_text:
+        doc["coverage_warning"] = coverage_warning
+    if tracker is not None:
+        doc["adapt"] = _adapt_doc(args)
+    return doc
+
+
+def _adapt_doc(args: argparse.Namespace) -> dict[str, Any]:
+    """The tracker ``--adapt`` runs, as the JSON names it ([adapt]'s keys)."""
+    return {"mode": "bias", "tau_s": args.adapt_tau_s, "max_um": args.adapt_max_um}
 
 
 def _open(args: argparse.Namespace, scenario: str | None, builtin: Config | None = None) -> tuple[Config, DriverSet]:
@@ -178,17 +178,15 @@ def _open(args: argparse.Namespace, scenario: str | None, builtin: Config | None
     return _cell.open_cell(argparse.Namespace(**{**vars(args), "scenario": scenario}), "test2", config=builtin)
 
 
-def _cell_text(config: Config, given: Config, args: argparse.Namespace, results: list[TestResult]) -> str:
+def _cell_text(given: Config, args: argparse.Namespace, results: list[TestResult]) -> str:
     """Where the figures' data came from: the simulated rooms and the seed that reproduces them, or the
     config of the hardware."""
-    given_section = given.section(SECTION)
-    if isinstance(config.section(SECTION), SimulationConfig):
-        seed = args.seed if args.seed is not None else (
-            given_section.seed if isinstance(given_section, SimulationConfig) else 0)
-        rooms = ", ".join(r.name for r in results)
-        where = "" if args.config is None else f" of {config.source}"
-        return f"simulated cell{where}: {rooms}, --seed {seed}"
-    return f"cell of {config.source}"
+    section = given.section(SECTION)
+    if not isinstance(section, SimulationConfig):
+        return f"cell of {given.source}"
+    seed = section.seed if args.seed is None else args.seed
+    where = "" if args.config is None else f" of {given.source}"
+    return f"simulated cell{where}: {', '.join(r.name for r in results)}, --seed {seed}"
 
 
 def _print_details(result: TestResult, tracker: BiasTracker | None, *, several: bool) -> None:
@@ -225,44 +223,8 @@ def _json_default(value: Any) -> Any:
 # ----- a multi-axis model: Table I per axis, AP/RP in 2-D/3-D ------------------------------------------
 
 
-Attained = list[dict[str, np.ndarray]]  # each axis' attained positions: without the model, then with it (if run)
-
-
-def _scores(name: str, targets_um: dict[str, np.ndarray], attained: Attained) -> TestResult:
-    return summarize_runs(name, targets_um, attained[0], attained[1] if len(attained) > 1 else None)
-
-
-def _cell_tests(args: argparse.Namespace, model: CellModel, asked: list[str | None]) -> int:
-    """Each test of a multi-axis model: through the config's drivers, or (no ``--config``) on the simulated
-    stacked stage of the model's axes."""
-    if args.config is not None or args.adapt:
-        builtin = None if args.config is not None else _builtin_cell(model)
-        tests = [_driven_test(args, model, scenario, builtin) for scenario in asked]
-    else:
-        missing = [c for c in model.channels if c not in ("T1", "T2", "T3", "T4")]
-        if missing:
-            raise UserError(f"{args.model} needs channel(s) {', '.join(missing)} that the simulated cell does not "
-                            "measure")
-        try:
-            cross = cross_params(args.effects or None)
-        except (UnknownNameError, KeyError, ValueError) as err:
-            raise UserError(f"simulated {''.join(model.axes)} cell: {err}") from None
-        tests = [_simulated_test(args, model, scenario or "test2", cross) for scenario in asked]
-    if args.json:
-        docs = [doc for _, doc in tests]
-        print(json.dumps({"model": model.id, "tests": docs}, indent=2))
-    else:
-        print("\n\n".join(text for text, _ in tests))
-    return 0
-
-
-def _builtin_cell(model: CellModel) -> Config:
-    """The built-in simulated cell of the model's axes, driven as a config's cell (``--adapt``, no ``--config``)."""
-    axes = "".join(model.axes)
-    try:
-        return parse_config({"simulation": {"axes": axes, "scenario": "test2"}}, source=BUILTIN_SOURCE)
-    except ConfigError as err:
-        raise UserError(f"--adapt: no built-in simulated cell of axes {axes}: give --config ({err})") from None
+#: each axis' attained positions: without the model, then with it (None: not run)
+Attained = tuple[dict[str, np.ndarray], dict[str, np.ndarray] | None]
 
 
 def _cell_test(args: argparse.Namespace, model: CellModel, name: str, targets_um: dict[str, np.ndarray],
@@ -271,8 +233,8 @@ def _cell_test(args: argparse.Namespace, model: CellModel, name: str, targets_um
                **extra: Any) -> tuple[str, dict[str, Any]]:
     """One test of a cell scored against its position sensors and (``truth_um``) the true position: its Table I
     text and JSON document, and with ``--report`` its files (one directory per test when several are asked for)."""
-    measured = _scores(name, targets_um, measured_um)
-    truth = measured if truth_um is None else _scores(name, targets_um, truth_um)
+    measured = summarize_runs(name, targets_um, *measured_um)
+    truth = measured if truth_um is None else summarize_runs(name, targets_um, *truth_um)
     text = cell_table(name, truth, measured)
     if without_note is not None:
         text = text.replace(SAME_ROOM_NOTE, without_note)
@@ -288,22 +250,29 @@ def _cell_test(args: argparse.Namespace, model: CellModel, name: str, targets_um
         directory = Path(args.report) / name if several else Path(args.report)
         provenance = provenance_text(model.id, model.provenance.get("data_file"), backend)
         attained = measured_um if truth_um is None else truth_um
-        files = write_cell_report(directory, text, doc, truth, targets_um, attained[0],
-                                  attained[1] if len(attained) > 1 else None, provenance=provenance)
+        files = write_cell_report(directory, text, doc, truth, targets_um, *attained, provenance=provenance)
         print(f"report: {', '.join(str(f) for f in files)}", file=sys.stderr)
     return text, doc
 
 
-def _simulated_test(args: argparse.Namespace, model: CellModel, scenario: str,
-                    cross: CrossParams) -> tuple[str, dict[str, Any]]:
+def _simulated_test(args: argparse.Namespace, model: CellModel, scenario: str | None) -> tuple[str, dict[str, Any]]:
     """One test on a fresh simulated cell (the vectorised stack), its uncompensated run in the same room."""
+    missing = [c for c in model.channels if c not in ("T1", "T2", "T3", "T4")]
+    if missing:
+        raise UserError(f"{args.model} needs channel(s) {', '.join(missing)} that the simulated cell does not "
+                        "measure")
+    try:
+        cross = cross_params(args.effects or None)
+    except (UnknownNameError, KeyError, ValueError) as err:
+        raise UserError(f"simulated {''.join(model.axes)} cell: {err}") from None
+    scenario = scenario or "test2"
     seed = _cell.scenario_seed(args.seed or 0, scenario)
     physics = CellPhysics.create(scenario, seed=seed, axes=model.axes, cross=cross)
     run = run_cell_validation(physics, None if args.no_compensation else cell_command(model), cycles=args.cycles,
                               name=scenario, out_of_range=lambda p, temps: bool(model.out_of_range(p, temps)))
 
     def attained(against: str) -> Attained:
-        return [run.attained(False, against)] + ([run.attained(True, against)] if run.compensated is not None else [])
+        return run.attained(False, against), run.attained(True, against) if run.compensated is not None else None
 
     return _cell_test(args, model, scenario, run.targets_um, attained("interferometer"), attained("truth"),
                       backend=f"simulated {''.join(model.axes)} cell, scenario {scenario}, seed {seed}",
@@ -329,8 +298,18 @@ def _driven_run(args: argparse.Namespace, model: CellModel, scenario: str | None
     return config, drivers, run.steps, run.extrapolating
 
 
-def _driven_test(args: argparse.Namespace, model: CellModel, scenario: str | None,
-                 builtin: Config | None) -> tuple[str, dict[str, Any]]:
+def _driven_test(args: argparse.Namespace, model: CellModel, scenario: str | None) -> tuple[str, dict[str, Any]]:
+    """One test through the config's drivers, or (``--adapt``, no ``--config``: the trackers need each step's
+    residual before the next command, which the vectorised stage does not give) through those of the built-in
+    simulated cell of the model's axes: the plan run uncompensated, then through the model."""
+    builtin = None
+    if args.config is None:
+        try:
+            builtin = parse_config({"simulation": {"axes": "".join(model.axes), "scenario": "test2"}},
+                                   source=BUILTIN_SOURCE)
+        except ConfigError as err:
+            raise UserError(f"--adapt: no built-in simulated cell of axes {''.join(model.axes)}: give --config "
+                            f"({err})") from None
     config, drivers, without, _ = _driven_run(args, model, scenario, builtin, compensate=False)
     runs, extrapolating = [without], 0
     trackers = {a: BiasTracker(args.adapt_tau_s, args.adapt_max_um) for a in model.axes} if args.adapt else None
@@ -341,10 +320,13 @@ def _driven_test(args: argparse.Namespace, model: CellModel, scenario: str | Non
     section = config.section(SECTION)
     name = scenario or (section.scenario if isinstance(section, SimulationConfig) else "validation")
     targets = {a: np.array([r.step.target(a) for r in without]) for a in model.axes}
-    measured_um = [{a: np.array([r.positions_um[a] for r in run]) for a in model.axes} for run in runs]
     knows_truth = all(math.isfinite(v) for run in runs for r in run for v in r.true_um.values())
-    truth_um = [{a: np.array([r.true_um[a] for r in run]) for a in model.axes} for run in runs] if knows_truth \
-        else None
+
+    def attained(truth: bool) -> Attained:
+        per_run = [{a: np.array([(r.true_um if truth else r.positions_um)[a] for r in run]) for a in model.axes}
+                   for run in runs]
+        return per_run[0], per_run[1] if len(per_run) > 1 else None
+
     without_note = (f"without comp.: the same plan run uncompensated (command = target) first, then through the "
                     f"model{' and a bias tracker per axis' if trackers else ''}, on {drivers.description} "
                     f"({config.source})" + ("" if knows_truth else "; no true position on hardware: the TRUE columns "
@@ -354,9 +336,9 @@ def _driven_test(args: argparse.Namespace, model: CellModel, scenario: str | Non
     adapt = None
     if trackers is not None:
         notes += [f"adaptation, axis {a}: {_tracker_text(t)}" for a, t in trackers.items()]
-        adapt = {"mode": "bias", "tau_s": args.adapt_tau_s, "max_um": args.adapt_max_um,
-                          "axes": {a: {"updates": t.updates, "final_correction_um": t.correction_um}
-                 for a, t in trackers.items()}}
-    return _cell_test(args, model, name, targets, measured_um, truth_um, extrapolating=extrapolating,
+        adapt = {**_adapt_doc(args), "axes": {a: {"updates": t.updates, "final_correction_um": t.correction_um}
+                                              for a, t in trackers.items()}}
+    return _cell_test(args, model, name, targets, attained(False), attained(True) if knows_truth else None,
+                      extrapolating=extrapolating,
                       backend=f"{drivers.description} ({config.source})", without_note=without_note, notes=notes,
                       adapt=adapt, truth_known=knows_truth)
