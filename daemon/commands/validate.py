@@ -339,6 +339,5 @@ def _driven_test(args: argparse.Namespace, model: CellModel, scenario: str | Non
         adapt = {**_adapt_doc(args), "axes": {a: {"updates": t.updates, "final_correction_um": t.correction_um}
                                               for a, t in trackers.items()}}
     return _cell_test(args, model, name, targets, attained(False), attained(True) if knows_truth else None,
-                      extrapolating=extrapolating,
-                      backend=f"{drivers.description} ({config.source})", without_note=without_note, notes=notes,
-                      adapt=adapt, truth_known=knows_truth)
+                      extrapolating=extrapolating, backend=f"{drivers.description} ({config.source})",
+                      without_note=without_note, notes=notes, adapt=adapt, truth_known=knows_truth)

@@ -9,7 +9,7 @@
 - ``fig11_accuracy.png`` / ``.svg``: accuracy and repeatability with and without compensation per
   test (bars) and accuracy per point, on a linear axis unless the values span more than a decade;
 PNGs are 150 dpi; the SVGs keep text as text. Every figure carries a footer saying where it came
-from (:func:`add_provenance`: the model id, its data file, the cell and seed).
+from (:func:`laid_out`: the model id, its data file, the cell and seed).
 - ``validation_raw.csv``: one row per step: test, cycle, target, command, measured position, the
   computed uncompensated position, validity and the temperatures; on a simulated cell a column
   ``x_true_um``, the position the stage truly attained (hardware has no such column); last,
@@ -251,22 +251,17 @@ def provenance_text(model_id: str, model_data: str | None, cell: str) -> str:
 FOOTER_IN, FOOTER_PT = 0.22, 15
 
 
-def add_provenance(fig: Any, text: str) -> None:
-    """A small grey footer at the bottom left saying where the figure came from (nothing when ``text`` is "")."""
-    if text:
-        fig.text(0.006, 0.006, text, ha="left", va="bottom", fontsize=7, color="0.35", gid="provenance")
-
-
-def _footer_fraction(fig: Any, provenance: str) -> float:
-    """The share of the figure's height its footer takes (0 without one)."""
-    return FOOTER_IN / fig.get_figheight() if provenance else 0.0
-
-
 def with_footer(fig: Any, provenance: str) -> Any:
-    """A figure drawn without a footer, given one (:func:`add_provenance`) and laid out again above it."""
+    """A figure drawn without a footer, given one (:func:`laid_out`); unchanged when ``provenance`` is ""."""
+    return laid_out(fig, provenance) if provenance else fig
+
+
+def laid_out(fig: Any, provenance: str, bottom: float = 0.0) -> Any:
+    """``fig`` with a small grey footer at the bottom left saying where it came from (none when ``provenance`` is
+    ""), laid out above it and ``bottom`` (a share of the figure's height) more."""
     if provenance:
-        add_provenance(fig, provenance)
-        fig.tight_layout(rect=(0, _footer_fraction(fig, provenance), 1, 1))
+        fig.text(0.006, 0.006, provenance, ha="left", va="bottom", fontsize=7, color="0.35", gid="provenance")
+    fig.tight_layout(rect=(0, (FOOTER_IN / fig.get_figheight() if provenance else 0.0) + bottom, 1, 1))
     return fig
 
 
@@ -275,10 +270,7 @@ def figure_drift(results: Sequence[TestResult], *, provenance: str = "", trainin
     with each channel's training range shaded (a test outside it is a model extrapolating)."""
     plt = pyplot()
     with plt.rc_context(STYLE):
-        fig = _draw_drift(plt, results, training)
-        add_provenance(fig, provenance)
-        fig.tight_layout(rect=(0, _footer_fraction(fig, provenance), 1, 1))
-        return fig
+        return laid_out(_draw_drift(plt, results, training), provenance)
 
 
 def _draw_drift(plt: Any, results: Sequence[TestResult], training: Training | None) -> Any:
@@ -355,14 +347,11 @@ def figure_accuracy(results: Sequence[TestResult], *, provenance: str = "", trai
     with plt.rc_context(STYLE):
         fig = _draw_accuracy(plt, results, training)
         compensated = any(r.compensated for r in results)
-        footer = _footer_fraction(fig, provenance)
         if compensated:
             fig.axes[0].annotate("* without compensation: computed from the same run, x − (q′ − x′)", (0, 0),
                                  xycoords="figure fraction", xytext=(8, 4 + (FOOTER_PT if provenance else 0)),
                                  textcoords="offset points", fontsize=8, color="0.3")
-        add_provenance(fig, provenance)
-        fig.tight_layout(rect=(0, footer + (0.04 if compensated else 0), 1, 1))
-        return fig
+        return laid_out(fig, provenance, 0.04 if compensated else 0.0)
 
 
 PAIR_WIDTH, SINGLE_WIDTH = 0.38, 0.6  # bar widths: a without/with pair per test, or one bar
