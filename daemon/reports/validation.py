@@ -402,16 +402,11 @@ def _draw_accuracy(plt: Any, results: Sequence[TestResult], training: Training |
     _truth_marks(ax1, results)
     ax1.set_ylabel("accuracy (nm)")
     ax1.set_title("Table I: mean accuracy per test")
-    _bars(ax_rep, results, [_mean([p.repeatability_nm for p in r.points_without]) for r in results],
-          [_mean([p.repeatability_nm for p in r.points]) for r in results])
+    _bars(ax_rep, results, [r.repeatability_without_nm for r in results], [r.repeatability_nm for r in results])
     ax_rep.set_ylabel("repeatability (nm)")
     ax_rep.set_title("mean repeatability per test (ISO 9283 RP)")
     _draw_points(ax2, results, training)
     return fig
-
-
-def _mean(values: Sequence[float]) -> float:
-    return sum(values) / len(values) if values else math.nan
 
 
 def _draw_points(ax2: Any, results: Sequence[TestResult], training: Training | None) -> None:
