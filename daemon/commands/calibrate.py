@@ -102,12 +102,11 @@ def main(args: argparse.Namespace) -> int:
                                                ready=ready))
     except PreflightError:
         raise  # nothing was commanded
-    except StageNotFollowingError as err:
-        recorded = completed_steps(data, columns)[0] if data.exists() else 0
-        raise UserError(f"{err}. The {recorded} steps recorded in {data} are of a stage that did not move: "
-                        "delete the file (or give another --data) before calibrating again") from None
     except (KeyboardInterrupt, Exception) as err:
         recorded = completed_steps(data, columns)[0] if data.exists() else 0
+        if isinstance(err, StageNotFollowingError):
+            raise UserError(f"{err}. The {recorded} steps recorded in {data} are of a stage that did not move: "
+                            "delete the file (or give another --data) before calibrating again") from None
         print(resume_hint(args.out, data, recorded, len(plan)), file=sys.stderr)
         if isinstance(err, FileExistsError | DataError):
             raise UserError(str(err)) from None

@@ -299,9 +299,8 @@ def _driven_run(args: argparse.Namespace, model: CellModel, scenario: str | None
 
 
 def _driven_test(args: argparse.Namespace, model: CellModel, scenario: str | None) -> tuple[str, dict[str, Any]]:
-    """One test through the config's drivers, or (``--adapt``, no ``--config``: the trackers need each step's
-    residual before the next command, which the vectorised stage does not give) through those of the built-in
-    simulated cell of the model's axes: the plan run uncompensated, then through the model."""
+    """One test through the config's drivers (or, ``--adapt`` without ``--config``, the built-in simulated cell's
+    of the model's axes): the plan run uncompensated, then through the model."""
     builtin = None
     if args.config is None:
         try:
