@@ -3,9 +3,6 @@
 ``--adapt`` runs the daemon's bias tracker (``[adapt] mode = "bias"``) over the test, one per axis as the
 daemon does, so a lab can see offline what adaptation would have given.
 
-``--scenario test1`` runs without the model whatever the flags, as the paper's test 1 (the stage as it
-is); ``--json`` prints ``{"model", "backend", "cycles", "tests": [...]}`` for one test or several.
-
 On the simulated cell ``--scenario`` may name several tests (``--scenario test2,test3,test5``, or
 repeated): each runs in turn and one report holds them all (Table I a row per test, the figures
 comparing them). There each step is also scored against the true position the cell knows

@@ -365,8 +365,7 @@ def _parse_axes(parse: _Parse, raw_axes: Any, virtual_kind: str | None) -> list[
 
 def _virtual_kind() -> str:
     """The installed virtual-cell plugin that can move its stage (the simulated one)."""
-    movers = [kind for kind in sorted(available()) if _moves_the_stage(quietly(kind))]
-    found = virtual_cell_plugin(movers, quietly)
+    found = virtual_cell_plugin(_actuator_kinds()[1:], quietly)  # the kinds that move a stage, but zenoh
     return found[0] if found is not None else ZENOH_KIND
 
 
