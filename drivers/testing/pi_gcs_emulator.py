@@ -34,6 +34,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 from nanodrift.drivers.pi_gcs.errors import GCS_ERRORS, error_text
@@ -148,7 +149,8 @@ class PiGcsEmulator:
             return answer
 
     def _answer(self, word: str, args: list[str]) -> str | None:
-        setters = {"SVO": self._svo, "SVA": self._sva, "MOV": self._mov, "DCO": self._dco}
+        setters: dict[str, Callable[..., None]] = {"SVO": self._svo, "SVA": self._sva, "MOV": self._mov,
+                   "DCO": partial(self._switch, flag="drift_compensation")}
         if word == "*IDN?":
             return self.idn
         if word == "ERR?":
@@ -163,16 +165,16 @@ class PiGcsEmulator:
             pairs = self._pairs(args)
             for name, value in pairs:  # all checked before any is applied, as one command
                 setters[word](self.axes[name], value, check_only=True)
-            if self.frozen and word in ("SVA", "MOV"):
+            moves = {"SVA": (self.applied_sva, self.on_sva), "MOV": (self.applied_mov, self.on_mov)}.get(word)
+            if self.frozen and moves is not None:
                 return None  # accepted without an error, and nothing moves
             for name, value in pairs:
                 setters[word](self.axes[name], value, check_only=False)
-                if word in ("SVA", "MOV"):
-                    (self.applied_sva if word == "SVA" else self.applied_mov).append((name, value))
-                if word == "SVA" and self.on_sva is not None:
-                    self.on_sva(name, value)
-                if word == "MOV" and self.on_mov is not None:
-                    self.on_mov(name, value)
+                if moves is not None:
+                    applied, told = moves
+                    applied.append((name, value))
+                    if told is not None:
+                        told(name, value)
             return None
         queries = {
             "SVO?": lambda a: str(int(a.servo)),
@@ -219,12 +221,9 @@ class PiGcsEmulator:
         return " \n".join(f"{item}={value(item)}" for item in items)  # type: ignore[operator]
 
     def _svo(self, axis: EmulatedAxis, value: float, *, check_only: bool) -> None:
-        if value not in (0.0, 1.0):
-            raise _GcsFault(PARAM_SYNTAX)
-        if not check_only:
-            if value and not axis.servo:
-                axis.target_um = self._position_um(axis)  # the loop closes where the stage is
-            axis.servo = bool(value)
+        if not check_only and value == 1.0 and not axis.servo:
+            axis.target_um = self._position_um(axis)  # the loop closes where the stage is
+        self._switch(axis, "servo", value, check_only=check_only)
 
     def _sva(self, axis: EmulatedAxis, value: float, *, check_only: bool) -> None:
         if axis.servo:
@@ -243,11 +242,13 @@ class PiGcsEmulator:
             axis.target_um = value
             axis.moved_at = time.monotonic()
 
-    def _dco(self, axis: EmulatedAxis, value: float, *, check_only: bool) -> None:
+    @staticmethod
+    def _switch(axis: EmulatedAxis, flag: str, value: float, *, check_only: bool) -> None:
+        """An on/off setting (``SVO``, ``DCO``): 0 or 1, anything else a syntax error."""
         if value not in (0.0, 1.0):
             raise _GcsFault(PARAM_SYNTAX)
         if not check_only:
-            axis.drift_compensation = bool(value)
+            setattr(axis, flag, bool(value))
 
     def _position_um(self, axis: EmulatedAxis) -> float:
         return axis.target_um if axis.servo else axis.sva_v * self.um_per_volt
