@@ -347,14 +347,8 @@ class SerialLineGroup(SensorGroup):
                 self._discarded(f"({dropped} unread byte(s) before {what})", dirty=False)  # gone with the flush
             if awaits is None:
                 return None
-            while self._answer is None and self._error is None:
-                left = deadline - loop.time()
-                if left <= 0:
-                    break
-                self._arrived.clear()
-                with contextlib.suppress(TimeoutError):
-                    async with asyncio.timeout(left):
-                        await self._arrived.wait()
+            while self._answer is None and self._error is None and (left := deadline - loop.time()) > 0:
+                await self._arrival(left)
             return self._answer
         finally:
             if self._outstanding:  # timed out, failed or cancelled: its answer may still come
@@ -380,9 +374,14 @@ class SerialLineGroup(SensorGroup):
                     f"{self.port}: the line did not go quiet for {quiet_s:g} s within {budget_s:g} s after an "
                     f"unanswered request ({self.late_answers - discarded} late line(s) discarded meanwhile); "
                     "nothing was sent")
-            self._arrived.clear()
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._arrived.wait(), timeout=min(quiet_at, end) - now)
+            await self._arrival(min(quiet_at, end) - now)
+
+    async def _arrival(self, timeout_s: float) -> None:
+        """Wait at most ``timeout_s`` for the next line to arrive (or the port to fail)."""
+        self._arrived.clear()
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(timeout_s):
+                await self._arrived.wait()
 
     async def _newest(self, deadline: float) -> tuple[str, float] | None:
         if self._latest is not None and self.clock.now() - self._latest[1] <= self.config.timeout_s:
@@ -392,16 +391,9 @@ class SerialLineGroup(SensorGroup):
     async def _line_after(self, seq: int, deadline: float) -> tuple[str, float] | None:
         """The newest line once more than ``seq`` lines have arrived; None at ``deadline`` (loop time)."""
         loop = asyncio.get_running_loop()
-        while self._seq <= seq and self._error is None:
-            left = deadline - loop.time()
-            if left <= 0:
-                return None
-            self._arrived.clear()
-            try:
-                await asyncio.wait_for(self._arrived.wait(), timeout=left)
-            except TimeoutError:
-                continue
-        return self._latest if self._error is None else None
+        while self._seq <= seq and self._error is None and (left := deadline - loop.time()) > 0:
+            await self._arrival(left)
+        return self._latest if self._seq > seq and self._error is None else None
 
     def parse(self, text: str, t: float) -> Reading:
         """A reading from one received line (garbage -> a fault naming what came and what was expected)."""
