@@ -53,12 +53,10 @@ class SerialLinePlugin(DriverPlugin):
         for index, config in sensors:
             if not isinstance(config, SerialLineSensorConfig):
                 continue
-            if config.port in owners:
-                first, owner = owners[config.port]
+            first, owner = owners.setdefault(config.port, (index, config))
+            if first != index:
                 problems.append(f"sensors[{index}] ({config.name}).port: port {config.port!r} is already used by "
                                 f"sensors[{first}] ({owner.name}) (one instrument per port)")
-                continue
-            owners[config.port] = (index, config)
         if isinstance(actuator, SerialLineActuatorConfig) and actuator.port in owners:
             index, sensor = owners[actuator.port]
             where = f"sensors[{index}] ({sensor.name})"
