@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+import socket
 import threading
 import time
 from collections.abc import Callable
@@ -38,6 +39,7 @@ from functools import partial
 from pathlib import Path
 
 from nanodrift.drivers.pi_gcs.errors import GCS_ERRORS, error_text
+from nanodrift.drivers.testing.loopback import LoopbackServer
 from nanodrift.drivers.testing.pty_devices import PtyDevice
 
 __all__ = ["GCS_ERRORS", "EmulatedAxis", "PiGcsEmulator", "PiGcsPtyDevice", "PiGcsTcpServer", "error_text"]
@@ -278,7 +280,8 @@ class _GcsFault(Exception):
 
 
 class PiGcsTcpServer:
-    """The emulator on an asyncio TCP server on 127.0.0.1 (port 0: a free one), on the running loop.
+    """The emulator on TCP, 127.0.0.1 (port 0: a free one), a thread per connection (a :class:`LoopbackServer`,
+    as the other network emulators).
 
     ``stop`` closes the listener and every connection (the controller unplugged); ``start`` again
     serves on the same port. ``connections`` are the ids of the connections open now.
@@ -286,45 +289,36 @@ class PiGcsTcpServer:
 
     def __init__(self, emulator: PiGcsEmulator, port: int = 0) -> None:
         self.emulator = emulator
-        self.port = port
         self.connections: set[str] = set()
-        self._server: asyncio.Server | None = None
-        self._writers: set[asyncio.StreamWriter] = set()
+        self.serving = False
         self._ids = itertools.count(1)
+        self._tcp = LoopbackServer(self._serve, port, name="pi-gcs-emulator")
 
     @property
-    def serving(self) -> bool:
-        return self._server is not None
+    def port(self) -> int:
+        return self._tcp.port
 
     async def start(self) -> None:
-        self._server = await asyncio.start_server(self._serve, "127.0.0.1", self.port)
-        self.port = self._server.sockets[0].getsockname()[1]
+        self._tcp.start()
+        self.serving = True
 
     async def stop(self) -> None:
-        server, self._server = self._server, None
-        if server is None:
-            return
-        server.close()
-        for writer in list(self._writers):
-            writer.close()
-        await server.wait_closed()
+        if self.serving:
+            self.serving = False
+            await asyncio.to_thread(self._tcp.stop)
 
-    async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+    def _serve(self, sock: socket.socket) -> None:
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)  # each answer sent at once, as asyncio's are
         connection = f"tcp{next(self._ids)}"
         self.connections.add(connection)
-        self._writers.add(writer)
         try:
-            while raw := await reader.readline():
-                answer = self.emulator.handle(raw.decode("latin-1").rstrip("\r\n"), connection)
-                if answer is not None:
-                    writer.write(answer.encode("latin-1") + b"\n")
-                    await writer.drain()
-        except (ConnectionError, asyncio.IncompleteReadError, asyncio.CancelledError):
-            pass  # the client went, or the server stops: this connection ends
+            with sock.makefile("rb") as lines:
+                while raw := lines.readline():
+                    answer = self.emulator.handle(raw.decode("latin-1").rstrip("\r\n"), connection)
+                    if answer is not None:
+                        sock.sendall(answer.encode("latin-1") + b"\n")
         finally:
             self.connections.discard(connection)
-            self._writers.discard(writer)
-            writer.close()
 
 
 # --- pty -----------------------------------------------------------------------------------------------
