@@ -44,7 +44,7 @@ def _window_times(hold_start: np.ndarray, interval: float, schedule: StepSchedul
     """Each step's sample times in its averaging window (one every ``interval`` from its hold's start), in order."""
     offsets = np.arange(0.0, schedule.hold_s + 1e-9, interval)
     offsets = offsets[offsets > schedule.hold_s - schedule.window_s - 1e-9]
-    return (hold_start[:, None] + offsets[None, :]).ravel()
+    return np.ravel(hold_start[:, None] + offsets[None, :])
 
 
 def simulate_steps(
