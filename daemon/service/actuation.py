@@ -561,8 +561,6 @@ class Actuation:
                     continue
                 try:
                     await self._open_all(outputs)
-                except asyncio.CancelledError:
-                    raise
                 except Exception as error:
                     self._still_failing(self._fault_text(error, "reopen failed: "))
                     await self._close_quietly(outputs)
@@ -582,8 +580,6 @@ class Actuation:
             self._goal, self._goal_on_device = goal, False
             try:
                 await self._move_to(goal, outputs, follow_pending=True)
-            except asyncio.CancelledError:
-                raise
             except Exception as error:
                 reason = self._fault_text(error)
                 if self.fault_reason is None:
@@ -806,8 +802,6 @@ class Actuation:
         for out in outputs.values():
             try:
                 await _guarded(out.actuator.close(), out.axis, "close")
-            except asyncio.CancelledError:
-                raise
             except Exception as error:
                 self.log.warning("actuator_close_failed", **self._axis(out), error=self._fault_text(error))
 
