@@ -542,12 +542,6 @@ class Actuation:
                 waiter.set_result(held)
         return held
 
-    async def _nap(self, delay_s: float) -> None:
-        """Sleep ``delay_s``, or less when a stop is asked."""
-        with contextlib.suppress(TimeoutError):
-            async with asyncio.timeout(delay_s):
-                await self._halt_event.wait()
-
     async def _drive(self) -> None:
         outputs = self._outputs  # this task's devices (a stop swaps them out before it cancels the task)
         backoff = INITIAL_BACKOFF_S
@@ -555,7 +549,9 @@ class Actuation:
             if self._halt_waiters:
                 self._halted()
             if self.fault_reason is not None:
-                await self._nap(backoff * random.uniform(0.8, 1.2))
+                with contextlib.suppress(TimeoutError):  # the back-off, ended at once by a stop
+                    async with asyncio.timeout(backoff * random.uniform(0.8, 1.2)):
+                        await self._halt_event.wait()
                 backoff = min(backoff * 2.0, MAX_BACKOFF_S)
                 if self._halt_waiters:
                     continue

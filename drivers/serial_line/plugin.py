@@ -150,7 +150,9 @@ def _sharing_problems(sensor: SerialLineSensorConfig, line_resync: tuple[str, st
                 f"says {getattr(actuator, key)!r} (one port, one setting)"
                 for key in SHARED_SETTINGS if getattr(sensor, key) != getattr(actuator, key)]
     if sensor.streaming and actuator.asks:
-        problems.append(_streaming_problem(named("port"), where, port))
+        problems.append(f"{named('port')}{where} streams lines on {port!r}: its lines cannot be told from the answers "
+                        "to the actuator's readback/error_query, so they cannot be matched to their requests (give "
+                        "the sensor a query, drop readback and error_query, or give the actuator its own port)")
     if line_resync is not None and actuator.resync is not None and line_resync != actuator.resync:
         problems.append(f"{named('resync_query')}port {port!r} is resynchronised by {where} with "
                         f"{_resync_text(line_resync)}, the actuator says {_resync_text(actuator.resync)} (one port, "
@@ -160,12 +162,6 @@ def _sharing_problems(sensor: SerialLineSensorConfig, line_resync: tuple[str, st
 
 def _resync_text(resync: tuple[str, str]) -> str:
     return f"resync_query = {resync[0]!r}, resync_pattern = {resync[1]!r}"
-
-
-def _streaming_problem(prefix: str, sensor: str, port: str) -> str:
-    return (f"{prefix}{sensor} streams lines on {port!r}: its lines cannot be told from the answers to the "
-            "actuator's readback/error_query, so they cannot be matched to their requests (give the sensor a "
-            "query, drop readback and error_query, or give the actuator its own port)")
 
 
 PLUGIN = SerialLinePlugin()
