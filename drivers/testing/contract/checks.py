@@ -35,7 +35,7 @@ from typing import Any, ClassVar, Literal
 
 import pytest
 
-from nanodrift.drivers.base import Actuator, DeviceError, DriverContext, Reading, SensorGroup, State
+from nanodrift.drivers.base import Actuator, DeviceError, DriverContext, MonotonicClock, Reading, SensorGroup, State
 from nanodrift.drivers.registry import load_plugin
 
 #: a whole check's wall-clock bound: a hung device fails the check instead of the suite
@@ -448,17 +448,14 @@ class ActuatorContract:
 # --- sensors --------------------------------------------------------------------------------------
 
 
-class OffsetClock:
+class OffsetClock(MonotonicClock):
     """Monotonic time 123456789 s ahead: neither the wall clock nor the raw monotonic clock, so a reading
-    stamped on anything but ``context.clock`` is caught."""
+    stamped on anything but ``context.clock`` is caught (it sleeps as the daemon's clock does)."""
 
     OFFSET_S = 123_456_789.0
 
     def now(self) -> float:
         return time.monotonic() + self.OFFSET_S
-
-    async def sleep(self, seconds: float) -> None:
-        await asyncio.sleep(max(0.0, seconds))
 
 
 class SensorRig:
