@@ -325,8 +325,7 @@ class PiGcsTcpServer:
 
 
 class PiGcsPtyDevice(PtyDevice):
-    """The emulator on a pty behind ``link`` (a stable name, like /dev/serial/by-id/...): ``unplug`` and
-    ``replug`` as with a USB adapter pulled out and put back."""
+    """The emulator on a pty behind ``link``, a :class:`PtyDevice` (``unplug``, ``replug``)."""
 
     def __init__(self, link: Path, emulator: PiGcsEmulator) -> None:
         self.emulator = emulator

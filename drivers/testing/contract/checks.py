@@ -20,8 +20,6 @@ device's value; a channel-level problem on a working device is a ``fault`` readi
 reason) while the others stay ``ok``; a device that is gone raises :class:`DeviceError` (never another
 exception) from ``read``, and from ``open`` while it stays gone; ``close`` is safe twice and after a
 failed ``open``; close then open again recovers once the device is back.
-
-Every assertion on what was written looks at the emulator's side, never at the actuator's own account.
 """
 
 from __future__ import annotations
