@@ -232,9 +232,10 @@ class Service:
     def _publish_telemetry(self, role: str, channel: str, payload: bytes) -> None:
         if self.bus is not None:  # none before the session is open
             config = self.state.config
-            # a multi-axis cell's position sensors each on its axis' key
-            axis = config.sensor_axis(channel) if role == "position" and not one_axis(config.axis_names) else None
-            self.bus.publish_telemetry(role, channel, payload, axis)
+            if role == "position" and not one_axis(config.axis_names):  # each axis' sensor on its own key
+                self.bus.publish_telemetry(role, channel, payload, config.sensor_axis(channel))
+            else:
+                self.bus.publish_telemetry(role, channel, payload)
 
     # --- the drivers (also called by the Reloader) ------------------------------------------------
 
