@@ -66,8 +66,8 @@ class EmulatedAxis:
 
 @dataclass
 class PiGcsEmulator:
-    """The controller's state and its answers to GCS lines; thread-safe (a pty thread and an asyncio
-    server may both talk to it).
+    """The controller's state and its answers to GCS lines; thread-safe (a pty thread and the TCP server's
+    connection threads may all talk to it).
 
     Knobs for tests: ``axes`` (identifier -> :class:`EmulatedAxis`), ``settle_s`` (a MOV is on target
     this long after it), ``fail_next`` (command word -> error code: the next such command is refused
