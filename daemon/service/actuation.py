@@ -542,12 +542,6 @@ class Actuation:
                 waiter.set_result(held)
         return held
 
-    async def _nap(self, delay_s: float) -> None:
-        """Sleep ``delay_s``, or less when a stop is asked."""
-        with contextlib.suppress(TimeoutError):
-            async with asyncio.timeout(delay_s):
-                await self._halt_event.wait()
-
     async def _drive(self) -> None:
         outputs = self._outputs  # this task's devices (a stop swaps them out before it cancels the task)
         backoff = INITIAL_BACKOFF_S
@@ -555,14 +549,14 @@ class Actuation:
             if self._halt_waiters:
                 self._halted()
             if self.fault_reason is not None:
-                await self._nap(backoff * random.uniform(0.8, 1.2))
+                with contextlib.suppress(TimeoutError):  # the back-off, ended at once by a stop
+                    async with asyncio.timeout(backoff * random.uniform(0.8, 1.2)):
+                        await self._halt_event.wait()
                 backoff = min(backoff * 2.0, MAX_BACKOFF_S)
                 if self._halt_waiters:
                     continue
                 try:
                     await self._open_all(outputs)
-                except asyncio.CancelledError:
-                    raise
                 except Exception as error:
                     self._still_failing(self._fault_text(error, "reopen failed: "))
                     await self._close_quietly(outputs)
@@ -582,8 +576,6 @@ class Actuation:
             self._goal, self._goal_on_device = goal, False
             try:
                 await self._move_to(goal, outputs, follow_pending=True)
-            except asyncio.CancelledError:
-                raise
             except Exception as error:
                 reason = self._fault_text(error)
                 if self.fault_reason is None:
@@ -806,8 +798,6 @@ class Actuation:
         for out in outputs.values():
             try:
                 await _guarded(out.actuator.close(), out.axis, "close")
-            except asyncio.CancelledError:
-                raise
             except Exception as error:
                 self.log.warning("actuator_close_failed", **self._axis(out), error=self._fault_text(error))
 

@@ -102,8 +102,6 @@ class GroupPoller:
                     self.on_readings(self.group, readings)
                     self.first_attempt.set()
                     await self.clock.sleep(self.group.interval_s)
-            except asyncio.CancelledError:
-                raise
             except Exception as error:  # DeviceError, timeouts, and plugin bugs alike: reopen
                 if not self.failures:
                     self.failing_since = self.retry_clock.now()

@@ -65,7 +65,9 @@ class Reloader:
             try:
                 return await self._reload()
             except Exception as error:  # never lost in a dead task: refused, logged with the reason, counted
-                await self._restart_stopped()
+                stopped, self._stopped = self._stopped, None
+                if stopped is not None:  # it failed after stopping the running drivers, before the swap
+                    await self.host.start_drivers(stopped)
                 return self.refuse_internal(error)
             finally:
                 self.notifier.ready(self.status_line())
@@ -82,12 +84,6 @@ class Reloader:
         self.state.counters.reload_failures += 1
         self.log.error("reload_refused", config=source, problems=problems, **details)
         return False
-
-    async def _restart_stopped(self) -> None:
-        """A reload that failed after stopping the running drivers and before the swap starts them again."""
-        stopped, self._stopped = self._stopped, None
-        if stopped is not None:
-            await self.host.start_drivers(stopped)
 
     async def _reload(self) -> bool:
         state = self.state

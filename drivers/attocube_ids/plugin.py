@@ -34,13 +34,10 @@ class IdsPlugin(DriverPlugin):
         for index, config in sensors:
             if not isinstance(config, IdsSensorConfig):
                 continue
-            key = (*config.device, config.ids_axis)
-            if key in seen:
-                first, name = seen[key]
+            first, name = seen.setdefault((*config.device, config.ids_axis), (index, config.name))
+            if first != index:
                 problems.append(f"sensors[{index}] ({config.name}).ids_axis: axis {config.ids_axis} of the IDS at "
                                 f"{config.host}:{config.port} is already read by sensors[{first}] ({name})")
-            else:
-                seen[key] = (index, config.name)
         return problems
 
     def create(self, configs: Sequence[SensorConfig], context: DriverContext) -> list[SensorGroup]:

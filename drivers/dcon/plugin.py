@@ -45,22 +45,17 @@ class DconPlugin(DriverPlugin):
             if not isinstance(config, DconSensorConfig):
                 continue
             where = f"sensors[{index}] ({config.name})"
-            key = (config.hub, config.address, config.channel)
-            if key in seen:
-                first, name = seen[key]
+            first, name = seen.setdefault((config.hub, config.address, config.channel), (index, config.name))
+            if first != index:
                 problems.append(f"{where}.channel: channel {config.channel} of module {config.address:02X} on hub "
                                 f"{config.hub!r} is already read by sensors[{first}] ({name})")
                 continue
-            seen[key] = (index, config.name)
-            if config.module in modules:
-                first, owner = modules[config.module]
-                for setting in MODULE_SETTINGS:
-                    mine, theirs = getattr(config, setting), getattr(owner, setting)
-                    if mine != theirs:
-                        problems.append(f"{where}.{setting}: {mine!r} differs from sensors[{first}] ({owner.name}) on "
-                                        f"the same module ({theirs!r}): it is the module's setting")
-            else:
-                modules[config.module] = (index, config)
+            first, owner = modules.setdefault(config.module, (index, config))
+            for setting in MODULE_SETTINGS:
+                mine, theirs = getattr(config, setting), getattr(owner, setting)
+                if mine != theirs:
+                    problems.append(f"{where}.{setting}: {mine!r} differs from sensors[{first}] ({owner.name}) on "
+                                    f"the same module ({theirs!r}): it is the module's setting")
         return problems
 
     def create(self, configs: Sequence[SensorConfig], context: DriverContext) -> list[SensorGroup]:

@@ -61,18 +61,16 @@ def plan_blocks(
     blocks: list[Block] = []
     for members in by_device.values():
         members.sort(key=lambda c: (c.address, c.end, c.name))
-        current: list[ModbusSensorConfig] = []
+        runs: list[list[ModbusSensorConfig]] = []
         start = end = 0
         for c in members:
-            if current and c.address - end <= max_gap and max(end, c.end) - start <= max_count:
-                current.append(c)
+            if runs and c.address - end <= max_gap and max(end, c.end) - start <= max_count:
+                runs[-1].append(c)
                 end = max(end, c.end)
-                continue
-            if current:
-                blocks.append(_block(current))
-            current, start, end = [c], c.address, c.end
-        if current:
-            blocks.append(_block(current))
+            else:
+                runs.append([c])
+                start, end = c.address, c.end
+        blocks.extend(_block(run) for run in runs)
     return blocks
 
 

@@ -252,13 +252,12 @@ class SerialLineActuatorConfig(ActuatorOptions):
         warnings: list[str] = []
         q_ends = [(v - offset_v) / volts_per_um for v in (v_min, v_max)]
         q_low, q_high = min(q_ends), max(q_ends)
-        for field in self.template.fields:
-            if field.name == "x_um":
-                warnings.append(f"command: {field.text} writes the client's target moved along the ramp, not the "
-                                "compensated command: a target the compensation leaves outside [q(v_min), q(v_max)] "
-                                f"= [{q_low:g}, {q_high:g}] um is refused (the axis faults, nothing written); write "
-                                f"{{q_um:{field.spec}}} for a closed-loop controller")
-                break
+        x_field = next((field for field in self.template.fields if field.name == "x_um"), None)
+        if x_field is not None:
+            warnings.append(f"command: {x_field.text} writes the client's target moved along the ramp, not the "
+                            "compensated command: a target the compensation leaves outside [q(v_min), q(v_max)] "
+                            f"= [{q_low:g}, {q_high:g}] um is refused (the axis faults, nothing written); write "
+                            f"{{q_um:{x_field.spec}}} for a closed-loop controller")
         for field in self.template.fields:
             if field.name in POSITION_FIELDS:
                 try:

@@ -274,8 +274,13 @@ class SerialLineGroup(SensorGroup):
                                                until=start + 2 * c.timeout_s + quiet_for(c.timeout_s))
             except LineBusyError as error:
                 return {c.name: Reading.fault(self.clock.now(), str(error), c.value_unit)}
-        else:
-            line = await self._newest(loop.time() + c.timeout_s)
+        elif self._latest is not None and self.clock.now() - self._latest[1] <= c.timeout_s:
+            line = self._latest  # streamed within the last timeout_s
+        else:  # the next streamed line, within timeout_s
+            seq, deadline = self._seq, loop.time() + c.timeout_s
+            while self._seq <= seq and self._error is None and (left := deadline - loop.time()) > 0:
+                await self._arrival(left)
+            line = self._latest if self._seq > seq and self._error is None else None
         if line is None:
             await self._raise_if_vanished()
             return {c.name: Reading.fault(self.clock.now(), f"no line from {self.port} in {c.timeout_s:g} s",
@@ -347,14 +352,8 @@ class SerialLineGroup(SensorGroup):
                 self._discarded(f"({dropped} unread byte(s) before {what})", dirty=False)  # gone with the flush
             if awaits is None:
                 return None
-            while self._answer is None and self._error is None:
-                left = deadline - loop.time()
-                if left <= 0:
-                    break
-                self._arrived.clear()
-                with contextlib.suppress(TimeoutError):
-                    async with asyncio.timeout(left):
-                        await self._arrived.wait()
+            while self._answer is None and self._error is None and (left := deadline - loop.time()) > 0:
+                await self._arrival(left)
             return self._answer
         finally:
             if self._outstanding:  # timed out, failed or cancelled: its answer may still come
@@ -380,28 +379,14 @@ class SerialLineGroup(SensorGroup):
                     f"{self.port}: the line did not go quiet for {quiet_s:g} s within {budget_s:g} s after an "
                     f"unanswered request ({self.late_answers - discarded} late line(s) discarded meanwhile); "
                     "nothing was sent")
-            self._arrived.clear()
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._arrived.wait(), timeout=min(quiet_at, end) - now)
+            await self._arrival(min(quiet_at, end) - now)
 
-    async def _newest(self, deadline: float) -> tuple[str, float] | None:
-        if self._latest is not None and self.clock.now() - self._latest[1] <= self.config.timeout_s:
-            return self._latest
-        return await self._line_after(self._seq, deadline)
-
-    async def _line_after(self, seq: int, deadline: float) -> tuple[str, float] | None:
-        """The newest line once more than ``seq`` lines have arrived; None at ``deadline`` (loop time)."""
-        loop = asyncio.get_running_loop()
-        while self._seq <= seq and self._error is None:
-            left = deadline - loop.time()
-            if left <= 0:
-                return None
-            self._arrived.clear()
-            try:
-                await asyncio.wait_for(self._arrived.wait(), timeout=left)
-            except TimeoutError:
-                continue
-        return self._latest if self._error is None else None
+    async def _arrival(self, timeout_s: float) -> None:
+        """Wait at most ``timeout_s`` for the next line to arrive (or the port to fail)."""
+        self._arrived.clear()
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(timeout_s):
+                await self._arrived.wait()
 
     def parse(self, text: str, t: float) -> Reading:
         """A reading from one received line (garbage -> a fault naming what came and what was expected)."""

@@ -53,26 +53,14 @@ class SerialLinePlugin(DriverPlugin):
         for index, config in sensors:
             if not isinstance(config, SerialLineSensorConfig):
                 continue
-            if config.port in owners:
-                first, owner = owners[config.port]
+            first, owner = owners.setdefault(config.port, (index, config))
+            if first != index:
                 problems.append(f"sensors[{index}] ({config.name}).port: port {config.port!r} is already used by "
                                 f"sensors[{first}] ({owner.name}) (one instrument per port)")
-                continue
-            owners[config.port] = (index, config)
         if isinstance(actuator, SerialLineActuatorConfig) and actuator.port in owners:
             index, sensor = owners[actuator.port]
             where = f"sensors[{index}] ({sensor.name})"
-            for key in SHARED_SETTINGS:
-                if getattr(sensor, key) != getattr(actuator, key):
-                    problems.append(f"actuator.{key}: port {actuator.port!r} is read by {where} with {key} = "
-                                    f"{getattr(sensor, key)!r}, the actuator says {getattr(actuator, key)!r} (one "
-                                    "port, one setting)")
-            if sensor.streaming and actuator.asks:
-                problems.append(_streaming_problem("actuator.port: ", where, actuator.port))
-            if sensor.resync is not None and actuator.resync is not None and sensor.resync != actuator.resync:
-                problems.append(f"actuator.resync_query: port {actuator.port!r} is resynchronised by {where} with "
-                                f"{_resync_text(sensor.resync)}, the actuator says {_resync_text(actuator.resync)} "
-                                "(one port, one resync query: declare it once)")
+            problems += _sharing_problems(sensor, sensor.resync, where, actuator, keyed=True)
             if sensor.streaming and actuator.resync is not None:
                 problems.append(f"actuator.resync_query: {where} streams lines on {actuator.port!r}: nothing on "
                                 "the line is a request's answer to resynchronise (drop resync_query and "
@@ -142,32 +130,38 @@ class SerialLinePlugin(DriverPlugin):
             if config.resync is not None:  # a controller alone on its port: its own late answers
                 line.use_resync(*config.resync)
             return SerialLineActuator(config, line, owns_port=True)
-        name = sensor.config.name
-        for key in SHARED_SETTINGS:
-            if getattr(sensor.config, key) != getattr(config, key):
-                raise DriverSetupError(
-                    f"actuator: port {config.port!r} is read by sensor {name!r} with {key} = "
-                    f"{getattr(sensor.config, key)!r}, the actuator says {getattr(config, key)!r} (one port, one "
-                    "setting)")
-        if sensor.config.streaming and config.asks:
-            raise DriverSetupError(_streaming_problem("actuator: ", f"sensor {name!r}", config.port))
+        if problems := _sharing_problems(sensor.config, sensor.resync, f"sensor {sensor.config.name!r}", config,
+                                         keyed=False):
+            raise DriverSetupError(problems[0])
         if config.resync is not None:
-            if sensor.resync is not None and sensor.resync != config.resync:
-                raise DriverSetupError(f"actuator: port {config.port!r} is resynchronised by sensor {name!r} with "
-                                       f"{_resync_text(sensor.resync)}, the actuator says "
-                                       f"{_resync_text(config.resync)} (one port, one resync query)")
             sensor.use_resync(*config.resync)  # the line's setting, whichever of the two declares it
         return SerialLineActuator(config, sensor, owns_port=False)
 
 
+def _sharing_problems(sensor: SerialLineSensorConfig, line_resync: tuple[str, str] | None, where: str,
+                      actuator: SerialLineActuatorConfig, *, keyed: bool) -> list[str]:
+    """Why ``actuator`` cannot share the port ``sensor`` (``where``, its line resynchronised by ``line_resync``)
+    reads; ``keyed``: lines named ``actuator.<key>: ...`` (the config's form), else ``actuator: ...`` (a build's)."""
+    def named(key: str) -> str:
+        return f"actuator.{key}: " if keyed else "actuator: "
+
+    port = actuator.port
+    problems = [f"{named(key)}port {port!r} is read by {where} with {key} = {getattr(sensor, key)!r}, the actuator "
+                f"says {getattr(actuator, key)!r} (one port, one setting)"
+                for key in SHARED_SETTINGS if getattr(sensor, key) != getattr(actuator, key)]
+    if sensor.streaming and actuator.asks:
+        problems.append(f"{named('port')}{where} streams lines on {port!r}: its lines cannot be told from the answers "
+                        "to the actuator's readback/error_query, so they cannot be matched to their requests (give "
+                        "the sensor a query, drop readback and error_query, or give the actuator its own port)")
+    if line_resync is not None and actuator.resync is not None and line_resync != actuator.resync:
+        problems.append(f"{named('resync_query')}port {port!r} is resynchronised by {where} with "
+                        f"{_resync_text(line_resync)}, the actuator says {_resync_text(actuator.resync)} (one port, "
+                        f"one resync query{': declare it once' if keyed else ''})")
+    return problems
+
+
 def _resync_text(resync: tuple[str, str]) -> str:
     return f"resync_query = {resync[0]!r}, resync_pattern = {resync[1]!r}"
-
-
-def _streaming_problem(prefix: str, sensor: str, port: str) -> str:
-    return (f"{prefix}{sensor} streams lines on {port!r}: its lines cannot be told from the answers to the "
-            "actuator's readback/error_query, so they cannot be matched to their requests (give the sensor a "
-            "query, drop readback and error_query, or give the actuator its own port)")
 
 
 PLUGIN = SerialLinePlugin()

@@ -89,9 +89,6 @@ class SimulatedCell:
             raise ValueError(f"unknown simulated channel {channel!r}; channels: {', '.join(self.channels)}")
         self.faults.append(FaultWindow(channel, start_s, end_s, mode))
 
-    def _fault(self, channel: str, t: float) -> FaultWindow | None:
-        return next((w for w in self.faults if w.channel == channel and w.start_s <= t < w.end_s), None)
-
     def read(self, channels: Iterable[str]) -> dict[str, Reading]:
         """One poll of ``channels`` now, with noise; honours injected faults."""
         t = self.sim_time()
@@ -104,7 +101,8 @@ class SimulatedCell:
         for name in names:
             axis = axis_of.get(name)
             unit = "degC" if axis is None else "um"
-            window = self._fault(name, t) if faults else None
+            window = (next((w for w in faults if w.channel == name and w.start_s <= t < w.end_s), None)
+                      if faults else None)
             if window is not None:
                 if window.mode == "device_error":
                     raise DeviceError(f"simulated {name}: link failure (injected)")

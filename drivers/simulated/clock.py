@@ -1,7 +1,6 @@
 """The simulated cell's clocks: scaled wall time for the daemon, virtual time for procedures.
 
-:class:`ScaledClock`: real sleeps, but simulated time runs ``speed`` times faster than the wall clock
-(``[simulation] speed``; the tests' emulated cell too).
+:class:`ScaledClock` (``[simulation] speed``; the tests' emulated cell too): real sleeps, simulated time faster.
 
 :class:`VirtualClock`: sleeps take no wall time, so hours of simulated procedure run in seconds.
 A discrete-event scheduler on top of asyncio: ``sleep`` registers a wake-up time and waits; a single

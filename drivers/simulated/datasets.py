@@ -19,10 +19,8 @@ from nanodrift.calibration.plans import (
     cell_validation_plan,
     validation_plan,
 )
-from nanodrift.drivers.simulated.effects import resolve_effects
 from nanodrift.drivers.simulated.physics import CELL_AXES, THERMOCOUPLES, CellPhysics, cell_variant, cross_params
 from nanodrift.drivers.simulated.runs import ONE_MOVE, simulate_steps
-from nanodrift.drivers.simulated.scenarios import get_scenario
 
 #: cycles of a run when none are asked for: the paper's calibration (24 sweeps, ~3.3 h) and validation (30)
 DEFAULT_CYCLES = {"calibration": 24, "bidirectional": 24, "validation": 30}
@@ -63,15 +61,14 @@ def simulate_dataset(scenario: str = "train", effects: EffectsSpec = None, *, ax
     scenario always does). ``cell``: ``ideal`` or ``realistic`` (``physics.CELLS``).
     ``param_overrides``: the cell's magnitudes (``CellParams`` fields), over the cell's own.
     """
-    variant = cell_variant(cell)
-    params = variant.params.with_overrides(param_overrides)
+    params = cell_variant(cell).params.with_overrides(param_overrides)
     if axes:
         if effects is not None and not isinstance(effects, str):
             raise TypeError("a stack's effects are the --effects text of its cross-axis effects")
-        physics = CellPhysics(get_scenario(scenario), {}, seed, params, CELL_AXES[axes], cross_params(effects or None))
+        physics = CellPhysics.create(scenario, None, seed, params, axes=CELL_AXES[axes],
+                                     cross=cross_params(effects or None))
     else:
-        physics = CellPhysics(get_scenario(scenario), variant.effects_with(resolve_effects(effects or None)), seed,
-                              params)
+        physics = CellPhysics.create(scenario, effects or None, seed, params, cell=cell)
     targets, step_cycles = run_plan(physics, cycles, bidirectional=bidirectional)
     out = simulate_steps(physics, targets, step_cycles, schedule=ONE_MOVE if axes else None)
     channels = {c: out[c] for c in THERMOCOUPLES}

@@ -286,14 +286,7 @@ class Exogenous:
 
     def at(self, t: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray, np.ndarray]:
         """(air, nodes by name, wander, walk) at times ``t``: exact for the nodes, linear otherwise."""
-        t = np.asarray(t, dtype=np.float64)
-        if t.size:
-            self.ensure(float(t.max()), float(t.min()))
-        else:
-            self.ensure(0.0)
-        tc = np.maximum(t, self.t0)
-        i = np.minimum(((tc - self.t0) // self.dt).astype(np.int64) - self.first_knot, self.t.size - 2)
-        h = tc - self.t[i]
+        i, h = self._locate(np.asarray(t, dtype=np.float64))
         u0, u1 = self.air[i], self.air[i + 1]
         slope = (u1 - u0) / self.dt
         air = u0 + slope * h
@@ -305,14 +298,22 @@ class Exogenous:
         walk = self.walk[i] + (self.walk[i + 1] - self.walk[i]) * frac
         return air, {n: nodes[:, j] for j, n in enumerate(self.node_names)}, wander, walk
 
+    def _locate(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For times ``t`` (held first): the held knot each falls after and how far past it (a time before the
+        grid's start counts as its start)."""
+        if t.size:
+            self.ensure(float(t.max()), float(t.min()))
+        else:
+            self.ensure(0.0)
+        tc = np.maximum(t, self.t0)
+        i = np.minimum(((tc - self.t0) // self.dt).astype(np.int64) - self.first_knot, self.t.size - 2)
+        return i, tc - self.t[i]
+
     def index_at(self, t: np.ndarray) -> np.ndarray:
         """The random-walk part of the air's refractive index (ppm; 0 at the start of the room's history, when the
         compensation was set, so a run starts already off) at times ``t``, linear between knots."""
-        t = np.atleast_1d(np.asarray(t, dtype=np.float64))
-        self.ensure(float(t.max()), float(t.min()))
-        tc = np.maximum(t, self.t0)
-        i = np.minimum(((tc - self.t0) // self.dt).astype(np.int64) - self.first_knot, self.t.size - 2)
-        frac = (tc - self.t[i]) / self.dt
+        i, h = self._locate(np.atleast_1d(np.asarray(t, dtype=np.float64)))
+        frac = h / self.dt
         result: np.ndarray = self.index_ppm[i] + (self.index_ppm[i + 1] - self.index_ppm[i]) * frac
         return result
 

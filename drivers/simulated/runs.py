@@ -40,10 +40,11 @@ ONE_MOVE = StepSchedule(ramp_interval_s=PAPER_TIMING.ramp_s)
 CommandFor = Callable[[dict[str, float], float, dict[str, float]], dict[str, float]]
 
 
-def _window_offsets(interval: float, schedule: StepSchedule) -> np.ndarray:
-    """Sample times relative to the start of the hold that fall in the averaging window."""
-    times = np.arange(0.0, schedule.hold_s + 1e-9, interval)
-    return times[times > schedule.hold_s - schedule.window_s - 1e-9]
+def _window_times(hold_start: np.ndarray, interval: float, schedule: StepSchedule) -> np.ndarray:
+    """Each step's sample times in its averaging window (one every ``interval`` from its hold's start), in order."""
+    offsets = np.arange(0.0, schedule.hold_s + 1e-9, interval)
+    offsets = offsets[offsets > schedule.hold_s - schedule.window_s - 1e-9]
+    return np.ravel(hold_start[:, None] + offsets[None, :])
 
 
 def simulate_steps(
@@ -94,8 +95,7 @@ def simulate_steps(
             q_prev = float(commands[a][k])
         tracks[a] = physics.command_track(np.concatenate(cmd_t), np.concatenate(cmd_q), landing_rng)
 
-    pos_off = _window_offsets(schedule.position_interval_s, schedule)
-    pos_t = (hold_start[:, None] + pos_off[None, :]).ravel()
+    pos_t = _window_times(hold_start, schedule.position_interval_s, schedule)
     true = physics.attained_along(pos_t, tracks)
     out: dict[str, np.ndarray] = {"t_s": hold_start + schedule.hold_s}
     for a in axes:
@@ -104,8 +104,7 @@ def simulate_steps(
         out[f"{a}_true_um"] = true[a].reshape(n, -1).mean(axis=1)
         out[f"q_{a}_um"] = commands[a]
     out["cycle"] = np.asarray(cycles, dtype=np.float64)
-    tc_off = _window_offsets(schedule.temperature_interval_s, schedule)
-    tc_t = (hold_start[:, None] + tc_off[None, :]).ravel()
+    tc_t = _window_times(hold_start, schedule.temperature_interval_s, schedule)
     thermal = physics.thermal(tc_t)
     for c in channels:
         read = physics.measure_temperature(c, physics.sensor_truth(c, thermal), noise_rng.normal(size=tc_t.size))

@@ -30,13 +30,16 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+import socket
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 from nanodrift.drivers.pi_gcs.errors import GCS_ERRORS, error_text
+from nanodrift.drivers.testing.loopback import LoopbackServer
 from nanodrift.drivers.testing.pty_devices import PtyDevice
 
 __all__ = ["GCS_ERRORS", "EmulatedAxis", "PiGcsEmulator", "PiGcsPtyDevice", "PiGcsTcpServer", "error_text"]
@@ -63,8 +66,8 @@ class EmulatedAxis:
 
 @dataclass
 class PiGcsEmulator:
-    """The controller's state and its answers to GCS lines; thread-safe (a pty thread and an asyncio
-    server may both talk to it).
+    """The controller's state and its answers to GCS lines; thread-safe (a pty thread and the TCP server's
+    connection threads may all talk to it).
 
     Knobs for tests: ``axes`` (identifier -> :class:`EmulatedAxis`), ``settle_s`` (a MOV is on target
     this long after it), ``fail_next`` (command word -> error code: the next such command is refused
@@ -148,7 +151,8 @@ class PiGcsEmulator:
             return answer
 
     def _answer(self, word: str, args: list[str]) -> str | None:
-        setters = {"SVO": self._svo, "SVA": self._sva, "MOV": self._mov, "DCO": self._dco}
+        setters: dict[str, Callable[..., None]] = {"SVO": self._svo, "SVA": self._sva, "MOV": self._mov,
+                   "DCO": partial(self._switch, flag="drift_compensation")}
         if word == "*IDN?":
             return self.idn
         if word == "ERR?":
@@ -163,16 +167,16 @@ class PiGcsEmulator:
             pairs = self._pairs(args)
             for name, value in pairs:  # all checked before any is applied, as one command
                 setters[word](self.axes[name], value, check_only=True)
-            if self.frozen and word in ("SVA", "MOV"):
+            moves = {"SVA": (self.applied_sva, self.on_sva), "MOV": (self.applied_mov, self.on_mov)}.get(word)
+            if self.frozen and moves is not None:
                 return None  # accepted without an error, and nothing moves
             for name, value in pairs:
                 setters[word](self.axes[name], value, check_only=False)
-                if word in ("SVA", "MOV"):
-                    (self.applied_sva if word == "SVA" else self.applied_mov).append((name, value))
-                if word == "SVA" and self.on_sva is not None:
-                    self.on_sva(name, value)
-                if word == "MOV" and self.on_mov is not None:
-                    self.on_mov(name, value)
+                if moves is not None:
+                    applied, told = moves
+                    applied.append((name, value))
+                    if told is not None:
+                        told(name, value)
             return None
         queries = {
             "SVO?": lambda a: str(int(a.servo)),
@@ -219,12 +223,9 @@ class PiGcsEmulator:
         return " \n".join(f"{item}={value(item)}" for item in items)  # type: ignore[operator]
 
     def _svo(self, axis: EmulatedAxis, value: float, *, check_only: bool) -> None:
-        if value not in (0.0, 1.0):
-            raise _GcsFault(PARAM_SYNTAX)
-        if not check_only:
-            if value and not axis.servo:
-                axis.target_um = self._position_um(axis)  # the loop closes where the stage is
-            axis.servo = bool(value)
+        if not check_only and value == 1.0 and not axis.servo:
+            axis.target_um = self._position_um(axis)  # the loop closes where the stage is
+        self._switch(axis, "servo", value, check_only=check_only)
 
     def _sva(self, axis: EmulatedAxis, value: float, *, check_only: bool) -> None:
         if axis.servo:
@@ -243,11 +244,13 @@ class PiGcsEmulator:
             axis.target_um = value
             axis.moved_at = time.monotonic()
 
-    def _dco(self, axis: EmulatedAxis, value: float, *, check_only: bool) -> None:
+    @staticmethod
+    def _switch(axis: EmulatedAxis, flag: str, value: float, *, check_only: bool) -> None:
+        """An on/off setting (``SVO``, ``DCO``): 0 or 1, anything else a syntax error."""
         if value not in (0.0, 1.0):
             raise _GcsFault(PARAM_SYNTAX)
         if not check_only:
-            axis.drift_compensation = bool(value)
+            setattr(axis, flag, bool(value))
 
     def _position_um(self, axis: EmulatedAxis) -> float:
         return axis.target_um if axis.servo else axis.sva_v * self.um_per_volt
@@ -277,7 +280,8 @@ class _GcsFault(Exception):
 
 
 class PiGcsTcpServer:
-    """The emulator on an asyncio TCP server on 127.0.0.1 (port 0: a free one), on the running loop.
+    """The emulator on TCP, 127.0.0.1 (port 0: a free one), a thread per connection (a :class:`LoopbackServer`,
+    as the other network emulators).
 
     ``stop`` closes the listener and every connection (the controller unplugged); ``start`` again
     serves on the same port. ``connections`` are the ids of the connections open now.
@@ -285,53 +289,43 @@ class PiGcsTcpServer:
 
     def __init__(self, emulator: PiGcsEmulator, port: int = 0) -> None:
         self.emulator = emulator
-        self.port = port
         self.connections: set[str] = set()
-        self._server: asyncio.Server | None = None
-        self._writers: set[asyncio.StreamWriter] = set()
+        self.serving = False
         self._ids = itertools.count(1)
+        self._tcp = LoopbackServer(self._serve, port, name="pi-gcs-emulator")
 
     @property
-    def serving(self) -> bool:
-        return self._server is not None
+    def port(self) -> int:
+        return self._tcp.port
 
     async def start(self) -> None:
-        self._server = await asyncio.start_server(self._serve, "127.0.0.1", self.port)
-        self.port = self._server.sockets[0].getsockname()[1]
+        self._tcp.start()
+        self.serving = True
 
     async def stop(self) -> None:
-        server, self._server = self._server, None
-        if server is None:
-            return
-        server.close()
-        for writer in list(self._writers):
-            writer.close()
-        await server.wait_closed()
+        if self.serving:
+            self.serving = False
+            await asyncio.to_thread(self._tcp.stop)
 
-    async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+    def _serve(self, sock: socket.socket) -> None:
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)  # each answer sent at once, as asyncio's are
         connection = f"tcp{next(self._ids)}"
         self.connections.add(connection)
-        self._writers.add(writer)
         try:
-            while raw := await reader.readline():
-                answer = self.emulator.handle(raw.decode("latin-1").rstrip("\r\n"), connection)
-                if answer is not None:
-                    writer.write(answer.encode("latin-1") + b"\n")
-                    await writer.drain()
-        except (ConnectionError, asyncio.IncompleteReadError, asyncio.CancelledError):
-            pass  # the client went, or the server stops: this connection ends
+            with sock.makefile("rb") as lines:
+                while raw := lines.readline():
+                    answer = self.emulator.handle(raw.decode("latin-1").rstrip("\r\n"), connection)
+                    if answer is not None:
+                        sock.sendall(answer.encode("latin-1") + b"\n")
         finally:
             self.connections.discard(connection)
-            self._writers.discard(writer)
-            writer.close()
 
 
 # --- pty -----------------------------------------------------------------------------------------------
 
 
 class PiGcsPtyDevice(PtyDevice):
-    """The emulator on a pty behind ``link`` (a stable name, like /dev/serial/by-id/...): ``unplug`` and
-    ``replug`` as with a USB adapter pulled out and put back."""
+    """The emulator on a pty behind ``link``, a :class:`PtyDevice` (``unplug``, ``replug``)."""
 
     def __init__(self, link: Path, emulator: PiGcsEmulator) -> None:
         self.emulator = emulator

@@ -20,8 +20,6 @@ device's value; a channel-level problem on a working device is a ``fault`` readi
 reason) while the others stay ``ok``; a device that is gone raises :class:`DeviceError` (never another
 exception) from ``read``, and from ``open`` while it stays gone; ``close`` is safe twice and after a
 failed ``open``; close then open again recovers once the device is back.
-
-Every assertion on what was written looks at the emulator's side, never at the actuator's own account.
 """
 
 from __future__ import annotations
@@ -35,7 +33,7 @@ from typing import Any, ClassVar, Literal
 
 import pytest
 
-from nanodrift.drivers.base import Actuator, DeviceError, DriverContext, Reading, SensorGroup, State
+from nanodrift.drivers.base import Actuator, DeviceError, DriverContext, MonotonicClock, Reading, SensorGroup, State
 from nanodrift.drivers.registry import load_plugin
 
 #: a whole check's wall-clock bound: a hung device fails the check instead of the suite
@@ -62,6 +60,26 @@ def run_on(rig: ActuatorRig | SensorRig, body: Callable[[], Awaitable[None]]) ->
             await rig.stop()
 
     asyncio.run(asyncio.wait_for(with_emulator(), CHECK_BOUND_S))
+
+
+#: a check's body, ``async def test_...(self, rig)``, and the test pytest runs, ``test_...(self, tmp_path)``
+CheckBody = Callable[[Any, Any], Awaitable[None]]
+CheckTest = Callable[[Any, Path], None]
+
+
+def check(rig_of: str = "built_rig") -> Callable[[CheckBody], CheckTest]:
+    """A contract check written as ``async def test_...(self, rig)``: pytest runs it as ``test_...(self, tmp_path)``,
+    its body on the rig the contract's method ``rig_of`` builds (which may skip the check), by :func:`run_on`."""
+
+    def test_on_a_rig(body: CheckBody) -> CheckTest:
+        def test(self: Any, tmp_path: Path) -> None:
+            rig = getattr(self, rig_of)(tmp_path)
+            run_on(rig, lambda: body(self, rig))
+
+        test.__name__, test.__qualname__, test.__doc__ = body.__name__, body.__qualname__, body.__doc__
+        return test
+
+    return test_on_a_rig
 
 
 # --- actuators ------------------------------------------------------------------------------------
@@ -250,58 +268,46 @@ class ActuatorContract:
     def built_rig(self, tmp_path: Path) -> ActuatorRig:
         return self.rig(tmp_path)
 
-    def test_the_device_holds_sent_voltage_after_each_command(self, tmp_path: Path) -> None:
-        rig = self.built_rig(tmp_path)
+    @check()
+    async def test_the_device_holds_sent_voltage_after_each_command(self, rig: ActuatorRig) -> None:
+        actuator = await opened_actuator(rig)
+        assert actuator.description  # names the device in messages
+        asked = [0.1234567, 2.5, 7.7777777, 0.0, 9.99999]
+        for volts in asked:
+            sent = actuator.sent_voltage(volts)
+            assert abs(sent - volts) <= rig.resolution_v / 2 + TOLERANCE_V, (
+                f"sent_voltage({volts!r}) = {sent!r}: farther than half the device's resolution "
+                f"({rig.resolution_v!r} V)")
+            await assert_serves(rig, actuator, volts)
+        assert rig.written_v() == pytest.approx([actuator.sent_voltage(v) for v in asked], abs=TOLERANCE_V)
+        await actuator.close()
+        await actuator.close()  # safe twice
 
-        async def body() -> None:
-            actuator = await opened_actuator(rig)
-            assert actuator.description  # names the device in messages
-            asked = [0.1234567, 2.5, 7.7777777, 0.0, 9.99999]
-            for volts in asked:
-                sent = actuator.sent_voltage(volts)
-                assert abs(sent - volts) <= rig.resolution_v / 2 + TOLERANCE_V, (
-                    f"sent_voltage({volts!r}) = {sent!r}: farther than half the device's resolution "
-                    f"({rig.resolution_v!r} V)")
-                await assert_serves(rig, actuator, volts)
-            assert rig.written_v() == pytest.approx([actuator.sent_voltage(v) for v in asked], abs=TOLERANCE_V)
-            await actuator.close()
-            await actuator.close()  # safe twice
+    @check()
+    async def test_read_back_after_a_command_is_what_was_sent(self, rig: ActuatorRig) -> None:
+        actuator = await opened_actuator(rig)
+        for volts in (3.3333333, 6.25):
+            await command(actuator, volts)
+            back = await asyncio.wait_for(actuator.read_back(), COMMAND_BOUND_S)
+            if rig.reads_back is None:
+                assert back is None
+            else:  # (Any: mypy takes an approx for no float; the tuples compared show in a failure)
+                wanted = actuator.sent_voltage(volts) if rig.reads_back == "voltage_v" else volts / GAIN_V_PER_UM
+                near: Any = pytest.approx(wanted, abs=TOLERANCE_V)
+                assert back == (rig.reads_back, near)
+        await actuator.close()
 
-        run_on(rig, body)
-
-    def test_read_back_after_a_command_is_what_was_sent(self, tmp_path: Path) -> None:
-        rig = self.built_rig(tmp_path)
-
-        async def body() -> None:
-            actuator = await opened_actuator(rig)
-            for volts in (3.3333333, 6.25):
-                await command(actuator, volts)
-                back = await asyncio.wait_for(actuator.read_back(), COMMAND_BOUND_S)
-                if rig.reads_back is None:
-                    assert back is None
-                else:  # (Any: mypy takes an approx for no float; the tuples compared show in a failure)
-                    wanted = actuator.sent_voltage(volts) if rig.reads_back == "voltage_v" else volts / GAIN_V_PER_UM
-                    near: Any = pytest.approx(wanted, abs=TOLERANCE_V)
-                    assert back == (rig.reads_back, near)
-            await actuator.close()
-
-        run_on(rig, body)
-
-    def test_nothing_outside_limits_v_reaches_the_device(self, tmp_path: Path) -> None:
-        rig = self.built_rig(tmp_path)
+    @check()
+    async def test_nothing_outside_limits_v_reaches_the_device(self, rig: ActuatorRig) -> None:
         (low, high), at_limit, expected = rig.limit_case
-
-        async def body() -> None:
-            actuator = await opened_actuator(rig, (low, high))
-            assert actuator.sent_voltage(at_limit) == pytest.approx(expected, abs=TOLERANCE_V)
-            await assert_serves(rig, actuator, at_limit)
-            await assert_serves(rig, actuator, low)
-            written = rig.written_v()
-            assert len(written) == 2 and all(low <= v <= high for v in written), written
-            assert written[0] == pytest.approx(expected, abs=TOLERANCE_V)
-            await actuator.close()
-
-        run_on(rig, body)
+        actuator = await opened_actuator(rig, (low, high))
+        assert actuator.sent_voltage(at_limit) == pytest.approx(expected, abs=TOLERANCE_V)
+        await assert_serves(rig, actuator, at_limit)
+        await assert_serves(rig, actuator, low)
+        written = rig.written_v()
+        assert len(written) == 2 and all(low <= v <= high for v in written), written
+        assert written[0] == pytest.approx(expected, abs=TOLERANCE_V)
+        await actuator.close()
 
     def test_a_value_the_device_cannot_represent_is_a_value_error_and_nothing_is_written(
             self, tmp_path: Path) -> None:
@@ -333,55 +339,43 @@ class ActuatorContract:
             pytest.skip(f"{rig.kind}: the device cannot refuse a write, fail to open or vanish (can_fail = False)")
         return rig
 
-    def test_a_write_the_device_refuses_is_a_device_error_and_the_next_one_works(self, tmp_path: Path) -> None:
-        rig = self._failing_rig(tmp_path)
+    @check("_failing_rig")
+    async def test_a_write_the_device_refuses_is_a_device_error_and_the_next_one_works(self, rig: ActuatorRig) -> None:
+        actuator = await opened_actuator(rig)
+        await assert_serves(rig, actuator, 1.5)
+        await rig.refuse_writes()
+        with pytest.raises(DeviceError):
+            await command(actuator, 4.5)
+        await rig.back()
+        await assert_serves(rig, actuator, 4.5)
+        await actuator.close()
 
-        async def body() -> None:
-            actuator = await opened_actuator(rig)
-            await assert_serves(rig, actuator, 1.5)
-            await rig.refuse_writes()
-            with pytest.raises(DeviceError):
-                await command(actuator, 4.5)
-            await rig.back()
-            await assert_serves(rig, actuator, 4.5)
-            await actuator.close()
+    @check("_failing_rig")
+    async def test_a_device_that_is_gone_is_a_device_error_and_a_reopen_recovers(self, rig: ActuatorRig) -> None:
+        actuator = await opened_actuator(rig)
+        await assert_serves(rig, actuator, 1.5)
+        await rig.gone()
+        with pytest.raises(DeviceError):
+            await command(actuator, 4.5)
+        await actuator.close()
+        await rig.back()
+        await actuator.open()
+        await assert_serves(rig, actuator, 4.5)
+        await actuator.close()
 
-        run_on(rig, body)
-
-    def test_a_device_that_is_gone_is_a_device_error_and_a_reopen_recovers(self, tmp_path: Path) -> None:
-        rig = self._failing_rig(tmp_path)
-
-        async def body() -> None:
-            actuator = await opened_actuator(rig)
-            await assert_serves(rig, actuator, 1.5)
-            await rig.gone()
-            with pytest.raises(DeviceError):
-                await command(actuator, 4.5)
-            await actuator.close()
-            await rig.back()
-            await actuator.open()
-            await assert_serves(rig, actuator, 4.5)
-            await actuator.close()
-
-        run_on(rig, body)
-
-    def test_close_is_safe_after_a_failed_open_and_open_retries(self, tmp_path: Path) -> None:
-        rig = self._failing_rig(tmp_path)
-
-        async def body() -> None:
-            actuator = rig.actuator()
-            actuator.limits_v = LIMITS_V
-            await rig.gone()
-            with pytest.raises(DeviceError):
-                await asyncio.wait_for(actuator.open(), COMMAND_BOUND_S)
-            await actuator.close()
-            await actuator.close()
-            await rig.back()
-            await asyncio.wait_for(actuator.open(), COMMAND_BOUND_S)  # calling it again after a failure retries
-            await assert_serves(rig, actuator, 3.0)
-            await actuator.close()
-
-        run_on(rig, body)
+    @check("_failing_rig")
+    async def test_close_is_safe_after_a_failed_open_and_open_retries(self, rig: ActuatorRig) -> None:
+        actuator = rig.actuator()
+        actuator.limits_v = LIMITS_V
+        await rig.gone()
+        with pytest.raises(DeviceError):
+            await asyncio.wait_for(actuator.open(), COMMAND_BOUND_S)
+        await actuator.close()
+        await actuator.close()
+        await rig.back()
+        await asyncio.wait_for(actuator.open(), COMMAND_BOUND_S)  # calling it again after a failure retries
+        await assert_serves(rig, actuator, 3.0)
+        await actuator.close()
 
     # -- several outputs of one plugin (DriverPlugin.create_actuators) -----------------------------
 
@@ -399,82 +393,67 @@ class ActuatorContract:
             await asyncio.wait_for(output.open(), COMMAND_BOUND_S)
         return outputs
 
-    def test_each_output_writes_only_its_own_channel(self, tmp_path: Path) -> None:
-        rig = self._multi_output_rig(tmp_path)
+    @check("_multi_output_rig")
+    async def test_each_output_writes_only_its_own_channel(self, rig: ActuatorRig) -> None:
+        outputs = await self._open_outputs(rig)
+        for index in range(len(outputs)):
+            assert rig.output_written_v(index) == [], f"output {index} was written before any command"
+        for index in range(len(outputs)):
+            await assert_output_serves(rig, outputs, index, 1.0 + index)
+        assert_one_connection(rig)
+        for index in reversed(range(len(outputs))):
+            await assert_output_serves(rig, outputs, index, 5.25 - index)
+        for output in outputs:
+            await output.close()
 
-        async def body() -> None:
+    @check("_multi_output_rig")
+    async def test_outputs_written_concurrently_never_overlap_an_exchange(self, rig: ActuatorRig) -> None:
+        outputs = await self._open_outputs(rig)
+        asked = {index: [0.5 + index + step * 0.25 for step in range(8)] for index in range(len(outputs))}
+
+        async def drive(index: int) -> None:
+            for volts in asked[index]:
+                await command(outputs[index], volts)
+
+        await asyncio.gather(*(drive(index) for index in range(len(outputs))))
+        for index, output in enumerate(outputs):
+            expected = [output.sent_voltage(v) for v in asked[index]]
+            assert rig.output_written_v(index) == pytest.approx(expected, abs=TOLERANCE_V), index
+        assert rig.overlapping_exchanges() == [], "two outputs' exchanges overlapped on the device"
+        assert_one_connection(rig)
+        for output in outputs:
+            await output.close()
+
+    @check("_multi_output_rig")
+    async def test_closing_one_output_leaves_the_others_working(self, rig: ActuatorRig) -> None:
+        for closed in range(len(rig.output_options())):  # each in turn: the one owning the port too
             outputs = await self._open_outputs(rig)
             for index in range(len(outputs)):
-                assert rig.output_written_v(index) == [], f"output {index} was written before any command"
+                await assert_output_serves(rig, outputs, index, 2.0 + index)
+            shared = assert_one_connection(rig)
+            await outputs[closed].close()
+            await outputs[closed].close()  # safe twice, and still leaves the others alone
             for index in range(len(outputs)):
-                await assert_output_serves(rig, outputs, index, 1.0 + index)
-            assert_one_connection(rig)
-            for index in reversed(range(len(outputs))):
-                await assert_output_serves(rig, outputs, index, 5.25 - index)
-            for output in outputs:
+                if index != closed:
+                    await assert_output_serves(rig, outputs, index, 3.5 + index)
+            assert assert_one_connection(rig) == shared, (
+                f"closing output {closed} took the shared connection with it (the others reconnected)")
+            for output in outputs:  # all closed, the closed one again: the device is free for the next turn
                 await output.close()
-
-        run_on(rig, body)
-
-    def test_outputs_written_concurrently_never_overlap_an_exchange(self, tmp_path: Path) -> None:
-        rig = self._multi_output_rig(tmp_path)
-
-        async def body() -> None:
-            outputs = await self._open_outputs(rig)
-            asked = {index: [0.5 + index + step * 0.25 for step in range(8)] for index in range(len(outputs))}
-
-            async def drive(index: int) -> None:
-                for volts in asked[index]:
-                    await command(outputs[index], volts)
-
-            await asyncio.gather(*(drive(index) for index in range(len(outputs))))
-            for index, output in enumerate(outputs):
-                expected = [output.sent_voltage(v) for v in asked[index]]
-                assert rig.output_written_v(index) == pytest.approx(expected, abs=TOLERANCE_V), index
-            assert rig.overlapping_exchanges() == [], "two outputs' exchanges overlapped on the device"
-            assert_one_connection(rig)
-            for output in outputs:
-                await output.close()
-
-        run_on(rig, body)
-
-    def test_closing_one_output_leaves_the_others_working(self, tmp_path: Path) -> None:
-        rig = self._multi_output_rig(tmp_path)
-
-        async def body() -> None:
-            for closed in range(len(rig.output_options())):  # each in turn: the one owning the port too
-                outputs = await self._open_outputs(rig)
-                for index in range(len(outputs)):
-                    await assert_output_serves(rig, outputs, index, 2.0 + index)
-                shared = assert_one_connection(rig)
-                await outputs[closed].close()
-                await outputs[closed].close()  # safe twice, and still leaves the others alone
-                for index in range(len(outputs)):
-                    if index != closed:
-                        await assert_output_serves(rig, outputs, index, 3.5 + index)
-                assert assert_one_connection(rig) == shared, (
-                    f"closing output {closed} took the shared connection with it (the others reconnected)")
-                for output in outputs:  # all closed, the closed one again: the device is free for the next turn
-                    await output.close()
-                await assert_no_connection_left(rig)
-
-        run_on(rig, body)
+            await assert_no_connection_left(rig)
 
 
 # --- sensors --------------------------------------------------------------------------------------
 
 
-class OffsetClock:
+class OffsetClock(MonotonicClock):
     """Monotonic time 123456789 s ahead: neither the wall clock nor the raw monotonic clock, so a reading
-    stamped on anything but ``context.clock`` is caught."""
+    stamped on anything but ``context.clock`` is caught (it sleeps as the daemon's clock does)."""
 
     OFFSET_S = 123_456_789.0
 
     def now(self) -> float:
         return time.monotonic() + self.OFFSET_S
-
-    async def sleep(self, seconds: float) -> None:
-        await asyncio.sleep(max(0.0, seconds))
 
 
 class SensorRig:
@@ -569,72 +548,56 @@ class SensorContract:
     def built_rig(self, tmp_path: Path) -> SensorRig:
         return self.rig(tmp_path)
 
-    def test_open_read_close_a_reading_per_name_on_the_context_clock(self, tmp_path: Path) -> None:
-        rig = self.built_rig(tmp_path)
-
-        async def body() -> None:
-            group = rig.group()
-            assert group.names == rig.names
-            assert dict(group.roles) == rig.roles
-            assert group.interval_s > 0 and group.timeout_s > 0
-            await group.open()
-            for _ in range(3):
-                assert_all_ok(rig, await read_stamped(rig, group))
-            await group.close()
-
-        run_on(rig, body)
-
-    def test_close_is_safe_twice_and_the_group_reopens(self, tmp_path: Path) -> None:
-        rig = self.built_rig(tmp_path)
-
-        async def body() -> None:
-            group = rig.group()
-            await group.open()
-            await read(group)
-            await group.close()
-            await group.close()
-            await group.open()  # the daemon reopens a closed group
+    @check()
+    async def test_open_read_close_a_reading_per_name_on_the_context_clock(self, rig: SensorRig) -> None:
+        group = rig.group()
+        assert group.names == rig.names
+        assert dict(group.roles) == rig.roles
+        assert group.interval_s > 0 and group.timeout_s > 0
+        await group.open()
+        for _ in range(3):
             assert_all_ok(rig, await read_stamped(rig, group))
-            await group.close()
+        await group.close()
 
-        run_on(rig, body)
+    @check()
+    async def test_close_is_safe_twice_and_the_group_reopens(self, rig: SensorRig) -> None:
+        group = rig.group()
+        await group.open()
+        await read(group)
+        await group.close()
+        await group.close()
+        await group.open()  # the daemon reopens a closed group
+        assert_all_ok(rig, await read_stamped(rig, group))
+        await group.close()
 
-    def test_a_channel_problem_is_a_fault_reading_and_the_others_stay_ok(self, tmp_path: Path) -> None:
-        rig = self.built_rig(tmp_path)
+    @check()
+    async def test_a_channel_problem_is_a_fault_reading_and_the_others_stay_ok(self, rig: SensorRig) -> None:
+        group = rig.group()
+        await group.open()
+        assert_all_ok(rig, await read_stamped(rig, group))
+        faulted = await rig.fault_channel()
+        readings = await read_stamped(rig, group)
+        bad = readings[faulted]
+        assert bad.state is State.FAULT and math.isnan(bad.value) and bad.reason, bad
+        for name, reading in readings.items():
+            if name != faulted:
+                assert reading.state is State.OK and math.isfinite(reading.value), (name, reading)
+        await group.close()
 
-        async def body() -> None:
-            group = rig.group()
-            await group.open()
-            assert_all_ok(rig, await read_stamped(rig, group))
-            faulted = await rig.fault_channel()
-            readings = await read_stamped(rig, group)
-            bad = readings[faulted]
-            assert bad.state is State.FAULT and math.isnan(bad.value) and bad.reason, bad
-            for name, reading in readings.items():
-                if name != faulted:
-                    assert reading.state is State.OK and math.isfinite(reading.value), (name, reading)
-            await group.close()
-
-        run_on(rig, body)
-
-    def test_a_device_that_is_gone_raises_device_error_and_recovers_after_reopening(self, tmp_path: Path) -> None:
-        rig = self.built_rig(tmp_path)
-
-        async def body() -> None:
-            group = rig.group()
-            await group.open()
-            assert_all_ok(rig, await read_stamped(rig, group))
-            await rig.gone()
-            for _ in range(2):  # every poll while it is gone, not only the first
-                with pytest.raises(DeviceError):
-                    await read(group)
-            await group.close()  # what the daemon does on DeviceError: close, back off, open
-            await rig.back()
-            await group.open()
-            assert_all_ok(rig, await read_stamped(rig, group))
-            await group.close()
-
-        run_on(rig, body)
+    @check()
+    async def test_a_device_that_is_gone_raises_device_error_and_recovers_after_reopening(self, rig: SensorRig) -> None:
+        group = rig.group()
+        await group.open()
+        assert_all_ok(rig, await read_stamped(rig, group))
+        await rig.gone()
+        for _ in range(2):  # every poll while it is gone, not only the first
+            with pytest.raises(DeviceError):
+                await read(group)
+        await group.close()  # what the daemon does on DeviceError: close, back off, open
+        await rig.back()
+        await group.open()
+        assert_all_ok(rig, await read_stamped(rig, group))
+        await group.close()
 
     def test_close_is_safe_after_a_failed_open(self, tmp_path: Path) -> None:
         rig = self.built_rig(tmp_path)
