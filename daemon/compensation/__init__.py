@@ -226,15 +226,17 @@ class Compensator:
         correction = self.monitor.correction_um() if self.monitor is not None else None
         q_um: dict[str, float] = {}
         voltage_v: dict[str, float] = {}
-        for axis, limits in self.limits.items():
-            q = evaluators[axis].value(x, now) + (correction.get(axis, 0.0) if correction is not None else 0.0)
+        sigma: dict[str, float] = {}
+        for axis, limits in self.limits.items():  # one pass over the axes: the hot path of every target
+            evaluator = evaluators[axis]
+            q = evaluator.value(x, now) + (correction.get(axis, 0.0) if correction is not None else 0.0)
             try:  # q = model + correction: the voltage and its limits are the corrected command's
                 voltage_v[axis] = checked_voltage(limits, q)
             except VoltageLimitError as error:
                 raise Refusal("voltage_limit", str(error) if len(self.axes) == 1 else
                               f"axis {axis}: {error}: no axis moves", target.id) from None
             q_um[axis] = q
-        sigma = {axis: evaluators[axis].sigma(x, now) for axis in self.axes}  # before the move: as value() saw
+            sigma[axis] = evaluator.sigma(x, now)  # before the move: as value() saw (sigma changes nothing)
         adapted = self.monitor.sigma_adapted_um(sigma, self._wander_um) if self.monitor is not None else None
         for evaluator in evaluators.values():
             evaluator.moved(x, now)  # only a command that goes out moves the stage

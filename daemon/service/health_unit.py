@@ -219,9 +219,10 @@ class HealthUnit:
     def sigma_adapted_um(self, sigma_um: Mapping[str, float],
                          wander_um: Mapping[str, float]) -> Mapping[str, float] | None:
         """The σ each corrected axis' command keeps (:meth:`BiasTracker.sigma_um`); None: adaptation off."""
-        adapted = {a: w.tracker.sigma_um(sigma_um[a], wander_um.get(a, 0.0))
-                   for a, w in self.watches.items() if w.tracker is not None}
-        return adapted or None
+        if self._corrections is None:  # no tracker: on every target, so answered before any comprehension
+            return None
+        return {a: w.tracker.sigma_um(sigma_um[a], wander_um.get(a, 0.0))
+                for a, w in self.watches.items() if w.tracker is not None}
 
     def served(self, now: float, command: Command) -> None:
         """A command went out at cell time ``now``: numbered, and queued for each axis with a position sensor."""
