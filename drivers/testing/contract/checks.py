@@ -85,16 +85,27 @@ def check(rig_of: str = "built_rig") -> Callable[[CheckBody], CheckTest]:
 # --- actuators ------------------------------------------------------------------------------------
 
 
-class ActuatorRig:
-    """One output plugin behind a real interface: how to build its device's emulator and its actuator,
-    how to read what the device received, and how to make the device misbehave.
-
-    A rig is built afresh for each check with the check's ``tmp_path``; ``start`` runs before the
-    actuator is built and ``stop`` after the check, whatever happened.
-    """
+class _Rig:
+    """What both rigs share: built afresh for each check with the check's ``tmp_path``; ``start`` runs
+    before anything is built and ``stop`` after the check, whatever happened."""
 
     #: the plugin's name in the ``nanodrift.drivers`` entry points (found there, as the daemon finds it)
     kind: ClassVar[str]
+
+    def __init__(self, tmp_path: Path) -> None:
+        self.tmp_path = tmp_path
+
+    async def start(self) -> None:
+        """Start the emulator (a server to listen, a pty to open): before anything is built."""
+
+    async def stop(self) -> None:
+        """Stop the emulator: after each check, also a failed one."""
+
+
+class ActuatorRig(_Rig):
+    """One output plugin behind a real interface: how to build its device's emulator and its actuator,
+    how to read what the device received, and how to make the device misbehave."""
+
     #: the finest step of the device's voltage (0: takes the float as it is): ``sent_voltage`` may round
     #: this far and no farther
     resolution_v: ClassVar[float] = 0.0
@@ -110,9 +121,6 @@ class ActuatorRig:
     #: why the plugin cannot drive several outputs of one device (the multi-output checks are skipped
     #: with this reason); None: it can, and :meth:`output_options` and :meth:`output_written_v` say how
     multi_output_unsupported: ClassVar[str | None] = "the rig declares no multi-output device"
-
-    def __init__(self, tmp_path: Path) -> None:
-        self.tmp_path = tmp_path
 
     # -- building ---------------------------------------------------------------------------------
 
@@ -132,12 +140,6 @@ class ActuatorRig:
         plugin = load_plugin(self.kind)
         assert plugin.actuator_model is not None, f"{self.kind} cannot move the stage"
         return plugin.create_actuator(plugin.actuator_model.model_validate(self.options()), self.built_context)
-
-    async def start(self) -> None:
-        """Start the emulator (a server to listen, a pty to open): before anything is built."""
-
-    async def stop(self) -> None:
-        """Stop the emulator: after each check, also a failed one."""
 
     # -- the device's side ------------------------------------------------------------------------
 
@@ -456,12 +458,10 @@ class OffsetClock(MonotonicClock):
         return time.monotonic() + self.OFFSET_S
 
 
-class SensorRig:
+class SensorRig(_Rig):
     """One sensor plugin behind a real interface: what it builds, what its device holds, and how the
-    device misbehaves. Built afresh for each check with the check's ``tmp_path``."""
+    device misbehaves."""
 
-    #: the plugin's name in the ``nanodrift.drivers`` entry points
-    kind: ClassVar[str]
     #: the channel names the group must yield, in order
     names: ClassVar[tuple[str, ...]]
     #: each channel's role ("temperature" | "position"), as the group must report it
@@ -472,7 +472,7 @@ class SensorRig:
     can_fail_open: ClassVar[bool] = True
 
     def __init__(self, tmp_path: Path) -> None:
-        self.tmp_path = tmp_path
+        super().__init__(tmp_path)
         self.clock = OffsetClock()
 
     def sensor_configs(self) -> list[dict[str, Any]]:
@@ -482,12 +482,6 @@ class SensorRig:
     def context(self) -> DriverContext:
         """The context the plugin builds with: keep ``clock=self.clock``, so the stamps can be checked."""
         return DriverContext(clock=self.clock)
-
-    async def start(self) -> None:
-        """Start the emulator: before the group is built."""
-
-    async def stop(self) -> None:
-        """Stop the emulator: after each check, also a failed one."""
 
     def check_values(self, readings: dict[str, Reading]) -> None:
         """Assert the ok readings carry what the emulator holds (in the channel's unit, scaled)."""
