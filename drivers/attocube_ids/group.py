@@ -61,9 +61,7 @@ class IdsGroup(SensorGroup):
         first = channels[0]
         self.channels = list(channels)
         self.clock = clock
-        self.names = tuple(c.name for c in channels)
-        self.roles = {c.name: c.role for c in channels}
-        self.interval_s = min(c.interval_s for c in channels)
+        self.set_channels(channels)
         per_call_s = min(c.timeout_s for c in channels)
         self.rpc = IdsRpc(first.host, first.port, per_call_s)
         # one poll: the state, and up to four calls per axis (a warning asks its text), each bounded by timeout_s

@@ -40,9 +40,7 @@ class DconModuleGroup(SensorGroup):
         self.address = first.address
         self.with_checksum = first.checksum
         self.open_detection = first.open_detection
-        self.names = tuple(c.name for c in channels)
-        self.roles = {c.name: c.role for c in channels}
-        self.interval_s = min(c.interval_s for c in channels)
+        self.set_channels(channels)
         # one poll: #AA, and $AAB when asked, each bounded by the hub's timeout, possibly after as much for
         # every other module of the bus (one request at a time): the poll's bound covers the queue
         exchanges = 2 if self.open_detection else 1
