@@ -48,33 +48,31 @@ LIMITS_V = (0.0, 10.0)
 TOLERANCE_V = 1e-9
 
 
-def run_on(rig: ActuatorRig | SensorRig, body: Callable[[], Awaitable[None]]) -> None:
-    """One check's asyncio body, on a fresh event loop, with the rig's emulator started before it and stopped
-    after it, whatever happened, all bounded by :data:`CHECK_BOUND_S`."""
-
-    async def with_emulator() -> None:
-        await rig.start()
-        try:
-            await body()
-        finally:
-            await rig.stop()
-
-    asyncio.run(asyncio.wait_for(with_emulator(), CHECK_BOUND_S))
-
-
 #: a check's body, ``async def test_...(self, rig)``, and the test pytest runs, ``test_...(self, tmp_path)``
 CheckBody = Callable[[Any, Any], Awaitable[None]]
 CheckTest = Callable[[Any, Path], None]
 
 
-def check(rig_of: str = "built_rig") -> Callable[[CheckBody], CheckTest]:
+def check(unless: str = "") -> Callable[[CheckBody], CheckTest]:
     """A contract check written as ``async def test_...(self, rig)``: pytest runs it as ``test_...(self, tmp_path)``,
-    its body on the rig the contract's method ``rig_of`` builds (which may skip the check), by :func:`run_on`."""
+    its body on the contract's ``rig`` built for ``tmp_path``, on a fresh event loop, with the rig's emulator
+    started before it and stopped after it, whatever happened, all bounded by :data:`CHECK_BOUND_S`; skipped
+    with the reason the contract's method ``unless`` gives for the rig (None: the rig takes part)."""
 
     def test_on_a_rig(body: CheckBody) -> CheckTest:
         def test(self: Any, tmp_path: Path) -> None:
-            rig = getattr(self, rig_of)(tmp_path)
-            run_on(rig, lambda: body(self, rig))
+            rig = self.rig(tmp_path)
+            if unless and (reason := getattr(self, unless)(rig)) is not None:
+                pytest.skip(f"{rig.kind}: {reason}")
+
+            async def with_emulator() -> None:
+                await rig.start()
+                try:
+                    await body(self, rig)
+                finally:
+                    await rig.stop()
+
+            asyncio.run(asyncio.wait_for(with_emulator(), CHECK_BOUND_S))
 
         test.__name__, test.__qualname__, test.__doc__ = body.__name__, body.__qualname__, body.__doc__
         return test
@@ -267,9 +265,6 @@ class ActuatorContract:
     #: the rig class this subclass runs the checks against
     rig: ClassVar[type[ActuatorRig]]
 
-    def built_rig(self, tmp_path: Path) -> ActuatorRig:
-        return self.rig(tmp_path)
-
     @check()
     async def test_the_device_holds_sent_voltage_after_each_command(self, rig: ActuatorRig) -> None:
         actuator = await opened_actuator(rig)
@@ -311,37 +306,34 @@ class ActuatorContract:
         assert written[0] == pytest.approx(expected, abs=TOLERANCE_V)
         await actuator.close()
 
-    def test_a_value_the_device_cannot_represent_is_a_value_error_and_nothing_is_written(
-            self, tmp_path: Path) -> None:
-        rig = self.built_rig(tmp_path)
-        if rig.unrepresentable is None:
-            pytest.skip(f"{rig.kind}: the device takes any finite voltage (unrepresentable = None)")
+    @staticmethod
+    def _takes_any_value(rig: ActuatorRig) -> str | None:
+        return "the device takes any finite voltage (unrepresentable = None)" if rig.unrepresentable is None else None
+
+    @check("_takes_any_value")
+    async def test_a_value_the_device_cannot_represent_is_a_value_error_and_nothing_is_written(
+            self, rig: ActuatorRig) -> None:
+        assert rig.unrepresentable is not None
         limits, volts = rig.unrepresentable
+        actuator = await opened_actuator(rig)
+        await assert_serves(rig, actuator, 1.5)
+        held = await rig.held_v()
+        before = rig.written_v()
+        actuator.limits_v = limits  # the device cannot put out every voltage of these
+        with pytest.raises(ValueError):
+            await command(actuator, volts)
+        await asyncio.sleep(0.2)  # a write under way would land by now
+        assert rig.written_v() == before
+        assert await rig.held_v() == held
+        actuator.limits_v = LIMITS_V
+        await assert_serves(rig, actuator, 2.5)  # the actuator still works
+        await actuator.close()
 
-        async def body() -> None:
-            actuator = await opened_actuator(rig)
-            await assert_serves(rig, actuator, 1.5)
-            held = await rig.held_v()
-            before = rig.written_v()
-            actuator.limits_v = limits  # the device cannot put out every voltage of these
-            with pytest.raises(ValueError):
-                await command(actuator, volts)
-            await asyncio.sleep(0.2)  # a write under way would land by now
-            assert rig.written_v() == before
-            assert await rig.held_v() == held
-            actuator.limits_v = LIMITS_V
-            await assert_serves(rig, actuator, 2.5)  # the actuator still works
-            await actuator.close()
+    @staticmethod
+    def _cannot_fail(rig: ActuatorRig) -> str | None:
+        return None if rig.can_fail else "the device cannot refuse a write, fail to open or vanish (can_fail = False)"
 
-        run_on(rig, body)
-
-    def _failing_rig(self, tmp_path: Path) -> ActuatorRig:
-        rig = self.built_rig(tmp_path)
-        if not rig.can_fail:
-            pytest.skip(f"{rig.kind}: the device cannot refuse a write, fail to open or vanish (can_fail = False)")
-        return rig
-
-    @check("_failing_rig")
+    @check("_cannot_fail")
     async def test_a_write_the_device_refuses_is_a_device_error_and_the_next_one_works(self, rig: ActuatorRig) -> None:
         actuator = await opened_actuator(rig)
         await assert_serves(rig, actuator, 1.5)
@@ -352,7 +344,7 @@ class ActuatorContract:
         await assert_serves(rig, actuator, 4.5)
         await actuator.close()
 
-    @check("_failing_rig")
+    @check("_cannot_fail")
     async def test_a_device_that_is_gone_is_a_device_error_and_a_reopen_recovers(self, rig: ActuatorRig) -> None:
         actuator = await opened_actuator(rig)
         await assert_serves(rig, actuator, 1.5)
@@ -365,7 +357,7 @@ class ActuatorContract:
         await assert_serves(rig, actuator, 4.5)
         await actuator.close()
 
-    @check("_failing_rig")
+    @check("_cannot_fail")
     async def test_close_is_safe_after_a_failed_open_and_open_retries(self, rig: ActuatorRig) -> None:
         actuator = rig.actuator()
         actuator.limits_v = LIMITS_V
@@ -381,11 +373,9 @@ class ActuatorContract:
 
     # -- several outputs of one plugin (DriverPlugin.create_actuators) -----------------------------
 
-    def _multi_output_rig(self, tmp_path: Path) -> ActuatorRig:
-        rig = self.built_rig(tmp_path)
-        if rig.multi_output_unsupported is not None:
-            pytest.skip(f"{rig.kind}: {rig.multi_output_unsupported}")
-        return rig
+    @staticmethod
+    def _single_output(rig: ActuatorRig) -> str | None:
+        return rig.multi_output_unsupported
 
     async def _open_outputs(self, rig: ActuatorRig) -> list[Actuator]:
         outputs = rig.actuators()
@@ -395,7 +385,7 @@ class ActuatorContract:
             await asyncio.wait_for(output.open(), COMMAND_BOUND_S)
         return outputs
 
-    @check("_multi_output_rig")
+    @check("_single_output")
     async def test_each_output_writes_only_its_own_channel(self, rig: ActuatorRig) -> None:
         outputs = await self._open_outputs(rig)
         for index in range(len(outputs)):
@@ -408,7 +398,7 @@ class ActuatorContract:
         for output in outputs:
             await output.close()
 
-    @check("_multi_output_rig")
+    @check("_single_output")
     async def test_outputs_written_concurrently_never_overlap_an_exchange(self, rig: ActuatorRig) -> None:
         outputs = await self._open_outputs(rig)
         asked = {index: [0.5 + index + step * 0.25 for step in range(8)] for index in range(len(outputs))}
@@ -426,7 +416,7 @@ class ActuatorContract:
         for output in outputs:
             await output.close()
 
-    @check("_multi_output_rig")
+    @check("_single_output")
     async def test_closing_one_output_leaves_the_others_working(self, rig: ActuatorRig) -> None:
         for closed in range(len(rig.output_options())):  # each in turn: the one owning the port too
             outputs = await self._open_outputs(rig)
@@ -539,9 +529,6 @@ class SensorContract:
     #: the rig class this subclass runs the checks against
     rig: ClassVar[type[SensorRig]]
 
-    def built_rig(self, tmp_path: Path) -> SensorRig:
-        return self.rig(tmp_path)
-
     @check()
     async def test_open_read_close_a_reading_per_name_on_the_context_clock(self, rig: SensorRig) -> None:
         group = rig.group()
@@ -593,24 +580,22 @@ class SensorContract:
         assert_all_ok(rig, await read_stamped(rig, group))
         await group.close()
 
-    def test_close_is_safe_after_a_failed_open(self, tmp_path: Path) -> None:
-        rig = self.built_rig(tmp_path)
-        if not rig.can_fail_open:
-            pytest.skip(f"{rig.kind}: the device is always there (can_fail_open = False)")
+    @staticmethod
+    def _always_there(rig: SensorRig) -> str | None:
+        return None if rig.can_fail_open else "the device is always there (can_fail_open = False)"
 
-        async def body() -> None:
-            group = rig.group()
-            await rig.gone()
-            with pytest.raises(DeviceError):
-                await asyncio.wait_for(group.open(), group.timeout_s + 5.0)
-            await group.close()
-            await group.close()
-            with pytest.raises(DeviceError):  # calling open again retries, and fails again
-                await asyncio.wait_for(group.open(), group.timeout_s + 5.0)
-            await group.close()
-            await rig.back()
-            await group.open()
-            assert_all_ok(rig, await read_stamped(rig, group))
-            await group.close()
-
-        run_on(rig, body)
+    @check("_always_there")
+    async def test_close_is_safe_after_a_failed_open(self, rig: SensorRig) -> None:
+        group = rig.group()
+        await rig.gone()
+        with pytest.raises(DeviceError):
+            await asyncio.wait_for(group.open(), group.timeout_s + 5.0)
+        await group.close()
+        await group.close()
+        with pytest.raises(DeviceError):  # calling open again retries, and fails again
+            await asyncio.wait_for(group.open(), group.timeout_s + 5.0)
+        await group.close()
+        await rig.back()
+        await group.open()
+        assert_all_ok(rig, await read_stamped(rig, group))
+        await group.close()
