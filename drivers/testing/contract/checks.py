@@ -99,6 +99,16 @@ class _Rig:
     async def stop(self) -> None:
         """Stop the emulator: after each check, also a failed one."""
 
+    async def gone(self) -> None:
+        """The device vanishes (server down, cable out): an actuator's ``open`` and ``command``, a group's
+        ``read`` (and ``open``, when ``can_fail_open``) raise :class:`DeviceError`."""
+        raise NotImplementedError
+
+    async def back(self) -> None:
+        """Working again after :meth:`gone` (or :meth:`ActuatorRig.refuse_writes`): the actuator must recover,
+        a sensor group once closed and opened again."""
+        raise NotImplementedError
+
 
 class ActuatorRig(_Rig):
     """One output plugin behind a real interface: how to build its device's emulator and its actuator,
@@ -150,19 +160,11 @@ class ActuatorRig(_Rig):
         with what ``sent_voltage`` promised."""
         raise NotImplementedError
 
-    # -- misbehaviour (``can_fail``) --------------------------------------------------------------
+    # -- misbehaviour (``can_fail``; also :meth:`gone` and :meth:`back`) -----------------------------
 
     async def refuse_writes(self) -> None:
         """The device still answers, but the next writes do not take (an exception code, an amplifier
         off, a full share): the actuator must say so with :class:`DeviceError`."""
-        raise NotImplementedError
-
-    async def gone(self) -> None:
-        """The device vanishes (server down, cable out): open, command fail with :class:`DeviceError`."""
-        raise NotImplementedError
-
-    async def back(self) -> None:
-        """Working again after :meth:`refuse_writes` or :meth:`gone`: the actuator must recover."""
         raise NotImplementedError
 
     # -- several outputs of one device (``multi_output_unsupported`` is None) ---------------------
@@ -480,14 +482,6 @@ class SensorRig(_Rig):
     async def fault_channel(self) -> str:
         """Make one channel report a problem while the device keeps answering (a burnout code, an error
         line); return its name: it must read ``fault``, the others ``ok``."""
-        raise NotImplementedError
-
-    async def gone(self) -> None:
-        """The device vanishes: ``read`` (and ``open``, when ``can_fail_open``) raise :class:`DeviceError`."""
-        raise NotImplementedError
-
-    async def back(self) -> None:
-        """Working again after :meth:`gone`: close then open recovers."""
         raise NotImplementedError
 
     def group(self) -> SensorGroup:
