@@ -109,10 +109,7 @@ class IdsGroup(SensorGroup):
             t = self.clock.now()
             return {c.name: Reading.fault(t, f"attocube IDS {self.rpc.endpoint} axis {c.ids_axis}: measurement "
                                              f"not running ({why})", "um") for c in self.channels}
-        readings: dict[str, Reading] = {}
-        for config in self.channels:
-            readings[config.name] = await self._read_axis(config)
-        return readings
+        return {config.name: await self._read_axis(config) for config in self.channels}  # one axis after another
 
     async def _read_axis(self, config: IdsSensorConfig) -> Reading:
         axis = config.ids_axis
