@@ -28,6 +28,7 @@ import asyncio
 import math
 import time
 from collections.abc import Awaitable, Callable, Sequence
+from operator import attrgetter
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
@@ -53,16 +54,16 @@ CheckBody = Callable[[Any, Any], Awaitable[None]]
 CheckTest = Callable[[Any, Path], None]
 
 
-def check(unless: str = "") -> Callable[[CheckBody], CheckTest]:
+def check(unless: Callable[[Any], str | None] | None = None) -> Callable[[CheckBody], CheckTest]:
     """A contract check written as ``async def test_...(self, rig)``: pytest runs it as ``test_...(self, tmp_path)``,
     its body on the contract's ``rig`` built for ``tmp_path``, on a fresh event loop, with the rig's emulator
     started before it and stopped after it, whatever happened, all bounded by :data:`CHECK_BOUND_S`; skipped
-    with the reason the contract's method ``unless`` gives for the rig (None: the rig takes part)."""
+    with the reason ``unless(rig)`` gives (None: the rig takes part)."""
 
     def test_on_a_rig(body: CheckBody) -> CheckTest:
         def test(self: Any, tmp_path: Path) -> None:
             rig = self.rig(tmp_path)
-            if unless and (reason := getattr(self, unless)(rig)) is not None:
+            if unless is not None and (reason := unless(rig)) is not None:
                 pytest.skip(f"{rig.kind}: {reason}")
 
             async def with_emulator() -> None:
@@ -312,7 +313,7 @@ class ActuatorContract:
     def _takes_any_value(rig: ActuatorRig) -> str | None:
         return "the device takes any finite voltage (unrepresentable = None)" if rig.unrepresentable is None else None
 
-    @check("_takes_any_value")
+    @check(_takes_any_value)
     async def test_a_value_the_device_cannot_represent_is_a_value_error_and_nothing_is_written(
             self, rig: ActuatorRig) -> None:
         assert rig.unrepresentable is not None
@@ -335,7 +336,7 @@ class ActuatorContract:
     def _cannot_fail(rig: ActuatorRig) -> str | None:
         return None if rig.can_fail else "the device cannot refuse a write, fail to open or vanish (can_fail = False)"
 
-    @check("_cannot_fail")
+    @check(_cannot_fail)
     async def test_a_write_the_device_refuses_is_a_device_error_and_the_next_one_works(self, rig: ActuatorRig) -> None:
         actuator = await opened_actuator(rig)
         await assert_serves(rig, actuator, 1.5)
@@ -346,7 +347,7 @@ class ActuatorContract:
         await assert_serves(rig, actuator, 4.5)
         await actuator.close()
 
-    @check("_cannot_fail")
+    @check(_cannot_fail)
     async def test_a_device_that_is_gone_is_a_device_error_and_a_reopen_recovers(self, rig: ActuatorRig) -> None:
         actuator = await opened_actuator(rig)
         await assert_serves(rig, actuator, 1.5)
@@ -359,7 +360,7 @@ class ActuatorContract:
         await assert_serves(rig, actuator, 4.5)
         await actuator.close()
 
-    @check("_cannot_fail")
+    @check(_cannot_fail)
     async def test_close_is_safe_after_a_failed_open_and_open_retries(self, rig: ActuatorRig) -> None:
         actuator = rig.actuator()
         actuator.limits_v = LIMITS_V
@@ -375,10 +376,6 @@ class ActuatorContract:
 
     # -- several outputs of one plugin (DriverPlugin.create_actuators) -----------------------------
 
-    @staticmethod
-    def _single_output(rig: ActuatorRig) -> str | None:
-        return rig.multi_output_unsupported
-
     async def _open_outputs(self, rig: ActuatorRig) -> list[Actuator]:
         outputs = rig.actuators()
         assert len(outputs) == len(rig.output_options()) >= 2, "one actuator per output table, in order"
@@ -387,7 +384,7 @@ class ActuatorContract:
             await asyncio.wait_for(output.open(), COMMAND_BOUND_S)
         return outputs
 
-    @check("_single_output")
+    @check(attrgetter("multi_output_unsupported"))
     async def test_each_output_writes_only_its_own_channel(self, rig: ActuatorRig) -> None:
         outputs = await self._open_outputs(rig)
         for index in range(len(outputs)):
@@ -400,7 +397,7 @@ class ActuatorContract:
         for output in outputs:
             await output.close()
 
-    @check("_single_output")
+    @check(attrgetter("multi_output_unsupported"))
     async def test_outputs_written_concurrently_never_overlap_an_exchange(self, rig: ActuatorRig) -> None:
         outputs = await self._open_outputs(rig)
         asked = {index: [0.5 + index + step * 0.25 for step in range(8)] for index in range(len(outputs))}
@@ -418,7 +415,7 @@ class ActuatorContract:
         for output in outputs:
             await output.close()
 
-    @check("_single_output")
+    @check(attrgetter("multi_output_unsupported"))
     async def test_closing_one_output_leaves_the_others_working(self, rig: ActuatorRig) -> None:
         for closed in range(len(rig.output_options())):  # each in turn: the one owning the port too
             outputs = await self._open_outputs(rig)
@@ -578,7 +575,7 @@ class SensorContract:
     def _always_there(rig: SensorRig) -> str | None:
         return None if rig.can_fail_open else "the device is always there (can_fail_open = False)"
 
-    @check("_always_there")
+    @check(_always_there)
     async def test_close_is_safe_after_a_failed_open(self, rig: SensorRig) -> None:
         group = rig.group()
         await rig.gone()
