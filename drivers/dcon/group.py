@@ -18,6 +18,7 @@ from nanodrift.drivers.base import Clock, DeviceError, Reading, SensorGroup
 from nanodrift.drivers.dcon.bus import DconBus
 from nanodrift.drivers.dcon.config import DconSensorConfig
 from nanodrift.drivers.dcon.protocol import (
+    ChannelValue,
     DconFormatError,
     frame,
     parse_all_channels,
@@ -100,20 +101,17 @@ class DconModuleGroup(SensorGroup):
         except DconFormatError as error:
             raise DeviceError(f"{self.description}: {error}") from None
         t = self.clock.now()
-        readings: dict[str, Reading] = {}
-        for config in self.channels:
-            where = f"{self.description} channel {config.channel}"
-            if config.channel >= len(values):
-                readings[config.name] = Reading.fault(
-                    t, f"{where}: the module answered {len(values)} channel(s)", config.unit)
-                continue
-            value = values[config.channel]
-            if value.problem:
-                readings[config.name] = Reading.fault(t, f"{where}: {value.problem}", config.unit)
-            elif flagged >> config.channel & 1:
-                readings[config.name] = Reading.fault(
-                    t, f"{where}: the module diagnoses it open or out of range ($AAB)", config.unit)
-            else:
-                assert math.isfinite(value.value)
-                readings[config.name] = Reading(value=value.value, t=t, unit=config.unit)
-        return readings
+        return {config.name: self._reading(config, values, flagged, t) for config in self.channels}
+
+    def _reading(self, config: DconSensorConfig, values: list[ChannelValue], flagged: int, t: float) -> Reading:
+        """One channel's reading from the poll's values and ``$AAB`` mask (0 without open detection)."""
+        where = f"{self.description} channel {config.channel}"
+        if config.channel >= len(values):
+            return Reading.fault(t, f"{where}: the module answered {len(values)} channel(s)", config.unit)
+        value = values[config.channel]
+        if value.problem:
+            return Reading.fault(t, f"{where}: {value.problem}", config.unit)
+        if flagged >> config.channel & 1:
+            return Reading.fault(t, f"{where}: the module diagnoses it open or out of range ($AAB)", config.unit)
+        assert math.isfinite(value.value)
+        return Reading(value=value.value, t=t, unit=config.unit)
