@@ -459,10 +459,8 @@ class SensorRig(_Rig):
     units: ClassVar[dict[str, str]]
     #: whether ``open`` can fail (a simulated cell is always there); when True, :meth:`gone` must make it fail
     can_fail_open: ClassVar[bool] = True
-
-    def __init__(self, tmp_path: Path) -> None:
-        super().__init__(tmp_path)
-        self.clock = OffsetClock()
+    #: the time base readings must be stamped on (an OffsetClock keeps no state: one serves every rig)
+    clock = OffsetClock()
 
     def sensor_configs(self) -> list[dict[str, Any]]:
         """The ``[[sensors]]`` tables of one group (``kind`` included), validated by the plugin's ``config_model``."""
