@@ -272,6 +272,13 @@ class SensorGroup(ABC):
     interval_s: float
     timeout_s: float
 
+    def set_channels(self, channels: Sequence[SensorConfig]) -> None:
+        """``names`` and ``roles`` of the ``channels`` read together, in order, and their ``interval_s``: the
+        fastest channel sets the pace (a slower one is read more often than it asked, never less)."""
+        self.names = tuple(c.name for c in channels)
+        self.roles = {c.name: c.role for c in channels}
+        self.interval_s = min(c.interval_s for c in channels)
+
     @abstractmethod
     async def open(self) -> None:
         """Connect. Raise :class:`DeviceError` when the device cannot be reached."""

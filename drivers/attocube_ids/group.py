@@ -61,9 +61,7 @@ class IdsGroup(SensorGroup):
         first = channels[0]
         self.channels = list(channels)
         self.clock = clock
-        self.names = tuple(c.name for c in channels)
-        self.roles = {c.name: c.role for c in channels}
-        self.interval_s = min(c.interval_s for c in channels)
+        self.set_channels(channels)
         per_call_s = min(c.timeout_s for c in channels)
         self.rpc = IdsRpc(first.host, first.port, per_call_s)
         # one poll: the state, and up to four calls per axis (a warning asks its text), each bounded by timeout_s
@@ -111,10 +109,7 @@ class IdsGroup(SensorGroup):
             t = self.clock.now()
             return {c.name: Reading.fault(t, f"attocube IDS {self.rpc.endpoint} axis {c.ids_axis}: measurement "
                                              f"not running ({why})", "um") for c in self.channels}
-        readings: dict[str, Reading] = {}
-        for config in self.channels:
-            readings[config.name] = await self._read_axis(config)
-        return readings
+        return {config.name: await self._read_axis(config) for config in self.channels}  # one axis after another
 
     async def _read_axis(self, config: IdsSensorConfig) -> Reading:
         axis = config.ids_axis

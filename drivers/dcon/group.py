@@ -18,6 +18,7 @@ from nanodrift.drivers.base import Clock, DeviceError, Reading, SensorGroup
 from nanodrift.drivers.dcon.bus import DconBus
 from nanodrift.drivers.dcon.config import DconSensorConfig
 from nanodrift.drivers.dcon.protocol import (
+    ChannelValue,
     DconFormatError,
     frame,
     parse_all_channels,
@@ -40,9 +41,7 @@ class DconModuleGroup(SensorGroup):
         self.address = first.address
         self.with_checksum = first.checksum
         self.open_detection = first.open_detection
-        self.names = tuple(c.name for c in channels)
-        self.roles = {c.name: c.role for c in channels}
-        self.interval_s = min(c.interval_s for c in channels)
+        self.set_channels(channels)
         # one poll: #AA, and $AAB when asked, each bounded by the hub's timeout, possibly after as much for
         # every other module of the bus (one request at a time): the poll's bound covers the queue
         exchanges = 2 if self.open_detection else 1
@@ -102,20 +101,17 @@ class DconModuleGroup(SensorGroup):
         except DconFormatError as error:
             raise DeviceError(f"{self.description}: {error}") from None
         t = self.clock.now()
-        readings: dict[str, Reading] = {}
-        for config in self.channels:
-            where = f"{self.description} channel {config.channel}"
-            if config.channel >= len(values):
-                readings[config.name] = Reading.fault(
-                    t, f"{where}: the module answered {len(values)} channel(s)", config.unit)
-                continue
-            value = values[config.channel]
-            if value.problem:
-                readings[config.name] = Reading.fault(t, f"{where}: {value.problem}", config.unit)
-            elif flagged >> config.channel & 1:
-                readings[config.name] = Reading.fault(
-                    t, f"{where}: the module diagnoses it open or out of range ($AAB)", config.unit)
-            else:
-                assert math.isfinite(value.value)
-                readings[config.name] = Reading(value=value.value, t=t, unit=config.unit)
-        return readings
+        return {config.name: self._reading(config, values, flagged, t) for config in self.channels}
+
+    def _reading(self, config: DconSensorConfig, values: list[ChannelValue], flagged: int, t: float) -> Reading:
+        """One channel's reading from the poll's values and ``$AAB`` mask (0 without open detection)."""
+        where = f"{self.description} channel {config.channel}"
+        if config.channel >= len(values):
+            return Reading.fault(t, f"{where}: the module answered {len(values)} channel(s)", config.unit)
+        value = values[config.channel]
+        if value.problem:
+            return Reading.fault(t, f"{where}: {value.problem}", config.unit)
+        if flagged >> config.channel & 1:
+            return Reading.fault(t, f"{where}: the module diagnoses it open or out of range ($AAB)", config.unit)
+        assert math.isfinite(value.value)
+        return Reading(value=value.value, t=t, unit=config.unit)

@@ -92,11 +92,11 @@ def raw_for(value: float, scale: float, offset: float, data_type: str,
     if within is not None:
         low, high = within
         slack = 0.0 if spec.is_float else _SLACK * abs(scale)
-        if _scaled(raw, scale, offset) > high + slack:
+        if raw * scale + offset > high + slack:
             raw = _inward(raw, scale, spec.is_float, lower=True)
-        elif _scaled(raw, scale, offset) < low - slack:
+        elif raw * scale + offset < low - slack:
             raw = _inward(raw, scale, spec.is_float, lower=False)
-        if not low - slack <= _scaled(raw, scale, offset) <= high + slack:
+        if not low - slack <= raw * scale + offset <= high + slack:
             raise ValueError(f"{value:g} has no raw value within [{low:g}, {high:g}] (one count is {abs(scale):g} V)")
     if not spec.minimum <= raw <= spec.maximum:
         raise ValueError(f"{value:g} needs raw {exact:g}, outside {data_type}'s range "
@@ -121,10 +121,6 @@ def step_v(scale: float, offset: float, data_type: str, v_min: float, v_max: flo
 #: an integer raw value scaling back to within this fraction of a count beyond a limit is at the limit
 #: (``4095 * (10 / 4095)`` is 10.000000000000002 in floating point, and 10 V is the module's top)
 _SLACK = 1e-6
-
-
-def _scaled(raw: int | float, scale: float, offset: float) -> float:
-    return raw * scale + offset
 
 
 def _float32(x: float) -> float:

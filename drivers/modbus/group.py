@@ -88,10 +88,7 @@ class ModbusBlockGroup(SensorGroup):
         self.clock = clock
         self._requests: list[Block] = [block]
         self._lease = HubLease(hub)
-        self.names = tuple(c.name for c in block.channels)
-        self.roles = {c.name: c.role for c in block.channels}
-        # the fastest member sets the pace; a slow poll may wait behind others on the hub
-        self.interval_s = min(c.interval_s for c in block.channels)
+        self.set_channels(block.channels)  # a slow poll may wait behind others on the hub
         # the hub's own timeout (hub timeout_s x (retries + 1)) must fire before the caller's
         self.timeout_s = max(max(c.timeout_s for c in block.channels), hub.poll_timeout_s)
 

@@ -34,6 +34,10 @@ def any_pattern(pattern: str) -> str:
     return pattern
 
 
+#: a key that is a regular expression (refused, saying why, when it does not compile)
+Regex = Annotated[str, AfterValidator(any_pattern)]
+
+
 def value_pattern(pattern: str, example: str) -> str:
     """``pattern`` if it compiles and has the named group ``value`` the driver reads; else why not."""
     if "value" not in re.compile(any_pattern(pattern)).groupindex:
@@ -82,7 +86,7 @@ class SerialLineSensorConfig(SensorConfig):
                                   "dropped); '\\r' for devices that end lines with CR only")
     unit: str | None = Field(default=None, description="unit of the scaled value; default um / degC by role")
     resync_query: str = Field(default="", description=RESYNC_QUERY_HELP)
-    resync_pattern: str = Field(default="", description=RESYNC_PATTERN_HELP)
+    resync_pattern: Regex = Field(default="", description=RESYNC_PATTERN_HELP)
 
     @field_validator("scale")
     @classmethod
@@ -95,11 +99,6 @@ class SerialLineSensorConfig(SensorConfig):
     @classmethod
     def _pattern_has_value_group(cls, pattern: str) -> str:
         return value_pattern(pattern, "'P (?P<value>[-+0-9.]+) nm'")
-
-    @field_validator("resync_pattern")
-    @classmethod
-    def _resync_pattern(cls, pattern: str) -> str:
-        return any_pattern(pattern)
 
     @model_validator(mode="after")
     def _resync(self) -> SerialLineSensorConfig:
@@ -168,11 +167,11 @@ class SerialLineActuatorConfig(ActuatorOptions):
     readback_tolerance: FiniteFloat = Field(default=0.001, ge=0, description="in the readback field's unit")
     readback_field: ReadbackField | None = Field(default=None, description="default: the template's one field")
     error_query: str = Field(default="", description="sent last, e.g. GCS 'ERR?\\n'; empty: none")
-    error_ok: str = Field(default="0", description="regex the whole answer to error_query matches when all is well")
+    error_ok: Regex = Field(default="0", description="regex the whole answer to error_query matches when all is well")
     eol: Literal["\r\n", "\n", "\r"] = Field(default="\n", description="how the controller ends its answers")
     timeout_s: float = Field(default=1.0, gt=0, description="an answer must come within this")
     resync_query: str = Field(default="", description=RESYNC_QUERY_HELP)
-    resync_pattern: str = Field(default="", description=RESYNC_PATTERN_HELP)
+    resync_pattern: Regex = Field(default="", description=RESYNC_PATTERN_HELP)
 
     @field_validator("command")
     @classmethod
@@ -184,11 +183,6 @@ class SerialLineActuatorConfig(ActuatorOptions):
     @classmethod
     def _readback_has_value_group(cls, pattern: str) -> str:
         return value_pattern(pattern, "'=(?P<value>[-+0-9.eE]+)'")
-
-    @field_validator("error_ok", "resync_pattern")
-    @classmethod
-    def _regex(cls, pattern: str) -> str:
-        return any_pattern(pattern)
 
     @model_validator(mode="after")
     def _readback_field(self) -> SerialLineActuatorConfig:

@@ -98,9 +98,7 @@ class SerialLineGroup(SensorGroup):
         the sensor config's (:meth:`use_resync` sets the actuator's on a shared port)."""
         self.config = config
         self.clock = clock
-        self.names = (config.name,)
-        self.roles = {config.name: config.role}
-        self.interval_s = config.interval_s
+        self.set_channels([config])
         self.solicited = not config.streaming if solicited is None else solicited
         # a poll on a solicited line: a dirty line's quiet wait (<= timeout_s + quiet), then the query (timeout_s)
         wait_s = config.timeout_s + (config.timeout_s + quiet_for(config.timeout_s) if self.solicited else 0.0)

@@ -67,13 +67,11 @@ def shared_cell(context: DriverContext) -> SimulatedCell:
 class SimulatedGroup(SensorGroup):
     def __init__(self, cell: SimulatedCell, configs: Sequence[SimulatedSensorConfig]) -> None:
         self.cell = cell
-        self.names = tuple(c.name for c in configs)
-        self.roles = {c.name: c.role for c in configs}
+        self.set_channels(configs)
         self._sources = {c.name: c.source for c in configs}
         self._channels = tuple(dict.fromkeys(self._sources.values()))  # stable order: same noise per seed
         #: the channels whose truth the cell knows (its interferometers), by name
         self._positions = {name: source for name, source in self._sources.items() if cell.is_position(source)}
-        self.interval_s = min(c.interval_s for c in configs)
         self.timeout_s = max(c.timeout_s for c in configs)
 
     async def open(self) -> None:

@@ -89,8 +89,7 @@ class IdsEmulator(LoopbackDevice):
             request = json.loads(line)
             method, params, request_id = request["method"], request.get("params", []), request.get("id")
         except (ValueError, KeyError, TypeError):
-            return self._encode({"jsonrpc": "2.0", "error": {"code": PARSE_ERROR, "message": "Parse error"},
-                                 "id": None})
+            return self._encode(None, error={"code": PARSE_ERROR, "message": "Parse error"})
         with self._lock:
             self.requests.append((method, list(params)))
         if request_id is None:
@@ -98,13 +97,12 @@ class IdsEmulator(LoopbackDevice):
         try:
             result = self._result(method, params)
         except LookupError:
-            return self._encode({"jsonrpc": "2.0", "error": {"code": METHOD_NOT_FOUND, "message": "Method not found"},
-                                 "id": request_id})
-        return self._encode({"jsonrpc": "2.0", "result": result, "id": request_id})
+            return self._encode(request_id, error={"code": METHOD_NOT_FOUND, "message": "Method not found"})
+        return self._encode(request_id, result=result)
 
     @staticmethod
-    def _encode(response: dict[str, Any]) -> bytes:
-        return json.dumps(response).encode() + b"\n"
+    def _encode(request_id: Any, **member: Any) -> bytes:
+        return json.dumps({"jsonrpc": "2.0", **member, "id": request_id}).encode() + b"\n"
 
     def _result(self, method: str, params: list[Any]) -> list[Any]:
         if method == "com.attocube.ids.displacement.getMeasurementEnabled":

@@ -28,6 +28,7 @@ import asyncio
 import math
 import time
 from collections.abc import Awaitable, Callable, Sequence
+from operator import attrgetter
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
@@ -48,33 +49,31 @@ LIMITS_V = (0.0, 10.0)
 TOLERANCE_V = 1e-9
 
 
-def run_on(rig: ActuatorRig | SensorRig, body: Callable[[], Awaitable[None]]) -> None:
-    """One check's asyncio body, on a fresh event loop, with the rig's emulator started before it and stopped
-    after it, whatever happened, all bounded by :data:`CHECK_BOUND_S`."""
-
-    async def with_emulator() -> None:
-        await rig.start()
-        try:
-            await body()
-        finally:
-            await rig.stop()
-
-    asyncio.run(asyncio.wait_for(with_emulator(), CHECK_BOUND_S))
-
-
 #: a check's body, ``async def test_...(self, rig)``, and the test pytest runs, ``test_...(self, tmp_path)``
 CheckBody = Callable[[Any, Any], Awaitable[None]]
 CheckTest = Callable[[Any, Path], None]
 
 
-def check(rig_of: str = "built_rig") -> Callable[[CheckBody], CheckTest]:
+def check(unless: Callable[[Any], str | None] | None = None) -> Callable[[CheckBody], CheckTest]:
     """A contract check written as ``async def test_...(self, rig)``: pytest runs it as ``test_...(self, tmp_path)``,
-    its body on the rig the contract's method ``rig_of`` builds (which may skip the check), by :func:`run_on`."""
+    its body on the contract's ``rig`` built for ``tmp_path``, on a fresh event loop, with the rig's emulator
+    started before it and stopped after it, whatever happened, all bounded by :data:`CHECK_BOUND_S`; skipped
+    with the reason ``unless(rig)`` gives (None: the rig takes part)."""
 
     def test_on_a_rig(body: CheckBody) -> CheckTest:
         def test(self: Any, tmp_path: Path) -> None:
-            rig = getattr(self, rig_of)(tmp_path)
-            run_on(rig, lambda: body(self, rig))
+            rig = self.rig(tmp_path)
+            if unless is not None and (reason := unless(rig)) is not None:
+                pytest.skip(f"{rig.kind}: {reason}")
+
+            async def with_emulator() -> None:
+                await rig.start()
+                try:
+                    await body(self, rig)
+                finally:
+                    await rig.stop()
+
+            asyncio.run(asyncio.wait_for(with_emulator(), CHECK_BOUND_S))
 
         test.__name__, test.__qualname__, test.__doc__ = body.__name__, body.__qualname__, body.__doc__
         return test
@@ -85,16 +84,37 @@ def check(rig_of: str = "built_rig") -> Callable[[CheckBody], CheckTest]:
 # --- actuators ------------------------------------------------------------------------------------
 
 
-class ActuatorRig:
-    """One output plugin behind a real interface: how to build its device's emulator and its actuator,
-    how to read what the device received, and how to make the device misbehave.
-
-    A rig is built afresh for each check with the check's ``tmp_path``; ``start`` runs before the
-    actuator is built and ``stop`` after the check, whatever happened.
-    """
+class _Rig:
+    """What both rigs share: built afresh for each check with the check's ``tmp_path``; ``start`` runs
+    before anything is built and ``stop`` after the check, whatever happened."""
 
     #: the plugin's name in the ``nanodrift.drivers`` entry points (found there, as the daemon finds it)
     kind: ClassVar[str]
+
+    def __init__(self, tmp_path: Path) -> None:
+        self.tmp_path = tmp_path
+
+    async def start(self) -> None:
+        """Start the emulator (a server to listen, a pty to open): before anything is built."""
+
+    async def stop(self) -> None:
+        """Stop the emulator: after each check, also a failed one."""
+
+    async def gone(self) -> None:
+        """The device vanishes (server down, cable out): an actuator's ``open`` and ``command``, a group's
+        ``read`` (and ``open``, when ``can_fail_open``) raise :class:`DeviceError`."""
+        raise NotImplementedError
+
+    async def back(self) -> None:
+        """Working again after :meth:`gone` (or :meth:`ActuatorRig.refuse_writes`): the actuator must recover,
+        a sensor group once closed and opened again."""
+        raise NotImplementedError
+
+
+class ActuatorRig(_Rig):
+    """One output plugin behind a real interface: how to build its device's emulator and its actuator,
+    how to read what the device received, and how to make the device misbehave."""
+
     #: the finest step of the device's voltage (0: takes the float as it is): ``sent_voltage`` may round
     #: this far and no farther
     resolution_v: ClassVar[float] = 0.0
@@ -110,9 +130,6 @@ class ActuatorRig:
     #: why the plugin cannot drive several outputs of one device (the multi-output checks are skipped
     #: with this reason); None: it can, and :meth:`output_options` and :meth:`output_written_v` say how
     multi_output_unsupported: ClassVar[str | None] = "the rig declares no multi-output device"
-
-    def __init__(self, tmp_path: Path) -> None:
-        self.tmp_path = tmp_path
 
     # -- building ---------------------------------------------------------------------------------
 
@@ -133,12 +150,6 @@ class ActuatorRig:
         assert plugin.actuator_model is not None, f"{self.kind} cannot move the stage"
         return plugin.create_actuator(plugin.actuator_model.model_validate(self.options()), self.built_context)
 
-    async def start(self) -> None:
-        """Start the emulator (a server to listen, a pty to open): before anything is built."""
-
-    async def stop(self) -> None:
-        """Stop the emulator: after each check, also a failed one."""
-
     # -- the device's side ------------------------------------------------------------------------
 
     async def held_v(self) -> float:
@@ -150,19 +161,11 @@ class ActuatorRig:
         with what ``sent_voltage`` promised."""
         raise NotImplementedError
 
-    # -- misbehaviour (``can_fail``) --------------------------------------------------------------
+    # -- misbehaviour (``can_fail``; also :meth:`gone` and :meth:`back`) -----------------------------
 
     async def refuse_writes(self) -> None:
         """The device still answers, but the next writes do not take (an exception code, an amplifier
         off, a full share): the actuator must say so with :class:`DeviceError`."""
-        raise NotImplementedError
-
-    async def gone(self) -> None:
-        """The device vanishes (server down, cable out): open, command fail with :class:`DeviceError`."""
-        raise NotImplementedError
-
-    async def back(self) -> None:
-        """Working again after :meth:`refuse_writes` or :meth:`gone`: the actuator must recover."""
         raise NotImplementedError
 
     # -- several outputs of one device (``multi_output_unsupported`` is None) ---------------------
@@ -265,9 +268,6 @@ class ActuatorContract:
     #: the rig class this subclass runs the checks against
     rig: ClassVar[type[ActuatorRig]]
 
-    def built_rig(self, tmp_path: Path) -> ActuatorRig:
-        return self.rig(tmp_path)
-
     @check()
     async def test_the_device_holds_sent_voltage_after_each_command(self, rig: ActuatorRig) -> None:
         actuator = await opened_actuator(rig)
@@ -309,37 +309,34 @@ class ActuatorContract:
         assert written[0] == pytest.approx(expected, abs=TOLERANCE_V)
         await actuator.close()
 
-    def test_a_value_the_device_cannot_represent_is_a_value_error_and_nothing_is_written(
-            self, tmp_path: Path) -> None:
-        rig = self.built_rig(tmp_path)
-        if rig.unrepresentable is None:
-            pytest.skip(f"{rig.kind}: the device takes any finite voltage (unrepresentable = None)")
+    @staticmethod
+    def _takes_any_value(rig: ActuatorRig) -> str | None:
+        return "the device takes any finite voltage (unrepresentable = None)" if rig.unrepresentable is None else None
+
+    @check(_takes_any_value)
+    async def test_a_value_the_device_cannot_represent_is_a_value_error_and_nothing_is_written(
+            self, rig: ActuatorRig) -> None:
+        assert rig.unrepresentable is not None
         limits, volts = rig.unrepresentable
+        actuator = await opened_actuator(rig)
+        await assert_serves(rig, actuator, 1.5)
+        held = await rig.held_v()
+        before = rig.written_v()
+        actuator.limits_v = limits  # the device cannot put out every voltage of these
+        with pytest.raises(ValueError):
+            await command(actuator, volts)
+        await asyncio.sleep(0.2)  # a write under way would land by now
+        assert rig.written_v() == before
+        assert await rig.held_v() == held
+        actuator.limits_v = LIMITS_V
+        await assert_serves(rig, actuator, 2.5)  # the actuator still works
+        await actuator.close()
 
-        async def body() -> None:
-            actuator = await opened_actuator(rig)
-            await assert_serves(rig, actuator, 1.5)
-            held = await rig.held_v()
-            before = rig.written_v()
-            actuator.limits_v = limits  # the device cannot put out every voltage of these
-            with pytest.raises(ValueError):
-                await command(actuator, volts)
-            await asyncio.sleep(0.2)  # a write under way would land by now
-            assert rig.written_v() == before
-            assert await rig.held_v() == held
-            actuator.limits_v = LIMITS_V
-            await assert_serves(rig, actuator, 2.5)  # the actuator still works
-            await actuator.close()
+    @staticmethod
+    def _cannot_fail(rig: ActuatorRig) -> str | None:
+        return None if rig.can_fail else "the device cannot refuse a write, fail to open or vanish (can_fail = False)"
 
-        run_on(rig, body)
-
-    def _failing_rig(self, tmp_path: Path) -> ActuatorRig:
-        rig = self.built_rig(tmp_path)
-        if not rig.can_fail:
-            pytest.skip(f"{rig.kind}: the device cannot refuse a write, fail to open or vanish (can_fail = False)")
-        return rig
-
-    @check("_failing_rig")
+    @check(_cannot_fail)
     async def test_a_write_the_device_refuses_is_a_device_error_and_the_next_one_works(self, rig: ActuatorRig) -> None:
         actuator = await opened_actuator(rig)
         await assert_serves(rig, actuator, 1.5)
@@ -350,7 +347,7 @@ class ActuatorContract:
         await assert_serves(rig, actuator, 4.5)
         await actuator.close()
 
-    @check("_failing_rig")
+    @check(_cannot_fail)
     async def test_a_device_that_is_gone_is_a_device_error_and_a_reopen_recovers(self, rig: ActuatorRig) -> None:
         actuator = await opened_actuator(rig)
         await assert_serves(rig, actuator, 1.5)
@@ -363,7 +360,7 @@ class ActuatorContract:
         await assert_serves(rig, actuator, 4.5)
         await actuator.close()
 
-    @check("_failing_rig")
+    @check(_cannot_fail)
     async def test_close_is_safe_after_a_failed_open_and_open_retries(self, rig: ActuatorRig) -> None:
         actuator = rig.actuator()
         actuator.limits_v = LIMITS_V
@@ -379,12 +376,6 @@ class ActuatorContract:
 
     # -- several outputs of one plugin (DriverPlugin.create_actuators) -----------------------------
 
-    def _multi_output_rig(self, tmp_path: Path) -> ActuatorRig:
-        rig = self.built_rig(tmp_path)
-        if rig.multi_output_unsupported is not None:
-            pytest.skip(f"{rig.kind}: {rig.multi_output_unsupported}")
-        return rig
-
     async def _open_outputs(self, rig: ActuatorRig) -> list[Actuator]:
         outputs = rig.actuators()
         assert len(outputs) == len(rig.output_options()) >= 2, "one actuator per output table, in order"
@@ -393,7 +384,7 @@ class ActuatorContract:
             await asyncio.wait_for(output.open(), COMMAND_BOUND_S)
         return outputs
 
-    @check("_multi_output_rig")
+    @check(attrgetter("multi_output_unsupported"))
     async def test_each_output_writes_only_its_own_channel(self, rig: ActuatorRig) -> None:
         outputs = await self._open_outputs(rig)
         for index in range(len(outputs)):
@@ -406,7 +397,7 @@ class ActuatorContract:
         for output in outputs:
             await output.close()
 
-    @check("_multi_output_rig")
+    @check(attrgetter("multi_output_unsupported"))
     async def test_outputs_written_concurrently_never_overlap_an_exchange(self, rig: ActuatorRig) -> None:
         outputs = await self._open_outputs(rig)
         asked = {index: [0.5 + index + step * 0.25 for step in range(8)] for index in range(len(outputs))}
@@ -424,7 +415,7 @@ class ActuatorContract:
         for output in outputs:
             await output.close()
 
-    @check("_multi_output_rig")
+    @check(attrgetter("multi_output_unsupported"))
     async def test_closing_one_output_leaves_the_others_working(self, rig: ActuatorRig) -> None:
         for closed in range(len(rig.output_options())):  # each in turn: the one owning the port too
             outputs = await self._open_outputs(rig)
@@ -456,12 +447,10 @@ class OffsetClock(MonotonicClock):
         return time.monotonic() + self.OFFSET_S
 
 
-class SensorRig:
+class SensorRig(_Rig):
     """One sensor plugin behind a real interface: what it builds, what its device holds, and how the
-    device misbehaves. Built afresh for each check with the check's ``tmp_path``."""
+    device misbehaves."""
 
-    #: the plugin's name in the ``nanodrift.drivers`` entry points
-    kind: ClassVar[str]
     #: the channel names the group must yield, in order
     names: ClassVar[tuple[str, ...]]
     #: each channel's role ("temperature" | "position"), as the group must report it
@@ -470,10 +459,8 @@ class SensorRig:
     units: ClassVar[dict[str, str]]
     #: whether ``open`` can fail (a simulated cell is always there); when True, :meth:`gone` must make it fail
     can_fail_open: ClassVar[bool] = True
-
-    def __init__(self, tmp_path: Path) -> None:
-        self.tmp_path = tmp_path
-        self.clock = OffsetClock()
+    #: the time base readings must be stamped on (an OffsetClock keeps no state: one serves every rig)
+    clock = OffsetClock()
 
     def sensor_configs(self) -> list[dict[str, Any]]:
         """The ``[[sensors]]`` tables of one group (``kind`` included), validated by the plugin's ``config_model``."""
@@ -483,12 +470,6 @@ class SensorRig:
         """The context the plugin builds with: keep ``clock=self.clock``, so the stamps can be checked."""
         return DriverContext(clock=self.clock)
 
-    async def start(self) -> None:
-        """Start the emulator: before the group is built."""
-
-    async def stop(self) -> None:
-        """Stop the emulator: after each check, also a failed one."""
-
     def check_values(self, readings: dict[str, Reading]) -> None:
         """Assert the ok readings carry what the emulator holds (in the channel's unit, scaled)."""
         raise NotImplementedError
@@ -496,14 +477,6 @@ class SensorRig:
     async def fault_channel(self) -> str:
         """Make one channel report a problem while the device keeps answering (a burnout code, an error
         line); return its name: it must read ``fault``, the others ``ok``."""
-        raise NotImplementedError
-
-    async def gone(self) -> None:
-        """The device vanishes: ``read`` (and ``open``, when ``can_fail_open``) raise :class:`DeviceError`."""
-        raise NotImplementedError
-
-    async def back(self) -> None:
-        """Working again after :meth:`gone`: close then open recovers."""
         raise NotImplementedError
 
     def group(self) -> SensorGroup:
@@ -544,9 +517,6 @@ class SensorContract:
 
     #: the rig class this subclass runs the checks against
     rig: ClassVar[type[SensorRig]]
-
-    def built_rig(self, tmp_path: Path) -> SensorRig:
-        return self.rig(tmp_path)
 
     @check()
     async def test_open_read_close_a_reading_per_name_on_the_context_clock(self, rig: SensorRig) -> None:
@@ -599,24 +569,22 @@ class SensorContract:
         assert_all_ok(rig, await read_stamped(rig, group))
         await group.close()
 
-    def test_close_is_safe_after_a_failed_open(self, tmp_path: Path) -> None:
-        rig = self.built_rig(tmp_path)
-        if not rig.can_fail_open:
-            pytest.skip(f"{rig.kind}: the device is always there (can_fail_open = False)")
+    @staticmethod
+    def _always_there(rig: SensorRig) -> str | None:
+        return None if rig.can_fail_open else "the device is always there (can_fail_open = False)"
 
-        async def body() -> None:
-            group = rig.group()
-            await rig.gone()
-            with pytest.raises(DeviceError):
-                await asyncio.wait_for(group.open(), group.timeout_s + 5.0)
-            await group.close()
-            await group.close()
-            with pytest.raises(DeviceError):  # calling open again retries, and fails again
-                await asyncio.wait_for(group.open(), group.timeout_s + 5.0)
-            await group.close()
-            await rig.back()
-            await group.open()
-            assert_all_ok(rig, await read_stamped(rig, group))
-            await group.close()
-
-        run_on(rig, body)
+    @check(_always_there)
+    async def test_close_is_safe_after_a_failed_open(self, rig: SensorRig) -> None:
+        group = rig.group()
+        await rig.gone()
+        with pytest.raises(DeviceError):
+            await asyncio.wait_for(group.open(), group.timeout_s + 5.0)
+        await group.close()
+        await group.close()
+        with pytest.raises(DeviceError):  # calling open again retries, and fails again
+            await asyncio.wait_for(group.open(), group.timeout_s + 5.0)
+        await group.close()
+        await rig.back()
+        await group.open()
+        assert_all_ok(rig, await read_stamped(rig, group))
+        await group.close()
