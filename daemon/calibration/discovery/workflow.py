@@ -126,14 +126,6 @@ def _rms(r: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.square(r)))) if r.size else math.nan
 
 
-def _folds(data: Dataset) -> np.ndarray:
-    folds = holdout_blocks(data)
-    if np.any(np.diff(folds) < 0) or np.unique(folds).size < 2:  # cycles out of time order: time blocks
-        n = len(data)
-        folds = (np.arange(n) * 5) // max(n, 1)
-    return folds
-
-
 def _final_model(data: Dataset, given: Model, terms: list[Term], nuisance: dict[str, np.ndarray],
                  steps: list[Candidate], settings: Settings) -> tuple[Model, np.ndarray]:
     """Refit every working term (and nuisance) on all rows, then drop the nuisance.
@@ -200,7 +192,9 @@ def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS,
     residual0 = q - model.predict(data)
     variables = structure_variables(data, settings)
     disagreements = residual_structure(residual0, variables, settings)
-    folds = _folds(data)
+    folds = holdout_blocks(data)
+    if np.any(np.diff(folds) < 0) or np.unique(folds).size < 2:  # cycles out of time order: time blocks
+        folds = (np.arange(n) * 5) // max(n, 1)
     delays = channel_delays(data)
     nuisance: dict[str, np.ndarray] = {}
     steps: list[Candidate] = []
