@@ -109,13 +109,6 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2)
 
 
-def json_errors_wanted(argv: Sequence[str]) -> bool:
-    """``nanodrift run`` with stderr not a terminal (systemd's journal, a pipe): every stderr line is
-    JSON, its usage and start-up errors too, so ``journalctl -o cat | jq`` never meets plain text.
-    The other commands are for terminals and scripts, and keep their plain ``error:`` lines."""
-    return list(argv[:1]) == ["run"] and not sys.stderr.isatty()
-
-
 def build_parser(*, json_errors_for_run: bool = False, only: str | None = None) -> argparse.ArgumentParser:
     """The whole command line; with ``only``, just that command's options are declared (its module is
     the only one imported), the others are listed by name and summary: what a run needs."""
@@ -143,7 +136,10 @@ def _module(command: str) -> Any:
 
 def main(argv: Sequence[str] | None = None) -> int:
     arguments = list(sys.argv[1:] if argv is None else argv)
-    json_errors = json_errors_wanted(arguments)
+    # `nanodrift run` with stderr not a terminal (systemd's journal, a pipe): every stderr line is JSON, its usage and
+    # start-up errors too, so `journalctl -o cat | jq` never meets plain text. The other commands are for terminals
+    # and scripts, and keep their plain `error:` lines
+    json_errors = arguments[:1] == ["run"] and not sys.stderr.isatty()
     command = arguments[0] if arguments and arguments[0] in HANDLERS else None
     with _imports_kept(own_process=argv is None):  # the command's imports
         parser = build_parser(json_errors_for_run=json_errors, only=command or "")

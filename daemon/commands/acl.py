@@ -172,8 +172,10 @@ def _closing_brace(text: str, start: int, source: str) -> int:
     depth, index = 0, start
     while index < len(text):
         char = text[index]
-        if char in "\"'":
-            index = _string_end(text, index)
+        if char in "\"'":  # to the closing quote, over escaped characters
+            index += 1
+            while index < len(text) and text[index] != char:
+                index += 2 if text[index] == "\\" else 1
         elif text.startswith("//", index):
             index = text.find("\n", index)
             index = len(text) if index < 0 else index
@@ -188,13 +190,6 @@ def _closing_brace(text: str, start: int, source: str) -> int:
                 return index
         index += 1
     raise UserError(f"{source}: the access_control block's braces do not close")
-
-
-def _string_end(text: str, start: int) -> int:
-    quote, index = text[start], start + 1
-    while index < len(text) and text[index] != quote:
-        index += 2 if text[index] == "\\" else 1
-    return index
 
 
 def configure(parser: argparse.ArgumentParser) -> None:

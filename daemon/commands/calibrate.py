@@ -60,13 +60,6 @@ def configure(parser: argparse.ArgumentParser) -> None:
                              "rest of the file kept), so the daemon serves it after a reload")
 
 
-def _data_path(args: argparse.Namespace) -> Path:
-    if args.data:
-        return Path(args.data)
-    out = Path(args.out)
-    return out.with_name(out.stem + "_data.csv")
-
-
 def main(args: argparse.Namespace) -> int:
     if args.cycles is not None and args.cycles < 1:
         raise UserError(f"--cycles must be at least 1, got {args.cycles}")
@@ -76,7 +69,7 @@ def main(args: argparse.Namespace) -> int:
     if args.serve:
         with user_errors(ServeError):
             check_writable(Path(args.config))  # refused now, not after hours of calibration
-    data = _data_path(args)
+    data = Path(args.data) if args.data else Path(args.out).with_name(Path(args.out).stem + "_data.csv")
     if args.resume and not data.exists():
         raise UserError(f"--resume: {data} does not exist (nothing to continue)")
     config, drivers = _cell.open_cell(args, "train", over_config=True)

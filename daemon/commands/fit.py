@@ -132,12 +132,6 @@ def _nm(value_um: SupportsFloat | None) -> float | None:
     return None if value_um is None else float(value_um) * 1000.0
 
 
-def _in_nm(stats: dict[str, Any]) -> dict[str, Any]:
-    """The fit statistics with every ``*_um`` figure (an RMS) as ``*_nm``, in their order."""
-    return {(k[:-3] + "_nm" if k.endswith("_um") else k): (_nm(v) if k.endswith("_um") else v)
-            for k, v in stats.items()}
-
-
 def fit_summary(model: Model, path: str) -> dict[str, Any]:
     """Everything :func:`describe_model` prints, as JSON.
 
@@ -172,7 +166,8 @@ def fit_summary(model: Model, path: str) -> dict[str, Any]:
         "holdout_rms_nm": _nm(stats.get("holdout_rms_um")),
         "r2": stats.get("r2"),
         "dof": stats.get("dof"),
-        "fit": _in_nm(stats),
+        "fit": {(k[:-3] + "_nm" if k.endswith("_um") else k): (_nm(v) if k.endswith("_um") else v)
+                for k, v in stats.items()},  # every _um figure (an RMS) in nm, in their order
         "training": model.to_dict()["training"],
         "data_files": model.provenance.get("data_files", []),
     }

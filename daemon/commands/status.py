@@ -119,13 +119,6 @@ def _health(health: Any) -> str:
     return f"{text} ({unrecorded} unrecorded)" if isinstance(unrecorded, int) and unrecorded > 0 else text
 
 
-def _correction(doc: dict[str, Any]) -> str:
-    """The adaptation's bias correction in nm (``-``: adaptation off, or a daemon that does not say)."""
-    health = doc.get("health")
-    correction = health.get("correction_um") if isinstance(health, dict) else None
-    return f"{correction * 1000.0:+.0f} nm" if isinstance(correction, int | float) else "-"
-
-
 def _actuator(doc: dict[str, Any], *, proof: bool = True) -> str:
     """``kind state``, and how the daemon proved where the output was at its start (``proof``)."""
     axes = doc.get("axes")
@@ -180,14 +173,16 @@ def row(doc: dict[str, Any], previous: dict[str, Any] | None, now: datetime) -> 
     ok = sum(isinstance(s, dict) and s.get("state") == "ok" for s in sensors.values())
     model = doc.get("model") if isinstance(doc.get("model"), dict) else None
     r = rates(doc, previous)
+    health = doc.get("health")
+    correction = health.get("correction_um") if isinstance(health, dict) else None  # the adaptation's, µm
     return [
         str(doc.get("cell", "?")),
         cell_state(doc),
         f"{ok}/{len(sensors)}",
         str(model.get("id")) if model else "none",
         _age(model.get("created"), now) if model else "-",
-        _health(doc.get("health")),
-        _correction(doc),
+        _health(health),
+        f"{correction * 1000.0:+.0f} nm" if isinstance(correction, int | float) else "-",  # -: off, or not said
         _actuator(doc),
         _rate(r.targets_per_min),
         _rate(r.refused_per_min),

@@ -14,7 +14,7 @@ import json
 import sys
 from typing import Any
 
-from nanodrift.client import Client, Refused
+from nanodrift.client import Refused
 from nanodrift.commands._client import add_client_flags, open_client
 
 
@@ -37,15 +37,6 @@ def _point(text: str) -> float | tuple[float, ...]:
 
 
 _point.__name__ = "float"  # argparse's message for a bad value stays "invalid float value: 'abc'"
-
-
-def _cell_axes(cell: Client, timeout_s: float) -> tuple[str, ...] | None:
-    """The cell's axes from its ``status`` (``("x",)`` for a one-axis cell); None when it does not answer."""
-    try:
-        doc = cell.status(timeout_s=timeout_s)
-    except TimeoutError:
-        return None
-    return tuple(doc["axes"]) if isinstance(doc.get("axes"), dict) else ("x",)
 
 
 def _shown(target: float | tuple[float, ...]) -> str:
@@ -95,11 +86,13 @@ def main(args: argparse.Namespace) -> int:
     try:
         axes: tuple[str, ...] | None = None
         if any(isinstance(x, tuple) for x in args.x):
-            axes = _cell_axes(cell, args.timeout)
-            if axes is None:
+            try:  # the cell's axes from its status (("x",) for a one-axis cell)
+                doc = cell.status(timeout_s=args.timeout)
+            except TimeoutError:
                 print(f"no answer from {cell.keys.status} within {args.timeout:g} s to learn the cell's axes (is the "
                       "daemon running? -e tcp/HOST:PORT)", file=sys.stderr)
                 return 1
+            axes = tuple(doc["axes"]) if isinstance(doc.get("axes"), dict) else ("x",)
             wrong = [_shown(x) for x in args.x if len(x if isinstance(x, tuple) else (x,)) != len(axes)]
             if wrong:
                 print(f"cell {args.cell} has axes {', '.join(axes)}: each target is one point of {len(axes)} "

@@ -41,10 +41,6 @@ def term_label(term: object) -> str:
     return str(getattr(term, "name", term)).replace("*", "·")
 
 
-def _number(value: float, digits: int) -> str:
-    return f"{value:.{digits}g}"
-
-
 def feature_bound(term: Term, training: Training) -> float | None:
     """The largest |feature| of ``term`` on the corners of the training box (x and every channel at
     their ends, held in turn: a lag or a product of them stays within the same bounds), or None when
@@ -68,7 +64,7 @@ def coefficient_digits(coef: float, bound: float | None, digits: int) -> int:
     if bound is None or bound == 0.0 or not math.isfinite(coef):
         return digits
     for n in range(digits, MAX_DIGITS + 1):
-        if abs(float(_number(coef, n)) - coef) * bound < ROUNDING_TOLERANCE_UM:
+        if abs(float(f"{coef:.{n}g}") - coef) * bound < ROUNDING_TOLERANCE_UM:
             return n
     return MAX_DIGITS
 
@@ -82,7 +78,7 @@ def equation(model: Model | Sequence[FittedTerm], *, digits: int = 4, lhs: str =
     for ft in terms:
         label = term_label(ft.term)
         bound = feature_bound(ft.term, training) if training is not None else None
-        magnitude = _number(abs(ft.coef), coefficient_digits(ft.coef, bound, digits))
+        magnitude = f"{abs(ft.coef):.{coefficient_digits(ft.coef, bound, digits)}g}"
         body = f"{magnitude}·{label}" if label else magnitude
         negative = ft.coef < 0
         if not parts:

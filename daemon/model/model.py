@@ -26,7 +26,7 @@ import stat
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TypeGuard
+from typing import Any
 
 import numpy as np
 
@@ -35,7 +35,7 @@ from nanodrift.model.json_unique import DuplicateKeyError, loads_unique
 from nanodrift.model.segments import features, spans_s
 from nanodrift.model.series import Series
 from nanodrift.model.terms import Term, TermStream, UnknownTermError, is_x_power, parse_term, position_key
-from nanodrift.model.uncertainty import Covariance, SigmaStream
+from nanodrift.model.uncertainty import Covariance, SigmaStream, _finite_number
 
 FORMAT = "nanodrift-model/1"
 #: deepest nesting of [ and { a model file may have (the format itself needs 4)
@@ -184,7 +184,7 @@ class Model:
         if self.covariance is not None:
             return self.covariance.residual_rms_um
         value = self.fit.get("rmse_um")
-        return float(value) if _is_number(value) and math.isfinite(value) and value >= 0 else math.nan
+        return float(value) if _finite_number(value) and value >= 0 else math.nan
 
     @property
     def wander_um(self) -> float:
@@ -436,15 +436,11 @@ def _nesting(doc: Any) -> int:
     return deepest
 
 
-def _is_number(value: Any) -> TypeGuard[int | float]:
-    return isinstance(value, int | float) and not isinstance(value, bool)
-
-
 def _optional_number(value: Any, what: str, fail: Any, low: float, high: float = math.inf) -> float:
     """null -> nan (unknown); else a finite number within [low, high]."""
     if value is None:
         return math.nan
-    if not _is_number(value) or not math.isfinite(value) or not low <= value <= high:
+    if not _finite_number(value) or not low <= value <= high:
         bounds = f">= {low:g}" if high == math.inf else f"within [{low:g}, {high:g}]"
         raise fail(f"{what} must be a finite number {bounds} or null, got {value!r}")
     return float(value)
@@ -472,7 +468,7 @@ def _model_from_dict(doc: Any, where: str, *, check_id: bool = True, axes: tuple
         except (UnknownTermError, ValueError) as err:
             raise fail(f"terms[{i}]: {err}") from None
         coef = item.get("coef")
-        if not _is_number(coef) or not math.isfinite(coef):
+        if not _finite_number(coef):
             raise fail(f"terms[{i}] ({item['term']}): 'coef' must be a finite number, got {coef!r}")
         se = _optional_number(item.get("se"), f"terms[{i}] ({item['term']}): 'se'", fail, 0.0)
         p = _optional_number(item.get("p"), f"terms[{i}] ({item['term']}): 'p'", fail, 0.0, 1.0)
@@ -589,13 +585,8 @@ def _training_from_dict(raw: Any, fail: Any) -> Training:
         raise fail("'training' must be an object with x_um and channels ranges")
 
     def pair(value: Any, what: str) -> tuple[float, float]:
-        ok = (
-            isinstance(value, list)
-            and len(value) == 2
-            and all(_is_number(v) and math.isfinite(v) for v in value)
-            and value[0] <= value[1]
-        )
-        if not ok:
+        if not (isinstance(value, list) and len(value) == 2 and all(_finite_number(v) for v in value)
+                and value[0] <= value[1]):
             raise fail(f"training range of {what} must be [low, high], got {value!r}")
         return float(value[0]), float(value[1])
 

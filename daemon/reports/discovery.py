@@ -336,11 +336,6 @@ def _change(gain: float) -> str:
     return f"raises the held-out RMS by {-100 * gain:.1f} %"
 
 
-def _p_cell(c: Candidate) -> str:
-    """The p the verdict cites, marked when it is the stepwise's (rows taken as independent)."""
-    return f"{c.bar_p:.2g}" + (" (rows independent)" if c.remove else "")
-
-
 def verdict(c: Candidate, chosen: bool, settings: Settings) -> str:
     """Why a candidate was or was not named, in words and in the terms of the rules below.
 
@@ -498,7 +493,8 @@ def markdown(result: DiscoveryResult, figures: Sequence[str], model_out: str | N
             terms = ", ".join([t.name for t in c.add] + [f"{MINUS}{t.name}" for t in c.remove]
                               + [f"{n} (nuisance)" for n in c.nuisance]) or "–"
             lines.append(
-                f"| {c.effect} | {terms} | {format_params(c)} | {_p_cell(c)} | "
+                f"| {c.effect} | {terms} | {format_params(c)} | "
+                f"{c.bar_p:.2g}{' (rows independent)' if c.remove else ''} | "
                 f"{_fmt(c.holdout_rms_before_um, 1000)} | {_fmt(c.holdout_rms_after_um, 1000)} | "
                 f"{100 * c.holdout_gain:.1f} % | {_fmt(c.blocks_improved, 100, '.0f')} % | "
                 f"{verdict(c, c is rnd.chosen, s)} |"

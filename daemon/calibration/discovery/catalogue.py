@@ -244,9 +244,7 @@ def _coupling(ctx: Context) -> list[Candidate]:
 
 
 def _creep(ctx: Context) -> list[Candidate]:
-    if any(isinstance(t, Creep) for t in ctx.terms):
-        return []
-    if not np.any(np.abs(np.diff(ctx.x)) > CREEP_DEADBAND_UM):
+    if any(isinstance(t, Creep) for t in ctx.terms) or not np.any(np.abs(np.diff(ctx.x)) > CREEP_DEADBAND_UM):
         return []
 
     axis = ctx.data.axis

@@ -87,12 +87,10 @@ def summarise(disagreements: Sequence[Disagreement], steps: Sequence[Candidate],
         if "fresh_gain_expected" in final and len(steps) > 1:  # one step has said its own expectation
             before, after = final["fresh_rms_expected_um"]
             lines.append(f"From the given model as it is (its own coefficients; step 1 starts from its terms refitted "
-                         f"on this run), on a fresh run of the same kind expect about {before * 1000:.1f} → "
-                         f"{after * 1000:.1f} nm "
+                         f"on this run), on a fresh run of the same kind expect about {_nm(before, after)} "
                          f"(RMS × {final['fresh_gain_expected']:.2f})"
-                         + (f"; measured on the fresh run given: {final['fresh_rms_measured_um'][0] * 1000:.1f} → "
-                            f"{final['fresh_rms_measured_um'][1] * 1000:.1f} nm (× {final['fresh_gain_measured']:.2f})"
-                            if "fresh_gain_measured" in final else "") + ".")
+                         + (f"; measured on the fresh run given: {_nm(*final['fresh_rms_measured_um'])} "
+                            f"(× {final['fresh_gain_measured']:.2f})" if "fresh_gain_measured" in final else "") + ".")
     for blind in untestable:
         lines.append(f"This run cannot show {blind['effect']}: {blind['reason']}; {blind['hint']}.")
     return "\n".join(lines)
@@ -101,23 +99,22 @@ def summarise(disagreements: Sequence[Disagreement], steps: Sequence[Candidate],
 def _fresh_lines(s: Candidate) -> list[str]:
     """What the step promises a fresh run (and, when one was given, what it did there)."""
     lines = []
-    if s.fresh_expected is not None:
-        e = s.fresh_expected
+    if (e := s.fresh_expected) is not None:
         lines.append(
-            f"  On a fresh run of the same kind expect about {e.rms_before_um * 1000:.1f} → "
-            f"{e.rms_after_um * 1000:.1f} nm "
-            f"(RMS × {e.ratio:.2f}), not the held-out figures: held-out blocks share this run's room history and slow "
+            f"  On a fresh run of the same kind expect about {_nm(e.rms_before_um, e.rms_after_um)} (RMS × "
+            f"{e.ratio:.2f}), not the held-out figures: held-out blocks share this run's room history and slow "
             "interferometer wander, so the estimate adds back what fitting hides of them"
             + (" (with the drift's source fixed or sensed)" if s.fresh_if_source_remains is not None else "") + ".")
-    if s.fresh_if_source_remains is not None:
-        r = s.fresh_if_source_remains
+    if (r := s.fresh_if_source_remains) is not None:
         lines.append(f"  While the drift's source remains, a fresh run is worse with the written model: about "
-                     f"{r.rms_before_um * 1000:.1f} → {r.rms_after_um * 1000:.1f} nm (× {r.ratio:.2f}).")
-    if s.fresh_measured is not None:
-        m = s.fresh_measured
-        lines.append(f"  Measured on the fresh run given: {m.rms_before_um * 1000:.1f} → "
-                     f"{m.rms_after_um * 1000:.1f} nm (× {m.ratio:.2f}).")
+                     f"{_nm(r.rms_before_um, r.rms_after_um)} (× {r.ratio:.2f}).")
+    if (m := s.fresh_measured) is not None:
+        lines.append(f"  Measured on the fresh run given: {_nm(m.rms_before_um, m.rms_after_um)} (× {m.ratio:.2f}).")
     return lines
+
+
+def _nm(before_um: float, after_um: float) -> str:
+    return f"{before_um * 1000:.1f} → {after_um * 1000:.1f} nm"
 
 
 def _tau_words(s: Candidate) -> str:

@@ -126,14 +126,6 @@ def _rms(r: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.square(r)))) if r.size else math.nan
 
 
-def _folds(data: Dataset) -> np.ndarray:
-    folds = holdout_blocks(data)
-    if np.any(np.diff(folds) < 0) or np.unique(folds).size < 2:  # cycles out of time order: time blocks
-        n = len(data)
-        folds = (np.arange(n) * 5) // max(n, 1)
-    return folds
-
-
 def _final_model(data: Dataset, given: Model, terms: list[Term], nuisance: dict[str, np.ndarray],
                  steps: list[Candidate], settings: Settings) -> tuple[Model, np.ndarray]:
     """Refit every working term (and nuisance) on all rows, then drop the nuisance.
@@ -189,13 +181,10 @@ def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS,
     time constant, the range the run supports); ``fresh``: a run discovery never saw, on which each
     step's gain is also measured.
     """
-    data = data.valid_rows()
     if fresh is not None:
-        fresh = _checked_fresh(fresh, model)
-    if data.q is None:
-        raise DiscoveryError(f"{data.source}: no q_um column (the command sent to the stage) to compare with")
+        fresh = _checked_run(fresh, model, empty="to measure the fresh-run gain on")
+    data = _checked_run(data, model)
     n = len(data)
-    model.check_channels(list(data.channels), data.source)
     working = [ft.term for ft in model.terms if not isinstance(ft.term, Bias)]
     if n < 3 * (len(working) + 4):
         raise DiscoveryError(f"{data.source}: {n} rows are too few to test effects on a {len(working)}-term model")
@@ -203,7 +192,9 @@ def discover(data: Dataset, model: Model, settings: Settings = DEFAULT_SETTINGS,
     residual0 = q - model.predict(data)
     variables = structure_variables(data, settings)
     disagreements = residual_structure(residual0, variables, settings)
-    folds = _folds(data)
+    folds = holdout_blocks(data)
+    if np.any(np.diff(folds) < 0) or np.unique(folds).size < 2:  # cycles out of time order: time blocks
+        folds = (np.arange(n) * 5) // max(n, 1)
     delays = channel_delays(data)
     nuisance: dict[str, np.ndarray] = {}
     steps: list[Candidate] = []
@@ -306,14 +297,15 @@ def _extra_coefs(ctx: Context, extra: Sequence[np.ndarray]) -> np.ndarray:
     return ols(np.column_stack(cols), np.asarray(ctx.data.q, dtype=np.float64)).coef[len(ctx.terms):]
 
 
-def _checked_fresh(fresh: Dataset, model: Model) -> Dataset:
-    fresh = fresh.valid_rows()
-    if fresh.q is None:
-        raise DiscoveryError(f"{fresh.source}: no q_um column (the command sent to the stage) to compare with")
-    if len(fresh) == 0:
-        raise DiscoveryError(f"{fresh.source}: no valid rows to measure the fresh-run gain on")
-    model.check_channels(list(fresh.channels), fresh.source)
-    return fresh
+def _checked_run(run: Dataset, model: Model, empty: str | None = None) -> Dataset:
+    """The run's valid rows; refused without commands, rows (``empty``: for what) or a channel the model reads."""
+    run = run.valid_rows()
+    if run.q is None:
+        raise DiscoveryError(f"{run.source}: no q_um column (the command sent to the stage) to compare with")
+    if empty is not None and len(run) == 0:
+        raise DiscoveryError(f"{run.source}: no valid rows {empty}")
+    model.check_channels(list(run.channels), run.source)
+    return run
 
 
 def _drift_column(ctx: Context) -> np.ndarray:
