@@ -683,8 +683,8 @@ class Actuation:
         every ramp period; None when ``interruptible`` and a newer command or a stop came meanwhile."""
         deadline_s = time.monotonic() + ON_TARGET_BUDGET_S
         while True:
-            waiting = [axis for axis, out in outputs.items()
-                       if not await _guarded(out.actuator.on_target(), axis, "on-target query")]
+            waiting = [axis for axis, out in outputs.items() if _settles(out.actuator)
+                       and not await _guarded(out.actuator.on_target(), axis, "on-target query")]
             if not waiting or time.monotonic() >= deadline_s:
                 return waiting
             if interruptible and (self._halt_waiters or self._has_pending()):
@@ -891,6 +891,13 @@ class Actuation:
         else:
             self.log.warning("actuator_goal_dropped", axes=refused, voltage_v=dict(goal.voltage_v),
                              held_v={a: o.at_v for a, o in outputs.items()}, reason=reason)
+
+
+def _settles(actuator: Actuator) -> bool:
+    """Whether a device has an on-target state of its own to ask (a closed-loop controller). One without is
+    on target once written (the base's answer): asking it anyway put a timeout guard and a coroutine into
+    every write cycle, a stretch of the loop's that targets wait behind (benchmarks/daemon_latency.py's p99)."""
+    return getattr(type(actuator), "on_target", None) is not Actuator.on_target
 
 
 async def _guarded(step: Any, axis: str, what: str) -> Any:

@@ -4,13 +4,19 @@ present), a ``stop``'s payload (empty, an id, or refused) and a ``stop`` query's
 from __future__ import annotations
 
 import json
+from typing import Any
 
 import pytest
+from helpers.budget import examples
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from nanodrift.bus.protocol import (
+    DONE_STATES,
     Keys,
     Oversized,
     Refusal,
+    dumps,
     encode_done,
     encode_stop_error,
     encode_stop_reply,
@@ -41,6 +47,21 @@ def test_every_done_has_every_key_and_an_error_only_when_failed(
 def test_a_done_state_outside_the_contract_is_a_bug_not_a_payload() -> None:
     with pytest.raises(ValueError, match="not one of reached, superseded, stopped, failed"):
         encode_done(1, "done", 0.0, 1.0)
+
+
+@settings(max_examples=examples(400), deadline=None)
+@given(target_id=st.integers() | st.booleans() | st.none() | st.text(max_size=6),
+       state=st.sampled_from(DONE_STATES), t=st.floats() | st.integers(),
+       voltage=st.none() | st.floats() | st.integers() | st.dictionaries(st.sampled_from("xyz"), st.floats()),
+       error=st.none() | st.text(max_size=6))
+def test_a_done_is_the_bytes_the_shared_encoder_writes(target_id: Any, state: str, t: Any, voltage: Any,
+                                                       error: str | None) -> None:
+    """The one-axis integer-id form written by hand (the hot path) is byte for byte what ``dumps`` writes, and
+    every other form goes through ``dumps``: ids of every type (a bool is not an int here), any float."""
+    held = dict(voltage) if isinstance(voltage, dict) else voltage
+    expected = dumps({"id": target_id, "state": state, "t": t, "voltage_v": held,
+                      "error": error if state == "failed" else None})
+    assert encode_done(target_id, state, t, voltage, error) == expected
 
 
 def test_a_non_finite_held_voltage_is_null() -> None:
