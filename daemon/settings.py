@@ -298,14 +298,21 @@ class ActuatorConfig(StrictModel):
         distance_um = abs(from_v - self.safe_voltage_v) / abs(self.volts_per_um)
         return distance_um / self.max_slew_um_per_s, distance_um, from_v
 
-    #: :mod:`nanodrift.motion`'s conversions as methods: what the amplifier gets for a command (``voltage(q_um)``),
-    #: its inverse, whether a voltage is inside ``[v_min, v_max]`` (nothing outside is ever published or written;
-    #: NaN is outside), and the voltage or a :class:`~nanodrift.motion.VoltageLimitError` naming the command and
-    #: the limits
-    voltage = motion.voltage_for
-    q_um_for = motion.q_um_for
-    within_limits = motion.within_limits
-    checked_voltage = motion.checked_voltage
+    def voltage(self, q_um: float) -> float:
+        """What the amplifier gets for command ``q_um`` (:func:`nanodrift.motion.voltage_for`)."""
+        return motion.voltage_for(self, q_um)
+
+    def q_um_for(self, voltage_v: float) -> float:
+        """The command whose voltage is ``voltage_v``: the inverse of :meth:`voltage`."""
+        return motion.q_um_for(self, voltage_v)
+
+    def within_limits(self, voltage_v: float) -> bool:
+        """Nothing outside ``[v_min, v_max]`` is ever published or written (NaN is outside)."""
+        return motion.within_limits(self, voltage_v)
+
+    def checked_voltage(self, q_um: float) -> float:
+        """:meth:`voltage`, or a :class:`~nanodrift.motion.VoltageLimitError` naming the command and the limits."""
+        return motion.checked_voltage(self, q_um)
 
 
 #: letters an axis may take (``nanodrift.model.cell_model.AXIS_LETTERS``: not q, ``q_um`` is the one-axis command)
