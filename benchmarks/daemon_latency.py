@@ -4,14 +4,19 @@ One run, side by side, on this machine:
 - the daemon (``python -m nanodrift.cli run``, simulated cell, shipped model) and a bare echo node
   (a subscriber that republishes each payload from Zenoh's callback thread), each in its own process,
   each reached by a client-mode session over tcp/127.0.0.1;
-- p50/p99 of the round trip at 1 kHz (targets paced at 1 ms), a burst of targets sent as fast as
+- p50/p99 of the round trip at 1 kHz (targets paced at 1 ms by sleeping: a client spinning between sends held
+  the GIL while its own answer callback waited, and stamped every answer later than ~0.7 ms at the next send,
+  ~1 ms, so the p99 measured the client), a burst of targets sent as fast as
   possible (answers lost are counted), and the daemon's idle CPU (% of one core over 10 s) and RSS.
+
+Nobody subscribes to ``done`` unless ``--done-subscriber`` (then the daemons' probers do, as
+``nanodrift.Client`` does): the daemon encodes a ``done`` only while a subscriber matches its key.
 
 Budget: p50 within 1.3x of the echo, p99 within 1.5x, nothing lost in the burst.
 
 ``--axes N`` (2 or 3) adds a multi-axis cell (``[[axes]]`` x, y[, z], ``kind = "zenoh"`` outputs, a
 hand-made cell model with cross terms) and a one-axis cell on the same sensors (two temperatures in a
-Modbus module emulated in this process), each its own daemon, measured in the same alternating rounds:
+Modbus module emulated in a process of its own), each its own daemon, measured in the same alternating rounds:
 the multi-axis cell's p50 must be within 1.2x of the one-axis cell's.
 
     .venv/bin/python benchmarks/daemon_latency.py [--paced 3000] [--burst 5000] [--idle-s 10] [--axes 3]
@@ -91,7 +96,8 @@ def daemon_on_loop(config_path: str) -> int:
 class Prober:
     """Sends targets on ``key_in`` and timestamps each answer on ``key_out`` (and ``key_err``) by id."""
 
-    def __init__(self, port: int, key_in: str, key_out: str, key_err: str | None = None) -> None:
+    def __init__(self, port: int, key_in: str, key_out: str, key_err: str | None = None,
+                 key_done: str | None = None) -> None:
         self.session = zenoh.open(zconf("client", connect=f"tcp/127.0.0.1:{port}"))
         self.received: dict[int, float] = {}
         self.errors = 0
@@ -102,6 +108,9 @@ class Prober:
         self.subs = [self.session.declare_subscriber(key_out, self._answer)]
         if key_err:
             self.subs.append(self.session.declare_subscriber(key_err, self._error))
+        self.dones = 0  # ``done`` messages received (``--done-subscriber``)
+        if key_done:
+            self.subs.append(self.session.declare_subscriber(key_done, self._done))
 
     def _answer(self, sample: zenoh.Sample) -> None:
         now = time.perf_counter()
@@ -109,6 +118,10 @@ class Prober:
         with self._cond:
             self.received[target_id] = now
             self._cond.notify_all()
+
+    def _done(self, sample: zenoh.Sample) -> None:
+        with self._cond:
+            self.dones += 1
 
     def _error(self, sample: zenoh.Sample) -> None:
         with self._cond:
@@ -132,11 +145,11 @@ class Prober:
         sent: dict[int, float] = {}
         start = time.perf_counter()
         for i in range(n):
-            if period_s:
-                due = start + i * period_s
-                while (now := time.perf_counter()) < due:
-                    if due - now > 0.0003:
-                        time.sleep(0.0001)
+            # paced by sleeping, never spinning: a spin holds the GIL, and an answer arriving meanwhile waits
+            # for it in Zenoh's callback thread, stamped at the next send (~1 ms): the p99 measured this client
+            delay_s = start + i * period_s - time.perf_counter()
+            if delay_s > 0:
+                time.sleep(delay_s)
             target_id = first_id + i
             x = 40.0 + (i % 400)
             payload = (self.template % (x, target_id) if self.template.count(b"%") == 2
@@ -213,6 +226,32 @@ def write_models(tmp: Path, axes: tuple[str, ...]) -> tuple[Path, Path]:
 
 
 def modbus_temperatures() -> tuple[int, Any]:
+    """T1 and T2 (int16, 0.01 degC) in input registers 0 and 1 of an emulated module in a process of its own: in
+    this one its server thread took the GIL from the probers' answer callbacks, which stamped answers late."""
+    node = subprocess.Popen([sys.executable, __file__, "--modbus-node"], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)
+    assert node.stdout is not None and node.stdin is not None
+    line = node.stdout.readline().strip()
+    if not line.isdigit():
+        raise SystemExit("the emulated Modbus module did not start")
+
+    def stop() -> None:
+        assert node.stdin is not None
+        node.stdin.close()
+        node.wait(10)
+
+    return int(line), stop
+
+
+def modbus_node() -> None:
+    """The emulated module's process: its port on stdout, served until the parent closes our stdin."""
+    port, stop = modbus_in_thread()
+    print(port, flush=True)
+    sys.stdin.read()
+    stop()
+
+
+def modbus_in_thread() -> tuple[int, Any]:
     """T1 and T2 (int16, 0.01 degC) in input registers 0 and 1 of an emulated module on this process' thread."""
     from nanodrift.drivers.testing.modbus_server import ModbusTestDevice, ModbusTestServer
 
@@ -259,11 +298,18 @@ def main() -> int:
     parser.add_argument("--axes", type=int, choices=(2, 3), default=None,
                         help="also a multi-axis cell and a one-axis cell on the same (Modbus) sensors: p50 side "
                              "by side (budget 1.2x)")
+    parser.add_argument("--done-subscriber", action="store_true",
+                        help="the daemons' probers also subscribe to ``done``, as nanodrift.Client does: every "
+                             "served command's done is then encoded and sent (with no subscriber it is not)")
     parser.add_argument("--echo-node", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--modbus-node", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--daemon-on-loop", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.echo_node:
         echo_node(args.echo_node)
+        return 0
+    if args.modbus_node:
+        modbus_node()
         return 0
     if args.daemon_on_loop:
         return daemon_on_loop(args.daemon_on_loop)
@@ -304,13 +350,15 @@ def main() -> int:
         if echo.stdout.readline().strip() != "ready":
             raise SystemExit("echo node failed to start")
         wait_line(daemon, log, '"serving"', 30)
-        d = Prober(d_port, "nanodrift/bench/target", "nanodrift/bench/command", "nanodrift/bench/error")
+        d = Prober(d_port, "nanodrift/bench/target", "nanodrift/bench/command", "nanodrift/bench/error",
+                   "nanodrift/bench/done" if args.done_subscriber else None)
         e = Prober(e_port, ECHO_IN, ECHO_OUT)
         probers = {"echo": e, "daemon": d}
         for name, (port, process, cell_log, payload) in cells.items():
             wait_line(process, cell_log, '"serving"', 30)
             probers[name] = Prober(port, f"nanodrift/{name}/target", f"nanodrift/{name}/command",
-                                   f"nanodrift/{name}/error")
+                                   f"nanodrift/{name}/error",
+                                   f"nanodrift/{name}/done" if args.done_subscriber else None)
             probers[name].template = payload
         # a daemon answers once its sensors are read: wait for the first command
         for name, prober in probers.items():
@@ -378,6 +426,9 @@ def main() -> int:
     if args.targets_on_loop:
         print("(daemon variant: targets handed to the asyncio loop first, benchmarks' TargetsOnLoop)")
     print(f"daemon burst refusals: {dd['burst_refused']} (should be 0: every target was valid)")
+    if args.done_subscriber:
+        print("done received: " + ", ".join(f"{name} {prober.dones}" for name, prober in probers.items()
+                                             if name != "echo"))
     print(f"daemon idle CPU over {args.idle_s:g} s: {idle_cpu:.1f}% of one core; RSS {rss:.1f} MB")
     within = r50 <= 1.3 and r99 <= 1.5 and dd["burst_lost"] == 0 and dd["paced_lost"] == 0
     if args.axes:
