@@ -185,6 +185,20 @@ def test_every_command_encodes_as_json_of_its_document(changes: dict[str, object
     assert ("procedure" in doc) == (value.procedure is not None)
 
 
+@pytest.mark.parametrize("axes", [("x",), ("x", "y", "z")])
+def test_a_command_without_sigma_is_a_document_json_takes_in_one_pass(axes: tuple[str, ...]) -> None:
+    """A model without a covariance has a NaN σ: the document already holds the null the wire has for it, so
+    the encoder's first (strict) pass takes it instead of raising and walking the document again."""
+    per_axis = dict.fromkeys(axes, 1.0)
+    value = replace(command(), positions_um=per_axis, q_um=per_axis, voltage_v=per_axis,
+                    q_sigma_um=dict.fromkeys(axes, math.nan), correction_um=per_axis,
+                    q_sigma_adapted_um=dict.fromkeys(axes, math.inf))
+    doc = command_doc(value)
+    assert json.dumps(doc, allow_nan=False, separators=(",", ":")).encode() == encode_command(value)
+    sigma, adapted = json.loads(encode_command(value))["q_sigma_um"], doc["q_sigma_adapted_um"]
+    assert (sigma, adapted) == ((None, None) if len(axes) == 1 else (dict.fromkeys(axes), dict.fromkeys(axes)))
+
+
 def test_the_remembered_temperatures_follow_a_new_mapping() -> None:
     first = encode_command(command(temperatures_c=MappingProxyType({"T1": 21.8})))
     again = encode_command(command(temperatures_c=MappingProxyType({"T1": 22.5})))
