@@ -161,14 +161,6 @@ class Bus:
         self.publish_command: Callable[[bytes], None] = command.put
         self.publish_error: Callable[[bytes], None] = error.put
         self.publish_done: Callable[[bytes], None] = done.put
-        self._done = done
-
-    def done_subscribed(self) -> bool:
-        """Whether a subscriber matches ``done`` now, in Zenoh's routing tables (those a put follows: with none, a
-        put reaches nobody). Asked before a ``done`` is encoded: at 1 kHz nearly every target ends the one before it
-        ``superseded`` on the target's thread, which cost a 3-axis cell ~7 µs of p50 with nobody listening
-        (benchmarks/daemon_latency.py ``--axes 3``); asking costs ~0.5 µs."""
-        return bool(self._done.matching_status.matching)
 
     def serve(self, loop: asyncio.AbstractEventLoop, on_target: OnTarget, on_status: OnQuery,
               on_stop: OnStop | None = None) -> None:

@@ -303,10 +303,8 @@ class Service:
         bus = self.bus
         if bus is None:
             return
+        voltage = wire_voltage(held, self.state.config.axis_names)
         try:
-            if not bus.done_subscribed():  # nobody would receive it: it is not encoded
-                return
-            voltage = wire_voltage(held, self.state.config.axis_names)
             bus.publish_done(encode_done(goal.id, state, time.time(), voltage, error))
         except zenoh.ZError as failure:
             self.log.warning("done_not_sent", id=goal.id, state=state, error=str(failure))

@@ -7,7 +7,6 @@ import threading
 from pathlib import Path
 
 import zenoh
-from helpers.daemon_harness import wait_until
 
 from nanodrift.bus.session import Bus, session_config
 from nanodrift.config import ZenohSettings
@@ -72,26 +71,3 @@ def test_closing_the_bus_while_another_thread_publishes_answers_raises_nothing()
             publisher.join(5)
         assert session.is_closed()
         assert outcomes in ([], ["ZError"]), (attempt, outcomes)
-
-
-def test_done_subscribed_follows_the_subscribers_the_routing_tables_know() -> None:
-    """The daemon encodes a ``done`` only while a subscriber matches its key: a client's subscriber on a
-    wildcard over it makes ``done_subscribed`` true (and the put reaches it), undeclaring it makes it false."""
-    port = free_port()
-    daemon = zenoh.open(session_config(ZenohSettings(mode="peer", listen=[f"tcp/127.0.0.1:{port}"],
-                                                     multicast_scouting=False)))
-    client = zenoh.open(session_config(ZenohSettings(mode="client", connect=[f"tcp/127.0.0.1:{port}"],
-                                                     multicast_scouting=False)))
-    bus = Bus(daemon, "matching")
-    try:
-        assert not bus.done_subscribed()
-        received = threading.Event()
-        subscriber = client.declare_subscriber("nanodrift/*/done", lambda sample: received.set())
-        wait_until(bus.done_subscribed, 10, "the client's done subscriber in the daemon's routing tables")
-        bus.publish_done(b'{"id": 1, "state": "reached"}')
-        assert received.wait(10), "a done put while done_subscribed() was true never arrived"
-        subscriber.undeclare()
-        wait_until(lambda: not bus.done_subscribed(), 10, "the undeclared subscriber to leave the routing tables")
-    finally:
-        client.close()
-        bus.close()
