@@ -9,8 +9,9 @@ One run, side by side, on this machine:
   ~1 ms, so the p99 measured the client), a burst of targets sent as fast as
   possible (answers lost are counted), and the daemon's idle CPU (% of one core over 10 s) and RSS.
 
-Nobody subscribes to ``done`` unless ``--done-subscriber`` (then the daemons' probers do, as
-``nanodrift.Client`` does): the daemon encodes a ``done`` only while a subscriber matches its key.
+The daemon encodes and puts a ``done`` for every served command (on the target's thread, after its answer, for
+the one it replaced); nobody receives them unless ``--done-subscriber`` (then the daemons' probers subscribe,
+as ``nanodrift.Client`` does).
 
 Budget: p50 within 1.3x of the echo, p99 within 1.5x, nothing lost in the burst.
 
@@ -299,8 +300,7 @@ def main() -> int:
                         help="also a multi-axis cell and a one-axis cell on the same (Modbus) sensors: p50 side "
                              "by side (budget 1.2x)")
     parser.add_argument("--done-subscriber", action="store_true",
-                        help="the daemons' probers also subscribe to ``done``, as nanodrift.Client does: every "
-                             "served command's done is then encoded and sent (with no subscriber it is not)")
+                        help="the daemons' probers also subscribe to ``done``, as nanodrift.Client does")
     parser.add_argument("--echo-node", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--modbus-node", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--daemon-on-loop", help=argparse.SUPPRESS)
