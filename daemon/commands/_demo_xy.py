@@ -66,4 +66,3 @@ def two_axis_part(seed: int, cycles: int, calibration_cycles: int, keep: Path | 
         lines.append(f"   kept: {keep / 'xy_calibration.csv'}, {keep / 'xy_model.json'}; "
                      f"nanodrift validate --model {keep / 'xy_model.json'} --scenario test2")
     return lines
-

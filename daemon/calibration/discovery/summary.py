@@ -40,7 +40,6 @@ def _describe(c: Candidate) -> str:
     return c.effect
 
 
-
 def summarise(disagreements: Sequence[Disagreement], steps: Sequence[Candidate], baseline: Mapping[str, Any],
               final: Mapping[str, Any], untestable: Sequence[Mapping[str, str]] = ()) -> str:
     """The finding in words, for the operator; then what this run could not test, and how to test it."""
