@@ -65,7 +65,13 @@ def summarise(disagreements: Sequence[Disagreement], steps: Sequence[Candidate],
         )
         lines += _fresh_lines(s)
         if s.tau_range is not None:
-            lines.append(f"  Time constant: {_tau_words(s)}.")
+            words = s.tau_range.words() + " (held-out blocks not significantly worse than at the τ named)"
+            if "tau_behind_fastest_s" in s.params:
+                shift = float(s.params["tau_behind_fastest_s"]) - float(s.params["tau_s"])
+                lo, hi = s.tau_range.lo_s + shift, s.tau_range.hi_s + shift
+                words += (f"; behind the fastest channel about {lo / 60:.0f}–{hi / 60:.0f} min (delays in series "
+                          "add only approximately)")
+            lines.append(f"  Time constant: {words}.")
         if math.isfinite(s.holdout_rms_nested_um):
             lines.append(f"  Chosen without each held-out block, τ predicts the blocks to "
                          f"{s.holdout_rms_nested_um * 1000:.1f} nm RMS ({s.holdout_rms_after_um * 1000:.1f} nm when "
@@ -114,14 +120,3 @@ def _fresh_lines(s: Candidate) -> list[str]:
 
 def _nm(before_um: float, after_um: float) -> str:
     return f"{before_um * 1000:.1f} → {after_um * 1000:.1f} nm"
-
-
-def _tau_words(s: Candidate) -> str:
-    assert s.tau_range is not None
-    words = s.tau_range.words() + " (held-out blocks not significantly worse than at the τ named)"
-    if "tau_behind_fastest_s" in s.params:
-        shift = float(s.params["tau_behind_fastest_s"]) - float(s.params["tau_s"])
-        lo, hi = s.tau_range.lo_s + shift, s.tau_range.hi_s + shift
-        words += (f"; behind the fastest channel about {lo / 60:.0f}–{hi / 60:.0f} min (delays in series add only "
-                  "approximately)")
-    return words
