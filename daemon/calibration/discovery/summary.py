@@ -96,8 +96,7 @@ def summarise(disagreements: Sequence[Disagreement], steps: Sequence[Candidate],
                          f"(RMS × {final['fresh_gain_expected']:.2f})"
                          + (f"; measured on the fresh run given: {_nm(*final['fresh_rms_measured_um'])} "
                             f"(× {final['fresh_gain_measured']:.2f})" if "fresh_gain_measured" in final else "") + ".")
-    for blind in untestable:
-        lines.append(f"This run cannot show {blind['effect']}: {blind['reason']}; {blind['hint']}.")
+    lines += [f"This run cannot show {blind['effect']}: {blind['reason']}; {blind['hint']}." for blind in untestable]
     return "\n".join(lines)
 
 
