@@ -442,4 +442,3 @@ class Client:
     def _check_open(self) -> None:
         if self._closed:
             raise RuntimeError(f"the client of cell {self.cell!r} is closed")
-

@@ -218,14 +218,12 @@ class ChatterLimiter:
 
     def _summary(self, window: _Window) -> logging.LogRecord:
         first = window.first
-        record = logging.makeLogRecord({
+        return logging.makeLogRecord({
             "name": first.name, "levelno": first.levelno, "levelname": first.levelname,
             "msg": first.getMessage().split("\n", 1)[0], "args": (),
             "pathname": first.pathname, "lineno": first.lineno,
+            "suppressed": window.suppressed, "window_s": self.window_s,
         })
-        record.suppressed = window.suppressed
-        record.window_s = self.window_s
-        return record
 
 
 class OneLineHandler(logging.Handler):

@@ -489,4 +489,3 @@ class Config(StrictModel):
         copy = self.model_copy()
         copy._sections = {**self._sections, name: value}
         return copy
-

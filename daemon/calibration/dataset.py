@@ -280,11 +280,9 @@ def _parse_body(path: Path, header: list[str]) -> np.ndarray:
     body = _read_text(path, body=True)
     if not body.strip():
         raise DataError(f"{path}: no data rows after the header")
-    rows: list[list[float]] = []
     reader = csv.reader(io.StringIO(body))
     try:
-        for row in reader:
-            rows.append(_parse_row(path, header, row, reader.line_num + 1))
+        rows = [_parse_row(path, header, row, reader.line_num + 1) for row in reader]
     except csv.Error as err:  # e.g. a quoted field longer than the csv module's limit
         raise DataError(f"{path}, row {reader.line_num + 1}: not a CSV row ({err})") from None
     rows = [r for r in rows if r]

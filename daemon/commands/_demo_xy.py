@@ -42,8 +42,7 @@ def two_axis_part(seed: int, cycles: int, calibration_cycles: int, keep: Path | 
     measured = summarize_runs(test, targets, run.attained(False, "interferometer"),
                               run.attained(True, "interferometer"))
     lines = [f"model {cell.id}: per axis, over both positions:"]
-    for axis in AXES:
-        lines.append(f"   q_{axis} from {', '.join(cell.models[axis].term_names())}")
+    lines += [f"   q_{axis} from {', '.join(cell.models[axis].term_names())}" for axis in AXES]
     head = f"   {'':<10}{'without':>10}{'two one-axis models':>22}{'one XY model':>15}{'improvement':>13}"
     lines += [f"{test} at ISO 9283 points off the calibration levels, {cycles} cycles, against the TRUE position:",
               head]
@@ -66,4 +65,3 @@ def two_axis_part(seed: int, cycles: int, calibration_cycles: int, keep: Path | 
         lines.append(f"   kept: {keep / 'xy_calibration.csv'}, {keep / 'xy_model.json'}; "
                      f"nanodrift validate --model {keep / 'xy_model.json'} --scenario test2")
     return lines
-

@@ -476,4 +476,3 @@ def _parse_hubs(parse: _Parse, raw_hubs: Any, sensors: Sequence[tuple[int, Senso
             if entry is not None and kind == users[name][0]:
                 hubs.append(entry)
     return hubs
-

@@ -29,7 +29,6 @@ class ConfigError(UserError):
         super().__init__(text)
 
 
-
 #: pydantic puts the union member that failed in ``loc`` (``effects.list[str]``, ``port.int``): it names no key
 _UNION_MEMBER = re.compile(r"^(?:[a-z][a-z-]*\[.*\]|int|float|str|bool|none)$")
 
@@ -63,7 +62,6 @@ def sensor_where(index: int, sensor: Any) -> str:
     """``sensors[5] (T6)``: the index in the file's order (0-based) and the sensor's name when it has one."""
     name = sensor.get("name") if isinstance(sensor, Mapping) else getattr(sensor, "name", None)
     return f"sensors[{index}] ({name})" if isinstance(name, str) and name else f"sensors[{index}]"
-
 
 
 _PROBLEM_PATH = re.compile(r"^(?P<table>[A-Za-z_][\w-]*)(?:\[(?P<index>\d+)\])?(?: \([^)]*\))?(?:\.(?P<key>[\w-]+))?")
@@ -117,4 +115,3 @@ _SUBTABLES = {"axes": ("actuator",)}
 def _key_line(lines: Sequence[str], key: str, start: int, end: int) -> int | None:
     pattern = re.compile(rf"^\s*{re.escape(key)}\s*=")
     return next((n + 1 for n in range(start, end) if pattern.match(lines[n])), None)
-

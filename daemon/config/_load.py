@@ -42,10 +42,8 @@ def load_config(path: str | Path | None) -> Config:
         raise ConfigError(str(file), [TOO_DEEP]) from None
 
 
-
 #: the problem line of a config whose arrays or inline tables nest deeper than the parser can follow
 TOO_DEEP = "not valid TOML: nested too deeply (a nanodrift config nests a few levels of [ and {, not hundreds)"
-
 
 
 #: the built-in config of ``nanodrift run`` with no ``--config``: the simulated cell's table (data, not an import)

@@ -25,8 +25,7 @@ def describe_model(model: Model, path: str | None = None) -> str:
         lines.append(f"selection: {sel['mode']}: {sel.get('test', '')}")
     lines.append(f"SE and p: {fit_stats.get('se_method', 'iid (a model file from before HAC standard errors)')}")
     lines.append(f"{'term':>16} {'coef':>14} {'SE':>11} {'p':>9}")
-    for ft in model.terms:
-        lines.append(f"{ft.term.name:>16} {ft.coef:>14.6g} {ft.se:>11.3g} {ft.p:>9.2g}")
+    lines += [f"{ft.term.name:>16} {ft.coef:>14.6g} {ft.se:>11.3g} {ft.p:>9.2g}" for ft in model.terms]
     sensitivity = fit_stats.get("thermal_sensitivity")
     if sensitivity and sensitivity.get("channels"):
         lines.append(f"thermal sensitivity (a common change of {', '.join(sensitivity['channels'])}): "

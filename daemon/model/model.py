@@ -402,15 +402,12 @@ def _read_model_text(path: Path) -> str:
         try:
             _check_regular(path, os.fstat(file.fileno()))
             data = file.read(MAX_MODEL_BYTES + 1)
-        except OSError as err:
+            if len(data) > MAX_MODEL_BYTES:
+                raise ModelFileError(f"{path}: larger than {MAX_MODEL_BYTES // 2**20} MiB: not a model file (a "
+                                     "model file is a few kilobytes of JSON)")
+            return data.decode("utf-8")
+        except (OSError, UnicodeDecodeError) as err:
             raise ModelFileError(f"{path}: cannot read the model file ({err})") from None
-    if len(data) > MAX_MODEL_BYTES:
-        raise ModelFileError(f"{path}: larger than {MAX_MODEL_BYTES // 2**20} MiB: not a model file (a model "
-                             "file is a few kilobytes of JSON)")
-    try:
-        return data.decode("utf-8")
-    except UnicodeDecodeError as err:
-        raise ModelFileError(f"{path}: cannot read the model file ({err})") from None
 
 
 def _check_regular(path: Path, info: os.stat_result) -> None:

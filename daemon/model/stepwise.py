@@ -247,9 +247,7 @@ def _validate_thresholds(penter: float, premove: float) -> tuple[float, float]:
 
 
 def _validate_maxiter(maxiter: int | None) -> float:
-    if maxiter is None:
-        return math.inf
-    if isinstance(maxiter, float) and math.isinf(maxiter) and maxiter > 0:
+    if maxiter is None or (isinstance(maxiter, float) and math.isinf(maxiter) and maxiter > 0):
         return math.inf
     if isinstance(maxiter, bool) or not isinstance(maxiter, int | np.integer) or maxiter < 0:
         raise ValueError(f"stepwisefit: maxiter must be a non-negative integer or None, got {maxiter!r}")

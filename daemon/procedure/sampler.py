@@ -138,5 +138,3 @@ class Sampler:
             last = self.latest.get(name)
             out[name] = float(np.mean(good)) if good else (last.value if last else 0.0)
         return out
-
-

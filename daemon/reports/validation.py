@@ -561,4 +561,3 @@ def _cell_figure(plt: Any, truth: TestResult, targets_um: Mapping[str, np.ndarra
     bars.legend()
     fig.tight_layout()
     return fig
-

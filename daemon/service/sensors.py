@@ -100,4 +100,3 @@ class SensorIngest:
         """The episode's summary: how many attempts failed and for how long."""
         self.log.info("sensor_group_recovered", channels=list(group.names), failures=failures,
                       down_s=round(down_s, 2))
-

@@ -428,6 +428,3 @@ class SerialLineGroup(SensorGroup):
             if answer and line is None:
                 await self._raise_if_vanished()
             return line[0] if line is not None else None
-
-
-

@@ -131,7 +131,6 @@ class CellParams:
         return replace(self, **changes)
 
 
-
 #: Edlén (1966) / Birch & Downs (1993) near 20 °C, 101.3 kPa, 633 nm: the index of air falls 0.93 ppm per K
 DN_DT_PER_C = -0.93e-6
 

@@ -76,7 +76,7 @@ class Candidate:
     def to_dict(self, confirmation: bool = True) -> dict[str, Any]:
         """The step for ``--json``; ``confirmation=False``: without the p the bar tested, the τ range and the
         fresh-run gain (the form a model file's ``selection`` records, unchanged by them)."""
-        out = {
+        out: dict[str, Any] = {
             "effect": self.effect, "params": self.params, "p_value": json_float(self.p_value),
             "rms_before_um": json_float(self.rms_before_um), "rms_after_um": json_float(self.rms_after_um),
             "holdout_rms_before_um": json_float(self.holdout_rms_before_um),
@@ -87,29 +87,19 @@ class Candidate:
             "blocks_improved": json_float(self.blocks_improved),
         }
         if confirmation:
-            out.update({"p_bar": json_float(self.bar_p), "p_bar_test": self.bar_p_test,
-                        **self._tau_dict(), **self._fresh_dict()})
-        return out
-
-    def _tau_dict(self) -> dict[str, Any]:
-        if self.tau_range is None:
-            return {}
-        r = self.tau_range
-        out: dict[str, Any] = {"tau_range_s": [r.lo_s, r.hi_s], "tau_pinned": r.pinned, "tau_range": r.words(),
-                               "holdout_rms_nested_um": json_float(self.holdout_rms_nested_um)}
-        if "tau_behind_fastest_s" in self.params:
-            shift = float(self.params["tau_behind_fastest_s"]) - float(self.params["tau_s"])
-            out["tau_behind_fastest_range_s"] = [round_sig(r.lo_s + shift), round_sig(r.hi_s + shift)]
-        return out
-
-    def _fresh_dict(self) -> dict[str, Any]:
-        out: dict[str, Any] = {}
-        for key, value in (("expected", self.fresh_expected), ("measured", self.fresh_measured),
-                           ("if_source_remains", self.fresh_if_source_remains)):
-            if value is not None:
-                out[f"fresh_gain_{key}"] = json_float(value.ratio)
-                out[f"fresh_rms_{key}_um"] = [json_float(value.rms_before_um), json_float(value.rms_after_um)]
-                out[f"fresh_gain_{key}_by"] = value.method
+            out.update({"p_bar": json_float(self.bar_p), "p_bar_test": self.bar_p_test})
+            if (r := self.tau_range) is not None:
+                out.update({"tau_range_s": [r.lo_s, r.hi_s], "tau_pinned": r.pinned, "tau_range": r.words(),
+                            "holdout_rms_nested_um": json_float(self.holdout_rms_nested_um)})
+                if "tau_behind_fastest_s" in self.params:
+                    shift = float(self.params["tau_behind_fastest_s"]) - float(self.params["tau_s"])
+                    out["tau_behind_fastest_range_s"] = [round_sig(r.lo_s + shift), round_sig(r.hi_s + shift)]
+            for key, value in (("expected", self.fresh_expected), ("measured", self.fresh_measured),
+                               ("if_source_remains", self.fresh_if_source_remains)):
+                if value is not None:
+                    out[f"fresh_gain_{key}"] = json_float(value.ratio)
+                    out[f"fresh_rms_{key}_um"] = [json_float(value.rms_before_um), json_float(value.rms_after_um)]
+                    out[f"fresh_gain_{key}_by"] = value.method
         return out
 
 

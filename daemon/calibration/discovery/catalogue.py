@@ -121,11 +121,10 @@ def _thermal_response(ctx: Context) -> list[Candidate]:
         if Lag(c, tau).name in have or Rate(c, tau).name in have:
             continue
         feats = [*base, ctx.feature(term)]
-        cand = Candidate(effect, [*extra, term], [], params, 1, len(channels))
-        cand.trend_like = tau >= 0.9 * tau_max  # as long as the run: a trend, not an identified lag
-        cand.pinned = pinned(sse, tau, ctx.ws.n * ctx.deflate, s)
-        cand.tau_bounds = (s.lag_tau_s[0], tau_max)
-        cand.fold_errors = partial(_fold_errors_lag, ctx, c, base)
+        cand = Candidate(effect, [*extra, term], [], params, 1, len(channels),
+                         trend_like=tau >= 0.9 * tau_max,  # as long as the run: a trend, not an identified lag
+                         pinned=pinned(sse, tau, ctx.ws.n * ctx.deflate, s), tau_bounds=(s.lag_tau_s[0], tau_max),
+                         fold_errors=partial(_fold_errors_lag, ctx, c, base))
         out.append(ctx.judge(cand, ctx.columns(feats)))
     return _prefer_fastest(out, ctx)
 
@@ -254,10 +253,9 @@ def _creep(ctx: Context) -> list[Candidate]:
 
     tau = search_tau(sse, *ctx.settings.creep_tau_s, ctx.settings)
     term = Creep(tau, axis=axis)
-    cand = Candidate("creep", [term], [], {"tau_s": tau}, 1, 1)
-    cand.pinned = pinned(sse, tau, ctx.ws.n * ctx.deflate, ctx.settings)
-    cand.tau_bounds = ctx.settings.creep_tau_s
-    cand.fold_errors = partial(_fold_errors_creep, ctx)
+    cand = Candidate("creep", [term], [], {"tau_s": tau}, 1, 1,
+                     pinned=pinned(sse, tau, ctx.ws.n * ctx.deflate, ctx.settings),
+                     tau_bounds=ctx.settings.creep_tau_s, fold_errors=partial(_fold_errors_creep, ctx))
     return [ctx.judge(cand, ctx.columns([ctx.feature(term)]))]
 
 

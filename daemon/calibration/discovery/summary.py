@@ -40,7 +40,6 @@ def _describe(c: Candidate) -> str:
     return c.effect
 
 
-
 def summarise(disagreements: Sequence[Disagreement], steps: Sequence[Candidate], baseline: Mapping[str, Any],
               final: Mapping[str, Any], untestable: Sequence[Mapping[str, str]] = ()) -> str:
     """The finding in words, for the operator; then what this run could not test, and how to test it."""
@@ -66,7 +65,13 @@ def summarise(disagreements: Sequence[Disagreement], steps: Sequence[Candidate],
         )
         lines += _fresh_lines(s)
         if s.tau_range is not None:
-            lines.append(f"  Time constant: {_tau_words(s)}.")
+            words = s.tau_range.words() + " (held-out blocks not significantly worse than at the τ named)"
+            if "tau_behind_fastest_s" in s.params:
+                shift = float(s.params["tau_behind_fastest_s"]) - float(s.params["tau_s"])
+                lo, hi = s.tau_range.lo_s + shift, s.tau_range.hi_s + shift
+                words += (f"; behind the fastest channel about {lo / 60:.0f}–{hi / 60:.0f} min (delays in series "
+                          "add only approximately)")
+            lines.append(f"  Time constant: {words}.")
         if math.isfinite(s.holdout_rms_nested_um):
             lines.append(f"  Chosen without each held-out block, τ predicts the blocks to "
                          f"{s.holdout_rms_nested_um * 1000:.1f} nm RMS ({s.holdout_rms_after_um * 1000:.1f} nm when "
@@ -91,8 +96,7 @@ def summarise(disagreements: Sequence[Disagreement], steps: Sequence[Candidate],
                          f"(RMS × {final['fresh_gain_expected']:.2f})"
                          + (f"; measured on the fresh run given: {_nm(*final['fresh_rms_measured_um'])} "
                             f"(× {final['fresh_gain_measured']:.2f})" if "fresh_gain_measured" in final else "") + ".")
-    for blind in untestable:
-        lines.append(f"This run cannot show {blind['effect']}: {blind['reason']}; {blind['hint']}.")
+    lines += [f"This run cannot show {blind['effect']}: {blind['reason']}; {blind['hint']}." for blind in untestable]
     return "\n".join(lines)
 
 
@@ -115,14 +119,3 @@ def _fresh_lines(s: Candidate) -> list[str]:
 
 def _nm(before_um: float, after_um: float) -> str:
     return f"{before_um * 1000:.1f} → {after_um * 1000:.1f} nm"
-
-
-def _tau_words(s: Candidate) -> str:
-    assert s.tau_range is not None
-    words = s.tau_range.words() + " (held-out blocks not significantly worse than at the τ named)"
-    if "tau_behind_fastest_s" in s.params:
-        shift = float(s.params["tau_behind_fastest_s"]) - float(s.params["tau_s"])
-        lo, hi = s.tau_range.lo_s + shift, s.tau_range.hi_s + shift
-        words += (f"; behind the fastest channel about {lo / 60:.0f}–{hi / 60:.0f} min (delays in series add only "
-                  "approximately)")
-    return words

@@ -82,7 +82,6 @@ def readmit(data: Dataset, working: Sequence[Term], nuisance: Mapping[str, np.nd
     return [term for j, term in enumerate(optional) if result.inmodel[forced + j]]
 
 
-
 @dataclass
 class Round:
     """One pass over the catalogue: every candidate tried, and the one named (if any)."""
