@@ -186,6 +186,9 @@ _KEYS = ("id", "x_um", "q_um", "voltage_v", "temperatures_c", "model", "t", "ext
          "q_sigma_um", "correction_um", "q_sigma_adapted_um")
 _OPTIONAL = frozenset(_KEYS[7:])
 _PER_AXIS = ("q_um", "voltage_v", "q_sigma_um", "correction_um", "q_sigma_adapted_um")
+#: the per-axis numbers that may be non-finite by design (a model without a covariance has no σ); a non-finite
+#: position, q or voltage is refused before a command exists
+_SIGMAS = frozenset(("q_sigma_um", "q_sigma_adapted_um"))
 _encode_string = json.JSONEncoder().encode  # a str (or None) -> its JSON literal (C fast path)
 #: (temperatures, model, with a correction, the daemon's command as a %-template with the first two filled in)
 _template_cache: tuple[object, object, bool, str] = (object(), object(), False, "")
@@ -203,8 +206,10 @@ def _number(value: float | None) -> float | None:
     return value if value is None or math.isfinite(value) else None
 
 
-def _numbers(per_axis: Mapping[str, float] | None) -> dict[str, float | None]:
-    return {axis: _number(value) for axis, value in (per_axis or {}).items()}
+def _axis_values(key: str, per_axis: Mapping[str, float] | None) -> dict[str, float | None]:
+    if key in _SIGMAS:
+        return {axis: _number(value) for axis, value in (per_axis or {}).items()}
+    return dict(per_axis or {})
 
 
 def command_doc(command: Command) -> dict[str, Any]:
@@ -214,12 +219,12 @@ def command_doc(command: Command) -> dict[str, Any]:
         doc: dict[str, Any] = {"id": command.id}
         doc.update({f"{axis}_um": value for axis, value in command.positions_um.items()})
         for key in ("q_um", "voltage_v", "q_sigma_um"):
-            doc[key] = _numbers(getattr(command, key))
+            doc[key] = _axis_values(key, getattr(command, key))
         doc.update(temperatures_c=dict(command.temperatures_c), model=command.model, t=command.t,
                    extrapolating=list(command.extrapolating or ()))
         for key in ("correction_um", "q_sigma_adapted_um"):
             if getattr(command, key) is not None:
-                doc[key] = _numbers(getattr(command, key))
+                doc[key] = _axis_values(key, getattr(command, key))
         return doc
     doc = {}
     for key in _KEYS:
@@ -232,7 +237,7 @@ def command_doc(command: Command) -> dict[str, Any]:
             value = dict(value)
         elif key == "extrapolating":
             value = list(value)
-        elif key in _PER_AXIS:
+        elif key in _SIGMAS:
             value = _number(value)
         doc[key] = value
     return doc
